@@ -1,0 +1,11 @@
+//! The ctxrace simulator: the f1tenth single-track vehicle, an exact LiDAR, exact collisions,
+//! pure-pursuit rivals scaled by the context, and the head-to-head [`RaceEnv`].
+
+pub mod baseline;
+pub mod collision;
+pub mod lidar;
+pub mod race;
+pub mod rival;
+pub mod vehicle;
+
+pub use race::{EpisodeMetrics, RaceEnv, RaceError, Step, StepInfo};

@@ -1,0 +1,103 @@
+//! `ctxrace bench sim`: simulator throughput on one core.
+
+use crate::TrackArgs;
+use anyhow::Result;
+use clap::{Args, Subcommand};
+use ctxrace_actor::baseline::{Baseline, BaselineKind};
+use ctxrace_actor::RaceEnv;
+use ctxrace_common::Context;
+use serde::Serialize;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// Benchmarks.
+#[derive(Subcommand)]
+pub enum BenchCommand {
+    /// Decisions/s and physics steps/s of whole races (ego LiDAR, rivals, collisions, resets) on
+    /// one core; contexts cycle through the 7 × 7 evaluation grid.
+    Sim(SimArgs),
+}
+
+/// Arguments of `ctxrace bench sim`.
+#[derive(Args)]
+pub struct SimArgs {
+    /// Track name, path to a map yaml, or generated:SEED.
+    track: String,
+    /// Number of rivals.
+    #[arg(long, default_value_t = 3)]
+    rivals: usize,
+    /// How long to run (s).
+    #[arg(long, default_value_t = 5.0)]
+    seconds: f64,
+    /// Ego policy while measuring.
+    #[arg(long, default_value = "pure-pursuit")]
+    ego: BaselineKind,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+    #[command(flatten)]
+    tracks: TrackArgs,
+}
+
+#[derive(Serialize)]
+struct SimReport {
+    track: String,
+    rivals: usize,
+    seconds: f64,
+    episodes: usize,
+    decisions: usize,
+    decisions_per_s: f64,
+    physics_steps_per_s: f64,
+    mean_episode_decisions: f64,
+}
+
+/// Runs a benchmark.
+pub fn run(cmd: BenchCommand) -> Result<()> {
+    let BenchCommand::Sim(args) = cmd;
+    if !(args.seconds.is_finite() && args.seconds > 0.0) {
+        anyhow::bail!("--seconds {} must be a positive number", args.seconds);
+    }
+    let cfg = ctxrace_common::RaceConfig {
+        rivals: args.rivals,
+        ..Default::default()
+    };
+    let physics_per_decision = cfg.physics_steps_per_action;
+    let track = Arc::new(args.tracks.load(&args.track)?);
+    let mut env = RaceEnv::new(track.clone(), cfg)?;
+    let grid = Context::grid(7, 0.3);
+    let (mut decisions, mut episodes) = (0usize, 0usize);
+    let start = Instant::now();
+    while start.elapsed().as_secs_f64() < args.seconds {
+        let seed = episodes as u64;
+        env.reset(seed, grid[episodes % grid.len()]);
+        let mut policy = Baseline::new(args.ego, &env, seed);
+        loop {
+            let step = env.step(policy.act(&env))?;
+            decisions += 1;
+            if step.terminated || step.truncated {
+                break;
+            }
+        }
+        episodes += 1;
+    }
+    let secs = start.elapsed().as_secs_f64();
+    let r = SimReport {
+        track: track.name.clone(),
+        rivals: args.rivals,
+        seconds: secs,
+        episodes,
+        decisions,
+        decisions_per_s: decisions as f64 / secs,
+        physics_steps_per_s: (decisions * physics_per_decision) as f64 / secs,
+        mean_episode_decisions: decisions as f64 / episodes.max(1) as f64,
+    };
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&r)?);
+    } else {
+        println!(
+            "{} · {} rivals · {:.1} s: {:.0} decisions/s, {:.0} physics steps/s ({} episodes, {:.0} decisions each)",
+            r.track, r.rivals, r.seconds, r.decisions_per_s, r.physics_steps_per_s, r.episodes, r.mean_episode_decisions
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,117 @@
+//! `ctxrace`: one command line for tracks, races, benchmarks and (later) the training processes.
+
+mod bench;
+mod race_cmd;
+mod render;
+mod track_cmd;
+mod vehicle_cmd;
+
+use anyhow::{Context as _, Result};
+use clap::{Args, Parser, Subcommand};
+use ctxrace_common::RaceConfig;
+use ctxrace_tracks::{RacelineSource, Track, TrackOptions};
+use std::path::PathBuf;
+
+/// Context-aware model-based RL for head-to-head autonomous racing (F1TENTH / Roboracer).
+#[derive(Parser)]
+#[command(name = "ctxrace", version, about, propagate_version = true)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Inspect a track or export its computed raceline.
+    #[command(subcommand)]
+    Track(track_cmd::TrackCommand),
+    /// Drive the vehicle model open-loop from a CSV of commands and print its states.
+    Vehicle(vehicle_cmd::VehicleArgs),
+    /// Run one race episode and print its metrics (optionally render it and write a trace).
+    Race(race_cmd::RaceArgs),
+    /// Measure speeds.
+    #[command(subcommand)]
+    Bench(bench::BenchCommand),
+}
+
+/// Where tracks come from and how their raceline is made.
+#[derive(Args, Clone, Debug)]
+pub struct TrackArgs {
+    /// Folder searched for track names [default: ../shared/tracks if it exists, else .].
+    #[arg(long, env = "CTXRACE_TRACKS_DIR", global = true)]
+    tracks_dir: Option<PathBuf>,
+    /// Use the raceline file shipped with the track instead of computing the min-curvature line.
+    #[arg(long, global = true)]
+    raceline_file: bool,
+    /// Raceline speed limit (m/s) [default: 8].
+    #[arg(long, global = true)]
+    v_max: Option<f64>,
+    /// Raceline lateral acceleration limit, v²|κ| (m/s²) [default: 10].
+    #[arg(long, global = true)]
+    a_lat: Option<f64>,
+    /// Raceline longitudinal acceleration and braking limit (m/s²) [default: 6].
+    #[arg(long, global = true)]
+    a_long: Option<f64>,
+}
+
+impl TrackArgs {
+    /// The track options these flags describe.
+    pub fn options(&self) -> TrackOptions {
+        let mut o = TrackOptions::default();
+        if let Some(d) = &self.tracks_dir {
+            o.tracks_dir = d.clone();
+        }
+        if self.raceline_file {
+            o.raceline_source = RacelineSource::File;
+        }
+        if let Some(v) = self.v_max {
+            o.raceline.v_max = v;
+        }
+        if let Some(v) = self.a_lat {
+            o.raceline.a_lat = v;
+        }
+        if let Some(v) = self.a_long {
+            o.raceline.a_long = v;
+        }
+        o
+    }
+
+    /// Loads `spec` (a name, a map yaml, or generated:SEED).
+    pub fn load(&self, spec: &str) -> Result<Track> {
+        Track::load(spec, &self.options()).with_context(|| format!("loading track '{spec}'"))
+    }
+}
+
+/// Reads a race config TOML, or the defaults.
+pub fn load_race_config(path: Option<&PathBuf>) -> Result<RaceConfig> {
+    let Some(path) = path else {
+        return Ok(RaceConfig::default());
+    };
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let cfg: RaceConfig =
+        toml::from_str(&text).with_context(|| format!("parsing race config {}", path.display()))?;
+    cfg.validate()
+        .map_err(|e| anyhow::anyhow!("race config {}: {e}", path.display()))?;
+    Ok(cfg)
+}
+
+fn main() {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Track(c) => track_cmd::run(c),
+        Command::Vehicle(a) => vehicle_cmd::run(a),
+        Command::Race(a) => race_cmd::run(a),
+        Command::Bench(c) => bench::run(c),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}

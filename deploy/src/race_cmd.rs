@@ -1,0 +1,185 @@
+//! `ctxrace race`: one episode with a reference ego policy, its metrics, picture and trace.
+
+use crate::render::{render_race, Frame};
+use crate::TrackArgs;
+use anyhow::{Context as _, Result};
+use clap::Args;
+use ctxrace_actor::baseline::{Baseline, BaselineKind};
+use ctxrace_actor::vehicle::idx;
+use ctxrace_actor::RaceEnv;
+use ctxrace_common::Context;
+use serde::Serialize;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// Arguments of `ctxrace race`.
+#[derive(Args)]
+pub struct RaceArgs {
+    /// Track name, path to a map yaml, or generated:SEED.
+    track: String,
+    /// Number of rivals, 0 to 7 [default: the config's, 1].
+    #[arg(long)]
+    rivals: Option<usize>,
+    /// Rival context CV,CT (speed and steering coefficients).
+    #[arg(long, default_value = "0,0", allow_hyphen_values = true)]
+    context: Context,
+    /// Ego policy: pure-pursuit (raceline at full speed), random, or still.
+    #[arg(long, default_value = "pure-pursuit")]
+    ego: BaselineKind,
+    /// Episode seed (LiDAR noise, random policy).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Race config TOML (see configs/); flags override it.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Draw the track and every car's path coloured by speed (.png or .svg).
+    #[arg(long)]
+    render: Option<PathBuf>,
+    /// Write per-step poses, speeds, actions and the ego scan as CSV.
+    #[arg(long)]
+    trace: Option<PathBuf>,
+    /// Print the metrics as JSON.
+    #[arg(long)]
+    json: bool,
+    #[command(flatten)]
+    tracks: TrackArgs,
+}
+
+#[derive(Serialize)]
+struct RaceReport<'a> {
+    track: &'a str,
+    rivals: usize,
+    context: [f64; 2],
+    ego: String,
+    seed: u64,
+    #[serde(flatten)]
+    metrics: &'a ctxrace_actor::EpisodeMetrics,
+    ended_by: &'static str,
+}
+
+/// Runs one episode.
+pub fn run(args: RaceArgs) -> Result<()> {
+    let mut cfg = crate::load_race_config(args.config.as_ref())?;
+    if let Some(n) = args.rivals {
+        cfg.rivals = n;
+    }
+    let track = Arc::new(args.tracks.load(&args.track)?);
+    let mut env = RaceEnv::new(track.clone(), cfg)?;
+    let mut obs = env.reset(args.seed, args.context);
+    let mut policy = Baseline::new(args.ego, &env, args.seed);
+    let mut frames = vec![Frame::capture(&env, [0.0, 0.0], 0.0, &obs)];
+    let ended_by = loop {
+        let action = policy.act(&env);
+        let step = env.step(action)?;
+        obs = step.obs;
+        frames.push(Frame::capture(&env, action, step.reward, &obs));
+        if step.terminated || step.truncated {
+            let i = step.info;
+            break if i.lap_complete {
+                "lap complete"
+            } else if i.a2a {
+                "collision with a rival"
+            } else if i.wall_crash {
+                "wall crash"
+            } else {
+                "time limit"
+            };
+        }
+    };
+    let m = env.metrics();
+    if args.json {
+        let report = RaceReport {
+            track: &track.name,
+            rivals: env.config().rivals,
+            context: args.context.to_array(),
+            ego: format!("{:?}", args.ego),
+            seed: args.seed,
+            metrics: m,
+            ended_by,
+        };
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        println!(
+            "track {} · {} rivals · context {:+.2},{:+.2} · ego {:?} · seed {}",
+            track.name,
+            env.config().rivals,
+            args.context.speed,
+            args.context.steer,
+            args.ego,
+            args.seed
+        );
+        println!("ended by        {ended_by} after {} decisions", m.steps);
+        println!("progress (PG)   {:.4}", m.progress);
+        println!("overtakes (OT)  {}", m.overtakes);
+        println!("rival collision {}", m.a2a);
+        println!("wall crash      {}", m.wall_crash);
+        match m.lap_time {
+            Some(t) => println!("lap time        {t:.2} s"),
+            None => println!("lap time        -"),
+        }
+        println!("return          {:.3}", m.episode_return);
+        println!("rivals crashed  {}", m.rivals_crashed);
+    }
+    if let Some(path) = &args.render {
+        render_race(path, &track, &frames)?;
+        eprintln!("rendered {}", path.display());
+    }
+    if let Some(path) = &args.trace {
+        write_trace(path, &frames).with_context(|| format!("writing trace {}", path.display()))?;
+        eprintln!("wrote trace {}", path.display());
+    }
+    Ok(())
+}
+
+fn write_trace(path: &Path, frames: &[Frame]) -> Result<()> {
+    let mut w = std::io::BufWriter::new(std::fs::File::create(path)?);
+    let cars = frames.first().map_or(0, |f| f.cars.len());
+    let beams = frames.first().map_or(0, |f| f.scan.len());
+    let mut header = vec![
+        "step".to_string(),
+        "time".into(),
+        "action_steer".into(),
+        "action_speed".into(),
+        "reward".into(),
+    ];
+    for c in 0..cars {
+        let name = if c == 0 {
+            "ego".to_string()
+        } else {
+            format!("rival{c}")
+        };
+        for f in ["x", "y", "yaw", "speed", "steer", "crashed"] {
+            header.push(format!("{name}_{f}"));
+        }
+    }
+    header.extend((0..beams).map(|b| format!("scan{b}")));
+    writeln!(w, "{}", header.join(","))?;
+    for (k, f) in frames.iter().enumerate() {
+        let mut row = vec![
+            k.to_string(),
+            format!("{:.2}", f.time),
+            format!("{:.6}", f.action[0]),
+            format!("{:.6}", f.action[1]),
+            format!("{:.6}", f.reward),
+        ];
+        for c in &f.cars {
+            row.extend(
+                [
+                    c.state[idx::X],
+                    c.state[idx::Y],
+                    c.state[idx::YAW],
+                    c.state[idx::V],
+                    c.state[idx::STEER],
+                ]
+                .iter()
+                .map(|v| format!("{v:.6}")),
+            );
+            row.push((c.crashed as u8).to_string());
+        }
+        row.extend(f.scan.iter().map(|v| format!("{v:.5}")));
+        writeln!(w, "{}", row.join(","))?;
+    }
+    w.flush()?;
+    Ok(())
+}

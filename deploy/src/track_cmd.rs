@@ -1,0 +1,149 @@
+//! `ctxrace track info|raceline`.
+
+use crate::TrackArgs;
+use anyhow::{Context, Result};
+use clap::Subcommand;
+use ctxrace_tracks::files::write_raceline;
+use ctxrace_tracks::Track;
+use nalgebra::{Point2, Vector2};
+use serde::Serialize;
+use std::path::PathBuf;
+
+/// Track subcommands.
+#[derive(Subcommand)]
+pub enum TrackCommand {
+    /// Length, width statistics, raceline length and lap time.
+    Info {
+        /// Track name, path to a map yaml, or generated:SEED.
+        track: String,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        tracks: TrackArgs,
+    },
+    /// Write the computed raceline in the paper's dialect (s,x,y,psi,kappa,vx,ax).
+    Raceline {
+        /// Track name, path to a map yaml, or generated:SEED.
+        track: String,
+        /// Output CSV file.
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        tracks: TrackArgs,
+    },
+}
+
+/// Minimum, mean and maximum of a series.
+#[derive(Serialize)]
+struct Stats {
+    min: f64,
+    mean: f64,
+    max: f64,
+}
+
+impl Stats {
+    fn of(v: impl Iterator<Item = f64>) -> Self {
+        let (mut min, mut max, mut sum, mut n) = (f64::INFINITY, f64::NEG_INFINITY, 0.0, 0usize);
+        for x in v {
+            min = min.min(x);
+            max = max.max(x);
+            sum += x;
+            n += 1;
+        }
+        Self {
+            min,
+            mean: sum / n.max(1) as f64,
+            max,
+        }
+    }
+}
+
+#[derive(Serialize)]
+struct TrackInfo {
+    name: String,
+    length_m: f64,
+    centreline_points: usize,
+    /// w_left + w_right from the centreline file (or generator).
+    listed_width_m: Stats,
+    /// Wall-to-wall width across the centreline, measured on the walls.
+    drawn_width_m: Stats,
+    wall_segments: usize,
+    raceline_length_m: f64,
+    raceline_lap_time_s: f64,
+    raceline_max_speed_mps: f64,
+}
+
+fn info(track: &Track) -> TrackInfo {
+    let c = &track.centreline;
+    let pts = c.curve.points();
+    let drawn = (0..pts.len()).map(|i| {
+        let d = c.curve.segment_vector(i).normalize();
+        let normal = Vector2::new(-d.y as f32, d.x as f32);
+        let o = Point2::new(pts[i].x as f32, pts[i].y as f32);
+        let side = |dir: Vector2<f32>| track.walls.cast_ray(o, dir, 20.0).unwrap_or(20.0) as f64;
+        side(normal) + side(-normal)
+    });
+    TrackInfo {
+        name: track.name.clone(),
+        length_m: track.length(),
+        centreline_points: pts.len(),
+        listed_width_m: Stats::of(c.w_left.iter().zip(&c.w_right).map(|(l, r)| l + r)),
+        drawn_width_m: Stats::of(drawn),
+        wall_segments: track.walls.segment_count(),
+        raceline_length_m: track.raceline.curve.length(),
+        raceline_lap_time_s: track.raceline.lap_time(),
+        raceline_max_speed_mps: track.raceline.speed.iter().copied().fold(0.0, f64::max),
+    }
+}
+
+/// Runs a track subcommand.
+pub fn run(cmd: TrackCommand) -> Result<()> {
+    match cmd {
+        TrackCommand::Info {
+            track,
+            json,
+            tracks,
+        } => {
+            let t = tracks.load(&track)?;
+            let i = info(&t);
+            if json {
+                println!("{}", serde_json::to_string_pretty(&i)?);
+            } else {
+                let s = |s: &Stats| format!("{:.2} / {:.2} / {:.2}", s.min, s.mean, s.max);
+                println!("track            {}", i.name);
+                println!(
+                    "length           {:.2} m ({} centreline points)",
+                    i.length_m, i.centreline_points
+                );
+                println!(
+                    "listed width     {} m (min / mean / max)",
+                    s(&i.listed_width_m)
+                );
+                println!("drawn width      {} m (wall to wall)", s(&i.drawn_width_m));
+                println!("walls            {} segments", i.wall_segments);
+                println!(
+                    "raceline         {:.2} m, lap {:.2} s at up to {:.2} m/s",
+                    i.raceline_length_m, i.raceline_lap_time_s, i.raceline_max_speed_mps
+                );
+            }
+        }
+        TrackCommand::Raceline { track, out, tracks } => {
+            let t = tracks.load(&track)?;
+            let file = std::fs::File::create(&out)
+                .with_context(|| format!("creating {}", out.display()))?;
+            let mut w = std::io::BufWriter::new(file);
+            write_raceline(&t.raceline, &mut w)
+                .and_then(|_| std::io::Write::flush(&mut w))
+                .with_context(|| format!("writing {}", out.display()))?;
+            println!(
+                "wrote {} ({} points, {:.2} m, lap {:.2} s)",
+                out.display(),
+                t.raceline.curve.len(),
+                t.raceline.curve.length(),
+                t.raceline.lap_time()
+            );
+        }
+    }
+    Ok(())
+}

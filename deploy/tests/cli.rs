@@ -1,0 +1,306 @@
+//! The `ctxrace` command line, run as a separate process: the documented forms work, and bad input
+//! gives a clear error (exit 1, no panic).
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn ctxrace(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_ctxrace"))
+        .args(args)
+        .env_remove("CTXRACE_TRACKS_DIR")
+        .output()
+        .expect("the binary runs")
+}
+
+fn stdout(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+fn shared(sub: &str) -> Option<PathBuf> {
+    let d = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared")
+        .join(sub);
+    if d.exists() {
+        Some(d)
+    } else {
+        eprintln!("skipping: {} not found", d.display());
+        None
+    }
+}
+
+/// Fails with a clear message: exit code 1, the message contains `needle`, no panic.
+fn fails_with(args: &[&str], needle: &str) {
+    let o = ctxrace(args);
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{args:?}: {err}");
+    assert!(
+        err.contains(needle),
+        "{args:?}: expected '{needle}' in: {err}"
+    );
+    assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
+}
+
+#[test]
+fn race_on_a_generated_track_renders_traces_and_reports_json() {
+    let dir = tempfile::tempdir().unwrap();
+    let png = dir.path().join("race.png");
+    let svg = dir.path().join("race.svg");
+    let trace = dir.path().join("trace.csv");
+    let o = ctxrace(&[
+        "race",
+        "generated:3",
+        "--rivals",
+        "2",
+        "--context",
+        "-0.3,0.2",
+        "--ego",
+        "pure-pursuit",
+        "--seed",
+        "5",
+        "--render",
+        png.to_str().unwrap(),
+        "--trace",
+        trace.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let json: serde_json::Value = serde_json::from_str(&stdout(&o)).unwrap();
+    assert_eq!(json["rivals"], 2);
+    assert_eq!(json["context"][0], -0.3);
+    let pg = json["progress"].as_f64().unwrap();
+    assert!(pg > 0.0 && pg <= 1.0, "{json}");
+    // a PNG with the right signature, and a trace with one row per decision plus the start
+    let bytes = std::fs::read(&png).unwrap();
+    assert_eq!(&bytes[1..4], b"PNG");
+    let rows: Vec<String> = std::fs::read_to_string(&trace)
+        .unwrap()
+        .lines()
+        .map(String::from)
+        .collect();
+    assert_eq!(rows.len(), json["steps"].as_u64().unwrap() as usize + 2);
+    let header: Vec<&str> = rows[0].split(',').collect();
+    assert!(header.contains(&"rival2_speed") && header.contains(&"scan107"));
+    assert_eq!(rows[1].split(',').count(), header.len());
+    // the same seed gives the same episode
+    let again = ctxrace(&[
+        "race",
+        "generated:3",
+        "--rivals",
+        "2",
+        "--context",
+        "-0.3,0.2",
+        "--seed",
+        "5",
+        "--json",
+        "--render",
+        svg.to_str().unwrap(),
+    ]);
+    assert_eq!(stdout(&again), stdout(&o));
+    assert!(std::fs::read_to_string(&svg).unwrap().contains("<svg"));
+}
+
+#[test]
+fn vehicle_command_reproduces_the_reference_states() {
+    let Some(dir) = shared("testdata/vehicle") else {
+        return;
+    };
+    let o = ctxrace(&[
+        "vehicle",
+        "--controls",
+        dir.join("vehicle1_controls.csv").to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let want = std::fs::read_to_string(dir.join("vehicle1_states.csv")).unwrap();
+    let got = stdout(&o);
+    assert_eq!(got.lines().count(), want.lines().count());
+    for (g, w) in got.lines().zip(want.lines()).skip(1) {
+        let g: Vec<f64> = g.split(',').map(|v| v.parse().unwrap()).collect();
+        let w: Vec<f64> = w.split(',').map(|v| v.parse().unwrap()).collect();
+        for (a, b) in g.iter().zip(&w) {
+            assert!((a - b).abs() < 1e-6, "{g:?} vs {w:?}");
+        }
+    }
+}
+
+#[test]
+fn track_info_and_raceline_export_on_the_paper_map() {
+    let Some(dir) = shared("tracks") else { return };
+    let d = dir.to_str().unwrap();
+    let o = ctxrace(&["track", "info", "f1_esp", "--tracks-dir", d, "--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let info: serde_json::Value = serde_json::from_str(&stdout(&o)).unwrap();
+    let length = info["length_m"].as_f64().unwrap();
+    assert!((230.0..245.0).contains(&length), "{info}");
+    assert!(info["raceline_lap_time_s"].as_f64().unwrap() > 20.0);
+    let out = tempfile::tempdir().unwrap();
+    let csv = out.path().join("esp_raceline.csv");
+    let o = ctxrace(&[
+        "track",
+        "raceline",
+        "f1_esp",
+        "--tracks-dir",
+        d,
+        "--out",
+        csv.to_str().unwrap(),
+        "--v-max",
+        "5",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let speeds: Vec<f64> = text
+        .lines()
+        .map(|l| l.split(',').nth(5).unwrap().parse().unwrap())
+        .collect();
+    assert!(speeds.len() > 500);
+    assert!(speeds.iter().all(|&v| v > 0.0 && v <= 5.0 + 1e-9));
+    // the exported file loads back as a raceline of the same track
+    let yaml = out.path().join("esp.yaml");
+    std::fs::write(
+        &yaml,
+        format!(
+            "image: {}\nresolution: 0.05\norigin: [-38.5, -24.4, 0]\n",
+            dir.join("f1_esp.png").display()
+        ),
+    )
+    .unwrap();
+    std::fs::copy(
+        dir.join("f1_esp_centerline.csv"),
+        out.path().join("esp_centerline.csv"),
+    )
+    .unwrap();
+    let o = ctxrace(&[
+        "track",
+        "info",
+        yaml.to_str().unwrap(),
+        "--raceline-file",
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let back: serde_json::Value = serde_json::from_str(&stdout(&o)).unwrap();
+    assert!(
+        (back["raceline_length_m"].as_f64().unwrap() - info["raceline_length_m"].as_f64().unwrap())
+            .abs()
+            < 0.5
+    );
+}
+
+fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
+    let p = dir.join(name);
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+#[test]
+fn bad_input_gives_clear_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    // unknown track name lists what exists
+    write(
+        d,
+        "oval.yaml",
+        "image: oval.png\nresolution: 0.05\norigin: [0, 0, 0]\n",
+    );
+    write(
+        d,
+        "oval_centerline.csv",
+        "0,0,1,1\n4,0,1,1\n4,4,1,1\n0,4,1,1\n",
+    );
+    fails_with(
+        &[
+            "track",
+            "info",
+            "nowhere",
+            "--tracks-dir",
+            d.to_str().unwrap(),
+        ],
+        "found there: oval",
+    );
+    // missing image named by the yaml
+    fails_with(
+        &["track", "info", "oval", "--tracks-dir", d.to_str().unwrap()],
+        "oval.png",
+    );
+    // missing yaml file
+    fails_with(
+        &["track", "info", d.join("absent.yaml").to_str().unwrap()],
+        "absent.yaml",
+    );
+    // a map and a centreline that do not match, too few points, a bad number
+    if let Some(shared) = shared("tracks") {
+        let png = shared.join("f1_esp.png");
+        let yaml = format!(
+            "image: {}\nresolution: 0.05\norigin: [100, 100, 0]\n",
+            png.display()
+        );
+        write(d, "shifted.yaml", &yaml);
+        std::fs::copy(
+            shared.join("f1_esp_centerline.csv"),
+            d.join("shifted_centerline.csv"),
+        )
+        .unwrap();
+        fails_with(
+            &["track", "info", d.join("shifted.yaml").to_str().unwrap()],
+            "outside the image",
+        );
+        let yaml = format!(
+            "image: {}\nresolution: 0.05\norigin: [-38.5, -24.4, 0]\n",
+            png.display()
+        );
+        write(d, "few.yaml", &yaml);
+        write(d, "few_centerline.csv", "0,0,1,1\n1,0,1,1\n1,1,1,1\n");
+        fails_with(
+            &["track", "info", d.join("few.yaml").to_str().unwrap()],
+            "3 distinct points",
+        );
+        write(d, "badnum.yaml", &yaml);
+        write(d, "badnum_centerline.csv", "0,0,1,1\n0.2,zero,1,1\n");
+        fails_with(
+            &["track", "info", d.join("badnum.yaml").to_str().unwrap()],
+            "badnum_centerline.csv:2: column 2: 'zero' is not a number",
+        );
+    }
+    // contexts out of range or malformed, bad generated seed, bad render extension
+    fails_with(&["race", "generated:1", "--context", "2,0"], "out of range");
+    fails_with(&["race", "generated:1", "--context", "0.1"], "two numbers");
+    fails_with(&["race", "generated:x"], "must be a whole number");
+    fails_with(
+        &["race", "generated:1", "--rivals", "9"],
+        "rivals = 9 must be 0 to 7",
+    );
+    fails_with(
+        &[
+            "race",
+            "generated:1",
+            "--render",
+            d.join("x.gif").to_str().unwrap(),
+        ],
+        ".png or .svg",
+    );
+    // bad controls and configs
+    let controls = write(d, "controls.csv", "steer,speed\n0.1,abc\n");
+    fails_with(
+        &["vehicle", "--controls", controls.to_str().unwrap()],
+        "controls.csv:2: column 2: 'abc'",
+    );
+    let cfg = write(d, "cfg.toml", "rivalz = 2\n");
+    fails_with(
+        &["race", "generated:1", "--config", cfg.to_str().unwrap()],
+        "unknown field `rivalz`",
+    );
+}
+
+#[test]
+fn the_shipped_config_parses_and_matches_the_defaults() {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/race.toml");
+    let cfg: ctxrace_common::RaceConfig =
+        toml::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+    let defaults = ctxrace_common::RaceConfig {
+        rivals: 3,
+        ..Default::default()
+    };
+    assert_eq!(cfg, defaults);
+}

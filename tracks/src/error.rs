@@ -1,0 +1,68 @@
+//! Errors raised while loading, building or optimising a track.
+
+use std::path::PathBuf;
+
+/// Everything that can go wrong with a track: each variant names what, where and how to fix it.
+#[derive(Debug, thiserror::Error)]
+pub enum TrackError {
+    /// A file could not be read.
+    #[error("cannot read {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// A CSV cell is not a number, or a row has the wrong number of columns.
+    #[error("{path}:{line}: {message}")]
+    Csv {
+        /// The file.
+        path: PathBuf,
+        /// One-based line number.
+        line: usize,
+        /// What is wrong and what was expected.
+        message: String,
+    },
+    /// The map yaml is malformed or inconsistent with its image.
+    #[error("map {path}: {message}")]
+    Map {
+        /// The yaml or image file.
+        path: PathBuf,
+        /// What is wrong and how to fix it.
+        message: String,
+    },
+    /// A curve has too few distinct points to describe a closed track.
+    #[error("{what} has {found} distinct points; a closed track needs at least {needed}")]
+    TooFewPoints {
+        /// Which curve (with its file when known).
+        what: String,
+        /// Points found.
+        found: usize,
+        /// Points needed.
+        needed: usize,
+    },
+    /// A track name did not resolve to any file.
+    #[error("unknown track '{name}' in {dir}; tracks found there: {found}. Pass --tracks-dir (or set CTXRACE_TRACKS_DIR), a path to a map yaml, or generated:SEED")]
+    UnknownTrack {
+        /// The name asked for.
+        name: String,
+        /// The directory searched.
+        dir: PathBuf,
+        /// Comma-separated names that exist.
+        found: String,
+    },
+    /// A parameter is outside its valid range.
+    #[error("invalid {what}: {message}")]
+    Invalid {
+        /// The parameter.
+        what: String,
+        /// Why, and the valid range.
+        message: String,
+    },
+    /// The raceline optimisation failed.
+    #[error("raceline optimisation failed: {0}")]
+    Optimisation(String),
+}
+
+/// Shorthand for results with [`TrackError`].
+pub type Result<T> = std::result::Result<T, TrackError>;

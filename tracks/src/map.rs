@@ -1,0 +1,132 @@
+//! Occupancy maps: a ROS map yaml (image, resolution, origin) and its PNG.
+//!
+//! Pixels with grey value `<= 128` are occupied, brighter ones drivable, as in f1tenth_gym. Rows
+//! are flipped so that row 0 is the bottom of the image: pixel `(c, r)` covers the world square
+//! `[o_x + c·res, o_x + (c+1)·res) × [o_y + r·res, o_y + (r+1)·res)`.
+
+use crate::error::{Result, TrackError};
+use nalgebra::Point2;
+use serde::Deserialize;
+use std::path::{Path, PathBuf};
+
+/// The fields of a ROS map yaml that ctxrace reads; other fields are ignored.
+#[derive(Debug, Deserialize)]
+struct MapYaml {
+    image: String,
+    resolution: f64,
+    origin: Vec<f64>,
+}
+
+/// A binary occupancy grid in world coordinates.
+#[derive(Clone, Debug)]
+pub struct OccupancyMap {
+    /// Width in pixels.
+    pub width: usize,
+    /// Height in pixels.
+    pub height: usize,
+    /// Metres per pixel.
+    pub resolution: f64,
+    /// World position of the bottom-left corner of pixel (0, 0).
+    pub origin: Point2<f64>,
+    /// `true` where occupied, row-major with row 0 at the bottom.
+    occupied: Vec<bool>,
+    /// The image file it came from.
+    pub image_path: PathBuf,
+}
+
+/// Grey values at or below this are occupied (f1tenth_gym's threshold).
+const OCCUPIED_AT_OR_BELOW: u8 = 128;
+
+impl OccupancyMap {
+    /// Loads a map yaml and the image it names (relative to the yaml's folder).
+    pub fn load(yaml_path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(yaml_path).map_err(|source| TrackError::Io {
+            path: yaml_path.to_path_buf(),
+            source,
+        })?;
+        let bad = |message: String| TrackError::Map {
+            path: yaml_path.to_path_buf(),
+            message,
+        };
+        let yaml: MapYaml = serde_yaml::from_str(&text).map_err(|e| {
+            bad(format!(
+                "{e}; expected keys image, resolution and origin: [x, y, yaw]"
+            ))
+        })?;
+        if !(yaml.resolution.is_finite() && yaml.resolution > 0.0) {
+            return Err(bad(format!(
+                "resolution {} must be a positive number of metres per pixel",
+                yaml.resolution
+            )));
+        }
+        if yaml.origin.len() < 2 || yaml.origin.iter().any(|v| !v.is_finite()) {
+            return Err(bad(format!(
+                "origin {:?} must be [x, y, yaw] with finite numbers",
+                yaml.origin
+            )));
+        }
+        let image_path = yaml_path
+            .parent()
+            .unwrap_or_else(|| Path::new("."))
+            .join(&yaml.image);
+        let img = image::open(&image_path)
+            .map_err(|e| TrackError::Map {
+                path: image_path.clone(),
+                message: format!(
+                    "cannot open the image named by {} ({e}); the yaml's 'image' must name a PNG beside it",
+                    yaml_path.display()
+                ),
+            })?
+            .to_luma8();
+        let (width, height) = (img.width() as usize, img.height() as usize);
+        let mut occupied = vec![false; width * height];
+        for (c, r_top, px) in img.enumerate_pixels() {
+            let r = height - 1 - r_top as usize;
+            occupied[r * width + c as usize] = px.0[0] <= OCCUPIED_AT_OR_BELOW;
+        }
+        Ok(Self {
+            width,
+            height,
+            resolution: yaml.resolution,
+            origin: Point2::new(yaml.origin[0], yaml.origin[1]),
+            occupied,
+            image_path,
+        })
+    }
+
+    /// Whether pixel `(c, r)` (row 0 at the bottom) is occupied; outside the image counts as occupied.
+    pub fn is_occupied(&self, c: isize, r: isize) -> bool {
+        if c < 0 || r < 0 || c as usize >= self.width || r as usize >= self.height {
+            return true;
+        }
+        self.occupied[r as usize * self.width + c as usize]
+    }
+
+    /// The pixel holding a world point, if inside the image.
+    pub fn pixel_of(&self, p: &Point2<f64>) -> Option<(usize, usize)> {
+        let c = ((p.x - self.origin.x) / self.resolution).floor();
+        let r = ((p.y - self.origin.y) / self.resolution).floor();
+        (c >= 0.0 && r >= 0.0 && (c as usize) < self.width && (r as usize) < self.height)
+            .then_some((c as usize, r as usize))
+    }
+
+    /// World position of the centre of pixel `(c, r)`, in half-pixel units `(2c+1, 2r+1)/2`.
+    pub fn half_pixel_to_world(&self, hx: i64, hy: i64) -> Point2<f64> {
+        Point2::new(
+            self.origin.x + (hx as f64 * 0.5 + 0.5) * self.resolution,
+            self.origin.y + (hy as f64 * 0.5 + 0.5) * self.resolution,
+        )
+    }
+
+    /// World extent `(min, max)` of the image.
+    pub fn extent(&self) -> (Point2<f64>, Point2<f64>) {
+        (
+            self.origin,
+            self.origin
+                + nalgebra::Vector2::new(
+                    self.width as f64 * self.resolution,
+                    self.height as f64 * self.resolution,
+                ),
+        )
+    }
+}

@@ -1,0 +1,47 @@
+//! Checks on the paper's maps (read from ../shared/tracks; skipped with a note when absent).
+
+use ctxrace_tracks::files::{load_centreline, load_raceline, TrackFiles};
+use ctxrace_tracks::{OccupancyMap, Walls};
+use std::path::PathBuf;
+
+fn shared_tracks() -> Option<PathBuf> {
+    let d = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/tracks");
+    if d.is_dir() {
+        Some(d)
+    } else {
+        eprintln!("skipping: {} not found", d.display());
+        None
+    }
+}
+
+#[test]
+fn walls_enclose_the_centreline_of_both_paper_maps() {
+    let Some(dir) = shared_tracks() else { return };
+    for name in ["f1_esp", "f1_gbr"] {
+        let files = TrackFiles::resolve(name, &dir).unwrap();
+        let t0 = std::time::Instant::now();
+        let map = OccupancyMap::load(&files.yaml).unwrap();
+        let walls = Walls::from_map(&map);
+        let centre = load_centreline(&files.centreline).unwrap();
+        eprintln!(
+            "{name}: {} wall loops, {} segments, traced in {:?}, centreline {:.1} m",
+            walls.loops().len(),
+            walls.segment_count(),
+            t0.elapsed(),
+            centre.curve.length()
+        );
+        // the drawn corridor is what is raced on: every centreline point is clear of the walls
+        let min_clear = centre
+            .curve
+            .points()
+            .iter()
+            .map(|p| walls.distance(p))
+            .fold(f64::INFINITY, f64::min);
+        assert!(
+            min_clear > 0.4,
+            "{name}: centreline comes within {min_clear} m of a wall"
+        );
+        let raceline = load_raceline(&files.raceline).unwrap();
+        assert!(raceline.curve.length() > 100.0);
+    }
+}
