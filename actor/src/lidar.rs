@@ -29,8 +29,8 @@ pub struct Lidar {
     dirs: Vec<(f64, f64)>,
     /// `α_0`.
     first: f64,
-    /// `α_{k+1} − α_k` (0 with one beam).
-    spacing: f64,
+    /// `1 / (α_{k+1} − α_k)` (0 with one beam).
+    inv_spacing: f64,
     max_range: f64,
     /// The field of view lies in front of the car (`fov ≤ 180°`), so segments behind it are skipped.
     front_only: bool,
@@ -56,7 +56,7 @@ impl Lidar {
         Self {
             dirs,
             first,
-            spacing,
+            inv_spacing: if spacing > 0.0 { 1.0 / spacing } else { 0.0 },
             max_range: cfg.max_range,
             front_only: fov <= PI,
             noise_sd: cfg.noise_sd as f32,
@@ -68,35 +68,39 @@ impl Lidar {
         self.dirs.len()
     }
 
-    /// Exact ranges in metres (capped at the max range) from `origin` with heading `yaw`, into `out`.
+    /// Exact ranges in metres (capped at the max range) from `origin` with heading `yaw`, into
+    /// `out`; `nearby` holds the wall segments around the car between calls.
     pub fn ranges(
         &self,
         origin: Point2<f64>,
         yaw: f64,
+        nearby: &mut NearbyWalls,
         walls: &Walls,
         cars: &[CarBox],
         out: &mut [f32],
     ) {
         let mut best = vec![self.max_range; self.dirs.len()];
         let (s, c) = yaw.sin_cos();
-        let local = |x: f32, y: f32| {
-            let (dx, dy) = (x as f64 - origin.x, y as f64 - origin.y);
+        let local = |x: f64, y: f64| {
+            let (dx, dy) = (x - origin.x, y - origin.y);
             (c * dx + s * dy, -s * dx + c * dy)
         };
-        let r = self.max_range as f32;
-        let o = Point2::new(origin.x as f32, origin.y as f32);
-        let reach = Aabb::new(o - Vector2::new(r, r), o + Vector2::new(r, r));
-        for seg in walls.segments_in(&reach) {
-            self.sweep(local(seg.a.x, seg.a.y), local(seg.b.x, seg.b.y), &mut best);
+        for seg in nearby.around(walls, origin, self.max_range) {
+            self.sweep(local(seg[0], seg[1]), local(seg[2], seg[3]), &mut best);
         }
+        let o = Point2::new(origin.x as f32, origin.y as f32);
         for car in cars {
-            if (car.centre() - o).norm() > r + CarBox::CIRCUMRADIUS {
+            if (car.centre() - o).norm() > self.max_range as f32 + CarBox::CIRCUMRADIUS {
                 continue;
             }
-            let corners = car.corners();
+            let k = car.corners();
             for i in 0..4 {
-                let (a, b) = (corners[i], corners[(i + 1) % 4]);
-                self.sweep(local(a.x, a.y), local(b.x, b.y), &mut best);
+                let (a, b) = (k[i], k[(i + 1) % 4]);
+                self.sweep(
+                    local(a.x as f64, a.y as f64),
+                    local(b.x as f64, b.y as f64),
+                    &mut best,
+                );
             }
         }
         for (o, b) in out.iter_mut().zip(&best) {
@@ -112,14 +116,17 @@ impl Lidar {
         }
         let e = (q.0 - p.0, q.1 - p.1);
         // nearest point of the segment to the car: beyond the max range, no beam can hit it
+        let r2 = self.max_range * self.max_range;
+        let along = -(p.0 * e.0 + p.1 * e.1);
         let ee = e.0 * e.0 + e.1 * e.1;
-        let t_near = if ee > 0.0 {
-            (-(p.0 * e.0 + p.1 * e.1) / ee).clamp(0.0, 1.0)
+        let near2 = if along <= 0.0 {
+            p.0 * p.0 + p.1 * p.1
+        } else if along >= ee {
+            q.0 * q.0 + q.1 * q.1
         } else {
-            0.0
+            p.0 * p.0 + p.1 * p.1 - along * along / ee
         };
-        let (nx, ny) = (p.0 + t_near * e.0, p.1 + t_near * e.1);
-        if nx * nx + ny * ny > self.max_range * self.max_range {
+        if near2 > r2 {
             return;
         }
         let (tp, tq) = (fast_atan2(p.1, p.0), fast_atan2(q.1, q.0));
@@ -129,13 +136,16 @@ impl Lidar {
             (lo, hi) = (hi, lo + TAU);
         }
         let last = self.dirs.len() as isize - 1;
-        for shift in [0.0, -TAU] {
+        // t·(d × e) = p × e is the same for every beam; compare before dividing
+        let cross_pe = p.0 * e.1 - p.1 * e.0;
+        let shifts: &[f64] = if hi > PI { &[0.0, -TAU] } else { &[0.0] };
+        for shift in shifts {
             let (a, b) = (lo + shift, hi + shift);
             // beam indices, widened by one beam either side (truncation instead of floor/ceil)
-            let (k0, k1) = if self.spacing > 0.0 {
+            let (k0, k1) = if self.inv_spacing > 0.0 {
                 (
-                    (((a - self.first) / self.spacing) as isize - 1).max(0),
-                    (((b - self.first) / self.spacing) as isize + 1).min(last),
+                    (((a - self.first) * self.inv_spacing) as isize - 1).max(0),
+                    (((b - self.first) * self.inv_spacing) as isize + 1).min(last),
                 )
             } else {
                 (0, 0)
@@ -146,14 +156,21 @@ impl Lidar {
             let range = k0 as usize..=k1 as usize;
             for (d, slot) in self.dirs[range.clone()].iter().zip(&mut best[range]) {
                 let denom = d.0 * e.1 - d.1 * e.0;
-                if denom == 0.0 {
+                let (num_t, num_u, den) = if denom > 0.0 {
+                    (cross_pe, p.0 * d.1 - p.1 * d.0, denom)
+                } else if denom < 0.0 {
+                    (-cross_pe, p.1 * d.0 - p.0 * d.1, -denom)
+                } else {
                     continue;
-                }
-                let t = (p.0 * e.1 - p.1 * e.0) / denom;
-                let u = (p.0 * d.1 - p.1 * d.0) / denom;
-                // a small tolerance on u so that a beam through a shared vertex hits one of its segments
-                if t >= 0.0 && (-1e-9..=1.0 + 1e-9).contains(&u) && t < *slot {
-                    *slot = t;
+                };
+                // t = num_t / den ≥ 0 and below the best so far; u = num_u / den in [0, 1], with a
+                // small tolerance so that a beam through a shared vertex hits one of its segments
+                if num_t >= 0.0
+                    && num_t < *slot * den
+                    && num_u >= -1e-9 * den
+                    && num_u <= (1.0 + 1e-9) * den
+                {
+                    *slot = num_t / den;
                 }
             }
         }
@@ -171,6 +188,53 @@ impl Lidar {
             *r = ((*r + noise) / max).clamp(0.0, 1.0);
         }
     }
+}
+
+/// The wall segments within reach of the car, gathered through the wall BVH and kept while the car
+/// stays within [`NearbyWalls::SLACK`] of where they were gathered: every segment within `range` of
+/// the car is then within `range + SLACK` of that point, so the set stays complete. Keep one per
+/// track.
+#[derive(Clone, Debug, Default)]
+pub struct NearbyWalls {
+    centre: Option<Point2<f64>>,
+    /// Segments as `[x0, y0, x1, y1]`.
+    segments: Vec<[f64; 4]>,
+}
+
+impl NearbyWalls {
+    /// How far the car may move before the set is gathered again (m).
+    pub const SLACK: f64 = 3.0;
+
+    /// The segments that may lie within `range` of `at`.
+    pub fn around(&mut self, walls: &Walls, at: Point2<f64>, range: f64) -> &[[f64; 4]] {
+        if self.centre.is_none_or(|c| (c - at).norm() > Self::SLACK) {
+            let reach = range + Self::SLACK;
+            let o = Point2::new(at.x as f32, at.y as f32);
+            let r = reach as f32;
+            let aabb = Aabb::new(o - Vector2::new(r, r), o + Vector2::new(r, r));
+            self.segments.clear();
+            self.segments.extend(
+                walls
+                    .segments_in(&aabb)
+                    .map(|g| [g.a.x as f64, g.a.y as f64, g.b.x as f64, g.b.y as f64])
+                    .filter(|g| segment_distance_squared(at, g) <= reach * reach),
+            );
+            self.centre = Some(at);
+        }
+        &self.segments
+    }
+}
+
+/// Squared distance from `p` to the segment `[x0, y0, x1, y1]`.
+fn segment_distance_squared(p: Point2<f64>, g: &[f64; 4]) -> f64 {
+    let (ax, ay, ex, ey) = (g[0] - p.x, g[1] - p.y, g[2] - g[0], g[3] - g[1]);
+    let ee = ex * ex + ey * ey;
+    let t = if ee > 0.0 {
+        (-(ax * ex + ay * ey) / ee).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    (ax + t * ex).powi(2) + (ay + t * ey).powi(2)
 }
 
 /// `atan2(y, x)` to within 1e-4 rad (a minimax polynomial for `atan` on `[0, 1]`).
@@ -237,7 +301,14 @@ mod tests {
         let walls = room();
         let (ox, oy, yaw) = (0.5, -0.3, 0.4);
         let mut out = vec![0.0; 108];
-        lidar.ranges(Point2::new(ox, oy), yaw, &walls, &[], &mut out);
+        lidar.ranges(
+            Point2::new(ox, oy),
+            yaw,
+            &mut NearbyWalls::default(),
+            &walls,
+            &[],
+            &mut out,
+        );
         for (k, r) in out.iter().enumerate() {
             let a = yaw - PI / 2.0 + PI * k as f64 / 107.0;
             let (dx, dy) = (a.cos(), a.sin());
@@ -277,7 +348,14 @@ mod tests {
         s[idx::X] = 1.0;
         let rival = CarBox::new(&s, &VehicleParams::default());
         let mut out = vec![0.0; 108];
-        lidar.ranges(Point2::new(0.0, 0.0), 0.0, &room(), &[rival], &mut out);
+        lidar.ranges(
+            Point2::new(0.0, 0.0),
+            0.0,
+            &mut NearbyWalls::default(),
+            &room(),
+            &[rival],
+            &mut out,
+        );
         // beams 53 and 54 straddle the heading; the rival's rear face is at x = 1 − 0.29
         for k in [53, 54] {
             let a = -PI / 2.0 + PI * k as f64 / 107.0;
@@ -295,7 +373,14 @@ mod tests {
         };
         let lidar = Lidar::new(&cfg);
         let mut out = vec![0.0; 108];
-        lidar.ranges(Point2::new(0.0, 0.0), 0.0, &room(), &[], &mut out);
+        lidar.ranges(
+            Point2::new(0.0, 0.0),
+            0.0,
+            &mut NearbyWalls::default(),
+            &room(),
+            &[],
+            &mut out,
+        );
         assert!(out.iter().all(|&r| r == 1.5));
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
         let mut noisy = vec![0.5f32; 10_000];

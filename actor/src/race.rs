@@ -16,11 +16,11 @@
 //! A2A, whether the episode ended in an ego–rival collision.
 
 use crate::collision::CarBox;
-use crate::lidar::Lidar;
+use crate::lidar::{Lidar, NearbyWalls};
 use crate::rival::PurePursuit;
 use crate::vehicle::{idx, State, Vehicle, VehicleParams, DT};
 use ctxrace_common::{Context, RaceConfig};
-use ctxrace_tracks::Track;
+use ctxrace_tracks::{Projection, Track};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
@@ -115,6 +115,7 @@ pub struct RaceEnv {
     cfg: RaceConfig,
     params: VehicleParams,
     lidar: Lidar,
+    nearby: NearbyWalls,
     cars: Vec<Car>,
     drivers: Vec<PurePursuit>,
     rng: ChaCha8Rng,
@@ -135,6 +136,7 @@ impl RaceEnv {
         let steps_per_decision = cfg.physics_steps_per_action as f64 * DT;
         Ok(Self {
             lidar: Lidar::new(&cfg.lidar),
+            nearby: NearbyWalls::default(),
             max_steps: (cfg.max_time / steps_per_decision).ceil() as usize,
             track,
             params,
@@ -234,7 +236,8 @@ impl RaceEnv {
             }
         }
         self.steps += 1;
-        for i in 0..self.cars.len() {
+        let ego_proj = self.update_progress(0);
+        for i in 1..self.cars.len() {
             self.update_progress(i);
         }
         let ego = &self.cars[0];
@@ -246,10 +249,9 @@ impl RaceEnv {
         let overtakes = self.rank as i32 - rank as i32;
         self.rank = rank;
 
-        let proj = self.track.project(&ego.vehicle.position(), Some(ego.hint));
-        let heading_error = ego.vehicle.yaw() - proj.heading;
+        let heading_error = ego.vehicle.yaw() - ego_proj.heading;
         let mut reward = ego.vehicle.speed() / self.cfg.reward_speed * heading_error.cos()
-            - proj.lateral.abs()
+            - ego_proj.lateral.abs()
             + overtakes as f64;
         if wall_crash || a2a {
             reward -= 1.0;
@@ -349,7 +351,8 @@ impl RaceEnv {
         self.cars[i].vehicle.stop();
     }
 
-    fn update_progress(&mut self, i: usize) {
+    /// Moves car `i`'s progress to its current position; returns its centreline projection.
+    fn update_progress(&mut self, i: usize) -> Projection {
         let car = &mut self.cars[i];
         let proj = self.track.project(&car.vehicle.position(), Some(car.hint));
         let length = self.track.length();
@@ -362,6 +365,7 @@ impl RaceEnv {
         car.travelled += ds;
         car.s = proj.s;
         car.hint = proj.segment;
+        proj
     }
 
     /// 1-based rank of the ego by distance travelled (ties favour the ego).
@@ -382,6 +386,7 @@ impl RaceEnv {
         self.lidar.ranges(
             ego.position(),
             ego.yaw(),
+            &mut self.nearby,
             &self.track.walls,
             &self.boxes,
             &mut obs,

@@ -2,7 +2,7 @@
 //! with every wall segment of the paper's maps. (parry2d's own ray cast works in f32 and is off by
 //! up to a few mm at grazing angles on a 70 m map, so it is not the reference here.)
 
-use ctxrace_actor::lidar::Lidar;
+use ctxrace_actor::lidar::{Lidar, NearbyWalls};
 use ctxrace_common::LidarConfig;
 use ctxrace_tracks::files::{load_centreline, TrackFiles};
 use ctxrace_tracks::{OccupancyMap, Walls};
@@ -58,7 +58,7 @@ fn sweep_matches_brute_force_on_both_paper_maps() {
             let offset = Vector2::new(rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5));
             let p = centre.curve.point_at(s) + offset;
             let yaw: f64 = rng.random_range(-3.2..3.2);
-            lidar.ranges(p, yaw, &walls, &[], &mut out);
+            lidar.ranges(p, yaw, &mut NearbyWalls::default(), &walls, &[], &mut out);
             for (k, r) in out.iter().enumerate() {
                 let a = yaw - std::f64::consts::FRAC_PI_2 + std::f64::consts::PI * k as f64 / 107.0;
                 let want = brute_force(&walls, p, a, 10.0);

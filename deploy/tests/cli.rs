@@ -32,11 +32,12 @@ fn shared(sub: &str) -> Option<PathBuf> {
     }
 }
 
-/// Fails with a clear message: exit code 1, the message contains `needle`, no panic.
+/// Fails with a clear message: exit code 1 (2 for flag errors caught by clap), the message
+/// contains `needle`, no panic.
 fn fails_with(args: &[&str], needle: &str) {
     let o = ctxrace(args);
     let err = stderr(&o);
-    assert_eq!(o.status.code(), Some(1), "{args:?}: {err}");
+    assert!(matches!(o.status.code(), Some(1 | 2)), "{args:?}: {err}");
     assert!(
         err.contains(needle),
         "{args:?}: expected '{needle}' in: {err}"

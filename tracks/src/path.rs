@@ -146,35 +146,49 @@ impl ClosedCurve {
         d.y.atan2(d.x)
     }
 
-    fn project_on_segment(&self, q: &Point2<f64>, i: usize) -> (f64, Projection) {
+    /// Squared distance from `q` to segment `i` and the foot parameter `t ∈ [0, 1]`.
+    #[inline]
+    fn distance_to_segment(&self, q: &Point2<f64>, i: usize) -> (f64, f64) {
         let a = self.points[i];
         let d = self.segment_vector(i);
-        let l2 = d.norm_squared();
-        let t = ((q - a).dot(&d) / l2).clamp(0.0, 1.0);
-        let foot = a + d * t;
-        let dist2 = (q - foot).norm_squared();
-        let len = l2.sqrt();
-        let lateral = (d.x * (q.y - a.y) - d.y * (q.x - a.x)) / len;
+        let t = ((q - a).dot(&d) / d.norm_squared()).clamp(0.0, 1.0);
+        ((q - (a + d * t)).norm_squared(), t)
+    }
+
+    /// The projection of `q` on segment `i` at foot parameter `t`.
+    fn projection_on(&self, q: &Point2<f64>, i: usize, t: f64) -> Projection {
+        let a = self.points[i];
+        let d = self.segment_vector(i);
+        let len = d.norm();
         let s = self.s[i] + t * len;
-        let proj = Projection {
+        Projection {
             s: if s >= self.length() { 0.0 } else { s },
-            lateral,
+            lateral: (d.x * (q.y - a.y) - d.y * (q.x - a.x)) / len,
             heading: d.y.atan2(d.x),
             segment: i,
-        };
-        (dist2, proj)
+        }
+    }
+
+    /// Nearest segment among `candidates`: `(index in candidates, segment, t)`.
+    fn nearest(
+        &self,
+        q: &Point2<f64>,
+        candidates: impl Iterator<Item = usize>,
+    ) -> (usize, usize, f64) {
+        let mut best = (f64::INFINITY, 0, 0, 0.0);
+        for (k, i) in candidates.enumerate() {
+            let (d2, t) = self.distance_to_segment(q, i);
+            if d2 < best.0 {
+                best = (d2, k, i, t);
+            }
+        }
+        (best.1, best.2, best.3)
     }
 
     /// Projects `q` onto the whole curve (nearest segment).
     pub fn project(&self, q: &Point2<f64>) -> Projection {
-        let mut best = (f64::INFINITY, None);
-        for i in 0..self.points.len() {
-            let (d2, p) = self.project_on_segment(q, i);
-            if d2 < best.0 {
-                best = (d2, Some(p));
-            }
-        }
-        best.1.expect("a closed curve has segments")
+        let (_, i, t) = self.nearest(q, 0..self.points.len());
+        self.projection_on(q, i, t)
     }
 
     /// Projects `q` searching first a window of segments around `hint` (the previous step's
@@ -184,18 +198,12 @@ impl ClosedCurve {
         if n <= 2 * HINT_WINDOW + 1 {
             return self.project(q);
         }
-        let mut best = (f64::INFINITY, 0usize, None);
-        for k in 0..=2 * HINT_WINDOW {
-            let i = (hint + n - HINT_WINDOW + k) % n;
-            let (d2, p) = self.project_on_segment(q, i);
-            if d2 < best.0 {
-                best = (d2, k, Some(p));
-            }
-        }
-        if best.1 == 0 || best.1 == 2 * HINT_WINDOW {
+        let window = (0..=2 * HINT_WINDOW).map(|k| (hint + n - HINT_WINDOW + k) % n);
+        let (k, i, t) = self.nearest(q, window);
+        if k == 0 || k == 2 * HINT_WINDOW {
             return self.project(q);
         }
-        best.2.expect("window is non-empty")
+        self.projection_on(q, i, t)
     }
 
     /// Forward arc-length distance from `from` to `to`, in `[0, L)`.

@@ -18,6 +18,74 @@ use std::collections::HashMap;
 pub struct Walls {
     polyline: Polyline,
     loops: Vec<Vec<Point2<f64>>>,
+    clearance: ClearanceGrid,
+}
+
+/// Lower bounds of the distance to the nearest wall over the cells of a uniform grid: the distance
+/// from the cell centre minus half the cell diagonal. A footprint whose circumscribed circle fits
+/// in its cell's clearance cannot touch a wall, which settles most footprint tests without a BVH
+/// query.
+#[derive(Clone, Debug)]
+struct ClearanceGrid {
+    origin: Point2<f32>,
+    cell: f32,
+    nx: usize,
+    ny: usize,
+    lower: Vec<f32>,
+}
+
+impl ClearanceGrid {
+    /// Grid cell size (m).
+    const CELL: f32 = 0.25;
+
+    fn new(polyline: &Polyline) -> Self {
+        use parry2d::query::PointQuery;
+        if polyline.num_segments() == 0 {
+            return Self {
+                origin: Point2::origin(),
+                cell: Self::CELL,
+                nx: 0,
+                ny: 0,
+                lower: Vec::new(),
+            };
+        }
+        let aabb = polyline.local_aabb();
+        let cell = Self::CELL;
+        let origin = aabb.mins - Vector2::new(cell, cell);
+        let nx = ((aabb.maxs.x - origin.x) / cell).ceil() as usize + 1;
+        let ny = ((aabb.maxs.y - origin.y) / cell).ceil() as usize + 1;
+        let half_diagonal = cell * std::f32::consts::FRAC_1_SQRT_2;
+        let lower = (0..nx * ny)
+            .map(|k| {
+                let c = origin
+                    + Vector2::new(
+                        ((k % nx) as f32 + 0.5) * cell,
+                        ((k / nx) as f32 + 0.5) * cell,
+                    );
+                polyline.distance_to_local_point(&c, false) - half_diagonal
+            })
+            .collect();
+        Self {
+            origin,
+            cell,
+            nx,
+            ny,
+            lower,
+        }
+    }
+
+    /// A lower bound of the distance from `p` to the walls (0 outside the grid).
+    #[inline]
+    fn at(&self, p: &Point2<f32>) -> f32 {
+        let (fx, fy) = (
+            (p.x - self.origin.x) / self.cell,
+            (p.y - self.origin.y) / self.cell,
+        );
+        if fx < 0.0 || fy < 0.0 || fx as usize >= self.nx || fy as usize >= self.ny {
+            return 0.0;
+        }
+        self.lower[fy as usize * self.nx + fx as usize]
+    }
 }
 
 impl std::fmt::Debug for Walls {
@@ -42,8 +110,10 @@ impl Walls {
             vertices.extend(l.iter().map(|p| Point2::new(p.x as f32, p.y as f32)));
             indices.extend((0..n).map(|i| [base + i, base + (i + 1) % n]));
         }
+        let polyline = Polyline::new(vertices, Some(indices));
         Self {
-            polyline: Polyline::new(vertices, Some(indices)),
+            clearance: ClearanceGrid::new(&polyline),
+            polyline,
             loops,
         }
     }
@@ -83,6 +153,10 @@ impl Walls {
 
     /// Whether a rectangle of half extents `half` at `pose` touches or crosses any wall.
     pub fn touches_box(&self, pose: &Isometry2<f32>, half: Vector2<f32>) -> bool {
+        let centre = Point2::from(pose.translation.vector);
+        if self.clearance.at(&centre) > half.norm() {
+            return false;
+        }
         let cuboid = Cuboid::new(half);
         let aabb = parry2d::shape::Shape::compute_aabb(&cuboid, pose);
         let to_box = pose.inverse();
