@@ -18,7 +18,7 @@
 use crate::collision::CarBox;
 use crate::lidar::{Lidar, NearbyWalls};
 use crate::rival::PurePursuit;
-use crate::vehicle::{idx, State, Vehicle, VehicleParams, DT};
+use crate::vehicle::{State, Vehicle, VehicleParams, DT};
 use ctxrace_common::{Context, RaceConfig};
 use ctxrace_tracks::{Projection, Track};
 use rand::SeedableRng;
@@ -438,10 +438,5 @@ impl RaceEnv {
     /// Number of LiDAR beams in an observation.
     pub fn obs_dim(&self) -> usize {
         self.lidar.beams()
-    }
-
-    /// Speed of car `i`.
-    pub fn speed_of(&self, i: usize) -> f64 {
-        self.cars[i].vehicle.state[idx::V]
     }
 }

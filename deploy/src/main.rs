@@ -46,7 +46,7 @@ pub struct TrackArgs {
     /// Raceline speed limit (m/s) [default: 8].
     #[arg(long, global = true)]
     v_max: Option<f64>,
-    /// Raceline lateral acceleration limit, v²|κ| (m/s²) [default: 10].
+    /// Raceline lateral acceleration limit, v²|κ| (m/s²) [default: 5].
     #[arg(long, global = true)]
     a_lat: Option<f64>,
     /// Raceline longitudinal acceleration and braking limit (m/s²) [default: 6].

@@ -305,3 +305,24 @@ fn the_shipped_config_parses_and_matches_the_defaults() {
     };
     assert_eq!(cfg, defaults);
 }
+
+#[test]
+fn bench_sim_reports_throughput_as_json() {
+    let o = ctxrace(&[
+        "bench",
+        "sim",
+        "generated:2",
+        "--rivals",
+        "1",
+        "--seconds",
+        "0.3",
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let r: serde_json::Value = serde_json::from_str(&stdout(&o)).unwrap();
+    let decisions = r["decisions"].as_u64().unwrap();
+    assert!(decisions > 100, "{r}");
+    let per_s = r["decisions_per_s"].as_f64().unwrap();
+    assert!((per_s - decisions as f64 / r["seconds"].as_f64().unwrap()).abs() < 1e-6 * per_s);
+    assert!((r["physics_steps_per_s"].as_f64().unwrap() - per_s * 10.0).abs() < 1e-6 * per_s);
+}
