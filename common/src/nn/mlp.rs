@@ -1,0 +1,114 @@
+//! Multi-layer perceptrons: `Linear → [LayerNorm] → activation` blocks, then an optional output layer.
+
+use super::norm::LayerNorm;
+use candle_core::{Module, Result, Tensor};
+use candle_nn::{Linear, VarBuilder};
+
+/// Hidden-layer activation.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Activation {
+    /// `x σ(x)`, with LayerNorm before it (DreamerV3).
+    SiluNorm,
+    /// `max(x, 0)` without normalisation (the paper's SAC networks).
+    Relu,
+}
+
+/// An MLP: `layers` hidden blocks of width `units`, then a linear head to `out` (if given).
+#[derive(Clone, Debug)]
+pub struct Mlp {
+    hidden: Vec<(Linear, Option<LayerNorm>)>,
+    head: Option<Linear>,
+    act: Activation,
+}
+
+impl Mlp {
+    /// Builds the layers under `vb` (`l{i}.fc`, `l{i}.ln`, `out`).
+    pub fn new(
+        input: usize,
+        units: usize,
+        layers: usize,
+        out: Option<usize>,
+        act: Activation,
+        vb: VarBuilder,
+    ) -> Result<Self> {
+        let mut hidden = Vec::with_capacity(layers);
+        let mut width = input;
+        for i in 0..layers {
+            let vb_i = vb.pp(format!("l{i}"));
+            let norm = act == Activation::SiluNorm;
+            // with a LayerNorm after it the linear layer's bias is redundant
+            let fc = if norm {
+                candle_nn::linear_no_bias(width, units, vb_i.pp("fc"))?
+            } else {
+                candle_nn::linear(width, units, vb_i.pp("fc"))?
+            };
+            let ln = if norm {
+                Some(LayerNorm::new(units, 1e-3, vb_i.pp("ln"))?)
+            } else {
+                None
+            };
+            hidden.push((fc, ln));
+            width = units;
+        }
+        let head = match out {
+            Some(o) => Some(candle_nn::linear(width, o, vb.pp("out"))?),
+            None => None,
+        };
+        Ok(Self { hidden, head, act })
+    }
+}
+
+impl Module for Mlp {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let mut h = x.clone();
+        for (fc, ln) in &self.hidden {
+            h = fc.forward(&h)?;
+            if let Some(ln) = ln {
+                h = ln.forward(&h)?;
+            }
+            h = match self.act {
+                Activation::SiluNorm => candle_nn::ops::silu(&h)?,
+                Activation::Relu => h.relu()?,
+            };
+        }
+        match &self.head {
+            Some(head) => head.forward(&h),
+            None => Ok(h),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::nn::ParamStore;
+    use candle_core::{DType, Device};
+
+    #[test]
+    fn every_parameter_gets_a_gradient() {
+        for act in [Activation::SiluNorm, Activation::Relu] {
+            let ps = ParamStore::new();
+            let mlp = Mlp::new(3, 8, 2, Some(2), act, ps.builder().pp("mlp")).unwrap();
+            ps.init(5).unwrap();
+            let x = Tensor::randn(0f32, 1.0, (4, 3), &Device::Cpu).unwrap();
+            let y = mlp.forward(&x).unwrap();
+            assert_eq!(y.dims(), &[4, 2]);
+            let grads = y.sqr().unwrap().sum_all().unwrap().backward().unwrap();
+            for (name, var) in ps.named() {
+                let g = grads
+                    .get(var.as_tensor())
+                    .unwrap_or_else(|| panic!("{act:?}: no gradient for {name}"));
+                let norm = g
+                    .sqr()
+                    .unwrap()
+                    .sum_all()
+                    .unwrap()
+                    .to_dtype(DType::F32)
+                    .unwrap()
+                    .to_scalar::<f32>()
+                    .unwrap();
+                assert!(norm > 0.0, "{act:?}: zero gradient for {name}");
+            }
+        }
+    }
+}

@@ -1,0 +1,366 @@
+//! DreamerV3's recurrent state-space model, with the cRSSM context input.
+//!
+//! The state is a deterministic part `h_t` (a GRU state) and a stochastic part `z_t`: `S` one-hot
+//! categorical variables of `C` classes each.
+//! - Sequence model: `h_t = GRU(h_{t−1}, f([z_{t−1}, a_{t−1}, c]))` with
+//!   `f = SiLU ∘ LayerNorm ∘ Linear`; the context `c` is cRSSM's (absent for DreamerV3).
+//! - Prior `p(z_t | h_t)` and posterior `q(z_t | h_t, e_t)` from the observation embedding `e_t`,
+//!   each one hidden layer then logits `[S, C]`, mixed with 1 % uniform (`unimix`).
+//! - GRU (DreamerV3's): `[r, ĉ, u] = LN(W [x, h])`, `h' = σ(u − 1) tanh(σ(r) ĉ) + (1 − σ(u − 1)) h`:
+//!   the −1 bias makes the cell keep its state by default.
+//!
+//! Samples use the Gumbel-max trick on noise the caller draws from its own seeded generator, and
+//! pass gradients straight through: `z = onehot + p − sg(p)`. (Softmax is the composed,
+//! differentiable `candle_nn::ops::softmax`: the fused `softmax_last_dim` has no backward pass.)
+
+use super::norm::LayerNorm;
+use super::params::ParamStore;
+use candle_core::{DType, Device, Module, Result, Tensor, D};
+use candle_nn::{Linear, VarBuilder};
+
+/// Sizes of the RSSM.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RssmConfig {
+    /// GRU state size.
+    pub deter: usize,
+    /// Hidden layer size.
+    pub hidden: usize,
+    /// Number of categorical variables.
+    pub stoch: usize,
+    /// Classes per variable.
+    pub classes: usize,
+    /// Uniform mixture weight of the categorical probabilities.
+    pub unimix: f64,
+    /// Action size.
+    pub act_dim: usize,
+    /// Observation embedding size.
+    pub embed_dim: usize,
+    /// Context size fed to the sequence model (0 for DreamerV3, 2 for cRSSM and cMask).
+    pub context_dim: usize,
+}
+
+/// A batch of RSSM states.
+#[derive(Clone, Debug)]
+pub struct RssmState {
+    /// `[B, deter]`.
+    pub deter: Tensor,
+    /// `[B, stoch · classes]`, one-hot per variable (with straight-through gradients).
+    pub stoch: Tensor,
+}
+
+impl RssmState {
+    /// The model features `[h, z]`, `[B, deter + stoch · classes]`.
+    pub fn feat(&self) -> Result<Tensor> {
+        Tensor::cat(&[&self.deter, &self.stoch], D::Minus1)
+    }
+}
+
+/// A `Linear → LayerNorm → SiLU` block.
+#[derive(Clone, Debug)]
+struct NormBlock {
+    fc: Linear,
+    ln: LayerNorm,
+}
+
+impl NormBlock {
+    fn new(input: usize, out: usize, vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            fc: candle_nn::linear_no_bias(input, out, vb.pp("fc"))?,
+            ln: LayerNorm::new(out, 1e-3, vb.pp("ln"))?,
+        })
+    }
+
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        candle_nn::ops::silu(&self.ln.forward(&self.fc.forward(x)?)?)
+    }
+}
+
+/// DreamerV3's GRU cell with a LayerNorm on the gates and update bias −1.
+#[derive(Clone, Debug)]
+pub struct Gru {
+    fc: Linear,
+    ln: LayerNorm,
+    size: usize,
+}
+
+impl Gru {
+    /// A cell from `input` features to a state of `size`.
+    pub fn new(input: usize, size: usize, vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            fc: candle_nn::linear_no_bias(input + size, 3 * size, vb.pp("fc"))?,
+            ln: LayerNorm::new(3 * size, 1e-3, vb.pp("ln"))?,
+            size,
+        })
+    }
+
+    /// The next state.
+    pub fn forward(&self, x: &Tensor, h: &Tensor) -> Result<Tensor> {
+        let parts = self
+            .ln
+            .forward(&self.fc.forward(&Tensor::cat(&[x, h], D::Minus1)?)?)?;
+        let n = self.size;
+        let reset = candle_nn::ops::sigmoid(&parts.narrow(D::Minus1, 0, n)?)?;
+        let cand = reset.mul(&parts.narrow(D::Minus1, n, n)?)?.tanh()?;
+        let update = candle_nn::ops::sigmoid(&(parts.narrow(D::Minus1, 2 * n, n)? - 1.0)?)?;
+        update.mul(&cand)? + (1.0 - &update)?.mul(h)?
+    }
+}
+
+/// The recurrent state-space model.
+#[derive(Clone, Debug)]
+pub struct Rssm {
+    cfg: RssmConfig,
+    img_in: NormBlock,
+    gru: Gru,
+    prior_hidden: NormBlock,
+    prior_out: Linear,
+    post_hidden: NormBlock,
+    post_out: Linear,
+}
+
+impl Rssm {
+    /// Builds the model under `vb`.
+    pub fn new(cfg: RssmConfig, vb: VarBuilder) -> Result<Self> {
+        let z = cfg.stoch * cfg.classes;
+        Ok(Self {
+            img_in: NormBlock::new(
+                z + cfg.act_dim + cfg.context_dim,
+                cfg.hidden,
+                vb.pp("img_in"),
+            )?,
+            gru: Gru::new(cfg.hidden, cfg.deter, vb.pp("gru"))?,
+            prior_hidden: NormBlock::new(cfg.deter, cfg.hidden, vb.pp("prior"))?,
+            prior_out: candle_nn::linear(cfg.hidden, z, vb.pp("prior_out"))?,
+            post_hidden: NormBlock::new(cfg.deter + cfg.embed_dim, cfg.hidden, vb.pp("post"))?,
+            post_out: candle_nn::linear(cfg.hidden, z, vb.pp("post_out"))?,
+            cfg,
+        })
+    }
+
+    /// The sizes.
+    pub fn config(&self) -> &RssmConfig {
+        &self.cfg
+    }
+
+    /// Size of [`RssmState::feat`].
+    pub fn feat_dim(&self) -> usize {
+        self.cfg.deter + self.cfg.stoch * self.cfg.classes
+    }
+
+    /// The all-zero state of a batch.
+    pub fn initial(&self, batch: usize) -> Result<RssmState> {
+        Ok(RssmState {
+            deter: Tensor::zeros((batch, self.cfg.deter), DType::F32, &Device::Cpu)?,
+            stoch: Tensor::zeros(
+                (batch, self.cfg.stoch * self.cfg.classes),
+                DType::F32,
+                &Device::Cpu,
+            )?,
+        })
+    }
+
+    /// The sequence model: `h_t` from the previous state, action and (cRSSM) context.
+    pub fn deter_step(
+        &self,
+        prev: &RssmState,
+        action: &Tensor,
+        context: Option<&Tensor>,
+    ) -> Result<Tensor> {
+        let mut parts = vec![&prev.stoch, action];
+        if let Some(c) = context {
+            parts.push(c);
+        }
+        let x = self.img_in.forward(&Tensor::cat(&parts, D::Minus1)?)?;
+        self.gru.forward(&x, &prev.deter)
+    }
+
+    /// Prior logits `[B, S, C]` from `h_t`.
+    pub fn prior_logits(&self, deter: &Tensor) -> Result<Tensor> {
+        self.unflat(&self.prior_out.forward(&self.prior_hidden.forward(deter)?)?)
+    }
+
+    /// Posterior logits `[B, S, C]` from `h_t` and the observation embedding.
+    pub fn post_logits(&self, deter: &Tensor, embed: &Tensor) -> Result<Tensor> {
+        let x = self
+            .post_hidden
+            .forward(&Tensor::cat(&[deter, embed], D::Minus1)?)?;
+        self.unflat(&self.post_out.forward(&x)?)
+    }
+
+    fn unflat(&self, x: &Tensor) -> Result<Tensor> {
+        x.reshape((x.dim(0)?, self.cfg.stoch, self.cfg.classes))
+    }
+
+    /// Class probabilities `[B, S, C]`: softmax mixed with `unimix` uniform.
+    pub fn probs(&self, logits: &Tensor) -> Result<Tensor> {
+        let p = candle_nn::ops::softmax(logits, D::Minus1)?;
+        let u = self.cfg.unimix;
+        (p * (1.0 - u))? + u / self.cfg.classes as f64
+    }
+
+    /// A straight-through one-hot sample `[B, S·C]` from logits, with Gumbel noise
+    /// `g = −ln(−ln U)` given as uniforms `U ∈ (0, 1)` of shape `[B, S, C]`.
+    pub fn sample(&self, logits: &Tensor, uniform: &Tensor) -> Result<Tensor> {
+        let probs = self.probs(logits)?;
+        let gumbel = uniform.log()?.neg()?.log()?.neg()?;
+        let idx = (probs.log()? + gumbel)?.argmax_keepdim(D::Minus1)?;
+        let classes = Tensor::arange(0u32, self.cfg.classes as u32, &Device::Cpu)?.reshape((
+            1,
+            1,
+            self.cfg.classes,
+        ))?;
+        let onehot = idx.broadcast_eq(&classes)?.to_dtype(DType::F32)?;
+        let st = (onehot + &probs)?.sub(&probs.detach())?;
+        st.reshape((logits.dim(0)?, self.cfg.stoch * self.cfg.classes))
+    }
+
+    /// One imagination step: `(state, prior logits)`.
+    pub fn img_step(
+        &self,
+        prev: &RssmState,
+        action: &Tensor,
+        context: Option<&Tensor>,
+        uniform: &Tensor,
+    ) -> Result<(RssmState, Tensor)> {
+        let deter = self.deter_step(prev, action, context)?;
+        let prior = self.prior_logits(&deter)?;
+        let stoch = self.sample(&prior, uniform)?;
+        Ok((RssmState { deter, stoch }, prior))
+    }
+
+    /// One observation step: `(posterior state, prior logits, posterior logits)`.
+    pub fn obs_step(
+        &self,
+        prev: &RssmState,
+        action: &Tensor,
+        context: Option<&Tensor>,
+        embed: &Tensor,
+        uniform: &Tensor,
+    ) -> Result<(RssmState, Tensor, Tensor)> {
+        let deter = self.deter_step(prev, action, context)?;
+        let prior = self.prior_logits(&deter)?;
+        let post = self.post_logits(&deter, embed)?;
+        let stoch = self.sample(&post, uniform)?;
+        Ok((RssmState { deter, stoch }, prior, post))
+    }
+
+    /// `KL(p_a ‖ p_b)` per batch element, summed over the variables, from logits `[B, S, C]`.
+    pub fn kl(&self, logits_a: &Tensor, logits_b: &Tensor) -> Result<Tensor> {
+        let pa = self.probs(logits_a)?;
+        let pb = self.probs(logits_b)?;
+        pa.mul(&(pa.log()? - pb.log()?)?)?
+            .sum(D::Minus1)?
+            .sum(D::Minus1)
+    }
+}
+
+/// Builds an RSSM in a fresh store initialised from `seed` (for tests and tools).
+pub fn standalone(cfg: RssmConfig, seed: u64) -> Result<(ParamStore, Rssm)> {
+    let ps = ParamStore::new();
+    let rssm = Rssm::new(cfg, ps.builder().pp("rssm"))?;
+    ps.init(seed)?;
+    Ok((ps, rssm))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cfg(context_dim: usize) -> RssmConfig {
+        RssmConfig {
+            deter: 8,
+            hidden: 8,
+            stoch: 3,
+            classes: 4,
+            unimix: 0.01,
+            act_dim: 2,
+            embed_dim: 5,
+            context_dim,
+        }
+    }
+
+    fn uniform(b: usize, c: &RssmConfig, v: f32) -> Tensor {
+        Tensor::full(v, (b, c.stoch, c.classes), &Device::Cpu).unwrap()
+    }
+
+    #[test]
+    fn steps_have_the_right_shapes_and_one_hot_samples() {
+        let c = cfg(2);
+        let (_, rssm) = standalone(c, 0).unwrap();
+        let s0 = rssm.initial(4).unwrap();
+        let a = Tensor::ones((4, 2), DType::F32, &Device::Cpu).unwrap();
+        let ctx = Tensor::ones((4, 2), DType::F32, &Device::Cpu).unwrap();
+        let e = Tensor::ones((4, 5), DType::F32, &Device::Cpu).unwrap();
+        let (s1, prior, post) = rssm
+            .obs_step(&s0, &a, Some(&ctx), &e, &uniform(4, &c, 0.5))
+            .unwrap();
+        assert_eq!(s1.deter.dims(), &[4, 8]);
+        assert_eq!(prior.dims(), &[4, 3, 4]);
+        assert_eq!(post.dims(), &[4, 3, 4]);
+        assert_eq!(s1.feat().unwrap().dims(), &[4, 8 + 12]);
+        // forward values of a straight-through sample are exactly one-hot
+        let z: Vec<Vec<f32>> = s1.stoch.reshape((12, 4)).unwrap().to_vec2().unwrap();
+        for row in z {
+            let ones = row.iter().filter(|&&v| (v - 1.0).abs() < 1e-6).count();
+            let zeros = row.iter().filter(|&&v| v.abs() < 1e-6).count();
+            assert_eq!((ones, zeros), (1, 3), "{row:?}");
+        }
+        let (s2, _) = rssm
+            .img_step(&s1, &a, Some(&ctx), &uniform(4, &c, 0.3))
+            .unwrap();
+        assert_eq!(s2.stoch.dims(), &[4, 12]);
+    }
+
+    #[test]
+    fn unimix_floors_the_probabilities_and_kl_is_zero_on_itself() {
+        let c = cfg(0);
+        let (_, rssm) = standalone(c, 1).unwrap();
+        let logits = Tensor::new(&[[[50.0f32, 0.0, 0.0, 0.0]; 3]], &Device::Cpu).unwrap();
+        let p: Vec<f32> = rssm
+            .probs(&logits)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        assert!(p.iter().all(|&v| v >= 0.01 / 4.0 - 1e-7));
+        assert!((p[0] - (0.99 + 0.0025)).abs() < 1e-5);
+        let kl: Vec<f32> = rssm.kl(&logits, &logits).unwrap().to_vec1().unwrap();
+        assert!(kl[0].abs() < 1e-6);
+        let other = Tensor::zeros((1, 3, 4), DType::F32, &Device::Cpu).unwrap();
+        let kl: Vec<f32> = rssm.kl(&logits, &other).unwrap().to_vec1().unwrap();
+        // KL(p ‖ uniform) = Σ_vars (ln C − H(p))
+        let h: f32 = p[..4].iter().map(|&q| -q * q.ln()).sum();
+        assert!((kl[0] - 3.0 * (4f32.ln() - h)).abs() < 1e-4, "{kl:?}");
+    }
+
+    #[test]
+    fn straight_through_samples_pass_gradients_to_the_logits() {
+        let c = cfg(0);
+        let (_, rssm) = standalone(c, 2).unwrap();
+        let logits = candle_core::Var::from_tensor(
+            &Tensor::new(&[[[0.1f32, 0.2, 0.3, 0.4]; 3]], &Device::Cpu).unwrap(),
+        )
+        .unwrap();
+        let z = rssm
+            .sample(logits.as_tensor(), &uniform(1, &c, 0.7))
+            .unwrap();
+        let weights = Tensor::new(
+            &[[
+                1.0f32, 2.0, 3.0, 4.0, 1.0, 2.0, 3.0, 4.0, 1.0, 2.0, 3.0, 4.0,
+            ]],
+            &Device::Cpu,
+        )
+        .unwrap();
+        let loss = z.mul(&weights).unwrap().sum_all().unwrap();
+        let grads = loss.backward().unwrap();
+        let g: Vec<f32> = grads
+            .get(logits.as_tensor())
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        assert!(g.iter().any(|v| v.abs() > 1e-4), "{g:?}");
+    }
+}

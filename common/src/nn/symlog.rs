@@ -1,0 +1,149 @@
+//! DreamerV3's squashing and its discrete regression targets.
+//!
+//! `symlog(x) = sign(x) ln(1 + |x|)` and its inverse `symexp(x) = sign(x)(e^{|x|} − 1)` compress
+//! large magnitudes while staying the identity near zero. A scalar `y` is regressed as a
+//! distribution over `K` bins `b_k` evenly spaced in symlog space (`K = 255` over `[−20, 20]`): its
+//! *two-hot* encoding puts weight on the two bins around `symlog(y)`, in proportion to closeness,
+//! `w_k = 1 − |symlog(y) − b_k| / (b_{k+1} − b_k)`; a prediction decodes as
+//! `symexp(Σ_k softmax(logits)_k b_k)`.
+
+use candle_core::{Device, Result, Tensor, D};
+
+/// `sign(x) ln(1 + |x|)`.
+pub fn symlog(x: &Tensor) -> Result<Tensor> {
+    x.sign()?.mul(&(x.abs()? + 1.0)?.log()?)
+}
+
+/// `sign(x) (e^{|x|} − 1)`.
+pub fn symexp(x: &Tensor) -> Result<Tensor> {
+    x.sign()?.mul(&(x.abs()?.exp()? - 1.0)?)
+}
+
+/// Evenly spaced bins in symlog space.
+#[derive(Clone, Debug)]
+pub struct TwoHot {
+    low: f32,
+    high: f32,
+    bins: Tensor,
+    count: usize,
+}
+
+impl TwoHot {
+    /// DreamerV3's 255 bins over `[−20, 20]`.
+    pub fn dreamer() -> Result<Self> {
+        Self::new(255, -20.0, 20.0)
+    }
+
+    /// `count ≥ 2` bins over `[low, high]` (symlog space).
+    pub fn new(count: usize, low: f32, high: f32) -> Result<Self> {
+        let step = (high - low) / (count - 1) as f32;
+        let values: Vec<f32> = (0..count).map(|k| low + step * k as f32).collect();
+        Ok(Self {
+            low,
+            high,
+            bins: Tensor::from_vec(values, count, &Device::Cpu)?,
+            count,
+        })
+    }
+
+    /// Number of bins.
+    pub fn count(&self) -> usize {
+        self.count
+    }
+
+    /// Two-hot targets `[N, K]` for values `y` of shape `[N]` (in the original space).
+    pub fn encode(&self, y: &Tensor) -> Result<Tensor> {
+        let values: Vec<f32> = symlog(y)?.to_vec1()?;
+        let step = (self.high - self.low) / (self.count - 1) as f32;
+        let mut out = vec![0f32; values.len() * self.count];
+        for (i, v) in values.iter().enumerate() {
+            let pos =
+                ((v.clamp(self.low, self.high) - self.low) / step).min((self.count - 1) as f32);
+            let below = (pos.floor() as usize).min(self.count - 2);
+            let frac = pos - below as f32;
+            out[i * self.count + below] = 1.0 - frac;
+            out[i * self.count + below + 1] = frac;
+        }
+        Tensor::from_vec(out, (values.len(), self.count), y.device())
+    }
+
+    /// Decodes logits `[…, K]` to values `[…]` in the original space.
+    pub fn decode(&self, logits: &Tensor) -> Result<Tensor> {
+        let probs = candle_nn::ops::softmax(logits, D::Minus1)?;
+        symexp(&probs.broadcast_mul(&self.bins)?.sum(D::Minus1)?)
+    }
+
+    /// Cross-entropy `−Σ_k t_k log softmax(logits)_k` of logits `[N, K]` against the two-hot
+    /// targets of `y` `[N]`; returns `[N]`.
+    pub fn loss(&self, logits: &Tensor, y: &Tensor) -> Result<Tensor> {
+        let target = self.encode(&y.detach())?;
+        let logp = candle_nn::ops::log_softmax(logits, D::Minus1)?;
+        target.mul(&logp)?.sum(D::Minus1)?.neg()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn t(v: &[f32]) -> Tensor {
+        Tensor::new(v, &Device::Cpu).unwrap()
+    }
+
+    #[test]
+    fn symlog_and_symexp_by_hand() {
+        let x = t(&[-10.0, -1.0, 0.0, 0.5, 100.0]);
+        let got: Vec<f32> = symlog(&x).unwrap().to_vec1().unwrap();
+        let want = [-(11f32.ln()), -(2f32.ln()), 0.0, 1.5f32.ln(), 101f32.ln()];
+        for (g, w) in got.iter().zip(want) {
+            assert!((g - w).abs() < 1e-6, "{g} vs {w}");
+        }
+        let back: Vec<f32> = symexp(&symlog(&x).unwrap()).unwrap().to_vec1().unwrap();
+        for (b, x) in back.iter().zip([-10.0f32, -1.0, 0.0, 0.5, 100.0]) {
+            assert!((b - x).abs() < 1e-4 * x.abs().max(1.0));
+        }
+    }
+
+    #[test]
+    fn twohot_encodes_between_neighbouring_bins_and_decodes_back() {
+        // 5 bins over [-2, 2]: -2, -1, 0, 1, 2 (symlog space)
+        let th = TwoHot::new(5, -2.0, 2.0).unwrap();
+        // symlog(e^0.25 − 1) = 0.25: 75 % on bin 0, 25 % on bin 1
+        let y = t(&[0.25f32.exp() - 1.0, 0.0, 1000.0]);
+        let enc: Vec<Vec<f32>> = th.encode(&y).unwrap().to_vec2().unwrap();
+        let want = [
+            [0.0, 0.0, 0.75, 0.25, 0.0],
+            [0.0, 0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0, 0.0, 1.0],
+        ];
+        for (row, w) in enc.iter().zip(want) {
+            for (a, b) in row.iter().zip(w) {
+                assert!((a - b).abs() < 1e-5, "{row:?}");
+            }
+        }
+        // logits equal to log of the encoding decode back to the value (within the bin range)
+        let logits = th
+            .encode(&t(&[0.7, -3.0]))
+            .unwrap()
+            .clamp(1e-8, 1.0)
+            .unwrap()
+            .log()
+            .unwrap();
+        let dec: Vec<f32> = th.decode(&logits).unwrap().to_vec1().unwrap();
+        assert!(
+            (dec[0] - 0.7).abs() < 1e-3 && (dec[1] + 3.0).abs() < 1e-3,
+            "{dec:?}"
+        );
+    }
+
+    #[test]
+    fn twohot_loss_is_the_cross_entropy() {
+        let th = TwoHot::new(3, -1.0, 1.0).unwrap();
+        let logits = Tensor::new(&[[0.0f32, 1.0, 2.0]], &Device::Cpu).unwrap();
+        let y = t(&[0.0]); // all weight on the middle bin
+        let loss: Vec<f32> = th.loss(&logits, &y).unwrap().to_vec1().unwrap();
+        let lse = (1f32 + 1f32.exp() + 2f32.exp()).ln();
+        assert!((loss[0] - (lse - 1.0)).abs() < 1e-5);
+        assert_eq!(TwoHot::dreamer().unwrap().count(), 255);
+    }
+}
