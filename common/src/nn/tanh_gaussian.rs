@@ -35,8 +35,21 @@ pub struct TanhGaussianActor {
 impl TanhGaussianActor {
     /// A ReLU MLP of `layers` hidden layers of `units` from `obs_dim` inputs to `2 · act_dim`
     /// outputs (means, then log standard deviations), built under `vb`.
-    pub fn new(obs_dim: usize, act_dim: usize, units: usize, layers: usize, vb: VarBuilder) -> Result<Self> {
-        let net = Mlp::new(obs_dim, units, layers, Some(2 * act_dim), Activation::Relu, vb)?;
+    pub fn new(
+        obs_dim: usize,
+        act_dim: usize,
+        units: usize,
+        layers: usize,
+        vb: VarBuilder,
+    ) -> Result<Self> {
+        let net = Mlp::new(
+            obs_dim,
+            units,
+            layers,
+            Some(2 * act_dim),
+            Activation::Relu,
+            vb,
+        )?;
         Ok(Self { net, act_dim })
     }
 
@@ -49,7 +62,9 @@ impl TanhGaussianActor {
     pub fn dist(&self, obs: &Tensor) -> Result<(Tensor, Tensor)> {
         let out = self.net.forward(obs)?;
         let mean = out.narrow(D::Minus1, 0, self.act_dim)?;
-        let log_std = out.narrow(D::Minus1, self.act_dim, self.act_dim)?.clamp(LOG_STD_MIN, LOG_STD_MAX)?;
+        let log_std = out
+            .narrow(D::Minus1, self.act_dim, self.act_dim)?
+            .clamp(LOG_STD_MIN, LOG_STD_MAX)?;
         Ok((mean, log_std))
     }
 
@@ -72,7 +87,8 @@ pub fn squash(mean: &Tensor, log_std: &Tensor, noise: &Tensor) -> Result<(Tensor
     let u = (mean + log_std.exp()?.mul(noise)?)?;
     let action = u.tanh()?;
     // log N(u; μ, σ), with (u − μ)/σ = ε
-    let log_normal = ((noise.sqr()? * -0.5)? - log_std)?.affine(1.0, -0.5 * (2.0 * std::f64::consts::PI).ln())?;
+    let log_normal = ((noise.sqr()? * -0.5)? - log_std)?
+        .affine(1.0, -0.5 * (2.0 * std::f64::consts::PI).ln())?;
     let log_jacobian = log_one_minus_tanh_sq(&u)?;
     let log_prob = (log_normal - log_jacobian)?.sum(D::Minus1)?;
     Ok((action, log_prob))
@@ -117,18 +133,30 @@ mod tests {
         let by_hand = -0.5 * 0.49 + 0.5 - 0.918_938_533_204_672_7 - (1.0 - u.tanh().powi(2)).ln();
         assert!((elp - by_hand).abs() < 1e-12);
         assert!((a.to_vec2::<f32>().unwrap()[0][0] as f64 - ea[0]).abs() < 1e-6);
-        assert!((lp.to_vec1::<f32>().unwrap()[0] as f64 - elp).abs() < 1e-5, "{lp} vs {elp}");
+        assert!(
+            (lp.to_vec1::<f32>().unwrap()[0] as f64 - elp).abs() < 1e-5,
+            "{lp} vs {elp}"
+        );
 
         // 2-D, two rows: the log-probability sums over the action dimensions of each row
         let mean = [[-1.2, 0.4], [0.0, 2.0]];
         let log_std = [[0.1, -2.0], [-5.0, 1.0]];
         let eps = [[1.5, -0.3], [0.0, -1.1]];
         let flat = |m: [[f64; 2]; 2]| m.iter().flatten().map(|&x| x as f32).collect::<Vec<_>>();
-        let (a, lp) = squash(&t(&flat(mean), (2, 2)), &t(&flat(log_std), (2, 2)), &t(&flat(eps), (2, 2))).unwrap();
+        let (a, lp) = squash(
+            &t(&flat(mean), (2, 2)),
+            &t(&flat(log_std), (2, 2)),
+            &t(&flat(eps), (2, 2)),
+        )
+        .unwrap();
         let (a, lp) = (a.to_vec2::<f32>().unwrap(), lp.to_vec1::<f32>().unwrap());
         for r in 0..2 {
             let (ea, elp) = expected(&mean[r], &log_std[r], &eps[r]);
-            assert!((lp[r] as f64 - elp).abs() < 1e-4 * elp.abs().max(1.0), "row {r}: {} vs {elp}", lp[r]);
+            assert!(
+                (lp[r] as f64 - elp).abs() < 1e-4 * elp.abs().max(1.0),
+                "row {r}: {} vs {elp}",
+                lp[r]
+            );
             for j in 0..2 {
                 assert!((a[r][j] as f64 - ea[j]).abs() < 1e-6);
             }
@@ -138,16 +166,36 @@ mod tests {
     #[test]
     fn stable_jacobian_agrees_with_the_naive_formula_and_stays_finite_beyond_it() {
         let us: Vec<f32> = (-60..=60).map(|i| i as f32 * 0.05).collect();
-        let stable = log_one_minus_tanh_sq(&Tensor::new(us.as_slice(), &Device::Cpu).unwrap()).unwrap();
+        let stable =
+            log_one_minus_tanh_sq(&Tensor::new(us.as_slice(), &Device::Cpu).unwrap()).unwrap();
         for (u, s) in us.iter().zip(stable.to_vec1::<f32>().unwrap()) {
             let naive = (1.0 - (*u as f64).tanh().powi(2)).ln();
             assert!((s as f64 - naive).abs() < 1e-5, "u = {u}: {s} vs {naive}");
         }
         // where f32's naive 1 − tanh² u is 0, the stable form is −2|u| + 2 log 2 to f32 precision
-        let big = log_one_minus_tanh_sq(&Tensor::new(&[20f32, -30.0], &Device::Cpu).unwrap()).unwrap();
+        let big =
+            log_one_minus_tanh_sq(&Tensor::new(&[20f32, -30.0], &Device::Cpu).unwrap()).unwrap();
         assert_eq!((1.0 - 20f32.tanh().powi(2)).ln(), f32::NEG_INFINITY);
         for (u, s) in [20f64, 30.0].iter().zip(big.to_vec1::<f32>().unwrap()) {
-            assert!((s as f64 - (2.0 * std::f64::consts::LN_2 - 2.0 * u)).abs() < 1e-4, "{s}");
+            assert!(
+                (s as f64 - (2.0 * std::f64::consts::LN_2 - 2.0 * u)).abs() < 1e-4,
+                "{s}"
+            );
+        }
+    }
+
+    #[test]
+    fn jacobian_gradient_is_minus_two_tanh_including_at_zero() {
+        let u = candle_core::Var::new(&[-3f32, -0.5, 0.0, 0.5, 12.0], &Device::Cpu).unwrap();
+        let grads = log_one_minus_tanh_sq(u.as_tensor())
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap();
+        let g = grads.get(&u).unwrap().to_vec1::<f32>().unwrap();
+        for (u, g) in [-3f32, -0.5, 0.0, 0.5, 12.0].iter().zip(g) {
+            assert!((g + 2.0 * u.tanh()).abs() < 1e-5, "u = {u}: {g}");
         }
     }
 
@@ -161,15 +209,21 @@ mod tests {
             if name == "out.weight" {
                 var.set(&var.zeros_like().unwrap()).unwrap();
             } else if name == "out.bias" {
-                var.set(&t(&[0.5, -0.2, 3.0, -9.0], (1, 4)).reshape(4).unwrap()).unwrap();
+                var.set(&t(&[0.5, -0.2, 3.0, -9.0], (1, 4)).reshape(4).unwrap())
+                    .unwrap();
             }
         }
         let obs = t(&[0.1, -0.4, 2.0, 1.0, 1.0, 1.0], (2, 3));
         let (mean, log_std) = actor.dist(&obs).unwrap();
         assert_eq!(mean.to_vec2::<f32>().unwrap(), vec![vec![0.5, -0.2]; 2]);
-        assert_eq!(log_std.to_vec2::<f32>().unwrap(), vec![vec![LOG_STD_MAX as f32, LOG_STD_MIN as f32]; 2]);
+        assert_eq!(
+            log_std.to_vec2::<f32>().unwrap(),
+            vec![vec![LOG_STD_MAX as f32, LOG_STD_MIN as f32]; 2]
+        );
         let det = actor.mean_action(&obs).unwrap().to_vec2::<f32>().unwrap();
-        assert!((det[0][0] - 0.5f32.tanh()).abs() < 1e-7 && (det[1][1] - (-0.2f32).tanh()).abs() < 1e-7);
+        assert!(
+            (det[0][0] - 0.5f32.tanh()).abs() < 1e-7 && (det[1][1] - (-0.2f32).tanh()).abs() < 1e-7
+        );
         let noise = t(&[0.3, -1.0, 0.0, 0.0], (2, 2));
         let (a, lp) = actor.sample(&obs, &noise).unwrap();
         let (ea, elp) = expected(&[0.5, -0.2], &[2.0, -5.0], &[0.3, -1.0]);
