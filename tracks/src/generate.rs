@@ -1,20 +1,23 @@
 //! Procedural generator of random race circuits, for training on tracks the agent has never seen.
 //!
 //! Method, per attempt:
-//! 1. **Control points.** `k` corners at increasing angles around the origin (evenly spread, each
-//!    jittered by up to ±30 % of the spacing) with random radii in `[0.45, 1]`. Sorted by angle with
-//!    gaps below π, they form a star-shaped polygon, which cannot intersect itself. Some edges become
-//!    straights: two extra points on the chord pull the curve onto it.
-//! 2. **Smooth curve.** The closed (periodic) cubic spline through the control points, parametrised
-//!    by chord length, is sampled densely, scaled about the origin so that its length is
-//!    `params.length`, and resampled every `≈ params.spacing` of arc length. The spline is C², so the
-//!    curvature is continuous.
-//! 3. **Checks.** The attempt is rejected unless (a) the Menger curvature radius at every point is at
+//! 1. **Polygon.** `k` vertices at increasing angles around the origin (evenly spread, each jittered
+//!    by up to ±30 % of the spacing) with random radii in `[0.25, 1]`. Sorted by angle with gaps
+//!    below π they form a star-shaped polygon, which cannot intersect itself; vertices pulled in
+//!    between outer neighbours become right-hand bends. It is scaled to perimeter `params.length`.
+//! 2. **Corners.** Every vertex is rounded by the circular arc tangent to both edges, with a random
+//!    radius in `[1.1, 4] × min_radius` that leaves each edge at least half for its other end; the
+//!    remaining edge pieces are straights. (An attempt whose edges are too short is rejected.)
+//! 3. **Smoothing.** The curve is resampled every `≈ params.spacing` of arc length and averaged over
+//!    a window of `min_radius` (moving average), which ramps the curvature in and out of each arc
+//!    like a transition curve, then scaled about the origin to length `params.length` (both steps
+//!    shorten the curve, so the scale only widens the radii).
+//! 4. **Checks.** The attempt is rejected unless (a) the Menger curvature radius at every point is at
 //!    least `min_radius`; (b) points further apart along the track than a U-turn whose legs are
 //!    `width + 1 m` apart (arc `π (width + 1) / 2`) are at least `width + 1 m` apart, so walls of
 //!    different parts of the track keep a 1 m gap; (c) the two wall polylines do not cross each
 //!    other or themselves.
-//! 4. **Start.** The points are rotated so that `s = 0` begins the 20 % of the lap with the least
+//! 5. **Start.** The points are rotated so that `s = 0` begins the 20 % of the lap with the least
 //!    squared curvature: the starting grid lines up ahead of `s = 0` on that gentle stretch.
 //!
 //! Attempt `a` draws from `ChaCha8Rng::seed_from_u64(seed)` on stream `a`, so a seed gives the same
@@ -24,7 +27,7 @@
 
 use crate::error::{Result, TrackError};
 use crate::path::{menger_curvature, Centreline, ClosedCurve};
-use nalgebra::{DMatrix, Point2, Vector2};
+use nalgebra::{Point2, Rotation2, Vector2};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -38,12 +41,14 @@ const WALL_GAP: f64 = 1.0;
 const RADIUS_MARGIN: f64 = 0.3;
 /// Fraction of the lap after `s = 0` chosen to be gentle (the starting grid).
 const GRID_FRACTION: f64 = 0.2;
-/// Probability that an edge of the control polygon becomes a straight.
-const STRAIGHT_PROBABILITY: f64 = 0.3;
+/// Corner radii are drawn from `[MIN, MAX] × min_radius`; `MIN > 1` leaves room for the smoothing.
+const CORNER_RADIUS_FACTORS: (f64, f64) = (1.1, 4.0);
+/// Half-width of the moving-average window, as a fraction of `min_radius`.
+const SMOOTHING_FACTOR: f64 = 0.5;
 /// Most points a generated centreline may have (bounds `spacing` from below).
 const MAX_POINTS: f64 = 20_000.0;
-/// Spline samples per control-point span before resampling.
-const SAMPLES_PER_SPAN: usize = 256;
+/// Arc sampling step before resampling, as a fraction of `spacing`.
+const ARC_STEP_FACTOR: f64 = 0.25;
 
 /// Shape of the generated circuits.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -160,12 +165,19 @@ fn generate(seed: u64, params: &GeneratorParams) -> Result<(Centreline, u64)> {
 
 /// One attempt: a candidate circuit, or `None` when it fails a check.
 fn try_generate(rng: &mut ChaCha8Rng, p: &GeneratorParams) -> Option<Centreline> {
-    let dense = ClosedCurve::new(periodic_spline(&control_points(rng, p))?, "spline").ok()?;
+    let rounded =
+        ClosedCurve::new(round_corners(&polygon(rng, p), rng, p)?, "generated track").ok()?;
     let n = (p.length / p.spacing).round() as usize;
-    let (step, scale) = (dense.length() / n as f64, p.length / dense.length());
-    let pts: Vec<Point2<f64>> = (0..n)
-        .map(|k| Point2::from(dense.point_at(k as f64 * step).coords * scale))
-        .collect();
+    let step = rounded.length() / n as f64;
+    let even: Vec<Point2<f64>> = (0..n).map(|k| rounded.point_at(k as f64 * step)).collect();
+    let smooth = moving_average(
+        &even,
+        (SMOOTHING_FACTOR * p.min_radius / step).round() as usize,
+    );
+    let length: f64 = (0..n)
+        .map(|i| (smooth[(i + 1) % n] - smooth[i]).norm())
+        .sum();
+    let pts: Vec<Point2<f64>> = smooth.iter().map(|q| q * (p.length / length)).collect();
     let kappa: Vec<f64> = (0..n)
         .map(|i| menger_curvature(&pts[(i + n - 1) % n], &pts[i], &pts[(i + 1) % n]))
         .collect();
@@ -184,65 +196,78 @@ fn try_generate(rng: &mut ChaCha8Rng, p: &GeneratorParams) -> Option<Centreline>
     (!walls_cross(&wall_polylines(&centreline))).then_some(centreline)
 }
 
-/// Star-shaped control polygon around the origin, some edges subdivided into straights.
-fn control_points(rng: &mut ChaCha8Rng, p: &GeneratorParams) -> Vec<Point2<f64>> {
-    // Roughly one corner per 2.5 minimum-radius quarter circles of track.
-    let typical = (p.length / (2.5 * PI * p.min_radius)).clamp(5.0, 16.0) as usize;
-    let corners = rng.random_range(typical.saturating_sub(2).max(5)..=typical + 2);
+/// Star-shaped polygon around the origin with perimeter `p.length`.
+fn polygon(rng: &mut ChaCha8Rng, p: &GeneratorParams) -> Vec<Point2<f64>> {
+    // About one vertex per 3.5 min_radius of track, within 5 ..= 16.
+    let typical = (p.length / (3.5 * p.min_radius)).round().clamp(5.0, 16.0) as usize;
+    let k = rng.random_range(typical.saturating_sub(2).max(5)..=typical + 2);
     let phase = rng.random_range(0.0..TAU);
-    let star: Vec<Point2<f64>> = (0..corners)
-        .map(|k| {
-            let a = phase + TAU * (k as f64 + rng.random_range(-0.3..0.3)) / corners as f64;
-            let r = rng.random_range(0.45..1.0);
+    let star: Vec<Point2<f64>> = (0..k)
+        .map(|i| {
+            let a = phase + TAU * (i as f64 + rng.random_range(-0.3..0.3)) / k as f64;
+            let r = rng.random_range(0.25..1.0);
             Point2::new(r * a.cos(), r * a.sin())
         })
         .collect();
-    let mut pts = Vec::with_capacity(3 * corners);
-    for (i, &a) in star.iter().enumerate() {
-        let b = star[(i + 1) % corners];
-        pts.push(a);
-        if rng.random_bool(STRAIGHT_PROBABILITY) {
-            pts.extend([a + (b - a) / 3.0, a + (b - a) * (2.0 / 3.0)]);
-        }
-    }
-    pts
+    let perimeter: f64 = (0..k).map(|i| (star[(i + 1) % k] - star[i]).norm()).sum();
+    star.iter().map(|q| q * (p.length / perimeter)).collect()
 }
 
-/// Samples the closed cubic spline through `ctrl` (chord-length parametrised, C² everywhere),
-/// [`SAMPLES_PER_SPAN`] points per span; `None` if the spline system is singular.
-fn periodic_spline(ctrl: &[Point2<f64>]) -> Option<Vec<Point2<f64>>> {
-    let n = ctrl.len();
-    let chord = |i: usize| ctrl[(i + 1) % n] - ctrl[i];
-    let h: Vec<f64> = (0..n).map(|i| chord(i).norm()).collect();
-    // Second derivatives m_i: h_{i-1} m_{i-1} + 2 (h_{i-1} + h_i) m_i + h_i m_{i+1}
-    //                         = 6 (chord_i / h_i - chord_{i-1} / h_{i-1}).
-    let mut a = DMatrix::<f64>::zeros(n, n);
-    let mut rhs = DMatrix::<f64>::zeros(n, 2);
+/// Replaces every vertex of the closed polygon by a circular arc tangent to both edges (random
+/// radius, see [`CORNER_RADIUS_FACTORS`]) sampled every `ARC_STEP_FACTOR × spacing`; the straight
+/// pieces in between are implied. `None` when an edge is too short for the smallest radius.
+fn round_corners(
+    poly: &[Point2<f64>],
+    rng: &mut ChaCha8Rng,
+    p: &GeneratorParams,
+) -> Option<Vec<Point2<f64>>> {
+    let n = poly.len();
+    let (r_lo, r_hi) = (
+        CORNER_RADIUS_FACTORS.0 * p.min_radius,
+        CORNER_RADIUS_FACTORS.1 * p.min_radius,
+    );
+    let mut out = Vec::new();
     for i in 0..n {
-        let (prev, next) = ((i + n - 1) % n, (i + 1) % n);
-        a[(i, prev)] += h[prev];
-        a[(i, i)] += 2.0 * (h[prev] + h[i]);
-        a[(i, next)] += h[i];
-        let r = (chord(i) / h[i] - chord(prev) / h[prev]) * 6.0;
-        rhs[(i, 0)] = r.x;
-        rhs[(i, 1)] = r.y;
+        let (a, b, c) = (poly[(i + n - 1) % n], poly[i], poly[(i + 1) % n]);
+        let (d_in, d_out) = ((b - a).normalize(), (c - b).normalize());
+        let turn = d_in.perp(&d_out).atan2(d_in.dot(&d_out));
+        let tan_half = (turn.abs() / 2.0).tan();
+        // The tangent points r tan(|turn| / 2) from the vertex must stay within half of each edge.
+        let r_fit = (b - a).norm().min((c - b).norm()) / 2.0 / tan_half;
+        if r_fit < r_lo {
+            return None;
+        }
+        // log-uniform: tight corners as likely as sweeping ones
+        let r = r_lo * (r_fit.min(r_hi) / r_lo).powf(rng.random::<f64>());
+        let start = b - d_in * (r * tan_half);
+        let centre = start + Vector2::new(-d_in.y, d_in.x) * (r * turn.signum());
+        let steps = (r * turn.abs() / (ARC_STEP_FACTOR * p.spacing))
+            .ceil()
+            .max(1.0) as usize;
+        out.extend(
+            (0..=steps).map(|j| {
+                centre + Rotation2::new(turn * j as f64 / steps as f64) * (start - centre)
+            }),
+        );
     }
-    let m = a.lu().solve(&rhs)?;
-    let m = |i: usize| Vector2::new(m[(i, 0)], m[(i, 1)]);
-    let pts = (0..n)
-        .flat_map(|i| {
-            let j = (i + 1) % n;
-            let (pi, pj, mi, mj, hh) = (ctrl[i].coords, ctrl[j].coords, m(i), m(j), h[i] * h[i]);
-            (0..SAMPLES_PER_SPAN).map(move |k| {
-                let t = k as f64 / SAMPLES_PER_SPAN as f64;
-                let u = 1.0 - t;
-                Point2::from(
-                    pi * u + pj * t + (mi * (u * u * u - u) + mj * (t * t * t - t)) * (hh / 6.0),
-                )
-            })
+    Some(out)
+}
+
+/// Cyclic moving average of each point with its `m` neighbours either side.
+fn moving_average(pts: &[Point2<f64>], m: usize) -> Vec<Point2<f64>> {
+    let n = pts.len();
+    let w = (2 * m + 1) as f64;
+    (0..n)
+        .map(|i| {
+            let sum: Vector2<f64> = (0..=2 * m)
+                .map(|k| {
+                    pts[(i as isize + k as isize - m as isize).rem_euclid(n as isize) as usize]
+                        .coords
+                })
+                .sum();
+            Point2::from(sum / w)
         })
-        .collect();
-    Some(pts)
+        .collect()
 }
 
 /// Whether points further apart along the track than a U-turn of diameter `width + 1 m` keep at
@@ -349,10 +374,14 @@ mod tests {
     }
 
     /// Brute-force check, independent of the generator's sweep: do two non-neighbouring segments of
-    /// the closed polylines intersect (touching counts)?
+    /// the closed polylines cross or touch (an end point within 1 µm of the other segment)?
     fn any_intersection(walls: &[Vec<Point2<f64>>]) -> bool {
         let cross = |o: Point2<f64>, a: Point2<f64>, b: Point2<f64>| {
             (a.x - o.x) * (b.y - o.y) - (a.y - o.y) * (b.x - o.x)
+        };
+        let dist = |q: Point2<f64>, a: Point2<f64>, b: Point2<f64>| {
+            let t = ((q - a).dot(&(b - a)) / (b - a).norm_squared()).clamp(0.0, 1.0);
+            (q - (a + (b - a) * t)).norm()
         };
         let segs: Vec<(usize, usize, Point2<f64>, Point2<f64>)> = walls
             .iter()
@@ -365,7 +394,14 @@ mod tests {
                 if wa == wb && (ia.abs_diff(ib) <= 1 || ia.abs_diff(ib) == n - 1) {
                     return false;
                 }
-                cross(a, b, c) * cross(a, b, d) <= 0.0 && cross(c, d, a) * cross(c, d, b) <= 0.0
+                let crossing =
+                    cross(a, b, c) * cross(a, b, d) < 0.0 && cross(c, d, a) * cross(c, d, b) < 0.0;
+                let touching = dist(a, c, d)
+                    .min(dist(b, c, d))
+                    .min(dist(c, a, b))
+                    .min(dist(d, a, b))
+                    < 1e-6;
+                crossing || touching
             })
         })
     }
@@ -534,97 +570,5 @@ mod tests {
             }
         );
         assert!(serde_yaml::from_str::<GeneratorParams>("lenght: 60.0").is_err());
-    }
-
-    #[test]
-    fn generate_tmp_dump() {
-        for seed in 0..12 {
-            let c = generate_track(seed, &GeneratorParams::default()).unwrap();
-            let w = wall_polylines(&c);
-            let mut out = String::new();
-            for i in 0..c.curve.len() {
-                let p = c.curve.points()[i];
-                out += &format!(
-                    "{} {} {} {} {} {}\n",
-                    p.x, p.y, w[0][i].x, w[0][i].y, w[1][i].x, w[1][i].y
-                );
-            }
-            std::fs::write(format!("/tmp/gen_track_{seed}.txt"), out).unwrap();
-        }
-    }
-
-    #[test]
-    fn generate_tmp_stats() {
-        for (name, p) in [
-            ("default", GeneratorParams::default()),
-            (
-                "r6 L94.3",
-                GeneratorParams {
-                    length: 94.3,
-                    min_radius: 6.0,
-                    ..GeneratorParams::default()
-                },
-            ),
-            (
-                "r4 L62.9",
-                GeneratorParams {
-                    length: 62.9,
-                    min_radius: 4.0,
-                    ..GeneratorParams::default()
-                },
-            ),
-            (
-                "r3.2 L50.3",
-                GeneratorParams {
-                    length: 50.3,
-                    min_radius: 3.2,
-                    ..GeneratorParams::default()
-                },
-            ),
-            (
-                "long",
-                GeneratorParams {
-                    length: 200.0,
-                    ..GeneratorParams::default()
-                },
-            ),
-            (
-                "tight",
-                GeneratorParams {
-                    min_radius: 1.5,
-                    ..GeneratorParams::default()
-                },
-            ),
-            (
-                "wide",
-                GeneratorParams {
-                    width: 3.0,
-                    min_radius: 2.0,
-                    ..GeneratorParams::default()
-                },
-            ),
-            (
-                "big r",
-                GeneratorParams {
-                    min_radius: 4.0,
-                    spacing: 0.2,
-                    ..GeneratorParams::default()
-                },
-            ),
-        ] {
-            let t = std::time::Instant::now();
-            let mut att = vec![];
-            let mut fails = 0;
-            for seed in 0..100 {
-                match generate(seed, &p) {
-                    Ok((_, a)) => att.push(a),
-                    Err(_) => fails += 1,
-                }
-            }
-            att.sort();
-            let mean = att.iter().sum::<u64>() as f64 / att.len().max(1) as f64;
-            eprintln!("{name}: {:.2} ms/track, attempts mean {mean:.1} median {:?} max {:?}, fails {fails}",
-                t.elapsed().as_secs_f64() * 10.0, att.get(att.len()/2), att.last());
-        }
     }
 }
