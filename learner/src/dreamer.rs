@@ -1,0 +1,1830 @@
+//! DreamerV3 (Hafner et al. 2023) with the context-aware variants cRSSM (Prasanna et al. 2024) and
+//! cMask (the paper's), as the paper's code ran them (REFERENCE §5).
+//!
+//! **World model.** `e_t = enc(symlog o_t)`; the RSSM runs over each sequence
+//! (`h_t = GRU(h_{t−1}, f([z_{t−1}, a_{t−1}, c]))`, posterior `z_t ~ q(h_t, e_t)`, prior
+//! `p(h_t)`), starting from zeros wherever `is_first` (with a zero previous action). Heads on
+//! `x_t = [h_t, z_t, c]`: the decoder regresses `symlog o_t` (squared error summed over the
+//! observation), the reward head `r_t` (symlog two-hot), the continue head `1 − terminal_t`
+//! (Bernoulli logit). Loss per `(b, t)`:
+//! `pred + 0.5 max(1, KL(sg q ‖ p)) + 0.1 max(1, KL(q ‖ sg p))`, averaged.
+//!
+//! **Behaviour.** From every posterior state (detached, `B·T` starts) the actor imagines `H` steps
+//! through the prior, with the context unchanged. With rewards `r`, continue probabilities `c`
+//! and critic values `v` of the imagined states, the λ-returns `R_t` ([`crate::returns`]) are
+//! normalised by the percentile scale `S`; the actor minimises
+//! `−w_t ((R_t − sg v_t) / S + η H[π(·|s_t)])`, backpropagating `R_t` through the world model
+//! into the reparameterised actions (only the actor's parameters are stepped); the critic
+//! regresses `sg R_t` and its slow EMA copy's value (two-hot), with `w_t = Π_{k≤t} γ c_k` the
+//! stop-gradient discount weight (`c_0 = 1 − terminal` of the start). The actor is
+//! `Normal(tanh μ, σ)`, `σ = (σ_max − σ_min) sigmoid(x + 2) + σ_min`; samples are scaled back into
+//! `[−1, 1]` with a stop-gradient factor `1 / max(1, |a|)` (dreamerv3-torch's `absmax`) so that
+//! imagined actions match the environment's.
+//!
+//! **Context.** cRSSM feeds `c / range` (`range` = the training range 0.15, so `c ∈ [−1, 1]`) to
+//! the sequence model and every head; cMask replaces it by `c_m = m_t ⊙ c / range` with
+//! `m_t ~ π(m | o_t)` from a mask SAC trained on the extrinsic reward, one SAC step per world-model
+//! step on the same batch. The batch holds no masks (they do not act on the environment): each
+//! step draws `m_t` for every `o_t` once, and that (stop-gradient) sample serves the world model,
+//! imagination and the SAC transitions. Three deliberate departures from the paper's code:
+//! 1. `m = (tanh u + 1)/2`, which reaches 0 and 1 (the code's `sigmoid(tanh u)` stays in
+//!    `[0.27, 0.73]`, so it can neither mask nor pass the context fully);
+//! 2. the SAC transition `(o_t, m_t, r_{t+1}, o_{t+1})` takes the reward of that transition (the
+//!    code paired `o_t` with `r_t`, one step off); transitions into a new episode are dropped;
+//! 3. imagination carries the *masked* context of each start state (the code used the unmasked one).
+//!
+//! **Parameters.** Four [`ParamStore`]s: "policy" (`encoder`, `rssm`, `actor` and, for cMask, the
+//! mask actor `mask`: everything [`DreamerPolicy`] needs, serialised whole by
+//! [`Algorithm::policy_weights`]), "heads" (`decoder`, `reward`, `cont`), "critic" and its slow
+//! copy; cMask adds its critics, their targets and the temperature. Optimisers: candle's AdamW
+//! with weight decay 0, one each for world model (encoder, RSSM, heads), actor and critic, after
+//! global-norm clipping ([`clip_grad_norm`]). Noise (Gumbel uniforms, Gaussian actions) comes from
+//! a ChaCha8 stream per training step, so a run is reproducible from its seed.
+
+use crate::algorithm::{Algorithm, Batch, BatchKind, Metrics};
+use crate::returns::{lambda_returns, ReturnNorm};
+use candle_core::backprop::GradStore;
+use candle_core::{bail, DType, Device, Module, Result, Tensor, Var, D};
+use candle_nn::{AdamW, Init, Optimizer, ParamsAdamW};
+use ctxrace_common::nn::{
+    symlog, Activation, Mlp, ParamStore, Rssm, RssmConfig, RssmState, TanhGaussianActor, TwoHot,
+};
+use ctxrace_common::SequenceBatch;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// Size of the context `c` and of the mask `m`.
+pub const CONTEXT_DIM: usize = 2;
+
+/// How the race context enters the agent.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ContextMode {
+    /// DreamerV3: no context.
+    #[default]
+    None,
+    /// cRSSM: the normalised context.
+    Crssm,
+    /// cMask: the normalised context times a mask from a SAC actor.
+    Cmask,
+}
+
+impl ContextMode {
+    /// Size of the context input of the model (0 or [`CONTEXT_DIM`]).
+    pub fn context_dim(self) -> usize {
+        match self {
+            ContextMode::None => 0,
+            ContextMode::Crssm | ContextMode::Cmask => CONTEXT_DIM,
+        }
+    }
+}
+
+/// Hyper-parameters of cMask's mask SAC.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MaskConfig {
+    /// Hidden units of the mask actor and critics (ReLU).
+    pub units: usize,
+    /// Hidden layers of the mask actor and critics.
+    pub layers: usize,
+    /// Adam learning rate of actor, critics and temperature.
+    pub lr: f64,
+    /// Polyak rate of the target critics.
+    pub tau: f64,
+    /// Discount of the mask critics (the paper gives none: SAC's usual 0.99).
+    pub gamma: f64,
+    /// Target entropy of the mask distribution (`−|m|`).
+    pub target_entropy: f64,
+    /// Initial temperature `α` (the paper gives none).
+    pub init_alpha: f64,
+}
+
+impl Default for MaskConfig {
+    fn default() -> Self {
+        Self {
+            units: 256,
+            layers: 2,
+            lr: 3e-5,
+            tau: 0.005,
+            gamma: 0.99,
+            target_entropy: -2.0,
+            init_alpha: 1.0,
+        }
+    }
+}
+
+/// DreamerV3's hyper-parameters; the defaults are the paper's (REFERENCE §5).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DreamerConfig {
+    /// Context mode: DreamerV3, cRSSM or cMask.
+    pub context: ContextMode,
+    /// Encoder and decoder width (the embedding size too).
+    pub units: usize,
+    /// Encoder and decoder depth.
+    pub layers: usize,
+    /// GRU state size.
+    pub deter: usize,
+    /// RSSM hidden size.
+    pub hidden: usize,
+    /// Number of categorical latent variables.
+    pub stoch: usize,
+    /// Classes per latent variable.
+    pub classes: usize,
+    /// Uniform mixture of the latent distributions.
+    pub unimix: f64,
+    /// Width of the reward, continue, actor and critic heads.
+    pub head_units: usize,
+    /// Depth of the reward, continue, actor and critic heads.
+    pub head_layers: usize,
+    /// Two-hot bins of the reward and critic heads.
+    pub bins: usize,
+    /// Free nats of each KL term.
+    pub free_nats: f64,
+    /// Weight of the dynamics KL `KL(sg q ‖ p)`.
+    pub kl_dyn: f64,
+    /// Weight of the representation KL `KL(q ‖ sg p)`.
+    pub kl_rep: f64,
+    /// Weight of the prediction losses.
+    pub pred_scale: f64,
+    /// World-model learning rate.
+    pub model_lr: f64,
+    /// World-model Adam ε.
+    pub model_eps: f64,
+    /// World-model gradient-norm limit.
+    pub model_clip: f64,
+    /// Actor and critic learning rate.
+    pub ac_lr: f64,
+    /// Actor and critic Adam ε.
+    pub ac_eps: f64,
+    /// Actor and critic gradient-norm limit.
+    pub ac_clip: f64,
+    /// Imagination horizon `H`.
+    pub horizon: usize,
+    /// Discount `γ`.
+    pub gamma: f64,
+    /// Return mixing `λ`.
+    pub lambda: f64,
+    /// Actor entropy bonus `η`.
+    pub entropy: f64,
+    /// EMA decay of the return percentiles.
+    pub return_decay: f64,
+    /// Low return percentile (fraction).
+    pub return_low: f64,
+    /// High return percentile (fraction).
+    pub return_high: f64,
+    /// Slow critic EMA rate (per step).
+    pub slow_critic_rate: f64,
+    /// Weight of the slow-critic regulariser.
+    pub slow_critic_reg: f64,
+    /// Smallest actor standard deviation.
+    pub min_std: f64,
+    /// Largest actor standard deviation.
+    pub max_std: f64,
+    /// Sequences per batch (for the replay sampler).
+    pub batch: usize,
+    /// Steps per sequence (for the replay sampler).
+    pub length: usize,
+    /// Training context range: `c` is divided by it.
+    pub context_range: f64,
+    /// cMask's mask SAC.
+    pub mask: MaskConfig,
+    /// Seed of initialisation and noise.
+    pub seed: u64,
+}
+
+impl Default for DreamerConfig {
+    fn default() -> Self {
+        Self {
+            context: ContextMode::None,
+            units: 256,
+            layers: 3,
+            deter: 256,
+            hidden: 256,
+            stoch: 16,
+            classes: 16,
+            unimix: 0.01,
+            head_units: 256,
+            head_layers: 2,
+            bins: 255,
+            free_nats: 1.0,
+            kl_dyn: 0.5,
+            kl_rep: 0.1,
+            pred_scale: 1.0,
+            model_lr: 3e-5,
+            model_eps: 1e-8,
+            model_clip: 1000.0,
+            ac_lr: 3e-5,
+            ac_eps: 1e-5,
+            ac_clip: 100.0,
+            horizon: 10,
+            gamma: 0.997,
+            lambda: 0.95,
+            entropy: 3e-4,
+            return_decay: 0.99,
+            return_low: 0.05,
+            return_high: 0.95,
+            slow_critic_rate: 0.02,
+            slow_critic_reg: 1.0,
+            min_std: 0.1,
+            max_std: 1.0,
+            batch: 16,
+            length: 64,
+            context_range: 0.15,
+            mask: MaskConfig::default(),
+            seed: 0,
+        }
+    }
+}
+
+impl DreamerConfig {
+    /// Names accepted by [`DreamerConfig::preset`].
+    pub const PRESETS: [&'static str; 2] = ["paper", "dreamerv3-small"];
+
+    /// A named configuration: "paper" (the default: MLPs 3×256, GRU 256, latents 16×16) or
+    /// "dreamerv3-small" (the DreamerV3 paper's size S: GRU and hidden 512, latents 32×32,
+    /// encoder, decoder and heads 2×512; everything else as "paper").
+    pub fn preset(name: &str) -> Option<Self> {
+        match name {
+            "paper" => Some(Self::default()),
+            "dreamerv3-small" => Some(Self {
+                units: 512,
+                layers: 2,
+                deter: 512,
+                hidden: 512,
+                stoch: 32,
+                classes: 32,
+                head_units: 512,
+                head_layers: 2,
+                ..Self::default()
+            }),
+            _ => None,
+        }
+    }
+
+    fn validate(&self) -> Result<()> {
+        let sizes = [
+            ("units", self.units),
+            ("deter", self.deter),
+            ("hidden", self.hidden),
+            ("stoch", self.stoch),
+            ("classes", self.classes),
+            ("head_units", self.head_units),
+            ("horizon", self.horizon),
+            ("mask.units", self.mask.units),
+        ];
+        if let Some((name, _)) = sizes.iter().find(|(_, v)| *v == 0) {
+            bail!("DreamerV3 config: {name} must be positive");
+        }
+        if self.bins < 2 {
+            bail!("DreamerV3 config: bins must be at least 2");
+        }
+        if self.context_range.is_nan() || self.context_range <= 0.0 {
+            bail!("DreamerV3 config: context_range must be positive");
+        }
+        if !(0.0 < self.min_std && self.min_std < self.max_std) {
+            bail!("DreamerV3 config: need 0 < min_std < max_std");
+        }
+        Ok(())
+    }
+}
+
+/// Global-norm gradient clipping over `vars`: scales their gradients in `grads` by
+/// `max_norm / norm` when the norm exceeds `max_norm`; returns the norm before clipping.
+pub fn clip_grad_norm(grads: &mut GradStore, vars: &[Var], max_norm: f64) -> Result<f64> {
+    let mut sq = 0f64;
+    for v in vars {
+        if let Some(g) = grads.get(v.as_tensor()) {
+            sq += scalar(&g.sqr()?.sum_all()?)?;
+        }
+    }
+    let norm = sq.sqrt();
+    if norm > max_norm {
+        let scale = max_norm / norm;
+        for v in vars {
+            if let Some(g) = grads.get(v.as_tensor()) {
+                let scaled = (g * scale)?;
+                grads.insert(v.as_tensor(), scaled);
+            }
+        }
+    }
+    Ok(norm)
+}
+
+/// DreamerV3's KL balancing with free nats, per batch element, from posterior and prior logits
+/// `[N, S, C]`: `(max(free, KL(sg q ‖ p)), max(free, KL(q ‖ sg p)), KL(q ‖ p))`, the last detached.
+/// Below the free nats a term is constant and passes no gradient.
+pub fn kl_balance(
+    rssm: &Rssm,
+    post: &Tensor,
+    prior: &Tensor,
+    free: f64,
+) -> Result<(Tensor, Tensor, Tensor)> {
+    let dyn_kl = rssm.kl(&post.detach(), prior)?;
+    let rep_kl = rssm.kl(post, &prior.detach())?;
+    Ok((
+        dyn_kl.maximum(free)?,
+        rep_kl.maximum(free)?,
+        dyn_kl.detach(),
+    ))
+}
+
+/// An AdamW optimiser (weight decay 0) over some variables, with global-norm clipping.
+struct Opt {
+    vars: Vec<Var>,
+    adam: AdamW,
+    clip: f64,
+}
+
+impl Opt {
+    fn new(vars: Vec<Var>, lr: f64, eps: f64, clip: f64) -> Result<Self> {
+        let params = ParamsAdamW {
+            lr,
+            eps,
+            weight_decay: 0.0,
+            ..ParamsAdamW::default()
+        };
+        Ok(Self {
+            adam: AdamW::new(vars.clone(), params)?,
+            vars,
+            clip,
+        })
+    }
+
+    /// One step on `loss`; returns the gradient norm before clipping. A non-finite norm skips
+    /// the step, so that one bad batch cannot poison the weights.
+    fn minimise(&mut self, loss: &Tensor) -> Result<f64> {
+        let mut grads = loss.backward()?;
+        let norm = clip_grad_norm(&mut grads, &self.vars, self.clip)?;
+        if norm.is_finite() {
+            self.adam.step(&grads)?;
+        }
+        Ok(norm)
+    }
+}
+
+/// The networks that act: encoder, RSSM, actor and (cMask) mask actor.
+#[derive(Clone, Debug)]
+struct PolicyNets {
+    encoder: Mlp,
+    rssm: Rssm,
+    actor: Mlp,
+    mask: Option<TanhGaussianActor>,
+    act_dim: usize,
+    min_std: f64,
+    max_std: f64,
+    context_range: f64,
+}
+
+impl PolicyNets {
+    fn new(
+        cfg: &DreamerConfig,
+        obs_dim: usize,
+        act_dim: usize,
+        vb: candle_nn::VarBuilder,
+    ) -> Result<Self> {
+        let silu = Activation::SiluNorm;
+        let context_dim = cfg.context.context_dim();
+        let encoder = Mlp::new(obs_dim, cfg.units, cfg.layers, None, silu, vb.pp("encoder"))?;
+        let rssm_cfg = RssmConfig {
+            deter: cfg.deter,
+            hidden: cfg.hidden,
+            stoch: cfg.stoch,
+            classes: cfg.classes,
+            unimix: cfg.unimix,
+            act_dim,
+            embed_dim: if cfg.layers == 0 { obs_dim } else { cfg.units },
+            context_dim,
+        };
+        let rssm = Rssm::new(rssm_cfg, vb.pp("rssm"))?;
+        let actor = Mlp::new(
+            rssm.feat_dim() + context_dim,
+            cfg.head_units,
+            cfg.head_layers,
+            Some(2 * act_dim),
+            silu,
+            vb.pp("actor"),
+        )?;
+        let mask = match cfg.context {
+            ContextMode::Cmask => Some(TanhGaussianActor::new(
+                obs_dim,
+                CONTEXT_DIM,
+                cfg.mask.units,
+                cfg.mask.layers,
+                vb.pp("mask"),
+            )?),
+            ContextMode::None | ContextMode::Crssm => None,
+        };
+        Ok(Self {
+            encoder,
+            rssm,
+            actor,
+            mask,
+            act_dim,
+            min_std: cfg.min_std,
+            max_std: cfg.max_std,
+            context_range: cfg.context_range,
+        })
+    }
+
+    /// The model's context input `[N, 2]` for raw contexts and (cMask) masks, or `None`.
+    fn context(&self, raw: &Tensor, mask: Option<&Tensor>) -> Result<Option<Tensor>> {
+        if self.rssm.config().context_dim == 0 {
+            return Ok(None);
+        }
+        let c = (raw / self.context_range)?;
+        Ok(Some(match mask {
+            Some(m) => c.mul(m)?,
+            None => c,
+        }))
+    }
+
+    /// The actor's mean `tanh μ` and standard deviation, each `[N, A]`.
+    fn actor_dist(&self, x: &Tensor) -> Result<(Tensor, Tensor)> {
+        let out = self.actor.forward(x)?;
+        let mean = out.narrow(1, 0, self.act_dim)?.tanh()?;
+        let raw = (out.narrow(1, self.act_dim, self.act_dim)? + 2.0)?;
+        let std =
+            candle_nn::ops::sigmoid(&raw)?.affine(self.max_std - self.min_std, self.min_std)?;
+        Ok((mean, std))
+    }
+
+    /// A reparameterised action `[N, A]` from the distribution and standard-normal noise, scaled
+    /// into `[−1, 1]` with a stop-gradient factor.
+    fn sample_action(mean: &Tensor, std: &Tensor, noise: &Tensor) -> Result<Tensor> {
+        let a = (mean + std.mul(noise)?)?;
+        let shrink = a.abs()?.maximum(1.0)?.recip()?.detach();
+        a.mul(&shrink)
+    }
+
+    /// One observation step at batch `N`: the next state and the action (sampled with `noise`,
+    /// else the mean).
+    fn observe(
+        &self,
+        state: &RssmState,
+        prev_action: &Tensor,
+        obs: &Tensor,
+        ctx: Option<&Tensor>,
+        uniform: &Tensor,
+        noise: Option<&Tensor>,
+    ) -> Result<(RssmState, Tensor)> {
+        let embed = self.encoder.forward(&symlog(obs)?)?;
+        let (next, _, _) = self
+            .rssm
+            .obs_step(state, prev_action, ctx, &embed, uniform)?;
+        let (mean, std) = self.actor_dist(&head_input(&next.feat()?, ctx)?)?;
+        let action = match noise {
+            Some(n) => Self::sample_action(&mean, &std, n)?,
+            None => mean,
+        };
+        Ok((next, action))
+    }
+}
+
+/// `m = (a + 1) / 2` and `log π(m) = log π(a) + |m| ln 2` for a tanh-Gaussian mask sample.
+fn mask_sample(
+    actor: &TanhGaussianActor,
+    obs: &Tensor,
+    noise: &Tensor,
+) -> Result<(Tensor, Tensor)> {
+    let (a, log_prob) = actor.sample(obs, noise)?;
+    Ok((
+        a.affine(0.5, 0.5)?,
+        (log_prob + CONTEXT_DIM as f64 * std::f64::consts::LN_2)?,
+    ))
+}
+
+/// The heads' input `[feat, ctx]`.
+fn head_input(feat: &Tensor, ctx: Option<&Tensor>) -> Result<Tensor> {
+    match ctx {
+        Some(c) => Tensor::cat(&[feat, c], 1),
+        None => Ok(feat.clone()),
+    }
+}
+
+/// Binary cross-entropy of logits `l` against targets `y`: `max(l, 0) − y l + ln(1 + e^{−|l|})`.
+fn bce_with_logits(logits: &Tensor, target: &Tensor) -> Result<Tensor> {
+    let softplus_tail = (logits.abs()?.neg()?.exp()? + 1.0)?.log()?;
+    (logits.relu()? - logits.mul(target)?)? + softplus_tail
+}
+
+/// The value of a one-element tensor.
+fn scalar(t: &Tensor) -> Result<f64> {
+    Ok(t.to_dtype(DType::F32)?.to_scalar::<f32>()? as f64)
+}
+
+/// Gumbel-max uniforms in `(0, 1)`.
+fn uniforms(rng: &mut ChaCha8Rng, shape: (usize, usize, usize)) -> Result<Tensor> {
+    let n = shape.0 * shape.1 * shape.2;
+    let v: Vec<f32> = (0..n)
+        .map(|_| rng.random_range(1e-6f32..1.0 - 1e-6))
+        .collect();
+    Tensor::from_vec(v, shape, &Device::Cpu)
+}
+
+/// Standard-normal noise.
+fn normals(rng: &mut ChaCha8Rng, shape: (usize, usize)) -> Result<Tensor> {
+    let v: Vec<f32> = (0..shape.0 * shape.1)
+        .map(|_| rng.sample(StandardNormal))
+        .collect();
+    Tensor::from_vec(v, shape, &Device::Cpu)
+}
+
+/// The parameters of `store` whose names start with one of the `prefixes` (as `prefix.`).
+fn vars_under(store: &ParamStore, prefixes: &[&str]) -> Vec<Var> {
+    store
+        .named()
+        .into_iter()
+        .filter(|(name, _)| prefixes.iter().any(|p| name.starts_with(&format!("{p}."))))
+        .map(|(_, v)| v)
+        .collect()
+}
+
+/// `target ← (1 − τ) target + τ source`, parameter by parameter (same names).
+fn polyak(target: &ParamStore, source: &ParamStore, tau: f64) -> Result<()> {
+    for ((_, t), (_, s)) in target.named().iter().zip(source.named()) {
+        t.set(&((t.as_tensor() * (1.0 - tau))? + (s.as_tensor() * tau)?)?)?;
+    }
+    Ok(())
+}
+
+/// A sequence batch as tensors.
+struct SeqData {
+    batch: usize,
+    length: usize,
+    /// `[B, T, O]`.
+    obs: Tensor,
+    /// `[B, T, A]`.
+    action: Tensor,
+    /// `[B, T]`.
+    reward: Tensor,
+    /// `[B, T]`.
+    first: Tensor,
+    /// `[B, T]`.
+    terminal: Tensor,
+    /// `[B, T, 2]`.
+    context: Tensor,
+}
+
+impl SeqData {
+    fn new(b: &SequenceBatch, obs_dim: usize, act_dim: usize) -> Result<Self> {
+        let (n, dev) = (b.batch * b.length, &Device::Cpu);
+        if n == 0 {
+            bail!("empty sequence batch ({} × {})", b.batch, b.length);
+        }
+        if b.obs_dim != obs_dim || b.act_dim != act_dim {
+            bail!(
+                "batch has obs/action sizes {}/{}, the agent {obs_dim}/{act_dim}",
+                b.obs_dim,
+                b.act_dim
+            );
+        }
+        let fields = [
+            ("obs", b.obs.len(), n * obs_dim),
+            ("action", b.action.len(), n * act_dim),
+            ("reward", b.reward.len(), n),
+            ("is_first", b.is_first.len(), n),
+            ("is_terminal", b.is_terminal.len(), n),
+            ("context", b.context.len(), n * CONTEXT_DIM),
+        ];
+        for (name, got, want) in fields {
+            if got != want {
+                bail!("batch field {name} holds {got} values, expected {want}");
+            }
+        }
+        let (bs, t) = (b.batch, b.length);
+        Ok(Self {
+            batch: bs,
+            length: t,
+            obs: Tensor::from_slice(&b.obs, (bs, t, obs_dim), dev)?,
+            action: Tensor::from_slice(&b.action, (bs, t, act_dim), dev)?,
+            reward: Tensor::from_slice(&b.reward, (bs, t), dev)?,
+            first: Tensor::from_slice(&b.is_first, (bs, t), dev)?,
+            terminal: Tensor::from_slice(&b.is_terminal, (bs, t), dev)?,
+            context: Tensor::from_slice(&b.context, (bs, t, CONTEXT_DIM), dev)?,
+        })
+    }
+
+    /// `x` `[B, T, …]` as `[B·T, k]`.
+    fn flat(&self, x: &Tensor) -> Result<Tensor> {
+        x.reshape((self.batch * self.length, ()))
+    }
+}
+
+/// The mask SAC's transitions `(o_t, m_t, r_{t+1}, o_{t+1}, terminal_{t+1})` for `t < T − 1`,
+/// each `[B·(T−1), …]`, with `valid = 0` where `o_{t+1}` starts a new episode.
+struct Transitions {
+    obs: Tensor,
+    mask: Tensor,
+    reward: Tensor,
+    next_obs: Tensor,
+    terminal: Tensor,
+    valid: Tensor,
+}
+
+impl Transitions {
+    /// From a batch and its masks `[B·T, 2]`; `None` for sequences of one step.
+    fn new(d: &SeqData, masks: &Tensor) -> Result<Option<Self>> {
+        let (b, t) = (d.batch, d.length);
+        if t < 2 {
+            return Ok(None);
+        }
+        let n = b * (t - 1);
+        let span = |x: &Tensor, start: usize| x.narrow(1, start, t - 1)?.reshape((n, ()));
+        let masks = masks.reshape((b, t, CONTEXT_DIM))?;
+        Ok(Some(Self {
+            obs: span(&d.obs, 0)?,
+            mask: span(&masks, 0)?,
+            reward: span(&d.reward, 1)?.flatten_all()?,
+            next_obs: span(&d.obs, 1)?,
+            terminal: span(&d.terminal, 1)?.flatten_all()?,
+            valid: (1.0 - span(&d.first, 1)?.flatten_all()?)?,
+        }))
+    }
+}
+
+/// cMask's mask SAC (the actor lives in the policy store under `mask`).
+struct MaskSac {
+    critic_store: ParamStore,
+    target_store: ParamStore,
+    alpha_store: ParamStore,
+    q: [Mlp; 2],
+    q_target: [Mlp; 2],
+    log_alpha: Tensor,
+    actor_opt: Opt,
+    critic_opt: Opt,
+    alpha_opt: Opt,
+    cfg: MaskConfig,
+}
+
+impl MaskSac {
+    fn new(cfg: &DreamerConfig, obs_dim: usize, policy: &ParamStore) -> Result<Self> {
+        let m = &cfg.mask;
+        let critics = |store: &ParamStore| -> Result<[Mlp; 2]> {
+            let q = |name: &str| {
+                let vb = store.builder().pp(name);
+                Mlp::new(
+                    obs_dim + CONTEXT_DIM,
+                    m.units,
+                    m.layers,
+                    Some(1),
+                    Activation::Relu,
+                    vb,
+                )
+            };
+            Ok([q("q1")?, q("q2")?])
+        };
+        let critic_store = ParamStore::new();
+        let q = critics(&critic_store)?;
+        let target_store = ParamStore::new();
+        let q_target = critics(&target_store)?;
+        critic_store.init(cfg.seed.wrapping_add(3))?;
+        target_store.load_bytes(&critic_store.to_bytes()?)?;
+        if m.init_alpha.is_nan() || m.init_alpha <= 0.0 {
+            bail!("mask.init_alpha must be positive");
+        }
+        let alpha_store = ParamStore::new();
+        let log_alpha =
+            alpha_store
+                .builder()
+                .get_with_hints(1, "log_alpha", Init::Const(m.init_alpha.ln()))?;
+        let no_clip = f64::INFINITY;
+        Ok(Self {
+            actor_opt: Opt::new(vars_under(policy, &["mask"]), m.lr, 1e-8, no_clip)?,
+            critic_opt: Opt::new(critic_store.vars(), m.lr, 1e-8, no_clip)?,
+            alpha_opt: Opt::new(alpha_store.vars(), m.lr, 1e-8, no_clip)?,
+            critic_store,
+            target_store,
+            alpha_store,
+            q,
+            q_target,
+            log_alpha,
+            cfg: m.clone(),
+        })
+    }
+
+    /// `min(Q1, Q2)(o, m)` `[N]` of the critics `q`.
+    fn min_q(q: &[Mlp; 2], obs: &Tensor, mask: &Tensor) -> Result<Tensor> {
+        let x = Tensor::cat(&[obs, mask], 1)?;
+        q[0].forward(&x)?.minimum(&q[1].forward(&x)?)?.squeeze(1)
+    }
+
+    /// One SAC step (critics, actor, temperature, targets) on the transitions.
+    fn step(
+        &mut self,
+        actor: &TanhGaussianActor,
+        tr: &Transitions,
+        rng: &mut ChaCha8Rng,
+        metrics: &mut Metrics,
+    ) -> Result<()> {
+        let n = tr.obs.dim(0)?;
+        let count = scalar(&tr.valid.sum_all()?)?.max(1.0);
+        let mean = |x: &Tensor| -> Result<Tensor> { x.mul(&tr.valid)?.sum_all()? / count };
+        let alpha = self.log_alpha.exp()?.detach();
+
+        let (next_m, next_logp) =
+            mask_sample(actor, &tr.next_obs, &normals(rng, (n, CONTEXT_DIM))?)?;
+        let soft_next = (Self::min_q(&self.q_target, &tr.next_obs, &next_m)?
+            - next_logp.broadcast_mul(&alpha)?)?;
+        let keep = ((1.0 - &tr.terminal)? * self.cfg.gamma)?;
+        let target = (&tr.reward + keep.mul(&soft_next)?)?.detach();
+        let x = Tensor::cat(&[&tr.obs, &tr.mask], 1)?;
+        let q_loss = mean(
+            &((self.q[0].forward(&x)?.squeeze(1)? - &target)?.sqr()?
+                + (self.q[1].forward(&x)?.squeeze(1)? - &target)?.sqr()?)?,
+        )?;
+        self.critic_opt.minimise(&q_loss)?;
+
+        let (m, logp) = mask_sample(actor, &tr.obs, &normals(rng, (n, CONTEXT_DIM))?)?;
+        let actor_loss =
+            mean(&(logp.broadcast_mul(&alpha)? - Self::min_q(&self.q, &tr.obs, &m)?)?)?;
+        self.actor_opt.minimise(&actor_loss)?;
+
+        let gap = (logp.detach() + self.cfg.target_entropy)?;
+        let alpha_loss = mean(&gap.broadcast_mul(&self.log_alpha)?.neg()?)?;
+        self.alpha_opt.minimise(&alpha_loss)?;
+        polyak(&self.target_store, &self.critic_store, self.cfg.tau)?;
+
+        metrics.insert("mask/q_loss".into(), scalar(&q_loss)?);
+        metrics.insert("mask/actor_loss".into(), scalar(&actor_loss)?);
+        metrics.insert("mask/alpha".into(), scalar(&alpha.sum_all()?)?);
+        metrics.insert("mask/entropy".into(), -scalar(&mean(&logp)?)?);
+        Ok(())
+    }
+}
+
+/// Posterior states to imagine from, `N = B·T` of them, detached.
+struct Starts {
+    state: RssmState,
+    /// `[N]` `1 − terminal`.
+    cont: Tensor,
+    /// `[N, 2]` the model context, if any.
+    ctx: Option<Tensor>,
+}
+
+/// An imagined trajectory of `H` actions from `N` starts.
+struct Imagined {
+    /// Head inputs of the states `s_0 … s_H`, time-major `[(H + 1)·N, F]`.
+    x: Tensor,
+    /// Actor entropies at `s_0 … s_{H−1}`, `[H, N]`.
+    entropy: Tensor,
+    n: usize,
+}
+
+/// On-disk counters of a [`Dreamer`].
+#[derive(Serialize, Deserialize)]
+struct TrainState {
+    step: u64,
+    return_norm: ReturnNorm,
+}
+
+/// DreamerV3 / cRSSM / cMask (see the module doc).
+pub struct Dreamer {
+    cfg: DreamerConfig,
+    obs_dim: usize,
+    act_dim: usize,
+    policy: ParamStore,
+    heads: ParamStore,
+    critic_store: ParamStore,
+    slow_store: ParamStore,
+    nets: PolicyNets,
+    decoder: Mlp,
+    reward: Mlp,
+    cont: Mlp,
+    critic: Mlp,
+    slow_critic: Mlp,
+    twohot: TwoHot,
+    model_opt: Opt,
+    actor_opt: Opt,
+    critic_opt: Opt,
+    sac: Option<MaskSac>,
+    return_norm: ReturnNorm,
+    step: u64,
+}
+
+impl Dreamer {
+    /// A freshly initialised agent for observations of `obs_dim` and actions of `act_dim`
+    /// (reward and critic output layers start at zero, as in DreamerV3).
+    pub fn new(cfg: DreamerConfig, obs_dim: usize, act_dim: usize) -> Result<Self> {
+        cfg.validate()?;
+        if obs_dim == 0 || act_dim == 0 {
+            bail!("DreamerV3 needs observations and actions (sizes {obs_dim}, {act_dim})");
+        }
+        let silu = Activation::SiluNorm;
+        let policy = ParamStore::new();
+        let nets = PolicyNets::new(&cfg, obs_dim, act_dim, policy.builder())?;
+        let feat = nets.rssm.feat_dim() + cfg.context.context_dim();
+        let heads = ParamStore::new();
+        let hb = heads.builder();
+        let (hu, hl) = (cfg.head_units, cfg.head_layers);
+        let decoder = Mlp::new(
+            feat,
+            cfg.units,
+            cfg.layers,
+            Some(obs_dim),
+            silu,
+            hb.pp("decoder"),
+        )?;
+        let reward = Mlp::new(feat, hu, hl, Some(cfg.bins), silu, hb.pp("reward"))?;
+        let cont = Mlp::new(feat, hu, hl, Some(1), silu, hb.pp("cont"))?;
+        let critic_store = ParamStore::new();
+        let critic = Mlp::new(
+            feat,
+            hu,
+            hl,
+            Some(cfg.bins),
+            silu,
+            critic_store.builder().pp("critic"),
+        )?;
+        let slow_store = ParamStore::new();
+        let slow_critic = Mlp::new(
+            feat,
+            hu,
+            hl,
+            Some(cfg.bins),
+            silu,
+            slow_store.builder().pp("critic"),
+        )?;
+
+        policy.init(cfg.seed)?;
+        heads.init(cfg.seed.wrapping_add(1))?;
+        critic_store.init(cfg.seed.wrapping_add(2))?;
+        for (store, name) in [
+            (&heads, "reward.out.weight"),
+            (&critic_store, "critic.out.weight"),
+        ] {
+            for (n, v) in store.named() {
+                if n == name {
+                    v.set(&v.zeros_like()?)?;
+                }
+            }
+        }
+        slow_store.load_bytes(&critic_store.to_bytes()?)?;
+
+        let mut model_vars = vars_under(&policy, &["encoder", "rssm"]);
+        model_vars.extend(heads.vars());
+        let model_opt = Opt::new(model_vars, cfg.model_lr, cfg.model_eps, cfg.model_clip)?;
+        let actor_vars = vars_under(&policy, &["actor"]);
+        let actor_opt = Opt::new(actor_vars, cfg.ac_lr, cfg.ac_eps, cfg.ac_clip)?;
+        let critic_opt = Opt::new(critic_store.vars(), cfg.ac_lr, cfg.ac_eps, cfg.ac_clip)?;
+        let sac = match cfg.context {
+            ContextMode::Cmask => Some(MaskSac::new(&cfg, obs_dim, &policy)?),
+            ContextMode::None | ContextMode::Crssm => None,
+        };
+        Ok(Self {
+            twohot: TwoHot::new(cfg.bins, -20.0, 20.0)?,
+            return_norm: ReturnNorm::new(cfg.return_decay, cfg.return_low, cfg.return_high),
+            cfg,
+            obs_dim,
+            act_dim,
+            policy,
+            heads,
+            critic_store,
+            slow_store,
+            nets,
+            decoder,
+            reward,
+            cont,
+            critic,
+            slow_critic,
+            model_opt,
+            actor_opt,
+            critic_opt,
+            sac,
+            step: 0,
+        })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &DreamerConfig {
+        &self.cfg
+    }
+
+    /// Training steps taken.
+    pub fn steps(&self) -> u64 {
+        self.step
+    }
+
+    /// The acting policy with the current weights, its noise seeded by `seed`.
+    pub fn policy(&self, seed: u64) -> Result<DreamerPolicy> {
+        DreamerPolicy::new(&self.cfg, self.obs_dim, &self.policy.to_bytes()?, seed)
+    }
+
+    /// The cMask masks `[B·T, 2]` of the batch's observations, one sample each (detached).
+    fn draw_masks(&self, d: &SeqData, rng: &mut ChaCha8Rng) -> Result<Option<Tensor>> {
+        let Some(actor) = &self.nets.mask else {
+            return Ok(None);
+        };
+        let n = d.batch * d.length;
+        let (m, _) = mask_sample(actor, &d.flat(&d.obs)?, &normals(rng, (n, CONTEXT_DIM))?)?;
+        Ok(Some(m.detach()))
+    }
+
+    /// One world-model step; returns the posterior states to imagine from.
+    fn world_model_step(
+        &mut self,
+        d: &SeqData,
+        ctx: Option<&Tensor>,
+        rng: &mut ChaCha8Rng,
+        metrics: &mut Metrics,
+    ) -> Result<Starts> {
+        let (b, t_len, n) = (d.batch, d.length, d.batch * d.length);
+        let (s, c) = (self.cfg.stoch, self.cfg.classes);
+        let rssm = &self.nets.rssm;
+        let target = symlog(&d.flat(&d.obs)?)?;
+        // time-major, so that `get(t)` gives contiguous `[B, …]` slices
+        let time_major = |x: &Tensor| x.transpose(0, 1)?.contiguous();
+        let embed = time_major(
+            &self
+                .nets
+                .encoder
+                .forward(&target)?
+                .reshape((b, t_len, ()))?,
+        )?;
+        let actions = time_major(&d.action)?;
+        let keeps = time_major(&(1.0 - &d.first)?)?;
+        let ctx_tm = ctx
+            .map(|c| time_major(&c.reshape((b, t_len, ()))?))
+            .transpose()?;
+
+        let mut state = rssm.initial(b)?;
+        let (mut deters, mut stochs) = (Vec::with_capacity(t_len), Vec::with_capacity(t_len));
+        let (mut priors, mut posts) = (Vec::with_capacity(t_len), Vec::with_capacity(t_len));
+        for t in 0..t_len {
+            let keep = keeps.get(t)?.unsqueeze(1)?;
+            let prev = RssmState {
+                deter: state.deter.broadcast_mul(&keep)?,
+                stoch: state.stoch.broadcast_mul(&keep)?,
+            };
+            let action = actions.get(t)?.broadcast_mul(&keep)?;
+            let c_t = ctx_tm.as_ref().map(|c| c.get(t)).transpose()?;
+            let (next, prior, post) = rssm.obs_step(
+                &prev,
+                &action,
+                c_t.as_ref(),
+                &embed.get(t)?,
+                &uniforms(rng, (b, s, c))?,
+            )?;
+            deters.push(next.deter.clone());
+            stochs.push(next.stoch.clone());
+            priors.push(prior);
+            posts.push(post);
+            state = next;
+        }
+        let batch_major = |xs: &[Tensor]| Tensor::stack(xs, 1)?.reshape((n, ()));
+        let deter = batch_major(&deters)?;
+        let stoch = batch_major(&stochs)?;
+        let prior = batch_major(&priors)?.reshape((n, s, c))?;
+        let post = batch_major(&posts)?.reshape((n, s, c))?;
+
+        let x = head_input(&Tensor::cat(&[&deter, &stoch], 1)?, ctx)?;
+        let recon = (self.decoder.forward(&x)? - &target)?.sqr()?.sum(1)?;
+        let reward = self
+            .twohot
+            .loss(&self.reward.forward(&x)?, &d.reward.flatten_all()?)?;
+        let cont_target = (1.0 - d.terminal.flatten_all()?)?;
+        let cont = bce_with_logits(&self.cont.forward(&x)?.squeeze(1)?, &cont_target)?;
+        let (dyn_loss, rep_loss, kl) = kl_balance(rssm, &post, &prior, self.cfg.free_nats)?;
+        let pred = ((&recon + &reward)? + &cont)?;
+        let loss = (((pred * self.cfg.pred_scale)? + (&dyn_loss * self.cfg.kl_dyn)?)?
+            + (&rep_loss * self.cfg.kl_rep)?)?
+            .mean_all()?;
+        let grad_norm = self.model_opt.minimise(&loss)?;
+
+        for (name, v) in [
+            ("model/loss", &loss),
+            ("model/recon", &recon.mean_all()?),
+            ("model/reward", &reward.mean_all()?),
+            ("model/cont", &cont.mean_all()?),
+            ("model/kl", &kl.mean_all()?),
+        ] {
+            metrics.insert(name.into(), scalar(v)?);
+        }
+        metrics.insert("model/grad_norm".into(), grad_norm);
+        Ok(Starts {
+            state: RssmState {
+                deter: deter.detach(),
+                stoch: stoch.detach(),
+            },
+            cont: cont_target,
+            ctx: ctx.map(|c| c.detach()),
+        })
+    }
+
+    /// Rolls the actor `H` steps through the prior from `start`.
+    fn imagine(&self, start: &Starts, rng: &mut ChaCha8Rng) -> Result<Imagined> {
+        let n = start.state.deter.dim(0)?;
+        let ctx = start.ctx.as_ref();
+        let (s, c, a) = (self.cfg.stoch, self.cfg.classes, self.act_dim);
+        let mut state = start.state.clone();
+        let mut xs = vec![head_input(&state.feat()?, ctx)?];
+        let mut entropies = Vec::with_capacity(self.cfg.horizon);
+        for t in 0..self.cfg.horizon {
+            // the actor sees stop-gradient states; its actions carry gradients into the model
+            let (mean, std) = self.nets.actor_dist(&xs[t].detach())?;
+            let action = PolicyNets::sample_action(&mean, &std, &normals(rng, (n, a))?)?;
+            let gauss = 0.5 * (1.0 + (2.0 * std::f64::consts::PI).ln());
+            entropies.push((std.log()?.sum(1)? + a as f64 * gauss)?);
+            state = self
+                .nets
+                .rssm
+                .img_step(&state, &action, ctx, &uniforms(rng, (n, s, c))?)?
+                .0;
+            xs.push(head_input(&state.feat()?, ctx)?);
+        }
+        Ok(Imagined {
+            x: Tensor::cat(&xs, 0)?,
+            entropy: Tensor::stack(&entropies, 0)?,
+            n,
+        })
+    }
+
+    /// The actor loss of a trajectory, and the critic's targets: `(loss, returns [H, N],
+    /// weights [H, N])`. Updates the return normaliser.
+    fn actor_loss(
+        &mut self,
+        im: &Imagined,
+        start_cont: &Tensor,
+        metrics: &mut Metrics,
+    ) -> Result<(Tensor, Tensor, Tensor)> {
+        let (h, n) = (self.cfg.horizon, im.n);
+        let per_state = |x: Tensor| x.reshape((h + 1, n));
+        let reward =
+            per_state(self.twohot.decode(&self.reward.forward(&im.x)?)?)?.narrow(0, 1, h)?;
+        let cont = per_state(candle_nn::ops::sigmoid(&self.cont.forward(&im.x)?)?)?.detach();
+        let value = per_state(self.twohot.decode(&self.critic.forward(&im.x)?)?)?;
+        let gamma = self.cfg.gamma;
+        let returns = lambda_returns(
+            &reward,
+            &cont.narrow(0, 1, h)?,
+            &value,
+            gamma,
+            self.cfg.lambda,
+        )?;
+        let mut w = start_cont.clone();
+        let mut weights = vec![w.clone()];
+        for t in 1..h {
+            w = (w.mul(&cont.get(t)?)? * gamma)?;
+            weights.push(w.clone());
+        }
+        let weights = Tensor::stack(&weights, 0)?;
+
+        self.return_norm
+            .update(&returns.flatten_all()?.to_vec1::<f32>()?);
+        let scale = self.return_norm.scale();
+        let adv = ((&returns - value.narrow(0, 0, h)?.detach())? / scale)?;
+        let objective = (adv + (&im.entropy * self.cfg.entropy)?)?;
+        let loss = objective.mul(&weights)?.neg()?.mean_all()?;
+        metrics.insert("actor/entropy".into(), scalar(&im.entropy.mean_all()?)?);
+        metrics.insert("imag/reward".into(), scalar(&reward.mean_all()?)?);
+        metrics.insert("imag/return".into(), scalar(&returns.mean_all()?)?);
+        metrics.insert("imag/return_scale".into(), scale);
+        Ok((loss, returns.detach(), weights))
+    }
+
+    /// One actor and one critic step on imagined trajectories from `start`.
+    fn behaviour_step(
+        &mut self,
+        start: &Starts,
+        rng: &mut ChaCha8Rng,
+        metrics: &mut Metrics,
+    ) -> Result<()> {
+        let im = self.imagine(start, rng)?;
+        let (actor_loss, returns, weights) = self.actor_loss(&im, &start.cont, metrics)?;
+        let actor_norm = self.actor_opt.minimise(&actor_loss)?;
+
+        let x = im.x.narrow(0, 0, self.cfg.horizon * im.n)?.detach();
+        let logits = self.critic.forward(&x)?;
+        let slow = self.twohot.decode(&self.slow_critic.forward(&x)?)?.detach();
+        // two-hot cross-entropy towards the returns plus the regulariser towards the slow critic
+        let target = (self.twohot.encode(&returns.flatten_all()?)?
+            + (self.twohot.encode(&slow)? * self.cfg.slow_critic_reg)?)?;
+        let log_probs = candle_nn::ops::log_softmax(&logits, D::Minus1)?;
+        let critic_loss = target
+            .mul(&log_probs)?
+            .sum(1)?
+            .neg()?
+            .mul(&weights.flatten_all()?)?
+            .mean_all()?;
+        let critic_norm = self.critic_opt.minimise(&critic_loss)?;
+        polyak(
+            &self.slow_store,
+            &self.critic_store,
+            self.cfg.slow_critic_rate,
+        )?;
+
+        metrics.insert("actor/loss".into(), scalar(&actor_loss)?);
+        metrics.insert("actor/grad_norm".into(), actor_norm);
+        metrics.insert("critic/loss".into(), scalar(&critic_loss)?);
+        metrics.insert("critic/grad_norm".into(), critic_norm);
+        Ok(())
+    }
+
+    /// Every parameter store with its file name.
+    fn stores(&self) -> Vec<(&'static str, &ParamStore)> {
+        let mut v = vec![
+            ("policy", &self.policy),
+            ("heads", &self.heads),
+            ("critic", &self.critic_store),
+            ("slow_critic", &self.slow_store),
+        ];
+        if let Some(sac) = &self.sac {
+            v.push(("mask_critic", &sac.critic_store));
+            v.push(("mask_target", &sac.target_store));
+            v.push(("mask_alpha", &sac.alpha_store));
+        }
+        v
+    }
+}
+
+fn io_error(what: &str, path: &Path, e: impl std::fmt::Display) -> candle_core::Error {
+    candle_core::Error::Msg(format!("{what} {}: {e}", path.display()))
+}
+
+impl Algorithm for Dreamer {
+    fn batch_kind(&self) -> BatchKind {
+        BatchKind::Sequences
+    }
+
+    /// One world-model step, one actor and one critic step on imagined trajectories from every
+    /// posterior state, and (cMask) one mask-SAC step, all on `batch`.
+    fn train_step(&mut self, batch: &Batch) -> Result<Metrics> {
+        let Batch::Sequences(seq) = batch else {
+            bail!("DreamerV3 trains on sequence batches, not transitions");
+        };
+        let d = SeqData::new(seq, self.obs_dim, self.act_dim)?;
+        let mut rng = ChaCha8Rng::seed_from_u64(self.cfg.seed);
+        rng.set_stream(self.step);
+        let mut metrics = Metrics::new();
+
+        let masks = self.draw_masks(&d, &mut rng)?;
+        let ctx = self.nets.context(&d.flat(&d.context)?, masks.as_ref())?;
+        let starts = self.world_model_step(&d, ctx.as_ref(), &mut rng, &mut metrics)?;
+        self.behaviour_step(&starts, &mut rng, &mut metrics)?;
+        if let (Some(sac), Some(actor), Some(masks)) = (&mut self.sac, &self.nets.mask, &masks) {
+            metrics.insert("mask/mean".into(), scalar(&masks.mean_all()?)?);
+            if let Some(tr) = Transitions::new(&d, masks)? {
+                sac.step(actor, &tr, &mut rng, &mut metrics)?;
+            }
+        }
+        self.step += 1;
+        Ok(metrics)
+    }
+
+    /// The "policy" store: encoder, RSSM, actor and (cMask) mask actor, for [`DreamerPolicy`].
+    fn policy_weights(&self) -> Result<Vec<u8>> {
+        self.policy.to_bytes()
+    }
+
+    /// Writes every parameter store (`<name>.safetensors`) and `state.toml` (step counter and
+    /// return normaliser). candle's AdamW keeps its moments private, so they are not saved: after
+    /// [`Algorithm::load`] the optimisers restart from zero moments.
+    fn save(&self, dir: &Path) -> Result<()> {
+        std::fs::create_dir_all(dir).map_err(|e| io_error("creating", dir, e))?;
+        for (name, store) in self.stores() {
+            let path = dir.join(format!("{name}.safetensors"));
+            std::fs::write(&path, store.to_bytes()?).map_err(|e| io_error("writing", &path, e))?;
+        }
+        let state = TrainState {
+            step: self.step,
+            return_norm: self.return_norm.clone(),
+        };
+        let path = dir.join("state.toml");
+        let text = toml::to_string(&state).map_err(|e| io_error("serialising", &path, e))?;
+        std::fs::write(&path, text).map_err(|e| io_error("writing", &path, e))
+    }
+
+    fn load(&mut self, dir: &Path) -> Result<()> {
+        for (name, store) in self.stores() {
+            let path = dir.join(format!("{name}.safetensors"));
+            let bytes = std::fs::read(&path).map_err(|e| io_error("reading", &path, e))?;
+            store
+                .load_bytes(&bytes)
+                .map_err(|e| io_error("loading", &path, e))?;
+        }
+        let path = dir.join("state.toml");
+        let text = std::fs::read_to_string(&path).map_err(|e| io_error("reading", &path, e))?;
+        let state: TrainState = toml::from_str(&text).map_err(|e| io_error("parsing", &path, e))?;
+        self.step = state.step;
+        self.return_norm = state.return_norm;
+        Ok(())
+    }
+}
+
+/// The acting side of [`Dreamer`] at batch 1: keeps the recurrent state and the previous action.
+pub struct DreamerPolicy {
+    store: ParamStore,
+    nets: PolicyNets,
+    obs_dim: usize,
+    zero: RssmState,
+    state: RssmState,
+    zero_action: Tensor,
+    prev_action: Tensor,
+    uniform_mode: Tensor,
+    stoch: (usize, usize),
+    rng: ChaCha8Rng,
+}
+
+impl DreamerPolicy {
+    /// Action size of the policy.
+    pub const ACT_DIM: usize = 2;
+
+    /// A policy of the architecture `cfg` for observations of `obs_dim`, with the bytes of
+    /// [`Algorithm::policy_weights`]; `seed` seeds its sampling noise.
+    pub fn new(cfg: &DreamerConfig, obs_dim: usize, weights: &[u8], seed: u64) -> Result<Self> {
+        cfg.validate()?;
+        let store = ParamStore::new();
+        let nets = PolicyNets::new(cfg, obs_dim, Self::ACT_DIM, store.builder())?;
+        store.load_bytes(weights)?;
+        let zero = nets.rssm.initial(1)?;
+        let zero_action = Tensor::zeros((1, Self::ACT_DIM), DType::F32, &Device::Cpu)?;
+        Ok(Self {
+            store,
+            obs_dim,
+            state: zero.clone(),
+            zero,
+            prev_action: zero_action.clone(),
+            zero_action,
+            // equal Gumbel noise: the sample is the most likely class
+            uniform_mode: Tensor::full(0.5f32, (1, cfg.stoch, cfg.classes), &Device::Cpu)?,
+            stoch: (cfg.stoch, cfg.classes),
+            nets,
+            rng: ChaCha8Rng::seed_from_u64(seed),
+        })
+    }
+
+    /// Replaces the weights (same architecture) without resetting the state.
+    pub fn load(&mut self, weights: &[u8]) -> Result<()> {
+        self.store.load_bytes(weights)
+    }
+
+    /// Starts a new episode: zero state and previous action.
+    pub fn reset(&mut self) {
+        self.state = self.zero.clone();
+        self.prev_action = self.zero_action.clone();
+    }
+
+    /// The action in `[−1, 1]²` for observation `obs` and raw context `[c_v, c_θ]`, and (cMask) the
+    /// mask used. Deterministic: the mean action, the most likely latent and the mask mode
+    /// `(tanh μ + 1)/2`; otherwise samples.
+    pub fn act(
+        &mut self,
+        obs: &[f32],
+        context: [f32; 2],
+        deterministic: bool,
+    ) -> Result<([f32; 2], Option<[f32; 2]>)> {
+        if obs.len() != self.obs_dim {
+            bail!(
+                "observation has {} values, the policy expects {}",
+                obs.len(),
+                self.obs_dim
+            );
+        }
+        let dev = &Device::Cpu;
+        let o = Tensor::from_slice(obs, (1, self.obs_dim), dev)?;
+        let mask = match &self.nets.mask {
+            Some(actor) if deterministic => Some(actor.mean_action(&o)?.affine(0.5, 0.5)?),
+            Some(actor) => {
+                Some(mask_sample(actor, &o, &normals(&mut self.rng, (1, CONTEXT_DIM))?)?.0)
+            }
+            None => None,
+        };
+        let ctx = self.nets.context(
+            &Tensor::from_slice(&context, (1, CONTEXT_DIM), dev)?,
+            mask.as_ref(),
+        )?;
+        let (uniform, noise) = if deterministic {
+            (self.uniform_mode.clone(), None)
+        } else {
+            let (s, c) = self.stoch;
+            let u = uniforms(&mut self.rng, (1, s, c))?;
+            (u, Some(normals(&mut self.rng, (1, Self::ACT_DIM))?))
+        };
+        let (state, action) = self.nets.observe(
+            &self.state,
+            &self.prev_action,
+            &o,
+            ctx.as_ref(),
+            &uniform,
+            noise.as_ref(),
+        )?;
+        self.state = state;
+        self.prev_action = action.clone();
+        let pair = |t: &Tensor| -> Result<[f32; 2]> {
+            let v = t.flatten_all()?.to_vec1::<f32>()?;
+            Ok([v[0], v[1]])
+        };
+        Ok((pair(&action)?, mask.as_ref().map(pair).transpose()?))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tiny(context: ContextMode) -> DreamerConfig {
+        DreamerConfig {
+            context,
+            units: 32,
+            layers: 2,
+            deter: 32,
+            hidden: 32,
+            stoch: 4,
+            classes: 4,
+            head_units: 32,
+            head_layers: 2,
+            batch: 4,
+            length: 16,
+            mask: MaskConfig {
+                units: 32,
+                ..MaskConfig::default()
+            },
+            ..DreamerConfig::default()
+        }
+    }
+
+    const EPISODE: usize = 16;
+
+    /// 1-D point mass: `x' = clip(x + 0.2 a_0, −1, 1)`, reward `−|x'|`, observation `[x, 1 − |x|]`.
+    fn obs_of(x: f32) -> [f32; 2] {
+        [x, 1.0 - x.abs()]
+    }
+
+    fn step_x(x: f32, a: [f32; 2]) -> f32 {
+        (x + 0.2 * a[0].clamp(-1.0, 1.0)).clamp(-1.0, 1.0)
+    }
+
+    /// Random-policy episodes concatenated into one stream of steps.
+    #[derive(Default)]
+    struct Stream {
+        obs: Vec<f32>,
+        action: Vec<f32>,
+        reward: Vec<f32>,
+        first: Vec<f32>,
+        context: Vec<f32>,
+    }
+
+    fn collect(episodes: usize, rng: &mut ChaCha8Rng) -> Stream {
+        let mut s = Stream::default();
+        for _ in 0..episodes {
+            let mut x: f32 = rng.random_range(-1.0..1.0);
+            let c = [rng.random_range(-0.15..0.15), rng.random_range(-0.15..0.15)];
+            let mut push = |x: f32, a: [f32; 2], r: f32, first: f32| {
+                s.obs.extend(obs_of(x));
+                s.action.extend(a);
+                s.reward.push(r);
+                s.first.push(first);
+                s.context.extend(c);
+            };
+            push(x, [0.0; 2], 0.0, 1.0);
+            for _ in 0..EPISODE {
+                let a = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)];
+                x = step_x(x, a);
+                push(x, a, -x.abs(), 0.0);
+            }
+        }
+        s
+    }
+
+    fn sample(s: &Stream, b: usize, t: usize, rng: &mut ChaCha8Rng) -> Batch {
+        let mut out = SequenceBatch {
+            batch: b,
+            length: t,
+            obs_dim: 2,
+            act_dim: 2,
+            ..SequenceBatch::default()
+        };
+        for _ in 0..b {
+            let i = rng.random_range(0..=s.reward.len() - t);
+            out.obs.extend(&s.obs[2 * i..2 * (i + t)]);
+            out.action.extend(&s.action[2 * i..2 * (i + t)]);
+            out.reward.extend(&s.reward[i..i + t]);
+            out.is_first.extend(&s.first[i..i + t]);
+            out.is_terminal.extend(std::iter::repeat_n(0.0, t));
+            out.context.extend(&s.context[2 * i..2 * (i + t)]);
+        }
+        Batch::Sequences(out)
+    }
+
+    fn grad_norm(grads: &GradStore, v: &Var) -> f64 {
+        grads
+            .get(v.as_tensor())
+            .map(|g| scalar(&g.sqr().unwrap().sum_all().unwrap()).unwrap().sqrt())
+            .unwrap_or(0.0)
+    }
+
+    #[test]
+    fn global_norm_clipping_by_hand() {
+        let a = Var::new(&[1f32, 1.0], &Device::Cpu).unwrap();
+        let b = Var::new(&[1f32], &Device::Cpu).unwrap();
+        // loss = 3 a_0 + 4 a_1 + 12 b: gradients (3, 4) and (12), global norm 13
+        let w = Tensor::new(&[3f32, 4.0], &Device::Cpu).unwrap();
+        let loss = (a.as_tensor().mul(&w).unwrap().sum_all().unwrap()
+            + (b.as_tensor() * 12.0).unwrap().sum_all().unwrap())
+        .unwrap();
+        let vars = [a.clone(), b.clone()];
+        let mut grads = loss.backward().unwrap();
+        assert!((clip_grad_norm(&mut grads, &vars, 100.0).unwrap() - 13.0).abs() < 1e-5);
+        assert!((grad_norm(&grads, &a) - 5.0).abs() < 1e-5); // untouched below the limit
+        assert!((clip_grad_norm(&mut grads, &vars, 6.5).unwrap() - 13.0).abs() < 1e-5);
+        let after = (grad_norm(&grads, &a).powi(2) + grad_norm(&grads, &b).powi(2)).sqrt();
+        assert!((after - 6.5).abs() < 1e-5, "{after}");
+        let ga: Vec<f32> = grads.get(a.as_tensor()).unwrap().to_vec1().unwrap();
+        assert!(
+            (ga[0] - 1.5).abs() < 1e-5 && (ga[1] - 2.0).abs() < 1e-5,
+            "{ga:?}"
+        );
+    }
+
+    #[test]
+    fn kl_free_nats_below_and_above_the_threshold() {
+        let cfg = RssmConfig {
+            deter: 4,
+            hidden: 4,
+            stoch: 1,
+            classes: 2,
+            unimix: 0.0,
+            act_dim: 1,
+            embed_dim: 1,
+            context_dim: 0,
+        };
+        let (_, rssm) = ctxrace_common::nn::rssm::standalone(cfg, 0).unwrap();
+        // q = (1/2, 1/2), p = (3/4, 1/4): KL(q ‖ p) = ½ ln(2/3) + ½ ln 2 = ½ ln(4/3)
+        let want = 0.5 * (4f64 / 3.0).ln();
+        let post = Var::new(&[[[0f32, 0.0]]], &Device::Cpu).unwrap();
+        let prior = Var::new(&[[[3f32.ln(), 0.0]]], &Device::Cpu).unwrap();
+        for (free, expect_grad) in [(1.0, false), (0.1, true)] {
+            let (dyn_kl, rep_kl, kl) =
+                kl_balance(&rssm, post.as_tensor(), prior.as_tensor(), free).unwrap();
+            assert!((scalar(&kl.sum_all().unwrap()).unwrap() - want).abs() < 1e-6);
+            let v = scalar(&dyn_kl.sum_all().unwrap()).unwrap();
+            assert!((v - want.max(free)).abs() < 1e-6, "free {free}: {v}");
+            assert!((scalar(&rep_kl.sum_all().unwrap()).unwrap() - v).abs() < 1e-6);
+            // dyn trains only the prior, rep only the posterior; below the free nats neither
+            let g = dyn_kl.sum_all().unwrap().backward().unwrap();
+            assert_eq!(grad_norm(&g, &prior) > 1e-4, expect_grad, "free {free}");
+            assert_eq!(grad_norm(&g, &post), 0.0);
+            let g = rep_kl.sum_all().unwrap().backward().unwrap();
+            assert_eq!(grad_norm(&g, &post) > 1e-4, expect_grad, "free {free}");
+            assert_eq!(grad_norm(&g, &prior), 0.0);
+        }
+    }
+
+    #[test]
+    fn sac_transitions_take_the_reward_of_their_own_step() {
+        let seq = SequenceBatch {
+            batch: 1,
+            length: 3,
+            obs_dim: 1,
+            act_dim: 1,
+            obs: vec![0.0, 1.0, 2.0],
+            action: vec![0.0; 3],
+            reward: vec![0.0, 10.0, 20.0],
+            is_first: vec![1.0, 0.0, 1.0],
+            is_terminal: vec![0.0, 1.0, 0.0],
+            context: vec![0.0; 6],
+        };
+        let d = SeqData::new(&seq, 1, 1).unwrap();
+        let masks = Tensor::new(&[[0.1f32, 0.2], [0.3, 0.4], [0.5, 0.6]], &Device::Cpu).unwrap();
+        let tr = Transitions::new(&d, &masks).unwrap().unwrap();
+        let v = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert_eq!(v(&tr.obs), [0.0, 1.0]);
+        assert_eq!(v(&tr.mask), [0.1, 0.2, 0.3, 0.4]);
+        assert_eq!(v(&tr.reward), [10.0, 20.0]);
+        assert_eq!(v(&tr.next_obs), [1.0, 2.0]);
+        assert_eq!(v(&tr.terminal), [1.0, 0.0]);
+        assert_eq!(v(&tr.valid), [1.0, 0.0]); // o_2 starts a new episode
+    }
+
+    #[test]
+    fn config_presets_and_serde_defaults() {
+        let paper = DreamerConfig::preset("paper").unwrap();
+        assert_eq!(paper, DreamerConfig::default());
+        assert_eq!(
+            (paper.deter, paper.stoch, paper.classes, paper.layers),
+            (256, 16, 16, 3)
+        );
+        let small = DreamerConfig::preset("dreamerv3-small").unwrap();
+        assert_eq!(
+            (small.deter, small.stoch, small.classes, small.units),
+            (512, 32, 32, 512)
+        );
+        assert!(DreamerConfig::preset("huge").is_none());
+        let cfg: DreamerConfig =
+            toml::from_str("context = \"cmask\"\nhorizon = 5\n[mask]\ntau = 0.01").unwrap();
+        assert_eq!(
+            (cfg.context, cfg.horizon, cfg.mask.tau, cfg.gamma),
+            (ContextMode::Cmask, 5, 0.01, 0.997)
+        );
+        assert!(toml::from_str::<DreamerConfig>("horizn = 5").is_err());
+    }
+
+    #[test]
+    fn world_model_losses_fall_on_point_mass_data() {
+        ctxrace_common::nn::set_threads(1);
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let data = collect(40, &mut rng);
+        // the best constant reward prediction scores the entropy of the mean two-hot target
+        let targets = TwoHot::dreamer()
+            .unwrap()
+            .encode(&Tensor::new(data.reward.as_slice(), &Device::Cpu).unwrap())
+            .unwrap();
+        let marginal: Vec<f32> = targets.mean(0).unwrap().to_vec1().unwrap();
+        let constant: f64 = marginal
+            .iter()
+            .filter(|&&q| q > 0.0)
+            .map(|&q| -(q as f64) * (q as f64).ln())
+            .sum();
+        let cfg = DreamerConfig {
+            model_lr: 3e-3,
+            ..tiny(ContextMode::Crssm)
+        };
+        let mut agent = Dreamer::new(cfg, 2, 2).unwrap();
+        let mut history = Vec::new();
+        for _ in 0..200 {
+            // the world-model part of `train_step`
+            let Batch::Sequences(seq) = sample(&data, 4, 16, &mut rng) else {
+                unreachable!()
+            };
+            let d = SeqData::new(&seq, 2, 2).unwrap();
+            let ctx = agent
+                .nets
+                .context(&d.flat(&d.context).unwrap(), None)
+                .unwrap();
+            let mut m = Metrics::new();
+            agent
+                .world_model_step(&d, ctx.as_ref(), &mut rng, &mut m)
+                .unwrap();
+            assert!(m.values().all(|v| v.is_finite()), "{m:?}");
+            history.push((m["model/recon"], m["model/reward"]));
+        }
+        let mean = |xs: &[(f64, f64)]| {
+            let n = xs.len() as f64;
+            (
+                xs.iter().map(|x| x.0).sum::<f64>() / n,
+                xs.iter().map(|x| x.1).sum::<f64>() / n,
+            )
+        };
+        let (r0, w0) = mean(&history[..10]);
+        let (r1, w1) = mean(&history[190..]);
+        eprintln!("recon {r0:.4} -> {r1:.4}, reward {w0:.3} -> {w1:.3} (constant {constant:.3})");
+        assert!(r1 < 0.5 * r0, "recon {r0} -> {r1}");
+        assert!(
+            w1 < 0.5 * w0 && w1 < 0.75 * constant,
+            "reward {w0} -> {w1}, constant {constant}"
+        );
+    }
+
+    #[test]
+    fn actor_gradients_flow_through_the_world_model_and_only_the_actor_moves() {
+        let mut rng = ChaCha8Rng::seed_from_u64(2);
+        let data = collect(10, &mut rng);
+        let cfg = DreamerConfig {
+            model_lr: 1e-3,
+            ac_lr: 1e-3,
+            entropy: 0.0, // the only path from the loss to the actor is through the dynamics
+            ..tiny(ContextMode::None)
+        };
+        let mut agent = Dreamer::new(cfg, 2, 2).unwrap();
+        // a few steps so that the reward and critic output layers are no longer zero
+        for _ in 0..5 {
+            agent.train_step(&sample(&data, 4, 16, &mut rng)).unwrap();
+        }
+        let Batch::Sequences(seq) = sample(&data, 4, 16, &mut rng) else {
+            unreachable!()
+        };
+        let d = SeqData::new(&seq, 2, 2).unwrap();
+        let mut m = Metrics::new();
+        let starts = agent.world_model_step(&d, None, &mut rng, &mut m).unwrap();
+        let im = agent.imagine(&starts, &mut rng).unwrap();
+        let (loss, _, _) = agent.actor_loss(&im, &starts.cont, &mut m).unwrap();
+        let grads = loss.backward().unwrap();
+        for (name, v) in agent.policy.named() {
+            let g = grad_norm(&grads, &v);
+            if name.starts_with("actor.") {
+                assert!(g > 0.0, "no gradient for {name}");
+            }
+        }
+        // the latent samples of imagination pass gradients straight through to the prior
+        let prior_out = agent
+            .policy
+            .named()
+            .into_iter()
+            .find(|(n, _)| n == "rssm.prior_out.weight")
+            .unwrap()
+            .1;
+        assert!(grad_norm(&grads, &prior_out) > 0.0);
+
+        let before_policy = agent.policy.named();
+        let snapshot = |store: &ParamStore| -> Vec<(String, Vec<f32>)> {
+            store
+                .named()
+                .into_iter()
+                .map(|(n, v)| (n, v.flatten_all().unwrap().to_vec1().unwrap()))
+                .collect()
+        };
+        let (p0, h0, c0) = (
+            snapshot(&agent.policy),
+            snapshot(&agent.heads),
+            snapshot(&agent.critic_store),
+        );
+        assert!(agent.actor_opt.minimise(&loss).unwrap() > 0.0);
+        let (p1, h1, c1) = (
+            snapshot(&agent.policy),
+            snapshot(&agent.heads),
+            snapshot(&agent.critic_store),
+        );
+        assert_eq!(before_policy.len(), p1.len());
+        assert_eq!((h0, c0), (h1, c1));
+        let mut moved = 0;
+        for ((name, a), (_, b)) in p0.iter().zip(&p1) {
+            if name.starts_with("actor.") {
+                moved += (a != b) as usize;
+            } else {
+                assert_eq!(a, b, "{name} changed in the actor step");
+            }
+        }
+        assert_eq!(moved, vars_under(&agent.policy, &["actor"]).len());
+    }
+
+    #[test]
+    fn policy_weights_and_save_load_round_trip() {
+        let dir = std::env::temp_dir().join(format!("ctxrace-dreamer-{}", std::process::id()));
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let data = collect(6, &mut rng);
+        for mode in [ContextMode::None, ContextMode::Crssm, ContextMode::Cmask] {
+            let cfg = tiny(mode);
+            let mut a = Dreamer::new(cfg.clone(), 2, 2).unwrap();
+            for _ in 0..2 {
+                a.train_step(&sample(&data, 4, 16, &mut rng)).unwrap();
+            }
+            let mut b = Dreamer::new(
+                DreamerConfig {
+                    seed: 9,
+                    ..cfg.clone()
+                },
+                2,
+                2,
+            )
+            .unwrap();
+            assert_ne!(a.policy_weights().unwrap(), b.policy_weights().unwrap());
+            a.save(&dir).unwrap();
+            b.load(&dir).unwrap();
+            assert_eq!(a.policy_weights().unwrap(), b.policy_weights().unwrap());
+            for ((_, sa), (_, sb)) in a.stores().iter().zip(b.stores()) {
+                assert_eq!(sa.to_bytes().unwrap(), sb.to_bytes().unwrap());
+            }
+            assert_eq!((b.steps(), &b.return_norm), (2, &a.return_norm));
+
+            let mut p = a.policy(0).unwrap();
+            let mut q = DreamerPolicy::new(&cfg, 2, &b.policy_weights().unwrap(), 0).unwrap();
+            let mut x = 0.7;
+            let ctx = [0.1, -0.05];
+            for t in 0..12 {
+                if t == 6 {
+                    p.reset();
+                    q.reset();
+                }
+                let (ap, mp) = p.act(&obs_of(x), ctx, true).unwrap();
+                let (aq, mq) = q.act(&obs_of(x), ctx, true).unwrap();
+                assert_eq!((ap, mp), (aq, mq));
+                assert_eq!(mp.is_some(), mode == ContextMode::Cmask);
+                assert!(ap.iter().all(|v| v.abs() <= 1.0));
+                x = step_x(x, ap);
+            }
+            // sampled actions stay in the box; the context reaches the policy
+            for _ in 0..20 {
+                let (a_s, m_s) = p.act(&obs_of(x), ctx, false).unwrap();
+                assert!(a_s
+                    .iter()
+                    .chain(m_s.iter().flatten())
+                    .all(|v| v.abs() <= 1.0));
+            }
+            p.reset();
+            let (lo, _) = p.act(&obs_of(0.3), [-0.15, -0.15], true).unwrap();
+            p.reset();
+            let (hi, _) = p.act(&obs_of(0.3), [0.15, 0.15], true).unwrap();
+            assert_eq!(lo != hi, mode != ContextMode::None, "{mode:?}");
+            assert!(p.act(&[0.0; 3], ctx, true).is_err());
+            let other = Dreamer::new(tiny(ContextMode::Cmask), 2, 2).unwrap();
+            if mode != ContextMode::Cmask {
+                assert!(p.load(&other.policy_weights().unwrap()).is_err());
+            }
+        }
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn cmask_masks_saturate_and_the_mask_sac_learns() {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let data = collect(6, &mut rng);
+        let mut agent = Dreamer::new(tiny(ContextMode::Cmask), 2, 2).unwrap();
+        let bias = agent
+            .policy
+            .named()
+            .into_iter()
+            .find(|(n, _)| n == "mask.out.bias")
+            .unwrap()
+            .1;
+        for (push, check) in [(20f32, 0.999f32), (-20.0, 0.001)] {
+            bias.set(&Tensor::new(&[push, push, 0.0, 0.0], &Device::Cpu).unwrap())
+                .unwrap();
+            let mut p = agent.policy(0).unwrap();
+            let (_, m) = p.act(&obs_of(0.5), [0.1, 0.1], true).unwrap();
+            let m = m.unwrap();
+            assert!(
+                m.iter()
+                    .all(|&v| if push > 0.0 { v >= check } else { v <= check }),
+                "{m:?}"
+            );
+        }
+        bias.set(&Tensor::zeros(4, DType::F32, &Device::Cpu).unwrap())
+            .unwrap();
+
+        let sac = agent.sac.as_ref().unwrap();
+        let before = (
+            sac.critic_store.to_bytes().unwrap(),
+            sac.target_store.to_bytes().unwrap(),
+            sac.alpha_store.to_bytes().unwrap(),
+            vars_under(&agent.policy, &["mask"])
+                .iter()
+                .map(|v| v.flatten_all().unwrap().to_vec1::<f32>().unwrap())
+                .collect::<Vec<_>>(),
+        );
+        let mut last = Metrics::new();
+        for _ in 0..3 {
+            last = agent.train_step(&sample(&data, 4, 16, &mut rng)).unwrap();
+        }
+        let sac = agent.sac.as_ref().unwrap();
+        assert_ne!(before.0, sac.critic_store.to_bytes().unwrap());
+        assert_ne!(before.1, sac.target_store.to_bytes().unwrap());
+        assert_ne!(before.2, sac.alpha_store.to_bytes().unwrap());
+        let after: Vec<Vec<f32>> = vars_under(&agent.policy, &["mask"])
+            .iter()
+            .map(|v| v.flatten_all().unwrap().to_vec1::<f32>().unwrap())
+            .collect();
+        assert_ne!(before.3, after);
+        for key in [
+            "mask/q_loss",
+            "mask/actor_loss",
+            "mask/alpha",
+            "mask/entropy",
+            "mask/mean",
+        ] {
+            assert!(last[key].is_finite(), "{key}: {last:?}");
+        }
+        assert!((0.0..=1.0).contains(&last["mask/mean"]));
+    }
+
+    /// Mean return of `policy` over episodes from the starts `x0`.
+    fn evaluate(mut act: impl FnMut(&[f32], bool) -> [f32; 2], starts: &[f32]) -> f64 {
+        let mut total = 0.0;
+        for &x0 in starts {
+            let mut x = x0;
+            for t in 0..EPISODE {
+                x = step_x(x, act(&obs_of(x), t == 0));
+                total += -x.abs() as f64;
+            }
+        }
+        total / starts.len() as f64
+    }
+
+    #[test]
+    fn dreamer_learns_to_hold_the_point_mass_at_the_origin() {
+        ctxrace_common::nn::set_threads(1);
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let data = collect(60, &mut rng);
+        // seeds 0..=9 all reach returns of −1.0 to −2.1 by step 200–300 (random: about −8.2); with
+        // a world-model rate of 1e-3 the reward head stays at its marginal for ~300 steps first
+        let cfg = DreamerConfig {
+            model_lr: 3e-3,
+            ac_lr: 1e-3,
+            ..tiny(ContextMode::None)
+        };
+        let mut agent = Dreamer::new(cfg, 2, 2).unwrap();
+        for _ in 0..300 {
+            agent.train_step(&sample(&data, 4, 16, &mut rng)).unwrap();
+        }
+        let starts: Vec<f32> = (0..20).map(|i| -0.95 + 0.1 * i as f32).collect();
+        let mut policy = agent.policy(0).unwrap();
+        let learned = evaluate(
+            |o, first| {
+                if first {
+                    policy.reset();
+                }
+                policy.act(o, [0.0; 2], true).unwrap().0
+            },
+            &starts,
+        );
+        let mut noise = ChaCha8Rng::seed_from_u64(6);
+        let random = evaluate(
+            |_, _| [noise.random_range(-1.0..1.0), noise.random_range(-1.0..1.0)],
+            &starts.repeat(10),
+        );
+        eprintln!("return: learned {learned:.3}, random {random:.3}");
+        assert!(learned > random + 4.0, "learned {learned}, random {random}");
+    }
+}
