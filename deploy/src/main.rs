@@ -3,6 +3,7 @@
 mod bench;
 mod race_cmd;
 mod render;
+mod results;
 mod track_cmd;
 mod vehicle_cmd;
 
