@@ -1,10 +1,17 @@
-//! What ctxrace processes share: the race context and the experiment configuration types.
+//! What ctxrace processes share: the race context, the experiment configuration types, the
+//! neural-network modules and the acting policies.
 
+pub mod agents;
 pub mod batch;
 pub mod config;
 pub mod context;
 pub mod nn;
+pub mod policy;
 
+pub use agents::{
+    AgentConfig, AlgoKind, BatchSpec, ContextMode, DreamerConfig, MaskConfig, SacConfig,
+};
 pub use batch::{SequenceBatch, TransitionBatch};
 pub use config::{ContextGains, LidarConfig, RaceConfig, RivalConfig};
 pub use context::{Context, ContextError};
+pub use policy::{Decision, Policy};

@@ -39,4 +39,6 @@ pub trait Algorithm {
     fn save(&self, dir: &Path) -> Result<()>;
     /// Restores what [`Algorithm::save`] wrote.
     fn load(&mut self, dir: &Path) -> Result<()>;
+    /// Training steps taken.
+    fn steps(&self) -> u64;
 }

@@ -34,285 +34,31 @@
 //! 3. imagination carries the *masked* context of each start state (the code used the unmasked one).
 //!
 //! **Parameters.** Four [`ParamStore`]s: "policy" (`encoder`, `rssm`, `actor` and, for cMask, the
-//! mask actor `mask`: everything [`DreamerPolicy`] needs, serialised whole by
+//! mask actor `mask`: everything [`DreamerPolicy`] (in `ctxrace_common::policy`) needs, serialised whole by
 //! [`Algorithm::policy_weights`]), "heads" (`decoder`, `reward`, `cont`), "critic" and its slow
 //! copy; cMask adds its critics, their targets and the temperature. Optimisers: candle's AdamW
 //! with weight decay 0, one each for world model (encoder, RSSM, heads), actor and critic, after
-//! global-norm clipping ([`clip_grad_norm`]). Noise (Gumbel uniforms, Gaussian actions) comes from
+//! global-norm clipping ([`crate::adam::Adam`], whose moments are saved with the weights). Noise (Gumbel uniforms, Gaussian actions) comes from
 //! a ChaCha8 stream per training step, so a run is reproducible from its seed.
 
+use crate::adam::Adam;
 use crate::algorithm::{Algorithm, Batch, BatchKind, Metrics};
+use crate::checkpoint;
 use crate::returns::{lambda_returns, ReturnNorm};
-use candle_core::backprop::GradStore;
 use candle_core::{bail, DType, Device, Module, Result, Tensor, Var, D};
-use candle_nn::{AdamW, Init, Optimizer, ParamsAdamW};
+use candle_nn::Init;
+use ctxrace_common::agents::{ContextMode, DreamerConfig, MaskConfig, CONTEXT_DIM};
 use ctxrace_common::nn::{
-    symlog, Activation, Mlp, ParamStore, Rssm, RssmConfig, RssmState, TanhGaussianActor, TwoHot,
+    symlog, Activation, Mlp, ParamStore, Rssm, RssmState, TanhGaussianActor, TwoHot,
+};
+use ctxrace_common::policy::{
+    head_input, mask_sample, normals, uniforms, DreamerNets, DreamerPolicy,
 };
 use ctxrace_common::SequenceBatch;
-use rand::{Rng, SeedableRng};
+use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
-
-/// Size of the context `c` and of the mask `m`.
-pub const CONTEXT_DIM: usize = 2;
-
-/// How the race context enters the agent.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum ContextMode {
-    /// DreamerV3: no context.
-    #[default]
-    None,
-    /// cRSSM: the normalised context.
-    Crssm,
-    /// cMask: the normalised context times a mask from a SAC actor.
-    Cmask,
-}
-
-impl ContextMode {
-    /// Size of the context input of the model (0 or [`CONTEXT_DIM`]).
-    pub fn context_dim(self) -> usize {
-        match self {
-            ContextMode::None => 0,
-            ContextMode::Crssm | ContextMode::Cmask => CONTEXT_DIM,
-        }
-    }
-}
-
-/// Hyper-parameters of cMask's mask SAC.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct MaskConfig {
-    /// Hidden units of the mask actor and critics (ReLU).
-    pub units: usize,
-    /// Hidden layers of the mask actor and critics.
-    pub layers: usize,
-    /// Adam learning rate of actor, critics and temperature.
-    pub lr: f64,
-    /// Polyak rate of the target critics.
-    pub tau: f64,
-    /// Discount of the mask critics (the paper gives none: SAC's usual 0.99).
-    pub gamma: f64,
-    /// Target entropy of the mask distribution (`−|m|`).
-    pub target_entropy: f64,
-    /// Initial temperature `α` (the paper gives none).
-    pub init_alpha: f64,
-}
-
-impl Default for MaskConfig {
-    fn default() -> Self {
-        Self {
-            units: 256,
-            layers: 2,
-            lr: 3e-5,
-            tau: 0.005,
-            gamma: 0.99,
-            target_entropy: -2.0,
-            init_alpha: 1.0,
-        }
-    }
-}
-
-/// DreamerV3's hyper-parameters; the defaults are the paper's (REFERENCE §5).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct DreamerConfig {
-    /// Context mode: DreamerV3, cRSSM or cMask.
-    pub context: ContextMode,
-    /// Encoder and decoder width (the embedding size too).
-    pub units: usize,
-    /// Encoder and decoder depth.
-    pub layers: usize,
-    /// GRU state size.
-    pub deter: usize,
-    /// RSSM hidden size.
-    pub hidden: usize,
-    /// Number of categorical latent variables.
-    pub stoch: usize,
-    /// Classes per latent variable.
-    pub classes: usize,
-    /// Uniform mixture of the latent distributions.
-    pub unimix: f64,
-    /// Width of the reward, continue, actor and critic heads.
-    pub head_units: usize,
-    /// Depth of the reward, continue, actor and critic heads.
-    pub head_layers: usize,
-    /// Two-hot bins of the reward and critic heads.
-    pub bins: usize,
-    /// Free nats of each KL term.
-    pub free_nats: f64,
-    /// Weight of the dynamics KL `KL(sg q ‖ p)`.
-    pub kl_dyn: f64,
-    /// Weight of the representation KL `KL(q ‖ sg p)`.
-    pub kl_rep: f64,
-    /// Weight of the prediction losses.
-    pub pred_scale: f64,
-    /// World-model learning rate.
-    pub model_lr: f64,
-    /// World-model Adam ε.
-    pub model_eps: f64,
-    /// World-model gradient-norm limit.
-    pub model_clip: f64,
-    /// Actor and critic learning rate.
-    pub ac_lr: f64,
-    /// Actor and critic Adam ε.
-    pub ac_eps: f64,
-    /// Actor and critic gradient-norm limit.
-    pub ac_clip: f64,
-    /// Imagination horizon `H`.
-    pub horizon: usize,
-    /// Discount `γ`.
-    pub gamma: f64,
-    /// Return mixing `λ`.
-    pub lambda: f64,
-    /// Actor entropy bonus `η`.
-    pub entropy: f64,
-    /// EMA decay of the return percentiles.
-    pub return_decay: f64,
-    /// Low return percentile (fraction).
-    pub return_low: f64,
-    /// High return percentile (fraction).
-    pub return_high: f64,
-    /// Slow critic EMA rate (per step).
-    pub slow_critic_rate: f64,
-    /// Weight of the slow-critic regulariser.
-    pub slow_critic_reg: f64,
-    /// Smallest actor standard deviation.
-    pub min_std: f64,
-    /// Largest actor standard deviation.
-    pub max_std: f64,
-    /// Sequences per batch (for the replay sampler).
-    pub batch: usize,
-    /// Steps per sequence (for the replay sampler).
-    pub length: usize,
-    /// Training context range: `c` is divided by it.
-    pub context_range: f64,
-    /// cMask's mask SAC.
-    pub mask: MaskConfig,
-    /// Seed of initialisation and noise.
-    pub seed: u64,
-}
-
-impl Default for DreamerConfig {
-    fn default() -> Self {
-        Self {
-            context: ContextMode::None,
-            units: 256,
-            layers: 3,
-            deter: 256,
-            hidden: 256,
-            stoch: 16,
-            classes: 16,
-            unimix: 0.01,
-            head_units: 256,
-            head_layers: 2,
-            bins: 255,
-            free_nats: 1.0,
-            kl_dyn: 0.5,
-            kl_rep: 0.1,
-            pred_scale: 1.0,
-            model_lr: 3e-5,
-            model_eps: 1e-8,
-            model_clip: 1000.0,
-            ac_lr: 3e-5,
-            ac_eps: 1e-5,
-            ac_clip: 100.0,
-            horizon: 10,
-            gamma: 0.997,
-            lambda: 0.95,
-            entropy: 3e-4,
-            return_decay: 0.99,
-            return_low: 0.05,
-            return_high: 0.95,
-            slow_critic_rate: 0.02,
-            slow_critic_reg: 1.0,
-            min_std: 0.1,
-            max_std: 1.0,
-            batch: 16,
-            length: 64,
-            context_range: 0.15,
-            mask: MaskConfig::default(),
-            seed: 0,
-        }
-    }
-}
-
-impl DreamerConfig {
-    /// Names accepted by [`DreamerConfig::preset`].
-    pub const PRESETS: [&'static str; 2] = ["paper", "dreamerv3-small"];
-
-    /// A named configuration: "paper" (the default: MLPs 3×256, GRU 256, latents 16×16) or
-    /// "dreamerv3-small" (the DreamerV3 paper's size S: GRU and hidden 512, latents 32×32,
-    /// encoder, decoder and heads 2×512; everything else as "paper").
-    pub fn preset(name: &str) -> Option<Self> {
-        match name {
-            "paper" => Some(Self::default()),
-            "dreamerv3-small" => Some(Self {
-                units: 512,
-                layers: 2,
-                deter: 512,
-                hidden: 512,
-                stoch: 32,
-                classes: 32,
-                head_units: 512,
-                head_layers: 2,
-                ..Self::default()
-            }),
-            _ => None,
-        }
-    }
-
-    fn validate(&self) -> Result<()> {
-        let sizes = [
-            ("units", self.units),
-            ("deter", self.deter),
-            ("hidden", self.hidden),
-            ("stoch", self.stoch),
-            ("classes", self.classes),
-            ("head_units", self.head_units),
-            ("horizon", self.horizon),
-            ("mask.units", self.mask.units),
-        ];
-        if let Some((name, _)) = sizes.iter().find(|(_, v)| *v == 0) {
-            bail!("DreamerV3 config: {name} must be positive");
-        }
-        if self.bins < 2 {
-            bail!("DreamerV3 config: bins must be at least 2");
-        }
-        if self.context_range.is_nan() || self.context_range <= 0.0 {
-            bail!("DreamerV3 config: context_range must be positive");
-        }
-        if !(0.0 < self.min_std && self.min_std < self.max_std) {
-            bail!("DreamerV3 config: need 0 < min_std < max_std");
-        }
-        Ok(())
-    }
-}
-
-/// Global-norm gradient clipping over `vars`: scales their gradients in `grads` by
-/// `max_norm / norm` when the norm exceeds `max_norm`; returns the norm before clipping.
-pub fn clip_grad_norm(grads: &mut GradStore, vars: &[Var], max_norm: f64) -> Result<f64> {
-    let mut sq = 0f64;
-    for v in vars {
-        if let Some(g) = grads.get(v.as_tensor()) {
-            sq += scalar(&g.sqr()?.sum_all()?)?;
-        }
-    }
-    let norm = sq.sqrt();
-    if norm > max_norm {
-        let scale = max_norm / norm;
-        for v in vars {
-            if let Some(g) = grads.get(v.as_tensor()) {
-                let scaled = (g * scale)?;
-                grads.insert(v.as_tensor(), scaled);
-            }
-        }
-    }
-    Ok(norm)
-}
 
 /// DreamerV3's KL balancing with free nats, per batch element, from posterior and prior logits
 /// `[N, S, C]`: `(max(free, KL(sg q ‖ p)), max(free, KL(q ‖ sg p)), KL(q ‖ p))`, the last detached.
@@ -332,179 +78,6 @@ pub fn kl_balance(
     ))
 }
 
-/// An AdamW optimiser (weight decay 0) over some variables, with global-norm clipping.
-struct Opt {
-    vars: Vec<Var>,
-    adam: AdamW,
-    clip: f64,
-}
-
-impl Opt {
-    fn new(vars: Vec<Var>, lr: f64, eps: f64, clip: f64) -> Result<Self> {
-        let params = ParamsAdamW {
-            lr,
-            eps,
-            weight_decay: 0.0,
-            ..ParamsAdamW::default()
-        };
-        Ok(Self {
-            adam: AdamW::new(vars.clone(), params)?,
-            vars,
-            clip,
-        })
-    }
-
-    /// One step on `loss`; returns the gradient norm before clipping. A non-finite norm skips
-    /// the step, so that one bad batch cannot poison the weights.
-    fn minimise(&mut self, loss: &Tensor) -> Result<f64> {
-        let mut grads = loss.backward()?;
-        let norm = clip_grad_norm(&mut grads, &self.vars, self.clip)?;
-        if norm.is_finite() {
-            self.adam.step(&grads)?;
-        }
-        Ok(norm)
-    }
-}
-
-/// The networks that act: encoder, RSSM, actor and (cMask) mask actor.
-#[derive(Clone, Debug)]
-struct PolicyNets {
-    encoder: Mlp,
-    rssm: Rssm,
-    actor: Mlp,
-    mask: Option<TanhGaussianActor>,
-    act_dim: usize,
-    min_std: f64,
-    max_std: f64,
-    context_range: f64,
-}
-
-impl PolicyNets {
-    fn new(
-        cfg: &DreamerConfig,
-        obs_dim: usize,
-        act_dim: usize,
-        vb: candle_nn::VarBuilder,
-    ) -> Result<Self> {
-        let silu = Activation::SiluNorm;
-        let context_dim = cfg.context.context_dim();
-        let encoder = Mlp::new(obs_dim, cfg.units, cfg.layers, None, silu, vb.pp("encoder"))?;
-        let rssm_cfg = RssmConfig {
-            deter: cfg.deter,
-            hidden: cfg.hidden,
-            stoch: cfg.stoch,
-            classes: cfg.classes,
-            unimix: cfg.unimix,
-            act_dim,
-            embed_dim: if cfg.layers == 0 { obs_dim } else { cfg.units },
-            context_dim,
-        };
-        let rssm = Rssm::new(rssm_cfg, vb.pp("rssm"))?;
-        let actor = Mlp::new(
-            rssm.feat_dim() + context_dim,
-            cfg.head_units,
-            cfg.head_layers,
-            Some(2 * act_dim),
-            silu,
-            vb.pp("actor"),
-        )?;
-        let mask = match cfg.context {
-            ContextMode::Cmask => Some(TanhGaussianActor::new(
-                obs_dim,
-                CONTEXT_DIM,
-                cfg.mask.units,
-                cfg.mask.layers,
-                vb.pp("mask"),
-            )?),
-            ContextMode::None | ContextMode::Crssm => None,
-        };
-        Ok(Self {
-            encoder,
-            rssm,
-            actor,
-            mask,
-            act_dim,
-            min_std: cfg.min_std,
-            max_std: cfg.max_std,
-            context_range: cfg.context_range,
-        })
-    }
-
-    /// The model's context input `[N, 2]` for raw contexts and (cMask) masks, or `None`.
-    fn context(&self, raw: &Tensor, mask: Option<&Tensor>) -> Result<Option<Tensor>> {
-        if self.rssm.config().context_dim == 0 {
-            return Ok(None);
-        }
-        let c = (raw / self.context_range)?;
-        Ok(Some(match mask {
-            Some(m) => c.mul(m)?,
-            None => c,
-        }))
-    }
-
-    /// The actor's mean `tanh μ` and standard deviation, each `[N, A]`.
-    fn actor_dist(&self, x: &Tensor) -> Result<(Tensor, Tensor)> {
-        let out = self.actor.forward(x)?;
-        let mean = out.narrow(1, 0, self.act_dim)?.tanh()?;
-        let raw = (out.narrow(1, self.act_dim, self.act_dim)? + 2.0)?;
-        let std =
-            candle_nn::ops::sigmoid(&raw)?.affine(self.max_std - self.min_std, self.min_std)?;
-        Ok((mean, std))
-    }
-
-    /// A reparameterised action `[N, A]` from the distribution and standard-normal noise, scaled
-    /// into `[−1, 1]` with a stop-gradient factor.
-    fn sample_action(mean: &Tensor, std: &Tensor, noise: &Tensor) -> Result<Tensor> {
-        let a = (mean + std.mul(noise)?)?;
-        let shrink = a.abs()?.maximum(1.0)?.recip()?.detach();
-        a.mul(&shrink)
-    }
-
-    /// One observation step at batch `N`: the next state and the action (sampled with `noise`,
-    /// else the mean).
-    fn observe(
-        &self,
-        state: &RssmState,
-        prev_action: &Tensor,
-        obs: &Tensor,
-        ctx: Option<&Tensor>,
-        uniform: &Tensor,
-        noise: Option<&Tensor>,
-    ) -> Result<(RssmState, Tensor)> {
-        let embed = self.encoder.forward(&symlog(obs)?)?;
-        let (next, _, _) = self
-            .rssm
-            .obs_step(state, prev_action, ctx, &embed, uniform)?;
-        let (mean, std) = self.actor_dist(&head_input(&next.feat()?, ctx)?)?;
-        let action = match noise {
-            Some(n) => Self::sample_action(&mean, &std, n)?,
-            None => mean,
-        };
-        Ok((next, action))
-    }
-}
-
-/// `m = (a + 1) / 2` and `log π(m) = log π(a) + |m| ln 2` for a tanh-Gaussian mask sample.
-fn mask_sample(
-    actor: &TanhGaussianActor,
-    obs: &Tensor,
-    noise: &Tensor,
-) -> Result<(Tensor, Tensor)> {
-    let (a, log_prob) = actor.sample(obs, noise)?;
-    Ok((
-        a.affine(0.5, 0.5)?,
-        (log_prob + CONTEXT_DIM as f64 * std::f64::consts::LN_2)?,
-    ))
-}
-
-/// The heads' input `[feat, ctx]`.
-fn head_input(feat: &Tensor, ctx: Option<&Tensor>) -> Result<Tensor> {
-    match ctx {
-        Some(c) => Tensor::cat(&[feat, c], 1),
-        None => Ok(feat.clone()),
-    }
-}
-
 /// Binary cross-entropy of logits `l` against targets `y`: `max(l, 0) − y l + ln(1 + e^{−|l|})`.
 fn bce_with_logits(logits: &Tensor, target: &Tensor) -> Result<Tensor> {
     let softplus_tail = (logits.abs()?.neg()?.exp()? + 1.0)?.log()?;
@@ -514,23 +87,6 @@ fn bce_with_logits(logits: &Tensor, target: &Tensor) -> Result<Tensor> {
 /// The value of a one-element tensor.
 fn scalar(t: &Tensor) -> Result<f64> {
     Ok(t.to_dtype(DType::F32)?.to_scalar::<f32>()? as f64)
-}
-
-/// Gumbel-max uniforms in `(0, 1)`.
-fn uniforms(rng: &mut ChaCha8Rng, shape: (usize, usize, usize)) -> Result<Tensor> {
-    let n = shape.0 * shape.1 * shape.2;
-    let v: Vec<f32> = (0..n)
-        .map(|_| rng.random_range(1e-6f32..1.0 - 1e-6))
-        .collect();
-    Tensor::from_vec(v, shape, &Device::Cpu)
-}
-
-/// Standard-normal noise.
-fn normals(rng: &mut ChaCha8Rng, shape: (usize, usize)) -> Result<Tensor> {
-    let v: Vec<f32> = (0..shape.0 * shape.1)
-        .map(|_| rng.sample(StandardNormal))
-        .collect();
-    Tensor::from_vec(v, shape, &Device::Cpu)
 }
 
 /// The parameters of `store` whose names start with one of the `prefixes` (as `prefix.`).
@@ -654,9 +210,9 @@ struct MaskSac {
     q: [Mlp; 2],
     q_target: [Mlp; 2],
     log_alpha: Tensor,
-    actor_opt: Opt,
-    critic_opt: Opt,
-    alpha_opt: Opt,
+    actor_opt: Adam,
+    critic_opt: Adam,
+    alpha_opt: Adam,
     cfg: MaskConfig,
 }
 
@@ -693,9 +249,9 @@ impl MaskSac {
                 .get_with_hints(1, "log_alpha", Init::Const(m.init_alpha.ln()))?;
         let no_clip = f64::INFINITY;
         Ok(Self {
-            actor_opt: Opt::new(vars_under(policy, &["mask"]), m.lr, 1e-8, no_clip)?,
-            critic_opt: Opt::new(critic_store.vars(), m.lr, 1e-8, no_clip)?,
-            alpha_opt: Opt::new(alpha_store.vars(), m.lr, 1e-8, no_clip)?,
+            actor_opt: Adam::new(vars_under(policy, &["mask"]), m.lr, 1e-8, no_clip),
+            critic_opt: Adam::new(critic_store.vars(), m.lr, 1e-8, no_clip),
+            alpha_opt: Adam::new(alpha_store.vars(), m.lr, 1e-8, no_clip),
             critic_store,
             target_store,
             alpha_store,
@@ -790,16 +346,16 @@ pub struct Dreamer {
     heads: ParamStore,
     critic_store: ParamStore,
     slow_store: ParamStore,
-    nets: PolicyNets,
+    nets: DreamerNets,
     decoder: Mlp,
     reward: Mlp,
     cont: Mlp,
     critic: Mlp,
     slow_critic: Mlp,
     twohot: TwoHot,
-    model_opt: Opt,
-    actor_opt: Opt,
-    critic_opt: Opt,
+    model_opt: Adam,
+    actor_opt: Adam,
+    critic_opt: Adam,
     sac: Option<MaskSac>,
     return_norm: ReturnNorm,
     step: u64,
@@ -815,7 +371,7 @@ impl Dreamer {
         }
         let silu = Activation::SiluNorm;
         let policy = ParamStore::new();
-        let nets = PolicyNets::new(&cfg, obs_dim, act_dim, policy.builder())?;
+        let nets = DreamerNets::new(&cfg, obs_dim, act_dim, policy.builder())?;
         let feat = nets.rssm.feat_dim() + cfg.context.context_dim();
         let heads = ParamStore::new();
         let hb = heads.builder();
@@ -866,10 +422,10 @@ impl Dreamer {
 
         let mut model_vars = vars_under(&policy, &["encoder", "rssm"]);
         model_vars.extend(heads.vars());
-        let model_opt = Opt::new(model_vars, cfg.model_lr, cfg.model_eps, cfg.model_clip)?;
+        let model_opt = Adam::new(model_vars, cfg.model_lr, cfg.model_eps, cfg.model_clip);
         let actor_vars = vars_under(&policy, &["actor"]);
-        let actor_opt = Opt::new(actor_vars, cfg.ac_lr, cfg.ac_eps, cfg.ac_clip)?;
-        let critic_opt = Opt::new(critic_store.vars(), cfg.ac_lr, cfg.ac_eps, cfg.ac_clip)?;
+        let actor_opt = Adam::new(actor_vars, cfg.ac_lr, cfg.ac_eps, cfg.ac_clip);
+        let critic_opt = Adam::new(critic_store.vars(), cfg.ac_lr, cfg.ac_eps, cfg.ac_clip);
         let sac = match cfg.context {
             ContextMode::Cmask => Some(MaskSac::new(&cfg, obs_dim, &policy)?),
             ContextMode::None | ContextMode::Crssm => None,
@@ -901,11 +457,6 @@ impl Dreamer {
     /// The configuration.
     pub fn config(&self) -> &DreamerConfig {
         &self.cfg
-    }
-
-    /// Training steps taken.
-    pub fn steps(&self) -> u64 {
-        self.step
     }
 
     /// The acting policy with the current weights, its noise seeded by `seed`.
@@ -1025,7 +576,7 @@ impl Dreamer {
         for t in 0..self.cfg.horizon {
             // the actor sees stop-gradient states; its actions carry gradients into the model
             let (mean, std) = self.nets.actor_dist(&xs[t].detach())?;
-            let action = PolicyNets::sample_action(&mean, &std, &normals(rng, (n, a))?)?;
+            let action = DreamerNets::sample_action(&mean, &std, &normals(rng, (n, a))?)?;
             let gauss = 0.5 * (1.0 + (2.0 * std::f64::consts::PI).ln());
             entropies.push((std.log()?.sum(1)? + a as f64 * gauss)?);
             state = self
@@ -1123,6 +674,36 @@ impl Dreamer {
         Ok(())
     }
 
+    /// Every optimiser with its file name, for reading.
+    fn optimisers_ref(&self) -> Vec<(&'static str, &Adam)> {
+        let mut v = vec![
+            ("opt_model", &self.model_opt),
+            ("opt_actor", &self.actor_opt),
+            ("opt_critic", &self.critic_opt),
+        ];
+        if let Some(sac) = &self.sac {
+            v.push(("opt_mask_actor", &sac.actor_opt));
+            v.push(("opt_mask_critic", &sac.critic_opt));
+            v.push(("opt_mask_alpha", &sac.alpha_opt));
+        }
+        v
+    }
+
+    /// Every optimiser with its file name, for restoring.
+    fn optimisers(&mut self) -> Vec<(&'static str, &mut Adam)> {
+        let mut v = vec![
+            ("opt_model", &mut self.model_opt),
+            ("opt_actor", &mut self.actor_opt),
+            ("opt_critic", &mut self.critic_opt),
+        ];
+        if let Some(sac) = &mut self.sac {
+            v.push(("opt_mask_actor", &mut sac.actor_opt));
+            v.push(("opt_mask_critic", &mut sac.critic_opt));
+            v.push(("opt_mask_alpha", &mut sac.alpha_opt));
+        }
+        v
+    }
+
     /// Every parameter store with its file name.
     fn stores(&self) -> Vec<(&'static str, &ParamStore)> {
         let mut v = vec![
@@ -1138,10 +719,6 @@ impl Dreamer {
         }
         v
     }
-}
-
-fn io_error(what: &str, path: &Path, e: impl std::fmt::Display) -> candle_core::Error {
-    candle_core::Error::Msg(format!("{what} {}: {e}", path.display()))
 }
 
 impl Algorithm for Dreamer {
@@ -1179,151 +756,46 @@ impl Algorithm for Dreamer {
         self.policy.to_bytes()
     }
 
-    /// Writes every parameter store (`<name>.safetensors`) and `state.toml` (step counter and
-    /// return normaliser). candle's AdamW keeps its moments private, so they are not saved: after
-    /// [`Algorithm::load`] the optimisers restart from zero moments.
+    /// Writes every parameter store and optimiser (`<name>.safetensors`) and the counters (step
+    /// and return normaliser).
     fn save(&self, dir: &Path) -> Result<()> {
-        std::fs::create_dir_all(dir).map_err(|e| io_error("creating", dir, e))?;
+        let mut blobs = Vec::new();
         for (name, store) in self.stores() {
-            let path = dir.join(format!("{name}.safetensors"));
-            std::fs::write(&path, store.to_bytes()?).map_err(|e| io_error("writing", &path, e))?;
+            blobs.push((name, store.to_bytes()?));
+        }
+        for (name, opt) in self.optimisers_ref() {
+            blobs.push((name, opt.to_bytes()?));
         }
         let state = TrainState {
             step: self.step,
             return_norm: self.return_norm.clone(),
         };
-        let path = dir.join("state.toml");
-        let text = toml::to_string(&state).map_err(|e| io_error("serialising", &path, e))?;
-        std::fs::write(&path, text).map_err(|e| io_error("writing", &path, e))
+        checkpoint::save(dir, &blobs, &state)
     }
 
     fn load(&mut self, dir: &Path) -> Result<()> {
         for (name, store) in self.stores() {
-            let path = dir.join(format!("{name}.safetensors"));
-            let bytes = std::fs::read(&path).map_err(|e| io_error("reading", &path, e))?;
-            store
-                .load_bytes(&bytes)
-                .map_err(|e| io_error("loading", &path, e))?;
+            checkpoint::load_blob(dir, name, |b| store.load_bytes(b))?;
         }
-        let path = dir.join("state.toml");
-        let text = std::fs::read_to_string(&path).map_err(|e| io_error("reading", &path, e))?;
-        let state: TrainState = toml::from_str(&text).map_err(|e| io_error("parsing", &path, e))?;
+        for (name, opt) in self.optimisers() {
+            checkpoint::load_blob(dir, name, |b| opt.load_bytes(b))?;
+        }
+        let state: TrainState = checkpoint::load_state(dir)?;
         self.step = state.step;
         self.return_norm = state.return_norm;
         Ok(())
     }
-}
 
-/// The acting side of [`Dreamer`] at batch 1: keeps the recurrent state and the previous action.
-pub struct DreamerPolicy {
-    store: ParamStore,
-    nets: PolicyNets,
-    obs_dim: usize,
-    zero: RssmState,
-    state: RssmState,
-    zero_action: Tensor,
-    prev_action: Tensor,
-    uniform_mode: Tensor,
-    stoch: (usize, usize),
-    rng: ChaCha8Rng,
-}
-
-impl DreamerPolicy {
-    /// Action size of the policy.
-    pub const ACT_DIM: usize = 2;
-
-    /// A policy of the architecture `cfg` for observations of `obs_dim`, with the bytes of
-    /// [`Algorithm::policy_weights`]; `seed` seeds its sampling noise.
-    pub fn new(cfg: &DreamerConfig, obs_dim: usize, weights: &[u8], seed: u64) -> Result<Self> {
-        cfg.validate()?;
-        let store = ParamStore::new();
-        let nets = PolicyNets::new(cfg, obs_dim, Self::ACT_DIM, store.builder())?;
-        store.load_bytes(weights)?;
-        let zero = nets.rssm.initial(1)?;
-        let zero_action = Tensor::zeros((1, Self::ACT_DIM), DType::F32, &Device::Cpu)?;
-        Ok(Self {
-            store,
-            obs_dim,
-            state: zero.clone(),
-            zero,
-            prev_action: zero_action.clone(),
-            zero_action,
-            // equal Gumbel noise: the sample is the most likely class
-            uniform_mode: Tensor::full(0.5f32, (1, cfg.stoch, cfg.classes), &Device::Cpu)?,
-            stoch: (cfg.stoch, cfg.classes),
-            nets,
-            rng: ChaCha8Rng::seed_from_u64(seed),
-        })
-    }
-
-    /// Replaces the weights (same architecture) without resetting the state.
-    pub fn load(&mut self, weights: &[u8]) -> Result<()> {
-        self.store.load_bytes(weights)
-    }
-
-    /// Starts a new episode: zero state and previous action.
-    pub fn reset(&mut self) {
-        self.state = self.zero.clone();
-        self.prev_action = self.zero_action.clone();
-    }
-
-    /// The action in `[−1, 1]²` for observation `obs` and raw context `[c_v, c_θ]`, and (cMask) the
-    /// mask used. Deterministic: the mean action, the most likely latent and the mask mode
-    /// `(tanh μ + 1)/2`; otherwise samples.
-    pub fn act(
-        &mut self,
-        obs: &[f32],
-        context: [f32; 2],
-        deterministic: bool,
-    ) -> Result<([f32; 2], Option<[f32; 2]>)> {
-        if obs.len() != self.obs_dim {
-            bail!(
-                "observation has {} values, the policy expects {}",
-                obs.len(),
-                self.obs_dim
-            );
-        }
-        let dev = &Device::Cpu;
-        let o = Tensor::from_slice(obs, (1, self.obs_dim), dev)?;
-        let mask = match &self.nets.mask {
-            Some(actor) if deterministic => Some(actor.mean_action(&o)?.affine(0.5, 0.5)?),
-            Some(actor) => {
-                Some(mask_sample(actor, &o, &normals(&mut self.rng, (1, CONTEXT_DIM))?)?.0)
-            }
-            None => None,
-        };
-        let ctx = self.nets.context(
-            &Tensor::from_slice(&context, (1, CONTEXT_DIM), dev)?,
-            mask.as_ref(),
-        )?;
-        let (uniform, noise) = if deterministic {
-            (self.uniform_mode.clone(), None)
-        } else {
-            let (s, c) = self.stoch;
-            let u = uniforms(&mut self.rng, (1, s, c))?;
-            (u, Some(normals(&mut self.rng, (1, Self::ACT_DIM))?))
-        };
-        let (state, action) = self.nets.observe(
-            &self.state,
-            &self.prev_action,
-            &o,
-            ctx.as_ref(),
-            &uniform,
-            noise.as_ref(),
-        )?;
-        self.state = state;
-        self.prev_action = action.clone();
-        let pair = |t: &Tensor| -> Result<[f32; 2]> {
-            let v = t.flatten_all()?.to_vec1::<f32>()?;
-            Ok([v[0], v[1]])
-        };
-        Ok((pair(&action)?, mask.as_ref().map(pair).transpose()?))
+    fn steps(&self) -> u64 {
+        self.step
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use ctxrace_common::nn::RssmConfig;
+    use rand::Rng;
 
     fn tiny(context: ContextMode) -> DreamerConfig {
         DreamerConfig {
@@ -1409,34 +881,11 @@ mod tests {
         Batch::Sequences(out)
     }
 
-    fn grad_norm(grads: &GradStore, v: &Var) -> f64 {
+    fn grad_norm(grads: &candle_core::backprop::GradStore, v: &Var) -> f64 {
         grads
             .get(v.as_tensor())
             .map(|g| scalar(&g.sqr().unwrap().sum_all().unwrap()).unwrap().sqrt())
             .unwrap_or(0.0)
-    }
-
-    #[test]
-    fn global_norm_clipping_by_hand() {
-        let a = Var::new(&[1f32, 1.0], &Device::Cpu).unwrap();
-        let b = Var::new(&[1f32], &Device::Cpu).unwrap();
-        // loss = 3 a_0 + 4 a_1 + 12 b: gradients (3, 4) and (12), global norm 13
-        let w = Tensor::new(&[3f32, 4.0], &Device::Cpu).unwrap();
-        let loss = (a.as_tensor().mul(&w).unwrap().sum_all().unwrap()
-            + (b.as_tensor() * 12.0).unwrap().sum_all().unwrap())
-        .unwrap();
-        let vars = [a.clone(), b.clone()];
-        let mut grads = loss.backward().unwrap();
-        assert!((clip_grad_norm(&mut grads, &vars, 100.0).unwrap() - 13.0).abs() < 1e-5);
-        assert!((grad_norm(&grads, &a) - 5.0).abs() < 1e-5); // untouched below the limit
-        assert!((clip_grad_norm(&mut grads, &vars, 6.5).unwrap() - 13.0).abs() < 1e-5);
-        let after = (grad_norm(&grads, &a).powi(2) + grad_norm(&grads, &b).powi(2)).sqrt();
-        assert!((after - 6.5).abs() < 1e-5, "{after}");
-        let ga: Vec<f32> = grads.get(a.as_tensor()).unwrap().to_vec1().unwrap();
-        assert!(
-            (ga[0] - 1.5).abs() < 1e-5 && (ga[1] - 2.0).abs() < 1e-5,
-            "{ga:?}"
-        );
     }
 
     #[test]
@@ -1513,13 +962,6 @@ mod tests {
             (512, 32, 32, 512)
         );
         assert!(DreamerConfig::preset("huge").is_none());
-        let cfg: DreamerConfig =
-            toml::from_str("context = \"cmask\"\nhorizon = 5\n[mask]\ntau = 0.01").unwrap();
-        assert_eq!(
-            (cfg.context, cfg.horizon, cfg.mask.tau, cfg.gamma),
-            (ContextMode::Cmask, 5, 0.01, 0.997)
-        );
-        assert!(toml::from_str::<DreamerConfig>("horizn = 5").is_err());
     }
 
     #[test]

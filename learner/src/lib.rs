@@ -1,10 +1,31 @@
 //! ctxrace's training algorithms behind one [`Algorithm`] trait.
 
+pub mod adam;
 pub mod algorithm;
+pub mod checkpoint;
 pub mod dreamer;
 pub mod returns;
 pub mod sac;
 
 pub use algorithm::{Algorithm, Batch, BatchKind, Metrics};
-pub use dreamer::{ContextMode, Dreamer, DreamerConfig, DreamerPolicy};
-pub use sac::{Sac, SacConfig};
+pub use dreamer::Dreamer;
+pub use sac::Sac;
+
+use ctxrace_common::agents::{AgentConfig, AlgoKind};
+use ctxrace_common::policy::ACT_DIM;
+
+/// A fresh agent of `agent.algo` for LiDAR frames of `frame_dim` values (SAC stacks
+/// `agent.sac.frames` of them) and the racing actions (steering, speed).
+pub fn build(agent: &AgentConfig, frame_dim: usize) -> candle_core::Result<Box<dyn Algorithm>> {
+    agent.validate()?;
+    Ok(match agent.algo {
+        AlgoKind::Sac => Box::new(Sac::new(
+            frame_dim * agent.sac.frames,
+            ACT_DIM,
+            agent.sac.clone(),
+        )?),
+        AlgoKind::Dreamerv3 | AlgoKind::Crssm | AlgoKind::Cmask => {
+            Box::new(Dreamer::new(agent.dreamer(), frame_dim, ACT_DIM)?)
+        }
+    })
+}

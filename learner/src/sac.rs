@@ -22,63 +22,19 @@
 //! Noise is drawn from ChaCha8 seeded with the configured seed on stream `step`, so a step's noise
 //! depends only on the seed and the step counter, and survives [`Algorithm::save`] / [`Algorithm::load`].
 
+use crate::adam::Adam;
 use crate::algorithm::{Algorithm, Batch, BatchKind, Metrics};
+use crate::checkpoint;
 use candle_core::{bail, Device, Module, Result, Tensor, D};
-use candle_nn::optim::{AdamW, Optimizer, ParamsAdamW};
 use candle_nn::{Init, VarBuilder};
 use ctxrace_common::nn::{Activation, Mlp, ParamStore, TanhGaussianActor};
-use ctxrace_common::TransitionBatch;
+use ctxrace_common::policy::SacPolicy;
+use ctxrace_common::{SacConfig, TransitionBatch};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
-
-/// SAC's hyperparameters; the defaults are the paper's baseline.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct SacConfig {
-    /// Hidden layer width of the actor and the critics.
-    pub hidden: usize,
-    /// Number of hidden layers of the actor and the critics.
-    pub layers: usize,
-    /// Transitions per training batch (drawn by the caller).
-    pub batch_size: usize,
-    /// Actor learning rate.
-    pub actor_lr: f64,
-    /// Critic learning rate.
-    pub critic_lr: f64,
-    /// Temperature (`log α`) learning rate.
-    pub alpha_lr: f64,
-    /// Discount factor `γ`.
-    pub gamma: f64,
-    /// Polyak coefficient `τ` of the target critics.
-    pub tau: f64,
-    /// Initial temperature `α`.
-    pub initial_alpha: f64,
-    /// Target entropy `H̄`; `−|A|` when unset.
-    pub target_entropy: Option<f64>,
-    /// Seed of the initial weights and of the sampling noise.
-    pub seed: u64,
-}
-
-impl Default for SacConfig {
-    fn default() -> Self {
-        Self {
-            hidden: 100,
-            layers: 2,
-            batch_size: 100,
-            actor_lr: 3e-5,
-            critic_lr: 3e-5,
-            alpha_lr: 3e-5,
-            gamma: 0.85,
-            tau: 0.005,
-            initial_alpha: 1.0,
-            target_entropy: None,
-            seed: 0,
-        }
-    }
-}
 
 /// Twin critics `Q_1, Q_2 (o, a)`.
 struct TwinQ {
@@ -114,16 +70,9 @@ impl TwinQ {
     }
 }
 
-/// Adam (candle's AdamW without weight decay, PyTorch's Adam defaults otherwise).
-fn adam(params: &ParamStore, lr: f64) -> Result<AdamW> {
-    AdamW::new(
-        params.vars(),
-        ParamsAdamW {
-            lr,
-            weight_decay: 0.0,
-            ..ParamsAdamW::default()
-        },
-    )
+/// Adam with PyTorch's defaults and no clipping.
+fn adam(params: &ParamStore, lr: f64) -> Adam {
+    Adam::new(params.vars(), lr, 1e-8, f64::INFINITY)
 }
 
 /// Soft actor-critic (see the module doc).
@@ -140,18 +89,11 @@ pub struct Sac {
     target: TwinQ,
     alpha_params: ParamStore,
     log_alpha: Tensor,
-    actor_opt: AdamW,
-    critic_opt: AdamW,
-    alpha_opt: AdamW,
+    actor_opt: Adam,
+    critic_opt: Adam,
+    alpha_opt: Adam,
     step: u64,
 }
-
-/// Names of the files [`Algorithm::save`] writes.
-const ACTOR_FILE: &str = "actor.safetensors";
-const CRITIC_FILE: &str = "critic.safetensors";
-const TARGET_FILE: &str = "critic_target.safetensors";
-const ALPHA_FILE: &str = "log_alpha.safetensors";
-const STATE_FILE: &str = "sac_state.toml";
 
 /// The counters saved beside the weights.
 #[derive(Serialize, Deserialize)]
@@ -170,20 +112,11 @@ impl Sac {
                 cfg.hidden
             );
         }
-        if !(0.0..=1.0).contains(&cfg.gamma) || !(0.0..=1.0).contains(&cfg.tau) {
+        cfg.validate()?;
+        if obs_dim % cfg.frames != 0 {
             bail!(
-                "SAC needs gamma and tau in [0, 1], got {} and {}",
-                cfg.gamma,
-                cfg.tau
-            );
-        }
-        let lrs = [cfg.actor_lr, cfg.critic_lr, cfg.alpha_lr];
-        if lrs.iter().any(|lr| !(lr.is_finite() && *lr >= 0.0))
-            || !(cfg.initial_alpha.is_finite() && cfg.initial_alpha > 0.0)
-        {
-            bail!(
-                "SAC needs learning rates >= 0 and initial_alpha > 0, got {lrs:?} and {}",
-                cfg.initial_alpha
+                "SAC observation size {obs_dim} is not a multiple of frames = {}",
+                cfg.frames
             );
         }
 
@@ -211,9 +144,9 @@ impl Sac {
 
         Ok(Self {
             target_entropy: cfg.target_entropy.unwrap_or(-(act_dim as f64)),
-            actor_opt: adam(&actor_params, cfg.actor_lr)?,
-            critic_opt: adam(&critic_params, cfg.critic_lr)?,
-            alpha_opt: adam(&alpha_params, cfg.alpha_lr)?,
+            actor_opt: adam(&actor_params, cfg.actor_lr),
+            critic_opt: adam(&critic_params, cfg.critic_lr),
+            alpha_opt: adam(&alpha_params, cfg.alpha_lr),
             cfg,
             obs_dim,
             act_dim,
@@ -234,33 +167,21 @@ impl Sac {
         &self.cfg
     }
 
-    /// Training steps taken.
-    pub fn steps(&self) -> u64 {
-        self.step
-    }
-
     /// The current temperature `α`.
     pub fn alpha(&self) -> Result<f64> {
         Ok(self.log_alpha.exp()?.to_vec1::<f32>()?[0] as f64)
     }
 
-    /// The action for one observation: `tanh(μ)` if `deterministic`, else a sample with noise
-    /// from `rng`.
-    pub fn act(&self, obs: &[f32], deterministic: bool, rng: &mut impl Rng) -> Result<Vec<f32>> {
-        if obs.len() != self.obs_dim {
-            bail!(
-                "SAC expects observations of size {}, got {}",
-                self.obs_dim,
-                obs.len()
-            );
-        }
-        let obs = Tensor::from_slice(obs, (1, self.obs_dim), &Device::Cpu)?;
-        let action = if deterministic {
-            self.actor.mean_action(&obs)?
-        } else {
-            self.actor.sample(&obs, &self.noise(1, rng)?)?.0
-        };
-        action.flatten_all()?.to_vec1()
+    /// The acting policy with the current actor weights, its noise seeded by `seed`; it stacks
+    /// `cfg.frames` frames of `obs_dim / frames` values itself.
+    pub fn policy(&self, seed: u64) -> Result<SacPolicy> {
+        SacPolicy::new(
+            &self.cfg,
+            self.obs_dim / self.cfg.frames,
+            self.act_dim,
+            &self.actor_params.to_bytes()?,
+            seed,
+        )
     }
 
     /// Standard-normal noise `[rows, A]` from `rng`.
@@ -310,13 +231,13 @@ impl Sac {
         let y = (reward + (not_done * soft_value)?.affine(self.cfg.gamma, 0.0)?)?.detach();
         let (q1, q2) = self.critic.forward(&obs, &action)?;
         let critic_loss = ((&q1 - &y)?.sqr()?.mean_all()? + (&q2 - &y)?.sqr()?.mean_all()?)?;
-        self.critic_opt.backward_step(&critic_loss)?;
+        self.critic_opt.minimise(&critic_loss)?;
 
         // actor: maximise min_i Q_i(o, ã) + α H
         let (pi_action, log_prob) = self.actor.sample(&obs, &self.noise(b, &mut rng)?)?;
         let (pq1, pq2) = self.critic.forward(&obs, &pi_action)?;
         let actor_loss = ((&log_prob * alpha)? - pq1.minimum(&pq2)?)?.mean_all()?;
-        self.actor_opt.backward_step(&actor_loss)?;
+        self.actor_opt.minimise(&actor_loss)?;
 
         // temperature: move the policy's entropy towards the target
         let log_prob = log_prob.detach();
@@ -325,7 +246,7 @@ impl Sac {
             .broadcast_mul(&(&log_prob + self.target_entropy)?)?
             .neg()?
             .mean_all()?;
-        self.alpha_opt.backward_step(&alpha_loss)?;
+        self.alpha_opt.minimise(&alpha_loss)?;
 
         // targets: Polyak averaging (the two stores hold the same names, sorted)
         let tau = self.cfg.tau;
@@ -353,18 +274,6 @@ impl Sac {
     }
 }
 
-/// Reads a file, naming it in the error.
-fn read(path: &Path) -> Result<Vec<u8>> {
-    std::fs::read(path)
-        .map_err(|e| candle_core::Error::Msg(format!("reading {}: {e}", path.display())))
-}
-
-/// Writes a file, naming it in the error.
-fn write(path: &Path, bytes: &[u8]) -> Result<()> {
-    std::fs::write(path, bytes)
-        .map_err(|e| candle_core::Error::Msg(format!("writing {}: {e}", path.display())))
-}
-
 impl Algorithm for Sac {
     fn batch_kind(&self) -> BatchKind {
         BatchKind::Transitions
@@ -381,40 +290,37 @@ impl Algorithm for Sac {
         self.actor_params.to_bytes()
     }
 
-    /// Writes the actor, critics, target critics and `log α` as safetensors files and the step
-    /// counter as TOML. Adam's moments are not saved (candle's `AdamW` does not expose them), so
-    /// [`Algorithm::load`] restarts the optimisers from zero moments.
+    /// Writes the actor, critics, target critics, `log α` and their optimisers as safetensors
+    /// files and the step counter.
     fn save(&self, dir: &Path) -> Result<()> {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| candle_core::Error::Msg(format!("creating {}: {e}", dir.display())))?;
-        write(&dir.join(ACTOR_FILE), &self.actor_params.to_bytes()?)?;
-        write(&dir.join(CRITIC_FILE), &self.critic_params.to_bytes()?)?;
-        write(&dir.join(TARGET_FILE), &self.target_params.to_bytes()?)?;
-        write(&dir.join(ALPHA_FILE), &self.alpha_params.to_bytes()?)?;
-        let state =
-            toml::to_string(&SavedState { step: self.step }).map_err(candle_core::Error::wrap)?;
-        write(&dir.join(STATE_FILE), state.as_bytes())
+        let blobs = [
+            ("actor", self.actor_params.to_bytes()?),
+            ("critic", self.critic_params.to_bytes()?),
+            ("critic_target", self.target_params.to_bytes()?),
+            ("log_alpha", self.alpha_params.to_bytes()?),
+            ("opt_actor", self.actor_opt.to_bytes()?),
+            ("opt_critic", self.critic_opt.to_bytes()?),
+            ("opt_alpha", self.alpha_opt.to_bytes()?),
+        ];
+        checkpoint::save(dir, &blobs, &SavedState { step: self.step })
     }
 
-    /// Restores what [`Algorithm::save`] wrote into an agent of the same sizes; the optimisers
-    /// restart from zero moments.
+    /// Restores what [`Algorithm::save`] wrote into an agent of the same sizes.
     fn load(&mut self, dir: &Path) -> Result<()> {
-        let state_text =
-            String::from_utf8(read(&dir.join(STATE_FILE))?).map_err(candle_core::Error::wrap)?;
-        let state: SavedState = toml::from_str(&state_text).map_err(candle_core::Error::wrap)?;
-        self.actor_params
-            .load_bytes(&read(&dir.join(ACTOR_FILE))?)?;
-        self.critic_params
-            .load_bytes(&read(&dir.join(CRITIC_FILE))?)?;
-        self.target_params
-            .load_bytes(&read(&dir.join(TARGET_FILE))?)?;
-        self.alpha_params
-            .load_bytes(&read(&dir.join(ALPHA_FILE))?)?;
-        self.actor_opt = adam(&self.actor_params, self.cfg.actor_lr)?;
-        self.critic_opt = adam(&self.critic_params, self.cfg.critic_lr)?;
-        self.alpha_opt = adam(&self.alpha_params, self.cfg.alpha_lr)?;
+        let state: SavedState = checkpoint::load_state(dir)?;
+        checkpoint::load_blob(dir, "actor", |b| self.actor_params.load_bytes(b))?;
+        checkpoint::load_blob(dir, "critic", |b| self.critic_params.load_bytes(b))?;
+        checkpoint::load_blob(dir, "critic_target", |b| self.target_params.load_bytes(b))?;
+        checkpoint::load_blob(dir, "log_alpha", |b| self.alpha_params.load_bytes(b))?;
+        checkpoint::load_blob(dir, "opt_actor", |b| self.actor_opt.load_bytes(b))?;
+        checkpoint::load_blob(dir, "opt_critic", |b| self.critic_opt.load_bytes(b))?;
+        checkpoint::load_blob(dir, "opt_alpha", |b| self.alpha_opt.load_bytes(b))?;
         self.step = state.step;
         Ok(())
+    }
+
+    fn steps(&self) -> u64 {
+        self.step
     }
 }
 
@@ -493,7 +399,7 @@ mod tests {
             critic_lr: 1e-2,
             ..SacConfig::default()
         };
-        let mut sac = Sac::new(5, 2, cfg).unwrap();
+        let mut sac = Sac::new(6, 2, cfg).unwrap();
         assert_eq!(
             sac.target_params.to_bytes().unwrap(),
             sac.critic_params.to_bytes().unwrap()
@@ -506,7 +412,7 @@ mod tests {
                 .iter()
                 .map(|v| values(v.as_tensor()))
                 .collect();
-            sac.train_step(&Batch::Transitions(random_batch(16, 5, 2, &mut rng)))
+            sac.train_step(&Batch::Transitions(random_batch(16, 6, 2, &mut rng)))
                 .unwrap();
             let online = sac.critic_params.named();
             let target = sac.target_params.named();
@@ -578,21 +484,22 @@ mod tests {
         );
         assert_eq!(other.alpha().unwrap(), sac.alpha().unwrap());
         assert_eq!(other.steps(), 5);
+        let (mut p, mut q) = (sac.policy(0).unwrap(), other.policy(0).unwrap());
         for _ in 0..10 {
-            let obs: Vec<f32> = (0..6).map(|_| rng.random_range(-1.0..1.0)).collect();
-            let a = sac.act(&obs, true, &mut rng).unwrap();
-            assert_eq!(a, other.act(&obs, true, &mut rng).unwrap());
+            let frame: Vec<f32> = (0..3).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let a = p.act(&frame, true).unwrap();
+            assert_eq!(a, q.act(&frame, true).unwrap());
             assert!(a.iter().all(|x| x.abs() < 1.0));
         }
 
         // another architecture refuses the weights; a wrong observation size is an error
-        let err = Sac::new(7, 2, SacConfig::default())
+        let err = Sac::new(8, 2, SacConfig::default())
             .unwrap()
             .load(&dir)
             .unwrap_err()
             .to_string();
         assert!(err.contains("shape"), "{err}");
-        assert!(sac.act(&[0.0; 5], true, &mut rng).is_err());
+        assert!(p.act(&[0.0; 5], true).is_err());
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
@@ -654,6 +561,7 @@ mod tests {
             alpha_lr: 1e-3,
             gamma: 0.9,
             seed,
+            frames: 1,
             ..SacConfig::default()
         };
         let mut sac = Sac::new(1, 1, cfg).unwrap();
@@ -665,7 +573,8 @@ mod tests {
             let a = if t < warmup {
                 rng.random_range(-1.0..1.0)
             } else {
-                sac.act(&[x], false, &mut rng).unwrap()[0]
+                let mut policy = sac.policy(t as u64).unwrap();
+                policy.act(&[x], false).unwrap()[0]
             };
             let next = (x + 0.2 * a).clamp(-1.0, 1.0);
             replay.push([x, a, -next.abs(), next]);
@@ -694,13 +603,9 @@ mod tests {
             }
         }
         let mut eval_rng = ChaCha8Rng::seed_from_u64(seed + 2000);
-        let learned = point_mass_final_distance(
-            |x| {
-                sac.act(&[x], true, &mut ChaCha8Rng::seed_from_u64(0))
-                    .unwrap()[0]
-            },
-            &mut eval_rng,
-        );
+        let mut policy = sac.policy(0).unwrap();
+        let learned =
+            point_mass_final_distance(|x| policy.act(&[x], true).unwrap()[0], &mut eval_rng);
         let mut action_rng = ChaCha8Rng::seed_from_u64(seed + 3000);
         let random =
             point_mass_final_distance(|_| action_rng.random_range(-1.0..1.0), &mut eval_rng);

@@ -1,0 +1,502 @@
+//! The agents' hyper-parameters, shared by the learner (training) and the actors (acting): the
+//! algorithm name, [`SacConfig`] and [`DreamerConfig`], with the paper's values as defaults
+//! (REFERENCE §5), read from the `[agent]` table of an experiment's TOML file.
+
+use candle_core::{bail, Result};
+use serde::{Deserialize, Serialize};
+use std::fmt;
+use std::str::FromStr;
+
+/// The training algorithms, by the names the command line and configs use.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AlgoKind {
+    /// Soft actor-critic on two stacked LiDAR frames (the model-free baseline).
+    Sac,
+    /// DreamerV3 without context.
+    #[default]
+    Dreamerv3,
+    /// DreamerV3 with the context in the world model, actor and critic (cRSSM).
+    Crssm,
+    /// cRSSM with the context masked by a SAC-learned mask (the paper's cMask).
+    Cmask,
+}
+
+impl AlgoKind {
+    /// Every algorithm, in the paper's order.
+    pub const ALL: [AlgoKind; 4] = [
+        AlgoKind::Sac,
+        AlgoKind::Dreamerv3,
+        AlgoKind::Crssm,
+        AlgoKind::Cmask,
+    ];
+
+    /// The name used on the command line and in configs.
+    pub fn name(self) -> &'static str {
+        match self {
+            AlgoKind::Sac => "sac",
+            AlgoKind::Dreamerv3 => "dreamerv3",
+            AlgoKind::Crssm => "crssm",
+            AlgoKind::Cmask => "cmask",
+        }
+    }
+
+    /// How the context enters the agent (`None` for SAC and DreamerV3).
+    pub fn context_mode(self) -> ContextMode {
+        match self {
+            AlgoKind::Sac | AlgoKind::Dreamerv3 => ContextMode::None,
+            AlgoKind::Crssm => ContextMode::Crssm,
+            AlgoKind::Cmask => ContextMode::Cmask,
+        }
+    }
+}
+
+impl fmt::Display for AlgoKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for AlgoKind {
+    type Err = String;
+
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        AlgoKind::ALL
+            .into_iter()
+            .find(|a| a.name() == s.to_ascii_lowercase())
+            .ok_or_else(|| {
+                format!("unknown algorithm `{s}`; expected one of sac, dreamerv3, crssm, cmask")
+            })
+    }
+}
+
+/// The shape of the batches an algorithm trains on, for the replay sampler.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum BatchSpec {
+    /// `batch` independent transitions whose observations stack `frames` consecutive frames.
+    Transitions {
+        /// Transitions per batch.
+        batch: usize,
+        /// Frames stacked per observation.
+        frames: usize,
+    },
+    /// `batch` sequences of `length` consecutive steps.
+    Sequences {
+        /// Sequences per batch.
+        batch: usize,
+        /// Steps per sequence.
+        length: usize,
+    },
+}
+
+/// Which agent to train and its hyper-parameters (the `[agent]` table).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AgentConfig {
+    /// The algorithm.
+    pub algo: AlgoKind,
+    /// SAC's hyper-parameters (used when `algo = "sac"`).
+    pub sac: SacConfig,
+    /// DreamerV3's hyper-parameters (the other three algorithms); its `context` follows `algo`.
+    pub dreamer: DreamerConfig,
+}
+
+impl AgentConfig {
+    /// The DreamerV3 configuration with the context mode of [`AgentConfig::algo`].
+    pub fn dreamer(&self) -> DreamerConfig {
+        DreamerConfig {
+            context: self.algo.context_mode(),
+            ..self.dreamer.clone()
+        }
+    }
+
+    /// Sets the seed of whichever algorithm is chosen.
+    pub fn set_seed(&mut self, seed: u64) {
+        self.sac.seed = seed;
+        self.dreamer.seed = seed;
+    }
+
+    /// The seed of the chosen algorithm.
+    pub fn seed(&self) -> u64 {
+        match self.algo {
+            AlgoKind::Sac => self.sac.seed,
+            _ => self.dreamer.seed,
+        }
+    }
+
+    /// The batches the chosen algorithm trains on.
+    pub fn batch_spec(&self) -> BatchSpec {
+        match self.algo {
+            AlgoKind::Sac => BatchSpec::Transitions {
+                batch: self.sac.batch_size,
+                frames: self.sac.frames,
+            },
+            _ => BatchSpec::Sequences {
+                batch: self.dreamer.batch,
+                length: self.dreamer.length,
+            },
+        }
+    }
+
+    /// Checks the chosen algorithm's configuration.
+    pub fn validate(&self) -> Result<()> {
+        match self.algo {
+            AlgoKind::Sac => self.sac.validate(),
+            _ => self.dreamer().validate(),
+        }
+    }
+}
+
+/// SAC's hyperparameters; the defaults are the paper's baseline.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SacConfig {
+    /// Hidden layer width of the actor and the critics.
+    pub hidden: usize,
+    /// Number of hidden layers of the actor and the critics.
+    pub layers: usize,
+    /// Transitions per training batch (drawn by the caller).
+    pub batch_size: usize,
+    /// Actor learning rate.
+    pub actor_lr: f64,
+    /// Critic learning rate.
+    pub critic_lr: f64,
+    /// Temperature (`log α`) learning rate.
+    pub alpha_lr: f64,
+    /// Discount factor `γ`.
+    pub gamma: f64,
+    /// Polyak coefficient `τ` of the target critics.
+    pub tau: f64,
+    /// Initial temperature `α`.
+    pub initial_alpha: f64,
+    /// Target entropy `H̄`; `−|A|` when unset.
+    pub target_entropy: Option<f64>,
+    /// Seed of the initial weights and of the sampling noise.
+    pub seed: u64,
+    /// Consecutive LiDAR frames stacked into one observation (the paper's 2).
+    pub frames: usize,
+}
+
+impl Default for SacConfig {
+    fn default() -> Self {
+        Self {
+            hidden: 100,
+            layers: 2,
+            batch_size: 100,
+            actor_lr: 3e-5,
+            critic_lr: 3e-5,
+            alpha_lr: 3e-5,
+            gamma: 0.85,
+            tau: 0.005,
+            initial_alpha: 1.0,
+            target_entropy: None,
+            seed: 0,
+            frames: 2,
+        }
+    }
+}
+
+impl SacConfig {
+    /// Checks sizes and ranges, naming the offending key.
+    pub fn validate(&self) -> Result<()> {
+        if self.hidden == 0 || self.frames == 0 || self.batch_size == 0 {
+            bail!(
+                "SAC config: hidden, frames and batch_size must be positive (got {}, {}, {})",
+                self.hidden,
+                self.frames,
+                self.batch_size
+            );
+        }
+        if !(0.0..=1.0).contains(&self.gamma) || !(0.0..=1.0).contains(&self.tau) {
+            bail!(
+                "SAC config: gamma and tau must lie in [0, 1], got {} and {}",
+                self.gamma,
+                self.tau
+            );
+        }
+        let lrs = [self.actor_lr, self.critic_lr, self.alpha_lr];
+        if lrs.iter().any(|lr| !(lr.is_finite() && *lr >= 0.0))
+            || !(self.initial_alpha.is_finite() && self.initial_alpha > 0.0)
+        {
+            bail!(
+                "SAC config: learning rates must be >= 0 and initial_alpha > 0, got {lrs:?} and {}",
+                self.initial_alpha
+            );
+        }
+        Ok(())
+    }
+}
+
+/// Size of the context `c` and of the mask `m`.
+pub const CONTEXT_DIM: usize = 2;
+
+/// How the race context enters the agent.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ContextMode {
+    /// DreamerV3: no context.
+    #[default]
+    None,
+    /// cRSSM: the normalised context.
+    Crssm,
+    /// cMask: the normalised context times a mask from a SAC actor.
+    Cmask,
+}
+
+impl ContextMode {
+    /// Size of the context input of the model (0 or [`CONTEXT_DIM`]).
+    pub fn context_dim(self) -> usize {
+        match self {
+            ContextMode::None => 0,
+            ContextMode::Crssm | ContextMode::Cmask => CONTEXT_DIM,
+        }
+    }
+}
+
+/// Hyper-parameters of cMask's mask SAC.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MaskConfig {
+    /// Hidden units of the mask actor and critics (ReLU).
+    pub units: usize,
+    /// Hidden layers of the mask actor and critics.
+    pub layers: usize,
+    /// Adam learning rate of actor, critics and temperature.
+    pub lr: f64,
+    /// Polyak rate of the target critics.
+    pub tau: f64,
+    /// Discount of the mask critics (the paper gives none: SAC's usual 0.99).
+    pub gamma: f64,
+    /// Target entropy of the mask distribution (`−|m|`).
+    pub target_entropy: f64,
+    /// Initial temperature `α` (the paper gives none).
+    pub init_alpha: f64,
+}
+
+impl Default for MaskConfig {
+    fn default() -> Self {
+        Self {
+            units: 256,
+            layers: 2,
+            lr: 3e-5,
+            tau: 0.005,
+            gamma: 0.99,
+            target_entropy: -2.0,
+            init_alpha: 1.0,
+        }
+    }
+}
+
+/// DreamerV3's hyper-parameters; the defaults are the paper's (REFERENCE §5).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DreamerConfig {
+    /// Context mode: DreamerV3, cRSSM or cMask (not read from files: [`AgentConfig::algo`]
+    /// decides it).
+    #[serde(skip)]
+    pub context: ContextMode,
+    /// Encoder and decoder width (the embedding size too).
+    pub units: usize,
+    /// Encoder and decoder depth.
+    pub layers: usize,
+    /// GRU state size.
+    pub deter: usize,
+    /// RSSM hidden size.
+    pub hidden: usize,
+    /// Number of categorical latent variables.
+    pub stoch: usize,
+    /// Classes per latent variable.
+    pub classes: usize,
+    /// Uniform mixture of the latent distributions.
+    pub unimix: f64,
+    /// Width of the reward, continue, actor and critic heads.
+    pub head_units: usize,
+    /// Depth of the reward, continue, actor and critic heads.
+    pub head_layers: usize,
+    /// Two-hot bins of the reward and critic heads.
+    pub bins: usize,
+    /// Free nats of each KL term.
+    pub free_nats: f64,
+    /// Weight of the dynamics KL `KL(sg q ‖ p)`.
+    pub kl_dyn: f64,
+    /// Weight of the representation KL `KL(q ‖ sg p)`.
+    pub kl_rep: f64,
+    /// Weight of the prediction losses.
+    pub pred_scale: f64,
+    /// World-model learning rate.
+    pub model_lr: f64,
+    /// World-model Adam ε.
+    pub model_eps: f64,
+    /// World-model gradient-norm limit.
+    pub model_clip: f64,
+    /// Actor and critic learning rate.
+    pub ac_lr: f64,
+    /// Actor and critic Adam ε.
+    pub ac_eps: f64,
+    /// Actor and critic gradient-norm limit.
+    pub ac_clip: f64,
+    /// Imagination horizon `H`.
+    pub horizon: usize,
+    /// Discount `γ`.
+    pub gamma: f64,
+    /// Return mixing `λ`.
+    pub lambda: f64,
+    /// Actor entropy bonus `η`.
+    pub entropy: f64,
+    /// EMA decay of the return percentiles.
+    pub return_decay: f64,
+    /// Low return percentile (fraction).
+    pub return_low: f64,
+    /// High return percentile (fraction).
+    pub return_high: f64,
+    /// Slow critic EMA rate (per step).
+    pub slow_critic_rate: f64,
+    /// Weight of the slow-critic regulariser.
+    pub slow_critic_reg: f64,
+    /// Smallest actor standard deviation.
+    pub min_std: f64,
+    /// Largest actor standard deviation.
+    pub max_std: f64,
+    /// Sequences per batch (for the replay sampler).
+    pub batch: usize,
+    /// Steps per sequence (for the replay sampler).
+    pub length: usize,
+    /// Training context range: `c` is divided by it.
+    pub context_range: f64,
+    /// cMask's mask SAC.
+    pub mask: MaskConfig,
+    /// Seed of initialisation and noise.
+    pub seed: u64,
+}
+
+impl Default for DreamerConfig {
+    fn default() -> Self {
+        Self {
+            context: ContextMode::None,
+            units: 256,
+            layers: 3,
+            deter: 256,
+            hidden: 256,
+            stoch: 16,
+            classes: 16,
+            unimix: 0.01,
+            head_units: 256,
+            head_layers: 2,
+            bins: 255,
+            free_nats: 1.0,
+            kl_dyn: 0.5,
+            kl_rep: 0.1,
+            pred_scale: 1.0,
+            model_lr: 3e-5,
+            model_eps: 1e-8,
+            model_clip: 1000.0,
+            ac_lr: 3e-5,
+            ac_eps: 1e-5,
+            ac_clip: 100.0,
+            horizon: 10,
+            gamma: 0.997,
+            lambda: 0.95,
+            entropy: 3e-4,
+            return_decay: 0.99,
+            return_low: 0.05,
+            return_high: 0.95,
+            slow_critic_rate: 0.02,
+            slow_critic_reg: 1.0,
+            min_std: 0.1,
+            max_std: 1.0,
+            batch: 16,
+            length: 64,
+            context_range: 0.15,
+            mask: MaskConfig::default(),
+            seed: 0,
+        }
+    }
+}
+
+impl DreamerConfig {
+    /// Names accepted by [`DreamerConfig::preset`].
+    pub const PRESETS: [&'static str; 2] = ["paper", "dreamerv3-small"];
+
+    /// A named configuration: "paper" (the default: MLPs 3×256, GRU 256, latents 16×16) or
+    /// "dreamerv3-small" (the DreamerV3 paper's size S: GRU and hidden 512, latents 32×32,
+    /// encoder, decoder and heads 2×512; everything else as "paper").
+    pub fn preset(name: &str) -> Option<Self> {
+        match name {
+            "paper" => Some(Self::default()),
+            "dreamerv3-small" => Some(Self {
+                units: 512,
+                layers: 2,
+                deter: 512,
+                hidden: 512,
+                stoch: 32,
+                classes: 32,
+                head_units: 512,
+                head_layers: 2,
+                ..Self::default()
+            }),
+            _ => None,
+        }
+    }
+
+    /// Checks sizes and ranges, naming the offending key.
+    pub fn validate(&self) -> Result<()> {
+        let sizes = [
+            ("units", self.units),
+            ("deter", self.deter),
+            ("hidden", self.hidden),
+            ("stoch", self.stoch),
+            ("classes", self.classes),
+            ("head_units", self.head_units),
+            ("horizon", self.horizon),
+            ("mask.units", self.mask.units),
+        ];
+        if let Some((name, _)) = sizes.iter().find(|(_, v)| *v == 0) {
+            bail!("DreamerV3 config: {name} must be positive");
+        }
+        if self.bins < 2 {
+            bail!("DreamerV3 config: bins must be at least 2");
+        }
+        if self.context_range.is_nan() || self.context_range <= 0.0 {
+            bail!("DreamerV3 config: context_range must be positive");
+        }
+        if !(0.0 < self.min_std && self.min_std < self.max_std) {
+            bail!("DreamerV3 config: need 0 < min_std < max_std");
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn agent_tables_parse_with_defaults_and_reject_unknown_keys() {
+        let agent: AgentConfig =
+            toml::from_str("algo = \"cmask\"\n[dreamer]\nhorizon = 5\n[dreamer.mask]\ntau = 0.01")
+                .unwrap();
+        let cfg = agent.dreamer();
+        assert_eq!(
+            (cfg.context, cfg.horizon, cfg.mask.tau, cfg.gamma),
+            (ContextMode::Cmask, 5, 0.01, 0.997)
+        );
+        assert_eq!(agent.sac, SacConfig::default());
+        for bad in [
+            "[dreamer]\nhorizn = 5",
+            "[dreamer]\ncontext = \"crssm\"",
+            "algo = \"ppo\"",
+            "algo = \"sac\"\n[sac]\nframes = 0",
+        ] {
+            let parsed = toml::from_str::<AgentConfig>(bad);
+            assert!(
+                parsed.is_err() || parsed.unwrap().validate().is_err(),
+                "{bad:?} accepted"
+            );
+        }
+        assert_eq!("CMask".parse::<AlgoKind>(), Ok(AlgoKind::Cmask));
+        assert!("ppo"
+            .parse::<AlgoKind>()
+            .unwrap_err()
+            .contains("expected one of"));
+    }
+}

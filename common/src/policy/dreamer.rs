@@ -1,0 +1,283 @@
+//! DreamerV3's acting networks (encoder, RSSM, actor and cMask's mask actor) and the batch-1
+//! policy that runs them in the actors: at each step the observation updates the posterior
+//! state, the actor reads `[h, z, c]` and (cMask) the mask actor masks the context first.
+//! The learner trains the same [`DreamerNets`] and ships their "policy" parameter store.
+
+use crate::agents::{ContextMode, DreamerConfig, CONTEXT_DIM};
+use crate::nn::{
+    symlog, Activation, Mlp, ParamStore, Rssm, RssmConfig, RssmState, TanhGaussianActor,
+};
+use candle_core::{bail, DType, Device, Module, Result, Tensor};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+
+/// The networks that act: encoder, RSSM, actor and (cMask) mask actor.
+#[derive(Clone, Debug)]
+pub struct DreamerNets {
+    /// Observation encoder (on `symlog o`).
+    pub encoder: Mlp,
+    /// The recurrent state-space model.
+    pub rssm: Rssm,
+    /// Actor head on `[h, z, c]`: means and raw standard deviations.
+    pub actor: Mlp,
+    /// cMask's mask actor on the observation.
+    pub mask: Option<TanhGaussianActor>,
+    /// Action size.
+    pub act_dim: usize,
+    /// Smallest actor standard deviation.
+    pub min_std: f64,
+    /// Largest actor standard deviation.
+    pub max_std: f64,
+    /// Training context range: raw contexts are divided by it.
+    pub context_range: f64,
+}
+
+impl DreamerNets {
+    /// The networks of `cfg` for observations of `obs_dim` and actions of `act_dim`, built under `vb`.
+    pub fn new(
+        cfg: &DreamerConfig,
+        obs_dim: usize,
+        act_dim: usize,
+        vb: candle_nn::VarBuilder,
+    ) -> Result<Self> {
+        let silu = Activation::SiluNorm;
+        let context_dim = cfg.context.context_dim();
+        let encoder = Mlp::new(obs_dim, cfg.units, cfg.layers, None, silu, vb.pp("encoder"))?;
+        let rssm_cfg = RssmConfig {
+            deter: cfg.deter,
+            hidden: cfg.hidden,
+            stoch: cfg.stoch,
+            classes: cfg.classes,
+            unimix: cfg.unimix,
+            act_dim,
+            embed_dim: if cfg.layers == 0 { obs_dim } else { cfg.units },
+            context_dim,
+        };
+        let rssm = Rssm::new(rssm_cfg, vb.pp("rssm"))?;
+        let actor = Mlp::new(
+            rssm.feat_dim() + context_dim,
+            cfg.head_units,
+            cfg.head_layers,
+            Some(2 * act_dim),
+            silu,
+            vb.pp("actor"),
+        )?;
+        let mask = match cfg.context {
+            ContextMode::Cmask => Some(TanhGaussianActor::new(
+                obs_dim,
+                CONTEXT_DIM,
+                cfg.mask.units,
+                cfg.mask.layers,
+                vb.pp("mask"),
+            )?),
+            ContextMode::None | ContextMode::Crssm => None,
+        };
+        Ok(Self {
+            encoder,
+            rssm,
+            actor,
+            mask,
+            act_dim,
+            min_std: cfg.min_std,
+            max_std: cfg.max_std,
+            context_range: cfg.context_range,
+        })
+    }
+
+    /// The model's context input `[N, 2]` for raw contexts and (cMask) masks, or `None`.
+    pub fn context(&self, raw: &Tensor, mask: Option<&Tensor>) -> Result<Option<Tensor>> {
+        if self.rssm.config().context_dim == 0 {
+            return Ok(None);
+        }
+        let c = (raw / self.context_range)?;
+        Ok(Some(match mask {
+            Some(m) => c.mul(m)?,
+            None => c,
+        }))
+    }
+
+    /// The actor's mean `tanh μ` and standard deviation, each `[N, A]`.
+    pub fn actor_dist(&self, x: &Tensor) -> Result<(Tensor, Tensor)> {
+        let out = self.actor.forward(x)?;
+        let mean = out.narrow(1, 0, self.act_dim)?.tanh()?;
+        let raw = (out.narrow(1, self.act_dim, self.act_dim)? + 2.0)?;
+        let std =
+            candle_nn::ops::sigmoid(&raw)?.affine(self.max_std - self.min_std, self.min_std)?;
+        Ok((mean, std))
+    }
+
+    /// A reparameterised action `[N, A]` from the distribution and standard-normal noise, scaled
+    /// into `[−1, 1]` with a stop-gradient factor.
+    pub fn sample_action(mean: &Tensor, std: &Tensor, noise: &Tensor) -> Result<Tensor> {
+        let a = (mean + std.mul(noise)?)?;
+        let shrink = a.abs()?.maximum(1.0)?.recip()?.detach();
+        a.mul(&shrink)
+    }
+
+    /// One observation step at batch `N`: the next state and the action (sampled with `noise`,
+    /// else the mean).
+    pub fn observe(
+        &self,
+        state: &RssmState,
+        prev_action: &Tensor,
+        obs: &Tensor,
+        ctx: Option<&Tensor>,
+        uniform: &Tensor,
+        noise: Option<&Tensor>,
+    ) -> Result<(RssmState, Tensor)> {
+        let embed = self.encoder.forward(&symlog(obs)?)?;
+        let (next, _, _) = self
+            .rssm
+            .obs_step(state, prev_action, ctx, &embed, uniform)?;
+        let (mean, std) = self.actor_dist(&head_input(&next.feat()?, ctx)?)?;
+        let action = match noise {
+            Some(n) => Self::sample_action(&mean, &std, n)?,
+            None => mean,
+        };
+        Ok((next, action))
+    }
+}
+
+/// `m = (a + 1) / 2` and `log π(m) = log π(a) + |m| ln 2` for a tanh-Gaussian mask sample.
+pub fn mask_sample(
+    actor: &TanhGaussianActor,
+    obs: &Tensor,
+    noise: &Tensor,
+) -> Result<(Tensor, Tensor)> {
+    let (a, log_prob) = actor.sample(obs, noise)?;
+    Ok((
+        a.affine(0.5, 0.5)?,
+        (log_prob + CONTEXT_DIM as f64 * std::f64::consts::LN_2)?,
+    ))
+}
+
+/// The heads' input `[feat, ctx]`.
+pub fn head_input(feat: &Tensor, ctx: Option<&Tensor>) -> Result<Tensor> {
+    match ctx {
+        Some(c) => Tensor::cat(&[feat, c], 1),
+        None => Ok(feat.clone()),
+    }
+}
+/// Gumbel-max uniforms in `(0, 1)`.
+pub fn uniforms(rng: &mut ChaCha8Rng, shape: (usize, usize, usize)) -> Result<Tensor> {
+    let n = shape.0 * shape.1 * shape.2;
+    let v: Vec<f32> = (0..n)
+        .map(|_| rng.random_range(1e-6f32..1.0 - 1e-6))
+        .collect();
+    Tensor::from_vec(v, shape, &Device::Cpu)
+}
+
+/// Standard-normal noise.
+pub fn normals(rng: &mut ChaCha8Rng, shape: (usize, usize)) -> Result<Tensor> {
+    let v: Vec<f32> = (0..shape.0 * shape.1)
+        .map(|_| rng.sample(StandardNormal))
+        .collect();
+    Tensor::from_vec(v, shape, &Device::Cpu)
+}
+/// The acting side of DreamerV3 at batch 1: keeps the recurrent state and the previous action.
+pub struct DreamerPolicy {
+    store: ParamStore,
+    nets: DreamerNets,
+    obs_dim: usize,
+    zero: RssmState,
+    state: RssmState,
+    zero_action: Tensor,
+    prev_action: Tensor,
+    uniform_mode: Tensor,
+    stoch: (usize, usize),
+    rng: ChaCha8Rng,
+}
+
+impl DreamerPolicy {
+    /// Action size of the policy.
+    pub const ACT_DIM: usize = 2;
+
+    /// A policy of the architecture `cfg` for observations of `obs_dim`, with the bytes of
+    /// the learner's policy weights; `seed` seeds its sampling noise.
+    pub fn new(cfg: &DreamerConfig, obs_dim: usize, weights: &[u8], seed: u64) -> Result<Self> {
+        cfg.validate()?;
+        let store = ParamStore::new();
+        let nets = DreamerNets::new(cfg, obs_dim, Self::ACT_DIM, store.builder())?;
+        store.load_bytes(weights)?;
+        let zero = nets.rssm.initial(1)?;
+        let zero_action = Tensor::zeros((1, Self::ACT_DIM), DType::F32, &Device::Cpu)?;
+        Ok(Self {
+            store,
+            obs_dim,
+            state: zero.clone(),
+            zero,
+            prev_action: zero_action.clone(),
+            zero_action,
+            // equal Gumbel noise: the sample is the most likely class
+            uniform_mode: Tensor::full(0.5f32, (1, cfg.stoch, cfg.classes), &Device::Cpu)?,
+            stoch: (cfg.stoch, cfg.classes),
+            nets,
+            rng: ChaCha8Rng::seed_from_u64(seed),
+        })
+    }
+
+    /// Replaces the weights (same architecture) without resetting the state.
+    pub fn load(&mut self, weights: &[u8]) -> Result<()> {
+        self.store.load_bytes(weights)
+    }
+
+    /// Starts a new episode: zero state and previous action.
+    pub fn reset(&mut self) {
+        self.state = self.zero.clone();
+        self.prev_action = self.zero_action.clone();
+    }
+
+    /// The action in `[−1, 1]²` for observation `obs` and raw context `[c_v, c_θ]`, and (cMask) the
+    /// mask used. Deterministic: the mean action, the most likely latent and the mask mode
+    /// `(tanh μ + 1)/2`; otherwise samples.
+    pub fn act(
+        &mut self,
+        obs: &[f32],
+        context: [f32; 2],
+        deterministic: bool,
+    ) -> Result<([f32; 2], Option<[f32; 2]>)> {
+        if obs.len() != self.obs_dim {
+            bail!(
+                "observation has {} values, the policy expects {}",
+                obs.len(),
+                self.obs_dim
+            );
+        }
+        let dev = &Device::Cpu;
+        let o = Tensor::from_slice(obs, (1, self.obs_dim), dev)?;
+        let mask = match &self.nets.mask {
+            Some(actor) if deterministic => Some(actor.mean_action(&o)?.affine(0.5, 0.5)?),
+            Some(actor) => {
+                Some(mask_sample(actor, &o, &normals(&mut self.rng, (1, CONTEXT_DIM))?)?.0)
+            }
+            None => None,
+        };
+        let ctx = self.nets.context(
+            &Tensor::from_slice(&context, (1, CONTEXT_DIM), dev)?,
+            mask.as_ref(),
+        )?;
+        let (uniform, noise) = if deterministic {
+            (self.uniform_mode.clone(), None)
+        } else {
+            let (s, c) = self.stoch;
+            let u = uniforms(&mut self.rng, (1, s, c))?;
+            (u, Some(normals(&mut self.rng, (1, Self::ACT_DIM))?))
+        };
+        let (state, action) = self.nets.observe(
+            &self.state,
+            &self.prev_action,
+            &o,
+            ctx.as_ref(),
+            &uniform,
+            noise.as_ref(),
+        )?;
+        self.state = state;
+        self.prev_action = action.clone();
+        let pair = |t: &Tensor| -> Result<[f32; 2]> {
+            let v = t.flatten_all()?.to_vec1::<f32>()?;
+            Ok([v[0], v[1]])
+        };
+        Ok((pair(&action)?, mask.as_ref().map(pair).transpose()?))
+    }
+}

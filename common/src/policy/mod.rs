@@ -1,0 +1,83 @@
+//! The policies the actors run at batch 1 on one thread: built from an [`AgentConfig`] and the
+//! learner's policy weights (safetensors bytes), with their recurrent state or frame stack inside.
+
+mod dreamer;
+mod sac;
+
+pub use dreamer::{head_input, mask_sample, normals, uniforms, DreamerNets, DreamerPolicy};
+pub use sac::SacPolicy;
+
+use crate::agents::{AgentConfig, AlgoKind};
+use candle_core::Result;
+
+/// Action size of the racing policies: steering and speed.
+pub const ACT_DIM: usize = 2;
+
+/// One decision of a [`Policy`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Decision {
+    /// The action in `[−1, 1]²` (steering, speed).
+    pub action: [f32; 2],
+    /// cMask's context mask `m ∈ [0, 1]²`, if the agent has one.
+    pub mask: Option<[f32; 2]>,
+}
+
+/// Any trained agent's acting side.
+pub enum Policy {
+    /// SAC on stacked frames.
+    Sac(SacPolicy),
+    /// DreamerV3, cRSSM or cMask.
+    Dreamer(DreamerPolicy),
+}
+
+impl Policy {
+    /// The policy of `agent` for LiDAR frames of `frame_dim` values with `weights`; `seed`
+    /// seeds its sampling noise.
+    pub fn new(agent: &AgentConfig, frame_dim: usize, weights: &[u8], seed: u64) -> Result<Self> {
+        Ok(match agent.algo {
+            AlgoKind::Sac => Policy::Sac(SacPolicy::new(
+                &agent.sac, frame_dim, ACT_DIM, weights, seed,
+            )?),
+            _ => Policy::Dreamer(DreamerPolicy::new(
+                &agent.dreamer(),
+                frame_dim,
+                weights,
+                seed,
+            )?),
+        })
+    }
+
+    /// Replaces the weights (same architecture).
+    pub fn load(&mut self, weights: &[u8]) -> Result<()> {
+        match self {
+            Policy::Sac(p) => p.load(weights),
+            Policy::Dreamer(p) => p.load(weights),
+        }
+    }
+
+    /// Starts a new episode.
+    pub fn reset(&mut self) {
+        match self {
+            Policy::Sac(p) => p.reset(),
+            Policy::Dreamer(p) => p.reset(),
+        }
+    }
+
+    /// The decision for the newest observation under the episode's raw context `[c_v, c_θ]`
+    /// (SAC ignores it); the mode of the action distribution if `deterministic`.
+    pub fn act(&mut self, obs: &[f32], context: [f32; 2], deterministic: bool) -> Result<Decision> {
+        Ok(match self {
+            Policy::Sac(p) => {
+                let a = p.act(obs, deterministic)?;
+                Decision {
+                    action: [a[0], a[1]],
+                    mask: None,
+                }
+            }
+            Policy::Dreamer(p) => {
+                let (action, mask) = p.act(obs, context, deterministic)?;
+                Decision { action, mask }
+            }
+        })
+    }
+}
