@@ -1,6 +1,7 @@
 //! `ctxrace`: one command line for tracks, races, benchmarks and (later) the training processes.
 
 mod bench;
+mod plot;
 mod race_cmd;
 mod render;
 mod results;
