@@ -1,9 +1,13 @@
 //! `ctxrace`: one command line for tracks, races, benchmarks and (later) the training processes.
 
 mod bench;
+mod figures;
+mod plot;
 mod race_cmd;
 mod render;
+mod report;
 mod results;
+mod table;
 mod track_cmd;
 mod vehicle_cmd;
 
@@ -33,6 +37,8 @@ enum Command {
     /// Measure speeds.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
+    /// Tables (Markdown and CSV, as in the paper) and figures from evaluation and training runs.
+    Report(report::ReportArgs),
 }
 
 /// Where tracks come from and how their raceline is made.
@@ -110,6 +116,7 @@ fn main() {
         Command::Vehicle(a) => vehicle_cmd::run(a),
         Command::Race(a) => race_cmd::run(a),
         Command::Bench(c) => bench::run(c),
+        Command::Report(a) => report::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -2,14 +2,19 @@
 //! (viridis: dark blue slow, yellow fast), with the cars' final footprints (ego red, rivals blue, a
 //! crashed car filled).
 
-use anyhow::{bail, Context, Result};
+use crate::plot::{plot_err, save, Figure};
+use anyhow::Result;
 use ctxrace_actor::vehicle::{idx, State, VehicleParams};
 use ctxrace_actor::RaceEnv;
 use ctxrace_tracks::Track;
+use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::colors::colormaps::ViridisRGB;
 use std::path::Path;
+
+/// A chart in track coordinates (metres).
+pub type TrackChart<'a, DB> = ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
 
 /// A car at one decision.
 #[derive(Clone, Debug)]
@@ -61,34 +66,47 @@ const WIDTH_PX: u32 = 1600;
 
 /// Draws the race into a PNG or SVG chosen by the file extension.
 pub fn render_race(path: &Path, track: &Track, frames: &[Frame]) -> Result<()> {
-    let (lo, hi) = bounds(track);
-    let aspect = (hi.1 - lo.1) / (hi.0 - lo.0);
-    let size = (
-        WIDTH_PX,
-        ((WIDTH_PX as f64) * aspect).round().max(200.0) as u32,
-    );
-    match path.extension().and_then(|e| e.to_str()) {
-        Some("png") => {
-            let root = BitMapBackend::new(path, size).into_drawing_area();
-            draw(&root, track, frames, lo, hi)?;
-            root.present()
-                .with_context(|| format!("writing {}", path.display()))?;
-        }
-        Some("svg") => {
-            let root = SVGBackend::new(path, size).into_drawing_area();
-            draw(&root, track, frames, lo, hi)?;
-            root.present()
-                .with_context(|| format!("writing {}", path.display()))?;
-        }
-        _ => bail!(
-            "cannot render to {}: the file name must end in .png or .svg",
-            path.display()
-        ),
-    }
-    Ok(())
+    save(&RacePicture { track, frames }, path)
 }
 
-fn bounds(track: &Track) -> ((f64, f64), (f64, f64)) {
+/// The race picture of [`render_race`].
+struct RacePicture<'a> {
+    track: &'a Track,
+    frames: &'a [Frame],
+}
+
+impl Figure for RacePicture<'_> {
+    fn size(&self) -> (u32, u32) {
+        track_picture_size(self.track)
+    }
+
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<()>
+    where
+        DB::ErrorType: 'static,
+    {
+        let (lo, hi) = bounds(self.track);
+        root.fill(&WHITE).map_err(plot_err)?;
+        let mut chart = ChartBuilder::on(root)
+            .margin(10)
+            .build_cartesian_2d(lo.0..hi.0, lo.1..hi.1)
+            .map_err(plot_err)?;
+        draw_track(&mut chart, self.track)?;
+        draw_cars(&mut chart, self.frames)
+    }
+}
+
+/// Pixel size of a picture of the whole track: [`WIDTH_PX`] wide, the track's aspect ratio.
+pub fn track_picture_size(track: &Track) -> (u32, u32) {
+    let (lo, hi) = bounds(track);
+    let aspect = (hi.1 - lo.1) / (hi.0 - lo.0);
+    (
+        WIDTH_PX,
+        ((WIDTH_PX as f64) * aspect).round().max(200.0) as u32,
+    )
+}
+
+/// The track's bounding box with a metre of margin: `(min, max)` corners.
+pub fn bounds(track: &Track) -> ((f64, f64), (f64, f64)) {
     let mut lo = (f64::INFINITY, f64::INFINITY);
     let mut hi = (f64::NEG_INFINITY, f64::NEG_INFINITY);
     let pts = track
@@ -105,24 +123,16 @@ fn bounds(track: &Track) -> ((f64, f64), (f64, f64)) {
     ((lo.0 - pad, lo.1 - pad), (hi.0 + pad, hi.1 + pad))
 }
 
-fn draw<DB: DrawingBackend>(
-    root: &DrawingArea<DB, Shift>,
-    track: &Track,
-    frames: &[Frame],
-    lo: (f64, f64),
-    hi: (f64, f64),
-) -> Result<()>
+/// Closes a loop of points for drawing.
+fn closed(pts: &[nalgebra::Point2<f64>]) -> Vec<(f64, f64)> {
+    pts.iter().chain(pts.first()).map(|p| (p.x, p.y)).collect()
+}
+
+/// Draws the walls, the centreline (grey), the raceline (pale green) and the start/finish line.
+pub fn draw_track<DB: DrawingBackend>(chart: &mut TrackChart<DB>, track: &Track) -> Result<()>
 where
     DB::ErrorType: 'static,
 {
-    root.fill(&WHITE).map_err(plot_err)?;
-    let mut chart = ChartBuilder::on(root)
-        .margin(10)
-        .build_cartesian_2d(lo.0..hi.0, lo.1..hi.1)
-        .map_err(plot_err)?;
-    let closed = |pts: &[nalgebra::Point2<f64>]| -> Vec<(f64, f64)> {
-        pts.iter().chain(pts.first()).map(|p| (p.x, p.y)).collect()
-    };
     for wall in track.walls.loops() {
         chart
             .draw_series(std::iter::once(PathElement::new(
@@ -158,7 +168,14 @@ where
             BLACK.stroke_width(3),
         )))
         .map_err(plot_err)?;
+    Ok(())
+}
 
+/// Draws every car's path coloured by speed and its final footprint.
+fn draw_cars<DB: DrawingBackend>(chart: &mut TrackChart<DB>, frames: &[Frame]) -> Result<()>
+where
+    DB::ErrorType: 'static,
+{
     let n_cars = frames.first().map_or(0, |f| f.cars.len());
     let v_max = frames
         .iter()
@@ -200,8 +217,4 @@ fn footprint(s: &State) -> Vec<(f64, f64)> {
         .iter()
         .map(|(a, b)| (s[idx::X] + a * cos - b * sin, s[idx::Y] + a * sin + b * cos))
         .collect()
-}
-
-fn plot_err<E: std::error::Error + Send + Sync + 'static>(e: E) -> anyhow::Error {
-    anyhow::Error::new(e).context("drawing the race picture")
 }

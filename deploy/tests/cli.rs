@@ -326,3 +326,99 @@ fn bench_sim_reports_throughput_as_json() {
     assert!((per_s - decisions as f64 / r["seconds"].as_f64().unwrap()).abs() < 1e-6 * per_s);
     assert!((r["physics_steps_per_s"].as_f64().unwrap() - per_s * 10.0).abs() < 1e-6 * per_s);
 }
+
+/// Writes a synthetic evaluation directory: a 7×7 context grid in ±0.3, training range ±0.15,
+/// PG `pg - 0.3|c_v| - 0.2|c_θ|`, OT `ot`, A2A `a2a + 20|c_v|`.
+fn synthetic_eval(dir: &Path, algo: &str, pg: f64, ot: f64, a2a: f64) {
+    std::fs::create_dir_all(dir).unwrap();
+    let meta = serde_json::json!({
+        "algo": algo, "track": "generated:0", "rivals": 1, "train_seed": 0,
+        "train_range": 0.15, "grid": 7, "range": 0.3, "laps": 50, "seed": 0, "source": algo,
+    });
+    write(dir, "meta.json", &meta.to_string());
+    let mut csv = String::from(
+        "context_speed,context_steer,in_distribution,laps,progress,overtakes,a2a,wall_crash,\
+         lap_complete,episode_return\n",
+    );
+    for i in -3i32..=3 {
+        for j in -3i32..=3 {
+            let (cv, ct) = (i as f64 / 10.0, j as f64 / 10.0);
+            let inside = i.abs() <= 1 && j.abs() <= 1;
+            let p = pg - 0.3 * cv.abs() - 0.2 * ct.abs();
+            let a = a2a + 20.0 * cv.abs();
+            csv += &format!("{cv},{ct},{inside},50,{p},{ot},{a},0.1,0.2,3.5\n");
+        }
+    }
+    write(dir, "contexts.csv", &csv);
+}
+
+#[test]
+fn report_writes_tables_and_figures_with_best_marks() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    // cMask as a training run (eval/ inside, training curves beside it), SAC as an eval dir
+    synthetic_eval(&d.join("cmask-0/eval"), "cmask", 0.7, 0.1, 5.0);
+    let mut training = String::from(
+        "env_steps,grad_steps,actor,episode,context_speed,context_steer,progress,overtakes,a2a,\
+         wall_crash,episode_return,steps\n",
+    );
+    for k in 0..40 {
+        let progress = k as f64 / 50.0;
+        training += &format!(
+            "{},0,0,{k},0.1,-0.1,{progress},0,false,true,{},100\n",
+            100 * (k + 1),
+            10.0 * progress
+        );
+    }
+    write(&d.join("cmask-0"), "episodes.csv", &training);
+    synthetic_eval(&d.join("sac-0"), "sac", 0.4, 0.3, 15.0);
+    write(&d.join("sac-0"), "episode.png", "not really a png");
+    let out = d.join("out");
+    let o = ctxrace(&[
+        "report",
+        d.join("cmask-0").to_str().unwrap(),
+        d.join("sac-0").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let md = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert_eq!(stdout(&o), md);
+    // cMask has the higher progress and fewer collisions, SAC more overtakes
+    assert!(
+        md.contains("| cMask | 1 | **0.6667 ± 0.0000** | 0.1000 ± 0.0000 | **6.3333 ± 0.0000** |"),
+        "{md}"
+    );
+    assert!(
+        md.contains("| SAC | 1 | 0.3667 ± 0.0000 | **0.3000 ± 0.0000** |"),
+        "{md}"
+    );
+    for name in ["table1.csv", "table2.csv", "table3.csv"] {
+        let text = std::fs::read_to_string(out.join(name)).unwrap();
+        assert!(text.lines().count() > 1, "{name}: {text}");
+    }
+    let table2 = std::fs::read_to_string(out.join("table2.csv")).unwrap();
+    assert!(table2.starts_with("track,rivals,algo,baseline,seeds,split,pg_mean,pg_std,pg_best"));
+    for name in [
+        "heatmap_cmask_generated_0_1r.png",
+        "heatmap_sac_generated_0_1r.svg",
+        "training_generated_0_1r.png",
+        "rival_speed_generated_0.png",
+        "rival_lines_generated_0.svg",
+        "episode_sac_generated_0_1r_seed0.png",
+    ] {
+        assert!(out.join(name).is_file(), "{name} missing");
+    }
+    let png = std::fs::read(out.join("heatmap_cmask_generated_0_1r.png")).unwrap();
+    assert_eq!(&png[1..4], b"PNG");
+    assert!(md.contains("![heatmap_cmask_generated_0_1r.png](heatmap_cmask_generated_0_1r.png)"));
+    // bad runs are named
+    fails_with(
+        &["report", d.join("nowhere").to_str().unwrap()],
+        "nowhere: no such directory",
+    );
+    fails_with(
+        &["report", out.to_str().unwrap()],
+        "neither an evaluation directory",
+    );
+}

@@ -1,0 +1,622 @@
+//! The report's figures, each as PNG and SVG: per-context heatmaps of PG and A2A, training curves,
+//! the rivals' speed profiles and race lines under different contexts (paper Figs. 3–4), and the
+//! evaluation's episode pictures copied over.
+
+use crate::plot::{plot_err, register_font, save_png_and_svg, Figure};
+use crate::render::{bounds, draw_track, track_picture_size, TrackChart};
+use crate::report::{sections, Group, Metric};
+use crate::results::{TrainingEpisode, A2A_PER_LAPS};
+use crate::TrackArgs;
+use anyhow::{Context as _, Result};
+use ctxrace_actor::rival::{drive_solo_lap, SoloLap};
+use ctxrace_common::{Context, RaceConfig};
+use ctxrace_tracks::Track;
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use plotters::style::colors::colormaps::ViridisRGB;
+use plotters::style::text_anchor::{HPos, Pos, VPos};
+use std::path::{Path, PathBuf};
+
+/// Writes every figure for `groups` into `out`; returns the files written. The rival figures of a
+/// track that does not load are skipped with a warning.
+pub fn write_all(
+    groups: &[Group],
+    out: &Path,
+    tracks: &TrackArgs,
+    cfg: &RaceConfig,
+) -> Result<Vec<PathBuf>> {
+    register_font()?;
+    let mut files = Vec::new();
+    for g in groups {
+        let stem = format!("heatmap_{}", group_stem(g));
+        files.extend(save_png_and_svg(&Heatmap { group: g }, out, &stem)?);
+    }
+    for section in sections(groups) {
+        let trained: Vec<&Group> = section
+            .iter()
+            .filter(|g| g.runs.iter().any(|r| !r.training.is_empty()))
+            .collect();
+        if let Some(first) = trained.first() {
+            let stem = format!("training_{}_{}r", slug(&first.track), first.rivals);
+            files.extend(save_png_and_svg(
+                &TrainingCurves { groups: trained },
+                out,
+                &stem,
+            )?);
+        }
+    }
+    let mut names: Vec<&str> = groups.iter().map(|g| g.track.as_str()).collect();
+    names.dedup();
+    for name in names {
+        match tracks.load(name) {
+            Ok(track) => files.extend(rival_figures(&track, cfg, out)?),
+            Err(e) => tracing::warn!("skipping the rival figures of track '{name}': {e:#}"),
+        }
+    }
+    for g in groups {
+        for run in &g.runs {
+            for ext in ["png", "svg"] {
+                let src = run.dir.join(format!("episode.{ext}"));
+                if src.is_file() {
+                    let stem = group_stem(g);
+                    let dst = out.join(format!("episode_{stem}_seed{}.{ext}", run.meta.train_seed));
+                    std::fs::copy(&src, &dst).with_context(|| {
+                        format!("copying {} to {}", src.display(), dst.display())
+                    })?;
+                    files.push(dst);
+                }
+            }
+        }
+    }
+    Ok(files)
+}
+
+/// A name made safe for a file name: anything but letters, digits, `-` and `.` becomes `_`.
+fn slug(s: &str) -> String {
+    s.chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '.' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}
+
+/// `ALGO_TRACK_Nr`, the file stem of a group's figures.
+fn group_stem(g: &Group) -> String {
+    format!("{}_{}_{}r", slug(&g.algo), slug(&g.track), g.rivals)
+}
+
+/// A title font of `size` pixels.
+fn font(size: u32) -> TextStyle<'static> {
+    ("sans-serif", size).into_font().into()
+}
+
+/// Seed-averaged value of `metric` per context of a group: `(c_v, c_θ, value)`.
+fn context_means(g: &Group, metric: Metric) -> Vec<(f64, f64, f64)> {
+    let mut cells: Vec<(f64, f64, Vec<f64>)> = Vec::new();
+    for c in g.runs.iter().flat_map(|r| &r.contexts) {
+        let same = |cell: &&mut (f64, f64, Vec<f64>)| {
+            (cell.0 - c.context_speed).abs() < 1e-9 && (cell.1 - c.context_steer).abs() < 1e-9
+        };
+        match cells.iter_mut().find(same) {
+            Some(cell) => cell.2.push(metric.of(c)),
+            None => cells.push((c.context_speed, c.context_steer, vec![metric.of(c)])),
+        }
+    }
+    cells
+        .into_iter()
+        .map(|(cv, ct, v)| (cv, ct, v.iter().sum::<f64>() / v.len() as f64))
+        .collect()
+}
+
+/// Smallest spacing between distinct values, 0.1 when there is only one.
+fn grid_step(values: impl Iterator<Item = f64>) -> f64 {
+    let mut v: Vec<f64> = values.collect();
+    v.sort_by(f64::total_cmp);
+    v.windows(2)
+        .map(|w| w[1] - w[0])
+        .filter(|d| *d > 1e-9)
+        .fold(None, |m: Option<f64>, d| Some(m.map_or(d, |m| m.min(d))))
+        .unwrap_or(0.1)
+}
+
+/// The metrics of the heatmaps and the top of their colour scales.
+const HEATMAP_METRICS: [(Metric, f64); 2] = [(Metric::Progress, 1.0), (Metric::A2a, A2A_PER_LAPS)];
+
+/// Grids with at most this many values per axis get their cell values written in.
+const MAX_LABELLED_GRID: usize = 9;
+
+/// PG and A2A over the context grid of one group, with the training range outlined.
+struct Heatmap<'a> {
+    group: &'a Group,
+}
+
+impl Figure for Heatmap<'_> {
+    fn size(&self) -> (u32, u32) {
+        (1300, 620)
+    }
+
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<()>
+    where
+        DB::ErrorType: 'static,
+    {
+        let g = self.group;
+        root.fill(&WHITE).map_err(plot_err)?;
+        let title = format!(
+            "{} on {} ({} seed(s); red box: training range)",
+            g.display_name(),
+            g.section(),
+            g.runs.len()
+        );
+        let root = root.titled(&title, font(26)).map_err(plot_err)?;
+        let train_range = g.runs.first().map_or(0.0, |r| r.meta.train_range);
+        let panels = root.split_evenly((1, HEATMAP_METRICS.len()));
+        for (area, (metric, top)) in panels.iter().zip(HEATMAP_METRICS) {
+            heatmap_panel(area, &context_means(g, metric), metric, top, train_range)?;
+        }
+        Ok(())
+    }
+}
+
+/// One heatmap with its colour bar on the right.
+fn heatmap_panel<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    cells: &[(f64, f64, f64)],
+    metric: Metric,
+    top: f64,
+    train_range: f64,
+) -> Result<()>
+where
+    DB::ErrorType: 'static,
+{
+    let (plot, bar) = area.split_horizontally(area.dim_in_pixel().0.saturating_sub(110));
+    let half = grid_step(cells.iter().flat_map(|c| [c.0, c.1])) / 2.0;
+    let extent = cells
+        .iter()
+        .flat_map(|c| [c.0.abs(), c.1.abs()])
+        .fold(train_range, f64::max)
+        + half;
+    let mut chart = ChartBuilder::on(&plot)
+        .caption(
+            format!("{} per context {}", metric.label(), arrow_note(metric)),
+            font(22),
+        )
+        .margin(10)
+        .x_label_area_size(50)
+        .y_label_area_size(70)
+        .build_cartesian_2d(-extent..extent, -extent..extent)
+        .map_err(plot_err)?;
+    chart
+        .configure_mesh()
+        .disable_mesh()
+        .x_desc("c_θ (rival steering)")
+        .y_desc("c_v (rival speed)")
+        .x_label_formatter(&context_label)
+        .y_label_formatter(&context_label)
+        .label_style(font(15))
+        .axis_desc_style(font(17))
+        .draw()
+        .map_err(plot_err)?;
+    let colour =
+        |v: f64| ViridisRGB::get_color_normalized(v.clamp(0.0, top) as f32, 0.0, top as f32);
+    chart
+        .draw_series(cells.iter().map(|&(cv, ct, v)| {
+            Rectangle::new(
+                [(ct - half, cv - half), (ct + half, cv + half)],
+                colour(v).filled(),
+            )
+        }))
+        .map_err(plot_err)?;
+    let mut columns: Vec<f64> = cells.iter().map(|c| c.1).collect();
+    columns.sort_by(f64::total_cmp);
+    columns.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
+    if columns.len() <= MAX_LABELLED_GRID {
+        let decimals = if metric == Metric::A2a { 1 } else { 2 };
+        chart
+            .draw_series(cells.iter().map(|&(cv, ct, v)| {
+                let ink = if v / top < 0.5 { &WHITE } else { &BLACK };
+                let style = font(13)
+                    .color(ink)
+                    .pos(Pos::new(HPos::Center, VPos::Center));
+                Text::new(format!("{v:.decimals$}"), (ct, cv), style)
+            }))
+            .map_err(plot_err)?;
+    }
+    let r = train_range;
+    chart
+        .draw_series(std::iter::once(PathElement::new(
+            vec![(-r, -r), (r, -r), (r, r), (-r, r), (-r, -r)],
+            RED.stroke_width(3),
+        )))
+        .map_err(plot_err)?;
+
+    let mut scale = ChartBuilder::on(&bar)
+        .margin_top(50)
+        .margin_bottom(60)
+        .margin_right(10)
+        .set_label_area_size(LabelAreaPosition::Right, 55)
+        .build_cartesian_2d(0.0..1.0, 0.0..top)
+        .map_err(plot_err)?;
+    scale
+        .configure_mesh()
+        .disable_mesh()
+        .disable_x_axis()
+        .label_style(font(14))
+        .draw()
+        .map_err(plot_err)?;
+    let slices = 100;
+    scale
+        .draw_series((0..slices).map(|i| {
+            let (a, b) = (
+                i as f64 / slices as f64 * top,
+                (i + 1) as f64 / slices as f64 * top,
+            );
+            Rectangle::new([(0.0, a), (1.0, b)], colour((a + b) / 2.0).filled())
+        }))
+        .map_err(plot_err)?;
+    Ok(())
+}
+
+/// A context value on an axis, one decimal, without a sign on 0.
+fn context_label(v: &f64) -> String {
+    format!("{:.1}", (v * 10.0).round() / 10.0 + 0.0)
+}
+
+/// "(higher is better)" or "(lower is better)".
+fn arrow_note(metric: Metric) -> &'static str {
+    if metric.higher_is_better() {
+        "(higher is better)"
+    } else {
+        "(lower is better)"
+    }
+}
+
+/// Bins of environment steps the training curves are averaged over.
+const CURVE_BINS: usize = 40;
+
+/// A training curve point: bin centre (env steps), mean over seeds, and the seeds' min and max.
+type CurvePoint = (f64, f64, f64, f64);
+
+/// Per-bin means of `value` for each run of `g`, then their mean, min and max over the runs that
+/// have episodes in the bin.
+fn binned_curve(g: &Group, value: fn(&TrainingEpisode) -> f64, width: f64) -> Vec<CurvePoint> {
+    let bin = |e: &TrainingEpisode| ((e.env_steps as f64 / width) as usize).min(CURVE_BINS - 1);
+    let per_run: Vec<Vec<Option<f64>>> = g
+        .runs
+        .iter()
+        .filter(|r| !r.training.is_empty())
+        .map(|r| {
+            let mut sums = vec![(0.0, 0usize); CURVE_BINS];
+            for e in &r.training {
+                let s = &mut sums[bin(e)];
+                *s = (s.0 + value(e), s.1 + 1);
+            }
+            sums.into_iter()
+                .map(|(sum, n)| (n > 0).then(|| sum / n as f64))
+                .collect()
+        })
+        .collect();
+    (0..CURVE_BINS)
+        .filter_map(|b| {
+            let v: Vec<f64> = per_run.iter().filter_map(|r| r[b]).collect();
+            (!v.is_empty()).then(|| {
+                let mean = v.iter().sum::<f64>() / v.len() as f64;
+                let lo = v.iter().copied().fold(f64::INFINITY, f64::min);
+                let hi = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                ((b as f64 + 0.5) * width, mean, lo, hi)
+            })
+        })
+        .collect()
+}
+
+/// A training-curve panel: its title and the value it plots.
+type CurvePanel = (&'static str, fn(&TrainingEpisode) -> f64);
+
+/// The panels of the training curves.
+const CURVE_PANELS: [CurvePanel; 2] = [
+    ("track progress (PG)", |e| e.progress),
+    ("episode return", |e| e.episode_return),
+];
+
+/// Progress and return against environment steps for the algorithms of one section: mean over
+/// seeds with a min–max band.
+struct TrainingCurves<'a> {
+    groups: Vec<&'a Group>,
+}
+
+impl Figure for TrainingCurves<'_> {
+    fn size(&self) -> (u32, u32) {
+        (1400, 560)
+    }
+
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<()>
+    where
+        DB::ErrorType: 'static,
+    {
+        root.fill(&WHITE).map_err(plot_err)?;
+        let title = format!(
+            "Training on {}: mean over seeds, band min–max",
+            self.groups[0].section()
+        );
+        let root = root.titled(&title, font(26)).map_err(plot_err)?;
+        let max_steps = self
+            .groups
+            .iter()
+            .flat_map(|g| &g.runs)
+            .flat_map(|r| &r.training)
+            .map(|e| e.env_steps)
+            .max()
+            .unwrap_or(0)
+            .max(1) as f64;
+        let width = max_steps / CURVE_BINS as f64;
+        let panels = root.split_evenly((1, CURVE_PANELS.len()));
+        for (area, (name, value)) in panels.iter().zip(CURVE_PANELS) {
+            let curves: Vec<Vec<CurvePoint>> = self
+                .groups
+                .iter()
+                .map(|g| binned_curve(g, value, width))
+                .collect();
+            let (lo, hi) = curves
+                .iter()
+                .flatten()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+                    (lo.min(p.2), hi.max(p.3))
+                });
+            let pad = ((hi - lo) * 0.05).max(0.01);
+            let mut chart = ChartBuilder::on(area)
+                .caption(name, font(20))
+                .margin(15)
+                .x_label_area_size(50)
+                .y_label_area_size(70)
+                .build_cartesian_2d(0.0..max_steps, (lo - pad)..(hi + pad))
+                .map_err(plot_err)?;
+            chart
+                .configure_mesh()
+                .x_desc("environment steps")
+                .x_label_formatter(&|v| format!("{v:.0}"))
+                .y_desc(name)
+                .label_style(font(14))
+                .axis_desc_style(font(16))
+                .draw()
+                .map_err(plot_err)?;
+            for (i, (g, curve)) in self.groups.iter().zip(&curves).enumerate() {
+                let colour = Palette99::pick(i).to_rgba();
+                let band: Vec<(f64, f64)> = curve
+                    .iter()
+                    .map(|p| (p.0, p.3))
+                    .chain(curve.iter().rev().map(|p| (p.0, p.2)))
+                    .collect();
+                chart
+                    .draw_series(std::iter::once(Polygon::new(
+                        band,
+                        colour.mix(0.2).filled(),
+                    )))
+                    .map_err(plot_err)?;
+                let seeds = g.runs.iter().filter(|r| !r.training.is_empty()).count();
+                chart
+                    .draw_series(LineSeries::new(
+                        curve.iter().map(|p| (p.0, p.1)),
+                        colour.stroke_width(2),
+                    ))
+                    .map_err(plot_err)?
+                    .label(format!("{} ({seeds} seed(s))", g.display_name()))
+                    .legend(move |(x, y)| {
+                        PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
+                    });
+            }
+            legend(&mut chart, SeriesLabelPosition::LowerRight)?;
+        }
+        Ok(())
+    }
+}
+
+/// The context values of the rival figures (paper Figs. 3–4) and their colours: orange, green,
+/// blue.
+const PROFILE_CONTEXTS: [(f64, RGBColor); 3] = [
+    (-0.3, RGBColor(240, 120, 30)),
+    (0.0, RGBColor(40, 160, 60)),
+    (0.3, RGBColor(30, 90, 210)),
+];
+
+/// The context dimension a rival figure varies (the other stays 0).
+#[derive(Clone, Copy)]
+enum Dimension {
+    /// `c_v`.
+    Speed,
+    /// `c_θ`.
+    Steer,
+}
+
+impl Dimension {
+    /// The context with this dimension at `c`, the other at 0.
+    fn context(self, c: f64) -> Context {
+        match self {
+            Dimension::Speed => Context {
+                speed: c,
+                steer: 0.0,
+            },
+            Dimension::Steer => Context {
+                speed: 0.0,
+                steer: c,
+            },
+        }
+    }
+
+    /// Its symbol.
+    fn symbol(self) -> &'static str {
+        match self {
+            Dimension::Speed => "c_v",
+            Dimension::Steer => "c_θ",
+        }
+    }
+}
+
+/// Solo laps of a rival under each of [`PROFILE_CONTEXTS`] in one context dimension.
+struct RivalLaps {
+    /// Track name.
+    track: String,
+    /// The dimension varied.
+    dimension: Dimension,
+    /// One lap per context value.
+    laps: Vec<(f64, RGBColor, SoloLap)>,
+}
+
+impl RivalLaps {
+    /// Drives the laps from the start line.
+    fn drive(track: &Track, cfg: &RaceConfig, dimension: Dimension) -> Self {
+        let laps = PROFILE_CONTEXTS
+            .iter()
+            .map(|&(c, colour)| {
+                let lap = drive_solo_lap(track, cfg, dimension.context(c), 0.0);
+                (c, colour, lap)
+            })
+            .collect();
+        Self {
+            track: track.name.clone(),
+            dimension,
+            laps,
+        }
+    }
+
+    /// The legend entry of one lap, noting a wall hit.
+    fn label(&self, c: f64, lap: &SoloLap) -> String {
+        let mut s = format!("{} = {c:+.1}", self.dimension.symbol());
+        if let Some(at) = lap.wall_hit_at {
+            s += &format!(" (hit a wall at s = {at:.1} m)");
+        }
+        s
+    }
+}
+
+/// Writes the rival speed-profile and race-line figures of `track`.
+fn rival_figures(track: &Track, cfg: &RaceConfig, out: &Path) -> Result<Vec<PathBuf>> {
+    let name = slug(&track.name);
+    let speeds = SpeedProfiles(RivalLaps::drive(track, cfg, Dimension::Speed));
+    let lines = RaceLines {
+        track,
+        laps: RivalLaps::drive(track, cfg, Dimension::Steer),
+    };
+    let mut files = save_png_and_svg(&speeds, out, &format!("rival_speed_{name}"))?;
+    files.extend(save_png_and_svg(
+        &lines,
+        out,
+        &format!("rival_lines_{name}"),
+    )?);
+    Ok(files)
+}
+
+/// Rival speed along the lap for several `c_v` (paper Fig. 3).
+struct SpeedProfiles(RivalLaps);
+
+impl Figure for SpeedProfiles {
+    fn size(&self) -> (u32, u32) {
+        (1400, 500)
+    }
+
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<()>
+    where
+        DB::ErrorType: 'static,
+    {
+        let laps = &self.0;
+        root.fill(&WHITE).map_err(plot_err)?;
+        let samples = || laps.laps.iter().flat_map(|l| &l.2.samples);
+        let length = samples().map(|s| s.travelled).fold(1.0, f64::max);
+        let top = samples().map(|s| s.speed).fold(0.1, f64::max) * 1.1;
+        let mut chart = ChartBuilder::on(root)
+            .caption(format!("Rival speed on {} (c_θ = 0)", laps.track), font(24))
+            .margin(15)
+            .x_label_area_size(50)
+            .y_label_area_size(70)
+            .build_cartesian_2d(0.0..length, 0.0..top)
+            .map_err(plot_err)?;
+        chart
+            .configure_mesh()
+            .x_desc("distance along the centreline (m)")
+            .y_desc("speed (m/s)")
+            .label_style(font(14))
+            .axis_desc_style(font(16))
+            .draw()
+            .map_err(plot_err)?;
+        for (c, colour, lap) in &laps.laps {
+            let colour = *colour;
+            chart
+                .draw_series(LineSeries::new(
+                    lap.samples.iter().map(|s| (s.travelled, s.speed)),
+                    colour.stroke_width(2),
+                ))
+                .map_err(plot_err)?
+                .label(laps.label(*c, lap))
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
+                });
+        }
+        legend(&mut chart, SeriesLabelPosition::LowerRight)
+    }
+}
+
+/// Rival paths around the track for several `c_θ` (paper Fig. 4).
+struct RaceLines<'a> {
+    track: &'a Track,
+    laps: RivalLaps,
+}
+
+impl Figure for RaceLines<'_> {
+    fn size(&self) -> (u32, u32) {
+        let (w, h) = track_picture_size(self.track);
+        (w, h + 40)
+    }
+
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<()>
+    where
+        DB::ErrorType: 'static,
+    {
+        root.fill(&WHITE).map_err(plot_err)?;
+        let (lo, hi) = bounds(self.track);
+        let mut chart = ChartBuilder::on(root)
+            .caption(
+                format!("Rival race lines on {} (c_v = 0)", self.laps.track),
+                font(24),
+            )
+            .margin(10)
+            .build_cartesian_2d(lo.0..hi.0, lo.1..hi.1)
+            .map_err(plot_err)?;
+        draw_track(&mut chart, self.track)?;
+        // widest first, so that lines on top of each other all show
+        let n = self.laps.laps.len() as u32;
+        for (i, (c, colour, lap)) in self.laps.laps.iter().enumerate() {
+            let colour = *colour;
+            chart
+                .draw_series(std::iter::once(PathElement::new(
+                    lap.samples.iter().map(|s| (s.x, s.y)).collect::<Vec<_>>(),
+                    colour.stroke_width(2 * (n - i as u32)),
+                )))
+                .map_err(plot_err)?
+                .label(self.laps.label(*c, lap))
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
+                });
+        }
+        legend(&mut chart, SeriesLabelPosition::UpperRight)
+    }
+}
+
+/// Draws the series labels at `position`.
+fn legend<'a, DB: DrawingBackend + 'a>(
+    chart: &mut TrackChart<'a, DB>,
+    position: SeriesLabelPosition,
+) -> Result<()>
+where
+    DB::ErrorType: 'static,
+{
+    chart
+        .configure_series_labels()
+        .label_font(font(16))
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .position(position)
+        .draw()
+        .map_err(plot_err)
+}

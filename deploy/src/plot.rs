@@ -1,0 +1,79 @@
+//! What every picture shares: the embedded font, and writing a drawing to PNG or SVG.
+//!
+//! plotters is built without system font support, so text needs the font embedded here
+//! (DejaVu Sans, see `assets/DejaVuSans-LICENSE.txt`), registered once per process.
+
+use anyhow::{anyhow, bail, Context as _, Result};
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use plotters::style::FontStyle;
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+/// DejaVu Sans, the font of every label.
+static FONT: &[u8] = include_bytes!("../assets/DejaVuSans.ttf");
+
+/// Registers the embedded font as plotters' `sans-serif` (once; later calls return the first
+/// result).
+pub fn register_font() -> Result<()> {
+    static REGISTERED: OnceLock<bool> = OnceLock::new();
+    let ok = *REGISTERED.get_or_init(|| {
+        plotters::style::register_font("sans-serif", FontStyle::Normal, FONT).is_ok()
+    });
+    if ok {
+        Ok(())
+    } else {
+        Err(anyhow!("the embedded font is not a valid TrueType font"))
+    }
+}
+
+/// A picture that can be drawn onto any plotters backend.
+pub trait Figure {
+    /// Picture size in pixels.
+    fn size(&self) -> (u32, u32);
+    /// Draws the picture.
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<()>
+    where
+        DB::ErrorType: 'static;
+}
+
+/// Draws `figure` into a PNG or SVG file chosen by the extension of `path`.
+pub fn save(figure: &impl Figure, path: &Path) -> Result<()> {
+    let size = figure.size();
+    match path.extension().and_then(|e| e.to_str()) {
+        Some("png") => present(figure, BitMapBackend::new(path, size), path),
+        Some("svg") => present(figure, SVGBackend::new(path, size), path),
+        _ => bail!(
+            "cannot draw to {}: the file name must end in .png or .svg",
+            path.display()
+        ),
+    }
+}
+
+/// Draws `figure` on `backend` and finishes the file at `path`.
+fn present<DB: DrawingBackend>(figure: &impl Figure, backend: DB, path: &Path) -> Result<()>
+where
+    DB::ErrorType: 'static,
+{
+    let root = backend.into_drawing_area();
+    figure.draw(&root)?;
+    root.present()
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+/// Draws `figure` as both `<stem>.png` and `<stem>.svg` in `dir`; returns the files written.
+pub fn save_png_and_svg(figure: &impl Figure, dir: &Path, stem: &str) -> Result<Vec<PathBuf>> {
+    ["png", "svg"]
+        .iter()
+        .map(|ext| {
+            let path = dir.join(format!("{stem}.{ext}"));
+            save(figure, &path)?;
+            Ok(path)
+        })
+        .collect()
+}
+
+/// Turns a plotters drawing error into an error naming what was being drawn.
+pub fn plot_err<E: std::error::Error + Send + Sync + 'static>(e: E) -> anyhow::Error {
+    anyhow::Error::new(e).context("drawing a picture")
+}
