@@ -5,6 +5,7 @@ pub mod agents;
 pub mod batch;
 pub mod config;
 pub mod context;
+pub mod experiment;
 pub mod nn;
 pub mod policy;
 
@@ -14,4 +15,5 @@ pub use agents::{
 pub use batch::{SequenceBatch, TransitionBatch};
 pub use config::{ContextGains, LidarConfig, RaceConfig, RivalConfig};
 pub use context::{Context, ContextError};
+pub use experiment::{ExperimentConfig, TrainConfig};
 pub use policy::{Decision, Policy};

@@ -38,3 +38,68 @@ pub fn load_state<T: DeserializeOwned>(dir: &Path) -> Result<T> {
     let text = std::fs::read_to_string(&path).map_err(|e| io_error("reading", &path, e))?;
     toml::from_str(&text).map_err(|e| io_error("parsing", &path, e))
 }
+
+/// Folder of a run directory that holds its checkpoints.
+pub const CHECKPOINTS: &str = "checkpoints";
+/// File in a checkpoint with the acting policy's weights.
+pub const POLICY_FILE: &str = "policy.safetensors";
+/// File in a checkpoint with the agent's configuration.
+pub const AGENT_FILE: &str = "agent.toml";
+/// Checkpoints kept in a run directory (older ones are removed).
+const KEEP: usize = 3;
+
+/// Saves `algo` as `<run>/checkpoints/step-<steps>/`, with the policy weights and the agent's
+/// configuration beside its own files so that evaluation needs nothing else. The checkpoint is
+/// written to a temporary folder and renamed into place, so a crash never leaves half of one;
+/// only the newest few are kept. Returns its path.
+pub fn write_checkpoint(
+    run_dir: &Path,
+    algo: &dyn crate::Algorithm,
+    agent: &ctxrace_common::AgentConfig,
+) -> Result<std::path::PathBuf> {
+    let root = run_dir.join(CHECKPOINTS);
+    let final_dir = root.join(format!("step-{:010}", algo.steps()));
+    let tmp = root.join(format!(".tmp-step-{:010}", algo.steps()));
+    if tmp.exists() {
+        std::fs::remove_dir_all(&tmp).map_err(|e| io_error("removing", &tmp, e))?;
+    }
+    algo.save(&tmp)?;
+    let policy = tmp.join(POLICY_FILE);
+    std::fs::write(&policy, algo.policy_weights()?).map_err(|e| io_error("writing", &policy, e))?;
+    let agent_path = tmp.join(AGENT_FILE);
+    let text = toml::to_string(agent).map_err(|e| io_error("serialising", &agent_path, e))?;
+    std::fs::write(&agent_path, text).map_err(|e| io_error("writing", &agent_path, e))?;
+    if final_dir.exists() {
+        std::fs::remove_dir_all(&final_dir).map_err(|e| io_error("removing", &final_dir, e))?;
+    }
+    std::fs::rename(&tmp, &final_dir).map_err(|e| io_error("renaming", &tmp, e))?;
+    let all = checkpoints(run_dir);
+    for old in all.iter().take(all.len().saturating_sub(KEEP)) {
+        std::fs::remove_dir_all(old).map_err(|e| io_error("removing", old, e))?;
+    }
+    Ok(final_dir)
+}
+
+/// The complete checkpoints of a run directory, oldest first.
+pub fn checkpoints(run_dir: &Path) -> Vec<std::path::PathBuf> {
+    let Ok(entries) = std::fs::read_dir(run_dir.join(CHECKPOINTS)) else {
+        return Vec::new();
+    };
+    let mut dirs: Vec<_> = entries
+        .filter_map(|e| e.ok())
+        .map(|e| e.path())
+        .filter(|p| {
+            p.file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| n.starts_with("step-"))
+                && p.join(STATE_FILE).exists()
+        })
+        .collect();
+    dirs.sort();
+    dirs
+}
+
+/// The newest complete checkpoint of a run directory.
+pub fn latest_checkpoint(run_dir: &Path) -> Option<std::path::PathBuf> {
+    checkpoints(run_dir).pop()
+}

@@ -1,0 +1,143 @@
+//! An experiment: the track, the race scenario, the agent and the training schedule, as one TOML
+//! file (`configs/*.toml`). Every table rejects unknown keys and fills missing ones with the
+//! paper's values, so a file only names what it changes.
+
+use crate::agents::AgentConfig;
+use crate::config::RaceConfig;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// The training schedule (the `[train]` table).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrainConfig {
+    /// Environment steps (decisions) to collect in all (the paper: 100k).
+    pub env_steps: u64,
+    /// Steps collected with uniformly random actions before the first gradient step.
+    pub prefill: u64,
+    /// Gradient steps per environment step (the paper's code: 1).
+    pub train_ratio: f64,
+    /// Half-width of the training context range: each of `c_v, c_θ` is drawn from
+    /// `U[−r, r]` once per episode (the paper: 0.15).
+    pub context_range: f64,
+    /// Seed of the agent's initialisation and noise, the episodes and the replay sampler.
+    pub seed: u64,
+    /// Gradient steps between publications of the policy weights to the actors.
+    pub policy_every: u64,
+    /// Gradient steps between checkpoints (0: only at the end).
+    pub checkpoint_every: u64,
+    /// Gradient steps between training-metric rows in `metrics.jsonl`.
+    pub log_every: u64,
+    /// Threads of the learner's tensor library (the actors always use one).
+    pub threads: usize,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        Self {
+            env_steps: 100_000,
+            prefill: 2_500,
+            train_ratio: 1.0,
+            context_range: 0.15,
+            seed: 0,
+            policy_every: 10,
+            checkpoint_every: 5_000,
+            log_every: 100,
+            threads: 2,
+        }
+    }
+}
+
+/// One training experiment.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ExperimentConfig {
+    /// Track: a name in the tracks folder, a map yaml path or `generated:SEED`.
+    pub track: String,
+    /// The race scenario.
+    pub race: RaceConfig,
+    /// The agent.
+    pub agent: AgentConfig,
+    /// The training schedule.
+    pub train: TrainConfig,
+}
+
+impl Default for ExperimentConfig {
+    fn default() -> Self {
+        Self {
+            track: "f1_esp".into(),
+            race: RaceConfig::default(),
+            agent: AgentConfig::default(),
+            train: TrainConfig::default(),
+        }
+    }
+}
+
+impl ExperimentConfig {
+    /// Parses TOML text; `origin` names it in errors.
+    pub fn from_toml(text: &str, origin: &str) -> Result<Self, String> {
+        let cfg: Self = toml::from_str(text).map_err(|e| format!("{origin}: {e}"))?;
+        cfg.validate().map_err(|e| format!("{origin}: {e}"))?;
+        Ok(cfg)
+    }
+
+    /// Reads and checks a TOML file.
+    pub fn load(path: &Path) -> Result<Self, String> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| format!("reading experiment config {}: {e}", path.display()))?;
+        Self::from_toml(&text, &path.display().to_string())
+    }
+
+    /// The configuration as TOML (what a run directory records).
+    pub fn to_toml(&self) -> Result<String, String> {
+        toml::to_string(self).map_err(|e| format!("serialising the experiment config: {e}"))
+    }
+
+    /// Checks every table; the message names the key.
+    pub fn validate(&self) -> Result<(), String> {
+        self.race.validate().map_err(|e| format!("[race] {e}"))?;
+        self.agent.validate().map_err(|e| format!("[agent] {e}"))?;
+        let t = &self.train;
+        if !(t.train_ratio.is_finite() && t.train_ratio >= 0.0) {
+            return Err(format!(
+                "[train] train_ratio = {} must be a number >= 0",
+                t.train_ratio
+            ));
+        }
+        if !(t.context_range.is_finite() && (0.0..=0.9).contains(&t.context_range)) {
+            return Err(format!(
+                "[train] context_range = {} must lie in [0, 0.9]",
+                t.context_range
+            ));
+        }
+        if t.policy_every == 0 || t.log_every == 0 || t.threads == 0 {
+            return Err("[train] policy_every, log_every and threads must be positive".into());
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::agents::AlgoKind;
+
+    #[test]
+    fn partial_files_keep_the_paper_defaults_and_errors_name_the_key() {
+        let cfg = ExperimentConfig::from_toml(
+            "track = \"generated:3\"\n[agent]\nalgo = \"sac\"\n[train]\nenv_steps = 500",
+            "test.toml",
+        )
+        .unwrap();
+        assert_eq!(cfg.agent.algo, AlgoKind::Sac);
+        assert_eq!(cfg.train.env_steps, 500);
+        assert_eq!(cfg.train.context_range, 0.15);
+        assert_eq!(cfg.race, RaceConfig::default());
+        let round = ExperimentConfig::from_toml(&cfg.to_toml().unwrap(), "round trip").unwrap();
+        assert_eq!(round, cfg);
+        let err = ExperimentConfig::from_toml("[train]\nenv_step = 5", "x.toml").unwrap_err();
+        assert!(err.contains("x.toml") && err.contains("env_step"), "{err}");
+        let err = ExperimentConfig::from_toml("[train]\ncontext_range = 2.0", "y.toml").unwrap_err();
+        assert!(err.contains("context_range"), "{err}");
+    }
+}

@@ -1,0 +1,522 @@
+//! `ctxrace eval`: the paper's evaluation protocol. Every context of an `n × n` grid over
+//! `[−range, range]²` is raced for `laps` fresh seeded episodes by a trained agent (acting with
+//! the mode of its policy) or a reference policy, spread over worker processes.
+//!
+//! Each worker appends its finished episodes to `episodes.part-K.csv` in the output directory,
+//! so an interrupted evaluation resumes where it stopped: a rerun skips every (context, lap)
+//! already on disk. When all are done the rows are merged into `episodes.csv`, summarised per
+//! context (`contexts.csv`, `contexts.json`, see [`crate::results`]) and one episode is drawn
+//! (`episode.png`, `episode.svg`).
+
+use crate::driver::{EgoSpec, TrainedAgent};
+use crate::render::{render_race, Frame};
+use crate::results::{self, EpisodeRecord, EvalMeta};
+use crate::TrackArgs;
+use anyhow::{bail, Context as _, Result};
+use clap::Args;
+use ctxrace_actor::baseline::BaselineKind;
+use ctxrace_actor::RaceEnv;
+use ctxrace_common::{Context, RaceConfig};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::{Deserialize, Serialize};
+use std::collections::HashSet;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command};
+use std::sync::Arc;
+use std::time::Duration;
+
+/// Arguments of `ctxrace eval`.
+#[derive(Args)]
+pub struct EvalArgs {
+    /// A run directory (its newest checkpoint), a checkpoint directory, or a reference
+    /// policy: `pure-pursuit` or `random`.
+    source: String,
+    /// Grid points per context dimension.
+    #[arg(long, default_value_t = 7)]
+    grid: usize,
+    /// Half-width of the context grid.
+    #[arg(long, default_value_t = 0.3)]
+    range: f64,
+    /// Episodes (laps) per context.
+    #[arg(long, default_value_t = 50)]
+    laps: usize,
+    /// Worker processes [default: the number of cores].
+    #[arg(long)]
+    workers: Option<usize>,
+    /// Seed of the evaluation episodes.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Output directory [default: <run>/eval for a run, eval-<policy>-<track>-<rivals>r for a
+    /// reference policy].
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Track [default: the run's; f1_esp for a reference policy].
+    #[arg(long)]
+    track: Option<String>,
+    /// Number of rivals [default: the run's; 3 for a reference policy].
+    #[arg(long)]
+    rivals: Option<usize>,
+    /// Training context range that separates in- from out-of-distribution [default: the
+    /// run's; 0.15 for a reference policy].
+    #[arg(long)]
+    train_range: Option<f64>,
+    /// Discard earlier results in the output directory instead of resuming.
+    #[arg(long)]
+    fresh: bool,
+    #[command(flatten)]
+    tracks: TrackArgs,
+}
+
+/// Everything a worker needs, written by the coordinator as `job.json`.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+struct EvalJob {
+    meta: EvalMeta,
+    race: RaceConfig,
+    tracks: TrackArgs,
+    /// `(context index, lap)` pairs left to run, in order.
+    todo: Vec<(usize, usize)>,
+}
+
+/// Arguments of the hidden `ctxrace eval-worker` role.
+#[derive(Args)]
+pub struct WorkerArgs {
+    /// The coordinator's job file.
+    #[arg(long)]
+    job: PathBuf,
+    /// This worker's index.
+    #[arg(long)]
+    shard: usize,
+    /// Number of workers.
+    #[arg(long)]
+    shards: usize,
+}
+
+/// The contexts of an evaluation.
+fn contexts(meta: &EvalMeta) -> Vec<Context> {
+    Context::grid(meta.grid, meta.range)
+}
+
+/// The seed of lap `lap` of context `index` (distinct for every episode of an evaluation).
+fn episode_seed(seed: u64, index: usize, lap: usize) -> u64 {
+    seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ ((index as u64) << 32 | lap as u64)
+}
+
+/// The trained agent or reference policy named by `source`.
+fn ego_spec(source: &str) -> Result<EgoSpec> {
+    match source.parse::<BaselineKind>() {
+        Ok(kind) => Ok(EgoSpec::Baseline(kind)),
+        Err(_) => Ok(EgoSpec::Trained(Box::new(TrainedAgent::load(Path::new(
+            source,
+        ))?))),
+    }
+}
+
+/// Runs the protocol.
+pub fn run(args: EvalArgs) -> Result<()> {
+    if args.grid == 0 || args.laps == 0 {
+        bail!("--grid and --laps must be positive");
+    }
+    if !(args.range.is_finite() && (0.0..=0.9).contains(&args.range)) {
+        bail!("--range {} must lie in [0, 0.9] (contexts are limited to ±0.9)", args.range);
+    }
+    let spec = ego_spec(&args.source)?;
+    let (experiment, train_seed) = match &spec {
+        EgoSpec::Trained(t) => (t.experiment.clone(), t.agent.seed()),
+        EgoSpec::Baseline(_) => (None, 0),
+    };
+    let mut race = experiment.as_ref().map(|e| e.race.clone()).unwrap_or_default();
+    race.rivals = args
+        .rivals
+        .unwrap_or(if experiment.is_some() { race.rivals } else { 3 });
+    race.validate().map_err(anyhow::Error::msg)?;
+    let track = args
+        .track
+        .clone()
+        .or_else(|| experiment.as_ref().map(|e| e.track.clone()))
+        .unwrap_or_else(|| "f1_esp".into());
+    let train_range = args
+        .train_range
+        .or_else(|| experiment.as_ref().map(|e| e.train.context_range))
+        .unwrap_or(0.15);
+    let out = match (&args.out, &spec) {
+        (Some(o), _) => o.clone(),
+        (None, EgoSpec::Trained(t)) => match t.checkpoint.parent().and_then(Path::parent) {
+            Some(run) if t.experiment.is_some() => run.join("eval"),
+            _ => t.checkpoint.join("eval"),
+        },
+        (None, EgoSpec::Baseline(_)) => PathBuf::from(format!(
+            "eval-{}-{}-{}r",
+            spec.name(),
+            track.replace([':', '/'], "_"),
+            race.rivals
+        )),
+    };
+    let meta = EvalMeta {
+        algo: spec.name(),
+        track,
+        rivals: race.rivals,
+        train_seed,
+        train_range,
+        grid: args.grid,
+        range: args.range,
+        laps: args.laps,
+        seed: args.seed,
+        source: match &spec {
+            EgoSpec::Trained(t) => t.checkpoint.display().to_string(),
+            EgoSpec::Baseline(_) => spec.name(),
+        },
+    };
+    prepare_out_dir(&out, &meta, args.fresh)?;
+
+    let done = finished_episodes(&out, &meta)?;
+    let n_contexts = contexts(&meta).len();
+    let todo: Vec<(usize, usize)> = (0..n_contexts)
+        .flat_map(|c| (0..meta.laps).map(move |l| (c, l)))
+        .filter(|key| !done.contains(key))
+        .collect();
+    let total = (n_contexts * meta.laps) as u64;
+    let job = EvalJob {
+        meta: meta.clone(),
+        race: race.clone(),
+        tracks: args.tracks.clone(),
+        todo,
+    };
+    if !job.todo.is_empty() {
+        let workers = args
+            .workers
+            .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+            .clamp(1, job.todo.len());
+        let job_path = out.join("job.json");
+        results::write_json(&job_path, &job)?;
+        run_workers(&out, &meta, &job_path, workers, done.len() as u64, total)?;
+    }
+    finish(&out, &meta, &race, &args.tracks, &spec)
+}
+
+/// Creates `out`, checks that earlier results belong to the same evaluation (or removes them
+/// with `fresh`) and writes `meta.json`.
+fn prepare_out_dir(out: &Path, meta: &EvalMeta, fresh: bool) -> Result<()> {
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let meta_path = out.join("meta.json");
+    if fresh {
+        for entry in std::fs::read_dir(out)? {
+            let path = entry?.path();
+            let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
+            if name.starts_with("episodes") || name.starts_with("contexts") {
+                std::fs::remove_file(&path)
+                    .with_context(|| format!("removing {}", path.display()))?;
+            }
+        }
+    } else if meta_path.exists() {
+        let old: EvalMeta = results::read_json(&meta_path)?;
+        if &old != meta {
+            bail!(
+                "{} holds results of another evaluation ({} on {}, {} rivals, grid {}, range {}, \
+                 {} laps, seed {}); pass --fresh to replace them or --out for another directory",
+                out.display(),
+                old.algo,
+                old.track,
+                old.rivals,
+                old.grid,
+                old.range,
+                old.laps,
+                old.seed
+            );
+        }
+    }
+    results::write_json(&meta_path, meta)
+}
+
+/// The worker result files of `out`.
+fn part_files(out: &Path) -> Result<Vec<PathBuf>> {
+    let mut parts: Vec<PathBuf> = std::fs::read_dir(out)
+        .with_context(|| format!("listing {}", out.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| n.starts_with("episodes.part-") && n.ends_with(".csv"))
+        })
+        .collect();
+    parts.sort();
+    Ok(parts)
+}
+
+/// Every finished episode on disk with its context's index in the grid of `meta` (a torn
+/// last line of a killed worker is skipped).
+fn read_parts(out: &Path, meta: &EvalMeta) -> Result<Vec<(usize, EpisodeRecord)>> {
+    let grid = contexts(meta);
+    let mut rows = Vec::new();
+    for part in part_files(out)? {
+        let mut reader = csv::Reader::from_path(&part)
+            .with_context(|| format!("opening {}", part.display()))?;
+        for row in reader.deserialize::<EpisodeRecord>() {
+            let e = match row {
+                Ok(e) => e,
+                Err(err) => {
+                    tracing::warn!("skipping a torn row of {}: {err}", part.display());
+                    continue;
+                }
+            };
+            let index = grid
+                .iter()
+                .position(|c| c.speed == e.context_speed && c.steer == e.context_steer);
+            match index {
+                Some(i) if e.lap < meta.laps => rows.push((i, e)),
+                _ => bail!(
+                    "{} holds an episode outside this evaluation (context {}, {}, lap {}); \
+                     pass --fresh",
+                    part.display(),
+                    e.context_speed,
+                    e.context_steer,
+                    e.lap
+                ),
+            }
+        }
+    }
+    Ok(rows)
+}
+
+/// The `(context index, lap)` pairs already on disk.
+fn finished_episodes(out: &Path, meta: &EvalMeta) -> Result<HashSet<(usize, usize)>> {
+    Ok(read_parts(out, meta)?
+        .into_iter()
+        .map(|(c, e)| (c, e.lap))
+        .collect())
+}
+
+/// Starts the workers and waits for them, showing progress from their result files.
+fn run_workers(
+    out: &Path,
+    meta: &EvalMeta,
+    job: &Path,
+    workers: usize,
+    done: u64,
+    total: u64,
+) -> Result<()> {
+    let exe = std::env::current_exe().context("locating the ctxrace binary")?;
+    let mut children: Vec<Child> = (0..workers)
+        .map(|k| {
+            Command::new(&exe)
+                .arg("eval-worker")
+                .arg("--job")
+                .arg(job)
+                .args(["--shard", &k.to_string(), "--shards", &workers.to_string()])
+                .spawn()
+                .context("starting an evaluation worker")
+        })
+        .collect::<Result<_>>()?;
+    let bar = ProgressBar::new(total).with_style(
+        ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:40}] {pos}/{len} episodes ({per_sec}, eta {eta})",
+        )
+        .expect("a valid progress template"),
+    );
+    bar.set_position(done);
+    let mut failed = Vec::new();
+    while !children.is_empty() {
+        std::thread::sleep(Duration::from_millis(500));
+        let mut running = Vec::new();
+        for mut child in children {
+            match child.try_wait()? {
+                Some(status) if !status.success() => failed.push(status),
+                Some(_) => {}
+                None => running.push(child),
+            }
+        }
+        children = running;
+        bar.set_position(read_parts(out, meta)?.len() as u64);
+    }
+    bar.finish();
+    if !failed.is_empty() {
+        bail!(
+            "{} evaluation worker(s) failed ({failed:?}); rerun the same command to resume",
+            failed.len()
+        );
+    }
+    Ok(())
+}
+
+/// Cuts a torn last line (a worker killed mid-write) so that appending starts on a fresh line.
+fn trim_torn_line(path: &Path) -> Result<()> {
+    let Ok(bytes) = std::fs::read(path) else {
+        return Ok(());
+    };
+    if bytes.last().is_some_and(|&b| b != b'\n') {
+        let keep = bytes.iter().rposition(|&b| b == b'\n').map_or(0, |i| i + 1);
+        std::fs::write(path, &bytes[..keep])
+            .with_context(|| format!("repairing {}", path.display()))?;
+    }
+    Ok(())
+}
+
+/// The `eval-worker` role: runs every `shards`-th pending episode of the job, appending rows.
+pub fn run_worker(args: WorkerArgs) -> Result<()> {
+    let job: EvalJob = results::read_json(&args.job)?;
+    let out = args.job.parent().unwrap_or(Path::new("."));
+    let spec = ego_spec(&job.meta.source)?;
+    ctxrace_common::nn::set_threads(1);
+    let track = Arc::new(job.tracks.load(&job.meta.track)?);
+    let mut env = RaceEnv::new(track, job.race.clone())?;
+    let mut driver = spec.driver(&env)?;
+    let grid = contexts(&job.meta);
+    let part = out.join(format!("episodes.part-{:03}.csv", args.shard));
+    trim_torn_line(&part)?;
+    let fresh = !part.exists() || std::fs::metadata(&part)?.len() == 0;
+    let file = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&part)
+        .with_context(|| format!("opening {}", part.display()))?;
+    let mut writer = csv::WriterBuilder::new().has_headers(fresh).from_writer(file);
+    for &(index, lap) in job.todo.iter().skip(args.shard).step_by(args.shards) {
+        let context = grid[index];
+        let seed = episode_seed(job.meta.seed, index, lap);
+        let episode = run_episode(&mut env, &mut driver, context, seed, lap, None)?;
+        writer.serialize(episode)?;
+        writer.flush()?;
+    }
+    Ok(())
+}
+
+/// Runs one episode to its end, optionally recording frames.
+fn run_episode(
+    env: &mut RaceEnv,
+    driver: &mut crate::driver::Driver,
+    context: Context,
+    seed: u64,
+    lap: usize,
+    mut frames: Option<&mut Vec<Frame>>,
+) -> Result<EpisodeRecord> {
+    let mut obs = env.reset(seed, context);
+    driver.reset(env, seed);
+    if let Some(f) = frames.as_deref_mut() {
+        f.push(Frame::capture(env, [0.0, 0.0], 0.0, &obs));
+    }
+    let lap_complete = loop {
+        let (action, _) = driver.act(env, &obs)?;
+        let step = env.step(action)?;
+        obs = step.obs;
+        if let Some(f) = frames.as_deref_mut() {
+            f.push(Frame::capture(env, action, step.reward, &obs));
+        }
+        if step.terminated || step.truncated {
+            break step.info.lap_complete;
+        }
+    };
+    let m = env.metrics();
+    Ok(EpisodeRecord {
+        context_speed: context.speed,
+        context_steer: context.steer,
+        lap,
+        seed,
+        progress: m.progress,
+        overtakes: m.overtakes,
+        a2a: m.a2a,
+        wall_crash: m.wall_crash,
+        lap_complete,
+        lap_time: m.lap_time,
+        steps: m.steps,
+        episode_return: m.episode_return,
+    })
+}
+
+/// Merges the workers' rows, writes the per-context summaries, draws one episode and prints
+/// the in- and out-of-distribution means.
+fn finish(
+    out: &Path,
+    meta: &EvalMeta,
+    race: &RaceConfig,
+    tracks: &TrackArgs,
+    spec: &EgoSpec,
+) -> Result<()> {
+    let mut rows = read_parts(out, meta)?;
+    rows.sort_by_key(|(c, e)| (*c, e.lap));
+    rows.dedup_by_key(|(c, e)| (*c, e.lap));
+    let expected = contexts(meta).len() * meta.laps;
+    if rows.len() != expected {
+        bail!(
+            "{} holds {} of {expected} episodes; rerun the same command to finish",
+            out.display(),
+            rows.len()
+        );
+    }
+    let episodes: Vec<EpisodeRecord> = rows.into_iter().map(|(_, e)| e).collect();
+    results::write_csv(&out.join("episodes.csv"), &episodes)?;
+    let summary = results::summarise(&episodes, meta.train_range);
+    results::write_csv(&out.join("contexts.csv"), &summary)?;
+    results::write_json(&out.join("contexts.json"), &summary)?;
+
+    let track = Arc::new(tracks.load(&meta.track)?);
+    let mut env = RaceEnv::new(track.clone(), race.clone())?;
+    let mut driver = spec.driver(&env)?;
+    let mut frames = Vec::new();
+    let centre = Context::default();
+    run_episode(
+        &mut env,
+        &mut driver,
+        centre,
+        episode_seed(meta.seed, usize::MAX, 0),
+        0,
+        Some(&mut frames),
+    )?;
+    for ext in ["png", "svg"] {
+        render_race(&out.join(format!("episode.{ext}")), &track, &frames)?;
+    }
+
+    let mut stdout = std::io::stdout().lock();
+    writeln!(
+        stdout,
+        "{} on {} with {} rival(s): {} contexts x {} laps -> {}",
+        meta.algo,
+        meta.track,
+        meta.rivals,
+        summary.len(),
+        meta.laps,
+        out.display()
+    )?;
+    for (label, inside) in [("in-distribution", true), ("out-of-distribution", false)] {
+        let part: Vec<_> = summary
+            .iter()
+            .filter(|s| s.in_distribution == inside)
+            .collect();
+        if part.is_empty() {
+            continue;
+        }
+        let n = part.len() as f64;
+        let mean = |f: fn(&results::ContextSummary) -> f64| part.iter().map(|s| f(s)).sum::<f64>() / n;
+        writeln!(
+            stdout,
+            "  {label:>20} ({:2} contexts): PG {:.3}  OT {:+.3}  A2A {:.2}/50  wall {:.1}%",
+            part.len(),
+            mean(|s| s.progress),
+            mean(|s| s.overtakes),
+            mean(|s| s.a2a),
+            100.0 * mean(|s| s.wall_crash)
+        )?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn episode_seeds_are_distinct_across_the_grid() {
+        let seeds: HashSet<u64> = (0..49)
+            .flat_map(|c| (0..50).map(move |l| episode_seed(7, c, l)))
+            .collect();
+        assert_eq!(seeds.len(), 49 * 50);
+    }
+
+    #[test]
+    fn a_torn_last_line_is_cut() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("part.csv");
+        std::fs::write(&p, "a,b\n1,2\n3,").unwrap();
+        trim_torn_line(&p).unwrap();
+        assert_eq!(std::fs::read_to_string(&p).unwrap(), "a,b\n1,2\n");
+    }
+}
