@@ -3,8 +3,9 @@
 pub mod batch;
 pub mod config;
 pub mod context;
+pub mod ipc;
 pub mod nn;
 
 pub use batch::{SequenceBatch, TransitionBatch};
-pub use config::{ContextGains, LidarConfig, RaceConfig, RivalConfig};
+pub use config::{ContextGains, LidarConfig, RaceConfig, ReplayOptions, RivalConfig};
 pub use context::{Context, ContextError};
