@@ -259,7 +259,7 @@ pub struct BatchServer {
 
 impl BatchServer {
     /// Serves batches of up to `max_floats` floats of the given dimensions. Call
-    /// [`super::announce_replay_ready`] once every replay endpoint exists.
+    /// [`super::ReplayBeacon::signal`] once every replay endpoint exists.
     pub fn new(
         transport: &RunTransport,
         obs_dim: usize,

@@ -24,10 +24,9 @@ pub mod wire;
 pub use batches::{Batch, BatchServer, BatchSpec, ReplayClient, DEFAULT_MAX_BATCH_FLOATS};
 pub use telemetry::{MetricsPublisher, StatusPublisher, TelemetrySubscriber};
 pub use trajectory::{
-    announce_replay_ready, ChunkView, SenderOptions, SenderStats, Step, TrajectoryReceiver,
-    TrajectorySender,
+    ChunkView, ReplayBeacon, SenderOptions, SenderStats, Step, TrajectoryReceiver, TrajectorySender,
 };
-pub use transport::{cleanup, iceoryx_config, run_prefix, CleanupReport, RunTransport};
+pub use transport::{cleanup, iceoryx_config, run_prefix, CleanupReport, RunTransport, Wake};
 pub use weights::{WeightsPublisher, WeightsReceiver, DEFAULT_MAX_WEIGHTS_BYTES};
 pub use wire::{
     BatchHeader, BatchRequest, ChunkHeader, EpisodeMetrics, Heartbeat, ReplayStatus, WeightsHeader,

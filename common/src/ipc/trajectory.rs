@@ -7,6 +7,7 @@ use super::wire::{
 };
 use super::RejectLog;
 use anyhow::{anyhow, Result};
+use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
@@ -14,7 +15,7 @@ use iceoryx2::port::BackpressureAction;
 use iceoryx2::prelude::*;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 /// One env step as an actor reports it (SequenceBatch's convention).
 #[derive(Clone, Copy, Debug)]
@@ -69,9 +70,15 @@ pub struct SenderStats {
 
 /// An actor's end of the trajectory stream: collects steps into chunks of up to [`MAX_CHUNK`]
 /// and sends them when full and at each episode's end.
+///
+/// Dropping it flushes and then waits (at most the backpressure timeout) until the replay has
+/// run a receive turn after the last send: a publisher that disappears before the replay
+/// connected to it takes its unread chunks with it.
 pub struct TrajectorySender {
     publisher: Publisher<ipc::Service, [f32], ChunkHeader>,
     wake: Notifier<ipc::Service>,
+    turns: Listener<ipc::Service>,
+    timeout: Duration,
     congested: Arc<AtomicBool>,
     header: ChunkHeader,
     buf: Vec<f32>,
@@ -135,6 +142,8 @@ impl TrajectorySender {
         Ok(Self {
             publisher,
             wake: transport.notifier(Wake::Replay)?,
+            turns: ready,
+            timeout,
             congested,
             header: ChunkHeader {
                 format_version: FORMAT_VERSION,
@@ -222,6 +231,45 @@ impl TrajectorySender {
     pub fn stats(&self) -> SenderStats {
         self.stats
     }
+
+    /// Flushes and waits until the replay has certainly connected to this sender (two replay
+    /// turns after the last send), at most the backpressure timeout; returns the counters.
+    pub fn close(mut self) -> Result<SenderStats> {
+        self.finish()?;
+        Ok(self.stats)
+    }
+
+    fn finish(&mut self) -> Result<()> {
+        self.flush()?;
+        if self.stats.sent_chunks == 0 {
+            return Ok(());
+        }
+        self.turns
+            .try_wait(|_| {})
+            .map_err(ice("drain replay turns"))?;
+        let deadline = Instant::now() + self.timeout;
+        let mut turns = 0;
+        while turns < 2 {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                break;
+            }
+            turns += self
+                .turns
+                .timed_wait(|_| {}, left)
+                .map_err(ice("wait for replay turn"))?;
+        }
+        self.stats.sent_chunks = 0;
+        Ok(())
+    }
+}
+
+impl Drop for TrajectorySender {
+    fn drop(&mut self) {
+        if let Err(e) = self.finish() {
+            tracing::warn!("closing trajectory sender: {e:#}");
+        }
+    }
 }
 
 /// A validated chunk as the replay receives it.
@@ -249,7 +297,7 @@ pub struct TrajectoryReceiver {
 
 impl TrajectoryReceiver {
     /// Subscribes to the run's trajectories of the given dimensions. Call
-    /// [`announce_replay_ready`] once every replay endpoint exists.
+    /// [`ReplayBeacon::signal`] once every replay endpoint exists.
     pub fn new(transport: &RunTransport, obs_dim: usize, act_dim: usize) -> Result<Self> {
         let subscriber = transport
             .trajectory_service()?
@@ -314,11 +362,23 @@ impl TrajectoryReceiver {
     }
 }
 
-/// Tells waiting actors and learners that the replay's subscribers exist.
-pub fn announce_replay_ready(transport: &RunTransport) -> Result<()> {
-    transport
-        .notifier(Wake::ReplayReady)?
-        .notify()
-        .map_err(ice("announce replay"))?;
-    Ok(())
+/// The replay's beacon: tells waiting actors and learners that its subscribers exist, and
+/// closing actors that it ran another receive turn.
+pub struct ReplayBeacon {
+    notifier: Notifier<ipc::Service>,
+}
+
+impl ReplayBeacon {
+    /// A notifier on the run's `replay_ready` event; create it once every replay endpoint exists.
+    pub fn new(transport: &RunTransport) -> Result<Self> {
+        Ok(Self {
+            notifier: transport.notifier(Wake::ReplayReady)?,
+        })
+    }
+
+    /// Signals readiness (on start) or the end of a receive turn (each loop turn).
+    pub fn signal(&self) -> Result<()> {
+        self.notifier.notify().map_err(ice("replay beacon"))?;
+        Ok(())
+    }
 }

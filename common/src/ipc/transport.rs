@@ -210,7 +210,7 @@ impl RunTransport {
     }
 
     /// An event service; `wake` names whom it wakes.
-    pub(crate) fn event_service(&self, wake: Wake) -> Result<EventFactory<ipc::Service>> {
+    fn event_service(&self, wake: Wake) -> Result<EventFactory<ipc::Service>> {
         self.node
             .service_builder(&service_name(wake.name())?)
             .event()
@@ -221,16 +221,16 @@ impl RunTransport {
             .map_err(ice(wake.name()))
     }
 
-    /// A notifier on an event service.
-    pub(crate) fn notifier(&self, wake: Wake) -> Result<Notifier<ipc::Service>> {
+    /// A notifier on one of the run's event services.
+    pub fn notifier(&self, wake: Wake) -> Result<Notifier<ipc::Service>> {
         self.event_service(wake)?
             .notifier_builder()
             .create()
             .map_err(ice("notifier"))
     }
 
-    /// A listener on an event service.
-    pub(crate) fn listener(&self, wake: Wake) -> Result<Listener<ipc::Service>> {
+    /// A listener on one of the run's event services, to attach to a `WaitSet`.
+    pub fn listener(&self, wake: Wake) -> Result<Listener<ipc::Service>> {
         self.event_service(wake)?
             .listener_builder()
             .create()
@@ -239,8 +239,8 @@ impl RunTransport {
 }
 
 /// The run's event services, each named after whom it wakes.
-#[derive(Clone, Copy, Debug)]
-pub(crate) enum Wake {
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Wake {
     /// The replay loop: a chunk or a request arrived.
     Replay,
     /// The learner: a batch arrived.

@@ -173,3 +173,61 @@ impl WeightsReceiver {
         self.rejects.count()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ipc::{cleanup, run_prefix};
+
+    #[test]
+    fn late_subscriber_gets_the_newest_and_bad_checksums_are_rejected() {
+        let prefix = run_prefix(&format!("test-weights-{}", std::process::id()));
+        {
+            let t = RunTransport::open(&prefix, 2, "learner").unwrap();
+            let publisher = WeightsPublisher::new(&t, 1 << 20).unwrap();
+            let v1 = vec![1u8; 1000];
+            let v2: Vec<u8> = (0..5000).map(|i| i as u8).collect();
+            publisher.publish(1, &v1).unwrap();
+            publisher.publish(2, &v2).unwrap();
+            assert!(publisher.publish(3, &vec![0; 2 << 20]).is_err());
+
+            let mut late = WeightsReceiver::new(&t).unwrap();
+            publisher.update_connections().unwrap();
+            assert_eq!(late.latest().unwrap(), Some((2, v2.clone())));
+            assert_eq!(late.latest().unwrap(), None);
+
+            // A blob whose checksum does not match is rejected, counted, and never handed out.
+            let raw = t
+                .weights_service()
+                .unwrap()
+                .publisher_builder()
+                .initial_max_slice_len(64)
+                .allocation_strategy(AllocationStrategy::Static)
+                .create()
+                .unwrap();
+            let mut sample = raw.loan_slice_uninit(16).unwrap();
+            *sample.user_header_mut() = WeightsHeader {
+                format_version: FORMAT_VERSION,
+                checksum: 12345,
+                version: 3,
+                len: 16,
+            };
+            sample.write_from_slice(&[7u8; 16]).send().unwrap();
+            assert_eq!(late.latest().unwrap(), None);
+            assert_eq!(late.rejected(), 1);
+            publisher.publish(4, &v1).unwrap();
+            let got = late
+                .wait_with(Duration::from_secs(5), |v, b| (v, b.len()))
+                .unwrap();
+            assert_eq!(got, Some((4, 1000)));
+            assert_eq!(late.current_version(), Some(4));
+        }
+        let report = cleanup(&prefix).unwrap();
+        assert_eq!(report.alive_nodes, 0);
+        assert!(report.files_removed > 0, "{report:?}");
+        assert!(!std::fs::read_dir("/dev/shm")
+            .unwrap()
+            .flatten()
+            .any(|e| e.file_name().to_string_lossy().starts_with(&prefix)));
+    }
+}
