@@ -2,6 +2,7 @@
 //! algorithm name, [`SacConfig`] and [`DreamerConfig`], with the paper's values as defaults
 //! (REFERENCE §5), read from the `[agent]` table of an experiment's TOML file.
 
+use crate::ipc::BatchSpec;
 use candle_core::{bail, Result};
 use serde::{Deserialize, Serialize};
 use std::fmt;
@@ -70,25 +71,6 @@ impl FromStr for AlgoKind {
     }
 }
 
-/// The shape of the batches an algorithm trains on, for the replay sampler.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum BatchSpec {
-    /// `batch` independent transitions whose observations stack `frames` consecutive frames.
-    Transitions {
-        /// Transitions per batch.
-        batch: usize,
-        /// Frames stacked per observation.
-        frames: usize,
-    },
-    /// `batch` sequences of `length` consecutive steps.
-    Sequences {
-        /// Sequences per batch.
-        batch: usize,
-        /// Steps per sequence.
-        length: usize,
-    },
-}
-
 /// Which agent to train and its hyper-parameters (the `[agent]` table).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -127,11 +109,11 @@ impl AgentConfig {
     /// The batches the chosen algorithm trains on.
     pub fn batch_spec(&self) -> BatchSpec {
         match self.algo {
-            AlgoKind::Sac => BatchSpec::Transitions {
+            AlgoKind::Sac => BatchSpec::Transition {
                 batch: self.sac.batch_size,
                 frames: self.sac.frames,
             },
-            _ => BatchSpec::Sequences {
+            _ => BatchSpec::Sequence {
                 batch: self.dreamer.batch,
                 length: self.dreamer.length,
             },

@@ -137,7 +137,8 @@ mod tests {
         assert_eq!(round, cfg);
         let err = ExperimentConfig::from_toml("[train]\nenv_step = 5", "x.toml").unwrap_err();
         assert!(err.contains("x.toml") && err.contains("env_step"), "{err}");
-        let err = ExperimentConfig::from_toml("[train]\ncontext_range = 2.0", "y.toml").unwrap_err();
+        let err =
+            ExperimentConfig::from_toml("[train]\ncontext_range = 2.0", "y.toml").unwrap_err();
         assert!(err.contains("context_range"), "{err}");
     }
 }

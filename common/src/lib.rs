@@ -6,14 +6,13 @@ pub mod batch;
 pub mod config;
 pub mod context;
 pub mod experiment;
+pub mod ipc;
 pub mod nn;
 pub mod policy;
 
-pub use agents::{
-    AgentConfig, AlgoKind, BatchSpec, ContextMode, DreamerConfig, MaskConfig, SacConfig,
-};
+pub use agents::{AgentConfig, AlgoKind, ContextMode, DreamerConfig, MaskConfig, SacConfig};
 pub use batch::{SequenceBatch, TransitionBatch};
-pub use config::{ContextGains, LidarConfig, RaceConfig, RivalConfig};
+pub use config::{ContextGains, LidarConfig, RaceConfig, ReplayOptions, RivalConfig};
 pub use context::{Context, ContextError};
 pub use experiment::{ExperimentConfig, TrainConfig};
 pub use policy::{Decision, Policy};

@@ -2,35 +2,15 @@
 //! process can drive any of them by name.
 
 use candle_core::Result;
-use ctxrace_common::{SequenceBatch, TransitionBatch};
+pub use ctxrace_common::ipc::Batch;
 use std::collections::BTreeMap;
 use std::path::Path;
 
 /// Scalars reported by a training step (losses, entropies, …), by name.
 pub type Metrics = BTreeMap<String, f64>;
 
-/// A training batch of either kind.
-#[derive(Clone, Debug)]
-pub enum Batch {
-    /// Independent transitions (SAC).
-    Transitions(TransitionBatch),
-    /// Sequences (DreamerV3 and its context-aware variants).
-    Sequences(SequenceBatch),
-}
-
-/// Which kind of batch an algorithm trains on.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum BatchKind {
-    /// [`Batch::Transitions`].
-    Transitions,
-    /// [`Batch::Sequences`].
-    Sequences,
-}
-
 /// A training algorithm.
 pub trait Algorithm {
-    /// The kind of batch [`Algorithm::train_step`] expects.
-    fn batch_kind(&self) -> BatchKind;
     /// One gradient step on `batch`; returns its metrics.
     fn train_step(&mut self, batch: &Batch) -> Result<Metrics>;
     /// The acting policy's weights as safetensors bytes.

@@ -42,7 +42,7 @@
 //! a ChaCha8 stream per training step, so a run is reproducible from its seed.
 
 use crate::adam::Adam;
-use crate::algorithm::{Algorithm, Batch, BatchKind, Metrics};
+use crate::algorithm::{Algorithm, Batch, Metrics};
 use crate::checkpoint;
 use crate::returns::{lambda_returns, ReturnNorm};
 use candle_core::{bail, DType, Device, Module, Result, Tensor, Var, D};
@@ -722,14 +722,10 @@ impl Dreamer {
 }
 
 impl Algorithm for Dreamer {
-    fn batch_kind(&self) -> BatchKind {
-        BatchKind::Sequences
-    }
-
     /// One world-model step, one actor and one critic step on imagined trajectories from every
     /// posterior state, and (cMask) one mask-SAC step, all on `batch`.
     fn train_step(&mut self, batch: &Batch) -> Result<Metrics> {
-        let Batch::Sequences(seq) = batch else {
+        let Batch::Sequence(seq) = batch else {
             bail!("DreamerV3 trains on sequence batches, not transitions");
         };
         let d = SeqData::new(seq, self.obs_dim, self.act_dim)?;
@@ -878,7 +874,7 @@ mod tests {
             out.is_terminal.extend(std::iter::repeat_n(0.0, t));
             out.context.extend(&s.context[2 * i..2 * (i + t)]);
         }
-        Batch::Sequences(out)
+        Batch::Sequence(out)
     }
 
     fn grad_norm(grads: &candle_core::backprop::GradStore, v: &Var) -> f64 {
@@ -988,7 +984,7 @@ mod tests {
         let mut history = Vec::new();
         for _ in 0..200 {
             // the world-model part of `train_step`
-            let Batch::Sequences(seq) = sample(&data, 4, 16, &mut rng) else {
+            let Batch::Sequence(seq) = sample(&data, 4, 16, &mut rng) else {
                 unreachable!()
             };
             let d = SeqData::new(&seq, 2, 2).unwrap();
@@ -1035,7 +1031,7 @@ mod tests {
         for _ in 0..5 {
             agent.train_step(&sample(&data, 4, 16, &mut rng)).unwrap();
         }
-        let Batch::Sequences(seq) = sample(&data, 4, 16, &mut rng) else {
+        let Batch::Sequence(seq) = sample(&data, 4, 16, &mut rng) else {
             unreachable!()
         };
         let d = SeqData::new(&seq, 2, 2).unwrap();

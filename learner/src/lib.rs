@@ -7,7 +7,7 @@ pub mod dreamer;
 pub mod returns;
 pub mod sac;
 
-pub use algorithm::{Algorithm, Batch, BatchKind, Metrics};
+pub use algorithm::{Algorithm, Batch, Metrics};
 pub use dreamer::Dreamer;
 pub use sac::Sac;
 

@@ -23,7 +23,7 @@
 //! depends only on the seed and the step counter, and survives [`Algorithm::save`] / [`Algorithm::load`].
 
 use crate::adam::Adam;
-use crate::algorithm::{Algorithm, Batch, BatchKind, Metrics};
+use crate::algorithm::{Algorithm, Batch, Metrics};
 use crate::checkpoint;
 use candle_core::{bail, Device, Module, Result, Tensor, D};
 use candle_nn::{Init, VarBuilder};
@@ -275,14 +275,10 @@ impl Sac {
 }
 
 impl Algorithm for Sac {
-    fn batch_kind(&self) -> BatchKind {
-        BatchKind::Transitions
-    }
-
     fn train_step(&mut self, batch: &Batch) -> Result<Metrics> {
         match batch {
-            Batch::Transitions(t) => self.update(t),
-            Batch::Sequences(_) => bail!("SAC trains on transitions, not sequences"),
+            Batch::Transition(t) => self.update(t),
+            Batch::Sequence(_) => bail!("SAC trains on transitions, not sequences"),
         }
     }
 
@@ -356,7 +352,7 @@ mod tests {
     fn entropy_tuning_moves_alpha_towards_the_target() {
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         let batches: Vec<_> = (0..20)
-            .map(|_| Batch::Transitions(random_batch(32, 4, 2, &mut rng)))
+            .map(|_| Batch::Transition(random_batch(32, 4, 2, &mut rng)))
             .collect();
         // a fixed actor (zero learning rate); its entropy is far above −2 and far below 20
         for (target, falls) in [(None, true), (Some(20.0), false)] {
@@ -412,7 +408,7 @@ mod tests {
                 .iter()
                 .map(|v| values(v.as_tensor()))
                 .collect();
-            sac.train_step(&Batch::Transitions(random_batch(16, 6, 2, &mut rng)))
+            sac.train_step(&Batch::Transition(random_batch(16, 6, 2, &mut rng)))
                 .unwrap();
             let online = sac.critic_params.named();
             let target = sac.target_params.named();
@@ -450,7 +446,7 @@ mod tests {
         )
         .unwrap();
         for _ in 0..5 {
-            sac.train_step(&Batch::Transitions(random_batch(8, 6, 2, &mut rng)))
+            sac.train_step(&Batch::Transition(random_batch(8, 6, 2, &mut rng)))
                 .unwrap();
         }
         let dir = std::env::temp_dir().join(format!("ctxrace-sac-test-{}", std::process::id()));
@@ -599,7 +595,7 @@ mod tests {
                     terminal: vec![0.0; batch],
                     context: vec![0.0; 2 * batch],
                 };
-                sac.train_step(&Batch::Transitions(b)).unwrap();
+                sac.train_step(&Batch::Transition(b)).unwrap();
             }
         }
         let mut eval_rng = ChaCha8Rng::seed_from_u64(seed + 2000);

@@ -1,0 +1,178 @@
+//! Actor and replay telemetry for the launcher: episode metrics, heartbeats, replay status.
+
+use super::transport::{ice, RunTransport};
+use super::wire::{EpisodeMetrics, Heartbeat, ReplayStatus, WireError, FORMAT_VERSION};
+use super::RejectLog;
+use anyhow::Result;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::*;
+
+/// An actor's metrics and heartbeat publisher.
+pub struct MetricsPublisher {
+    metrics: Publisher<ipc::Service, EpisodeMetrics, ()>,
+    heartbeat: Publisher<ipc::Service, Heartbeat, ()>,
+}
+
+impl MetricsPublisher {
+    /// Publishers on the run's metrics and heartbeat services.
+    pub fn new(transport: &RunTransport) -> Result<Self> {
+        Ok(Self {
+            metrics: transport
+                .metrics_service()?
+                .publisher_builder()
+                .create()
+                .map_err(ice("metrics publisher"))?,
+            heartbeat: transport
+                .heartbeat_service()?
+                .publisher_builder()
+                .create()
+                .map_err(ice("heartbeat publisher"))?,
+        })
+    }
+
+    /// Publishes one finished episode (its `format_version` is set here).
+    pub fn episode(&self, metrics: EpisodeMetrics) -> Result<()> {
+        let m = EpisodeMetrics {
+            format_version: FORMAT_VERSION,
+            ..metrics
+        };
+        self.metrics.send_copy(m).map_err(ice("send metrics"))?;
+        Ok(())
+    }
+
+    /// Publishes a heartbeat (its `format_version` is set here).
+    pub fn heartbeat(&self, beat: Heartbeat) -> Result<()> {
+        let b = Heartbeat {
+            format_version: FORMAT_VERSION,
+            ..beat
+        };
+        self.heartbeat.send_copy(b).map_err(ice("send heartbeat"))?;
+        Ok(())
+    }
+}
+
+/// The replay's status publisher (history 1: a late launcher gets the last one).
+pub struct StatusPublisher {
+    status: Publisher<ipc::Service, ReplayStatus, ()>,
+}
+
+impl StatusPublisher {
+    /// A publisher on the run's status service.
+    pub fn new(transport: &RunTransport) -> Result<Self> {
+        Ok(Self {
+            status: transport
+                .status_service()?
+                .publisher_builder()
+                .create()
+                .map_err(ice("status publisher"))?,
+        })
+    }
+
+    /// Publishes the counters (its `format_version` is set here).
+    pub fn publish(&self, status: ReplayStatus) -> Result<()> {
+        let s = ReplayStatus {
+            format_version: FORMAT_VERSION,
+            ..status
+        };
+        self.status.send_copy(s).map_err(ice("send status"))?;
+        Ok(())
+    }
+}
+
+/// The launcher's view: episode metrics, heartbeats and replay status, validated.
+pub struct TelemetrySubscriber {
+    metrics: Subscriber<ipc::Service, EpisodeMetrics, ()>,
+    heartbeat: Subscriber<ipc::Service, Heartbeat, ()>,
+    status: Subscriber<ipc::Service, ReplayStatus, ()>,
+    actors: usize,
+    rejects: RejectLog,
+}
+
+impl TelemetrySubscriber {
+    /// Subscribes to the run's telemetry.
+    pub fn new(transport: &RunTransport) -> Result<Self> {
+        Ok(Self {
+            metrics: transport
+                .metrics_service()?
+                .subscriber_builder()
+                .create()
+                .map_err(ice("metrics subscriber"))?,
+            heartbeat: transport
+                .heartbeat_service()?
+                .subscriber_builder()
+                .create()
+                .map_err(ice("heartbeat subscriber"))?,
+            status: transport
+                .status_service()?
+                .subscriber_builder()
+                .create()
+                .map_err(ice("status subscriber"))?,
+            actors: transport.actors(),
+            rejects: RejectLog::new("telemetry"),
+        })
+    }
+
+    /// Episode metrics received since the last call; malformed ones are counted and skipped.
+    pub fn episodes(&mut self) -> Result<Vec<EpisodeMetrics>> {
+        let mut out = Vec::new();
+        while let Some(s) = self.metrics.receive().map_err(ice("receive metrics"))? {
+            let m = *s.payload();
+            let values = [m.context[0], m.context[1], m.progress, m.episode_return];
+            match check(m.format_version, m.actor_id, self.actors)
+                .and_then(|()| super::wire::check_finite(&values))
+            {
+                Ok(()) => out.push(m),
+                Err(e) => self.rejects.reject(&e),
+            }
+        }
+        Ok(out)
+    }
+
+    /// Heartbeats received since the last call.
+    pub fn heartbeats(&mut self) -> Result<Vec<Heartbeat>> {
+        let mut out = Vec::new();
+        while let Some(s) = self.heartbeat.receive().map_err(ice("receive heartbeat"))? {
+            let b = *s.payload();
+            match check(b.format_version, b.actor_id, self.actors) {
+                Ok(()) => out.push(b),
+                Err(e) => self.rejects.reject(&e),
+            }
+        }
+        Ok(out)
+    }
+
+    /// The newest replay status received since the last call.
+    pub fn replay_status(&mut self) -> Result<Option<ReplayStatus>> {
+        let mut newest = None;
+        while let Some(s) = self.status.receive().map_err(ice("receive status"))? {
+            let st = *s.payload();
+            if st.format_version == FORMAT_VERSION {
+                newest = Some(st);
+            } else {
+                self.rejects.reject(&WireError::Version {
+                    got: st.format_version,
+                });
+            }
+        }
+        Ok(newest)
+    }
+
+    /// Messages rejected as malformed.
+    pub fn rejected(&self) -> u64 {
+        self.rejects.count()
+    }
+}
+
+fn check(version: u32, actor_id: u32, actors: usize) -> Result<(), WireError> {
+    if version != FORMAT_VERSION {
+        return Err(WireError::Version { got: version });
+    }
+    if actor_id as usize >= actors {
+        return Err(WireError::UnknownActor {
+            got: actor_id,
+            actors,
+        });
+    }
+    Ok(())
+}

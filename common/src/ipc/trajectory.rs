@@ -1,0 +1,384 @@
+//! Actor -> replay trajectories: the actor's chunking sender and the replay's validating receiver.
+
+use super::transport::{ice, wait_until, RunTransport, Wake};
+use super::wire::{
+    step_stride, validate_chunk, ChunkHeader, FORMAT_VERSION, MAX_ACT, MAX_CHUNK, MAX_CHUNK_FLOATS,
+    MAX_OBS,
+};
+use super::RejectLog;
+use anyhow::{anyhow, Result};
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::port::BackpressureAction;
+use iceoryx2::prelude::*;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// One env step as an actor reports it (SequenceBatch's convention).
+#[derive(Clone, Copy, Debug)]
+pub struct Step<'a> {
+    /// The observation reached: one LiDAR frame.
+    pub obs: &'a [f32],
+    /// The action taken before this step; zero at the episode's first step.
+    pub action: &'a [f32],
+    /// Reward received on arriving at this step.
+    pub reward: f32,
+    /// First step of an episode.
+    pub is_first: bool,
+    /// The episode terminated at this observation (not on truncation).
+    pub is_terminal: bool,
+    /// The episode ended here, terminated or truncated.
+    pub is_last: bool,
+    /// The episode's context.
+    pub context: [f32; 2],
+}
+
+/// Timeouts of a [`TrajectorySender`].
+#[derive(Clone, Copy, Debug)]
+pub struct SenderOptions {
+    /// How long [`TrajectorySender::new`] waits for the replay to come up.
+    pub handshake_timeout: Duration,
+    /// How long one send waits for room at a full replay before dropping the chunk. After a
+    /// drop, sends to a still-full replay drop at once until one gets through.
+    pub backpressure_timeout: Duration,
+}
+
+impl Default for SenderOptions {
+    fn default() -> Self {
+        Self {
+            handshake_timeout: Duration::from_secs(30),
+            backpressure_timeout: Duration::from_secs(2),
+        }
+    }
+}
+
+/// What a [`TrajectorySender`] did so far.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SenderStats {
+    /// Steps delivered to the replay.
+    pub sent_steps: u64,
+    /// Steps dropped (replay full past the timeout, or gone).
+    pub dropped_steps: u64,
+    /// Chunks delivered.
+    pub sent_chunks: u64,
+    /// Chunks dropped.
+    pub dropped_chunks: u64,
+}
+
+/// An actor's end of the trajectory stream: collects steps into chunks of up to [`MAX_CHUNK`]
+/// and sends them when full and at each episode's end.
+///
+/// Dropping it flushes and then waits (at most the backpressure timeout) until the replay has
+/// run a receive turn after the last send: a publisher that disappears before the replay
+/// connected to it takes its unread chunks with it.
+pub struct TrajectorySender {
+    publisher: Publisher<ipc::Service, [f32], ChunkHeader>,
+    wake: Notifier<ipc::Service>,
+    turns: Listener<ipc::Service>,
+    timeout: Duration,
+    congested: Arc<AtomicBool>,
+    header: ChunkHeader,
+    buf: Vec<f32>,
+    stats: SenderStats,
+}
+
+impl TrajectorySender {
+    /// Connects actor `actor_id` to the replay, waiting up to `opts.handshake_timeout` for the
+    /// replay's subscriber (a chunk sent before it connected would be lost).
+    pub fn new(
+        transport: &RunTransport,
+        actor_id: u32,
+        obs_dim: usize,
+        act_dim: usize,
+        opts: SenderOptions,
+    ) -> Result<Self> {
+        if actor_id as usize >= transport.actors() {
+            return Err(anyhow!(
+                "actor id {actor_id} is not below the run's {} actors",
+                transport.actors()
+            ));
+        }
+        if obs_dim == 0 || obs_dim > MAX_OBS || act_dim == 0 || act_dim > MAX_ACT {
+            return Err(anyhow!(
+                "obs_dim {obs_dim} must be 1 to {MAX_OBS} and act_dim {act_dim} 1 to {MAX_ACT}"
+            ));
+        }
+        let ready = transport.listener(Wake::ReplayReady)?;
+        let service = transport.trajectory_service()?;
+        let congested = Arc::new(AtomicBool::new(false));
+        let flag = congested.clone();
+        let timeout = opts.backpressure_timeout;
+        let publisher = service
+            .publisher_builder()
+            .initial_max_slice_len(MAX_CHUNK_FLOATS)
+            .allocation_strategy(AllocationStrategy::Static)
+            .max_loaned_samples(1)
+            .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
+            .set_backpressure_handler(move |info| {
+                if flag.load(Ordering::Relaxed) {
+                    BackpressureAction::DiscardData
+                } else if info.elapsed_time < timeout {
+                    BackpressureAction::Retry
+                } else {
+                    flag.store(true, Ordering::Relaxed);
+                    BackpressureAction::DiscardData
+                }
+            })
+            .create()
+            .map_err(ice("trajectory publisher"))?;
+        let connected = wait_until(&ready, opts.handshake_timeout, || {
+            service.dynamic_config().number_of_subscribers() > 0
+        })?;
+        if !connected {
+            return Err(anyhow!(
+                "the replay did not come up within {:?} (prefix {})",
+                opts.handshake_timeout,
+                transport.prefix()
+            ));
+        }
+        Ok(Self {
+            publisher,
+            wake: transport.notifier(Wake::Replay)?,
+            turns: ready,
+            timeout,
+            congested,
+            header: ChunkHeader {
+                format_version: FORMAT_VERSION,
+                actor_id,
+                obs_dim: obs_dim as u32,
+                act_dim: act_dim as u32,
+                ..Default::default()
+            },
+            buf: Vec::with_capacity(MAX_CHUNK * step_stride(obs_dim, act_dim)),
+            stats: SenderStats::default(),
+        })
+    }
+
+    /// Adds one step of episode `episode_id` acted by weights `policy_version`; sends the chunk
+    /// when it is full or the episode ended. Steps of another dimension are refused with an
+    /// error; values are checked by the replay.
+    pub fn push(&mut self, episode_id: u64, policy_version: u64, step: &Step) -> Result<()> {
+        let (o, a) = (self.header.obs_dim as usize, self.header.act_dim as usize);
+        if step.obs.len() != o || step.action.len() != a {
+            return Err(anyhow!(
+                "step has obs {} and action {}, the sender was made for {o} and {a}",
+                step.obs.len(),
+                step.action.len()
+            ));
+        }
+        if self.header.steps > 0
+            && (self.header.episode_id != episode_id
+                || self.header.policy_version != policy_version)
+        {
+            self.flush()?;
+        }
+        if self.header.steps == 0 {
+            self.header.episode_id = episode_id;
+            self.header.policy_version = policy_version;
+        }
+        let flag = |b: bool| if b { 1.0 } else { 0.0 };
+        self.buf.extend_from_slice(step.obs);
+        self.buf.extend_from_slice(step.action);
+        self.buf.extend_from_slice(&[
+            step.reward,
+            flag(step.is_first),
+            flag(step.is_terminal),
+            flag(step.is_last),
+            step.context[0],
+            step.context[1],
+        ]);
+        self.header.steps += 1;
+        if step.is_last || self.header.steps as usize == MAX_CHUNK {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    /// Sends the steps collected so far, if any. A chunk the replay does not take within the
+    /// backpressure timeout is dropped and counted, not an error.
+    pub fn flush(&mut self) -> Result<()> {
+        let steps = u64::from(self.header.steps);
+        if steps == 0 {
+            return Ok(());
+        }
+        let mut sample = self
+            .publisher
+            .loan_slice_uninit(self.buf.len())
+            .map_err(ice("loan chunk"))?;
+        *sample.user_header_mut() = self.header;
+        let sample = sample.write_from_slice(&self.buf);
+        let delivered = sample.send().map_err(ice("send chunk"))?;
+        if delivered > 0 {
+            self.congested.store(false, Ordering::Relaxed);
+            self.stats.sent_steps += steps;
+            self.stats.sent_chunks += 1;
+            // A lost wake-up only delays the replay until its next timer tick.
+            let _ = self.wake.notify();
+        } else {
+            self.stats.dropped_steps += steps;
+            self.stats.dropped_chunks += 1;
+        }
+        self.header.sequence += 1;
+        self.header.steps = 0;
+        self.buf.clear();
+        Ok(())
+    }
+
+    /// Counters so far.
+    pub fn stats(&self) -> SenderStats {
+        self.stats
+    }
+
+    /// Flushes and waits until the replay has certainly connected to this sender (two replay
+    /// turns after the last send), at most the backpressure timeout; returns the counters.
+    pub fn close(mut self) -> Result<SenderStats> {
+        self.finish()?;
+        Ok(self.stats)
+    }
+
+    fn finish(&mut self) -> Result<()> {
+        self.flush()?;
+        if self.stats.sent_chunks == 0 {
+            return Ok(());
+        }
+        self.turns
+            .try_wait(|_| {})
+            .map_err(ice("drain replay turns"))?;
+        let deadline = Instant::now() + self.timeout;
+        let mut turns = 0;
+        while turns < 2 {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                break;
+            }
+            turns += self
+                .turns
+                .timed_wait(|_| {}, left)
+                .map_err(ice("wait for replay turn"))?;
+        }
+        self.stats.sent_chunks = 0;
+        Ok(())
+    }
+}
+
+impl Drop for TrajectorySender {
+    fn drop(&mut self) {
+        if let Err(e) = self.finish() {
+            tracing::warn!("closing trajectory sender: {e:#}");
+        }
+    }
+}
+
+/// A validated chunk as the replay receives it.
+#[derive(Clone, Copy, Debug)]
+pub struct ChunkView<'a> {
+    /// Its header.
+    pub header: &'a ChunkHeader,
+    /// `steps x step_stride(obs_dim, act_dim)` floats.
+    pub payload: &'a [f32],
+    /// Chunks of this actor are missing right before this one (or it is the actor's first one
+    /// seen): the stream is not contiguous here.
+    pub after_gap: bool,
+}
+
+/// The replay's end of the trajectory stream: validates each chunk and tracks per-actor gaps.
+pub struct TrajectoryReceiver {
+    subscriber: Subscriber<ipc::Service, [f32], ChunkHeader>,
+    actors: usize,
+    obs_dim: usize,
+    act_dim: usize,
+    next_sequence: Vec<Option<u64>>,
+    missing_chunks: u64,
+    rejects: RejectLog,
+}
+
+impl TrajectoryReceiver {
+    /// Subscribes to the run's trajectories of the given dimensions. Call
+    /// [`ReplayBeacon::signal`] once every replay endpoint exists.
+    pub fn new(transport: &RunTransport, obs_dim: usize, act_dim: usize) -> Result<Self> {
+        let subscriber = transport
+            .trajectory_service()?
+            .subscriber_builder()
+            .create()
+            .map_err(ice("trajectory subscriber"))?;
+        Ok(Self {
+            subscriber,
+            actors: transport.actors(),
+            obs_dim,
+            act_dim,
+            next_sequence: vec![None; transport.actors()],
+            missing_chunks: 0,
+            rejects: RejectLog::new("trajectory chunk"),
+        })
+    }
+
+    /// Whether chunks are waiting.
+    pub fn has_chunks(&self) -> bool {
+        self.subscriber.has_samples().unwrap_or(false)
+    }
+
+    /// Takes up to `max_chunks` waiting chunks, handing each valid one to `f`; malformed ones
+    /// are counted, logged and skipped. Returns the number of chunks taken (valid or not).
+    pub fn receive(&mut self, max_chunks: usize, mut f: impl FnMut(ChunkView)) -> Result<usize> {
+        let mut taken = 0;
+        while taken < max_chunks {
+            let Some(sample) = self.subscriber.receive().map_err(ice("receive chunk"))? else {
+                break;
+            };
+            taken += 1;
+            let header = sample.user_header();
+            let payload = sample.payload();
+            if let Err(e) = validate_chunk(header, payload, self.actors, self.obs_dim, self.act_dim)
+            {
+                self.rejects.reject(&e);
+                continue;
+            }
+            let expected = &mut self.next_sequence[header.actor_id as usize];
+            let after_gap = *expected != Some(header.sequence);
+            if let Some(next) = *expected {
+                self.missing_chunks += header.sequence.saturating_sub(next);
+            }
+            *expected = Some(header.sequence + 1);
+            f(ChunkView {
+                header,
+                payload,
+                after_gap,
+            });
+        }
+        Ok(taken)
+    }
+
+    /// Chunks rejected as malformed.
+    pub fn rejected(&self) -> u64 {
+        self.rejects.count()
+    }
+
+    /// Chunks missing from the actors' sequence numbers (dropped by a sender).
+    pub fn missing_chunks(&self) -> u64 {
+        self.missing_chunks
+    }
+}
+
+/// The replay's beacon: tells waiting actors and learners that its subscribers exist, and
+/// closing actors that it ran another receive turn.
+pub struct ReplayBeacon {
+    notifier: Notifier<ipc::Service>,
+}
+
+impl ReplayBeacon {
+    /// A notifier on the run's `replay_ready` event; create it once every replay endpoint exists.
+    pub fn new(transport: &RunTransport) -> Result<Self> {
+        Ok(Self {
+            notifier: transport.notifier(Wake::ReplayReady)?,
+        })
+    }
+
+    /// Signals readiness (on start) or the end of a receive turn (each loop turn).
+    pub fn signal(&self) -> Result<()> {
+        self.notifier.notify().map_err(ice("replay beacon"))?;
+        Ok(())
+    }
+}

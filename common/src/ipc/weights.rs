@@ -1,0 +1,233 @@
+//! Learner -> actors weights broadcast: one publisher, history 1, checksummed.
+
+use super::transport::{ice, RunTransport, Wake};
+use super::wire::{validate_weights, WeightsHeader, FORMAT_VERSION};
+use super::RejectLog;
+use anyhow::{anyhow, Result};
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::port::update_connections::UpdateConnections;
+use iceoryx2::prelude::*;
+use std::time::Duration;
+
+/// Default largest weights blob (64 MiB).
+pub const DEFAULT_MAX_WEIGHTS_BYTES: usize = 64 << 20;
+/// Weights slots a publisher preallocates: the history, the buffers and one loan share them,
+/// since receivers copy out at once.
+const WEIGHTS_SLOTS: usize = 4;
+
+/// The learner's weights broadcaster.
+pub struct WeightsPublisher {
+    publisher: Publisher<ipc::Service, [u8], WeightsHeader>,
+    wake: Notifier<ipc::Service>,
+    max_bytes: usize,
+}
+
+impl WeightsPublisher {
+    /// A publisher of blobs up to `max_bytes`, preallocated once ([`WEIGHTS_SLOTS`] slots).
+    pub fn new(transport: &RunTransport, max_bytes: usize) -> Result<Self> {
+        let publisher = transport
+            .weights_service()?
+            .publisher_builder()
+            .initial_max_slice_len(max_bytes)
+            .allocation_strategy(AllocationStrategy::Static)
+            .max_loaned_samples(1)
+            .override_sample_preallocation(|n| n.min(WEIGHTS_SLOTS))
+            .create()
+            .map_err(ice("weights publisher"))?;
+        Ok(Self {
+            publisher,
+            wake: transport.notifier(Wake::Actors)?,
+            max_bytes,
+        })
+    }
+
+    /// Broadcasts `bytes` as policy `version`; returns the number of subscribers reached. The
+    /// newest version stays available to subscribers that connect later.
+    pub fn publish(&self, version: u64, bytes: &[u8]) -> Result<usize> {
+        if bytes.len() > self.max_bytes {
+            return Err(anyhow!(
+                "weights of {} bytes exceed the preallocated {} bytes",
+                bytes.len(),
+                self.max_bytes
+            ));
+        }
+        let mut sample = self
+            .publisher
+            .loan_slice_uninit(bytes.len())
+            .map_err(ice("loan weights"))?;
+        *sample.user_header_mut() = WeightsHeader {
+            format_version: FORMAT_VERSION,
+            checksum: crc32fast::hash(bytes),
+            version,
+            len: bytes.len() as u64,
+        };
+        let reached = sample
+            .write_from_slice(bytes)
+            .send()
+            .map_err(ice("send weights"))?;
+        let _ = self.wake.notify();
+        Ok(reached)
+    }
+
+    /// Connects subscribers that appeared since the last publish and hands them the newest
+    /// version. Call it regularly (it is cheap) so late or restarted actors get weights.
+    pub fn update_connections(&self) -> Result<()> {
+        self.publisher
+            .update_connections()
+            .map_err(ice("weights update_connections"))?;
+        let _ = self.wake.notify();
+        Ok(())
+    }
+}
+
+/// An actor's weights receiver.
+pub struct WeightsReceiver {
+    subscriber: Subscriber<ipc::Service, [u8], WeightsHeader>,
+    wake: Listener<ipc::Service>,
+    current: Option<u64>,
+    rejects: RejectLog,
+}
+
+impl WeightsReceiver {
+    /// Subscribes to the run's weights.
+    pub fn new(transport: &RunTransport) -> Result<Self> {
+        let wake = transport.listener(Wake::Actors)?;
+        let subscriber = transport
+            .weights_service()?
+            .subscriber_builder()
+            .create()
+            .map_err(ice("weights subscriber"))?;
+        Ok(Self {
+            subscriber,
+            wake,
+            current: None,
+            rejects: RejectLog::new("weights"),
+        })
+    }
+
+    /// Calls `f(version, bytes)` on the newest verified weights newer than the last ones handed
+    /// out, without copying them out of shared memory; `None` if there are none. Blobs failing
+    /// the checksum are counted, logged and skipped.
+    pub fn latest_with<R>(&mut self, f: impl FnOnce(u64, &[u8]) -> R) -> Result<Option<R>> {
+        let mut newest = None;
+        while let Some(sample) = self.subscriber.receive().map_err(ice("receive weights"))? {
+            let header = *sample.user_header();
+            if let Err(e) = validate_weights(&header, sample.payload()) {
+                self.rejects.reject(&e);
+                continue;
+            }
+            if self.current.is_none_or(|v| header.version > v) {
+                newest = Some(sample);
+            }
+        }
+        Ok(newest.map(|sample| {
+            let version = sample.user_header().version;
+            self.current = Some(version);
+            f(version, sample.payload())
+        }))
+    }
+
+    /// The newest verified weights newer than the last ones returned, copied out.
+    pub fn latest(&mut self) -> Result<Option<(u64, Vec<u8>)>> {
+        self.latest_with(|v, bytes| (v, bytes.to_vec()))
+    }
+
+    /// Like [`Self::latest_with`], waiting up to `timeout` for a broadcast if none is there.
+    pub fn wait_with<R>(
+        &mut self,
+        timeout: Duration,
+        f: impl FnOnce(u64, &[u8]) -> R,
+    ) -> Result<Option<R>> {
+        let mut f = Some(f);
+        let deadline = std::time::Instant::now() + timeout;
+        loop {
+            if self.subscriber.has_samples().unwrap_or(false) {
+                let call = f
+                    .take()
+                    .ok_or_else(|| anyhow!("weights callback used twice"))?;
+                match self.latest_with(call)? {
+                    Some(r) => return Ok(Some(r)),
+                    None => return Ok(None),
+                }
+            }
+            let left = deadline.saturating_duration_since(std::time::Instant::now());
+            if left.is_zero() {
+                return Ok(None);
+            }
+            self.wake
+                .timed_wait(|_| {}, left)
+                .map_err(ice("wait for weights"))?;
+        }
+    }
+
+    /// The version of the last weights handed out.
+    pub fn current_version(&self) -> Option<u64> {
+        self.current
+    }
+
+    /// Blobs rejected (bad version, length or checksum).
+    pub fn rejected(&self) -> u64 {
+        self.rejects.count()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ipc::{cleanup, run_prefix};
+
+    #[test]
+    fn late_subscriber_gets_the_newest_and_bad_checksums_are_rejected() {
+        let prefix = run_prefix(&format!("test-weights-{}", std::process::id()));
+        {
+            let t = RunTransport::open(&prefix, 2, "learner").unwrap();
+            let publisher = WeightsPublisher::new(&t, 1 << 20).unwrap();
+            let v1 = vec![1u8; 1000];
+            let v2: Vec<u8> = (0..5000).map(|i| i as u8).collect();
+            publisher.publish(1, &v1).unwrap();
+            publisher.publish(2, &v2).unwrap();
+            assert!(publisher.publish(3, &vec![0; 2 << 20]).is_err());
+
+            let mut late = WeightsReceiver::new(&t).unwrap();
+            publisher.update_connections().unwrap();
+            assert_eq!(late.latest().unwrap(), Some((2, v2.clone())));
+            assert_eq!(late.latest().unwrap(), None);
+
+            // A blob whose checksum does not match is rejected, counted, and never handed out.
+            let raw = t
+                .weights_service()
+                .unwrap()
+                .publisher_builder()
+                .initial_max_slice_len(64)
+                .allocation_strategy(AllocationStrategy::Static)
+                .create()
+                .unwrap();
+            let mut sample = raw.loan_slice_uninit(16).unwrap();
+            *sample.user_header_mut() = WeightsHeader {
+                format_version: FORMAT_VERSION,
+                checksum: 12345,
+                version: 3,
+                len: 16,
+            };
+            sample.write_from_slice(&[7u8; 16]).send().unwrap();
+            assert_eq!(late.latest().unwrap(), None);
+            assert_eq!(late.rejected(), 1);
+            publisher.publish(4, &v1).unwrap();
+            let got = late
+                .wait_with(Duration::from_secs(5), |v, b| (v, b.len()))
+                .unwrap();
+            assert_eq!(got, Some((4, 1000)));
+            assert_eq!(late.current_version(), Some(4));
+        }
+        let report = cleanup(&prefix).unwrap();
+        assert_eq!(report.alive_nodes, 0);
+        assert!(report.files_removed > 0, "{report:?}");
+        assert!(!std::fs::read_dir("/dev/shm")
+            .unwrap()
+            .flatten()
+            .any(|e| e.file_name().to_string_lossy().starts_with(&prefix)));
+    }
+}

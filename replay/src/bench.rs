@@ -1,0 +1,617 @@
+//! `ctxrace bench ipc`: the transport's throughput and latencies, with the same transfers over
+//! Unix domain sockets and bincode as the baseline.
+//!
+//! Three measurements, each over iceoryx2 and then over sockets, all on threads of this process:
+//! env steps per second from N actors into the replay buffer (synthetic steps, no simulator),
+//! the latency from a learner's batch request to the decoded batch, and the latency of a weights
+//! broadcast to M subscribers (until the last one holds verified weights).
+
+use crate::buffer::ReplayBuffer;
+use crate::server::{run, ReplayArgs, ReplayControl};
+use anyhow::{anyhow, Context as _, Result};
+use ctxrace_common::ipc::wire::{step_stride, MAX_CHUNK};
+use ctxrace_common::ipc::{
+    cleanup, run_prefix, Batch, BatchSpec, ReplayClient, RunTransport, SenderOptions, Step,
+    TrajectorySender, WeightsPublisher, WeightsReceiver,
+};
+use ctxrace_common::{ReplayOptions, SequenceBatch};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use std::io::{BufReader, BufWriter, Read, Write};
+use std::os::unix::net::{UnixListener, UnixStream};
+use std::sync::atomic::Ordering;
+use std::sync::{mpsc, Arc, Barrier, Mutex};
+use std::thread;
+use std::time::{Duration, Instant};
+
+/// What to measure.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct IpcBenchOptions {
+    /// Actor threads.
+    pub actors: usize,
+    /// Steps each actor sends.
+    pub steps_per_actor: usize,
+    /// Observation size (the default LiDAR has 108 beams).
+    pub obs_dim: usize,
+    /// Sequence batches requested (`batch x length`).
+    pub batches: usize,
+    /// `B`.
+    pub batch: usize,
+    /// `T`.
+    pub length: usize,
+    /// Weights size in bytes.
+    pub weights_bytes: usize,
+    /// Weights subscribers.
+    pub subscribers: usize,
+    /// Broadcasts timed.
+    pub broadcasts: usize,
+}
+
+impl Default for IpcBenchOptions {
+    fn default() -> Self {
+        Self {
+            actors: 4,
+            steps_per_actor: 250_000,
+            obs_dim: 108,
+            batches: 50,
+            batch: 16,
+            length: 64,
+            weights_bytes: 10 << 20,
+            subscribers: 8,
+            broadcasts: 20,
+        }
+    }
+}
+
+/// One transport's figures.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct TransportFigures {
+    /// Env steps per second into the replay buffer.
+    pub steps_per_sec: f64,
+    /// Median request-to-batch latency (ms).
+    pub batch_ms_p50: f64,
+    /// 90th percentile request-to-batch latency (ms).
+    pub batch_ms_p90: f64,
+    /// Median broadcast latency to the last subscriber (ms).
+    pub broadcast_ms_p50: f64,
+    /// 90th percentile broadcast latency (ms).
+    pub broadcast_ms_p90: f64,
+}
+
+/// The benchmark's result.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct IpcBenchReport {
+    /// What was measured.
+    pub options: IpcBenchOptions,
+    /// Over iceoryx2 shared memory.
+    pub iceoryx2: TransportFigures,
+    /// Over Unix domain sockets with bincode.
+    pub uds_bincode: TransportFigures,
+    /// iceoryx2 steps/s over the baseline's.
+    pub steps_ratio: f64,
+    /// Baseline batch latency over iceoryx2's (medians).
+    pub batch_speedup: f64,
+    /// Baseline broadcast latency over iceoryx2's (medians).
+    pub broadcast_speedup: f64,
+    /// Goal: at least 1M steps/s into replay.
+    pub steps_goal_met: bool,
+    /// Goal: broadcast under 10 ms (median).
+    pub broadcast_goal_met: bool,
+}
+
+/// Runs the benchmark.
+pub fn run_ipc_bench(opts: &IpcBenchOptions) -> Result<IpcBenchReport> {
+    if opts.actors == 0 || opts.subscribers == 0 || opts.batches == 0 || opts.broadcasts == 0 {
+        return Err(anyhow!(
+            "actors, subscribers, batches and broadcasts must be positive"
+        ));
+    }
+    let prefix = run_prefix(&format!("bench-{}", std::process::id()));
+    let weights_prefix = run_prefix(&format!("bench-{}-weights", std::process::id()));
+    let ipc = iceoryx_figures(opts, &prefix, &weights_prefix);
+    let cleaned = cleanup(&prefix).and(cleanup(&weights_prefix));
+    let ipc = ipc?;
+    cleaned?;
+    let uds = uds_figures(opts)?;
+    let ratio = |a: f64, b: f64| if b > 0.0 { a / b } else { 0.0 };
+    Ok(IpcBenchReport {
+        options: opts.clone(),
+        steps_ratio: ratio(ipc.steps_per_sec, uds.steps_per_sec),
+        batch_speedup: ratio(uds.batch_ms_p50, ipc.batch_ms_p50),
+        broadcast_speedup: ratio(uds.broadcast_ms_p50, ipc.broadcast_ms_p50),
+        steps_goal_met: ipc.steps_per_sec >= 1e6,
+        broadcast_goal_met: ipc.broadcast_ms_p50 < 10.0,
+        iceoryx2: ipc,
+        uds_bincode: uds,
+    })
+}
+
+/// Synthetic steps of one actor: episodes of 500 steps.
+fn synthetic(opts: &IpcBenchOptions, id: usize, k: usize, obs: &mut [f32]) -> (u64, bool, bool) {
+    obs.iter_mut()
+        .enumerate()
+        .for_each(|(i, v)| *v = ((k + i + id) % 97) as f32 * 0.01);
+    let e = k % 500;
+    (
+        (k / 500) as u64,
+        e == 0,
+        e == 499 || k + 1 == opts.steps_per_actor,
+    )
+}
+
+fn percentile(mut v: Vec<f64>, q: f64) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    v.sort_by(f64::total_cmp);
+    v[((v.len() - 1) as f64 * q).round() as usize]
+}
+
+/// Steps the bench's replay buffers hold (the ring wraps past it).
+const BENCH_CAPACITY: usize = 1 << 18;
+
+fn iceoryx_figures(
+    opts: &IpcBenchOptions,
+    prefix: &str,
+    weights_prefix: &str,
+) -> Result<TransportFigures> {
+    let total = (opts.actors * opts.steps_per_actor) as u64;
+    let args = ReplayArgs {
+        prefix: prefix.to_string(),
+        actors: opts.actors,
+        obs_dim: opts.obs_dim,
+        act_dim: 2,
+        options: ReplayOptions {
+            capacity: BENCH_CAPACITY.max(opts.batch * opts.length * opts.actors * 2),
+            min_fill: 0,
+            snapshot_every_secs: 0,
+            snapshot_path: None,
+            ..Default::default()
+        },
+        handle_signals: false,
+    };
+    let control = Arc::new(ReplayControl::default());
+    let replay = {
+        let (a, c) = (args.clone(), control.clone());
+        thread::spawn(move || run(&a, &c))
+    };
+    let result = iceoryx_measure(opts, prefix, total, &control);
+    control.shutdown.store(true, Ordering::Release);
+    let status = replay
+        .join()
+        .map_err(|_| anyhow!("replay thread panicked"))??;
+    let mut figures = result?;
+    if status.inserted != total {
+        return Err(anyhow!(
+            "replay inserted {} of {total} steps",
+            status.inserted
+        ));
+    }
+    let (p50, p90) = iceoryx_broadcast(opts, weights_prefix)?;
+    figures.broadcast_ms_p50 = p50;
+    figures.broadcast_ms_p90 = p90;
+    Ok(figures)
+}
+
+fn iceoryx_measure(
+    opts: &IpcBenchOptions,
+    prefix: &str,
+    total: u64,
+    control: &ReplayControl,
+) -> Result<TransportFigures> {
+    let barrier = Arc::new(Barrier::new(opts.actors + 1));
+    let actors: Vec<_> = (0..opts.actors)
+        .map(|id| {
+            let (o, p, b) = (opts.clone(), prefix.to_string(), barrier.clone());
+            thread::spawn(move || -> Result<u64> {
+                let t = RunTransport::open(&p, o.actors, &format!("actor{id}"))?;
+                let mut tx =
+                    TrajectorySender::new(&t, id as u32, o.obs_dim, 2, SenderOptions::default())?;
+                let mut obs = vec![0.0; o.obs_dim];
+                b.wait();
+                for k in 0..o.steps_per_actor {
+                    let (episode, first, last) = synthetic(&o, id, k, &mut obs);
+                    let action = [0.1, -0.1];
+                    tx.push(
+                        episode,
+                        0,
+                        &Step {
+                            obs: &obs,
+                            action: &action,
+                            reward: 0.5,
+                            is_first: first,
+                            is_terminal: false,
+                            is_last: last,
+                            context: [0.0, 0.0],
+                        },
+                    )?;
+                }
+                tx.flush()?;
+                Ok(tx.stats().dropped_steps)
+            })
+        })
+        .collect();
+    barrier.wait();
+    let start = Instant::now();
+    let mut dropped = 0;
+    for h in actors {
+        dropped += h.join().map_err(|_| anyhow!("actor thread panicked"))??;
+    }
+    while control.inserted.load(Ordering::Acquire) + dropped < total {
+        if start.elapsed() > Duration::from_secs(60) {
+            return Err(anyhow!(
+                "the replay took {} of {total} steps within 60 s ({dropped} dropped)",
+                control.inserted.load(Ordering::Acquire)
+            ));
+        }
+        thread::sleep(Duration::from_micros(200));
+    }
+    let steps_per_sec = total as f64 / start.elapsed().as_secs_f64();
+    if dropped > 0 {
+        return Err(anyhow!("{dropped} steps were dropped"));
+    }
+
+    let t = RunTransport::open(prefix, opts.actors, "learner")?;
+    let mut client = ReplayClient::new(&t, opts.obs_dim, 2, Duration::from_secs(10))?;
+    let spec = BatchSpec::Sequence {
+        batch: opts.batch,
+        length: opts.length,
+    };
+    let mut lat = Vec::new();
+    for _ in 0..opts.batches {
+        let start = Instant::now();
+        match client.next_batch(spec, Duration::from_secs(10))? {
+            Some(Batch::Sequence(_)) => lat.push(start.elapsed().as_secs_f64() * 1e3),
+            _ => return Err(anyhow!("no batch from the replay within 10 s")),
+        }
+    }
+    Ok(TransportFigures {
+        steps_per_sec,
+        batch_ms_p50: percentile(lat.clone(), 0.5),
+        batch_ms_p90: percentile(lat, 0.9),
+        ..Default::default()
+    })
+}
+
+/// Weights broadcast latencies (p50, p90) in ms over iceoryx2.
+fn iceoryx_broadcast(opts: &IpcBenchOptions, prefix: &str) -> Result<(f64, f64)> {
+    let t = RunTransport::open(prefix, opts.subscribers, "learner")?;
+    let publisher = WeightsPublisher::new(&t, opts.weights_bytes)?;
+    let base = Instant::now();
+    let (done_tx, done_rx) = mpsc::channel::<Result<(u64, f64)>>();
+    let barrier = Arc::new(Barrier::new(opts.subscribers + 1));
+    let subs: Vec<_> = (0..opts.subscribers)
+        .map(|i| {
+            let (p, n, b, done) = (
+                prefix.to_string(),
+                opts.subscribers,
+                barrier.clone(),
+                done_tx.clone(),
+            );
+            let rounds = opts.broadcasts;
+            thread::spawn(move || {
+                let run = || -> Result<()> {
+                    let t = RunTransport::open(&p, n, &format!("actor{i}"))?;
+                    let mut rx = WeightsReceiver::new(&t)?;
+                    b.wait();
+                    let mut got = 0;
+                    while got < rounds {
+                        let r =
+                            rx.wait_with(Duration::from_secs(10), |v, bytes| (v, bytes.len()))?;
+                        let Some((version, _)) = r else {
+                            return Err(anyhow!("subscriber {i} got no weights within 10 s"));
+                        };
+                        let _ = done.send(Ok((version, base.elapsed().as_secs_f64() * 1e3)));
+                        got += 1;
+                    }
+                    Ok(())
+                };
+                if let Err(e) = run() {
+                    let _ = done.send(Err(e));
+                }
+            })
+        })
+        .collect();
+    barrier.wait();
+    let weights: Vec<u8> = (0..opts.weights_bytes).map(|i| (i * 31) as u8).collect();
+    let mut lat = Vec::new();
+    for version in 1..=opts.broadcasts as u64 {
+        let sent = base.elapsed().as_secs_f64() * 1e3;
+        publisher.publish(version, &weights)?;
+        let mut last = 0.0f64;
+        for _ in 0..opts.subscribers {
+            let (v, at) = done_rx
+                .recv_timeout(Duration::from_secs(20))
+                .context("a weights subscriber stalled")??;
+            if v != version {
+                return Err(anyhow!("subscriber got version {v}, expected {version}"));
+            }
+            last = last.max(at);
+        }
+        lat.push(last - sent);
+    }
+    for s in subs {
+        s.join()
+            .map_err(|_| anyhow!("subscriber thread panicked"))?;
+    }
+    Ok((percentile(lat.clone(), 0.5), percentile(lat, 0.9)))
+}
+
+/// A chunk as the baseline sends it.
+#[derive(Serialize, Deserialize)]
+struct UdsChunk {
+    actor: u32,
+    steps: u32,
+    payload: Vec<f32>,
+}
+
+/// A weights blob as the baseline sends it.
+#[derive(Serialize, Deserialize)]
+struct UdsWeights {
+    version: u64,
+    checksum: u32,
+    bytes: Vec<u8>,
+}
+
+/// A sequence batch as the baseline sends it.
+#[derive(Serialize, Deserialize)]
+struct UdsBatch {
+    obs: Vec<f32>,
+    action: Vec<f32>,
+    reward: Vec<f32>,
+    is_first: Vec<f32>,
+    is_terminal: Vec<f32>,
+    context: Vec<f32>,
+}
+
+fn send_frame<W: Write, T: Serialize>(w: &mut W, value: &T) -> Result<()> {
+    let bytes = bincode::serialize(value)?;
+    w.write_all(&(bytes.len() as u64).to_le_bytes())?;
+    w.write_all(&bytes)?;
+    Ok(())
+}
+
+fn recv_frame<R: Read, T: for<'de> Deserialize<'de>>(r: &mut R) -> Result<Option<T>> {
+    let mut len = [0u8; 8];
+    match r.read_exact(&mut len) {
+        Ok(()) => {}
+        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => return Ok(None),
+        Err(e) => return Err(e.into()),
+    }
+    let mut bytes = vec![0u8; u64::from_le_bytes(len) as usize];
+    r.read_exact(&mut bytes)?;
+    Ok(Some(bincode::deserialize(&bytes)?))
+}
+
+fn uds_figures(opts: &IpcBenchOptions) -> Result<TransportFigures> {
+    let dir = tempfile::tempdir()?;
+    let (o, a) = (opts.obs_dim, 2);
+    let total = opts.actors * opts.steps_per_actor;
+    let buffer = Arc::new(Mutex::new(ReplayBuffer::new(
+        BENCH_CAPACITY.max(opts.batch * opts.length * opts.actors * 2),
+        opts.actors,
+        o,
+        a,
+    )));
+
+    // Steps: one connection per actor, one replay thread per connection.
+    let path = dir.path().join("steps.sock");
+    let listener = UnixListener::bind(&path)?;
+    let server = {
+        let (buffer, n) = (buffer.clone(), opts.actors);
+        thread::spawn(move || -> Result<()> {
+            let readers: Vec<_> = (0..n)
+                .map(|_| {
+                    let (stream, _) = listener.accept()?;
+                    let buffer = buffer.clone();
+                    Ok(thread::spawn(move || -> Result<()> {
+                        let mut r = BufReader::with_capacity(1 << 20, stream);
+                        let mut first = true;
+                        while let Some(c) = recv_frame::<_, UdsChunk>(&mut r)? {
+                            let lock = buffer.lock();
+                            let mut b = lock.map_err(|_| anyhow!("poisoned"))?;
+                            b.insert_chunk(c.actor as usize, &c.payload, first);
+                            first = false;
+                        }
+                        Ok(())
+                    }))
+                })
+                .collect::<Result<_>>()?;
+            for r in readers {
+                r.join().map_err(|_| anyhow!("reader panicked"))??;
+            }
+            Ok(())
+        })
+    };
+    let barrier = Arc::new(Barrier::new(opts.actors + 1));
+    let actors: Vec<_> = (0..opts.actors)
+        .map(|id| {
+            let (opts, path, b) = (opts.clone(), path.clone(), barrier.clone());
+            thread::spawn(move || -> Result<()> {
+                let mut w = BufWriter::new(UnixStream::connect(&path)?);
+                let stride = step_stride(opts.obs_dim, 2);
+                let mut obs = vec![0.0; opts.obs_dim];
+                let mut chunk = Vec::with_capacity(MAX_CHUNK * stride);
+                let mut steps = 0u32;
+                b.wait();
+                for k in 0..opts.steps_per_actor {
+                    let (_, first, last) = synthetic(&opts, id, k, &mut obs);
+                    chunk.extend_from_slice(&obs);
+                    let flag = |x: bool| if x { 1.0 } else { 0.0 };
+                    chunk.extend_from_slice(&[
+                        0.1,
+                        -0.1,
+                        0.5,
+                        flag(first),
+                        0.0,
+                        flag(last),
+                        0.0,
+                        0.0,
+                    ]);
+                    steps += 1;
+                    if last || steps as usize == MAX_CHUNK {
+                        let c = UdsChunk {
+                            actor: id as u32,
+                            steps,
+                            payload: std::mem::take(&mut chunk),
+                        };
+                        send_frame(&mut w, &c)?;
+                        chunk.reserve(MAX_CHUNK * stride);
+                        steps = 0;
+                    }
+                }
+                w.flush()?;
+                Ok(())
+            })
+        })
+        .collect();
+    barrier.wait();
+    let start = Instant::now();
+    for h in actors {
+        h.join().map_err(|_| anyhow!("actor panicked"))??;
+    }
+    server.join().map_err(|_| anyhow!("server panicked"))??;
+    let steps_per_sec = total as f64 / start.elapsed().as_secs_f64();
+    let inserted = buffer.lock().map_err(|_| anyhow!("poisoned"))?.inserted();
+    if inserted != total as u64 {
+        return Err(anyhow!("socket replay inserted {inserted} of {total}"));
+    }
+
+    // Batches: request, sample, serialise, answer.
+    let path = dir.path().join("batch.sock");
+    let listener = UnixListener::bind(&path)?;
+    let (batch, length) = (opts.batch, opts.length);
+    let server = {
+        let buffer = buffer.clone();
+        thread::spawn(move || -> Result<()> {
+            let (stream, _) = listener.accept()?;
+            let mut r = BufReader::new(stream.try_clone()?);
+            let mut w = BufWriter::new(stream);
+            let mut rng = ChaCha8Rng::seed_from_u64(0);
+            while let Some((b, t)) = recv_frame::<_, (u32, u32)>(&mut r)? {
+                let s: SequenceBatch = buffer
+                    .lock()
+                    .map_err(|_| anyhow!("poisoned"))?
+                    .sample_sequences(b as usize, t as usize, &mut rng)
+                    .ok_or_else(|| anyhow!("no sequences"))?;
+                let out = UdsBatch {
+                    obs: s.obs,
+                    action: s.action,
+                    reward: s.reward,
+                    is_first: s.is_first,
+                    is_terminal: s.is_terminal,
+                    context: s.context,
+                };
+                send_frame(&mut w, &out)?;
+                w.flush()?;
+            }
+            Ok(())
+        })
+    };
+    let stream = UnixStream::connect(&path)?;
+    let mut r = BufReader::new(stream.try_clone()?);
+    let mut w = BufWriter::new(stream);
+    let mut lat = Vec::new();
+    for _ in 0..opts.batches {
+        let start = Instant::now();
+        send_frame(&mut w, &(batch as u32, length as u32))?;
+        w.flush()?;
+        let b: UdsBatch = recv_frame(&mut r)?.ok_or_else(|| anyhow!("batch server closed"))?;
+        if b.obs.len() != batch * length * o {
+            return Err(anyhow!("bad batch"));
+        }
+        lat.push(start.elapsed().as_secs_f64() * 1e3);
+    }
+    drop(w);
+    drop(r);
+    server.join().map_err(|_| anyhow!("server panicked"))??;
+
+    // Broadcast: the learner writes to each subscriber's socket in turn.
+    let path = dir.path().join("weights.sock");
+    let listener = UnixListener::bind(&path)?;
+    let base = Instant::now();
+    let (done_tx, done_rx) = mpsc::channel::<Result<(u64, f64)>>();
+    let subs: Vec<_> = (0..opts.subscribers)
+        .map(|_| {
+            let (path, done) = (path.clone(), done_tx.clone());
+            thread::spawn(move || {
+                let run = || -> Result<()> {
+                    let mut r = BufReader::with_capacity(1 << 20, UnixStream::connect(&path)?);
+                    while let Some(wts) = recv_frame::<_, UdsWeights>(&mut r)? {
+                        if crc32fast::hash(&wts.bytes) != wts.checksum {
+                            return Err(anyhow!("checksum mismatch"));
+                        }
+                        let _ = done.send(Ok((wts.version, base.elapsed().as_secs_f64() * 1e3)));
+                    }
+                    Ok(())
+                };
+                if let Err(e) = run() {
+                    let _ = done.send(Err(e));
+                }
+            })
+        })
+        .collect();
+    let mut conns: Vec<_> = (0..opts.subscribers)
+        .map(|_| Ok(BufWriter::with_capacity(1 << 20, listener.accept()?.0)))
+        .collect::<Result<_>>()?;
+    let bytes: Vec<u8> = (0..opts.weights_bytes).map(|i| (i * 31) as u8).collect();
+    let mut blat = Vec::new();
+    for version in 1..=opts.broadcasts as u64 {
+        let sent = base.elapsed().as_secs_f64() * 1e3;
+        let wts = UdsWeights {
+            version,
+            checksum: crc32fast::hash(&bytes),
+            bytes: bytes.clone(),
+        };
+        for c in conns.iter_mut() {
+            send_frame(c, &wts)?;
+            c.flush()?;
+        }
+        let mut last = 0.0f64;
+        for _ in 0..opts.subscribers {
+            let (v, at) = done_rx
+                .recv_timeout(Duration::from_secs(20))
+                .context("a socket subscriber stalled")??;
+            if v != version {
+                return Err(anyhow!("socket subscriber got version {v}"));
+            }
+            last = last.max(at);
+        }
+        blat.push(last - sent);
+    }
+    drop(conns);
+    for s in subs {
+        s.join().map_err(|_| anyhow!("subscriber panicked"))?;
+    }
+    Ok(TransportFigures {
+        steps_per_sec,
+        batch_ms_p50: percentile(lat.clone(), 0.5),
+        batch_ms_p90: percentile(lat, 0.9),
+        broadcast_ms_p50: percentile(blat.clone(), 0.5),
+        broadcast_ms_p90: percentile(blat, 0.9),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn small_bench_runs_both_transports() {
+        let opts = IpcBenchOptions {
+            actors: 2,
+            steps_per_actor: 2000,
+            obs_dim: 16,
+            batches: 3,
+            batch: 2,
+            length: 8,
+            weights_bytes: 64 << 10,
+            subscribers: 2,
+            broadcasts: 3,
+        };
+        let r = run_ipc_bench(&opts).unwrap();
+        assert!(r.iceoryx2.steps_per_sec > 0.0 && r.uds_bincode.steps_per_sec > 0.0);
+        assert!(r.iceoryx2.broadcast_ms_p50 > 0.0 && r.uds_bincode.batch_ms_p50 > 0.0);
+    }
+}

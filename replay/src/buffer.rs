@@ -1,0 +1,422 @@
+//! The replay ring buffer: one ring of steps per actor stream, sampled into sequence or
+//! transition batches.
+//!
+//! Each actor's steps are stored in arrival order in its own ring (capacity / actors steps), so
+//! a sequence is always contiguous steps of one actor. Steps carry a segment number that changes
+//! wherever the stream is not contiguous (the actor's first chunk, chunks dropped on the way);
+//! samples never span two segments. Sequences may span episodes, with `is_first` set only at
+//! true episode starts (DreamerV3's convention); transitions never cross an episode end.
+
+use ctxrace_common::ipc::wire::step_stride;
+use ctxrace_common::{SequenceBatch, TransitionBatch};
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+
+/// Step flag: first step of an episode.
+pub const FIRST: u8 = 1;
+/// Step flag: the episode terminated here.
+pub const TERMINAL: u8 = 2;
+/// Step flag: the episode ended here (terminated or truncated).
+pub const LAST: u8 = 4;
+
+/// Draws per requested sample before sampling gives up (data too fragmented).
+const ATTEMPTS: usize = 64;
+
+/// One actor's ring of steps.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct Stream {
+    /// Next slot to write.
+    pub(crate) head: usize,
+    /// Steps held.
+    pub(crate) len: usize,
+    /// Segment of the newest step.
+    pub(crate) segment: u64,
+    pub(crate) obs: Vec<f32>,
+    pub(crate) action: Vec<f32>,
+    pub(crate) reward: Vec<f32>,
+    pub(crate) flags: Vec<u8>,
+    pub(crate) context: Vec<f32>,
+    pub(crate) segments: Vec<u64>,
+}
+
+impl Stream {
+    fn new(cap: usize, obs_dim: usize, act_dim: usize) -> Self {
+        Self {
+            head: 0,
+            len: 0,
+            segment: 0,
+            obs: vec![0.0; cap * obs_dim],
+            action: vec![0.0; cap * act_dim],
+            reward: vec![0.0; cap],
+            flags: vec![0; cap],
+            context: vec![0.0; cap * 2],
+            segments: vec![0; cap],
+        }
+    }
+
+    fn cap(&self) -> usize {
+        self.reward.len()
+    }
+
+    /// Slot of the `i`-th oldest step.
+    fn slot(&self, i: usize) -> usize {
+        (self.head + self.cap() - self.len + i) % self.cap()
+    }
+}
+
+/// The replay's storage of actor steps.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ReplayBuffer {
+    pub(crate) obs_dim: usize,
+    pub(crate) act_dim: usize,
+    pub(crate) streams: Vec<Stream>,
+    pub(crate) inserted: u64,
+}
+
+impl ReplayBuffer {
+    /// A buffer of `capacity` steps split equally between `actors` streams.
+    pub fn new(capacity: usize, actors: usize, obs_dim: usize, act_dim: usize) -> Self {
+        let per = (capacity / actors.max(1)).max(1);
+        Self {
+            obs_dim,
+            act_dim,
+            streams: (0..actors.max(1))
+                .map(|_| Stream::new(per, obs_dim, act_dim))
+                .collect(),
+            inserted: 0,
+        }
+    }
+
+    /// Observation size.
+    pub fn obs_dim(&self) -> usize {
+        self.obs_dim
+    }
+
+    /// Action size.
+    pub fn act_dim(&self) -> usize {
+        self.act_dim
+    }
+
+    /// Actor streams.
+    pub fn actors(&self) -> usize {
+        self.streams.len()
+    }
+
+    /// Steps it can hold.
+    pub fn capacity(&self) -> usize {
+        self.streams.iter().map(Stream::cap).sum()
+    }
+
+    /// Steps held.
+    pub fn len(&self) -> usize {
+        self.streams.iter().map(|s| s.len).sum()
+    }
+
+    /// Whether it holds no step.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Steps inserted since it was created (or since the snapshot's run started).
+    pub fn inserted(&self) -> u64 {
+        self.inserted
+    }
+
+    /// Appends a validated chunk payload (`steps x step_stride` floats, see
+    /// [`ctxrace_common::ipc::wire`]) to `actor`'s stream; `after_gap` starts a new segment.
+    /// The caller validated the actor id and the payload.
+    pub fn insert_chunk(&mut self, actor: usize, payload: &[f32], after_gap: bool) {
+        let (o, a) = (self.obs_dim, self.act_dim);
+        let stride = step_stride(o, a);
+        let s = &mut self.streams[actor];
+        if after_gap {
+            s.segment += 1;
+        }
+        let cap = s.cap();
+        for step in payload.chunks_exact(stride) {
+            let i = s.head;
+            s.obs[i * o..(i + 1) * o].copy_from_slice(&step[..o]);
+            s.action[i * a..(i + 1) * a].copy_from_slice(&step[o..o + a]);
+            let rest = &step[o + a..];
+            s.reward[i] = rest[0];
+            s.flags[i] =
+                ((rest[1] as u8) * FIRST) | ((rest[2] as u8) * TERMINAL) | ((rest[3] as u8) * LAST);
+            s.context[i * 2..i * 2 + 2].copy_from_slice(&rest[4..6]);
+            s.segments[i] = s.segment;
+            s.head = (i + 1) % cap;
+            s.len = (s.len + 1).min(cap);
+            self.inserted += 1;
+        }
+    }
+
+    /// Picks a stream with probability proportional to its steps usable for a window of `w`.
+    fn pick_stream(&self, w: usize, rng: &mut ChaCha8Rng) -> Option<usize> {
+        let weight = |s: &Stream| (s.len + 1).saturating_sub(w);
+        let total: usize = self.streams.iter().map(weight).sum();
+        if total == 0 {
+            return None;
+        }
+        let mut u = rng.random_range(0..total);
+        for (k, s) in self.streams.iter().enumerate() {
+            let n = weight(s);
+            if u < n {
+                return Some(k);
+            }
+            u -= n;
+        }
+        None
+    }
+
+    /// `batch` sequences of `length` contiguous steps of one actor segment each; `None` if
+    /// none could be found (too little or too fragmented data).
+    pub fn sample_sequences(
+        &self,
+        batch: usize,
+        length: usize,
+        rng: &mut ChaCha8Rng,
+    ) -> Option<SequenceBatch> {
+        let (o, a) = (self.obs_dim, self.act_dim);
+        let n = batch * length;
+        let mut out = SequenceBatch {
+            batch,
+            length,
+            obs_dim: o,
+            act_dim: a,
+            obs: Vec::with_capacity(n * o),
+            action: Vec::with_capacity(n * a),
+            reward: Vec::with_capacity(n),
+            is_first: Vec::with_capacity(n),
+            is_terminal: Vec::with_capacity(n),
+            context: Vec::with_capacity(n * 2),
+        };
+        for _ in 0..batch {
+            let (k, start) = self.find(length, rng, |s, start| {
+                s.segments[s.slot(start)] == s.segments[s.slot(start + length - 1)]
+            })?;
+            let s = &self.streams[k];
+            for t in 0..length {
+                let i = s.slot(start + t);
+                out.obs.extend_from_slice(&s.obs[i * o..(i + 1) * o]);
+                out.action.extend_from_slice(&s.action[i * a..(i + 1) * a]);
+                out.reward.push(s.reward[i]);
+                out.is_first.push(flag(s.flags[i], FIRST));
+                out.is_terminal.push(flag(s.flags[i], TERMINAL));
+                out.context.extend_from_slice(&s.context[i * 2..i * 2 + 2]);
+            }
+        }
+        Some(out)
+    }
+
+    /// `batch` transitions `(o_t, a_t, r_{t+1}, o_{t+1}, terminal_{t+1}, c)` inside episodes,
+    /// observations stacking the last `frames` frames of the episode (oldest first, the
+    /// episode's first frame repeated before its start); `None` if none could be found.
+    pub fn sample_transitions(
+        &self,
+        batch: usize,
+        frames: usize,
+        rng: &mut ChaCha8Rng,
+    ) -> Option<TransitionBatch> {
+        let (o, a) = (self.obs_dim, self.act_dim);
+        let so = frames * o;
+        let mut out = TransitionBatch {
+            batch,
+            obs_dim: so,
+            act_dim: a,
+            obs: Vec::with_capacity(batch * so),
+            action: Vec::with_capacity(batch * a),
+            reward: Vec::with_capacity(batch),
+            next_obs: Vec::with_capacity(batch * so),
+            terminal: Vec::with_capacity(batch),
+            context: Vec::with_capacity(batch * 2),
+        };
+        for _ in 0..batch {
+            let (k, t) = self.find(2, rng, |s, t| {
+                let (i, j) = (s.slot(t), s.slot(t + 1));
+                s.segments[i] == s.segments[j] && s.flags[i] & LAST == 0 && s.flags[j] & FIRST == 0
+            })?;
+            let s = &self.streams[k];
+            let j = s.slot(t + 1);
+            self.stack(s, t, frames, &mut out.obs);
+            out.action.extend_from_slice(&s.action[j * a..(j + 1) * a]);
+            out.reward.push(s.reward[j]);
+            self.stack(s, t + 1, frames, &mut out.next_obs);
+            out.terminal.push(flag(s.flags[j], TERMINAL));
+            out.context.extend_from_slice(&s.context[j * 2..j * 2 + 2]);
+        }
+        Some(out)
+    }
+
+    /// Appends the `frames` frames ending at logical step `t`, walking back inside the episode
+    /// (and segment) and repeating the earliest frame reached.
+    fn stack(&self, s: &Stream, t: usize, frames: usize, out: &mut Vec<f32>) {
+        let o = self.obs_dim;
+        let mut idx = vec![t; frames];
+        for f in (0..frames.saturating_sub(1)).rev() {
+            let cur = idx[f + 1];
+            let i = s.slot(cur);
+            let back =
+                cur > 0 && s.flags[i] & FIRST == 0 && s.segments[s.slot(cur - 1)] == s.segments[i];
+            idx[f] = if back { cur - 1 } else { cur };
+        }
+        for t in idx {
+            let i = s.slot(t);
+            out.extend_from_slice(&s.obs[i * o..(i + 1) * o]);
+        }
+    }
+
+    /// A uniformly drawn (stream, logical start) of a window of `w` steps satisfying `ok`.
+    fn find(
+        &self,
+        w: usize,
+        rng: &mut ChaCha8Rng,
+        ok: impl Fn(&Stream, usize) -> bool,
+    ) -> Option<(usize, usize)> {
+        for _ in 0..ATTEMPTS {
+            let k = self.pick_stream(w, rng)?;
+            let s = &self.streams[k];
+            let start = rng.random_range(0..=s.len - w);
+            if ok(s, start) {
+                return Some((k, start));
+            }
+        }
+        None
+    }
+}
+
+fn flag(flags: u8, bit: u8) -> f32 {
+    if flags & bit != 0 {
+        1.0
+    } else {
+        0.0
+    }
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    /// A chunk payload of `obs_dim` 2, `act_dim` 1: obs = (actor, step value), action = step
+    /// value, reward = step value; flags from `first`/`last` positions.
+    pub(crate) fn payload(actor: f32, values: &[f32], first: &[usize], last: &[usize]) -> Vec<f32> {
+        let mut p = Vec::new();
+        for (k, &v) in values.iter().enumerate() {
+            let is_first = first.contains(&k);
+            let is_last = last.contains(&k);
+            p.extend_from_slice(&[actor, v, v, v]);
+            p.extend_from_slice(&[
+                f32::from(u8::from(is_first)),
+                f32::from(u8::from(is_last)),
+                f32::from(u8::from(is_last)),
+                0.5,
+                -0.5,
+            ]);
+        }
+        p
+    }
+
+    fn rng() -> ChaCha8Rng {
+        ChaCha8Rng::seed_from_u64(7)
+    }
+
+    #[test]
+    fn ring_wraps_and_keeps_the_newest_steps() {
+        let mut b = ReplayBuffer::new(10, 2, 2, 1);
+        let values: Vec<f32> = (0..12).map(|v| v as f32).collect();
+        b.insert_chunk(0, &payload(0.0, &values, &[0], &[]), true);
+        assert_eq!(b.len(), 5);
+        assert_eq!(b.inserted(), 12);
+        let s = b.sample_sequences(20, 5, &mut rng()).unwrap();
+        // Only actor 0 has data; the only window of 5 is steps 7..12, in order.
+        for seq in s.reward.chunks(5) {
+            assert_eq!(seq, &[7.0, 8.0, 9.0, 10.0, 11.0]);
+        }
+        assert!(b.sample_sequences(1, 6, &mut rng()).is_none());
+    }
+
+    #[test]
+    fn sequences_stay_in_one_actor_and_segment() {
+        let mut b = ReplayBuffer::new(200, 2, 2, 1);
+        let a: Vec<f32> = (0..50).map(|v| v as f32).collect();
+        let c: Vec<f32> = (100..150).map(|v| v as f32).collect();
+        b.insert_chunk(0, &payload(0.0, &a[..25], &[0], &[]), true);
+        b.insert_chunk(1, &payload(1.0, &c, &[0], &[]), true);
+        // A gap in actor 0's stream: sequences must not span 24 -> 25.
+        b.insert_chunk(0, &payload(0.0, &a[25..], &[], &[]), true);
+        let s = b.sample_sequences(500, 4, &mut rng()).unwrap();
+        let mut saw = [false; 2];
+        for k in 0..500 {
+            let obs = &s.obs[k * 8..(k + 1) * 8];
+            let actor = obs[0];
+            saw[actor as usize] = true;
+            let vals: Vec<f32> = obs.chunks(2).map(|f| f[1]).collect();
+            assert!(obs.chunks(2).all(|f| f[0] == actor), "mixed actors {obs:?}");
+            assert!(vals.windows(2).all(|w| w[1] == w[0] + 1.0), "{vals:?}");
+            assert!(
+                !(vals[0] < 25.0 && vals[3] >= 25.0),
+                "crossed a gap {vals:?}"
+            );
+        }
+        assert_eq!(saw, [true, true]);
+    }
+
+    #[test]
+    fn is_first_marks_only_true_episode_starts() {
+        let mut b = ReplayBuffer::new(100, 1, 2, 1);
+        let v: Vec<f32> = (0..10).map(|v| v as f32).collect();
+        // Episodes: steps 0..=4 and 5..=9.
+        b.insert_chunk(0, &payload(0.0, &v, &[0, 5], &[4, 9]), true);
+        let s = b.sample_sequences(200, 3, &mut rng()).unwrap();
+        for k in 0..200 {
+            for t in 0..3 {
+                let value = s.reward[k * 3 + t];
+                let expect = if value == 0.0 || value == 5.0 {
+                    1.0
+                } else {
+                    0.0
+                };
+                assert_eq!(s.is_first[k * 3 + t], expect, "step {value}");
+                let term = if value == 4.0 || value == 9.0 {
+                    1.0
+                } else {
+                    0.0
+                };
+                assert_eq!(s.is_terminal[k * 3 + t], term);
+            }
+        }
+    }
+
+    #[test]
+    fn transitions_stay_in_episodes_and_stack_frames() {
+        let mut b = ReplayBuffer::new(100, 1, 2, 1);
+        let v: Vec<f32> = (0..10).map(|v| v as f32).collect();
+        b.insert_chunk(0, &payload(0.0, &v, &[0, 5], &[4, 9]), true);
+        let t = b.sample_transitions(300, 3, &mut rng()).unwrap();
+        assert_eq!(t.obs_dim, 6);
+        let mut saw_start = false;
+        for k in 0..300 {
+            let frames: Vec<f32> = t.obs[k * 6..(k + 1) * 6].chunks(2).map(|f| f[1]).collect();
+            let next: Vec<f32> = t.next_obs[k * 6..(k + 1) * 6]
+                .chunks(2)
+                .map(|f| f[1])
+                .collect();
+            let cur = frames[2];
+            assert_eq!(next[2], cur + 1.0);
+            assert!(cur != 4.0 && cur != 9.0, "transition out of an episode end");
+            assert_eq!(t.reward[k], cur + 1.0);
+            assert_eq!(t.action[k], cur + 1.0);
+            let start = if cur < 5.0 { 0.0 } else { 5.0 };
+            let want: Vec<f32> = (0..3).map(|f| (cur - 2.0 + f as f32).max(start)).collect();
+            assert_eq!(frames, want);
+            saw_start |= cur == 0.0;
+            let term = if next[2] == 4.0 || next[2] == 9.0 {
+                1.0
+            } else {
+                0.0
+            };
+            assert_eq!(t.terminal[k], term);
+        }
+        assert!(saw_start);
+        assert_eq!(&t.context[..2], &[0.5, -0.5]);
+    }
+}

@@ -1,0 +1,263 @@
+//! The replay process loop: chunks in, batches out when the rate limiter allows, status out,
+//! snapshots periodically and on shutdown; every turn ends with a beacon signal. It sleeps in an iceoryx2 `WaitSet` on the run's
+//! `wake_replay` event and a 100 ms tick, so it returns on SIGTERM/SIGINT too.
+
+use crate::buffer::ReplayBuffer;
+use crate::limiter::RateLimiter;
+use crate::snapshot::{read_snapshot, write_snapshot, LimiterCounts};
+use anyhow::{anyhow, bail, Result};
+use ctxrace_common::ipc::wire::ReplayStatus;
+use ctxrace_common::ipc::{
+    BatchRequest, BatchServer, BatchSpec, ReplayBeacon, RunTransport, StatusPublisher,
+    TrajectoryReceiver, Wake,
+};
+use ctxrace_common::ReplayOptions;
+use iceoryx2::prelude::*;
+use iceoryx2::waitset::WaitSetRunResult;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+/// Chunks taken per loop turn before requests are looked at again.
+const CHUNKS_PER_TURN: usize = 256;
+/// Longest sleep of the loop.
+const TICK: Duration = Duration::from_millis(100);
+/// Seconds between status messages.
+const STATUS_EVERY: Duration = Duration::from_secs(1);
+
+/// What the replay process serves.
+#[derive(Clone, Debug)]
+pub struct ReplayArgs {
+    /// The run's iceoryx2 prefix.
+    pub prefix: String,
+    /// Actors in the run.
+    pub actors: usize,
+    /// Observation size (one frame).
+    pub obs_dim: usize,
+    /// Action size.
+    pub act_dim: usize,
+    /// Buffer, limiter and snapshot settings.
+    pub options: ReplayOptions,
+    /// Stop on SIGTERM/SIGINT (a process); false when run on a thread.
+    pub handle_signals: bool,
+}
+
+/// Shared with whoever runs the loop on a thread: a stop flag and live counters.
+#[derive(Debug, Default)]
+pub struct ReplayControl {
+    /// Set to stop the loop (it notices within [`TICK`]).
+    pub shutdown: AtomicBool,
+    /// Steps inserted so far, updated every loop turn.
+    pub inserted: AtomicU64,
+    /// Set once the endpoints exist and the replay was announced.
+    pub ready: AtomicBool,
+}
+
+/// Runs the replay until `control.shutdown` is set or (with `handle_signals`) SIGTERM/SIGINT;
+/// writes a final snapshot and returns the final counters.
+pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
+    let opts = &args.options;
+    let (mut buffer, counts) = restore(args)?;
+    let mut limiter = RateLimiter::new(
+        opts.samples_per_insert,
+        opts.min_fill as u64,
+        opts.error_buffer_steps,
+    );
+    limiter.restore(counts.inserts, counts.samples);
+    let mut rng = ChaCha8Rng::seed_from_u64(opts.seed ^ counts.samples);
+
+    let transport = RunTransport::open(&args.prefix, args.actors, "replay")?;
+    let wake = transport.listener(Wake::Replay)?;
+    let mut chunks = TrajectoryReceiver::new(&transport, args.obs_dim, args.act_dim)?;
+    let mut server = BatchServer::new(
+        &transport,
+        args.obs_dim,
+        args.act_dim,
+        opts.max_batch_floats,
+    )?;
+    let status = StatusPublisher::new(&transport)?;
+    let signals = if args.handle_signals {
+        SignalHandlingMode::HandleTerminationRequests
+    } else {
+        SignalHandlingMode::Disabled
+    };
+    let waitset = WaitSetBuilder::new()
+        .signal_handling_mode(signals)
+        .create::<ipc::Service>()
+        .map_err(|e| anyhow!("iceoryx2: waitset: {e:?}"))?;
+    let _wake_guard = waitset
+        .attach_notification(&wake)
+        .map_err(|e| anyhow!("iceoryx2: attach wake: {e:?}"))?;
+    let _tick_guard = waitset
+        .attach_interval(TICK)
+        .map_err(|e| anyhow!("iceoryx2: attach tick: {e:?}"))?;
+    let beacon = ReplayBeacon::new(&transport)?;
+    beacon.signal()?;
+    control.ready.store(true, Ordering::Release);
+    tracing::info!(
+        "replay up: prefix {}, {} actors, {} of {} steps held",
+        args.prefix,
+        args.actors,
+        buffer.len(),
+        buffer.capacity()
+    );
+
+    let mut pending: VecDeque<(BatchRequest, BatchSpec)> = VecDeque::new();
+    let mut batches = 0u64;
+    let mut last_status = Instant::now();
+    let mut last_snapshot = Instant::now();
+    let current = |buffer: &ReplayBuffer,
+                   limiter: &RateLimiter,
+                   chunks: &TrajectoryReceiver,
+                   server: &BatchServer,
+                   batches: u64,
+                   pending: usize| ReplayStatus {
+        inserted: limiter.inserts(),
+        sampled: limiter.samples(),
+        fill: buffer.len() as u64,
+        capacity: buffer.capacity() as u64,
+        dropped_chunks: chunks.missing_chunks(),
+        rejected: chunks.rejected() + server.rejected(),
+        batches,
+        pending_requests: pending as u64,
+        ..Default::default()
+    };
+    loop {
+        let taken = if limiter.can_insert(1) {
+            chunks.receive(CHUNKS_PER_TURN, |c| {
+                buffer.insert_chunk(c.header.actor_id as usize, c.payload, c.after_gap);
+                limiter.inserted(u64::from(c.header.steps));
+            })?
+        } else {
+            0
+        };
+        control.inserted.store(limiter.inserts(), Ordering::Release);
+        // Closing actors wait for a turn after their last send (see TrajectorySender).
+        beacon.signal()?;
+        pending.extend(server.receive_requests()?);
+        while let Some(&(request, spec)) = pending.front() {
+            let n = match spec {
+                BatchSpec::Sequence { batch, length } => batch * length,
+                BatchSpec::Transition { batch, .. } => batch,
+            } as u64;
+            if !limiter.can_sample(n) {
+                break;
+            }
+            let sent = match spec {
+                BatchSpec::Sequence { batch, length } => buffer
+                    .sample_sequences(batch, length, &mut rng)
+                    .map(|b| server.send_sequence(request.request_id, &b)),
+                BatchSpec::Transition { batch, frames } => buffer
+                    .sample_transitions(batch, frames, &mut rng)
+                    .map(|b| server.send_transition(request.request_id, frames, &b)),
+            };
+            match sent {
+                Some(result) => {
+                    result?;
+                    limiter.sampled(n);
+                    batches += 1;
+                    pending.pop_front();
+                }
+                // Not enough contiguous data yet: keep the request for a later turn.
+                None => break,
+            }
+        }
+        if last_status.elapsed() >= STATUS_EVERY {
+            let s = current(&buffer, &limiter, &chunks, &server, batches, pending.len());
+            status.publish(s)?;
+            last_status = Instant::now();
+        }
+        if opts.snapshot_every_secs > 0
+            && last_snapshot.elapsed() >= Duration::from_secs(opts.snapshot_every_secs)
+        {
+            snapshot(args, &buffer, &limiter)?;
+            last_snapshot = Instant::now();
+        }
+        if control.shutdown.load(Ordering::Acquire) {
+            break;
+        }
+        // Busy (a full turn of chunks taken): only poll; otherwise sleep until woken.
+        let timeout = if taken == CHUNKS_PER_TURN {
+            Duration::ZERO
+        } else {
+            TICK
+        };
+        let result = waitset
+            .wait_and_process_once_with_timeout(|_| CallbackProgression::Continue, timeout)
+            .map_err(|e| anyhow!("iceoryx2: wait: {e:?}"))?;
+        if matches!(
+            result,
+            WaitSetRunResult::TerminationRequest | WaitSetRunResult::Interrupt
+        ) {
+            tracing::info!("replay: termination requested");
+            break;
+        }
+        wake.try_wait(|_| {})
+            .map_err(|e| anyhow!("iceoryx2: drain wake: {e:?}"))?;
+    }
+    let last = current(&buffer, &limiter, &chunks, &server, batches, pending.len());
+    status.publish(last)?;
+    snapshot(args, &buffer, &limiter)?;
+    Ok(ReplayStatus {
+        format_version: ctxrace_common::ipc::wire::FORMAT_VERSION,
+        ..last
+    })
+}
+
+fn restore(args: &ReplayArgs) -> Result<(ReplayBuffer, LimiterCounts)> {
+    let fresh = ReplayBuffer::new(
+        args.options.capacity,
+        args.actors,
+        args.obs_dim,
+        args.act_dim,
+    );
+    let none = LimiterCounts {
+        inserts: 0,
+        samples: 0,
+    };
+    let Some(path) = args.options.snapshot_path.as_deref() else {
+        return Ok((fresh, none));
+    };
+    if !path.exists() {
+        return Ok((fresh, none));
+    }
+    let (buffer, counts) = read_snapshot(path)?;
+    let shape = |b: &ReplayBuffer| (b.actors(), b.capacity(), b.obs_dim(), b.act_dim());
+    if shape(&buffer) != shape(&fresh) {
+        bail!(
+            "replay snapshot {} holds (actors, capacity, obs_dim, act_dim) = {:?}, the run has {:?}",
+            path.display(),
+            shape(&buffer),
+            shape(&fresh)
+        );
+    }
+    tracing::info!(
+        "replay: restored {} steps from {}",
+        buffer.len(),
+        path.display()
+    );
+    Ok((buffer, counts))
+}
+
+fn snapshot(args: &ReplayArgs, buffer: &ReplayBuffer, limiter: &RateLimiter) -> Result<()> {
+    if let Some(path) = args.options.snapshot_path.as_deref() {
+        let start = Instant::now();
+        write_snapshot(
+            path,
+            buffer,
+            LimiterCounts {
+                inserts: limiter.inserts(),
+                samples: limiter.samples(),
+            },
+        )?;
+        tracing::info!(
+            "replay: snapshot of {} steps to {} in {:.2?}",
+            buffer.len(),
+            path.display(),
+            start.elapsed()
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,257 @@
+//! Replay snapshots: the buffer and the rate limiter's counters in one versioned little-endian
+//! file ending in a CRC-32, written atomically (temporary file, fsync, rename).
+
+use crate::buffer::{ReplayBuffer, Stream};
+use anyhow::{anyhow, bail, Context as _, Result};
+use std::fs::File;
+use std::io::{BufReader, BufWriter, Read, Write};
+use std::path::{Path, PathBuf};
+
+const MAGIC: &[u8; 8] = b"CTXRPLY\0";
+/// Snapshot layout version; bump on any change.
+pub const SNAPSHOT_VERSION: u32 = 1;
+const HEADER_BYTES: u64 = 8 + 4 * 4 + 8 * 4;
+const STREAM_HEADER_BYTES: u64 = 8 * 3;
+
+/// What a snapshot restores besides the buffer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LimiterCounts {
+    /// Steps inserted.
+    pub inserts: u64,
+    /// Steps sampled.
+    pub samples: u64,
+}
+
+/// Writes `buffer` and `counts` to `path` atomically.
+pub fn write_snapshot(path: &Path, buffer: &ReplayBuffer, counts: LimiterCounts) -> Result<()> {
+    let tmp = tmp_path(path);
+    let result = (|| -> Result<()> {
+        let file = File::create(&tmp)?;
+        let mut w = Hashing {
+            inner: BufWriter::with_capacity(1 << 20, file),
+            hasher: crc32fast::Hasher::new(),
+        };
+        w.write_all(MAGIC)?;
+        let cap = buffer.streams.first().map_or(0, |s| s.reward.len());
+        for v in [
+            SNAPSHOT_VERSION,
+            buffer.obs_dim as u32,
+            buffer.act_dim as u32,
+            buffer.streams.len() as u32,
+        ] {
+            w.write_all(&v.to_le_bytes())?;
+        }
+        for v in [cap as u64, buffer.inserted, counts.inserts, counts.samples] {
+            w.write_all(&v.to_le_bytes())?;
+        }
+        for s in &buffer.streams {
+            for v in [s.head as u64, s.len as u64, s.segment] {
+                w.write_all(&v.to_le_bytes())?;
+            }
+            for part in [&s.obs, &s.action, &s.reward, &s.context] {
+                for v in part.iter() {
+                    w.write_all(&v.to_le_bytes())?;
+                }
+            }
+            w.write_all(&s.flags)?;
+            for v in &s.segments {
+                w.write_all(&v.to_le_bytes())?;
+            }
+        }
+        let crc = w.hasher.clone().finalize();
+        let mut file = w.inner.into_inner().map_err(|e| e.into_error())?;
+        file.write_all(&crc.to_le_bytes())?;
+        file.sync_all()?;
+        Ok(())
+    })();
+    if let Err(e) = result {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(e.context(format!("writing replay snapshot {}", tmp.display())));
+    }
+    std::fs::rename(&tmp, path)
+        .with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))
+}
+
+/// Reads a snapshot; any damage (bad magic, version, sizes, checksum) is an error naming the
+/// file.
+pub fn read_snapshot(path: &Path) -> Result<(ReplayBuffer, LimiterCounts)> {
+    read(path).with_context(|| format!("restoring replay snapshot {}", path.display()))
+}
+
+fn read(path: &Path) -> Result<(ReplayBuffer, LimiterCounts)> {
+    let file = File::open(path)?;
+    let file_len = file.metadata()?.len();
+    let mut r = Hashing {
+        inner: BufReader::with_capacity(1 << 20, file),
+        hasher: crc32fast::Hasher::new(),
+    };
+    let mut magic = [0u8; 8];
+    r.read_exact(&mut magic)?;
+    if &magic != MAGIC {
+        bail!("not a ctxrace replay snapshot (bad magic)");
+    }
+    let version = r.u32()?;
+    if version != SNAPSHOT_VERSION {
+        bail!("snapshot version {version}, this build reads {SNAPSHOT_VERSION}");
+    }
+    let (obs_dim, act_dim, actors) = (r.u32()? as u64, r.u32()? as u64, r.u32()? as u64);
+    let (cap, inserted, inserts, samples) = (r.u64()?, r.u64()?, r.u64()?, r.u64()?);
+    // Check the size the header implies before allocating anything it claims.
+    let per_step = 4 * (obs_dim + act_dim + 1 + 2) + 1 + 8;
+    let expected = cap
+        .checked_mul(per_step)
+        .and_then(|b| b.checked_add(STREAM_HEADER_BYTES))
+        .and_then(|b| b.checked_mul(actors))
+        .and_then(|b| b.checked_add(HEADER_BYTES + 4));
+    if expected != Some(file_len) || cap == 0 || actors == 0 {
+        bail!("file is {file_len} bytes, its header implies {expected:?}: truncated or corrupt");
+    }
+    let (o, a, cap) = (obs_dim as usize, act_dim as usize, cap as usize);
+    let mut streams = Vec::with_capacity(actors as usize);
+    for _ in 0..actors {
+        let (head, len, segment) = (r.u64()? as usize, r.u64()? as usize, r.u64()?);
+        if head >= cap || len > cap {
+            bail!("stream head {head} or length {len} outside capacity {cap}");
+        }
+        let obs = r.f32s(cap * o)?;
+        let action = r.f32s(cap * a)?;
+        let reward = r.f32s(cap)?;
+        let context = r.f32s(cap * 2)?;
+        let mut flags = vec![0u8; cap];
+        r.read_exact(&mut flags)?;
+        let mut segments = Vec::with_capacity(cap);
+        for _ in 0..cap {
+            segments.push(r.u64()?);
+        }
+        streams.push(Stream {
+            head,
+            len,
+            segment,
+            obs,
+            action,
+            reward,
+            flags,
+            context,
+            segments,
+        });
+    }
+    let computed = r.hasher.clone().finalize();
+    let mut crc = [0u8; 4];
+    r.inner.read_exact(&mut crc)?;
+    let stored = u32::from_le_bytes(crc);
+    if stored != computed {
+        return Err(anyhow!(
+            "checksum {computed:#010x}, file says {stored:#010x}: corrupt"
+        ));
+    }
+    Ok((
+        ReplayBuffer {
+            obs_dim: o,
+            act_dim: a,
+            streams,
+            inserted,
+        },
+        LimiterCounts { inserts, samples },
+    ))
+}
+
+fn tmp_path(path: &Path) -> PathBuf {
+    let mut name = path.file_name().unwrap_or_default().to_os_string();
+    name.push(".tmp");
+    path.with_file_name(name)
+}
+
+/// A reader or writer that hashes every byte passing through.
+struct Hashing<T> {
+    inner: T,
+    hasher: crc32fast::Hasher,
+}
+
+impl<W: Write> Write for Hashing<W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.hasher.update(&buf[..n]);
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()
+    }
+}
+
+impl<R: Read> Read for Hashing<R> {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        let n = self.inner.read(buf)?;
+        self.hasher.update(&buf[..n]);
+        Ok(n)
+    }
+}
+
+impl<R: Read> Hashing<R> {
+    fn u32(&mut self) -> Result<u32> {
+        let mut b = [0u8; 4];
+        self.read_exact(&mut b)?;
+        Ok(u32::from_le_bytes(b))
+    }
+
+    fn u64(&mut self) -> Result<u64> {
+        let mut b = [0u8; 8];
+        self.read_exact(&mut b)?;
+        Ok(u64::from_le_bytes(b))
+    }
+
+    fn f32s(&mut self, n: usize) -> Result<Vec<f32>> {
+        let mut bytes = vec![0u8; n * 4];
+        self.read_exact(&mut bytes)?;
+        Ok(bytes
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::buffer::tests::payload;
+
+    #[test]
+    fn round_trip_and_corruption() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.snap");
+        let mut b = ReplayBuffer::new(20, 2, 2, 1);
+        let v: Vec<f32> = (0..13).map(|v| v as f32).collect();
+        b.insert_chunk(0, &payload(0.0, &v, &[0], &[12]), true);
+        b.insert_chunk(1, &payload(1.0, &v[..3], &[0], &[]), true);
+        let counts = LimiterCounts {
+            inserts: 16,
+            samples: 40,
+        };
+        write_snapshot(&path, &b, counts).unwrap();
+        let (back, c) = read_snapshot(&path).unwrap();
+        assert_eq!(back, b);
+        assert_eq!(c, counts);
+        assert!(!tmp_path(&path).exists());
+
+        let mut bytes = std::fs::read(&path).unwrap();
+        let mid = bytes.len() / 2;
+        bytes[mid] ^= 0x40;
+        std::fs::write(&path, &bytes).unwrap();
+        let err = format!("{:#}", read_snapshot(&path).unwrap_err());
+        assert!(
+            err.contains("replay.snap") && err.contains("corrupt"),
+            "{err}"
+        );
+
+        std::fs::write(&path, &bytes[..100]).unwrap();
+        let err = format!("{:#}", read_snapshot(&path).unwrap_err());
+        assert!(
+            err.contains("replay.snap") && err.contains("truncated"),
+            "{err}"
+        );
+
+        std::fs::write(&path, b"garbage").unwrap();
+        assert!(read_snapshot(&path).is_err());
+        assert!(read_snapshot(&dir.path().join("missing")).is_err());
+    }
+}

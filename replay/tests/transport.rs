@@ -1,0 +1,169 @@
+//! Actors, replay and learner on threads of one process over a private iceoryx2 prefix.
+
+use ctxrace_common::ipc::{
+    cleanup, run_prefix, Batch, BatchSpec, ReplayClient, RunTransport, SenderOptions, Step,
+    TrajectorySender,
+};
+use ctxrace_common::ReplayOptions;
+use ctxrace_replay::{read_snapshot, run, ReplayArgs, ReplayControl};
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::thread;
+use std::time::{Duration, Instant};
+
+const OBS: usize = 3;
+const ACT: usize = 2;
+const STEPS: usize = 1000;
+const EPISODE: usize = 100;
+
+fn actor(prefix: String, id: u32, poison: bool) -> ctxrace_common::ipc::SenderStats {
+    let t = RunTransport::open(&prefix, 2, &format!("actor{id}")).unwrap();
+    let opts = SenderOptions {
+        handshake_timeout: Duration::from_secs(30),
+        backpressure_timeout: Duration::from_secs(5),
+    };
+    let mut tx = TrajectorySender::new(&t, id, OBS, ACT, opts).unwrap();
+    for k in 0..STEPS {
+        let e = k % EPISODE;
+        let obs = [id as f32, k as f32, 0.5];
+        let action = if e == 0 { [0.0; 2] } else { [0.1, -0.1] };
+        let step = Step {
+            obs: &obs,
+            action: &action,
+            reward: 1.0,
+            is_first: e == 0,
+            is_terminal: e == EPISODE - 1 && (k / EPISODE) % 2 == 0,
+            is_last: e == EPISODE - 1,
+            context: [0.2, -0.3],
+        };
+        tx.push((k / EPISODE) as u64, 0, &step).unwrap();
+    }
+    if poison {
+        // A NaN observation in an episode of its own: the replay must reject that chunk only.
+        let step = Step {
+            obs: &[f32::NAN, 0.0, 0.0],
+            action: &[0.0, 0.0],
+            reward: 0.0,
+            is_first: true,
+            is_terminal: false,
+            is_last: true,
+            context: [0.0, 0.0],
+        };
+        tx.push(99, 0, &step).unwrap();
+    }
+    // A step of the wrong size is refused locally, without sending anything.
+    let bad = Step {
+        obs: &[0.0],
+        action: &[0.0, 0.0],
+        reward: 0.0,
+        is_first: true,
+        is_terminal: false,
+        is_last: true,
+        context: [0.0, 0.0],
+    };
+    assert!(tx.push(100, 0, &bad).is_err());
+    tx.flush().unwrap();
+    tx.stats()
+}
+
+#[test]
+fn two_actors_fill_the_replay_and_the_learner_gets_batches() {
+    let prefix = run_prefix(&format!("test-transport-{}", std::process::id()));
+    let dir = tempfile::tempdir().unwrap();
+    let snap = dir.path().join("replay.snap");
+    let args = ReplayArgs {
+        prefix: prefix.clone(),
+        actors: 2,
+        obs_dim: OBS,
+        act_dim: ACT,
+        options: ReplayOptions {
+            capacity: 10_000,
+            min_fill: 2 * STEPS,
+            samples_per_insert: 0.0,
+            snapshot_every_secs: 0,
+            snapshot_path: Some(snap.clone()),
+            ..Default::default()
+        },
+        handle_signals: false,
+    };
+    // Actors start first: their handshake must wait for the replay.
+    let actors: Vec<_> = (0..2)
+        .map(|id| {
+            let p = prefix.clone();
+            thread::spawn(move || actor(p, id, id == 1))
+        })
+        .collect();
+    thread::sleep(Duration::from_millis(300));
+    let control = Arc::new(ReplayControl::default());
+    let replay = {
+        let c = control.clone();
+        let a = args.clone();
+        thread::spawn(move || run(&a, &c))
+    };
+    let stats: Vec<_> = actors.into_iter().map(|h| h.join().unwrap()).collect();
+    assert_eq!(stats[0].sent_steps, STEPS as u64);
+    assert_eq!(stats[1].sent_steps, STEPS as u64 + 1);
+    assert_eq!(stats[0].dropped_steps + stats[1].dropped_steps, 0);
+
+    let t = RunTransport::open(&prefix, 2, "learner").unwrap();
+    let mut client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(10)).unwrap();
+    let spec = BatchSpec::Sequence {
+        batch: 4,
+        length: 10,
+    };
+    let Some(Batch::Sequence(s)) = client.next_batch(spec, Duration::from_secs(10)).unwrap() else {
+        panic!("no sequence batch");
+    };
+    assert_eq!((s.batch, s.length, s.obs_dim, s.act_dim), (4, 10, OBS, ACT));
+    assert_eq!(s.obs.len(), 4 * 10 * OBS);
+    for seq in s.obs.chunks(10 * OBS) {
+        let actor = seq[0];
+        let k: Vec<f32> = seq.chunks(OBS).map(|f| f[1]).collect();
+        assert!(seq.chunks(OBS).all(|f| f[0] == actor));
+        assert!(k.windows(2).all(|w| w[1] == w[0] + 1.0), "{k:?}");
+    }
+    for (i, first) in s.is_first.iter().enumerate() {
+        let k = s.obs[i * OBS + 1] as usize;
+        assert_eq!(*first == 1.0, k % EPISODE == 0);
+    }
+    let spec = BatchSpec::Transition {
+        batch: 8,
+        frames: 2,
+    };
+    let Some(Batch::Transition(tr)) = client.next_batch(spec, Duration::from_secs(10)).unwrap()
+    else {
+        panic!("no transition batch");
+    };
+    assert_eq!((tr.batch, tr.obs_dim, tr.act_dim), (8, 2 * OBS, ACT));
+    assert_eq!(client.rejected(), 0);
+
+    let start = Instant::now();
+    while control.inserted.load(Ordering::Acquire) < 2 * STEPS as u64 {
+        assert!(
+            start.elapsed() < Duration::from_secs(20),
+            "replay did not take every step"
+        );
+        thread::sleep(Duration::from_millis(10));
+    }
+    control.shutdown.store(true, Ordering::Release);
+    let status = replay.join().unwrap().unwrap();
+    assert_eq!(status.inserted, 2 * STEPS as u64);
+    assert_eq!(status.fill, 2 * STEPS as u64);
+    assert_eq!(status.rejected, 1);
+    assert_eq!(status.dropped_chunks, 0);
+    assert_eq!(status.batches, 2);
+    assert_eq!(status.sampled, 4 * 10 + 8);
+
+    let (restored, counts) = read_snapshot(&snap).unwrap();
+    assert_eq!(restored.len(), 2 * STEPS);
+    assert_eq!(counts.samples, 48);
+
+    drop(client);
+    drop(t);
+    let report = cleanup(&prefix).unwrap();
+    assert_eq!(report.alive_nodes, 0, "{report:?}");
+    assert!(!std::fs::read_dir("/dev/shm")
+        .unwrap()
+        .flatten()
+        .any(|e| e.file_name().to_string_lossy().starts_with(&prefix)));
+}
