@@ -2,6 +2,7 @@
 //! pure-pursuit rivals scaled by the context, and the head-to-head [`RaceEnv`].
 
 pub mod baseline;
+pub mod collect;
 pub mod collision;
 pub mod lidar;
 pub mod race;

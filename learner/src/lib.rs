@@ -5,6 +5,7 @@ pub mod algorithm;
 pub mod checkpoint;
 pub mod dreamer;
 pub mod returns;
+pub mod runlog;
 pub mod sac;
 
 pub use algorithm::{Algorithm, Batch, Metrics};
