@@ -32,7 +32,7 @@ fn actor(prefix: String, id: u32, poison: bool) -> ctxrace_common::ipc::SenderSt
             action: &action,
             reward: 1.0,
             is_first: e == 0,
-            is_terminal: e == EPISODE - 1 && (k / EPISODE) % 2 == 0,
+            is_terminal: e == EPISODE - 1 && (k / EPISODE).is_multiple_of(2),
             is_last: e == EPISODE - 1,
             context: [0.2, -0.3],
         };
@@ -124,7 +124,7 @@ fn two_actors_fill_the_replay_and_the_learner_gets_batches() {
     }
     for (i, first) in s.is_first.iter().enumerate() {
         let k = s.obs[i * OBS + 1] as usize;
-        assert_eq!(*first == 1.0, k % EPISODE == 0);
+        assert_eq!(*first == 1.0, k.is_multiple_of(EPISODE));
     }
     let spec = BatchSpec::Transition {
         batch: 8,

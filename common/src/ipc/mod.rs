@@ -47,7 +47,7 @@ impl RejectLog {
 
     pub(crate) fn reject(&mut self, error: &WireError) {
         self.count += 1;
-        if self.count <= 10 || self.count % 1000 == 0 {
+        if self.count <= 10 || self.count.is_multiple_of(1000) {
             tracing::warn!("rejected {} ({} so far): {error}", self.what, self.count);
         }
     }

@@ -298,13 +298,14 @@ pub fn validate_chunk(
     check_finite(payload)?;
     for s in 0..steps {
         let flags = s * stride + obs_dim + act_dim + 1;
-        for i in flags..flags + 3 {
-            if payload[i] != 0.0 && payload[i] != 1.0 {
-                return Err(WireError::Value {
-                    index: i,
-                    value: payload[i],
-                });
-            }
+        if let Some(k) = payload[flags..flags + 3]
+            .iter()
+            .position(|&v| v != 0.0 && v != 1.0)
+        {
+            return Err(WireError::Value {
+                index: flags + k,
+                value: payload[flags + k],
+            });
         }
     }
     Ok(())
