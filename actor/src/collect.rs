@@ -109,7 +109,10 @@ impl Collector {
         let context = [c_f32(self.context.speed), c_f32(self.context.steer)];
         let action = match policy {
             Some(p) => p.act(&self.obs, context, false)?.action,
-            None => [self.rng.random_range(-1.0..=1.0), self.rng.random_range(-1.0..=1.0)],
+            None => [
+                self.rng.random_range(-1.0..=1.0),
+                self.rng.random_range(-1.0..=1.0),
+            ],
         };
         let step = self.env.step(action.map(f64::from))?;
         self.decisions += 1;

@@ -5,6 +5,7 @@ pub mod baseline;
 pub mod collect;
 pub mod collision;
 pub mod lidar;
+pub mod process;
 pub mod race;
 pub mod rival;
 pub mod vehicle;

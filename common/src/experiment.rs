@@ -3,7 +3,7 @@
 //! paper's values, so a file only names what it changes.
 
 use crate::agents::AgentConfig;
-use crate::config::RaceConfig;
+use crate::config::{RaceConfig, ReplayOptions};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -60,6 +60,8 @@ pub struct ExperimentConfig {
     pub agent: AgentConfig,
     /// The training schedule.
     pub train: TrainConfig,
+    /// The replay buffer (its sampling ratio and minimum fill follow `train`).
+    pub replay: ReplayOptions,
 }
 
 impl Default for ExperimentConfig {
@@ -69,6 +71,7 @@ impl Default for ExperimentConfig {
             race: RaceConfig::default(),
             agent: AgentConfig::default(),
             train: TrainConfig::default(),
+            replay: ReplayOptions::default(),
         }
     }
 }
@@ -91,6 +94,16 @@ impl ExperimentConfig {
     /// The configuration as TOML (what a run directory records).
     pub fn to_toml(&self) -> Result<String, String> {
         toml::to_string(self).map_err(|e| format!("serialising the experiment config: {e}"))
+    }
+
+    /// Gradient steps per env step as the replay's samples per inserted step: each gradient
+    /// step samples a whole batch (`B·T` steps of a sequence batch, `B` transitions).
+    pub fn samples_per_insert(&self) -> f64 {
+        let items = match self.agent.batch_spec() {
+            crate::ipc::BatchSpec::Sequence { batch, length } => batch * length,
+            crate::ipc::BatchSpec::Transition { batch, .. } => batch,
+        };
+        self.train.train_ratio * items as f64
     }
 
     /// Checks every table; the message names the key.

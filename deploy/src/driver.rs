@@ -44,9 +44,7 @@ impl TrainedAgent {
         let weights = std::fs::read(&policy_path)
             .with_context(|| format!("reading {}", policy_path.display()))?;
         let experiment = match run_dir.map(|r| r.join(crate::train::CONFIG_FILE)) {
-            Some(p) if p.exists() => {
-                Some(ExperimentConfig::load(&p).map_err(anyhow::Error::msg)?)
-            }
+            Some(p) if p.exists() => Some(ExperimentConfig::load(&p).map_err(anyhow::Error::msg)?),
             _ => None,
         };
         Ok(Self {

@@ -118,14 +118,20 @@ pub fn run(args: EvalArgs) -> Result<()> {
         bail!("--grid and --laps must be positive");
     }
     if !(args.range.is_finite() && (0.0..=0.9).contains(&args.range)) {
-        bail!("--range {} must lie in [0, 0.9] (contexts are limited to ±0.9)", args.range);
+        bail!(
+            "--range {} must lie in [0, 0.9] (contexts are limited to ±0.9)",
+            args.range
+        );
     }
     let spec = ego_spec(&args.source)?;
     let (experiment, train_seed) = match &spec {
         EgoSpec::Trained(t) => (t.experiment.clone(), t.agent.seed()),
         EgoSpec::Baseline(_) => (None, 0),
     };
-    let mut race = experiment.as_ref().map(|e| e.race.clone()).unwrap_or_default();
+    let mut race = experiment
+        .as_ref()
+        .map(|e| e.race.clone())
+        .unwrap_or_default();
     race.rivals = args
         .rivals
         .unwrap_or(if experiment.is_some() { race.rivals } else { 3 });
@@ -249,8 +255,8 @@ fn read_parts(out: &Path, meta: &EvalMeta) -> Result<Vec<(usize, EpisodeRecord)>
     let grid = contexts(meta);
     let mut rows = Vec::new();
     for part in part_files(out)? {
-        let mut reader = csv::Reader::from_path(&part)
-            .with_context(|| format!("opening {}", part.display()))?;
+        let mut reader =
+            csv::Reader::from_path(&part).with_context(|| format!("opening {}", part.display()))?;
         for row in reader.deserialize::<EpisodeRecord>() {
             let e = match row {
                 Ok(e) => e,
@@ -369,7 +375,9 @@ pub fn run_worker(args: WorkerArgs) -> Result<()> {
         .append(true)
         .open(&part)
         .with_context(|| format!("opening {}", part.display()))?;
-    let mut writer = csv::WriterBuilder::new().has_headers(fresh).from_writer(file);
+    let mut writer = csv::WriterBuilder::new()
+        .has_headers(fresh)
+        .from_writer(file);
     for &(index, lap) in job.todo.iter().skip(args.shard).step_by(args.shards) {
         let context = grid[index];
         let seed = episode_seed(job.meta.seed, index, lap);
@@ -485,7 +493,8 @@ fn finish(
             continue;
         }
         let n = part.len() as f64;
-        let mean = |f: fn(&results::ContextSummary) -> f64| part.iter().map(|s| f(s)).sum::<f64>() / n;
+        let mean =
+            |f: fn(&results::ContextSummary) -> f64| part.iter().map(|s| f(s)).sum::<f64>() / n;
         writeln!(
             stdout,
             "  {label:>20} ({:2} contexts): PG {:.3}  OT {:+.3}  A2A {:.2}/50  wall {:.1}%",

@@ -1,14 +1,19 @@
 //! `ctxrace`: one command line for tracks, races, benchmarks and (later) the training processes.
 
 mod bench;
+mod driver;
+mod eval;
 mod figures;
+mod launcher;
 mod plot;
 mod race_cmd;
 mod render;
 mod report;
 mod results;
+mod roles;
 mod table;
 mod track_cmd;
+mod train;
 mod vehicle_cmd;
 
 use anyhow::{Context as _, Result};
@@ -39,26 +44,39 @@ enum Command {
     Bench(bench::BenchCommand),
     /// Tables (Markdown and CSV, as in the paper) and figures from evaluation and training runs.
     Report(report::ReportArgs),
+    /// Train an agent (inline, or with actor, replay and learner processes).
+    Train(train::TrainArgs),
+    /// Run the paper's evaluation protocol on a checkpoint or a reference policy.
+    Eval(eval::EvalArgs),
+    /// Process role: the replay buffer of a run (started by `ctxrace train`).
+    Replay(roles::RoleArgs),
+    /// Process role: the learner of a run (started by `ctxrace train`).
+    Learner(roles::RoleArgs),
+    /// Process role: one actor of a run (started by `ctxrace train`).
+    Actor(roles::ActorArgs),
+    /// One worker of `ctxrace eval` (started by it).
+    #[command(hide = true)]
+    EvalWorker(eval::WorkerArgs),
 }
 
 /// Where tracks come from and how their raceline is made.
-#[derive(Args, Clone, Debug)]
+#[derive(Args, Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
 pub struct TrackArgs {
     /// Folder searched for track names [default: ../shared/tracks if it exists, else .].
     #[arg(long, env = "CTXRACE_TRACKS_DIR", global = true)]
-    tracks_dir: Option<PathBuf>,
+    pub tracks_dir: Option<PathBuf>,
     /// Use the raceline file shipped with the track instead of computing the min-curvature line.
     #[arg(long, global = true)]
-    raceline_file: bool,
+    pub raceline_file: bool,
     /// Raceline speed limit (m/s) [default: 8].
     #[arg(long, global = true)]
-    v_max: Option<f64>,
+    pub v_max: Option<f64>,
     /// Raceline lateral acceleration limit, v²|κ| (m/s²) [default: 5].
     #[arg(long, global = true)]
-    a_lat: Option<f64>,
+    pub a_lat: Option<f64>,
     /// Raceline longitudinal acceleration and braking limit (m/s²) [default: 6].
     #[arg(long, global = true)]
-    a_long: Option<f64>,
+    pub a_long: Option<f64>,
 }
 
 impl TrackArgs {
@@ -117,6 +135,12 @@ fn main() {
         Command::Race(a) => race_cmd::run(a),
         Command::Bench(c) => bench::run(c),
         Command::Report(a) => report::run(a),
+        Command::Train(a) => train::run(a),
+        Command::Eval(a) => eval::run(a),
+        Command::EvalWorker(a) => eval::run_worker(a),
+        Command::Replay(a) => roles::replay(a),
+        Command::Learner(a) => roles::learner(a),
+        Command::Actor(a) => roles::actor(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

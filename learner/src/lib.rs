@@ -4,6 +4,7 @@ pub mod adam;
 pub mod algorithm;
 pub mod checkpoint;
 pub mod dreamer;
+pub mod process;
 pub mod returns;
 pub mod runlog;
 pub mod sac;

@@ -26,9 +26,11 @@ impl MetricsLog {
                 .with_context(|| format!("opening {}", path.display()))
         };
         let csv_path = run_dir.join("metrics.csv");
-        let columns = std::fs::read_to_string(&csv_path)
-            .ok()
-            .and_then(|t| t.lines().next().map(|h| h.split(',').map(String::from).collect()));
+        let columns = std::fs::read_to_string(&csv_path).ok().and_then(|t| {
+            t.lines()
+                .next()
+                .map(|h| h.split(',').map(String::from).collect())
+        });
         Ok(Self {
             jsonl: open("metrics.jsonl")?,
             csv: open("metrics.csv")?,
@@ -65,7 +67,10 @@ mod tests {
     fn rows_keep_the_first_header_across_reopening() {
         let dir = tempfile::tempdir().unwrap();
         let row = |a: f64| Metrics::from([("a".into(), a), ("b".into(), 2.0)]);
-        MetricsLog::open(dir.path()).unwrap().write(&row(1.0)).unwrap();
+        MetricsLog::open(dir.path())
+            .unwrap()
+            .write(&row(1.0))
+            .unwrap();
         let mut log = MetricsLog::open(dir.path()).unwrap();
         log.write(&Metrics::from([("b".into(), 3.0), ("c".into(), 4.0)]))
             .unwrap();

@@ -36,6 +36,24 @@ pub struct Step<'a> {
     pub context: [f32; 2],
 }
 
+impl Step<'_> {
+    /// Appends the step in the chunk layout ([`super::wire::step_stride`] floats:
+    /// `obs | action | reward, is_first, is_terminal, is_last | context`).
+    pub fn encode(&self, out: &mut Vec<f32>) {
+        let flag = |b: bool| if b { 1.0 } else { 0.0 };
+        out.extend_from_slice(self.obs);
+        out.extend_from_slice(self.action);
+        out.extend_from_slice(&[
+            self.reward,
+            flag(self.is_first),
+            flag(self.is_terminal),
+            flag(self.is_last),
+            self.context[0],
+            self.context[1],
+        ]);
+    }
+}
+
 /// Timeouts of a [`TrajectorySender`].
 #[derive(Clone, Copy, Debug)]
 pub struct SenderOptions {
@@ -179,17 +197,7 @@ impl TrajectorySender {
             self.header.episode_id = episode_id;
             self.header.policy_version = policy_version;
         }
-        let flag = |b: bool| if b { 1.0 } else { 0.0 };
-        self.buf.extend_from_slice(step.obs);
-        self.buf.extend_from_slice(step.action);
-        self.buf.extend_from_slice(&[
-            step.reward,
-            flag(step.is_first),
-            flag(step.is_terminal),
-            flag(step.is_last),
-            step.context[0],
-            step.context[1],
-        ]);
+        step.encode(&mut self.buf);
         self.header.steps += 1;
         if step.is_last || self.header.steps as usize == MAX_CHUNK {
             self.flush()?;

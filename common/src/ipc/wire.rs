@@ -160,8 +160,8 @@ pub struct EpisodeMetrics {
     pub context: [f32; 2],
     /// Lap progress reached, in laps.
     pub progress: f32,
-    /// Overtakes made.
-    pub overtakes: u32,
+    /// OT: overtakes made minus times overtaken.
+    pub overtakes: i32,
     /// 1 if the episode ended in a car-to-car collision.
     pub a2a: u32,
     /// 1 if the episode ended in a wall crash.

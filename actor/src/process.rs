@@ -1,0 +1,128 @@
+//! The actor process (`ctxrace actor`): runs [`Collector`] episodes against the run's replay,
+//! acting with the newest policy weights the learner broadcast (picked up at episode
+//! boundaries; uniform random actions until the first weights and for its share of the
+//! prefill), and publishes episode metrics and a heartbeat.
+
+use crate::collect::Collector;
+use crate::race::RaceEnv;
+use anyhow::{Context as _, Result};
+use ctxrace_common::ipc::{
+    Heartbeat, MetricsPublisher, RunTransport, SenderOptions, TrajectorySender, WeightsReceiver,
+};
+use ctxrace_common::policy::ACT_DIM;
+use ctxrace_common::{ExperimentConfig, Policy};
+use ctxrace_tracks::Track;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// Seconds between heartbeats.
+const HEARTBEAT_EVERY: Duration = Duration::from_secs(1);
+
+/// What an actor process needs.
+pub struct ActorOptions {
+    /// The run's iceoryx2 prefix.
+    pub prefix: String,
+    /// This actor's id, `0..actors`.
+    pub id: u32,
+    /// Actors in the run.
+    pub actors: usize,
+    /// How many times this actor was started before (restarts draw fresh episodes).
+    pub incarnation: u64,
+    /// The experiment.
+    pub experiment: ExperimentConfig,
+    /// The track.
+    pub track: Arc<Track>,
+}
+
+/// Runs the actor until SIGTERM/SIGINT; returns the steps it sent.
+pub fn run(opts: ActorOptions) -> Result<u64> {
+    ctxrace_common::nn::set_threads(1);
+    let cfg = &opts.experiment;
+    let env = RaceEnv::new(opts.track.clone(), cfg.race.clone())?;
+    let frame_dim = env.obs_dim();
+    let seed = cfg
+        .train
+        .seed
+        .wrapping_add(1 + opts.id as u64)
+        .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        .wrapping_add(opts.incarnation);
+    let mut collector = Collector::new(env, cfg.train.context_range, seed);
+    let transport = RunTransport::open(&opts.prefix, opts.actors, &format!("actor-{}", opts.id))?;
+    let mut weights = WeightsReceiver::new(&transport)?;
+    let telemetry = MetricsPublisher::new(&transport)?;
+    let mut sender = TrajectorySender::new(
+        &transport,
+        opts.id,
+        frame_dim,
+        ACT_DIM,
+        SenderOptions::default(),
+    )
+    .context("connecting to the replay")?;
+    let prefill = cfg.train.prefill / opts.actors.max(1) as u64;
+    let mut policy: Option<(u64, Policy)> = None;
+    let mut last_beat = Instant::now() - HEARTBEAT_EVERY;
+    loop {
+        if transport.node().wait(Duration::ZERO).is_err() {
+            break; // SIGTERM or SIGINT
+        }
+        if collector.at_episode_boundary() {
+            let newest = weights.latest_with(|version, bytes| match &mut policy {
+                Some((v, p)) => p.load(bytes).map(|_| *v = version),
+                None => Policy::new(&cfg.agent, frame_dim, bytes, seed)
+                    .map(|p| policy = Some((version, p))),
+            })?;
+            if let Some(Err(e)) = newest {
+                tracing::warn!("actor {}: weights rejected: {e}", opts.id);
+            }
+        }
+        let version = policy.as_ref().map_or(0, |(v, _)| *v);
+        let acting = match &mut policy {
+            Some((_, p)) if collector.decisions() >= prefill => Some(p),
+            _ => None,
+        };
+        // the episode this decision belongs to (a new one starts at a boundary)
+        let episode = collector.episodes() - u64::from(!collector.at_episode_boundary());
+        let mut push_error = Ok(());
+        let finished = collector.step(acting, |s| {
+            if push_error.is_ok() {
+                push_error = sender.push(episode, version, s);
+            }
+        })?;
+        push_error?;
+        if let Some(f) = finished {
+            let m = &f.metrics;
+            telemetry.episode(ctxrace_common::ipc::EpisodeMetrics {
+                actor_id: opts.id,
+                episode_id: f.episode,
+                env_steps: collector.decisions(),
+                steps: m.steps as u64,
+                context: [f.context.speed as f32, f.context.steer as f32],
+                progress: m.progress as f32,
+                overtakes: m.overtakes,
+                a2a: m.a2a as u32,
+                wall_crash: m.wall_crash as u32,
+                episode_return: m.episode_return as f32,
+                ..Default::default()
+            })?;
+        }
+        if last_beat.elapsed() >= HEARTBEAT_EVERY {
+            telemetry.heartbeat(Heartbeat {
+                actor_id: opts.id,
+                pid: std::process::id(),
+                env_steps: collector.decisions(),
+                policy_version: version,
+                dropped_steps: sender.stats().dropped_steps,
+                ..Default::default()
+            })?;
+            last_beat = Instant::now();
+        }
+    }
+    let stats = sender.close()?;
+    tracing::info!(
+        "actor {} stopping: {} steps sent, {} dropped",
+        opts.id,
+        stats.sent_steps,
+        stats.dropped_steps
+    );
+    Ok(stats.sent_steps)
+}

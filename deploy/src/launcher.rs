@@ -1,0 +1,357 @@
+//! The launcher of `ctxrace train`: starts the replay, the learner and `N` actors as child
+//! processes of this binary on a fresh iceoryx2 prefix, shows one progress bar, writes the
+//! training episodes, restarts crashed processes with back-off (an actor draws fresh episodes,
+//! the learner resumes from its newest checkpoint, the replay from its snapshot), and stops
+//! everything cleanly at the end or on Ctrl-C/SIGTERM; finally it removes the run's shared
+//! memory.
+//!
+//! The run ends when the replay has received `env_steps` steps (the actors are stopped) and
+//! the learner has taken its gradient steps (it exits by itself; the replay is stopped).
+
+use crate::results::TrainingEpisode;
+use crate::train::{progress_bar, EpisodeLog};
+use crate::TrackArgs;
+use anyhow::{bail, Context as _, Result};
+use ctxrace_common::ipc::{
+    cleanup, run_prefix, RunTransport, TelemetrySubscriber, WeightsReceiver,
+};
+use ctxrace_common::ExperimentConfig;
+use std::os::unix::process::CommandExt;
+use std::path::Path;
+use std::process::{Child, Command, ExitStatus};
+use std::time::{Duration, Instant};
+
+/// Longest wait between two restarts of one process.
+const MAX_BACKOFF: Duration = Duration::from_secs(30);
+/// Time the children get to stop after SIGTERM before they are killed.
+const STOP_GRACE: Duration = Duration::from_secs(30);
+
+/// One supervised child process.
+struct Supervised {
+    name: String,
+    args: Vec<String>,
+    child: Option<Child>,
+    starts: u64,
+    restart_at: Option<Instant>,
+    /// Set once the process should stay down.
+    retired: bool,
+}
+
+impl Supervised {
+    fn new(name: String, args: Vec<String>) -> Self {
+        Self {
+            name,
+            args,
+            child: None,
+            starts: 0,
+            restart_at: Some(Instant::now()),
+            retired: false,
+        }
+    }
+
+    /// Starts the process (again); actors are told how often they ran before.
+    fn start(&mut self) -> Result<()> {
+        let exe = std::env::current_exe().context("locating the ctxrace binary")?;
+        let mut cmd = Command::new(exe);
+        cmd.args(&self.args);
+        if self.name.starts_with("actor") {
+            cmd.args(["--incarnation", &self.starts.to_string()]);
+        }
+        // the children die with the launcher, even when it is killed outright
+        unsafe {
+            cmd.pre_exec(|| {
+                libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+                Ok(())
+            });
+        }
+        self.child = Some(
+            cmd.spawn()
+                .with_context(|| format!("starting {}", self.name))?,
+        );
+        self.starts += 1;
+        self.restart_at = None;
+        Ok(())
+    }
+
+    /// Reaps the process if it exited; returns its status.
+    fn reap(&mut self) -> Result<Option<ExitStatus>> {
+        let Some(child) = &mut self.child else {
+            return Ok(None);
+        };
+        let status = child.try_wait()?;
+        if status.is_some() {
+            self.child = None;
+        }
+        Ok(status)
+    }
+
+    /// Schedules a restart with exponential back-off (1 s, 2 s, 4 s, … up to 30 s).
+    fn schedule_restart(&mut self) {
+        let backoff =
+            Duration::from_secs(1 << self.starts.min(5).saturating_sub(1)).min(MAX_BACKOFF);
+        self.restart_at = Some(Instant::now() + backoff);
+    }
+
+    /// Asks the process to stop (SIGTERM) and keeps it down.
+    fn stop(&mut self) {
+        self.retired = true;
+        self.restart_at = None;
+        if let Some(child) = &self.child {
+            // SAFETY: sending a signal to our own child's pid.
+            unsafe {
+                libc::kill(child.id() as libc::pid_t, libc::SIGTERM);
+            }
+        }
+    }
+}
+
+/// Live figures for the progress bar.
+#[derive(Default)]
+struct Progress {
+    env_steps: u64,
+    grad_steps: u64,
+    episodes: u64,
+    recent_progress: Vec<f64>,
+    fill: u64,
+    capacity: u64,
+    actor_versions: Vec<u64>,
+}
+
+impl Progress {
+    fn message(&self, start: Instant) -> String {
+        let secs = start.elapsed().as_secs_f64().max(1e-9);
+        let mean = if self.recent_progress.is_empty() {
+            0.0
+        } else {
+            self.recent_progress.iter().sum::<f64>() / self.recent_progress.len() as f64
+        };
+        let lag = self
+            .actor_versions
+            .iter()
+            .map(|v| self.grad_steps.saturating_sub(*v))
+            .max()
+            .unwrap_or(0);
+        format!(
+            "| {} grad ({:.1}/s) | {} episodes, progress {mean:.3} | replay {:.0}% | lag {lag}",
+            self.grad_steps,
+            self.grad_steps as f64 / secs,
+            self.episodes,
+            100.0 * self.fill as f64 / self.capacity.max(1) as f64,
+        )
+    }
+}
+
+/// The flags that reproduce `tracks` on a child's command line.
+fn track_flags(tracks: &TrackArgs) -> Vec<String> {
+    let mut v = Vec::new();
+    if let Some(d) = &tracks.tracks_dir {
+        v.extend(["--tracks-dir".into(), d.display().to_string()]);
+    }
+    if tracks.raceline_file {
+        v.push("--raceline-file".into());
+    }
+    for (flag, value) in [
+        ("--v-max", tracks.v_max),
+        ("--a-lat", tracks.a_lat),
+        ("--a-long", tracks.a_long),
+    ] {
+        if let Some(x) = value {
+            v.extend([flag.into(), x.to_string()]);
+        }
+    }
+    v
+}
+
+/// Runs a training run with `actors` actor processes in `dir` (which holds `config.toml`).
+pub fn run(cfg: &ExperimentConfig, dir: &Path, actors: usize, tracks: &TrackArgs) -> Result<()> {
+    if actors == 0 {
+        bail!("--actors must be at least 1");
+    }
+    let run_id = format!(
+        "{}-{}",
+        std::process::id(),
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_millis())
+    );
+    let prefix = run_prefix(&run_id);
+    let common = |role: &str| {
+        vec![
+            role.to_string(),
+            "--run-dir".into(),
+            dir.display().to_string(),
+            "--prefix".into(),
+            prefix.clone(),
+            "--actors".into(),
+            actors.to_string(),
+        ]
+    };
+    let mut replay = Supervised::new("replay".into(), common("replay"));
+    let mut learner = Supervised::new("learner".into(), common("learner"));
+    let mut actor_procs: Vec<Supervised> = (0..actors)
+        .map(|k| {
+            let mut args = common("actor");
+            args.extend(["--id".into(), k.to_string()]);
+            args.extend(track_flags(tracks));
+            Supervised::new(format!("actor {k}"), args)
+        })
+        .collect();
+
+    let transport = RunTransport::open(&prefix, actors, "launcher")?;
+    let result = supervise(
+        cfg,
+        dir,
+        &transport,
+        &mut replay,
+        &mut learner,
+        &mut actor_procs,
+    );
+    // stop whatever still runs: actors first (they flush into the replay), then the rest
+    for p in actor_procs.iter_mut() {
+        p.stop();
+    }
+    wait_all(&mut actor_procs)?;
+    learner.stop();
+    replay.stop();
+    let mut rest = [learner, replay];
+    wait_all(&mut rest)?;
+    drop(transport);
+    match cleanup(&prefix) {
+        Ok(report) => tracing::info!("shared memory of {prefix} removed: {report:?}"),
+        Err(e) => tracing::warn!("cleaning up {prefix}: {e}"),
+    }
+    result
+}
+
+/// Waits up to [`STOP_GRACE`] for the processes to exit, then kills them.
+fn wait_all(procs: &mut [Supervised]) -> Result<()> {
+    let deadline = Instant::now() + STOP_GRACE;
+    for p in procs.iter_mut() {
+        while p.child.is_some() {
+            if p.reap()?.is_some() {
+                break;
+            }
+            if Instant::now() > deadline {
+                if let Some(c) = &mut p.child {
+                    tracing::warn!("{} did not stop in time; killing it", p.name);
+                    c.kill()?;
+                    c.wait()?;
+                }
+                p.child = None;
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+    Ok(())
+}
+
+/// The supervision loop; returns when the run is complete or interrupted.
+fn supervise(
+    cfg: &ExperimentConfig,
+    dir: &Path,
+    transport: &RunTransport,
+    replay: &mut Supervised,
+    learner: &mut Supervised,
+    actors: &mut [Supervised],
+) -> Result<()> {
+    let mut telemetry = TelemetrySubscriber::new(transport)?;
+    let mut weights = WeightsReceiver::new(transport)?;
+    let mut episodes = EpisodeLog::open(dir)?;
+    let bar = progress_bar(cfg.train.env_steps);
+    let start = Instant::now();
+    let mut p = Progress {
+        actor_versions: vec![0; actors.len()],
+        ..Progress::default()
+    };
+    let mut tick = Instant::now();
+    loop {
+        if transport.node().wait(Duration::from_millis(100)).is_err() {
+            bar.abandon_with_message("interrupted: stopping (checkpoint, snapshot)");
+            return Ok(());
+        }
+        // (re)start what is due
+        for proc in std::iter::once(&mut *replay)
+            .chain(std::iter::once(&mut *learner))
+            .chain(actors.iter_mut())
+        {
+            if proc.child.is_none()
+                && !proc.retired
+                && proc.restart_at.is_some_and(|t| Instant::now() >= t)
+            {
+                if proc.starts > 0 {
+                    tracing::warn!("restarting {} (start {})", proc.name, proc.starts + 1);
+                }
+                proc.start()?;
+            }
+        }
+        if let Some(version) = weights.latest_with(|v, _| v)? {
+            p.grad_steps = version;
+        }
+        for hb in telemetry.heartbeats()? {
+            if let Some(v) = p.actor_versions.get_mut(hb.actor_id as usize) {
+                *v = hb.policy_version;
+            }
+        }
+        if let Some(s) = telemetry.replay_status()? {
+            p.env_steps = s.inserted;
+            p.fill = s.fill;
+            p.capacity = s.capacity;
+        }
+        for e in telemetry.episodes()? {
+            p.episodes += 1;
+            p.recent_progress.push(e.progress as f64);
+            if p.recent_progress.len() > 20 {
+                p.recent_progress.remove(0);
+            }
+            episodes.write(&TrainingEpisode {
+                env_steps: p.env_steps,
+                grad_steps: p.grad_steps,
+                actor: e.actor_id,
+                episode: e.episode_id,
+                context_speed: e.context[0] as f64,
+                context_steer: e.context[1] as f64,
+                progress: e.progress as f64,
+                overtakes: e.overtakes,
+                a2a: e.a2a != 0,
+                wall_crash: e.wall_crash != 0,
+                episode_return: e.episode_return as f64,
+                steps: e.steps as usize,
+            })?;
+        }
+        // reap and decide
+        for proc in actors.iter_mut() {
+            if let Some(status) = proc.reap()? {
+                if !proc.retired {
+                    tracing::warn!("{} exited ({status}); restarting", proc.name);
+                    proc.schedule_restart();
+                }
+            }
+        }
+        if let Some(status) = replay.reap()? {
+            if !replay.retired {
+                tracing::warn!("replay exited ({status}); restarting from its snapshot");
+                replay.schedule_restart();
+            }
+        }
+        if let Some(status) = learner.reap()? {
+            if status.success() {
+                bar.set_position(p.env_steps.min(cfg.train.env_steps));
+                bar.finish_with_message(p.message(start));
+                return Ok(());
+            }
+            tracing::warn!("learner exited ({status}); restarting from its checkpoint");
+            learner.schedule_restart();
+        }
+        if p.env_steps >= cfg.train.env_steps {
+            for a in actors.iter_mut().filter(|a| !a.retired) {
+                a.stop();
+            }
+        }
+        if tick.elapsed() >= Duration::from_millis(250) {
+            bar.set_position(p.env_steps.min(cfg.train.env_steps));
+            bar.set_message(p.message(start));
+            tick = Instant::now();
+        }
+    }
+}

@@ -1,0 +1,101 @@
+//! The process roles the launcher starts: `ctxrace replay`, `ctxrace learner` and
+//! `ctxrace actor`. Each reads the run directory's `config.toml`.
+
+use crate::train::CONFIG_FILE;
+use crate::TrackArgs;
+use anyhow::Result;
+use clap::Args;
+use ctxrace_common::policy::ACT_DIM;
+use ctxrace_common::ExperimentConfig;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// What every role is told.
+#[derive(Args, Clone, Debug)]
+pub struct RoleArgs {
+    /// The run directory.
+    #[arg(long)]
+    pub run_dir: PathBuf,
+    /// The run's iceoryx2 prefix.
+    #[arg(long)]
+    pub prefix: String,
+    /// Actors in the run.
+    #[arg(long)]
+    pub actors: usize,
+}
+
+/// Arguments of `ctxrace actor`.
+#[derive(Args)]
+pub struct ActorArgs {
+    #[command(flatten)]
+    role: RoleArgs,
+    /// This actor's id, `0..actors`.
+    #[arg(long)]
+    id: u32,
+    /// Earlier starts of this actor (restarts draw fresh episodes).
+    #[arg(long, default_value_t = 0)]
+    incarnation: u64,
+    #[command(flatten)]
+    tracks: TrackArgs,
+}
+
+/// The run's experiment.
+pub fn read_experiment(run_dir: &Path) -> Result<ExperimentConfig> {
+    ExperimentConfig::load(&run_dir.join(CONFIG_FILE)).map_err(anyhow::Error::msg)
+}
+
+/// The replay's settings for a run: its sampling ratio and minimum fill follow `[train]`, its
+/// snapshot lives in the run directory.
+pub fn replay_options(cfg: &ExperimentConfig, run_dir: &Path) -> ctxrace_common::ReplayOptions {
+    let mut o = cfg.replay.clone();
+    o.samples_per_insert = cfg.samples_per_insert();
+    o.min_fill = o.min_fill.max(cfg.train.prefill as usize);
+    o.seed = cfg.train.seed;
+    o.snapshot_path
+        .get_or_insert_with(|| run_dir.join("replay.snapshot"));
+    o
+}
+
+/// Runs `ctxrace replay`.
+pub fn replay(args: RoleArgs) -> Result<()> {
+    let cfg = read_experiment(&args.run_dir)?;
+    let replay_args = ctxrace_replay::ReplayArgs {
+        prefix: args.prefix,
+        actors: args.actors,
+        obs_dim: cfg.race.lidar.beams,
+        act_dim: ACT_DIM,
+        options: replay_options(&cfg, &args.run_dir),
+        handle_signals: true,
+    };
+    let status = ctxrace_replay::run(&replay_args, &Default::default())?;
+    tracing::info!("replay stopped: {status:?}");
+    Ok(())
+}
+
+/// Runs `ctxrace learner`.
+pub fn learner(args: RoleArgs) -> Result<()> {
+    let experiment = read_experiment(&args.run_dir)?;
+    ctxrace_learner::process::run(ctxrace_learner::process::LearnerOptions {
+        prefix: args.prefix,
+        actors: args.actors,
+        frame_dim: experiment.race.lidar.beams,
+        run_dir: args.run_dir,
+        experiment,
+    })?;
+    Ok(())
+}
+
+/// Runs `ctxrace actor`.
+pub fn actor(args: ActorArgs) -> Result<()> {
+    let experiment = read_experiment(&args.role.run_dir)?;
+    let track = Arc::new(args.tracks.load(&experiment.track)?);
+    ctxrace_actor::process::run(ctxrace_actor::process::ActorOptions {
+        prefix: args.role.prefix,
+        id: args.id,
+        actors: args.role.actors,
+        incarnation: args.incarnation,
+        experiment,
+        track,
+    })?;
+    Ok(())
+}

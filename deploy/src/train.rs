@@ -1,0 +1,276 @@
+//! `ctxrace train`: trains an agent on the simulator. With `--inline` the environment, the
+//! replay buffer and the learner share one process and one loop (for development and tests);
+//! otherwise the launcher starts the replay, learner and actor processes.
+//!
+//! A run directory holds `config.toml` (the resolved experiment), `episodes.csv` (one row per
+//! training episode: the training curves), `metrics.jsonl` / `metrics.csv` (one row per
+//! logging interval of the learner) and `checkpoints/step-*/` (weights, optimiser moments,
+//! counters, the acting policy and the agent's configuration).
+
+use crate::results::TrainingEpisode;
+use crate::TrackArgs;
+use anyhow::{bail, Context as _, Result};
+use clap::Args;
+use ctxrace_actor::collect::{Collector, Finished};
+use ctxrace_actor::RaceEnv;
+use ctxrace_common::ipc::{Batch, BatchSpec};
+use ctxrace_common::policy::ACT_DIM;
+use ctxrace_common::{AlgoKind, ExperimentConfig, Policy};
+use ctxrace_learner::checkpoint::write_checkpoint;
+use ctxrace_learner::runlog::MetricsLog;
+use ctxrace_learner::Algorithm;
+use ctxrace_replay::ReplayBuffer;
+use indicatif::{ProgressBar, ProgressStyle};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+/// The resolved experiment in a run directory.
+pub const CONFIG_FILE: &str = "config.toml";
+/// The experiment `ctxrace train` runs without a CONFIG argument (configs/quick.toml).
+pub const EMBEDDED_CONFIG: &str = include_str!("../../configs/quick.toml");
+
+/// Arguments of `ctxrace train`.
+#[derive(Args)]
+pub struct TrainArgs {
+    /// Experiment TOML (see configs/) [default: the embedded configs/quick.toml].
+    config: Option<PathBuf>,
+    /// Run environment, replay and learner in this process (no shared memory, one actor).
+    #[arg(long)]
+    inline: bool,
+    /// Actor processes (without --inline).
+    #[arg(long, default_value_t = 2)]
+    actors: usize,
+    /// Algorithm: sac, dreamerv3, crssm or cmask [default: the config's].
+    #[arg(long)]
+    algo: Option<AlgoKind>,
+    /// Environment steps [default: the config's].
+    #[arg(long)]
+    steps: Option<u64>,
+    /// Seed [default: the config's].
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Run directory [default: runs/<algo>-<track>-s<seed>].
+    #[arg(long)]
+    run_dir: Option<PathBuf>,
+    #[command(flatten)]
+    tracks: TrackArgs,
+}
+
+/// Reads the experiment and applies the command-line overrides.
+fn experiment(args: &TrainArgs) -> Result<ExperimentConfig> {
+    let mut cfg = match &args.config {
+        Some(path) => ExperimentConfig::load(path),
+        None => ExperimentConfig::from_toml(EMBEDDED_CONFIG, "embedded configs/quick.toml"),
+    }
+    .map_err(anyhow::Error::msg)?;
+    if let Some(algo) = args.algo {
+        cfg.agent.algo = algo;
+    }
+    if let Some(steps) = args.steps {
+        cfg.train.env_steps = steps;
+    }
+    if let Some(seed) = args.seed {
+        cfg.train.seed = seed;
+    }
+    cfg.agent.set_seed(cfg.train.seed);
+    cfg.validate().map_err(anyhow::Error::msg)?;
+    Ok(cfg)
+}
+
+/// Creates a fresh run directory with the resolved experiment.
+fn create_run_dir(args: &TrainArgs, cfg: &ExperimentConfig) -> Result<PathBuf> {
+    let dir = args.run_dir.clone().unwrap_or_else(|| {
+        PathBuf::from("runs").join(format!(
+            "{}-{}-s{}",
+            cfg.agent.algo,
+            cfg.track.replace([':', '/'], "_"),
+            cfg.train.seed
+        ))
+    });
+    if dir.join(CONFIG_FILE).exists() {
+        bail!(
+            "{} already holds a run; pass another --run-dir (or remove it)",
+            dir.display()
+        );
+    }
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let text = cfg.to_toml().map_err(anyhow::Error::msg)?;
+    std::fs::write(dir.join(CONFIG_FILE), text)
+        .with_context(|| format!("writing {}", dir.join(CONFIG_FILE).display()))?;
+    Ok(dir)
+}
+
+/// Runs `ctxrace train`.
+pub fn run(args: TrainArgs) -> Result<()> {
+    let cfg = experiment(&args)?;
+    let dir = create_run_dir(&args, &cfg)?;
+    if !args.inline {
+        return crate::launcher::run(&cfg, &dir, args.actors, &args.tracks);
+    }
+    let track = Arc::new(args.tracks.load(&cfg.track)?);
+    run_inline(&cfg, &dir, RaceEnv::new(track, cfg.race.clone())?)
+}
+
+/// Appends training episodes to `episodes.csv`.
+pub struct EpisodeLog {
+    writer: csv::Writer<std::fs::File>,
+}
+
+impl EpisodeLog {
+    /// Opens (appending) `<run_dir>/episodes.csv`.
+    pub fn open(run_dir: &Path) -> Result<Self> {
+        let path = run_dir.join("episodes.csv");
+        let fresh = std::fs::metadata(&path).map_or(true, |m| m.len() == 0);
+        let file = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&path)
+            .with_context(|| format!("opening {}", path.display()))?;
+        Ok(Self {
+            writer: csv::WriterBuilder::new()
+                .has_headers(fresh)
+                .from_writer(file),
+        })
+    }
+
+    /// Appends one episode.
+    pub fn write(&mut self, episode: &TrainingEpisode) -> Result<()> {
+        self.writer.serialize(episode)?;
+        Ok(self.writer.flush()?)
+    }
+}
+
+/// The row of a finished episode.
+fn training_episode(f: &Finished, actor: u32, env_steps: u64, grad_steps: u64) -> TrainingEpisode {
+    TrainingEpisode {
+        env_steps,
+        grad_steps,
+        actor,
+        episode: f.episode,
+        context_speed: f.context.speed,
+        context_steer: f.context.steer,
+        progress: f.metrics.progress,
+        overtakes: f.metrics.overtakes,
+        a2a: f.metrics.a2a,
+        wall_crash: f.metrics.wall_crash,
+        episode_return: f.metrics.episode_return,
+        steps: f.metrics.steps,
+    }
+}
+
+/// Samples one batch of `spec` from `buffer`, if it holds enough.
+fn sample(buffer: &ReplayBuffer, spec: BatchSpec, rng: &mut ChaCha8Rng) -> Option<Batch> {
+    match spec {
+        BatchSpec::Sequence { batch, length } => buffer
+            .sample_sequences(batch, length, rng)
+            .map(Batch::Sequence),
+        BatchSpec::Transition { batch, frames } => buffer
+            .sample_transitions(batch, frames, rng)
+            .map(Batch::Transition),
+    }
+}
+
+/// The progress bar of a training run.
+pub fn progress_bar(env_steps: u64) -> ProgressBar {
+    ProgressBar::new(env_steps).with_style(
+        ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:30}] {pos}/{len} env steps ({per_sec}) {msg}",
+        )
+        .expect("a valid progress template"),
+    )
+}
+
+/// The single-process trainer: one collector, an in-memory replay buffer and the learner in
+/// one loop. After `prefill` random steps it takes `train_ratio` gradient steps per env step
+/// (carrying fractions over), reloads the acting policy at the first episode boundary after
+/// every `policy_every` gradient steps, logs and checkpoints.
+pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()> {
+    let t = &cfg.train;
+    ctxrace_common::nn::set_threads(t.threads);
+    let frame_dim = env.obs_dim();
+    let mut algo = ctxrace_learner::build(&cfg.agent, frame_dim)?;
+    let mut policy = Policy::new(&cfg.agent, frame_dim, &algo.policy_weights()?, t.seed)?;
+    let mut collector = Collector::new(env, t.context_range, t.seed);
+    let mut buffer = ReplayBuffer::new(cfg.replay.capacity, 1, frame_dim, ACT_DIM);
+    let mut rng = ChaCha8Rng::seed_from_u64(t.seed ^ 0x7265_706c_6179);
+    let spec = cfg.agent.batch_spec();
+    let mut episodes = EpisodeLog::open(dir)?;
+    let mut metrics_log = MetricsLog::open(dir)?;
+    let bar = progress_bar(t.env_steps);
+    let start = Instant::now();
+    let (mut debt, mut stale_policy, mut recent) = (0.0, false, Vec::<f64>::new());
+    let mut payload = Vec::new();
+    while collector.decisions() < t.env_steps {
+        let learning = collector.decisions() >= t.prefill;
+        payload.clear();
+        let acting = if learning { Some(&mut policy) } else { None };
+        let finished = collector.step(acting, |s| s.encode(&mut payload))?;
+        buffer.insert_chunk(0, &payload, false);
+        bar.inc(1);
+        if let Some(f) = finished {
+            let row = training_episode(&f, 0, collector.decisions(), algo.steps());
+            episodes.write(&row)?;
+            recent.push(row.progress);
+            if recent.len() > 10 {
+                recent.remove(0);
+            }
+        }
+        if learning {
+            debt += t.train_ratio;
+            while debt >= 1.0 {
+                let Some(batch) = sample(&buffer, spec, &mut rng) else {
+                    debt = debt.min(1.0);
+                    break;
+                };
+                let mut m = algo.train_step(&batch)?;
+                debt -= 1.0;
+                let steps = algo.steps();
+                stale_policy |= steps % t.policy_every == 0;
+                if steps % t.log_every == 0 {
+                    m.insert("grad_steps".into(), steps as f64);
+                    m.insert("env_steps".into(), collector.decisions() as f64);
+                    m.insert("seconds".into(), start.elapsed().as_secs_f64());
+                    metrics_log.write(&m)?;
+                }
+                if t.checkpoint_every > 0 && steps % t.checkpoint_every == 0 {
+                    write_checkpoint(dir, algo.as_ref(), &cfg.agent)?;
+                }
+            }
+            if stale_policy && collector.at_episode_boundary() {
+                policy.load(&algo.policy_weights()?)?;
+                stale_policy = false;
+            }
+        }
+        if collector.decisions() % 50 == 0 {
+            bar.set_message(status(algo.as_ref(), &recent, collector.episodes(), &start));
+        }
+    }
+    let last = write_checkpoint(dir, algo.as_ref(), &cfg.agent)?;
+    bar.finish_with_message(status(algo.as_ref(), &recent, collector.episodes(), &start));
+    println!(
+        "trained {} for {} env steps and {} gradient steps in {:.0} s; checkpoint {}",
+        cfg.agent.algo,
+        collector.decisions(),
+        algo.steps(),
+        start.elapsed().as_secs_f64(),
+        last.display()
+    );
+    Ok(())
+}
+
+/// The progress bar's message: gradient steps and their rate, episodes, recent progress.
+fn status(algo: &dyn Algorithm, recent: &[f64], episodes: u64, start: &Instant) -> String {
+    let mean = if recent.is_empty() {
+        0.0
+    } else {
+        recent.iter().sum::<f64>() / recent.len() as f64
+    };
+    format!(
+        "| {} grad steps ({:.1}/s) | {episodes} episodes | progress {mean:.3} (last 10)",
+        algo.steps(),
+        algo.steps() as f64 / start.elapsed().as_secs_f64().max(1e-9)
+    )
+}

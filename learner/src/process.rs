@@ -1,0 +1,99 @@
+//! The learner process (`ctxrace learner`): trains on batches from the run's replay, publishes
+//! the policy weights every `policy_every` gradient steps, logs every `log_every` and
+//! checkpoints every `checkpoint_every` (and on SIGTERM/SIGINT). It resumes from the newest
+//! checkpoint of the run directory, so a restarted learner carries on where it stopped.
+
+use crate::checkpoint::{latest_checkpoint, write_checkpoint};
+use crate::runlog::MetricsLog;
+use anyhow::{Context as _, Result};
+use ctxrace_common::ipc::{
+    ReplayClient, RunTransport, WeightsPublisher, DEFAULT_MAX_WEIGHTS_BYTES,
+};
+use ctxrace_common::policy::ACT_DIM;
+use ctxrace_common::ExperimentConfig;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+/// How long the learner waits for the replay to come up.
+const HANDSHAKE: Duration = Duration::from_secs(60);
+/// How long one batch request waits before the learner checks for signals again.
+const BATCH_WAIT: Duration = Duration::from_millis(200);
+
+/// What a learner process needs.
+pub struct LearnerOptions {
+    /// The run's iceoryx2 prefix.
+    pub prefix: String,
+    /// Actors in the run.
+    pub actors: usize,
+    /// The run directory (checkpoints, metrics).
+    pub run_dir: PathBuf,
+    /// The experiment.
+    pub experiment: ExperimentConfig,
+    /// Size of one observation frame.
+    pub frame_dim: usize,
+}
+
+/// Gradient steps a run takes in all: `train_ratio` per env step after the prefill.
+pub fn target_steps(cfg: &ExperimentConfig) -> u64 {
+    let t = &cfg.train;
+    (t.env_steps.saturating_sub(t.prefill) as f64 * t.train_ratio).round() as u64
+}
+
+/// Trains until the run's gradient-step target or SIGTERM/SIGINT; returns the steps taken.
+pub fn run(opts: LearnerOptions) -> Result<u64> {
+    let cfg = &opts.experiment;
+    let t = &cfg.train;
+    ctxrace_common::nn::set_threads(t.threads);
+    let mut algo = crate::build(&cfg.agent, opts.frame_dim)?;
+    if let Some(ckpt) = latest_checkpoint(&opts.run_dir) {
+        algo.load(&ckpt)
+            .with_context(|| format!("resuming from {}", ckpt.display()))?;
+        tracing::info!(
+            "learner resumed from {} at step {}",
+            ckpt.display(),
+            algo.steps()
+        );
+    }
+    let transport = RunTransport::open(&opts.prefix, opts.actors, "learner")?;
+    let weights = WeightsPublisher::new(&transport, DEFAULT_MAX_WEIGHTS_BYTES)?;
+    weights.publish(algo.steps(), &algo.policy_weights()?)?;
+    let mut replay = ReplayClient::new(&transport, opts.frame_dim, ACT_DIM, HANDSHAKE)?;
+    let mut log = MetricsLog::open(&opts.run_dir)?;
+    let spec = cfg.agent.batch_spec();
+    let target = target_steps(cfg);
+    let start = Instant::now();
+    let first = algo.steps();
+    while algo.steps() < target {
+        if transport.node().wait(Duration::ZERO).is_err() {
+            break; // SIGTERM or SIGINT
+        }
+        let Some(batch) = replay.next_batch(spec, BATCH_WAIT)? else {
+            continue;
+        };
+        let mut m = algo.train_step(&batch)?;
+        let steps = algo.steps();
+        if steps % t.policy_every == 0 {
+            weights.publish(steps, &algo.policy_weights()?)?;
+        }
+        if steps % t.log_every == 0 {
+            m.insert("grad_steps".into(), steps as f64);
+            m.insert("seconds".into(), start.elapsed().as_secs_f64());
+            m.insert(
+                "grad_steps_per_second".into(),
+                (steps - first) as f64 / start.elapsed().as_secs_f64(),
+            );
+            log.write(&m)?;
+        }
+        if t.checkpoint_every > 0 && steps % t.checkpoint_every == 0 {
+            write_checkpoint(&opts.run_dir, algo.as_ref(), &cfg.agent)?;
+        }
+    }
+    weights.publish(algo.steps(), &algo.policy_weights()?)?;
+    let last = write_checkpoint(&opts.run_dir, algo.as_ref(), &cfg.agent)?;
+    tracing::info!(
+        "learner stopping at step {}: {}",
+        algo.steps(),
+        last.display()
+    );
+    Ok(algo.steps())
+}
