@@ -34,8 +34,25 @@ pub struct ActorOptions {
     pub track: Arc<Track>,
 }
 
-/// Runs the actor until SIGTERM/SIGINT; returns the steps it sent.
-pub fn run(opts: ActorOptions) -> Result<u64> {
+/// What an actor did, reported when it stops.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct ActorReport {
+    /// The actor's id.
+    pub id: u32,
+    /// Its earlier starts.
+    pub incarnation: u64,
+    /// Decisions taken.
+    pub decisions: u64,
+    /// Steps delivered to the replay.
+    pub sent_steps: u64,
+    /// Steps dropped (replay full past the timeout, or gone).
+    pub dropped_steps: u64,
+    /// Policy versions loaded, in order.
+    pub versions: Vec<u64>,
+}
+
+/// Runs the actor until SIGTERM/SIGINT.
+pub fn run(opts: ActorOptions) -> Result<ActorReport> {
     ctxrace_common::nn::set_threads(1);
     let cfg = &opts.experiment;
     let env = RaceEnv::new(opts.track.clone(), cfg.race.clone())?;
@@ -61,6 +78,7 @@ pub fn run(opts: ActorOptions) -> Result<u64> {
     let prefill = cfg.train.prefill / opts.actors.max(1) as u64;
     let mut policy: Option<(u64, Policy)> = None;
     let mut last_beat = Instant::now() - HEARTBEAT_EVERY;
+    let mut versions = Vec::new();
     loop {
         if transport.node().wait(Duration::ZERO).is_err() {
             break; // SIGTERM or SIGINT
@@ -124,5 +142,12 @@ pub fn run(opts: ActorOptions) -> Result<u64> {
         stats.sent_steps,
         stats.dropped_steps
     );
-    Ok(stats.sent_steps)
+    Ok(ActorReport {
+        id: opts.id,
+        incarnation: opts.incarnation,
+        decisions: collector.decisions(),
+        sent_steps: stats.sent_steps,
+        dropped_steps: stats.dropped_steps,
+        versions,
+    })
 }

@@ -10,6 +10,11 @@ use ctxrace_common::ExperimentConfig;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+/// File in the run directory with the replay's final counters.
+pub const REPLAY_REPORT: &str = "replay-status.json";
+/// Folder of the run directory with each actor start's final report.
+pub const ACTOR_REPORTS: &str = "actors";
+
 /// What every role is told.
 #[derive(Args, Clone, Debug)]
 pub struct RoleArgs {
@@ -67,9 +72,20 @@ pub fn replay(args: RoleArgs) -> Result<()> {
         options: replay_options(&cfg, &args.run_dir),
         handle_signals: true,
     };
-    let status = ctxrace_replay::run(&replay_args, &Default::default())?;
-    tracing::info!("replay stopped: {status:?}");
-    Ok(())
+    let s = ctxrace_replay::run(&replay_args, &Default::default())?;
+    tracing::info!("replay stopped: {s:?}");
+    let report = serde_json::json!({
+        "inserted": s.inserted,
+        "sampled": s.sampled,
+        "fill": s.fill,
+        "capacity": s.capacity,
+        "dropped_chunks": s.dropped_chunks,
+        "rejected": s.rejected,
+        "batches": s.batches,
+        "samples_per_insert": replay_args.options.samples_per_insert,
+        "min_fill": replay_args.options.min_fill,
+    });
+    crate::results::write_json(&args.run_dir.join(REPLAY_REPORT), &report)
 }
 
 /// Runs `ctxrace learner`.
@@ -89,7 +105,7 @@ pub fn learner(args: RoleArgs) -> Result<()> {
 pub fn actor(args: ActorArgs) -> Result<()> {
     let experiment = read_experiment(&args.role.run_dir)?;
     let track = Arc::new(args.tracks.load(&experiment.track)?);
-    ctxrace_actor::process::run(ctxrace_actor::process::ActorOptions {
+    let report = ctxrace_actor::process::run(ctxrace_actor::process::ActorOptions {
         prefix: args.role.prefix,
         id: args.id,
         actors: args.role.actors,
@@ -97,5 +113,8 @@ pub fn actor(args: ActorArgs) -> Result<()> {
         experiment,
         track,
     })?;
-    Ok(())
+    let dir = args.role.run_dir.join(ACTOR_REPORTS);
+    std::fs::create_dir_all(&dir)?;
+    let name = format!("actor-{}-{}.json", args.id, args.incarnation);
+    crate::results::write_json(&dir.join(name), &report)
 }
