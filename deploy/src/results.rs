@@ -152,8 +152,7 @@ pub fn summarise(episodes: &[EpisodeRecord], train_range: f64) -> Vec<ContextSum
                 .filter(|e| e.context_speed == cv && e.context_steer == ct)
                 .collect();
             let n = eps.len() as f64;
-            let mean =
-                |f: &dyn Fn(&EpisodeRecord) -> f64| eps.iter().map(|e| f(e)).sum::<f64>() / n;
+            let mean = |f: &dyn Fn(&EpisodeRecord) -> f64| eps.iter().map(|e| f(e)).sum::<f64>() / n;
             ContextSummary {
                 context_speed: cv,
                 context_steer: ct,
@@ -172,8 +171,8 @@ pub fn summarise(episodes: &[EpisodeRecord], train_range: f64) -> Vec<ContextSum
 
 /// Reads every row of a CSV file with a header.
 pub fn read_csv<T: DeserializeOwned>(path: &Path) -> Result<Vec<T>> {
-    let mut reader =
-        csv::Reader::from_path(path).with_context(|| format!("opening {}", path.display()))?;
+    let mut reader = csv::Reader::from_path(path)
+        .with_context(|| format!("opening {}", path.display()))?;
     reader
         .deserialize()
         .enumerate()
@@ -183,14 +182,12 @@ pub fn read_csv<T: DeserializeOwned>(path: &Path) -> Result<Vec<T>> {
 
 /// Writes rows as a CSV file with a header (replacing the file).
 pub fn write_csv<T: Serialize>(path: &Path, rows: &[T]) -> Result<()> {
-    let mut writer =
-        csv::Writer::from_path(path).with_context(|| format!("creating {}", path.display()))?;
+    let mut writer = csv::Writer::from_path(path)
+        .with_context(|| format!("creating {}", path.display()))?;
     for row in rows {
         writer.serialize(row)?;
     }
-    writer
-        .flush()
-        .with_context(|| format!("writing {}", path.display()))
+    writer.flush().with_context(|| format!("writing {}", path.display()))
 }
 
 /// Reads a JSON file.
