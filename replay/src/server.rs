@@ -126,14 +126,18 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
         ..Default::default()
     };
     loop {
-        let taken = if limiter.can_insert(1) {
-            chunks.receive(CHUNKS_PER_TURN, |c| {
+        // The limiter is asked before every chunk: too fast actors wait in backpressure.
+        let mut taken = 0;
+        while taken < CHUNKS_PER_TURN && limiter.can_insert(1) {
+            let got = chunks.receive(1, |c| {
                 buffer.insert_chunk(c.header.actor_id as usize, c.payload, c.after_gap);
                 limiter.inserted(u64::from(c.header.steps));
-            })?
-        } else {
-            0
-        };
+            })?;
+            if got == 0 {
+                break;
+            }
+            taken += got;
+        }
         control.inserted.store(limiter.inserts(), Ordering::Release);
         // Closing actors wait for a turn after their last send (see TrajectorySender).
         beacon.signal();

@@ -227,3 +227,66 @@ fn a_stuck_replay_does_not_freeze_the_actor() {
     let report = cleanup(&prefix).unwrap();
     assert_eq!(report.alive_nodes, 0);
 }
+
+#[test]
+fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
+    let isolated = Isolated::new("ratio");
+    let prefix = isolated.0.clone();
+    // 0.5 sampled steps per inserted step after 200 inserts, 100 inserts of slack either way.
+    let args = ReplayArgs {
+        prefix: prefix.clone(),
+        actors: 1,
+        obs_dim: OBS,
+        act_dim: ACT,
+        options: ReplayOptions {
+            capacity: 10_000,
+            min_fill: 200,
+            samples_per_insert: 0.5,
+            error_buffer_steps: 100.0,
+            snapshot_every_secs: 0,
+            ..Default::default()
+        },
+        handle_signals: false,
+    };
+    let control = Arc::new(ReplayControl::default());
+    let replay = {
+        let (a, c) = (args.clone(), control.clone());
+        thread::spawn(move || run(&a, &c))
+    };
+    let t = RunTransport::open(&prefix, 1, "actor0").unwrap();
+    let mut tx = TrajectorySender::new(&t, 0, OBS, ACT, SenderOptions::default()).unwrap();
+    for k in 0..600u64 {
+        let step = Step {
+            obs: &[0.0, k as f32, 0.0],
+            action: &[0.0, 0.0],
+            reward: 0.0,
+            is_first: k.is_multiple_of(100),
+            is_terminal: false,
+            is_last: k % 100 == 99,
+            context: [0.0, 0.0],
+        };
+        tx.push(k / 100, 0, &step).unwrap();
+    }
+    let mut client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(10)).unwrap();
+    let spec = BatchSpec::Transition {
+        batch: 50,
+        frames: 1,
+    };
+    let mut batches = 0;
+    while client
+        .next_batch(spec, Duration::from_millis(500))
+        .unwrap()
+        .is_some()
+    {
+        batches += 1;
+        assert!(batches < 100, "the limiter let too much through");
+    }
+    control.shutdown.store(true, Ordering::Release);
+    let status = replay.join().unwrap().unwrap();
+    // 600 inserts allow 0.5·600 samples less the slack of 0.5·100: 250 samples = 5 batches.
+    assert_eq!(status.inserted, 600);
+    assert_eq!(batches, 5);
+    assert_eq!(status.sampled, 250);
+    assert_eq!(status.pending_requests, 1);
+    drop(tx);
+}

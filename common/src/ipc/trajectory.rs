@@ -323,11 +323,6 @@ impl TrajectoryReceiver {
         })
     }
 
-    /// Whether chunks are waiting.
-    pub fn has_chunks(&self) -> bool {
-        self.subscriber.has_samples().unwrap_or(false)
-    }
-
     /// Takes up to `max_chunks` waiting chunks, handing each valid one to `f`; malformed ones
     /// are counted, logged and skipped. Returns the number of chunks taken (valid or not).
     pub fn receive(&mut self, max_chunks: usize, mut f: impl FnMut(ChunkView)) -> Result<usize> {
