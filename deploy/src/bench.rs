@@ -100,6 +100,10 @@ fn run_ipc(args: IpcArgs) -> Result<()> {
             "(goal < 10 ms NOT met)"
         }
     );
+    println!(
+        "  of which send   {:>5.2} ms      {:>5.2} ms",
+        i.broadcast_send_ms_p50, u.broadcast_send_ms_p50
+    );
     Ok(())
 }
 

@@ -67,9 +67,15 @@ impl WeightsPublisher {
             .chunks_mut(HASH_BLOCK)
             .zip(bytes.chunks(HASH_BLOCK))
         {
-            for (d, s) in dst.iter_mut().zip(src) {
-                d.write(*s);
-            }
+            // SAFETY: `dst` and `src` have the same length (equal-sized blocks of equal-length
+            // slices), do not overlap (one is shared memory), and u8 has no invalid values.
+            unsafe {
+                std::ptr::copy_nonoverlapping(
+                    src.as_ptr(),
+                    dst.as_mut_ptr().cast::<u8>(),
+                    src.len(),
+                )
+            };
             hasher.update(src);
         }
         *sample.user_header_mut() = WeightsHeader {
