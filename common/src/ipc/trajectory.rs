@@ -207,13 +207,29 @@ impl TrajectorySender {
         if steps == 0 {
             return Ok(());
         }
-        let mut sample = self
-            .publisher
-            .loan_slice_uninit(self.buf.len())
-            .map_err(ice("loan chunk"))?;
-        *sample.user_header_mut() = self.header;
-        let sample = sample.write_from_slice(&self.buf);
-        let delivered = sample.send().map_err(ice("send chunk"))?;
+        let start = Instant::now();
+        let delivered = loop {
+            let mut sample = self
+                .publisher
+                .loan_slice_uninit(self.buf.len())
+                .map_err(ice("loan chunk"))?;
+            *sample.user_header_mut() = self.header;
+            let sample = sample.write_from_slice(&self.buf);
+            let delivered = sample.send().map_err(ice("send chunk"))?;
+            // Not delivered without the backpressure handler giving up (the connection was
+            // momentarily unable to take it): retry after the replay's next turn, within the
+            // timeout.
+            if delivered > 0
+                || self.congested.load(Ordering::Relaxed)
+                || start.elapsed() >= self.timeout
+            {
+                break delivered;
+            }
+            let _ = self.wake.notify();
+            self.turns
+                .timed_wait(|_| {}, Duration::from_millis(10))
+                .map_err(ice("wait for replay turn"))?;
+        };
         if delivered > 0 {
             self.congested.store(false, Ordering::Relaxed);
             self.stats.sent_steps += steps;
