@@ -84,13 +84,18 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport> {
             break; // SIGTERM or SIGINT
         }
         if collector.at_episode_boundary() {
-            let newest = weights.latest_with(|version, bytes| match &mut policy {
-                Some((v, p)) => p.load(bytes).map(|_| *v = version),
-                None => Policy::new(&cfg.agent, frame_dim, bytes, seed)
-                    .map(|p| policy = Some((version, p))),
+            let newest = weights.latest_with(|version, bytes| {
+                match &mut policy {
+                    Some((v, p)) => p.load(bytes).map(|_| *v = version),
+                    None => Policy::new(&cfg.agent, frame_dim, bytes, seed)
+                        .map(|p| policy = Some((version, p))),
+                }
+                .map(|_| version)
             })?;
-            if let Some(Err(e)) = newest {
-                tracing::warn!("actor {}: weights rejected: {e}", opts.id);
+            match newest {
+                Some(Ok(version)) => versions.push(version),
+                Some(Err(e)) => tracing::warn!("actor {}: weights rejected: {e}", opts.id),
+                None => {}
             }
         }
         let version = policy.as_ref().map_or(0, |(v, _)| *v);

@@ -1,4 +1,5 @@
-//! `ctxrace bench sim`: simulator throughput on one core.
+//! `ctxrace bench sim`: simulator throughput on one core; `ctxrace bench ipc`: the shared-memory
+//! transport against a Unix-socket baseline.
 
 use crate::TrackArgs;
 use anyhow::Result;
@@ -16,6 +17,94 @@ pub enum BenchCommand {
     /// Decisions/s and physics steps/s of whole races (ego LiDAR, rivals, collisions, resets) on
     /// one core; contexts cycle through the 7 × 7 evaluation grid.
     Sim(SimArgs),
+    /// Env steps/s from N actors into replay, batch latency, and the broadcast latency of weights
+    /// to M subscribers, over iceoryx2 and over Unix sockets with bincode (the baseline).
+    Ipc(IpcArgs),
+}
+
+/// Arguments of `ctxrace bench ipc`.
+#[derive(Args)]
+pub struct IpcArgs {
+    /// Actor threads.
+    #[arg(long, default_value_t = 4)]
+    actors: usize,
+    /// Steps each actor sends.
+    #[arg(long, default_value_t = 250_000)]
+    steps: usize,
+    /// Observation size.
+    #[arg(long, default_value_t = 108)]
+    obs_dim: usize,
+    /// Weights size in MiB.
+    #[arg(long, default_value_t = 10)]
+    weights_mib: usize,
+    /// Weights subscribers.
+    #[arg(long, default_value_t = 8)]
+    subscribers: usize,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Runs `ctxrace bench ipc`.
+fn run_ipc(args: IpcArgs) -> Result<()> {
+    let opts = ctxrace_replay::IpcBenchOptions {
+        actors: args.actors,
+        steps_per_actor: args.steps,
+        obs_dim: args.obs_dim,
+        weights_bytes: args.weights_mib << 20,
+        subscribers: args.subscribers,
+        ..Default::default()
+    };
+    let r = ctxrace_replay::run_ipc_bench(&opts)?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&r)?);
+        return Ok(());
+    }
+    let (i, u) = (&r.iceoryx2, &r.uds_bincode);
+    println!(
+        "{} actors x {} steps (obs {}), batches {}x{}, {} MiB weights to {} subscribers",
+        opts.actors,
+        opts.steps_per_actor,
+        opts.obs_dim,
+        opts.batch,
+        opts.length,
+        args.weights_mib,
+        opts.subscribers
+    );
+    println!("                 iceoryx2     uds+bincode   ratio");
+    println!(
+        "steps/s         {:>10.0}   {:>10.0}   {:>5.1}x {}",
+        i.steps_per_sec,
+        u.steps_per_sec,
+        r.steps_ratio,
+        if r.steps_goal_met {
+            "(goal >= 1M met)"
+        } else {
+            "(goal >= 1M NOT met)"
+        }
+    );
+    println!(
+        "batch p50/p90   {:>5.2}/{:<5.2}ms {:>5.2}/{:<5.2}ms {:>5.1}x",
+        i.batch_ms_p50, i.batch_ms_p90, u.batch_ms_p50, u.batch_ms_p90, r.batch_speedup
+    );
+    println!(
+        "broadcast p50/p90 {:>5.2}/{:<5.2}ms {:>5.2}/{:<5.2}ms {:>5.1}x {}",
+        i.broadcast_ms_p50,
+        i.broadcast_ms_p90,
+        u.broadcast_ms_p50,
+        u.broadcast_ms_p90,
+        r.broadcast_speedup,
+        if r.broadcast_goal_met {
+            "(goal < 10 ms met)"
+        } else {
+            "(goal < 10 ms NOT met)"
+        }
+    );
+    println!(
+        "  of which send   {:>5.2} ms      {:>5.2} ms",
+        i.broadcast_send_ms_p50, u.broadcast_send_ms_p50
+    );
+    Ok(())
 }
 
 /// Arguments of `ctxrace bench sim`.
@@ -53,7 +142,10 @@ struct SimReport {
 
 /// Runs a benchmark.
 pub fn run(cmd: BenchCommand) -> Result<()> {
-    let BenchCommand::Sim(args) = cmd;
+    let args = match cmd {
+        BenchCommand::Sim(args) => args,
+        BenchCommand::Ipc(args) => return run_ipc(args),
+    };
     if !(args.seconds.is_finite() && args.seconds > 0.0) {
         anyhow::bail!("--seconds {} must be a positive number", args.seconds);
     }

@@ -67,6 +67,8 @@ pub fn run(opts: LearnerOptions) -> Result<u64> {
         if transport.node().wait(Duration::ZERO).is_err() {
             break; // SIGTERM or SIGINT
         }
+        // late or restarted actors get the newest weights only when the publisher acts
+        weights.update_connections()?;
         let Some(batch) = replay.next_batch(spec, BATCH_WAIT)? else {
             continue;
         };

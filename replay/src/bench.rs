@@ -77,6 +77,8 @@ pub struct TransportFigures {
     pub broadcast_ms_p50: f64,
     /// 90th percentile broadcast latency (ms).
     pub broadcast_ms_p90: f64,
+    /// Median time the learner spends sending one broadcast (ms).
+    pub broadcast_send_ms_p50: f64,
 }
 
 /// The benchmark's result.
@@ -188,9 +190,10 @@ fn iceoryx_figures(
             status.inserted
         ));
     }
-    let (p50, p90) = iceoryx_broadcast(opts, weights_prefix)?;
+    let (p50, p90, send) = iceoryx_broadcast(opts, weights_prefix)?;
     figures.broadcast_ms_p50 = p50;
     figures.broadcast_ms_p90 = p90;
+    figures.broadcast_send_ms_p50 = send;
     Ok(figures)
 }
 
@@ -274,8 +277,8 @@ fn iceoryx_measure(
     })
 }
 
-/// Weights broadcast latencies (p50, p90) in ms over iceoryx2.
-fn iceoryx_broadcast(opts: &IpcBenchOptions, prefix: &str) -> Result<(f64, f64)> {
+/// Weights broadcast latencies (p50, p90, send p50) in ms over iceoryx2.
+fn iceoryx_broadcast(opts: &IpcBenchOptions, prefix: &str) -> Result<(f64, f64, f64)> {
     let t = RunTransport::open(prefix, opts.subscribers, "learner")?;
     let publisher = WeightsPublisher::new(&t, opts.weights_bytes)?;
     let base = Instant::now();
@@ -315,10 +318,11 @@ fn iceoryx_broadcast(opts: &IpcBenchOptions, prefix: &str) -> Result<(f64, f64)>
         .collect();
     barrier.wait();
     let weights: Vec<u8> = (0..opts.weights_bytes).map(|i| (i * 31) as u8).collect();
-    let mut lat = Vec::new();
+    let (mut lat, mut send) = (Vec::new(), Vec::new());
     for version in 1..=opts.broadcasts as u64 {
         let sent = base.elapsed().as_secs_f64() * 1e3;
         publisher.publish(version, &weights)?;
+        send.push(base.elapsed().as_secs_f64() * 1e3 - sent);
         let mut last = 0.0f64;
         for _ in 0..opts.subscribers {
             let (v, at) = done_rx
@@ -335,7 +339,11 @@ fn iceoryx_broadcast(opts: &IpcBenchOptions, prefix: &str) -> Result<(f64, f64)>
         s.join()
             .map_err(|_| anyhow!("subscriber thread panicked"))?;
     }
-    Ok((percentile(lat.clone(), 0.5), percentile(lat, 0.9)))
+    Ok((
+        percentile(lat.clone(), 0.5),
+        percentile(lat, 0.9),
+        percentile(send, 0.5),
+    ))
 }
 
 /// A chunk as the baseline sends it.
@@ -556,7 +564,7 @@ fn uds_figures(opts: &IpcBenchOptions) -> Result<TransportFigures> {
         .map(|_| Ok(BufWriter::with_capacity(1 << 20, listener.accept()?.0)))
         .collect::<Result<_>>()?;
     let bytes: Vec<u8> = (0..opts.weights_bytes).map(|i| (i * 31) as u8).collect();
-    let mut blat = Vec::new();
+    let (mut blat, mut bsend) = (Vec::new(), Vec::new());
     for version in 1..=opts.broadcasts as u64 {
         let sent = base.elapsed().as_secs_f64() * 1e3;
         let wts = UdsWeights {
@@ -568,6 +576,7 @@ fn uds_figures(opts: &IpcBenchOptions) -> Result<TransportFigures> {
             send_frame(c, &wts)?;
             c.flush()?;
         }
+        bsend.push(base.elapsed().as_secs_f64() * 1e3 - sent);
         let mut last = 0.0f64;
         for _ in 0..opts.subscribers {
             let (v, at) = done_rx
@@ -590,6 +599,7 @@ fn uds_figures(opts: &IpcBenchOptions) -> Result<TransportFigures> {
         batch_ms_p90: percentile(lat, 0.9),
         broadcast_ms_p50: percentile(blat.clone(), 0.5),
         broadcast_ms_p90: percentile(blat, 0.9),
+        broadcast_send_ms_p50: percentile(bsend, 0.5),
     })
 }
 

@@ -1,6 +1,7 @@
 //! The replay process loop: chunks in, batches out when the rate limiter allows, status out,
-//! snapshots periodically and on shutdown; every turn ends with a beacon signal. It sleeps in an iceoryx2 `WaitSet` on the run's
-//! `wake_replay` event and a 100 ms tick, so it returns on SIGTERM/SIGINT too.
+//! snapshots periodically and on shutdown. Every turn ends with a beacon signal (closing actors
+//! wait for one). It sleeps in an iceoryx2 `WaitSet` on the run's `wake_replay` event and a
+//! 100 ms tick, so it returns on SIGTERM/SIGINT too.
 
 use crate::buffer::ReplayBuffer;
 use crate::limiter::RateLimiter;
@@ -94,7 +95,7 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
         .attach_interval(TICK)
         .map_err(|e| anyhow!("iceoryx2: attach tick: {e:?}"))?;
     let beacon = ReplayBeacon::new(&transport)?;
-    beacon.signal()?;
+    beacon.signal();
     control.ready.store(true, Ordering::Release);
     tracing::info!(
         "replay up: prefix {}, {} actors, {} of {} steps held",
@@ -125,17 +126,21 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
         ..Default::default()
     };
     loop {
-        let taken = if limiter.can_insert(1) {
-            chunks.receive(CHUNKS_PER_TURN, |c| {
+        // The limiter is asked before every chunk: too fast actors wait in backpressure.
+        let mut taken = 0;
+        while taken < CHUNKS_PER_TURN && limiter.can_insert(1) {
+            let got = chunks.receive(1, |c| {
                 buffer.insert_chunk(c.header.actor_id as usize, c.payload, c.after_gap);
                 limiter.inserted(u64::from(c.header.steps));
-            })?
-        } else {
-            0
-        };
+            })?;
+            if got == 0 {
+                break;
+            }
+            taken += got;
+        }
         control.inserted.store(limiter.inserts(), Ordering::Release);
         // Closing actors wait for a turn after their last send (see TrajectorySender).
-        beacon.signal()?;
+        beacon.signal();
         pending.extend(server.receive_requests()?);
         while let Some(&(request, spec)) = pending.front() {
             let n = match spec {

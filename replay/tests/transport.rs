@@ -1,8 +1,8 @@
 //! Actors, replay and learner on threads of one process over a private iceoryx2 prefix.
 
 use ctxrace_common::ipc::{
-    cleanup, run_prefix, Batch, BatchSpec, ReplayClient, RunTransport, SenderOptions, Step,
-    TrajectorySender,
+    cleanup, run_prefix, Batch, BatchSpec, ReplayBeacon, ReplayClient, RunTransport, SenderOptions,
+    Step, TrajectoryReceiver, TrajectorySender, TRAJECTORY_BUFFER,
 };
 use ctxrace_common::ReplayOptions;
 use ctxrace_replay::{read_snapshot, run, ReplayArgs, ReplayControl};
@@ -10,6 +10,21 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::thread;
 use std::time::{Duration, Instant};
+
+/// Removes the test's prefix even when the test panics (best effort: nodes still alive keep it).
+struct Isolated(String);
+
+impl Isolated {
+    fn new(name: &str) -> Self {
+        Self(run_prefix(&format!("test-{name}-{}", std::process::id())))
+    }
+}
+
+impl Drop for Isolated {
+    fn drop(&mut self) {
+        let _ = cleanup(&self.0);
+    }
+}
 
 const OBS: usize = 3;
 const ACT: usize = 2;
@@ -68,7 +83,8 @@ fn actor(prefix: String, id: u32, poison: bool) -> ctxrace_common::ipc::SenderSt
 
 #[test]
 fn two_actors_fill_the_replay_and_the_learner_gets_batches() {
-    let prefix = run_prefix(&format!("test-transport-{}", std::process::id()));
+    let isolated = Isolated::new("transport");
+    let prefix = isolated.0.clone();
     let dir = tempfile::tempdir().unwrap();
     let snap = dir.path().join("replay.snap");
     let args = ReplayArgs {
@@ -166,4 +182,111 @@ fn two_actors_fill_the_replay_and_the_learner_gets_batches() {
         .unwrap()
         .flatten()
         .any(|e| e.file_name().to_string_lossy().starts_with(&prefix)));
+}
+
+#[test]
+fn a_stuck_replay_does_not_freeze_the_actor() {
+    let isolated = Isolated::new("stuck");
+    let prefix = isolated.0.clone();
+    {
+        let t = RunTransport::open(&prefix, 1, "replay").unwrap();
+        // A replay that comes up and then never reads.
+        let _stuck = TrajectoryReceiver::new(&t, OBS, ACT).unwrap();
+        ReplayBeacon::new(&t).unwrap().signal();
+        let a = RunTransport::open(&prefix, 1, "actor0").unwrap();
+        let opts = SenderOptions {
+            handshake_timeout: Duration::from_secs(5),
+            backpressure_timeout: Duration::from_millis(50),
+        };
+        let mut tx = TrajectorySender::new(&a, 0, OBS, ACT, opts).unwrap();
+        let start = Instant::now();
+        let chunks = TRAJECTORY_BUFFER + 20;
+        for k in 0..chunks {
+            let step = Step {
+                obs: &[0.0, k as f32, 0.0],
+                action: &[0.0, 0.0],
+                reward: 0.0,
+                is_first: true,
+                is_terminal: false,
+                is_last: true,
+                context: [0.0, 0.0],
+            };
+            tx.push(k as u64, 0, &step).unwrap();
+        }
+        let stats = tx.close().unwrap();
+        // One send waits out the timeout; the rest of the congestion drops at once.
+        assert!(
+            start.elapsed() < Duration::from_secs(2),
+            "{:?}",
+            start.elapsed()
+        );
+        assert_eq!(stats.sent_chunks + stats.dropped_chunks, chunks as u64);
+        assert_eq!(stats.sent_chunks, TRAJECTORY_BUFFER as u64);
+        assert_eq!(stats.dropped_steps, 20);
+    }
+    let report = cleanup(&prefix).unwrap();
+    assert_eq!(report.alive_nodes, 0);
+}
+
+#[test]
+fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
+    let isolated = Isolated::new("ratio");
+    let prefix = isolated.0.clone();
+    // 0.5 sampled steps per inserted step after 200 inserts, 100 inserts of slack either way.
+    let args = ReplayArgs {
+        prefix: prefix.clone(),
+        actors: 1,
+        obs_dim: OBS,
+        act_dim: ACT,
+        options: ReplayOptions {
+            capacity: 10_000,
+            min_fill: 200,
+            samples_per_insert: 0.5,
+            error_buffer_steps: 100.0,
+            snapshot_every_secs: 0,
+            ..Default::default()
+        },
+        handle_signals: false,
+    };
+    let control = Arc::new(ReplayControl::default());
+    let replay = {
+        let (a, c) = (args.clone(), control.clone());
+        thread::spawn(move || run(&a, &c))
+    };
+    let t = RunTransport::open(&prefix, 1, "actor0").unwrap();
+    let mut tx = TrajectorySender::new(&t, 0, OBS, ACT, SenderOptions::default()).unwrap();
+    for k in 0..600u64 {
+        let step = Step {
+            obs: &[0.0, k as f32, 0.0],
+            action: &[0.0, 0.0],
+            reward: 0.0,
+            is_first: k.is_multiple_of(100),
+            is_terminal: false,
+            is_last: k % 100 == 99,
+            context: [0.0, 0.0],
+        };
+        tx.push(k / 100, 0, &step).unwrap();
+    }
+    let mut client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(10)).unwrap();
+    let spec = BatchSpec::Transition {
+        batch: 50,
+        frames: 1,
+    };
+    let mut batches = 0;
+    while client
+        .next_batch(spec, Duration::from_millis(500))
+        .unwrap()
+        .is_some()
+    {
+        batches += 1;
+        assert!(batches < 100, "the limiter let too much through");
+    }
+    control.shutdown.store(true, Ordering::Release);
+    let status = replay.join().unwrap().unwrap();
+    // 600 inserts allow 0.5·600 samples less the slack of 0.5·100: 250 samples = 5 batches.
+    assert_eq!(status.inserted, 600);
+    assert_eq!(batches, 5);
+    assert_eq!(status.sampled, 250);
+    assert_eq!(status.pending_requests, 1);
+    drop(tx);
 }

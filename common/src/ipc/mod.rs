@@ -26,7 +26,9 @@ pub use telemetry::{MetricsPublisher, StatusPublisher, TelemetrySubscriber};
 pub use trajectory::{
     ChunkView, ReplayBeacon, SenderOptions, SenderStats, Step, TrajectoryReceiver, TrajectorySender,
 };
-pub use transport::{cleanup, iceoryx_config, run_prefix, CleanupReport, RunTransport, Wake};
+pub use transport::{
+    cleanup, iceoryx_config, run_prefix, CleanupReport, RunTransport, Wake, TRAJECTORY_BUFFER,
+};
 pub use weights::{WeightsPublisher, WeightsReceiver, DEFAULT_MAX_WEIGHTS_BYTES};
 pub use wire::{
     BatchHeader, BatchRequest, ChunkHeader, EpisodeMetrics, Heartbeat, ReplayStatus, WeightsHeader,

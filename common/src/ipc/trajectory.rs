@@ -97,6 +97,8 @@ pub struct TrajectorySender {
     wake: Notifier<ipc::Service>,
     turns: Listener<ipc::Service>,
     timeout: Duration,
+    /// A chunk was delivered since the replay was last seen to take a turn.
+    unconfirmed: bool,
     congested: Arc<AtomicBool>,
     header: ChunkHeader,
     buf: Vec<f32>,
@@ -162,6 +164,7 @@ impl TrajectorySender {
             wake: transport.notifier(Wake::Replay)?,
             turns: ready,
             timeout,
+            unconfirmed: false,
             congested,
             header: ChunkHeader {
                 format_version: FORMAT_VERSION,
@@ -212,17 +215,34 @@ impl TrajectorySender {
         if steps == 0 {
             return Ok(());
         }
-        let mut sample = self
-            .publisher
-            .loan_slice_uninit(self.buf.len())
-            .map_err(ice("loan chunk"))?;
-        *sample.user_header_mut() = self.header;
-        let sample = sample.write_from_slice(&self.buf);
-        let delivered = sample.send().map_err(ice("send chunk"))?;
+        let start = Instant::now();
+        let delivered = loop {
+            let mut sample = self
+                .publisher
+                .loan_slice_uninit(self.buf.len())
+                .map_err(ice("loan chunk"))?;
+            *sample.user_header_mut() = self.header;
+            let sample = sample.write_from_slice(&self.buf);
+            let delivered = sample.send().map_err(ice("send chunk"))?;
+            // Not delivered without the backpressure handler giving up (the connection was
+            // momentarily unable to take it): retry after the replay's next turn, within the
+            // timeout.
+            if delivered > 0
+                || self.congested.load(Ordering::Relaxed)
+                || start.elapsed() >= self.timeout
+            {
+                break delivered;
+            }
+            let _ = self.wake.notify();
+            self.turns
+                .timed_wait(|_| {}, Duration::from_millis(10))
+                .map_err(ice("wait for replay turn"))?;
+        };
         if delivered > 0 {
             self.congested.store(false, Ordering::Relaxed);
             self.stats.sent_steps += steps;
             self.stats.sent_chunks += 1;
+            self.unconfirmed = true;
             // A lost wake-up only delays the replay until its next timer tick.
             let _ = self.wake.notify();
         } else {
@@ -232,6 +252,10 @@ impl TrajectorySender {
         self.header.sequence += 1;
         self.header.steps = 0;
         self.buf.clear();
+        // Keep the replay's turn signals from piling up until close.
+        self.turns
+            .try_wait(|_| {})
+            .map_err(ice("drain replay turns"))?;
         Ok(())
     }
 
@@ -249,7 +273,7 @@ impl TrajectorySender {
 
     fn finish(&mut self) -> Result<()> {
         self.flush()?;
-        if self.stats.sent_chunks == 0 {
+        if !self.unconfirmed {
             return Ok(());
         }
         self.turns
@@ -267,7 +291,7 @@ impl TrajectorySender {
                 .timed_wait(|_| {}, left)
                 .map_err(ice("wait for replay turn"))?;
         }
-        self.stats.sent_chunks = 0;
+        self.unconfirmed = false;
         Ok(())
     }
 }
@@ -321,11 +345,6 @@ impl TrajectoryReceiver {
             missing_chunks: 0,
             rejects: RejectLog::new("trajectory chunk"),
         })
-    }
-
-    /// Whether chunks are waiting.
-    pub fn has_chunks(&self) -> bool {
-        self.subscriber.has_samples().unwrap_or(false)
     }
 
     /// Takes up to `max_chunks` waiting chunks, handing each valid one to `f`; malformed ones
@@ -384,9 +403,9 @@ impl ReplayBeacon {
         })
     }
 
-    /// Signals readiness (on start) or the end of a receive turn (each loop turn).
-    pub fn signal(&self) -> Result<()> {
-        self.notifier.notify().map_err(ice("replay beacon"))?;
-        Ok(())
+    /// Signals readiness (on start) or the end of a receive turn (each loop turn). Never
+    /// fails: a listener whose buffer is full (a stuck process) just misses this signal.
+    pub fn signal(&self) {
+        let _ = self.notifier.notify();
     }
 }

@@ -17,6 +17,8 @@ pub const DEFAULT_MAX_WEIGHTS_BYTES: usize = 64 << 20;
 /// Weights slots a publisher preallocates: the history, the buffers and one loan share them,
 /// since receivers copy out at once.
 const WEIGHTS_SLOTS: usize = 4;
+/// Bytes copied and hashed at a time when publishing.
+const HASH_BLOCK: usize = 64 << 10;
 
 /// The learner's weights broadcaster.
 pub struct WeightsPublisher {
@@ -58,16 +60,33 @@ impl WeightsPublisher {
             .publisher
             .loan_slice_uninit(bytes.len())
             .map_err(ice("loan weights"))?;
+        // Copy and checksum block by block: the block is still in cache for the hash.
+        let mut hasher = crc32fast::Hasher::new();
+        for (dst, src) in sample
+            .payload_mut()
+            .chunks_mut(HASH_BLOCK)
+            .zip(bytes.chunks(HASH_BLOCK))
+        {
+            // SAFETY: `dst` and `src` have the same length (equal-sized blocks of equal-length
+            // slices), do not overlap (one is shared memory), and u8 has no invalid values.
+            unsafe {
+                std::ptr::copy_nonoverlapping(
+                    src.as_ptr(),
+                    dst.as_mut_ptr().cast::<u8>(),
+                    src.len(),
+                )
+            };
+            hasher.update(src);
+        }
         *sample.user_header_mut() = WeightsHeader {
             format_version: FORMAT_VERSION,
-            checksum: crc32fast::hash(bytes),
+            checksum: hasher.finalize(),
             version,
             len: bytes.len() as u64,
         };
-        let reached = sample
-            .write_from_slice(bytes)
-            .send()
-            .map_err(ice("send weights"))?;
+        // SAFETY: the loop above wrote every byte of the loaned slice (its length is bytes.len()).
+        let sample = unsafe { sample.assume_init() };
+        let reached = sample.send().map_err(ice("send weights"))?;
         let _ = self.wake.notify();
         Ok(reached)
     }
@@ -179,9 +198,19 @@ mod tests {
     use super::*;
     use crate::ipc::{cleanup, run_prefix};
 
+    /// Removes the test's prefix even when the test panics.
+    struct Isolated(String);
+
+    impl Drop for Isolated {
+        fn drop(&mut self) {
+            let _ = cleanup(&self.0);
+        }
+    }
+
     #[test]
     fn late_subscriber_gets_the_newest_and_bad_checksums_are_rejected() {
-        let prefix = run_prefix(&format!("test-weights-{}", std::process::id()));
+        let isolated = Isolated(run_prefix(&format!("test-weights-{}", std::process::id())));
+        let prefix = isolated.0.clone();
         {
             let t = RunTransport::open(&prefix, 2, "learner").unwrap();
             let publisher = WeightsPublisher::new(&t, 1 << 20).unwrap();
