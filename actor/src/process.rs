@@ -7,11 +7,13 @@ use crate::collect::Collector;
 use crate::race::RaceEnv;
 use anyhow::{Context as _, Result};
 use ctxrace_common::ipc::{
-    Heartbeat, MetricsPublisher, RunTransport, SenderOptions, TrajectorySender, WeightsReceiver,
+    termination_flag, Heartbeat, MetricsPublisher, RunTransport, SenderOptions, TrajectorySender,
+    WeightsReceiver,
 };
 use ctxrace_common::policy::ACT_DIM;
 use ctxrace_common::{ExperimentConfig, Policy};
 use ctxrace_tracks::Track;
+use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -79,10 +81,8 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport> {
     let mut policy: Option<(u64, Policy)> = None;
     let mut last_beat = Instant::now() - HEARTBEAT_EVERY;
     let mut versions = Vec::new();
-    loop {
-        if transport.node().wait(Duration::ZERO).is_err() {
-            break; // SIGTERM or SIGINT
-        }
+    let stop = termination_flag()?;
+    while !stop.load(Ordering::Relaxed) {
         if collector.at_episode_boundary() {
             let newest = weights.latest_with(|version, bytes| {
                 match &mut policy {
@@ -111,7 +111,13 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport> {
                 push_error = sender.push(episode, version, s);
             }
         })?;
-        push_error?;
+        if let Err(e) = push_error {
+            // a signal can interrupt a send; anything else is a real failure
+            if stop.load(Ordering::Relaxed) {
+                break;
+            }
+            return Err(e);
+        }
         if let Some(f) = finished {
             let m = &f.metrics;
             telemetry.episode(ctxrace_common::ipc::EpisodeMetrics {
@@ -140,7 +146,12 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport> {
             last_beat = Instant::now();
         }
     }
-    let stats = sender.close()?;
+    // a send interrupted by the stop signal fails; what was delivered before still counts
+    let before = sender.stats();
+    let stats = sender.close().unwrap_or_else(|e| {
+        tracing::warn!("actor {}: closing the trajectory stream: {e}", opts.id);
+        before
+    });
     tracing::info!(
         "actor {} stopping: {} steps sent, {} dropped",
         opts.id,

@@ -13,12 +13,13 @@ use crate::train::{progress_bar, EpisodeLog};
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use ctxrace_common::ipc::{
-    cleanup, run_prefix, RunTransport, TelemetrySubscriber, WeightsReceiver,
+    cleanup, run_prefix, termination_flag, RunTransport, TelemetrySubscriber, WeightsReceiver,
 };
 use ctxrace_common::ExperimentConfig;
 use std::os::unix::process::CommandExt;
 use std::path::Path;
 use std::process::{Child, Command, ExitStatus};
+use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 /// Longest wait between two restarts of one process.
@@ -265,8 +266,10 @@ fn supervise(
         ..Progress::default()
     };
     let mut tick = Instant::now();
+    let stop = termination_flag()?;
     loop {
-        if transport.node().wait(Duration::from_millis(100)).is_err() {
+        std::thread::sleep(Duration::from_millis(100));
+        if stop.load(Ordering::Relaxed) {
             bar.abandon_with_message("interrupted: stopping (checkpoint, snapshot)");
             return Ok(());
         }
@@ -319,12 +322,15 @@ fn supervise(
                 steps: e.steps as usize,
             })?;
         }
-        // reap and decide
+        // reap and decide; a crashed process's node is cleaned up so that its peers stop
+        // waiting for it
+        let mut crashed = false;
         for proc in actors.iter_mut() {
             if let Some(status) = proc.reap()? {
                 if !proc.retired {
                     tracing::warn!("{} exited ({status}); restarting", proc.name);
                     proc.schedule_restart();
+                    crashed = true;
                 }
             }
         }
@@ -332,6 +338,7 @@ fn supervise(
             if !replay.retired {
                 tracing::warn!("replay exited ({status}); restarting from its snapshot");
                 replay.schedule_restart();
+                crashed = true;
             }
         }
         if let Some(status) = learner.reap()? {
@@ -342,6 +349,11 @@ fn supervise(
             }
             tracing::warn!("learner exited ({status}); restarting from its checkpoint");
             learner.schedule_restart();
+            crashed = true;
+        }
+        if crashed {
+            let (removed, failed) = transport.cleanup_dead_nodes();
+            tracing::info!("dead nodes cleaned up: {removed} removed, {failed} failed");
         }
         if p.env_steps >= cfg.train.env_steps {
             for a in actors.iter_mut().filter(|a| !a.retired) {

@@ -7,11 +7,12 @@ use crate::checkpoint::{latest_checkpoint, write_checkpoint};
 use crate::runlog::MetricsLog;
 use anyhow::{Context as _, Result};
 use ctxrace_common::ipc::{
-    ReplayClient, RunTransport, WeightsPublisher, DEFAULT_MAX_WEIGHTS_BYTES,
+    termination_flag, ReplayClient, RunTransport, WeightsPublisher, DEFAULT_MAX_WEIGHTS_BYTES,
 };
 use ctxrace_common::policy::ACT_DIM;
 use ctxrace_common::ExperimentConfig;
 use std::path::PathBuf;
+use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 /// How long the learner waits for the replay to come up.
@@ -63,10 +64,8 @@ pub fn run(opts: LearnerOptions) -> Result<u64> {
     let target = target_steps(cfg);
     let start = Instant::now();
     let first = algo.steps();
-    while algo.steps() < target {
-        if transport.node().wait(Duration::ZERO).is_err() {
-            break; // SIGTERM or SIGINT
-        }
+    let stop = termination_flag()?;
+    while algo.steps() < target && !stop.load(Ordering::Relaxed) {
         // late or restarted actors get the newest weights only when the publisher acts
         weights.update_connections()?;
         let Some(batch) = replay.next_batch(spec, BATCH_WAIT)? else {

@@ -40,7 +40,7 @@ pub(crate) struct Stream {
 }
 
 impl Stream {
-    fn new(cap: usize, obs_dim: usize, act_dim: usize) -> Self {
+    pub(crate) fn new(cap: usize, obs_dim: usize, act_dim: usize) -> Self {
         Self {
             head: 0,
             len: 0,
@@ -59,7 +59,7 @@ impl Stream {
     }
 
     /// Slot of the `i`-th oldest step.
-    fn slot(&self, i: usize) -> usize {
+    pub(crate) fn slot(&self, i: usize) -> usize {
         (self.head + self.cap() - self.len + i) % self.cap()
     }
 }

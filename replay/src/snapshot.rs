@@ -1,5 +1,6 @@
 //! Replay snapshots: the buffer and the rate limiter's counters in one versioned little-endian
-//! file ending in a CRC-32, written atomically (temporary file, fsync, rename).
+//! file ending in a CRC-32, written atomically (temporary file, fsync, rename). Only the steps
+//! held are written (oldest first), so a snapshot's size follows the fill, not the capacity.
 
 use crate::buffer::{ReplayBuffer, Stream};
 use anyhow::{anyhow, bail, Context as _, Result};
@@ -9,9 +10,9 @@ use std::path::{Path, PathBuf};
 
 const MAGIC: &[u8; 8] = b"CTXRPLY\0";
 /// Snapshot layout version; bump on any change.
-pub const SNAPSHOT_VERSION: u32 = 1;
+pub const SNAPSHOT_VERSION: u32 = 2;
 const HEADER_BYTES: u64 = 8 + 4 * 4 + 8 * 4;
-const STREAM_HEADER_BYTES: u64 = 8 * 3;
+const STREAM_HEADER_BYTES: u64 = 8 * 2;
 
 /// What a snapshot restores besides the buffer.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -45,17 +46,24 @@ pub fn write_snapshot(path: &Path, buffer: &ReplayBuffer, counts: LimiterCounts)
             w.write_all(&v.to_le_bytes())?;
         }
         for s in &buffer.streams {
-            for v in [s.head as u64, s.len as u64, s.segment] {
+            for v in [s.len as u64, s.segment] {
                 w.write_all(&v.to_le_bytes())?;
             }
-            for part in [&s.obs, &s.action, &s.reward, &s.context] {
-                for v in part.iter() {
-                    w.write_all(&v.to_le_bytes())?;
+            let (o, a) = (buffer.obs_dim, buffer.act_dim);
+            for i in 0..s.len {
+                let k = s.slot(i);
+                for part in [
+                    &s.obs[k * o..(k + 1) * o],
+                    &s.action[k * a..(k + 1) * a],
+                    &s.reward[k..k + 1],
+                    &s.context[k * 2..k * 2 + 2],
+                ] {
+                    for v in part {
+                        w.write_all(&v.to_le_bytes())?;
+                    }
                 }
-            }
-            w.write_all(&s.flags)?;
-            for v in &s.segments {
-                w.write_all(&v.to_le_bytes())?;
+                w.write_all(&[s.flags[k]])?;
+                w.write_all(&s.segments[k].to_le_bytes())?;
             }
         }
         let crc = w.hasher.clone().finalize();
@@ -96,44 +104,39 @@ fn read(path: &Path) -> Result<(ReplayBuffer, LimiterCounts)> {
     }
     let (obs_dim, act_dim, actors) = (r.u32()? as u64, r.u32()? as u64, r.u32()? as u64);
     let (cap, inserted, inserts, samples) = (r.u64()?, r.u64()?, r.u64()?, r.u64()?);
-    // Check the size the header implies before allocating anything it claims.
-    let per_step = 4 * (obs_dim + act_dim + 1 + 2) + 1 + 8;
-    let expected = cap
-        .checked_mul(per_step)
-        .and_then(|b| b.checked_add(STREAM_HEADER_BYTES))
-        .and_then(|b| b.checked_mul(actors))
-        .and_then(|b| b.checked_add(HEADER_BYTES + 4));
-    if expected != Some(file_len) || cap == 0 || actors == 0 {
-        bail!("file is {file_len} bytes, its header implies {expected:?}: truncated or corrupt");
+    if cap == 0 || actors == 0 || cap > file_len || actors > file_len {
+        bail!("header claims capacity {cap} and {actors} streams: corrupt");
     }
     let (o, a, cap) = (obs_dim as usize, act_dim as usize, cap as usize);
+    let per_step = 4 * (o + a + 1 + 2) as u64 + 1 + 8;
+    // every stream's steps must fit in what is left of the file before they are allocated
+    let mut budget = file_len.saturating_sub(HEADER_BYTES + 4);
     let mut streams = Vec::with_capacity(actors as usize);
     for _ in 0..actors {
-        let (head, len, segment) = (r.u64()? as usize, r.u64()? as usize, r.u64()?);
-        if head >= cap || len > cap {
-            bail!("stream head {head} or length {len} outside capacity {cap}");
+        let (len, segment) = (r.u64()? as usize, r.u64()?);
+        let bytes = (len as u64).checked_mul(per_step).unwrap_or(u64::MAX);
+        if len > cap || bytes.saturating_add(STREAM_HEADER_BYTES) > budget {
+            bail!("stream of {len} steps does not fit capacity {cap} or the file: truncated or corrupt");
         }
-        let obs = r.f32s(cap * o)?;
-        let action = r.f32s(cap * a)?;
-        let reward = r.f32s(cap)?;
-        let context = r.f32s(cap * 2)?;
-        let mut flags = vec![0u8; cap];
-        r.read_exact(&mut flags)?;
-        let mut segments = Vec::with_capacity(cap);
-        for _ in 0..cap {
-            segments.push(r.u64()?);
+        budget -= bytes + STREAM_HEADER_BYTES;
+        let mut s = Stream::new(cap, o, a);
+        for k in 0..len {
+            s.obs[k * o..(k + 1) * o].copy_from_slice(&r.f32s(o)?);
+            s.action[k * a..(k + 1) * a].copy_from_slice(&r.f32s(a)?);
+            s.reward[k] = r.f32s(1)?[0];
+            s.context[k * 2..k * 2 + 2].copy_from_slice(&r.f32s(2)?);
+            let mut flag = [0u8; 1];
+            r.read_exact(&mut flag)?;
+            s.flags[k] = flag[0];
+            s.segments[k] = r.u64()?;
         }
-        streams.push(Stream {
-            head,
-            len,
-            segment,
-            obs,
-            action,
-            reward,
-            flags,
-            context,
-            segments,
-        });
+        s.len = len;
+        s.head = len % cap;
+        s.segment = segment;
+        streams.push(s);
+    }
+    if budget != 0 {
+        bail!("{budget} bytes beyond the streams: corrupt");
     }
     let computed = r.hasher.clone().finalize();
     let mut crc = [0u8; 4];
@@ -229,8 +232,21 @@ mod tests {
         };
         write_snapshot(&path, &b, counts).unwrap();
         let (back, c) = read_snapshot(&path).unwrap();
-        assert_eq!(back, b);
         assert_eq!(c, counts);
+        // the same steps in the same order (the ring may start elsewhere)
+        let again = dir.path().join("again.snap");
+        write_snapshot(&again, &back, counts).unwrap();
+        assert_eq!(
+            std::fs::read(&again).unwrap(),
+            std::fs::read(&path).unwrap()
+        );
+        let sample = |buf: &ReplayBuffer| {
+            use rand::SeedableRng;
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+            buf.sample_sequences(4, 3, &mut rng)
+        };
+        assert_eq!(sample(&back), sample(&b));
+        assert!(sample(&b).is_some());
         assert!(!tmp_path(&path).exists());
 
         let mut bytes = std::fs::read(&path).unwrap();

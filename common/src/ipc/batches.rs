@@ -17,6 +17,7 @@ use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
 use std::time::{Duration, Instant};
 
 /// Default largest batch payload in floats (64 MiB).
@@ -53,6 +54,9 @@ pub enum Batch {
 /// The learner's replay client.
 pub struct ReplayClient {
     requests: Publisher<ipc::Service, BatchRequest, ()>,
+    request_service: PubSubFactory<ipc::Service, BatchRequest, ()>,
+    /// The replay was seen gone since the outstanding request was sent.
+    replay_lost: bool,
     batches: Subscriber<ipc::Service, [f32], BatchHeader>,
     wake_replay: Notifier<ipc::Service>,
     woken: Listener<ipc::Service>,
@@ -93,6 +97,8 @@ impl ReplayClient {
         }
         Ok(Self {
             requests,
+            request_service: service,
+            replay_lost: false,
             batches,
             wake_replay: transport.notifier(Wake::Replay)?,
             woken,
@@ -107,10 +113,29 @@ impl ReplayClient {
     /// The next batch of `spec`, waiting up to `timeout`; `None` on timeout (the request stays
     /// outstanding and a later call with the same spec waits for its answer). The replay holds
     /// requests back until its rate limiter allows sampling.
+    ///
+    /// A replay that went away (its node cleaned up) loses the outstanding request: it is sent
+    /// again once a replay is back, and `None` is returned while none is there.
     pub fn next_batch(&mut self, spec: BatchSpec, timeout: Duration) -> Result<Option<Batch>> {
+        let replay_up = self
+            .request_service
+            .dynamic_config()
+            .number_of_subscribers()
+            > 0;
+        if !replay_up {
+            self.replay_lost = true;
+            std::thread::sleep(timeout.min(Duration::from_millis(100)));
+            return Ok(None);
+        }
+        if std::mem::take(&mut self.replay_lost) {
+            self.outstanding = None;
+        }
         let mut id = match self.outstanding {
             Some((id, s)) if s == spec => id,
-            _ => self.request(spec)?,
+            _ => match self.request(spec)? {
+                Some(id) => id,
+                None => return Ok(None),
+            },
         };
         let deadline = Instant::now() + timeout;
         loop {
@@ -124,7 +149,10 @@ impl ReplayClient {
                     Ok(batch) => return Ok(Some(batch)),
                     Err(e) => {
                         self.rejects.reject(&e);
-                        id = self.request(spec)?;
+                        match self.request(spec)? {
+                            Some(new) => id = new,
+                            None => return Ok(None),
+                        }
                     }
                 }
             }
@@ -138,7 +166,8 @@ impl ReplayClient {
         }
     }
 
-    fn request(&mut self, spec: BatchSpec) -> Result<u64> {
+    /// Sends a request; `None` if no replay received it.
+    fn request(&mut self, spec: BatchSpec) -> Result<Option<u64>> {
         let id = self.next_id;
         self.next_id += 1;
         let (kind, batch, length, frames) = match spec {
@@ -160,11 +189,12 @@ impl ReplayClient {
             .map_err(ice("send request"))?
             == 0
         {
-            return Err(anyhow!("the replay is gone"));
+            self.outstanding = None;
+            return Ok(None);
         }
         let _ = self.wake_replay.notify();
         self.outstanding = Some((id, spec));
-        Ok(id)
+        Ok(Some(id))
     }
 
     /// Batches rejected as malformed.

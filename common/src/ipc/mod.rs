@@ -27,7 +27,8 @@ pub use trajectory::{
     ChunkView, ReplayBeacon, SenderOptions, SenderStats, Step, TrajectoryReceiver, TrajectorySender,
 };
 pub use transport::{
-    cleanup, iceoryx_config, run_prefix, CleanupReport, RunTransport, Wake, TRAJECTORY_BUFFER,
+    cleanup, iceoryx_config, run_prefix, termination_flag, CleanupReport, RunTransport, Wake,
+    TRAJECTORY_BUFFER,
 };
 pub use weights::{WeightsPublisher, WeightsReceiver, DEFAULT_MAX_WEIGHTS_BYTES};
 pub use wire::{

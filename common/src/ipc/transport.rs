@@ -24,6 +24,18 @@ pub(crate) fn ice<E: Debug>(what: &'static str) -> impl FnOnce(E) -> anyhow::Err
     move |e| anyhow!("iceoryx2: {what}: {e:?}")
 }
 
+/// A flag that turns true on SIGTERM or SIGINT, for a process's loop to stop cleanly. (The
+/// nodes' own signal handling is off: iceoryx2 resets its flag when read, so a blocking send
+/// could swallow the request.)
+pub fn termination_flag() -> Result<std::sync::Arc<std::sync::atomic::AtomicBool>> {
+    let flag = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    for signal in [signal_hook::consts::SIGTERM, signal_hook::consts::SIGINT] {
+        signal_hook::flag::register(signal, flag.clone())
+            .map_err(|e| anyhow!("installing the handler of signal {signal}: {e}"))?;
+    }
+    Ok(flag)
+}
+
 /// The prefix of a run: `ctxrace_<run id>_`, with characters other than ASCII letters, digits,
 /// `-` and `.` in the id replaced by `-`.
 pub fn run_prefix(run_id: &str) -> String {
@@ -68,7 +80,7 @@ pub struct RunTransport {
 
 impl RunTransport {
     /// Joins the run with prefix `prefix` (see [`run_prefix`]) of `actors` actors as a node named
-    /// `role`. Signal handling is left to the process (the node registers no handler).
+    /// `role`. Signal handling is left to the process (see [`termination_flag`]).
     pub fn open(prefix: &str, actors: usize, role: &str) -> Result<Self> {
         if actors == 0 {
             return Err(anyhow!("a run needs at least one actor"));
