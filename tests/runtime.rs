@@ -22,7 +22,7 @@ batch_size = 32
 env_steps = {env_steps}
 prefill = 400
 train_ratio = 0.25
-policy_every = 20
+policy_every = 10
 checkpoint_every = 100
 log_every = 50
 threads = 1
@@ -121,8 +121,8 @@ fn check_clean_run(run: &Path, actors: usize) {
             "{name}: {versions:?}"
         );
     }
-    // Reverb's ratio: samples per insert beyond the minimum fill
-    let inserted = replay["inserted"].as_f64().unwrap();
+    // Reverb's ratio: samples per insert beyond the minimum fill, while the learner trained
+    let inserted = replay["inserted_at_last_batch"].as_f64().unwrap();
     let sampled = replay["sampled"].as_f64().unwrap();
     let min_fill = replay["min_fill"].as_f64().unwrap();
     let spi = replay["samples_per_insert"].as_f64().unwrap();
@@ -159,8 +159,8 @@ fn assert_no_leftovers(pid: u32) {
 #[test]
 fn two_runs_side_by_side_reconcile_exactly() {
     let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
-    let (child_a, run_a) = launch(a.path(), 3000, 3);
-    let (child_b, run_b) = launch(b.path(), 2000, 2);
+    let (child_a, run_a) = launch(a.path(), 6000, 3);
+    let (child_b, run_b) = launch(b.path(), 4000, 2);
     let (pid_a, pid_b) = (child_a.id(), child_b.id());
     finish(child_a, Duration::from_secs(400));
     finish(child_b, Duration::from_secs(400));

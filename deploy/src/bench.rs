@@ -1,5 +1,6 @@
 //! `ctxrace bench sim`: simulator throughput on one core; `ctxrace bench ipc`: the shared-memory
-//! transport against a Unix-socket baseline.
+//! transport against a Unix-socket baseline; `ctxrace bench learner`: see
+//! [`crate::bench_learner`].
 
 use crate::TrackArgs;
 use anyhow::Result;
@@ -20,6 +21,8 @@ pub enum BenchCommand {
     /// Env steps/s from N actors into replay, batch latency, and the broadcast latency of weights
     /// to M subscribers, over iceoryx2 and over Unix sockets with bincode (the baseline).
     Ipc(IpcArgs),
+    /// Gradient steps/s at the paper's batch and acting latency at batch 1 of one algorithm.
+    Learner(crate::bench_learner::LearnerArgs),
 }
 
 /// Arguments of `ctxrace bench ipc`.
@@ -145,6 +148,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     let args = match cmd {
         BenchCommand::Sim(args) => args,
         BenchCommand::Ipc(args) => return run_ipc(args),
+        BenchCommand::Learner(args) => return crate::bench_learner::run(args),
     };
     if !(args.seconds.is_finite() && args.seconds > 0.0) {
         anyhow::bail!("--seconds {} must be a positive number", args.seconds);

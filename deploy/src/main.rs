@@ -1,6 +1,7 @@
 //! `ctxrace`: one command line for tracks, races, benchmarks and (later) the training processes.
 
 mod bench;
+mod bench_learner;
 mod driver;
 mod eval;
 mod figures;

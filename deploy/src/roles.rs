@@ -82,6 +82,7 @@ pub fn replay(args: RoleArgs) -> Result<()> {
         "dropped_chunks": s.dropped_chunks,
         "rejected": s.rejected,
         "batches": s.batches,
+        "inserted_at_last_batch": s.inserted_at_last_batch,
         "samples_per_insert": replay_args.options.samples_per_insert,
         "min_fill": replay_args.options.min_fill,
     });

@@ -107,6 +107,7 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
 
     let mut pending: VecDeque<(BatchRequest, BatchSpec)> = VecDeque::new();
     let mut batches = 0u64;
+    let mut inserted_at_last_batch = 0u64;
     let mut last_status = Instant::now();
     let mut last_snapshot = Instant::now();
     let current = |buffer: &ReplayBuffer,
@@ -163,6 +164,7 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
                     result?;
                     limiter.sampled(n);
                     batches += 1;
+                    inserted_at_last_batch = limiter.inserts();
                     pending.pop_front();
                 }
                 // Not enough contiguous data yet: keep the request for a later turn.
@@ -170,7 +172,10 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
             }
         }
         if last_status.elapsed() >= STATUS_EVERY {
-            let s = current(&buffer, &limiter, &chunks, &server, batches, pending.len());
+            let s = ReplayStatus {
+                inserted_at_last_batch,
+                ..current(&buffer, &limiter, &chunks, &server, batches, pending.len())
+            };
             status.publish(s)?;
             last_status = Instant::now();
         }
@@ -208,7 +213,10 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
         limiter.inserted(u64::from(c.header.steps));
     })? > 0
     {}
-    let last = current(&buffer, &limiter, &chunks, &server, batches, pending.len());
+    let last = ReplayStatus {
+        inserted_at_last_batch,
+        ..current(&buffer, &limiter, &chunks, &server, batches, pending.len())
+    };
     status.publish(last)?;
     snapshot(args, &buffer, &limiter)?;
     Ok(ReplayStatus {

@@ -218,6 +218,9 @@ pub struct ReplayStatus {
     pub batches: u64,
     /// Requests waiting for the rate limiter.
     pub pending_requests: u64,
+    /// Steps inserted when the last batch was sampled (the learner's train ratio is
+    /// `sampled / (this − min_fill)`; steps drained at shutdown come after it).
+    pub inserted_at_last_batch: u64,
 }
 
 /// Why a message was rejected.
