@@ -1,10 +1,11 @@
 //! `ctxrace race`: one episode with a reference ego policy, its metrics, picture and trace.
 
+use crate::driver::{EgoSpec, TrainedAgent};
 use crate::render::{render_race, Frame};
 use crate::TrackArgs;
 use anyhow::{Context as _, Result};
 use clap::Args;
-use ctxrace_actor::baseline::{Baseline, BaselineKind};
+use ctxrace_actor::baseline::BaselineKind;
 use ctxrace_actor::vehicle::idx;
 use ctxrace_actor::RaceEnv;
 use ctxrace_common::Context;
@@ -27,6 +28,10 @@ pub struct RaceArgs {
     /// Ego policy: pure-pursuit (raceline at full speed), random, or still.
     #[arg(long, default_value = "pure-pursuit")]
     ego: BaselineKind,
+    /// Drive the ego with a trained agent instead: a checkpoint or run directory (acting with
+    /// the mode of its policy).
+    #[arg(long)]
+    policy: Option<PathBuf>,
     /// Episode seed (LiDAR noise, random policy).
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -67,10 +72,15 @@ pub fn run(args: RaceArgs) -> Result<()> {
     let track = Arc::new(args.tracks.load(&args.track)?);
     let mut env = RaceEnv::new(track.clone(), cfg)?;
     let mut obs = env.reset(args.seed, args.context);
-    let mut policy = Baseline::new(args.ego, &env, args.seed);
+    let spec = match &args.policy {
+        Some(path) => EgoSpec::Trained(Box::new(TrainedAgent::load(path)?)),
+        None => EgoSpec::Baseline(args.ego),
+    };
+    let mut policy = spec.driver(&env)?;
+    policy.reset(&env, args.seed);
     let mut frames = vec![Frame::capture(&env, [0.0, 0.0], 0.0, &obs)];
     let ended_by = loop {
-        let action = policy.act(&env);
+        let (action, _) = policy.act(&env, &obs)?;
         let step = env.step(action)?;
         obs = step.obs;
         frames.push(Frame::capture(&env, action, step.reward, &obs));
@@ -93,7 +103,7 @@ pub fn run(args: RaceArgs) -> Result<()> {
             track: &track.name,
             rivals: env.config().rivals,
             context: args.context.to_array(),
-            ego: format!("{:?}", args.ego),
+            ego: spec.name(),
             seed: args.seed,
             metrics: m,
             ended_by,
@@ -101,12 +111,12 @@ pub fn run(args: RaceArgs) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
         println!(
-            "track {} · {} rivals · context {:+.2},{:+.2} · ego {:?} · seed {}",
+            "track {} · {} rivals · context {:+.2},{:+.2} · ego {} · seed {}",
             track.name,
             env.config().rivals,
             args.context.speed,
             args.context.steer,
-            args.ego,
+            spec.name(),
             args.seed
         );
         println!("ended by        {ended_by} after {} decisions", m.steps);

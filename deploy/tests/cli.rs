@@ -422,3 +422,134 @@ fn report_writes_tables_and_figures_with_best_marks() {
         "neither an evaluation directory",
     );
 }
+
+/// A tiny cMask experiment: a few gradient steps on the generated track.
+const TINY_CMASK: &str = r#"track = "generated:0"
+[race]
+rivals = 1
+max_time = 20.0
+[agent]
+algo = "cmask"
+[agent.dreamer]
+units = 16
+layers = 1
+deter = 16
+hidden = 16
+stoch = 4
+classes = 4
+head_units = 16
+head_layers = 1
+batch = 2
+length = 8
+[agent.dreamer.mask]
+units = 16
+[train]
+env_steps = 300
+prefill = 200
+train_ratio = 0.1
+checkpoint_every = 5
+threads = 1
+"#;
+
+#[test]
+fn inline_training_then_evaluation_report_and_race_with_the_policy() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = write(dir.path(), "tiny.toml", TINY_CMASK);
+    let run = dir.path().join("run");
+    let run_s = run.to_str().unwrap();
+    let o = ctxrace(&[
+        "train",
+        cfg.to_str().unwrap(),
+        "--inline",
+        "--run-dir",
+        run_s,
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("trained cmask for 300 env steps"),
+        "{}",
+        stdout(&o)
+    );
+    let episodes = std::fs::read_to_string(run.join("episodes.csv")).unwrap();
+    assert!(episodes.starts_with("env_steps,grad_steps,actor,episode"));
+    let checkpoints: Vec<_> = std::fs::read_dir(run.join("checkpoints"))
+        .unwrap()
+        .collect();
+    assert!(!checkpoints.is_empty());
+    for c in checkpoints {
+        let c = c.unwrap().path();
+        for file in [
+            "policy.safetensors",
+            "agent.toml",
+            "state.toml",
+            "opt_model.safetensors",
+        ] {
+            assert!(c.join(file).exists(), "{} has no {file}", c.display());
+        }
+    }
+    // a second run into the same directory is refused
+    fails_with(
+        &[
+            "train",
+            cfg.to_str().unwrap(),
+            "--inline",
+            "--run-dir",
+            run_s,
+        ],
+        "already holds a run",
+    );
+
+    let eval = |extra: &[&str]| {
+        let mut args = vec![
+            "eval",
+            run_s,
+            "--grid",
+            "2",
+            "--laps",
+            "2",
+            "--workers",
+            "2",
+        ];
+        args.extend_from_slice(extra);
+        ctxrace(&args)
+    };
+    let o = eval(&[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("cmask on generated:0 with 1 rival(s): 4 contexts x 2 laps"));
+    let rows = |name: &str| {
+        std::fs::read_to_string(run.join("eval").join(name))
+            .unwrap()
+            .lines()
+            .count()
+    };
+    assert_eq!(rows("episodes.csv"), 1 + 4 * 2);
+    assert_eq!(rows("contexts.csv"), 1 + 4);
+    assert!(run.join("eval/episode.png").exists());
+    // resuming a finished evaluation runs nothing new; another grid needs --fresh
+    let parts = std::fs::read_dir(run.join("eval")).unwrap().count();
+    assert!(eval(&[]).status.success());
+    assert_eq!(std::fs::read_dir(run.join("eval")).unwrap().count(), parts);
+    let o = eval(&["--seed", "5"]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("--fresh"),
+        "{}",
+        stderr(&o)
+    );
+
+    let out = dir.path().join("report");
+    let o = ctxrace(&["report", run_s, "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(std::fs::read_to_string(out.join("report.md"))
+        .unwrap()
+        .contains("cMask"));
+
+    let o = ctxrace(&["race", "generated:0", "--policy", run_s, "--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("\"ego\": \"cmask\""), "{}", stdout(&o));
+    let o = ctxrace(&["eval", dir.path().join("nothing").to_str().unwrap()]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("neither a checkpoint"),
+        "{}",
+        stderr(&o)
+    );
+}
