@@ -61,7 +61,9 @@ fn random_batch(spec: BatchSpec, beams: usize, rng: &mut ChaCha8Rng) -> Batch {
     match spec {
         BatchSpec::Sequence { batch, length } => {
             let n = batch * length;
-            let is_first = (0..n).map(|i| f32::from(i % length == 0)).collect();
+            let is_first = (0..n)
+                .map(|i| f32::from(i.is_multiple_of(length)))
+                .collect();
             Batch::Sequence(SequenceBatch {
                 batch,
                 length,

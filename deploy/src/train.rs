@@ -228,14 +228,14 @@ pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()
                 let mut m = algo.train_step(&batch)?;
                 debt -= 1.0;
                 let steps = algo.steps();
-                stale_policy |= steps % t.policy_every == 0;
-                if steps % t.log_every == 0 {
+                stale_policy |= steps.is_multiple_of(t.policy_every);
+                if steps.is_multiple_of(t.log_every) {
                     m.insert("grad_steps".into(), steps as f64);
                     m.insert("env_steps".into(), collector.decisions() as f64);
                     m.insert("seconds".into(), start.elapsed().as_secs_f64());
                     metrics_log.write(&m)?;
                 }
-                if t.checkpoint_every > 0 && steps % t.checkpoint_every == 0 {
+                if t.checkpoint_every > 0 && steps.is_multiple_of(t.checkpoint_every) {
                     write_checkpoint(dir, algo.as_ref(), &cfg.agent)?;
                 }
             }
@@ -244,7 +244,7 @@ pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()
                 stale_policy = false;
             }
         }
-        if collector.decisions() % 50 == 0 {
+        if collector.decisions().is_multiple_of(50) {
             bar.set_message(status(algo.as_ref(), &recent, collector.episodes(), &start));
         }
     }

@@ -73,10 +73,10 @@ pub fn run(opts: LearnerOptions) -> Result<u64> {
         };
         let mut m = algo.train_step(&batch)?;
         let steps = algo.steps();
-        if steps % t.policy_every == 0 {
+        if steps.is_multiple_of(t.policy_every) {
             weights.publish(steps, &algo.policy_weights()?)?;
         }
-        if steps % t.log_every == 0 {
+        if steps.is_multiple_of(t.log_every) {
             m.insert("grad_steps".into(), steps as f64);
             m.insert("seconds".into(), start.elapsed().as_secs_f64());
             m.insert(
@@ -85,7 +85,7 @@ pub fn run(opts: LearnerOptions) -> Result<u64> {
             );
             log.write(&m)?;
         }
-        if t.checkpoint_every > 0 && steps % t.checkpoint_every == 0 {
+        if t.checkpoint_every > 0 && steps.is_multiple_of(t.checkpoint_every) {
             write_checkpoint(&opts.run_dir, algo.as_ref(), &cfg.agent)?;
         }
     }

@@ -113,7 +113,7 @@ impl Sac {
             );
         }
         cfg.validate()?;
-        if obs_dim % cfg.frames != 0 {
+        if !obs_dim.is_multiple_of(cfg.frames) {
             bail!(
                 "SAC observation size {obs_dim} is not a multiple of frames = {}",
                 cfg.frames

@@ -114,7 +114,7 @@ fn read(path: &Path) -> Result<(ReplayBuffer, LimiterCounts)> {
     let mut streams = Vec::with_capacity(actors as usize);
     for _ in 0..actors {
         let (len, segment) = (r.u64()? as usize, r.u64()?);
-        let bytes = (len as u64).checked_mul(per_step).unwrap_or(u64::MAX);
+        let bytes = (len as u64).saturating_mul(per_step);
         if len > cap || bytes.saturating_add(STREAM_HEADER_BYTES) > budget {
             bail!("stream of {len} steps does not fit capacity {cap} or the file: truncated or corrupt");
         }

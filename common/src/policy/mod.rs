@@ -25,9 +25,9 @@ pub struct Decision {
 /// Any trained agent's acting side.
 pub enum Policy {
     /// SAC on stacked frames.
-    Sac(SacPolicy),
+    Sac(Box<SacPolicy>),
     /// DreamerV3, cRSSM or cMask.
-    Dreamer(DreamerPolicy),
+    Dreamer(Box<DreamerPolicy>),
 }
 
 impl Policy {
@@ -35,15 +35,15 @@ impl Policy {
     /// seeds its sampling noise.
     pub fn new(agent: &AgentConfig, frame_dim: usize, weights: &[u8], seed: u64) -> Result<Self> {
         Ok(match agent.algo {
-            AlgoKind::Sac => Policy::Sac(SacPolicy::new(
+            AlgoKind::Sac => Policy::Sac(Box::new(SacPolicy::new(
                 &agent.sac, frame_dim, ACT_DIM, weights, seed,
-            )?),
-            _ => Policy::Dreamer(DreamerPolicy::new(
+            )?)),
+            _ => Policy::Dreamer(Box::new(DreamerPolicy::new(
                 &agent.dreamer(),
                 frame_dim,
                 weights,
                 seed,
-            )?),
+            )?)),
         })
     }
 
