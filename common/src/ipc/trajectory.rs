@@ -59,8 +59,9 @@ impl Step<'_> {
 pub struct SenderOptions {
     /// How long [`TrajectorySender::new`] waits for the replay to come up.
     pub handshake_timeout: Duration,
-    /// How long one send waits for room at a full replay before dropping the chunk. After a
-    /// drop, sends to a still-full replay drop at once until one gets through.
+    /// How long one send waits for room at a full replay before dropping the chunk. Every send
+    /// waits: a replay held back by its rate limiter slows the actors to the learner's pace
+    /// (nothing is dropped); a dead or stuck one costs each chunk one timeout.
     pub backpressure_timeout: Duration,
 }
 
@@ -138,9 +139,7 @@ impl TrajectorySender {
             .max_loaned_samples(1)
             .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
             .set_backpressure_handler(move |info| {
-                if flag.load(Ordering::Relaxed) {
-                    BackpressureAction::DiscardData
-                } else if info.elapsed_time < timeout {
+                if info.elapsed_time < timeout {
                     BackpressureAction::Retry
                 } else {
                     flag.store(true, Ordering::Relaxed);
@@ -216,6 +215,7 @@ impl TrajectorySender {
             return Ok(());
         }
         let start = Instant::now();
+        self.congested.store(false, Ordering::Relaxed);
         let delivered = loop {
             let mut sample = self
                 .publisher
