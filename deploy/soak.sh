@@ -85,8 +85,8 @@ if (( rss_end > rss_start * 13 / 10 + 20480 )); then
     echo "soak: memory grew from $rss_start KiB to $rss_end KiB"; fail=1
 fi
 
-kill -TERM "$launcher"
-wait "$launcher" || { echo "soak: launcher failed"; cat "$dir/launcher.log"; fail=1; }
+kill -TERM "$launcher" 2>/dev/null || true
+wait "$launcher" || { echo "soak: launcher failed"; fail=1; }
 inserted=$(grep -o '"inserted": [0-9]*' "$run/replay-status.json" | grep -o '[0-9]*$')
 rejected=$(grep -o '"rejected": [0-9]*' "$run/replay-status.json" | grep -o '[0-9]*$')
 reported=$(cat "$run"/actors/*.json | grep -o '"sent_steps": [0-9]*' | grep -o '[0-9]*$' \
@@ -97,4 +97,7 @@ reported=$(cat "$run"/actors/*.json | grep -o '"sent_steps": [0-9]*' | grep -o '
 restarts=$(grep -c "exited" "$dir/launcher.log" || true)
 echo "soak: ${secs}s, $actors actors, $kills kills, $restarts restarts, $inserted steps stored" \
     "($reported reported by clean exits), rss $rss_start -> $rss_end KiB"
+if (( fail )); then
+    echo "soak: launcher log:"; tail -20 "$dir/launcher.log"
+fi
 exit "$fail"

@@ -247,6 +247,11 @@ fn wait_all(procs: &mut [Supervised]) -> Result<()> {
     Ok(())
 }
 
+/// The value of a telemetry read, or `None` with a warning.
+fn tolerate<T>(read: Result<T>) -> Option<T> {
+    read.map_err(|e| tracing::warn!("telemetry: {e:#}")).ok()
+}
+
 /// The supervision loop; returns when the run is complete or interrupted.
 fn supervise(
     cfg: &ExperimentConfig,
@@ -288,20 +293,21 @@ fn supervise(
                 proc.start()?;
             }
         }
-        if let Some(version) = weights.latest_with(|v, _| v)? {
+        // telemetry is best effort: a dying peer must not take the launcher down
+        if let Some(version) = tolerate(weights.latest_with(|v, _| v)).flatten() {
             p.grad_steps = version;
         }
-        for hb in telemetry.heartbeats()? {
+        for hb in tolerate(telemetry.heartbeats()).unwrap_or_default() {
             if let Some(v) = p.actor_versions.get_mut(hb.actor_id as usize) {
                 *v = hb.policy_version;
             }
         }
-        if let Some(s) = telemetry.replay_status()? {
+        if let Some(s) = tolerate(telemetry.replay_status()).flatten() {
             p.env_steps = s.inserted;
             p.fill = s.fill;
             p.capacity = s.capacity;
         }
-        for e in telemetry.episodes()? {
+        for e in tolerate(telemetry.episodes()).unwrap_or_default() {
             p.episodes += 1;
             p.recent_progress.push(e.progress as f64);
             if p.recent_progress.len() > 20 {
