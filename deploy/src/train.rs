@@ -80,22 +80,31 @@ fn experiment(args: &TrainArgs) -> Result<ExperimentConfig> {
     Ok(cfg)
 }
 
-/// Creates a fresh run directory with the resolved experiment.
+/// Creates a fresh run directory with the resolved experiment: `--run-dir` (which must not
+/// hold a run yet), or `runs/<algo>-<track>-s<seed>` with `-2`, `-3`, … appended when taken.
 fn create_run_dir(args: &TrainArgs, cfg: &ExperimentConfig) -> Result<PathBuf> {
-    let dir = args.run_dir.clone().unwrap_or_else(|| {
-        PathBuf::from("runs").join(format!(
-            "{}-{}-s{}",
-            cfg.agent.algo,
-            cfg.track.replace([':', '/'], "_"),
-            cfg.train.seed
-        ))
-    });
-    if dir.join(CONFIG_FILE).exists() {
-        bail!(
+    let dir = match &args.run_dir {
+        Some(dir) if dir.join(CONFIG_FILE).exists() => bail!(
             "{} already holds a run; pass another --run-dir (or remove it)",
             dir.display()
-        );
-    }
+        ),
+        Some(dir) => dir.clone(),
+        None => {
+            let base = format!(
+                "{}-{}-s{}",
+                cfg.agent.algo,
+                cfg.track.replace([':', '/'], "_"),
+                cfg.train.seed
+            );
+            (1..)
+                .map(|k| match k {
+                    1 => PathBuf::from("runs").join(&base),
+                    k => PathBuf::from("runs").join(format!("{base}-{k}")),
+                })
+                .find(|d| !d.join(CONFIG_FILE).exists())
+                .expect("an unused run directory name")
+        }
+    };
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     let text = cfg.to_toml().map_err(anyhow::Error::msg)?;
     std::fs::write(dir.join(CONFIG_FILE), text)
