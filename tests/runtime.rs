@@ -132,6 +132,9 @@ fn check_clean_run(run: &Path, actors: usize) {
         "ratio {ratio} vs {spi}: {replay}"
     );
     assert!(run.join("checkpoints").read_dir().unwrap().count() >= 1);
+    let replay_log = std::fs::read_to_string(run.join("logs/replay.log")).unwrap();
+    assert!(replay_log.contains("replay up"), "{replay_log}");
+    assert!(run.join(format!("logs/actor-{}.log", actors - 1)).exists());
     assert!(
         std::fs::read_to_string(run.join("episodes.csv"))
             .unwrap()

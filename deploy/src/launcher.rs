@@ -5,6 +5,9 @@
 //! everything cleanly at the end or on Ctrl-C/SIGTERM; finally it removes the run's shared
 //! memory.
 //!
+//! Each child's tracing output goes to `<run>/logs/<role>.log` (level info unless `RUST_LOG`
+//! says otherwise).
+//!
 //! The run ends when the replay has received `env_steps` steps (the actors are stopped) and
 //! the learner has taken its gradient steps (it exits by itself; the replay is stopped).
 
@@ -31,6 +34,8 @@ const STOP_GRACE: Duration = Duration::from_secs(30);
 struct Supervised {
     name: String,
     args: Vec<String>,
+    /// The process's log file (its stderr, appended across restarts).
+    log: std::path::PathBuf,
     child: Option<Child>,
     starts: u64,
     restart_at: Option<Instant>,
@@ -39,8 +44,9 @@ struct Supervised {
 }
 
 impl Supervised {
-    fn new(name: String, args: Vec<String>) -> Self {
+    fn new(name: String, args: Vec<String>, logs: &Path) -> Self {
         Self {
+            log: logs.join(format!("{}.log", name.replace(' ', "-"))),
             name,
             args,
             child: None,
@@ -57,6 +63,15 @@ impl Supervised {
         cmd.args(&self.args);
         if self.name.starts_with("actor") {
             cmd.args(["--incarnation", &self.starts.to_string()]);
+        }
+        let log = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&self.log)
+            .with_context(|| format!("opening {}", self.log.display()))?;
+        cmd.stderr(log);
+        if std::env::var_os("RUST_LOG").is_none() {
+            cmd.env("RUST_LOG", "info");
         }
         // the children die with the launcher, even when it is killed outright
         unsafe {
@@ -187,14 +202,16 @@ pub fn run(cfg: &ExperimentConfig, dir: &Path, actors: usize, tracks: &TrackArgs
             actors.to_string(),
         ]
     };
-    let mut replay = Supervised::new("replay".into(), common("replay"));
-    let mut learner = Supervised::new("learner".into(), common("learner"));
+    let logs = dir.join("logs");
+    std::fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
+    let mut replay = Supervised::new("replay".into(), common("replay"), &logs);
+    let mut learner = Supervised::new("learner".into(), common("learner"), &logs);
     let mut actor_procs: Vec<Supervised> = (0..actors)
         .map(|k| {
             let mut args = common("actor");
             args.extend(["--id".into(), k.to_string()]);
             args.extend(track_flags(tracks));
-            Supervised::new(format!("actor {k}"), args)
+            Supervised::new(format!("actor {k}"), args, &logs)
         })
         .collect();
 
