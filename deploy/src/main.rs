@@ -122,7 +122,22 @@ pub fn load_race_config(path: Option<&PathBuf>) -> Result<RaceConfig> {
     Ok(cfg)
 }
 
+/// Keeps freed memory in the process instead of returning it to the kernel at once. The
+/// learner allocates and frees tensors of megabytes every step; with glibc's defaults each one
+/// is a fresh `mmap` whose pages fault in zeroed, which cost a DreamerV3 step about 7 s of 48 s
+/// in system time (3.3M page faults, down to 0.57M with these settings).
+fn keep_freed_memory() {
+    #[cfg(target_env = "gnu")]
+    // SAFETY: mallopt only adjusts allocator parameters; called before any thread starts.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, 1 << 30);
+        libc::mallopt(libc::M_TOP_PAD, 256 << 20);
+    }
+}
+
 fn main() {
+    keep_freed_memory();
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
