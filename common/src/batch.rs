@@ -51,3 +51,109 @@ pub struct SequenceBatch {
     /// `[B, T, 2]` the episode's context at each step.
     pub context: Vec<f32>,
 }
+
+/// Checks that every buffer holds `want` values; the message names the field.
+fn check_lengths(kind: &str, fields: &[(&str, usize, usize)]) -> Result<(), String> {
+    for &(name, got, want) in fields {
+        if got != want {
+            return Err(format!(
+                "{kind} batch field {name} holds {got} values, expected {want}"
+            ));
+        }
+    }
+    Ok(())
+}
+
+impl TransitionBatch {
+    /// Checks that the batch is non-empty, has the sizes `obs_dim`/`act_dim` and that every
+    /// buffer's length matches them.
+    pub fn validate(&self, obs_dim: usize, act_dim: usize) -> Result<(), String> {
+        let b = self.batch;
+        if b == 0 || self.obs_dim != obs_dim || self.act_dim != act_dim {
+            return Err(format!(
+                "transition batch of {b} with obs/action sizes {}/{}, expected a non-empty one \
+                 with {obs_dim}/{act_dim}",
+                self.obs_dim, self.act_dim
+            ));
+        }
+        check_lengths(
+            "transition",
+            &[
+                ("obs", self.obs.len(), b * obs_dim),
+                ("action", self.action.len(), b * act_dim),
+                ("reward", self.reward.len(), b),
+                ("next_obs", self.next_obs.len(), b * obs_dim),
+                ("terminal", self.terminal.len(), b),
+                ("context", self.context.len(), b * 2),
+            ],
+        )
+    }
+}
+
+impl SequenceBatch {
+    /// Checks that the batch is non-empty, has the sizes `obs_dim`/`act_dim` and that every
+    /// buffer's length matches them.
+    pub fn validate(&self, obs_dim: usize, act_dim: usize) -> Result<(), String> {
+        let n = self.batch * self.length;
+        if n == 0 || self.obs_dim != obs_dim || self.act_dim != act_dim {
+            return Err(format!(
+                "sequence batch of {} x {} with obs/action sizes {}/{}, expected a non-empty one \
+                 with {obs_dim}/{act_dim}",
+                self.batch, self.length, self.obs_dim, self.act_dim
+            ));
+        }
+        check_lengths(
+            "sequence",
+            &[
+                ("obs", self.obs.len(), n * obs_dim),
+                ("action", self.action.len(), n * act_dim),
+                ("reward", self.reward.len(), n),
+                ("is_first", self.is_first.len(), n),
+                ("is_terminal", self.is_terminal.len(), n),
+                ("context", self.context.len(), n * 2),
+            ],
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn validation_names_the_wrong_field() {
+        let t = TransitionBatch {
+            batch: 2,
+            obs_dim: 3,
+            act_dim: 1,
+            obs: vec![0.0; 6],
+            action: vec![0.0; 2],
+            reward: vec![0.0; 2],
+            next_obs: vec![0.0; 5],
+            terminal: vec![0.0; 2],
+            context: vec![0.0; 4],
+        };
+        assert!(t
+            .validate(3, 1)
+            .unwrap_err()
+            .contains("next_obs holds 5 values, expected 6"));
+        assert!(t
+            .validate(4, 1)
+            .unwrap_err()
+            .contains("expected a non-empty one with 4/1"));
+        let s = SequenceBatch {
+            batch: 1,
+            length: 2,
+            obs_dim: 1,
+            act_dim: 1,
+            obs: vec![0.0; 2],
+            action: vec![0.0; 2],
+            reward: vec![0.0; 2],
+            is_first: vec![1.0, 0.0],
+            is_terminal: vec![0.0; 2],
+            context: vec![0.0; 4],
+        };
+        assert_eq!(s.validate(1, 1), Ok(()));
+        assert!(SequenceBatch::default().validate(0, 0).is_err());
+    }
+}

@@ -127,30 +127,9 @@ struct SeqData {
 
 impl SeqData {
     fn new(b: &SequenceBatch, obs_dim: usize, act_dim: usize) -> Result<Self> {
-        let (n, dev) = (b.batch * b.length, &Device::Cpu);
-        if n == 0 {
-            bail!("empty sequence batch ({} × {})", b.batch, b.length);
-        }
-        if b.obs_dim != obs_dim || b.act_dim != act_dim {
-            bail!(
-                "batch has obs/action sizes {}/{}, the agent {obs_dim}/{act_dim}",
-                b.obs_dim,
-                b.act_dim
-            );
-        }
-        let fields = [
-            ("obs", b.obs.len(), n * obs_dim),
-            ("action", b.action.len(), n * act_dim),
-            ("reward", b.reward.len(), n),
-            ("is_first", b.is_first.len(), n),
-            ("is_terminal", b.is_terminal.len(), n),
-            ("context", b.context.len(), n * CONTEXT_DIM),
-        ];
-        for (name, got, want) in fields {
-            if got != want {
-                bail!("batch field {name} holds {got} values, expected {want}");
-            }
-        }
+        b.validate(obs_dim, act_dim)
+            .map_err(candle_core::Error::Msg)?;
+        let dev = &Device::Cpu;
         let (bs, t) = (b.batch, b.length);
         Ok(Self {
             batch: bs,

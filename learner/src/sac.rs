@@ -196,23 +196,7 @@ impl Sac {
     /// (the value used in this step), `entropy` (`−log π` averaged over the batch) and `q_mean`.
     pub fn update(&mut self, batch: &TransitionBatch) -> Result<Metrics> {
         let (b, o, a) = (batch.batch, self.obs_dim, self.act_dim);
-        if batch.obs_dim != o || batch.act_dim != a {
-            bail!(
-                "SAC has obs {o} and action {a}, the batch obs {} and action {}",
-                batch.obs_dim,
-                batch.act_dim
-            );
-        }
-        let lens = [
-            batch.obs.len(),
-            batch.action.len(),
-            batch.reward.len(),
-            batch.next_obs.len(),
-            batch.terminal.len(),
-        ];
-        if b == 0 || lens != [b * o, b * a, b, b * o, b] {
-            bail!("transition batch of size {b} has buffers of lengths {lens:?}");
-        }
+        batch.validate(o, a).map_err(candle_core::Error::Msg)?;
         let dev = &Device::Cpu;
         let obs = Tensor::from_slice(&batch.obs, (b, o), dev)?;
         let action = Tensor::from_slice(&batch.action, (b, a), dev)?;
