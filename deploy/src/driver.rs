@@ -1,8 +1,9 @@
 //! Who drives the ego: a reference policy or a trained agent loaded from a checkpoint.
 
+use crate::render::Frame;
 use anyhow::{bail, Context as _, Result};
 use ctxrace_actor::baseline::{Baseline, BaselineKind};
-use ctxrace_actor::RaceEnv;
+use ctxrace_actor::{RaceEnv, StepInfo};
 use ctxrace_common::{AgentConfig, ExperimentConfig, Policy};
 use ctxrace_learner::checkpoint::{latest_checkpoint, AGENT_FILE, POLICY_FILE};
 use std::path::{Path, PathBuf};
@@ -107,6 +108,33 @@ impl Driver {
         match self {
             Driver::Baseline(kind, b) => *b = Baseline::new(*kind, env, seed),
             Driver::Agent(p) => p.reset(),
+        }
+    }
+
+    /// Runs one episode of `env` under `context` from `seed` to its end, recording a frame per
+    /// decision into `frames` if given; returns the last step's details.
+    pub fn drive_episode(
+        &mut self,
+        env: &mut RaceEnv,
+        context: ctxrace_common::Context,
+        seed: u64,
+        mut frames: Option<&mut Vec<Frame>>,
+    ) -> Result<StepInfo> {
+        let mut obs = env.reset(seed, context);
+        self.reset(env, seed);
+        if let Some(f) = frames.as_deref_mut() {
+            f.push(Frame::capture(env, [0.0, 0.0], 0.0, &obs));
+        }
+        loop {
+            let (action, _) = self.act(env, &obs)?;
+            let step = env.step(action)?;
+            obs = step.obs;
+            if let Some(f) = frames.as_deref_mut() {
+                f.push(Frame::capture(env, action, step.reward, &obs));
+            }
+            if step.terminated || step.truncated {
+                return Ok(step.info);
+            }
         }
     }
 

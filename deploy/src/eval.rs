@@ -17,7 +17,6 @@ use clap::Args;
 use ctxrace_actor::baseline::BaselineKind;
 use ctxrace_actor::RaceEnv;
 use ctxrace_common::{Context, RaceConfig};
-use indicatif::{ProgressBar, ProgressStyle};
 use serde::{Deserialize, Serialize};
 use std::collections::HashSet;
 use std::io::Write;
@@ -313,12 +312,7 @@ fn run_workers(
                 .context("starting an evaluation worker")
         })
         .collect::<Result<_>>()?;
-    let bar = ProgressBar::new(total).with_style(
-        ProgressStyle::with_template(
-            "{elapsed_precise} [{bar:40}] {pos}/{len} episodes ({per_sec}, eta {eta})",
-        )
-        .expect("a valid progress template"),
-    );
+    let bar = crate::train::progress_bar(total, "episodes");
     bar.set_position(done);
     let mut failed = Vec::new();
     while !children.is_empty() {
@@ -395,24 +389,9 @@ fn run_episode(
     context: Context,
     seed: u64,
     lap: usize,
-    mut frames: Option<&mut Vec<Frame>>,
+    frames: Option<&mut Vec<Frame>>,
 ) -> Result<EpisodeRecord> {
-    let mut obs = env.reset(seed, context);
-    driver.reset(env, seed);
-    if let Some(f) = frames.as_deref_mut() {
-        f.push(Frame::capture(env, [0.0, 0.0], 0.0, &obs));
-    }
-    let lap_complete = loop {
-        let (action, _) = driver.act(env, &obs)?;
-        let step = env.step(action)?;
-        obs = step.obs;
-        if let Some(f) = frames.as_deref_mut() {
-            f.push(Frame::capture(env, action, step.reward, &obs));
-        }
-        if step.terminated || step.truncated {
-            break step.info.lap_complete;
-        }
-    };
+    let last = driver.drive_episode(env, context, seed, frames)?;
     let m = env.metrics();
     Ok(EpisodeRecord {
         context_speed: context.speed,
@@ -423,7 +402,7 @@ fn run_episode(
         overtakes: m.overtakes,
         a2a: m.a2a,
         wall_crash: m.wall_crash,
-        lap_complete,
+        lap_complete: last.lap_complete,
         lap_time: m.lap_time,
         steps: m.steps,
         episode_return: m.episode_return,

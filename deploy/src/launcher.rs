@@ -281,7 +281,7 @@ fn supervise(
     let mut telemetry = TelemetrySubscriber::new(transport)?;
     let mut weights = WeightsReceiver::new(transport)?;
     let mut episodes = EpisodeLog::open(dir)?;
-    let bar = progress_bar(cfg.train.env_steps);
+    let bar = progress_bar(cfg.train.env_steps, "env steps");
     let start = Instant::now();
     let mut p = Progress {
         actor_versions: vec![0; actors.len()],

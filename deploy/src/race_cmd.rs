@@ -71,31 +71,21 @@ pub fn run(args: RaceArgs) -> Result<()> {
     }
     let track = Arc::new(args.tracks.load(&args.track)?);
     let mut env = RaceEnv::new(track.clone(), cfg)?;
-    let mut obs = env.reset(args.seed, args.context);
     let spec = match &args.policy {
         Some(path) => EgoSpec::Trained(Box::new(TrainedAgent::load(path)?)),
         None => EgoSpec::Baseline(args.ego),
     };
     let mut policy = spec.driver(&env)?;
-    policy.reset(&env, args.seed);
-    let mut frames = vec![Frame::capture(&env, [0.0, 0.0], 0.0, &obs)];
-    let ended_by = loop {
-        let (action, _) = policy.act(&env, &obs)?;
-        let step = env.step(action)?;
-        obs = step.obs;
-        frames.push(Frame::capture(&env, action, step.reward, &obs));
-        if step.terminated || step.truncated {
-            let i = step.info;
-            break if i.lap_complete {
-                "lap complete"
-            } else if i.a2a {
-                "collision with a rival"
-            } else if i.wall_crash {
-                "wall crash"
-            } else {
-                "time limit"
-            };
-        }
+    let mut frames = Vec::new();
+    let last = policy.drive_episode(&mut env, args.context, args.seed, Some(&mut frames))?;
+    let ended_by = if last.lap_complete {
+        "lap complete"
+    } else if last.a2a {
+        "collision with a rival"
+    } else if last.wall_crash {
+        "wall crash"
+    } else {
+        "time limit"
     };
     let m = env.metrics();
     if args.json {

@@ -96,13 +96,19 @@ fn create_run_dir(args: &TrainArgs, cfg: &ExperimentConfig) -> Result<PathBuf> {
                 cfg.track.replace([':', '/'], "_"),
                 cfg.train.seed
             );
-            (1..)
-                .map(|k| match k {
-                    1 => PathBuf::from("runs").join(&base),
-                    k => PathBuf::from("runs").join(format!("{base}-{k}")),
-                })
-                .find(|d| !d.join(CONFIG_FILE).exists())
-                .expect("an unused run directory name")
+            let taken = |d: &PathBuf| d.join(CONFIG_FILE).exists();
+            let first = PathBuf::from("runs").join(&base);
+            if !taken(&first) {
+                first
+            } else {
+                match (2..10_000)
+                    .map(|k| PathBuf::from("runs").join(format!("{base}-{k}")))
+                    .find(|d| !taken(d))
+                {
+                    Some(d) => d,
+                    None => bail!("runs/{base}-2 to -9999 are all taken; pass --run-dir"),
+                }
+            }
         }
     };
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -182,14 +188,15 @@ fn sample(buffer: &ReplayBuffer, spec: BatchSpec, rng: &mut ChaCha8Rng) -> Optio
     }
 }
 
-/// The progress bar of a training run.
-pub fn progress_bar(env_steps: u64) -> ProgressBar {
-    ProgressBar::new(env_steps).with_style(
-        ProgressStyle::with_template(
-            "{elapsed_precise} [{bar:30}] {pos}/{len} env steps ({per_sec}) {msg}",
-        )
-        .expect("a valid progress template"),
-    )
+/// A progress bar over `len` `unit`s with their rate and, in its message, live figures.
+pub fn progress_bar(len: u64, unit: &str) -> ProgressBar {
+    let template =
+        format!("{{elapsed_precise}} [{{bar:30}}] {{pos}}/{{len}} {unit} ({{per_sec}}) {{msg}}");
+    let bar = ProgressBar::new(len);
+    match ProgressStyle::with_template(&template) {
+        Ok(style) => bar.with_style(style),
+        Err(_) => bar,
+    }
 }
 
 /// The single-process trainer: one collector, an in-memory replay buffer and the learner in
@@ -208,7 +215,7 @@ pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()
     let spec = cfg.agent.batch_spec();
     let mut episodes = EpisodeLog::open(dir)?;
     let mut metrics_log = MetricsLog::open(dir)?;
-    let bar = progress_bar(t.env_steps);
+    let bar = progress_bar(t.env_steps, "env steps");
     let start = Instant::now();
     let (mut debt, mut stale_policy, mut recent) = (0.0, false, Vec::<f64>::new());
     let mut payload = Vec::new();
