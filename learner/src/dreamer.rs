@@ -45,9 +45,10 @@ use crate::adam::Adam;
 use crate::algorithm::{Algorithm, Batch, Metrics};
 use crate::checkpoint;
 use crate::returns::{lambda_returns, ReturnNorm};
-use candle_core::{bail, DType, Device, Module, Result, Tensor, Var, D};
+use candle_core::{bail, DType, Device, Module, Result, Tensor, Var};
 use candle_nn::Init;
 use ctxrace_common::agents::{ContextMode, DreamerConfig, MaskConfig, CONTEXT_DIM};
+use ctxrace_common::nn::kernels::soft_cross_entropy;
 use ctxrace_common::nn::{
     symlog, Activation, Mlp, ParamStore, Rssm, RssmState, TanhGaussianActor, TwoHot,
 };
@@ -309,6 +310,15 @@ struct Imagined {
     n: usize,
 }
 
+/// Detached views of the networks that imagination and the actor loss run through: they share
+/// the trained weights but take no gradient, so the actor's backward pass computes none for them.
+struct Frozen {
+    rssm: Rssm,
+    reward: Mlp,
+    cont: Mlp,
+    critic: Mlp,
+}
+
 /// On-disk counters of a [`Dreamer`].
 #[derive(Serialize, Deserialize)]
 struct TrainState {
@@ -331,6 +341,7 @@ pub struct Dreamer {
     cont: Mlp,
     critic: Mlp,
     slow_critic: Mlp,
+    frozen: Frozen,
     twohot: TwoHot,
     model_opt: Adam,
     actor_opt: Adam,
@@ -409,7 +420,14 @@ impl Dreamer {
             ContextMode::Cmask => Some(MaskSac::new(&cfg, obs_dim, &policy)?),
             ContextMode::None | ContextMode::Crssm => None,
         };
+        let frozen = Frozen {
+            rssm: nets.rssm.frozen(),
+            reward: reward.frozen(),
+            cont: cont.frozen(),
+            critic: critic.frozen(),
+        };
         Ok(Self {
+            frozen,
             twohot: TwoHot::new(cfg.bins, -20.0, 20.0)?,
             return_norm: ReturnNorm::new(cfg.return_decay, cfg.return_low, cfg.return_high),
             cfg,
@@ -482,7 +500,7 @@ impl Dreamer {
 
         let mut state = rssm.initial(b)?;
         let (mut deters, mut stochs) = (Vec::with_capacity(t_len), Vec::with_capacity(t_len));
-        let (mut priors, mut posts) = (Vec::with_capacity(t_len), Vec::with_capacity(t_len));
+        let mut posts = Vec::with_capacity(t_len);
         for t in 0..t_len {
             let keep = keeps.get(t)?.unsqueeze(1)?;
             let prev = RssmState {
@@ -491,7 +509,7 @@ impl Dreamer {
             };
             let action = actions.get(t)?.broadcast_mul(&keep)?;
             let c_t = ctx_tm.as_ref().map(|c| c.get(t)).transpose()?;
-            let (next, prior, post) = rssm.obs_step(
+            let (next, post) = rssm.obs_step(
                 &prev,
                 &action,
                 c_t.as_ref(),
@@ -500,14 +518,13 @@ impl Dreamer {
             )?;
             deters.push(next.deter.clone());
             stochs.push(next.stoch.clone());
-            priors.push(prior);
             posts.push(post);
             state = next;
         }
         let batch_major = |xs: &[Tensor]| Tensor::stack(xs, 1)?.reshape((n, ()));
         let deter = batch_major(&deters)?;
         let stoch = batch_major(&stochs)?;
-        let prior = batch_major(&priors)?.reshape((n, s, c))?;
+        let prior = rssm.prior_logits(&deter)?;
         let post = batch_major(&posts)?.reshape((n, s, c))?;
 
         let x = head_input(&Tensor::cat(&[&deter, &stoch], 1)?, ctx)?;
@@ -559,7 +576,7 @@ impl Dreamer {
             let gauss = 0.5 * (1.0 + (2.0 * std::f64::consts::PI).ln());
             entropies.push((std.log()?.sum(1)? + a as f64 * gauss)?);
             state = self
-                .nets
+                .frozen
                 .rssm
                 .img_step(&state, &action, ctx, &uniforms(rng, (n, s, c))?)?
                 .0;
@@ -582,10 +599,13 @@ impl Dreamer {
     ) -> Result<(Tensor, Tensor, Tensor)> {
         let (h, n) = (self.cfg.horizon, im.n);
         let per_state = |x: Tensor| x.reshape((h + 1, n));
+        let frozen = &self.frozen;
         let reward =
-            per_state(self.twohot.decode(&self.reward.forward(&im.x)?)?)?.narrow(0, 1, h)?;
-        let cont = per_state(candle_nn::ops::sigmoid(&self.cont.forward(&im.x)?)?)?.detach();
-        let value = per_state(self.twohot.decode(&self.critic.forward(&im.x)?)?)?;
+            per_state(self.twohot.decode(&frozen.reward.forward(&im.x)?)?)?.narrow(0, 1, h)?;
+        let cont = per_state(candle_nn::ops::sigmoid(
+            &frozen.cont.forward(&im.x.detach())?,
+        )?)?;
+        let value = per_state(self.twohot.decode(&frozen.critic.forward(&im.x)?)?)?;
         let gamma = self.cfg.gamma;
         let returns = lambda_returns(
             &reward,
@@ -632,11 +652,7 @@ impl Dreamer {
         // two-hot cross-entropy towards the returns plus the regulariser towards the slow critic
         let target = (self.twohot.encode(&returns.flatten_all()?)?
             + (self.twohot.encode(&slow)? * self.cfg.slow_critic_reg)?)?;
-        let log_probs = candle_nn::ops::log_softmax(&logits, D::Minus1)?;
-        let critic_loss = target
-            .mul(&log_probs)?
-            .sum(1)?
-            .neg()?
+        let critic_loss = soft_cross_entropy(&logits, &target)?
             .mul(&weights.flatten_all()?)?
             .mean_all()?;
         let critic_norm = self.critic_opt.minimise(&critic_loss)?;
@@ -1025,15 +1041,15 @@ mod tests {
                 assert!(g > 0.0, "no gradient for {name}");
             }
         }
-        // the latent samples of imagination pass gradients straight through to the prior
-        let prior_out = agent
-            .policy
-            .named()
-            .into_iter()
-            .find(|(n, _)| n == "rssm.prior_out.weight")
-            .unwrap()
-            .1;
-        assert!(grad_norm(&grads, &prior_out) > 0.0);
+        // imagination runs through frozen views: no world-model, head or critic weight gets a
+        // gradient from the actor loss (so its backward pass computes none)
+        for store in [&agent.policy, &agent.heads, &agent.critic_store] {
+            for (name, v) in store.named() {
+                if !name.starts_with("actor.") {
+                    assert!(grads.get(&v).is_none(), "{name} has an actor-loss gradient");
+                }
+            }
+        }
 
         let before_policy = agent.policy.named();
         let snapshot = |store: &ParamStore| -> Vec<(String, Vec<f32>)> {

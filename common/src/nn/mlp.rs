@@ -1,8 +1,10 @@
 //! Multi-layer perceptrons: `Linear → [LayerNorm] → activation` blocks, then an optional output layer.
 
+use super::dense::Dense;
+use super::kernels::NormAct;
 use super::norm::LayerNorm;
 use candle_core::{Module, Result, Tensor};
-use candle_nn::{Linear, VarBuilder};
+use candle_nn::VarBuilder;
 
 /// Hidden-layer activation.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -16,8 +18,8 @@ pub enum Activation {
 /// An MLP: `layers` hidden blocks of width `units`, then a linear head to `out` (if given).
 #[derive(Clone, Debug)]
 pub struct Mlp {
-    hidden: Vec<(Linear, Option<LayerNorm>)>,
-    head: Option<Linear>,
+    hidden: Vec<(Dense, Option<LayerNorm>)>,
+    head: Option<Dense>,
     act: Activation,
 }
 
@@ -37,11 +39,7 @@ impl Mlp {
             let vb_i = vb.pp(format!("l{i}"));
             let norm = act == Activation::SiluNorm;
             // with a LayerNorm after it the linear layer's bias is redundant
-            let fc = if norm {
-                candle_nn::linear_no_bias(width, units, vb_i.pp("fc"))?
-            } else {
-                candle_nn::linear(width, units, vb_i.pp("fc"))?
-            };
+            let fc = Dense::new(width, units, !norm, vb_i.pp("fc"))?;
             let ln = if norm {
                 Some(LayerNorm::new(units, 1e-3, vb_i.pp("ln"))?)
             } else {
@@ -51,10 +49,23 @@ impl Mlp {
             width = units;
         }
         let head = match out {
-            Some(o) => Some(candle_nn::linear(width, o, vb.pp("out"))?),
+            Some(o) => Some(Dense::new(width, o, true, vb.pp("out"))?),
             None => None,
         };
         Ok(Self { hidden, head, act })
+    }
+
+    /// The same network on detached (shared) parameters: gradients reach its input only.
+    pub fn frozen(&self) -> Self {
+        Self {
+            hidden: self
+                .hidden
+                .iter()
+                .map(|(fc, ln)| (fc.frozen(), ln.as_ref().map(LayerNorm::frozen)))
+                .collect(),
+            head: self.head.as_ref().map(Dense::frozen),
+            act: self.act,
+        }
     }
 }
 
@@ -63,12 +74,9 @@ impl Module for Mlp {
         let mut h = x.clone();
         for (fc, ln) in &self.hidden {
             h = fc.forward(&h)?;
-            if let Some(ln) = ln {
-                h = ln.forward(&h)?;
-            }
-            h = match self.act {
-                Activation::SiluNorm => candle_nn::ops::silu(&h)?,
-                Activation::Relu => h.relu()?,
+            h = match ln {
+                Some(ln) => ln.forward_act(&h, NormAct::Silu)?,
+                None => h.relu()?,
             };
         }
         match &self.head {

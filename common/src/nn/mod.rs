@@ -1,5 +1,7 @@
 //! Neural-network modules shared by acting and training (candle, CPU, f32).
 
+pub mod dense;
+pub mod kernels;
 pub mod mlp;
 pub mod norm;
 pub mod params;
@@ -7,6 +9,8 @@ pub mod rssm;
 pub mod symlog;
 pub mod tanh_gaussian;
 
+pub use dense::Dense;
+pub use kernels::NormAct;
 pub use mlp::{Activation, Mlp};
 pub use norm::LayerNorm;
 pub use params::ParamStore;

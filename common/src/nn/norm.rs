@@ -1,10 +1,11 @@
-//! Layer normalisation with a backward pass.
+//! Layer normalisation with a backward pass, optionally fused with the SiLU that follows it.
 //!
 //! `y = (x − mean(x)) / √(var(x) + ε) · γ + β` over the last dimension. candle-nn's `LayerNorm`
 //! takes a fused kernel without a backward pass whenever its input is contiguous, which silently
-//! stops gradients; this one is built from differentiable tensor operations.
+//! stops gradients; this one runs [`kernels::norm_act`], which has its own.
 
-use candle_core::{Result, Tensor, D};
+use super::kernels::{self, NormAct};
+use candle_core::{Result, Tensor};
 use candle_nn::{Init, VarBuilder};
 
 /// A layer normalisation with learned gain `γ` (`weight`) and offset `β` (`bias`).
@@ -24,16 +25,25 @@ impl LayerNorm {
             eps,
         })
     }
+
+    /// `act(LayerNorm(x))`.
+    pub fn forward_act(&self, x: &Tensor, act: NormAct) -> Result<Tensor> {
+        kernels::norm_act(x, &self.weight, &self.bias, self.eps, act)
+    }
+
+    /// The same normalisation on detached (shared) parameters.
+    pub fn frozen(&self) -> Self {
+        Self {
+            weight: self.weight.detach(),
+            bias: self.bias.detach(),
+            eps: self.eps,
+        }
+    }
 }
 
 impl candle_core::Module for LayerNorm {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let centred = x.broadcast_sub(&x.mean_keepdim(D::Minus1)?)?;
-        let var = centred.sqr()?.mean_keepdim(D::Minus1)?;
-        centred
-            .broadcast_div(&(var + self.eps)?.sqrt()?)?
-            .broadcast_mul(&self.weight)?
-            .broadcast_add(&self.bias)
+        self.forward_act(x, NormAct::Identity)
     }
 }
 

@@ -10,13 +10,14 @@
 //!   the −1 bias makes the cell keep its state by default.
 //!
 //! Samples use the Gumbel-max trick on noise the caller draws from its own seeded generator, and
-//! pass gradients straight through: `z = onehot + p − sg(p)`. (Softmax is the composed,
-//! differentiable `candle_nn::ops::softmax`: the fused `softmax_last_dim` has no backward pass.)
+//! pass gradients straight through: `z = onehot + p − sg(p)` ([`kernels::straight_through_sample`]).
 
+use super::dense::Dense;
+use super::kernels::{self, NormAct};
 use super::norm::LayerNorm;
 use super::params::ParamStore;
 use candle_core::{DType, Device, Module, Result, Tensor, D};
-use candle_nn::{Linear, VarBuilder};
+use candle_nn::VarBuilder;
 
 /// Sizes of the RSSM.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -58,38 +59,43 @@ impl RssmState {
 /// A `Linear → LayerNorm → SiLU` block.
 #[derive(Clone, Debug)]
 struct NormBlock {
-    fc: Linear,
+    fc: Dense,
     ln: LayerNorm,
 }
 
 impl NormBlock {
     fn new(input: usize, out: usize, vb: VarBuilder) -> Result<Self> {
         Ok(Self {
-            fc: candle_nn::linear_no_bias(input, out, vb.pp("fc"))?,
+            fc: Dense::new(input, out, false, vb.pp("fc"))?,
             ln: LayerNorm::new(out, 1e-3, vb.pp("ln"))?,
         })
     }
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        candle_nn::ops::silu(&self.ln.forward(&self.fc.forward(x)?)?)
+        self.ln.forward_act(&self.fc.forward(x)?, NormAct::Silu)
+    }
+
+    fn frozen(&self) -> Self {
+        Self {
+            fc: self.fc.frozen(),
+            ln: self.ln.frozen(),
+        }
     }
 }
 
 /// DreamerV3's GRU cell with a LayerNorm on the gates and update bias −1.
 #[derive(Clone, Debug)]
 pub struct Gru {
-    fc: Linear,
+    fc: Dense,
     ln: LayerNorm,
-    size: usize,
 }
 
 impl Gru {
     /// A cell from `input` features to a state of `size`.
     pub fn new(input: usize, size: usize, vb: VarBuilder) -> Result<Self> {
         Ok(Self {
-            fc: candle_nn::linear_no_bias(input + size, 3 * size, vb.pp("fc"))?,
+            fc: Dense::new(input + size, 3 * size, false, vb.pp("fc"))?,
             ln: LayerNorm::new(3 * size, 1e-3, vb.pp("ln"))?,
-            size,
         })
     }
 
@@ -98,11 +104,15 @@ impl Gru {
         let parts = self
             .ln
             .forward(&self.fc.forward(&Tensor::cat(&[x, h], D::Minus1)?)?)?;
-        let n = self.size;
-        let reset = candle_nn::ops::sigmoid(&parts.narrow(D::Minus1, 0, n)?)?;
-        let cand = reset.mul(&parts.narrow(D::Minus1, n, n)?)?.tanh()?;
-        let update = candle_nn::ops::sigmoid(&(parts.narrow(D::Minus1, 2 * n, n)? - 1.0)?)?;
-        update.mul(&cand)? + (1.0 - &update)?.mul(h)?
+        kernels::gru_gates(&parts, h)
+    }
+
+    /// The same cell on detached (shared) parameters.
+    pub fn frozen(&self) -> Self {
+        Self {
+            fc: self.fc.frozen(),
+            ln: self.ln.frozen(),
+        }
     }
 }
 
@@ -113,9 +123,9 @@ pub struct Rssm {
     img_in: NormBlock,
     gru: Gru,
     prior_hidden: NormBlock,
-    prior_out: Linear,
+    prior_out: Dense,
     post_hidden: NormBlock,
-    post_out: Linear,
+    post_out: Dense,
 }
 
 impl Rssm {
@@ -130,11 +140,25 @@ impl Rssm {
             )?,
             gru: Gru::new(cfg.hidden, cfg.deter, vb.pp("gru"))?,
             prior_hidden: NormBlock::new(cfg.deter, cfg.hidden, vb.pp("prior"))?,
-            prior_out: candle_nn::linear(cfg.hidden, z, vb.pp("prior_out"))?,
+            prior_out: Dense::new(cfg.hidden, z, true, vb.pp("prior_out"))?,
             post_hidden: NormBlock::new(cfg.deter + cfg.embed_dim, cfg.hidden, vb.pp("post"))?,
-            post_out: candle_nn::linear(cfg.hidden, z, vb.pp("post_out"))?,
+            post_out: Dense::new(cfg.hidden, z, true, vb.pp("post_out"))?,
             cfg,
         })
+    }
+
+    /// The same model on detached (shared) parameters: imagination through it passes gradients
+    /// to the states and actions but trains none of its weights.
+    pub fn frozen(&self) -> Self {
+        Self {
+            cfg: self.cfg,
+            img_in: self.img_in.frozen(),
+            gru: self.gru.frozen(),
+            prior_hidden: self.prior_hidden.frozen(),
+            prior_out: self.prior_out.frozen(),
+            post_hidden: self.post_hidden.frozen(),
+            post_out: self.post_out.frozen(),
+        }
     }
 
     /// The sizes.
@@ -201,17 +225,7 @@ impl Rssm {
     /// A straight-through one-hot sample `[B, S·C]` from logits, with Gumbel noise
     /// `g = −ln(−ln U)` given as uniforms `U ∈ (0, 1)` of shape `[B, S, C]`.
     pub fn sample(&self, logits: &Tensor, uniform: &Tensor) -> Result<Tensor> {
-        let probs = self.probs(logits)?;
-        let gumbel = uniform.log()?.neg()?.log()?.neg()?;
-        let idx = (probs.log()? + gumbel)?.argmax_keepdim(D::Minus1)?;
-        let classes = Tensor::arange(0u32, self.cfg.classes as u32, &Device::Cpu)?.reshape((
-            1,
-            1,
-            self.cfg.classes,
-        ))?;
-        let onehot = idx.broadcast_eq(&classes)?.to_dtype(DType::F32)?;
-        let st = (onehot + &probs)?.sub(&probs.detach())?;
-        st.reshape((logits.dim(0)?, self.cfg.stoch * self.cfg.classes))
+        kernels::straight_through_sample(logits, uniform, self.cfg.unimix)
     }
 
     /// One imagination step: `(state, prior logits)`.
@@ -228,7 +242,8 @@ impl Rssm {
         Ok((RssmState { deter, stoch }, prior))
     }
 
-    /// One observation step: `(posterior state, prior logits, posterior logits)`.
+    /// One observation step: `(posterior state, posterior logits)`. The prior of `h_t` does not
+    /// feed the next step, so a sequence's priors are one batched [`Rssm::prior_logits`] after it.
     pub fn obs_step(
         &self,
         prev: &RssmState,
@@ -236,21 +251,16 @@ impl Rssm {
         context: Option<&Tensor>,
         embed: &Tensor,
         uniform: &Tensor,
-    ) -> Result<(RssmState, Tensor, Tensor)> {
+    ) -> Result<(RssmState, Tensor)> {
         let deter = self.deter_step(prev, action, context)?;
-        let prior = self.prior_logits(&deter)?;
         let post = self.post_logits(&deter, embed)?;
         let stoch = self.sample(&post, uniform)?;
-        Ok((RssmState { deter, stoch }, prior, post))
+        Ok((RssmState { deter, stoch }, post))
     }
 
     /// `KL(p_a ‖ p_b)` per batch element, summed over the variables, from logits `[B, S, C]`.
     pub fn kl(&self, logits_a: &Tensor, logits_b: &Tensor) -> Result<Tensor> {
-        let pa = self.probs(logits_a)?;
-        let pb = self.probs(logits_b)?;
-        pa.mul(&(pa.log()? - pb.log()?)?)?
-            .sum(D::Minus1)?
-            .sum(D::Minus1)
+        kernels::categorical_kl(logits_a, logits_b, self.cfg.unimix)
     }
 }
 
@@ -291,9 +301,10 @@ mod tests {
         let a = Tensor::ones((4, 2), DType::F32, &Device::Cpu).unwrap();
         let ctx = Tensor::ones((4, 2), DType::F32, &Device::Cpu).unwrap();
         let e = Tensor::ones((4, 5), DType::F32, &Device::Cpu).unwrap();
-        let (s1, prior, post) = rssm
+        let (s1, post) = rssm
             .obs_step(&s0, &a, Some(&ctx), &e, &uniform(4, &c, 0.5))
             .unwrap();
+        let prior = rssm.prior_logits(&s1.deter).unwrap();
         assert_eq!(s1.deter.dims(), &[4, 8]);
         assert_eq!(prior.dims(), &[4, 3, 4]);
         assert_eq!(post.dims(), &[4, 3, 4]);

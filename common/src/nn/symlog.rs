@@ -7,7 +7,8 @@
 //! `w_k = 1 − |symlog(y) − b_k| / (b_{k+1} − b_k)`; a prediction decodes as
 //! `symexp(Σ_k softmax(logits)_k b_k)`.
 
-use candle_core::{Device, Result, Tensor, D};
+use super::kernels;
+use candle_core::{Result, Tensor};
 
 /// `sign(x) ln(1 + |x|)`.
 pub fn symlog(x: &Tensor) -> Result<Tensor> {
@@ -24,8 +25,7 @@ pub fn symexp(x: &Tensor) -> Result<Tensor> {
 pub struct TwoHot {
     low: f32,
     high: f32,
-    bins: Tensor,
-    count: usize,
+    bins: Vec<f32>,
 }
 
 impl TwoHot {
@@ -41,50 +41,47 @@ impl TwoHot {
         Ok(Self {
             low,
             high,
-            bins: Tensor::from_vec(values, count, &Device::Cpu)?,
-            count,
+            bins: values,
         })
     }
 
     /// Number of bins.
     pub fn count(&self) -> usize {
-        self.count
+        self.bins.len()
     }
 
     /// Two-hot targets `[N, K]` for values `y` of shape `[N]` (in the original space).
     pub fn encode(&self, y: &Tensor) -> Result<Tensor> {
         let values: Vec<f32> = symlog(y)?.to_vec1()?;
-        let step = (self.high - self.low) / (self.count - 1) as f32;
-        let mut out = vec![0f32; values.len() * self.count];
+        let step = (self.high - self.low) / (self.bins.len() - 1) as f32;
+        let mut out = vec![0f32; values.len() * self.bins.len()];
         for (i, v) in values.iter().enumerate() {
-            let pos =
-                ((v.clamp(self.low, self.high) - self.low) / step).min((self.count - 1) as f32);
-            let below = (pos.floor() as usize).min(self.count - 2);
+            let pos = ((v.clamp(self.low, self.high) - self.low) / step)
+                .min((self.bins.len() - 1) as f32);
+            let below = (pos.floor() as usize).min(self.bins.len() - 2);
             let frac = pos - below as f32;
-            out[i * self.count + below] = 1.0 - frac;
-            out[i * self.count + below + 1] = frac;
+            out[i * self.bins.len() + below] = 1.0 - frac;
+            out[i * self.bins.len() + below + 1] = frac;
         }
-        Tensor::from_vec(out, (values.len(), self.count), y.device())
+        Tensor::from_vec(out, (values.len(), self.bins.len()), y.device())
     }
 
     /// Decodes logits `[…, K]` to values `[…]` in the original space.
     pub fn decode(&self, logits: &Tensor) -> Result<Tensor> {
-        let probs = candle_nn::ops::softmax(logits, D::Minus1)?;
-        symexp(&probs.broadcast_mul(&self.bins)?.sum(D::Minus1)?)
+        kernels::twohot_decode(logits, &self.bins)
     }
 
     /// Cross-entropy `−Σ_k t_k log softmax(logits)_k` of logits `[N, K]` against the two-hot
     /// targets of `y` `[N]`; returns `[N]`.
     pub fn loss(&self, logits: &Tensor, y: &Tensor) -> Result<Tensor> {
-        let target = self.encode(&y.detach())?;
-        let logp = candle_nn::ops::log_softmax(logits, D::Minus1)?;
-        target.mul(&logp)?.sum(D::Minus1)?.neg()
+        kernels::soft_cross_entropy(logits, &self.encode(&y.detach())?)
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use candle_core::Device;
 
     fn t(v: &[f32]) -> Tensor {
         Tensor::new(v, &Device::Cpu).unwrap()

@@ -127,7 +127,7 @@ impl DreamerNets {
         noise: Option<&Tensor>,
     ) -> Result<(RssmState, Tensor)> {
         let embed = self.encoder.forward(&symlog(obs)?)?;
-        let (next, _, _) = self
+        let (next, _) = self
             .rssm
             .obs_step(state, prev_action, ctx, &embed, uniform)?;
         let (mean, std) = self.actor_dist(&head_input(&next.feat()?, ctx)?)?;
