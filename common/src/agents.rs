@@ -24,6 +24,15 @@ pub enum AlgoKind {
 }
 
 impl AlgoKind {
+    /// Threads the learner uses by default: one for SAC, whose products at batch 100 of a
+    /// 2 × 100 network are too small to split (two threads take twice as long), two otherwise.
+    pub fn learner_threads(self) -> usize {
+        match self {
+            AlgoKind::Sac => 1,
+            AlgoKind::Dreamerv3 | AlgoKind::Crssm | AlgoKind::Cmask => 2,
+        }
+    }
+
     /// Every algorithm, in the paper's order.
     pub const ALL: [AlgoKind; 4] = [
         AlgoKind::Sac,

@@ -28,8 +28,16 @@ pub struct TrainConfig {
     pub checkpoint_every: u64,
     /// Gradient steps between training-metric rows in `metrics.jsonl`.
     pub log_every: u64,
-    /// Threads of the learner's tensor library (the actors always use one).
-    pub threads: usize,
+    /// Threads of the learner's tensor library (the actors always use one) [default:
+    /// [`AlgoKind::learner_threads`]].
+    pub threads: Option<usize>,
+}
+
+impl TrainConfig {
+    /// The learner's thread count for `algo`: `threads` if set, else the algorithm's default.
+    pub fn threads_for(&self, algo: crate::agents::AlgoKind) -> usize {
+        self.threads.unwrap_or(algo.learner_threads())
+    }
 }
 
 impl Default for TrainConfig {
@@ -43,7 +51,7 @@ impl Default for TrainConfig {
             policy_every: 10,
             checkpoint_every: 5_000,
             log_every: 100,
-            threads: 2,
+            threads: None,
         }
     }
 }
@@ -123,7 +131,7 @@ impl ExperimentConfig {
                 t.context_range
             ));
         }
-        if t.policy_every == 0 || t.log_every == 0 || t.threads == 0 {
+        if t.policy_every == 0 || t.log_every == 0 || t.threads == Some(0) {
             return Err("[train] policy_every, log_every and threads must be positive".into());
         }
         Ok(())

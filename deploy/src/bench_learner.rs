@@ -30,9 +30,10 @@ pub struct LearnerArgs {
     /// Timed acting steps at batch 1.
     #[arg(long, default_value_t = 500)]
     act_steps: usize,
-    /// Threads of the tensor library while training (acting always uses one).
-    #[arg(long, default_value_t = 2)]
-    threads: usize,
+    /// Threads of the tensor library while training (acting always uses one) [default: 1 for
+    /// SAC, 2 for the others].
+    #[arg(long)]
+    threads: Option<usize>,
     /// Print JSON.
     #[arg(long)]
     json: bool,
@@ -107,7 +108,8 @@ pub fn run(args: LearnerArgs) -> Result<()> {
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let batch = random_batch(spec, beams, &mut rng);
 
-    ctxrace_common::nn::set_threads(args.threads);
+    let threads = args.threads.unwrap_or(agent.algo.learner_threads());
+    ctxrace_common::nn::set_threads(threads);
     let mut algo = ctxrace_learner::build(&agent, beams)?;
     algo.train_step(&batch)?;
     let start = Instant::now();
@@ -135,7 +137,7 @@ pub fn run(args: LearnerArgs) -> Result<()> {
                 format!("{batch} transitions x {frames} frames")
             }
         },
-        threads: args.threads,
+        threads,
         seconds_per_step: per_step,
         steps_per_second: 1.0 / per_step,
         act_ms_mean: times.iter().sum::<f64>() / times.len() as f64,
@@ -146,12 +148,12 @@ pub fn run(args: LearnerArgs) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
         println!(
-            "{} ({}, {} threads): {:.3} s per gradient step ({:.2} steps/s); acting at batch 1: \
+            "{} ({}, {} threads): {:.2} ms per gradient step ({:.2} steps/s); acting at batch 1: \
              mean {:.3} ms, p50 {:.3} ms, p90 {:.3} ms",
             report.algo,
             report.batch,
             report.threads,
-            report.seconds_per_step,
+            report.seconds_per_step * 1e3,
             report.steps_per_second,
             report.act_ms_mean,
             report.act_ms_p50,

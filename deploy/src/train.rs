@@ -205,7 +205,7 @@ pub fn progress_bar(len: u64, unit: &str) -> ProgressBar {
 /// every `policy_every` gradient steps, logs and checkpoints.
 pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()> {
     let t = &cfg.train;
-    ctxrace_common::nn::set_threads(t.threads);
+    ctxrace_common::nn::set_threads(t.threads_for(cfg.agent.algo));
     let frame_dim = env.obs_dim();
     let mut algo = ctxrace_learner::build(&cfg.agent, frame_dim)?;
     let mut policy = Policy::new(&cfg.agent, frame_dim, &algo.policy_weights()?, t.seed)?;

@@ -44,7 +44,7 @@ pub fn target_steps(cfg: &ExperimentConfig) -> u64 {
 pub fn run(opts: LearnerOptions) -> Result<u64> {
     let cfg = &opts.experiment;
     let t = &cfg.train;
-    ctxrace_common::nn::set_threads(t.threads);
+    ctxrace_common::nn::set_threads(t.threads_for(cfg.agent.algo));
     let mut algo = crate::build(&cfg.agent, opts.frame_dim)?;
     if let Some(ckpt) = latest_checkpoint(&opts.run_dir) {
         algo.load(&ckpt)
