@@ -36,10 +36,17 @@
 //! **Parameters.** Four [`ParamStore`]s: "policy" (`encoder`, `rssm`, `actor` and, for cMask, the
 //! mask actor `mask`: everything [`DreamerPolicy`] (in `ctxrace_common::policy`) needs, serialised whole by
 //! [`Algorithm::policy_weights`]), "heads" (`decoder`, `reward`, `cont`), "critic" and its slow
-//! copy; cMask adds its critics, their targets and the temperature. Optimisers: candle's AdamW
-//! with weight decay 0, one each for world model (encoder, RSSM, heads), actor and critic, after
-//! global-norm clipping ([`crate::adam::Adam`], whose moments are saved with the weights). Noise (Gumbel uniforms, Gaussian actions) comes from
-//! a ChaCha8 stream per training step, so a run is reproducible from its seed.
+//! copy; cMask adds its critics, their targets and the temperature. Optimisers: Adam
+//! ([`crate::adam::Adam`], whose moments are saved with the weights), one each for world model
+//! (encoder, RSSM, heads), actor and critic, after global-norm clipping. Noise (Gumbel uniforms,
+//! Gaussian actions) comes from a ChaCha8 stream per training step, so a run is reproducible
+//! from its seed.
+//!
+//! **Speed.** Imagination and the actor loss run through frozen views of the RSSM and of the
+//! reward, continue and critic heads (detached parameters that share the trained storage): the
+//! actor's backward pass then computes gradients only where they lead to the actor, as
+//! PyTorch's `requires_grad = False` does. The layers run on the fused kernels of
+//! `ctxrace_common::nn::kernels`.
 
 use crate::adam::Adam;
 use crate::algorithm::{Algorithm, Batch, Metrics};
