@@ -63,18 +63,27 @@ impl Adam {
     /// One step with `grads` (variables without a gradient are left alone); returns the
     /// gradient norm before clipping.
     pub fn step(&mut self, grads: &GradStore) -> Result<f64> {
+        self.step_sum(std::slice::from_ref(grads))
+    }
+
+    /// One step with the sum of the gradients in `parts` (the shards of one batch); returns the
+    /// norm of that sum before clipping.
+    pub fn step_sum(&mut self, parts: &[GradStore]) -> Result<f64> {
         let mut flat: Vec<Option<Vec<f32>>> = Vec::with_capacity(self.vars.len());
         let mut sq = 0f64;
         for var in &self.vars {
-            let g = match grads.get(var.as_tensor()) {
-                Some(g) => {
-                    let g = g.flatten_all()?.to_vec1::<f32>()?;
-                    sq += g.iter().map(|&x| (x as f64) * (x as f64)).sum::<f64>();
-                    Some(g)
+            let mut sum: Option<Vec<f32>> = None;
+            for g in parts.iter().filter_map(|p| p.get(var.as_tensor())) {
+                let g = g.flatten_all()?.to_vec1::<f32>()?;
+                match &mut sum {
+                    Some(s) => s.iter_mut().zip(&g).for_each(|(s, v)| *s += v),
+                    None => sum = Some(g),
                 }
-                None => None,
-            };
-            flat.push(g);
+            }
+            if let Some(g) = &sum {
+                sq += g.iter().map(|&x| (x as f64) * (x as f64)).sum::<f64>();
+            }
+            flat.push(sum);
         }
         let norm = sq.sqrt();
         if !norm.is_finite() {

@@ -60,7 +60,7 @@ use ctxrace_common::nn::{
     symlog, Activation, Mlp, ParamStore, Rssm, RssmState, TanhGaussianActor, TwoHot,
 };
 use ctxrace_common::policy::{
-    head_input, mask_sample, normals, uniforms, DreamerNets, DreamerPolicy,
+    head_input, mask_sample, normals, normals_per, uniforms_per, DreamerNets, DreamerPolicy,
 };
 use ctxrace_common::SequenceBatch;
 use rand::SeedableRng;
@@ -149,6 +149,26 @@ impl SeqData {
             terminal: Tensor::from_slice(&b.is_terminal, (bs, t), dev)?,
             context: Tensor::from_slice(&b.context, (bs, t, CONTEXT_DIM), dev)?,
         })
+    }
+
+    /// The sequences `rows` of the batch.
+    fn sequences(&self, rows: &std::ops::Range<usize>) -> Result<Self> {
+        let pick = |x: &Tensor| x.narrow(0, rows.start, rows.len());
+        Ok(Self {
+            batch: rows.len(),
+            length: self.length,
+            obs: pick(&self.obs)?,
+            action: pick(&self.action)?,
+            reward: pick(&self.reward)?,
+            first: pick(&self.first)?,
+            terminal: pick(&self.terminal)?,
+            context: pick(&self.context)?,
+        })
+    }
+
+    /// The rows of the sequences `rows` in a batch-major `[B·T, …]` tensor.
+    fn rows_of(&self, x: &Tensor, rows: &std::ops::Range<usize>) -> Result<Tensor> {
+        x.narrow(0, rows.start * self.length, rows.len() * self.length)
     }
 
     /// `x` `[B, T, …]` as `[B·T, k]`.
@@ -299,6 +319,82 @@ impl MaskSac {
     }
 }
 
+/// A shard of a batch: the sequences one worker thread trains on.
+struct Shard {
+    /// Its position among the shards.
+    index: usize,
+    /// Its sequences.
+    rows: std::ops::Range<usize>,
+    /// Its share of the batch, `|rows| / B`: a shard's mean loss times this sums to the batch's.
+    weight: f64,
+}
+
+/// Runs `f` on each shard of a batch of `batch` sequences, one per worker thread, in parallel,
+/// with the noise streams of the shard's sequences; returns the results in shard order.
+fn on_shards<T: Send>(
+    workers: usize,
+    batch: usize,
+    rngs: &mut [ChaCha8Rng],
+    f: impl Fn(Shard, &mut [ChaCha8Rng]) -> Result<T> + Sync,
+) -> Result<Vec<T>> {
+    let workers = workers.clamp(1, batch.max(1));
+    let per = batch.div_ceil(workers).max(1);
+    let mut shards = Vec::with_capacity(workers);
+    let mut rest = rngs;
+    for (index, start) in (0..batch).step_by(per).enumerate() {
+        let rows = start..(start + per).min(batch);
+        let (mine, others) = rest.split_at_mut(rows.len());
+        rest = others;
+        let weight = rows.len() as f64 / batch as f64;
+        shards.push((
+            Shard {
+                index,
+                rows,
+                weight,
+            },
+            mine,
+        ));
+    }
+    if shards.len() == 1 {
+        let (shard, rngs) = shards.pop().expect("one shard");
+        return Ok(vec![f(shard, rngs)?]);
+    }
+    let f = &f;
+    std::thread::scope(|scope| {
+        let handles: Vec<_> = shards
+            .into_iter()
+            .map(|(shard, rngs)| scope.spawn(move || f(shard, rngs)))
+            .collect();
+        handles.into_iter().map(join_worker).collect()
+    })
+}
+
+/// The result of a worker thread; a panic becomes an error.
+fn join_worker<T>(h: std::thread::ScopedJoinHandle<'_, Result<T>>) -> Result<T> {
+    h.join()
+        .map_err(|_| candle_core::Error::Msg("a training worker thread panicked".into()))?
+}
+
+/// The mean of the shards' metrics, each weighted by its share of the batch.
+fn weighted_mean(parts: &[(f64, Metrics)]) -> Metrics {
+    let mut out = Metrics::new();
+    for (w, m) in parts {
+        for (k, v) in m {
+            *out.entry(k.clone()).or_insert(0.0) += w * v;
+        }
+    }
+    out
+}
+
+/// The λ-returns of an imagined trajectory and what they came from, each `[H, N]` (values
+/// `[H + 1, N]`).
+struct ImaginedReturns {
+    reward: Tensor,
+    value: Tensor,
+    returns: Tensor,
+    weights: Tensor,
+}
+
 /// Posterior states to imagine from, `N = B·T` of them, detached.
 struct Starts {
     state: RssmState,
@@ -356,6 +452,8 @@ pub struct Dreamer {
     sac: Option<MaskSac>,
     return_norm: ReturnNorm,
     step: u64,
+    /// Worker threads a batch is split over.
+    workers: usize,
 }
 
 impl Dreamer {
@@ -455,7 +553,14 @@ impl Dreamer {
             critic_opt,
             sac,
             step: 0,
+            workers: ctxrace_common::nn::threads(),
         })
+    }
+
+    /// Splits each batch over `n` worker threads (default: [`ctxrace_common::nn::threads`]); the
+    /// step computes the same losses and gradients whatever `n`, up to the order of float sums.
+    pub fn set_workers(&mut self, n: usize) {
+        self.workers = n.max(1);
     }
 
     /// The configuration.
@@ -468,24 +573,39 @@ impl Dreamer {
         DreamerPolicy::new(&self.cfg, self.obs_dim, &self.policy.to_bytes()?, seed)
     }
 
-    /// The cMask masks `[B·T, 2]` of the batch's observations, one sample each (detached).
-    fn draw_masks(&self, d: &SeqData, rng: &mut ChaCha8Rng) -> Result<Option<Tensor>> {
+    /// One noise stream per sequence of this step's batch (Gumbel uniforms, actor and mask
+    /// noise), so that a step draws the same noise however many workers share the batch.
+    fn sequence_rngs(&self, batch: usize) -> Vec<ChaCha8Rng> {
+        (0..batch as u64)
+            .map(|b| {
+                let mut rng = ChaCha8Rng::seed_from_u64(
+                    self.cfg.seed ^ (b + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15),
+                );
+                rng.set_stream(self.step);
+                rng
+            })
+            .collect()
+    }
+
+    /// The cMask masks `[B·T, 2]` of the batch's observations, one sample each (detached), with
+    /// each sequence's noise from its stream in `rngs`.
+    fn draw_masks(&self, d: &SeqData, rngs: &mut [ChaCha8Rng]) -> Result<Option<Tensor>> {
         let Some(actor) = &self.nets.mask else {
             return Ok(None);
         };
-        let n = d.batch * d.length;
-        let (m, _) = mask_sample(actor, &d.flat(&d.obs)?, &normals(rng, (n, CONTEXT_DIM))?)?;
+        let noise = normals_per(rngs, d.length, CONTEXT_DIM)?;
+        let (m, _) = mask_sample(actor, &d.flat(&d.obs)?, &noise)?;
         Ok(Some(m.detach()))
     }
 
-    /// One world-model step; returns the posterior states to imagine from.
-    fn world_model_step(
-        &mut self,
+    /// The world-model loss of a shard of sequences, its metrics and the posterior states to
+    /// imagine from.
+    fn world_model_loss(
+        &self,
         d: &SeqData,
         ctx: Option<&Tensor>,
-        rng: &mut ChaCha8Rng,
-        metrics: &mut Metrics,
-    ) -> Result<Starts> {
+        rngs: &mut [ChaCha8Rng],
+    ) -> Result<(Tensor, Metrics, Starts)> {
         let (b, t_len, n) = (d.batch, d.length, d.batch * d.length);
         let (s, c) = (self.cfg.stoch, self.cfg.classes);
         let rssm = &self.nets.rssm;
@@ -521,7 +641,7 @@ impl Dreamer {
                 &action,
                 c_t.as_ref(),
                 &embed.get(t)?,
-                &uniforms(rng, (b, s, c))?,
+                &uniforms_per(rngs, 1, (s, c))?,
             )?;
             deters.push(next.deter.clone());
             stochs.push(next.stoch.clone());
@@ -546,8 +666,8 @@ impl Dreamer {
         let loss = (((pred * self.cfg.pred_scale)? + (&dyn_loss * self.cfg.kl_dyn)?)?
             + (&rep_loss * self.cfg.kl_rep)?)?
             .mean_all()?;
-        let grad_norm = self.model_opt.minimise(&loss)?;
 
+        let mut metrics = Metrics::new();
         for (name, v) in [
             ("model/loss", &loss),
             ("model/recon", &recon.mean_all()?),
@@ -557,20 +677,51 @@ impl Dreamer {
         ] {
             metrics.insert(name.into(), scalar(v)?);
         }
-        metrics.insert("model/grad_norm".into(), grad_norm);
-        Ok(Starts {
+        let starts = Starts {
             state: RssmState {
                 deter: deter.detach(),
                 stoch: stoch.detach(),
             },
             cont: cont_target,
             ctx: ctx.map(|c| c.detach()),
-        })
+        };
+        Ok((loss, metrics, starts))
     }
 
-    /// Rolls the actor `H` steps through the prior from `start`.
-    fn imagine(&self, start: &Starts, rng: &mut ChaCha8Rng) -> Result<Imagined> {
+    /// One world-model step on the batch, its shards' losses and gradients computed in parallel;
+    /// returns each shard's posterior states to imagine from.
+    fn world_model_step(
+        &mut self,
+        d: &SeqData,
+        ctx: Option<&Tensor>,
+        rngs: &mut [ChaCha8Rng],
+        metrics: &mut Metrics,
+    ) -> Result<Vec<Starts>> {
+        let parts = on_shards(self.workers, d.batch, rngs, |shard, rngs| {
+            let ds = d.sequences(&shard.rows)?;
+            let cs = ctx.map(|c| d.rows_of(c, &shard.rows)).transpose()?;
+            let (loss, m, starts) = self.world_model_loss(&ds, cs.as_ref(), rngs)?;
+            let grads = (loss * shard.weight)?.backward()?;
+            Ok((shard.weight, m, grads, starts))
+        })?;
+        let mut grads = Vec::with_capacity(parts.len());
+        let mut starts = Vec::with_capacity(parts.len());
+        let mut shard_metrics = Vec::with_capacity(parts.len());
+        for (w, m, g, s) in parts {
+            shard_metrics.push((w, m));
+            grads.push(g);
+            starts.push(s);
+        }
+        metrics.extend(weighted_mean(&shard_metrics));
+        metrics.insert("model/grad_norm".into(), self.model_opt.step_sum(&grads)?);
+        Ok(starts)
+    }
+
+    /// Rolls the actor `H` steps through the frozen prior from `start`, each start's noise from
+    /// the stream of its sequence (`rngs`, `T` starts each).
+    fn imagine(&self, start: &Starts, rngs: &mut [ChaCha8Rng]) -> Result<Imagined> {
         let n = start.state.deter.dim(0)?;
+        let per_sequence = n / rngs.len().max(1);
         let ctx = start.ctx.as_ref();
         let (s, c, a) = (self.cfg.stoch, self.cfg.classes, self.act_dim);
         let mut state = start.state.clone();
@@ -579,14 +730,12 @@ impl Dreamer {
         for t in 0..self.cfg.horizon {
             // the actor sees stop-gradient states; its actions carry gradients into the model
             let (mean, std) = self.nets.actor_dist(&xs[t].detach())?;
-            let action = DreamerNets::sample_action(&mean, &std, &normals(rng, (n, a))?)?;
+            let noise = normals_per(rngs, per_sequence, a)?;
+            let action = DreamerNets::sample_action(&mean, &std, &noise)?;
             let gauss = 0.5 * (1.0 + (2.0 * std::f64::consts::PI).ln());
             entropies.push((std.log()?.sum(1)? + a as f64 * gauss)?);
-            state = self
-                .frozen
-                .rssm
-                .img_step(&state, &action, ctx, &uniforms(rng, (n, s, c))?)?
-                .0;
+            let uniform = uniforms_per(rngs, per_sequence, (s, c))?;
+            state = self.frozen.rssm.img_step(&state, &action, ctx, &uniform)?.0;
             xs.push(head_input(&state.feat()?, ctx)?);
         }
         Ok(Imagined {
@@ -596,14 +745,9 @@ impl Dreamer {
         })
     }
 
-    /// The actor loss of a trajectory, and the critic's targets: `(loss, returns [H, N],
-    /// weights [H, N])`. Updates the return normaliser.
-    fn actor_loss(
-        &mut self,
-        im: &Imagined,
-        start_cont: &Tensor,
-        metrics: &mut Metrics,
-    ) -> Result<(Tensor, Tensor, Tensor)> {
+    /// The λ-returns of an imagined trajectory through the frozen heads (differentiable in the
+    /// imagined states), with the values and the discount weights.
+    fn imagined_returns(&self, im: &Imagined, start_cont: &Tensor) -> Result<ImaginedReturns> {
         let (h, n) = (self.cfg.horizon, im.n);
         let per_state = |x: Tensor| x.reshape((h + 1, n));
         let frozen = &self.frozen;
@@ -627,52 +771,91 @@ impl Dreamer {
             w = (w.mul(&cont.get(t)?)? * gamma)?;
             weights.push(w.clone());
         }
-        let weights = Tensor::stack(&weights, 0)?;
-
-        self.return_norm
-            .update(&returns.flatten_all()?.to_vec1::<f32>()?);
-        let scale = self.return_norm.scale();
-        let adv = ((&returns - value.narrow(0, 0, h)?.detach())? / scale)?;
-        let objective = (adv + (&im.entropy * self.cfg.entropy)?)?;
-        let loss = objective.mul(&weights)?.neg()?.mean_all()?;
-        metrics.insert("actor/entropy".into(), scalar(&im.entropy.mean_all()?)?);
-        metrics.insert("imag/reward".into(), scalar(&reward.mean_all()?)?);
-        metrics.insert("imag/return".into(), scalar(&returns.mean_all()?)?);
-        metrics.insert("imag/return_scale".into(), scale);
-        Ok((loss, returns.detach(), weights))
+        Ok(ImaginedReturns {
+            reward,
+            value,
+            returns,
+            weights: Tensor::stack(&weights, 0)?,
+        })
     }
 
-    /// One actor and one critic step on imagined trajectories from `start`.
-    fn behaviour_step(
-        &mut self,
-        start: &Starts,
-        rng: &mut ChaCha8Rng,
-        metrics: &mut Metrics,
-    ) -> Result<()> {
-        let im = self.imagine(start, rng)?;
-        let (actor_loss, returns, weights) = self.actor_loss(&im, &start.cont, metrics)?;
-        let actor_norm = self.actor_opt.minimise(&actor_loss)?;
+    /// The actor loss `−w ((R − sg v) / S + η H)` for the return scale `S`, with its metrics.
+    fn actor_loss(&self, im: &Imagined, r: &ImaginedReturns, scale: f64) -> Result<Tensor> {
+        let h = self.cfg.horizon;
+        let adv = ((&r.returns - r.value.narrow(0, 0, h)?.detach())? / scale)?;
+        let objective = (adv + (&im.entropy * self.cfg.entropy)?)?;
+        objective.mul(&r.weights)?.neg()?.mean_all()
+    }
 
+    /// The critic loss: two-hot cross-entropy towards the (detached) returns plus the regulariser
+    /// towards the slow critic, weighted by the discount weights.
+    fn critic_loss(&self, im: &Imagined, r: &ImaginedReturns) -> Result<Tensor> {
         let x = im.x.narrow(0, 0, self.cfg.horizon * im.n)?.detach();
         let logits = self.critic.forward(&x)?;
         let slow = self.twohot.decode(&self.slow_critic.forward(&x)?)?.detach();
-        // two-hot cross-entropy towards the returns plus the regulariser towards the slow critic
-        let target = (self.twohot.encode(&returns.flatten_all()?)?
+        let target = (self.twohot.encode(&r.returns.detach().flatten_all()?)?
             + (self.twohot.encode(&slow)? * self.cfg.slow_critic_reg)?)?;
-        let critic_loss = soft_cross_entropy(&logits, &target)?
-            .mul(&weights.flatten_all()?)?
-            .mean_all()?;
-        let critic_norm = self.critic_opt.minimise(&critic_loss)?;
+        soft_cross_entropy(&logits, &target)?
+            .mul(&r.weights.detach().flatten_all()?)?
+            .mean_all()
+    }
+
+    /// One actor and one critic step on imagined trajectories from each shard's `starts`: the
+    /// shards imagine in parallel, the return scale is updated with every shard's returns, then
+    /// the shards' losses are differentiated in parallel and their gradients summed.
+    fn behaviour_step(
+        &mut self,
+        starts: &[Starts],
+        rngs: &mut [ChaCha8Rng],
+        metrics: &mut Metrics,
+    ) -> Result<()> {
+        let imagined = on_shards(self.workers, rngs.len(), rngs, |shard, rngs| {
+            let start = &starts[shard.index];
+            let im = self.imagine(start, rngs)?;
+            let r = self.imagined_returns(&im, &start.cont)?;
+            Ok((shard.weight, im, r))
+        })?;
+        let mut all_returns = Vec::new();
+        for (_, _, r) in &imagined {
+            all_returns.extend(r.returns.flatten_all()?.to_vec1::<f32>()?);
+        }
+        self.return_norm.update(&all_returns);
+        let scale = self.return_norm.scale();
+        let this = &*self;
+        let parts = std::thread::scope(|scope| {
+            let handles: Vec<_> = imagined
+                .iter()
+                .map(|(w, im, r)| {
+                    scope.spawn(move || -> Result<_> {
+                        let actor = this.actor_loss(im, r, scale)?;
+                        let critic = this.critic_loss(im, r)?;
+                        let grads = ((&actor + &critic)? * *w)?.backward()?;
+                        let mut m = Metrics::new();
+                        m.insert("actor/loss".into(), scalar(&actor)?);
+                        m.insert("critic/loss".into(), scalar(&critic)?);
+                        m.insert("actor/entropy".into(), scalar(&im.entropy.mean_all()?)?);
+                        m.insert("imag/reward".into(), scalar(&r.reward.mean_all()?)?);
+                        m.insert("imag/return".into(), scalar(&r.returns.mean_all()?)?);
+                        Ok((*w, m, grads))
+                    })
+                })
+                .collect();
+            handles
+                .into_iter()
+                .map(join_worker)
+                .collect::<Result<Vec<_>>>()
+        })?;
+        let (shard_metrics, grads): (Vec<_>, Vec<_>) =
+            parts.into_iter().map(|(w, m, g)| ((w, m), g)).unzip();
+        metrics.extend(weighted_mean(&shard_metrics));
+        metrics.insert("imag/return_scale".into(), scale);
+        metrics.insert("actor/grad_norm".into(), self.actor_opt.step_sum(&grads)?);
+        metrics.insert("critic/grad_norm".into(), self.critic_opt.step_sum(&grads)?);
         polyak(
             &self.slow_store,
             &self.critic_store,
             self.cfg.slow_critic_rate,
         )?;
-
-        metrics.insert("actor/loss".into(), scalar(&actor_loss)?);
-        metrics.insert("actor/grad_norm".into(), actor_norm);
-        metrics.insert("critic/loss".into(), scalar(&critic_loss)?);
-        metrics.insert("critic/grad_norm".into(), critic_norm);
         Ok(())
     }
 
@@ -733,12 +916,13 @@ impl Algorithm for Dreamer {
         let d = SeqData::new(seq, self.obs_dim, self.act_dim)?;
         let mut rng = ChaCha8Rng::seed_from_u64(self.cfg.seed);
         rng.set_stream(self.step);
+        let mut rngs = self.sequence_rngs(d.batch);
         let mut metrics = Metrics::new();
 
-        let masks = self.draw_masks(&d, &mut rng)?;
+        let masks = self.draw_masks(&d, &mut rngs)?;
         let ctx = self.nets.context(&d.flat(&d.context)?, masks.as_ref())?;
-        let starts = self.world_model_step(&d, ctx.as_ref(), &mut rng, &mut metrics)?;
-        self.behaviour_step(&starts, &mut rng, &mut metrics)?;
+        let starts = self.world_model_step(&d, ctx.as_ref(), &mut rngs, &mut metrics)?;
+        self.behaviour_step(&starts, &mut rngs, &mut metrics)?;
         if let (Some(sac), Some(actor), Some(masks)) = (&mut self.sac, &self.nets.mask, &masks) {
             metrics.insert("mask/mean".into(), scalar(&masks.mean_all()?)?);
             if let Some(tr) = Transitions::new(&d, masks)? {
@@ -995,8 +1179,9 @@ mod tests {
                 .context(&d.flat(&d.context).unwrap(), None)
                 .unwrap();
             let mut m = Metrics::new();
+            let mut rngs = agent.sequence_rngs(d.batch);
             agent
-                .world_model_step(&d, ctx.as_ref(), &mut rng, &mut m)
+                .world_model_step(&d, ctx.as_ref(), &mut rngs, &mut m)
                 .unwrap();
             assert!(m.values().all(|v| v.is_finite()), "{m:?}");
             history.push((m["model/recon"], m["model/reward"]));
@@ -1038,9 +1223,27 @@ mod tests {
         };
         let d = SeqData::new(&seq, 2, 2).unwrap();
         let mut m = Metrics::new();
-        let starts = agent.world_model_step(&d, None, &mut rng, &mut m).unwrap();
-        let im = agent.imagine(&starts, &mut rng).unwrap();
-        let (loss, _, _) = agent.actor_loss(&im, &starts.cont, &mut m).unwrap();
+        let mut rngs = agent.sequence_rngs(d.batch);
+        let starts = agent.world_model_step(&d, None, &mut rngs, &mut m).unwrap();
+        let start = Starts {
+            state: RssmState {
+                deter: Tensor::cat(
+                    &starts.iter().map(|s| &s.state.deter).collect::<Vec<_>>(),
+                    0,
+                )
+                .unwrap(),
+                stoch: Tensor::cat(
+                    &starts.iter().map(|s| &s.state.stoch).collect::<Vec<_>>(),
+                    0,
+                )
+                .unwrap(),
+            },
+            cont: Tensor::cat(&starts.iter().map(|s| &s.cont).collect::<Vec<_>>(), 0).unwrap(),
+            ctx: None,
+        };
+        let im = agent.imagine(&start, &mut rngs).unwrap();
+        let returns = agent.imagined_returns(&im, &start.cont).unwrap();
+        let loss = agent.actor_loss(&im, &returns, 1.0).unwrap();
         let grads = loss.backward().unwrap();
         for (name, v) in agent.policy.named() {
             let g = grad_norm(&grads, &v);
@@ -1230,6 +1433,32 @@ mod tests {
             }
         }
         total / starts.len() as f64
+    }
+
+    #[test]
+    fn a_step_split_over_workers_computes_the_same_losses_and_gradients() {
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let data = collect(10, &mut rng);
+        let batch = sample(&data, 5, 16, &mut rng);
+        for mode in [ContextMode::None, ContextMode::Cmask] {
+            let run = |workers: usize| {
+                let mut agent = Dreamer::new(tiny(mode), 2, 2).unwrap();
+                agent.set_workers(workers);
+                agent.train_step(&batch).unwrap()
+            };
+            let (one, three) = (run(1), run(3));
+            assert_eq!(
+                one.keys().collect::<Vec<_>>(),
+                three.keys().collect::<Vec<_>>()
+            );
+            for (key, a) in &one {
+                let b = three[key];
+                assert!(
+                    (a - b).abs() <= 1e-4 * (1.0 + a.abs()),
+                    "{mode:?} {key}: {a} vs {b}"
+                );
+            }
+        }
     }
 
     /// Trains an agent of `mode` for 300 steps on random point-mass data and returns the mean

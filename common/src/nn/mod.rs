@@ -18,9 +18,23 @@ pub use rssm::{Gru, Rssm, RssmConfig, RssmState};
 pub use symlog::{symexp, symlog, TwoHot};
 pub use tanh_gaussian::TanhGaussianActor;
 
-/// Sets the number of threads candle's CPU kernels use. Unset, candle re-derives it on every
-/// matrix product, which is several times slower at batch 1; call once at start-up.
+/// Worker threads of the learner, set by [`set_threads`].
+static WORKERS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(1);
+
+/// Sets the learner's parallelism to `n` worker threads. DreamerV3 splits each batch over them
+/// (every worker runs the forward and backward passes of its sequences and the gradients are
+/// summed), which on two cores is twice as fast as splitting each tensor operation: those are
+/// small and memory-bound, and their threads spin against each other. candle's own kernels
+/// therefore run on one thread (unset, candle re-derives its thread count on every matrix
+/// product, which is several times slower at batch 1). Call once at start-up, before other
+/// threads start.
 pub fn set_threads(n: usize) {
-    // candle reads RAYON_NUM_THREADS on every product; call before other threads start
-    std::env::set_var("RAYON_NUM_THREADS", n.max(1).to_string());
+    WORKERS.store(n.max(1), std::sync::atomic::Ordering::Relaxed);
+    // candle reads RAYON_NUM_THREADS on every product
+    std::env::set_var("RAYON_NUM_THREADS", "1");
+}
+
+/// The learner's worker threads (see [`set_threads`]).
+pub fn threads() -> usize {
+    WORKERS.load(std::sync::atomic::Ordering::Relaxed)
 }

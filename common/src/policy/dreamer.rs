@@ -161,19 +161,47 @@ pub fn head_input(feat: &Tensor, ctx: Option<&Tensor>) -> Result<Tensor> {
 }
 /// Gumbel-max uniforms in `(0, 1)`.
 pub fn uniforms(rng: &mut ChaCha8Rng, shape: (usize, usize, usize)) -> Result<Tensor> {
-    let n = shape.0 * shape.1 * shape.2;
-    let v: Vec<f32> = (0..n)
-        .map(|_| rng.random_range(1e-6f32..1.0 - 1e-6))
-        .collect();
-    Tensor::from_vec(v, shape, &Device::Cpu)
+    uniforms_per(std::slice::from_mut(rng), shape.0, (shape.1, shape.2))
 }
 
 /// Standard-normal noise.
 pub fn normals(rng: &mut ChaCha8Rng, shape: (usize, usize)) -> Result<Tensor> {
-    let v: Vec<f32> = (0..shape.0 * shape.1)
-        .map(|_| rng.sample(StandardNormal))
-        .collect();
-    Tensor::from_vec(v, shape, &Device::Cpu)
+    normals_per(std::slice::from_mut(rng), shape.0, shape.1)
+}
+
+/// `[R·rows, width]` values where rows `r·rows … (r+1)·rows − 1` come from stream `r` of `rngs`
+/// (so that, say, each sequence of a batch draws its own noise however the batch is split).
+fn rows_per_stream(
+    rngs: &mut [ChaCha8Rng],
+    rows: usize,
+    width: usize,
+    draw: impl Fn(&mut ChaCha8Rng) -> f32,
+) -> Vec<f32> {
+    let mut v = Vec::with_capacity(rngs.len() * rows * width);
+    for rng in rngs {
+        v.extend((0..rows * width).map(|_| draw(rng)));
+    }
+    v
+}
+
+/// Gumbel-max uniforms `[R·rows, S, C]`, `rows` of them from each stream of `rngs`.
+pub fn uniforms_per(
+    rngs: &mut [ChaCha8Rng],
+    rows: usize,
+    (stoch, classes): (usize, usize),
+) -> Result<Tensor> {
+    let n = rngs.len() * rows;
+    let v = rows_per_stream(rngs, rows, stoch * classes, |r| {
+        r.random_range(1e-6f32..1.0 - 1e-6)
+    });
+    Tensor::from_vec(v, (n, stoch, classes), &Device::Cpu)
+}
+
+/// Standard-normal noise `[R·rows, width]`, `rows` of them from each stream of `rngs`.
+pub fn normals_per(rngs: &mut [ChaCha8Rng], rows: usize, width: usize) -> Result<Tensor> {
+    let n = rngs.len() * rows;
+    let v = rows_per_stream(rngs, rows, width, |r| r.sample(StandardNormal));
+    Tensor::from_vec(v, (n, width), &Device::Cpu)
 }
 /// The acting side of DreamerV3 at batch 1: keeps the recurrent state and the previous action.
 pub struct DreamerPolicy {

@@ -4,7 +4,10 @@
 mod dreamer;
 mod sac;
 
-pub use dreamer::{head_input, mask_sample, normals, uniforms, DreamerNets, DreamerPolicy};
+pub use dreamer::{
+    head_input, mask_sample, normals, normals_per, uniforms, uniforms_per, DreamerNets,
+    DreamerPolicy,
+};
 pub use sac::SacPolicy;
 
 use crate::agents::{AgentConfig, AlgoKind};
