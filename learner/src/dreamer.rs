@@ -60,7 +60,7 @@ use ctxrace_common::nn::{
     symlog, Activation, Mlp, ParamStore, Rssm, RssmState, TanhGaussianActor, TwoHot,
 };
 use ctxrace_common::policy::{
-    head_input, mask_sample, normals, normals_per, uniforms_per, DreamerNets, DreamerPolicy,
+    head_input, mask_sample, normals_per, uniforms_per, DreamerNets, DreamerPolicy,
 };
 use ctxrace_common::SequenceBatch;
 use rand::SeedableRng;
@@ -275,46 +275,86 @@ impl MaskSac {
         q[0].forward(&x)?.minimum(&q[1].forward(&x)?)?.squeeze(1)
     }
 
-    /// One SAC step (critics, actor, temperature, targets) on the transitions.
+    /// One SAC step (critics, actor, temperature, targets) on the transitions of the batch `d`
+    /// with its masks `[B·T, 2]`. The critic and actor losses are means over the valid
+    /// transitions; each of the `workers` shards of sequences sums its part (divided by the
+    /// batch's count) and differentiates it in parallel, and the gradients are summed.
     fn step(
         &mut self,
         actor: &TanhGaussianActor,
-        tr: &Transitions,
-        rng: &mut ChaCha8Rng,
+        d: &SeqData,
+        masks: &Tensor,
+        workers: usize,
+        rngs: &mut [ChaCha8Rng],
         metrics: &mut Metrics,
     ) -> Result<()> {
-        let n = tr.obs.dim(0)?;
-        let count = scalar(&tr.valid.sum_all()?)?.max(1.0);
-        let mean = |x: &Tensor| -> Result<Tensor> { x.mul(&tr.valid)?.sum_all()? / count };
+        if d.length < 2 {
+            return Ok(());
+        }
+        let per_sequence = d.length - 1;
+        let valid_count = scalar(&(1.0 - d.first.narrow(1, 1, per_sequence)?)?.sum_all()?)?;
+        let count = valid_count.max(1.0);
         let alpha = self.log_alpha.exp()?.detach();
+        let shard_transitions = |shard: &Shard| -> Result<Transitions> {
+            let ds = d.sequences(&shard.rows)?;
+            let ms = d.rows_of(masks, &shard.rows)?;
+            Transitions::new(&ds, &ms)?
+                .ok_or_else(|| candle_core::Error::Msg("no transitions".into()))
+        };
+        // the part of a batch mean that a shard's transitions contribute
+        let part = |x: &Tensor, tr: &Transitions| -> Result<Tensor> {
+            x.mul(&tr.valid)?.sum_all()? / count
+        };
 
-        let (next_m, next_logp) =
-            mask_sample(actor, &tr.next_obs, &normals(rng, (n, CONTEXT_DIM))?)?;
-        let soft_next = (Self::min_q(&self.q_target, &tr.next_obs, &next_m)?
-            - next_logp.broadcast_mul(&alpha)?)?;
-        let keep = ((1.0 - &tr.terminal)? * self.cfg.gamma)?;
-        let target = (&tr.reward + keep.mul(&soft_next)?)?.detach();
-        let x = Tensor::cat(&[&tr.obs, &tr.mask], 1)?;
-        let q_loss = mean(
-            &((self.q[0].forward(&x)?.squeeze(1)? - &target)?.sqr()?
-                + (self.q[1].forward(&x)?.squeeze(1)? - &target)?.sqr()?)?,
-        )?;
-        self.critic_opt.minimise(&q_loss)?;
+        let this = &*self;
+        let critic_parts = on_shards(workers, d.batch, rngs, |shard, rngs| {
+            let tr = shard_transitions(&shard)?;
+            let noise = normals_per(rngs, per_sequence, CONTEXT_DIM)?;
+            let (next_m, next_logp) = mask_sample(actor, &tr.next_obs, &noise)?;
+            let soft_next = (Self::min_q(&this.q_target, &tr.next_obs, &next_m)?
+                - next_logp.broadcast_mul(&alpha)?)?;
+            let keep = ((1.0 - &tr.terminal)? * this.cfg.gamma)?;
+            let target = (&tr.reward + keep.mul(&soft_next)?)?.detach();
+            let x = Tensor::cat(&[&tr.obs, &tr.mask], 1)?;
+            let q_loss = part(
+                &((this.q[0].forward(&x)?.squeeze(1)? - &target)?.sqr()?
+                    + (this.q[1].forward(&x)?.squeeze(1)? - &target)?.sqr()?)?,
+                &tr,
+            )?;
+            Ok((scalar(&q_loss)?, q_loss.backward()?))
+        })?;
+        let (q_losses, grads): (Vec<f64>, Vec<_>) = critic_parts.into_iter().unzip();
+        self.critic_opt.step_sum(&grads)?;
 
-        let (m, logp) = mask_sample(actor, &tr.obs, &normals(rng, (n, CONTEXT_DIM))?)?;
-        let actor_loss =
-            mean(&(logp.broadcast_mul(&alpha)? - Self::min_q(&self.q, &tr.obs, &m)?)?)?;
-        self.actor_opt.minimise(&actor_loss)?;
+        let this = &*self;
+        let actor_parts = on_shards(workers, d.batch, rngs, |shard, rngs| {
+            let tr = shard_transitions(&shard)?;
+            let noise = normals_per(rngs, per_sequence, CONTEXT_DIM)?;
+            let (m, logp) = mask_sample(actor, &tr.obs, &noise)?;
+            let q = Self::min_q(&this.q, &tr.obs, &m)?;
+            let actor_loss = part(&(logp.broadcast_mul(&alpha)? - q)?, &tr)?;
+            let logp_part = scalar(&part(&logp.detach(), &tr)?)?;
+            Ok((scalar(&actor_loss)?, logp_part, actor_loss.backward()?))
+        })?;
+        let mut grads = Vec::with_capacity(actor_parts.len());
+        let (mut actor_loss, mut mean_logp) = (0.0, 0.0);
+        for (loss, logp, g) in actor_parts {
+            actor_loss += loss;
+            mean_logp += logp;
+            grads.push(g);
+        }
+        self.actor_opt.step_sum(&grads)?;
 
-        let gap = (logp.detach() + self.cfg.target_entropy)?;
-        let alpha_loss = mean(&gap.broadcast_mul(&self.log_alpha)?.neg()?)?;
+        // temperature: minimise −log α · mean(log π + target entropy) over the valid transitions
+        let gap = mean_logp + self.cfg.target_entropy * valid_count / count;
+        let alpha_loss = (self.log_alpha.sum_all()? * -gap)?;
         self.alpha_opt.minimise(&alpha_loss)?;
         polyak(&self.target_store, &self.critic_store, self.cfg.tau)?;
 
-        metrics.insert("mask/q_loss".into(), scalar(&q_loss)?);
-        metrics.insert("mask/actor_loss".into(), scalar(&actor_loss)?);
+        metrics.insert("mask/q_loss".into(), q_losses.iter().sum());
+        metrics.insert("mask/actor_loss".into(), actor_loss);
         metrics.insert("mask/alpha".into(), scalar(&alpha.sum_all()?)?);
-        metrics.insert("mask/entropy".into(), -scalar(&mean(&logp)?)?);
+        metrics.insert("mask/entropy".into(), -mean_logp);
         Ok(())
     }
 }
@@ -914,8 +954,6 @@ impl Algorithm for Dreamer {
             bail!("DreamerV3 trains on sequence batches, not transitions");
         };
         let d = SeqData::new(seq, self.obs_dim, self.act_dim)?;
-        let mut rng = ChaCha8Rng::seed_from_u64(self.cfg.seed);
-        rng.set_stream(self.step);
         let mut rngs = self.sequence_rngs(d.batch);
         let mut metrics = Metrics::new();
 
@@ -925,9 +963,7 @@ impl Algorithm for Dreamer {
         self.behaviour_step(&starts, &mut rngs, &mut metrics)?;
         if let (Some(sac), Some(actor), Some(masks)) = (&mut self.sac, &self.nets.mask, &masks) {
             metrics.insert("mask/mean".into(), scalar(&masks.mean_all()?)?);
-            if let Some(tr) = Transitions::new(&d, masks)? {
-                sac.step(actor, &tr, &mut rng, &mut metrics)?;
-            }
+            sac.step(actor, &d, masks, self.workers, &mut rngs, &mut metrics)?;
         }
         self.step += 1;
         Ok(metrics)

@@ -149,32 +149,81 @@ fn dims2(t: &Tensor) -> Result<(usize, usize)> {
 /// `y = x Wᵀ (+ b)` (see [`linear`]).
 struct Linear;
 
-/// `dst = x Wᵀ` for `x` `[n, k]`, `W` `[m, k]`, `dst` `[n, m]` (added to when `accumulate`).
-fn gemm_xwt(x: &[f32], w: &[f32], dst: &mut [f32], n: usize, k: usize, m: usize, accumulate: bool) {
-    // SAFETY: the slices hold n×k, m×k and n×m values, matching the sizes and strides given.
+/// A matrix operand of [`matmul`]: its values and the strides of its rows and columns.
+#[derive(Clone, Copy)]
+struct Operand<'a> {
+    data: &'a [f32],
+    row_stride: usize,
+    col_stride: usize,
+}
+
+impl<'a> Operand<'a> {
+    /// A row-major `[rows, cols]` matrix.
+    fn rows(data: &'a [f32], cols: usize) -> Self {
+        Self {
+            data,
+            row_stride: cols,
+            col_stride: 1,
+        }
+    }
+
+    /// The transpose of a row-major `[rows, cols]` matrix.
+    fn transposed(data: &'a [f32], cols: usize) -> Self {
+        Self {
+            data,
+            row_stride: 1,
+            col_stride: cols,
+        }
+    }
+}
+
+/// `A B` (`[m, k]` times `[k, n]`) as a new row-major `[m, n]`; with `init` (`m·n` values) the
+/// product is added to it. gemm writes every value, so the buffer is not zeroed first.
+fn matmul(
+    m: usize,
+    n: usize,
+    k: usize,
+    a: Operand,
+    b: Operand,
+    init: Option<Vec<f32>>,
+) -> Vec<f32> {
+    let accumulate = init.is_some();
+    let mut dst = init.unwrap_or_else(|| Vec::with_capacity(m * n));
+    if k == 0 {
+        dst.resize(m * n, 0.0);
+        return dst;
+    }
+    debug_assert!(a.data.len() >= (m - 1) * a.row_stride + (k - 1) * a.col_stride + 1);
+    debug_assert!(b.data.len() >= (k - 1) * b.row_stride + (n - 1) * b.col_stride + 1);
+    // SAFETY: `a` and `b` hold the m×k and k×n values their strides address (checked above in
+    // debug builds, by the callers' shape checks always); `dst` has room for m×n values, which
+    // gemm writes (reading them first only when `accumulate`, where they are initialised)
+    // before `set_len` exposes them.
     unsafe {
         gemm::gemm(
-            n,
             m,
+            n,
             k,
             dst.as_mut_ptr(),
             1,
-            m as isize,
+            n as isize,
             accumulate,
-            x.as_ptr(),
-            1,
-            k as isize,
-            w.as_ptr(),
-            k as isize,
-            1,
+            a.data.as_ptr(),
+            a.col_stride as isize,
+            a.row_stride as isize,
+            b.data.as_ptr(),
+            b.col_stride as isize,
+            b.row_stride as isize,
             1.0,
             1.0,
             false,
             false,
             false,
             gemm::Parallelism::None,
-        )
+        );
+        dst.set_len(m * n);
     }
+    dst
 }
 
 fn linear_fwd(
@@ -188,33 +237,70 @@ fn linear_fwd(
         bail!("linear: input width {k} but weight [{m}, {k2}]");
     }
     let (x, w) = (cpu_slice(x.0, x.1)?, cpu_slice(w.0, w.1)?);
-    let mut dst = match b {
+    let init = match b {
         Some((s, l)) => {
             let b = cpu_slice(s, l)?;
             if b.len() != m {
                 bail!("linear: bias of {} for {m} outputs", b.len());
             }
-            b.repeat(n)
+            Some(b.repeat(n))
         }
-        None => vec![0f32; n * m],
+        None => None,
     };
-    gemm_xwt(x, w, &mut dst, n, k, m, b.is_some());
-    Ok((CpuStorage::F32(dst), Shape::from((n, m))))
+    let y = matmul(
+        n,
+        m,
+        k,
+        Operand::rows(x, k),
+        Operand::transposed(w, k),
+        init,
+    );
+    Ok((CpuStorage::F32(y), Shape::from((n, m))))
 }
 
-/// The gradients of `x` and `W` for `y = x Wᵀ` (each if wanted).
+/// The gradients of `x` `[N, in]` and `W` `[out, in]` for `y = x Wᵀ` (each if wanted):
+/// `dx = g W`, `dW = gᵀ x`.
 fn linear_bwd(x: &Tensor, w: &Tensor, grad: &Tensor) -> Result<(Option<Tensor>, Option<Tensor>)> {
-    let dx = if wants_grad(x) {
-        Some(grad.matmul(w)?)
-    } else {
-        None
-    };
-    let dw = if wants_grad(w) {
-        Some(grad.t()?.matmul(x)?)
-    } else {
-        None
-    };
-    Ok((dx, dw))
+    let (want_x, want_w) = (wants_grad(x), wants_grad(w));
+    let (rows, input) = dims2(x)?;
+    let (output, _) = dims2(w)?;
+    let (dx, dw) = read(grad, |g| {
+        let dx = if want_x {
+            read(w, |wv| {
+                Ok(Some(matmul(
+                    rows,
+                    input,
+                    output,
+                    Operand::rows(g, output),
+                    Operand::rows(wv, input),
+                    None,
+                )))
+            })?
+        } else {
+            None
+        };
+        let dw = if want_w {
+            read(x, |xv| {
+                Ok(Some(matmul(
+                    output,
+                    input,
+                    rows,
+                    Operand::transposed(g, output),
+                    Operand::rows(xv, input),
+                    None,
+                )))
+            })?
+        } else {
+            None
+        };
+        Ok((dx, dw))
+    })?;
+    Ok((
+        dx.map(|v| Tensor::from_vec(v, x.shape(), x.device()))
+            .transpose()?,
+        dw.map(|v| Tensor::from_vec(v, w.shape(), w.device()))
+            .transpose()?,
+    ))
 }
 
 impl CustomOp2 for Linear {
