@@ -189,14 +189,15 @@ fn matmul(
 ) -> Vec<f32> {
     let accumulate = init.is_some();
     let mut dst = init.unwrap_or_else(|| Vec::with_capacity(m * n));
-    if k == 0 {
+    if m == 0 || n == 0 || k == 0 {
         dst.resize(m * n, 0.0);
         return dst;
     }
-    debug_assert!(a.data.len() >= (m - 1) * a.row_stride + (k - 1) * a.col_stride + 1);
-    debug_assert!(b.data.len() >= (k - 1) * b.row_stride + (n - 1) * b.col_stride + 1);
-    // SAFETY: `a` and `b` hold the m×k and k×n values their strides address (checked above in
-    // debug builds, by the callers' shape checks always); `dst` has room for m×n values, which
+    // the callers' shape checks guarantee these; the unsafe call below relies on them
+    assert!(a.data.len() > (m - 1) * a.row_stride + (k - 1) * a.col_stride);
+    assert!(b.data.len() > (k - 1) * b.row_stride + (n - 1) * b.col_stride);
+    // SAFETY: `a` and `b` hold the m×k and k×n values their strides address (asserted above);
+    // `dst` has room for m×n values, which
     // gemm writes (reading them first only when `accumulate`, where they are initialised)
     // before `set_len` exposes them.
     unsafe {
