@@ -24,8 +24,9 @@ pub enum AlgoKind {
 }
 
 impl AlgoKind {
-    /// Threads the learner uses by default: one for SAC, whose products at batch 100 of a
-    /// 2 × 100 network are too small to split (two threads take twice as long), two otherwise.
+    /// Worker threads the learner uses by default: one for SAC, whose products at batch 100 of
+    /// a 2 × 100 network are too small to split (two threads took twice as long), two for the
+    /// DreamerV3 variants, which split each batch over them.
     pub fn learner_threads(self) -> usize {
         match self {
             AlgoKind::Sac => 1,

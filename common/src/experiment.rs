@@ -28,7 +28,8 @@ pub struct TrainConfig {
     pub checkpoint_every: u64,
     /// Gradient steps between training-metric rows in `metrics.jsonl`.
     pub log_every: u64,
-    /// Threads of the learner's tensor library (the actors always use one) [default:
+    /// Worker threads of the learner: DreamerV3 and its variants split each batch over them;
+    /// SAC always trains on one (the actors always act on one) [default:
     /// [`AlgoKind::learner_threads`]].
     pub threads: Option<usize>,
 }

@@ -30,8 +30,8 @@ pub struct LearnerArgs {
     /// Timed acting steps at batch 1.
     #[arg(long, default_value_t = 500)]
     act_steps: usize,
-    /// Threads of the tensor library while training (acting always uses one) [default: 1 for
-    /// SAC, 2 for the others].
+    /// Worker threads while training (acting always uses one) [default: 1 for SAC, 2 for the
+    /// DreamerV3 variants, which split each batch over them].
     #[arg(long)]
     threads: Option<usize>,
     /// Print JSON.

@@ -290,3 +290,66 @@ fn status(algo: &dyn Algorithm, recent: &[f64], episodes: u64, start: &Instant) 
         algo.steps() as f64 / start.elapsed().as_secs_f64().max(1e-9)
     )
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ctxrace_common::{AgentConfig, DreamerConfig, RaceConfig};
+    use ctxrace_tracks::{Track, TrackOptions};
+
+    #[test]
+    fn the_world_model_learns_recorded_race_data() {
+        ctxrace_common::nn::set_threads(1);
+        // 2000 decisions of a random ego against one rival on a generated circuit
+        let track = Arc::new(Track::load("generated:0", &TrackOptions::default()).unwrap());
+        let race = RaceConfig {
+            rivals: 1,
+            ..RaceConfig::default()
+        };
+        let env = RaceEnv::new(track, race).unwrap();
+        let frame_dim = env.obs_dim();
+        let mut collector = Collector::new(env, 0.15, 1);
+        let mut buffer = ReplayBuffer::new(10_000, 1, frame_dim, ACT_DIM);
+        let mut payload = Vec::new();
+        while collector.decisions() < 2000 {
+            payload.clear();
+            collector.step(None, |s| s.encode(&mut payload)).unwrap();
+            buffer.insert_chunk(0, &payload, false);
+        }
+        let agent = AgentConfig {
+            algo: AlgoKind::Dreamerv3,
+            dreamer: DreamerConfig {
+                units: 64,
+                layers: 2,
+                deter: 64,
+                hidden: 64,
+                stoch: 8,
+                classes: 8,
+                head_units: 64,
+                head_layers: 2,
+                batch: 8,
+                length: 16,
+                model_lr: 1e-3,
+                ..DreamerConfig::default()
+            },
+            ..AgentConfig::default()
+        };
+        let mut algo = ctxrace_learner::build(&agent, frame_dim).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let mut history = Vec::new();
+        for _ in 0..150 {
+            let batch = sample(&buffer, agent.batch_spec(), &mut rng).unwrap();
+            let m = algo.train_step(&batch).unwrap();
+            history.push((m["model/recon"], m["model/reward"]));
+        }
+        let mean = |xs: &[(f64, f64)]| {
+            let n = xs.len() as f64;
+            let sum = xs.iter().fold((0.0, 0.0), |s, x| (s.0 + x.0, s.1 + x.1));
+            (sum.0 / n, sum.1 / n)
+        };
+        let ((recon0, reward0), (recon1, reward1)) = (mean(&history[..10]), mean(&history[140..]));
+        eprintln!("recon {recon0:.3} -> {recon1:.3}, reward {reward0:.3} -> {reward1:.3}");
+        assert!(recon1 < 0.5 * recon0, "recon {recon0} -> {recon1}");
+        assert!(reward1 < 0.5 * reward0, "reward {reward0} -> {reward1}");
+    }
+}

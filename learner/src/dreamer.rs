@@ -39,14 +39,17 @@
 //! copy; cMask adds its critics, their targets and the temperature. Optimisers: Adam
 //! ([`crate::adam::Adam`], whose moments are saved with the weights), one each for world model
 //! (encoder, RSSM, heads), actor and critic, after global-norm clipping. Noise (Gumbel uniforms,
-//! Gaussian actions) comes from a ChaCha8 stream per training step, so a run is reproducible
-//! from its seed.
+//! Gaussian actions and masks) comes from a ChaCha8 stream per sequence of each training step,
+//! so a run is reproducible from its seed, whatever the number of worker threads.
 //!
 //! **Speed.** Imagination and the actor loss run through frozen views of the RSSM and of the
 //! reward, continue and critic heads (detached parameters that share the trained storage): the
 //! actor's backward pass then computes gradients only where they lead to the actor, as
 //! PyTorch's `requires_grad = False` does. The layers run on the fused kernels of
-//! `ctxrace_common::nn::kernels`.
+//! `ctxrace_common::nn::kernels`. Each step splits its batch into one shard of sequences per
+//! worker thread ([`Dreamer::set_workers`]): the shards run the world-model, imagination,
+//! actor, critic and mask-SAC passes in parallel, each loss scaled by its shard's share of the
+//! batch, and the optimisers step on the summed gradients, which are the batch's.
 
 use crate::adam::Adam;
 use crate::algorithm::{Algorithm, Batch, Metrics};
