@@ -145,6 +145,19 @@ mod tests {
     use crate::agents::AlgoKind;
 
     #[test]
+    fn the_shipped_experiment_configs_load() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs");
+        for (name, track) in [
+            ("quick.toml", "generated:0"),
+            ("brief.toml", "f1_esp"),
+            ("paper.toml", "f1_esp"),
+        ] {
+            let cfg = ExperimentConfig::load(&dir.join(name)).unwrap();
+            assert_eq!(cfg.track, track, "{name}");
+        }
+    }
+
+    #[test]
     fn partial_files_keep_the_paper_defaults_and_errors_name_the_key() {
         let cfg = ExperimentConfig::from_toml(
             "track = \"generated:3\"\n[agent]\nalgo = \"sac\"\n[train]\nenv_steps = 500",
