@@ -62,9 +62,7 @@ use ctxrace_common::nn::kernels::soft_cross_entropy;
 use ctxrace_common::nn::{
     symlog, Activation, Mlp, ParamStore, Rssm, RssmState, TanhGaussianActor, TwoHot,
 };
-use ctxrace_common::policy::{
-    head_input, mask_sample, normals_per, uniforms_per, DreamerNets, DreamerPolicy,
-};
+use ctxrace_common::policy::{mask_sample, normals_per, uniforms_per, DreamerNets, DreamerPolicy};
 use ctxrace_common::SequenceBatch;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -697,7 +695,8 @@ impl Dreamer {
         let prior = rssm.prior_logits(&deter)?;
         let post = batch_major(&posts)?.reshape((n, s, c))?;
 
-        let x = head_input(&Tensor::cat(&[&deter, &stoch], 1)?, ctx)?;
+        let posterior = RssmState { deter, stoch };
+        let x = posterior.head_input(ctx)?;
         let recon = (self.decoder.forward(&x)? - &target)?.sqr()?.sum(1)?;
         let reward = self
             .twohot
@@ -722,8 +721,8 @@ impl Dreamer {
         }
         let starts = Starts {
             state: RssmState {
-                deter: deter.detach(),
-                stoch: stoch.detach(),
+                deter: posterior.deter.detach(),
+                stoch: posterior.stoch.detach(),
             },
             cont: cont_target,
             ctx: ctx.map(|c| c.detach()),
@@ -768,7 +767,7 @@ impl Dreamer {
         let ctx = start.ctx.as_ref();
         let (s, c, a) = (self.cfg.stoch, self.cfg.classes, self.act_dim);
         let mut state = start.state.clone();
-        let mut xs = vec![head_input(&state.feat()?, ctx)?];
+        let mut xs = vec![state.head_input(ctx)?];
         let mut entropies = Vec::with_capacity(self.cfg.horizon);
         for t in 0..self.cfg.horizon {
             // the actor sees stop-gradient states; its actions carry gradients into the model
@@ -779,7 +778,7 @@ impl Dreamer {
             entropies.push((std.log()?.sum(1)? + a as f64 * gauss)?);
             let uniform = uniforms_per(rngs, per_sequence, (s, c))?;
             state = self.frozen.rssm.img_step(&state, &action, ctx, &uniform)?.0;
-            xs.push(head_input(&state.feat()?, ctx)?);
+            xs.push(state.head_input(ctx)?);
         }
         Ok(Imagined {
             x: Tensor::cat(&xs, 0)?,

@@ -733,8 +733,8 @@ impl CustomOp2 for StraightThrough {
             self.0.probs(&l[at..at + c], &mut s, &mut p);
             let mut best = (0, f32::NEG_INFINITY);
             for k in 0..c {
-                // Gumbel-max: argmax of ln p + g, g = −ln(−ln U)
-                let score = p[k].ln() - (-u[at + k].ln()).ln();
+                // Gumbel-max: argmax of ln p + g with g = −ln(−ln U), i.e. of p / (−ln U)
+                let score = p[k] / -u[at + k].ln();
                 if score > best.1 {
                     best = (k, score);
                 }

@@ -54,6 +54,14 @@ impl RssmState {
     pub fn feat(&self) -> Result<Tensor> {
         Tensor::cat(&[&self.deter, &self.stoch], D::Minus1)
     }
+
+    /// The heads' input `[h, z, c]` (`[h, z]` without a context), in one concatenation.
+    pub fn head_input(&self, ctx: Option<&Tensor>) -> Result<Tensor> {
+        match ctx {
+            Some(c) => Tensor::cat(&[&self.deter, &self.stoch, c], D::Minus1),
+            None => self.feat(),
+        }
+    }
 }
 
 /// A `Linear → LayerNorm → SiLU` block.

@@ -130,7 +130,7 @@ impl DreamerNets {
         let (next, _) = self
             .rssm
             .obs_step(state, prev_action, ctx, &embed, uniform)?;
-        let (mean, std) = self.actor_dist(&head_input(&next.feat()?, ctx)?)?;
+        let (mean, std) = self.actor_dist(&next.head_input(ctx)?)?;
         let action = match noise {
             Some(n) => Self::sample_action(&mean, &std, n)?,
             None => mean,
@@ -152,13 +152,6 @@ pub fn mask_sample(
     ))
 }
 
-/// The heads' input `[feat, ctx]`.
-pub fn head_input(feat: &Tensor, ctx: Option<&Tensor>) -> Result<Tensor> {
-    match ctx {
-        Some(c) => Tensor::cat(&[feat, c], 1),
-        None => Ok(feat.clone()),
-    }
-}
 /// Gumbel-max uniforms in `(0, 1)`.
 pub fn uniforms(rng: &mut ChaCha8Rng, shape: (usize, usize, usize)) -> Result<Tensor> {
     uniforms_per(std::slice::from_mut(rng), shape.0, (shape.1, shape.2))

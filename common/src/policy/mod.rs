@@ -5,8 +5,7 @@ mod dreamer;
 mod sac;
 
 pub use dreamer::{
-    head_input, mask_sample, normals, normals_per, uniforms, uniforms_per, DreamerNets,
-    DreamerPolicy,
+    mask_sample, normals, normals_per, uniforms, uniforms_per, DreamerNets, DreamerPolicy,
 };
 pub use sac::SacPolicy;
 
