@@ -266,35 +266,19 @@ fn linear_bwd(x: &Tensor, w: &Tensor, grad: &Tensor) -> Result<(Option<Tensor>, 
     let (rows, input) = dims2(x)?;
     let (output, _) = dims2(w)?;
     let (dx, dw) = read(grad, |g| {
-        let dx = if want_x {
+        let dx = want_x.then(|| {
             read(w, |wv| {
-                Ok(Some(matmul(
-                    rows,
-                    input,
-                    output,
-                    Operand::rows(g, output),
-                    Operand::rows(wv, input),
-                    None,
-                )))
-            })?
-        } else {
-            None
-        };
-        let dw = if want_w {
+                let (g, wv) = (Operand::rows(g, output), Operand::rows(wv, input));
+                Ok(matmul(rows, input, output, g, wv, None))
+            })
+        });
+        let dw = want_w.then(|| {
             read(x, |xv| {
-                Ok(Some(matmul(
-                    output,
-                    input,
-                    rows,
-                    Operand::transposed(g, output),
-                    Operand::rows(xv, input),
-                    None,
-                )))
-            })?
-        } else {
-            None
-        };
-        Ok((dx, dw))
+                let (gt, xv) = (Operand::transposed(g, output), Operand::rows(xv, input));
+                Ok(matmul(output, input, rows, gt, xv, None))
+            })
+        });
+        Ok((dx.transpose()?, dw.transpose()?))
     })?;
     Ok((
         dx.map(|v| Tensor::from_vec(v, x.shape(), x.device()))
