@@ -4,11 +4,10 @@
 
 use ctxrace_actor::lidar::{Lidar, NearbyWalls};
 use ctxrace_common::LidarConfig;
-use ctxrace_tracks::files::{load_centreline, TrackFiles};
+use ctxrace_tracks::files::{load_centreline, shared_reference, TrackFiles};
 use ctxrace_tracks::{OccupancyMap, Walls};
 use nalgebra::{Point2, Vector2};
 use rand::{Rng, SeedableRng};
-use std::path::PathBuf;
 
 /// Nearest hit along `(cos a, sin a)` from `o` over all wall segments (walls are stored in f32).
 fn brute_force(walls: &Walls, o: Point2<f64>, a: f64, max: f64) -> f64 {
@@ -38,11 +37,7 @@ fn brute_force(walls: &Walls, o: Point2<f64>, a: f64, max: f64) -> f64 {
 
 #[test]
 fn sweep_matches_brute_force_on_both_paper_maps() {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/tracks");
-    if !dir.is_dir() {
-        eprintln!("skipping: {} not found", dir.display());
-        return;
-    }
+    let dir = shared_reference("tracks").unwrap_or_else(|e| panic!("{e}"));
     let lidar = Lidar::new(&LidarConfig {
         noise_sd: 0.0,
         ..Default::default()

@@ -3,8 +3,8 @@
 use ctxrace_actor::baseline::{Baseline, BaselineKind};
 use ctxrace_actor::{RaceEnv, Step};
 use ctxrace_common::{Context, RaceConfig};
+use ctxrace_tracks::files::shared_reference;
 use ctxrace_tracks::{Track, TrackOptions};
-use std::path::PathBuf;
 use std::sync::Arc;
 
 /// Runs one episode with a reference policy; returns every step.
@@ -86,11 +86,7 @@ fn ramming_a_slow_rival_ends_the_episode_as_a2a() {
 
 #[test]
 fn pure_pursuit_ego_laps_both_paper_tracks_alone() {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/tracks");
-    if !dir.is_dir() {
-        eprintln!("skipping: {} not found", dir.display());
-        return;
-    }
+    let dir = shared_reference("tracks").unwrap_or_else(|e| panic!("{e}"));
     let opts = TrackOptions {
         tracks_dir: dir,
         ..Default::default()

@@ -3,6 +3,7 @@
 //! `NAME_states.csv` (t, x, y, delta, v, yaw, yaw_rate, beta) to 1e-6.
 
 use ctxrace_actor::vehicle::{Vehicle, VehicleParams};
+use ctxrace_tracks::files::shared_reference;
 use std::path::PathBuf;
 
 fn read_rows(path: &PathBuf) -> Vec<Vec<f64>> {
@@ -17,11 +18,8 @@ fn read_rows(path: &PathBuf) -> Vec<Vec<f64>> {
 
 #[test]
 fn reproduces_every_reference_trajectory() {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/testdata/vehicle");
-    let Ok(entries) = std::fs::read_dir(&dir) else {
-        eprintln!("skipping: {} not found", dir.display());
-        return;
-    };
+    let dir = shared_reference("testdata/vehicle").unwrap_or_else(|e| panic!("{e}"));
+    let entries = std::fs::read_dir(&dir).unwrap();
     let mut checked = 0;
     for e in entries.flatten() {
         let name = e.file_name().to_string_lossy().into_owned();

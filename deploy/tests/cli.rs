@@ -20,16 +20,9 @@ fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
 
-fn shared(sub: &str) -> Option<PathBuf> {
-    let d = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared")
-        .join(sub);
-    if d.exists() {
-        Some(d)
-    } else {
-        eprintln!("skipping: {} not found", d.display());
-        None
-    }
+/// The reference material `../shared/<sub>`; a test that needs it fails without it.
+fn shared(sub: &str) -> PathBuf {
+    ctxrace_tracks::files::shared_reference(sub).unwrap_or_else(|e| panic!("{e}"))
 }
 
 /// Fails with a clear message: exit code 1 (2 for flag errors caught by clap), the message
@@ -106,9 +99,7 @@ fn race_on_a_generated_track_renders_traces_and_reports_json() {
 
 #[test]
 fn vehicle_command_reproduces_the_reference_states() {
-    let Some(dir) = shared("testdata/vehicle") else {
-        return;
-    };
+    let dir = shared("testdata/vehicle");
     let o = ctxrace(&[
         "vehicle",
         "--controls",
@@ -129,7 +120,7 @@ fn vehicle_command_reproduces_the_reference_states() {
 
 #[test]
 fn track_info_and_raceline_export_on_the_paper_map() {
-    let Some(dir) = shared("tracks") else { return };
+    let dir = shared("tracks");
     let d = dir.to_str().unwrap();
     let o = ctxrace(&["track", "info", "f1_esp", "--tracks-dir", d, "--json"]);
     assert!(o.status.success(), "{}", stderr(&o));
@@ -231,7 +222,8 @@ fn bad_input_gives_clear_errors() {
         "absent.yaml",
     );
     // a map and a centreline that do not match, too few points, a bad number
-    if let Some(shared) = shared("tracks") {
+    {
+        let shared = shared("tracks");
         let png = shared.join("f1_esp.png");
         let yaml = format!(
             "image: {}\nresolution: 0.05\norigin: [100, 100, 0]\n",

@@ -101,6 +101,25 @@ pub fn list_tracks(dir: &Path) -> Vec<TrackFiles> {
     out
 }
 
+/// The reference material beside the workspace (`../shared`: the paper's maps, the vehicle test
+/// vectors, the paper-code benchmark tools), as fixed at build time: for tests and benchmarks.
+pub const SHARED_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared");
+
+/// `SHARED_DIR/<sub>`, or an error naming the missing folder, so that a test needing the
+/// reference material fails with it instead of passing without checking anything.
+pub fn shared_reference(sub: &str) -> std::result::Result<PathBuf, String> {
+    let dir = Path::new(SHARED_DIR).join(sub);
+    if dir.exists() {
+        Ok(dir)
+    } else {
+        Err(format!(
+            "{} not found: this check needs the project's reference material (the folder \
+             `shared` beside the repository: the paper's maps and test vectors); put it there",
+            dir.display()
+        ))
+    }
+}
+
 /// The default tracks directory: `$CTXRACE_TRACKS_DIR`, else `../shared/tracks` when it exists,
 /// else the current directory.
 pub fn default_tracks_dir() -> PathBuf {

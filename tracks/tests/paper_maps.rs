@@ -1,22 +1,16 @@
-//! Checks on the paper's maps (read from ../shared/tracks; skipped with a note when absent).
+//! Checks on the paper's maps (read from ../shared/tracks; the tests fail when it is absent).
 
-use ctxrace_tracks::files::{load_centreline, load_raceline, TrackFiles};
+use ctxrace_tracks::files::{load_centreline, load_raceline, shared_reference, TrackFiles};
 use ctxrace_tracks::{OccupancyMap, Walls};
 use std::path::PathBuf;
 
-fn shared_tracks() -> Option<PathBuf> {
-    let d = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/tracks");
-    if d.is_dir() {
-        Some(d)
-    } else {
-        eprintln!("skipping: {} not found", d.display());
-        None
-    }
+fn shared_tracks() -> PathBuf {
+    shared_reference("tracks").unwrap_or_else(|e| panic!("{e}"))
 }
 
 #[test]
 fn walls_enclose_the_centreline_of_both_paper_maps() {
-    let Some(dir) = shared_tracks() else { return };
+    let dir = shared_tracks();
     for name in ["f1_esp", "f1_gbr"] {
         let files = TrackFiles::resolve(name, &dir).unwrap();
         let t0 = std::time::Instant::now();
