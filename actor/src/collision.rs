@@ -1,11 +1,13 @@
-//! Exact collisions: car–car rectangle overlap and car–wall footprint contact.
+//! Exact collisions: car–car rectangle overlap and car–wall contact.
 //!
 //! Two cars collide when their rectangles overlap with positive depth: by the separating axis theorem
 //! two rectangles are apart exactly when one of the four edge normals separates them, so touching
 //! (separation 0) is not a collision. A car hits a wall when any wall segment touches or crosses its
-//! rectangle.
+//! rectangle ([`WallContact::Footprint`]), or, as in the paper's code, when its centre crosses a
+//! wall during the physics step ([`WallContact::Centre`]).
 
 use crate::vehicle::{idx, State, VehicleParams};
+use ctxrace_common::WallContact;
 use ctxrace_tracks::Walls;
 use nalgebra::{Isometry2, Point2, Vector2};
 use parry2d::query::sat::cuboid_cuboid_find_local_separating_normal_oneway;
@@ -67,6 +69,15 @@ impl CarBox {
     /// Whether the rectangle touches or crosses a wall.
     pub fn hits_wall(&self, walls: &Walls) -> bool {
         walls.touches_box(&self.pose, self.shape.half_extents)
+    }
+
+    /// Whether a car that was centred at `from` one physics step ago and is now this rectangle
+    /// hit a wall under `rule`.
+    pub fn hits_wall_by(&self, rule: WallContact, from: Point2<f32>, walls: &Walls) -> bool {
+        match rule {
+            WallContact::Footprint => self.hits_wall(walls),
+            WallContact::Centre => walls.crosses_path(from, self.centre()),
+        }
     }
 }
 

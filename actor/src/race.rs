@@ -5,12 +5,10 @@
 //! `a ∈ [-1, 1]²` — steering `δ = −a₀ θ_max` (negative `a₀` turns left, as the paper states) and speed
 //! `v = v_min + (a₁ + 1)/2 · (v_max − v_min)` — and each rival plans with pure pursuit.
 //!
-//! Reward (Jaritz et al.): `r = v / v_max · cos φ − d_c`, `φ` the heading error to the centreline and
-//! `d_c` the distance to it; plus `−1` on a crash, `+1` on completing the lap, and per decision the
-//! change of the ego's rank by track progress (`+1` per rival passed, `−1` per time passed).
-//! The episode ends when the ego completes the lap, hits a wall, or collides with a rival
-//! (terminated), or at the time limit (truncated). A rival that crashes stops and stays as an
-//! obstacle.
+//! Reward: see [`reward`]. The episode ends when the ego completes the lap, hits a wall, collides
+//! with a rival or (with `reverse_limit`) drives backwards (terminated), or at the time limit
+//! (truncated, or terminated with `timeout_is_terminal`). A rival that crashes stops and stays as
+//! an obstacle.
 //!
 //! Metrics: PG, the largest fraction of the lap the ego completed; OT, the sum of the rank changes;
 //! A2A, whether the episode ended in an ego–rival collision.
@@ -20,7 +18,8 @@ use crate::lidar::{Lidar, NearbyWalls};
 use crate::rival::PurePursuit;
 use crate::vehicle::{State, Vehicle, VehicleParams, DT};
 use ctxrace_common::{Context, RaceConfig};
-use ctxrace_tracks::{Projection, Track};
+use ctxrace_tracks::Track;
+use nalgebra::Point2;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
@@ -50,6 +49,8 @@ pub struct Car {
     /// Arc length travelled along the centreline from the start/finish line (m), unwrapped:
     /// rivals start ahead with positive values.
     pub travelled: f64,
+    /// The largest `travelled` reached.
+    pub furthest: f64,
     /// Centreline arc length at the last update.
     s: f64,
     /// Centreline segment at the last update.
@@ -67,6 +68,8 @@ pub struct StepInfo {
     pub wall_crash: bool,
     /// The ego collided with a rival.
     pub a2a: bool,
+    /// The ego drove backwards past `reverse_limit`.
+    pub reversed: bool,
     /// The ego completed the lap.
     pub lap_complete: bool,
     /// Episode time (s).
@@ -99,6 +102,8 @@ pub struct EpisodeMetrics {
     pub a2a: bool,
     /// The episode ended with the ego hitting a wall.
     pub wall_crash: bool,
+    /// The episode ended with the ego driving backwards (`reverse_limit`).
+    pub reversed: bool,
     /// Lap time when the lap was completed (s).
     pub lap_time: Option<f64>,
     /// Decisions taken.
@@ -107,6 +112,45 @@ pub struct EpisodeMetrics {
     pub episode_return: f64,
     /// Rivals that crashed during the episode.
     pub rivals_crashed: usize,
+}
+
+/// The ego's reward for one decision (paper §III after Jaritz et al.; `cfg` selects how the
+/// paper's code computed it): the step reward `r = v / v_max · cos φ − d_c`, with `v` the speed,
+/// `v_max` = `reward_speed`, `φ` the heading error to the centreline and `d_c` the distance to it,
+/// floored at `step_reward_floor` if set; `−1` for a crash and `+1` for the completed lap, added
+/// to `r` or, with `terminal_rewards_replace_step`, instead of it; plus the change in the ego's
+/// rank by track progress (`+1` per rival passed, `−1` per time passed).
+pub fn reward(
+    cfg: &RaceConfig,
+    speed: f64,
+    heading_error: f64,
+    lateral: f64,
+    crashed: bool,
+    lap_complete: bool,
+    overtakes: i32,
+) -> f64 {
+    let mut step = speed / cfg.reward_speed * heading_error.cos() - lateral.abs();
+    if let Some(floor) = cfg.step_reward_floor {
+        step = step.max(floor);
+    }
+    let replace = cfg.terminal_rewards_replace_step;
+    let base = if replace && lap_complete {
+        1.0
+    } else if replace && crashed {
+        -1.0
+    } else {
+        step + f64::from(u8::from(lap_complete)) - f64::from(u8::from(crashed))
+    };
+    base + f64::from(overtakes)
+}
+
+/// Most decisions the ego's launch (`ego_launch_below`) may take.
+const MAX_LAUNCH_DECISIONS: usize = 20;
+
+/// A car's centre in single precision, as the collision shapes hold it.
+fn centre_f32(v: &Vehicle) -> Point2<f32> {
+    let p = v.position();
+    Point2::new(p.x as f32, p.y as f32)
 }
 
 /// The race environment.
@@ -124,6 +168,8 @@ pub struct RaceEnv {
     max_steps: usize,
     rank: usize,
     boxes: Vec<CarBox>,
+    /// Every car's centre before the current physics step (for the `centre` wall contact).
+    centres: Vec<Point2<f32>>,
     metrics: EpisodeMetrics,
     finished: bool,
 }
@@ -147,6 +193,7 @@ impl RaceEnv {
             steps: 0,
             rank: 0,
             boxes: Vec::new(),
+            centres: Vec::new(),
             metrics: EpisodeMetrics::default(),
             finished: true,
             cfg,
@@ -173,9 +220,11 @@ impl RaceEnv {
                         p.y,
                         centre.heading_at(s),
                         self.cfg.steer_delay,
-                    ),
+                    )
+                    .with_integrator(self.cfg.integrator),
                     crashed: false,
                     travelled: s,
+                    furthest: s,
                     s,
                     hint: seg,
                 }
@@ -197,18 +246,35 @@ impl RaceEnv {
         self.rank = self.ego_rank();
         self.metrics = EpisodeMetrics::default();
         self.finished = false;
+        self.launch();
         self.observe()
     }
 
-    /// Advances one decision with the ego action `a ∈ [-1, 1]²` (clipped).
-    pub fn step(&mut self, action: [f64; 2]) -> Result<Step, RaceError> {
-        if self.finished {
-            return Err(RaceError::Finished);
+    /// With `ego_launch_below`, drives the ego straight at `ego_launch_speed` (the rivals
+    /// racing as usual) until it is that fast, as the paper's code did before its agents took
+    /// over. From the back of the grid this takes about 0.1 s and cannot reach a rival.
+    fn launch(&mut self) {
+        let below = self.cfg.ego_launch_below;
+        if below <= 0.0 {
+            return;
         }
-        if !action.iter().all(|a| a.is_finite()) {
-            return Err(RaceError::BadAction(action));
+        // a stand-still start reaches 1 m/s in 1–2 decisions; the bound only guards odd configs
+        for _ in 0..MAX_LAUNCH_DECISIONS {
+            if self.cars[0].vehicle.speed() >= below {
+                break;
+            }
+            let (wall_crash, a2a) = self.advance(0.0, self.cfg.ego_launch_speed);
+            if wall_crash || a2a {
+                break;
+            }
         }
-        let (steer, speed) = self.action_to_command(action);
+        self.rank = self.ego_rank();
+    }
+
+    /// One decision of physics: the rivals plan, then every car drives `physics_steps_per_action`
+    /// steps (the ego under the command `(steer, speed)`) until the ego crashes; then every car's
+    /// progress is updated. Returns (ego hit a wall, ego hit a rival).
+    fn advance(&mut self, steer: f64, speed: f64) -> (bool, bool) {
         let commands: Vec<(f64, f64)> = self
             .drivers
             .iter_mut()
@@ -224,6 +290,9 @@ impl RaceEnv {
         let mut wall_crash = false;
         let mut a2a = false;
         for _ in 0..self.cfg.physics_steps_per_action {
+            self.centres.clear();
+            self.centres
+                .extend(self.cars.iter().map(|c| centre_f32(&c.vehicle)));
             self.cars[0].vehicle.step(steer, speed);
             for (car, &(st, sp)) in self.cars[1..].iter_mut().zip(&commands) {
                 if !car.crashed {
@@ -236,38 +305,58 @@ impl RaceEnv {
             }
         }
         self.steps += 1;
-        let ego_proj = self.update_progress(0);
-        for i in 1..self.cars.len() {
+        for i in 0..self.cars.len() {
             self.update_progress(i);
         }
+        (wall_crash, a2a)
+    }
+
+    /// Advances one decision with the ego action `a ∈ [-1, 1]²` (clipped).
+    pub fn step(&mut self, action: [f64; 2]) -> Result<Step, RaceError> {
+        if self.finished {
+            return Err(RaceError::Finished);
+        }
+        if !action.iter().all(|a| a.is_finite()) {
+            return Err(RaceError::BadAction(action));
+        }
+        let (steer, speed) = self.action_to_command(action);
+        let (wall_crash, a2a) = self.advance(steer, speed);
         let ego = &self.cars[0];
+        let ego_proj = self.track.project(&ego.vehicle.position(), Some(ego.hint));
         let length = self.track.length();
         let lap_complete = ego.travelled >= length;
+        let reversed = !(wall_crash || a2a || lap_complete)
+            && self
+                .cfg
+                .reverse_limit
+                .is_some_and(|limit| ego.travelled < ego.furthest - limit);
         let progress = (ego.travelled / length).clamp(0.0, 1.0);
         self.metrics.progress = self.metrics.progress.max(progress);
         let rank = self.ego_rank();
         let overtakes = self.rank as i32 - rank as i32;
         self.rank = rank;
 
-        let heading_error = ego.vehicle.yaw() - ego_proj.heading;
-        let mut reward = ego.vehicle.speed() / self.cfg.reward_speed * heading_error.cos()
-            - ego_proj.lateral.abs()
-            + overtakes as f64;
-        if wall_crash || a2a {
-            reward -= 1.0;
-        }
-        if lap_complete {
-            reward += 1.0;
-        }
+        let reward = reward(
+            &self.cfg,
+            ego.vehicle.speed(),
+            ego.vehicle.yaw() - ego_proj.heading,
+            ego_proj.lateral,
+            wall_crash || a2a || reversed,
+            lap_complete,
+            overtakes,
+        );
         let time = self.steps as f64 * self.cfg.physics_steps_per_action as f64 * DT;
-        let terminated = wall_crash || a2a || lap_complete;
-        let truncated = !terminated && self.steps >= self.max_steps;
+        let timed_out = self.steps >= self.max_steps;
+        let ended = wall_crash || a2a || reversed || lap_complete;
+        let terminated = ended || (timed_out && self.cfg.timeout_is_terminal);
+        let truncated = !terminated && timed_out;
         self.finished = terminated || truncated;
 
         let m = &mut self.metrics;
         m.overtakes += overtakes;
         m.a2a |= a2a;
         m.wall_crash |= wall_crash;
+        m.reversed |= reversed;
         m.steps = self.steps;
         m.episode_return += reward;
         if lap_complete {
@@ -285,6 +374,7 @@ impl RaceEnv {
                 overtakes,
                 wall_crash,
                 a2a,
+                reversed,
                 lap_complete,
                 time,
             },
@@ -326,7 +416,8 @@ impl RaceEnv {
             if self.cars[i].crashed {
                 continue;
             }
-            if self.boxes[i].hits_wall(&self.track.walls) {
+            if self.boxes[i].hits_wall_by(self.cfg.wall_contact, self.centres[i], &self.track.walls)
+            {
                 self.crash(i);
                 ego_wall |= i == 0;
             }
@@ -351,8 +442,8 @@ impl RaceEnv {
         self.cars[i].vehicle.stop();
     }
 
-    /// Moves car `i`'s progress to its current position; returns its centreline projection.
-    fn update_progress(&mut self, i: usize) -> Projection {
+    /// Moves car `i`'s progress to its current position.
+    fn update_progress(&mut self, i: usize) {
         let car = &mut self.cars[i];
         let proj = self.track.project(&car.vehicle.position(), Some(car.hint));
         let length = self.track.length();
@@ -363,9 +454,9 @@ impl RaceEnv {
             ds += length;
         }
         car.travelled += ds;
+        car.furthest = car.furthest.max(car.travelled);
         car.s = proj.s;
         car.hint = proj.segment;
-        proj
     }
 
     /// 1-based rank of the ego by distance travelled (ties favour the ego).

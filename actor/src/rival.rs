@@ -1,31 +1,51 @@
 //! The rivals' driver: pure pursuit on the raceline, its speed and lookahead scaled by the context.
 //!
-//! Each decision the driver finds the target point `g`, the first raceline point at distance
-//! `L_d = (d_0 + k v)(1 + λ_θ c_θ)` ahead of the car — the speed-dependent lookahead of the paper's
-//! code (`d_0 = 1` m, `k = 0.1` s) scaled by the context — and steers with the pure-pursuit law
-//! `δ = atan(2 L y / L_d²)`, where `y` is the lateral offset of `g` in the car frame and `L` the
-//! wheelbase. The speed command is the raceline speed at `g`, capped at `v_cap`, times
-//! `f (1 + λ_v c_v)` with the speed factor `f` (paper: 0.3).
+//! Each decision the driver searches the target point `g`: the first raceline point, going
+//! forward from the car's foot point, at distance `r = d_0 + k v` from the car (`d_0 = 1` m,
+//! `k = 0.1` s, the paper's code). It steers with the pure-pursuit law `δ = atan(2 L y / L_d²)`,
+//! where `y` is the lateral offset of `g` in the car frame and `L` the wheelbase. The speed
+//! command is the raceline speed read at [`SpeedPoint`], capped at `v_cap`, times
+//! `f (1 + λ_v c_v)` with the speed factor `f` (the paper's runs: 0.8).
 //!
-//! Two departures from the paper's code, both because they ran rivals into walls: the code searched
-//! the point at `1 + 0.1 v` but steered as if it were a fixed 1.5 m (scaled by the context) away,
-//! which at the paper's slow rival speeds (≈1.5 m/s, so ≈1.15 m) understeers by a factor
-//! `(1.15 / 1.5)² ≈ 0.6` and put rivals into the walls of f1_gbr in every context; and below 1 m/s
-//! it drove straight ahead, which runs the slowest rivals off in corners. Here the point and the
-//! law use the same distance, and the driver always steers.
+//! **ctxrace's driver (the default).** `L_d = r`, and the context scales the whole lookahead:
+//! `r = (d_0 + k v)(1 + λ_θ c_θ)`. The speed is the slowest raceline speed between the car and
+//! `g`, so the rival brakes for a corner as early as when reading it at `g` (the paper's text)
+//! and does not accelerate before the corner's exit. It always steers.
+//!
+//! **The paper's code** (Planners/PurePursuit.py; `preset = "paper-code"`) searched `g` at the
+//! unscaled `1 + 0.1 v` but steered as if it were a fixed `L_d = 1.5 (1 + λ_θ c_θ)` away
+//! (`steer_lookahead`), snapped `g` back to the raceline vertex starting the segment it lies on
+//! (`target_at_vertex`), read the speed at the nearest vertex (`speed_point = "nearest"`), and
+//! below 1 m/s drove straight at 4 m/s (`launch_below`, `launch_speed`).
+//!
+//! Why ctxrace departs: at the paper's text speed (f = 0.3, ≈1.5 m/s) the code's law understeers
+//! by `(1.15 / 1.5)² ≈ 0.6` and put rivals into the walls of f1_gbr in every context; at f = 0.8
+//! the two distances nearly agree on the straights but not in slow corners. Reading the speed
+//! at `g` makes fast rivals with long lookahead (`c_v, c_θ ≥ 0.2`) accelerate out of corners
+//! they have not left and run wide into the wall; the slowest speed ahead keeps all 49
+//! evaluation contexts on the track on f1_esp and f1_gbr (tested).
 
 use crate::vehicle::{idx, State};
-use ctxrace_common::{Context, ContextGains, RivalConfig};
+use ctxrace_common::{Context, ContextGains, RivalConfig, SpeedPoint};
 use ctxrace_tracks::Raceline;
 use nalgebra::Point2;
 
 /// A pure-pursuit driver following a raceline.
 #[derive(Clone, Debug)]
 pub struct PurePursuit {
-    /// Lookahead at standstill, context scale included (m).
+    /// Target search distance at standstill, context scale included unless `steer_distance`
+    /// is set (m).
     base: f64,
-    /// Lookahead growth with speed, context scale included (s).
+    /// Growth of the search distance with speed, scaled like `base` (s).
     gain: f64,
+    /// A fixed steering-law distance `L_d` (context scale included), else the search distance.
+    steer_distance: Option<f64>,
+    /// Snap the target back to the raceline vertex starting its segment.
+    target_at_vertex: bool,
+    /// Where the raceline speed is read.
+    speed_point: SpeedPoint,
+    /// Below `launch.0` m/s, drive straight at `launch.1` m/s.
+    launch: Option<(f64, f64)>,
     /// Multiplier on the capped raceline speed.
     speed_scale: f64,
     /// Cap on the raceline speed before scaling.
@@ -46,14 +66,17 @@ impl PurePursuit {
         max_steer: f64,
     ) -> Self {
         let scale = 1.0 + gains.lambda_theta * ctx.steer;
+        let search_scale = if cfg.steer_lookahead.is_some() {
+            1.0
+        } else {
+            scale
+        };
         Self {
-            base: cfg.lookahead * scale,
-            gain: cfg.lookahead_gain * scale,
+            base: cfg.lookahead * search_scale,
+            gain: cfg.lookahead_gain * search_scale,
+            steer_distance: cfg.steer_lookahead.map(|l| l * scale),
             speed_scale: cfg.speed_factor * (1.0 + gains.lambda_v * ctx.speed),
-            speed_cap: cfg.max_speed,
-            wheelbase,
-            max_steer,
-            hint: None,
+            ..Self::full_speed(cfg, cfg.max_speed, wheelbase, max_steer)
         }
     }
 
@@ -63,6 +86,10 @@ impl PurePursuit {
         Self {
             base: cfg.lookahead,
             gain: cfg.lookahead_gain,
+            steer_distance: cfg.steer_lookahead,
+            target_at_vertex: cfg.target_at_vertex,
+            speed_point: cfg.speed_point,
+            launch: (cfg.launch_below > 0.0).then_some((cfg.launch_below, cfg.launch_speed)),
             speed_scale: 1.0,
             speed_cap,
             wheelbase,
@@ -73,6 +100,12 @@ impl PurePursuit {
 
     /// The command `(steering angle, speed)` for a car in state `x`.
     pub fn command(&mut self, raceline: &Raceline, x: &State) -> (f64, f64) {
+        let v = x[idx::V];
+        if let Some((below, speed)) = self.launch {
+            if v < below {
+                return (0.0, speed);
+            }
+        }
         let pos = Point2::new(x[idx::X], x[idx::Y]);
         let curve = &raceline.curve;
         let proj = match self.hint {
@@ -80,18 +113,36 @@ impl PurePursuit {
             None => curve.project(&pos),
         };
         self.hint = Some(proj.segment);
-        let radius = self.base + self.gain * x[idx::V].max(0.0);
-        let (target, s_target) =
-            first_point_at_distance(raceline, &pos, proj.segment, proj.s, radius);
+        let radius = self.base + self.gain * v.max(0.0);
+        let cut = first_point_at_distance(raceline, &pos, proj.segment, proj.s, radius);
+        let target = if self.target_at_vertex {
+            curve.points()[cut.segment]
+        } else {
+            cut.point
+        };
         let (sin, cos) = x[idx::YAW].sin_cos();
         let d = target - pos;
         let y = -sin * d.x + cos * d.y;
-        let steer = (2.0 * self.wheelbase * y / (radius * radius))
+        let ld = self.steer_distance.unwrap_or(radius);
+        let steer = (2.0 * self.wheelbase * y / (ld * ld))
             .atan()
             .clamp(-self.max_steer, self.max_steer);
-        let speed = raceline.speed_at(s_target).min(self.speed_cap) * self.speed_scale;
-        (steer, speed)
+        let line_speed = match self.speed_point {
+            SpeedPoint::Nearest => raceline.speed[proj.segment],
+            SpeedPoint::Target => raceline.speed_at(cut.s),
+            SpeedPoint::SlowestAhead => slowest_between(raceline, proj.s, cut.s),
+        };
+        (steer, line_speed.min(self.speed_cap) * self.speed_scale)
     }
+}
+
+/// Where the search circle cuts the raceline.
+struct Cut {
+    point: Point2<f64>,
+    /// Arc length of `point` along the raceline.
+    s: f64,
+    /// Segment holding `point`.
+    segment: usize,
 }
 
 /// The first point of the raceline, going forward from the foot point at arc length `s_foot` on
@@ -103,7 +154,7 @@ fn first_point_at_distance(
     seg: usize,
     s_foot: f64,
     radius: f64,
-) -> (Point2<f64>, f64) {
+) -> Cut {
     let curve = &raceline.curve;
     let n = curve.len();
     let pts = curve.points();
@@ -128,7 +179,11 @@ fn first_point_at_distance(
             for t in [(-qb - sq) / (2.0 * qa), (-qb + sq) / (2.0 * qa)] {
                 if t >= t_min && t <= 1.0 {
                     let s = curve.s_at_vertex(i) + t * qa.sqrt();
-                    return (a + d * t, curve.wrap_s(s));
+                    return Cut {
+                        point: a + d * t,
+                        s: curve.wrap_s(s),
+                        segment: i,
+                    };
                 }
             }
         }
@@ -137,7 +192,29 @@ fn first_point_at_distance(
         i = (i + 1) % n;
     }
     let s = curve.wrap_s(s_foot + radius);
-    (curve.point_at(s), s)
+    Cut {
+        point: curve.point_at(s),
+        s,
+        segment: curve.locate(s).0,
+    }
+}
+
+/// The slowest raceline speed over the arc from `from` forward to `to` (both ends interpolated).
+fn slowest_between(raceline: &Raceline, from: f64, to: f64) -> f64 {
+    let curve = &raceline.curve;
+    let n = curve.len();
+    let (mut i, _) = curve.locate(from);
+    let (last, _) = curve.locate(to);
+    let mut slowest = raceline.speed_at(from).min(raceline.speed_at(to));
+    // the vertices strictly after `from`'s segment start, up to `to`'s segment start
+    for _ in 0..n {
+        if i == last {
+            break;
+        }
+        i = (i + 1) % n;
+        slowest = slowest.min(raceline.speed[i]);
+    }
+    slowest
 }
 
 /// One rival's solo lap: where it drove and how fast.
@@ -187,7 +264,8 @@ pub fn drive_solo_lap(
         p0.y,
         centre.heading_at(start_s),
         cfg.steer_delay,
-    );
+    )
+    .with_integrator(cfg.integrator);
     let gains = cfg.rival.gains_for(&track.name);
     let mut driver =
         PurePursuit::rival(&cfg.rival, gains, context, params.wheelbase(), params.s_max);
@@ -199,8 +277,10 @@ pub fn drive_solo_lap(
     for k in 0..max_decisions {
         let (steer, speed) = driver.command(&track.raceline, &car.state);
         for _ in 0..cfg.physics_steps_per_action {
+            let p = car.position();
             car.step(steer, speed);
-            if CarBox::new(&car.state, &params).hits_wall(&track.walls) {
+            let from = nalgebra::Point2::new(p.x as f32, p.y as f32);
+            if CarBox::new(&car.state, &params).hits_wall_by(cfg.wall_contact, from, &track.walls) {
                 lap.wall_hit_at = Some(centre.project_near(&car.position(), hint).s);
                 lap.time = (k + 1) as f64 * decision_time;
                 return lap;

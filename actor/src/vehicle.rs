@@ -13,6 +13,7 @@
 //! desired `(δ, v)` command becomes `u` through f1tenth_gym's bang-bang steering and proportional
 //! speed controller ([`command_to_input`]).
 
+use ctxrace_common::Integrator;
 use serde::{Deserialize, Serialize};
 
 /// Gravity (m/s²).
@@ -203,6 +204,13 @@ pub fn rk4(x: &State, u: [f64; 2], dt: f64, p: &VehicleParams) -> State {
     std::array::from_fn(|i| x[i] + dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]))
 }
 
+/// One explicit Euler step of length `dt` with a constant input, `x + f(x, u) dt` (the
+/// f1tenth_gym copy in the paper's code integrates so).
+pub fn euler(x: &State, u: [f64; 2], dt: f64, p: &VehicleParams) -> State {
+    let f = dynamics(x, u, p);
+    std::array::from_fn(|i| x[i] + dt * f[i])
+}
+
 /// A car: its state, parameters and steering-delay line.
 #[derive(Clone, Debug)]
 pub struct Vehicle {
@@ -210,6 +218,8 @@ pub struct Vehicle {
     pub state: State,
     /// The parameters.
     pub params: VehicleParams,
+    /// How a physics step is integrated.
+    pub integrator: Integrator,
     /// Delayed steering commands, oldest first (capacity = the delay in steps).
     steer_queue: std::collections::VecDeque<f64>,
     delay: usize,
@@ -229,9 +239,15 @@ impl Vehicle {
         Self {
             state,
             params,
+            integrator: Integrator::Rk4,
             steer_queue: std::collections::VecDeque::with_capacity(delay + 1),
             delay,
         }
+    }
+
+    /// The same car integrated with `integrator`.
+    pub fn with_integrator(self, integrator: Integrator) -> Self {
+        Self { integrator, ..self }
     }
 
     /// Advances one physics step under the command (desired steering angle, desired speed).
@@ -243,7 +259,10 @@ impl Vehicle {
             0.0
         };
         let u = command_to_input(applied, speed, &self.state, &self.params);
-        self.state = rk4(&self.state, u, DT, &self.params);
+        self.state = match self.integrator {
+            Integrator::Rk4 => rk4(&self.state, u, DT, &self.params),
+            Integrator::Euler => euler(&self.state, u, DT, &self.params),
+        };
         // keep yaw in [0, 2π) as f1tenth_gym does
         let yaw = &mut self.state[idx::YAW];
         if *yaw > std::f64::consts::TAU {

@@ -1,32 +1,123 @@
 //! Race configuration: the scenario, the ego's sensor and action mapping, and the rivals.
 //!
-//! Every struct rejects unknown keys and fills missing ones with the paper's values, so a TOML file
-//! only names what it changes.
+//! Every struct rejects unknown keys and fills missing ones from a preset: by default ctxrace's
+//! scenario (the paper's text, with the rival speed its code used and the fixes listed below),
+//! or with `preset = "paper-code"` the race exactly as the paper's public code ran it
+//! ([`RaceConfig::paper_code`]). A TOML file only names what it changes.
+//!
+//! The two presets differ in these keys (docs/scenario.md has the full table and the reasons):
+//!
+//! | key | default | `paper-code` |
+//! |---|---|---|
+//! | `min_speed` | 0 (paper text) | 1 |
+//! | `reward_speed` | 6 (`v_max`, paper text) | 8 |
+//! | `step_reward_floor` | none | 0 |
+//! | `terminal_rewards_replace_step` | false (added, paper text) | true |
+//! | `reverse_limit` | none | 1 m |
+//! | `timeout_is_terminal` | false (truncation) | true |
+//! | `shipped_raceline` | false (computed) | true |
+//! | `wall_contact` | `footprint` | `centre` |
+//! | `integrator` | `rk4` | `euler` |
+//! | `ego_launch_below` | 0 (off) | 1 m/s (at `ego_launch_speed` 7 m/s) |
+//! | `rival.steer_lookahead` | none (the target's distance) | 1.5 m |
+//! | `rival.target_at_vertex` | false | true |
+//! | `rival.speed_point` | `slowest-ahead` | `nearest` |
+//! | `rival.launch_below` | 0 (off) | 1 m/s (at `launch_speed` 4 m/s) |
 
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
+
+/// A named starting point for a race scenario: keys a file leaves out take the preset's values.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RacePreset {
+    /// ctxrace's scenario ([`RaceConfig::default`]).
+    #[default]
+    Default,
+    /// The race as the paper's public code ran it ([`RaceConfig::paper_code`]).
+    PaperCode,
+}
+
+impl RacePreset {
+    /// The scenario of the preset.
+    pub fn config(self) -> RaceConfig {
+        match self {
+            RacePreset::Default => RaceConfig::default(),
+            RacePreset::PaperCode => RaceConfig::paper_code(),
+        }
+    }
+}
+
+/// When a car has hit a wall.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum WallContact {
+    /// Its rectangle touches a wall (exact, as REFERENCE §2 asks).
+    #[default]
+    Footprint,
+    /// Its centre crosses a wall: the paper's code, whose gym had the footprint (TTC) check
+    /// switched off and ended a car only when its centre reached an occupied map pixel.
+    Centre,
+}
+
+/// How the vehicle model is integrated over a physics step.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Integrator {
+    /// Classical fourth-order Runge–Kutta (today's f1tenth_gym).
+    #[default]
+    Rk4,
+    /// Explicit Euler, `x ← x + f(x, u) dt` (the f1tenth_gym copy in the paper's code).
+    Euler,
+}
 
 /// One head-to-head race scenario.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct RaceConfig {
+    /// The preset the other keys start from (see [`RaceConfig::from_table`]).
+    pub preset: RacePreset,
     /// Number of rival cars, 0 to 7.
     pub rivals: usize,
     /// Gap between consecutive cars on the starting line, as a fraction of the lap (paper code: 0.05).
     pub start_gap: f64,
     /// Ego speed range top: action `a_1 ∈ [-1, 1]` maps onto `[min_speed, max_speed]` m/s.
     pub max_speed: f64,
-    /// Ego speed range bottom (paper: 0; the paper's code used 1).
+    /// Ego speed range bottom (paper: 0; the paper's code: 1).
     pub min_speed: f64,
     /// Ego steering range: `a_0 ∈ [-1, 1]` maps onto `[-max_steer, max_steer]` rad, negative = left.
     pub max_steer: f64,
-    /// Speed that normalises the reward's `v / v_max` term (m/s).
+    /// Speed that normalises the reward's `v / v_max` term (m/s; paper: `v_max` = 6, its code: 8).
     pub reward_speed: f64,
+    /// Lower bound of the per-step reward `v / v_max cos φ − d_c` (the paper's code: 0).
+    pub step_reward_floor: Option<f64>,
+    /// The crash (−1) and lap (+1) rewards replace the step reward instead of being added to it
+    /// (the paper's code); overtakes are added either way.
+    pub terminal_rewards_replace_step: bool,
+    /// The episode ends, as a crash, when the ego's progress falls this far (m) behind the
+    /// furthest it reached: it drove backwards (the paper's code: 1 m).
+    pub reverse_limit: Option<f64>,
+    /// Reaching `max_time` terminates the episode (stored as terminal, the paper's code) instead
+    /// of truncating it (bootstrapped).
+    pub timeout_is_terminal: bool,
+    /// Rivals drive the raceline shipped with the track (`NAME_raceline.csv`, the paper's code)
+    /// instead of the computed min-curvature line.
+    pub shipped_raceline: bool,
+    /// When a car has hit a wall.
+    pub wall_contact: WallContact,
+    /// How the vehicle model is integrated.
+    pub integrator: Integrator,
+    /// While the ego is slower than this (m/s) at the start of an episode, it drives straight at
+    /// `ego_launch_speed` before the agent takes over (the paper's code: 1 m/s, its planners'
+    /// `v_min_plan`; it stores none of these steps); 0 disables it.
+    pub ego_launch_below: f64,
+    /// The ego's launch speed command (m/s; the paper's code: 7).
+    pub ego_launch_speed: f64,
     /// Physics steps (0.01 s) per agent decision.
     pub physics_steps_per_action: usize,
     /// Steering command delay in physics steps (f1tenth_gym: 2).
     pub steer_delay: usize,
-    /// Episode time limit in seconds; reaching it truncates the episode.
+    /// Episode time limit in seconds.
     pub max_time: f64,
     /// The ego's LiDAR.
     pub lidar: LidarConfig,
@@ -37,12 +128,22 @@ pub struct RaceConfig {
 impl Default for RaceConfig {
     fn default() -> Self {
         Self {
+            preset: RacePreset::Default,
             rivals: 1,
             start_gap: 0.05,
             max_speed: 6.0,
             min_speed: 0.0,
             max_steer: 0.4189,
             reward_speed: 6.0,
+            step_reward_floor: None,
+            terminal_rewards_replace_step: false,
+            reverse_limit: None,
+            timeout_is_terminal: false,
+            shipped_raceline: false,
+            wall_contact: WallContact::Footprint,
+            integrator: Integrator::Rk4,
+            ego_launch_below: 0.0,
+            ego_launch_speed: 7.0,
             physics_steps_per_action: 10,
             steer_delay: 2,
             max_time: 240.0,
@@ -53,6 +154,66 @@ impl Default for RaceConfig {
 }
 
 impl RaceConfig {
+    /// The race as the paper's public code (lilpharaoh1/context-f110) ran it: its reward
+    /// (RewardSignals.py `CrossTrackHeadReward`), ego speed map and launch, backwards-driving
+    /// end, time-outs stored as terminal (TestSimulation.py, the planners), its gym's Euler
+    /// integration and centre-point wall check (f110_gym), the shipped raceline and its pure
+    /// pursuit (Planners/PurePursuit.py).
+    pub fn paper_code() -> Self {
+        Self {
+            preset: RacePreset::PaperCode,
+            min_speed: 1.0,
+            reward_speed: 8.0,
+            step_reward_floor: Some(0.0),
+            terminal_rewards_replace_step: true,
+            reverse_limit: Some(1.0),
+            timeout_is_terminal: true,
+            shipped_raceline: true,
+            wall_contact: WallContact::Centre,
+            integrator: Integrator::Euler,
+            ego_launch_below: 1.0,
+            rival: RivalConfig {
+                steer_lookahead: Some(1.5),
+                target_at_vertex: true,
+                speed_point: SpeedPoint::Nearest,
+                launch_below: 1.0,
+                launch_speed: 4.0,
+                ..RivalConfig::default()
+            },
+            ..Self::default()
+        }
+    }
+
+    /// Reads a race table: keys it leaves out take the values of its `preset` (the default
+    /// scenario when it names none). Unknown keys and bad values are errors naming the key.
+    pub fn from_table(table: toml::Table) -> Result<Self, String> {
+        let preset = match table.get("preset") {
+            Some(v) => v
+                .clone()
+                .try_into::<RacePreset>()
+                .map_err(|e| format!("preset: {e} (use \"default\" or \"paper-code\")"))?,
+            None => RacePreset::Default,
+        };
+        let base = toml::Table::try_from(preset.config())
+            .map_err(|e| format!("serialising the {preset:?} preset: {e}"))?;
+        let cfg: Self = toml::Value::Table(merge_tables(base, table))
+            .try_into()
+            .map_err(|e: toml::de::Error| e.message().to_string())?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Parses a race scenario TOML (see [`RaceConfig::from_table`]).
+    pub fn from_toml(text: &str) -> Result<Self, String> {
+        // parsed as the struct first so that syntax and unknown keys are reported with their line
+        let direct: Self = toml::from_str(text).map_err(|e| e.to_string())?;
+        if direct.preset == RacePreset::Default {
+            direct.validate()?;
+            return Ok(direct);
+        }
+        Self::from_table(toml::from_str(text).map_err(|e| e.to_string())?)
+    }
+
     /// Checks ranges; the message names the key and its valid range.
     pub fn validate(&self) -> Result<(), String> {
         let positive = [
@@ -65,10 +226,35 @@ impl RaceConfig {
             ("rival.speed_factor", self.rival.speed_factor),
             ("rival.lookahead", self.rival.lookahead),
             ("rival.max_speed", self.rival.max_speed),
+            ("rival.launch_speed", self.rival.launch_speed),
+            ("ego_launch_speed", self.ego_launch_speed),
         ];
-        for (k, v) in positive {
+        let optional = [
+            ("reverse_limit", self.reverse_limit),
+            ("rival.steer_lookahead", self.rival.steer_lookahead),
+        ];
+        for (k, v) in positive
+            .into_iter()
+            .chain(optional.into_iter().filter_map(|(k, v)| v.map(|v| (k, v))))
+        {
             if !(v.is_finite() && v > 0.0) {
                 return Err(format!("{k} = {v} must be a positive number"));
+            }
+        }
+        for (k, v) in [
+            ("rival.lookahead_gain", self.rival.lookahead_gain),
+            ("rival.launch_below", self.rival.launch_below),
+            ("ego_launch_below", self.ego_launch_below),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("{k} = {v} must be a number >= 0 (0 disables it)"));
+            }
+        }
+        if let Some(floor) = self.step_reward_floor {
+            if !floor.is_finite() {
+                return Err(format!(
+                    "step_reward_floor = {floor} must be a number (leave it out for none)"
+                ));
             }
         }
         if self.rivals > 7 {
@@ -99,6 +285,20 @@ impl RaceConfig {
     }
 }
 
+/// `over` laid on `base`: keys of `over` replace those of `base`, tables merge key by key.
+fn merge_tables(mut base: toml::Table, over: toml::Table) -> toml::Table {
+    for (key, value) in over {
+        let merged = match (base.remove(&key), value) {
+            (Some(toml::Value::Table(b)), toml::Value::Table(o)) => {
+                toml::Value::Table(merge_tables(b, o))
+            }
+            (_, v) => v,
+        };
+        base.insert(key, merged);
+    }
+    base
+}
+
 /// The ego's 2D LiDAR.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -124,19 +324,49 @@ impl Default for LidarConfig {
     }
 }
 
+/// Where on the raceline a rival reads the speed it drives.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SpeedPoint {
+    /// The raceline vertex nearest the car (the paper's code).
+    Nearest,
+    /// The pure-pursuit target point (the paper's text: "the speed associated with the
+    /// lookahead point").
+    Target,
+    /// The slowest raceline speed between the nearest point and the target: brakes as early as
+    /// `target` and accelerates as late as `nearest`.
+    #[default]
+    SlowestAhead,
+}
+
 /// The rivals' pure-pursuit driver and how the context scales it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct RivalConfig {
-    /// Fraction of the raceline speed driven (paper: 0.3, "reduced by 70%"; its code: 0.8).
+    /// Fraction of the raceline speed driven (the paper's runs: 0.8; its text says "reduced by
+    /// 70%", i.e. 0.3, which its code never used).
     pub speed_factor: f64,
     /// Raceline speeds are capped at this before scaling (paper code: the ego's max speed, 6 m/s).
     pub max_speed: f64,
-    /// Pure-pursuit lookahead at standstill (m): the target point and the steering law
-    /// `δ = atan(2 L y / L_d²)` use `L_d = (lookahead + lookahead_gain · v)(1 + λ_θ c_θ)`.
+    /// Distance at standstill (m) at which the target point is searched: `lookahead +
+    /// lookahead_gain · v`.
     pub lookahead: f64,
-    /// Growth of the lookahead with speed (s; the paper's code: 0.1).
+    /// Growth of the search distance with speed (s; the paper's code: 0.1).
     pub lookahead_gain: f64,
+    /// The steering law `δ = atan(2 L y / L_d²)` uses this fixed `L_d` (m) times
+    /// `1 + λ_θ c_θ` (the paper's code: 1.5, while it searched the target at `1 + 0.1 v`
+    /// unscaled); none: `L_d` is the target's search distance, and the context scales both.
+    pub steer_lookahead: Option<f64>,
+    /// The target is the raceline vertex that starts the segment where the search circle cuts
+    /// it (the paper's code), not the cut point itself.
+    pub target_at_vertex: bool,
+    /// Where the raceline speed is read.
+    pub speed_point: SpeedPoint,
+    /// Below this speed (m/s) the rival drives straight at `launch_speed` instead of pursuing
+    /// (the paper's code: 1); 0 disables it.
+    pub launch_below: f64,
+    /// Speed commanded below `launch_below`, unscaled (m/s; the paper's code: 4).
+    pub launch_speed: f64,
     /// Context gains used on tracks without an entry in `tracks`.
     pub gains: ContextGains,
     /// Context gains per track name (paper code: λ_θ = 0.4 on f1_esp and f1_gbr, 0.3 on f1_mco).
@@ -150,10 +380,15 @@ impl Default for RivalConfig {
             lambda_theta,
         };
         Self {
-            speed_factor: 0.3,
+            speed_factor: 0.8,
             max_speed: 6.0,
             lookahead: 1.0,
             lookahead_gain: 0.1,
+            steer_lookahead: None,
+            target_at_vertex: false,
+            speed_point: SpeedPoint::default(),
+            launch_below: 0.0,
+            launch_speed: 4.0,
             gains: paper(0.4),
             tracks: BTreeMap::from([
                 ("f1_esp".to_string(), paper(0.4)),
@@ -245,5 +480,44 @@ mod tests {
             RivalConfig::default().gains_for("generated:3").lambda_theta,
             0.4
         );
+    }
+
+    #[test]
+    fn the_paper_code_preset_fills_what_a_file_leaves_out() {
+        let c = RaceConfig::from_toml(
+            "preset = \"paper-code\"\nrivals = 3\n[rival]\nspeed_factor = 0.3\n",
+        )
+        .unwrap();
+        assert_eq!(c.rivals, 3);
+        assert_eq!(c.rival.speed_factor, 0.3);
+        assert_eq!(c.rival.steer_lookahead, Some(1.5));
+        assert_eq!(c.rival.speed_point, SpeedPoint::Nearest);
+        assert_eq!(c.reward_speed, 8.0);
+        assert!(c.timeout_is_terminal && c.shipped_raceline);
+        // a resolved config round-trips, preset included
+        let text = toml::to_string(&c).unwrap();
+        assert_eq!(RaceConfig::from_toml(&text).unwrap(), c);
+        // the default scenario: the paper's runs' rival speed, the text's reward
+        let d = RaceConfig::from_toml("").unwrap();
+        assert_eq!(d, RaceConfig::default());
+        assert_eq!(d.rival.speed_factor, 0.8);
+        assert_eq!(d.step_reward_floor, None);
+        for (text, key) in [
+            ("preset = \"paper\"", "preset"),
+            (
+                "preset = \"paper-code\"\nreverse_limit = -1.0",
+                "reverse_limit",
+            ),
+            ("[rival]\nsteer_lookahead = 0.0", "rival.steer_lookahead"),
+            ("[rival]\nlaunch_below = -1.0", "rival.launch_below"),
+            ("[rival]\nspeed_point = \"middle\"", "speed_point"),
+            (
+                "preset = \"paper-code\"\n[rival]\nspeed_pont = \"target\"",
+                "speed_pont",
+            ),
+        ] {
+            let err = RaceConfig::from_toml(text).unwrap_err();
+            assert!(err.contains(key), "{text}: {err}");
+        }
     }
 }

@@ -88,7 +88,18 @@ impl Default for ExperimentConfig {
 impl ExperimentConfig {
     /// Parses TOML text; `origin` names it in errors.
     pub fn from_toml(text: &str, origin: &str) -> Result<Self, String> {
-        let cfg: Self = toml::from_str(text).map_err(|e| format!("{origin}: {e}"))?;
+        // parsed as the struct first so that syntax and unknown keys are reported with their line
+        let mut cfg: Self = toml::from_str(text).map_err(|e| format!("{origin}: {e}"))?;
+        if cfg.race.preset != crate::RacePreset::Default {
+            let mut table: toml::Table =
+                toml::from_str(text).map_err(|e| format!("{origin}: {e}"))?;
+            let race = match table.remove("race") {
+                Some(toml::Value::Table(t)) => t,
+                _ => toml::Table::new(),
+            };
+            cfg.race =
+                crate::RaceConfig::from_table(race).map_err(|e| format!("{origin}: [race] {e}"))?;
+        }
         cfg.validate().map_err(|e| format!("{origin}: {e}"))?;
         Ok(cfg)
     }

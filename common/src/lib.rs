@@ -12,7 +12,10 @@ pub mod policy;
 
 pub use agents::{AgentConfig, AlgoKind, ContextMode, DreamerConfig, MaskConfig, SacConfig};
 pub use batch::{SequenceBatch, TransitionBatch};
-pub use config::{ContextGains, LidarConfig, RaceConfig, ReplayOptions, RivalConfig};
+pub use config::{
+    ContextGains, Integrator, LidarConfig, RaceConfig, RacePreset, ReplayOptions, RivalConfig,
+    SpeedPoint, WallContact,
+};
 pub use context::{Context, ContextError};
 pub use experiment::{ExperimentConfig, TrainConfig};
 pub use policy::{Decision, Policy};

@@ -158,7 +158,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         ..Default::default()
     };
     let physics_per_decision = cfg.physics_steps_per_action;
-    let track = Arc::new(args.tracks.load(&args.track)?);
+    let track = Arc::new(args.tracks.load(&args.track, &cfg)?);
     let mut env = RaceEnv::new(track.clone(), cfg)?;
     let grid = Context::grid(7, 0.3);
     let (mut decisions, mut episodes) = (0usize, 0usize);

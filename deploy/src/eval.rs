@@ -357,7 +357,7 @@ pub fn run_worker(args: WorkerArgs) -> Result<()> {
     let out = args.job.parent().unwrap_or(Path::new("."));
     let spec = ego_spec(&job.meta.source)?;
     ctxrace_common::nn::set_threads(1);
-    let track = Arc::new(job.tracks.load(&job.meta.track)?);
+    let track = Arc::new(job.tracks.load(&job.meta.track, &job.race)?);
     let mut env = RaceEnv::new(track, job.race.clone())?;
     let mut driver = spec.driver(&env)?;
     let grid = contexts(&job.meta);
@@ -435,7 +435,7 @@ fn finish(
     results::write_csv(&out.join("contexts.csv"), &summary)?;
     results::write_json(&out.join("contexts.json"), &summary)?;
 
-    let track = Arc::new(tracks.load(&meta.track)?);
+    let track = Arc::new(tracks.load(&meta.track, race)?);
     let mut env = RaceEnv::new(track.clone(), race.clone())?;
     let mut driver = spec.driver(&env)?;
     let mut frames = Vec::new();

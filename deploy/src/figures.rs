@@ -48,7 +48,7 @@ pub fn write_all(
     let mut names: Vec<&str> = groups.iter().map(|g| g.track.as_str()).collect();
     names.dedup();
     for name in names {
-        match tracks.load(name) {
+        match tracks.load(name, cfg) {
             Ok(track) => files.extend(rival_figures(&track, cfg, out)?),
             Err(e) => tracing::warn!("skipping the rival figures of track '{name}': {e:#}"),
         }

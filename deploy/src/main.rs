@@ -66,7 +66,8 @@ pub struct TrackArgs {
     /// Folder searched for track names [default: ../shared/tracks if it exists, else .].
     #[arg(long, env = "CTXRACE_TRACKS_DIR", global = true)]
     pub tracks_dir: Option<PathBuf>,
-    /// Use the raceline file shipped with the track instead of computing the min-curvature line.
+    /// Use the raceline file shipped with the track instead of computing the min-curvature line
+    /// (as `[race] shipped_raceline = true`; `train` records it in the run's config).
     #[arg(long, global = true)]
     pub raceline_file: bool,
     /// Raceline speed limit (m/s) [default: 8].
@@ -81,13 +82,14 @@ pub struct TrackArgs {
 }
 
 impl TrackArgs {
-    /// The track options these flags describe.
-    pub fn options(&self) -> TrackOptions {
+    /// The track options these flags describe, with the shipped raceline if `shipped_raceline`
+    /// (a race config's choice) or `--raceline-file`.
+    pub fn options(&self, shipped_raceline: bool) -> TrackOptions {
         let mut o = TrackOptions::default();
         if let Some(d) = &self.tracks_dir {
             o.tracks_dir = d.clone();
         }
-        if self.raceline_file {
+        if self.raceline_file || shipped_raceline {
             o.raceline_source = RacelineSource::File;
         }
         if let Some(v) = self.v_max {
@@ -102,24 +104,22 @@ impl TrackArgs {
         o
     }
 
-    /// Loads `spec` (a name, a map yaml, or generated:SEED).
-    pub fn load(&self, spec: &str) -> Result<Track> {
-        Track::load(spec, &self.options()).with_context(|| format!("loading track '{spec}'"))
+    /// Loads `spec` (a name, a map yaml, or generated:SEED) for a race with `race`'s raceline
+    /// choice.
+    pub fn load(&self, spec: &str, race: &RaceConfig) -> Result<Track> {
+        Track::load(spec, &self.options(race.shipped_raceline))
+            .with_context(|| format!("loading track '{spec}'"))
     }
 }
 
-/// Reads a race config TOML, or the defaults.
+/// Reads a race config TOML (keys it leaves out from its preset), or the defaults.
 pub fn load_race_config(path: Option<&PathBuf>) -> Result<RaceConfig> {
     let Some(path) = path else {
         return Ok(RaceConfig::default());
     };
     let text =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let cfg: RaceConfig =
-        toml::from_str(&text).with_context(|| format!("parsing race config {}", path.display()))?;
-    cfg.validate()
-        .map_err(|e| anyhow::anyhow!("race config {}: {e}", path.display()))?;
-    Ok(cfg)
+    RaceConfig::from_toml(&text).map_err(|e| anyhow::anyhow!("race config {}: {e}", path.display()))
 }
 
 /// Keeps freed memory in the process instead of returning it to the kernel at once. The

@@ -69,7 +69,7 @@ pub fn run(args: RaceArgs) -> Result<()> {
     if let Some(n) = args.rivals {
         cfg.rivals = n;
     }
-    let track = Arc::new(args.tracks.load(&args.track)?);
+    let track = Arc::new(args.tracks.load(&args.track, &cfg)?);
     let mut env = RaceEnv::new(track.clone(), cfg)?;
     let spec = match &args.policy {
         Some(path) => EgoSpec::Trained(Box::new(TrainedAgent::load(path)?)),
@@ -84,6 +84,8 @@ pub fn run(args: RaceArgs) -> Result<()> {
         "collision with a rival"
     } else if last.wall_crash {
         "wall crash"
+    } else if last.reversed {
+        "driving backwards"
     } else {
         "time limit"
     };

@@ -105,7 +105,7 @@ pub fn learner(args: RoleArgs) -> Result<()> {
 /// Runs `ctxrace actor`.
 pub fn actor(args: ActorArgs) -> Result<()> {
     let experiment = read_experiment(&args.role.run_dir)?;
-    let track = Arc::new(args.tracks.load(&experiment.track)?);
+    let track = Arc::new(args.tracks.load(&experiment.track, &experiment.race)?);
     let report = ctxrace_actor::process::run(ctxrace_actor::process::ActorOptions {
         prefix: args.role.prefix,
         id: args.id,

@@ -3,6 +3,7 @@
 use crate::TrackArgs;
 use anyhow::{Context, Result};
 use clap::Subcommand;
+use ctxrace_common::RaceConfig;
 use ctxrace_tracks::files::write_raceline;
 use ctxrace_tracks::Track;
 use nalgebra::{Point2, Vector2};
@@ -105,7 +106,7 @@ pub fn run(cmd: TrackCommand) -> Result<()> {
             json,
             tracks,
         } => {
-            let t = tracks.load(&track)?;
+            let t = tracks.load(&track, &RaceConfig::default())?;
             let i = info(&t);
             if json {
                 println!("{}", serde_json::to_string_pretty(&i)?);
@@ -129,7 +130,7 @@ pub fn run(cmd: TrackCommand) -> Result<()> {
             }
         }
         TrackCommand::Raceline { track, out, tracks } => {
-            let t = tracks.load(&track)?;
+            let t = tracks.load(&track, &RaceConfig::default())?;
             let file = std::fs::File::create(&out)
                 .with_context(|| format!("creating {}", out.display()))?;
             let mut w = std::io::BufWriter::new(file);

@@ -75,6 +75,7 @@ fn experiment(args: &TrainArgs) -> Result<ExperimentConfig> {
     if let Some(seed) = args.seed {
         cfg.train.seed = seed;
     }
+    cfg.race.shipped_raceline |= args.tracks.raceline_file;
     cfg.agent.set_seed(cfg.train.seed);
     cfg.validate().map_err(anyhow::Error::msg)?;
     Ok(cfg)
@@ -125,7 +126,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
     if !args.inline {
         return crate::launcher::run(&cfg, &dir, args.actors, &args.tracks);
     }
-    let track = Arc::new(args.tracks.load(&cfg.track)?);
+    let track = Arc::new(args.tracks.load(&cfg.track, &cfg.race)?);
     run_inline(&cfg, &dir, RaceEnv::new(track, cfg.race.clone())?)
 }
 

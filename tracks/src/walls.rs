@@ -151,6 +151,19 @@ impl Walls {
             .cast_local_ray(&Ray::new(origin, dir), max, true)
     }
 
+    /// Whether the straight path from `a` to `b` touches or crosses a wall.
+    pub fn crosses_path(&self, a: Point2<f32>, b: Point2<f32>) -> bool {
+        let d = b - a;
+        let len = d.norm();
+        if self.clearance.at(&a) > len {
+            return false;
+        }
+        if len <= f32::EPSILON {
+            return self.distance(&Point2::new(a.x as f64, a.y as f64)) <= 0.0;
+        }
+        self.cast_ray(a, d / len, len).is_some()
+    }
+
     /// Whether a rectangle of half extents `half` at `pose` touches or crosses any wall.
     pub fn touches_box(&self, pose: &Isometry2<f32>, half: Vector2<f32>) -> bool {
         let centre = Point2::from(pose.translation.vector);
