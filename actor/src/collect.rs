@@ -3,7 +3,7 @@
 //! replay is prefilled. Every step goes to a sink in the replay's convention
 //! ([`ctxrace_common::ipc::Step`]): an episode's first step carries its reset observation, a
 //! zero action and zero reward; each later step the observation reached, the action that led
-//! to it and the reward received.
+//! to it with (cMask) the context mask that chose it, and the reward received.
 //!
 //! The inline trainer and the actor process both run this; only their sinks differ.
 
@@ -104,15 +104,22 @@ impl Collector {
                 is_terminal: false,
                 is_last: false,
                 context: [c_f32(self.context.speed), c_f32(self.context.steer)],
+                mask: None,
             });
         }
         let context = [c_f32(self.context.speed), c_f32(self.context.steer)];
-        let action = match policy {
-            Some(p) => p.act(&self.obs, context, false)?.action,
-            None => [
-                self.rng.random_range(-1.0..=1.0),
-                self.rng.random_range(-1.0..=1.0),
-            ],
+        let (action, mask) = match policy {
+            Some(p) => {
+                let d = p.act(&self.obs, context, false)?;
+                (d.action, d.mask)
+            }
+            None => (
+                [
+                    self.rng.random_range(-1.0..=1.0),
+                    self.rng.random_range(-1.0..=1.0),
+                ],
+                None,
+            ),
         };
         let step = self.env.step(action.map(f64::from))?;
         self.decisions += 1;
@@ -126,6 +133,7 @@ impl Collector {
             is_terminal: step.terminated,
             is_last: last,
             context,
+            mask,
         });
         if !last {
             return Ok(None);

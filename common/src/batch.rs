@@ -25,9 +25,9 @@ pub struct TransitionBatch {
 }
 
 /// `B` sequences of `T` steps: the input of DreamerV3, cRSSM and cMask. Step `t` holds the
-/// observation `o_t`, the action `a_{t-1}` that led to it (zero at the first step), the reward
-/// `r_t` received on arriving, and flags; `is_first` marks the start of an episode inside the
-/// sequence.
+/// observation `o_t`, the action `a_{t-1}` that led to it (zero at the first step) and cMask's
+/// context mask `m_{t-1}` that chose it, the reward `r_t` received on arriving, and flags;
+/// `is_first` marks the start of an episode inside the sequence.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct SequenceBatch {
     /// Batch size `B`.
@@ -50,6 +50,12 @@ pub struct SequenceBatch {
     pub is_terminal: Vec<f32>,
     /// `[B, T, 2]` the episode's context at each step.
     pub context: Vec<f32>,
+    /// `[B, T, 2]`: the context mask `m_{t-1} ∈ [0, 1]²` with which the action `a_{t-1}` was
+    /// chosen (cMask), zeros where `has_mask` is 0.
+    pub mask: Vec<f32>,
+    /// `[B, T]`: 1 where the action before step `t` was chosen through a mask (not at an
+    /// episode's first step, nor for random or mask-free actions).
+    pub has_mask: Vec<f32>,
 }
 
 /// Checks that every buffer holds `want` values; the message names the field.
@@ -111,6 +117,8 @@ impl SequenceBatch {
                 ("is_first", self.is_first.len(), n),
                 ("is_terminal", self.is_terminal.len(), n),
                 ("context", self.context.len(), n * 2),
+                ("mask", self.mask.len(), n * 2),
+                ("has_mask", self.has_mask.len(), n),
             ],
         )
     }
@@ -152,6 +160,16 @@ mod tests {
             is_first: vec![1.0, 0.0],
             is_terminal: vec![0.0; 2],
             context: vec![0.0; 4],
+            mask: vec![0.0; 4],
+            has_mask: vec![0.0; 1],
+        };
+        assert!(s
+            .validate(1, 1)
+            .unwrap_err()
+            .contains("has_mask holds 1 values, expected 2"));
+        let s = SequenceBatch {
+            has_mask: vec![0.0; 2],
+            ..s
         };
         assert_eq!(s.validate(1, 1), Ok(()));
         assert!(SequenceBatch::default().validate(0, 0).is_err());

@@ -62,9 +62,10 @@ fn random_batch(spec: BatchSpec, beams: usize, rng: &mut ChaCha8Rng) -> Batch {
     match spec {
         BatchSpec::Sequence { batch, length } => {
             let n = batch * length;
-            let is_first = (0..n)
+            let is_first: Vec<f32> = (0..n)
                 .map(|i| f32::from(i.is_multiple_of(length)))
                 .collect();
+            let has_mask = is_first.iter().map(|f| 1.0 - f).collect();
             Batch::Sequence(SequenceBatch {
                 batch,
                 length,
@@ -76,6 +77,8 @@ fn random_batch(spec: BatchSpec, beams: usize, rng: &mut ChaCha8Rng) -> Batch {
                 is_first,
                 is_terminal: vec![0.0; n],
                 context: v(n * 2, -0.15, 0.15),
+                mask: v(n * 2, 0.0, 1.0),
+                has_mask,
             })
         }
         BatchSpec::Transition { batch, frames } => Batch::Transition(TransitionBatch {

@@ -227,6 +227,7 @@ fn iceoryx_measure(
                             is_terminal: false,
                             is_last: last,
                             context: [0.0, 0.0],
+                            mask: Some([0.5, 0.5]),
                         },
                     )?;
                 }
@@ -371,6 +372,8 @@ struct UdsBatch {
     is_first: Vec<f32>,
     is_terminal: Vec<f32>,
     context: Vec<f32>,
+    mask: Vec<f32>,
+    has_mask: Vec<f32>,
 }
 
 fn send_frame<W: Write, T: Serialize>(w: &mut W, value: &T) -> Result<()> {
@@ -445,18 +448,17 @@ fn uds_figures(opts: &IpcBenchOptions) -> Result<TransportFigures> {
                 b.wait();
                 for k in 0..opts.steps_per_actor {
                     let (_, first, last) = synthetic(&opts, id, k, &mut obs);
-                    chunk.extend_from_slice(&obs);
-                    let flag = |x: bool| if x { 1.0 } else { 0.0 };
-                    chunk.extend_from_slice(&[
-                        0.1,
-                        -0.1,
-                        0.5,
-                        flag(first),
-                        0.0,
-                        flag(last),
-                        0.0,
-                        0.0,
-                    ]);
+                    Step {
+                        obs: &obs,
+                        action: &[0.1, -0.1],
+                        reward: 0.5,
+                        is_first: first,
+                        is_terminal: false,
+                        is_last: last,
+                        context: [0.0, 0.0],
+                        mask: Some([0.5, 0.5]),
+                    }
+                    .encode(&mut chunk);
                     steps += 1;
                     if last || steps as usize == MAX_CHUNK {
                         let c = UdsChunk {
@@ -510,6 +512,8 @@ fn uds_figures(opts: &IpcBenchOptions) -> Result<TransportFigures> {
                     is_first: s.is_first,
                     is_terminal: s.is_terminal,
                     context: s.context,
+                    mask: s.mask,
+                    has_mask: s.has_mask,
                 };
                 send_frame(&mut w, &out)?;
                 w.flush()?;

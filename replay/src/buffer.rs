@@ -18,6 +18,8 @@ pub const FIRST: u8 = 1;
 pub const TERMINAL: u8 = 2;
 /// Step flag: the episode ended here (terminated or truncated).
 pub const LAST: u8 = 4;
+/// Step flag: the action before this step was chosen through a context mask (cMask).
+pub const MASKED: u8 = 8;
 
 /// Draws per requested sample before sampling gives up (data too fragmented).
 const ATTEMPTS: usize = 64;
@@ -36,6 +38,7 @@ pub(crate) struct Stream {
     pub(crate) reward: Vec<f32>,
     pub(crate) flags: Vec<u8>,
     pub(crate) context: Vec<f32>,
+    pub(crate) mask: Vec<f32>,
     pub(crate) segments: Vec<u64>,
 }
 
@@ -50,6 +53,7 @@ impl Stream {
             reward: vec![0.0; cap],
             flags: vec![0; cap],
             context: vec![0.0; cap * 2],
+            mask: vec![0.0; cap * 2],
             segments: vec![0; cap],
         }
     }
@@ -139,9 +143,12 @@ impl ReplayBuffer {
             s.action[i * a..(i + 1) * a].copy_from_slice(&step[o..o + a]);
             let rest = &step[o + a..];
             s.reward[i] = rest[0];
-            s.flags[i] =
-                ((rest[1] as u8) * FIRST) | ((rest[2] as u8) * TERMINAL) | ((rest[3] as u8) * LAST);
-            s.context[i * 2..i * 2 + 2].copy_from_slice(&rest[4..6]);
+            s.flags[i] = ((rest[1] as u8) * FIRST)
+                | ((rest[2] as u8) * TERMINAL)
+                | ((rest[3] as u8) * LAST)
+                | ((rest[4] as u8) * MASKED);
+            s.context[i * 2..i * 2 + 2].copy_from_slice(&rest[5..7]);
+            s.mask[i * 2..i * 2 + 2].copy_from_slice(&rest[7..9]);
             s.segments[i] = s.segment;
             s.head = (i + 1) % cap;
             s.len = (s.len + 1).min(cap);
@@ -188,6 +195,8 @@ impl ReplayBuffer {
             is_first: Vec::with_capacity(n),
             is_terminal: Vec::with_capacity(n),
             context: Vec::with_capacity(n * 2),
+            mask: Vec::with_capacity(n * 2),
+            has_mask: Vec::with_capacity(n),
         };
         for _ in 0..batch {
             let (k, start) = self.find(length, rng, |s, start| {
@@ -202,6 +211,8 @@ impl ReplayBuffer {
                 out.is_first.push(flag(s.flags[i], FIRST));
                 out.is_terminal.push(flag(s.flags[i], TERMINAL));
                 out.context.extend_from_slice(&s.context[i * 2..i * 2 + 2]);
+                out.mask.extend_from_slice(&s.mask[i * 2..i * 2 + 2]);
+                out.has_mask.push(flag(s.flags[i], MASKED));
             }
         }
         Some(out)
@@ -297,7 +308,8 @@ pub(crate) mod tests {
     use rand::SeedableRng;
 
     /// A chunk payload of `obs_dim` 2, `act_dim` 1: obs = (actor, step value), action = step
-    /// value, reward = step value; flags from `first`/`last` positions.
+    /// value, reward = step value; flags from `first`/`last` positions; the mask (0.25, 0.75)
+    /// on every step but the first ones.
     pub(crate) fn payload(actor: f32, values: &[f32], first: &[usize], last: &[usize]) -> Vec<f32> {
         let mut p = Vec::new();
         for (k, &v) in values.iter().enumerate() {
@@ -308,8 +320,11 @@ pub(crate) mod tests {
                 f32::from(u8::from(is_first)),
                 f32::from(u8::from(is_last)),
                 f32::from(u8::from(is_last)),
+                f32::from(u8::from(!is_first)),
                 0.5,
                 -0.5,
+                0.25,
+                0.75,
             ]);
         }
         p
@@ -382,6 +397,9 @@ pub(crate) mod tests {
                     0.0
                 };
                 assert_eq!(s.is_terminal[k * 3 + t], term);
+                let masked = 1.0 - expect;
+                assert_eq!(s.has_mask[k * 3 + t], masked, "step {value}");
+                assert_eq!(&s.mask[(k * 3 + t) * 2..(k * 3 + t + 1) * 2], &[0.25, 0.75]);
             }
         }
     }

@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 
 const MAGIC: &[u8; 8] = b"CTXRPLY\0";
 /// Snapshot layout version; bump on any change.
-pub const SNAPSHOT_VERSION: u32 = 2;
+pub const SNAPSHOT_VERSION: u32 = 3;
 const HEADER_BYTES: u64 = 8 + 4 * 4 + 8 * 4;
 const STREAM_HEADER_BYTES: u64 = 8 * 2;
 
@@ -57,6 +57,7 @@ pub fn write_snapshot(path: &Path, buffer: &ReplayBuffer, counts: LimiterCounts)
                     &s.action[k * a..(k + 1) * a],
                     &s.reward[k..k + 1],
                     &s.context[k * 2..k * 2 + 2],
+                    &s.mask[k * 2..k * 2 + 2],
                 ] {
                     for v in part {
                         w.write_all(&v.to_le_bytes())?;
@@ -108,7 +109,7 @@ fn read(path: &Path) -> Result<(ReplayBuffer, LimiterCounts)> {
         bail!("header claims capacity {cap} and {actors} streams: corrupt");
     }
     let (o, a, cap) = (obs_dim as usize, act_dim as usize, cap as usize);
-    let per_step = 4 * (o + a + 1 + 2) as u64 + 1 + 8;
+    let per_step = 4 * (o + a + 1 + 2 + 2) as u64 + 1 + 8;
     // every stream's steps must fit in what is left of the file before they are allocated
     let mut budget = file_len.saturating_sub(HEADER_BYTES + 4);
     let mut streams = Vec::with_capacity(actors as usize);
@@ -125,6 +126,7 @@ fn read(path: &Path) -> Result<(ReplayBuffer, LimiterCounts)> {
             s.action[k * a..(k + 1) * a].copy_from_slice(&r.f32s(a)?);
             s.reward[k] = r.f32s(1)?[0];
             s.context[k * 2..k * 2 + 2].copy_from_slice(&r.f32s(2)?);
+            s.mask[k * 2..k * 2 + 2].copy_from_slice(&r.f32s(2)?);
             let mut flag = [0u8; 1];
             r.read_exact(&mut flag)?;
             s.flags[k] = flag[0];

@@ -50,6 +50,7 @@ fn actor(prefix: String, id: u32, poison: bool) -> ctxrace_common::ipc::SenderSt
             is_terminal: e == EPISODE - 1 && (k / EPISODE).is_multiple_of(2),
             is_last: e == EPISODE - 1,
             context: [0.2, -0.3],
+            mask: (e != 0).then_some([0.25, 1.0]),
         };
         tx.push((k / EPISODE) as u64, 0, &step).unwrap();
     }
@@ -63,6 +64,7 @@ fn actor(prefix: String, id: u32, poison: bool) -> ctxrace_common::ipc::SenderSt
             is_terminal: false,
             is_last: true,
             context: [0.0, 0.0],
+            mask: None,
         };
         tx.push(99, 0, &step).unwrap();
     }
@@ -75,6 +77,7 @@ fn actor(prefix: String, id: u32, poison: bool) -> ctxrace_common::ipc::SenderSt
         is_terminal: false,
         is_last: true,
         context: [0.0, 0.0],
+        mask: None,
     };
     assert!(tx.push(100, 0, &bad).is_err());
     tx.flush().unwrap();
@@ -141,6 +144,14 @@ fn two_actors_fill_the_replay_and_the_learner_gets_batches() {
     for (i, first) in s.is_first.iter().enumerate() {
         let k = s.obs[i * OBS + 1] as usize;
         assert_eq!(*first == 1.0, k.is_multiple_of(EPISODE));
+        // the acting masks arrive with their steps
+        assert_eq!(s.has_mask[i], 1.0 - first);
+        let want = if *first == 1.0 {
+            [0.0, 0.0]
+        } else {
+            [0.25, 1.0]
+        };
+        assert_eq!(s.mask[2 * i..2 * i + 2], want);
     }
     let spec = BatchSpec::Transition {
         batch: 8,
@@ -210,6 +221,7 @@ fn a_stuck_replay_does_not_freeze_the_actor() {
                 is_terminal: false,
                 is_last: true,
                 context: [0.0, 0.0],
+                mask: None,
             };
             tx.push(k as u64, 0, &step).unwrap();
         }
@@ -264,6 +276,7 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
             is_terminal: false,
             is_last: k % 100 == 99,
             context: [0.0, 0.0],
+            mask: None,
         };
         tx.push(k / 100, 0, &step).unwrap();
     }

@@ -250,6 +250,8 @@ fn decode(
                 is_first: take(n),
                 is_terminal: take(n),
                 context: take(n * 2),
+                mask: take(n * 2),
+                has_mask: take(n),
             }))
         }
         BatchSpec::Transition { batch, frames } => {
@@ -366,6 +368,8 @@ impl BatchServer {
             &b.is_first,
             &b.is_terminal,
             &b.context,
+            &b.mask,
+            &b.has_mask,
         ];
         self.send(header, &parts)
     }

@@ -34,13 +34,17 @@ pub struct Step<'a> {
     pub is_last: bool,
     /// The episode's context.
     pub context: [f32; 2],
+    /// cMask's context mask `∈ [0, 1]²` with which the action was chosen, if any.
+    pub mask: Option<[f32; 2]>,
 }
 
 impl Step<'_> {
     /// Appends the step in the chunk layout ([`super::wire::step_stride`] floats:
-    /// `obs | action | reward, is_first, is_terminal, is_last | context`).
+    /// `obs | action | reward, is_first, is_terminal, is_last, has_mask | context | mask`,
+    /// the mask zero without one).
     pub fn encode(&self, out: &mut Vec<f32>) {
         let flag = |b: bool| if b { 1.0 } else { 0.0 };
+        let mask = self.mask.unwrap_or([0.0; 2]);
         out.extend_from_slice(self.obs);
         out.extend_from_slice(self.action);
         out.extend_from_slice(&[
@@ -48,8 +52,11 @@ impl Step<'_> {
             flag(self.is_first),
             flag(self.is_terminal),
             flag(self.is_last),
+            flag(self.mask.is_some()),
             self.context[0],
             self.context[1],
+            mask[0],
+            mask[1],
         ]);
     }
 }

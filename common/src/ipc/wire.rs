@@ -1,27 +1,34 @@
 //! The shared-memory wire types and their validation.
 //!
 //! Every type is `#[repr(C)]` with an explicit iceoryx2 type name (the default name holds the
-//! module path, which differs between crates) and carries [`FORMAT_VERSION`], so a process built
-//! from another revision is rejected rather than misread. Payloads that vary in size are `[f32]`
-//! or `[u8]` slices sized statically for their maximum.
+//! module path, which differs between crates; its `_vN` suffix versions the type's own layout)
+//! and carries [`FORMAT_VERSION`], which versions everything a message means, payloads included,
+//! so a process built from another revision is rejected and counted rather than misread.
+//! Payloads that vary in size are `[f32]` or `[u8]` slices sized statically for their maximum.
+//!
+//! Version history: 1, the first; 2, trajectory steps and sequence batches carry cMask's acting
+//! context mask.
 
 use iceoryx2::prelude::ZeroCopySend;
 
 /// Version of every wire layout in this module; bump it on any change.
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
 /// Largest observation (one LiDAR frame) a step may carry.
 pub const MAX_OBS: usize = 256;
 /// Largest action a step may carry.
 pub const MAX_ACT: usize = 4;
 /// Most steps in one trajectory chunk.
 pub const MAX_CHUNK: usize = 64;
-/// Floats of a step besides its observation and action: reward, is_first, is_terminal, is_last
-/// and the two context values.
-pub const STEP_EXTRA: usize = 6;
+/// Floats of a step besides its observation and action: reward, the flags is_first,
+/// is_terminal, is_last and has_mask, the two context values and the two mask values.
+pub const STEP_EXTRA: usize = 9;
+/// Flags of a step: is_first, is_terminal, is_last, has_mask.
+const STEP_FLAGS: usize = 4;
 /// Length of the `[f32]` slice a trajectory publisher preallocates.
 pub const MAX_CHUNK_FLOATS: usize = MAX_CHUNK * (MAX_OBS + MAX_ACT + STEP_EXTRA);
 
-/// Floats one step takes in a chunk: `obs | action | reward, is_first, is_terminal, is_last | context`.
+/// Floats one step takes in a chunk:
+/// `obs | action | reward, is_first, is_terminal, is_last, has_mask | context | mask`.
 pub fn step_stride(obs_dim: usize, act_dim: usize) -> usize {
     obs_dim + act_dim + STEP_EXTRA
 }
@@ -265,7 +272,7 @@ pub enum WireError {
 }
 
 /// Checks a trajectory chunk against the run's actor count and dimensions: version, actor id,
-/// dims, payload length, finite values and 0/1 flags.
+/// dims, payload length, finite values, 0/1 flags and masks in `[0, 1]`.
 pub fn validate_chunk(
     header: &ChunkHeader,
     payload: &[f32],
@@ -301,13 +308,14 @@ pub fn validate_chunk(
     check_finite(payload)?;
     for s in 0..steps {
         let flags = s * stride + obs_dim + act_dim + 1;
-        if let Some(k) = payload[flags..flags + 3]
-            .iter()
-            .position(|&v| v != 0.0 && v != 1.0)
-        {
+        let mask = flags + STEP_FLAGS + 2;
+        let bad_flag =
+            (flags..flags + STEP_FLAGS).find(|&i| payload[i] != 0.0 && payload[i] != 1.0);
+        let bad_mask = (mask..mask + 2).find(|&i| !(0.0..=1.0).contains(&payload[i]));
+        if let Some(index) = bad_flag.or(bad_mask) {
             return Err(WireError::Value {
-                index: flags + k,
-                value: payload[flags + k],
+                index,
+                value: payload[index],
             });
         }
     }
@@ -383,9 +391,10 @@ pub fn validate_request(
     }
 }
 
-/// Floats of a `B x T` sequence batch payload.
+/// Floats of a `B x T` sequence batch payload: per step the observation, action, reward,
+/// is_first, is_terminal, two context and two mask values, and has_mask.
 pub fn sequence_floats(b: usize, t: usize, obs_dim: usize, act_dim: usize) -> usize {
-    b * t * (obs_dim + act_dim + 5)
+    b * t * (obs_dim + act_dim + 8)
 }
 
 /// Floats of a `B`-transition payload with `frames` stacked frames.
@@ -414,7 +423,7 @@ mod tests {
         let (h, mut p) = chunk(4);
         let stride = step_stride(3, 2);
         for s in 0..4 {
-            p[s * stride + 6..s * stride + 9].fill(0.0);
+            p[s * stride + 6..s * stride + 10].fill(0.0);
         }
         assert_eq!(validate_chunk(&h, &p, 2, 3, 2), Ok(()));
         let bad = ChunkHeader {
@@ -451,6 +460,12 @@ mod tests {
         assert!(matches!(
             validate_chunk(&h, &flag, 2, 3, 2),
             Err(WireError::Value { index: 6, .. })
+        ));
+        let mut mask = p.clone();
+        mask[stride + 13] = 1.5;
+        assert!(matches!(
+            validate_chunk(&h, &mask, 2, 3, 2),
+            Err(WireError::Value { index, .. }) if index == stride + 13
         ));
         let empty = ChunkHeader { steps: 0, ..h };
         assert!(validate_chunk(&empty, &[], 2, 3, 2).is_err());
