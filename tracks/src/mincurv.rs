@@ -14,14 +14,27 @@
 //! over `±step`, which removes the pixel staircase of map-derived centrelines (one pixel = 5 cm)
 //! but moves the nodes off the centreline by up to a few centimetres, so the corridor is always
 //! measured against the original polyline. The normals `n_i` come from the spline below through
-//! the nodes and stay fixed, so every iteration measures `α` from the same nodes. Each spline
-//! segment carries `k = ⌈step / 0.1 m⌉` gates at equal parameter steps (the first at its node):
-//! a point `g` with unit normal `n_g` and the offsets `[lo_g, hi_g]` along `n_g` at which `e`
-//! reaches its limits (three fixed-point steps `a ← a + limit - e(g + a n_g)` from `a = 0`). The
-//! raceline's vertices are the spline at the same parameters, and the QP keeps each one's offset
-//! along its gate's normal within the gate. Where a vertex still pokes out (the points slide a
-//! little along a kinked polyline), its gate is tightened from the vertex's current offset by the
-//! excess plus 0.1 mm and the last QP re-solved, at most three times.
+//! the nodes, the reference, and stay fixed, so every iteration measures `α` from the same nodes.
+//! Each spline segment carries `k = ⌈step / 0.1 m⌉` gates at equal parameter steps (the first at
+//! its node): a point `g` with unit normal `n_g` and the offsets `[lo_g, hi_g]` along `n_g` at
+//! which `e` reaches its limits (three fixed-point steps `a ← a + limit - e(g + a n_g)` from
+//! `a = 0`).
+//!
+//! The offsets must stay short of the reference's centres of curvature: where the reference has
+//! curvature `κ`, the curve at constant offset `α` runs at `1 - α κ` times its speed, so at
+//! `α κ = 1` the normals of neighbouring gates cross, and beyond it the curve runs backwards.
+//! Averaging over `±step` spreads a corner of the centreline through an angle `θ` over only about
+//! `2 step`, a mean radius of `2 step / θ` (about 0.5 m in the sharp hairpin of f1_aut, 0.26 m at
+//! its tightest), which can be less than the corridor's inner width; the QP, which holds the chord
+//! lengths fixed, then moves neighbouring nodes onto the crossing, and the spline through the
+//! nearly coincident nodes has a cusp. So each gate's limit towards the inside of the bend is cut
+//! to `α κ ≤ 0.8`, with `κ` the reference's curvature at the gate: per unit length of the
+//! reference, the line's derivative `(1 - α κ) t + α' n` then keeps a length of at least 0.2.
+//!
+//! The raceline's vertices are the spline at the same parameters, and the QP keeps each one's
+//! offset along its gate's normal within the gate. Where a vertex still pokes out (the points
+//! slide a little along a kinked polyline), its gate is tightened from the vertex's current offset
+//! by the excess plus 0.1 mm and the last QP re-solved, at most three times.
 //!
 //! # Spline
 //! Through any node set `x_i` (each coordinate alike) runs the closed C² cubic spline parametrised
@@ -95,6 +108,8 @@ const REPAIRS: usize = 3;
 const REPAIR_EXTRA: f64 = 1e-4;
 /// The nodes average the centreline over `±step` sampled at `step / SMOOTHING`.
 const SMOOTHING: i32 = 8;
+/// Largest `α κ` a gate allows towards the inside of a bend of the reference (see the module doc).
+const FOLD: f64 = 0.8;
 
 /// Vehicle limits and optimiser settings for the min-curvature raceline.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -261,6 +276,19 @@ struct Gate {
     normal: Vector2<f64>,
     lo: f64,
     hi: f64,
+    /// Curvature of the reference at `at`.
+    kappa: f64,
+}
+
+impl Gate {
+    /// Cuts the limit towards the inside of the bend to `α κ ≤ FOLD`.
+    fn cut(&mut self) {
+        if self.kappa > 0.0 {
+            self.hi = self.hi.min(FOLD / self.kappa);
+        } else if self.kappa < 0.0 {
+            self.lo = self.lo.max(FOLD / self.kappa);
+        }
+    }
 }
 
 /// `per_segment` gates along each segment of the `reference` spline, starting at its nodes. A
@@ -270,7 +298,7 @@ fn gates(cl: &Centreline, reference: &Spline, half: f64, per_segment: usize) -> 
     let mut hint = 0;
     (0..per_segment * reference.len())
         .map(|g| {
-            let (at, d1, _) = reference.sample(g, per_segment);
+            let (at, d1, d2) = reference.sample(g, per_segment);
             let normal = Vector2::new(-d1.y, d1.x) / d1.norm();
             let mut limits = [0.0; 2];
             for (a, left) in limits.iter_mut().zip([false, true]) {
@@ -293,7 +321,13 @@ fn gates(cl: &Centreline, reference: &Spline, half: f64, per_segment: usize) -> 
                     ),
                 });
             }
-            Ok(Gate { at, normal, lo, hi })
+            Ok(Gate {
+                at,
+                normal,
+                lo,
+                hi,
+                kappa: curvature(&d1, &d2),
+            })
         })
         .collect()
 }
@@ -424,6 +458,45 @@ impl Triplets {
     }
 }
 
+/// The reference spline through the nodes and its gates, `per_segment` a segment, cut by
+/// [`Gate::cut`].
+fn reference(
+    centreline: &Centreline,
+    half: f64,
+    per_segment: usize,
+    params: &RacelineParams,
+) -> Result<(Spline, Vec<Gate>)> {
+    let c = &centreline.curve;
+    let n = ((c.length() / params.step).round() as usize).max(8);
+    let nodes: Vec<Point2<f64>> = (0..n)
+        .map(|i| {
+            let s = c.length() * i as f64 / n as f64;
+            let window = (-SMOOTHING..=SMOOTHING).map(|k| {
+                c.point_at(s + params.step * k as f64 / SMOOTHING as f64)
+                    .coords
+            });
+            Point2::from(window.sum::<Vector2<f64>>() / (2 * SMOOTHING + 1) as f64)
+        })
+        .collect();
+    let reference = Spline::new(nodes)?;
+    let mut gates = gates(centreline, &reference, half, per_segment)?;
+    for gate in &mut gates {
+        gate.cut();
+        if gate.lo > gate.hi {
+            return Err(TrackError::Invalid {
+                what: "track width".into(),
+                message: format!(
+                    "the corridor at s = {:.2} m lies beyond the centre of curvature of the \
+                     averaged centreline, {:.3} m away; check the centreline there",
+                    c.project(&gate.at).s,
+                    1.0 / gate.kappa.abs()
+                ),
+            });
+        }
+    }
+    Ok((reference, gates))
+}
+
 /// Optimises the minimum-curvature raceline inside the centreline's corridor and gives it the
 /// speed profile of [`velocity_profile`].
 pub fn min_curvature_raceline(
@@ -447,20 +520,8 @@ pub fn min_curvature_raceline(
             ),
         });
     }
-    let n = ((c.length() / params.step).round() as usize).max(8);
-    let nodes: Vec<Point2<f64>> = (0..n)
-        .map(|i| {
-            let s = c.length() * i as f64 / n as f64;
-            let window = (-SMOOTHING..=SMOOTHING).map(|k| {
-                c.point_at(s + params.step * k as f64 / SMOOTHING as f64)
-                    .coords
-            });
-            Point2::from(window.sum::<Vector2<f64>>() / (2 * SMOOTHING + 1) as f64)
-        })
-        .collect();
-    let mut base = Spline::new(nodes)?;
     let per_segment = (params.step / OUTPUT_STEP).ceil() as usize;
-    let mut gates = gates(centreline, &base, half, per_segment)?;
+    let (mut base, mut gates) = reference(centreline, half, per_segment, params)?;
     let kappa_max = params.kappa_max.is_finite().then_some(params.kappa_max);
     let solve = |base: &Spline, gates: &[Gate], stage: &str| {
         solve_qp(base, gates, kappa_max)
@@ -648,6 +709,31 @@ mod tests {
         assert!(mean > 1.0 / 6.0 && mean < 1.0 / 4.0, "mean κ {mean}");
         for &k in &line.kappa {
             assert!((k - mean).abs() < 0.01 * mean, "κ {k} vs mean {mean}");
+        }
+    }
+
+    #[test]
+    fn mincurv_gates_are_cut_short_of_the_centre_of_curvature() {
+        let gate = |kappa: f64| Gate {
+            at: Point2::origin(),
+            normal: Vector2::y(),
+            lo: -0.6,
+            hi: 0.6,
+            kappa,
+        };
+        // a left bend of radius 0.5 m: the left limit stops at 0.8 × 0.5 m
+        let mut left = gate(2.0);
+        left.cut();
+        assert_eq!((left.lo, left.hi), (-0.6, 0.4));
+        // a right bend, mirrored
+        let mut right = gate(-2.0);
+        right.cut();
+        assert_eq!((right.lo, right.hi), (-0.4, 0.6));
+        // a gentle bend and a straight keep their limits
+        for kappa in [0.5, 0.0] {
+            let mut g = gate(kappa);
+            g.cut();
+            assert_eq!((g.lo, g.hi), (-0.6, 0.6));
         }
     }
 
