@@ -10,18 +10,37 @@
 //! the centreline polyline, measured as [`ClosedCurve::project`] does.
 //!
 //! # Nodes and gates
-//! The nodes `p_0 … p_{n-1}` lie about `step` apart; each is the mean of the centreline sampled
-//! over `±step`, which removes the pixel staircase of map-derived centrelines (one pixel = 5 cm)
-//! but moves the nodes off the centreline by up to a few centimetres, so the corridor is always
-//! measured against the original polyline. The normals `n_i` come from the spline below through
-//! the nodes and stay fixed, so every iteration measures `α` from the same nodes. Each spline
-//! segment carries `k = ⌈step / 0.1 m⌉` gates at equal parameter steps (the first at its node):
-//! a point `g` with unit normal `n_g` and the offsets `[lo_g, hi_g]` along `n_g` at which `e`
-//! reaches its limits (three fixed-point steps `a ← a + limit - e(g + a n_g)` from `a = 0`). The
-//! raceline's vertices are the spline at the same parameters, and the QP keeps each one's offset
-//! along its gate's normal within the gate. Where a vertex still pokes out (the points slide a
-//! little along a kinked polyline), its gate is tightened from the vertex's current offset by the
-//! excess plus 0.1 mm and the last QP re-solved, at most three times.
+//! The nodes `p_0 … p_{n-1}` lie about `step` apart at arc lengths `s_i`; node `i` is the mean of
+//! the centreline sampled over `s_i ± w_i` (`w_i = step` unless widened, below), which removes
+//! the pixel staircase of map-derived centrelines (one pixel = 5 cm) but moves the nodes off the
+//! centreline by up to a few centimetres, so the corridor is always measured against the original
+//! polyline. The normals `n_i` come from the spline below through the nodes, the reference, and
+//! stay fixed, so every iteration measures `α` from the same nodes. Each spline segment carries
+//! `k = ⌈step / 0.1 m⌉` gates at equal parameter steps (the first at its node): a point `g` with
+//! unit normal `n_g` and the offsets `[lo_g, hi_g]` along `n_g` at which `e` reaches its limits
+//! (three fixed-point steps `a ← a + limit - e(g + a n_g)` from `a = 0`).
+//!
+//! The offsets must stay short of the reference's centres of curvature: where the reference has
+//! curvature `κ`, the curve at constant offset `α` runs at `1 - α κ` times its speed, so at
+//! `α κ = 1` the normals of neighbouring gates cross, and beyond it the curve runs backwards.
+//! Averaging over `±step` spreads a corner of the centreline through an angle `θ` over only about
+//! `2 step`, a mean radius of `2 step / θ` (about 0.5 m in the sharp hairpin of f1_aut, 0.26 m at
+//! its tightest), which can be less than the corridor's inner width; the QP, which holds the chord
+//! lengths fixed, then moves neighbouring nodes onto the crossing, and the spline through the
+//! nearly coincident nodes has a cusp. So the gates are kept to `α κ ≤ 0.8`, with `κ` the
+//! reference's curvature at the gate: per unit length of the reference, the line's derivative
+//! `(1 - α κ) t + α' n` then keeps a length of at least 0.2. Where a gate of segment `i` reaches
+//! beyond `α = 0.8 / κ`, the windows of the nodes `i-1 … i+2` that shape the segment become
+//! `w_j ← max(w_j, 1.5 w_i)`, every window is raised to `w_j ≥ w_m - |s_j - s_m| / 4` for all `m`
+//! so that neighbouring nodes average alike, and the reference and its gates are rebuilt, which
+//! spreads the corner over more nodes. Of the first reference and at most six widened ones, the
+//! one whose gates reach least far beyond `0.8 / κ` in sum is kept, and what still reaches beyond
+//! is cut off.
+//!
+//! The raceline's vertices are the spline at the same parameters, and the QP keeps each one's
+//! offset along its gate's normal within the gate. Where a vertex still pokes out (the points
+//! slide a little along a kinked polyline), its gate is tightened from the vertex's current offset
+//! by the excess plus 0.1 mm and the last QP re-solved, at most three times.
 //!
 //! # Spline
 //! Through any node set `x_i` (each coordinate alike) runs the closed C² cubic spline parametrised
@@ -93,8 +112,16 @@ const TOLERANCE: f64 = 1e-3;
 const REPAIRS: usize = 3;
 /// Extra tightening per repair (m).
 const REPAIR_EXTRA: f64 = 1e-4;
-/// The nodes average the centreline over `±step` sampled at `step / SMOOTHING`.
-const SMOOTHING: i32 = 8;
+/// The nodes average the centreline over `±window` sampled at `step / SMOOTHING`.
+const SMOOTHING: f64 = 8.0;
+/// Largest `α κ` a gate allows towards the inside of a bend of the reference (see the module doc).
+const FOLD: f64 = 0.8;
+/// Rounds of widening the averaging windows where a gate reaches beyond [`FOLD`].
+const WIDENINGS: usize = 6;
+/// Factor by which a round widens a window.
+const WIDEN: f64 = 1.5;
+/// Largest change of the window per unit arc length between neighbouring nodes.
+const TAPER: f64 = 0.25;
 
 /// Vehicle limits and optimiser settings for the min-curvature raceline.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -261,6 +288,30 @@ struct Gate {
     normal: Vector2<f64>,
     lo: f64,
     hi: f64,
+    /// Curvature of the reference at `at`.
+    kappa: f64,
+}
+
+impl Gate {
+    /// How far the limit towards the inside of the bend reaches beyond `α κ = FOLD` (m).
+    fn excess(&self) -> f64 {
+        if self.kappa > 0.0 {
+            (self.hi - FOLD / self.kappa).max(0.0)
+        } else if self.kappa < 0.0 {
+            (FOLD / self.kappa - self.lo).max(0.0)
+        } else {
+            0.0
+        }
+    }
+
+    /// Cuts the limit towards the inside of the bend to `α κ ≤ FOLD`.
+    fn cut(&mut self) {
+        if self.kappa > 0.0 {
+            self.hi = self.hi.min(FOLD / self.kappa);
+        } else if self.kappa < 0.0 {
+            self.lo = self.lo.max(FOLD / self.kappa);
+        }
+    }
 }
 
 /// `per_segment` gates along each segment of the `reference` spline, starting at its nodes. A
@@ -270,7 +321,7 @@ fn gates(cl: &Centreline, reference: &Spline, half: f64, per_segment: usize) -> 
     let mut hint = 0;
     (0..per_segment * reference.len())
         .map(|g| {
-            let (at, d1, _) = reference.sample(g, per_segment);
+            let (at, d1, d2) = reference.sample(g, per_segment);
             let normal = Vector2::new(-d1.y, d1.x) / d1.norm();
             let mut limits = [0.0; 2];
             for (a, left) in limits.iter_mut().zip([false, true]) {
@@ -293,7 +344,13 @@ fn gates(cl: &Centreline, reference: &Spline, half: f64, per_segment: usize) -> 
                     ),
                 });
             }
-            Ok(Gate { at, normal, lo, hi })
+            Ok(Gate {
+                at,
+                normal,
+                lo,
+                hi,
+                kappa: curvature(&d1, &d2),
+            })
         })
         .collect()
 }
@@ -424,6 +481,87 @@ impl Triplets {
     }
 }
 
+/// The mean of `c` over `s ± window`, sampled about `step / SMOOTHING` apart.
+fn averaged(c: &ClosedCurve, s: f64, window: f64, step: f64) -> Point2<f64> {
+    let k = (SMOOTHING * window / step).round().max(1.0) as i32;
+    let sum: Vector2<f64> = (-k..=k)
+        .map(|j| c.point_at(s + window * j as f64 / k as f64).coords)
+        .sum();
+    Point2::from(sum / (2 * k + 1) as f64)
+}
+
+/// The reference spline and its gates, `per_segment` a segment, cut by [`Gate::cut`]. Each node
+/// averages the centreline over its own window, `step` at first; while gates have an
+/// [`Gate::excess`], the windows of the nodes shaping their segments are widened and tapered, and
+/// the round with the least excess in sum is kept.
+fn reference(
+    centreline: &Centreline,
+    half: f64,
+    per_segment: usize,
+    params: &RacelineParams,
+) -> Result<(Spline, Vec<Gate>)> {
+    let c = &centreline.curve;
+    let n = ((c.length() / params.step).round() as usize).max(8);
+    let taper = TAPER * c.length() / n as f64;
+    let mut windows = vec![params.step; n];
+    let mut best: Option<(f64, Spline, Vec<Gate>)> = None;
+    for round in 0..=WIDENINGS {
+        let nodes = (0..n)
+            .map(|i| averaged(c, c.length() * i as f64 / n as f64, windows[i], params.step))
+            .collect();
+        let built = Spline::new(nodes).and_then(|reference| {
+            let gates = gates(centreline, &reference, half, per_segment)?;
+            Ok((reference, gates))
+        });
+        // a widened reference can fail where the plain one did not: keep the best so far
+        let (reference, gates) = match built {
+            Ok(built) => built,
+            Err(e) if round == 0 => return Err(e),
+            Err(_) => break,
+        };
+        let excess: Vec<f64> = gates
+            .chunks(per_segment)
+            .map(|segment| segment.iter().map(Gate::excess).sum())
+            .collect();
+        let total: f64 = excess.iter().sum();
+        if best.as_ref().is_none_or(|(least, ..)| total < *least) {
+            best = Some((total, reference, gates));
+        }
+        if total == 0.0 {
+            break;
+        }
+        // segment i is shaped by nodes i-1 … i+2
+        let before = windows.clone();
+        for i in (0..n).filter(|&i| excess[i] > 0.0) {
+            for j in i + n - 1..=i + n + 2 {
+                windows[j % n] = windows[j % n].max(before[i] * WIDEN);
+            }
+        }
+        for k in 1..2 * n {
+            windows[k % n] = windows[k % n].max(windows[(k - 1) % n] - taper);
+        }
+        for k in (0..2 * n - 1).rev() {
+            windows[k % n] = windows[k % n].max(windows[(k + 1) % n] - taper);
+        }
+    }
+    let (_, reference, mut gates) = best.expect("the first round always runs");
+    for gate in &mut gates {
+        gate.cut();
+        if gate.lo > gate.hi {
+            return Err(TrackError::Invalid {
+                what: "track width".into(),
+                message: format!(
+                    "the corridor at s = {:.2} m lies beyond the centre of curvature of the \
+                     averaged centreline, {:.3} m away; check the centreline there",
+                    c.project(&gate.at).s,
+                    1.0 / gate.kappa.abs()
+                ),
+            });
+        }
+    }
+    Ok((reference, gates))
+}
+
 /// Optimises the minimum-curvature raceline inside the centreline's corridor and gives it the
 /// speed profile of [`velocity_profile`].
 pub fn min_curvature_raceline(
@@ -447,20 +585,8 @@ pub fn min_curvature_raceline(
             ),
         });
     }
-    let n = ((c.length() / params.step).round() as usize).max(8);
-    let nodes: Vec<Point2<f64>> = (0..n)
-        .map(|i| {
-            let s = c.length() * i as f64 / n as f64;
-            let window = (-SMOOTHING..=SMOOTHING).map(|k| {
-                c.point_at(s + params.step * k as f64 / SMOOTHING as f64)
-                    .coords
-            });
-            Point2::from(window.sum::<Vector2<f64>>() / (2 * SMOOTHING + 1) as f64)
-        })
-        .collect();
-    let mut base = Spline::new(nodes)?;
     let per_segment = (params.step / OUTPUT_STEP).ceil() as usize;
-    let mut gates = gates(centreline, &base, half, per_segment)?;
+    let (mut base, mut gates) = reference(centreline, half, per_segment, params)?;
     let kappa_max = params.kappa_max.is_finite().then_some(params.kappa_max);
     let solve = |base: &Spline, gates: &[Gate], stage: &str| {
         solve_qp(base, gates, kappa_max)
@@ -648,6 +774,58 @@ mod tests {
         assert!(mean > 1.0 / 6.0 && mean < 1.0 / 4.0, "mean κ {mean}");
         for &k in &line.kappa {
             assert!((k - mean).abs() < 0.01 * mean, "κ {k} vs mean {mean}");
+        }
+    }
+
+    #[test]
+    fn mincurv_sharp_corners_give_no_cusp() {
+        // a square with sharp corners: averaging over ±step rounds them to a radius well below
+        // the corridor's inner width of 1.5 - 0.455 m, so the normals would cross
+        let side = 12.0;
+        let per_side = (side / 0.2) as usize;
+        let corners = [(0.0, 0.0), (side, 0.0), (side, side), (0.0, side)];
+        let rows: Vec<[f64; 4]> = (0..4)
+            .flat_map(|c| {
+                let ((x0, y0), (x1, y1)) = (corners[c], corners[(c + 1) % 4]);
+                (0..per_side).map(move |k| {
+                    let t = k as f64 / per_side as f64;
+                    [x0 + (x1 - x0) * t, y0 + (y1 - y0) * t, 1.5, 1.5]
+                })
+            })
+            .collect();
+        let cl = Centreline::new(&rows, "square").unwrap();
+        let params = RacelineParams::default();
+        let line = min_curvature_raceline(&cl, &params).unwrap();
+        assert_inside(&cl, &line, &params);
+        // the 2.09 m corridor allows the corners a radius of 2.09 / (1 - cos 45°) = 7.1 m
+        let sharpest = line.kappa.iter().fold(0.0, |m: f64, k| m.max(k.abs()));
+        assert!(sharpest < 0.25, "max |κ| {sharpest}");
+    }
+
+    #[test]
+    fn mincurv_gates_are_cut_short_of_the_centre_of_curvature() {
+        let gate = |kappa: f64| Gate {
+            at: Point2::origin(),
+            normal: Vector2::y(),
+            lo: -0.6,
+            hi: 0.6,
+            kappa,
+        };
+        // a left bend of radius 0.5 m: the left limit stops at 0.8 × 0.5 m
+        let mut left = gate(2.0);
+        assert!((left.excess() - 0.2).abs() < 1e-12);
+        left.cut();
+        assert_eq!((left.lo, left.hi, left.excess()), (-0.6, 0.4, 0.0));
+        // a right bend, mirrored
+        let mut right = gate(-2.0);
+        assert!((right.excess() - 0.2).abs() < 1e-12);
+        right.cut();
+        assert_eq!((right.lo, right.hi, right.excess()), (-0.4, 0.6, 0.0));
+        // a gentle bend and a straight keep their limits
+        for kappa in [0.5, 0.0] {
+            let mut g = gate(kappa);
+            g.cut();
+            assert_eq!((g.lo, g.hi, g.excess()), (-0.6, 0.6, 0.0));
         }
     }
 
