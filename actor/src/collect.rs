@@ -23,6 +23,8 @@ pub struct Finished {
     pub context: Context,
     /// Its metrics.
     pub metrics: EpisodeMetrics,
+    /// The policy chose every action of the episode (no random prefill action).
+    pub by_policy: bool,
 }
 
 /// Runs episodes one decision at a time.
@@ -35,6 +37,8 @@ pub struct Collector {
     context: Context,
     running: bool,
     decisions: u64,
+    /// Random actions taken in the running episode.
+    random_actions: u64,
 }
 
 impl Collector {
@@ -50,6 +54,7 @@ impl Collector {
             context: Context::default(),
             running: false,
             decisions: 0,
+            random_actions: 0,
         }
     }
 
@@ -96,6 +101,7 @@ impl Collector {
             }
             self.running = true;
             self.episode += 1;
+            self.random_actions = 0;
             sink(&Step {
                 obs: &self.obs,
                 action: &[0.0; 2],
@@ -113,13 +119,16 @@ impl Collector {
                 let d = p.act(&self.obs, context, false)?;
                 (d.action, d.mask)
             }
-            None => (
-                [
-                    self.rng.random_range(-1.0..=1.0),
-                    self.rng.random_range(-1.0..=1.0),
-                ],
-                None,
-            ),
+            None => {
+                self.random_actions += 1;
+                (
+                    [
+                        self.rng.random_range(-1.0..=1.0),
+                        self.rng.random_range(-1.0..=1.0),
+                    ],
+                    None,
+                )
+            }
         };
         let step = self.env.step(action.map(f64::from))?;
         self.decisions += 1;
@@ -143,6 +152,7 @@ impl Collector {
             episode: self.episode - 1,
             context: self.context,
             metrics: self.env.metrics().clone(),
+            by_policy: self.random_actions == 0,
         }))
     }
 }

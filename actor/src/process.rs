@@ -131,6 +131,7 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport> {
                 a2a: m.a2a as u32,
                 wall_crash: m.wall_crash as u32,
                 episode_return: m.episode_return as f32,
+                by_policy: u32::from(f.by_policy),
                 ..Default::default()
             })?;
         }

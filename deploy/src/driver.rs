@@ -5,8 +5,58 @@ use anyhow::{bail, Context as _, Result};
 use ctxrace_actor::baseline::{Baseline, BaselineKind};
 use ctxrace_actor::{RaceEnv, StepInfo};
 use ctxrace_common::{AgentConfig, ExperimentConfig, Policy};
-use ctxrace_learner::checkpoint::{latest_checkpoint, AGENT_FILE, POLICY_FILE};
+use ctxrace_learner::best::best_checkpoint;
+use ctxrace_learner::checkpoint::{checkpoints, latest_checkpoint, AGENT_FILE, POLICY_FILE};
+use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
+
+/// Which checkpoint of a run directory to load.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CheckpointChoice {
+    /// The policy at the peak of the smoothed training return (the paper's `best_`).
+    Best,
+    /// The newest checkpoint.
+    Latest,
+    /// The checkpoint after this many gradient steps.
+    Step(u64),
+}
+
+impl std::str::FromStr for CheckpointChoice {
+    type Err = String;
+
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "best" => Ok(Self::Best),
+            "latest" => Ok(Self::Latest),
+            _ => s
+                .strip_prefix("step-")
+                .and_then(|n| n.parse().ok())
+                .map(Self::Step)
+                .ok_or_else(|| format!("'{s}' is not best, latest or step-N (e.g. step-5000)")),
+        }
+    }
+}
+
+impl std::fmt::Display for CheckpointChoice {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Best => write!(f, "best"),
+            Self::Latest => write!(f, "latest"),
+            Self::Step(n) => write!(f, "step-{n}"),
+        }
+    }
+}
+
+/// How a trained agent picks its actions.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ActMode {
+    /// Samples its action (and cMask its mask) distribution, seeded per episode: the paper's
+    /// evaluation.
+    Sample,
+    /// Takes the mode of each distribution.
+    Mode,
+}
 
 /// A trained agent's acting side as stored in a checkpoint.
 #[derive(Clone, Debug)]
@@ -22,13 +72,13 @@ pub struct TrainedAgent {
 }
 
 impl TrainedAgent {
-    /// Loads a checkpoint directory, or the newest checkpoint of a run directory.
-    pub fn load(path: &Path) -> Result<Self> {
+    /// Loads a checkpoint directory, or the checkpoint `choice` of a run directory.
+    pub fn load(path: &Path, choice: CheckpointChoice) -> Result<Self> {
         let (checkpoint, run_dir) = if path.join(POLICY_FILE).exists() {
             let run = path.parent().and_then(Path::parent).map(Path::to_path_buf);
             (path.to_path_buf(), run)
-        } else if let Some(latest) = latest_checkpoint(path) {
-            (latest, Some(path.to_path_buf()))
+        } else if latest_checkpoint(path).is_some() {
+            (pick_checkpoint(path, choice)?, Some(path.to_path_buf()))
         } else {
             bail!(
                 "{} is neither a checkpoint (no {POLICY_FILE}) nor a run directory with \
@@ -57,6 +107,42 @@ impl TrainedAgent {
     }
 }
 
+/// The checkpoint `choice` of the run directory `run`, or an error saying which there are.
+fn pick_checkpoint(run: &Path, choice: CheckpointChoice) -> Result<PathBuf> {
+    let found = match choice {
+        CheckpointChoice::Best => best_checkpoint(run),
+        CheckpointChoice::Latest => latest_checkpoint(run),
+        CheckpointChoice::Step(n) => checkpoints(run)
+            .into_iter()
+            .find(|c| c.file_name() == Some(std::ffi::OsStr::new(&format!("step-{n:010}")))),
+    };
+    found.ok_or_else(|| {
+        let steps: Vec<String> = checkpoints(run)
+            .iter()
+            .filter_map(|c| {
+                c.file_name()?
+                    .to_str()?
+                    .strip_prefix("step-")?
+                    .parse::<u64>()
+                    .ok()
+            })
+            .map(|n| format!("step-{n}"))
+            .collect();
+        let why = match choice {
+            CheckpointChoice::Best => {
+                " (the learner saves it when the policy drove a training episode; runs trained \
+                 before ctxrace kept it have none)"
+            }
+            _ => "",
+        };
+        anyhow::anyhow!(
+            "{} has no {choice} checkpoint{why}; pass --checkpoint latest or one of {}",
+            run.display(),
+            steps.join(", ")
+        )
+    })
+}
+
 /// What drives the ego.
 #[derive(Clone, Debug)]
 pub enum EgoSpec {
@@ -77,19 +163,22 @@ impl EgoSpec {
         }
     }
 
-    /// A driver for `env`'s episodes.
-    pub fn driver(&self, env: &RaceEnv) -> Result<Driver> {
+    /// A driver for `env`'s episodes; a trained agent acts by `act`.
+    pub fn driver(&self, env: &RaceEnv, act: ActMode) -> Result<Driver> {
         Ok(match self {
             EgoSpec::Baseline(kind) => Driver::Baseline(*kind, Baseline::new(*kind, env, 0)),
-            EgoSpec::Trained(t) => Driver::Agent(Box::new(
-                Policy::new(&t.agent, env.obs_dim(), &t.weights, 0).with_context(|| {
-                    format!(
-                        "the checkpoint {} does not fit this race's observations ({} values)",
-                        t.checkpoint.display(),
-                        env.obs_dim()
-                    )
-                })?,
-            )),
+            EgoSpec::Trained(t) => Driver::Agent(
+                Box::new(
+                    Policy::new(&t.agent, env.obs_dim(), &t.weights, 0).with_context(|| {
+                        format!(
+                            "the checkpoint {} does not fit this race's observations ({} values)",
+                            t.checkpoint.display(),
+                            env.obs_dim()
+                        )
+                    })?,
+                ),
+                act,
+            ),
         })
     }
 }
@@ -98,16 +187,20 @@ impl EgoSpec {
 pub enum Driver {
     /// A reference policy.
     Baseline(BaselineKind, Baseline),
-    /// A trained agent, acting deterministically (the mode of its distribution).
-    Agent(Box<Policy>),
+    /// A trained agent, sampling or taking the mode of its distributions.
+    Agent(Box<Policy>, ActMode),
 }
 
 impl Driver {
-    /// Starts an episode of `env` (after its reset); `seed` drives the random baseline.
+    /// Starts an episode of `env` (after its reset); `seed` drives the random baseline and a
+    /// sampling agent's noise.
     pub fn reset(&mut self, env: &RaceEnv, seed: u64) {
         match self {
             Driver::Baseline(kind, b) => *b = Baseline::new(*kind, env, seed),
-            Driver::Agent(p) => p.reset(),
+            Driver::Agent(p, _) => {
+                p.reset();
+                p.reseed(seed);
+            }
         }
     }
 
@@ -142,9 +235,10 @@ impl Driver {
     pub fn act(&mut self, env: &RaceEnv, obs: &[f32]) -> Result<([f64; 2], Option<[f32; 2]>)> {
         Ok(match self {
             Driver::Baseline(_, b) => (b.act(env), None),
-            Driver::Agent(p) => {
+            Driver::Agent(p, act) => {
                 let c = env.context();
-                let d = p.act(obs, [c.speed as f32, c.steer as f32], true)?;
+                let mode = *act == ActMode::Mode;
+                let d = p.act(obs, [c.speed as f32, c.steer as f32], mode)?;
                 (d.action.map(f64::from), d.mask)
             }
         })

@@ -1,6 +1,9 @@
 //! `ctxrace eval`: the paper's evaluation protocol. Every context of an `n × n` grid over
-//! `[−range, range]²` is raced for `laps` fresh seeded episodes by a trained agent (acting with
-//! the mode of its policy) or a reference policy, spread over worker processes.
+//! `[−range, range]²` is raced for `laps` fresh seeded episodes by a trained agent or a
+//! reference policy, spread over worker processes. As the paper's code did, a trained agent is
+//! evaluated at its best checkpoint (the peak of the smoothed training return) and samples its
+//! actions and masks, each episode's noise seeded by the episode; `--checkpoint` and `--act`
+//! choose otherwise, and `meta.json` records the choice.
 //!
 //! Each worker appends its finished episodes to `episodes.part-K.csv` in the output directory,
 //! so an interrupted evaluation resumes where it stopped: a rerun skips every (context, lap)
@@ -8,7 +11,7 @@
 //! context (`contexts.csv`, `contexts.json`, see [`crate::results`]) and one episode is drawn
 //! (`episode.png`, `episode.svg`).
 
-use crate::driver::{EgoSpec, TrainedAgent};
+use crate::driver::{ActMode, CheckpointChoice, EgoSpec, TrainedAgent};
 use crate::render::{render_race, Frame};
 use crate::results::{self, EpisodeRecord, EvalMeta};
 use crate::TrackArgs;
@@ -28,9 +31,20 @@ use std::time::Duration;
 /// Arguments of `ctxrace eval`.
 #[derive(Args)]
 pub struct EvalArgs {
-    /// A run directory (its newest checkpoint), a checkpoint directory, or a reference
-    /// policy: `pure-pursuit` or `random`.
+    /// A run directory, a checkpoint directory, or a reference policy: `pure-pursuit` or
+    /// `random`.
     source: String,
+    /// Which checkpoint of a run directory: `best` (the peak of the smoothed training return,
+    /// the paper's), `latest` or `step-N`.
+    #[arg(long, default_value = "best")]
+    checkpoint: CheckpointChoice,
+    /// How a trained agent acts: `sample` its distributions (the paper's) or take their `mode`.
+    #[arg(long, value_enum, default_value_t = ActMode::Sample)]
+    act: ActMode,
+    /// Race scenario TOML for a reference policy (e.g. configs/scenarios/paper-code.toml)
+    /// [default: the run's for a trained agent, ctxrace's default scenario otherwise].
+    #[arg(long)]
+    config: Option<PathBuf>,
     /// Grid points per context dimension.
     #[arg(long, default_value_t = 7)]
     grid: usize,
@@ -101,13 +115,14 @@ fn episode_seed(seed: u64, index: usize, lap: usize) -> u64 {
     seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ ((index as u64) << 32 | lap as u64)
 }
 
-/// The trained agent or reference policy named by `source`.
-fn ego_spec(source: &str) -> Result<EgoSpec> {
+/// The trained agent (checkpoint `choice` of a run) or reference policy named by `source`.
+fn ego_spec(source: &str, choice: CheckpointChoice) -> Result<EgoSpec> {
     match source.parse::<BaselineKind>() {
         Ok(kind) => Ok(EgoSpec::Baseline(kind)),
-        Err(_) => Ok(EgoSpec::Trained(Box::new(TrainedAgent::load(Path::new(
-            source,
-        ))?))),
+        Err(_) => Ok(EgoSpec::Trained(Box::new(TrainedAgent::load(
+            Path::new(source),
+            choice,
+        )?))),
     }
 }
 
@@ -122,15 +137,23 @@ pub fn run(args: EvalArgs) -> Result<()> {
             args.range
         );
     }
-    let spec = ego_spec(&args.source)?;
+    let spec = ego_spec(&args.source, args.checkpoint)?;
     let (experiment, train_seed) = match &spec {
         EgoSpec::Trained(t) => (t.experiment.clone(), t.agent.seed()),
         EgoSpec::Baseline(_) => (None, 0),
     };
-    let mut race = experiment
-        .as_ref()
-        .map(|e| e.race.clone())
-        .unwrap_or_default();
+    if let (Some(_), Some(path)) = (&experiment, &args.config) {
+        bail!(
+            "--config {} applies to reference policies; a trained agent races in its run's \
+             scenario (its config.toml)",
+            path.display()
+        );
+    }
+    let mut race = match &experiment {
+        Some(e) => e.race.clone(),
+        None => crate::load_race_config(args.config.as_ref())?,
+    };
+    race.shipped_raceline |= args.tracks.raceline_file;
     race.rivals = args
         .rivals
         .unwrap_or(if experiment.is_some() { race.rivals } else { 3 });
@@ -171,6 +194,13 @@ pub fn run(args: EvalArgs) -> Result<()> {
             EgoSpec::Trained(t) => t.checkpoint.display().to_string(),
             EgoSpec::Baseline(_) => spec.name(),
         },
+        checkpoint: match &spec {
+            EgoSpec::Trained(t) if t.experiment.is_some() => args.checkpoint.to_string(),
+            EgoSpec::Trained(_) => "given".into(),
+            EgoSpec::Baseline(_) => "-".into(),
+        },
+        act: args.act,
+        preset: race.preset,
     };
     prepare_out_dir(&out, &meta, args.fresh)?;
 
@@ -355,11 +385,12 @@ fn trim_torn_line(path: &Path) -> Result<()> {
 pub fn run_worker(args: WorkerArgs) -> Result<()> {
     let job: EvalJob = results::read_json(&args.job)?;
     let out = args.job.parent().unwrap_or(Path::new("."));
-    let spec = ego_spec(&job.meta.source)?;
+    // `source` names the resolved checkpoint directory (or the baseline)
+    let spec = ego_spec(&job.meta.source, CheckpointChoice::Latest)?;
     ctxrace_common::nn::set_threads(1);
     let track = Arc::new(job.tracks.load(&job.meta.track, &job.race)?);
     let mut env = RaceEnv::new(track, job.race.clone())?;
-    let mut driver = spec.driver(&env)?;
+    let mut driver = spec.driver(&env, job.meta.act)?;
     let grid = contexts(&job.meta);
     let part = out.join(format!("episodes.part-{:03}.csv", args.shard));
     trim_torn_line(&part)?;
@@ -437,7 +468,7 @@ fn finish(
 
     let track = Arc::new(tracks.load(&meta.track, race)?);
     let mut env = RaceEnv::new(track.clone(), race.clone())?;
-    let mut driver = spec.driver(&env)?;
+    let mut driver = spec.driver(&env, meta.act)?;
     let mut frames = Vec::new();
     let centre = Context::default();
     run_episode(

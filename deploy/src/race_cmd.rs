@@ -1,6 +1,6 @@
 //! `ctxrace race`: one episode with a reference ego policy, its metrics, picture and trace.
 
-use crate::driver::{EgoSpec, TrainedAgent};
+use crate::driver::{ActMode, CheckpointChoice, EgoSpec, TrainedAgent};
 use crate::render::{render_race, Frame};
 use crate::TrackArgs;
 use anyhow::{Context as _, Result};
@@ -28,10 +28,16 @@ pub struct RaceArgs {
     /// Ego policy: pure-pursuit (raceline at full speed), random, or still.
     #[arg(long, default_value = "pure-pursuit")]
     ego: BaselineKind,
-    /// Drive the ego with a trained agent instead: a checkpoint or run directory (acting with
-    /// the mode of its policy).
+    /// Drive the ego with a trained agent instead: a checkpoint or run directory (in the run's
+    /// race scenario unless --config is given).
     #[arg(long)]
     policy: Option<PathBuf>,
+    /// Which checkpoint of a run directory: best, latest or step-N.
+    #[arg(long, default_value = "best")]
+    checkpoint: CheckpointChoice,
+    /// How a trained agent acts: sample (seeded by --seed) or mode.
+    #[arg(long, value_enum, default_value_t = ActMode::Sample)]
+    act: ActMode,
     /// Episode seed (LiDAR noise, random policy).
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -65,17 +71,24 @@ struct RaceReport<'a> {
 
 /// Runs one episode.
 pub fn run(args: RaceArgs) -> Result<()> {
-    let mut cfg = crate::load_race_config(args.config.as_ref())?;
+    let spec = match &args.policy {
+        Some(path) => EgoSpec::Trained(Box::new(TrainedAgent::load(path, args.checkpoint)?)),
+        None => EgoSpec::Baseline(args.ego),
+    };
+    let mut cfg = match (&spec, &args.config) {
+        (EgoSpec::Trained(t), None) => t
+            .experiment
+            .as_ref()
+            .map(|e| e.race.clone())
+            .unwrap_or_default(),
+        (_, config) => crate::load_race_config(config.as_ref())?,
+    };
     if let Some(n) = args.rivals {
         cfg.rivals = n;
     }
     let track = Arc::new(args.tracks.load(&args.track, &cfg)?);
     let mut env = RaceEnv::new(track.clone(), cfg)?;
-    let spec = match &args.policy {
-        Some(path) => EgoSpec::Trained(Box::new(TrainedAgent::load(path)?)),
-        None => EgoSpec::Baseline(args.ego),
-    };
-    let mut policy = spec.driver(&env)?;
+    let mut policy = spec.driver(&env, args.act)?;
     let mut frames = Vec::new();
     let last = policy.drive_episode(&mut env, args.context, args.seed, Some(&mut frames))?;
     let ended_by = if last.lap_complete {

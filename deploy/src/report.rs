@@ -722,6 +722,9 @@ mod tests {
             laps: 50,
             seed: 0,
             source: format!("runs/{algo}-{seed}"),
+            checkpoint: "best".into(),
+            act: crate::driver::ActMode::Sample,
+            preset: ctxrace_common::RacePreset::Default,
         }
     }
 

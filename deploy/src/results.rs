@@ -45,6 +45,26 @@ pub struct EvalMeta {
     pub seed: u64,
     /// Checkpoint directory evaluated, or the baseline's name.
     pub source: String,
+    /// Which checkpoint of the run: `best`, `latest` or `step-N` (`given` for a checkpoint
+    /// directory, `-` for a baseline); evaluations written before it was recorded used the
+    /// newest.
+    #[serde(default = "newest_checkpoint")]
+    pub checkpoint: String,
+    /// How a trained agent acted: `sample` (the paper's) or `mode` (what evaluations written
+    /// before it was recorded did).
+    #[serde(default = "mode_of_policy")]
+    pub act: crate::driver::ActMode,
+    /// The race scenario's preset.
+    #[serde(default)]
+    pub preset: ctxrace_common::RacePreset,
+}
+
+fn newest_checkpoint() -> String {
+    "latest".into()
+}
+
+fn mode_of_policy() -> crate::driver::ActMode {
+    crate::driver::ActMode::Mode
 }
 
 /// One evaluation episode.

@@ -16,6 +16,7 @@ use ctxrace_actor::RaceEnv;
 use ctxrace_common::ipc::{Batch, BatchSpec};
 use ctxrace_common::policy::ACT_DIM;
 use ctxrace_common::{AlgoKind, ExperimentConfig, Policy};
+use ctxrace_learner::best::{write_best, ReturnTracker};
 use ctxrace_learner::checkpoint::write_checkpoint;
 use ctxrace_learner::runlog::MetricsLog;
 use ctxrace_learner::Algorithm;
@@ -220,6 +221,7 @@ pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()
     let start = Instant::now();
     let (mut debt, mut stale_policy, mut recent) = (0.0, false, Vec::<f64>::new());
     let mut payload = Vec::new();
+    let mut tracker = ReturnTracker::default();
     while collector.decisions() < t.env_steps {
         let learning = collector.decisions() >= t.prefill;
         payload.clear();
@@ -233,6 +235,9 @@ pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()
             recent.push(row.progress);
             if recent.len() > 10 {
                 recent.remove(0);
+            }
+            if f.by_policy && tracker.observe(f.metrics.episode_return) {
+                write_best(dir, algo.as_ref(), &cfg.agent, &tracker)?;
             }
         }
         if learning {
@@ -253,7 +258,7 @@ pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()
                     metrics_log.write(&m)?;
                 }
                 if t.checkpoint_every > 0 && steps.is_multiple_of(t.checkpoint_every) {
-                    write_checkpoint(dir, algo.as_ref(), &cfg.agent)?;
+                    write_checkpoint(dir, algo.as_ref(), &cfg.agent, &tracker)?;
                 }
             }
             if stale_policy && collector.at_episode_boundary() {
@@ -265,7 +270,7 @@ pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()
             bar.set_message(status(algo.as_ref(), &recent, collector.episodes(), &start));
         }
     }
-    let last = write_checkpoint(dir, algo.as_ref(), &cfg.agent)?;
+    let last = write_checkpoint(dir, algo.as_ref(), &cfg.agent, &tracker)?;
     bar.finish_with_message(status(algo.as_ref(), &recent, collector.episodes(), &start));
     println!(
         "trained {} for {} env steps and {} gradient steps in {:.0} s; checkpoint {}",

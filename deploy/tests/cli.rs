@@ -287,15 +287,21 @@ fn bad_input_gives_clear_errors() {
 }
 
 #[test]
-fn the_shipped_config_parses_and_matches_the_defaults() {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/race.toml");
-    let cfg: ctxrace_common::RaceConfig =
-        toml::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+fn the_shipped_scenarios_parse_and_match_their_presets() {
+    let configs = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs");
+    let read = |name: &str| {
+        let text = std::fs::read_to_string(configs.join(name)).unwrap();
+        ctxrace_common::RaceConfig::from_toml(&text).unwrap()
+    };
     let defaults = ctxrace_common::RaceConfig {
         rivals: 3,
         ..Default::default()
     };
-    assert_eq!(cfg, defaults);
+    assert_eq!(read("race.toml"), defaults);
+    assert_eq!(
+        read("scenarios/paper-code.toml"),
+        ctxrace_common::RaceConfig::paper_code()
+    );
 }
 
 #[test]
@@ -466,16 +472,23 @@ fn inline_training_then_evaluation_report_and_race_with_the_policy() {
     assert!(episodes.starts_with("env_steps,grad_steps,actor,episode"));
     let checkpoints: Vec<_> = std::fs::read_dir(run.join("checkpoints"))
         .unwrap()
+        .map(|c| c.unwrap().path())
         .collect();
-    assert!(!checkpoints.is_empty());
+    assert!(checkpoints.len() > 1, "{checkpoints:?}");
     for c in checkpoints {
-        let c = c.unwrap().path();
-        for file in [
-            "policy.safetensors",
-            "agent.toml",
-            "state.toml",
-            "opt_model.safetensors",
-        ] {
+        // the peak of the smoothed training return keeps the acting policy only
+        let files: &[&str] = if c.ends_with("best") {
+            &["policy.safetensors", "agent.toml", "best.toml"]
+        } else {
+            &[
+                "policy.safetensors",
+                "agent.toml",
+                "state.toml",
+                "returns.toml",
+                "opt_model.safetensors",
+            ]
+        };
+        for file in files {
             assert!(c.join(file).exists(), "{} has no {file}", c.display());
         }
     }
@@ -517,6 +530,39 @@ fn inline_training_then_evaluation_report_and_race_with_the_policy() {
     assert_eq!(rows("episodes.csv"), 1 + 4 * 2);
     assert_eq!(rows("contexts.csv"), 1 + 4);
     assert!(run.join("eval/episode.png").exists());
+    // the paper's protocol by default: the best checkpoint, sampled actions
+    let meta: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("eval/meta.json")).unwrap())
+            .unwrap();
+    assert_eq!(
+        (meta["checkpoint"].as_str(), meta["act"].as_str()),
+        (Some("best"), Some("sample"))
+    );
+    assert!(meta["source"].as_str().unwrap().ends_with("best"), "{meta}");
+    let other = dir.path().join("eval-latest-mode");
+    let o = eval(&[
+        "--checkpoint",
+        "latest",
+        "--act",
+        "mode",
+        "--out",
+        other.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let meta = std::fs::read_to_string(other.join("meta.json")).unwrap();
+    assert!(meta.contains("\"checkpoint\": \"latest\"") && meta.contains("\"act\": \"mode\""));
+    let o = eval(&["--checkpoint", "step-7"]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("no step-7 checkpoint"),
+        "{}",
+        stderr(&o)
+    );
+    let o = eval(&["--checkpoint", "newest"]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("not best, latest or step-N"),
+        "{}",
+        stderr(&o)
+    );
     // resuming a finished evaluation runs nothing new; another grid needs --fresh
     let parts = std::fs::read_dir(run.join("eval")).unwrap().count();
     assert!(eval(&[]).status.success());

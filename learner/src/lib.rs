@@ -2,6 +2,7 @@
 
 pub mod adam;
 pub mod algorithm;
+pub mod best;
 pub mod checkpoint;
 pub mod dreamer;
 pub mod process;

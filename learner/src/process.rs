@@ -1,13 +1,17 @@
 //! The learner process (`ctxrace learner`): trains on batches from the run's replay, publishes
 //! the policy weights every `policy_every` gradient steps, logs every `log_every` and
-//! checkpoints every `checkpoint_every` (and on SIGTERM/SIGINT). It resumes from the newest
-//! checkpoint of the run directory, so a restarted learner carries on where it stopped.
+//! checkpoints every `checkpoint_every` (and on SIGTERM/SIGINT). It smooths the returns of the
+//! actors' finished episodes and saves the policy as the run's best checkpoint at each new peak
+//! ([`crate::best`]). It resumes from the newest checkpoint of the run directory, so a restarted
+//! learner carries on where it stopped.
 
+use crate::best::{write_best, ReturnTracker};
 use crate::checkpoint::{latest_checkpoint, write_checkpoint};
 use crate::runlog::MetricsLog;
 use anyhow::{Context as _, Result};
 use ctxrace_common::ipc::{
-    termination_flag, ReplayClient, RunTransport, WeightsPublisher, DEFAULT_MAX_WEIGHTS_BYTES,
+    termination_flag, EpisodeSubscriber, ReplayClient, RunTransport, WeightsPublisher,
+    DEFAULT_MAX_WEIGHTS_BYTES,
 };
 use ctxrace_common::policy::ACT_DIM;
 use ctxrace_common::ExperimentConfig;
@@ -46,9 +50,11 @@ pub fn run(opts: LearnerOptions) -> Result<u64> {
     let t = &cfg.train;
     ctxrace_common::nn::set_threads(t.threads_for(cfg.agent.algo));
     let mut algo = crate::build(&cfg.agent, opts.frame_dim)?;
+    let mut tracker = ReturnTracker::default();
     if let Some(ckpt) = latest_checkpoint(&opts.run_dir) {
         algo.load(&ckpt)
             .with_context(|| format!("resuming from {}", ckpt.display()))?;
+        tracker = ReturnTracker::load(&ckpt)?;
         tracing::info!(
             "learner resumed from {} at step {}",
             ckpt.display(),
@@ -59,6 +65,7 @@ pub fn run(opts: LearnerOptions) -> Result<u64> {
     let weights = WeightsPublisher::new(&transport, DEFAULT_MAX_WEIGHTS_BYTES)?;
     weights.publish(algo.steps(), &algo.policy_weights()?)?;
     let mut replay = ReplayClient::new(&transport, opts.frame_dim, ACT_DIM, HANDSHAKE)?;
+    let mut episodes = EpisodeSubscriber::new(&transport)?;
     let mut log = MetricsLog::open(&opts.run_dir)?;
     let spec = cfg.agent.batch_spec();
     let target = target_steps(cfg);
@@ -68,6 +75,16 @@ pub fn run(opts: LearnerOptions) -> Result<u64> {
     while algo.steps() < target && !stop.load(Ordering::Relaxed) {
         // late or restarted actors get the newest weights only when the publisher acts
         weights.update_connections()?;
+        let mut new_best = false;
+        for e in episodes.episodes()? {
+            // every episode moves the smoothed return, so no short-circuit here
+            if e.by_policy == 1 {
+                new_best |= tracker.observe(e.episode_return as f64);
+            }
+        }
+        if new_best {
+            write_best(&opts.run_dir, algo.as_ref(), &cfg.agent, &tracker)?;
+        }
         let Some(batch) = replay.next_batch(spec, BATCH_WAIT)? else {
             continue;
         };
@@ -86,11 +103,11 @@ pub fn run(opts: LearnerOptions) -> Result<u64> {
             log.write(&m)?;
         }
         if t.checkpoint_every > 0 && steps.is_multiple_of(t.checkpoint_every) {
-            write_checkpoint(&opts.run_dir, algo.as_ref(), &cfg.agent)?;
+            write_checkpoint(&opts.run_dir, algo.as_ref(), &cfg.agent, &tracker)?;
         }
     }
     weights.publish(algo.steps(), &algo.policy_weights()?)?;
-    let last = write_checkpoint(&opts.run_dir, algo.as_ref(), &cfg.agent)?;
+    let last = write_checkpoint(&opts.run_dir, algo.as_ref(), &cfg.agent, &tracker)?;
     tracing::info!(
         "learner stopping at step {}: {}",
         algo.steps(),

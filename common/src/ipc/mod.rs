@@ -22,7 +22,7 @@ mod weights;
 pub mod wire;
 
 pub use batches::{Batch, BatchServer, BatchSpec, ReplayClient, DEFAULT_MAX_BATCH_FLOATS};
-pub use telemetry::{MetricsPublisher, StatusPublisher, TelemetrySubscriber};
+pub use telemetry::{EpisodeSubscriber, MetricsPublisher, StatusPublisher, TelemetrySubscriber};
 pub use trajectory::{
     ChunkView, ReplayBeacon, SenderOptions, SenderStats, Step, TrajectoryReceiver, TrajectorySender,
 };

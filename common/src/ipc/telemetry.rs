@@ -80,9 +80,54 @@ impl StatusPublisher {
     }
 }
 
+/// A subscriber to the actors' finished episodes (the launcher logs them, the learner smooths
+/// their returns).
+pub struct EpisodeSubscriber {
+    metrics: Subscriber<ipc::Service, EpisodeMetrics, ()>,
+    actors: usize,
+    rejects: RejectLog,
+}
+
+impl EpisodeSubscriber {
+    /// Subscribes to the run's episode metrics.
+    pub fn new(transport: &RunTransport) -> Result<Self> {
+        Ok(Self {
+            metrics: transport
+                .metrics_service()?
+                .subscriber_builder()
+                .create()
+                .map_err(ice("metrics subscriber"))?,
+            actors: transport.actors(),
+            rejects: RejectLog::new("episode metrics"),
+        })
+    }
+
+    /// Episode metrics received since the last call; malformed ones are counted and skipped.
+    pub fn episodes(&mut self) -> Result<Vec<EpisodeMetrics>> {
+        let mut out = Vec::new();
+        while let Some(s) = self.metrics.receive().map_err(ice("receive metrics"))? {
+            let m = *s.payload();
+            let values = [m.context[0], m.context[1], m.progress, m.episode_return];
+            match check(m.format_version, m.actor_id, self.actors)
+                .and_then(|()| super::wire::check_finite(&values))
+                .and_then(|()| check_flags(&[m.a2a, m.wall_crash, m.by_policy]))
+            {
+                Ok(()) => out.push(m),
+                Err(e) => self.rejects.reject(&e),
+            }
+        }
+        Ok(out)
+    }
+
+    /// Messages rejected as malformed.
+    pub fn rejected(&self) -> u64 {
+        self.rejects.count()
+    }
+}
+
 /// The launcher's view: episode metrics, heartbeats and replay status, validated.
 pub struct TelemetrySubscriber {
-    metrics: Subscriber<ipc::Service, EpisodeMetrics, ()>,
+    episodes: EpisodeSubscriber,
     heartbeat: Subscriber<ipc::Service, Heartbeat, ()>,
     status: Subscriber<ipc::Service, ReplayStatus, ()>,
     actors: usize,
@@ -93,11 +138,7 @@ impl TelemetrySubscriber {
     /// Subscribes to the run's telemetry.
     pub fn new(transport: &RunTransport) -> Result<Self> {
         Ok(Self {
-            metrics: transport
-                .metrics_service()?
-                .subscriber_builder()
-                .create()
-                .map_err(ice("metrics subscriber"))?,
+            episodes: EpisodeSubscriber::new(transport)?,
             heartbeat: transport
                 .heartbeat_service()?
                 .subscriber_builder()
@@ -115,18 +156,7 @@ impl TelemetrySubscriber {
 
     /// Episode metrics received since the last call; malformed ones are counted and skipped.
     pub fn episodes(&mut self) -> Result<Vec<EpisodeMetrics>> {
-        let mut out = Vec::new();
-        while let Some(s) = self.metrics.receive().map_err(ice("receive metrics"))? {
-            let m = *s.payload();
-            let values = [m.context[0], m.context[1], m.progress, m.episode_return];
-            match check(m.format_version, m.actor_id, self.actors)
-                .and_then(|()| super::wire::check_finite(&values))
-            {
-                Ok(()) => out.push(m),
-                Err(e) => self.rejects.reject(&e),
-            }
-        }
-        Ok(out)
+        self.episodes.episodes()
     }
 
     /// Heartbeats received since the last call.
@@ -160,7 +190,18 @@ impl TelemetrySubscriber {
 
     /// Messages rejected as malformed.
     pub fn rejected(&self) -> u64 {
-        self.rejects.count()
+        self.rejects.count() + self.episodes.rejected()
+    }
+}
+
+/// Checks that every flag is 0 or 1.
+fn check_flags(flags: &[u32]) -> Result<(), WireError> {
+    match flags.iter().position(|&f| f > 1) {
+        Some(index) => Err(WireError::Value {
+            index,
+            value: flags[index] as f32,
+        }),
+        None => Ok(()),
     }
 }
 

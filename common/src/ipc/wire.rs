@@ -7,7 +7,7 @@
 //! Payloads that vary in size are `[f32]` or `[u8]` slices sized statically for their maximum.
 //!
 //! Version history: 1, the first; 2, trajectory steps and sequence batches carry cMask's acting
-//! context mask.
+//! context mask, episode metrics whether the policy drove the whole episode.
 
 use iceoryx2::prelude::ZeroCopySend;
 
@@ -175,8 +175,8 @@ pub struct EpisodeMetrics {
     pub wall_crash: u32,
     /// Undiscounted return.
     pub episode_return: f32,
-    /// Explicit padding.
-    pub reserved: u32,
+    /// 1 if the policy chose every action of the episode (none of the random prefill).
+    pub by_policy: u32,
 }
 
 /// An actor's periodic sign of life.

@@ -243,6 +243,11 @@ impl DreamerPolicy {
         self.store.load_bytes(weights)
     }
 
+    /// Restarts the sampling noise from `seed`.
+    pub fn reseed(&mut self, seed: u64) {
+        self.rng = ChaCha8Rng::seed_from_u64(seed);
+    }
+
     /// Starts a new episode: zero state and previous action.
     pub fn reset(&mut self) {
         self.state = self.zero.clone();

@@ -57,6 +57,15 @@ impl Policy {
         }
     }
 
+    /// Restarts the sampling noise from `seed` (so that an episode's sampled actions depend on
+    /// its own seed only).
+    pub fn reseed(&mut self, seed: u64) {
+        match self {
+            Policy::Sac(p) => p.reseed(seed),
+            Policy::Dreamer(p) => p.reseed(seed),
+        }
+    }
+
     /// Starts a new episode.
     pub fn reset(&mut self) {
         match self {

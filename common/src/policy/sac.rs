@@ -56,6 +56,11 @@ impl SacPolicy {
         self.store.load_bytes(weights)
     }
 
+    /// Restarts the sampling noise from `seed`.
+    pub fn reseed(&mut self, seed: u64) {
+        self.rng = ChaCha8Rng::seed_from_u64(seed);
+    }
+
     /// Starts a new episode: empties the frame stack.
     pub fn reset(&mut self) {
         self.stack.clear();

@@ -1,0 +1,136 @@
+//! The run's `best` checkpoint, kept as the paper's code kept it (Utils/HistoryStructs.py): the
+//! training-episode returns `R_k` are smoothed exponentially,
+//!
+//! ```text
+//! ē_1 = R_1,   ē_k = (1 − α) ē_{k−1} + α R_k,   α = 0.2,
+//! ```
+//!
+//! and whenever `ē_k` exceeds every earlier value the acting policy is saved as
+//! `<run>/checkpoints/best/` (its weights, `agent.toml` and [`BEST_FILE`]); `ctxrace eval`
+//! evaluates it by default, as the paper did. Only episodes the policy drove from start to end
+//! count, not those of the random prefill. The smoother's state is saved with every regular
+//! checkpoint, so a restarted learner carries on with it.
+
+use crate::checkpoint::{io_error, write_atomically, write_policy_files, CHECKPOINTS};
+use crate::Algorithm;
+use candle_core::Result;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// Weight of the newest return in the smoothed return (the paper code's `ewma` default).
+pub const SMOOTHING: f64 = 0.2;
+/// Folder of `<run>/checkpoints/` that holds the best policy.
+pub const BEST_DIR: &str = "best";
+/// File in the best checkpoint saying when it was taken ([`BestInfo`]).
+pub const BEST_FILE: &str = "best.toml";
+/// File in every regular checkpoint with the smoother's state ([`ReturnTracker`]).
+pub const TRACKER_FILE: &str = "returns.toml";
+
+/// The exponentially smoothed training return and its peak so far.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ReturnTracker {
+    /// Episodes observed.
+    pub episodes: u64,
+    /// `ē_k` after the last episode.
+    pub smoothed: f64,
+    /// The largest `ē_k` so far.
+    pub peak: Option<f64>,
+}
+
+impl ReturnTracker {
+    /// Takes one episode's return; `true` when the smoothed return reached a new peak.
+    pub fn observe(&mut self, episode_return: f64) -> bool {
+        if !episode_return.is_finite() {
+            return false;
+        }
+        self.smoothed = if self.episodes == 0 {
+            episode_return
+        } else {
+            (1.0 - SMOOTHING) * self.smoothed + SMOOTHING * episode_return
+        };
+        self.episodes += 1;
+        let best = self.peak.is_none_or(|p| self.smoothed > p);
+        if best {
+            self.peak = Some(self.smoothed);
+        }
+        best
+    }
+
+    /// The state saved in checkpoint `dir`, or a fresh tracker if it holds none.
+    pub fn load(dir: &Path) -> Result<Self> {
+        let path = dir.join(TRACKER_FILE);
+        match std::fs::read_to_string(&path) {
+            Ok(text) => toml::from_str(&text).map_err(|e| io_error("parsing", &path, e)),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Self::default()),
+            Err(e) => Err(io_error("reading", &path, e)),
+        }
+    }
+
+    /// Writes the state into checkpoint folder `dir`.
+    pub fn save(&self, dir: &Path) -> Result<()> {
+        let path = dir.join(TRACKER_FILE);
+        let text = toml::to_string(self).map_err(|e| io_error("serialising", &path, e))?;
+        std::fs::write(&path, text).map_err(|e| io_error("writing", &path, e))
+    }
+}
+
+/// When the best checkpoint was taken.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BestInfo {
+    /// The learner's gradient steps.
+    pub grad_steps: u64,
+    /// Training episodes observed.
+    pub episodes: u64,
+    /// The smoothed return that made it the best.
+    pub smoothed_return: f64,
+}
+
+/// The best checkpoint of a run directory, if it has one.
+pub fn best_checkpoint(run_dir: &Path) -> Option<PathBuf> {
+    let dir = run_dir.join(CHECKPOINTS).join(BEST_DIR);
+    dir.join(BEST_FILE).is_file().then_some(dir)
+}
+
+/// Saves `algo`'s acting policy as the run's best checkpoint (replacing the last one).
+pub fn write_best(
+    run_dir: &Path,
+    algo: &dyn Algorithm,
+    agent: &ctxrace_common::AgentConfig,
+    tracker: &ReturnTracker,
+) -> Result<PathBuf> {
+    let info = BestInfo {
+        grad_steps: algo.steps(),
+        episodes: tracker.episodes,
+        smoothed_return: tracker.smoothed,
+    };
+    write_atomically(&run_dir.join(CHECKPOINTS).join(BEST_DIR), |tmp| {
+        write_policy_files(tmp, algo, agent)?;
+        let path = tmp.join(BEST_FILE);
+        let text = toml::to_string(&info).map_err(|e| io_error("serialising", &path, e))?;
+        std::fs::write(&path, text).map_err(|e| io_error("writing", &path, e))
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_smoothed_return_peaks_as_the_paper_code_computes_it() {
+        let mut t = ReturnTracker::default();
+        let returns = [1.0, 0.0, 5.0, 5.0, -10.0, f64::NAN, 2.0];
+        let best: Vec<bool> = returns.iter().map(|&r| t.observe(r)).collect();
+        // ē = 1, 0.8, 1.64, 2.312, −0.1504, (NaN skipped), 0.27968
+        assert_eq!(best, [true, false, true, true, false, false, false]);
+        assert_eq!(t.episodes, 6);
+        assert!((t.smoothed - 0.27968).abs() < 1e-12);
+        assert!((t.peak.unwrap() - 2.312).abs() < 1e-12);
+        let dir = tempfile::tempdir().unwrap();
+        assert_eq!(
+            ReturnTracker::load(dir.path()).unwrap(),
+            ReturnTracker::default()
+        );
+        t.save(dir.path()).unwrap();
+        assert_eq!(ReturnTracker::load(dir.path()).unwrap(), t);
+    }
+}
