@@ -141,6 +141,11 @@ fn check_clean_run(run: &Path, actors: usize) {
         "ratio {ratio} vs {spi}: {replay}"
     );
     assert!(run.join("checkpoints").read_dir().unwrap().count() >= 1);
+    // the learner smoothed the returns of the episodes the policy drove and kept the best
+    let best = std::fs::read_to_string(run.join("checkpoints/best/best.toml")).unwrap();
+    let best: toml::Table = toml::from_str(&best).unwrap();
+    assert!(best["episodes"].as_integer().unwrap() >= 1, "{best}");
+    assert!(run.join("checkpoints/best/policy.safetensors").is_file());
     // every process logs into the run directory (at RUST_LOG=warn a clean run's logs are empty)
     for role in ["replay", "learner", &format!("actor-{}", actors - 1)] {
         assert!(

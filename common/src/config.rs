@@ -286,7 +286,7 @@ impl RaceConfig {
 }
 
 /// `over` laid on `base`: keys of `over` replace those of `base`, tables merge key by key.
-fn merge_tables(mut base: toml::Table, over: toml::Table) -> toml::Table {
+pub fn merge_tables(mut base: toml::Table, over: toml::Table) -> toml::Table {
     for (key, value) in over {
         let merged = match (base.remove(&key), value) {
             (Some(toml::Value::Table(b)), toml::Value::Table(o)) => {

@@ -202,6 +202,7 @@ pub fn run(args: EvalArgs) -> Result<()> {
         act: args.act,
         preset: race.preset,
     };
+    let _lock = crate::lock::DirLock::acquire(&out)?;
     prepare_out_dir(&out, &meta, args.fresh)?;
 
     let done = finished_episodes(&out, &meta)?;

@@ -38,6 +38,9 @@ struct Supervised {
     log: std::path::PathBuf,
     child: Option<Child>,
     starts: u64,
+    /// Starts of this process in earlier launches of the run (a resumed run's actors continue
+    /// their incarnations, so that they draw fresh episodes).
+    earlier_starts: u64,
     restart_at: Option<Instant>,
     /// Set once the process should stay down.
     retired: bool,
@@ -51,6 +54,7 @@ impl Supervised {
             args,
             child: None,
             starts: 0,
+            earlier_starts: 0,
             restart_at: Some(Instant::now()),
             retired: false,
         }
@@ -62,7 +66,10 @@ impl Supervised {
         let mut cmd = Command::new(exe);
         cmd.args(&self.args);
         if self.name.starts_with("actor") {
-            cmd.args(["--incarnation", &self.starts.to_string()]);
+            cmd.args([
+                "--incarnation",
+                &(self.earlier_starts + self.starts).to_string(),
+            ]);
         }
         let log = std::fs::OpenOptions::new()
             .create(true)
@@ -211,7 +218,9 @@ pub fn run(cfg: &ExperimentConfig, dir: &Path, actors: usize, tracks: &TrackArgs
             let mut args = common("actor");
             args.extend(["--id".into(), k.to_string()]);
             args.extend(track_flags(tracks));
-            Supervised::new(format!("actor {k}"), args, &logs)
+            let mut actor = Supervised::new(format!("actor {k}"), args, &logs);
+            actor.earlier_starts = earlier_actor_starts(dir, k);
+            actor
         })
         .collect();
 
@@ -239,6 +248,19 @@ pub fn run(cfg: &ExperimentConfig, dir: &Path, actors: usize, tracks: &TrackArgs
         Err(e) => tracing::warn!("cleaning up {prefix}: {e}"),
     }
     result
+}
+
+/// How many times actor `id` ran in earlier launches of the run in `dir` (its reports).
+fn earlier_actor_starts(dir: &Path, id: usize) -> u64 {
+    let prefix = format!("actor-{id}-");
+    std::fs::read_dir(dir.join(crate::roles::ACTOR_REPORTS))
+        .map(|entries| {
+            entries
+                .filter_map(|e| e.ok())
+                .filter(|e| e.file_name().to_string_lossy().starts_with(&prefix))
+                .count() as u64
+        })
+        .unwrap_or(0)
 }
 
 /// Waits up to [`STOP_GRACE`] for the processes to exit, then kills them.

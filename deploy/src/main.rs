@@ -6,12 +6,14 @@ mod driver;
 mod eval;
 mod figures;
 mod launcher;
+mod lock;
 mod plot;
 mod race_cmd;
 mod render;
 mod report;
 mod results;
 mod roles;
+mod sweep;
 mod table;
 mod track_cmd;
 mod train;
@@ -49,6 +51,9 @@ enum Command {
     Train(train::TrainArgs),
     /// Run the paper's evaluation protocol on a checkpoint or a reference policy.
     Eval(eval::EvalArgs),
+    /// Train and evaluate every run of an experiment matrix (the paper's 16 settings x 5 seeds),
+    /// then report; or emit the commands for a cluster.
+    Sweep(sweep::SweepArgs),
     /// Process role: the replay buffer of a run (started by `ctxrace train`).
     Replay(roles::RoleArgs),
     /// Process role: the learner of a run (started by `ctxrace train`).
@@ -153,6 +158,7 @@ fn main() {
         Command::Report(a) => report::run(a),
         Command::Train(a) => train::run(a),
         Command::Eval(a) => eval::run(a),
+        Command::Sweep(a) => sweep::run(a),
         Command::EvalWorker(a) => eval::run_worker(a),
         Command::Replay(a) => roles::replay(a),
         Command::Learner(a) => roles::learner(a),

@@ -7,6 +7,7 @@
 //! logging interval of the learner) and `checkpoints/step-*/` (weights, optimiser moments,
 //! counters, the acting policy and the agent's configuration).
 
+use crate::lock::DirLock;
 use crate::results::TrainingEpisode;
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
@@ -47,15 +48,29 @@ pub struct TrainArgs {
     /// Algorithm: sac, dreamerv3, crssm or cmask [default: the config's].
     #[arg(long)]
     algo: Option<AlgoKind>,
+    /// Track: a name in the tracks folder, a map yaml or generated:SEED [default: the config's].
+    #[arg(long)]
+    track: Option<String>,
+    /// Number of rivals, 0 to 7 [default: the config's].
+    #[arg(long)]
+    rivals: Option<usize>,
     /// Environment steps [default: the config's].
     #[arg(long)]
     steps: Option<u64>,
     /// Seed [default: the config's].
     #[arg(long)]
     seed: Option<u64>,
-    /// Run directory [default: runs/<algo>-<track>-s<seed>].
+    /// Run directory [default: runs/<algo>-<track>-<rivals>r-s<seed>].
     #[arg(long)]
     run_dir: Option<PathBuf>,
+    /// Continue the run in the run directory if it holds this experiment (the learner from its
+    /// newest checkpoint, the replay from its snapshot; an --inline run starts over); start it
+    /// if the directory holds no run.
+    #[arg(long)]
+    resume: bool,
+    /// Learner worker threads [default: the config's, else the algorithm's].
+    #[arg(long)]
+    threads: Option<usize>,
     #[command(flatten)]
     tracks: TrackArgs,
 }
@@ -70,11 +85,20 @@ fn experiment(args: &TrainArgs) -> Result<ExperimentConfig> {
     if let Some(algo) = args.algo {
         cfg.agent.algo = algo;
     }
+    if let Some(track) = &args.track {
+        cfg.track = track.clone();
+    }
+    if let Some(rivals) = args.rivals {
+        cfg.race.rivals = rivals;
+    }
     if let Some(steps) = args.steps {
         cfg.train.env_steps = steps;
     }
     if let Some(seed) = args.seed {
         cfg.train.seed = seed;
+    }
+    if args.threads.is_some() {
+        cfg.train.threads = args.threads;
     }
     cfg.race.shipped_raceline |= args.tracks.raceline_file;
     cfg.agent.set_seed(cfg.train.seed);
@@ -82,50 +106,114 @@ fn experiment(args: &TrainArgs) -> Result<ExperimentConfig> {
     Ok(cfg)
 }
 
-/// Creates a fresh run directory with the resolved experiment: `--run-dir` (which must not
-/// hold a run yet), or `runs/<algo>-<track>-s<seed>` with `-2`, `-3`, … appended when taken.
-fn create_run_dir(args: &TrainArgs, cfg: &ExperimentConfig) -> Result<PathBuf> {
+/// Locks the run directory and writes the resolved experiment into it: `--run-dir` (which must
+/// not hold a run yet, unless `--resume` and it holds this one), or `runs/<`[`run_name`]`>`
+/// (with `--resume` exactly that, otherwise with `-2`, `-3`, … appended when taken). Returns the
+/// directory, its lock, and whether it resumes a run.
+fn prepare_run_dir(args: &TrainArgs, cfg: &ExperimentConfig) -> Result<(PathBuf, DirLock, bool)> {
     let dir = match &args.run_dir {
-        Some(dir) if dir.join(CONFIG_FILE).exists() => bail!(
-            "{} already holds a run; pass another --run-dir (or remove it)",
-            dir.display()
-        ),
         Some(dir) => dir.clone(),
-        None => {
-            let base = format!(
-                "{}-{}-s{}",
-                cfg.agent.algo,
-                cfg.track.replace([':', '/'], "_"),
-                cfg.train.seed
-            );
-            let taken = |d: &PathBuf| d.join(CONFIG_FILE).exists();
-            let first = PathBuf::from("runs").join(&base);
-            if !taken(&first) {
-                first
-            } else {
-                match (2..10_000)
-                    .map(|k| PathBuf::from("runs").join(format!("{base}-{k}")))
-                    .find(|d| !taken(d))
-                {
-                    Some(d) => d,
-                    None => bail!("runs/{base}-2 to -9999 are all taken; pass --run-dir"),
-                }
-            }
-        }
+        None if args.resume => PathBuf::from("runs").join(run_name(cfg)),
+        None => free_run_dir(cfg)?,
     };
-    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let lock = DirLock::acquire(&dir)?;
+    let config = dir.join(CONFIG_FILE);
+    if config.exists() {
+        if !args.resume {
+            bail!(
+                "{} already holds a run; pass another --run-dir, remove it, or continue it \
+                 with --resume",
+                dir.display()
+            );
+        }
+        let mut held = ExperimentConfig::load(&config).map_err(anyhow::Error::msg)?;
+        // the thread count changes how fast a run trains, not what it computes
+        held.train.threads = cfg.train.threads;
+        if &held != cfg {
+            bail!(
+                "{} holds another experiment than the one given (compare its {CONFIG_FILE}); \
+                 pass another --run-dir",
+                dir.display()
+            );
+        }
+    } else if args.resume {
+        tracing::info!("{} holds no run yet: starting it", dir.display());
+    }
+    let resumed = config.exists();
     let text = cfg.to_toml().map_err(anyhow::Error::msg)?;
-    std::fs::write(dir.join(CONFIG_FILE), text)
-        .with_context(|| format!("writing {}", dir.join(CONFIG_FILE).display()))?;
-    Ok(dir)
+    std::fs::write(&config, text).with_context(|| format!("writing {}", config.display()))?;
+    Ok((dir, lock, resumed))
+}
+
+/// `runs/<`[`run_name`]`>`, or the first of its `-2`, `-3`, … variants that holds no run.
+fn free_run_dir(cfg: &ExperimentConfig) -> Result<PathBuf> {
+    let base = run_name(cfg);
+    let taken = |d: &PathBuf| d.join(CONFIG_FILE).exists();
+    std::iter::once(PathBuf::from("runs").join(&base))
+        .chain((2..10_000).map(|k| PathBuf::from("runs").join(format!("{base}-{k}"))))
+        .find(|d| !taken(d))
+        .ok_or_else(|| anyhow::anyhow!("runs/{base} and -2 to -9999 are all taken; pass --run-dir"))
+}
+
+/// Whether the run in `dir` has taken all its gradient steps (its newest checkpoint is the
+/// learner's last).
+pub fn is_trained(dir: &Path, cfg: &ExperimentConfig) -> bool {
+    let target = ctxrace_learner::process::target_steps(cfg);
+    ctxrace_learner::checkpoint::latest_checkpoint(dir)
+        .and_then(|c| {
+            c.file_name()?
+                .to_str()?
+                .strip_prefix("step-")?
+                .parse::<u64>()
+                .ok()
+        })
+        .is_some_and(|step| step >= target)
+}
+
+/// The name of a run: `<algo>-<track>-<rivals>r-s<seed>`, e.g. `cmask-f1_esp-3r-s0`.
+pub fn run_name(cfg: &ExperimentConfig) -> String {
+    format!(
+        "{}-{}-{}r-s{}",
+        cfg.agent.algo,
+        cfg.track.replace([':', '/'], "_"),
+        cfg.race.rivals,
+        cfg.train.seed
+    )
 }
 
 /// Runs `ctxrace train`.
 pub fn run(args: TrainArgs) -> Result<()> {
     let cfg = experiment(&args)?;
-    let dir = create_run_dir(&args, &cfg)?;
+    let (dir, _lock, resumed) = prepare_run_dir(&args, &cfg)?;
+    if resumed && is_trained(&dir, &cfg) {
+        println!("{} is trained already", dir.display());
+        return Ok(());
+    }
     if !args.inline {
         return crate::launcher::run(&cfg, &dir, args.actors, &args.tracks);
+    }
+    if resumed {
+        // the inline trainer keeps its replay in memory: an interrupted run starts over
+        for name in [
+            "episodes.csv",
+            "metrics.jsonl",
+            "metrics.csv",
+            "checkpoints",
+        ] {
+            let path = dir.join(name);
+            let removed = if path.is_dir() {
+                std::fs::remove_dir_all(&path)
+            } else {
+                std::fs::remove_file(&path)
+            };
+            match removed {
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                    return Err(e).with_context(|| format!("removing {}", path.display()))
+                }
+                _ => {}
+            }
+        }
+        eprintln!("{}: the inline run starts over", dir.display());
     }
     let track = Arc::new(args.tracks.load(&cfg.track, &cfg.race)?);
     run_inline(&cfg, &dir, RaceEnv::new(track, cfg.race.clone())?)
@@ -302,6 +390,18 @@ mod tests {
     use super::*;
     use ctxrace_common::{AgentConfig, DreamerConfig, RaceConfig};
     use ctxrace_tracks::{Track, TrackOptions};
+
+    #[test]
+    fn run_names_carry_every_axis_of_the_paper_matrix() {
+        let mut cfg = ExperimentConfig::default();
+        cfg.race.rivals = 3;
+        cfg.train.seed = 4;
+        assert_eq!(run_name(&cfg), "cmask-f1_esp-3r-s4");
+        cfg.track = "generated:7".into();
+        cfg.agent.algo = AlgoKind::Sac;
+        cfg.race.rivals = 1;
+        assert_eq!(run_name(&cfg), "sac-generated_7-1r-s4");
+    }
 
     #[test]
     fn the_world_model_learns_recorded_race_data() {

@@ -266,6 +266,17 @@ fn bad_input_gives_clear_errors() {
     );
     fails_with(
         &[
+            "train",
+            "--inline",
+            "--rivals",
+            "9",
+            "--run-dir",
+            d.join("r9").to_str().unwrap(),
+        ],
+        "rivals = 9 must be 0 to 7",
+    );
+    fails_with(
+        &[
             "race",
             "generated:1",
             "--render",
@@ -590,4 +601,137 @@ fn inline_training_then_evaluation_report_and_race_with_the_policy() {
         "{}",
         stderr(&o)
     );
+}
+
+/// A matrix of two tiny SAC runs on a generated track, trained with `actors` actors (0:
+/// inline) and evaluated on one context for one lap.
+fn tiny_matrix(dir: &Path, actors: usize, env_steps: u64) -> PathBuf {
+    write(
+        dir,
+        "base.toml",
+        &format!(
+            "track = \"generated:0\"\n[race]\nmax_time = 10.0\n[agent]\nalgo = \"sac\"\n\
+             [agent.sac]\nhidden = 16\nbatch_size = 16\n[train]\nenv_steps = {env_steps}\n\
+             prefill = 100\ntrain_ratio = 0.25\ncheckpoint_every = 20\nlog_every = 10\n"
+        ),
+    );
+    write(
+        dir,
+        "matrix.toml",
+        &format!(
+            "base = \"base.toml\"\nalgos = [\"sac\"]\ntracks = [\"generated:0\"]\nrivals = [1]\n\
+             seeds = [0, 1]\n[train]\nactors = {actors}\n[eval]\ngrid = 1\nlaps = 1\n"
+        ),
+    )
+}
+
+#[test]
+fn a_sweep_runs_its_matrix_once_and_its_emitted_commands_do_the_same() {
+    let dir = tempfile::tempdir().unwrap();
+    let matrix = tiny_matrix(dir.path(), 0, 300);
+    let out = dir.path().join("sweep");
+    let sweep = |extra: &[&str]| {
+        let mut args = vec![
+            "sweep",
+            matrix.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        ctxrace(&args)
+    };
+    let o = sweep(&["--jobs", "2"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("2 runs evaluated"), "{}", stdout(&o));
+    for name in ["sac-generated_0-1r-s0", "sac-generated_0-1r-s1"] {
+        assert!(out.join(name).join("eval/contexts.csv").is_file(), "{name}");
+    }
+    assert!(out.join("report/report.md").is_file());
+    // a finished sweep runs nothing again
+    let trained = std::fs::metadata(out.join("sac-generated_0-1r-s0/config.toml"))
+        .unwrap()
+        .modified()
+        .unwrap();
+    let o = sweep(&["--jobs", "2"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let again = std::fs::metadata(out.join("sac-generated_0-1r-s0/config.toml"))
+        .unwrap()
+        .modified()
+        .unwrap();
+    assert_eq!(trained, again);
+
+    // the emitted commands run one run each, exactly as the local sweep did
+    let o = sweep(&["--jobs", "2", "--emit", "slurm"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let script = dir.path().join("sweep.sbatch");
+    std::fs::write(&script, stdout(&o)).unwrap();
+    let syntax = std::process::Command::new("bash")
+        .arg("-n")
+        .arg(&script)
+        .output()
+        .unwrap();
+    assert!(syntax.status.success(), "{}", stderr(&syntax));
+    assert!(stdout(&o).contains("#SBATCH --array=0-1"), "{}", stdout(&o));
+    let o = sweep(&["--jobs", "2", "--emit", "list"]);
+    let lines: Vec<String> = stdout(&o).lines().map(String::from).collect();
+    assert_eq!(lines.len(), 2, "{lines:?}");
+    let elsewhere = dir.path().join("elsewhere");
+    let first = lines[0].replace(out.to_str().unwrap(), elsewhere.to_str().unwrap());
+    let task = std::process::Command::new("bash")
+        .args(["-c", &first])
+        .output()
+        .unwrap();
+    assert!(task.status.success(), "{}", stderr(&task));
+    for file in ["config.toml", "eval/contexts.csv", "eval/episodes.csv"] {
+        let a = std::fs::read_to_string(out.join("sac-generated_0-1r-s0").join(file)).unwrap();
+        let b =
+            std::fs::read_to_string(elsewhere.join("sac-generated_0-1r-s0").join(file)).unwrap();
+        assert_eq!(a, b, "{file} differs");
+    }
+    fails_with(
+        &["sweep", matrix.to_str().unwrap(), "--only", "algo=cmask"],
+        "no run that --only admits",
+    );
+}
+
+#[test]
+fn an_interrupted_sweep_resumes_its_runs_from_their_checkpoints() {
+    let dir = tempfile::tempdir().unwrap();
+    let matrix = tiny_matrix(dir.path(), 1, 1500);
+    let out = dir.path().join("sweep");
+    let args = [
+        "sweep",
+        matrix.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--only",
+        "seed=0",
+    ];
+    let run = out.join("sac-generated_0-1r-s0");
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_ctxrace"))
+        .args(args)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // interrupt it once the learner has checkpointed
+    let start = std::time::Instant::now();
+    while ctxrace_learner::checkpoint::latest_checkpoint(&run).is_none() {
+        assert!(start.elapsed().as_secs() < 120, "no checkpoint in time");
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    // the sweep and its run are locked while it runs
+    fails_with(&args, "in use by another process");
+    // SAFETY: signalling our own child.
+    unsafe {
+        libc::kill(child.id() as libc::pid_t, libc::SIGINT);
+    }
+    let status = child.wait().unwrap();
+    assert!(!status.success(), "the interrupted sweep reports it");
+    assert!(!run.join("eval/contexts.csv").exists());
+    let o = ctxrace(&args);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(run.join("eval/contexts.csv").is_file());
+    let learner = std::fs::read_to_string(run.join("logs/learner.log")).unwrap();
+    assert!(learner.contains("learner resumed from"), "{learner}");
 }

@@ -142,6 +142,20 @@ fn synthetic(opts: &IpcBenchOptions, id: usize, k: usize, obs: &mut [f32]) -> (u
     )
 }
 
+/// The step both transports send for observation `obs`.
+fn synthetic_step(obs: &[f32], is_first: bool, is_last: bool) -> Step<'_> {
+    Step {
+        obs,
+        action: &[0.1, -0.1],
+        reward: 0.5,
+        is_first,
+        is_terminal: false,
+        is_last,
+        context: [0.0, 0.0],
+        mask: Some([0.5, 0.5]),
+    }
+}
+
 fn percentile(mut v: Vec<f64>, q: f64) -> f64 {
     if v.is_empty() {
         return 0.0;
@@ -215,21 +229,7 @@ fn iceoryx_measure(
                 b.wait();
                 for k in 0..o.steps_per_actor {
                     let (episode, first, last) = synthetic(&o, id, k, &mut obs);
-                    let action = [0.1, -0.1];
-                    tx.push(
-                        episode,
-                        0,
-                        &Step {
-                            obs: &obs,
-                            action: &action,
-                            reward: 0.5,
-                            is_first: first,
-                            is_terminal: false,
-                            is_last: last,
-                            context: [0.0, 0.0],
-                            mask: Some([0.5, 0.5]),
-                        },
-                    )?;
+                    tx.push(episode, 0, &synthetic_step(&obs, first, last))?;
                 }
                 tx.flush()?;
                 Ok(tx.stats().dropped_steps)
@@ -448,17 +448,7 @@ fn uds_figures(opts: &IpcBenchOptions) -> Result<TransportFigures> {
                 b.wait();
                 for k in 0..opts.steps_per_actor {
                     let (_, first, last) = synthetic(&opts, id, k, &mut obs);
-                    Step {
-                        obs: &obs,
-                        action: &[0.1, -0.1],
-                        reward: 0.5,
-                        is_first: first,
-                        is_terminal: false,
-                        is_last: last,
-                        context: [0.0, 0.0],
-                        mask: Some([0.5, 0.5]),
-                    }
-                    .encode(&mut chunk);
+                    synthetic_step(&obs, first, last).encode(&mut chunk);
                     steps += 1;
                     if last || steps as usize == MAX_CHUNK {
                         let c = UdsChunk {

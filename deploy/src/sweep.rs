@@ -1,0 +1,762 @@
+//! `ctxrace sweep`: an experiment matrix in one command — the paper's 4 algorithms × 2 tracks ×
+//! 1 or 3 rivals × 5 seeds, or any other — each run trained, then evaluated with the paper's
+//! protocol, and one report over all of them.
+//!
+//! A matrix file (`configs/paper/matrix.toml`) names a base experiment config, the values of
+//! each axis (`algos`, `tracks`, `rivals`, `seeds`) and per-algorithm tables laid over the base
+//! (`[algo.sac]`: the paper code's update ratios). Run `<algo>-<track>-<rivals>r-s<seed>` lives in
+//! `<out>/<name>/`, its resolved experiment in `<out>/configs/<name>.toml`; it is done when its
+//! evaluation is complete.
+//!
+//! The sweep skips what is done and resumes what was interrupted: training with `train
+//! --resume` (the learner from its newest checkpoint, the replay from its snapshot; an inline
+//! run starts over), evaluation from its partial files. It runs at most `--jobs` runs at once,
+//! each a child `ctxrace sweep MATRIX --run NAME` in its own process group (its output in
+//! `<out>/logs/<name>.log`), the cores shared out between them, and writes the report to
+//! `<out>/report/` once every run is in. Ctrl-C stops the runs cleanly (checkpoint, snapshot);
+//! rerunning the command continues. `--emit list` prints each run's command and `--emit slurm`
+//! a Slurm array script of them, so that a cluster runs exactly what the local sweep would.
+
+use crate::driver::ActMode;
+use crate::lock::DirLock;
+use anyhow::{bail, Context as _, Result};
+use clap::{Args, ValueEnum};
+use ctxrace_common::{AlgoKind, ExperimentConfig};
+use serde::Deserialize;
+use std::collections::BTreeMap;
+use std::os::unix::process::CommandExt;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+/// Arguments of `ctxrace sweep`.
+#[derive(Args)]
+pub struct SweepArgs {
+    /// The matrix file (e.g. configs/paper/matrix.toml).
+    matrix: PathBuf,
+    /// Only the first K of the matrix's seeds.
+    #[arg(long)]
+    seeds: Option<usize>,
+    /// Runs at once; the cores are shared out between them.
+    #[arg(long, default_value_t = 1)]
+    jobs: usize,
+    /// Only the runs with these axis values, e.g. algo=cmask,track=f1_esp (axes: algo, track,
+    /// rivals, seed; a key given twice takes either value).
+    #[arg(long)]
+    only: Option<String>,
+    /// Output directory [default: runs/<matrix file stem>].
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Print the commands instead of running them: `list` (one per run) or `slurm` (an array
+    /// job script).
+    #[arg(long, value_enum)]
+    emit: Option<Emit>,
+    /// Run only the named run (what each emitted command does).
+    #[arg(long)]
+    run: Option<String>,
+    /// Cores one run may use [default: the machine's divided by --jobs].
+    #[arg(long)]
+    cores: Option<usize>,
+}
+
+/// What `--emit` writes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum Emit {
+    /// One `ctxrace sweep MATRIX --run NAME` command line per run.
+    List,
+    /// A Slurm array job script, one array task per run.
+    Slurm,
+}
+
+/// A matrix file.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MatrixFile {
+    /// The experiment config every run starts from, relative to the matrix file.
+    pub base: PathBuf,
+    /// The algorithms.
+    pub algos: Vec<AlgoKind>,
+    /// The tracks.
+    pub tracks: Vec<String>,
+    /// The rival counts.
+    pub rivals: Vec<usize>,
+    /// The training seeds.
+    pub seeds: Vec<u64>,
+    /// Per algorithm (by name), an experiment-config fragment laid over the base.
+    #[serde(default)]
+    pub algo: BTreeMap<String, toml::Table>,
+    /// How the runs are trained.
+    #[serde(default)]
+    pub train: SweepTrain,
+    /// How the runs are evaluated.
+    #[serde(default)]
+    pub eval: SweepEval,
+}
+
+/// How a sweep trains its runs.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SweepTrain {
+    /// Actor processes per run; 0 trains inline (one process, restarted from the beginning if
+    /// interrupted).
+    pub actors: usize,
+}
+
+impl Default for SweepTrain {
+    fn default() -> Self {
+        Self { actors: 1 }
+    }
+}
+
+/// How a sweep evaluates its runs (the paper's protocol by default).
+#[derive(Clone, Debug, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SweepEval {
+    /// Grid points per context dimension.
+    pub grid: usize,
+    /// Half-width of the context grid.
+    pub range: f64,
+    /// Laps per context.
+    pub laps: usize,
+    /// Checkpoint evaluated: best, latest or step-N.
+    pub checkpoint: String,
+    /// How the agent acts.
+    pub act: ActMode,
+    /// Seed of the evaluation episodes.
+    pub seed: u64,
+}
+
+impl Default for SweepEval {
+    fn default() -> Self {
+        Self {
+            grid: 7,
+            range: 0.3,
+            laps: 50,
+            checkpoint: "best".into(),
+            act: ActMode::Sample,
+            seed: 0,
+        }
+    }
+}
+
+/// One run of a matrix.
+#[derive(Clone, Debug)]
+pub struct MatrixRun {
+    /// Its name and directory name.
+    pub name: String,
+    /// Its resolved experiment.
+    pub config: ExperimentConfig,
+}
+
+impl MatrixFile {
+    /// Reads a matrix file; errors name the file and the key.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("reading matrix {}", path.display()))?;
+        let m: Self =
+            toml::from_str(&text).with_context(|| format!("parsing matrix {}", path.display()))?;
+        for (axis, empty) in [
+            ("algos", m.algos.is_empty()),
+            ("tracks", m.tracks.is_empty()),
+            ("rivals", m.rivals.is_empty()),
+            ("seeds", m.seeds.is_empty()),
+        ] {
+            if empty {
+                bail!("matrix {}: {axis} lists no value", path.display());
+            }
+        }
+        for name in m.algo.keys() {
+            if name.parse::<AlgoKind>().is_err() {
+                bail!(
+                    "matrix {}: [algo.{name}] names no algorithm (sac, dreamerv3, crssm, cmask)",
+                    path.display()
+                );
+            }
+        }
+        m.eval
+            .checkpoint
+            .parse::<crate::driver::CheckpointChoice>()
+            .map_err(|e| anyhow::anyhow!("matrix {}: [eval] checkpoint: {e}", path.display()))?;
+        Ok(m)
+    }
+
+    /// Every run, algorithm-major (`algos` × `tracks` × `rivals` × the first `seeds` seeds),
+    /// keeping those that `only` admits. `dir` is the matrix file's folder (for `base`).
+    pub fn runs(&self, dir: &Path, seeds: Option<usize>, only: &Only) -> Result<Vec<MatrixRun>> {
+        let base_path = dir.join(&self.base);
+        let base_text = std::fs::read_to_string(&base_path)
+            .with_context(|| format!("reading the matrix's base {}", base_path.display()))?;
+        let base: toml::Table = toml::from_str(&base_text)
+            .with_context(|| format!("parsing {}", base_path.display()))?;
+        let seeds = &self.seeds[..seeds.unwrap_or(self.seeds.len()).min(self.seeds.len())];
+        let mut runs = Vec::new();
+        for &algo in &self.algos {
+            let mut table = base.clone();
+            if let Some(over) = self.algo.get(algo.name()) {
+                table = ctxrace_common::config::merge_tables(table, over.clone());
+            }
+            for track in &self.tracks {
+                for &rivals in &self.rivals {
+                    for &seed in seeds {
+                        let axes = [
+                            ("algo", algo.name().to_string()),
+                            ("track", track.clone()),
+                            ("rivals", rivals.to_string()),
+                            ("seed", seed.to_string()),
+                        ];
+                        if !only.admits(&axes) {
+                            continue;
+                        }
+                        let config = resolve(&table, algo, track, rivals, seed)
+                            .with_context(|| format!("the run {algo} {track} {rivals}r s{seed}"))?;
+                        runs.push(MatrixRun {
+                            name: crate::train::run_name(&config),
+                            config,
+                        });
+                    }
+                }
+            }
+        }
+        Ok(runs)
+    }
+}
+
+/// The experiment of one run: `table` with the run's axis values set.
+fn resolve(
+    table: &toml::Table,
+    algo: AlgoKind,
+    track: &str,
+    rivals: usize,
+    seed: u64,
+) -> Result<ExperimentConfig> {
+    let text = toml::to_string(table)?;
+    let mut cfg =
+        ExperimentConfig::from_toml(&text, "the matrix's base").map_err(anyhow::Error::msg)?;
+    cfg.agent.algo = algo;
+    cfg.track = track.to_string();
+    cfg.race.rivals = rivals;
+    cfg.train.seed = seed;
+    cfg.agent.set_seed(seed);
+    cfg.validate().map_err(anyhow::Error::msg)?;
+    Ok(cfg)
+}
+
+/// A `--only` filter: for each named axis, the values admitted.
+#[derive(Clone, Debug, Default)]
+pub struct Only(BTreeMap<String, Vec<String>>);
+
+impl std::str::FromStr for Only {
+    type Err = String;
+
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        let mut only = BTreeMap::<String, Vec<String>>::new();
+        for part in s.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+            let Some((key, value)) = part.split_once('=') else {
+                return Err(format!(
+                    "--only: '{part}' is not AXIS=VALUE, e.g. algo=cmask"
+                ));
+            };
+            if !["algo", "track", "rivals", "seed"].contains(&key) {
+                return Err(format!(
+                    "--only: '{key}' is no axis; use algo, track, rivals or seed"
+                ));
+            }
+            only.entry(key.into()).or_default().push(value.into());
+        }
+        Ok(Self(only))
+    }
+}
+
+impl Only {
+    /// Whether a run with these axis values passes.
+    fn admits(&self, axes: &[(&str, String)]) -> bool {
+        axes.iter()
+            .all(|(k, v)| self.0.get(*k).is_none_or(|vals| vals.contains(v)))
+    }
+}
+
+/// Runs `ctxrace sweep`.
+pub fn run(args: SweepArgs) -> Result<()> {
+    let matrix = MatrixFile::load(&args.matrix)?;
+    let only: Only = match &args.only {
+        Some(s) => s.parse().map_err(anyhow::Error::msg)?,
+        None => Only::default(),
+    };
+    let dir = args.matrix.parent().unwrap_or(Path::new("."));
+    let mut runs = matrix.runs(dir, args.seeds, &only)?;
+    if runs.is_empty() {
+        bail!("the matrix has no run that --only admits");
+    }
+    let out = match &args.out {
+        Some(o) => o.clone(),
+        None => {
+            let stem = args
+                .matrix
+                .file_stem()
+                .and_then(|s| s.to_str())
+                .unwrap_or("sweep");
+            PathBuf::from("runs").join(stem)
+        }
+    };
+    if args.jobs == 0 {
+        bail!("--jobs must be at least 1");
+    }
+    let cores = args.cores.unwrap_or_else(|| {
+        let all = std::thread::available_parallelism().map_or(1, |n| n.get());
+        (all / args.jobs).max(1)
+    });
+    if let Some(name) = &args.run {
+        let Some(run) = runs.iter().find(|r| &r.name == name) else {
+            bail!(
+                "the matrix has no run {name}; its runs are {}",
+                runs.iter()
+                    .map(|r| r.name.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            );
+        };
+        return run_one(&matrix, run, &out, cores);
+    }
+    if let Some(emit) = args.emit {
+        let text = emit_commands(emit, &args, &runs, &out, cores)?;
+        print!("{text}");
+        return Ok(());
+    }
+    let _lock = DirLock::acquire(&out)?;
+    runs.retain(|r| !is_evaluated(&out.join(&r.name), &matrix.eval));
+    let done_before = matrix.runs(dir, args.seeds, &only)?.len() - runs.len();
+    schedule(&args, &runs, done_before, &out, cores)?;
+    let all = matrix.runs(dir, args.seeds, &only)?;
+    if all
+        .iter()
+        .all(|r| is_evaluated(&out.join(&r.name), &matrix.eval))
+    {
+        write_report(&out, &all)?;
+    }
+    Ok(())
+}
+
+/// Whether the run in `dir` has a complete evaluation of the sweep's protocol.
+fn is_evaluated(dir: &Path, eval: &SweepEval) -> bool {
+    let eval_dir = dir.join("eval");
+    let Ok(meta) =
+        crate::results::read_json::<crate::results::EvalMeta>(&eval_dir.join("meta.json"))
+    else {
+        return false;
+    };
+    eval_dir.join("contexts.csv").is_file()
+        && (meta.grid, meta.laps, meta.seed, meta.act)
+            == (eval.grid, eval.laps, eval.seed, eval.act)
+        && meta.range == eval.range
+        && meta.checkpoint == eval.checkpoint
+}
+
+/// Trains (or resumes) and evaluates one run in `<out>/<name>`, with `cores` cores. A stop
+/// signal reaches the children too (they share the process group); this waits for them.
+fn run_one(matrix: &MatrixFile, run: &MatrixRun, out: &Path, cores: usize) -> Result<()> {
+    let stop = ctxrace_common::ipc::termination_flag()?;
+    let configs = out.join("configs");
+    std::fs::create_dir_all(&configs).with_context(|| format!("creating {}", configs.display()))?;
+    let config_path = configs.join(format!("{}.toml", run.name));
+    let text = run.config.to_toml().map_err(anyhow::Error::msg)?;
+    std::fs::write(&config_path, text)
+        .with_context(|| format!("writing {}", config_path.display()))?;
+    let dir = out.join(&run.name);
+    let exe = std::env::current_exe().context("locating the ctxrace binary")?;
+    let a = matrix.train.actors;
+    let threads = if a == 0 {
+        cores
+    } else {
+        cores.saturating_sub(a).max(1)
+    };
+    let mut train = Command::new(&exe);
+    train
+        .arg("train")
+        .arg(&config_path)
+        .arg("--run-dir")
+        .arg(&dir)
+        .args(["--resume", "--threads", &threads.to_string()]);
+    if a == 0 {
+        train.arg("--inline");
+    } else {
+        train.args(["--actors", &a.to_string()]);
+    }
+    wait_for(train, &format!("training {}", run.name))?;
+    if stop.load(Ordering::Relaxed) {
+        bail!("interrupted while training {}", run.name);
+    }
+    let e = &matrix.eval;
+    let act = match e.act {
+        ActMode::Sample => "sample",
+        ActMode::Mode => "mode",
+    };
+    let mut eval = Command::new(&exe);
+    eval.arg("eval").arg(&dir).args([
+        "--grid",
+        &e.grid.to_string(),
+        "--range",
+        &e.range.to_string(),
+        "--laps",
+        &e.laps.to_string(),
+        "--seed",
+        &e.seed.to_string(),
+        "--checkpoint",
+        &e.checkpoint,
+        "--act",
+        act,
+        "--workers",
+        &cores.to_string(),
+    ]);
+    wait_for(eval, &format!("evaluating {}", run.name))?;
+    if stop.load(Ordering::Relaxed) {
+        bail!("interrupted while evaluating {}", run.name);
+    }
+    Ok(())
+}
+
+/// Runs `cmd` to its end; an error names `what` when it fails.
+fn wait_for(mut cmd: Command, what: &str) -> Result<()> {
+    let status = cmd
+        .status()
+        .with_context(|| format!("starting the process {what}"))?;
+    if !status.success() {
+        bail!("{what} failed ({status})");
+    }
+    Ok(())
+}
+
+/// Runs the `pending` runs, at most `--jobs` at once, each as `ctxrace sweep MATRIX --run NAME`
+/// in its own process group, with one progress bar for the sweep.
+fn schedule(
+    args: &SweepArgs,
+    pending: &[MatrixRun],
+    done_before: usize,
+    out: &Path,
+    cores: usize,
+) -> Result<()> {
+    let logs = out.join("logs");
+    std::fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
+    let total = (done_before + pending.len()) as u64;
+    let bar = crate::train::progress_bar(total, "runs");
+    bar.set_position(done_before as u64);
+    let stop = ctxrace_common::ipc::termination_flag()?;
+    let start = Instant::now();
+    let mut queue: std::collections::VecDeque<&MatrixRun> = pending.iter().collect();
+    let mut running: Vec<(String, Child)> = Vec::new();
+    let (mut finished, mut failed, mut signalled) = (0usize, Vec::new(), false);
+    let exe = std::env::current_exe().context("locating the ctxrace binary")?;
+    loop {
+        while running.len() < args.jobs && !stop.load(Ordering::Relaxed) {
+            let Some(run) = queue.pop_front() else { break };
+            let log = logs.join(format!("{}.log", run.name));
+            let file = std::fs::OpenOptions::new()
+                .create(true)
+                .append(true)
+                .open(&log)
+                .with_context(|| format!("opening {}", log.display()))?;
+            let child = Command::new(&exe)
+                .args(own_command(args, &run.name, out, cores))
+                .stdout(file.try_clone()?)
+                .stderr(file)
+                .stdin(Stdio::null())
+                .process_group(0)
+                .spawn()
+                .with_context(|| format!("starting the run {}", run.name))?;
+            running.push((run.name.clone(), child));
+        }
+        if running.is_empty() {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(200));
+        if stop.load(Ordering::Relaxed) && !signalled {
+            signalled = true;
+            for (_, child) in &running {
+                // SAFETY: signals the run's own process group (its pid, from process_group(0)).
+                unsafe {
+                    libc::kill(-(child.id() as libc::pid_t), libc::SIGTERM);
+                }
+            }
+        }
+        let mut still = Vec::new();
+        for (name, mut child) in running {
+            match child.try_wait()? {
+                Some(status) if status.success() => finished += 1,
+                Some(status) => failed.push(format!("{name} ({status})")),
+                None => still.push((name, child)),
+            }
+        }
+        running = still;
+        let done = done_before + finished;
+        bar.set_position(done as u64);
+        let eta = if finished > 0 {
+            let per_run = start.elapsed().as_secs_f64() / finished as f64;
+            let left = (queue.len() + running.len()) as f64 / args.jobs as f64;
+            format!(", ETA {}", hms(per_run * left))
+        } else {
+            String::new()
+        };
+        bar.set_message(format!(
+            "| {done} done, {} running, {} queued, {} failed{eta}",
+            running.len(),
+            queue.len(),
+            failed.len()
+        ));
+    }
+    bar.finish();
+    if stop.load(Ordering::Relaxed) {
+        bail!(
+            "interrupted: {} runs left; rerun the same command to continue",
+            queue.len() + failed.len()
+        );
+    }
+    if !failed.is_empty() {
+        bail!(
+            "{} runs failed: {}; see {}/<run>.log, then rerun the same command",
+            failed.len(),
+            failed.join(", "),
+            logs.display()
+        );
+    }
+    Ok(())
+}
+
+/// `secs` as `h:mm:ss`.
+fn hms(secs: f64) -> String {
+    let s = secs.max(0.0).round() as u64;
+    format!("{}:{:02}:{:02}", s / 3600, s / 60 % 60, s % 60)
+}
+
+/// The arguments of the `ctxrace` command that runs `name` of this sweep alone (`--run NAME`
+/// last).
+fn own_command(args: &SweepArgs, name: &str, out: &Path, cores: usize) -> Vec<String> {
+    let mut v = vec![
+        "sweep".to_string(),
+        args.matrix.display().to_string(),
+        "--out".into(),
+        out.display().to_string(),
+        "--cores".into(),
+        cores.to_string(),
+    ];
+    if let Some(k) = args.seeds {
+        v.extend(["--seeds".into(), k.to_string()]);
+    }
+    v.extend(["--run".into(), name.to_string()]);
+    v
+}
+
+/// The `--emit` text: one command per run, or a Slurm array script running them.
+fn emit_commands(
+    emit: Emit,
+    args: &SweepArgs,
+    runs: &[MatrixRun],
+    out: &Path,
+    cores: usize,
+) -> Result<String> {
+    let absolute =
+        |p: &Path| std::path::absolute(p).with_context(|| format!("resolving {}", p.display()));
+    let exe = std::env::current_exe().context("locating the ctxrace binary")?;
+    let sweep = SweepArgs {
+        matrix: absolute(&args.matrix)?,
+        seeds: args.seeds,
+        jobs: 1,
+        only: None,
+        out: None,
+        emit: None,
+        run: None,
+        cores: Some(cores),
+    };
+    let out = absolute(out)?;
+    // every word quoted but the run's name, which the caller passes quoted or as a variable
+    let command = |name: &str| {
+        let mut words: Vec<String> = std::iter::once(exe.display().to_string())
+            .chain(own_command(&sweep, name, &out, cores))
+            .map(|a| shell_quote(&a))
+            .collect();
+        if let Some(last) = words.last_mut() {
+            *last = name.to_string();
+        }
+        words.join(" ")
+    };
+    Ok(match emit {
+        Emit::List => runs
+            .iter()
+            .map(|r| command(&shell_quote(&r.name)) + "\n")
+            .collect(),
+        Emit::Slurm => {
+            let names: Vec<String> = runs.iter().map(|r| shell_quote(&r.name)).collect();
+            let stem = sweep
+                .matrix
+                .file_stem()
+                .and_then(|s| s.to_str())
+                .unwrap_or("sweep");
+            format!(
+                "#!/usr/bin/env bash\n\
+                 # ctxrace sweep {matrix}: {n} runs, one array task each. Submit with\n\
+                 # `sbatch <this file>`; a task resumes its run when resubmitted. When all are\n\
+                 # done, `ctxrace sweep {matrix} --out {out}` writes the report.\n\
+                 #SBATCH --job-name=ctxrace-{stem}\n\
+                 #SBATCH --array=0-{last}\n\
+                 #SBATCH --cpus-per-task={cores}\n\
+                 #SBATCH --output={logs}/%a.out\n\
+                 set -euo pipefail\n\
+                 mkdir -p {logs}\n\
+                 RUNS=({names})\n\
+                 exec {cmd}\n",
+                matrix = shell_quote(&sweep.matrix.display().to_string()),
+                n = runs.len(),
+                out = shell_quote(&out.display().to_string()),
+                last = runs.len().saturating_sub(1),
+                logs = shell_quote(&out.join("slurm").display().to_string()),
+                names = names.join(" "),
+                cmd = command("\"${RUNS[$SLURM_ARRAY_TASK_ID]}\""),
+            )
+        }
+    })
+}
+
+/// `s` quoted for a POSIX shell where it needs to be.
+fn shell_quote(s: &str) -> String {
+    if !s.is_empty()
+        && s.chars()
+            .all(|c| c.is_ascii_alphanumeric() || "-_./:=,+@%".contains(c))
+    {
+        s.to_string()
+    } else {
+        format!("'{}'", s.replace('\'', "'\\''"))
+    }
+}
+
+/// Writes `<out>/report/` over every run's evaluation.
+fn write_report(out: &Path, runs: &[MatrixRun]) -> Result<()> {
+    let exe = std::env::current_exe().context("locating the ctxrace binary")?;
+    let mut report = Command::new(exe);
+    report.arg("report");
+    for r in runs {
+        report.arg(out.join(&r.name));
+    }
+    report
+        .arg("--out")
+        .arg(out.join("report"))
+        .stdout(Stdio::null());
+    wait_for(report, "writing the report")?;
+    println!(
+        "{} runs evaluated; report in {}",
+        runs.len(),
+        out.join("report").display()
+    );
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn matrix(dir: &Path) -> MatrixFile {
+        std::fs::write(
+            dir.join("base.toml"),
+            "[race]\nrivals = 1\n[agent]\nalgo = \"sac\"\n[train]\nenv_steps = 500\n",
+        )
+        .unwrap();
+        let text = r#"base = "base.toml"
+algos = ["sac", "cmask"]
+tracks = ["f1_esp", "generated:3"]
+rivals = [1, 3]
+seeds = [10000, 10010, 10020]
+[algo.sac.train]
+train_ratio = 2.0
+"#;
+        std::fs::write(dir.join("m.toml"), text).unwrap();
+        MatrixFile::load(&dir.join("m.toml")).unwrap()
+    }
+
+    #[test]
+    fn the_matrix_expands_to_named_runs_with_their_overrides() {
+        let dir = tempfile::tempdir().unwrap();
+        let m = matrix(dir.path());
+        let runs = m.runs(dir.path(), None, &Only::default()).unwrap();
+        assert_eq!(runs.len(), 2 * 2 * 2 * 3);
+        assert_eq!(runs[0].name, "sac-f1_esp-1r-s10000");
+        assert_eq!(runs.last().unwrap().name, "cmask-generated_3-3r-s10020");
+        let names: std::collections::HashSet<_> = runs.iter().map(|r| &r.name).collect();
+        assert_eq!(names.len(), runs.len(), "names are unique");
+        for r in &runs {
+            let want = if r.config.agent.algo == AlgoKind::Sac {
+                2.0
+            } else {
+                1.0
+            };
+            assert_eq!(r.config.train.train_ratio, want, "{}", r.name);
+            assert_eq!(r.config.train.env_steps, 500);
+            assert_eq!(r.config.agent.seed(), r.config.train.seed);
+        }
+        let only: Only = "algo=cmask,rivals=3,seed=10000,seed=10020".parse().unwrap();
+        let some = m.runs(dir.path(), Some(2), &only).unwrap();
+        let names: Vec<_> = some.iter().map(|r| r.name.as_str()).collect();
+        assert_eq!(
+            names,
+            ["cmask-f1_esp-3r-s10000", "cmask-generated_3-3r-s10000"]
+        );
+        assert!("algo".parse::<Only>().unwrap_err().contains("AXIS=VALUE"));
+        assert!("colour=red"
+            .parse::<Only>()
+            .unwrap_err()
+            .contains("no axis"));
+    }
+
+    #[test]
+    fn the_shipped_paper_matrix_holds_its_80_runs() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/paper/matrix.toml");
+        let m = MatrixFile::load(&path).unwrap();
+        let runs = m
+            .runs(path.parent().unwrap(), None, &Only::default())
+            .unwrap();
+        assert_eq!(runs.len(), 80);
+        let cmask = runs
+            .iter()
+            .find(|r| r.name == "cmask-f1_gbr-3r-s10040")
+            .unwrap();
+        assert_eq!(cmask.config.train.env_steps, 100_000);
+        assert_eq!(cmask.config.train.train_ratio, 1.0);
+        let sac = runs
+            .iter()
+            .find(|r| r.name == "sac-f1_esp-1r-s10000")
+            .unwrap();
+        assert_eq!(
+            (
+                sac.config.train.train_ratio,
+                sac.config.agent.sac.batch_size
+            ),
+            (2.0, 100)
+        );
+        assert_eq!(
+            (m.eval.grid, m.eval.laps, m.eval.act),
+            (7, 50, ActMode::Sample)
+        );
+    }
+
+    #[test]
+    fn bad_matrices_name_the_key() {
+        let dir = tempfile::tempdir().unwrap();
+        let write = |text: &str| {
+            let p = dir.path().join("bad.toml");
+            std::fs::write(&p, text).unwrap();
+            format!("{:#}", MatrixFile::load(&p).unwrap_err())
+        };
+        let axes = "base = \"b.toml\"\nalgos = [\"sac\"]\ntracks = [\"f1_esp\"]\nrivals = [1]\n";
+        assert!(write(&format!("{axes}seeds = []\n")).contains("seeds lists no value"));
+        assert!(write(&format!("{axes}seeds = [0]\n[algo.sack]\n")).contains("[algo.sack]"));
+        assert!(write(&format!("{axes}seeds = [0]\ncolour = 1\n")).contains("colour"));
+        assert!(write(&format!(
+            "{axes}seeds = [0]\n[eval]\ncheckpoint = \"top\"\n"
+        ))
+        .contains("checkpoint"));
+    }
+
+    #[test]
+    fn shell_quoting_keeps_plain_words_and_quotes_the_rest() {
+        assert_eq!(shell_quote("runs/a-1r-s0"), "runs/a-1r-s0");
+        assert_eq!(shell_quote("my runs"), "'my runs'");
+        assert_eq!(shell_quote("it's"), "'it'\\''s'");
+    }
+}
