@@ -7,6 +7,7 @@ mod eval;
 mod figures;
 mod launcher;
 mod lock;
+mod paper;
 mod plot;
 mod race_cmd;
 mod render;

@@ -8,6 +8,8 @@
 //! - Table II: PG, OT and A2A in and out of distribution; the best agent per column is marked
 //!   (highest PG and OT, lowest A2A). Baselines are reference rows and never marked.
 //! - Table III: change from in- to out-of-distribution, `100 (out − in) / |in|`, for PG and A2A.
+//! - The paper's own values beside ours, with 95% bootstrap intervals over the seeds
+//!   ([`crate::paper`]).
 
 use crate::results::{
     in_distribution, read_csv, read_json, summarise, ContextSummary, EpisodeRecord, EvalMeta,
@@ -52,6 +54,7 @@ pub fn run(args: ReportArgs) -> Result<()> {
         ("table1.csv", table1_csv(&groups)),
         ("table2.csv", table2_csv(&groups)),
         ("table3.csv", table3_csv(&groups)),
+        ("paper.csv", crate::paper::comparison_csv(&groups)),
     ];
     for (name, table) in &tables {
         table.write_csv(&args.out.join(name))?;
@@ -674,6 +677,15 @@ fn markdown(groups: &[Group], figures: &[PathBuf], out: &Path) -> String {
         md += &format!("\n### {}\n\n", section[0].section());
         md += &table3_md(section).markdown();
     }
+    let paper = crate::paper::comparison_md(groups);
+    if !paper.rows.is_empty() {
+        md += "\n## Beside the paper\n\nOur seed mean ± standard deviation with its 95% bootstrap \
+               interval over seeds, and the paper's value with our difference from it (Tables I \
+               and II); ✗ where our interval (of two or more seeds) excludes the paper's value.\n\n";
+        md += &paper.markdown();
+        md += "\n";
+        md += &crate::paper::deltas_md(groups).markdown();
+    }
     let images: Vec<String> = figures
         .iter()
         .map(|f| f.strip_prefix(out).unwrap_or(f).display().to_string())
@@ -815,6 +827,32 @@ mod tests {
         let one = sac.stat(Split::In, Metric::A2a).unwrap();
         assert_eq!((one.mean, one.std, one.n), (30.0, 0.0, 1));
         assert_eq!(Stat::of(&[]), None);
+    }
+
+    #[test]
+    fn the_papers_values_stand_beside_ours_with_bootstrap_intervals() {
+        // cMask on f1_esp against one rival: the paper has PG In 0.4300, A2A In 26.6444
+        let groups = group(vec![
+            run("cmask", 0, [0.60, 0.2, 26.0], [0.5, 0.2, 23.0]),
+            run("cmask", 1, [0.62, 0.2, 27.0], [0.5, 0.2, 24.0]),
+            run("cmask", 2, [0.61, 0.2, 26.5], [0.5, 0.2, 23.5]),
+        ]);
+        let g = &groups[0];
+        let pg = crate::paper::compare(g, Split::In, Metric::Progress).unwrap();
+        assert_eq!((pg.paper, pg.seeds), (0.43, 3));
+        assert!(
+            pg.ci.0 >= 0.60 && pg.ci.1 <= 0.62 && pg.excludes_paper(),
+            "{pg:?}"
+        );
+        let a2a = crate::paper::compare(g, Split::In, Metric::A2a).unwrap();
+        assert!(!a2a.excludes_paper(), "{a2a:?}");
+        let md = markdown(&groups, &[], Path::new("."));
+        assert!(md.contains("## Beside the paper"), "{md}");
+        assert!(md.contains("| 0.4300 (+0.1800) ✗ |"), "{md}");
+        // Table III beside the paper's: ours, then the paper's ΔPG
+        assert!(md.contains("| -2.9070 |"), "{md}");
+        let csv = crate::paper::comparison_csv(&groups);
+        assert_eq!(csv.rows.len(), 6, "three metrics, two splits");
     }
 
     #[test]

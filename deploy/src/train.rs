@@ -396,7 +396,7 @@ mod tests {
         let mut cfg = ExperimentConfig::default();
         cfg.race.rivals = 3;
         cfg.train.seed = 4;
-        assert_eq!(run_name(&cfg), "cmask-f1_esp-3r-s4");
+        assert_eq!(run_name(&cfg), "dreamerv3-f1_esp-3r-s4");
         cfg.track = "generated:7".into();
         cfg.agent.algo = AlgoKind::Sac;
         cfg.race.rivals = 1;
