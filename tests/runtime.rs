@@ -146,6 +146,19 @@ fn check_clean_run(run: &Path, actors: usize) {
     let best: toml::Table = toml::from_str(&best).unwrap();
     assert!(best["episodes"].as_integer().unwrap() >= 1, "{best}");
     assert!(run.join("checkpoints/best/policy.safetensors").is_file());
+    // TensorBoard event files of the learner and the launcher
+    let tags: std::collections::HashSet<String> = ctxrace_learner::tensorboard::event_files(run)
+        .iter()
+        .flat_map(|f| ctxrace_learner::tensorboard::read_scalars(f).unwrap())
+        .map(|r| r.tag)
+        .collect();
+    for tag in [
+        "episode/progress",
+        "episode/overtakes",
+        "grad_steps_per_second",
+    ] {
+        assert!(tags.contains(tag), "no {tag} in {tags:?}");
+    }
     // every process logs into the run directory (at RUST_LOG=warn a clean run's logs are empty)
     for role in ["replay", "learner", &format!("actor-{}", actors - 1)] {
         assert!(

@@ -12,7 +12,7 @@
 //! the learner has taken its gradient steps (it exits by itself; the replay is stopped).
 
 use crate::results::TrainingEpisode;
-use crate::train::{progress_bar, EpisodeLog};
+use crate::train::{progress_bar, EpisodeLog, RateMeter};
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use ctxrace_common::ipc::{
@@ -302,7 +302,8 @@ fn supervise(
 ) -> Result<()> {
     let mut telemetry = TelemetrySubscriber::new(transport)?;
     let mut weights = WeightsReceiver::new(transport)?;
-    let mut episodes = EpisodeLog::open(dir)?;
+    let mut episodes = EpisodeLog::open(dir, "launcher")?;
+    let mut meter = RateMeter::default();
     let bar = progress_bar(cfg.train.env_steps, "env steps");
     let start = Instant::now();
     let mut p = Progress {
@@ -409,6 +410,9 @@ fn supervise(
             bar.set_position(p.env_steps.min(cfg.train.env_steps));
             bar.set_message(p.message(start));
             tick = Instant::now();
+            if let Some(rates) = meter.read(p.env_steps, p.grad_steps, (p.fill, p.capacity)) {
+                episodes.rates(p.env_steps, &rates)?;
+            }
         }
     }
 }

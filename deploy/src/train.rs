@@ -20,6 +20,7 @@ use ctxrace_common::{AlgoKind, ExperimentConfig, Policy};
 use ctxrace_learner::best::{write_best, ReturnTracker};
 use ctxrace_learner::checkpoint::write_checkpoint;
 use ctxrace_learner::runlog::MetricsLog;
+use ctxrace_learner::tensorboard::EventWriter;
 use ctxrace_learner::Algorithm;
 use ctxrace_replay::ReplayBuffer;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -219,14 +220,16 @@ pub fn run(args: TrainArgs) -> Result<()> {
     run_inline(&cfg, &dir, RaceEnv::new(track, cfg.race.clone())?)
 }
 
-/// Appends training episodes to `episodes.csv`.
+/// Appends training episodes to `episodes.csv` and, with the run's rates, to a TensorBoard
+/// event file (scalars `episode/*` and `rate/*`, `replay/*` at the run's env steps).
 pub struct EpisodeLog {
     writer: csv::Writer<std::fs::File>,
+    events: EventWriter,
 }
 
 impl EpisodeLog {
-    /// Opens (appending) `<run_dir>/episodes.csv`.
-    pub fn open(run_dir: &Path) -> Result<Self> {
+    /// Opens (appending) `<run_dir>/episodes.csv`, with a new event file for `role`.
+    pub fn open(run_dir: &Path, role: &str) -> Result<Self> {
         let path = run_dir.join("episodes.csv");
         let fresh = std::fs::metadata(&path).map_or(true, |m| m.len() == 0);
         let file = std::fs::OpenOptions::new()
@@ -238,13 +241,87 @@ impl EpisodeLog {
             writer: csv::WriterBuilder::new()
                 .has_headers(fresh)
                 .from_writer(file),
+            events: EventWriter::create(run_dir, role)?,
         })
     }
 
     /// Appends one episode.
     pub fn write(&mut self, episode: &TrainingEpisode) -> Result<()> {
         self.writer.serialize(episode)?;
-        Ok(self.writer.flush()?)
+        self.writer.flush()?;
+        let flag = |b: bool| f64::from(u8::from(b));
+        self.events.scalars(
+            episode.env_steps,
+            [
+                ("episode/progress", episode.progress),
+                ("episode/overtakes", f64::from(episode.overtakes)),
+                ("episode/a2a", flag(episode.a2a)),
+                ("episode/wall_crash", flag(episode.wall_crash)),
+                ("episode/return", episode.episode_return),
+                ("episode/steps", episode.steps as f64),
+            ],
+        )?;
+        self.events.flush()
+    }
+
+    /// Records the run's rates and replay fill at `env_steps`.
+    pub fn rates(&mut self, env_steps: u64, rates: &Rates) -> Result<()> {
+        self.events.scalars(
+            env_steps,
+            [
+                ("rate/env_steps_per_second", rates.env_steps_per_second),
+                ("rate/grad_steps_per_second", rates.grad_steps_per_second),
+                ("replay/steps", rates.replay_steps as f64),
+                ("replay/fill", rates.replay_fill),
+            ],
+        )?;
+        self.events.flush()
+    }
+}
+
+/// What [`EpisodeLog::rates`] records.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Rates {
+    /// Environment steps per second since the last record.
+    pub env_steps_per_second: f64,
+    /// Gradient steps per second since the last record.
+    pub grad_steps_per_second: f64,
+    /// Steps the replay holds.
+    pub replay_steps: u64,
+    /// Its fill, `[0, 1]`.
+    pub replay_fill: f64,
+}
+
+/// Seconds between two [`Rates`] records.
+pub const RATES_EVERY: std::time::Duration = std::time::Duration::from_secs(5);
+
+/// Turns counters into [`Rates`] over the time since the previous reading; the first reading
+/// only sets the baseline (a resumed run's counters do not start at zero).
+#[derive(Clone, Debug, Default)]
+pub struct RateMeter {
+    last: Option<(Instant, u64, u64)>,
+}
+
+impl RateMeter {
+    /// The rates since the last reading when [`RATES_EVERY`] has passed since it, else `None`.
+    pub fn read(&mut self, env_steps: u64, grad_steps: u64, replay: (u64, u64)) -> Option<Rates> {
+        let Some((at, env_before, grad_before)) = self.last else {
+            self.last = Some((Instant::now(), env_steps, grad_steps));
+            return None;
+        };
+        let secs = at.elapsed().as_secs_f64();
+        if secs < RATES_EVERY.as_secs_f64() {
+            return None;
+        }
+        let per_second = |now: u64, before: u64| now.saturating_sub(before) as f64 / secs;
+        let rates = Rates {
+            env_steps_per_second: per_second(env_steps, env_before),
+            grad_steps_per_second: per_second(grad_steps, grad_before),
+            replay_steps: replay.0,
+            replay_fill: replay.0 as f64 / replay.1.max(1) as f64,
+        };
+        self.last = Some((Instant::now(), env_steps, grad_steps));
+        Some(rates)
     }
 }
 
@@ -303,8 +380,9 @@ pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()
     let mut buffer = ReplayBuffer::new(cfg.replay.capacity, 1, frame_dim, ACT_DIM);
     let mut rng = ChaCha8Rng::seed_from_u64(t.seed ^ 0x7265_706c_6179);
     let spec = cfg.agent.batch_spec();
-    let mut episodes = EpisodeLog::open(dir)?;
-    let mut metrics_log = MetricsLog::open(dir)?;
+    let mut episodes = EpisodeLog::open(dir, "inline")?;
+    let mut metrics_log = MetricsLog::open(dir, "inline-learner")?;
+    let mut meter = RateMeter::default();
     let bar = progress_bar(t.env_steps, "env steps");
     let start = Instant::now();
     let (mut debt, mut stale_policy, mut recent) = (0.0, false, Vec::<f64>::new());
@@ -356,6 +434,10 @@ pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()
         }
         if collector.decisions().is_multiple_of(50) {
             bar.set_message(status(algo.as_ref(), &recent, collector.episodes(), &start));
+            let held = (buffer.len() as u64, buffer.capacity() as u64);
+            if let Some(rates) = meter.read(collector.decisions(), algo.steps(), held) {
+                episodes.rates(collector.decisions(), &rates)?;
+            }
         }
     }
     let last = write_checkpoint(dir, algo.as_ref(), &cfg.agent, &tracker)?;

@@ -457,6 +457,7 @@ env_steps = 300
 prefill = 200
 train_ratio = 0.1
 checkpoint_every = 5
+log_every = 2
 threads = 1
 "#;
 
@@ -502,6 +503,21 @@ fn inline_training_then_evaluation_report_and_race_with_the_policy() {
         for file in files {
             assert!(c.join(file).exists(), "{} has no {file}", c.display());
         }
+    }
+    // TensorBoard event files: the learner's losses and the training episodes
+    let tags: std::collections::HashSet<String> = ctxrace_learner::tensorboard::event_files(&run)
+        .iter()
+        .flat_map(|f| ctxrace_learner::tensorboard::read_scalars(f).unwrap())
+        .map(|r| r.tag)
+        .collect();
+    for tag in [
+        "episode/progress",
+        "episode/return",
+        "episode/a2a",
+        "model/loss",
+        "mask/q_loss",
+    ] {
+        assert!(tags.contains(tag), "no {tag} in {tags:?}");
     }
     // a second run into the same directory is refused
     fails_with(

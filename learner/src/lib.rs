@@ -9,6 +9,7 @@ pub mod process;
 pub mod returns;
 pub mod runlog;
 pub mod sac;
+pub mod tensorboard;
 
 pub use algorithm::{Algorithm, Batch, Metrics};
 pub use dreamer::Dreamer;

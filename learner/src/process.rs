@@ -66,7 +66,7 @@ pub fn run(opts: LearnerOptions) -> Result<u64> {
     weights.publish(algo.steps(), &algo.policy_weights()?)?;
     let mut replay = ReplayClient::new(&transport, opts.frame_dim, ACT_DIM, HANDSHAKE)?;
     let mut episodes = EpisodeSubscriber::new(&transport)?;
-    let mut log = MetricsLog::open(&opts.run_dir)?;
+    let mut log = MetricsLog::open(&opts.run_dir, "learner")?;
     let spec = cfg.agent.batch_spec();
     let target = target_steps(cfg);
     let start = Instant::now();

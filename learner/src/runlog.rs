@@ -1,22 +1,25 @@
 //! The training-metrics log of a run directory: one row per logging interval in
-//! `metrics.jsonl` (every key) and `metrics.csv` (the keys of the first row, in order).
+//! `metrics.jsonl` (every key), `metrics.csv` (the keys of the first row, in order) and a
+//! TensorBoard event file (every key as a scalar at the row's `grad_steps`).
 
+use crate::tensorboard::EventWriter;
 use crate::Metrics;
 use anyhow::{Context as _, Result};
 use std::fs::{File, OpenOptions};
 use std::io::Write;
 use std::path::Path;
 
-/// Appends training-interval rows to `metrics.jsonl` and `metrics.csv`.
+/// Appends training-interval rows to `metrics.jsonl`, `metrics.csv` and an event file.
 pub struct MetricsLog {
     jsonl: File,
     csv: File,
     columns: Option<Vec<String>>,
+    events: EventWriter,
 }
 
 impl MetricsLog {
-    /// Opens (appending) the logs in `run_dir`.
-    pub fn open(run_dir: &Path) -> Result<Self> {
+    /// Opens (appending) the logs in `run_dir`, with a new event file for the process `role`.
+    pub fn open(run_dir: &Path, role: &str) -> Result<Self> {
         let open = |name: &str| {
             let path = run_dir.join(name);
             OpenOptions::new()
@@ -35,6 +38,7 @@ impl MetricsLog {
             jsonl: open("metrics.jsonl")?,
             csv: open("metrics.csv")?,
             columns,
+            events: EventWriter::create(run_dir, role)?,
         })
     }
 
@@ -55,7 +59,10 @@ impl MetricsLog {
             .map(|k| row.get(k).map_or(String::new(), |v| v.to_string()))
             .collect();
         writeln!(self.csv, "{}", cells.join(","))?;
-        Ok(())
+        let step = row.get("grad_steps").copied().unwrap_or(0.0) as u64;
+        self.events
+            .scalars(step, row.iter().map(|(k, v)| (k.as_str(), *v)))?;
+        self.events.flush()
     }
 }
 
@@ -67,11 +74,11 @@ mod tests {
     fn rows_keep_the_first_header_across_reopening() {
         let dir = tempfile::tempdir().unwrap();
         let row = |a: f64| Metrics::from([("a".into(), a), ("b".into(), 2.0)]);
-        MetricsLog::open(dir.path())
+        MetricsLog::open(dir.path(), "a")
             .unwrap()
             .write(&row(1.0))
             .unwrap();
-        let mut log = MetricsLog::open(dir.path()).unwrap();
+        let mut log = MetricsLog::open(dir.path(), "b").unwrap();
         log.write(&Metrics::from([("b".into(), 3.0), ("c".into(), 4.0)]))
             .unwrap();
         let csv = std::fs::read_to_string(dir.path().join("metrics.csv")).unwrap();
@@ -79,5 +86,9 @@ mod tests {
         let jsonl = std::fs::read_to_string(dir.path().join("metrics.jsonl")).unwrap();
         assert_eq!(jsonl.lines().count(), 2);
         assert!(jsonl.contains("\"c\":4.0"));
+        let events = crate::tensorboard::event_files(dir.path());
+        assert_eq!(events.len(), 2);
+        let scalars = crate::tensorboard::read_scalars(&events[1]).unwrap();
+        assert_eq!(scalars.len(), 2, "{scalars:?}");
     }
 }
