@@ -5,6 +5,7 @@ mod bench_learner;
 mod driver;
 mod eval;
 mod figures;
+mod first_look;
 mod launcher;
 mod lock;
 mod paper;

@@ -191,7 +191,8 @@ pub fn run(args: TrainArgs) -> Result<()> {
         return Ok(());
     }
     if !args.inline {
-        return crate::launcher::run(&cfg, &dir, args.actors, &args.tracks);
+        crate::launcher::run(&cfg, &dir, args.actors, &args.tracks)?;
+        return finish(&args, &cfg, &dir);
     }
     if resumed {
         // the inline trainer keeps its replay in memory: an interrupted run starts over
@@ -217,7 +218,16 @@ pub fn run(args: TrainArgs) -> Result<()> {
         eprintln!("{}: the inline run starts over", dir.display());
     }
     let track = Arc::new(args.tracks.load(&cfg.track, &cfg.race)?);
-    run_inline(&cfg, &dir, RaceEnv::new(track, cfg.race.clone())?)
+    run_inline(&cfg, &dir, RaceEnv::new(track, cfg.race.clone())?)?;
+    finish(&args, &cfg, &dir)
+}
+
+/// After a complete run, unless it was resumed (as sweeps do): a first look at what it learned.
+fn finish(args: &TrainArgs, cfg: &ExperimentConfig, dir: &Path) -> Result<()> {
+    if args.resume || !is_trained(dir, cfg) {
+        return Ok(());
+    }
+    crate::first_look::show(cfg, dir, &args.tracks)
 }
 
 /// Appends training episodes to `episodes.csv` and, with the run's rates, to a TensorBoard
@@ -367,8 +377,8 @@ pub fn progress_bar(len: u64, unit: &str) -> ProgressBar {
 }
 
 /// The single-process trainer: one collector, an in-memory replay buffer and the learner in
-/// one loop. After `prefill` random steps it takes `train_ratio` gradient steps per env step
-/// (carrying fractions over), reloads the acting policy at the first episode boundary after
+/// one loop. After `prefill` random steps it keeps the gradient steps at `train_ratio` per env
+/// step (as many in all as [`ctxrace_learner::process::target_steps`]), reloads the acting policy at the first episode boundary after
 /// every `policy_every` gradient steps, logs and checkpoints.
 pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()> {
     let t = &cfg.train;
@@ -385,7 +395,7 @@ pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()
     let mut meter = RateMeter::default();
     let bar = progress_bar(t.env_steps, "env steps");
     let start = Instant::now();
-    let (mut debt, mut stale_policy, mut recent) = (0.0, false, Vec::<f64>::new());
+    let (mut stale_policy, mut recent) = (false, Vec::<f64>::new());
     let mut payload = Vec::new();
     let mut tracker = ReturnTracker::default();
     while collector.decisions() < t.env_steps {
@@ -407,14 +417,12 @@ pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()
             }
         }
         if learning {
-            debt += t.train_ratio;
-            while debt >= 1.0 {
+            let due = ((collector.decisions() - t.prefill) as f64 * t.train_ratio).round() as u64;
+            while algo.steps() < due {
                 let Some(batch) = sample(&buffer, spec, &mut rng) else {
-                    debt = debt.min(1.0);
                     break;
                 };
                 let mut m = algo.train_step(&batch)?;
-                debt -= 1.0;
                 let steps = algo.steps();
                 stale_policy |= steps.is_multiple_of(t.policy_every);
                 if steps.is_multiple_of(t.log_every) {

@@ -1,0 +1,101 @@
+//! What `ctxrace train` shows when a run is complete: a short evaluation of the trained agent on
+//! a 3 × 3 grid of contexts beside the random and pure-pursuit egos, a picture of one of its
+//! races, and the commands that go further (the full protocol, the report, TensorBoard).
+
+use crate::driver::{ActMode, CheckpointChoice, EgoSpec, TrainedAgent};
+use crate::render::{render_race, Frame};
+use crate::TrackArgs;
+use anyhow::Result;
+use ctxrace_actor::baseline::BaselineKind;
+use ctxrace_actor::RaceEnv;
+use ctxrace_common::{Context, ExperimentConfig};
+use std::path::Path;
+use std::sync::Arc;
+
+/// Laps per context of the short evaluation.
+const LAPS: usize = 2;
+
+/// The metrics of one ego over the short evaluation.
+#[derive(Default)]
+struct Tally {
+    progress_in: Vec<f64>,
+    progress_out: Vec<f64>,
+    overtakes: f64,
+    a2a: usize,
+    walls: usize,
+    episodes: usize,
+}
+
+/// Prints the short evaluation of the run in `dir` and writes `<dir>/race.png`.
+pub fn show(cfg: &ExperimentConfig, dir: &Path, tracks: &TrackArgs) -> Result<()> {
+    let track = Arc::new(tracks.load(&cfg.track, &cfg.race)?);
+    let mut env = RaceEnv::new(track.clone(), cfg.race.clone())?;
+    let choice = if ctxrace_learner::best::best_checkpoint(dir).is_some() {
+        CheckpointChoice::Best
+    } else {
+        CheckpointChoice::Latest
+    };
+    let agent = EgoSpec::Trained(Box::new(TrainedAgent::load(dir, choice)?));
+    let contexts = Context::grid(3, 0.3);
+    println!(
+        "\n{} ({choice} checkpoint) against {} rival(s) on {}, {} contexts x {LAPS} laps:",
+        agent.name(),
+        cfg.race.rivals,
+        cfg.track,
+        contexts.len()
+    );
+    println!(
+        "  {:<14} {:>9} {:>9} {:>7} {:>8} {:>6}",
+        "ego", "PG in", "PG out", "OT", "A2A/50", "wall"
+    );
+    let egos = [
+        agent.clone(),
+        EgoSpec::Baseline(BaselineKind::PurePursuit),
+        EgoSpec::Baseline(BaselineKind::Random),
+    ];
+    for ego in &egos {
+        let mut driver = ego.driver(&env, ActMode::Sample)?;
+        let mut t = Tally::default();
+        for (i, &context) in contexts.iter().enumerate() {
+            for lap in 0..LAPS {
+                driver.drive_episode(&mut env, context, (i * LAPS + lap) as u64, None)?;
+                let m = env.metrics();
+                if context.within(cfg.train.context_range) {
+                    t.progress_in.push(m.progress);
+                } else {
+                    t.progress_out.push(m.progress);
+                }
+                t.overtakes += f64::from(m.overtakes);
+                t.a2a += usize::from(m.a2a);
+                t.walls += usize::from(m.wall_crash);
+                t.episodes += 1;
+            }
+        }
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+        let n = t.episodes as f64;
+        println!(
+            "  {:<14} {:>9.3} {:>9.3} {:>+7.2} {:>8.1} {:>5.0}%",
+            ego.name(),
+            mean(&t.progress_in),
+            mean(&t.progress_out),
+            t.overtakes / n,
+            t.a2a as f64 / n * 50.0,
+            100.0 * t.walls as f64 / n
+        );
+    }
+    let mut driver = agent.driver(&env, ActMode::Sample)?;
+    let mut frames: Vec<Frame> = Vec::new();
+    driver.drive_episode(&mut env, Context::default(), 0, Some(&mut frames))?;
+    let picture = dir.join("race.png");
+    render_race(&picture, &track, &frames)?;
+    let d = dir.display();
+    println!(
+        "\nrun: {d} (a race at c = (0, 0): {})\nnext:\n  \
+         ctxrace eval {d}                 # the paper's protocol: 7 x 7 contexts, 50 laps each\n  \
+         ctxrace report {d} --out {d}/report\n  \
+         tensorboard --logdir {}           # training curves",
+        picture.display(),
+        dir.parent().unwrap_or(Path::new(".")).display()
+    );
+    Ok(())
+}
