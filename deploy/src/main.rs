@@ -2,6 +2,7 @@
 
 mod bench;
 mod bench_learner;
+mod download;
 mod driver;
 mod eval;
 mod figures;

@@ -33,6 +33,22 @@ pub enum TrackCommand {
         #[command(flatten)]
         tracks: TrackArgs,
     },
+    /// Fetch tracks from their public repositories (the paper's for f1_*, the F1TENTH
+    /// racetracks' for the others) into the per-user tracks folder, where names resolve too.
+    Download {
+        /// Track names, e.g. f1_esp f1_gbr Monza.
+        #[arg(required = true)]
+        names: Vec<String>,
+        /// Fetch from this base URL instead (a mirror with the repositories' layout).
+        #[arg(long)]
+        from: Option<String>,
+        /// Download into this folder [default: $CTXRACE_DATA_DIR/tracks, else
+        /// $XDG_DATA_HOME/ctxrace/tracks, else ~/.local/share/ctxrace/tracks].
+        #[arg(long)]
+        into: Option<PathBuf>,
+        #[command(flatten)]
+        tracks: TrackArgs,
+    },
 }
 
 /// Minimum, mean and maximum of a series.
@@ -129,6 +145,12 @@ pub fn run(cmd: TrackCommand) -> Result<()> {
                 );
             }
         }
+        TrackCommand::Download {
+            names,
+            from,
+            into,
+            tracks,
+        } => crate::download::run(&names, from.as_deref(), into.as_deref(), &tracks)?,
         TrackCommand::Raceline { track, out, tracks } => {
             let t = tracks.load(&track, &RaceConfig::default())?;
             let file = std::fs::File::create(&out)

@@ -209,7 +209,7 @@ fn bad_input_gives_clear_errors() {
             "--tracks-dir",
             d.to_str().unwrap(),
         ],
-        "found there: oval",
+        "tracks found: oval",
     );
     // missing image named by the yaml
     fails_with(
@@ -750,4 +750,125 @@ fn an_interrupted_sweep_resumes_its_runs_from_their_checkpoints() {
     assert!(run.join("eval/contexts.csv").is_file());
     let learner = std::fs::read_to_string(run.join("logs/learner.log")).unwrap();
     assert!(learner.contains("learner resumed from"), "{learner}");
+}
+
+/// Serves the files below `root` over HTTP on a loopback port (404 for the rest); returns the
+/// base URL. The server thread lives as long as the test process.
+fn serve(root: PathBuf) -> String {
+    use std::io::{BufRead, BufReader, Write as _};
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!("http://{}", listener.local_addr().unwrap());
+    std::thread::spawn(move || {
+        for stream in listener.incoming().flatten() {
+            let mut reader = BufReader::new(stream.try_clone().unwrap());
+            let mut line = String::new();
+            reader.read_line(&mut line).ok();
+            let path = line.split_whitespace().nth(1).unwrap_or("/").to_string();
+            let mut header = String::new();
+            while reader.read_line(&mut header).is_ok_and(|n| n > 2) {
+                header.clear();
+            }
+            let file = root.join(path.trim_start_matches('/'));
+            let mut out = stream;
+            match std::fs::read(&file) {
+                Ok(body) if !path.contains("..") => {
+                    write!(
+                        out,
+                        "HTTP/1.1 200 OK\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
+                        body.len()
+                    )
+                    .ok();
+                    out.write_all(&body).ok();
+                }
+                _ => {
+                    write!(
+                        out,
+                        "HTTP/1.1 404 Not Found\r\nContent-Length: 0\r\nConnection: close\r\n\r\n"
+                    )
+                    .ok();
+                }
+            }
+        }
+    });
+    url
+}
+
+#[test]
+fn tracks_download_from_both_repository_layouts_and_then_resolve_by_name() {
+    let shared = shared("tracks");
+    let mirror = tempfile::tempdir().unwrap();
+    // the paper's repository: maps/NAME.*; the F1TENTH racetracks: NAME/NAME_map.*
+    let maps = mirror.path().join("maps");
+    std::fs::create_dir_all(&maps).unwrap();
+    for f in [
+        "f1_gbr.yaml",
+        "f1_gbr.png",
+        "f1_gbr_centerline.csv",
+        "f1_gbr_raceline.csv",
+    ] {
+        std::fs::copy(shared.join(f), maps.join(f)).unwrap();
+    }
+    let monza = mirror.path().join("Monza");
+    std::fs::create_dir_all(&monza).unwrap();
+    for f in ["Monza_map.yaml", "Monza_map.png", "Monza_centerline.csv"] {
+        std::fs::copy(shared.join("extra").join(f), monza.join(f)).unwrap();
+    }
+    let url = serve(mirror.path().to_path_buf());
+    let data = tempfile::tempdir().unwrap();
+    let run = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_ctxrace"))
+            .args(args)
+            .env_remove("CTXRACE_TRACKS_DIR")
+            .env("CTXRACE_DATA_DIR", data.path())
+            .output()
+            .unwrap()
+    };
+    let o = run(&["track", "download", "f1_gbr", "Monza", "--from", &url]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("f1_gbr: f1_gbr.png, f1_gbr.yaml"),
+        "{}",
+        stdout(&o)
+    );
+    assert!(data.path().join("tracks/Monza/Monza_map.png").is_file());
+    // names now resolve in the per-user folder, whatever the tracks folder
+    let empty = tempfile::tempdir().unwrap();
+    let o = run(&[
+        "track",
+        "info",
+        "Monza",
+        "--tracks-dir",
+        empty.path().to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("track            Monza"),
+        "{}",
+        stdout(&o)
+    );
+    // unknown names, bad names and no network are clear errors
+    let o = run(&["track", "download", "Atlantis", "--from", &url]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("Atlantis/Atlantis_map.yaml does not exist"),
+        "{}",
+        stderr(&o)
+    );
+    let o = run(&["track", "download", "../etc"]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("not a track name"),
+        "{}",
+        stderr(&o)
+    );
+    let o = run(&[
+        "track",
+        "download",
+        "f1_esp",
+        "--from",
+        "http://127.0.0.1:1",
+    ]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("check the network connection"),
+        "{}",
+        stderr(&o)
+    );
 }

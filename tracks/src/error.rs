@@ -42,7 +42,7 @@ pub enum TrackError {
         needed: usize,
     },
     /// A track name did not resolve to any file.
-    #[error("unknown track '{name}' in {dir}; tracks found there: {found}. Pass --tracks-dir (or set CTXRACE_TRACKS_DIR), a path to a map yaml, or generated:SEED")]
+    #[error("unknown track '{name}' in {dir} and the per-user tracks folder; tracks found: {found}. Fetch it with `ctxrace track download {name}`, or pass --tracks-dir (or set CTXRACE_TRACKS_DIR), a path to a map yaml, or generated:SEED")]
     UnknownTrack {
         /// The name asked for.
         name: String,

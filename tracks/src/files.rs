@@ -15,6 +15,23 @@ use std::path::{Path, PathBuf};
 
 /// Environment variable naming the default tracks directory.
 pub const TRACKS_DIR_ENV: &str = "CTXRACE_TRACKS_DIR";
+/// Environment variable naming ctxrace's per-user data directory.
+pub const DATA_DIR_ENV: &str = "CTXRACE_DATA_DIR";
+
+/// The per-user folder that `ctxrace track download` fills and track names also resolve in:
+/// `$CTXRACE_DATA_DIR/tracks`, else `$XDG_DATA_HOME/ctxrace/tracks`, else
+/// `~/.local/share/ctxrace/tracks`; `None` without a home directory.
+pub fn user_tracks_dir() -> Option<PathBuf> {
+    let var = |name: &str| {
+        std::env::var_os(name)
+            .filter(|v| !v.is_empty())
+            .map(PathBuf::from)
+    };
+    let data = var(DATA_DIR_ENV)
+        .or_else(|| var("XDG_DATA_HOME").map(|d| d.join("ctxrace")))
+        .or_else(|| var("HOME").map(|h| h.join(".local/share/ctxrace")))?;
+    Some(data.join("tracks"))
+}
 
 /// The files of one track on disk.
 #[derive(Clone, Debug, PartialEq)]
@@ -46,7 +63,8 @@ impl TrackFiles {
         }
     }
 
-    /// Resolves a track name in `dir` (and its immediate subfolders), or a path to a map yaml.
+    /// Resolves a track name in `dir` (and its immediate subfolders), then in
+    /// [`user_tracks_dir`], or a path to a map yaml.
     pub fn resolve(spec: &str, dir: &Path) -> Result<Self> {
         let as_path = Path::new(spec);
         if as_path
@@ -61,7 +79,10 @@ impl TrackFiles {
                 source: std::io::Error::new(std::io::ErrorKind::NotFound, "no such map yaml"),
             });
         }
-        let found = list_tracks(dir);
+        let mut found = list_tracks(dir);
+        if let Some(user) = user_tracks_dir().filter(|u| u != dir) {
+            found.extend(list_tracks(&user));
+        }
         found
             .iter()
             .find(|t| t.name == spec)
@@ -290,7 +311,7 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(
-            err.contains("unknown track 'b'") && err.contains("found there: a."),
+            err.contains("unknown track 'b'") && err.contains("tracks found: a"),
             "{err}"
         );
     }
