@@ -736,6 +736,16 @@ train_ratio = 2.0
     }
 
     #[test]
+    fn the_shipped_reduced_matrix_keeps_the_protocol() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/paper/reduced.toml");
+        let m = MatrixFile::load(&path).unwrap();
+        let runs = m.runs(path.parent().unwrap(), None, &Only::default()).unwrap();
+        assert_eq!(runs.len(), 8);
+        assert_eq!((m.eval.grid, m.eval.range, m.eval.laps), (7, 0.3, 50));
+        assert!(runs.iter().all(|r| r.config.train.context_range == 0.15));
+    }
+
+    #[test]
     fn bad_matrices_name_the_key() {
         let dir = tempfile::tempdir().unwrap();
         let write = |text: &str| {
