@@ -119,11 +119,7 @@ impl ExperimentConfig {
     /// Gradient steps per env step as the replay's samples per inserted step: each gradient
     /// step samples a whole batch (`B·T` steps of a sequence batch, `B` transitions).
     pub fn samples_per_insert(&self) -> f64 {
-        let items = match self.agent.batch_spec() {
-            crate::ipc::BatchSpec::Sequence { batch, length } => batch * length,
-            crate::ipc::BatchSpec::Transition { batch, .. } => batch,
-        };
-        self.train.train_ratio * items as f64
+        self.train.train_ratio * self.agent.batch_spec().steps() as f64
     }
 
     /// Checks every table; the message names the key.
@@ -145,6 +141,52 @@ impl ExperimentConfig {
         }
         if t.policy_every == 0 || t.log_every == 0 || t.threads == Some(0) {
             return Err("[train] policy_every, log_every and threads must be positive".into());
+        }
+        self.validate_replay()
+    }
+
+    /// Checks that the replay can serve the agent's batches: they fit its buffer and its
+    /// payload limit, and the rate limiter's window holds one.
+    fn validate_replay(&self) -> Result<(), String> {
+        let r = &self.replay;
+        let spec = self.agent.batch_spec();
+        let (window, floats) = match spec {
+            crate::ipc::BatchSpec::Sequence { batch, length } => (
+                length,
+                crate::ipc::wire::sequence_floats(batch, length, self.race.lidar.beams, 2),
+            ),
+            crate::ipc::BatchSpec::Transition { batch, frames } => (
+                2,
+                crate::ipc::wire::transition_floats(batch, frames, self.race.lidar.beams, 2),
+            ),
+        };
+        if r.capacity < window {
+            return Err(format!(
+                "[replay] capacity = {} cannot hold one sampled window of {window} steps; raise it",
+                r.capacity
+            ));
+        }
+        match floats {
+            Some(n) if n <= r.max_batch_floats => {}
+            _ => {
+                return Err(format!(
+                    "[replay] max_batch_floats = {} is smaller than one batch of the agent \
+                     ({floats:?} floats for {spec:?} of {} beams); raise it or lower the batch",
+                    r.max_batch_floats, self.race.lidar.beams
+                ))
+            }
+        }
+        // the limiter samples n = B·T steps only while inserts·spi − samples stays within
+        // ±spi·error_buffer_steps of its target: the window 2·spi·error_buffer_steps must hold n
+        let ratio = self.train.train_ratio;
+        let needed = 1.0 / (2.0 * ratio);
+        if ratio > 0.0 && (r.error_buffer_steps.is_nan() || r.error_buffer_steps < needed) {
+            return Err(format!(
+                "[replay] error_buffer_steps = {} is too small for [train] train_ratio = {ratio}: \
+                 a batch of {} steps would wait forever; use at least {needed}",
+                r.error_buffer_steps,
+                spec.steps()
+            ));
         }
         Ok(())
     }
@@ -186,5 +228,14 @@ mod tests {
         let err =
             ExperimentConfig::from_toml("[train]\ncontext_range = 2.0", "y.toml").unwrap_err();
         assert!(err.contains("context_range"), "{err}");
+        // the replay must be able to serve the agent's batches
+        for (text, key) in [
+            ("[replay]\nerror_buffer_steps = 0.1", "error_buffer_steps"),
+            ("[replay]\nmax_batch_floats = 1000", "max_batch_floats"),
+            ("[replay]\ncapacity = 10", "capacity"),
+        ] {
+            let err = ExperimentConfig::from_toml(text, "r.toml").unwrap_err();
+            assert!(err.contains(key), "{text}: {err}");
+        }
     }
 }

@@ -739,7 +739,9 @@ train_ratio = 2.0
     fn the_shipped_reduced_matrix_keeps_the_protocol() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/paper/reduced.toml");
         let m = MatrixFile::load(&path).unwrap();
-        let runs = m.runs(path.parent().unwrap(), None, &Only::default()).unwrap();
+        let runs = m
+            .runs(path.parent().unwrap(), None, &Only::default())
+            .unwrap();
         assert_eq!(runs.len(), 8);
         assert_eq!((m.eval.grid, m.eval.range, m.eval.laps), (7, 0.3, 50));
         assert!(runs.iter().all(|r| r.config.train.context_range == 0.15));

@@ -54,6 +54,12 @@ impl RateLimiter {
             && (self.spi == 0.0 || self.diff() - n as f64 >= self.min_diff)
     }
 
+    /// Whether `n` steps could ever be sampled at once: a larger request than the ratio's window
+    /// (`2 · error_buffer_steps · samples_per_insert`) would wait forever.
+    pub fn can_ever_sample(&self, n: u64) -> bool {
+        self.spi == 0.0 || n as f64 <= self.max_diff - self.min_diff
+    }
+
     /// Whether `n` steps may be inserted now.
     pub fn can_insert(&self, n: u64) -> bool {
         self.spi == 0.0
@@ -113,6 +119,8 @@ mod tests {
         r.inserted(1);
         assert!(r.can_sample(4));
         assert!(!r.can_sample(5));
+        // the window is 2 x 20 samples: a request of 41 could never be served
+        assert!(r.can_ever_sample(40) && !r.can_ever_sample(41));
         // Over a long run the ratio converges to spi whatever the order.
         let mut r = RateLimiter::new(2.0, 10, 3.0);
         let (mut ins, mut smp) = (0u64, 0u64);

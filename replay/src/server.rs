@@ -106,6 +106,8 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
     );
 
     let mut pending: VecDeque<(BatchRequest, BatchSpec)> = VecDeque::new();
+    // requests larger than the rate limiter's window: they would block the queue forever
+    let mut unservable = 0u64;
     let mut batches = 0u64;
     let mut inserted_at_last_batch = 0u64;
     let mut last_status = Instant::now();
@@ -115,13 +117,14 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
                    chunks: &TrajectoryReceiver,
                    server: &BatchServer,
                    batches: u64,
-                   pending: usize| ReplayStatus {
+                   pending: usize,
+                   unservable: u64| ReplayStatus {
         inserted: limiter.inserts(),
         sampled: limiter.samples(),
         fill: buffer.len() as u64,
         capacity: buffer.capacity() as u64,
         dropped_chunks: chunks.missing_chunks(),
-        rejected: chunks.rejected() + server.rejected(),
+        rejected: chunks.rejected() + server.rejected() + unservable,
         batches,
         pending_requests: pending as u64,
         ..Default::default()
@@ -142,12 +145,20 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
         control.inserted.store(limiter.inserts(), Ordering::Release);
         // Closing actors wait for a turn after their last send (see TrajectorySender).
         beacon.signal();
-        pending.extend(server.receive_requests()?);
+        for (request, spec) in server.receive_requests()? {
+            if limiter.can_ever_sample(spec.steps() as u64) {
+                pending.push_back((request, spec));
+            } else {
+                unservable += 1;
+                tracing::warn!(
+                    "rejected a request for {} steps ({unservable} so far): larger than the rate \
+                     limiter's window; raise [replay] error_buffer_steps or lower the batch",
+                    spec.steps()
+                );
+            }
+        }
         while let Some(&(request, spec)) = pending.front() {
-            let n = match spec {
-                BatchSpec::Sequence { batch, length } => batch * length,
-                BatchSpec::Transition { batch, .. } => batch,
-            } as u64;
+            let n = spec.steps() as u64;
             if !limiter.can_sample(n) {
                 break;
             }
@@ -174,7 +185,15 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
         if last_status.elapsed() >= STATUS_EVERY {
             let s = ReplayStatus {
                 inserted_at_last_batch,
-                ..current(&buffer, &limiter, &chunks, &server, batches, pending.len())
+                ..current(
+                    &buffer,
+                    &limiter,
+                    &chunks,
+                    &server,
+                    batches,
+                    pending.len(),
+                    unservable,
+                )
             };
             status.publish(s)?;
             last_status = Instant::now();
@@ -215,7 +234,15 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
     {}
     let last = ReplayStatus {
         inserted_at_last_batch,
-        ..current(&buffer, &limiter, &chunks, &server, batches, pending.len())
+        ..current(
+            &buffer,
+            &limiter,
+            &chunks,
+            &server,
+            batches,
+            pending.len(),
+            unservable,
+        )
     };
     status.publish(last)?;
     snapshot(args, &buffer, &limiter)?;

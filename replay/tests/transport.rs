@@ -281,6 +281,16 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
         tx.push(k / 100, 0, &step).unwrap();
     }
     let mut client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(10)).unwrap();
+    // the ratio's window is 2 · 0.5 · 100 = 100 samples: a request for 101 can never be
+    // served; it is rejected and counted instead of blocking the queue
+    let too_big = BatchSpec::Transition {
+        batch: 101,
+        frames: 1,
+    };
+    assert!(client
+        .next_batch(too_big, Duration::from_millis(500))
+        .unwrap()
+        .is_none());
     let spec = BatchSpec::Transition {
         batch: 50,
         frames: 1,
@@ -301,5 +311,6 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
     assert_eq!(batches, 5);
     assert_eq!(status.sampled, 250);
     assert_eq!(status.pending_requests, 1);
+    assert_eq!(status.rejected, 1);
     drop(tx);
 }

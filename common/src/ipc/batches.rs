@@ -42,6 +42,17 @@ pub enum BatchSpec {
     },
 }
 
+impl BatchSpec {
+    /// Steps one batch samples: `B·T` for sequences, `B` for transitions (what the rate
+    /// limiter counts).
+    pub fn steps(self) -> usize {
+        match self {
+            BatchSpec::Sequence { batch, length } => batch.saturating_mul(length),
+            BatchSpec::Transition { batch, .. } => batch,
+        }
+    }
+}
+
 /// A batch as the learner receives it.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Batch {
@@ -234,7 +245,7 @@ fn decode(
             let ok = h.kind == BatchKind::Sequence.code()
                 && h.batch as usize == batch
                 && h.length as usize == length
-                && p.len() == sequence_floats(batch, length, obs_dim, act_dim);
+                && Some(p.len()) == sequence_floats(batch, length, obs_dim, act_dim);
             if !ok {
                 return Err(bad());
             }
@@ -258,7 +269,7 @@ fn decode(
             let ok = h.kind == BatchKind::Transition.code()
                 && h.batch as usize == batch
                 && h.frames as usize == frames
-                && p.len() == transition_floats(batch, frames, obs_dim, act_dim);
+                && Some(p.len()) == transition_floats(batch, frames, obs_dim, act_dim);
             if !ok {
                 return Err(bad());
             }

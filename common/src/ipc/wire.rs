@@ -384,7 +384,7 @@ pub fn validate_request(
         }
     };
     match floats {
-        Some(n) if n <= max_floats => Ok(kind),
+        Some(Some(n)) if n <= max_floats => Ok(kind),
         _ => Err(WireError::Dims(format!(
             "batch {b} length {t} frames {f} is empty or exceeds {max_floats} floats"
         ))),
@@ -392,14 +392,21 @@ pub fn validate_request(
 }
 
 /// Floats of a `B x T` sequence batch payload: per step the observation, action, reward,
-/// is_first, is_terminal, two context and two mask values, and has_mask.
-pub fn sequence_floats(b: usize, t: usize, obs_dim: usize, act_dim: usize) -> usize {
-    b * t * (obs_dim + act_dim + 8)
+/// is_first, is_terminal, two context and two mask values, and has_mask; `None` if that
+/// overflows (a request no buffer could hold).
+pub fn sequence_floats(b: usize, t: usize, obs_dim: usize, act_dim: usize) -> Option<usize> {
+    b.checked_mul(t)?
+        .checked_mul(obs_dim.checked_add(act_dim)?.checked_add(8)?)
 }
 
-/// Floats of a `B`-transition payload with `frames` stacked frames.
-pub fn transition_floats(b: usize, frames: usize, obs_dim: usize, act_dim: usize) -> usize {
-    b * (2 * frames * obs_dim + act_dim + 4)
+/// Floats of a `B`-transition payload with `frames` stacked frames; `None` if that overflows.
+pub fn transition_floats(b: usize, frames: usize, obs_dim: usize, act_dim: usize) -> Option<usize> {
+    let per = frames
+        .checked_mul(obs_dim)?
+        .checked_mul(2)?
+        .checked_add(act_dim)?
+        .checked_add(4)?;
+    b.checked_mul(per)
 }
 
 #[cfg(test)]
@@ -499,5 +506,14 @@ mod tests {
         assert!(validate_request(&r, 3, 2, 10).is_err());
         assert!(validate_request(&BatchRequest { kind: 7, ..r }, 3, 2, 1000).is_err());
         assert!(validate_request(&BatchRequest { batch: 0, ..r }, 3, 2, 1000).is_err());
+        // sizes whose product overflows are rejected, not wrapped into a small number
+        let huge = BatchRequest {
+            batch: u32::MAX,
+            length: u32::MAX,
+            ..r
+        };
+        assert!(validate_request(&huge, usize::MAX / 4, 2, usize::MAX).is_err());
+        assert_eq!(sequence_floats(usize::MAX, 2, 1, 1), None);
+        assert_eq!(transition_floats(2, usize::MAX, 1, 1), None);
     }
 }
