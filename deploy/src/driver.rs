@@ -86,6 +86,7 @@ impl TrainedAgent {
                 path.display()
             );
         };
+        ctxrace_learner::checkpoint::verify(&checkpoint)?;
         let agent_path = checkpoint.join(AGENT_FILE);
         let text = std::fs::read_to_string(&agent_path)
             .with_context(|| format!("reading {}", agent_path.display()))?;

@@ -1,5 +1,10 @@
 //! Checkpoint files: each algorithm saves named safetensors blobs (weights and optimiser
 //! moments) and a TOML file of counters into one directory; errors name the file.
+//!
+//! A checkpoint is written into a temporary folder, sealed (every file's size and CRC-32 listed
+//! in [`MANIFEST_FILE`], every file and the folder fsynced), renamed into place and the rename
+//! fsynced, so that a crash leaves either the whole checkpoint or none of it. Reading verifies
+//! the seal: a damaged newest checkpoint is passed over, with a warning, for the one before.
 
 use candle_core::{Error, Result};
 use serde::{de::DeserializeOwned, Serialize};
@@ -48,6 +53,87 @@ pub const POLICY_FILE: &str = "policy.safetensors";
 pub const AGENT_FILE: &str = "agent.toml";
 /// Checkpoints kept in a run directory (older ones are removed).
 const KEEP: usize = 3;
+/// File in every checkpoint listing its other files with their sizes and CRC-32s.
+pub const MANIFEST_FILE: &str = "manifest.toml";
+
+/// One sealed file: its size and CRC-32.
+#[derive(Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+struct Sealed {
+    bytes: u64,
+    crc32: u32,
+}
+
+/// Lists every file of `dir` in its manifest and flushes the files, the manifest and the
+/// folder to disk.
+fn seal(dir: &Path) -> Result<()> {
+    let mut manifest = std::collections::BTreeMap::new();
+    let entries = std::fs::read_dir(dir).map_err(|e| io_error("listing", dir, e))?;
+    for entry in entries {
+        let path = entry.map_err(|e| io_error("listing", dir, e))?.path();
+        let name = path
+            .file_name()
+            .and_then(|n| n.to_str())
+            .unwrap_or_default()
+            .to_string();
+        if name == MANIFEST_FILE || !path.is_file() {
+            continue;
+        }
+        let bytes = std::fs::read(&path).map_err(|e| io_error("reading", &path, e))?;
+        sync(&path)?;
+        let crc32 = crc32fast::hash(&bytes);
+        manifest.insert(
+            name,
+            Sealed {
+                bytes: bytes.len() as u64,
+                crc32,
+            },
+        );
+    }
+    let path = dir.join(MANIFEST_FILE);
+    let text = toml::to_string(&manifest).map_err(|e| io_error("serialising", &path, e))?;
+    std::fs::write(&path, text).map_err(|e| io_error("writing", &path, e))?;
+    sync(&path)?;
+    sync(dir)
+}
+
+/// fsync of a file or folder.
+fn sync(path: &Path) -> Result<()> {
+    std::fs::File::open(path)
+        .and_then(|f| f.sync_all())
+        .map_err(|e| io_error("syncing", path, e))
+}
+
+/// Checks the seal of a checkpoint folder: every file its manifest lists has its size and
+/// CRC-32. A folder written before checkpoints were sealed (no manifest) passes unchecked.
+pub fn verify(dir: &Path) -> Result<()> {
+    let path = dir.join(MANIFEST_FILE);
+    let text = match std::fs::read_to_string(&path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(e) => return Err(io_error("reading", &path, e)),
+    };
+    let manifest: std::collections::BTreeMap<String, Sealed> =
+        toml::from_str(&text).map_err(|e| io_error("parsing", &path, e))?;
+    for (name, want) in manifest {
+        let file = dir.join(&name);
+        let bytes = std::fs::read(&file).map_err(|e| io_error("reading", &file, e))?;
+        let got = Sealed {
+            bytes: bytes.len() as u64,
+            crc32: crc32fast::hash(&bytes),
+        };
+        if got != want {
+            return Err(io_error(
+                "checking",
+                &file,
+                format!(
+                    "{} bytes with CRC-32 {:#010x}, the manifest says {} bytes with {:#010x}: damaged",
+                    got.bytes, got.crc32, want.bytes, want.crc32
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
 
 /// Saves `algo` as `<run>/checkpoints/step-<steps>/`, with the policy weights and the agent's
 /// configuration beside its own files so that evaluation needs nothing else, and the smoothed
@@ -103,10 +189,14 @@ pub(crate) fn write_atomically(
     }
     std::fs::create_dir_all(&tmp).map_err(|e| io_error("creating", &tmp, e))?;
     fill(&tmp)?;
+    seal(&tmp)?;
     if final_dir.exists() {
         std::fs::remove_dir_all(final_dir).map_err(|e| io_error("removing", final_dir, e))?;
     }
     std::fs::rename(&tmp, final_dir).map_err(|e| io_error("renaming", &tmp, e))?;
+    if let Some(parent) = final_dir.parent() {
+        sync(parent)?;
+    }
     Ok(final_dir.to_path_buf())
 }
 
@@ -129,7 +219,51 @@ pub fn checkpoints(run_dir: &Path) -> Vec<std::path::PathBuf> {
     dirs
 }
 
-/// The newest complete checkpoint of a run directory.
+/// The newest checkpoint of a run directory whose seal holds; damaged newer ones are passed
+/// over with a warning.
 pub fn latest_checkpoint(run_dir: &Path) -> Option<std::path::PathBuf> {
-    checkpoints(run_dir).pop()
+    checkpoints(run_dir)
+        .into_iter()
+        .rev()
+        .find(|c| match verify(c) {
+            Ok(()) => true,
+            Err(e) => {
+                tracing::warn!("passing over a damaged checkpoint: {e}");
+                false
+            }
+        })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_damaged_newest_checkpoint_falls_back_to_the_one_before() {
+        let run = tempfile::tempdir().unwrap();
+        let root = run.path().join(CHECKPOINTS);
+        let step = |n: u64| root.join(format!("step-{n:010}"));
+        for n in [1u64, 2] {
+            write_atomically(&step(n), |d| {
+                std::fs::write(d.join(STATE_FILE), format!("step = {n}")).unwrap();
+                std::fs::write(d.join(POLICY_FILE), vec![n as u8; 100]).unwrap();
+                Ok(())
+            })
+            .unwrap();
+        }
+        assert_eq!(latest_checkpoint(run.path()), Some(step(2)));
+        assert!(step(2).join(MANIFEST_FILE).is_file());
+        let mut bytes = std::fs::read(step(2).join(POLICY_FILE)).unwrap();
+        bytes[50] ^= 1;
+        std::fs::write(step(2).join(POLICY_FILE), bytes).unwrap();
+        let err = verify(&step(2)).unwrap_err().to_string();
+        assert!(
+            err.contains(POLICY_FILE) && err.contains("damaged"),
+            "{err}"
+        );
+        assert_eq!(latest_checkpoint(run.path()), Some(step(1)));
+        // a checkpoint written before they were sealed is taken as it is
+        std::fs::remove_file(step(2).join(MANIFEST_FILE)).unwrap();
+        assert_eq!(latest_checkpoint(run.path()), Some(step(2)));
+    }
 }

@@ -87,9 +87,35 @@ pub fn read_snapshot(path: &Path) -> Result<(ReplayBuffer, LimiterCounts)> {
     read(path).with_context(|| format!("restoring replay snapshot {}", path.display()))
 }
 
+/// Checks the file's trailing CRC-32 against all bytes before it, reading it once without
+/// holding it, so that nothing is sized from a header that may be damaged.
+fn verify_checksum(path: &Path, file_len: u64) -> Result<()> {
+    if file_len < HEADER_BYTES + 4 {
+        bail!("{file_len} bytes, shorter than a snapshot header: truncated or corrupt");
+    }
+    let mut r = BufReader::with_capacity(1 << 20, File::open(path)?);
+    let mut hasher = crc32fast::Hasher::new();
+    let mut left = file_len - 4;
+    let mut buf = vec![0u8; 1 << 20];
+    while left > 0 {
+        let n = (left as usize).min(buf.len());
+        r.read_exact(&mut buf[..n])?;
+        hasher.update(&buf[..n]);
+        left -= n as u64;
+    }
+    let mut crc = [0u8; 4];
+    r.read_exact(&mut crc)?;
+    let (stored, computed) = (u32::from_le_bytes(crc), hasher.finalize());
+    if stored != computed {
+        bail!("checksum {computed:#010x}, file says {stored:#010x}: truncated or corrupt");
+    }
+    Ok(())
+}
+
 fn read(path: &Path) -> Result<(ReplayBuffer, LimiterCounts)> {
     let file = File::open(path)?;
     let file_len = file.metadata()?.len();
+    verify_checksum(path, file_len)?;
     let mut r = Hashing {
         inner: BufReader::with_capacity(1 << 20, file),
         hasher: crc32fast::Hasher::new(),
@@ -260,6 +286,13 @@ mod tests {
             err.contains("replay.snap") && err.contains("corrupt"),
             "{err}"
         );
+
+        // a header claiming a huge capacity is caught by the checksum before anything is sized
+        let mut huge = std::fs::read(&again).unwrap();
+        huge[8 + 4 * 4 + 7] = 0x7f;
+        std::fs::write(&path, &huge).unwrap();
+        let err = format!("{:#}", read_snapshot(&path).unwrap_err());
+        assert!(err.contains("checksum") && err.contains("corrupt"), "{err}");
 
         std::fs::write(&path, &bytes[..100]).unwrap();
         let err = format!("{:#}", read_snapshot(&path).unwrap_err());
