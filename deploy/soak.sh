@@ -33,6 +33,8 @@ threads = 1
 [replay]
 capacity = 20000
 snapshot_every_secs = 10
+[supervisor]
+max_restarts = 1000   # the soak kills on purpose
 TOML
 
 run="$dir/run"

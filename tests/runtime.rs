@@ -38,8 +38,13 @@ snapshot_every_secs = 1
 
 /// Starts `ctxrace train` with `actors` actors in `dir/run`.
 fn launch(dir: &Path, env_steps: u64, actors: usize) -> (Child, PathBuf) {
+    launch_with(dir, env_steps, actors, "")
+}
+
+/// [`launch`] with `extra` TOML appended to the experiment.
+fn launch_with(dir: &Path, env_steps: u64, actors: usize, extra: &str) -> (Child, PathBuf) {
     let cfg = dir.join("exp.toml");
-    std::fs::write(&cfg, config(env_steps)).unwrap();
+    std::fs::write(&cfg, config(env_steps) + extra).unwrap();
     let run = dir.join("run");
     let child = Command::new(env!("CARGO_BIN_EXE_ctxrace"))
         .arg("train")
@@ -242,7 +247,8 @@ fn killed_processes_are_restarted_and_training_completes() {
     let dir = tempfile::tempdir().unwrap();
     // long enough that the three kills and restarts happen well before the learner's target
     let env_steps = 12_000;
-    let (child, run) = launch(dir.path(), env_steps, 3);
+    let supervisor = "[supervisor]\nheartbeat_timeout_secs = 5\n";
+    let (child, run) = launch_with(dir.path(), env_steps, 3, supervisor);
     let minute = Duration::from_secs(60);
     // wait for the first checkpoint, then kill an actor, the learner and the replay in turn
     wait_for("a checkpoint", 3 * minute, || {
@@ -268,7 +274,16 @@ fn killed_processes_are_restarted_and_training_completes() {
     wait_for("the replay's restart", minute, || {
         find_pid(&run, "replay", &[replay])
     });
+    // a hung actor (stopped: alive but silent) is killed and restarted after 5 s
+    let hung = actors[0];
+    unsafe { libc::kill(hung as i32, libc::SIGSTOP) };
+    wait_for("the hung actor to be killed", minute, || {
+        std::fs::metadata(format!("/proc/{hung}"))
+            .is_err()
+            .then_some(())
+    });
     let stderr = finish(child, 6 * minute);
+    assert!(stderr.contains("sent no sign of life"), "{stderr}");
     for role in ["actor 1", "learner", "replay"] {
         assert!(
             stderr.contains(&format!("{role} exited")),
@@ -289,4 +304,41 @@ fn killed_processes_are_restarted_and_training_completes() {
     assert!(actor_reports(&run)
         .iter()
         .any(|(n, _)| !n.ends_with("-0.json")));
+}
+
+#[test]
+fn a_process_that_keeps_failing_stops_the_run_with_its_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("exp.toml");
+    let text = config(2000) + "[supervisor]\nmax_restarts = 1\n";
+    std::fs::write(&cfg, text).unwrap();
+    let run = dir.path().join("run");
+    // a damaged replay snapshot: the replay fails at every start
+    std::fs::create_dir_all(&run).unwrap();
+    std::fs::write(run.join("replay.snapshot"), b"CTXRPLY\0 not a snapshot").unwrap();
+    let started = Instant::now();
+    let out = Command::new(env!("CARGO_BIN_EXE_ctxrace"))
+        .arg("train")
+        .arg(&cfg)
+        .args(["--actors", "1", "--run-dir"])
+        .arg(&run)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    for needle in [
+        "replay exited",
+        "2nd failure",
+        "max_restarts",
+        "restoring replay snapshot",
+    ] {
+        assert!(stderr.contains(needle), "no '{needle}' in: {stderr}");
+    }
+    assert!(
+        started.elapsed() < Duration::from_secs(60),
+        "{:?}",
+        started.elapsed()
+    );
 }

@@ -71,6 +71,33 @@ pub struct ExperimentConfig {
     pub train: TrainConfig,
     /// The replay buffer (its sampling ratio and minimum fill follow `train`).
     pub replay: ReplayOptions,
+    /// How the launcher supervises the run's processes.
+    pub supervisor: SupervisorConfig,
+}
+
+/// How the launcher keeps a run's processes alive (the `[supervisor]` table).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SupervisorConfig {
+    /// Restarts one process (the replay, the learner, each actor) may need within
+    /// `restart_window_secs`; one more stops the run with the process's last log lines, since a
+    /// process that keeps failing (bad data, a bad value) will not recover by itself.
+    pub max_restarts: u32,
+    /// The window of `max_restarts` (s).
+    pub restart_window_secs: u64,
+    /// An actor whose heartbeat, or the replay whose status, has not been heard for this long
+    /// (s) is taken as hung: it is killed and restarted like a crashed one.
+    pub heartbeat_timeout_secs: u64,
+}
+
+impl Default for SupervisorConfig {
+    fn default() -> Self {
+        Self {
+            max_restarts: 5,
+            restart_window_secs: 600,
+            heartbeat_timeout_secs: 60,
+        }
+    }
 }
 
 impl Default for ExperimentConfig {
@@ -81,6 +108,7 @@ impl Default for ExperimentConfig {
             agent: AgentConfig::default(),
             train: TrainConfig::default(),
             replay: ReplayOptions::default(),
+            supervisor: SupervisorConfig::default(),
         }
     }
 }
@@ -141,6 +169,14 @@ impl ExperimentConfig {
         }
         if t.policy_every == 0 || t.log_every == 0 || t.threads == Some(0) {
             return Err("[train] policy_every, log_every and threads must be positive".into());
+        }
+        let s = &self.supervisor;
+        if s.restart_window_secs == 0 || s.heartbeat_timeout_secs < 5 {
+            return Err(format!(
+                "[supervisor] restart_window_secs = {} must be positive and \
+                 heartbeat_timeout_secs = {} at least 5 (heartbeats come every second)",
+                s.restart_window_secs, s.heartbeat_timeout_secs
+            ));
         }
         self.validate_replay()
     }

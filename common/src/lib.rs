@@ -17,5 +17,5 @@ pub use config::{
     SpeedPoint, WallContact,
 };
 pub use context::{Context, ContextError};
-pub use experiment::{ExperimentConfig, TrainConfig};
+pub use experiment::{ExperimentConfig, SupervisorConfig, TrainConfig};
 pub use policy::{Decision, Policy};

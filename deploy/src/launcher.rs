@@ -18,7 +18,7 @@ use anyhow::{bail, Context as _, Result};
 use ctxrace_common::ipc::{
     cleanup, run_prefix, termination_flag, RunTransport, TelemetrySubscriber, WeightsReceiver,
 };
-use ctxrace_common::ExperimentConfig;
+use ctxrace_common::{ExperimentConfig, SupervisorConfig};
 use std::os::unix::process::CommandExt;
 use std::path::Path;
 use std::process::{Child, Command, ExitStatus};
@@ -44,6 +44,12 @@ struct Supervised {
     restart_at: Option<Instant>,
     /// Set once the process should stay down.
     retired: bool,
+    /// When it was last (re)started.
+    started_at: Instant,
+    /// When its last sign of life (heartbeat, status) arrived, since its start.
+    last_sign: Option<Instant>,
+    /// When it failed, within the restart window.
+    failures: std::collections::VecDeque<Instant>,
 }
 
 impl Supervised {
@@ -57,6 +63,9 @@ impl Supervised {
             earlier_starts: 0,
             restart_at: Some(Instant::now()),
             retired: false,
+            started_at: Instant::now(),
+            last_sign: None,
+            failures: std::collections::VecDeque::new(),
         }
     }
 
@@ -93,7 +102,58 @@ impl Supervised {
         );
         self.starts += 1;
         self.restart_at = None;
+        self.started_at = Instant::now();
+        self.last_sign = None;
         Ok(())
+    }
+
+    /// Counts a failure; an error with the reason and the process's last log lines once more
+    /// than `max_restarts` fall within the restart window.
+    fn failed(&mut self, why: &str, cfg: &SupervisorConfig) -> Result<()> {
+        let now = Instant::now();
+        let window = Duration::from_secs(cfg.restart_window_secs);
+        self.failures.push_back(now);
+        while self.failures.front().is_some_and(|t| now - *t > window) {
+            self.failures.pop_front();
+        }
+        if self.failures.len() > cfg.max_restarts as usize {
+            bail!(
+                "{} {why}, its {} failure in {} s (at most {} restarts are allowed, [supervisor] \
+                 max_restarts); stopping the run. Its last log lines ({}):\n{}",
+                self.name,
+                ordinal(self.failures.len()),
+                cfg.restart_window_secs,
+                cfg.max_restarts,
+                self.log.display(),
+                log_tail(&self.log, 20)
+            );
+        }
+        tracing::warn!(
+            "{} {why}; restarting it{}",
+            self.name,
+            match self.name.as_str() {
+                "replay" => " from its snapshot",
+                "learner" => " from its checkpoint",
+                _ => "",
+            }
+        );
+        self.schedule_restart();
+        Ok(())
+    }
+
+    /// Kills the process if its last sign of life (or its start, if none came) is older than
+    /// the heartbeat timeout; it is then reaped as a crash.
+    fn kill_if_silent(&mut self, timeout: Duration) {
+        let Some(child) = &mut self.child else { return };
+        let quiet = self.last_sign.unwrap_or(self.started_at).elapsed();
+        if !self.retired && quiet > timeout {
+            tracing::warn!(
+                "{} sent no sign of life for {:.0} s: killing it as hung",
+                self.name,
+                quiet.as_secs_f64()
+            );
+            let _ = child.kill();
+        }
     }
 
     /// Reaps the process if it exited; returns its status.
@@ -111,7 +171,7 @@ impl Supervised {
     /// Schedules a restart with exponential back-off (1 s, 2 s, 4 s, … up to 30 s).
     fn schedule_restart(&mut self) {
         let backoff =
-            Duration::from_secs(1 << self.starts.min(5).saturating_sub(1)).min(MAX_BACKOFF);
+            Duration::from_secs(1 << self.starts.saturating_sub(1).min(5)).min(MAX_BACKOFF);
         self.restart_at = Some(Instant::now() + backoff);
     }
 
@@ -286,6 +346,37 @@ fn wait_all(procs: &mut [Supervised]) -> Result<()> {
     Ok(())
 }
 
+/// "1st", "2nd", "3rd", "4th", …
+fn ordinal(n: usize) -> String {
+    let suffix = match (n % 10, n % 100) {
+        (1, 11) | (2, 12) | (3, 13) => "th",
+        (1, _) => "st",
+        (2, _) => "nd",
+        (3, _) => "rd",
+        _ => "th",
+    };
+    format!("{n}{suffix}")
+}
+
+/// The last `n` lines of a log file (indented), or a note that it cannot be read.
+fn log_tail(path: &Path, n: usize) -> String {
+    match std::fs::read_to_string(path) {
+        Ok(text) => {
+            let lines: Vec<&str> = text.lines().collect();
+            let tail = &lines[lines.len().saturating_sub(n)..];
+            if tail.is_empty() {
+                "    (empty)".into()
+            } else {
+                tail.iter()
+                    .map(|l| format!("    {l}"))
+                    .collect::<Vec<_>>()
+                    .join("\n")
+            }
+        }
+        Err(e) => format!("    (unreadable: {e})"),
+    }
+}
+
 /// The value of a telemetry read, or `None` with a warning.
 fn tolerate<T>(read: Result<T>) -> Option<T> {
     read.map_err(|e| tracing::warn!("telemetry: {e:#}")).ok()
@@ -341,8 +432,12 @@ fn supervise(
             if let Some(v) = p.actor_versions.get_mut(hb.actor_id as usize) {
                 *v = hb.policy_version;
             }
+            if let Some(a) = actors.get_mut(hb.actor_id as usize) {
+                a.last_sign = Some(Instant::now());
+            }
         }
         if let Some(s) = tolerate(telemetry.replay_status()).flatten() {
+            replay.last_sign = Some(Instant::now());
             p.env_steps = s.inserted;
             p.fill = s.fill;
             p.capacity = s.capacity;
@@ -370,20 +465,22 @@ fn supervise(
         }
         // reap and decide; a crashed process's node is cleaned up so that its peers stop
         // waiting for it
+        let silence = Duration::from_secs(cfg.supervisor.heartbeat_timeout_secs);
+        for proc in std::iter::once(&mut *replay).chain(actors.iter_mut()) {
+            proc.kill_if_silent(silence);
+        }
         let mut crashed = false;
         for proc in actors.iter_mut() {
             if let Some(status) = proc.reap()? {
                 if !proc.retired {
-                    tracing::warn!("{} exited ({status}); restarting", proc.name);
-                    proc.schedule_restart();
+                    proc.failed(&format!("exited ({status})"), &cfg.supervisor)?;
                     crashed = true;
                 }
             }
         }
         if let Some(status) = replay.reap()? {
             if !replay.retired {
-                tracing::warn!("replay exited ({status}); restarting from its snapshot");
-                replay.schedule_restart();
+                replay.failed(&format!("exited ({status})"), &cfg.supervisor)?;
                 crashed = true;
             }
         }
@@ -393,8 +490,7 @@ fn supervise(
                 bar.finish_with_message(p.message(start));
                 return Ok(());
             }
-            tracing::warn!("learner exited ({status}); restarting from its checkpoint");
-            learner.schedule_restart();
+            learner.failed(&format!("exited ({status})"), &cfg.supervisor)?;
             crashed = true;
         }
         if crashed {
