@@ -266,4 +266,57 @@ mod tests {
         std::fs::remove_file(step(2).join(MANIFEST_FILE)).unwrap();
         assert_eq!(latest_checkpoint(run.path()), Some(step(2)));
     }
+
+    mod properties {
+        use super::*;
+        use proptest::prelude::*;
+
+        proptest! {
+            #![proptest_config(ProptestConfig::with_cases(128))]
+
+            #[test]
+            /// A byte flipped (`bits` > 0) or the file cut at `at` (`bits` = 0) in either file.
+            fn any_damaged_file_breaks_the_seal(
+                at in any::<usize>(),
+                bits in any::<u8>(),
+                victim in prop_oneof![Just(STATE_FILE), Just(POLICY_FILE)],
+                policy in prop::collection::vec(any::<u8>(), 1..200),
+            ) {
+                let run = tempfile::tempdir().unwrap();
+                let dir = run.path().join(CHECKPOINTS).join("step-0000000001");
+                write_atomically(&dir, |d| {
+                    std::fs::write(d.join(STATE_FILE), "step = 1").unwrap();
+                    std::fs::write(d.join(POLICY_FILE), &policy).unwrap();
+                    Ok(())
+                })
+                .unwrap();
+                prop_assert!(verify(&dir).is_ok());
+                let path = dir.join(victim);
+                let mut bytes = std::fs::read(&path).unwrap();
+                let at = at % bytes.len();
+                if bits == 0 {
+                    bytes.truncate(at);
+                } else {
+                    bytes[at] ^= bits;
+                }
+                std::fs::write(&path, bytes).unwrap();
+                let err = verify(&dir).err().map(|e| e.to_string());
+                prop_assert!(err.as_ref().is_some_and(|e| e.contains(victim)), "{err:?}");
+                prop_assert_eq!(latest_checkpoint(run.path()), None);
+            }
+
+            #[test]
+            fn arbitrary_manifests_and_states_are_errors_not_panics(
+                manifest in prop::collection::vec(any::<u8>(), 0..200),
+                state in "[a-z =\\[\\]0-9\"\n.]{0,80}",
+            ) {
+                let dir = tempfile::tempdir().unwrap();
+                std::fs::write(dir.path().join(MANIFEST_FILE), &manifest).unwrap();
+                std::fs::write(dir.path().join(STATE_FILE), &state).unwrap();
+                let _ = verify(dir.path());
+                let _ = load_state::<toml::Table>(dir.path());
+                let _ = crate::best::ReturnTracker::load(dir.path());
+            }
+        }
+    }
 }
