@@ -1,14 +1,19 @@
 #!/usr/bin/env bash
 # Soak test of the training runtime: trains a small SAC run with every process pinned to two
-# cores, kills a random actor every 20 s, and at the end checks that every process is alive,
-# that the replay's counts reconcile with what the actors report, and that memory did not grow
-# after the warm-up (the replay buffer is small, so it is full by then).
+# cores, kills a random process every 20 s (an actor; with VICTIMS=all an actor, the learner or
+# the replay), and at the end checks that every process is alive, that the replay's counts
+# reconcile with what the actors report, that nothing was rejected, and that memory did not
+# grow after the warm-up (the replay buffer is small, so it is full by then). It prints the
+# kills and restarts, the steps sent and stored, the rejections by reason, the replay's longest
+# stall and each actor's share of the steps.
 #
-# usage: deploy/soak.sh [SECONDS=120] [ACTORS=3]     (env CTXRACE_BIN: the binary to use,
-#                                                     default target/debug/ctxrace)
+# usage: deploy/soak.sh [SECONDS=120] [ACTORS=3] [VICTIMS=actors|all]
+#        (env CTXRACE_BIN: the binary to use, default target/debug/ctxrace)
 set -euo pipefail
 secs=${1:-120}
 actors=${2:-3}
+victims_of=${3:-actors}
+case "$victims_of" in actors|all) ;; *) echo "soak: VICTIMS must be actors or all" >&2; exit 2 ;; esac
 bin=$(realpath "${CTXRACE_BIN:-target/debug/ctxrace}")
 dir=$(mktemp -d)
 trap 'kill -TERM $launcher 2>/dev/null || true; wait 2>/dev/null || true; rm -rf "$dir"' EXIT
@@ -64,14 +69,21 @@ warmup=$(( secs < 60 ? secs / 3 : 30 ))
 sleep "$warmup"
 rss_start=$(rss_kib)
 kills=0
+declare -A killed=([actor]=0 [learner]=0 [replay]=0)
 elapsed=$warmup
 while (( elapsed + 20 <= secs )); do
     sleep 20
     elapsed=$((elapsed + 20))
-    victims=($(pids actor))
+    role=actor
+    if [[ $victims_of == all ]]; then
+        roles=(actor actor learner replay)
+        role=${roles[RANDOM % 4]}
+    fi
+    victims=($(pids "$role"))
     if (( ${#victims[@]} > 0 )); then
         kill -9 "${victims[RANDOM % ${#victims[@]}]}"
         kills=$((kills + 1))
+        killed[$role]=$((${killed[$role]} + 1))
     fi
 done
 sleep 5   # let the launcher restart the last victim
@@ -93,12 +105,22 @@ inserted=$(grep -o '"inserted": [0-9]*' "$run/replay-status.json" | grep -o '[0-
 rejected=$(grep -o '"rejected": [0-9]*' "$run/replay-status.json" | grep -o '[0-9]*$')
 reported=$(cat "$run"/actors/*.json | grep -o '"sent_steps": [0-9]*' | grep -o '[0-9]*$' \
     | paste -sd+ | bc)
-# killed actors cannot report, so the replay holds at least what the others delivered
-(( inserted >= reported )) || { echo "soak: replay $inserted < reported $reported"; fail=1; }
+# killed actors cannot report, so the replay holds at least what the others delivered (a
+# killed replay loses what came after its last snapshot: then this is only reported)
+if (( ${killed[replay]} == 0 )); then
+    (( inserted >= reported )) || { echo "soak: replay $inserted < reported $reported"; fail=1; }
+fi
 (( rejected == 0 )) || { echo "soak: $rejected messages rejected"; fail=1; }
 restarts=$(grep -c "exited" "$dir/launcher.log" || true)
-echo "soak: ${secs}s, $actors actors, $kills kills, $restarts restarts, $inserted steps stored" \
-    "($reported reported by clean exits), rss $rss_start -> $rss_end KiB"
+stall=$(grep -o '"longest_turn_ms": [0-9.e+-]*' "$run/replay-status.json" | grep -o '[0-9.e+-]*$')
+reasons=$(tr -d ' \n' < "$run/replay-status.json" | grep -o '"rejected_by_reason":{[^}]*}' || true)
+# each actor's share of the steps run, from the launcher's episode log (actor is column 3)
+shares=$(awk -F, 'NR > 1 { s[$3] += $NF; t += $NF } END {
+    for (a in s) printf "actor %s %.3f  ", a, s[a] / t }' "$run/episodes.csv")
+echo "soak: ${secs}s, $actors actors, $kills kills (actors ${killed[actor]}, learner" \
+    "${killed[learner]}, replay ${killed[replay]}), $restarts restarts, $inserted steps stored" \
+    "($reported reported by clean exits), rejected $rejected ${reasons:-}, longest replay stall" \
+    "${stall:-?} ms (its last start), shares: $shares, rss $rss_start -> $rss_end KiB"
 if (( fail )); then
     echo "soak: launcher log:"; tail -20 "$dir/launcher.log"
 fi

@@ -43,6 +43,17 @@ fn launch(dir: &Path, env_steps: u64, actors: usize) -> (Child, PathBuf) {
 
 /// [`launch`] with `extra` TOML appended to the experiment.
 fn launch_with(dir: &Path, env_steps: u64, actors: usize, extra: &str) -> (Child, PathBuf) {
+    launch_logged(dir, env_steps, actors, extra, "warn")
+}
+
+/// [`launch_with`] with the children's log filter `rust_log`.
+fn launch_logged(
+    dir: &Path,
+    env_steps: u64,
+    actors: usize,
+    extra: &str,
+    rust_log: &str,
+) -> (Child, PathBuf) {
     let cfg = dir.join("exp.toml");
     std::fs::write(&cfg, config(env_steps) + extra).unwrap();
     let run = dir.join("run");
@@ -51,7 +62,7 @@ fn launch_with(dir: &Path, env_steps: u64, actors: usize, extra: &str) -> (Child
         .arg(&cfg)
         .args(["--actors", &actors.to_string(), "--run-dir"])
         .arg(&run)
-        .env("RUST_LOG", "warn")
+        .env("RUST_LOG", rust_log)
         .stderr(Stdio::piped())
         .stdout(Stdio::null())
         .spawn()
@@ -116,25 +127,28 @@ fn check_clean_run(run: &Path, actors: usize) {
         "{replay} vs {reports:?}"
     );
     assert_eq!(replay["rejected"].as_u64().unwrap(), 0);
-    // every actor loads strictly increasing versions; the replay does not share its intake
-    // fairly between actors (one may supply most steps while another waits in backpressure and
-    // reaches few episode boundaries), so only the run as a whole must see several
-    let mut most = 0;
+    // nothing was dropped on the way, and the replay took from every actor in turn: each sent
+    // a fair share and, reaching many episode boundaries, loaded strictly increasing versions
     for (name, r) in &reports {
+        assert_eq!(r["dropped_steps"].as_u64().unwrap(), 0, "{name}: {r}");
+        let share = r["sent_steps"].as_u64().unwrap() as f64 / sent as f64;
+        assert!(
+            share >= 0.5 / actors as f64,
+            "{name} sent {share:.3} of the steps: {reports:?}"
+        );
         let versions: Vec<u64> = r["versions"]
             .as_array()
             .unwrap()
             .iter()
             .map(|v| v.as_u64().unwrap())
             .collect();
-        assert!(!versions.is_empty(), "{name}: no weights loaded");
+        assert!(versions.len() >= 2, "{name}: versions {versions:?}");
         assert!(
             versions.windows(2).all(|w| w[0] < w[1]),
             "{name}: {versions:?}"
         );
-        most = most.max(versions.len());
     }
-    assert!(most >= 2, "no actor loaded a second version: {reports:?}");
+    assert_eq!(replay["dropped_chunks"].as_u64().unwrap(), 0, "{replay}");
     // Reverb's ratio: samples per insert beyond the minimum fill, while the learner trained
     let inserted = replay["inserted_at_last_batch"].as_f64().unwrap();
     let sampled = replay["sampled"].as_f64().unwrap();
@@ -152,11 +166,7 @@ fn check_clean_run(run: &Path, actors: usize) {
     assert!(best["episodes"].as_integer().unwrap() >= 1, "{best}");
     assert!(run.join("checkpoints/best/policy.safetensors").is_file());
     // TensorBoard event files of the learner and the launcher
-    let tags: std::collections::HashSet<String> = ctxrace_learner::tensorboard::event_files(run)
-        .iter()
-        .flat_map(|f| ctxrace_learner::tensorboard::read_scalars(f).unwrap())
-        .map(|r| r.tag)
-        .collect();
+    let tags = ctxrace_learner::tensorboard::scalar_tags(run).unwrap();
     for tag in [
         "episode/progress",
         "episode/overtakes",
@@ -180,18 +190,34 @@ fn check_clean_run(run: &Path, actors: usize) {
     );
 }
 
-/// No shared-memory file of the launcher with `pid` is left behind.
+/// The names of every file and folder under `dir`, recursively.
+fn names_under(dir: &Path) -> Vec<String> {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return Vec::new();
+    };
+    entries
+        .flatten()
+        .flat_map(|e| {
+            let mut names = vec![e.file_name().to_string_lossy().into_owned()];
+            if e.file_type().is_ok_and(|t| t.is_dir()) {
+                names.extend(names_under(&e.path()));
+            }
+            names
+        })
+        .collect()
+}
+
+/// No shared-memory or management file of the launcher with `pid` is left behind: not in
+/// `/dev/shm`, not anywhere in the private root (`nodes/`, `services/` included).
 fn assert_no_leftovers(pid: u32) {
     let prefix = format!("ctxrace_{pid}-");
-    for dir in ["/dev/shm", "/tmp/iceoryx2"] {
-        let Ok(entries) = std::fs::read_dir(dir) else {
-            continue;
-        };
-        let left: Vec<String> = entries
-            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+    let root = ctxrace_common::ipc::shm_root().unwrap();
+    for dir in [PathBuf::from("/dev/shm"), root] {
+        let left: Vec<String> = names_under(&dir)
+            .into_iter()
             .filter(|n| n.contains(&prefix))
             .collect();
-        assert!(left.is_empty(), "{dir}: {left:?}");
+        assert!(left.is_empty(), "{}: {left:?}", dir.display());
     }
 }
 
@@ -248,7 +274,10 @@ fn killed_processes_are_restarted_and_training_completes() {
     // long enough that the three kills and restarts happen well before the learner's target
     let env_steps = 12_000;
     let supervisor = "[supervisor]\nheartbeat_timeout_secs = 5\n";
-    let (child, run) = launch_with(dir.path(), env_steps, 3, supervisor);
+    // the learner logs where it resumed
+    let log = "warn,ctxrace_learner::process=info";
+    let (child, run) = launch_logged(dir.path(), env_steps, 3, supervisor, log);
+    let pid = child.id();
     let minute = Duration::from_secs(60);
     // wait for the first checkpoint, then kill an actor, the learner and the replay in turn
     wait_for("a checkpoint", 3 * minute, || {
@@ -300,6 +329,43 @@ fn killed_processes_are_restarted_and_training_completes() {
         last,
         format!("step-{:010}", ((env_steps - 400) as f64 * 0.25) as u64)
     );
+    // the restarted learner continued from its checkpoint: the step it resumed at is past 0
+    // and its logged steps never fall back by more than one checkpoint interval
+    let learner_log = std::fs::read_to_string(run.join("logs/learner.log")).unwrap();
+    let resumed: Vec<u64> = learner_log
+        .lines()
+        .filter_map(|l| l.split("learner resumed from ").nth(1))
+        .map(|l| {
+            l.rsplit(" at step ")
+                .next()
+                .unwrap()
+                .trim()
+                .parse()
+                .unwrap()
+        })
+        .collect();
+    assert!(
+        !resumed.is_empty() && resumed.iter().all(|&k| k > 0),
+        "{learner_log}"
+    );
+    let logged: Vec<f64> = std::fs::read_to_string(run.join("metrics.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| {
+            serde_json::from_str::<Value>(l).unwrap()["grad_steps"]
+                .as_f64()
+                .unwrap()
+        })
+        .collect();
+    for w in logged.windows(2) {
+        assert!(w[1] >= w[0] - 100.0, "the learner started over: {logged:?}");
+    }
+    // the restarted replay continued from its snapshot: its count did not start at zero
+    let replay = json(&run.join("replay-status.json"));
+    let restored = replay["restored_inserts"].as_u64().unwrap();
+    let inserted = replay["inserted"].as_u64().unwrap();
+    assert!(restored > 0 && restored < inserted, "{replay}");
+    assert_no_leftovers(pid);
     // a restarted actor reported under a later incarnation
     assert!(actor_reports(&run)
         .iter()
@@ -341,4 +407,189 @@ fn a_process_that_keeps_failing_stops_the_run_with_its_reason() {
         "{:?}",
         started.elapsed()
     );
+}
+
+/// The argument after `flag` on the command line of process `pid`.
+fn arg_after(pid: u32, flag: &str) -> String {
+    let cmd = std::fs::read(format!("/proc/{pid}/cmdline")).unwrap();
+    let args: Vec<String> = cmd
+        .split(|&b| b == 0)
+        .map(|a| String::from_utf8_lossy(a).into_owned())
+        .collect();
+    let at = args.iter().position(|a| a == flag).unwrap();
+    args[at + 1].clone()
+}
+
+#[test]
+fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
+    use ctxrace_common::ipc::inject::Injector;
+    use ctxrace_common::ipc::wire::{
+        step_stride, BatchRequest, ChunkHeader, EpisodeMetrics, WeightsHeader, FORMAT_VERSION,
+    };
+    use ctxrace_common::ipc::RunTransport;
+    let dir = tempfile::tempdir().unwrap();
+    let env_steps = 5000;
+    let (child, run) = launch(dir.path(), env_steps, 2);
+    let minute = Duration::from_secs(60);
+    let replay = wait_for("replay", minute, || find_pid(&run, "replay", &[]));
+    let prefix = arg_after(replay, "--prefix");
+    let status = |run: &Path| -> Option<Value> {
+        serde_json::from_str(&std::fs::read_to_string(run.join("status.json")).ok()?).ok()
+    };
+    // each actor's stream is well past its second chunk (episodes are at most 100 steps)
+    wait_for("1500 steps stored", 3 * minute, || {
+        (status(&run)?["replay"]["inserted"].as_u64()? >= 1500).then_some(())
+    });
+    let transport = RunTransport::open(&prefix, 2, "injector").unwrap();
+    let inject = Injector::new(&transport).unwrap();
+    let (obs, act) = (108, 2);
+    let good = ChunkHeader {
+        format_version: FORMAT_VERSION,
+        actor_id: 0,
+        obs_dim: obs,
+        act_dim: act,
+        steps: 1,
+        sequence: 1_000_000,
+        ..Default::default()
+    };
+    let step = vec![0.0f32; step_stride(obs as usize, act as usize)];
+    let mut nan = step.clone();
+    nan[3] = f32::NAN;
+    let chunks = [
+        (
+            0,
+            ChunkHeader {
+                format_version: FORMAT_VERSION + 1,
+                ..good
+            },
+            &step,
+        ),
+        (0, ChunkHeader { obs_dim: 5, ..good }, &step),
+        (
+            1,
+            ChunkHeader {
+                actor_id: 1,
+                ..good
+            },
+            &nan,
+        ),
+        (
+            0,
+            ChunkHeader {
+                actor_id: 7,
+                ..good
+            },
+            &step,
+        ),
+        (
+            0,
+            ChunkHeader {
+                actor_id: 1,
+                ..good
+            },
+            &step,
+        ),
+        (
+            0,
+            ChunkHeader {
+                sequence: 1,
+                ..good
+            },
+            &step,
+        ),
+    ];
+    for (stream, header, payload) in chunks {
+        assert_eq!(inject.chunk(stream, header, payload).unwrap(), 1);
+    }
+    let request = BatchRequest {
+        format_version: FORMAT_VERSION,
+        kind: 0,
+        request_id: u64::MAX,
+        batch: u32::MAX,
+        length: u32::MAX,
+        ..Default::default()
+    };
+    inject.request(request).unwrap();
+    // within the batch size limit, beyond the rate limiter's window (2 · 8 · 64 samples)
+    inject
+        .request(BatchRequest {
+            kind: 1,
+            batch: 2000,
+            length: 0,
+            frames: 1,
+            ..request
+        })
+        .unwrap();
+    inject
+        .episode(EpisodeMetrics {
+            format_version: FORMAT_VERSION,
+            actor_id: 0,
+            progress: f32::INFINITY,
+            ..Default::default()
+        })
+        .unwrap();
+    // weights with a bad checksum; sent again until the launcher has seen one (its queue holds
+    // only the newest broadcast, and the learner broadcasts every 10 steps)
+    let bytes = b"not the weights of any policy";
+    let bad_weights = WeightsHeader {
+        format_version: FORMAT_VERSION,
+        checksum: crc32fast::hash(bytes) ^ 1,
+        version: u64::MAX,
+        len: bytes.len() as u64,
+    };
+    // the requests, the telemetry and the weights are counted under their reasons live; the
+    // chunks wait in their actor's queue behind the actor's own (iceoryx2 reads a service's
+    // publishers from the first) and are counted when the replay reaches them, at the latest
+    // when it drains the queues at the end
+    let mut last = Value::Null;
+    let started = Instant::now();
+    wait_for("the rejections in status.json", minute, || {
+        assert!(
+            started.elapsed() < minute - Duration::from_secs(1),
+            "status.json: {last}"
+        );
+        let s = status(&run)?;
+        last = s.clone();
+        if s["launcher_rejected"]["weights"].as_u64()? == 0 {
+            inject.weights(bad_weights, bytes).unwrap();
+        }
+        let by = &s["replay"]["rejected_by_reason"];
+        let all = by["dims"].as_u64()? >= 1
+            && by["unservable"].as_u64()? == 1
+            && s["launcher_rejected"]["telemetry"].as_u64()? >= 1
+            && s["launcher_rejected"]["weights"].as_u64()? >= 1;
+        all.then_some(())
+    });
+    // the injector stays until the end: the replay drains its queues before it stops
+    let stderr = finish(child, 5 * minute);
+    drop(inject);
+    drop(transport);
+    // every message was counted under its reason, and the run reached its target with the
+    // real actors' data intact
+    assert!(stderr.contains("none dropped"), "{stderr}");
+    let replay = json(&run.join("replay-status.json"));
+    let by = &replay["rejected_by_reason"];
+    for (reason, n) in [
+        ("version", 1),
+        ("dims", 2),
+        ("value", 1),
+        ("unknown_actor", 1),
+        ("wrong_stream", 1),
+        ("out_of_order", 1),
+        ("unservable", 1),
+    ] {
+        assert_eq!(by[reason].as_u64(), Some(n), "{reason}: {replay}");
+    }
+    let reports = actor_reports(&run);
+    let sent: u64 = reports
+        .iter()
+        .map(|(_, r)| r["sent_steps"].as_u64().unwrap())
+        .sum();
+    assert_eq!(replay["inserted"].as_u64().unwrap(), sent, "{replay}");
+    assert_eq!(replay["rejected"].as_u64().unwrap(), 8, "{replay}");
+    for (name, r) in &reports {
+        assert_eq!(r["dropped_steps"].as_u64().unwrap(), 0, "{name}: {r}");
+    }
+    let target = ((env_steps - 400) as f64 * 0.25) as u64;
+    assert!(run.join(format!("checkpoints/step-{target:010}")).is_dir());
 }

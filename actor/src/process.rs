@@ -47,8 +47,10 @@ pub struct ActorReport {
     pub decisions: u64,
     /// Steps delivered to the replay.
     pub sent_steps: u64,
-    /// Steps dropped (replay full past the timeout, or gone).
+    /// Steps dropped (still waiting for the replay when the actor stopped).
     pub dropped_steps: u64,
+    /// Weights broadcasts refused (bad version, length or checksum, or not this agent's).
+    pub weights_rejected: u64,
     /// Policy versions loaded, in order.
     pub versions: Vec<u64>,
 }
@@ -81,8 +83,30 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport> {
     let mut policy: Option<(u64, Policy)> = None;
     let mut last_beat = Instant::now() - HEARTBEAT_EVERY;
     let mut versions = Vec::new();
+    let mut weights_refused = 0;
     let stop = termination_flag()?;
     while !stop.load(Ordering::Relaxed) {
+        if last_beat.elapsed() >= HEARTBEAT_EVERY {
+            telemetry.heartbeat(Heartbeat {
+                actor_id: opts.id,
+                pid: std::process::id(),
+                env_steps: collector.decisions(),
+                policy_version: policy.as_ref().map_or(0, |(v, _)| *v),
+                dropped_steps: sender.stats().dropped_steps,
+                ..Default::default()
+            })?;
+            last_beat = Instant::now();
+        }
+        // the replay has no room for our chunks (its rate limiter paces the actors to the
+        // learner, or it restarts): wait for it instead of stepping, so that nothing is dropped
+        if sender.backlog() > 0 {
+            match sender.deliver(Duration::from_millis(100)) {
+                // a signal can interrupt the wait
+                Err(_) if stop.load(Ordering::Relaxed) => break,
+                result => result?,
+            };
+            continue;
+        }
         if collector.at_episode_boundary() {
             let newest = weights.latest_with(|version, bytes| {
                 match &mut policy {
@@ -94,7 +118,10 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport> {
             })?;
             match newest {
                 Some(Ok(version)) => versions.push(version),
-                Some(Err(e)) => tracing::warn!("actor {}: weights rejected: {e}", opts.id),
+                Some(Err(e)) => {
+                    weights_refused += 1;
+                    tracing::warn!("actor {}: weights rejected: {e}", opts.id)
+                }
                 None => {}
             }
         }
@@ -135,17 +162,6 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport> {
                 ..Default::default()
             })?;
         }
-        if last_beat.elapsed() >= HEARTBEAT_EVERY {
-            telemetry.heartbeat(Heartbeat {
-                actor_id: opts.id,
-                pid: std::process::id(),
-                env_steps: collector.decisions(),
-                policy_version: version,
-                dropped_steps: sender.stats().dropped_steps,
-                ..Default::default()
-            })?;
-            last_beat = Instant::now();
-        }
     }
     // a send interrupted by the stop signal fails; what was delivered before still counts
     let before = sender.stats();
@@ -165,6 +181,7 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport> {
         decisions: collector.decisions(),
         sent_steps: stats.sent_steps,
         dropped_steps: stats.dropped_steps,
+        weights_rejected: weights.rejected() + weights_refused,
         versions,
     })
 }

@@ -3,20 +3,25 @@
 //! training episodes, restarts crashed processes with back-off (an actor draws fresh episodes,
 //! the learner resumes from its newest checkpoint, the replay from its snapshot), and stops
 //! everything cleanly at the end or on Ctrl-C/SIGTERM; finally it removes the run's shared
-//! memory.
+//! memory. Before it starts, it removes the shared memory of runs whose launcher died
+//! ([`sweep_orphaned_runs`]).
 //!
 //! Each child's tracing output goes to `<run>/logs/<role>.log` (level info unless `RUST_LOG`
 //! says otherwise).
 //!
-//! The run ends when the replay has received `env_steps` steps (the actors are stopped) and
-//! the learner has taken its gradient steps (it exits by itself; the replay is stopped).
+//! The run ends when the learner has taken its gradient steps (it exits by itself; the replay's
+//! rate limiter has held the actors to about `env_steps` steps by then). Then the actors, the
+//! replay and the learner are stopped together: the replay takes the actors' last chunks whatever
+//! its limiter says, so that a clean run drops no step.
 
 use crate::results::TrainingEpisode;
 use crate::train::{progress_bar, EpisodeLog, RateMeter};
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
+use ctxrace_common::ipc::wire::{named_reasons, ReplayStatus};
 use ctxrace_common::ipc::{
-    cleanup, run_prefix, termination_flag, RunTransport, TelemetrySubscriber, WeightsReceiver,
+    claim_run, cleanup, run_prefix, sweep_orphaned_runs, termination_flag, RunTransport,
+    TelemetrySubscriber, WeightsReceiver,
 };
 use ctxrace_common::{ExperimentConfig, SupervisorConfig};
 use std::os::unix::process::CommandExt;
@@ -198,6 +203,11 @@ struct Progress {
     fill: u64,
     capacity: u64,
     actor_versions: Vec<u64>,
+    /// The replay's newest status.
+    replay: ReplayStatus,
+    /// Malformed telemetry and weights the launcher itself refused.
+    telemetry_rejected: u64,
+    weights_rejected: u64,
 }
 
 impl Progress {
@@ -214,15 +224,52 @@ impl Progress {
             .map(|v| self.grad_steps.saturating_sub(*v))
             .max()
             .unwrap_or(0);
+        let rejected = self.replay.rejected + self.telemetry_rejected + self.weights_rejected;
         format!(
-            "| {} grad ({:.1}/s) | {} episodes, progress {mean:.3} | replay {:.0}% | lag {lag}",
+            "| {} grad ({:.1}/s) | {} episodes, progress {mean:.3} | replay {:.0}% | lag {lag}{}",
             self.grad_steps,
             self.grad_steps as f64 / secs,
             self.episodes,
             100.0 * self.fill as f64 / self.capacity.max(1) as f64,
+            if rejected > 0 {
+                format!(" | {rejected} rejected (status.json)")
+            } else {
+                String::new()
+            },
         )
     }
+
+    /// The live status file's contents: counters, rejections by reason, the replay's longest
+    /// stall.
+    fn status(&self) -> serde_json::Value {
+        let r = &self.replay;
+        serde_json::json!({
+            "env_steps": self.env_steps,
+            "grad_steps": self.grad_steps,
+            "episodes": self.episodes,
+            "actor_versions": self.actor_versions,
+            "replay": {
+                "inserted": r.inserted,
+                "sampled": r.sampled,
+                "fill": r.fill,
+                "capacity": r.capacity,
+                "batches": r.batches,
+                "dropped_chunks": r.dropped_chunks,
+                "rejected": r.rejected,
+                "rejected_by_reason": named_reasons(&r.rejected_by_reason),
+                "restored_inserts": r.restored_inserts,
+                "longest_turn_ms": r.longest_turn_us as f64 / 1e3,
+            },
+            "launcher_rejected": {
+                "telemetry": self.telemetry_rejected,
+                "weights": self.weights_rejected,
+            },
+        })
+    }
 }
+
+/// File in the run directory with the launcher's live counters, rewritten every second.
+pub const STATUS_FILE: &str = "status.json";
 
 /// The flags that reproduce `tracks` on a child's command line.
 fn track_flags(tracks: &TrackArgs) -> Vec<String> {
@@ -257,7 +304,15 @@ pub fn run(cfg: &ExperimentConfig, dir: &Path, actors: usize, tracks: &TrackArgs
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.as_millis())
     );
+    match sweep_orphaned_runs() {
+        Ok(swept) if !swept.is_empty() => {
+            tracing::warn!("removed the shared memory of runs whose launcher died: {swept:?}")
+        }
+        Ok(_) => {}
+        Err(e) => tracing::warn!("sweeping the shared memory of dead runs: {e:#}"),
+    }
     let prefix = run_prefix(&run_id);
+    claim_run(&prefix)?;
     let common = |role: &str| {
         vec![
             role.to_string(),
@@ -293,13 +348,14 @@ pub fn run(cfg: &ExperimentConfig, dir: &Path, actors: usize, tracks: &TrackArgs
         &mut learner,
         &mut actor_procs,
     );
-    // stop whatever still runs: actors first (they flush into the replay), then the rest
+    // stop whatever still runs, all at once: the replay takes the actors' last chunks, whatever
+    // its rate limiter says, until their senders have closed, then writes its snapshot
     for p in actor_procs.iter_mut() {
         p.stop();
     }
-    wait_all(&mut actor_procs)?;
     learner.stop();
     replay.stop();
+    wait_all(&mut actor_procs)?;
     let mut rest = [learner, replay];
     wait_all(&mut rest)?;
     drop(transport);
@@ -307,7 +363,50 @@ pub fn run(cfg: &ExperimentConfig, dir: &Path, actors: usize, tracks: &TrackArgs
         Ok(report) => tracing::info!("shared memory of {prefix} removed: {report:?}"),
         Err(e) => tracing::warn!("cleaning up {prefix}: {e}"),
     }
+    if result.is_ok() {
+        eprintln!("{}", step_summary(dir));
+    }
     result
+}
+
+/// One line on where the run's steps went: sent by each actor (every start of it), stored by
+/// the replay, dropped, rejected.
+fn step_summary(dir: &Path) -> String {
+    let read = |path: &Path| -> Option<serde_json::Value> {
+        serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
+    };
+    let mut sent = std::collections::BTreeMap::<u64, u64>::new();
+    let mut dropped = 0;
+    if let Ok(entries) = std::fs::read_dir(dir.join(crate::roles::ACTOR_REPORTS)) {
+        for report in entries.flatten().filter_map(|e| read(&e.path())) {
+            let id = report["id"].as_u64().unwrap_or(0);
+            *sent.entry(id).or_default() += report["sent_steps"].as_u64().unwrap_or(0);
+            dropped += report["dropped_steps"].as_u64().unwrap_or(0);
+        }
+    }
+    let shares: Vec<String> = sent.values().map(u64::to_string).collect();
+    let mut line = format!(
+        "steps: {} sent by the actors ({})",
+        sent.values().sum::<u64>(),
+        shares.join(" / ")
+    );
+    if let Some(replay) = read(&dir.join(crate::roles::REPLAY_REPORT)) {
+        line += &format!(
+            ", {} stored by the replay, {} rejected, longest replay stall {:.1} ms",
+            replay["inserted"],
+            replay["rejected"],
+            replay["longest_turn_ms"].as_f64().unwrap_or(0.0)
+        );
+    }
+    if dropped > 0 {
+        line += &format!(
+            "; {dropped} DROPPED (the replay did not take them before their actor stopped: \
+             see actors/*.json)"
+        );
+    } else {
+        line += "; none dropped";
+    }
+    line
 }
 
 /// How many times actor `id` ran in earlier launches of the run in `dir` (its reports).
@@ -402,6 +501,7 @@ fn supervise(
         ..Progress::default()
     };
     let mut tick = Instant::now();
+    let mut last_status = Instant::now();
     let stop = termination_flag()?;
     loop {
         std::thread::sleep(Duration::from_millis(100));
@@ -441,7 +541,10 @@ fn supervise(
             p.env_steps = s.inserted;
             p.fill = s.fill;
             p.capacity = s.capacity;
+            p.replay = s;
         }
+        p.telemetry_rejected = telemetry.rejected();
+        p.weights_rejected = weights.rejected();
         for e in tolerate(telemetry.episodes()).unwrap_or_default() {
             p.episodes += 1;
             p.recent_progress.push(e.progress as f64);
@@ -488,6 +591,7 @@ fn supervise(
             if status.success() {
                 bar.set_position(p.env_steps.min(cfg.train.env_steps));
                 bar.finish_with_message(p.message(start));
+                crate::results::write_json(&dir.join(STATUS_FILE), &p.status())?;
                 return Ok(());
             }
             learner.failed(&format!("exited ({status})"), &cfg.supervisor)?;
@@ -497,10 +601,9 @@ fn supervise(
             let (removed, failed) = transport.cleanup_dead_nodes();
             tracing::info!("dead nodes cleaned up: {removed} removed, {failed} failed");
         }
-        if p.env_steps >= cfg.train.env_steps {
-            for a in actors.iter_mut().filter(|a| !a.retired) {
-                a.stop();
-            }
+        if last_status.elapsed() >= Duration::from_secs(1) {
+            crate::results::write_json(&dir.join(STATUS_FILE), &p.status())?;
+            last_status = Instant::now();
         }
         if tick.elapsed() >= Duration::from_millis(250) {
             bar.set_position(p.env_steps.min(cfg.train.env_steps));

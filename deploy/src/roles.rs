@@ -83,6 +83,9 @@ pub fn replay(args: RoleArgs) -> Result<()> {
         "rejected": s.rejected,
         "batches": s.batches,
         "inserted_at_last_batch": s.inserted_at_last_batch,
+        "restored_inserts": s.restored_inserts,
+        "rejected_by_reason": ctxrace_common::ipc::wire::named_reasons(&s.rejected_by_reason),
+        "longest_turn_ms": s.longest_turn_us as f64 / 1e3,
         "samples_per_insert": replay_args.options.samples_per_insert,
         "min_fill": replay_args.options.min_fill,
     });

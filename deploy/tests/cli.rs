@@ -505,11 +505,7 @@ fn inline_training_then_evaluation_report_and_race_with_the_policy() {
         }
     }
     // TensorBoard event files: the learner's losses and the training episodes
-    let tags: std::collections::HashSet<String> = ctxrace_learner::tensorboard::event_files(&run)
-        .iter()
-        .flat_map(|f| ctxrace_learner::tensorboard::read_scalars(f).unwrap())
-        .map(|r| r.tag)
-        .collect();
+    let tags = ctxrace_learner::tensorboard::scalar_tags(&run).unwrap();
     for tag in [
         "episode/progress",
         "episode/return",

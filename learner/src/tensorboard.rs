@@ -238,6 +238,15 @@ pub fn event_files(dir: &Path) -> Vec<PathBuf> {
     files
 }
 
+/// The tags of every scalar in the event files of a run directory.
+pub fn scalar_tags(dir: &Path) -> Result<std::collections::BTreeSet<String>> {
+    let mut tags = std::collections::BTreeSet::new();
+    for file in event_files(dir) {
+        tags.extend(read_scalars(&file)?.into_iter().map(|r| r.tag));
+    }
+    Ok(tags)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -230,9 +230,12 @@ fn iceoryx_measure(
                 for k in 0..o.steps_per_actor {
                     let (episode, first, last) = synthetic(&o, id, k, &mut obs);
                     tx.push(episode, 0, &synthetic_step(&obs, first, last))?;
+                    // as an actor does: wait while the replay has no room
+                    while tx.backlog() > 0 {
+                        tx.deliver(Duration::from_millis(100))?;
+                    }
                 }
-                tx.flush()?;
-                Ok(tx.stats().dropped_steps)
+                Ok(tx.close()?.dropped_steps)
             })
         })
         .collect();

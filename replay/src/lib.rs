@@ -11,4 +11,6 @@ pub use bench::{run_ipc_bench, IpcBenchOptions, IpcBenchReport, TransportFigures
 pub use buffer::ReplayBuffer;
 pub use limiter::RateLimiter;
 pub use server::{run, ReplayArgs, ReplayControl};
-pub use snapshot::{read_snapshot, write_snapshot, LimiterCounts};
+pub use snapshot::{
+    encode_snapshot, read_snapshot, write_encoded, write_snapshot, BackgroundWriter, LimiterCounts,
+};

@@ -5,9 +5,11 @@
 
 use crate::buffer::ReplayBuffer;
 use crate::limiter::RateLimiter;
-use crate::snapshot::{read_snapshot, write_snapshot, LimiterCounts};
+use crate::snapshot::{
+    encode_snapshot, read_snapshot, write_snapshot, BackgroundWriter, LimiterCounts,
+};
 use anyhow::{anyhow, bail, Result};
-use ctxrace_common::ipc::wire::ReplayStatus;
+use ctxrace_common::ipc::wire::{ReplayStatus, WireError, FORMAT_VERSION, REASONS};
 use ctxrace_common::ipc::{
     BatchRequest, BatchServer, BatchSpec, ReplayBeacon, RunTransport, StatusPublisher,
     TrajectoryReceiver, Wake,
@@ -27,6 +29,8 @@ const CHUNKS_PER_TURN: usize = 256;
 const TICK: Duration = Duration::from_millis(100);
 /// Seconds between status messages.
 const STATUS_EVERY: Duration = Duration::from_secs(1);
+/// Longest the replay waits, when stopping, for the actors' senders to close.
+const DRAIN_LIMIT: Duration = Duration::from_secs(10);
 
 /// What the replay process serves.
 #[derive(Clone, Debug)]
@@ -54,6 +58,50 @@ pub struct ReplayControl {
     pub inserted: AtomicU64,
     /// Set once the endpoints exist and the replay was announced.
     pub ready: AtomicBool,
+}
+
+/// What the replay loop counts besides its buffer, limiter, receiver and server.
+#[derive(Default)]
+struct Counters {
+    batches: u64,
+    /// Requests larger than the rate limiter's window: they would block the queue forever.
+    unservable: u64,
+    inserted_at_last_batch: u64,
+    /// The longest turn of the loop (everything but its sleep): how long batch delivery can
+    /// stall.
+    longest_turn: Duration,
+    restored_inserts: u64,
+}
+
+impl Counters {
+    /// The status to publish.
+    fn status(
+        &self,
+        buffer: &ReplayBuffer,
+        limiter: &RateLimiter,
+        chunks: &TrajectoryReceiver,
+        server: &BatchServer,
+        pending: usize,
+    ) -> ReplayStatus {
+        let (c, r) = (chunks.rejected_by_reason(), server.rejected_by_reason());
+        let mut by_reason: [u64; REASONS.len()] = std::array::from_fn(|i| c[i] + r[i]);
+        by_reason[WireError::Unservable { steps: 0 }.reason()] += self.unservable;
+        ReplayStatus {
+            format_version: FORMAT_VERSION,
+            longest_turn_us: self.longest_turn.as_micros().min(u32::MAX as u128) as u32,
+            inserted: limiter.inserts(),
+            sampled: limiter.samples(),
+            fill: buffer.len() as u64,
+            capacity: buffer.capacity() as u64,
+            dropped_chunks: chunks.missing_chunks(),
+            rejected: by_reason.iter().sum(),
+            batches: self.batches,
+            pending_requests: pending as u64,
+            inserted_at_last_batch: self.inserted_at_last_batch,
+            restored_inserts: self.restored_inserts,
+            rejected_by_reason: by_reason,
+        }
+    }
 }
 
 /// Runs the replay until `control.shutdown` is set or (with `handle_signals`) SIGTERM/SIGINT;
@@ -106,30 +154,15 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
     );
 
     let mut pending: VecDeque<(BatchRequest, BatchSpec)> = VecDeque::new();
-    // requests larger than the rate limiter's window: they would block the queue forever
-    let mut unservable = 0u64;
-    let mut batches = 0u64;
-    let mut inserted_at_last_batch = 0u64;
+    let mut counters = Counters {
+        restored_inserts: counts.inserts,
+        ..Counters::default()
+    };
     let mut last_status = Instant::now();
     let mut last_snapshot = Instant::now();
-    let current = |buffer: &ReplayBuffer,
-                   limiter: &RateLimiter,
-                   chunks: &TrajectoryReceiver,
-                   server: &BatchServer,
-                   batches: u64,
-                   pending: usize,
-                   unservable: u64| ReplayStatus {
-        inserted: limiter.inserts(),
-        sampled: limiter.samples(),
-        fill: buffer.len() as u64,
-        capacity: buffer.capacity() as u64,
-        dropped_chunks: chunks.missing_chunks(),
-        rejected: chunks.rejected() + server.rejected() + unservable,
-        batches,
-        pending_requests: pending as u64,
-        ..Default::default()
-    };
+    let mut writer = BackgroundWriter::default();
     loop {
+        let turn = Instant::now();
         // The limiter is asked before every chunk: too fast actors wait in backpressure.
         let mut taken = 0;
         while taken < CHUNKS_PER_TURN && limiter.can_insert(1) {
@@ -149,11 +182,12 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
             if limiter.can_ever_sample(spec.steps() as u64) {
                 pending.push_back((request, spec));
             } else {
-                unservable += 1;
+                counters.unservable += 1;
                 tracing::warn!(
-                    "rejected a request for {} steps ({unservable} so far): larger than the rate \
+                    "rejected a request for {} steps ({} so far): larger than the rate \
                      limiter's window; raise [replay] error_buffer_steps or lower the batch",
-                    spec.steps()
+                    spec.steps(),
+                    counters.unservable
                 );
             }
         }
@@ -174,8 +208,8 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
                 Some(result) => {
                     result?;
                     limiter.sampled(n);
-                    batches += 1;
-                    inserted_at_last_batch = limiter.inserts();
+                    counters.batches += 1;
+                    counters.inserted_at_last_batch = limiter.inserts();
                     pending.pop_front();
                 }
                 // Not enough contiguous data yet: keep the request for a later turn.
@@ -183,27 +217,29 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
             }
         }
         if last_status.elapsed() >= STATUS_EVERY {
-            let s = ReplayStatus {
-                inserted_at_last_batch,
-                ..current(
-                    &buffer,
-                    &limiter,
-                    &chunks,
-                    &server,
-                    batches,
-                    pending.len(),
-                    unservable,
-                )
-            };
+            let s = counters.status(&buffer, &limiter, &chunks, &server, pending.len());
             status.publish(s)?;
             last_status = Instant::now();
         }
         if opts.snapshot_every_secs > 0
             && last_snapshot.elapsed() >= Duration::from_secs(opts.snapshot_every_secs)
+            && !writer.busy()
         {
-            snapshot(args, &buffer, &limiter)?;
+            if let Some(path) = opts.snapshot_path.as_deref() {
+                let start = Instant::now();
+                let bytes = encode_snapshot(&buffer, limiter_counts(&limiter));
+                let encoded = start.elapsed();
+                writer.start(path.to_path_buf(), bytes)?;
+                tracing::info!(
+                    "replay: snapshot of {} steps encoded in {encoded:.2?}, written to {} in the \
+                     background",
+                    buffer.len(),
+                    path.display()
+                );
+            }
             last_snapshot = Instant::now();
         }
+        counters.longest_turn = counters.longest_turn.max(turn.elapsed());
         if control.shutdown.load(Ordering::Acquire) {
             break;
         }
@@ -226,30 +262,27 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
         wake.try_wait(|_| {})
             .map_err(|e| anyhow!("iceoryx2: drain wake: {e:?}"))?;
     }
-    // chunks already delivered are stored whatever the limiter says: nothing sent is lost
-    while chunks.receive(CHUNKS_PER_TURN, |c| {
-        buffer.insert_chunk(c.header.actor_id as usize, c.payload, c.after_gap);
-        limiter.inserted(u64::from(c.header.steps));
-    })? > 0
-    {}
-    let last = ReplayStatus {
-        inserted_at_last_batch,
-        ..current(
-            &buffer,
-            &limiter,
-            &chunks,
-            &server,
-            batches,
-            pending.len(),
-            unservable,
-        )
-    };
+    // the actors' last chunks are stored whatever the limiter says, until every sender has
+    // closed (a killed actor's sender lingers: at most DRAIN_LIMIT): nothing sent is lost
+    let deadline = Instant::now() + DRAIN_LIMIT;
+    loop {
+        let got = chunks.receive(CHUNKS_PER_TURN, |c| {
+            buffer.insert_chunk(c.header.actor_id as usize, c.payload, c.after_gap);
+            limiter.inserted(u64::from(c.header.steps));
+        })?;
+        beacon.signal();
+        if got == 0 {
+            if chunks.senders() == 0 || Instant::now() >= deadline {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+    }
+    let last = counters.status(&buffer, &limiter, &chunks, &server, pending.len());
     status.publish(last)?;
+    writer.wait()?;
     snapshot(args, &buffer, &limiter)?;
-    Ok(ReplayStatus {
-        format_version: ctxrace_common::ipc::wire::FORMAT_VERSION,
-        ..last
-    })
+    Ok(last)
 }
 
 fn restore(args: &ReplayArgs) -> Result<(ReplayBuffer, LimiterCounts)> {
@@ -287,17 +320,17 @@ fn restore(args: &ReplayArgs) -> Result<(ReplayBuffer, LimiterCounts)> {
     Ok((buffer, counts))
 }
 
+fn limiter_counts(limiter: &RateLimiter) -> LimiterCounts {
+    LimiterCounts {
+        inserts: limiter.inserts(),
+        samples: limiter.samples(),
+    }
+}
+
 fn snapshot(args: &ReplayArgs, buffer: &ReplayBuffer, limiter: &RateLimiter) -> Result<()> {
     if let Some(path) = args.options.snapshot_path.as_deref() {
         let start = Instant::now();
-        write_snapshot(
-            path,
-            buffer,
-            LimiterCounts {
-                inserts: limiter.inserts(),
-                samples: limiter.samples(),
-            },
-        )?;
+        write_snapshot(path, buffer, limiter_counts(limiter))?;
         tracing::info!(
             "replay: snapshot of {} steps to {} in {:.2?}",
             buffer.len(),

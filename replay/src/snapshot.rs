@@ -1,11 +1,13 @@
 //! Replay snapshots: the buffer and the rate limiter's counters in one versioned little-endian
-//! file ending in a CRC-32, written atomically (temporary file, fsync, rename). Only the steps
-//! held are written (oldest first), so a snapshot's size follows the fill, not the capacity.
+//! file ending in a CRC-32, written atomically (temporary file, fsync, rename, folder fsync).
+//! Only the steps held are written (oldest first), so a snapshot's size follows the fill, not
+//! the capacity. Encoding ([`encode_snapshot`]) is separate from writing ([`write_encoded`]), so
+//! that the replay loop pauses only for the copy and writes on another thread.
 
 use crate::buffer::{ReplayBuffer, Stream};
 use anyhow::{anyhow, bail, Context as _, Result};
 use std::fs::File;
-use std::io::{BufReader, BufWriter, Read, Write};
+use std::io::{BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 
 const MAGIC: &[u8; 8] = b"CTXRPLY\0";
@@ -25,60 +27,111 @@ pub struct LimiterCounts {
 
 /// Writes `buffer` and `counts` to `path` atomically.
 pub fn write_snapshot(path: &Path, buffer: &ReplayBuffer, counts: LimiterCounts) -> Result<()> {
-    let tmp = tmp_path(path);
-    let result = (|| -> Result<()> {
-        let file = File::create(&tmp)?;
-        let mut w = Hashing {
-            inner: BufWriter::with_capacity(1 << 20, file),
-            hasher: crc32fast::Hasher::new(),
-        };
-        w.write_all(MAGIC)?;
-        let cap = buffer.streams.first().map_or(0, |s| s.reward.len());
-        for v in [
-            SNAPSHOT_VERSION,
-            buffer.obs_dim as u32,
-            buffer.act_dim as u32,
-            buffer.streams.len() as u32,
-        ] {
-            w.write_all(&v.to_le_bytes())?;
+    write_encoded(path, encode_snapshot(buffer, counts))
+}
+
+/// The snapshot of `buffer` and `counts` as bytes, without its trailing checksum: the part that
+/// needs the buffer, quick enough for the replay loop; [`write_encoded`] does the rest, off it.
+pub fn encode_snapshot(buffer: &ReplayBuffer, counts: LimiterCounts) -> Vec<u8> {
+    let (o, a) = (buffer.obs_dim, buffer.act_dim);
+    let per_step = 4 * (o + a + 1 + 2 + 2) + 1 + 8;
+    let steps: usize = buffer.streams.iter().map(|s| s.len).sum();
+    let size = HEADER_BYTES as usize
+        + buffer.streams.len() * STREAM_HEADER_BYTES as usize
+        + steps * per_step
+        + 4;
+    let mut w = Vec::with_capacity(size);
+    w.extend_from_slice(MAGIC);
+    let cap = buffer.streams.first().map_or(0, |s| s.reward.len());
+    for v in [
+        SNAPSHOT_VERSION,
+        o as u32,
+        a as u32,
+        buffer.streams.len() as u32,
+    ] {
+        w.extend_from_slice(&v.to_le_bytes());
+    }
+    for v in [cap as u64, buffer.inserted, counts.inserts, counts.samples] {
+        w.extend_from_slice(&v.to_le_bytes());
+    }
+    for s in &buffer.streams {
+        for v in [s.len as u64, s.segment] {
+            w.extend_from_slice(&v.to_le_bytes());
         }
-        for v in [cap as u64, buffer.inserted, counts.inserts, counts.samples] {
-            w.write_all(&v.to_le_bytes())?;
-        }
-        for s in &buffer.streams {
-            for v in [s.len as u64, s.segment] {
-                w.write_all(&v.to_le_bytes())?;
-            }
-            let (o, a) = (buffer.obs_dim, buffer.act_dim);
-            for i in 0..s.len {
-                let k = s.slot(i);
-                for part in [
-                    &s.obs[k * o..(k + 1) * o],
-                    &s.action[k * a..(k + 1) * a],
-                    &s.reward[k..k + 1],
-                    &s.context[k * 2..k * 2 + 2],
-                    &s.mask[k * 2..k * 2 + 2],
-                ] {
-                    for v in part {
-                        w.write_all(&v.to_le_bytes())?;
-                    }
+        for i in 0..s.len {
+            let k = s.slot(i);
+            for part in [
+                &s.obs[k * o..(k + 1) * o],
+                &s.action[k * a..(k + 1) * a],
+                &s.reward[k..k + 1],
+                &s.context[k * 2..k * 2 + 2],
+                &s.mask[k * 2..k * 2 + 2],
+            ] {
+                for v in part {
+                    w.extend_from_slice(&v.to_le_bytes());
                 }
-                w.write_all(&[s.flags[k]])?;
-                w.write_all(&s.segments[k].to_le_bytes())?;
             }
+            w.push(s.flags[k]);
+            w.extend_from_slice(&s.segments[k].to_le_bytes());
         }
-        let crc = w.hasher.clone().finalize();
-        let mut file = w.inner.into_inner().map_err(|e| e.into_error())?;
-        file.write_all(&crc.to_le_bytes())?;
-        file.sync_all()?;
-        Ok(())
+    }
+    w
+}
+
+/// Appends the CRC-32 to an [`encode_snapshot`] and writes it to `path` atomically: a temporary
+/// file, fsynced, renamed over the old snapshot, the folder fsynced.
+pub fn write_encoded(path: &Path, mut bytes: Vec<u8>) -> Result<()> {
+    let crc = crc32fast::hash(&bytes);
+    bytes.extend_from_slice(&crc.to_le_bytes());
+    let tmp = tmp_path(path);
+    let written = (|| -> std::io::Result<()> {
+        let mut file = File::create(&tmp)?;
+        file.write_all(&bytes)?;
+        file.sync_all()
     })();
-    if let Err(e) = result {
+    if let Err(e) = written {
         let _ = std::fs::remove_file(&tmp);
-        return Err(e.context(format!("writing replay snapshot {}", tmp.display())));
+        return Err(e).with_context(|| format!("writing replay snapshot {}", tmp.display()));
     }
     std::fs::rename(&tmp, path)
-        .with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))
+        .with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        File::open(dir)
+            .and_then(|d| d.sync_all())
+            .with_context(|| format!("syncing folder {}", dir.display()))?;
+    }
+    Ok(())
+}
+
+/// Snapshots written on a thread of their own, so that the replay loop pauses only to encode.
+#[derive(Default)]
+pub struct BackgroundWriter {
+    job: Option<std::thread::JoinHandle<Result<()>>>,
+}
+
+impl BackgroundWriter {
+    /// A write is still running.
+    pub fn busy(&self) -> bool {
+        self.job.as_ref().is_some_and(|j| !j.is_finished())
+    }
+
+    /// Starts writing `bytes` ([`encode_snapshot`]) to `path` once the previous write is done;
+    /// a failure of the previous write is returned here.
+    pub fn start(&mut self, path: PathBuf, bytes: Vec<u8>) -> Result<()> {
+        self.wait()?;
+        self.job = Some(std::thread::spawn(move || write_encoded(&path, bytes)));
+        Ok(())
+    }
+
+    /// Waits for the running write, if any, and returns its result.
+    pub fn wait(&mut self) -> Result<()> {
+        match self.job.take() {
+            Some(job) => job
+                .join()
+                .map_err(|_| anyhow!("the snapshot writer thread panicked"))?,
+            None => Ok(()),
+        }
+    }
 }
 
 /// Reads a snapshot; any damage (bad magic, version, sizes, checksum) is an error naming the
@@ -192,22 +245,10 @@ fn tmp_path(path: &Path) -> PathBuf {
     path.with_file_name(name)
 }
 
-/// A reader or writer that hashes every byte passing through.
+/// A reader that hashes every byte passing through.
 struct Hashing<T> {
     inner: T,
     hasher: crc32fast::Hasher,
-}
-
-impl<W: Write> Write for Hashing<W> {
-    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
-        let n = self.inner.write(buf)?;
-        self.hasher.update(&buf[..n]);
-        Ok(n)
-    }
-
-    fn flush(&mut self) -> std::io::Result<()> {
-        self.inner.flush()
-    }
 }
 
 impl<R: Read> Read for Hashing<R> {

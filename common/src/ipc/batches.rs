@@ -449,4 +449,9 @@ impl BatchServer {
     pub fn rejected(&self) -> u64 {
         self.rejects.count()
     }
+
+    /// Requests rejected, by reason ([`super::wire::REASONS`]).
+    pub fn rejected_by_reason(&self) -> [u64; super::wire::REASONS.len()] {
+        self.rejects.by_reason()
+    }
 }

@@ -2,7 +2,7 @@
 //!
 //! | service | pattern | from -> to |
 //! | --- | --- | --- |
-//! | `trajectory` | `[f32]` chunks + [`ChunkHeader`], no overflow | actors -> replay |
+//! | `trajectory/<actor>` | `[f32]` chunks + [`ChunkHeader`], no overflow, one per actor | actor -> replay |
 //! | `batch_request`, `batch` | [`BatchRequest`]; `[f32]` + [`BatchHeader`] | learner <-> replay |
 //! | `weights` | `[u8]` + [`WeightsHeader`], history 1 | learner -> actors |
 //! | `metrics`, `heartbeat`, `replay_status` | plain structs | actors, replay -> launcher |
@@ -10,11 +10,15 @@
 //!
 //! Every process opens a [`RunTransport`] with the run's prefix ([`run_prefix`]); services of
 //! other prefixes are invisible. Senders wait for the replay's `replay_ready` event before their
-//! first chunk (a chunk sent before a subscriber connected is silently lost); a full replay
-//! holds a sender back for at most [`SenderOptions::backpressure_timeout`], then the chunk is
-//! dropped and counted. [`cleanup`] removes the run's dead nodes and shared-memory files.
+//! first chunk (a chunk sent before a subscriber connected is silently lost); a chunk the
+//! replay has no room for waits in its sender's backlog (the actor pauses) and is dropped, and
+//! counted, only if it is still waiting when the sender closes
+//! ([`SenderOptions::close_timeout`]). The replay takes the actors' queues in turn. Management
+//! files live in the user's private [`shm_root`]; [`cleanup`] removes the run's dead nodes and
+//! shared-memory files, and [`sweep_orphaned_runs`] those of runs whose launcher died.
 
 mod batches;
+pub mod inject;
 mod telemetry;
 mod trajectory;
 mod transport;
@@ -27,8 +31,8 @@ pub use trajectory::{
     ChunkView, ReplayBeacon, SenderOptions, SenderStats, Step, TrajectoryReceiver, TrajectorySender,
 };
 pub use transport::{
-    cleanup, iceoryx_config, run_prefix, termination_flag, CleanupReport, RunTransport, Wake,
-    TRAJECTORY_BUFFER,
+    claim_run, cleanup, iceoryx_config, run_prefix, shm_root, sweep_orphaned_runs,
+    termination_flag, CleanupReport, RunTransport, Wake, SHM_ROOT_ENV, TRAJECTORY_BUFFER,
 };
 pub use weights::{WeightsPublisher, WeightsReceiver, DEFAULT_MAX_WEIGHTS_BYTES};
 pub use wire::{
@@ -36,26 +40,34 @@ pub use wire::{
     WireError,
 };
 
-/// Counts rejected messages and logs them: the first ten, then every thousandth, so a flood of
-/// bad input cannot flood the log.
+/// Counts rejected messages by reason ([`wire::REASONS`]) and logs them: the first ten, then
+/// every thousandth, so a flood of bad input cannot flood the log.
 pub(crate) struct RejectLog {
     what: &'static str,
-    count: u64,
+    by_reason: [u64; wire::REASONS.len()],
 }
 
 impl RejectLog {
     pub(crate) fn new(what: &'static str) -> Self {
-        Self { what, count: 0 }
+        Self {
+            what,
+            by_reason: [0; wire::REASONS.len()],
+        }
     }
 
     pub(crate) fn reject(&mut self, error: &WireError) {
-        self.count += 1;
-        if self.count <= 10 || self.count.is_multiple_of(1000) {
-            tracing::warn!("rejected {} ({} so far): {error}", self.what, self.count);
+        self.by_reason[error.reason()] += 1;
+        let count = self.count();
+        if count <= 10 || count.is_multiple_of(1000) {
+            tracing::warn!("rejected {} ({count} so far): {error}", self.what);
         }
     }
 
     pub(crate) fn count(&self) -> u64 {
-        self.count
+        self.by_reason.iter().sum()
+    }
+
+    pub(crate) fn by_reason(&self) -> [u64; wire::REASONS.len()] {
+        self.by_reason
     }
 }

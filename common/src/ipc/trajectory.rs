@@ -2,8 +2,8 @@
 
 use super::transport::{ice, wait_until, RunTransport, Wake};
 use super::wire::{
-    step_stride, validate_chunk, ChunkHeader, FORMAT_VERSION, MAX_ACT, MAX_CHUNK, MAX_CHUNK_FLOATS,
-    MAX_OBS,
+    step_stride, validate_chunk, ChunkHeader, WireError, FORMAT_VERSION, MAX_ACT, MAX_CHUNK,
+    MAX_CHUNK_FLOATS, MAX_OBS,
 };
 use super::RejectLog;
 use anyhow::{anyhow, Result};
@@ -13,8 +13,8 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::port::BackpressureAction;
 use iceoryx2::prelude::*;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
+use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 /// One env step as an actor reports it (SequenceBatch's convention).
@@ -66,17 +66,17 @@ impl Step<'_> {
 pub struct SenderOptions {
     /// How long [`TrajectorySender::new`] waits for the replay to come up.
     pub handshake_timeout: Duration,
-    /// How long one send waits for room at a full replay before dropping the chunk. Every send
-    /// waits: a replay held back by its rate limiter slows the actors to the learner's pace
-    /// (nothing is dropped); a dead or stuck one costs each chunk one timeout.
-    pub backpressure_timeout: Duration,
+    /// How long closing waits for the replay to take the chunks still waiting, before they are
+    /// dropped and counted. While running, nothing is dropped: chunks wait in the sender's
+    /// backlog (see [`TrajectorySender::backlog`]) for as long as the replay needs.
+    pub close_timeout: Duration,
 }
 
 impl Default for SenderOptions {
     fn default() -> Self {
         Self {
             handshake_timeout: Duration::from_secs(30),
-            backpressure_timeout: Duration::from_secs(2),
+            close_timeout: Duration::from_secs(10),
         }
     }
 }
@@ -86,7 +86,7 @@ impl Default for SenderOptions {
 pub struct SenderStats {
     /// Steps delivered to the replay.
     pub sent_steps: u64,
-    /// Steps dropped (replay full past the timeout, or gone).
+    /// Steps dropped (still waiting for room when the sender closed).
     pub dropped_steps: u64,
     /// Chunks delivered.
     pub sent_chunks: u64,
@@ -94,22 +94,35 @@ pub struct SenderStats {
     pub dropped_chunks: u64,
 }
 
+/// How long one send attempt waits for room in the replay's queue of this actor.
+const ATTEMPT: Duration = Duration::from_millis(10);
+
+/// A chunk waiting for room at the replay.
+struct Pending {
+    header: ChunkHeader,
+    floats: Vec<f32>,
+}
+
 /// An actor's end of the trajectory stream: collects steps into chunks of up to [`MAX_CHUNK`]
 /// and sends them when full and at each episode's end.
 ///
-/// Dropping it flushes and then waits (at most the backpressure timeout) until the replay has
-/// run a receive turn after the last send: a publisher that disappears before the replay
-/// connected to it takes its unread chunks with it.
+/// A chunk the replay has no room for (its rate limiter holds the actors to the learner's pace,
+/// or it is restarting) waits in the sender's backlog; the actor stops stepping while
+/// [`backlog`](Self::backlog) is not empty and calls [`deliver`](Self::deliver) instead, so
+/// nothing is dropped while the run goes on. Closing (or dropping) delivers the backlog within
+/// [`SenderOptions::close_timeout`], drops and counts what is left, and then waits until the
+/// replay has run a receive turn after the last send: a publisher that disappears before the
+/// replay connected to it takes its unread chunks with it.
 pub struct TrajectorySender {
     publisher: Publisher<ipc::Service, [f32], ChunkHeader>,
     wake: Notifier<ipc::Service>,
     turns: Listener<ipc::Service>,
-    timeout: Duration,
+    close_timeout: Duration,
     /// A chunk was delivered since the replay was last seen to take a turn.
     unconfirmed: bool,
-    congested: Arc<AtomicBool>,
     header: ChunkHeader,
     buf: Vec<f32>,
+    backlog: VecDeque<Pending>,
     stats: SenderStats,
 }
 
@@ -135,21 +148,17 @@ impl TrajectorySender {
             ));
         }
         let ready = transport.listener(Wake::ReplayReady)?;
-        let service = transport.trajectory_service()?;
-        let congested = Arc::new(AtomicBool::new(false));
-        let flag = congested.clone();
-        let timeout = opts.backpressure_timeout;
+        let service = transport.trajectory_service(actor_id as usize)?;
         let publisher = service
             .publisher_builder()
             .initial_max_slice_len(MAX_CHUNK_FLOATS)
             .allocation_strategy(AllocationStrategy::Static)
             .max_loaned_samples(1)
             .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
-            .set_backpressure_handler(move |info| {
-                if info.elapsed_time < timeout {
+            .set_backpressure_handler(|info| {
+                if info.elapsed_time < ATTEMPT {
                     BackpressureAction::Retry
                 } else {
-                    flag.store(true, Ordering::Relaxed);
                     BackpressureAction::DiscardData
                 }
             })
@@ -169,9 +178,8 @@ impl TrajectorySender {
             publisher,
             wake: transport.notifier(Wake::Replay)?,
             turns: ready,
-            timeout,
+            close_timeout: opts.close_timeout,
             unconfirmed: false,
-            congested,
             header: ChunkHeader {
                 format_version: FORMAT_VERSION,
                 actor_id,
@@ -180,6 +188,7 @@ impl TrajectorySender {
                 ..Default::default()
             },
             buf: Vec::with_capacity(MAX_CHUNK * step_stride(obs_dim, act_dim)),
+            backlog: VecDeque::new(),
             stats: SenderStats::default(),
         })
     }
@@ -214,56 +223,63 @@ impl TrajectorySender {
         Ok(())
     }
 
-    /// Sends the steps collected so far, if any. A chunk the replay does not take within the
-    /// backpressure timeout is dropped and counted, not an error.
+    /// Ends the chunk collected so far, if any, and tries to send the backlog (see
+    /// [`deliver`](Self::deliver)) with one short attempt.
     pub fn flush(&mut self) -> Result<()> {
-        let steps = u64::from(self.header.steps);
-        if steps == 0 {
-            return Ok(());
+        if self.header.steps > 0 {
+            let capacity = self.buf.capacity();
+            let floats = std::mem::replace(&mut self.buf, Vec::with_capacity(capacity));
+            self.backlog.push_back(Pending {
+                header: self.header,
+                floats,
+            });
+            self.header.sequence += 1;
+            self.header.steps = 0;
         }
+        self.deliver(Duration::ZERO)?;
+        Ok(())
+    }
+
+    /// Chunks waiting for room at the replay. An actor should not step while there are any.
+    pub fn backlog(&self) -> usize {
+        self.backlog.len()
+    }
+
+    /// Sends the backlog, oldest first, waiting up to `wait` (at least one short attempt) for
+    /// the replay to make room; returns whether the backlog is empty.
+    pub fn deliver(&mut self, wait: Duration) -> Result<bool> {
         let start = Instant::now();
-        self.congested.store(false, Ordering::Relaxed);
-        let delivered = loop {
+        while let Some(chunk) = self.backlog.front() {
             let mut sample = self
                 .publisher
-                .loan_slice_uninit(self.buf.len())
+                .loan_slice_uninit(chunk.floats.len())
                 .map_err(ice("loan chunk"))?;
-            *sample.user_header_mut() = self.header;
-            let sample = sample.write_from_slice(&self.buf);
-            let delivered = sample.send().map_err(ice("send chunk"))?;
-            // Not delivered without the backpressure handler giving up (the connection was
-            // momentarily unable to take it): retry after the replay's next turn, within the
-            // timeout.
-            if delivered > 0
-                || self.congested.load(Ordering::Relaxed)
-                || start.elapsed() >= self.timeout
-            {
-                break delivered;
+            *sample.user_header_mut() = chunk.header;
+            let sample = sample.write_from_slice(&chunk.floats);
+            if sample.send().map_err(ice("send chunk"))? > 0 {
+                self.stats.sent_steps += u64::from(chunk.header.steps);
+                self.stats.sent_chunks += 1;
+                self.unconfirmed = true;
+                self.backlog.pop_front();
+                // A lost wake-up only delays the replay until its next timer tick.
+                let _ = self.wake.notify();
+                continue;
             }
+            // no room (the replay's queue of this actor is full) or no replay: wait for a turn
             let _ = self.wake.notify();
+            let left = wait.saturating_sub(start.elapsed());
+            if left.is_zero() {
+                break;
+            }
             self.turns
-                .timed_wait(|_| {}, Duration::from_millis(10))
+                .timed_wait(|_| {}, left.min(ATTEMPT))
                 .map_err(ice("wait for replay turn"))?;
-        };
-        if delivered > 0 {
-            self.congested.store(false, Ordering::Relaxed);
-            self.stats.sent_steps += steps;
-            self.stats.sent_chunks += 1;
-            self.unconfirmed = true;
-            // A lost wake-up only delays the replay until its next timer tick.
-            let _ = self.wake.notify();
-        } else {
-            self.stats.dropped_steps += steps;
-            self.stats.dropped_chunks += 1;
         }
-        self.header.sequence += 1;
-        self.header.steps = 0;
-        self.buf.clear();
         // Keep the replay's turn signals from piling up until close.
         self.turns
             .try_wait(|_| {})
             .map_err(ice("drain replay turns"))?;
-        Ok(())
+        Ok(self.backlog.is_empty())
     }
 
     /// Counters so far.
@@ -271,8 +287,9 @@ impl TrajectorySender {
         self.stats
     }
 
-    /// Flushes and waits until the replay has certainly connected to this sender (two replay
-    /// turns after the last send), at most the backpressure timeout; returns the counters.
+    /// Delivers what is left within the close timeout, drops and counts the rest, and waits
+    /// until the replay has certainly connected to this sender (two replay turns after the last
+    /// send); returns the counters.
     pub fn close(mut self) -> Result<SenderStats> {
         self.finish()?;
         Ok(self.stats)
@@ -280,13 +297,18 @@ impl TrajectorySender {
 
     fn finish(&mut self) -> Result<()> {
         self.flush()?;
+        self.deliver(self.close_timeout)?;
+        for chunk in self.backlog.drain(..) {
+            self.stats.dropped_steps += u64::from(chunk.header.steps);
+            self.stats.dropped_chunks += 1;
+        }
         if !self.unconfirmed {
             return Ok(());
         }
         self.turns
             .try_wait(|_| {})
             .map_err(ice("drain replay turns"))?;
-        let deadline = Instant::now() + self.timeout;
+        let deadline = Instant::now() + self.close_timeout.min(Duration::from_secs(2));
         let mut turns = 0;
         while turns < 2 {
             let left = deadline.saturating_duration_since(Instant::now());
@@ -323,10 +345,14 @@ pub struct ChunkView<'a> {
     pub after_gap: bool,
 }
 
-/// The replay's end of the trajectory stream: validates each chunk and tracks per-actor gaps.
+/// The replay's end of the trajectory stream: one subscriber per actor, taken in turn, so that
+/// every actor's chunks get the same share of the replay's intake; validates each chunk and
+/// tracks per-actor gaps.
 pub struct TrajectoryReceiver {
-    subscriber: Subscriber<ipc::Service, [f32], ChunkHeader>,
-    actors: usize,
+    services: Vec<PubSubFactory<ipc::Service, [f32], ChunkHeader>>,
+    subscribers: Vec<Subscriber<ipc::Service, [f32], ChunkHeader>>,
+    /// The actor whose queue is read first in the next receive.
+    turn: usize,
     obs_dim: usize,
     act_dim: usize,
     next_sequence: Vec<Option<u64>>,
@@ -338,14 +364,21 @@ impl TrajectoryReceiver {
     /// Subscribes to the run's trajectories of the given dimensions. Call
     /// [`ReplayBeacon::signal`] once every replay endpoint exists.
     pub fn new(transport: &RunTransport, obs_dim: usize, act_dim: usize) -> Result<Self> {
-        let subscriber = transport
-            .trajectory_service()?
-            .subscriber_builder()
-            .create()
-            .map_err(ice("trajectory subscriber"))?;
+        let services = (0..transport.actors())
+            .map(|id| transport.trajectory_service(id))
+            .collect::<Result<Vec<_>>>()?;
+        let subscribers = services
+            .iter()
+            .map(|s| {
+                s.subscriber_builder()
+                    .create()
+                    .map_err(ice("trajectory subscriber"))
+            })
+            .collect::<Result<Vec<_>>>()?;
         Ok(Self {
-            subscriber,
-            actors: transport.actors(),
+            services,
+            subscribers,
+            turn: 0,
             obs_dim,
             act_dim,
             next_sequence: vec![None; transport.actors()],
@@ -354,23 +387,51 @@ impl TrajectoryReceiver {
         })
     }
 
-    /// Takes up to `max_chunks` waiting chunks, handing each valid one to `f`; malformed ones
-    /// are counted, logged and skipped. Returns the number of chunks taken (valid or not).
+    /// Takes up to `max_chunks` waiting chunks, one actor after the other (the first from the
+    /// actor after the one served last), handing each valid one to `f`; malformed ones are
+    /// counted, logged and skipped. Returns the number of chunks taken (valid or not).
     pub fn receive(&mut self, max_chunks: usize, mut f: impl FnMut(ChunkView)) -> Result<usize> {
+        let actors = self.subscribers.len();
         let mut taken = 0;
-        while taken < max_chunks {
-            let Some(sample) = self.subscriber.receive().map_err(ice("receive chunk"))? else {
-                break;
+        let mut idle = 0;
+        while taken < max_chunks && idle < actors {
+            let id = self.turn;
+            self.turn = (self.turn + 1) % actors;
+            let Some(sample) = self.subscribers[id]
+                .receive()
+                .map_err(ice("receive chunk"))?
+            else {
+                idle += 1;
+                continue;
             };
+            idle = 0;
             taken += 1;
             let header = sample.user_header();
             let payload = sample.payload();
-            if let Err(e) = validate_chunk(header, payload, self.actors, self.obs_dim, self.act_dim)
-            {
+            let expected = &mut self.next_sequence[id];
+            let checked = validate_chunk(header, payload, actors, self.obs_dim, self.act_dim)
+                .and_then(|()| {
+                    if header.actor_id as usize != id {
+                        return Err(WireError::WrongStream {
+                            got: header.actor_id,
+                            stream: id as u32,
+                        });
+                    }
+                    match *expected {
+                        // 0 starts a stream: the first chunk of a restarted actor
+                        Some(next) if header.sequence != 0 && header.sequence < next => {
+                            Err(WireError::OutOfOrder {
+                                got: header.sequence,
+                                expected: next,
+                            })
+                        }
+                        _ => Ok(()),
+                    }
+                });
+            if let Err(e) = checked {
                 self.rejects.reject(&e);
                 continue;
             }
-            let expected = &mut self.next_sequence[header.actor_id as usize];
             let after_gap = *expected != Some(header.sequence);
             if let Some(next) = *expected {
                 self.missing_chunks += header.sequence.saturating_sub(next);
@@ -385,9 +446,23 @@ impl TrajectoryReceiver {
         Ok(taken)
     }
 
+    /// Senders connected, over all actors (a killed actor's counts until its node is cleaned
+    /// up).
+    pub fn senders(&self) -> usize {
+        self.services
+            .iter()
+            .map(|s| s.dynamic_config().number_of_publishers())
+            .sum()
+    }
+
     /// Chunks rejected as malformed.
     pub fn rejected(&self) -> u64 {
         self.rejects.count()
+    }
+
+    /// Chunks rejected, by reason ([`super::wire::REASONS`]).
+    pub fn rejected_by_reason(&self) -> [u64; super::wire::REASONS.len()] {
+        self.rejects.by_reason()
     }
 
     /// Chunks missing from the actors' sequence numbers (dropped by a sender).

@@ -1,17 +1,19 @@
-//! One run's iceoryx2 setup: the per-run prefix, the raised service limits, the process's node,
-//! the settings of every service, and the end-of-run cleanup.
+//! One run's iceoryx2 setup: the per-run prefix, the user's private root folder, the raised
+//! service limits, the process's node, the settings of every service, the end-of-run cleanup,
+//! and the sweep of runs whose launcher died.
 
 use super::wire::{
     BatchHeader, BatchRequest, ChunkHeader, EpisodeMetrics, Heartbeat, ReplayStatus, WeightsHeader,
 };
-use anyhow::{anyhow, Context as _, Result};
+use anyhow::{anyhow, bail, Context as _, Result};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::event::PortFactory as EventFactory;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
 use std::fmt::Debug;
-use std::path::Path as StdPath;
+use std::os::unix::fs::{DirBuilderExt as _, MetadataExt as _, PermissionsExt as _};
+use std::path::{Path as StdPath, PathBuf};
 use std::time::{Duration, Instant};
 
 /// Chunks each actor may have queued at the replay before its sends wait.
@@ -52,12 +54,65 @@ pub fn run_prefix(run_id: &str) -> String {
     format!("ctxrace_{id}_")
 }
 
+/// Environment variable naming the folder of ctxrace's iceoryx2 management files.
+pub const SHM_ROOT_ENV: &str = "CTXRACE_SHM_ROOT";
+
+/// The folder of this user's iceoryx2 management files (`nodes/`, `services/`, the runs' owner
+/// files): `$CTXRACE_SHM_ROOT`, else `$XDG_RUNTIME_DIR/ctxrace`, else `/tmp/ctxrace-<uid>`. It is created with mode 0700 and refused when another user
+/// owns it or others may enter it: iceoryx2's default root, `/tmp/iceoryx2`, is shared by every
+/// user, and whoever creates it first decides who may use it. (The shared memory itself lives in
+/// `/dev/shm`, readable and writable by its owner only.)
+pub fn shm_root() -> Result<PathBuf> {
+    let uid = std::fs::metadata("/proc/self")
+        .map(|m| m.uid())
+        .context("reading this process's user id from /proc/self")?;
+    let root = match std::env::var_os(SHM_ROOT_ENV) {
+        Some(dir) => PathBuf::from(dir),
+        None => match std::env::var_os("XDG_RUNTIME_DIR") {
+            Some(dir) if StdPath::new(&dir).is_dir() => PathBuf::from(dir).join("ctxrace"),
+            _ => PathBuf::from(format!("/tmp/ctxrace-{uid}")),
+        },
+    };
+    match std::fs::DirBuilder::new().mode(0o700).create(&root) {
+        Err(e) if e.kind() != std::io::ErrorKind::AlreadyExists => {
+            return Err(e).with_context(|| {
+                format!(
+                    "creating the shared-memory folder {}; set {SHM_ROOT_ENV} to a folder of \
+                     yours",
+                    root.display()
+                )
+            })
+        }
+        _ => {}
+    }
+    let meta = std::fs::symlink_metadata(&root)
+        .with_context(|| format!("reading the shared-memory folder {}", root.display()))?;
+    if !meta.is_dir() || meta.uid() != uid || meta.permissions().mode() & 0o077 != 0 {
+        bail!(
+            "the shared-memory folder {} is not a private folder of user {uid} (owner {}, mode \
+             {:o}{}): another user could read or block this run; remove it, or set \
+             {SHM_ROOT_ENV} to a folder only you can enter",
+            root.display(),
+            meta.uid(),
+            meta.permissions().mode() & 0o7777,
+            if meta.is_dir() { "" } else { ", not a folder" },
+        );
+    }
+    Ok(root)
+}
+
 /// The iceoryx2 configuration of a run: its own prefix, so that two runs on one machine never
-/// see each other, and defaults raised for `actors` actors.
+/// see each other, the user's private root folder ([`shm_root`]), and defaults raised for
+/// `actors` actors.
 pub fn iceoryx_config(prefix: &str, actors: usize) -> Result<Config> {
     let mut config = Config::default();
     config.global.prefix = FileName::new(prefix.as_bytes())
         .map_err(|e| anyhow!("invalid iceoryx2 prefix {prefix:?}: {e:?}"))?;
+    let root = format!("{}/", shm_root()?.display());
+    let root = Path::new(root.as_bytes()).map_err(|e| {
+        anyhow!("shared-memory folder {root:?} is not a valid iceoryx2 path: {e:?}")
+    })?;
+    config.global.set_root_path(&root);
     config.global.node.cleanup_dead_nodes_on_creation = true;
     let ps = &mut config.defaults.publish_subscribe;
     ps.max_publishers = actors + EXTRA_NODES;
@@ -125,15 +180,18 @@ impl RunTransport {
         self.actors + EXTRA_NODES
     }
 
-    /// Actors -> replay: `[f32]` chunks; no overflow, so a full replay pushes back on actors.
+    /// Actor `actor_id` -> replay: `[f32]` chunks; no overflow, so a full replay pushes back on
+    /// the actor. One service per actor, so that the replay can take from each in turn (a
+    /// subscriber scans its publishers from the first, which would favour one actor).
     pub(crate) fn trajectory_service(
         &self,
+        actor_id: usize,
     ) -> Result<PubSubFactory<ipc::Service, [f32], ChunkHeader>> {
         self.node
-            .service_builder(&service_name("trajectory")?)
+            .service_builder(&service_name(&format!("trajectory/{actor_id}"))?)
             .publish_subscribe::<[f32]>()
             .user_header::<ChunkHeader>()
-            .max_publishers(self.actors * 2 + 2)
+            .max_publishers(4)
             .max_subscribers(2)
             .max_nodes(self.max_nodes())
             .subscriber_max_buffer_size(TRAJECTORY_BUFFER)
@@ -152,7 +210,8 @@ impl RunTransport {
             .service_builder(&service_name("weights")?)
             .publish_subscribe::<[u8]>()
             .user_header::<WeightsHeader>()
-            .max_publishers(2)
+            // the learner, a restarted learner's, and an injector's (see super::inject)
+            .max_publishers(3)
             .max_subscribers(self.max_nodes())
             .max_nodes(self.max_nodes())
             .subscriber_max_buffer_size(1)
@@ -335,14 +394,64 @@ pub fn cleanup(prefix: &str) -> Result<CleanupReport> {
     .map_err(ice("list nodes"))?;
     report.alive_nodes = alive;
     if alive == 0 {
-        let root = std::str::from_utf8(config.global.root_path().as_bytes())
-            .context("iceoryx2 root path is not UTF-8")?
-            .to_string();
-        for dir in [root.as_str(), "/dev/shm"] {
-            report.files_removed += remove_prefixed(StdPath::new(dir), prefix)?;
+        for dir in [shm_root()?, PathBuf::from("/dev/shm")] {
+            report.files_removed += remove_prefixed(&dir, prefix)?;
         }
     }
     Ok(report)
+}
+
+/// Marks the run with `prefix` as owned by this process: a file in [`shm_root`] naming its pid
+/// and start time, which [`sweep_orphaned_runs`] reads after the process died. [`cleanup`]
+/// removes it with the run's other files.
+pub fn claim_run(prefix: &str) -> Result<()> {
+    let path = shm_root()?.join(format!("{prefix}{OWNER_SUFFIX}"));
+    let pid = std::process::id();
+    let text = format!("{pid} {}\n", process_start(pid).unwrap_or(0));
+    std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))
+}
+
+const OWNER_SUFFIX: &str = "owner";
+
+/// A process's start time in clock ticks since boot (`/proc/<pid>/stat` field 22), which tells a
+/// pid reused by another process from the one that wrote an owner file.
+fn process_start(pid: u32) -> Option<u64> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // the command may hold spaces and parentheses: fields count from the last ')'
+    let rest = &stat[stat.rfind(')')? + 1..];
+    rest.split_whitespace().nth(19)?.parse().ok()
+}
+
+/// Removes the shared memory of every ctxrace run whose owner ([`claim_run`]) is gone, as after
+/// a killed launcher; returns the prefixes swept. Runs whose owner lives are left alone.
+pub fn sweep_orphaned_runs() -> Result<Vec<String>> {
+    let root = shm_root()?;
+    let mut swept = Vec::new();
+    let entries =
+        std::fs::read_dir(&root).with_context(|| format!("listing {}", root.display()))?;
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some(prefix) = name.strip_suffix(OWNER_SUFFIX) else {
+            continue;
+        };
+        if !prefix.starts_with("ctxrace_") {
+            continue;
+        }
+        let owner = std::fs::read_to_string(entry.path()).unwrap_or_default();
+        let mut fields = owner.split_whitespace().map(|f| f.parse::<u64>().ok());
+        let alive = match (fields.next().flatten(), fields.next().flatten()) {
+            (Some(pid), Some(start)) => process_start(pid as u32).is_some_and(|s| s == start),
+            _ => false,
+        };
+        if alive {
+            continue;
+        }
+        let report = cleanup(prefix)?;
+        if report.alive_nodes == 0 {
+            swept.push(prefix.to_string());
+        }
+    }
+    Ok(swept)
 }
 
 /// Removes every entry under `dir` (recursively) whose name starts with `prefix`.
@@ -380,5 +489,57 @@ mod tests {
     fn prefix_is_sanitised() {
         assert_eq!(run_prefix("exp 1/a"), "ctxrace_exp-1-a_");
         assert!(iceoryx_config(&run_prefix("x"), 16).is_ok());
+    }
+
+    #[test]
+    fn the_root_folder_is_private() {
+        let root = shm_root().unwrap();
+        let mode = std::fs::metadata(&root).unwrap().permissions().mode();
+        assert_eq!(mode & 0o077, 0, "{} has mode {mode:o}", root.display());
+        let config = iceoryx_config(&run_prefix("x"), 1).unwrap();
+        let configured = std::str::from_utf8(config.global.root_path().as_bytes()).unwrap();
+        assert_eq!(configured, format!("{}/", root.display()));
+    }
+
+    #[test]
+    fn runs_whose_owner_died_are_swept_and_live_ones_kept() {
+        let me = std::process::id();
+        let root = shm_root().unwrap();
+        // a run owned by a process that has exited, with files in both places
+        let dead = run_prefix(&format!("test-orphan-{me}"));
+        let mut child = std::process::Command::new("true").spawn().unwrap();
+        let gone = child.id();
+        child.wait().unwrap();
+        std::fs::write(
+            root.join(format!("{dead}{OWNER_SUFFIX}")),
+            format!("{gone} 1\n"),
+        )
+        .unwrap();
+        let files = [
+            root.join(format!("{dead}x.service")),
+            PathBuf::from(format!("/dev/shm/{dead}data")),
+        ];
+        for f in &files {
+            std::fs::write(f, b"left behind").unwrap();
+        }
+        // a run this process owns
+        let live = run_prefix(&format!("test-owned-{me}"));
+        claim_run(&live).unwrap();
+        let swept = sweep_orphaned_runs().unwrap();
+        assert!(swept.contains(&dead), "{swept:?}");
+        assert!(!swept.contains(&live), "{swept:?}");
+        for f in &files {
+            assert!(!f.exists(), "{} is left", f.display());
+        }
+        assert!(root.join(format!("{live}{OWNER_SUFFIX}")).exists());
+        cleanup(&live).unwrap();
+        assert!(!root.join(format!("{live}{OWNER_SUFFIX}")).exists());
+    }
+
+    #[test]
+    fn start_times_tell_a_live_owner() {
+        let me = std::process::id();
+        assert!(process_start(me).is_some_and(|t| t > 0));
+        assert_eq!(process_start(u32::MAX), None);
     }
 }

@@ -7,12 +7,14 @@
 //! Payloads that vary in size are `[f32]` or `[u8]` slices sized statically for their maximum.
 //!
 //! Version history: 1, the first; 2, trajectory steps and sequence batches carry cMask's acting
-//! context mask, episode metrics whether the policy drove the whole episode.
+//! context mask, episode metrics whether the policy drove the whole episode; 3, one trajectory
+//! service per actor (a chunk on another actor's is rejected), the replay's status reports its
+//! longest loop turn and the count it restored.
 
 use iceoryx2::prelude::ZeroCopySend;
 
 /// Version of every wire layout in this module; bump it on any change.
-pub const FORMAT_VERSION: u32 = 2;
+pub const FORMAT_VERSION: u32 = 3;
 /// Largest observation (one LiDAR frame) a step may carry.
 pub const MAX_OBS: usize = 256;
 /// Largest action a step may carry.
@@ -202,13 +204,14 @@ pub struct Heartbeat {
 
 /// The replay process's counters, published about once a second.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("ctxrace_ReplayStatus_v1")]
+#[type_name("ctxrace_ReplayStatus_v2")]
 #[repr(C)]
 pub struct ReplayStatus {
     /// [`FORMAT_VERSION`].
     pub format_version: u32,
-    /// Explicit padding.
-    pub reserved: u32,
+    /// The longest turn of the replay loop so far, in µs (a snapshot's encoding included): the
+    /// longest the replay kept a batch or a chunk waiting.
+    pub longest_turn_us: u32,
     /// Steps inserted since the run started (snapshots included).
     pub inserted: u64,
     /// Steps sampled (a `B x T` sequence batch counts `B·T`, a transition batch `B`).
@@ -228,6 +231,11 @@ pub struct ReplayStatus {
     /// Steps inserted when the last batch was sampled (the learner's train ratio is
     /// `sampled / (this − min_fill)`; steps drained at shutdown come after it).
     pub inserted_at_last_batch: u64,
+    /// The inserted-steps count this replay restored from its snapshot when it started (0 on a
+    /// fresh start): `inserted` continues from it.
+    pub restored_inserts: u64,
+    /// `rejected` by reason, indexed like [`REASONS`].
+    pub rejected_by_reason: [u64; REASONS.len()],
 }
 
 /// Why a message was rejected.
@@ -246,6 +254,14 @@ pub enum WireError {
         got: u32,
         /// Actors in the run.
         actors: usize,
+    },
+    /// A chunk on another actor's trajectory service than its own.
+    #[error("chunk of actor {got} on the trajectory service of actor {stream}")]
+    WrongStream {
+        /// The id in the header.
+        got: u32,
+        /// The actor whose service carried it.
+        stream: u32,
     },
     /// Dimensions that do not match the run's or the payload's.
     #[error("bad dimensions: {0}")]
@@ -269,6 +285,64 @@ pub enum WireError {
     /// An unknown batch kind code.
     #[error("unknown batch kind {0}")]
     Kind(u32),
+    /// A chunk whose sequence number goes back within its actor's stream (a duplicate or a
+    /// replay); 0 is always taken, as a restarted actor's first chunk.
+    #[error("chunk sequence {got} goes back: actor's stream expects {expected} or more")]
+    OutOfOrder {
+        /// The sequence number received.
+        got: u64,
+        /// The next one expected.
+        expected: u64,
+    },
+    /// A batch request larger than the rate limiter could ever serve.
+    #[error("a request for {steps} steps exceeds the rate limiter's window")]
+    Unservable {
+        /// Steps asked for.
+        steps: u64,
+    },
+}
+
+/// The reasons a message is rejected for, in the order of the counters that
+/// [`WireError::reason`] indexes ([`ReplayStatus::rejected_by_reason`]).
+pub const REASONS: [&str; 9] = [
+    "version",
+    "unknown_actor",
+    "wrong_stream",
+    "out_of_order",
+    "dims",
+    "value",
+    "checksum",
+    "kind",
+    "unservable",
+];
+
+/// The nonzero counters of a by-reason array ([`REASONS`]), by name.
+pub fn named_reasons(
+    by_reason: &[u64; REASONS.len()],
+) -> std::collections::BTreeMap<&'static str, u64> {
+    REASONS
+        .iter()
+        .zip(by_reason)
+        .filter(|(_, &n)| n > 0)
+        .map(|(&name, &n)| (name, n))
+        .collect()
+}
+
+impl WireError {
+    /// The index of this error's reason in [`REASONS`].
+    pub fn reason(&self) -> usize {
+        match self {
+            WireError::Version { .. } => 0,
+            WireError::UnknownActor { .. } => 1,
+            WireError::WrongStream { .. } => 2,
+            WireError::OutOfOrder { .. } => 3,
+            WireError::Dims(_) => 4,
+            WireError::Value { .. } => 5,
+            WireError::Checksum { .. } => 6,
+            WireError::Kind(_) => 7,
+            WireError::Unservable { .. } => 8,
+        }
+    }
 }
 
 /// Checks a trajectory chunk against the run's actor count and dimensions: version, actor id,
