@@ -4,7 +4,8 @@
 //! harms nothing else.
 //!
 //! The publishers live as long as the [`Injector`]: a publisher that disappears before its
-//! subscribers connected to it takes its unread messages with it.
+//! subscribers connected to it takes its unread messages with it. Its weights publisher takes
+//! the slot a restarting learner would use, so inject while the learner runs.
 
 use super::transport::{ice, RunTransport, Wake};
 use super::wire::{BatchRequest, ChunkHeader, EpisodeMetrics, WeightsHeader, MAX_CHUNK_FLOATS};

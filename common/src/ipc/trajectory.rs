@@ -94,7 +94,7 @@ pub struct SenderStats {
     pub dropped_chunks: u64,
 }
 
-/// How long one send attempt waits for room in the replay's queue of this actor.
+/// Longest sleep between two send attempts (the replay's turns wake the sender sooner).
 const ATTEMPT: Duration = Duration::from_millis(10);
 
 /// A chunk waiting for room at the replay.
@@ -155,13 +155,9 @@ impl TrajectorySender {
             .allocation_strategy(AllocationStrategy::Static)
             .max_loaned_samples(1)
             .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
-            .set_backpressure_handler(|info| {
-                if info.elapsed_time < ATTEMPT {
-                    BackpressureAction::Retry
-                } else {
-                    BackpressureAction::DiscardData
-                }
-            })
+            // a full queue returns at once: the sender then sleeps until the replay's next turn
+            // instead of spinning
+            .set_backpressure_handler(|_| BackpressureAction::DiscardData)
             .create()
             .map_err(ice("trajectory publisher"))?;
         let connected = wait_until(&ready, opts.handshake_timeout, || {
@@ -265,8 +261,8 @@ impl TrajectorySender {
                 let _ = self.wake.notify();
                 continue;
             }
-            // no room (the replay's queue of this actor is full) or no replay: wait for a turn
-            let _ = self.wake.notify();
+            // no room (the replay's queue of this actor is full) or no replay: wait for its next
+            // turn (not waking it: it has our chunks queued, and it turns when its learner asks)
             let left = wait.saturating_sub(start.elapsed());
             if left.is_zero() {
                 break;
@@ -345,14 +341,15 @@ pub struct ChunkView<'a> {
     pub after_gap: bool,
 }
 
-/// The replay's end of the trajectory stream: one subscriber per actor, taken in turn, so that
-/// every actor's chunks get the same share of the replay's intake; validates each chunk and
-/// tracks per-actor gaps.
+/// The replay's end of the trajectory stream: one subscriber per actor, the actor that has
+/// supplied the fewest steps served first (max-min fairness: an actor is never held back while
+/// a faster one fills the buffer, however long its chunks); validates each chunk and tracks
+/// per-actor gaps.
 pub struct TrajectoryReceiver {
     services: Vec<PubSubFactory<ipc::Service, [f32], ChunkHeader>>,
     subscribers: Vec<Subscriber<ipc::Service, [f32], ChunkHeader>>,
-    /// The actor whose queue is read first in the next receive.
-    turn: usize,
+    /// Steps taken from each actor so far.
+    taken_steps: Vec<u64>,
     obs_dim: usize,
     act_dim: usize,
     next_sequence: Vec<Option<u64>>,
@@ -378,7 +375,7 @@ impl TrajectoryReceiver {
         Ok(Self {
             services,
             subscribers,
-            turn: 0,
+            taken_steps: vec![0; transport.actors()],
             obs_dim,
             act_dim,
             next_sequence: vec![None; transport.actors()],
@@ -387,24 +384,28 @@ impl TrajectoryReceiver {
         })
     }
 
-    /// Takes up to `max_chunks` waiting chunks, one actor after the other (the first from the
-    /// actor after the one served last), handing each valid one to `f`; malformed ones are
-    /// counted, logged and skipped. Returns the number of chunks taken (valid or not).
+    /// Takes up to `max_chunks` waiting chunks, each from the actor with the fewest steps taken
+    /// that has one, handing each valid one to `f`; malformed ones are counted, logged and
+    /// skipped. Returns the number of chunks taken (valid or not).
     pub fn receive(&mut self, max_chunks: usize, mut f: impl FnMut(ChunkView)) -> Result<usize> {
         let actors = self.subscribers.len();
+        let mut order: Vec<usize> = (0..actors).collect();
         let mut taken = 0;
-        let mut idle = 0;
-        while taken < max_chunks && idle < actors {
-            let id = self.turn;
-            self.turn = (self.turn + 1) % actors;
-            let Some(sample) = self.subscribers[id]
-                .receive()
-                .map_err(ice("receive chunk"))?
-            else {
-                idle += 1;
-                continue;
+        while taken < max_chunks {
+            order.sort_by_key(|&id| self.taken_steps[id]);
+            let mut next = None;
+            for &id in &order {
+                if let Some(sample) = self.subscribers[id]
+                    .receive()
+                    .map_err(ice("receive chunk"))?
+                {
+                    next = Some((id, sample));
+                    break;
+                }
+            }
+            let Some((id, sample)) = next else {
+                break;
             };
-            idle = 0;
             taken += 1;
             let header = sample.user_header();
             let payload = sample.payload();
@@ -437,6 +438,7 @@ impl TrajectoryReceiver {
                 self.missing_chunks += header.sequence.saturating_sub(next);
             }
             *expected = Some(header.sequence + 1);
+            self.taken_steps[id] += u64::from(header.steps);
             f(ChunkView {
                 header,
                 payload,
