@@ -39,7 +39,8 @@ threads = 1
 capacity = 20000
 snapshot_every_secs = 10
 [supervisor]
-max_restarts = 1000   # the soak kills on purpose
+max_restarts = 1000   # the soak kills on purpose, every 20 s:
+restart_window_secs = 30   # a back-off of 1 s, not one grown over the whole soak
 TOML
 
 run="$dir/run"
@@ -50,7 +51,7 @@ launcher=$!
 # pids of the run's processes in a role (the role is the binary's first argument)
 pids() {
     for p in /proc/[0-9]*; do
-        cmd=$(tr '\0' ' ' < "$p/cmdline" 2>/dev/null) || continue
+        cmd=$({ tr '\0' ' ' < "$p/cmdline"; } 2>/dev/null) || continue
         case "$cmd" in *" $1 --run-dir $run "*) basename "$p" ;; esac
     done
 }
@@ -86,7 +87,13 @@ while (( elapsed + 20 <= secs )); do
         killed[$role]=$((${killed[$role]} + 1))
     fi
 done
-sleep 5   # let the launcher restart the last victim
+# let the launcher restart the last victims (its back-off reaches 30 s after repeated kills)
+for _ in $(seq 60); do
+    [[ -n "$(pids replay)" && -n "$(pids learner)" ]] && (( $(pids actor | wc -l) == actors )) \
+        && break
+    sleep 1
+done
+sleep 2
 rss_end=$(rss_kib)
 
 fail=0
@@ -101,6 +108,9 @@ fi
 
 kill -TERM "$launcher" 2>/dev/null || true
 wait "$launcher" || { echo "soak: launcher failed"; fail=1; }
+if [[ ! -f "$run/replay-status.json" ]]; then
+    echo "soak: the replay wrote no final status"; tail -20 "$dir/launcher.log"; exit 1
+fi
 inserted=$(grep -o '"inserted": [0-9]*' "$run/replay-status.json" | grep -o '[0-9]*$')
 rejected=$(grep -o '"rejected": [0-9]*' "$run/replay-status.json" | grep -o '[0-9]*$')
 reported=$(cat "$run"/actors/*.json | grep -o '"sent_steps": [0-9]*' | grep -o '[0-9]*$' \

@@ -173,10 +173,12 @@ impl Supervised {
         Ok(status)
     }
 
-    /// Schedules a restart with exponential back-off (1 s, 2 s, 4 s, … up to 30 s).
+    /// Schedules the next start after a back-off of 1 s doubling with each failure within the
+    /// restart window, at most [`MAX_BACKOFF`]: a process whose last failure lies outside the window
+    /// restarts after 1 s again, one that keeps failing waits longer and longer.
     fn schedule_restart(&mut self) {
-        let backoff =
-            Duration::from_secs(1 << self.starts.saturating_sub(1).min(5)).min(MAX_BACKOFF);
+        let recent = self.failures.len().saturating_sub(1).min(5) as u32;
+        let backoff = Duration::from_secs(1 << recent).min(MAX_BACKOFF);
         self.restart_at = Some(Instant::now() + backoff);
     }
 
