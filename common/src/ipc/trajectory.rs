@@ -123,6 +123,8 @@ pub struct TrajectorySender {
     header: ChunkHeader,
     buf: Vec<f32>,
     backlog: VecDeque<Pending>,
+    /// Buffers of delivered chunks, reused for the next ones.
+    spare: Vec<Vec<f32>>,
     stats: SenderStats,
 }
 
@@ -185,6 +187,7 @@ impl TrajectorySender {
             },
             buf: Vec::with_capacity(MAX_CHUNK * step_stride(obs_dim, act_dim)),
             backlog: VecDeque::new(),
+            spare: Vec::new(),
             stats: SenderStats::default(),
         })
     }
@@ -224,7 +227,11 @@ impl TrajectorySender {
     pub fn flush(&mut self) -> Result<()> {
         if self.header.steps > 0 {
             let capacity = self.buf.capacity();
-            let floats = std::mem::replace(&mut self.buf, Vec::with_capacity(capacity));
+            let next = self
+                .spare
+                .pop()
+                .unwrap_or_else(|| Vec::with_capacity(capacity));
+            let floats = std::mem::replace(&mut self.buf, next);
             self.backlog.push_back(Pending {
                 header: self.header,
                 floats,
@@ -256,7 +263,10 @@ impl TrajectorySender {
                 self.stats.sent_steps += u64::from(chunk.header.steps);
                 self.stats.sent_chunks += 1;
                 self.unconfirmed = true;
-                self.backlog.pop_front();
+                if let Some(Pending { mut floats, .. }) = self.backlog.pop_front() {
+                    floats.clear();
+                    self.spare.push(floats);
+                }
                 // A lost wake-up only delays the replay until its next timer tick.
                 let _ = self.wake.notify();
                 continue;
@@ -350,6 +360,8 @@ pub struct TrajectoryReceiver {
     subscribers: Vec<Subscriber<ipc::Service, [f32], ChunkHeader>>,
     /// Steps taken from each actor so far.
     taken_steps: Vec<u64>,
+    /// Actor ids, fewest steps taken first (re-sorted before each take).
+    order: Vec<usize>,
     obs_dim: usize,
     act_dim: usize,
     next_sequence: Vec<Option<u64>>,
@@ -376,6 +388,7 @@ impl TrajectoryReceiver {
             services,
             subscribers,
             taken_steps: vec![0; transport.actors()],
+            order: (0..transport.actors()).collect(),
             obs_dim,
             act_dim,
             next_sequence: vec![None; transport.actors()],
@@ -389,12 +402,12 @@ impl TrajectoryReceiver {
     /// skipped. Returns the number of chunks taken (valid or not).
     pub fn receive(&mut self, max_chunks: usize, mut f: impl FnMut(ChunkView)) -> Result<usize> {
         let actors = self.subscribers.len();
-        let mut order: Vec<usize> = (0..actors).collect();
         let mut taken = 0;
         while taken < max_chunks {
-            order.sort_by_key(|&id| self.taken_steps[id]);
+            let taken_steps = &self.taken_steps;
+            self.order.sort_by_key(|&id| taken_steps[id]);
             let mut next = None;
-            for &id in &order {
+            for &id in &self.order {
                 if let Some(sample) = self.subscribers[id]
                     .receive()
                     .map_err(ice("receive chunk"))?

@@ -58,8 +58,8 @@ pub fn run_prefix(run_id: &str) -> String {
 pub const SHM_ROOT_ENV: &str = "CTXRACE_SHM_ROOT";
 
 /// The folder of this user's iceoryx2 management files (`nodes/`, `services/`, the runs' owner
-/// files): `$CTXRACE_SHM_ROOT`, else `$XDG_RUNTIME_DIR/ctxrace`, else `/tmp/ctxrace-<uid>`. It is created with mode 0700 and refused when another user
-/// owns it or others may enter it: iceoryx2's default root, `/tmp/iceoryx2`, is shared by every
+/// files): `$CTXRACE_SHM_ROOT`, else `$XDG_RUNTIME_DIR/ctxrace`, else `/tmp/ctxrace-<uid>`.
+/// It is created with mode 0700 and refused when another user owns it or others may enter it: iceoryx2's default root, `/tmp/iceoryx2`, is shared by every
 /// user, and whoever creates it first decides who may use it. (The shared memory itself lives in
 /// `/dev/shm`, readable and writable by its owner only.)
 pub fn shm_root() -> Result<PathBuf> {
