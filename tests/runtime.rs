@@ -271,24 +271,36 @@ fn kill9(pid: u32) {
 #[test]
 fn killed_processes_are_restarted_and_training_completes() {
     let dir = tempfile::tempdir().unwrap();
-    // long enough that the three kills and restarts happen well before the learner's target
-    let env_steps = 12_000;
+    // long enough that the hung actor's time-out and the three kills and restarts happen well
+    // before the learner's target (12 000 steps took 10 s here)
+    let env_steps = 36_000;
     let supervisor = "[supervisor]\nheartbeat_timeout_secs = 5\n";
     // the learner logs where it resumed
     let log = "warn,ctxrace_learner::process=info";
     let (child, run) = launch_logged(dir.path(), env_steps, 3, supervisor, log);
     let pid = child.id();
     let minute = Duration::from_secs(60);
-    // wait for the first checkpoint, then kill an actor, the learner and the replay in turn
-    wait_for("a checkpoint", 3 * minute, || {
-        run.join("checkpoints").read_dir().ok()?.next().map(|_| ())
-    });
     let mut actors = Vec::new();
     while actors.len() < 3 {
         actors.push(wait_for("actors", minute, || {
             find_pid(&run, "actor", &actors)
         }));
     }
+    // first (so that the run cannot end before its 5 s timeout), a hung actor: stopped, alive but
+    // silent; the launcher kills it and starts a replacement
+    let hung = actors[0];
+    unsafe { libc::kill(hung as i32, libc::SIGSTOP) };
+    actors.push(wait_for("the hung actor's replacement", minute, || {
+        find_pid(&run, "actor", &actors)
+    }));
+    assert!(
+        std::fs::metadata(format!("/proc/{hung}")).is_err(),
+        "the hung actor {hung} is still there beside its replacement"
+    );
+    // then wait for the first checkpoint and kill an actor, the learner and the replay in turn
+    wait_for("a checkpoint", 3 * minute, || {
+        run.join("checkpoints").read_dir().ok()?.next().map(|_| ())
+    });
     kill9(actors[1]);
     wait_for("the actor's restart", minute, || {
         find_pid(&run, "actor", &actors)
@@ -302,14 +314,6 @@ fn killed_processes_are_restarted_and_training_completes() {
     kill9(replay);
     wait_for("the replay's restart", minute, || {
         find_pid(&run, "replay", &[replay])
-    });
-    // a hung actor (stopped: alive but silent) is killed and restarted after 5 s
-    let hung = actors[0];
-    unsafe { libc::kill(hung as i32, libc::SIGSTOP) };
-    wait_for("the hung actor to be killed", minute, || {
-        std::fs::metadata(format!("/proc/{hung}"))
-            .is_err()
-            .then_some(())
     });
     let stderr = finish(child, 6 * minute);
     assert!(stderr.contains("sent no sign of life"), "{stderr}");

@@ -157,7 +157,9 @@ impl Supervised {
                 self.name,
                 quiet.as_secs_f64()
             );
+            // reaped at once, so that the next look does not find it again
             let _ = child.kill();
+            let _ = child.wait();
         }
     }
 
