@@ -1,7 +1,7 @@
 //! The interface every training algorithm implements, so that the inline trainer and the learner
 //! process can drive any of them by name.
 
-use candle_core::Result;
+use candle_core::{DType, Result, Tensor};
 pub use ctxrace_common::ipc::Batch;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -21,4 +21,9 @@ pub trait Algorithm {
     fn load(&mut self, dir: &Path) -> Result<()>;
     /// Training steps taken.
     fn steps(&self) -> u64;
+}
+
+/// The value of a one-element tensor, for [`Metrics`].
+pub(crate) fn scalar(t: &Tensor) -> Result<f64> {
+    Ok(t.to_dtype(DType::F32)?.to_scalar::<f32>()? as f64)
 }

@@ -1,13 +1,9 @@
 //! DreamerV3 (Hafner et al. 2023) with the context-aware variants cRSSM (Prasanna et al. 2024) and
 //! cMask (the paper's), as the paper's code ran them (REFERENCE §5).
 //!
-//! **World model.** `e_t = enc(symlog o_t)`; the RSSM runs over each sequence
-//! (`h_t = GRU(h_{t−1}, f([z_{t−1}, a_{t−1}, c]))`, posterior `z_t ~ q(h_t, e_t)`, prior
-//! `p(h_t)`), starting from zeros wherever `is_first` (with a zero previous action). Heads on
-//! `x_t = [h_t, z_t, c]`: the decoder regresses `symlog o_t` (squared error summed over the
-//! observation), the reward head `r_t` (symlog two-hot), the continue head `1 − terminal_t`
-//! (Bernoulli logit). Loss per `(b, t)`:
-//! `pred + 0.5 max(1, KL(sg q ‖ p)) + 0.1 max(1, KL(q ‖ sg p))`, averaged.
+//! A training step reads as two steps: the world model ([`crate::world_model`]: encoder, RSSM,
+//! decoder, reward and continue heads) on the batch, then behaviour learning in imagination from
+//! its posterior states; cMask adds a step of its mask SAC ([`crate::cmask`]).
 //!
 //! **Behaviour.** From every posterior state (detached, `B·T` starts) the actor imagines `H` steps
 //! through the prior, with the context unchanged. With rewards `r`, continue probabilities `c`
@@ -23,15 +19,9 @@
 //!
 //! **Context.** cRSSM feeds `c / range` (`range` = the training range 0.15, so `c ∈ [−1, 1]`) to
 //! the sequence model and every head; cMask replaces it by `c_m = m_t ⊙ c / range` with
-//! `m_t ~ π(m | o_t)` from a mask SAC trained on the extrinsic reward, one SAC step per world-model
-//! step on the same batch. The masked context feeds the actor, so the reward depends on the mask
-//! that acted: the mask critics `Q(o_t, m_t)` are fitted on the mask stored with each step
-//! (`SequenceBatch::mask`, as the paper's code does), on the transitions
-//! `(o_t, m_t, r_{t+1}, o_{t+1})`; a mask drawn afresh from `π(· | o_t)` carries no information
-//! about `r_{t+1}`, so a critic fitted on it is flat in `m` and the mask actor would learn from
-//! its entropy alone. The actor loss `α log π(m | o) − min Q(o, m)` draws fresh masks, as SAC
-//! does. The world model and imagination use one fresh (stop-gradient) mask per `o_t` too, as
-//! the paper's code does. Three deliberate departures from the paper's code:
+//! `m_t ~ π(m | o_t)` from a mask SAC trained on the extrinsic reward ([`crate::cmask`]: its
+//! critics learn from the mask stored with each step, the one that acted). The world model and
+//! imagination use one fresh (stop-gradient) mask per `o_t`, as the paper's code does. Three deliberate departures from the paper's code:
 //! 1. `m = (tanh u + 1)/2`, which reaches 0 and 1 (the code's `sigmoid(tanh u)` stays in
 //!    `[0.27, 0.73]`, so it can neither mask nor pass the context fully);
 //! 2. the SAC transition takes the reward of that transition (the code paired `o_t` with `r_t`,
@@ -40,8 +30,8 @@
 //! 3. imagination carries the *masked* context of each start state (the code used the unmasked one).
 //!
 //! **Parameters.** Four [`ParamStore`]s: "policy" (`encoder`, `rssm`, `actor` and, for cMask, the
-//! mask actor `mask`: everything [`DreamerPolicy`] (in `ctxrace_common::policy`) needs, serialised whole by
-//! [`Algorithm::policy_weights`]), "heads" (`decoder`, `reward`, `cont`), "critic" and its slow
+//! mask actor `mask`: everything [`DreamerPolicy`] (in `ctxrace_common::policy`) needs,
+//! serialised whole by [`Algorithm::policy_weights`]), "heads" (`decoder`, `reward`, `cont`), "critic" and its slow
 //! copy; cMask adds its critics, their targets and the temperature. Optimisers: Adam
 //! ([`crate::adam::Adam`], whose moments are saved with the weights), one each for world model
 //! (encoder, RSSM, heads), actor and critic, after global-norm clipping. Noise (Gumbel uniforms,
@@ -53,412 +43,28 @@
 //! actor's backward pass then computes gradients only where they lead to the actor, as
 //! PyTorch's `requires_grad = False` does. The layers run on the fused kernels of
 //! `ctxrace_common::nn::kernels`. Each step splits its batch into one shard of sequences per
-//! worker thread ([`Dreamer::set_workers`]): the shards run the world-model, imagination,
+//! worker thread ([`Dreamer::set_workers`], [`crate::shards`]): the shards run the world-model, imagination,
 //! actor, critic and mask-SAC passes in parallel, each loss scaled by its shard's share of the
 //! batch, and the optimisers step on the summed gradients, which are the batch's.
 
 use crate::adam::Adam;
-use crate::algorithm::{Algorithm, Batch, Metrics};
+use crate::algorithm::{scalar, Algorithm, Batch, Metrics};
 use crate::checkpoint;
+use crate::cmask::MaskSac;
 use crate::returns::{lambda_returns, ReturnNorm};
-use candle_core::{bail, DType, Device, Module, Result, Tensor, Var};
-use candle_nn::Init;
-use ctxrace_common::agents::{ContextMode, DreamerConfig, MaskConfig, CONTEXT_DIM};
+use crate::sac::polyak;
+use crate::sequences::SeqData;
+use crate::shards::{join_worker, on_shards, weighted_mean};
+use crate::world_model::{Starts, WorldModel};
+use candle_core::{bail, Module, Result, Tensor};
+use ctxrace_common::agents::{ContextMode, DreamerConfig, CONTEXT_DIM};
 use ctxrace_common::nn::kernels::soft_cross_entropy;
-use ctxrace_common::nn::{
-    symlog, Activation, Mlp, ParamStore, Rssm, RssmState, TanhGaussianActor, TwoHot,
-};
+use ctxrace_common::nn::{Activation, Mlp, ParamStore, Rssm, TwoHot};
 use ctxrace_common::policy::{mask_sample, normals_per, uniforms_per, DreamerNets, DreamerPolicy};
-use ctxrace_common::SequenceBatch;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
-
-/// DreamerV3's KL balancing with free nats, per batch element, from posterior and prior logits
-/// `[N, S, C]`: `(max(free, KL(sg q ‖ p)), max(free, KL(q ‖ sg p)), KL(q ‖ p))`, the last detached.
-/// Below the free nats a term is constant and passes no gradient.
-pub fn kl_balance(
-    rssm: &Rssm,
-    post: &Tensor,
-    prior: &Tensor,
-    free: f64,
-) -> Result<(Tensor, Tensor, Tensor)> {
-    let dyn_kl = rssm.kl(&post.detach(), prior)?;
-    let rep_kl = rssm.kl(post, &prior.detach())?;
-    Ok((
-        dyn_kl.maximum(free)?,
-        rep_kl.maximum(free)?,
-        dyn_kl.detach(),
-    ))
-}
-
-/// Binary cross-entropy of logits `l` against targets `y`: `max(l, 0) − y l + ln(1 + e^{−|l|})`.
-fn bce_with_logits(logits: &Tensor, target: &Tensor) -> Result<Tensor> {
-    let softplus_tail = (logits.abs()?.neg()?.exp()? + 1.0)?.log()?;
-    (logits.relu()? - logits.mul(target)?)? + softplus_tail
-}
-
-/// The value of a one-element tensor.
-fn scalar(t: &Tensor) -> Result<f64> {
-    Ok(t.to_dtype(DType::F32)?.to_scalar::<f32>()? as f64)
-}
-
-/// The parameters of `store` whose names start with one of the `prefixes` (as `prefix.`).
-fn vars_under(store: &ParamStore, prefixes: &[&str]) -> Vec<Var> {
-    store
-        .named()
-        .into_iter()
-        .filter(|(name, _)| prefixes.iter().any(|p| name.starts_with(&format!("{p}."))))
-        .map(|(_, v)| v)
-        .collect()
-}
-
-/// `target ← (1 − τ) target + τ source`, parameter by parameter (same names).
-fn polyak(target: &ParamStore, source: &ParamStore, tau: f64) -> Result<()> {
-    for ((_, t), (_, s)) in target.named().iter().zip(source.named()) {
-        t.set(&((t.as_tensor() * (1.0 - tau))? + (s.as_tensor() * tau)?)?)?;
-    }
-    Ok(())
-}
-
-/// A sequence batch as tensors.
-struct SeqData {
-    batch: usize,
-    length: usize,
-    /// `[B, T, O]`.
-    obs: Tensor,
-    /// `[B, T, A]`.
-    action: Tensor,
-    /// `[B, T]`.
-    reward: Tensor,
-    /// `[B, T]`.
-    first: Tensor,
-    /// `[B, T]`.
-    terminal: Tensor,
-    /// `[B, T, 2]`.
-    context: Tensor,
-    /// `[B, T, 2]` the mask that chose the action before step `t`.
-    mask: Tensor,
-    /// `[B, T]` 1 where that action was chosen through a mask.
-    has_mask: Tensor,
-}
-
-impl SeqData {
-    fn new(b: &SequenceBatch, obs_dim: usize, act_dim: usize) -> Result<Self> {
-        b.validate(obs_dim, act_dim)
-            .map_err(candle_core::Error::Msg)?;
-        let dev = &Device::Cpu;
-        let (bs, t) = (b.batch, b.length);
-        Ok(Self {
-            batch: bs,
-            length: t,
-            obs: Tensor::from_slice(&b.obs, (bs, t, obs_dim), dev)?,
-            action: Tensor::from_slice(&b.action, (bs, t, act_dim), dev)?,
-            reward: Tensor::from_slice(&b.reward, (bs, t), dev)?,
-            first: Tensor::from_slice(&b.is_first, (bs, t), dev)?,
-            terminal: Tensor::from_slice(&b.is_terminal, (bs, t), dev)?,
-            context: Tensor::from_slice(&b.context, (bs, t, CONTEXT_DIM), dev)?,
-            mask: Tensor::from_slice(&b.mask, (bs, t, CONTEXT_DIM), dev)?,
-            has_mask: Tensor::from_slice(&b.has_mask, (bs, t), dev)?,
-        })
-    }
-
-    /// The sequences `rows` of the batch.
-    fn sequences(&self, rows: &std::ops::Range<usize>) -> Result<Self> {
-        let pick = |x: &Tensor| x.narrow(0, rows.start, rows.len());
-        Ok(Self {
-            batch: rows.len(),
-            length: self.length,
-            obs: pick(&self.obs)?,
-            action: pick(&self.action)?,
-            reward: pick(&self.reward)?,
-            first: pick(&self.first)?,
-            terminal: pick(&self.terminal)?,
-            context: pick(&self.context)?,
-            mask: pick(&self.mask)?,
-            has_mask: pick(&self.has_mask)?,
-        })
-    }
-
-    /// The rows of the sequences `rows` in a batch-major `[B·T, …]` tensor.
-    fn rows_of(&self, x: &Tensor, rows: &std::ops::Range<usize>) -> Result<Tensor> {
-        x.narrow(0, rows.start * self.length, rows.len() * self.length)
-    }
-
-    /// `x` `[B, T, …]` as `[B·T, k]`.
-    fn flat(&self, x: &Tensor) -> Result<Tensor> {
-        x.reshape((self.batch * self.length, ()))
-    }
-}
-
-/// The mask SAC's transitions `(o_t, m_t, r_{t+1}, o_{t+1}, terminal_{t+1})` for `t < T − 1`,
-/// each `[B·(T−1), …]`, `m_t` the stored mask that acted at `o_t`, with `valid = 0` where
-/// `o_{t+1}` starts a new episode or no mask chose the action at `o_t`.
-struct Transitions {
-    obs: Tensor,
-    mask: Tensor,
-    reward: Tensor,
-    next_obs: Tensor,
-    terminal: Tensor,
-    valid: Tensor,
-}
-
-impl Transitions {
-    /// From a batch (row `t + 1` stores the action and mask chosen at `o_t`); `None` for
-    /// sequences of one step.
-    fn new(d: &SeqData) -> Result<Option<Self>> {
-        let (b, t) = (d.batch, d.length);
-        if t < 2 {
-            return Ok(None);
-        }
-        let n = b * (t - 1);
-        let span = |x: &Tensor, start: usize| x.narrow(1, start, t - 1)?.reshape((n, ()));
-        Ok(Some(Self {
-            obs: span(&d.obs, 0)?,
-            mask: span(&d.mask, 1)?,
-            reward: span(&d.reward, 1)?.flatten_all()?,
-            next_obs: span(&d.obs, 1)?,
-            terminal: span(&d.terminal, 1)?.flatten_all()?,
-            valid: Self::valid(d, 0..b)?,
-        }))
-    }
-
-    /// `[|rows|·(T−1)]`: 1 where row `t + 1` of the sequences `rows` continues the episode and
-    /// its action was chosen through a mask.
-    fn valid(d: &SeqData, rows: std::ops::Range<usize>) -> Result<Tensor> {
-        let next = |x: &Tensor| {
-            x.narrow(0, rows.start, rows.len())?
-                .narrow(1, 1, d.length - 1)
-        };
-        (1.0 - next(&d.first)?)?
-            .mul(&next(&d.has_mask)?)?
-            .flatten_all()
-    }
-}
-
-/// cMask's mask SAC (the actor lives in the policy store under `mask`).
-struct MaskSac {
-    critic_store: ParamStore,
-    target_store: ParamStore,
-    alpha_store: ParamStore,
-    q: [Mlp; 2],
-    q_target: [Mlp; 2],
-    log_alpha: Tensor,
-    actor_opt: Adam,
-    critic_opt: Adam,
-    alpha_opt: Adam,
-    cfg: MaskConfig,
-}
-
-impl MaskSac {
-    fn new(cfg: &DreamerConfig, obs_dim: usize, policy: &ParamStore) -> Result<Self> {
-        let m = &cfg.mask;
-        let critics = |store: &ParamStore| -> Result<[Mlp; 2]> {
-            let q = |name: &str| {
-                let vb = store.builder().pp(name);
-                Mlp::new(
-                    obs_dim + CONTEXT_DIM,
-                    m.units,
-                    m.layers,
-                    Some(1),
-                    Activation::Relu,
-                    vb,
-                )
-            };
-            Ok([q("q1")?, q("q2")?])
-        };
-        let critic_store = ParamStore::new();
-        let q = critics(&critic_store)?;
-        let target_store = ParamStore::new();
-        let q_target = critics(&target_store)?;
-        critic_store.init(cfg.seed.wrapping_add(3))?;
-        target_store.load_bytes(&critic_store.to_bytes()?)?;
-        if m.init_alpha.is_nan() || m.init_alpha <= 0.0 {
-            bail!("mask.init_alpha must be positive");
-        }
-        let alpha_store = ParamStore::new();
-        let log_alpha =
-            alpha_store
-                .builder()
-                .get_with_hints(1, "log_alpha", Init::Const(m.init_alpha.ln()))?;
-        let no_clip = f64::INFINITY;
-        Ok(Self {
-            actor_opt: Adam::new(vars_under(policy, &["mask"]), m.lr, 1e-8, no_clip),
-            critic_opt: Adam::new(critic_store.vars(), m.lr, 1e-8, no_clip),
-            alpha_opt: Adam::new(alpha_store.vars(), m.lr, 1e-8, no_clip),
-            critic_store,
-            target_store,
-            alpha_store,
-            q,
-            q_target,
-            log_alpha,
-            cfg: m.clone(),
-        })
-    }
-
-    /// `min(Q1, Q2)(o, m)` `[N]` of the critics `q`.
-    fn min_q(q: &[Mlp; 2], obs: &Tensor, mask: &Tensor) -> Result<Tensor> {
-        let x = Tensor::cat(&[obs, mask], 1)?;
-        q[0].forward(&x)?.minimum(&q[1].forward(&x)?)?.squeeze(1)
-    }
-
-    /// One SAC step (critics, actor, temperature, targets) on the transitions of the batch `d`
-    /// and the masks stored with them. The critic and actor losses are means over the valid
-    /// transitions; each of the `workers` shards of sequences sums its part (divided by the
-    /// batch's count) and differentiates it in parallel, and the gradients are summed. A batch
-    /// without valid transitions (all random prefill) takes no step.
-    fn step(
-        &mut self,
-        actor: &TanhGaussianActor,
-        d: &SeqData,
-        workers: usize,
-        rngs: &mut [ChaCha8Rng],
-        metrics: &mut Metrics,
-    ) -> Result<()> {
-        if d.length < 2 {
-            return Ok(());
-        }
-        let per_sequence = d.length - 1;
-        let valid_count = scalar(&Transitions::valid(d, 0..d.batch)?.sum_all()?)?;
-        let alpha = self.log_alpha.exp()?.detach();
-        metrics.insert("mask/acted_transitions".into(), valid_count);
-        metrics.insert("mask/alpha".into(), scalar(&alpha.sum_all()?)?);
-        if valid_count == 0.0 {
-            // the losses over no transitions are zero; nothing is stepped
-            for key in ["mask/q_loss", "mask/actor_loss", "mask/entropy"] {
-                metrics.insert(key.into(), 0.0);
-            }
-            return Ok(());
-        }
-        let count = valid_count;
-        let shard_transitions = |shard: &Shard| -> Result<Transitions> {
-            Transitions::new(&d.sequences(&shard.rows)?)?
-                .ok_or_else(|| candle_core::Error::Msg("no transitions".into()))
-        };
-        // the part of a batch mean that a shard's transitions contribute
-        let part = |x: &Tensor, tr: &Transitions| -> Result<Tensor> {
-            x.mul(&tr.valid)?.sum_all()? / count
-        };
-
-        let this = &*self;
-        let critic_parts = on_shards(workers, d.batch, rngs, |shard, rngs| {
-            let tr = shard_transitions(&shard)?;
-            let noise = normals_per(rngs, per_sequence, CONTEXT_DIM)?;
-            let (next_m, next_logp) = mask_sample(actor, &tr.next_obs, &noise)?;
-            let soft_next = (Self::min_q(&this.q_target, &tr.next_obs, &next_m)?
-                - next_logp.broadcast_mul(&alpha)?)?;
-            let keep = ((1.0 - &tr.terminal)? * this.cfg.gamma)?;
-            let target = (&tr.reward + keep.mul(&soft_next)?)?.detach();
-            let x = Tensor::cat(&[&tr.obs, &tr.mask], 1)?;
-            let q_loss = part(
-                &((this.q[0].forward(&x)?.squeeze(1)? - &target)?.sqr()?
-                    + (this.q[1].forward(&x)?.squeeze(1)? - &target)?.sqr()?)?,
-                &tr,
-            )?;
-            Ok((scalar(&q_loss)?, q_loss.backward()?))
-        })?;
-        let (q_losses, grads): (Vec<f64>, Vec<_>) = critic_parts.into_iter().unzip();
-        self.critic_opt.step_sum(&grads)?;
-
-        let this = &*self;
-        let actor_parts = on_shards(workers, d.batch, rngs, |shard, rngs| {
-            let tr = shard_transitions(&shard)?;
-            let noise = normals_per(rngs, per_sequence, CONTEXT_DIM)?;
-            let (m, logp) = mask_sample(actor, &tr.obs, &noise)?;
-            let q = Self::min_q(&this.q, &tr.obs, &m)?;
-            let actor_loss = part(&(logp.broadcast_mul(&alpha)? - q)?, &tr)?;
-            let logp_part = scalar(&part(&logp.detach(), &tr)?)?;
-            Ok((scalar(&actor_loss)?, logp_part, actor_loss.backward()?))
-        })?;
-        let mut grads = Vec::with_capacity(actor_parts.len());
-        let (mut actor_loss, mut mean_logp) = (0.0, 0.0);
-        for (loss, logp, g) in actor_parts {
-            actor_loss += loss;
-            mean_logp += logp;
-            grads.push(g);
-        }
-        self.actor_opt.step_sum(&grads)?;
-
-        // temperature: minimise −log α · mean(log π + target entropy) over the valid transitions
-        let gap = mean_logp + self.cfg.target_entropy;
-        let alpha_loss = (self.log_alpha.sum_all()? * -gap)?;
-        self.alpha_opt.minimise(&alpha_loss)?;
-        polyak(&self.target_store, &self.critic_store, self.cfg.tau)?;
-
-        metrics.insert("mask/q_loss".into(), q_losses.iter().sum());
-        metrics.insert("mask/actor_loss".into(), actor_loss);
-        metrics.insert("mask/entropy".into(), -mean_logp);
-        Ok(())
-    }
-}
-
-/// A shard of a batch: the sequences one worker thread trains on.
-struct Shard {
-    /// Its position among the shards.
-    index: usize,
-    /// Its sequences.
-    rows: std::ops::Range<usize>,
-    /// Its share of the batch, `|rows| / B`: a shard's mean loss times this sums to the batch's.
-    weight: f64,
-}
-
-/// Runs `f` on each shard of a batch of `batch` sequences, one per worker thread, in parallel,
-/// with the noise streams of the shard's sequences; returns the results in shard order.
-fn on_shards<T: Send>(
-    workers: usize,
-    batch: usize,
-    rngs: &mut [ChaCha8Rng],
-    f: impl Fn(Shard, &mut [ChaCha8Rng]) -> Result<T> + Sync,
-) -> Result<Vec<T>> {
-    let workers = workers.clamp(1, batch.max(1));
-    let per = batch.div_ceil(workers).max(1);
-    let mut shards = Vec::with_capacity(workers);
-    let mut rest = rngs;
-    for (index, start) in (0..batch).step_by(per).enumerate() {
-        let rows = start..(start + per).min(batch);
-        let (mine, others) = rest.split_at_mut(rows.len());
-        rest = others;
-        let weight = rows.len() as f64 / batch as f64;
-        shards.push((
-            Shard {
-                index,
-                rows,
-                weight,
-            },
-            mine,
-        ));
-    }
-    if shards.len() == 1 {
-        let (shard, rngs) = shards.pop().expect("one shard");
-        return Ok(vec![f(shard, rngs)?]);
-    }
-    let f = &f;
-    std::thread::scope(|scope| {
-        let handles: Vec<_> = shards
-            .into_iter()
-            .map(|(shard, rngs)| scope.spawn(move || f(shard, rngs)))
-            .collect();
-        handles.into_iter().map(join_worker).collect()
-    })
-}
-
-/// The result of a worker thread; a panic becomes an error.
-fn join_worker<T>(h: std::thread::ScopedJoinHandle<'_, Result<T>>) -> Result<T> {
-    h.join()
-        .map_err(|_| candle_core::Error::Msg("a training worker thread panicked".into()))?
-}
-
-/// The mean of the shards' metrics, each weighted by its share of the batch.
-fn weighted_mean(parts: &[(f64, Metrics)]) -> Metrics {
-    let mut out = Metrics::new();
-    for (w, m) in parts {
-        for (k, v) in m {
-            *out.entry(k.clone()).or_insert(0.0) += w * v;
-        }
-    }
-    out
-}
 
 /// The λ-returns of an imagined trajectory and what they came from, each `[H, N]` (values
 /// `[H + 1, N]`).
@@ -467,15 +73,6 @@ struct ImaginedReturns {
     value: Tensor,
     returns: Tensor,
     weights: Tensor,
-}
-
-/// Posterior states to imagine from, `N = B·T` of them, detached.
-struct Starts {
-    state: RssmState,
-    /// `[N]` `1 − terminal`.
-    cont: Tensor,
-    /// `[N, 2]` the model context, if any.
-    ctx: Option<Tensor>,
 }
 
 /// An imagined trajectory of `H` actions from `N` starts.
@@ -509,21 +106,17 @@ pub struct Dreamer {
     obs_dim: usize,
     act_dim: usize,
     policy: ParamStore,
-    heads: ParamStore,
     critic_store: ParamStore,
     slow_store: ParamStore,
     nets: DreamerNets,
-    decoder: Mlp,
-    reward: Mlp,
-    cont: Mlp,
+    world_model: WorldModel,
     critic: Mlp,
     slow_critic: Mlp,
     frozen: Frozen,
     twohot: TwoHot,
-    model_opt: Adam,
     actor_opt: Adam,
     critic_opt: Adam,
-    sac: Option<MaskSac>,
+    mask_sac: Option<MaskSac>,
     return_norm: ReturnNorm,
     step: u64,
     /// Worker threads a batch is split over.
@@ -538,71 +131,39 @@ impl Dreamer {
         if obs_dim == 0 || act_dim == 0 {
             bail!("DreamerV3 needs observations and actions (sizes {obs_dim}, {act_dim})");
         }
-        let silu = Activation::SiluNorm;
         let policy = ParamStore::new();
         let nets = DreamerNets::new(&cfg, obs_dim, act_dim, policy.builder())?;
-        let feat = nets.rssm.feat_dim() + cfg.context.context_dim();
-        let heads = ParamStore::new();
-        let hb = heads.builder();
-        let (hu, hl) = (cfg.head_units, cfg.head_layers);
-        let decoder = Mlp::new(
-            feat,
-            cfg.units,
-            cfg.layers,
-            Some(obs_dim),
-            silu,
-            hb.pp("decoder"),
-        )?;
-        let reward = Mlp::new(feat, hu, hl, Some(cfg.bins), silu, hb.pp("reward"))?;
-        let cont = Mlp::new(feat, hu, hl, Some(1), silu, hb.pp("cont"))?;
-        let critic_store = ParamStore::new();
-        let critic = Mlp::new(
-            feat,
-            hu,
-            hl,
-            Some(cfg.bins),
-            silu,
-            critic_store.builder().pp("critic"),
-        )?;
-        let slow_store = ParamStore::new();
-        let slow_critic = Mlp::new(
-            feat,
-            hu,
-            hl,
-            Some(cfg.bins),
-            silu,
-            slow_store.builder().pp("critic"),
-        )?;
-
         policy.init(cfg.seed)?;
-        heads.init(cfg.seed.wrapping_add(1))?;
+        let world_model = WorldModel::new(&cfg, obs_dim, &nets, &policy)?;
+        let feat = nets.rssm.feat_dim() + cfg.context.context_dim();
+        let critic_of = |store: &ParamStore| {
+            let (hu, hl) = (cfg.head_units, cfg.head_layers);
+            let vb = store.builder().pp("critic");
+            Mlp::new(feat, hu, hl, Some(cfg.bins), Activation::SiluNorm, vb)
+        };
+        let critic_store = ParamStore::new();
+        let critic = critic_of(&critic_store)?;
+        let slow_store = ParamStore::new();
+        let slow_critic = critic_of(&slow_store)?;
         critic_store.init(cfg.seed.wrapping_add(2))?;
-        for (store, name) in [
-            (&heads, "reward.out.weight"),
-            (&critic_store, "critic.out.weight"),
-        ] {
-            for (n, v) in store.named() {
-                if n == name {
-                    v.set(&v.zeros_like()?)?;
-                }
+        for (n, v) in critic_store.named() {
+            if n == "critic.out.weight" {
+                v.set(&v.zeros_like()?)?;
             }
         }
         slow_store.load_bytes(&critic_store.to_bytes()?)?;
 
-        let mut model_vars = vars_under(&policy, &["encoder", "rssm"]);
-        model_vars.extend(heads.vars());
-        let model_opt = Adam::new(model_vars, cfg.model_lr, cfg.model_eps, cfg.model_clip);
-        let actor_vars = vars_under(&policy, &["actor"]);
+        let actor_vars = policy.vars_under(&["actor"]);
         let actor_opt = Adam::new(actor_vars, cfg.ac_lr, cfg.ac_eps, cfg.ac_clip);
         let critic_opt = Adam::new(critic_store.vars(), cfg.ac_lr, cfg.ac_eps, cfg.ac_clip);
-        let sac = match cfg.context {
+        let mask_sac = match cfg.context {
             ContextMode::Cmask => Some(MaskSac::new(&cfg, obs_dim, &policy)?),
             ContextMode::None | ContextMode::Crssm => None,
         };
         let frozen = Frozen {
             rssm: nets.rssm.frozen(),
-            reward: reward.frozen(),
-            cont: cont.frozen(),
+            reward: world_model.reward.frozen(),
+            cont: world_model.cont.frozen(),
             critic: critic.frozen(),
         };
         Ok(Self {
@@ -613,19 +174,15 @@ impl Dreamer {
             obs_dim,
             act_dim,
             policy,
-            heads,
             critic_store,
             slow_store,
             nets,
-            decoder,
-            reward,
-            cont,
+            world_model,
             critic,
             slow_critic,
-            model_opt,
             actor_opt,
             critic_opt,
-            sac,
+            mask_sac,
             step: 0,
             workers: ctxrace_common::nn::threads(),
         })
@@ -670,126 +227,6 @@ impl Dreamer {
         let noise = normals_per(rngs, d.length, CONTEXT_DIM)?;
         let (m, _) = mask_sample(actor, &d.flat(&d.obs)?, &noise)?;
         Ok(Some(m.detach()))
-    }
-
-    /// The world-model loss of a shard of sequences, its metrics and the posterior states to
-    /// imagine from.
-    fn world_model_loss(
-        &self,
-        d: &SeqData,
-        ctx: Option<&Tensor>,
-        rngs: &mut [ChaCha8Rng],
-    ) -> Result<(Tensor, Metrics, Starts)> {
-        let (b, t_len, n) = (d.batch, d.length, d.batch * d.length);
-        let (s, c) = (self.cfg.stoch, self.cfg.classes);
-        let rssm = &self.nets.rssm;
-        let target = symlog(&d.flat(&d.obs)?)?;
-        // time-major, so that `get(t)` gives contiguous `[B, …]` slices
-        let time_major = |x: &Tensor| x.transpose(0, 1)?.contiguous();
-        let embed = time_major(
-            &self
-                .nets
-                .encoder
-                .forward(&target)?
-                .reshape((b, t_len, ()))?,
-        )?;
-        let actions = time_major(&d.action)?;
-        let keeps = time_major(&(1.0 - &d.first)?)?;
-        let ctx_tm = ctx
-            .map(|c| time_major(&c.reshape((b, t_len, ()))?))
-            .transpose()?;
-
-        let mut state = rssm.initial(b)?;
-        let (mut deters, mut stochs) = (Vec::with_capacity(t_len), Vec::with_capacity(t_len));
-        let mut posts = Vec::with_capacity(t_len);
-        for t in 0..t_len {
-            let keep = keeps.get(t)?.unsqueeze(1)?;
-            let prev = RssmState {
-                deter: state.deter.broadcast_mul(&keep)?,
-                stoch: state.stoch.broadcast_mul(&keep)?,
-            };
-            let action = actions.get(t)?.broadcast_mul(&keep)?;
-            let c_t = ctx_tm.as_ref().map(|c| c.get(t)).transpose()?;
-            let (next, post) = rssm.obs_step(
-                &prev,
-                &action,
-                c_t.as_ref(),
-                &embed.get(t)?,
-                &uniforms_per(rngs, 1, (s, c))?,
-            )?;
-            deters.push(next.deter.clone());
-            stochs.push(next.stoch.clone());
-            posts.push(post);
-            state = next;
-        }
-        let batch_major = |xs: &[Tensor]| Tensor::stack(xs, 1)?.reshape((n, ()));
-        let deter = batch_major(&deters)?;
-        let stoch = batch_major(&stochs)?;
-        let prior = rssm.prior_logits(&deter)?;
-        let post = batch_major(&posts)?.reshape((n, s, c))?;
-
-        let posterior = RssmState { deter, stoch };
-        let x = posterior.head_input(ctx)?;
-        let recon = (self.decoder.forward(&x)? - &target)?.sqr()?.sum(1)?;
-        let reward = self
-            .twohot
-            .loss(&self.reward.forward(&x)?, &d.reward.flatten_all()?)?;
-        let cont_target = (1.0 - d.terminal.flatten_all()?)?;
-        let cont = bce_with_logits(&self.cont.forward(&x)?.squeeze(1)?, &cont_target)?;
-        let (dyn_loss, rep_loss, kl) = kl_balance(rssm, &post, &prior, self.cfg.free_nats)?;
-        let pred = ((&recon + &reward)? + &cont)?;
-        let loss = (((pred * self.cfg.pred_scale)? + (&dyn_loss * self.cfg.kl_dyn)?)?
-            + (&rep_loss * self.cfg.kl_rep)?)?
-            .mean_all()?;
-
-        let mut metrics = Metrics::new();
-        for (name, v) in [
-            ("model/loss", &loss),
-            ("model/recon", &recon.mean_all()?),
-            ("model/reward", &reward.mean_all()?),
-            ("model/cont", &cont.mean_all()?),
-            ("model/kl", &kl.mean_all()?),
-        ] {
-            metrics.insert(name.into(), scalar(v)?);
-        }
-        let starts = Starts {
-            state: RssmState {
-                deter: posterior.deter.detach(),
-                stoch: posterior.stoch.detach(),
-            },
-            cont: cont_target,
-            ctx: ctx.map(|c| c.detach()),
-        };
-        Ok((loss, metrics, starts))
-    }
-
-    /// One world-model step on the batch, its shards' losses and gradients computed in parallel;
-    /// returns each shard's posterior states to imagine from.
-    fn world_model_step(
-        &mut self,
-        d: &SeqData,
-        ctx: Option<&Tensor>,
-        rngs: &mut [ChaCha8Rng],
-        metrics: &mut Metrics,
-    ) -> Result<Vec<Starts>> {
-        let parts = on_shards(self.workers, d.batch, rngs, |shard, rngs| {
-            let ds = d.sequences(&shard.rows)?;
-            let cs = ctx.map(|c| d.rows_of(c, &shard.rows)).transpose()?;
-            let (loss, m, starts) = self.world_model_loss(&ds, cs.as_ref(), rngs)?;
-            let grads = (loss * shard.weight)?.backward()?;
-            Ok((shard.weight, m, grads, starts))
-        })?;
-        let mut grads = Vec::with_capacity(parts.len());
-        let mut starts = Vec::with_capacity(parts.len());
-        let mut shard_metrics = Vec::with_capacity(parts.len());
-        for (w, m, g, s) in parts {
-            shard_metrics.push((w, m));
-            grads.push(g);
-            starts.push(s);
-        }
-        metrics.extend(weighted_mean(&shard_metrics));
-        metrics.insert("model/grad_norm".into(), self.model_opt.step_sum(&grads)?);
-        Ok(starts)
     }
 
     /// Rolls the actor `H` steps through the frozen prior from `start`, each start's noise from
@@ -937,11 +374,11 @@ impl Dreamer {
     /// Every optimiser with its file name, for reading.
     fn optimisers_ref(&self) -> Vec<(&'static str, &Adam)> {
         let mut v = vec![
-            ("opt_model", &self.model_opt),
+            ("opt_model", &self.world_model.opt),
             ("opt_actor", &self.actor_opt),
             ("opt_critic", &self.critic_opt),
         ];
-        if let Some(sac) = &self.sac {
+        if let Some(sac) = &self.mask_sac {
             v.push(("opt_mask_actor", &sac.actor_opt));
             v.push(("opt_mask_critic", &sac.critic_opt));
             v.push(("opt_mask_alpha", &sac.alpha_opt));
@@ -952,11 +389,11 @@ impl Dreamer {
     /// Every optimiser with its file name, for restoring.
     fn optimisers(&mut self) -> Vec<(&'static str, &mut Adam)> {
         let mut v = vec![
-            ("opt_model", &mut self.model_opt),
+            ("opt_model", &mut self.world_model.opt),
             ("opt_actor", &mut self.actor_opt),
             ("opt_critic", &mut self.critic_opt),
         ];
-        if let Some(sac) = &mut self.sac {
+        if let Some(sac) = &mut self.mask_sac {
             v.push(("opt_mask_actor", &mut sac.actor_opt));
             v.push(("opt_mask_critic", &mut sac.critic_opt));
             v.push(("opt_mask_alpha", &mut sac.alpha_opt));
@@ -968,11 +405,11 @@ impl Dreamer {
     fn stores(&self) -> Vec<(&'static str, &ParamStore)> {
         let mut v = vec![
             ("policy", &self.policy),
-            ("heads", &self.heads),
+            ("heads", &self.world_model.heads),
             ("critic", &self.critic_store),
             ("slow_critic", &self.slow_store),
         ];
-        if let Some(sac) = &self.sac {
+        if let Some(sac) = &self.mask_sac {
             v.push(("mask_critic", &sac.critic_store));
             v.push(("mask_target", &sac.target_store));
             v.push(("mask_alpha", &sac.alpha_store));
@@ -994,9 +431,12 @@ impl Algorithm for Dreamer {
 
         let masks = self.draw_masks(&d, &mut rngs)?;
         let ctx = self.nets.context(&d.flat(&d.context)?, masks.as_ref())?;
-        let starts = self.world_model_step(&d, ctx.as_ref(), &mut rngs, &mut metrics)?;
+        let starts =
+            self.world_model
+                .step(&d, ctx.as_ref(), self.workers, &mut rngs, &mut metrics)?;
         self.behaviour_step(&starts, &mut rngs, &mut metrics)?;
-        if let (Some(sac), Some(actor), Some(masks)) = (&mut self.sac, &self.nets.mask, &masks) {
+        if let (Some(sac), Some(actor), Some(masks)) = (&mut self.mask_sac, &self.nets.mask, &masks)
+        {
             metrics.insert("mask/mean".into(), scalar(&masks.mean_all()?)?);
             sac.step(actor, &d, self.workers, &mut rngs, &mut metrics)?;
         }
@@ -1047,7 +487,10 @@ impl Algorithm for Dreamer {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use ctxrace_common::nn::RssmConfig;
+    use candle_core::{DType, Device, Var};
+    use ctxrace_common::agents::MaskConfig;
+    use ctxrace_common::nn::RssmState;
+    use ctxrace_common::SequenceBatch;
     use ctxrace_common::policy::normals;
     use rand::Rng;
 
@@ -1149,69 +592,6 @@ mod tests {
             .unwrap_or(0.0)
     }
 
-    #[test]
-    fn kl_free_nats_below_and_above_the_threshold() {
-        let cfg = RssmConfig {
-            deter: 4,
-            hidden: 4,
-            stoch: 1,
-            classes: 2,
-            unimix: 0.0,
-            act_dim: 1,
-            embed_dim: 1,
-            context_dim: 0,
-        };
-        let (_, rssm) = ctxrace_common::nn::rssm::standalone(cfg, 0).unwrap();
-        // q = (1/2, 1/2), p = (3/4, 1/4): KL(q ‖ p) = ½ ln(2/3) + ½ ln 2 = ½ ln(4/3)
-        let want = 0.5 * (4f64 / 3.0).ln();
-        let post = Var::new(&[[[0f32, 0.0]]], &Device::Cpu).unwrap();
-        let prior = Var::new(&[[[3f32.ln(), 0.0]]], &Device::Cpu).unwrap();
-        for (free, expect_grad) in [(1.0, false), (0.1, true)] {
-            let (dyn_kl, rep_kl, kl) =
-                kl_balance(&rssm, post.as_tensor(), prior.as_tensor(), free).unwrap();
-            assert!((scalar(&kl.sum_all().unwrap()).unwrap() - want).abs() < 1e-6);
-            let v = scalar(&dyn_kl.sum_all().unwrap()).unwrap();
-            assert!((v - want.max(free)).abs() < 1e-6, "free {free}: {v}");
-            assert!((scalar(&rep_kl.sum_all().unwrap()).unwrap() - v).abs() < 1e-6);
-            // dyn trains only the prior, rep only the posterior; below the free nats neither
-            let g = dyn_kl.sum_all().unwrap().backward().unwrap();
-            assert_eq!(grad_norm(&g, &prior) > 1e-4, expect_grad, "free {free}");
-            assert_eq!(grad_norm(&g, &post), 0.0);
-            let g = rep_kl.sum_all().unwrap().backward().unwrap();
-            assert_eq!(grad_norm(&g, &post) > 1e-4, expect_grad, "free {free}");
-            assert_eq!(grad_norm(&g, &prior), 0.0);
-        }
-    }
-
-    #[test]
-    fn sac_transitions_take_the_reward_and_mask_of_their_own_step() {
-        let seq = SequenceBatch {
-            batch: 1,
-            length: 4,
-            obs_dim: 1,
-            act_dim: 1,
-            obs: vec![0.0, 1.0, 2.0, 3.0],
-            action: vec![0.0; 4],
-            reward: vec![0.0, 10.0, 20.0, 30.0],
-            is_first: vec![1.0, 0.0, 1.0, 0.0],
-            is_terminal: vec![0.0, 1.0, 0.0, 0.0],
-            context: vec![0.0; 8],
-            // row t + 1 holds the mask that acted at o_t; the action into o_3 had none
-            mask: vec![0.0, 0.0, 0.3, 0.4, 0.0, 0.0, 0.7, 0.8],
-            has_mask: vec![0.0, 1.0, 0.0, 0.0],
-        };
-        let d = SeqData::new(&seq, 1, 1).unwrap();
-        let tr = Transitions::new(&d).unwrap().unwrap();
-        let v = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
-        assert_eq!(v(&tr.obs), [0.0, 1.0, 2.0]);
-        assert_eq!(v(&tr.mask), [0.3, 0.4, 0.0, 0.0, 0.7, 0.8]);
-        assert_eq!(v(&tr.reward), [10.0, 20.0, 30.0]);
-        assert_eq!(v(&tr.next_obs), [1.0, 2.0, 3.0]);
-        assert_eq!(v(&tr.terminal), [1.0, 0.0, 0.0]);
-        // o_2 starts a new episode; no mask chose the action into o_3
-        assert_eq!(v(&tr.valid), [1.0, 0.0, 0.0]);
-    }
-
     /// Trains cMask's mask SAC alone on a contextual bandit whose reward depends only on the mask
     /// that acted, `r_{t+1} = −(m_{t,0} − 1)² − m_{t,1}²`, with observations drawn at random:
     /// `(1, 0)` is the best mask. Each step acts with the current mask actor on a fresh batch of
@@ -1288,7 +668,7 @@ mod tests {
             let mut rngs = agent.sequence_rngs(b);
             let mut m = Metrics::new();
             let (sac, actor) = (
-                agent.sac.as_mut().unwrap(),
+                agent.mask_sac.as_mut().unwrap(),
                 agent.nets.mask.as_ref().unwrap(),
             );
             sac.step(actor, &d, 1, &mut rngs, &mut m).unwrap();
@@ -1296,16 +676,10 @@ mod tests {
         }
         let probe: Vec<f32> = (0..128).map(|_| rng.random_range(-1.0..1.0)).collect();
         let o = Tensor::from_slice(&probe, (64, 2), dev).unwrap();
-        let sac = agent.sac.as_ref().unwrap();
+        let sac = agent.mask_sac.as_ref().unwrap();
         let q_of = |m: [f32; 2]| {
             let masks = Tensor::from_slice(&m.repeat(64), (64, 2), dev).unwrap();
-            scalar(
-                &MaskSac::min_q(&sac.q, &o, &masks)
-                    .unwrap()
-                    .mean_all()
-                    .unwrap(),
-            )
-            .unwrap()
+            scalar(&sac.q.min(&o, &masks).unwrap().mean_all().unwrap()).unwrap()
         };
         let gap = q_of([1.0, 0.0]) - q_of([0.0, 1.0]);
         let mode = agent.nets.mask.as_ref().unwrap().mean_action(&o).unwrap();
@@ -1386,7 +760,8 @@ mod tests {
             let mut m = Metrics::new();
             let mut rngs = agent.sequence_rngs(d.batch);
             agent
-                .world_model_step(&d, ctx.as_ref(), &mut rngs, &mut m)
+                .world_model
+                .step(&d, ctx.as_ref(), 1, &mut rngs, &mut m)
                 .unwrap();
             assert!(m.values().all(|v| v.is_finite()), "{m:?}");
             history.push((m["model/recon"], m["model/reward"]));
@@ -1429,7 +804,10 @@ mod tests {
         let d = SeqData::new(&seq, 2, 2).unwrap();
         let mut m = Metrics::new();
         let mut rngs = agent.sequence_rngs(d.batch);
-        let starts = agent.world_model_step(&d, None, &mut rngs, &mut m).unwrap();
+        let starts = agent
+            .world_model
+            .step(&d, None, 1, &mut rngs, &mut m)
+            .unwrap();
         let start = Starts {
             state: RssmState {
                 deter: Tensor::cat(
@@ -1458,7 +836,7 @@ mod tests {
         }
         // imagination runs through frozen views: no world-model, head or critic weight gets a
         // gradient from the actor loss (so its backward pass computes none)
-        for store in [&agent.policy, &agent.heads, &agent.critic_store] {
+        for store in [&agent.policy, &agent.world_model.heads, &agent.critic_store] {
             for (name, v) in store.named() {
                 if !name.starts_with("actor.") {
                     assert!(grads.get(&v).is_none(), "{name} has an actor-loss gradient");
@@ -1476,13 +854,13 @@ mod tests {
         };
         let (p0, h0, c0) = (
             snapshot(&agent.policy),
-            snapshot(&agent.heads),
+            snapshot(&agent.world_model.heads),
             snapshot(&agent.critic_store),
         );
         assert!(agent.actor_opt.minimise(&loss).unwrap() > 0.0);
         let (p1, h1, c1) = (
             snapshot(&agent.policy),
-            snapshot(&agent.heads),
+            snapshot(&agent.world_model.heads),
             snapshot(&agent.critic_store),
         );
         assert_eq!(before_policy.len(), p1.len());
@@ -1495,7 +873,7 @@ mod tests {
                 assert_eq!(a, b, "{name} changed in the actor step");
             }
         }
-        assert_eq!(moved, vars_under(&agent.policy, &["actor"]).len());
+        assert_eq!(moved, agent.policy.vars_under(&["actor"]).len());
     }
 
     #[test]
@@ -1592,12 +970,14 @@ mod tests {
         bias.set(&Tensor::zeros(4, DType::F32, &Device::Cpu).unwrap())
             .unwrap();
 
-        let sac = agent.sac.as_ref().unwrap();
+        let sac = agent.mask_sac.as_ref().unwrap();
         let before = (
             sac.critic_store.to_bytes().unwrap(),
             sac.target_store.to_bytes().unwrap(),
             sac.alpha_store.to_bytes().unwrap(),
-            vars_under(&agent.policy, &["mask"])
+            agent
+                .policy
+                .vars_under(&["mask"])
                 .iter()
                 .map(|v| v.flatten_all().unwrap().to_vec1::<f32>().unwrap())
                 .collect::<Vec<_>>(),
@@ -1606,11 +986,13 @@ mod tests {
         for _ in 0..3 {
             last = agent.train_step(&sample(&data, 4, 16, &mut rng)).unwrap();
         }
-        let sac = agent.sac.as_ref().unwrap();
+        let sac = agent.mask_sac.as_ref().unwrap();
         assert_ne!(before.0, sac.critic_store.to_bytes().unwrap());
         assert_ne!(before.1, sac.target_store.to_bytes().unwrap());
         assert_ne!(before.2, sac.alpha_store.to_bytes().unwrap());
-        let after: Vec<Vec<f32>> = vars_under(&agent.policy, &["mask"])
+        let after: Vec<Vec<f32>> = agent
+            .policy
+            .vars_under(&["mask"])
             .iter()
             .map(|v| v.flatten_all().unwrap().to_vec1::<f32>().unwrap())
             .collect();

@@ -4,12 +4,16 @@ pub mod adam;
 pub mod algorithm;
 pub mod best;
 pub mod checkpoint;
+pub mod cmask;
 pub mod dreamer;
 pub mod process;
 pub mod returns;
 pub mod runlog;
 pub mod sac;
+pub mod sequences;
+pub mod shards;
 pub mod tensorboard;
+pub mod world_model;
 
 pub use algorithm::{Algorithm, Batch, Metrics};
 pub use dreamer::Dreamer;

@@ -36,19 +36,21 @@ use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
-/// Twin critics `Q_1, Q_2 (o, a)`.
-struct TwinQ {
+/// Twin critics `Q_1, Q_2 (o, a)`: two ReLU MLPs `q1`, `q2` on `[o, a]` (SAC's, and cMask's mask
+/// SAC's with the mask as the action).
+pub(crate) struct TwinQ {
     q1: Mlp,
     q2: Mlp,
 }
 
 impl TwinQ {
-    fn new(obs_dim: usize, act_dim: usize, cfg: &SacConfig, vb: VarBuilder) -> Result<Self> {
+    /// Critics on inputs `[o, a]` of `input` values, `layers` hidden layers of `hidden` units.
+    pub(crate) fn new(input: usize, hidden: usize, layers: usize, vb: VarBuilder) -> Result<Self> {
         let q = |name: &str| {
             Mlp::new(
-                obs_dim + act_dim,
-                cfg.hidden,
-                cfg.layers,
+                input,
+                hidden,
+                layers,
                 Some(1),
                 Activation::Relu,
                 vb.pp(name),
@@ -61,13 +63,28 @@ impl TwinQ {
     }
 
     /// `(Q_1, Q_2)`, each `[B]`, for observations `[B, O]` and actions `[B, A]`.
-    fn forward(&self, obs: &Tensor, action: &Tensor) -> Result<(Tensor, Tensor)> {
+    pub(crate) fn forward(&self, obs: &Tensor, action: &Tensor) -> Result<(Tensor, Tensor)> {
         let x = Tensor::cat(&[obs, action], D::Minus1)?;
         Ok((
             self.q1.forward(&x)?.squeeze(D::Minus1)?,
             self.q2.forward(&x)?.squeeze(D::Minus1)?,
         ))
     }
+
+    /// `min(Q_1, Q_2)` `[B]`.
+    pub(crate) fn min(&self, obs: &Tensor, action: &Tensor) -> Result<Tensor> {
+        let (q1, q2) = self.forward(obs, action)?;
+        q1.minimum(&q2)
+    }
+}
+
+/// Polyak averaging `target ← (1 − τ) target + τ source`, parameter by parameter (the two stores
+/// hold the same names).
+pub(crate) fn polyak(target: &ParamStore, source: &ParamStore, tau: f64) -> Result<()> {
+    for ((_, t), (_, s)) in target.named().iter().zip(source.named()) {
+        t.set(&((t.as_tensor() * (1.0 - tau))? + (s.as_tensor() * tau)?)?)?;
+    }
+    Ok(())
 }
 
 /// Adam with PyTorch's defaults and no clipping.
@@ -130,10 +147,20 @@ impl Sac {
         )?;
         actor_params.init(cfg.seed)?;
         let critic_params = ParamStore::new();
-        let critic = TwinQ::new(obs_dim, act_dim, &cfg, critic_params.builder())?;
+        let critic = TwinQ::new(
+            obs_dim + act_dim,
+            cfg.hidden,
+            cfg.layers,
+            critic_params.builder(),
+        )?;
         critic_params.init(cfg.seed.wrapping_add(1))?;
         let target_params = ParamStore::new();
-        let target = TwinQ::new(obs_dim, act_dim, &cfg, target_params.builder())?;
+        let target = TwinQ::new(
+            obs_dim + act_dim,
+            cfg.hidden,
+            cfg.layers,
+            target_params.builder(),
+        )?;
         target_params.load_bytes(&critic_params.to_bytes()?)?;
         let alpha_params = ParamStore::new();
         let log_alpha = alpha_params.builder().get_with_hints(
@@ -210,8 +237,7 @@ impl Sac {
         // critics: regress both onto the soft Bellman target of the target critics
         let (next_action, next_log_prob) =
             self.actor.sample(&next_obs, &self.noise(b, &mut rng)?)?;
-        let (tq1, tq2) = self.target.forward(&next_obs, &next_action)?;
-        let soft_value = (tq1.minimum(&tq2)? - (next_log_prob * alpha)?)?;
+        let soft_value = (self.target.min(&next_obs, &next_action)? - (next_log_prob * alpha)?)?;
         let y = (reward + (not_done * soft_value)?.affine(self.cfg.gamma, 0.0)?)?.detach();
         let (q1, q2) = self.critic.forward(&obs, &action)?;
         let critic_loss = ((&q1 - &y)?.sqr()?.mean_all()? + (&q2 - &y)?.sqr()?.mean_all()?)?;
@@ -219,8 +245,7 @@ impl Sac {
 
         // actor: maximise min_i Q_i(o, ã) + α H
         let (pi_action, log_prob) = self.actor.sample(&obs, &self.noise(b, &mut rng)?)?;
-        let (pq1, pq2) = self.critic.forward(&obs, &pi_action)?;
-        let actor_loss = ((&log_prob * alpha)? - pq1.minimum(&pq2)?)?.mean_all()?;
+        let actor_loss = ((&log_prob * alpha)? - self.critic.min(&obs, &pi_action)?)?.mean_all()?;
         self.actor_opt.minimise(&actor_loss)?;
 
         // temperature: move the policy's entropy towards the target
@@ -232,16 +257,7 @@ impl Sac {
             .mean_all()?;
         self.alpha_opt.minimise(&alpha_loss)?;
 
-        // targets: Polyak averaging (the two stores hold the same names, sorted)
-        let tau = self.cfg.tau;
-        for ((_, online), (_, target)) in self
-            .critic_params
-            .named()
-            .iter()
-            .zip(self.target_params.named())
-        {
-            target.set(&((online.as_tensor() * tau)? + (target.as_tensor() * (1.0 - tau))?)?)?;
-        }
+        polyak(&self.target_params, &self.critic_params, self.cfg.tau)?;
         self.step += 1;
 
         let scalar = |t: &Tensor| t.to_scalar::<f32>().map(f64::from);

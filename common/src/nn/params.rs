@@ -46,6 +46,16 @@ impl ParamStore {
         self.named().into_iter().map(|(_, v)| v).collect()
     }
 
+    /// The parameters whose names start with one of the `prefixes` (as `prefix.`), sorted by
+    /// name.
+    pub fn vars_under(&self, prefixes: &[&str]) -> Vec<Var> {
+        self.named()
+            .into_iter()
+            .filter(|(name, _)| prefixes.iter().any(|p| name.starts_with(&format!("{p}."))))
+            .map(|(_, v)| v)
+            .collect()
+    }
+
     /// Number of scalar parameters.
     pub fn count(&self) -> usize {
         self.named().iter().map(|(_, v)| v.elem_count()).sum()

@@ -1,0 +1,78 @@
+//! A sequence batch of the replay as tensors, for the world model, the behaviour learning and
+//! cMask's mask SAC.
+
+use candle_core::{Device, Result, Tensor};
+use ctxrace_common::agents::CONTEXT_DIM;
+use ctxrace_common::SequenceBatch;
+
+/// A sequence batch as tensors, `B` sequences of `T` steps.
+pub(crate) struct SeqData {
+    /// `B`.
+    pub(crate) batch: usize,
+    /// `T`.
+    pub(crate) length: usize,
+    /// `[B, T, O]`.
+    pub(crate) obs: Tensor,
+    /// `[B, T, A]`.
+    pub(crate) action: Tensor,
+    /// `[B, T]`.
+    pub(crate) reward: Tensor,
+    /// `[B, T]`.
+    pub(crate) first: Tensor,
+    /// `[B, T]`.
+    pub(crate) terminal: Tensor,
+    /// `[B, T, 2]`.
+    pub(crate) context: Tensor,
+    /// `[B, T, 2]` the mask that chose the action before step `t`.
+    pub(crate) mask: Tensor,
+    /// `[B, T]` 1 where that action was chosen through a mask.
+    pub(crate) has_mask: Tensor,
+}
+
+impl SeqData {
+    pub(crate) fn new(b: &SequenceBatch, obs_dim: usize, act_dim: usize) -> Result<Self> {
+        b.validate(obs_dim, act_dim)
+            .map_err(candle_core::Error::Msg)?;
+        let dev = &Device::Cpu;
+        let (bs, t) = (b.batch, b.length);
+        Ok(Self {
+            batch: bs,
+            length: t,
+            obs: Tensor::from_slice(&b.obs, (bs, t, obs_dim), dev)?,
+            action: Tensor::from_slice(&b.action, (bs, t, act_dim), dev)?,
+            reward: Tensor::from_slice(&b.reward, (bs, t), dev)?,
+            first: Tensor::from_slice(&b.is_first, (bs, t), dev)?,
+            terminal: Tensor::from_slice(&b.is_terminal, (bs, t), dev)?,
+            context: Tensor::from_slice(&b.context, (bs, t, CONTEXT_DIM), dev)?,
+            mask: Tensor::from_slice(&b.mask, (bs, t, CONTEXT_DIM), dev)?,
+            has_mask: Tensor::from_slice(&b.has_mask, (bs, t), dev)?,
+        })
+    }
+
+    /// The sequences `rows` of the batch.
+    pub(crate) fn sequences(&self, rows: &std::ops::Range<usize>) -> Result<Self> {
+        let pick = |x: &Tensor| x.narrow(0, rows.start, rows.len());
+        Ok(Self {
+            batch: rows.len(),
+            length: self.length,
+            obs: pick(&self.obs)?,
+            action: pick(&self.action)?,
+            reward: pick(&self.reward)?,
+            first: pick(&self.first)?,
+            terminal: pick(&self.terminal)?,
+            context: pick(&self.context)?,
+            mask: pick(&self.mask)?,
+            has_mask: pick(&self.has_mask)?,
+        })
+    }
+
+    /// The rows of the sequences `rows` in a batch-major `[B·T, …]` tensor.
+    pub(crate) fn rows_of(&self, x: &Tensor, rows: &std::ops::Range<usize>) -> Result<Tensor> {
+        x.narrow(0, rows.start * self.length, rows.len() * self.length)
+    }
+
+    /// `x` `[B, T, …]` as `[B·T, k]`.
+    pub(crate) fn flat(&self, x: &Tensor) -> Result<Tensor> {
+        x.reshape((self.batch * self.length, ()))
+    }
+}

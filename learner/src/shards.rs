@@ -1,0 +1,76 @@
+//! Data parallelism for one training step: a batch of sequences is split into one shard per
+//! worker thread; each shard computes its part of a loss (its mean times its share
+//! `|rows| / B` of the batch) and differentiates it, and the optimiser steps on the sum of the
+//! shards' gradients, which is the batch's gradient. Each sequence draws its noise from its own
+//! stream, so a step computes the same losses whatever the number of workers.
+
+use crate::algorithm::Metrics;
+use candle_core::Result;
+use rand_chacha::ChaCha8Rng;
+
+/// A shard of a batch: the sequences one worker thread trains on.
+pub(crate) struct Shard {
+    /// Its position among the shards.
+    pub(crate) index: usize,
+    /// Its sequences.
+    pub(crate) rows: std::ops::Range<usize>,
+    /// Its share of the batch, `|rows| / B`: a shard's mean loss times this sums to the batch's.
+    pub(crate) weight: f64,
+}
+
+/// Runs `f` on each shard of a batch of `batch` sequences, one per worker thread, in parallel,
+/// with the noise streams of the shard's sequences; returns the results in shard order.
+pub(crate) fn on_shards<T: Send>(
+    workers: usize,
+    batch: usize,
+    rngs: &mut [ChaCha8Rng],
+    f: impl Fn(Shard, &mut [ChaCha8Rng]) -> Result<T> + Sync,
+) -> Result<Vec<T>> {
+    let workers = workers.clamp(1, batch.max(1));
+    let per = batch.div_ceil(workers).max(1);
+    let mut shards = Vec::with_capacity(workers);
+    let mut rest = rngs;
+    for (index, start) in (0..batch).step_by(per).enumerate() {
+        let rows = start..(start + per).min(batch);
+        let (mine, others) = rest.split_at_mut(rows.len());
+        rest = others;
+        let weight = rows.len() as f64 / batch as f64;
+        shards.push((
+            Shard {
+                index,
+                rows,
+                weight,
+            },
+            mine,
+        ));
+    }
+    if shards.len() == 1 {
+        let (shard, rngs) = shards.pop().expect("one shard");
+        return Ok(vec![f(shard, rngs)?]);
+    }
+    let f = &f;
+    std::thread::scope(|scope| {
+        let handles: Vec<_> = shards
+            .into_iter()
+            .map(|(shard, rngs)| scope.spawn(move || f(shard, rngs)))
+            .collect();
+        handles.into_iter().map(join_worker).collect()
+    })
+}
+
+/// The result of a worker thread; a panic becomes an error.
+pub(crate) fn join_worker<T>(h: std::thread::ScopedJoinHandle<'_, Result<T>>) -> Result<T> {
+    h.join()
+        .map_err(|_| candle_core::Error::Msg("a training worker thread panicked".into()))?
+}
+
+/// The mean of the shards' metrics, each weighted by its share of the batch.
+pub(crate) fn weighted_mean(parts: &[(f64, Metrics)]) -> Metrics {
+    let mut out = Metrics::new();
+    for (w, m) in parts {
+        for (k, v) in m {
+            *out.entry(k.clone()).or_insert(0.0) += w * v;
+        }
+    }
+    out
+}
