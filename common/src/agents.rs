@@ -2,7 +2,7 @@
 //! algorithm name, [`SacConfig`] and [`DreamerConfig`], with the paper's values as defaults
 //! (REFERENCE §5), read from the `[agent]` table of an experiment's TOML file.
 
-use crate::ipc::BatchSpec;
+use crate::batch::BatchSpec;
 use candle_core::{bail, Result};
 use serde::{Deserialize, Serialize};
 use std::fmt;
@@ -406,30 +406,6 @@ impl Default for DreamerConfig {
 }
 
 impl DreamerConfig {
-    /// Names accepted by [`DreamerConfig::preset`].
-    pub const PRESETS: [&'static str; 2] = ["paper", "dreamerv3-small"];
-
-    /// A named configuration: "paper" (the default: MLPs 3×256, GRU 256, latents 16×16) or
-    /// "dreamerv3-small" (the DreamerV3 paper's size S: GRU and hidden 512, latents 32×32,
-    /// encoder, decoder and heads 2×512; everything else as "paper").
-    pub fn preset(name: &str) -> Option<Self> {
-        match name {
-            "paper" => Some(Self::default()),
-            "dreamerv3-small" => Some(Self {
-                units: 512,
-                layers: 2,
-                deter: 512,
-                hidden: 512,
-                stoch: 32,
-                classes: 32,
-                head_units: 512,
-                head_layers: 2,
-                ..Self::default()
-            }),
-            _ => None,
-        }
-    }
-
     /// Checks sizes and ranges, naming the offending key.
     pub fn validate(&self) -> Result<()> {
         let sizes = [

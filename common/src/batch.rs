@@ -124,6 +124,76 @@ impl SequenceBatch {
     }
 }
 
+/// What batch to ask for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BatchSpec {
+    /// `batch` sequences of `length` steps.
+    Sequence {
+        /// `B`.
+        batch: usize,
+        /// `T`.
+        length: usize,
+    },
+    /// `batch` transitions whose observations stack `frames` frames.
+    Transition {
+        /// `B`.
+        batch: usize,
+        /// Frames per observation.
+        frames: usize,
+    },
+}
+
+impl BatchSpec {
+    /// Steps one batch samples: `B·T` for sequences, `B` for transitions (what the rate
+    /// limiter counts).
+    pub fn steps(self) -> usize {
+        match self {
+            BatchSpec::Sequence { batch, length } => batch.saturating_mul(length),
+            BatchSpec::Transition { batch, .. } => batch,
+        }
+    }
+
+    /// Floats of one batch's payload for frames of `obs_dim` and actions of `act_dim`; `None`
+    /// if that overflows.
+    pub fn floats(self, obs_dim: usize, act_dim: usize) -> Option<usize> {
+        match self {
+            BatchSpec::Sequence { batch, length } => {
+                sequence_floats(batch, length, obs_dim, act_dim)
+            }
+            BatchSpec::Transition { batch, frames } => {
+                transition_floats(batch, frames, obs_dim, act_dim)
+            }
+        }
+    }
+}
+
+/// A batch as the learner receives it.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Batch {
+    /// For DreamerV3 and its context variants.
+    Sequence(SequenceBatch),
+    /// For SAC; `obs_dim` is the stacked size `frames x` frame size.
+    Transition(TransitionBatch),
+}
+
+/// Floats of a `B x T` sequence batch payload: per step the observation, action, reward,
+/// is_first, is_terminal, two context and two mask values, and has_mask; `None` if that
+/// overflows (a request no buffer could hold).
+pub fn sequence_floats(b: usize, t: usize, obs_dim: usize, act_dim: usize) -> Option<usize> {
+    b.checked_mul(t)?
+        .checked_mul(obs_dim.checked_add(act_dim)?.checked_add(8)?)
+}
+
+/// Floats of a `B`-transition payload with `frames` stacked frames; `None` if that overflows.
+pub fn transition_floats(b: usize, frames: usize, obs_dim: usize, act_dim: usize) -> Option<usize> {
+    let per = frames
+        .checked_mul(obs_dim)?
+        .checked_mul(2)?
+        .checked_add(act_dim)?
+        .checked_add(4)?;
+    b.checked_mul(per)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

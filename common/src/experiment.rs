@@ -3,6 +3,7 @@
 //! paper's values, so a file only names what it changes.
 
 use crate::agents::AgentConfig;
+use crate::batch::BatchSpec;
 use crate::config::{RaceConfig, ReplayOptions};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -186,16 +187,11 @@ impl ExperimentConfig {
     fn validate_replay(&self) -> Result<(), String> {
         let r = &self.replay;
         let spec = self.agent.batch_spec();
-        let (window, floats) = match spec {
-            crate::ipc::BatchSpec::Sequence { batch, length } => (
-                length,
-                crate::ipc::wire::sequence_floats(batch, length, self.race.lidar.beams, 2),
-            ),
-            crate::ipc::BatchSpec::Transition { batch, frames } => (
-                2,
-                crate::ipc::wire::transition_floats(batch, frames, self.race.lidar.beams, 2),
-            ),
+        let window = match spec {
+            BatchSpec::Sequence { length, .. } => length,
+            BatchSpec::Transition { .. } => 2,
         };
+        let floats = spec.floats(self.race.lidar.beams, 2);
         if r.capacity < window {
             return Err(format!(
                 "[replay] capacity = {} cannot hold one sampled window of {window} steps; raise it",

@@ -11,7 +11,7 @@ pub mod nn;
 pub mod policy;
 
 pub use agents::{AgentConfig, AlgoKind, ContextMode, DreamerConfig, MaskConfig, SacConfig};
-pub use batch::{SequenceBatch, TransitionBatch};
+pub use batch::{Batch, BatchSpec, SequenceBatch, TransitionBatch};
 pub use config::{
     ContextGains, Integrator, LidarConfig, RaceConfig, RacePreset, ReplayOptions, RivalConfig,
     SpeedPoint, WallContact,

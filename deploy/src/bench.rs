@@ -50,7 +50,7 @@ pub struct IpcArgs {
 
 /// Runs `ctxrace bench ipc`.
 fn run_ipc(args: IpcArgs) -> Result<()> {
-    let opts = ctxrace_replay::IpcBenchOptions {
+    let opts = crate::bench_ipc::IpcBenchOptions {
         actors: args.actors,
         steps_per_actor: args.steps,
         obs_dim: args.obs_dim,
@@ -58,7 +58,7 @@ fn run_ipc(args: IpcArgs) -> Result<()> {
         subscribers: args.subscribers,
         ..Default::default()
     };
-    let r = ctxrace_replay::run_ipc_bench(&opts)?;
+    let r = crate::bench_ipc::run_ipc_bench(&opts)?;
     if args.json {
         println!("{}", serde_json::to_string_pretty(&r)?);
         return Ok(());

@@ -4,7 +4,7 @@
 
 use anyhow::Result;
 use clap::Args;
-use ctxrace_common::ipc::{Batch, BatchSpec};
+use ctxrace_common::batch::{Batch, BatchSpec};
 use ctxrace_common::policy::ACT_DIM;
 use ctxrace_common::{
     AgentConfig, AlgoKind, ExperimentConfig, Policy, SequenceBatch, TransitionBatch,

@@ -1,6 +1,8 @@
-//! `ctxrace`: one command line for tracks, races, benchmarks and (later) the training processes.
+//! `ctxrace`: one command line for tracks, races, training, evaluation, reports and benchmarks;
+//! the training processes (actor, replay, learner) are its subcommands too.
 
 mod bench;
+mod bench_ipc;
 mod bench_learner;
 mod download;
 mod driver;

@@ -14,7 +14,7 @@ use anyhow::{bail, Context as _, Result};
 use clap::Args;
 use ctxrace_actor::collect::{Collector, Finished};
 use ctxrace_actor::RaceEnv;
-use ctxrace_common::ipc::{Batch, BatchSpec};
+use ctxrace_common::batch::{Batch, BatchSpec};
 use ctxrace_common::policy::ACT_DIM;
 use ctxrace_common::{AlgoKind, ExperimentConfig, Policy};
 use ctxrace_learner::best::{write_best, ReturnTracker};

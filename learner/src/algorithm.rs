@@ -2,7 +2,7 @@
 //! process can drive any of them by name.
 
 use candle_core::{DType, Result, Tensor};
-pub use ctxrace_common::ipc::Batch;
+pub use ctxrace_common::batch::Batch;
 use std::collections::BTreeMap;
 use std::path::Path;
 

@@ -490,8 +490,8 @@ mod tests {
     use candle_core::{DType, Device, Var};
     use ctxrace_common::agents::MaskConfig;
     use ctxrace_common::nn::RssmState;
-    use ctxrace_common::SequenceBatch;
     use ctxrace_common::policy::normals;
+    use ctxrace_common::SequenceBatch;
     use rand::Rng;
 
     fn tiny(context: ContextMode) -> DreamerConfig {
@@ -710,19 +710,12 @@ mod tests {
     }
 
     #[test]
-    fn config_presets_and_serde_defaults() {
-        let paper = DreamerConfig::preset("paper").unwrap();
-        assert_eq!(paper, DreamerConfig::default());
+    fn the_default_config_has_the_papers_sizes() {
+        let paper = DreamerConfig::default();
         assert_eq!(
             (paper.deter, paper.stoch, paper.classes, paper.layers),
             (256, 16, 16, 3)
         );
-        let small = DreamerConfig::preset("dreamerv3-small").unwrap();
-        assert_eq!(
-            (small.deter, small.stoch, small.classes, small.units),
-            (512, 32, 32, 512)
-        );
-        assert!(DreamerConfig::preset("huge").is_none());
     }
 
     #[test]

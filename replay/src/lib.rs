@@ -1,13 +1,11 @@
 //! The replay process of a ctxrace run: a ring buffer of the actors' steps, a samples-per-insert
-//! rate limiter, snapshots, the process loop serving the learner, and the IPC benchmark.
+//! rate limiter, snapshots, and the process loop serving the learner.
 
-pub mod bench;
 pub mod buffer;
 pub mod limiter;
 pub mod server;
 pub mod snapshot;
 
-pub use bench::{run_ipc_bench, IpcBenchOptions, IpcBenchReport, TransportFigures};
 pub use buffer::ReplayBuffer;
 pub use limiter::RateLimiter;
 pub use server::{run, ReplayArgs, ReplayControl};

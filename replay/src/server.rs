@@ -1,22 +1,21 @@
 //! The replay process loop: chunks in, batches out when the rate limiter allows, status out,
 //! snapshots periodically and on shutdown. Every turn ends with a beacon signal (closing actors
-//! wait for one). It sleeps in an iceoryx2 `WaitSet` on the run's `wake_replay` event and a
-//! 100 ms tick, so it returns on SIGTERM/SIGINT too.
+//! wait for one). Between turns it sleeps on the run's `wake_replay` event, at most a 100 ms
+//! tick ([`RunTransport::serve`]), so it returns on SIGTERM/SIGINT too.
 
 use crate::buffer::ReplayBuffer;
 use crate::limiter::RateLimiter;
 use crate::snapshot::{
     encode_snapshot, read_snapshot, write_snapshot, BackgroundWriter, LimiterCounts,
 };
-use anyhow::{anyhow, bail, Result};
+use anyhow::{bail, Result};
 use ctxrace_common::ipc::wire::{ReplayStatus, WireError, FORMAT_VERSION, REASONS};
 use ctxrace_common::ipc::{
-    BatchRequest, BatchServer, BatchSpec, ReplayBeacon, RunTransport, StatusPublisher,
+    BatchRequest, BatchServer, Next, ReplayBeacon, RunTransport, StatusPublisher,
     TrajectoryReceiver, Wake,
 };
+use ctxrace_common::BatchSpec;
 use ctxrace_common::ReplayOptions;
-use iceoryx2::prelude::*;
-use iceoryx2::waitset::WaitSetRunResult;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::collections::VecDeque;
@@ -118,7 +117,6 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
     let mut rng = ChaCha8Rng::seed_from_u64(opts.seed ^ counts.samples);
 
     let transport = RunTransport::open(&args.prefix, args.actors, "replay")?;
-    let wake = transport.listener(Wake::Replay)?;
     let mut chunks = TrajectoryReceiver::new(&transport, args.obs_dim, args.act_dim)?;
     let mut server = BatchServer::new(
         &transport,
@@ -127,21 +125,6 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
         opts.max_batch_floats,
     )?;
     let status = StatusPublisher::new(&transport)?;
-    let signals = if args.handle_signals {
-        SignalHandlingMode::HandleTerminationRequests
-    } else {
-        SignalHandlingMode::Disabled
-    };
-    let waitset = WaitSetBuilder::new()
-        .signal_handling_mode(signals)
-        .create::<ipc::Service>()
-        .map_err(|e| anyhow!("iceoryx2: waitset: {e:?}"))?;
-    let _wake_guard = waitset
-        .attach_notification(&wake)
-        .map_err(|e| anyhow!("iceoryx2: attach wake: {e:?}"))?;
-    let _tick_guard = waitset
-        .attach_interval(TICK)
-        .map_err(|e| anyhow!("iceoryx2: attach tick: {e:?}"))?;
     let beacon = ReplayBeacon::new(&transport)?;
     beacon.signal();
     control.ready.store(true, Ordering::Release);
@@ -161,7 +144,7 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
     let mut last_status = Instant::now();
     let mut last_snapshot = Instant::now();
     let mut writer = BackgroundWriter::default();
-    loop {
+    let signalled = transport.serve(Wake::Replay, TICK, args.handle_signals, || {
         let turn = Instant::now();
         // The limiter is asked before every chunk: too fast actors wait in backpressure.
         let mut taken = 0;
@@ -240,27 +223,17 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
             last_snapshot = Instant::now();
         }
         counters.longest_turn = counters.longest_turn.max(turn.elapsed());
-        if control.shutdown.load(Ordering::Acquire) {
-            break;
-        }
-        // Busy (a full turn of chunks taken): only poll; otherwise sleep until woken.
-        let timeout = if taken == CHUNKS_PER_TURN {
-            Duration::ZERO
+        Ok(if control.shutdown.load(Ordering::Acquire) {
+            Next::Stop
+        } else if taken == CHUNKS_PER_TURN {
+            // busy (a full turn of chunks taken): only poll
+            Next::Poll
         } else {
-            TICK
-        };
-        let result = waitset
-            .wait_and_process_once_with_timeout(|_| CallbackProgression::Continue, timeout)
-            .map_err(|e| anyhow!("iceoryx2: wait: {e:?}"))?;
-        if matches!(
-            result,
-            WaitSetRunResult::TerminationRequest | WaitSetRunResult::Interrupt
-        ) {
-            tracing::info!("replay: termination requested");
-            break;
-        }
-        wake.try_wait(|_| {})
-            .map_err(|e| anyhow!("iceoryx2: drain wake: {e:?}"))?;
+            Next::Sleep
+        })
+    })?;
+    if signalled {
+        tracing::info!("replay: termination requested");
     }
     // the actors' last chunks are stored whatever the limiter says, until every sender has
     // closed (a killed actor's sender lingers: at most DRAIN_LIMIT): nothing sent is lost

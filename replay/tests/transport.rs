@@ -1,10 +1,10 @@
 //! Actors, replay and learner on threads of one process over a private iceoryx2 prefix.
 
 use ctxrace_common::ipc::{
-    cleanup, run_prefix, Batch, BatchSpec, ReplayBeacon, ReplayClient, RunTransport, SenderOptions,
-    Step, TrajectoryReceiver, TrajectorySender, TRAJECTORY_BUFFER,
+    cleanup, run_prefix, ReplayBeacon, ReplayClient, RunTransport, SenderOptions, Step,
+    TrajectoryReceiver, TrajectorySender, TRAJECTORY_BUFFER,
 };
-use ctxrace_common::ReplayOptions;
+use ctxrace_common::{Batch, BatchSpec, ReplayOptions};
 use ctxrace_replay::{read_snapshot, run, ReplayArgs, ReplayControl};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;

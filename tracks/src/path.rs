@@ -206,11 +206,6 @@ impl ClosedCurve {
         self.projection_on(q, i, t)
     }
 
-    /// Forward arc-length distance from `from` to `to`, in `[0, L)`.
-    pub fn forward_distance(&self, from: f64, to: f64) -> f64 {
-        (to - from).rem_euclid(self.length())
-    }
-
     /// Signed curvature at each vertex from the circle through its neighbours (1/m, left positive).
     pub fn vertex_curvatures(&self) -> Vec<f64> {
         let n = self.points.len();

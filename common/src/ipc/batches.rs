@@ -6,11 +6,11 @@
 
 use super::transport::{ice, wait_until, RunTransport, Wake};
 use super::wire::{
-    check_finite, sequence_floats, transition_floats, validate_request, BatchHeader, BatchKind,
-    BatchRequest, WireError, FORMAT_VERSION,
+    check_finite, validate_request, BatchHeader, BatchKind, BatchRequest, WireError, FORMAT_VERSION,
 };
 use super::RejectLog;
-use crate::{SequenceBatch, TransitionBatch};
+use crate::batch::{sequence_floats, transition_floats};
+use crate::batch::{Batch, BatchSpec, SequenceBatch, TransitionBatch};
 use anyhow::{anyhow, Result};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
@@ -22,45 +22,6 @@ use std::time::{Duration, Instant};
 
 /// Default largest batch payload in floats (64 MiB).
 pub const DEFAULT_MAX_BATCH_FLOATS: usize = 16 << 20;
-
-/// What batch to ask for.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum BatchSpec {
-    /// `batch` sequences of `length` steps.
-    Sequence {
-        /// `B`.
-        batch: usize,
-        /// `T`.
-        length: usize,
-    },
-    /// `batch` transitions whose observations stack `frames` frames.
-    Transition {
-        /// `B`.
-        batch: usize,
-        /// Frames per observation.
-        frames: usize,
-    },
-}
-
-impl BatchSpec {
-    /// Steps one batch samples: `B·T` for sequences, `B` for transitions (what the rate
-    /// limiter counts).
-    pub fn steps(self) -> usize {
-        match self {
-            BatchSpec::Sequence { batch, length } => batch.saturating_mul(length),
-            BatchSpec::Transition { batch, .. } => batch,
-        }
-    }
-}
-
-/// A batch as the learner receives it.
-#[derive(Clone, Debug, PartialEq)]
-pub enum Batch {
-    /// For DreamerV3 and its context variants.
-    Sequence(SequenceBatch),
-    /// For SAC; `obs_dim` is the stacked size `frames x` frame size.
-    Transition(TransitionBatch),
-}
 
 /// The learner's replay client.
 pub struct ReplayClient {

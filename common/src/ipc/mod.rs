@@ -25,14 +25,14 @@ mod transport;
 mod weights;
 pub mod wire;
 
-pub use batches::{Batch, BatchServer, BatchSpec, ReplayClient, DEFAULT_MAX_BATCH_FLOATS};
+pub use batches::{BatchServer, ReplayClient, DEFAULT_MAX_BATCH_FLOATS};
 pub use telemetry::{EpisodeSubscriber, MetricsPublisher, StatusPublisher, TelemetrySubscriber};
 pub use trajectory::{
     ChunkView, ReplayBeacon, SenderOptions, SenderStats, Step, TrajectoryReceiver, TrajectorySender,
 };
 pub use transport::{
     claim_run, cleanup, iceoryx_config, run_prefix, shm_root, sweep_orphaned_runs,
-    termination_flag, CleanupReport, RunTransport, Wake, SHM_ROOT_ENV, TRAJECTORY_BUFFER,
+    termination_flag, CleanupReport, Next, RunTransport, Wake, SHM_ROOT_ENV, TRAJECTORY_BUFFER,
 };
 pub use weights::{WeightsPublisher, WeightsReceiver, DEFAULT_MAX_WEIGHTS_BYTES};
 pub use wire::{

@@ -300,11 +300,68 @@ impl RunTransport {
     }
 
     /// A listener on one of the run's event services, to attach to a `WaitSet`.
-    pub fn listener(&self, wake: Wake) -> Result<Listener<ipc::Service>> {
+    pub(crate) fn listener(&self, wake: Wake) -> Result<Listener<ipc::Service>> {
         self.event_service(wake)?
             .listener_builder()
             .create()
             .map_err(ice("listener"))
+    }
+}
+
+/// What a serving loop's turn asks for next (see [`RunTransport::serve`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Next {
+    /// Another turn at once: the last one was busy.
+    Poll,
+    /// Sleep until woken or a tick has passed.
+    Sleep,
+    /// Leave the loop.
+    Stop,
+}
+
+impl RunTransport {
+    /// Runs `turn` until it returns [`Next::Stop`] or, with `handle_signals`, SIGTERM or SIGINT
+    /// arrives; between turns it sleeps in an iceoryx2 `WaitSet` on the event `wake`, at most
+    /// `tick`. Returns whether a termination signal ended the loop.
+    pub fn serve(
+        &self,
+        wake: Wake,
+        tick: Duration,
+        handle_signals: bool,
+        mut turn: impl FnMut() -> Result<Next>,
+    ) -> Result<bool> {
+        let listener = self.listener(wake)?;
+        let signals = if handle_signals {
+            SignalHandlingMode::HandleTerminationRequests
+        } else {
+            SignalHandlingMode::Disabled
+        };
+        let waitset = WaitSetBuilder::new()
+            .signal_handling_mode(signals)
+            .create::<ipc::Service>()
+            .map_err(ice("waitset"))?;
+        let _wake_guard = waitset
+            .attach_notification(&listener)
+            .map_err(ice("attach wake"))?;
+        let _tick_guard = waitset.attach_interval(tick).map_err(ice("attach tick"))?;
+        loop {
+            let timeout = match turn()? {
+                Next::Stop => return Ok(false),
+                Next::Poll => Duration::ZERO,
+                Next::Sleep => tick,
+            };
+            let result = waitset
+                .wait_and_process_once_with_timeout(|_| CallbackProgression::Continue, timeout)
+                .map_err(ice("wait"))?;
+            if matches!(
+                result,
+                iceoryx2::waitset::WaitSetRunResult::TerminationRequest
+                    | iceoryx2::waitset::WaitSetRunResult::Interrupt
+            ) {
+                return Ok(true);
+            }
+            listener.try_wait(|_| {}).map_err(ice("drain wake"))?;
+        }
     }
 }
 

@@ -11,6 +11,7 @@
 //! service per actor (a chunk on another actor's is rejected), the replay's status reports its
 //! longest loop turn and the count it restored.
 
+use crate::batch::{sequence_floats, transition_floats};
 use iceoryx2::prelude::ZeroCopySend;
 
 /// Version of every wire layout in this module; bump it on any change.
@@ -463,24 +464,6 @@ pub fn validate_request(
             "batch {b} length {t} frames {f} is empty or exceeds {max_floats} floats"
         ))),
     }
-}
-
-/// Floats of a `B x T` sequence batch payload: per step the observation, action, reward,
-/// is_first, is_terminal, two context and two mask values, and has_mask; `None` if that
-/// overflows (a request no buffer could hold).
-pub fn sequence_floats(b: usize, t: usize, obs_dim: usize, act_dim: usize) -> Option<usize> {
-    b.checked_mul(t)?
-        .checked_mul(obs_dim.checked_add(act_dim)?.checked_add(8)?)
-}
-
-/// Floats of a `B`-transition payload with `frames` stacked frames; `None` if that overflows.
-pub fn transition_floats(b: usize, frames: usize, obs_dim: usize, act_dim: usize) -> Option<usize> {
-    let per = frames
-        .checked_mul(obs_dim)?
-        .checked_mul(2)?
-        .checked_add(act_dim)?
-        .checked_add(4)?;
-    b.checked_mul(per)
 }
 
 #[cfg(test)]

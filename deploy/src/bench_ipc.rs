@@ -6,15 +6,14 @@
 //! the latency from a learner's batch request to the decoded batch, and the latency of a weights
 //! broadcast to M subscribers (until the last one holds verified weights).
 
-use crate::buffer::ReplayBuffer;
-use crate::server::{run, ReplayArgs, ReplayControl};
 use anyhow::{anyhow, Context as _, Result};
 use ctxrace_common::ipc::wire::{step_stride, MAX_CHUNK};
 use ctxrace_common::ipc::{
-    cleanup, run_prefix, Batch, BatchSpec, ReplayClient, RunTransport, SenderOptions, Step,
-    TrajectorySender, WeightsPublisher, WeightsReceiver,
+    cleanup, run_prefix, ReplayClient, RunTransport, SenderOptions, Step, TrajectorySender,
+    WeightsPublisher, WeightsReceiver,
 };
-use ctxrace_common::{ReplayOptions, SequenceBatch};
+use ctxrace_common::{Batch, BatchSpec, ReplayOptions, SequenceBatch};
+use ctxrace_replay::{run, ReplayArgs, ReplayBuffer, ReplayControl};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
