@@ -1,0 +1,310 @@
+//! The unimix categorical latents: straight-through one-hot samples and the KL divergence.
+
+use super::*;
+
+/// A unimix categorical over `classes`: `p = (1 − unimix) softmax(l) + unimix / classes`.
+#[derive(Clone, Copy, Debug)]
+struct Unimix {
+    classes: usize,
+    unimix: f32,
+}
+
+impl Unimix {
+    /// `(s, p)`: the softmax of `l` and the mixed probabilities.
+    #[inline(always)]
+    fn probs(&self, l: &[f32], s: &mut [f32], p: &mut [f32]) {
+        softmax_into(l, s);
+        let floor = self.unimix / self.classes as f32;
+        for (pk, &sk) in p.iter_mut().zip(s.iter()) {
+            *pk = (1.0 - self.unimix) * sk + floor;
+        }
+    }
+}
+
+struct StraightThrough(Unimix);
+
+impl CustomOp2 for StraightThrough {
+    fn name(&self) -> &'static str {
+        "ctxrace-straight-through"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (l, u) = (cpu_slice(s1, l1)?, cpu_slice(s2, l2)?);
+        let c = self.0.classes;
+        if l.len() != u.len() || l.len() % c != 0 {
+            bail!(
+                "straight_through_sample: logits {:?}, uniforms {:?}",
+                l1.shape(),
+                l2.shape()
+            );
+        }
+        let mut out = vec![0f32; l.len()];
+        let (mut s, mut p) = (vec![0f32; c], vec![0f32; c]);
+        for (i, o) in out.chunks_mut(c).enumerate() {
+            let at = i * c;
+            self.0.probs(&l[at..at + c], &mut s, &mut p);
+            let mut best = (0, f32::NEG_INFINITY);
+            for k in 0..c {
+                // Gumbel-max: argmax of ln p + g with g = −ln(−ln U), i.e. of p / (−ln U)
+                let score = p[k] / -u[at + k].ln();
+                if score > best.1 {
+                    best = (k, score);
+                }
+            }
+            o[best.0] = 1.0;
+        }
+        let rows = l1.shape().dims()[0];
+        Ok((CpuStorage::F32(out), Shape::from((rows, l.len() / rows))))
+    }
+
+    fn bwd(
+        &self,
+        logits: &Tensor,
+        _uniform: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        if !wants_grad(logits) {
+            return Ok((None, None));
+        }
+        let c = self.0.classes;
+        let dl = read(logits, |l| {
+            read(grad, |g| {
+                let mut dl = vec![0f32; l.len()];
+                let (mut s, mut p) = (vec![0f32; c], vec![0f32; c]);
+                for (i, d) in dl.chunks_mut(c).enumerate() {
+                    let at = i * c;
+                    self.0.probs(&l[at..at + c], &mut s, &mut p);
+                    unimix_softmax_backward(&s, &g[at..at + c], 1.0 - self.0.unimix, d);
+                }
+                Ok(dl)
+            })
+        })?;
+        Ok((
+            Some(Tensor::from_vec(dl, logits.shape(), logits.device())?),
+            None,
+        ))
+    }
+}
+
+/// A straight-through one-hot sample `[N, S·C]` of the unimix categoricals with logits
+/// `[N, S, C]`, drawn by Gumbel-max from uniforms `U ∈ (0, 1)` of the same shape: forward the
+/// exact one-hot, backward the gradient of the probabilities.
+pub fn straight_through_sample(logits: &Tensor, uniform: &Tensor, unimix: f64) -> Result<Tensor> {
+    let classes = *logits.dims().last().unwrap_or(&0);
+    if logits.rank() != 3 || classes == 0 {
+        bail!(
+            "straight_through_sample: logits [N, S, C], got {:?}",
+            logits.dims()
+        );
+    }
+    let op = StraightThrough(Unimix {
+        classes,
+        unimix: unimix as f32,
+    });
+    logits.contiguous()?.apply_op2(&uniform.contiguous()?, op)
+}
+
+struct Kl(Unimix);
+
+impl CustomOp2 for Kl {
+    fn name(&self) -> &'static str {
+        "ctxrace-categorical-kl"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (la, lb) = (cpu_slice(s1, l1)?, cpu_slice(s2, l2)?);
+        if la.len() != lb.len() {
+            bail!(
+                "categorical_kl: logits {:?} and {:?}",
+                l1.shape(),
+                l2.shape()
+            );
+        }
+        let rows = l1.shape().dims()[0];
+        let (c, per_row) = (self.0.classes, la.len() / rows.max(1));
+        let mut out = vec![0f32; rows];
+        let mut buf = vec![0f32; 4 * c];
+        for (i, o) in out.iter_mut().enumerate() {
+            for v in (i * per_row..(i + 1) * per_row).step_by(c) {
+                let (sa, rest) = buf.split_at_mut(c);
+                let (pa, rest) = rest.split_at_mut(c);
+                let (sb, pb) = rest.split_at_mut(c);
+                self.0.probs(&la[v..v + c], sa, pa);
+                self.0.probs(&lb[v..v + c], sb, pb);
+                *o += pa
+                    .iter()
+                    .zip(pb.iter())
+                    .map(|(a, b)| a * (a.ln() - b.ln()))
+                    .sum::<f32>();
+            }
+        }
+        Ok((CpuStorage::F32(out), Shape::from(rows)))
+    }
+
+    fn bwd(
+        &self,
+        la_t: &Tensor,
+        lb_t: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let (want_a, want_b) = (wants_grad(la_t), wants_grad(lb_t));
+        if !want_a && !want_b {
+            return Ok((None, None));
+        }
+        let c = self.0.classes;
+        let keep = 1.0 - self.0.unimix;
+        let (da, db) = read(la_t, |la| {
+            read(lb_t, |lb| {
+                read(grad, |g| {
+                    let per_row = la.len() / g.len().max(1);
+                    // per variable: its c gradients of a, then its c of b
+                    let mut both = vec![0f32; 2 * la.len()];
+                    let mut buf = vec![0f32; 5 * c];
+                    for (i, out) in both.chunks_mut(2 * c).enumerate() {
+                        let v = i * c;
+                        let gi = g[v / per_row];
+                        let (sa, rest) = buf.split_at_mut(c);
+                        let (pa, rest) = rest.split_at_mut(c);
+                        let (sb, rest) = rest.split_at_mut(c);
+                        let (pb, dp) = rest.split_at_mut(c);
+                        self.0.probs(&la[v..v + c], sa, pa);
+                        self.0.probs(&lb[v..v + c], sb, pb);
+                        let (da, db) = out.split_at_mut(c);
+                        if want_a {
+                            for k in 0..c {
+                                dp[k] = gi * (pa[k].ln() - pb[k].ln() + 1.0);
+                            }
+                            unimix_softmax_backward(sa, dp, keep, da);
+                        }
+                        if want_b {
+                            for k in 0..c {
+                                dp[k] = -gi * pa[k] / pb[k];
+                            }
+                            unimix_softmax_backward(sb, dp, keep, db);
+                        }
+                    }
+                    let (da, db) = both.chunks(2 * c).map(|v| v.split_at(c)).fold(
+                        (Vec::with_capacity(la.len()), Vec::with_capacity(la.len())),
+                        |(mut da, mut db), (a, b)| {
+                            da.extend_from_slice(a);
+                            db.extend_from_slice(b);
+                            (da, db)
+                        },
+                    );
+                    Ok((da, db))
+                })
+            })
+        })?;
+        let dev = la_t.device();
+        Ok((
+            want_a
+                .then(|| Tensor::from_vec(da, la_t.shape(), dev))
+                .transpose()?,
+            want_b
+                .then(|| Tensor::from_vec(db, lb_t.shape(), dev))
+                .transpose()?,
+        ))
+    }
+}
+
+/// `KL(p_a ‖ p_b)` `[N]` of the unimix categoricals with logits `[N, S, C]`, summed over the
+/// `S` variables.
+pub fn categorical_kl(logits_a: &Tensor, logits_b: &Tensor, unimix: f64) -> Result<Tensor> {
+    let classes = *logits_a.dims().last().unwrap_or(&0);
+    if logits_a.rank() != 3 || classes == 0 || logits_a.dims() != logits_b.dims() {
+        bail!(
+            "categorical_kl: logits [N, S, C] of one shape, got {:?} and {:?}",
+            logits_a.dims(),
+            logits_b.dims()
+        );
+    }
+    let op = Kl(Unimix {
+        classes,
+        unimix: unimix as f32,
+    });
+    logits_a
+        .contiguous()?
+        .apply_op2(&logits_b.contiguous()?, op)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::testing::*;
+    use super::*;
+
+    /// The composed unimix probabilities of logits `[N, S, C]`.
+    fn probs(l: &Tensor, unimix: f64) -> Tensor {
+        let c = l.dims()[2] as f64;
+        ((candle_nn::ops::softmax(l, D::Minus1).unwrap() * (1.0 - unimix)).unwrap() + unimix / c)
+            .unwrap()
+    }
+
+    #[test]
+    fn straight_through_samples_are_one_hot_with_the_probability_gradient() {
+        let l = var(&[3, 2, 4], 12);
+        let u = Tensor::full(0.5f32, (3, 2, 4), &Device::Cpu).unwrap();
+        let z = straight_through_sample(&l, &u, 0.01).unwrap();
+        assert_eq!(z.dims(), &[3, 8]);
+        let p = probs(&l, 0.01);
+        // equal uniforms: the sample is the most likely class
+        let want = p
+            .argmax(D::Minus1)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<u32>()
+            .unwrap();
+        for (row, k) in vals(&z).chunks(4).zip(want) {
+            let mut onehot = [0f32; 4];
+            onehot[k as usize] = 1.0;
+            assert_eq!(row, onehot);
+        }
+        let composed = (z.detach().reshape((3, 2, 4)).unwrap() + &p)
+            .unwrap()
+            .sub(&p.detach())
+            .unwrap()
+            .reshape((3, 8))
+            .unwrap();
+        same(z, composed, &[&l], 1e-5);
+    }
+
+    #[test]
+    fn categorical_kl_matches_the_composed_divergence() {
+        let (a, b) = (var(&[3, 2, 4], 13), var(&[3, 2, 4], 14));
+        let (pa, pb) = (probs(&a, 0.01), probs(&b, 0.01));
+        let composed = pa
+            .mul(&(pa.log().unwrap() - pb.log().unwrap()).unwrap())
+            .unwrap()
+            .sum(D::Minus1)
+            .unwrap()
+            .sum(D::Minus1)
+            .unwrap();
+        same(
+            categorical_kl(&a, &b, 0.01).unwrap(),
+            composed,
+            &[&a, &b],
+            1e-4,
+        );
+        let g = categorical_kl(&a, &b.as_tensor().detach(), 0.01)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap();
+        assert!(g.get(&a).is_some() && g.get(&b).is_none());
+    }
+}

@@ -1,0 +1,247 @@
+//! `y = x Wᵀ (+ b)` on gemm, the gradients of `x` and `W` only where they are tracked.
+
+use super::*;
+
+/// `y = x Wᵀ (+ b)` (see [`linear`]).
+struct Linear;
+
+/// A matrix operand of [`matmul`]: its values and the strides of its rows and columns.
+#[derive(Clone, Copy)]
+struct Operand<'a> {
+    data: &'a [f32],
+    row_stride: usize,
+    col_stride: usize,
+}
+
+impl<'a> Operand<'a> {
+    /// A row-major `[rows, cols]` matrix.
+    fn rows(data: &'a [f32], cols: usize) -> Self {
+        Self {
+            data,
+            row_stride: cols,
+            col_stride: 1,
+        }
+    }
+
+    /// The transpose of a row-major `[rows, cols]` matrix.
+    fn transposed(data: &'a [f32], cols: usize) -> Self {
+        Self {
+            data,
+            row_stride: 1,
+            col_stride: cols,
+        }
+    }
+}
+
+/// `A B` (`[m, k]` times `[k, n]`) as a new row-major `[m, n]`; with `init` (`m·n` values) the
+/// product is added to it. gemm writes every value, so the buffer is not zeroed first.
+fn matmul(
+    m: usize,
+    n: usize,
+    k: usize,
+    a: Operand,
+    b: Operand,
+    init: Option<Vec<f32>>,
+) -> Vec<f32> {
+    let accumulate = init.is_some();
+    let mut dst = init.unwrap_or_else(|| Vec::with_capacity(m * n));
+    if m == 0 || n == 0 || k == 0 {
+        dst.resize(m * n, 0.0);
+        return dst;
+    }
+    // the callers' shape checks guarantee these; the unsafe call below relies on them
+    assert!(a.data.len() > (m - 1) * a.row_stride + (k - 1) * a.col_stride);
+    assert!(b.data.len() > (k - 1) * b.row_stride + (n - 1) * b.col_stride);
+    // SAFETY: `a` and `b` hold the m×k and k×n values their strides address (asserted above);
+    // `dst` has room for m×n values, which
+    // gemm writes (reading them first only when `accumulate`, where they are initialised)
+    // before `set_len` exposes them.
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            dst.as_mut_ptr(),
+            1,
+            n as isize,
+            accumulate,
+            a.data.as_ptr(),
+            a.col_stride as isize,
+            a.row_stride as isize,
+            b.data.as_ptr(),
+            b.col_stride as isize,
+            b.row_stride as isize,
+            1.0,
+            1.0,
+            false,
+            false,
+            false,
+            gemm::Parallelism::None,
+        );
+        dst.set_len(m * n);
+    }
+    dst
+}
+
+fn linear_fwd(
+    x: (&CpuStorage, &Layout),
+    w: (&CpuStorage, &Layout),
+    b: Option<(&CpuStorage, &Layout)>,
+) -> Result<(CpuStorage, Shape)> {
+    let (n, k) = x.1.shape().dims2()?;
+    let (m, k2) = w.1.shape().dims2()?;
+    if k != k2 {
+        bail!("linear: input width {k} but weight [{m}, {k2}]");
+    }
+    let (x, w) = (cpu_slice(x.0, x.1)?, cpu_slice(w.0, w.1)?);
+    let init = match b {
+        Some((s, l)) => {
+            let b = cpu_slice(s, l)?;
+            if b.len() != m {
+                bail!("linear: bias of {} for {m} outputs", b.len());
+            }
+            Some(b.repeat(n))
+        }
+        None => None,
+    };
+    let y = matmul(
+        n,
+        m,
+        k,
+        Operand::rows(x, k),
+        Operand::transposed(w, k),
+        init,
+    );
+    Ok((CpuStorage::F32(y), Shape::from((n, m))))
+}
+
+/// The gradients of `x` `[N, in]` and `W` `[out, in]` for `y = x Wᵀ` (each if wanted):
+/// `dx = g W`, `dW = gᵀ x`.
+fn linear_bwd(x: &Tensor, w: &Tensor, grad: &Tensor) -> Result<(Option<Tensor>, Option<Tensor>)> {
+    let (want_x, want_w) = (wants_grad(x), wants_grad(w));
+    let (rows, input) = dims2(x)?;
+    let (output, _) = dims2(w)?;
+    let (dx, dw) = read(grad, |g| {
+        let dx = want_x.then(|| {
+            read(w, |wv| {
+                let (g, wv) = (Operand::rows(g, output), Operand::rows(wv, input));
+                Ok(matmul(rows, input, output, g, wv, None))
+            })
+        });
+        let dw = want_w.then(|| {
+            read(x, |xv| {
+                let (gt, xv) = (Operand::transposed(g, output), Operand::rows(xv, input));
+                Ok(matmul(output, input, rows, gt, xv, None))
+            })
+        });
+        Ok((dx.transpose()?, dw.transpose()?))
+    })?;
+    Ok((
+        dx.map(|v| Tensor::from_vec(v, x.shape(), x.device()))
+            .transpose()?,
+        dw.map(|v| Tensor::from_vec(v, w.shape(), w.device()))
+            .transpose()?,
+    ))
+}
+
+impl CustomOp2 for Linear {
+    fn name(&self) -> &'static str {
+        "ctxrace-linear"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        linear_fwd((s1, l1), (s2, l2), None)
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        w: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        linear_bwd(x, w, grad)
+    }
+}
+
+impl CustomOp3 for Linear {
+    fn name(&self) -> &'static str {
+        "ctxrace-linear-bias"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        linear_fwd((s1, l1), (s2, l2), Some((s3, l3)))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        w: &Tensor,
+        b: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let (dx, dw) = linear_bwd(x, w, grad)?;
+        let db = if wants_grad(b) {
+            Some(grad.sum(0)?)
+        } else {
+            None
+        };
+        Ok((dx, dw, db))
+    }
+}
+
+/// `x Wᵀ + b` for `x` `[N, in]`, `weight` `[out, in]` and an optional `bias` `[out]`.
+pub fn linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
+    let x = x.contiguous()?;
+    match bias {
+        Some(b) => x.apply_op3(weight, b, Linear),
+        None => x.apply_op2(weight, Linear),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::testing::*;
+    use super::*;
+
+    #[test]
+    fn linear_matches_matmul_and_skips_frozen_weights() {
+        let (x, w, b) = (var(&[5, 3], 1), var(&[4, 3], 2), var(&[4], 3));
+        let composed = x
+            .matmul(&w.t().unwrap())
+            .unwrap()
+            .broadcast_add(&b)
+            .unwrap();
+        same(
+            linear(&x, &w, Some(&b)).unwrap(),
+            composed,
+            &[&x, &w, &b],
+            1e-5,
+        );
+        same(
+            linear(&x, &w, None).unwrap(),
+            x.matmul(&w.t().unwrap()).unwrap(),
+            &[&x, &w],
+            1e-5,
+        );
+        // a detached weight receives no gradient; the input still does
+        let y = linear(&x, &w.as_tensor().detach(), None).unwrap();
+        let g = y.sum_all().unwrap().backward().unwrap();
+        assert!(g.get(&w).is_none() && g.get(&x).is_some());
+    }
+}

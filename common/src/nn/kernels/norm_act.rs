@@ -1,0 +1,238 @@
+//! `LayerNorm` then SiLU or the identity, in one pass per row forward and one backward.
+
+use super::*;
+
+/// The activation after a [`norm_act`] normalisation.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NormAct {
+    /// `y`.
+    Identity,
+    /// `y σ(y)`.
+    Silu,
+}
+
+impl NormAct {
+    /// `(act(y), act'(y))`.
+    #[inline(always)]
+    fn eval(self, y: f32) -> (f32, f32) {
+        match self {
+            NormAct::Identity => (y, 1.0),
+            NormAct::Silu => {
+                let s = sigmoid(y);
+                (y * s, s * (1.0 + y * (1.0 - s)))
+            }
+        }
+    }
+}
+
+struct NormActOp {
+    eps: f32,
+    act: NormAct,
+}
+
+/// Lanes of the sums below: independent partial sums let them vectorise (a single running sum
+/// of floats cannot be reordered by the compiler).
+const LANES: usize = 16;
+
+/// `Σ_i f(a_i, b_i)` over two slices of one length, in [`LANES`] partial sums.
+#[inline(always)]
+fn lane_sum(a: &[f32], b: &[f32], f: impl Fn(f32, f32) -> f32) -> f32 {
+    let mut acc = [0f32; LANES];
+    let (ca, cb) = (a.chunks_exact(LANES), b.chunks_exact(LANES));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (xa, xb) in ca.zip(cb) {
+        for l in 0..LANES {
+            acc[l] += f(xa[l], xb[l]);
+        }
+    }
+    let tail: f32 = ra.iter().zip(rb).map(|(&x, &y)| f(x, y)).sum();
+    acc.iter().sum::<f32>() + tail
+}
+
+/// Mean and `1/√(σ² + ε)` of a row.
+#[inline(always)]
+fn row_moments(x: &[f32], eps: f32) -> (f32, f32) {
+    let n = x.len() as f32;
+    let mean = lane_sum(x, x, |v, _| v) / n;
+    let var = lane_sum(x, x, |v, _| (v - mean) * (v - mean)) / n;
+    (mean, 1.0 / (var + eps).sqrt())
+}
+
+vectorised! {
+    /// `out` (whole rows of `gain.len()`) ← `act(LayerNorm(x))` of the rows of `x` from the first.
+    fn norm_act_rows(x: &[f32], gain: &[f32], bias: &[f32], out: &mut [f32], eps: f32, act: NormAct) {
+        let d = gain.len();
+        for (xr, o) in x.chunks(d).zip(out.chunks_mut(d)) {
+            let (mean, rstd) = row_moments(xr, eps);
+            match act {
+                NormAct::Identity => {
+                    for j in 0..d {
+                        o[j] = (xr[j] - mean) * rstd * gain[j] + bias[j];
+                    }
+                }
+                NormAct::Silu => {
+                    for j in 0..d {
+                        o[j] = NormAct::Silu.eval((xr[j] - mean) * rstd * gain[j] + bias[j]).0;
+                    }
+                }
+            }
+        }
+    }
+}
+
+vectorised! {
+    /// The backward pass of [`norm_act_rows`] over the rows of `dx`: `dx`, and
+    /// `dgb = [dγ, dβ]` accumulated.
+    fn norm_act_rows_bwd(
+        x: &[f32],
+        gain: &[f32],
+        bias: &[f32],
+        dy: &[f32],
+        dx: &mut [f32],
+        dgb: &mut [f32],
+        eps: f32,
+        act: NormAct,
+    ) {
+        let d = gain.len();
+        let (dgain, dbias) = dgb.split_at_mut(d);
+        let mut xh = vec![0f32; d];
+        let mut dxh = vec![0f32; d];
+        for ((xr, dyr), dxr) in x.chunks(d).zip(dy.chunks(d)).zip(dx.chunks_mut(d)) {
+            let (mean, rstd) = row_moments(xr, eps);
+            for j in 0..d {
+                xh[j] = (xr[j] - mean) * rstd;
+            }
+            // dxh ← the gradient at the activation's input
+            match act {
+                NormAct::Identity => dxh.copy_from_slice(dyr),
+                NormAct::Silu => {
+                    for j in 0..d {
+                        dxh[j] = dyr[j] * NormAct::Silu.eval(xh[j] * gain[j] + bias[j]).1;
+                    }
+                }
+            }
+            for j in 0..d {
+                dgain[j] += dxh[j] * xh[j];
+                dbias[j] += dxh[j];
+                dxh[j] *= gain[j];
+            }
+            let m1 = lane_sum(&dxh, &dxh, |v, _| v) / d as f32;
+            let m2 = lane_sum(&dxh, &xh, |v, w| v * w) / d as f32;
+            for j in 0..d {
+                dxr[j] = rstd * (dxh[j] - m1 - xh[j] * m2);
+            }
+        }
+    }
+}
+
+impl CustomOp3 for NormActOp {
+    fn name(&self) -> &'static str {
+        "ctxrace-norm-act"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (x, g, b) = (cpu_slice(s1, l1)?, cpu_slice(s2, l2)?, cpu_slice(s3, l3)?);
+        let d = g.len();
+        if d == 0 || x.len() % d != 0 || b.len() != d {
+            bail!("norm_act: input {:?} for a gain of {d}", l1.shape());
+        }
+        let mut out = vec![0f32; x.len()];
+        norm_act_rows(x, g, b, &mut out, self.eps, self.act);
+        Ok((CpuStorage::F32(out), l1.shape().clone()))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        gain: &Tensor,
+        bias: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let d = gain.elem_count();
+        let want_params = wants_grad(gain) || wants_grad(bias);
+        let (dx, sums) = read(x, |x| {
+            read(gain, |g| {
+                read(bias, |b| {
+                    read(grad, |dy| {
+                        let mut dx = vec![0f32; x.len()];
+                        let mut dgb = vec![0f32; 2 * d];
+                        norm_act_rows_bwd(x, g, b, dy, &mut dx, &mut dgb, self.eps, self.act);
+                        Ok((dx, dgb))
+                    })
+                })
+            })
+        })?;
+        let dx = wants_grad(x)
+            .then(|| Tensor::from_vec(dx, x.shape(), x.device()))
+            .transpose()?;
+        if !want_params {
+            return Ok((dx, None, None));
+        }
+        let dg = Tensor::from_slice(&sums[..d], d, x.device())?;
+        let db = Tensor::from_slice(&sums[d..], d, x.device())?;
+        Ok((
+            dx,
+            wants_grad(gain).then_some(dg),
+            wants_grad(bias).then_some(db),
+        ))
+    }
+}
+
+/// `act(γ (x − μ)/√(σ² + ε) + β)` over the last dimension of `x`, with `gain` γ and `bias` β of
+/// that size.
+pub fn norm_act(
+    x: &Tensor,
+    gain: &Tensor,
+    bias: &Tensor,
+    eps: f64,
+    act: NormAct,
+) -> Result<Tensor> {
+    x.contiguous()?.apply_op3(
+        gain,
+        bias,
+        NormActOp {
+            eps: eps as f32,
+            act,
+        },
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::testing::*;
+    use super::*;
+
+    #[test]
+    fn norm_act_matches_the_composed_layer_norm() {
+        let (x, g, b) = (var(&[6, 8], 4), var(&[8], 5), var(&[8], 6));
+        let eps = 1e-3;
+        let centred = x
+            .broadcast_sub(&x.mean_keepdim(D::Minus1).unwrap())
+            .unwrap();
+        let var_ = centred.sqr().unwrap().mean_keepdim(D::Minus1).unwrap();
+        let ln = centred
+            .broadcast_div(&(var_ + eps).unwrap().sqrt().unwrap())
+            .unwrap()
+            .broadcast_mul(&g)
+            .unwrap()
+            .broadcast_add(&b)
+            .unwrap();
+        let fused = |act| norm_act(&x, &g, &b, eps, act).unwrap();
+        same(fused(NormAct::Identity), ln.clone(), &[&x, &g, &b], 1e-4);
+        same(
+            fused(NormAct::Silu),
+            candle_nn::ops::silu(&ln).unwrap(),
+            &[&x, &g, &b],
+            1e-4,
+        );
+    }
+}
