@@ -77,6 +77,7 @@ fn finish(child: Child, limit: Duration) -> String {
     let waiter = std::thread::spawn(move || child.wait_with_output().unwrap());
     while !waiter.is_finished() {
         if start.elapsed() > limit {
+            // SAFETY: kill(2) on the launcher's pid, which this test still owns (not reaped).
             unsafe { libc::kill(pid as i32, libc::SIGTERM) };
             let out = waiter.join().unwrap();
             panic!(
@@ -265,6 +266,7 @@ fn wait_for<T>(what: &str, limit: Duration, mut f: impl FnMut() -> Option<T>) ->
 }
 
 fn kill9(pid: u32) {
+    // SAFETY: kill(2) takes no pointers; a pid that is gone only makes it fail.
     unsafe { libc::kill(pid as i32, libc::SIGKILL) };
 }
 
@@ -289,6 +291,7 @@ fn killed_processes_are_restarted_and_training_completes() {
     // first (so that the run cannot end before its 5 s timeout), a hung actor: stopped, alive but
     // silent; the launcher kills it and starts a replacement
     let hung = actors[0];
+    // SAFETY: kill(2) takes no pointers; a pid that is gone only makes it fail.
     unsafe { libc::kill(hung as i32, libc::SIGSTOP) };
     actors.push(wait_for("the hung actor's replacement", minute, || {
         find_pid(&run, "actor", &actors)

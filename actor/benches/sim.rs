@@ -2,6 +2,7 @@
 //! 108-beam LiDAR) on f1_esp (from ../shared/tracks, else a generated track), with 0 and 3 rivals,
 //! the ego driving pure pursuit, episodes reset as they end. Targets: ≥ 50,000 decisions/s with no
 //! rivals, ≥ 20,000 with 3 (one core).
+#![allow(missing_docs)] // criterion's macros define undocumented functions
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use ctxrace_actor::baseline::{Baseline, BaselineKind};

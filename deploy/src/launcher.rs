@@ -95,6 +95,8 @@ impl Supervised {
             cmd.env("RUST_LOG", "info");
         }
         // the children die with the launcher, even when it is killed outright
+        // SAFETY: the closure runs in the forked child before exec and only calls prctl, which is
+        // async-signal-safe, allocating nothing and taking no lock.
         unsafe {
             cmd.pre_exec(|| {
                 libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);

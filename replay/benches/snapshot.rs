@@ -4,6 +4,7 @@
 //! frames, as a run's replay holds after a few minutes.
 //!
 //!     cargo bench -p ctxrace-replay --bench snapshot
+#![allow(missing_docs)] // criterion's macros define undocumented functions
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use ctxrace_common::ipc::Step;
