@@ -8,13 +8,13 @@
 # stall and each actor's share of the steps.
 #
 # usage: deploy/soak.sh [SECONDS=120] [ACTORS=3] [VICTIMS=actors|all]
-#        (env CTXRACE_BIN: the binary to use, default target/debug/ctxrace)
+#        (env CTXRACE_BIN: the binary to use, default target/release/ctxrace)
 set -euo pipefail
 secs=${1:-120}
 actors=${2:-3}
 victims_of=${3:-actors}
 case "$victims_of" in actors|all) ;; *) echo "soak: VICTIMS must be actors or all" >&2; exit 2 ;; esac
-bin=$(realpath "${CTXRACE_BIN:-target/debug/ctxrace}")
+bin=$(realpath "${CTXRACE_BIN:-target/release/ctxrace}")
 dir=$(mktemp -d)
 trap 'kill -TERM $launcher 2>/dev/null || true; wait 2>/dev/null || true; rm -rf "$dir"' EXIT
 
