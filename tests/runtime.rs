@@ -431,7 +431,7 @@ fn arg_after(pid: u32, flag: &str) -> String {
 fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
     use ctxrace_common::ipc::inject::Injector;
     use ctxrace_common::ipc::wire::{
-        step_stride, BatchRequest, ChunkHeader, EpisodeMetrics, WeightsHeader, FORMAT_VERSION,
+        step_stride, BatchRequest, ChunkHeader, EpisodeReport, WeightsHeader, FORMAT_VERSION,
     };
     use ctxrace_common::ipc::RunTransport;
     let dir = tempfile::tempdir().unwrap();
@@ -528,7 +528,7 @@ fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
         })
         .unwrap();
     inject
-        .episode(EpisodeMetrics {
+        .episode(EpisodeReport {
             format_version: FORMAT_VERSION,
             actor_id: 0,
             progress: f32::INFINITY,

@@ -1,7 +1,7 @@
 //! Experience collection: [`RaceEnv`] episodes under contexts drawn uniformly from the training
 //! range, driven by a [`Policy`] (sampling its actions) or by uniform random actions while the
 //! replay is prefilled. Every step goes to a sink in the replay's convention
-//! ([`ctxrace_common::ipc::Step`]): an episode's first step carries its reset observation, a
+//! ([`ctxrace_common::ipc::TrajectoryStep`]): an episode's first step carries its reset observation, a
 //! zero action and zero reward; each later step the observation reached, the action that led
 //! to it with (cMask) the context mask that chose it, and the reward received.
 //!
@@ -9,7 +9,7 @@
 
 use crate::race::{EpisodeMetrics, RaceEnv};
 use anyhow::Result;
-use ctxrace_common::ipc::Step;
+use ctxrace_common::ipc::TrajectoryStep;
 use ctxrace_common::{Context, Policy};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -85,7 +85,7 @@ impl Collector {
     pub fn step(
         &mut self,
         policy: Option<&mut Policy>,
-        mut sink: impl FnMut(&Step),
+        mut sink: impl FnMut(&TrajectoryStep),
     ) -> Result<Option<Finished>> {
         let r = self.context_range;
         let mut policy = policy;
@@ -102,7 +102,7 @@ impl Collector {
             self.running = true;
             self.episode += 1;
             self.random_actions = 0;
-            sink(&Step {
+            sink(&TrajectoryStep {
                 obs: &self.obs,
                 action: &[0.0; 2],
                 reward: 0.0,
@@ -134,7 +134,7 @@ impl Collector {
         self.decisions += 1;
         let last = step.terminated || step.truncated;
         self.obs = step.obs;
-        sink(&Step {
+        sink(&TrajectoryStep {
             obs: &self.obs,
             action: &action,
             reward: step.reward as f32,

@@ -1,11 +1,13 @@
 //! The ctxrace simulator: the f1tenth single-track vehicle, an exact LiDAR, exact collisions,
-//! pure-pursuit rivals scaled by the context, and the head-to-head [`RaceEnv`].
+//! pure-pursuit rivals scaled by the context, the head-to-head [`RaceEnv`], and the paper's
+//! evaluation protocol ([`protocol`]).
 
 pub mod baseline;
 pub mod collect;
 pub mod collision;
 pub mod lidar;
 pub mod process;
+pub mod protocol;
 pub mod race;
 pub mod rival;
 pub mod vehicle;

@@ -147,7 +147,7 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport> {
         }
         if let Some(f) = finished {
             let m = &f.metrics;
-            telemetry.episode(ctxrace_common::ipc::EpisodeMetrics {
+            telemetry.episode(ctxrace_common::ipc::EpisodeReport {
                 actor_id: opts.id,
                 episode_id: f.episode,
                 env_steps: collector.decisions(),

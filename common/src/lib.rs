@@ -9,6 +9,7 @@ pub mod experiment;
 pub mod ipc;
 pub mod nn;
 pub mod policy;
+pub mod run_dir;
 
 pub use agents::{AgentConfig, AlgoKind, ContextMode, DreamerConfig, MaskConfig, SacConfig};
 pub use batch::{Batch, BatchSpec, SequenceBatch, TransitionBatch};

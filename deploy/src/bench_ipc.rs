@@ -9,8 +9,8 @@
 use anyhow::{anyhow, Context as _, Result};
 use ctxrace_common::ipc::wire::{step_stride, MAX_CHUNK};
 use ctxrace_common::ipc::{
-    cleanup, run_prefix, ReplayClient, RunTransport, SenderOptions, Step, TrajectorySender,
-    WeightsPublisher, WeightsReceiver,
+    cleanup, run_prefix, ReplayClient, RunTransport, SenderOptions, TrajectorySender,
+    TrajectoryStep, WeightsPublisher, WeightsReceiver,
 };
 use ctxrace_common::{Batch, BatchSpec, ReplayOptions, SequenceBatch};
 use ctxrace_replay::{run, ReplayArgs, ReplayBuffer, ReplayControl};
@@ -142,8 +142,8 @@ fn synthetic(opts: &IpcBenchOptions, id: usize, k: usize, obs: &mut [f32]) -> (u
 }
 
 /// The step both transports send for observation `obs`.
-fn synthetic_step(obs: &[f32], is_first: bool, is_last: bool) -> Step<'_> {
-    Step {
+fn synthetic_step(obs: &[f32], is_first: bool, is_last: bool) -> TrajectoryStep<'_> {
+    TrajectoryStep {
         obs,
         action: &[0.1, -0.1],
         reward: 0.5,

@@ -4,9 +4,10 @@ use crate::render::Frame;
 use anyhow::{bail, Context as _, Result};
 use ctxrace_actor::baseline::{Baseline, BaselineKind};
 use ctxrace_actor::{RaceEnv, StepInfo};
+use ctxrace_common::run_dir::{AGENT_FILE, CONFIG_FILE, POLICY_FILE};
 use ctxrace_common::{AgentConfig, ExperimentConfig, Policy};
 use ctxrace_learner::best::best_checkpoint;
-use ctxrace_learner::checkpoint::{checkpoints, latest_checkpoint, AGENT_FILE, POLICY_FILE};
+use ctxrace_learner::checkpoint::{checkpoints, latest_checkpoint};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -95,7 +96,7 @@ impl TrainedAgent {
         let policy_path = checkpoint.join(POLICY_FILE);
         let weights = std::fs::read(&policy_path)
             .with_context(|| format!("reading {}", policy_path.display()))?;
-        let experiment = match run_dir.map(|r| r.join(crate::train::CONFIG_FILE)) {
+        let experiment = match run_dir.map(|r| r.join(CONFIG_FILE)) {
             Some(p) if p.exists() => Some(ExperimentConfig::load(&p).map_err(anyhow::Error::msg)?),
             _ => None,
         };

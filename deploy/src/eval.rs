@@ -13,12 +13,16 @@
 
 use crate::driver::{ActMode, CheckpointChoice, EgoSpec, TrainedAgent};
 use crate::render::{render_race, Frame};
-use crate::results::{self, EpisodeRecord, EvalMeta};
+use crate::results::{self, EvalMeta};
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use clap::Args;
 use ctxrace_actor::baseline::BaselineKind;
+use ctxrace_actor::protocol::{self, episode_seed, ContextSummary, EvalEpisode};
 use ctxrace_actor::RaceEnv;
+use ctxrace_common::run_dir::{
+    EVAL_CONTEXTS_CSV, EVAL_CONTEXTS_JSON, EVAL_DIR, EVAL_EPISODES, EVAL_JOB, EVAL_META,
+};
 use ctxrace_common::{Context, RaceConfig};
 use serde::{Deserialize, Serialize};
 use std::collections::HashSet;
@@ -107,12 +111,7 @@ pub struct WorkerArgs {
 
 /// The contexts of an evaluation.
 fn contexts(meta: &EvalMeta) -> Vec<Context> {
-    Context::grid(meta.grid, meta.range)
-}
-
-/// The seed of lap `lap` of context `index` (distinct for every episode of an evaluation).
-fn episode_seed(seed: u64, index: usize, lap: usize) -> u64 {
-    seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ ((index as u64) << 32 | lap as u64)
+    protocol::contexts(meta.grid, meta.range)
 }
 
 /// The trained agent (checkpoint `choice` of a run) or reference policy named by `source`.
@@ -170,8 +169,8 @@ pub fn run(args: EvalArgs) -> Result<()> {
     let out = match (&args.out, &spec) {
         (Some(o), _) => o.clone(),
         (None, EgoSpec::Trained(t)) => match t.checkpoint.parent().and_then(Path::parent) {
-            Some(run) if t.experiment.is_some() => run.join("eval"),
-            _ => t.checkpoint.join("eval"),
+            Some(run) if t.experiment.is_some() => run.join(EVAL_DIR),
+            _ => t.checkpoint.join(EVAL_DIR),
         },
         (None, EgoSpec::Baseline(_)) => PathBuf::from(format!(
             "eval-{}-{}-{}r",
@@ -223,7 +222,7 @@ pub fn run(args: EvalArgs) -> Result<()> {
             .workers
             .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
             .clamp(1, job.todo.len());
-        let job_path = out.join("job.json");
+        let job_path = out.join(EVAL_JOB);
         results::write_json(&job_path, &job)?;
         run_workers(&out, &meta, &job_path, workers, done.len() as u64, total)?;
     }
@@ -234,7 +233,7 @@ pub fn run(args: EvalArgs) -> Result<()> {
 /// with `fresh`) and writes `meta.json`.
 fn prepare_out_dir(out: &Path, meta: &EvalMeta, fresh: bool) -> Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    let meta_path = out.join("meta.json");
+    let meta_path = out.join(EVAL_META);
     if fresh {
         for entry in std::fs::read_dir(out)? {
             let path = entry?.path();
@@ -281,13 +280,13 @@ fn part_files(out: &Path) -> Result<Vec<PathBuf>> {
 
 /// Every finished episode on disk with its context's index in the grid of `meta` (a torn
 /// last line of a killed worker is skipped).
-fn read_parts(out: &Path, meta: &EvalMeta) -> Result<Vec<(usize, EpisodeRecord)>> {
+fn read_parts(out: &Path, meta: &EvalMeta) -> Result<Vec<(usize, EvalEpisode)>> {
     let grid = contexts(meta);
     let mut rows = Vec::new();
     for part in part_files(out)? {
         let mut reader =
             csv::Reader::from_path(&part).with_context(|| format!("opening {}", part.display()))?;
-        for row in reader.deserialize::<EpisodeRecord>() {
+        for row in reader.deserialize::<EvalEpisode>() {
             let e = match row {
                 Ok(e) => e,
                 Err(err) => {
@@ -343,7 +342,7 @@ fn run_workers(
                 .context("starting an evaluation worker")
         })
         .collect::<Result<_>>()?;
-    let bar = crate::train::progress_bar(total, "episodes");
+    let bar = crate::progress::progress_bar(total, "episodes");
     bar.set_position(done);
     let mut failed = Vec::new();
     while !children.is_empty() {
@@ -422,23 +421,15 @@ fn run_episode(
     seed: u64,
     lap: usize,
     frames: Option<&mut Vec<Frame>>,
-) -> Result<EpisodeRecord> {
+) -> Result<EvalEpisode> {
     let last = driver.drive_episode(env, context, seed, frames)?;
-    let m = env.metrics();
-    Ok(EpisodeRecord {
-        context_speed: context.speed,
-        context_steer: context.steer,
+    Ok(EvalEpisode::new(
+        context,
         lap,
         seed,
-        progress: m.progress,
-        overtakes: m.overtakes,
-        a2a: m.a2a,
-        wall_crash: m.wall_crash,
-        lap_complete: last.lap_complete,
-        lap_time: m.lap_time,
-        steps: m.steps,
-        episode_return: m.episode_return,
-    })
+        env.metrics(),
+        last.lap_complete,
+    ))
 }
 
 /// Merges the workers' rows, writes the per-context summaries, draws one episode and prints
@@ -461,11 +452,11 @@ fn finish(
             rows.len()
         );
     }
-    let episodes: Vec<EpisodeRecord> = rows.into_iter().map(|(_, e)| e).collect();
-    results::write_csv(&out.join("episodes.csv"), &episodes)?;
-    let summary = results::summarise(&episodes, meta.train_range);
-    results::write_csv(&out.join("contexts.csv"), &summary)?;
-    results::write_json(&out.join("contexts.json"), &summary)?;
+    let episodes: Vec<EvalEpisode> = rows.into_iter().map(|(_, e)| e).collect();
+    results::write_csv(&out.join(EVAL_EPISODES), &episodes)?;
+    let summary = protocol::summarise(&episodes, meta.train_range);
+    results::write_csv(&out.join(EVAL_CONTEXTS_CSV), &summary)?;
+    results::write_json(&out.join(EVAL_CONTEXTS_JSON), &summary)?;
 
     let track = Arc::new(tracks.load(&meta.track, race)?);
     let mut env = RaceEnv::new(track.clone(), race.clone())?;
@@ -504,8 +495,7 @@ fn finish(
             continue;
         }
         let n = part.len() as f64;
-        let mean =
-            |f: fn(&results::ContextSummary) -> f64| part.iter().map(|s| f(s)).sum::<f64>() / n;
+        let mean = |f: fn(&ContextSummary) -> f64| part.iter().map(|s| f(s)).sum::<f64>() / n;
         writeln!(
             stdout,
             "  {label:>20} ({:2} contexts): PG {:.3}  OT {:+.3}  A2A {:.2}/50  wall {:.1}%",

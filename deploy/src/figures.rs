@@ -2,12 +2,13 @@
 //! the rivals' speed profiles and race lines under different contexts (paper Figs. 3–4), and the
 //! evaluation's episode pictures copied over.
 
+use crate::groups::{sections, Group, Metric};
 use crate::plot::{plot_err, register_font, save_png_and_svg, Figure};
 use crate::render::{bounds, draw_track, track_picture_size, TrackChart};
-use crate::report::{sections, Group, Metric};
-use crate::results::{TrainingEpisode, A2A_PER_LAPS};
+use crate::results::TrainingEpisode;
 use crate::TrackArgs;
 use anyhow::{Context as _, Result};
+use ctxrace_actor::protocol::A2A_PER_LAPS;
 use ctxrace_actor::rival::{drive_solo_lap, SoloLap};
 use ctxrace_common::{Context, RaceConfig};
 use ctxrace_tracks::Track;

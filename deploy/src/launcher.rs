@@ -14,8 +14,8 @@
 //! replay and the learner are stopped together: the replay takes the actors' last chunks whatever
 //! its limiter says, so that a clean run drops no step.
 
+use crate::progress::{progress_bar, EpisodeLog, RateMeter};
 use crate::results::TrainingEpisode;
-use crate::train::{progress_bar, EpisodeLog, RateMeter};
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use ctxrace_common::ipc::wire::{named_reasons, ReplayStatus};
@@ -23,6 +23,7 @@ use ctxrace_common::ipc::{
     claim_run, cleanup, run_prefix, sweep_orphaned_runs, termination_flag, RunTransport,
     TelemetrySubscriber, WeightsReceiver,
 };
+use ctxrace_common::run_dir::{ACTOR_REPORTS, LOGS, REPLAY_REPORT, STATUS_FILE};
 use ctxrace_common::{ExperimentConfig, SupervisorConfig};
 use std::os::unix::process::CommandExt;
 use std::path::Path;
@@ -274,9 +275,6 @@ impl Progress {
     }
 }
 
-/// File in the run directory with the launcher's live counters, rewritten every second.
-pub const STATUS_FILE: &str = "status.json";
-
 /// The flags that reproduce `tracks` on a child's command line.
 fn track_flags(tracks: &TrackArgs) -> Vec<String> {
     let mut v = Vec::new();
@@ -330,7 +328,7 @@ pub fn run(cfg: &ExperimentConfig, dir: &Path, actors: usize, tracks: &TrackArgs
             actors.to_string(),
         ]
     };
-    let logs = dir.join("logs");
+    let logs = dir.join(LOGS);
     std::fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
     let mut replay = Supervised::new("replay".into(), common("replay"), &logs);
     let mut learner = Supervised::new("learner".into(), common("learner"), &logs);
@@ -383,7 +381,7 @@ fn step_summary(dir: &Path) -> String {
     };
     let mut sent = std::collections::BTreeMap::<u64, u64>::new();
     let mut dropped = 0;
-    if let Ok(entries) = std::fs::read_dir(dir.join(crate::roles::ACTOR_REPORTS)) {
+    if let Ok(entries) = std::fs::read_dir(dir.join(ACTOR_REPORTS)) {
         for report in entries.flatten().filter_map(|e| read(&e.path())) {
             let id = report["id"].as_u64().unwrap_or(0);
             *sent.entry(id).or_default() += report["sent_steps"].as_u64().unwrap_or(0);
@@ -396,7 +394,7 @@ fn step_summary(dir: &Path) -> String {
         sent.values().sum::<u64>(),
         shares.join(" / ")
     );
-    if let Some(replay) = read(&dir.join(crate::roles::REPLAY_REPORT)) {
+    if let Some(replay) = read(&dir.join(REPLAY_REPORT)) {
         line += &format!(
             ", {} stored by the replay, {} rejected, longest replay stall {:.1} ms",
             replay["inserted"],
@@ -418,7 +416,7 @@ fn step_summary(dir: &Path) -> String {
 /// How many times actor `id` ran in earlier launches of the run in `dir` (its reports).
 fn earlier_actor_starts(dir: &Path, id: usize) -> u64 {
     let prefix = format!("actor-{id}-");
-    std::fs::read_dir(dir.join(crate::roles::ACTOR_REPORTS))
+    std::fs::read_dir(dir.join(ACTOR_REPORTS))
         .map(|entries| {
             entries
                 .filter_map(|e| e.ok())

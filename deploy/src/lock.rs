@@ -5,13 +5,11 @@
 //! The kernel drops it when the holder exits, however it dies, so a stale lock cannot remain.
 
 use anyhow::{bail, Context as _, Result};
+use ctxrace_common::run_dir::LOCK_FILE;
 use std::fs::File;
 use std::io::{Read, Seek, Write};
 use std::os::fd::AsRawFd;
 use std::path::Path;
-
-/// Name of the lock file in a locked directory.
-pub const LOCK_FILE: &str = ".lock";
 
 /// A held lock; dropping it releases it.
 #[derive(Debug)]

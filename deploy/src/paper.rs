@@ -6,7 +6,7 @@
 //! fixed seed) and takes the 2.5th and 97.5th percentiles of the resampled means. With fewer than
 //! two seeds the interval is a point and nothing is marked.
 
-use crate::report::{Group, Metric, Split};
+use crate::groups::{Group, Metric, Split};
 use crate::table::Table;
 use rand::Rng;
 use rand::SeedableRng;
@@ -134,7 +134,7 @@ pub fn compare(g: &Group, split: Split, metric: Metric) -> Option<Comparison> {
     let values: Vec<f64> = g
         .runs
         .iter()
-        .filter_map(|r| crate::report::split_mean(r, split, metric))
+        .filter_map(|r| crate::groups::split_mean(r, split, metric))
         .collect();
     Some(Comparison {
         mean: stat.mean,

@@ -1,19 +1,14 @@
 //! The process roles the launcher starts: `ctxrace replay`, `ctxrace learner` and
 //! `ctxrace actor`. Each reads the run directory's `config.toml`.
 
-use crate::train::CONFIG_FILE;
 use crate::TrackArgs;
 use anyhow::Result;
 use clap::Args;
 use ctxrace_common::policy::ACT_DIM;
+use ctxrace_common::run_dir::{ACTOR_REPORTS, CONFIG_FILE, REPLAY_REPORT, REPLAY_SNAPSHOT};
 use ctxrace_common::ExperimentConfig;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-
-/// File in the run directory with the replay's final counters.
-pub const REPLAY_REPORT: &str = "replay-status.json";
-/// Folder of the run directory with each actor start's final report.
-pub const ACTOR_REPORTS: &str = "actors";
 
 /// What every role is told.
 #[derive(Args, Clone, Debug)]
@@ -57,7 +52,7 @@ pub fn replay_options(cfg: &ExperimentConfig, run_dir: &Path) -> ctxrace_common:
     o.min_fill = o.min_fill.max(cfg.train.prefill as usize);
     o.seed = cfg.train.seed;
     o.snapshot_path
-        .get_or_insert_with(|| run_dir.join("replay.snapshot"));
+        .get_or_insert_with(|| run_dir.join(REPLAY_SNAPSHOT));
     o
 }
 

@@ -438,7 +438,7 @@ fn schedule(
     let logs = out.join("logs");
     std::fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
     let total = (done_before + pending.len()) as u64;
-    let bar = crate::train::progress_bar(total, "runs");
+    let bar = crate::progress::progress_bar(total, "runs");
     bar.set_position(done_before as u64);
     let stop = ctxrace_common::ipc::termination_flag()?;
     let start = Instant::now();

@@ -8,6 +8,7 @@
 //! counters, the acting policy and the agent's configuration).
 
 use crate::lock::DirLock;
+use crate::progress::{progress_bar, EpisodeLog, RateMeter};
 use crate::results::TrainingEpisode;
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
@@ -16,22 +17,21 @@ use ctxrace_actor::collect::{Collector, Finished};
 use ctxrace_actor::RaceEnv;
 use ctxrace_common::batch::{Batch, BatchSpec};
 use ctxrace_common::policy::ACT_DIM;
+use ctxrace_common::run_dir::{
+    CHECKPOINTS, CONFIG_FILE, METRICS_CSV, METRICS_JSONL, TRAINING_EPISODES,
+};
 use ctxrace_common::{AlgoKind, ExperimentConfig, Policy};
 use ctxrace_learner::best::{write_best, ReturnTracker};
 use ctxrace_learner::checkpoint::write_checkpoint;
 use ctxrace_learner::runlog::MetricsLog;
-use ctxrace_learner::tensorboard::EventWriter;
 use ctxrace_learner::Algorithm;
 use ctxrace_replay::ReplayBuffer;
-use indicatif::{ProgressBar, ProgressStyle};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
-/// The resolved experiment in a run directory.
-pub const CONFIG_FILE: &str = "config.toml";
 /// The experiment `ctxrace train` runs without a CONFIG argument (configs/quick.toml).
 pub const EMBEDDED_CONFIG: &str = include_str!("../../configs/quick.toml");
 
@@ -196,12 +196,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
     }
     if resumed {
         // the inline trainer keeps its replay in memory: an interrupted run starts over
-        for name in [
-            "episodes.csv",
-            "metrics.jsonl",
-            "metrics.csv",
-            "checkpoints",
-        ] {
+        for name in [TRAINING_EPISODES, METRICS_JSONL, METRICS_CSV, CHECKPOINTS] {
             let path = dir.join(name);
             let removed = if path.is_dir() {
                 std::fs::remove_dir_all(&path)
@@ -228,111 +223,6 @@ fn finish(args: &TrainArgs, cfg: &ExperimentConfig, dir: &Path) -> Result<()> {
         return Ok(());
     }
     crate::first_look::show(cfg, dir, &args.tracks)
-}
-
-/// Appends training episodes to `episodes.csv` and, with the run's rates, to a TensorBoard
-/// event file (scalars `episode/*` and `rate/*`, `replay/*` at the run's env steps).
-pub struct EpisodeLog {
-    writer: csv::Writer<std::fs::File>,
-    events: EventWriter,
-}
-
-impl EpisodeLog {
-    /// Opens (appending) `<run_dir>/episodes.csv`, with a new event file for `role`.
-    pub fn open(run_dir: &Path, role: &str) -> Result<Self> {
-        let path = run_dir.join("episodes.csv");
-        let fresh = std::fs::metadata(&path).map_or(true, |m| m.len() == 0);
-        let file = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(&path)
-            .with_context(|| format!("opening {}", path.display()))?;
-        Ok(Self {
-            writer: csv::WriterBuilder::new()
-                .has_headers(fresh)
-                .from_writer(file),
-            events: EventWriter::create(run_dir, role)?,
-        })
-    }
-
-    /// Appends one episode.
-    pub fn write(&mut self, episode: &TrainingEpisode) -> Result<()> {
-        self.writer.serialize(episode)?;
-        self.writer.flush()?;
-        let flag = |b: bool| f64::from(u8::from(b));
-        self.events.scalars(
-            episode.env_steps,
-            [
-                ("episode/progress", episode.progress),
-                ("episode/overtakes", f64::from(episode.overtakes)),
-                ("episode/a2a", flag(episode.a2a)),
-                ("episode/wall_crash", flag(episode.wall_crash)),
-                ("episode/return", episode.episode_return),
-                ("episode/steps", episode.steps as f64),
-            ],
-        )?;
-        self.events.flush()
-    }
-
-    /// Records the run's rates and replay fill at `env_steps`.
-    pub fn rates(&mut self, env_steps: u64, rates: &Rates) -> Result<()> {
-        self.events.scalars(
-            env_steps,
-            [
-                ("rate/env_steps_per_second", rates.env_steps_per_second),
-                ("rate/grad_steps_per_second", rates.grad_steps_per_second),
-                ("replay/steps", rates.replay_steps as f64),
-                ("replay/fill", rates.replay_fill),
-            ],
-        )?;
-        self.events.flush()
-    }
-}
-
-/// What [`EpisodeLog::rates`] records.
-#[derive(Clone, Copy, Debug, Default)]
-pub struct Rates {
-    /// Environment steps per second since the last record.
-    pub env_steps_per_second: f64,
-    /// Gradient steps per second since the last record.
-    pub grad_steps_per_second: f64,
-    /// Steps the replay holds.
-    pub replay_steps: u64,
-    /// Its fill, `[0, 1]`.
-    pub replay_fill: f64,
-}
-
-/// Seconds between two [`Rates`] records.
-pub const RATES_EVERY: std::time::Duration = std::time::Duration::from_secs(5);
-
-/// Turns counters into [`Rates`] over the time since the previous reading; the first reading
-/// only sets the baseline (a resumed run's counters do not start at zero).
-#[derive(Clone, Debug, Default)]
-pub struct RateMeter {
-    last: Option<(Instant, u64, u64)>,
-}
-
-impl RateMeter {
-    /// The rates since the last reading when [`RATES_EVERY`] has passed since it, else `None`.
-    pub fn read(&mut self, env_steps: u64, grad_steps: u64, replay: (u64, u64)) -> Option<Rates> {
-        let Some((at, env_before, grad_before)) = self.last else {
-            self.last = Some((Instant::now(), env_steps, grad_steps));
-            return None;
-        };
-        let secs = at.elapsed().as_secs_f64();
-        if secs < RATES_EVERY.as_secs_f64() {
-            return None;
-        }
-        let per_second = |now: u64, before: u64| now.saturating_sub(before) as f64 / secs;
-        let rates = Rates {
-            env_steps_per_second: per_second(env_steps, env_before),
-            grad_steps_per_second: per_second(grad_steps, grad_before),
-            replay_steps: replay.0,
-            replay_fill: replay.0 as f64 / replay.1.max(1) as f64,
-        };
-        self.last = Some((Instant::now(), env_steps, grad_steps));
-        Some(rates)
-    }
 }
 
 /// The row of a finished episode.
@@ -362,17 +252,6 @@ fn sample(buffer: &ReplayBuffer, spec: BatchSpec, rng: &mut ChaCha8Rng) -> Optio
         BatchSpec::Transition { batch, frames } => buffer
             .sample_transitions(batch, frames, rng)
             .map(Batch::Transition),
-    }
-}
-
-/// A progress bar over `len` `unit`s with their rate and, in its message, live figures.
-pub fn progress_bar(len: u64, unit: &str) -> ProgressBar {
-    let template =
-        format!("{{elapsed_precise}} [{{bar:30}}] {{pos}}/{{len}} {unit} ({{per_sec}}) {{msg}}");
-    let bar = ProgressBar::new(len);
-    match ProgressStyle::with_template(&template) {
-        Ok(style) => bar.with_style(style),
-        Err(_) => bar,
     }
 }
 

@@ -11,16 +11,15 @@
 //! count, not those of the random prefill. The smoother's state is saved with every regular
 //! checkpoint, so a restarted learner carries on with it.
 
-use crate::checkpoint::{io_error, write_atomically, write_policy_files, CHECKPOINTS};
+use crate::checkpoint::{io_error, write_atomically, write_policy_files};
 use crate::Algorithm;
 use candle_core::Result;
+use ctxrace_common::run_dir::{BEST_DIR, CHECKPOINTS};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 /// Weight of the newest return in the smoothed return (the paper code's `ewma` default).
 pub const SMOOTHING: f64 = 0.2;
-/// Folder of `<run>/checkpoints/` that holds the best policy.
-pub const BEST_DIR: &str = "best";
 /// File in the best checkpoint saying when it was taken ([`BestInfo`]).
 pub const BEST_FILE: &str = "best.toml";
 /// File in every regular checkpoint with the smoother's state ([`ReturnTracker`]).

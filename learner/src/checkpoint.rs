@@ -7,6 +7,7 @@
 //! the seal: a damaged newest checkpoint is passed over, with a warning, for the one before.
 
 use candle_core::{Error, Result};
+use ctxrace_common::run_dir::{AGENT_FILE, CHECKPOINTS, POLICY_FILE};
 use serde::{de::DeserializeOwned, Serialize};
 use std::path::Path;
 
@@ -45,12 +46,6 @@ pub fn load_state<T: DeserializeOwned>(dir: &Path) -> Result<T> {
     toml::from_str(&text).map_err(|e| io_error("parsing", &path, e))
 }
 
-/// Folder of a run directory that holds its checkpoints.
-pub const CHECKPOINTS: &str = "checkpoints";
-/// File in a checkpoint with the acting policy's weights.
-pub const POLICY_FILE: &str = "policy.safetensors";
-/// File in a checkpoint with the agent's configuration.
-pub const AGENT_FILE: &str = "agent.toml";
 /// Checkpoints kept in a run directory (older ones are removed).
 const KEEP: usize = 3;
 /// File in every checkpoint listing its other files with their sizes and CRC-32s.

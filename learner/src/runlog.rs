@@ -5,6 +5,7 @@
 use crate::tensorboard::EventWriter;
 use crate::Metrics;
 use anyhow::{Context as _, Result};
+use ctxrace_common::run_dir::{METRICS_CSV, METRICS_JSONL};
 use std::fs::{File, OpenOptions};
 use std::io::Write;
 use std::path::Path;
@@ -28,14 +29,14 @@ impl MetricsLog {
                 .open(&path)
                 .with_context(|| format!("opening {}", path.display()))
         };
-        let csv_path = run_dir.join("metrics.csv");
+        let csv_path = run_dir.join(METRICS_CSV);
         let columns = std::fs::read_to_string(&csv_path).ok().and_then(|t| {
             t.lines()
                 .next()
                 .map(|h| h.split(',').map(String::from).collect())
         });
         Ok(Self {
-            jsonl: open("metrics.jsonl")?,
+            jsonl: open(METRICS_JSONL)?,
             csv: open("metrics.csv")?,
             columns,
             events: EventWriter::create(run_dir, role)?,

@@ -7,7 +7,7 @@
 #![allow(missing_docs)] // criterion's macros define undocumented functions
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use ctxrace_common::ipc::Step;
+use ctxrace_common::ipc::TrajectoryStep;
 use ctxrace_replay::{encode_snapshot, write_snapshot, LimiterCounts, ReplayBuffer};
 
 const OBS: usize = 108;
@@ -21,7 +21,7 @@ fn full_buffer() -> ReplayBuffer {
         for episode in 0..STEPS / actors / 100 {
             let mut payload = Vec::new();
             for k in 0..100 {
-                Step {
+                TrajectoryStep {
                     obs: &obs,
                     action: &[0.1, -0.1],
                     reward: episode as f32,

@@ -2,7 +2,7 @@
 //! extended, and any file that is not a snapshot, is refused with an error naming the file;
 //! never a panic, never a buffer sized from a damaged header.
 
-use ctxrace_common::ipc::Step;
+use ctxrace_common::ipc::TrajectoryStep;
 use ctxrace_replay::{read_snapshot, write_snapshot, LimiterCounts, ReplayBuffer};
 use proptest::prelude::*;
 use std::path::Path;
@@ -16,7 +16,7 @@ fn valid_snapshot(dir: &Path) -> Vec<u8> {
     for actor in 0..2 {
         let mut payload = Vec::new();
         for k in 0..10 {
-            Step {
+            TrajectoryStep {
                 obs: &[k as f32, 0.5, -0.5],
                 action: &[0.1, -0.1],
                 reward: 1.0,

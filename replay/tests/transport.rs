@@ -1,8 +1,8 @@
 //! Actors, replay and learner on threads of one process over a private iceoryx2 prefix.
 
 use ctxrace_common::ipc::{
-    cleanup, run_prefix, ReplayBeacon, ReplayClient, RunTransport, SenderOptions, Step,
-    TrajectoryReceiver, TrajectorySender, TRAJECTORY_BUFFER,
+    cleanup, run_prefix, ReplayBeacon, ReplayClient, RunTransport, SenderOptions,
+    TrajectoryReceiver, TrajectorySender, TrajectoryStep, TRAJECTORY_BUFFER,
 };
 use ctxrace_common::{Batch, BatchSpec, ReplayOptions};
 use ctxrace_replay::{read_snapshot, run, ReplayArgs, ReplayControl};
@@ -42,7 +42,7 @@ fn actor(prefix: String, id: u32, poison: bool) -> ctxrace_common::ipc::SenderSt
         let e = k % EPISODE;
         let obs = [id as f32, k as f32, 0.5];
         let action = if e == 0 { [0.0; 2] } else { [0.1, -0.1] };
-        let step = Step {
+        let step = TrajectoryStep {
             obs: &obs,
             action: &action,
             reward: 1.0,
@@ -56,7 +56,7 @@ fn actor(prefix: String, id: u32, poison: bool) -> ctxrace_common::ipc::SenderSt
     }
     if poison {
         // A NaN observation in an episode of its own: the replay must reject that chunk only.
-        let step = Step {
+        let step = TrajectoryStep {
             obs: &[f32::NAN, 0.0, 0.0],
             action: &[0.0, 0.0],
             reward: 0.0,
@@ -69,7 +69,7 @@ fn actor(prefix: String, id: u32, poison: bool) -> ctxrace_common::ipc::SenderSt
         tx.push(99, 0, &step).unwrap();
     }
     // A step of the wrong size is refused locally, without sending anything.
-    let bad = Step {
+    let bad = TrajectoryStep {
         obs: &[0.0],
         action: &[0.0, 0.0],
         reward: 0.0,
@@ -213,7 +213,7 @@ fn a_stuck_replay_does_not_freeze_the_actor() {
         let start = Instant::now();
         let chunks = TRAJECTORY_BUFFER + 20;
         for k in 0..chunks {
-            let step = Step {
+            let step = TrajectoryStep {
                 obs: &[0.0, k as f32, 0.0],
                 action: &[0.0, 0.0],
                 reward: 0.0,
@@ -269,7 +269,7 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
     let t = RunTransport::open(&prefix, 1, "actor0").unwrap();
     let mut tx = TrajectorySender::new(&t, 0, OBS, ACT, SenderOptions::default()).unwrap();
     for k in 0..600u64 {
-        let step = Step {
+        let step = TrajectoryStep {
             obs: &[0.0, k as f32, 0.0],
             action: &[0.0, 0.0],
             reward: 0.0,

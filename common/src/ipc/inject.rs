@@ -8,7 +8,7 @@
 //! the slot a restarting learner would use, so inject while the learner runs.
 
 use super::transport::{ice, RunTransport, Wake};
-use super::wire::{BatchRequest, ChunkHeader, EpisodeMetrics, WeightsHeader, MAX_CHUNK_FLOATS};
+use super::wire::{BatchRequest, ChunkHeader, EpisodeReport, WeightsHeader, MAX_CHUNK_FLOATS};
 use anyhow::{anyhow, Result};
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
@@ -22,7 +22,7 @@ pub struct Injector {
     chunks: Vec<Publisher<ipc::Service, [f32], ChunkHeader>>,
     requests: Publisher<ipc::Service, BatchRequest, ()>,
     weights: Publisher<ipc::Service, [u8], WeightsHeader>,
-    episodes: Publisher<ipc::Service, EpisodeMetrics, ()>,
+    episodes: Publisher<ipc::Service, EpisodeReport, ()>,
     wake_replay: Notifier<ipc::Service>,
     wake_actors: Notifier<ipc::Service>,
 }
@@ -94,7 +94,7 @@ impl Injector {
     }
 
     /// Publishes episode metrics as they are.
-    pub fn episode(&self, metrics: EpisodeMetrics) -> Result<usize> {
+    pub fn episode(&self, metrics: EpisodeReport) -> Result<usize> {
         self.episodes
             .send_copy(metrics)
             .map_err(ice("send injected metrics"))

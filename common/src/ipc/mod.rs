@@ -28,7 +28,8 @@ pub mod wire;
 pub use batches::{BatchServer, ReplayClient, DEFAULT_MAX_BATCH_FLOATS};
 pub use telemetry::{EpisodeSubscriber, MetricsPublisher, StatusPublisher, TelemetrySubscriber};
 pub use trajectory::{
-    ChunkView, ReplayBeacon, SenderOptions, SenderStats, Step, TrajectoryReceiver, TrajectorySender,
+    ChunkView, ReplayBeacon, SenderOptions, SenderStats, TrajectoryReceiver, TrajectorySender,
+    TrajectoryStep,
 };
 pub use transport::{
     claim_run, cleanup, iceoryx_config, run_prefix, shm_root, sweep_orphaned_runs,
@@ -36,7 +37,7 @@ pub use transport::{
 };
 pub use weights::{WeightsPublisher, WeightsReceiver, DEFAULT_MAX_WEIGHTS_BYTES};
 pub use wire::{
-    BatchHeader, BatchRequest, ChunkHeader, EpisodeMetrics, Heartbeat, ReplayStatus, WeightsHeader,
+    BatchHeader, BatchRequest, ChunkHeader, EpisodeReport, Heartbeat, ReplayStatus, WeightsHeader,
     WireError,
 };
 

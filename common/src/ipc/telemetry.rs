@@ -1,7 +1,7 @@
 //! Actor and replay telemetry for the launcher: episode metrics, heartbeats, replay status.
 
 use super::transport::{ice, RunTransport};
-use super::wire::{EpisodeMetrics, Heartbeat, ReplayStatus, WireError, FORMAT_VERSION};
+use super::wire::{EpisodeReport, Heartbeat, ReplayStatus, WireError, FORMAT_VERSION};
 use super::RejectLog;
 use anyhow::Result;
 use iceoryx2::port::publisher::Publisher;
@@ -10,7 +10,7 @@ use iceoryx2::prelude::*;
 
 /// An actor's metrics and heartbeat publisher.
 pub struct MetricsPublisher {
-    metrics: Publisher<ipc::Service, EpisodeMetrics, ()>,
+    metrics: Publisher<ipc::Service, EpisodeReport, ()>,
     heartbeat: Publisher<ipc::Service, Heartbeat, ()>,
 }
 
@@ -32,8 +32,8 @@ impl MetricsPublisher {
     }
 
     /// Publishes one finished episode (its `format_version` is set here).
-    pub fn episode(&self, metrics: EpisodeMetrics) -> Result<()> {
-        let m = EpisodeMetrics {
+    pub fn episode(&self, metrics: EpisodeReport) -> Result<()> {
+        let m = EpisodeReport {
             format_version: FORMAT_VERSION,
             ..metrics
         };
@@ -83,7 +83,7 @@ impl StatusPublisher {
 /// A subscriber to the actors' finished episodes (the launcher logs them, the learner smooths
 /// their returns).
 pub struct EpisodeSubscriber {
-    metrics: Subscriber<ipc::Service, EpisodeMetrics, ()>,
+    metrics: Subscriber<ipc::Service, EpisodeReport, ()>,
     actors: usize,
     rejects: RejectLog,
 }
@@ -103,7 +103,7 @@ impl EpisodeSubscriber {
     }
 
     /// Episode metrics received since the last call; malformed ones are counted and skipped.
-    pub fn episodes(&mut self) -> Result<Vec<EpisodeMetrics>> {
+    pub fn episodes(&mut self) -> Result<Vec<EpisodeReport>> {
         let mut out = Vec::new();
         while let Some(s) = self.metrics.receive().map_err(ice("receive metrics"))? {
             let m = *s.payload();
@@ -155,7 +155,7 @@ impl TelemetrySubscriber {
     }
 
     /// Episode metrics received since the last call; malformed ones are counted and skipped.
-    pub fn episodes(&mut self) -> Result<Vec<EpisodeMetrics>> {
+    pub fn episodes(&mut self) -> Result<Vec<EpisodeReport>> {
         self.episodes.episodes()
     }
 

@@ -19,7 +19,7 @@ use std::time::{Duration, Instant};
 
 /// One env step as an actor reports it (SequenceBatch's convention).
 #[derive(Clone, Copy, Debug)]
-pub struct Step<'a> {
+pub struct TrajectoryStep<'a> {
     /// The observation reached: one LiDAR frame.
     pub obs: &'a [f32],
     /// The action taken before this step; zero at the episode's first step.
@@ -38,7 +38,7 @@ pub struct Step<'a> {
     pub mask: Option<[f32; 2]>,
 }
 
-impl Step<'_> {
+impl TrajectoryStep<'_> {
     /// Appends the step in the chunk layout ([`super::wire::step_stride`] floats:
     /// `obs | action | reward, is_first, is_terminal, is_last, has_mask | context | mask`,
     /// the mask zero without one).
@@ -195,7 +195,12 @@ impl TrajectorySender {
     /// Adds one step of episode `episode_id` acted by weights `policy_version`; sends the chunk
     /// when it is full or the episode ended. Steps of another dimension are refused with an
     /// error; values are checked by the replay.
-    pub fn push(&mut self, episode_id: u64, policy_version: u64, step: &Step) -> Result<()> {
+    pub fn push(
+        &mut self,
+        episode_id: u64,
+        policy_version: u64,
+        step: &TrajectoryStep,
+    ) -> Result<()> {
         let (o, a) = (self.header.obs_dim as usize, self.header.act_dim as usize);
         if step.obs.len() != o || step.action.len() != a {
             return Err(anyhow!(

@@ -3,7 +3,7 @@
 //! and the sweep of runs whose launcher died.
 
 use super::wire::{
-    BatchHeader, BatchRequest, ChunkHeader, EpisodeMetrics, Heartbeat, ReplayStatus, WeightsHeader,
+    BatchHeader, BatchRequest, ChunkHeader, EpisodeReport, Heartbeat, ReplayStatus, WeightsHeader,
 };
 use anyhow::{anyhow, bail, Context as _, Result};
 use iceoryx2::port::listener::Listener;
@@ -244,9 +244,7 @@ impl RunTransport {
     }
 
     /// Actors -> launcher: episode metrics.
-    pub(crate) fn metrics_service(
-        &self,
-    ) -> Result<PubSubFactory<ipc::Service, EpisodeMetrics, ()>> {
+    pub(crate) fn metrics_service(&self) -> Result<PubSubFactory<ipc::Service, EpisodeReport, ()>> {
         self.small_service("metrics", 1024, 0)
     }
 

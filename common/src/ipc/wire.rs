@@ -151,11 +151,12 @@ pub struct BatchHeader {
     pub reserved: u32,
 }
 
-/// The outcome of one finished episode, for the launcher's logs.
+/// An actor's report of one finished training episode for the launcher's logs: the simulator's
+/// `EpisodeMetrics` in wire form, with the actor, the episode and its context.
 #[derive(Debug, Default, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("ctxrace_EpisodeMetrics_v1")]
+#[type_name("ctxrace_EpisodeReport_v1")]
 #[repr(C)]
-pub struct EpisodeMetrics {
+pub struct EpisodeReport {
     /// [`FORMAT_VERSION`].
     pub format_version: u32,
     /// The actor.

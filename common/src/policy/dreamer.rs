@@ -3,6 +3,7 @@
 //! state, the actor reads `[h, z, c]` and (cMask) the mask actor masks the context first.
 //! The learner trains the same [`DreamerNets`] and ships their "policy" parameter store.
 
+use super::ACT_DIM;
 use crate::agents::{ContextMode, DreamerConfig, CONTEXT_DIM};
 use crate::nn::{
     symlog, Activation, Mlp, ParamStore, Rssm, RssmConfig, RssmState, TanhGaussianActor,
@@ -211,18 +212,15 @@ pub struct DreamerPolicy {
 }
 
 impl DreamerPolicy {
-    /// Action size of the policy.
-    pub const ACT_DIM: usize = 2;
-
     /// A policy of the architecture `cfg` for observations of `obs_dim`, with the bytes of
     /// the learner's policy weights; `seed` seeds its sampling noise.
     pub fn new(cfg: &DreamerConfig, obs_dim: usize, weights: &[u8], seed: u64) -> Result<Self> {
         cfg.validate()?;
         let store = ParamStore::new();
-        let nets = DreamerNets::new(cfg, obs_dim, Self::ACT_DIM, store.builder())?;
+        let nets = DreamerNets::new(cfg, obs_dim, ACT_DIM, store.builder())?;
         store.load_bytes(weights)?;
         let zero = nets.rssm.initial(1)?;
-        let zero_action = Tensor::zeros((1, Self::ACT_DIM), DType::F32, &Device::Cpu)?;
+        let zero_action = Tensor::zeros((1, ACT_DIM), DType::F32, &Device::Cpu)?;
         Ok(Self {
             store,
             obs_dim,
@@ -288,7 +286,7 @@ impl DreamerPolicy {
         } else {
             let (s, c) = self.stoch;
             let u = uniforms(&mut self.rng, (1, s, c))?;
-            (u, Some(normals(&mut self.rng, (1, Self::ACT_DIM))?))
+            (u, Some(normals(&mut self.rng, (1, ACT_DIM))?))
         };
         let (state, action) = self.nets.observe(
             &self.state,

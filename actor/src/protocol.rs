@@ -1,0 +1,185 @@
+//! The paper's evaluation protocol: every context of a `grid × grid` grid over `[−range, range]²`
+//! (7 × 7 over ±0.3 in the paper), `laps` episodes (laps) each from seeded resets, the ego's
+//! metrics per episode and their means per context, split in and out of the training
+//! distribution.
+//!
+//! **Definitions.** PG: the largest fraction of the lap the ego completed in the episode.
+//! OT: +1 each time the ego passes a rival, −1 each time a rival passes it, by track progress,
+//! summed over the episode. A2A: the episode ended in an ego–rival collision; per context it is
+//! reported as the number of such episodes per 50 laps, as the paper does. A context is
+//! in-distribution when both of its values lie inside the training range `[−r, r]`
+//! ([`Context::within`]).
+
+use crate::race::EpisodeMetrics;
+use ctxrace_common::Context;
+use serde::{Deserialize, Serialize};
+
+/// Laps per context that A2A counts are scaled to (the paper's protocol).
+pub const A2A_PER_LAPS: f64 = 50.0;
+
+/// One evaluation episode.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EvalEpisode {
+    /// Rival speed context `c_v`.
+    pub context_speed: f64,
+    /// Rival steering context `c_θ`.
+    pub context_steer: f64,
+    /// Index of the lap within its context, `0..laps`.
+    pub lap: usize,
+    /// Seed the episode was reset with.
+    pub seed: u64,
+    /// PG of the episode, `[0, 1]`.
+    pub progress: f64,
+    /// OT of the episode.
+    pub overtakes: i32,
+    /// The episode ended in an ego–rival collision.
+    pub a2a: bool,
+    /// The episode ended with the ego hitting a wall.
+    pub wall_crash: bool,
+    /// The ego completed the lap.
+    pub lap_complete: bool,
+    /// Lap time when completed (s), else empty.
+    pub lap_time: Option<f64>,
+    /// Decisions taken.
+    pub steps: usize,
+    /// Sum of rewards.
+    pub episode_return: f64,
+}
+
+/// The episodes of one context, aggregated.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ContextSummary {
+    /// Rival speed context `c_v`.
+    pub context_speed: f64,
+    /// Rival steering context `c_θ`.
+    pub context_steer: f64,
+    /// Both context values inside the training range.
+    pub in_distribution: bool,
+    /// Episodes aggregated.
+    pub laps: usize,
+    /// Mean PG.
+    pub progress: f64,
+    /// Mean OT per episode.
+    pub overtakes: f64,
+    /// Episodes ending in an ego–rival collision, per [`A2A_PER_LAPS`] laps.
+    pub a2a: f64,
+    /// Fraction of episodes ending at a wall.
+    pub wall_crash: f64,
+    /// Fraction of episodes completing the lap.
+    pub lap_complete: f64,
+    /// Mean episode return.
+    pub episode_return: f64,
+}
+
+/// Aggregates episodes per context, in the order contexts first appear.
+pub fn summarise(episodes: &[EvalEpisode], train_range: f64) -> Vec<ContextSummary> {
+    let mut keys: Vec<(f64, f64)> = Vec::new();
+    for e in episodes {
+        let key = (e.context_speed, e.context_steer);
+        if !keys.contains(&key) {
+            keys.push(key);
+        }
+    }
+    keys.into_iter()
+        .map(|(cv, ct)| {
+            let eps: Vec<&EvalEpisode> = episodes
+                .iter()
+                .filter(|e| e.context_speed == cv && e.context_steer == ct)
+                .collect();
+            let n = eps.len() as f64;
+            let mean = |f: &dyn Fn(&EvalEpisode) -> f64| eps.iter().map(|e| f(e)).sum::<f64>() / n;
+            ContextSummary {
+                context_speed: cv,
+                context_steer: ct,
+                in_distribution: Context {
+                    speed: cv,
+                    steer: ct,
+                }
+                .within(train_range),
+                laps: eps.len(),
+                progress: mean(&|e| e.progress),
+                overtakes: mean(&|e| e.overtakes as f64),
+                a2a: mean(&|e| e.a2a as u8 as f64) * A2A_PER_LAPS,
+                wall_crash: mean(&|e| e.wall_crash as u8 as f64),
+                lap_complete: mean(&|e| e.lap_complete as u8 as f64),
+                episode_return: mean(&|e| e.episode_return),
+            }
+        })
+        .collect()
+}
+
+/// The contexts of an evaluation over a `grid × grid` grid of half-width `range`, `c_v` major.
+pub fn contexts(grid: usize, range: f64) -> Vec<Context> {
+    Context::grid(grid, range)
+}
+
+/// The reset seed of lap `lap` of context `index` in an evaluation seeded `seed` (distinct for
+/// every episode of an evaluation).
+pub fn episode_seed(seed: u64, index: usize, lap: usize) -> u64 {
+    seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ ((index as u64) << 32 | lap as u64)
+}
+
+impl EvalEpisode {
+    /// The record of lap `lap` in `context`, reset with `seed`, from the simulator's metrics of
+    /// the episode and whether the ego completed the lap.
+    pub fn new(
+        context: Context,
+        lap: usize,
+        seed: u64,
+        metrics: &EpisodeMetrics,
+        lap_complete: bool,
+    ) -> Self {
+        Self {
+            context_speed: context.speed,
+            context_steer: context.steer,
+            lap,
+            seed,
+            progress: metrics.progress,
+            overtakes: metrics.overtakes,
+            a2a: metrics.a2a,
+            wall_crash: metrics.wall_crash,
+            lap_complete,
+            lap_time: metrics.lap_time,
+            steps: metrics.steps,
+            episode_return: metrics.episode_return,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn episode(cv: f64, ct: f64, progress: f64, a2a: bool) -> EvalEpisode {
+        EvalEpisode {
+            context_speed: cv,
+            context_steer: ct,
+            lap: 0,
+            seed: 0,
+            progress,
+            overtakes: 1,
+            a2a,
+            wall_crash: false,
+            lap_complete: progress >= 1.0,
+            lap_time: None,
+            steps: 10,
+            episode_return: 2.0,
+        }
+    }
+
+    #[test]
+    fn summary_per_context_with_a2a_per_fifty_laps() {
+        let eps = [
+            episode(0.1, 0.0, 1.0, false),
+            episode(0.1, 0.0, 0.5, true),
+            episode(0.3, -0.2, 0.2, true),
+        ];
+        let s = summarise(&eps, 0.15);
+        assert_eq!(s.len(), 2);
+        assert!(s[0].in_distribution && !s[1].in_distribution);
+        assert!((s[0].progress - 0.75).abs() < 1e-12);
+        assert!((s[0].a2a - 25.0).abs() < 1e-12);
+        assert!((s[0].lap_complete - 0.5).abs() < 1e-12);
+        assert!((s[1].a2a - 50.0).abs() < 1e-12);
+    }
+}
