@@ -108,6 +108,16 @@ pub fn summarise(episodes: &[EvalEpisode], train_range: f64) -> Vec<ContextSumma
         .collect()
 }
 
+impl ContextSummary {
+    /// The context summarised.
+    pub fn context(&self) -> Context {
+        Context {
+            speed: self.context_speed,
+            steer: self.context_steer,
+        }
+    }
+}
+
 /// The contexts of an evaluation over a `grid × grid` grid of half-width `range`, `c_v` major.
 pub fn contexts(grid: usize, range: f64) -> Vec<Context> {
     Context::grid(grid, range)

@@ -9,7 +9,6 @@ use ctxrace_actor::protocol::{summarise, ContextSummary, EvalEpisode};
 use ctxrace_common::run_dir::{
     EVAL_CONTEXTS_CSV, EVAL_DIR, EVAL_EPISODES, EVAL_META, TRAINING_EPISODES,
 };
-use ctxrace_common::Context;
 use std::path::{Path, PathBuf};
 
 /// One evaluated agent or baseline, as read from disk.
@@ -162,11 +161,7 @@ impl Split {
 
     /// Whether a context belongs to this split.
     pub fn contains(self, c: &ContextSummary, train_range: f64) -> bool {
-        let context = Context {
-            speed: c.context_speed,
-            steer: c.context_steer,
-        };
-        context.within(train_range) == (self == Split::In)
+        c.context().within(train_range) == (self == Split::In)
     }
 
     /// "In" or "Out".
