@@ -11,7 +11,7 @@
 //! context (`contexts.csv`, `contexts.json`, see [`crate::results`]) and one episode is drawn
 //! (`episode.png`, `episode.svg`).
 
-use crate::driver::{ActMode, CheckpointChoice, EgoSpec, TrainedAgent};
+use crate::driver::{ActMode, EgoSpec};
 use crate::render::{render_race, Frame};
 use crate::results::{self, EvalMeta};
 use crate::TrackArgs;
@@ -24,6 +24,7 @@ use ctxrace_common::run_dir::{
     EVAL_CONTEXTS_CSV, EVAL_CONTEXTS_JSON, EVAL_DIR, EVAL_EPISODES, EVAL_JOB, EVAL_META,
 };
 use ctxrace_common::{Context, RaceConfig};
+use ctxrace_learner::trained::{CheckpointChoice, TrainedAgent};
 use serde::{Deserialize, Serialize};
 use std::collections::HashSet;
 use std::io::Write;

@@ -2,13 +2,14 @@
 //! a 3 × 3 grid of contexts beside the random and pure-pursuit egos, a picture of one of its
 //! races, and the commands that go further (the full protocol, the report, TensorBoard).
 
-use crate::driver::{ActMode, CheckpointChoice, EgoSpec, TrainedAgent};
+use crate::driver::{ActMode, EgoSpec};
 use crate::render::{render_race, Frame};
 use crate::TrackArgs;
 use anyhow::Result;
 use ctxrace_actor::baseline::BaselineKind;
 use ctxrace_actor::RaceEnv;
 use ctxrace_common::{Context, ExperimentConfig};
+use ctxrace_learner::trained::{CheckpointChoice, TrainedAgent};
 use std::path::Path;
 use std::sync::Arc;
 

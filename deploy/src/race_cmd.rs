@@ -1,6 +1,6 @@
 //! `ctxrace race`: one episode with a reference ego policy, its metrics, picture and trace.
 
-use crate::driver::{ActMode, CheckpointChoice, EgoSpec, TrainedAgent};
+use crate::driver::{ActMode, EgoSpec};
 use crate::render::{render_race, Frame};
 use crate::TrackArgs;
 use anyhow::{Context as _, Result};
@@ -9,6 +9,7 @@ use ctxrace_actor::baseline::BaselineKind;
 use ctxrace_actor::vehicle::idx;
 use ctxrace_actor::RaceEnv;
 use ctxrace_common::Context;
+use ctxrace_learner::trained::{CheckpointChoice, TrainedAgent};
 use serde::Serialize;
 use std::io::Write;
 use std::path::{Path, PathBuf};

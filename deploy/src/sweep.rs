@@ -176,7 +176,7 @@ impl MatrixFile {
         }
         m.eval
             .checkpoint
-            .parse::<crate::driver::CheckpointChoice>()
+            .parse::<ctxrace_learner::trained::CheckpointChoice>()
             .map_err(|e| anyhow::anyhow!("matrix {}: [eval] checkpoint: {e}", path.display()))?;
         Ok(m)
     }

@@ -13,6 +13,7 @@ pub mod sac;
 pub mod sequences;
 pub mod shards;
 pub mod tensorboard;
+pub mod trained;
 pub mod world_model;
 
 pub use algorithm::{Algorithm, Batch, Metrics};

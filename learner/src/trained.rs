@@ -1,0 +1,133 @@
+//! A trained agent read back from its run directory: the checkpoint chosen (best, latest or a
+//! given step), verified, with its agent configuration, its policy weights and the run's
+//! experiment, for `eval`, `race` and the first look after training.
+
+use crate::best::best_checkpoint;
+use crate::checkpoint::{checkpoints, latest_checkpoint, verify};
+use anyhow::{bail, Context as _, Result};
+use ctxrace_common::run_dir::{AGENT_FILE, CONFIG_FILE, POLICY_FILE};
+use ctxrace_common::{AgentConfig, ExperimentConfig};
+use std::path::{Path, PathBuf};
+
+/// Which checkpoint of a run directory to load.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CheckpointChoice {
+    /// The policy at the peak of the smoothed training return (the paper's `best_`).
+    Best,
+    /// The newest checkpoint.
+    Latest,
+    /// The checkpoint after this many gradient steps.
+    Step(u64),
+}
+
+impl std::str::FromStr for CheckpointChoice {
+    type Err = String;
+
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "best" => Ok(Self::Best),
+            "latest" => Ok(Self::Latest),
+            _ => s
+                .strip_prefix("step-")
+                .and_then(|n| n.parse().ok())
+                .map(Self::Step)
+                .ok_or_else(|| format!("'{s}' is not best, latest or step-N (e.g. step-5000)")),
+        }
+    }
+}
+
+impl std::fmt::Display for CheckpointChoice {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Best => write!(f, "best"),
+            Self::Latest => write!(f, "latest"),
+            Self::Step(n) => write!(f, "step-{n}"),
+        }
+    }
+}
+
+/// A trained agent's acting side as stored in a checkpoint.
+#[derive(Clone, Debug)]
+pub struct TrainedAgent {
+    /// The checkpoint directory.
+    pub checkpoint: PathBuf,
+    /// The agent's configuration.
+    pub agent: AgentConfig,
+    /// The policy weights (safetensors bytes).
+    pub weights: Vec<u8>,
+    /// The experiment of the run it belongs to, when the run directory is known.
+    pub experiment: Option<ExperimentConfig>,
+}
+
+impl TrainedAgent {
+    /// Loads a checkpoint directory, or the checkpoint `choice` of a run directory.
+    pub fn load(path: &Path, choice: CheckpointChoice) -> Result<Self> {
+        let (checkpoint, run_dir) = if path.join(POLICY_FILE).exists() {
+            let run = path.parent().and_then(Path::parent).map(Path::to_path_buf);
+            (path.to_path_buf(), run)
+        } else if latest_checkpoint(path).is_some() {
+            (pick_checkpoint(path, choice)?, Some(path.to_path_buf()))
+        } else {
+            bail!(
+                "{} is neither a checkpoint (no {POLICY_FILE}) nor a run directory with \
+                 checkpoints/step-*; train one with `ctxrace train`",
+                path.display()
+            );
+        };
+        verify(&checkpoint)?;
+        let agent_path = checkpoint.join(AGENT_FILE);
+        let text = std::fs::read_to_string(&agent_path)
+            .with_context(|| format!("reading {}", agent_path.display()))?;
+        let agent: AgentConfig =
+            toml::from_str(&text).with_context(|| format!("parsing {}", agent_path.display()))?;
+        let policy_path = checkpoint.join(POLICY_FILE);
+        let weights = std::fs::read(&policy_path)
+            .with_context(|| format!("reading {}", policy_path.display()))?;
+        let experiment = match run_dir.map(|r| r.join(CONFIG_FILE)) {
+            Some(p) if p.exists() => Some(ExperimentConfig::load(&p).map_err(anyhow::Error::msg)?),
+            _ => None,
+        };
+        Ok(Self {
+            checkpoint,
+            agent,
+            weights,
+            experiment,
+        })
+    }
+}
+
+/// The checkpoint `choice` of the run directory `run`, or an error saying which there are.
+fn pick_checkpoint(run: &Path, choice: CheckpointChoice) -> Result<PathBuf> {
+    let found = match choice {
+        CheckpointChoice::Best => best_checkpoint(run),
+        CheckpointChoice::Latest => latest_checkpoint(run),
+        CheckpointChoice::Step(n) => checkpoints(run)
+            .into_iter()
+            .find(|c| c.file_name() == Some(std::ffi::OsStr::new(&format!("step-{n:010}")))),
+    };
+    found.ok_or_else(|| {
+        let steps: Vec<String> = checkpoints(run)
+            .iter()
+            .filter_map(|c| {
+                c.file_name()?
+                    .to_str()?
+                    .strip_prefix("step-")?
+                    .parse::<u64>()
+                    .ok()
+            })
+            .map(|n| format!("step-{n}"))
+            .collect();
+        let why = match choice {
+            CheckpointChoice::Best => {
+                " (the learner saves it when the policy drove a training episode; runs trained \
+                 before ctxrace kept it have none)"
+            }
+            _ => "",
+        };
+        anyhow::anyhow!(
+            "{} has no {choice} checkpoint{why}; pass --checkpoint latest or one of {}",
+            run.display(),
+            steps.join(", ")
+        )
+    })
+}
