@@ -1,6 +1,15 @@
 //! `ctxrace bench learner`: gradient steps per second at the paper's batch (16 × 64 sequences;
 //! SAC 100 transitions of two stacked frames) and the acting latency at batch 1, for one
 //! algorithm, on batches of random data of the racing shapes (108 beams, 2 actions).
+//!
+//! **Fraction of peak.** The floating-point operations of a step are those of the linear layers'
+//! matrix products (forward and backward, `2 m n k` each), counted as they run
+//! ([`ctxrace_common::nn::kernels::matmul_flops`]), per phase for the DreamerV3 variants (world
+//! model; behaviour: imagination, actor and critic; cMask's mask SAC). Elementwise work is not
+//! counted, so the fraction is a lower bound of the arithmetic done. The peak is
+//! `threads × 2 FMA units × lanes × 2 flops × clock`, with 16 lanes for AVX-512, 8 for AVX2 with
+//! FMA (4 otherwise) and the clock the kernel reports (cpufreq's maximum when it exposes one, else
+//! `/proc/cpuinfo`'s "cpu MHz").
 
 use anyhow::Result;
 use clap::Args;
@@ -50,6 +59,49 @@ struct LearnerReport {
     act_ms_mean: f64,
     act_ms_p50: f64,
     act_ms_p90: f64,
+    /// Matrix-product GFLOP of one step, in all and by phase.
+    gflop_per_step: f64,
+    gflop_by_phase: Vec<(String, f64)>,
+    /// Achieved GFLOP/s of the matrix products.
+    gflops: f64,
+    /// The peak GFLOP/s of `threads` cores and how it was computed.
+    peak_gflops: f64,
+    peak_from: String,
+    /// `gflops / peak_gflops`.
+    fraction_of_peak: f64,
+}
+
+/// The peak f32 GFLOP/s of `threads` cores (see the module doc), with how it was computed.
+fn peak_gflops(threads: usize) -> (f64, String) {
+    let lanes = if std::is_x86_feature_detected!("avx512f") {
+        16
+    } else if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+        8
+    } else {
+        4
+    };
+    let cpufreq = std::fs::read_to_string("/sys/devices/system/cpu/cpu0/cpufreq/cpuinfo_max_freq")
+        .ok()
+        .and_then(|s| s.trim().parse::<f64>().ok())
+        .map(|khz| (khz / 1e6, "cpufreq maximum"));
+    let cpuinfo = || {
+        std::fs::read_to_string("/proc/cpuinfo")
+            .ok()?
+            .lines()
+            .find(|l| l.starts_with("cpu MHz"))?
+            .split(':')
+            .nth(1)?
+            .trim()
+            .parse::<f64>()
+            .ok()
+            .map(|mhz| (mhz / 1e3, "/proc/cpuinfo"))
+    };
+    let (ghz, source) = cpufreq.or_else(cpuinfo).unwrap_or((0.0, "no clock found"));
+    let peak = threads as f64 * 2.0 * lanes as f64 * 2.0 * ghz;
+    (
+        peak,
+        format!("{threads} cores x 2 FMA x {lanes} lanes x 2 flops x {ghz:.2} GHz ({source})"),
+    )
 }
 
 /// A batch of `spec` with random contents of the racing shapes.
@@ -115,11 +167,21 @@ pub fn run(args: LearnerArgs) -> Result<()> {
     ctxrace_common::nn::set_threads(threads);
     let mut algo = ctxrace_learner::build(&agent, beams)?;
     algo.train_step(&batch)?;
+    let flops_before = ctxrace_common::nn::kernels::matmul_flops();
     let start = Instant::now();
+    let mut metrics = Default::default();
     for _ in 0..args.steps.max(1) {
-        algo.train_step(&batch)?;
+        metrics = algo.train_step(&batch)?;
     }
     let per_step = start.elapsed().as_secs_f64() / args.steps.max(1) as f64;
+    let flops = ctxrace_common::nn::kernels::matmul_flops() - flops_before;
+    let gflop_per_step = flops as f64 / args.steps.max(1) as f64 / 1e9;
+    let gflop_by_phase: Vec<(String, f64)> = metrics
+        .iter()
+        .filter_map(|(k, v)| Some((k.strip_prefix("flops/")?.to_string(), v / 1e9)))
+        .collect();
+    let (peak, peak_from) = peak_gflops(threads);
+    let gflops = gflop_per_step / per_step;
 
     ctxrace_common::nn::set_threads(1);
     let mut policy = Policy::new(&agent, beams, &algo.policy_weights()?, 0)?;
@@ -146,6 +208,12 @@ pub fn run(args: LearnerArgs) -> Result<()> {
         act_ms_mean: times.iter().sum::<f64>() / times.len() as f64,
         act_ms_p50: pct(0.5),
         act_ms_p90: pct(0.9),
+        gflop_per_step,
+        gflop_by_phase,
+        gflops,
+        peak_gflops: peak,
+        peak_from,
+        fraction_of_peak: if peak > 0.0 { gflops / peak } else { 0.0 },
     };
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
@@ -161,6 +229,21 @@ pub fn run(args: LearnerArgs) -> Result<()> {
             report.act_ms_mean,
             report.act_ms_p50,
             report.act_ms_p90
+        );
+        let phases: Vec<String> = report
+            .gflop_by_phase
+            .iter()
+            .map(|(phase, g)| format!("{phase} {g:.2}"))
+            .collect();
+        println!(
+            "  matrix products: {:.2} GFLOP per step ({}), {:.1} GFLOP/s = {:.1}% of the peak \
+             {:.1} GFLOP/s ({})",
+            report.gflop_per_step,
+            phases.join(", "),
+            report.gflops,
+            100.0 * report.fraction_of_peak,
+            report.peak_gflops,
+            report.peak_from
         );
     }
     Ok(())

@@ -58,7 +58,7 @@ use crate::shards::{join_worker, on_shards, weighted_mean};
 use crate::world_model::{Starts, WorldModel};
 use candle_core::{bail, Module, Result, Tensor};
 use ctxrace_common::agents::{ContextMode, DreamerConfig, CONTEXT_DIM};
-use ctxrace_common::nn::kernels::soft_cross_entropy;
+use ctxrace_common::nn::kernels::{matmul_flops, soft_cross_entropy};
 use ctxrace_common::nn::{Activation, Mlp, ParamStore, Rssm, TwoHot};
 use ctxrace_common::policy::{mask_sample, normals_per, uniforms_per, DreamerNets, DreamerPolicy};
 use rand::SeedableRng;
@@ -428,17 +428,27 @@ impl Algorithm for Dreamer {
         let d = SeqData::new(seq, self.obs_dim, self.act_dim)?;
         let mut rngs = self.sequence_rngs(d.batch);
         let mut metrics = Metrics::new();
+        // the matrix-product FLOPs of each phase (the process's counter; one step at a time)
+        let mut counted = matmul_flops();
+        let mut phase_flops = |metrics: &mut Metrics, phase: &str| {
+            let now = matmul_flops();
+            metrics.insert(format!("flops/{phase}"), now.saturating_sub(counted) as f64);
+            counted = now;
+        };
 
         let masks = self.draw_masks(&d, &mut rngs)?;
         let ctx = self.nets.context(&d.flat(&d.context)?, masks.as_ref())?;
         let starts =
             self.world_model
                 .step(&d, ctx.as_ref(), self.workers, &mut rngs, &mut metrics)?;
+        phase_flops(&mut metrics, "model");
         self.behaviour_step(&starts, &mut rngs, &mut metrics)?;
+        phase_flops(&mut metrics, "behaviour");
         if let (Some(sac), Some(actor), Some(masks)) = (&mut self.mask_sac, &self.nets.mask, &masks)
         {
             metrics.insert("mask/mean".into(), scalar(&masks.mean_all()?)?);
             sac.step(actor, &d, self.workers, &mut rngs, &mut metrics)?;
+            phase_flops(&mut metrics, "mask");
         }
         self.step += 1;
         Ok(metrics)

@@ -27,6 +27,7 @@ use crate::algorithm::{Algorithm, Batch, Metrics};
 use crate::checkpoint;
 use candle_core::{bail, Device, Module, Result, Tensor, D};
 use candle_nn::{Init, VarBuilder};
+use ctxrace_common::nn::kernels::matmul_flops;
 use ctxrace_common::nn::{Activation, Mlp, ParamStore, TanhGaussianActor};
 use ctxrace_common::policy::SacPolicy;
 use ctxrace_common::{SacConfig, TransitionBatch};
@@ -277,7 +278,13 @@ impl Sac {
 impl Algorithm for Sac {
     fn train_step(&mut self, batch: &Batch) -> Result<Metrics> {
         match batch {
-            Batch::Transition(t) => self.update(t),
+            Batch::Transition(t) => {
+                let before = matmul_flops();
+                let mut metrics = self.update(t)?;
+                let flops = matmul_flops().saturating_sub(before);
+                metrics.insert("flops/step".into(), flops as f64);
+                Ok(metrics)
+            }
             Batch::Sequence(_) => bail!("SAC trains on transitions, not sequences"),
         }
     }

@@ -1,6 +1,17 @@
 //! `y = x Wᵀ (+ b)` on gemm, the gradients of `x` and `W` only where they are tracked.
 
 use super::*;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+/// Floating-point operations of the matrix products run so far in this process, over all threads.
+static MATMUL_FLOPS: AtomicU64 = AtomicU64::new(0);
+
+/// Floating-point operations of the linear layers' matrix products run so far in this process
+/// (forward and backward, `2 m n k` per `[m, k] × [k, n]` product), over all threads: the
+/// counter behind the learner's `flops/*` metrics and `ctxrace bench learner`'s fraction of peak.
+pub fn matmul_flops() -> u64 {
+    MATMUL_FLOPS.load(Ordering::Relaxed)
+}
 
 /// `y = x Wᵀ (+ b)` (see [`linear`]).
 struct Linear;
@@ -49,6 +60,7 @@ fn matmul(
         dst.resize(m * n, 0.0);
         return dst;
     }
+    MATMUL_FLOPS.fetch_add(2 * (m * n * k) as u64, Ordering::Relaxed);
     // the callers' shape checks guarantee these; the unsafe call below relies on them
     assert!(a.data.len() > (m - 1) * a.row_stride + (k - 1) * a.col_stride);
     assert!(b.data.len() > (k - 1) * b.row_stride + (n - 1) * b.col_stride);

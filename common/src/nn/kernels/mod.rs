@@ -152,7 +152,7 @@ mod twohot;
 
 pub use categorical::{categorical_kl, straight_through_sample};
 pub use gru::gru_gates;
-pub use linear::linear;
+pub use linear::{linear, matmul_flops};
 pub use norm_act::{norm_act, NormAct};
 pub use twohot::{soft_cross_entropy, twohot_decode};
 

@@ -1,0 +1,27 @@
+//! The matrix-product FLOP counter behind `ctxrace bench learner`'s fraction of peak counts
+//! `2 m n k` per product, forward and backward. (Its own test binary: the counter is the
+//! process's, and no other test may run beside it.)
+
+use candle_core::{DType, Device, Tensor, Var};
+use ctxrace_common::nn::kernels::{linear, matmul_flops};
+
+#[test]
+fn a_linear_layer_counts_its_forward_and_backward_products() {
+    let (n, k, m) = (5, 3, 4);
+    let dev = &Device::Cpu;
+    let x = Var::from_tensor(&Tensor::ones((n, k), DType::F32, dev).unwrap()).unwrap();
+    let w = Var::from_tensor(&Tensor::ones((m, k), DType::F32, dev).unwrap()).unwrap();
+    let product = (2 * n * m * k) as u64;
+
+    // a frozen layer on a constant input: the forward product only
+    let before = matmul_flops();
+    let y = linear(&x.as_tensor().detach(), &w.as_tensor().detach(), None).unwrap();
+    assert_eq!(matmul_flops() - before, product);
+    drop(y);
+
+    // tracked input and weight: forward, then dx = g W and dW = gᵀ x
+    let before = matmul_flops();
+    let y = linear(x.as_tensor(), w.as_tensor(), None).unwrap();
+    y.sum_all().unwrap().backward().unwrap();
+    assert_eq!(matmul_flops() - before, 3 * product);
+}
