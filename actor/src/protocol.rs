@@ -1,7 +1,7 @@
 //! The paper's evaluation protocol: every context of a `grid × grid` grid over `[−range, range]²`
 //! (7 × 7 over ±0.3 in the paper), `laps` episodes (laps) each from seeded resets, the ego's
 //! metrics per episode and their means per context, split in and out of the training
-//! distribution.
+//! distribution. The grid itself is [`Context::grid`].
 //!
 //! **Definitions.** PG: the largest fraction of the lap the ego completed in the episode.
 //! OT: +1 each time the ego passes a rival, −1 each time a rival passes it, by track progress,
@@ -116,11 +116,6 @@ impl ContextSummary {
             steer: self.context_steer,
         }
     }
-}
-
-/// The contexts of an evaluation over a `grid × grid` grid of half-width `range`, `c_v` major.
-pub fn contexts(grid: usize, range: f64) -> Vec<Context> {
-    Context::grid(grid, range)
 }
 
 /// The reset seed of lap `lap` of context `index` in an evaluation seeded `seed` (distinct for

@@ -112,7 +112,7 @@ pub struct WorkerArgs {
 
 /// The contexts of an evaluation.
 fn contexts(meta: &EvalMeta) -> Vec<Context> {
-    protocol::contexts(meta.grid, meta.range)
+    Context::grid(meta.grid, meta.range)
 }
 
 /// The trained agent (checkpoint `choice` of a run) or reference policy named by `source`.

@@ -45,8 +45,11 @@ pub(crate) fn on_shards<T: Send>(
         ));
     }
     if shards.len() == 1 {
-        let (shard, rngs) = shards.pop().expect("one shard");
-        return Ok(vec![f(shard, rngs)?]);
+        // one worker: on this thread
+        return shards
+            .into_iter()
+            .map(|(shard, rngs)| f(shard, rngs))
+            .collect();
     }
     let f = &f;
     std::thread::scope(|scope| {
