@@ -85,21 +85,30 @@ fn wants_grad(t: &Tensor) -> bool {
     t.track_op()
 }
 
-/// `eˣ` to about one part in 10⁷, branch-free so that loops over it vectorise:
-/// `eˣ = 2ᵏ eʳ` with `k = ⌊x log₂e + ½⌋`, `|r| ≤ ln 2 / 2`, `eʳ` by its Taylor series to `r⁶`
-/// (remainder below `1.2·10⁻⁷`), `2ᵏ` built in the exponent bits. Inputs are clamped to
-/// `[−87, 88]`, where `f32` neither underflows to subnormals nor overflows.
+/// `eˣ` to about one part in 10⁷, branch-free and on float and integer bits only, so that loops
+/// over it vectorise (a float-to-integer `as` cast or `floor` would not):
+/// `eˣ = 2ᵏ eʳ` with `k = round(x log₂e)`, `|r| ≤ ln 2 / 2`, `eʳ` by its Taylor series to `r⁶`
+/// (remainder below `1.2·10⁻⁷`), `2ᵏ` built in the exponent bits. `k` is rounded by adding
+/// `1.5·2²³`, which leaves it in the low mantissa bits. Inputs are clamped to `[−87, 88]`, where
+/// `f32` neither underflows to subnormals nor overflows.
 #[inline(always)]
 fn exp(x: f32) -> f32 {
+    const ROUND: f32 = 12_582_912.0; // 1.5·2²³
     let x = x.clamp(-87.0, 88.0);
-    let k = (x * std::f32::consts::LOG2_E + 0.5).floor();
+    let shifted = x * std::f32::consts::LOG2_E + ROUND;
+    let k = shifted - ROUND;
     // ln 2 split in two so that k · ln 2 is exact to f32 precision
     let r = (x - k * 0.693_359_4) + k * 2.121_944_4e-4;
     let p = 1.0
         + r * (1.0
             + r * (0.5
                 + r * (1.0 / 6.0 + r * (1.0 / 24.0 + r * (1.0 / 120.0 + r * (1.0 / 720.0))))));
-    p * f32::from_bits(((k as i32 + 127) << 23) as u32)
+    // the low bits of `shifted` hold k (two's complement); k + 127 ∈ [1, 254] after the clamp
+    let biased = shifted
+        .to_bits()
+        .wrapping_sub(ROUND.to_bits())
+        .wrapping_add(127);
+    p * f32::from_bits(biased << 23)
 }
 
 /// `1 / (1 + e⁻ˣ)`.
@@ -114,16 +123,51 @@ fn tanh(x: f32) -> f32 {
     2.0 * sigmoid(2.0 * x) - 1.0
 }
 
+/// Lanes of the sums below: independent partial sums let them vectorise (a single running sum
+/// of floats cannot be reordered by the compiler).
+const LANES: usize = 16;
+
+/// `Σ_i f(a_i, b_i)` over two slices of one length, in [`LANES`] partial sums.
+#[inline(always)]
+fn lane_sum(a: &[f32], b: &[f32], f: impl Fn(f32, f32) -> f32) -> f32 {
+    let mut acc = [0f32; LANES];
+    let (ca, cb) = (a.chunks_exact(LANES), b.chunks_exact(LANES));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (xa, xb) in ca.zip(cb) {
+        for l in 0..LANES {
+            acc[l] += f(xa[l], xb[l]);
+        }
+    }
+    let tail: f32 = ra.iter().zip(rb).map(|(&x, &y)| f(x, y)).sum();
+    acc.iter().sum::<f32>() + tail
+}
+
+/// The largest value of `x` (`−∞` if empty), in [`LANES`] partial maxima.
+#[inline(always)]
+fn lane_max(x: &[f32]) -> f32 {
+    let mut acc = [f32::NEG_INFINITY; LANES];
+    let chunks = x.chunks_exact(LANES);
+    let tail = chunks
+        .remainder()
+        .iter()
+        .copied()
+        .fold(f32::NEG_INFINITY, f32::max);
+    for c in chunks {
+        for l in 0..LANES {
+            acc[l] = acc[l].max(c[l]);
+        }
+    }
+    acc.iter().copied().fold(tail, f32::max)
+}
+
 /// Softmax of `l` into `out`.
 #[inline(always)]
 fn softmax_into(l: &[f32], out: &mut [f32]) {
-    let max = l.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-    let mut sum = 0.0;
+    let max = lane_max(l);
     for (o, &v) in out.iter_mut().zip(l) {
         *o = exp(v - max);
-        sum += *o;
     }
-    let inv = 1.0 / sum;
+    let inv = 1.0 / lane_sum(out, out, |v, _| v);
     out.iter_mut().for_each(|o| *o *= inv);
 }
 
@@ -131,7 +175,7 @@ fn softmax_into(l: &[f32], out: &mut [f32]) {
 /// `(1 − η) s_k (dp_k − Σ_j s_j dp_j)`.
 #[inline(always)]
 fn unimix_softmax_backward(s: &[f32], dp: &[f32], keep: f32, out: &mut [f32]) {
-    let dot: f32 = s.iter().zip(dp).map(|(a, b)| a * b).sum();
+    let dot = lane_sum(s, dp, |a, b| a * b);
     for ((o, &sk), &dk) in out.iter_mut().zip(s).zip(dp) {
         *o = keep * sk * (dk - dot);
     }
@@ -155,6 +199,29 @@ pub use gru::gru_gates;
 pub use linear::{linear, matmul_flops};
 pub use norm_act::{norm_act, NormAct};
 pub use twohot::{soft_cross_entropy, twohot_decode};
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn exp_and_sigmoid_match_std_to_single_precision() {
+        // the unclamped range [−87, 88]
+        for i in -1990..=2010 {
+            let x = i as f32 * 0.0437;
+            let (ours, std) = (super::exp(x), x.exp());
+            assert!(
+                (ours - std).abs() <= 4e-7 * std,
+                "exp({x}) = {ours}, std {std}"
+            );
+            let s = 1.0 / (1.0 + (-x).exp());
+            assert!((super::sigmoid(x) - s).abs() <= 1e-6, "sigmoid({x})");
+        }
+        // clamped where f32 would overflow or turn subnormal
+        assert!(super::exp(200.0).is_finite() && super::exp(-200.0) > 0.0);
+        let l = [0.5f32; 37].map(|v| v * 3.0);
+        assert_eq!(super::lane_max(&l), 1.5);
+        assert!((super::lane_sum(&l, &l, |a, b| a * b) - 37.0 * 2.25).abs() < 1e-4);
+    }
+}
 
 /// Helpers of the kernels' tests.
 #[cfg(test)]

@@ -30,25 +30,6 @@ struct NormActOp {
     act: NormAct,
 }
 
-/// Lanes of the sums below: independent partial sums let them vectorise (a single running sum
-/// of floats cannot be reordered by the compiler).
-const LANES: usize = 16;
-
-/// `Σ_i f(a_i, b_i)` over two slices of one length, in [`LANES`] partial sums.
-#[inline(always)]
-fn lane_sum(a: &[f32], b: &[f32], f: impl Fn(f32, f32) -> f32) -> f32 {
-    let mut acc = [0f32; LANES];
-    let (ca, cb) = (a.chunks_exact(LANES), b.chunks_exact(LANES));
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (xa, xb) in ca.zip(cb) {
-        for l in 0..LANES {
-            acc[l] += f(xa[l], xb[l]);
-        }
-    }
-    let tail: f32 = ra.iter().zip(rb).map(|(&x, &y)| f(x, y)).sum();
-    acc.iter().sum::<f32>() + tail
-}
-
 /// Mean and `1/√(σ² + ε)` of a row.
 #[inline(always)]
 fn row_moments(x: &[f32], eps: f32) -> (f32, f32) {

@@ -2,6 +2,73 @@
 
 use super::*;
 
+vectorised! {
+    /// `out_i ← symexp(Σ_k softmax(x_i)_k b_k)` for the rows `x_i` of `bins.len()` values of `x`.
+    fn decode_rows(x: &[f32], bins: &[f32], out: &mut [f32]) {
+        if bins.is_empty() {
+            return;
+        }
+        let mut p = vec![0f32; bins.len()];
+        for (xr, o) in x.chunks_exact(bins.len()).zip(out.iter_mut()) {
+            softmax_into(xr, &mut p);
+            let m = lane_sum(&p, bins, |a, b| a * b);
+            *o = m.signum() * (m.abs().exp() - 1.0);
+        }
+    }
+}
+
+vectorised! {
+    /// The backward pass of [`decode_rows`]: `dx_ik = g_i e^{|m_i|} p_ik (b_k − m_i)`.
+    fn decode_rows_bwd(x: &[f32], bins: &[f32], g: &[f32], dx: &mut [f32]) {
+        let k = bins.len();
+        if k == 0 {
+            return;
+        }
+        let mut p = vec![0f32; k];
+        for ((xr, d), &gr) in x.chunks_exact(k).zip(dx.chunks_exact_mut(k)).zip(g) {
+            softmax_into(xr, &mut p);
+            let m = lane_sum(&p, bins, |a, b| a * b);
+            let dm = gr * m.abs().exp();
+            for j in 0..k {
+                d[j] = p[j] * (bins[j] - m) * dm;
+            }
+        }
+    }
+}
+
+vectorised! {
+    /// `out_i ← Σ_k t_ik (lse(l_i) − l_ik)` for the rows of `l` and `t` (`l.len() / out.len()`
+    /// values each).
+    fn cross_entropy_rows(l: &[f32], t: &[f32], out: &mut [f32]) {
+        let k = l.len() / out.len();
+        for ((lr, tr), o) in l.chunks_exact(k).zip(t.chunks_exact(k)).zip(out.iter_mut()) {
+            let max = lane_max(lr);
+            let lse = max + lane_sum(lr, lr, |v, _| exp(v - max)).ln();
+            *o = lane_sum(tr, lr, |tk, lk| tk * (lse - lk));
+        }
+    }
+}
+
+vectorised! {
+    /// The backward pass of [`cross_entropy_rows`]: `dl_ik = g_i (softmax(l_i)_k Σ_j t_ij − t_ik)`.
+    fn cross_entropy_rows_bwd(l: &[f32], t: &[f32], g: &[f32], dl: &mut [f32]) {
+        let k = l.len() / g.len();
+        let mut p = vec![0f32; k];
+        for (((lr, tr), d), &gr) in l
+            .chunks_exact(k)
+            .zip(t.chunks_exact(k))
+            .zip(dl.chunks_exact_mut(k))
+            .zip(g)
+        {
+            softmax_into(lr, &mut p);
+            let total = lane_sum(tr, tr, |v, _| v);
+            for j in 0..k {
+                d[j] = gr * (p[j] * total - tr[j]);
+            }
+        }
+    }
+}
+
 struct TwohotDecode {
     bins: Vec<f32>,
 }
@@ -15,31 +82,16 @@ impl CustomOp1 for TwohotDecode {
         let x = cpu_slice(s, l)?;
         let k = self.bins.len();
         let mut out = vec![0f32; x.len() / k];
-        let mut p = vec![0f32; k];
-        for (i, o) in out.iter_mut().enumerate() {
-            softmax_into(&x[i * k..(i + 1) * k], &mut p);
-            let m: f32 = p.iter().zip(&self.bins).map(|(a, b)| a * b).sum();
-            *o = m.signum() * (m.abs().exp() - 1.0);
-        }
+        decode_rows(x, &self.bins, &mut out);
         let dims = l.shape().dims();
         Ok((CpuStorage::F32(out), Shape::from(&dims[..dims.len() - 1])))
     }
 
     fn bwd(&self, logits: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
-        let k = self.bins.len();
         let dl = read(logits, |x| {
             read(grad, |g| {
                 let mut dl = vec![0f32; x.len()];
-                let mut p = vec![0f32; k];
-                for (i, d) in dl.chunks_mut(k).enumerate() {
-                    let r = i;
-                    softmax_into(&x[r * k..(r + 1) * k], &mut p);
-                    let m: f32 = p.iter().zip(&self.bins).map(|(a, b)| a * b).sum();
-                    let dm = g[r] * m.abs().exp();
-                    for j in 0..k {
-                        d[j] = p[j] * (self.bins[j] - m) * dm;
-                    }
-                }
+                decode_rows_bwd(x, &self.bins, g, &mut dl);
                 Ok(dl)
             })
         })?;
@@ -85,12 +137,8 @@ impl CustomOp2 for SoftCrossEntropy {
             );
         }
         let mut out = vec![0f32; rows];
-        for (i, o) in out.iter_mut().enumerate() {
-            let at = i * k;
-            let (lr, tr) = (&l[at..at + k], &t[at..at + k]);
-            let max = lr.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-            let lse = max + lr.iter().map(|&v| exp(v - max)).sum::<f32>().ln();
-            *o = tr.iter().zip(lr).map(|(tk, lk)| tk * (lse - lk)).sum();
+        if rows > 0 && k > 0 {
+            cross_entropy_rows(l, t, &mut out);
         }
         Ok((CpuStorage::F32(out), Shape::from(rows)))
     }
@@ -105,20 +153,13 @@ impl CustomOp2 for SoftCrossEntropy {
         if wants_grad(target) {
             bail!("soft_cross_entropy: the targets must be detached");
         }
-        let (_, k) = dims2(logits)?;
+        dims2(logits)?;
         let dl = read(logits, |l| {
             read(target, |t| {
                 read(grad, |g| {
                     let mut dl = vec![0f32; l.len()];
-                    let mut p = vec![0f32; k];
-                    for (i, d) in dl.chunks_mut(k).enumerate() {
-                        let r = i;
-                        softmax_into(&l[r * k..(r + 1) * k], &mut p);
-                        let tr = &t[r * k..(r + 1) * k];
-                        let total: f32 = tr.iter().sum();
-                        for j in 0..k {
-                            d[j] = g[r] * (p[j] * total - tr[j]);
-                        }
+                    if !dl.is_empty() {
+                        cross_entropy_rows_bwd(l, t, g, &mut dl);
                     }
                     Ok(dl)
                 })
@@ -145,8 +186,9 @@ mod tests {
 
     #[test]
     fn twohot_heads_match_the_composed_softmax() {
-        let l = var(&[5, 7], 15);
-        let bins: Vec<f32> = (0..7).map(|k| -3.0 + k as f32).collect();
+        // 37 bins: two full vector lanes of the reductions and a remainder
+        let l = var(&[5, 37], 15);
+        let bins: Vec<f32> = (0..37).map(|k| -3.0 + 0.2 * k as f32).collect();
         let b = Tensor::new(bins.as_slice(), &Device::Cpu).unwrap();
         let m = candle_nn::ops::softmax(&l, D::Minus1)
             .unwrap()
@@ -161,7 +203,7 @@ mod tests {
             .unwrap();
         same(twohot_decode(&l, &bins).unwrap(), symexp, &[&l], 1e-4);
 
-        let t = var(&[5, 7], 16).as_tensor().abs().unwrap().detach();
+        let t = var(&[5, 37], 16).as_tensor().abs().unwrap().detach();
         let composed = t
             .mul(&candle_nn::ops::log_softmax(&l, D::Minus1).unwrap())
             .unwrap()
