@@ -236,18 +236,20 @@ impl Dreamer {
         let per_sequence = n / rngs.len().max(1);
         let ctx = start.ctx.as_ref();
         let (s, c, a) = (self.cfg.stoch, self.cfg.classes, self.act_dim);
+        // the weights transposed once for the H steps
+        let (rssm, actor) = (self.frozen.rssm.looped()?, self.nets.actor.looped()?);
         let mut state = start.state.clone();
         let mut xs = vec![state.head_input(ctx)?];
         let mut entropies = Vec::with_capacity(self.cfg.horizon);
         for t in 0..self.cfg.horizon {
             // the actor sees stop-gradient states; its actions carry gradients into the model
-            let (mean, std) = self.nets.actor_dist(&xs[t].detach())?;
+            let (mean, std) = self.nets.actor_dist_of(&actor, &xs[t].detach())?;
             let noise = normals_per(rngs, per_sequence, a)?;
             let action = DreamerNets::sample_action(&mean, &std, &noise)?;
             let gauss = 0.5 * (1.0 + (2.0 * std::f64::consts::PI).ln());
             entropies.push((std.log()?.sum(1)? + a as f64 * gauss)?);
             let uniform = uniforms_per(rngs, per_sequence, (s, c))?;
-            state = self.frozen.rssm.img_step(&state, &action, ctx, &uniform)?.0;
+            state = rssm.img_step(&state, &action, ctx, &uniform)?.0;
             xs.push(state.head_input(ctx)?);
         }
         Ok(Imagined {

@@ -128,7 +128,8 @@ impl WorldModel {
     ) -> Result<(Tensor, Metrics, Starts)> {
         let (b, t_len, n) = (d.batch, d.length, d.batch * d.length);
         let (s, c) = (self.cfg.stoch, self.cfg.classes);
-        let rssm = &self.rssm;
+        // the weights transposed once for the 64 steps (gradients reach the originals)
+        let rssm = &self.rssm.looped()?;
         let target = symlog(&d.flat(&d.obs)?)?;
         // time-major, so that `get(t)` gives contiguous `[B, …]` slices
         let time_major = |x: &Tensor| x.transpose(0, 1)?.contiguous();

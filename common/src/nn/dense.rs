@@ -9,8 +9,11 @@ use candle_nn::VarBuilder;
 /// A linear layer, with or without a bias.
 #[derive(Clone, Debug)]
 pub struct Dense {
+    /// `W` `[out, in]`.
     weight: Tensor,
     bias: Option<Tensor>,
+    /// `Wᵀ` `[in, out]` (from `weight`, differentiably) in a [`Dense::looped`] layer.
+    transposed: Option<Tensor>,
 }
 
 impl Dense {
@@ -26,12 +29,35 @@ impl Dense {
         } else {
             None
         };
-        Ok(Self { weight, bias })
+        Ok(Self {
+            weight,
+            bias,
+            transposed: None,
+        })
     }
 
     /// `x Wᵀ + b` for `x` `[N, in]`.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        kernels::linear(x, &self.weight, self.bias.as_ref())
+        if let Some(wt) = &self.transposed {
+            kernels::linear_t(x, wt, &self.weight, self.bias.as_ref())
+        } else {
+            kernels::linear(x, &self.weight, self.bias.as_ref())
+        }
+    }
+
+    /// The same layer for a loop that applies it many times: its weight transposed once into
+    /// `[in, out]`, the layout gemm multiplies without packing ([`kernels::linear_t`]). The
+    /// transposition is differentiable, so gradients reach the original weight.
+    pub fn looped(&self) -> Result<Self> {
+        let transposed = match &self.transposed {
+            Some(wt) => wt.clone(),
+            None => self.weight.t()?.contiguous()?,
+        };
+        Ok(Self {
+            weight: self.weight.clone(),
+            bias: self.bias.clone(),
+            transposed: Some(transposed),
+        })
     }
 
     /// The same layer on detached parameters: gradients pass to its input but not to its weights
@@ -40,6 +66,7 @@ impl Dense {
         Self {
             weight: self.weight.detach(),
             bias: self.bias.as_ref().map(Tensor::detach),
+            transposed: self.transposed.as_ref().map(Tensor::detach),
         }
     }
 }

@@ -89,6 +89,13 @@ impl NormBlock {
             ln: self.ln.frozen(),
         }
     }
+
+    fn looped(&self) -> Result<Self> {
+        Ok(Self {
+            fc: self.fc.looped()?,
+            ln: self.ln.clone(),
+        })
+    }
 }
 
 /// DreamerV3's GRU cell with a LayerNorm on the gates and update bias −1.
@@ -121,6 +128,14 @@ impl Gru {
             fc: self.fc.frozen(),
             ln: self.ln.frozen(),
         }
+    }
+
+    /// The same cell for a loop over time steps (see [`Dense::looped`]).
+    pub fn looped(&self) -> Result<Self> {
+        Ok(Self {
+            fc: self.fc.looped()?,
+            ln: self.ln.clone(),
+        })
     }
 }
 
@@ -167,6 +182,20 @@ impl Rssm {
             post_hidden: self.post_hidden.frozen(),
             post_out: self.post_out.frozen(),
         }
+    }
+
+    /// The same model for a loop over time steps: every weight transposed once, so that the
+    /// steps multiply without re-packing them ([`Dense::looped`]); gradients reach the originals.
+    pub fn looped(&self) -> Result<Self> {
+        Ok(Self {
+            cfg: self.cfg,
+            img_in: self.img_in.looped()?,
+            gru: self.gru.looped()?,
+            prior_hidden: self.prior_hidden.looped()?,
+            prior_out: self.prior_out.looped()?,
+            post_hidden: self.post_hidden.looped()?,
+            post_out: self.post_out.looped()?,
+        })
     }
 
     /// The sizes.

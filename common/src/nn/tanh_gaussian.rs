@@ -53,6 +53,14 @@ impl TanhGaussianActor {
         Ok(Self { net, act_dim })
     }
 
+    /// The same actor for a loop that applies it many times (see [`crate::nn::Dense::looped`]).
+    pub fn looped(&self) -> Result<Self> {
+        Ok(Self {
+            net: self.net.looped()?,
+            act_dim: self.act_dim,
+        })
+    }
+
     /// Action size `A`.
     pub fn act_dim(&self) -> usize {
         self.act_dim

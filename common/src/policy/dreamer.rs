@@ -86,6 +86,18 @@ impl DreamerNets {
         })
     }
 
+    /// The same networks for loops that apply them many times (acting step after step, the
+    /// imagination's horizon): every weight transposed once ([`crate::nn::Dense::looped`]).
+    pub fn looped(&self) -> Result<Self> {
+        Ok(Self {
+            encoder: self.encoder.looped()?,
+            rssm: self.rssm.looped()?,
+            actor: self.actor.looped()?,
+            mask: self.mask.as_ref().map(TanhGaussianActor::looped).transpose()?,
+            ..self.clone()
+        })
+    }
+
     /// The model's context input `[N, 2]` for raw contexts and (cMask) masks, or `None`.
     pub fn context(&self, raw: &Tensor, mask: Option<&Tensor>) -> Result<Option<Tensor>> {
         if self.rssm.config().context_dim == 0 {
@@ -100,7 +112,12 @@ impl DreamerNets {
 
     /// The actor's mean `tanh μ` and standard deviation, each `[N, A]`.
     pub fn actor_dist(&self, x: &Tensor) -> Result<(Tensor, Tensor)> {
-        let out = self.actor.forward(x)?;
+        self.actor_dist_of(&self.actor, x)
+    }
+
+    /// [`DreamerNets::actor_dist`] through `actor`, a view of this actor (e.g. [`Mlp::looped`]).
+    pub fn actor_dist_of(&self, actor: &Mlp, x: &Tensor) -> Result<(Tensor, Tensor)> {
+        let out = actor.forward(x)?;
         let mean = out.narrow(1, 0, self.act_dim)?.tanh()?;
         let raw = (out.narrow(1, self.act_dim, self.act_dim)? + 2.0)?;
         let std =
@@ -200,6 +217,9 @@ pub fn normals_per(rngs: &mut [ChaCha8Rng], rows: usize, width: usize) -> Result
 /// The acting side of DreamerV3 at batch 1: keeps the recurrent state and the previous action.
 pub struct DreamerPolicy {
     store: ParamStore,
+    /// The networks on `store`'s weights.
+    stored: DreamerNets,
+    /// `stored`, [`DreamerNets::looped`] for acting step after step (re-made on every load).
     nets: DreamerNets,
     obs_dim: usize,
     zero: RssmState,
@@ -219,6 +239,7 @@ impl DreamerPolicy {
         let store = ParamStore::new();
         let nets = DreamerNets::new(cfg, obs_dim, ACT_DIM, store.builder())?;
         store.load_bytes(weights)?;
+        let (stored, nets) = (nets.clone(), nets.looped()?);
         let zero = nets.rssm.initial(1)?;
         let zero_action = Tensor::zeros((1, ACT_DIM), DType::F32, &Device::Cpu)?;
         Ok(Self {
@@ -231,6 +252,7 @@ impl DreamerPolicy {
             // equal Gumbel noise: the sample is the most likely class
             uniform_mode: Tensor::full(0.5f32, (1, cfg.stoch, cfg.classes), &Device::Cpu)?,
             stoch: (cfg.stoch, cfg.classes),
+            stored,
             nets,
             rng: ChaCha8Rng::seed_from_u64(seed),
         })
@@ -238,7 +260,9 @@ impl DreamerPolicy {
 
     /// Replaces the weights (same architecture) without resetting the state.
     pub fn load(&mut self, weights: &[u8]) -> Result<()> {
-        self.store.load_bytes(weights)
+        self.store.load_bytes(weights)?;
+        self.nets = self.stored.looped()?;
+        Ok(())
     }
 
     /// Restarts the sampling noise from `seed`.

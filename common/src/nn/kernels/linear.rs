@@ -1,4 +1,10 @@
 //! `y = x Wᵀ (+ b)` on gemm, the gradients of `x` and `W` only where they are tracked.
+//!
+//! The weight comes as stored (`W` `[out, in]`) or transposed once (`Wᵀ` `[in, out]`, contiguous).
+//! gemm reads the stored layout only after packing it, on every call; a loop that applies a layer
+//! many times to a few rows (the RSSM over a sequence, acting at batch 1) spends most of its time
+//! there. The transposed layout is what gemm's kernel reads directly, so such loops transpose the
+//! weight once ([`crate::nn::Dense::looped`]) and multiply without packing.
 
 use super::*;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -13,8 +19,23 @@ pub fn matmul_flops() -> u64 {
     MATMUL_FLOPS.load(Ordering::Relaxed)
 }
 
-/// `y = x Wᵀ (+ b)` (see [`linear`]).
-struct Linear;
+/// `y = x Wᵀ (+ b)` (see [`linear`]). The weight argument is `W` `[out, in]`, or with `stored`
+/// it is `Wᵀ` `[in, out]` and `stored` holds `W` as well: the forward product reads `Wᵀ` and the
+/// input's gradient `g W` reads `W`, the layouts gemm multiplies without packing.
+struct Linear {
+    stored: Option<Tensor>,
+}
+
+impl Linear {
+    /// `(out, in)` of a weight argument of shape `dims`.
+    fn out_in(&self, (r, c): (usize, usize)) -> (usize, usize) {
+        if self.stored.is_some() {
+            (c, r)
+        } else {
+            (r, c)
+        }
+    }
+}
 
 /// A matrix operand of [`matmul`]: its values and the strides of its rows and columns.
 #[derive(Clone, Copy)]
@@ -95,65 +116,76 @@ fn matmul(
     dst
 }
 
-fn linear_fwd(
-    x: (&CpuStorage, &Layout),
-    w: (&CpuStorage, &Layout),
-    b: Option<(&CpuStorage, &Layout)>,
-) -> Result<(CpuStorage, Shape)> {
-    let (n, k) = x.1.shape().dims2()?;
-    let (m, k2) = w.1.shape().dims2()?;
-    if k != k2 {
-        bail!("linear: input width {k} but weight [{m}, {k2}]");
-    }
-    let (x, w) = (cpu_slice(x.0, x.1)?, cpu_slice(w.0, w.1)?);
-    let init = match b {
-        Some((s, l)) => {
-            let b = cpu_slice(s, l)?;
-            if b.len() != m {
-                bail!("linear: bias of {} for {m} outputs", b.len());
-            }
-            Some(b.repeat(n))
+impl Linear {
+    fn fwd(
+        &self,
+        x: (&CpuStorage, &Layout),
+        w: (&CpuStorage, &Layout),
+        b: Option<(&CpuStorage, &Layout)>,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (n, k) = x.1.shape().dims2()?;
+        let (m, k2) = self.out_in(w.1.shape().dims2()?);
+        if k != k2 {
+            bail!("linear: input width {k} but weight {:?}", w.1.shape().dims());
         }
-        None => None,
-    };
-    let y = matmul(
-        n,
-        m,
-        k,
-        Operand::rows(x, k),
-        Operand::transposed(w, k),
-        init,
-    );
-    Ok((CpuStorage::F32(y), Shape::from((n, m))))
-}
+        let (x, w) = (cpu_slice(x.0, x.1)?, cpu_slice(w.0, w.1)?);
+        let init = match b {
+            Some((s, l)) => {
+                let b = cpu_slice(s, l)?;
+                if b.len() != m {
+                    bail!("linear: bias of {} for {m} outputs", b.len());
+                }
+                Some(b.repeat(n))
+            }
+            None => None,
+        };
+        let wt = if self.stored.is_some() {
+            Operand::rows(w, m)
+        } else {
+            Operand::transposed(w, k)
+        };
+        let y = matmul(n, m, k, Operand::rows(x, k), wt, init);
+        Ok((CpuStorage::F32(y), Shape::from((n, m))))
+    }
 
-/// The gradients of `x` `[N, in]` and `W` `[out, in]` for `y = x Wᵀ` (each if wanted):
-/// `dx = g W`, `dW = gᵀ x`.
-fn linear_bwd(x: &Tensor, w: &Tensor, grad: &Tensor) -> Result<(Option<Tensor>, Option<Tensor>)> {
-    let (want_x, want_w) = (wants_grad(x), wants_grad(w));
-    let (rows, input) = dims2(x)?;
-    let (output, _) = dims2(w)?;
-    let (dx, dw) = read(grad, |g| {
-        let dx = want_x.then(|| {
-            read(w, |wv| {
-                let (g, wv) = (Operand::rows(g, output), Operand::rows(wv, input));
-                Ok(matmul(rows, input, output, g, wv, None))
-            })
-        });
-        let dw = want_w.then(|| {
-            read(x, |xv| {
-                let (gt, xv) = (Operand::transposed(g, output), Operand::rows(xv, input));
-                Ok(matmul(output, input, rows, gt, xv, None))
-            })
-        });
-        Ok((dx.transpose()?, dw.transpose()?))
-    })?;
-    Ok((
-        dx.map(|v| Tensor::from_vec(v, x.shape(), x.device()))
-            .transpose()?,
-        dw.map(|v| Tensor::from_vec(v, w.shape(), w.device()))
-            .transpose()?,
-    ))
+    /// The gradients of `x` `[N, in]` and of the weight for `y = x Wᵀ` (each if wanted):
+    /// `dx = g W`, `dW = gᵀ x` (or `dWᵀ = xᵀ g` for a transposed weight).
+    fn bwd_xw(
+        &self,
+        x: &Tensor,
+        w: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let (want_x, want_w) = (wants_grad(x), wants_grad(w));
+        let (rows, input) = dims2(x)?;
+        let (output, _) = self.out_in(dims2(w)?);
+        let (dx, dw) = read(grad, |g| {
+            let dx = want_x.then(|| {
+                read(self.stored.as_ref().unwrap_or(w), |wv| {
+                    let wv = Operand::rows(wv, input);
+                    Ok(matmul(rows, input, output, Operand::rows(g, output), wv, None))
+                })
+            });
+            let dw = want_w.then(|| {
+                read(x, |xv| {
+                    Ok(if self.stored.is_some() {
+                        let (xt, g) = (Operand::transposed(xv, input), Operand::rows(g, output));
+                        matmul(input, output, rows, xt, g, None)
+                    } else {
+                        let (gt, xv) = (Operand::transposed(g, output), Operand::rows(xv, input));
+                        matmul(output, input, rows, gt, xv, None)
+                    })
+                })
+            });
+            Ok((dx.transpose()?, dw.transpose()?))
+        })?;
+        Ok((
+            dx.map(|v| Tensor::from_vec(v, x.shape(), x.device()))
+                .transpose()?,
+            dw.map(|v| Tensor::from_vec(v, w.shape(), w.device()))
+                .transpose()?,
+        ))
+    }
 }
 
 impl CustomOp2 for Linear {
@@ -168,7 +200,7 @@ impl CustomOp2 for Linear {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        linear_fwd((s1, l1), (s2, l2), None)
+        self.fwd((s1, l1), (s2, l2), None)
     }
 
     fn bwd(
@@ -178,7 +210,7 @@ impl CustomOp2 for Linear {
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        linear_bwd(x, w, grad)
+        self.bwd_xw(x, w, grad)
     }
 }
 
@@ -196,7 +228,7 @@ impl CustomOp3 for Linear {
         s3: &CpuStorage,
         l3: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        linear_fwd((s1, l1), (s2, l2), Some((s3, l3)))
+        self.fwd((s1, l1), (s2, l2), Some((s3, l3)))
     }
 
     fn bwd(
@@ -207,7 +239,7 @@ impl CustomOp3 for Linear {
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let (dx, dw) = linear_bwd(x, w, grad)?;
+        let (dx, dw) = self.bwd_xw(x, w, grad)?;
         let db = if wants_grad(b) {
             Some(grad.sum(0)?)
         } else {
@@ -219,10 +251,34 @@ impl CustomOp3 for Linear {
 
 /// `x Wᵀ + b` for `x` `[N, in]`, `weight` `[out, in]` and an optional `bias` `[out]`.
 pub fn linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
+    apply(x, weight, bias, Linear { stored: None })
+}
+
+/// `x Wᵀ + b` with the weight given in both layouts, `weight_t` `[in, out]` (which takes the
+/// gradient) and `weight` `[out, in]` (its values, detached): the same product as [`linear`]
+/// without gemm's per-call packing of the weight, forward or backward.
+pub fn linear_t(
+    x: &Tensor,
+    weight_t: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+) -> Result<Tensor> {
+    if weight_t.dims() != weight.t()?.dims() {
+        bail!(
+            "linear_t: weight_t {:?} is not the transpose of weight {:?}",
+            weight_t.dims(),
+            weight.dims()
+        );
+    }
+    let stored = Some(weight.detach().contiguous()?);
+    apply(x, &weight_t.contiguous()?, bias, Linear { stored })
+}
+
+fn apply(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>, op: Linear) -> Result<Tensor> {
     let x = x.contiguous()?;
     match bias {
-        Some(b) => x.apply_op3(weight, b, Linear),
-        None => x.apply_op2(weight, Linear),
+        Some(b) => x.apply_op3(weight, b, op),
+        None => x.apply_op2(weight, op),
     }
 }
 
@@ -249,6 +305,17 @@ mod tests {
             linear(&x, &w, None).unwrap(),
             x.matmul(&w.t().unwrap()).unwrap(),
             &[&x, &w],
+            1e-5,
+        );
+        // the transposed layout: the same values and gradients
+        let wt = w.t().unwrap().contiguous().unwrap();
+        same(
+            linear_t(&x, &wt, &w, Some(&b)).unwrap(),
+            x.matmul(&w.t().unwrap())
+                .unwrap()
+                .broadcast_add(&b)
+                .unwrap(),
+            &[&x, &w, &b],
             1e-5,
         );
         // a detached weight receives no gradient; the input still does

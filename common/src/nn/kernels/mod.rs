@@ -9,7 +9,7 @@
 //! the gradient of an argument only when it is tracked ([`Tensor::track_op`]): a detached weight,
 //! as in a frozen copy of a network, costs nothing in the backward pass.
 //!
-//! - [`linear`]: `y = x Wᵀ (+ b)`.
+//! - [`linear`], [`linear_t`]: `y = x Wᵀ (+ b)`, the weight as stored or transposed.
 //! - [`norm_act`]: `LayerNorm` then SiLU or the identity:
 //!   `x̂ = (x − μ)/√(σ² + ε)`, `y = act(γ x̂ + β)`; backward
 //!   `dx = (dx̂ − mean(dx̂) − x̂ mean(dx̂ x̂)) / √(σ² + ε)` with `dx̂ = γ act'(·) dy`.
@@ -196,7 +196,7 @@ mod twohot;
 
 pub use categorical::{categorical_kl, straight_through_sample};
 pub use gru::gru_gates;
-pub use linear::{linear, matmul_flops};
+pub use linear::{linear, linear_t, matmul_flops};
 pub use norm_act::{norm_act, NormAct};
 pub use twohot::{soft_cross_entropy, twohot_decode};
 
