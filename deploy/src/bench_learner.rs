@@ -54,7 +54,10 @@ struct LearnerReport {
     algo: String,
     batch: String,
     threads: usize,
+    /// Mean, fastest and median seconds of the timed steps.
     seconds_per_step: f64,
+    seconds_min: f64,
+    seconds_median: f64,
     steps_per_second: f64,
     act_ms_mean: f64,
     act_ms_p50: f64,
@@ -62,6 +65,8 @@ struct LearnerReport {
     /// Matrix-product GFLOP of one step, in all and by phase.
     gflop_per_step: f64,
     gflop_by_phase: Vec<(String, f64)>,
+    /// Wall seconds of each phase of the last step (DreamerV3 variants).
+    seconds_by_phase: Vec<(String, f64)>,
     /// Achieved GFLOP/s of the matrix products.
     gflops: f64,
     /// The peak GFLOP/s of `threads` cores and how it was computed.
@@ -168,18 +173,25 @@ pub fn run(args: LearnerArgs) -> Result<()> {
     let mut algo = ctxrace_learner::build(&agent, beams)?;
     algo.train_step(&batch)?;
     let flops_before = ctxrace_common::nn::kernels::matmul_flops();
-    let start = Instant::now();
     let mut metrics = Default::default();
+    let mut step_times = Vec::with_capacity(args.steps.max(1));
     for _ in 0..args.steps.max(1) {
+        let t = Instant::now();
         metrics = algo.train_step(&batch)?;
+        step_times.push(t.elapsed().as_secs_f64());
     }
-    let per_step = start.elapsed().as_secs_f64() / args.steps.max(1) as f64;
+    let per_step = step_times.iter().sum::<f64>() / step_times.len() as f64;
+    step_times.sort_by(f64::total_cmp);
+    let by_phase = |prefix: &str, scale: f64| -> Vec<(String, f64)> {
+        metrics
+            .iter()
+            .filter_map(|(k, v)| Some((k.strip_prefix(prefix)?.to_string(), v * scale)))
+            .collect()
+    };
     let flops = ctxrace_common::nn::kernels::matmul_flops() - flops_before;
     let gflop_per_step = flops as f64 / args.steps.max(1) as f64 / 1e9;
-    let gflop_by_phase: Vec<(String, f64)> = metrics
-        .iter()
-        .filter_map(|(k, v)| Some((k.strip_prefix("flops/")?.to_string(), v / 1e9)))
-        .collect();
+    let gflop_by_phase = by_phase("flops/", 1e-9);
+    let seconds_by_phase = by_phase("seconds/", 1.0);
     let (peak, peak_from) = peak_gflops(threads);
     let gflops = gflop_per_step / per_step;
 
@@ -204,12 +216,15 @@ pub fn run(args: LearnerArgs) -> Result<()> {
         },
         threads,
         seconds_per_step: per_step,
+        seconds_min: step_times[0],
+        seconds_median: step_times[step_times.len() / 2],
         steps_per_second: 1.0 / per_step,
         act_ms_mean: times.iter().sum::<f64>() / times.len() as f64,
         act_ms_p50: pct(0.5),
         act_ms_p90: pct(0.9),
         gflop_per_step,
         gflop_by_phase,
+        seconds_by_phase,
         gflops,
         peak_gflops: peak,
         peak_from,
@@ -219,13 +234,15 @@ pub fn run(args: LearnerArgs) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
         println!(
-            "{} ({}, {} threads): {:.2} ms per gradient step ({:.2} steps/s); acting at batch 1: \
-             mean {:.3} ms, p50 {:.3} ms, p90 {:.3} ms",
+            "{} ({}, {} threads): {:.2} ms per gradient step ({:.2} steps/s; fastest {:.2} ms, \
+             median {:.2} ms); acting at batch 1: mean {:.3} ms, p50 {:.3} ms, p90 {:.3} ms",
             report.algo,
             report.batch,
             report.threads,
             report.seconds_per_step * 1e3,
             report.steps_per_second,
+            report.seconds_min * 1e3,
+            report.seconds_median * 1e3,
             report.act_ms_mean,
             report.act_ms_p50,
             report.act_ms_p90
@@ -245,6 +262,21 @@ pub fn run(args: LearnerArgs) -> Result<()> {
             report.peak_gflops,
             report.peak_from
         );
+        let gflop_of = |phase: &str| {
+            let found = report.gflop_by_phase.iter().find(|(p, _)| p == phase);
+            found.map_or(0.0, |(_, g)| *g)
+        };
+        let phases: Vec<String> = report
+            .seconds_by_phase
+            .iter()
+            .map(|(phase, s)| {
+                let rate = gflop_of(phase) / s.max(1e-12);
+                format!("{phase} {:.1} ms ({rate:.1} GFLOP/s)", s * 1e3)
+            })
+            .collect();
+        if !phases.is_empty() {
+            println!("  last step by phase: {}", phases.join(", "));
+        }
     }
     Ok(())
 }

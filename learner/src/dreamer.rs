@@ -430,12 +430,14 @@ impl Algorithm for Dreamer {
         let d = SeqData::new(seq, self.obs_dim, self.act_dim)?;
         let mut rngs = self.sequence_rngs(d.batch);
         let mut metrics = Metrics::new();
-        // the matrix-product FLOPs of each phase (the process's counter; one step at a time)
-        let mut counted = matmul_flops();
+        // the matrix-product FLOPs (the process's counter; one step at a time) and the wall
+        // time of each phase
+        let (mut counted, mut since) = (matmul_flops(), std::time::Instant::now());
         let mut phase_flops = |metrics: &mut Metrics, phase: &str| {
             let now = matmul_flops();
             metrics.insert(format!("flops/{phase}"), now.saturating_sub(counted) as f64);
-            counted = now;
+            metrics.insert(format!("seconds/{phase}"), since.elapsed().as_secs_f64());
+            (counted, since) = (now, std::time::Instant::now());
         };
 
         let masks = self.draw_masks(&d, &mut rngs)?;
@@ -1043,7 +1045,10 @@ mod tests {
                 one.keys().collect::<Vec<_>>(),
                 three.keys().collect::<Vec<_>>()
             );
-            for (key, a) in &one {
+            // every metric but the phases' wall times and FLOPs (the FLOP counter is the
+            // process's, shared with the tests running beside this one)
+            let measured = |k: &str| k.starts_with("seconds/") || k.starts_with("flops/");
+            for (key, a) in one.iter().filter(|(k, _)| !measured(k)) {
                 let b = three[key];
                 assert!(
                     (a - b).abs() <= 1e-4 * (1.0 + a.abs()),

@@ -120,16 +120,17 @@ impl WorldModel {
 
     /// The loss of a shard of sequences `d` (model context `ctx` `[B·T, 2]`, Gumbel noise from the
     /// sequences' streams `rngs`), its metrics and the posterior states to imagine from.
+    /// `rssm` is this model's RSSM as [`Rssm::taped`] for the sequence loop; its tapes must be
+    /// flushed into the gradients of the loss.
     pub(crate) fn loss(
         &self,
+        rssm: &Rssm,
         d: &SeqData,
         ctx: Option<&Tensor>,
         rngs: &mut [ChaCha8Rng],
     ) -> Result<(Tensor, Metrics, Starts)> {
         let (b, t_len, n) = (d.batch, d.length, d.batch * d.length);
         let (s, c) = (self.cfg.stoch, self.cfg.classes);
-        // the weights transposed once for the 64 steps (gradients reach the originals)
-        let rssm = &self.rssm.looped()?;
         let target = symlog(&d.flat(&d.obs)?)?;
         // time-major, so that `get(t)` gives contiguous `[B, …]` slices
         let time_major = |x: &Tensor| x.transpose(0, 1)?.contiguous();
@@ -217,8 +218,11 @@ impl WorldModel {
         let parts = on_shards(workers, d.batch, rngs, |shard, rngs| {
             let ds = d.sequences(&shard.rows)?;
             let cs = ctx.map(|c| d.rows_of(c, &shard.rows)).transpose()?;
-            let (loss, m, starts) = self.loss(&ds, cs.as_ref(), rngs)?;
-            let grads = (loss * shard.weight)?.backward()?;
+            // the weights transposed once for the 64 steps, their gradients one product each
+            let rssm = self.rssm.taped()?;
+            let (loss, m, starts) = self.loss(&rssm, &ds, cs.as_ref(), rngs)?;
+            let mut grads = (loss * shard.weight)?.backward()?;
+            rssm.flush_grads(&mut grads)?;
             Ok((shard.weight, m, grads, starts))
         })?;
         let mut grads = Vec::with_capacity(parts.len());

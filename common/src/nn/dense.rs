@@ -2,7 +2,8 @@
 //! kernel, with the parameter names and shapes of candle-nn's `Linear` (`weight` `[out, in]`,
 //! `bias` `[out]`).
 
-use super::kernels;
+use super::kernels::{self, WeightGradTape};
+use candle_core::backprop::GradStore;
 use candle_core::{Result, Tensor};
 use candle_nn::VarBuilder;
 
@@ -12,8 +13,10 @@ pub struct Dense {
     /// `W` `[out, in]`.
     weight: Tensor,
     bias: Option<Tensor>,
-    /// `Wᵀ` `[in, out]` (from `weight`, differentiably) in a [`Dense::looped`] layer.
+    /// `Wᵀ` `[in, out]` (from `weight`) in a [`Dense::looped`] or [`Dense::taped`] layer.
     transposed: Option<Tensor>,
+    /// Where a [`Dense::taped`] layer's backward passes leave the weight's gradient.
+    tape: Option<WeightGradTape>,
 }
 
 impl Dense {
@@ -33,13 +36,14 @@ impl Dense {
             weight,
             bias,
             transposed: None,
+            tape: None,
         })
     }
 
     /// `x Wᵀ + b` for `x` `[N, in]`.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         if let Some(wt) = &self.transposed {
-            kernels::linear_t(x, wt, &self.weight, self.bias.as_ref())
+            kernels::linear_t(x, wt, &self.weight, self.bias.as_ref(), self.tape.as_ref())
         } else {
             kernels::linear(x, &self.weight, self.bias.as_ref())
         }
@@ -57,7 +61,33 @@ impl Dense {
             weight: self.weight.clone(),
             bias: self.bias.clone(),
             transposed: Some(transposed),
+            tape: None,
         })
+    }
+
+    /// [`Dense::looped`] for a loop over few rows (the RSSM over a batch of sequences): the
+    /// weight's gradient is not summed call by call but kept on a tape and computed as one
+    /// product over all the calls' rows by [`Dense::flush_grads`], which must follow the
+    /// backward pass. A detached (frozen) layer needs no tape and gets none.
+    pub fn taped(&self) -> Result<Self> {
+        if !self.weight.track_op() {
+            return self.looped();
+        }
+        Ok(Self {
+            weight: self.weight.clone(),
+            bias: self.bias.clone(),
+            transposed: Some(self.weight.t()?.contiguous()?.detach()),
+            tape: Some(WeightGradTape::default()),
+        })
+    }
+
+    /// Adds the taped weight gradient of a [`Dense::taped`] layer to `grads` (nothing for
+    /// another layer).
+    pub fn flush_grads(&self, grads: &mut GradStore) -> Result<()> {
+        match &self.tape {
+            Some(tape) => tape.flush(&self.weight, grads),
+            None => Ok(()),
+        }
     }
 
     /// The same layer on detached parameters: gradients pass to its input but not to its weights
@@ -67,6 +97,7 @@ impl Dense {
             weight: self.weight.detach(),
             bias: self.bias.as_ref().map(Tensor::detach),
             transposed: self.transposed.as_ref().map(Tensor::detach),
+            tape: None,
         }
     }
 }

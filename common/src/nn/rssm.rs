@@ -16,6 +16,7 @@ use super::dense::Dense;
 use super::kernels::{self, NormAct};
 use super::norm::LayerNorm;
 use super::params::ParamStore;
+use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Module, Result, Tensor, D};
 use candle_nn::VarBuilder;
 
@@ -90,9 +91,13 @@ impl NormBlock {
         }
     }
 
-    fn looped(&self) -> Result<Self> {
+    fn looped(&self, taped: bool) -> Result<Self> {
         Ok(Self {
-            fc: self.fc.looped()?,
+            fc: if taped {
+                self.fc.taped()?
+            } else {
+                self.fc.looped()?
+            },
             ln: self.ln.clone(),
         })
     }
@@ -130,10 +135,15 @@ impl Gru {
         }
     }
 
-    /// The same cell for a loop over time steps (see [`Dense::looped`]).
-    pub fn looped(&self) -> Result<Self> {
+    /// The same cell for a loop over time steps ([`Dense::looped`], or [`Dense::taped`] if
+    /// `taped`).
+    pub fn looped(&self, taped: bool) -> Result<Self> {
         Ok(Self {
-            fc: self.fc.looped()?,
+            fc: if taped {
+                self.fc.taped()?
+            } else {
+                self.fc.looped()?
+            },
             ln: self.ln.clone(),
         })
     }
@@ -187,15 +197,41 @@ impl Rssm {
     /// The same model for a loop over time steps: every weight transposed once, so that the
     /// steps multiply without re-packing them ([`Dense::looped`]); gradients reach the originals.
     pub fn looped(&self) -> Result<Self> {
+        self.looped_with(false)
+    }
+
+    /// [`Rssm::looped`] for a loop over few rows, its weight gradients taped ([`Dense::taped`]):
+    /// [`Rssm::flush_grads`] must follow the backward pass.
+    pub fn taped(&self) -> Result<Self> {
+        self.looped_with(true)
+    }
+
+    fn looped_with(&self, taped: bool) -> Result<Self> {
+        let dense = |d: &Dense| if taped { d.taped() } else { d.looped() };
         Ok(Self {
             cfg: self.cfg,
-            img_in: self.img_in.looped()?,
-            gru: self.gru.looped()?,
-            prior_hidden: self.prior_hidden.looped()?,
-            prior_out: self.prior_out.looped()?,
-            post_hidden: self.post_hidden.looped()?,
-            post_out: self.post_out.looped()?,
+            img_in: self.img_in.looped(taped)?,
+            gru: self.gru.looped(taped)?,
+            prior_hidden: self.prior_hidden.looped(taped)?,
+            prior_out: dense(&self.prior_out)?,
+            post_hidden: self.post_hidden.looped(taped)?,
+            post_out: dense(&self.post_out)?,
         })
+    }
+
+    /// Adds the taped weight gradients of a [`Rssm::taped`] model to `grads`.
+    pub fn flush_grads(&self, grads: &mut GradStore) -> Result<()> {
+        for d in [
+            &self.img_in.fc,
+            &self.gru.fc,
+            &self.prior_hidden.fc,
+            &self.prior_out,
+            &self.post_hidden.fc,
+            &self.post_out,
+        ] {
+            d.flush_grads(grads)?;
+        }
+        Ok(())
     }
 
     /// The sizes.

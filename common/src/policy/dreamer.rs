@@ -93,7 +93,11 @@ impl DreamerNets {
             encoder: self.encoder.looped()?,
             rssm: self.rssm.looped()?,
             actor: self.actor.looped()?,
-            mask: self.mask.as_ref().map(TanhGaussianActor::looped).transpose()?,
+            mask: self
+                .mask
+                .as_ref()
+                .map(TanhGaussianActor::looped)
+                .transpose()?,
             ..self.clone()
         })
     }

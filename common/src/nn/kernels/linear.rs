@@ -7,7 +7,9 @@
 //! weight once ([`crate::nn::Dense::looped`]) and multiply without packing.
 
 use super::*;
+use candle_core::backprop::GradStore;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
 
 /// Floating-point operations of the matrix products run so far in this process, over all threads.
 static MATMUL_FLOPS: AtomicU64 = AtomicU64::new(0);
@@ -19,11 +21,60 @@ pub fn matmul_flops() -> u64 {
     MATMUL_FLOPS.load(Ordering::Relaxed)
 }
 
+/// The inputs `x_t` and output gradients `g_t` of a layer's calls in a loop over few rows, kept
+/// by the backward pass so that the weight gradient `Σ_t g_tᵀ x_t` is one matrix product over all
+/// the rows at the end ([`WeightGradTape::flush`]) instead of one thin product and one addition
+/// of a whole weight-sized matrix per call.
+#[derive(Clone, Debug, Default)]
+pub struct WeightGradTape {
+    /// `(x_t, g_t)` per call, row-major.
+    calls: Arc<Mutex<Vec<(Vec<f32>, Vec<f32>)>>>,
+}
+
+impl WeightGradTape {
+    fn record(&self, x: &[f32], g: &[f32]) {
+        let mut calls = self.calls.lock().unwrap_or_else(PoisonError::into_inner);
+        calls.push((x.to_vec(), g.to_vec()));
+    }
+
+    /// Adds `Σ_t g_tᵀ x_t` to the gradient of `weight` (`[out, in]`) in `grads` and clears the
+    /// tape; nothing if no call was recorded.
+    pub fn flush(&self, weight: &Tensor, grads: &mut GradStore) -> Result<()> {
+        let calls = std::mem::take(&mut *self.calls.lock().unwrap_or_else(PoisonError::into_inner));
+        if calls.is_empty() {
+            return Ok(());
+        }
+        let (output, input) = dims2(weight)?;
+        let (mut xs, mut gs) = (Vec::new(), Vec::new());
+        for (x, g) in &calls {
+            xs.extend_from_slice(x);
+            gs.extend_from_slice(g);
+        }
+        let rows = xs.len() / input.max(1);
+        if xs.len() != rows * input || gs.len() != rows * output {
+            bail!("weight-gradient tape: calls of {input} inputs and {output} outputs expected");
+        }
+        let (gt, xv) = (Operand::transposed(&gs, output), Operand::rows(&xs, input));
+        let existing = match grads.get(weight) {
+            Some(g) => Some(g.flatten_all()?.to_vec1::<f32>()?),
+            None => None,
+        };
+        let dw = matmul(output, input, rows, gt, xv, existing);
+        grads.insert(
+            weight,
+            Tensor::from_vec(dw, weight.shape(), weight.device())?,
+        );
+        Ok(())
+    }
+}
+
 /// `y = x Wᵀ (+ b)` (see [`linear`]). The weight argument is `W` `[out, in]`, or with `stored`
 /// it is `Wᵀ` `[in, out]` and `stored` holds `W` as well: the forward product reads `Wᵀ` and the
-/// input's gradient `g W` reads `W`, the layouts gemm multiplies without packing.
+/// input's gradient `g W` reads `W`, the layouts gemm multiplies without packing. With `tape`
+/// the weight's gradient is recorded there rather than returned.
 struct Linear {
     stored: Option<Tensor>,
+    tape: Option<WeightGradTape>,
 }
 
 impl Linear {
@@ -126,7 +177,10 @@ impl Linear {
         let (n, k) = x.1.shape().dims2()?;
         let (m, k2) = self.out_in(w.1.shape().dims2()?);
         if k != k2 {
-            bail!("linear: input width {k} but weight {:?}", w.1.shape().dims());
+            bail!(
+                "linear: input width {k} but weight {:?}",
+                w.1.shape().dims()
+            );
         }
         let (x, w) = (cpu_slice(x.0, x.1)?, cpu_slice(w.0, w.1)?);
         let init = match b {
@@ -159,11 +213,21 @@ impl Linear {
         let (want_x, want_w) = (wants_grad(x), wants_grad(w));
         let (rows, input) = dims2(x)?;
         let (output, _) = self.out_in(dims2(w)?);
+        if let Some(tape) = &self.tape {
+            read(x, |xv| read(grad, |g| Ok(tape.record(xv, g))))?;
+        }
         let (dx, dw) = read(grad, |g| {
             let dx = want_x.then(|| {
                 read(self.stored.as_ref().unwrap_or(w), |wv| {
                     let wv = Operand::rows(wv, input);
-                    Ok(matmul(rows, input, output, Operand::rows(g, output), wv, None))
+                    Ok(matmul(
+                        rows,
+                        input,
+                        output,
+                        Operand::rows(g, output),
+                        wv,
+                        None,
+                    ))
                 })
             });
             let dw = want_w.then(|| {
@@ -251,17 +315,24 @@ impl CustomOp3 for Linear {
 
 /// `x Wᵀ + b` for `x` `[N, in]`, `weight` `[out, in]` and an optional `bias` `[out]`.
 pub fn linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
-    apply(x, weight, bias, Linear { stored: None })
+    let op = Linear {
+        stored: None,
+        tape: None,
+    };
+    apply(x, weight, bias, op)
 }
 
 /// `x Wᵀ + b` with the weight given in both layouts, `weight_t` `[in, out]` (which takes the
 /// gradient) and `weight` `[out, in]` (its values, detached): the same product as [`linear`]
-/// without gemm's per-call packing of the weight, forward or backward.
+/// without gemm's per-call packing of the weight, forward or backward. With a `tape` the weight's
+/// gradient goes there instead (`weight_t` should then be detached), to be flushed after the
+/// backward pass.
 pub fn linear_t(
     x: &Tensor,
     weight_t: &Tensor,
     weight: &Tensor,
     bias: Option<&Tensor>,
+    tape: Option<&WeightGradTape>,
 ) -> Result<Tensor> {
     if weight_t.dims() != weight.t()?.dims() {
         bail!(
@@ -270,8 +341,11 @@ pub fn linear_t(
             weight.dims()
         );
     }
-    let stored = Some(weight.detach().contiguous()?);
-    apply(x, &weight_t.contiguous()?, bias, Linear { stored })
+    let op = Linear {
+        stored: Some(weight.detach().contiguous()?),
+        tape: tape.cloned(),
+    };
+    apply(x, &weight_t.contiguous()?, bias, op)
 }
 
 fn apply(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>, op: Linear) -> Result<Tensor> {
@@ -310,7 +384,7 @@ mod tests {
         // the transposed layout: the same values and gradients
         let wt = w.t().unwrap().contiguous().unwrap();
         same(
-            linear_t(&x, &wt, &w, Some(&b)).unwrap(),
+            linear_t(&x, &wt, &w, Some(&b), None).unwrap(),
             x.matmul(&w.t().unwrap())
                 .unwrap()
                 .broadcast_add(&b)
@@ -318,6 +392,43 @@ mod tests {
             &[&x, &w, &b],
             1e-5,
         );
+        // a taped weight: its gradient, flushed after the backward pass, is the sum over calls
+        let tape = WeightGradTape::default();
+        let wt = wt.detach();
+        let y1 = linear_t(&x, &wt, &w, Some(&b), Some(&tape)).unwrap();
+        let y2 = linear_t(
+            &y1.tanh().unwrap().narrow(1, 0, 3).unwrap(),
+            &wt,
+            &w,
+            None,
+            Some(&tape),
+        );
+        let taped =
+            (y1.sum_all().unwrap() + y2.unwrap().sqr().unwrap().sum_all().unwrap()).unwrap();
+        let mut g = taped.backward().unwrap();
+        assert!(g.get(&w).is_none());
+        tape.flush(&w, &mut g).unwrap();
+        let (wd, bd) = (w.as_tensor(), b.as_tensor());
+        let z1 = x
+            .matmul(&wd.t().unwrap())
+            .unwrap()
+            .broadcast_add(bd)
+            .unwrap();
+        let z2 = z1
+            .tanh()
+            .unwrap()
+            .narrow(1, 0, 3)
+            .unwrap()
+            .matmul(&wd.t().unwrap())
+            .unwrap();
+        let plain = (z1.sum_all().unwrap() + z2.sqr().unwrap().sum_all().unwrap()).unwrap();
+        let want = plain.backward().unwrap();
+        for v in [&w, &x, &b] {
+            let (a, e) = (vals(g.get(v).unwrap()), vals(want.get(v).unwrap()));
+            for (p, q) in a.iter().zip(&e) {
+                assert!((p - q).abs() <= 1e-4 * (1.0 + q.abs()), "{p} vs {q}");
+            }
+        }
         // a detached weight receives no gradient; the input still does
         let y = linear(&x, &w.as_tensor().detach(), None).unwrap();
         let g = y.sum_all().unwrap().backward().unwrap();

@@ -196,7 +196,7 @@ mod twohot;
 
 pub use categorical::{categorical_kl, straight_through_sample};
 pub use gru::gru_gates;
-pub use linear::{linear, linear_t, matmul_flops};
+pub use linear::{linear, linear_t, matmul_flops, WeightGradTape};
 pub use norm_act::{norm_act, NormAct};
 pub use twohot::{soft_cross_entropy, twohot_decode};
 
