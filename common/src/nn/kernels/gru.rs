@@ -14,10 +14,14 @@ fn gates(pr: f32, pc: f32, pu: f32) -> (f32, f32, f32) {
 vectorised! {
     /// `out` (whole rows of `size`) ← the GRU update of the gate rows `p` and states `h`.
     fn gru_rows(p: &[f32], h: &[f32], out: &mut [f32], size: usize) {
-        for ((pr, hr), o) in p.chunks(3 * size).zip(h.chunks(size)).zip(out.chunks_mut(size)) {
-            for j in 0..size {
-                let (_, c, u) = gates(pr[j], pr[size + j], pr[2 * size + j]);
-                o[j] = u * c + (1.0 - u) * hr[j];
+        let rows = p.chunks_exact(3 * size).zip(h.chunks_exact(size));
+        for ((pr, hr), o) in rows.zip(out.chunks_exact_mut(size)) {
+            // exact-length slices: the loop runs without bounds checks, in vector lanes
+            let (pr, rest) = pr.split_at(size);
+            let (pc, pu) = rest.split_at(size);
+            for ((o, &h), ((&r, &c), &u)) in o.iter_mut().zip(hr).zip(pr.iter().zip(pc).zip(pu)) {
+                let (_, c, u) = gates(r, c, u);
+                *o = u * c + (1.0 - u) * h;
             }
         }
     }
@@ -26,16 +30,22 @@ vectorised! {
 vectorised! {
     /// The backward pass of [`gru_rows`] over the rows of `dp` (`3 size` each) and `dh`.
     fn gru_rows_bwd(p: &[f32], h: &[f32], g: &[f32], dp: &mut [f32], dh: &mut [f32], size: usize) {
-        let rows = p.chunks(3 * size).zip(h.chunks(size)).zip(g.chunks(size));
-        for (((pr, hr), gr), (dpr, dhr)) in rows.zip(dp.chunks_mut(3 * size).zip(dh.chunks_mut(size))) {
-            for j in 0..size {
-                let (pc, gj) = (pr[size + j], gr[j]);
-                let (rg, c, u) = gates(pr[j], pc, pr[2 * size + j]);
+        let rows = p.chunks_exact(3 * size).zip(h.chunks_exact(size)).zip(g.chunks_exact(size));
+        let grads = dp.chunks_exact_mut(3 * size).zip(dh.chunks_exact_mut(size));
+        for (((pr, hr), gr), (dpr, dhr)) in rows.zip(grads) {
+            let (pr, rest) = pr.split_at(size);
+            let (pc, pu) = rest.split_at(size);
+            let (dr, rest) = dpr.split_at_mut(size);
+            let (dc, du) = rest.split_at_mut(size);
+            let inputs = pr.iter().zip(pc).zip(pu).zip(hr.iter().zip(gr));
+            let outputs = dr.iter_mut().zip(dc.iter_mut()).zip(du.iter_mut()).zip(dhr.iter_mut());
+            for ((((&pr, &pc), &pu), (&h, &gj)), (((dr, dc), du), dh)) in inputs.zip(outputs) {
+                let (rg, c, u) = gates(pr, pc, pu);
                 let dpre_c = gj * u * (1.0 - c * c);
-                dpr[j] = dpre_c * pc * rg * (1.0 - rg);
-                dpr[size + j] = dpre_c * rg;
-                dpr[2 * size + j] = gj * (c - hr[j]) * u * (1.0 - u);
-                dhr[j] = gj * (1.0 - u);
+                *dr = dpre_c * pc * rg * (1.0 - rg);
+                *dc = dpre_c * rg;
+                *du = gj * (c - h) * u * (1.0 - u);
+                *dh = gj * (1.0 - u);
             }
         }
     }

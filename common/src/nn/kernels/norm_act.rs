@@ -43,17 +43,20 @@ vectorised! {
     /// `out` (whole rows of `gain.len()`) ← `act(LayerNorm(x))` of the rows of `x` from the first.
     fn norm_act_rows(x: &[f32], gain: &[f32], bias: &[f32], out: &mut [f32], eps: f32, act: NormAct) {
         let d = gain.len();
-        for (xr, o) in x.chunks(d).zip(out.chunks_mut(d)) {
+        let bias = &bias[..d];
+        // exact-length rows: the loops below run without bounds checks, in vector lanes
+        for (xr, o) in x.chunks_exact(d).zip(out.chunks_exact_mut(d)) {
             let (mean, rstd) = row_moments(xr, eps);
+            let lanes = o.iter_mut().zip(xr).zip(gain.iter().zip(bias));
             match act {
                 NormAct::Identity => {
-                    for j in 0..d {
-                        o[j] = (xr[j] - mean) * rstd * gain[j] + bias[j];
+                    for ((o, &x), (&g, &b)) in lanes {
+                        *o = (x - mean) * rstd * g + b;
                     }
                 }
                 NormAct::Silu => {
-                    for j in 0..d {
-                        o[j] = NormAct::Silu.eval((xr[j] - mean) * rstd * gain[j] + bias[j]).0;
+                    for ((o, &x), (&g, &b)) in lanes {
+                        *o = NormAct::Silu.eval((x - mean) * rstd * g + b).0;
                     }
                 }
             }
@@ -75,32 +78,37 @@ vectorised! {
         act: NormAct,
     ) {
         let d = gain.len();
+        let bias = &bias[..d];
         let (dgain, dbias) = dgb.split_at_mut(d);
+        let dbias = &mut dbias[..d];
         let mut xh = vec![0f32; d];
         let mut dxh = vec![0f32; d];
-        for ((xr, dyr), dxr) in x.chunks(d).zip(dy.chunks(d)).zip(dx.chunks_mut(d)) {
+        let rows = x.chunks_exact(d).zip(dy.chunks_exact(d));
+        for ((xr, dyr), dxr) in rows.zip(dx.chunks_exact_mut(d)) {
             let (mean, rstd) = row_moments(xr, eps);
-            for j in 0..d {
-                xh[j] = (xr[j] - mean) * rstd;
+            for (h, &x) in xh.iter_mut().zip(xr) {
+                *h = (x - mean) * rstd;
             }
             // dxh ← the gradient at the activation's input
             match act {
                 NormAct::Identity => dxh.copy_from_slice(dyr),
                 NormAct::Silu => {
-                    for j in 0..d {
-                        dxh[j] = dyr[j] * NormAct::Silu.eval(xh[j] * gain[j] + bias[j]).1;
+                    let lanes = dxh.iter_mut().zip(dyr).zip(xh.iter().zip(gain.iter().zip(bias)));
+                    for ((o, &dy), (&h, (&g, &b))) in lanes {
+                        *o = dy * NormAct::Silu.eval(h * g + b).1;
                     }
                 }
             }
-            for j in 0..d {
-                dgain[j] += dxh[j] * xh[j];
-                dbias[j] += dxh[j];
-                dxh[j] *= gain[j];
+            let lanes = dxh.iter_mut().zip(&xh).zip(gain.iter());
+            for (((o, &h), &g), (dg, db)) in lanes.zip(dgain.iter_mut().zip(dbias.iter_mut())) {
+                *dg += *o * h;
+                *db += *o;
+                *o *= g;
             }
             let m1 = lane_sum(&dxh, &dxh, |v, _| v) / d as f32;
             let m2 = lane_sum(&dxh, &xh, |v, w| v * w) / d as f32;
-            for j in 0..d {
-                dxr[j] = rstd * (dxh[j] - m1 - xh[j] * m2);
+            for ((o, &g), &h) in dxr.iter_mut().zip(&dxh).zip(&xh) {
+                *o = rstd * (g - m1 - h * m2);
             }
         }
     }
