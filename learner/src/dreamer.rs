@@ -263,26 +263,26 @@ impl Dreamer {
     /// imagined states), with the values and the discount weights.
     fn imagined_returns(&self, im: &Imagined, start_cont: &Tensor) -> Result<ImaginedReturns> {
         let (h, n) = (self.cfg.horizon, im.n);
-        let per_state = |x: Tensor| x.reshape((h + 1, n));
         let frozen = &self.frozen;
-        let reward =
-            per_state(self.twohot.decode(&frozen.reward.forward(&im.x)?)?)?.narrow(0, 1, h)?;
-        let cont = per_state(candle_nn::ops::sigmoid(
-            &frozen.cont.forward(&im.x.detach())?,
-        )?)?;
-        let value = per_state(self.twohot.decode(&frozen.critic.forward(&im.x)?)?)?;
+        // rewards and continue flags of s_1 … s_H only (time-major rows, so a contiguous view)
+        let later = im.x.narrow(0, n, h * n)?;
+        let reward = self
+            .twohot
+            .decode(&frozen.reward.forward(&later)?)?
+            .reshape((h, n))?;
+        let cont =
+            candle_nn::ops::sigmoid(&frozen.cont.forward(&later.detach())?)?.reshape((h, n))?;
+        let value = self
+            .twohot
+            .decode(&frozen.critic.forward(&im.x)?)?
+            .reshape((h + 1, n))?;
         let gamma = self.cfg.gamma;
-        let returns = lambda_returns(
-            &reward,
-            &cont.narrow(0, 1, h)?,
-            &value,
-            gamma,
-            self.cfg.lambda,
-        )?;
+        let returns = lambda_returns(&reward, &cont, &value, gamma, self.cfg.lambda)?;
+        // w_t = Π_{k≤t} γ c_k with c_0 the start's; `cont` row t − 1 is c_t
         let mut w = start_cont.clone();
         let mut weights = vec![w.clone()];
         for t in 1..h {
-            w = (w.mul(&cont.get(t)?)? * gamma)?;
+            w = (w.mul(&cont.get(t - 1)?)? * gamma)?;
             weights.push(w.clone());
         }
         Ok(ImaginedReturns {

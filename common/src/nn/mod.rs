@@ -30,8 +30,10 @@ static WORKERS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize:
 /// threads start.
 pub fn set_threads(n: usize) {
     WORKERS.store(n.max(1), std::sync::atomic::Ordering::Relaxed);
-    // candle reads RAYON_NUM_THREADS on every product
+    // candle reads RAYON_NUM_THREADS on every product, CANDLE_NUM_THREADS once for the pool of
+    // its elementwise kernels (whose workers would spin beside the learner's)
     std::env::set_var("RAYON_NUM_THREADS", "1");
+    std::env::set_var("CANDLE_NUM_THREADS", "1");
 }
 
 /// The learner's worker threads (see [`set_threads`]).
