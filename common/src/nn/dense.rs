@@ -2,7 +2,8 @@
 //! kernel, with the parameter names and shapes of candle-nn's `Linear` (`weight` `[out, in]`,
 //! `bias` `[out]`).
 
-use super::kernels::{self, WeightGradTape};
+use super::kernels::{self, NormAct, WeightGradTape};
+use super::norm::LayerNorm;
 use candle_core::backprop::GradStore;
 use candle_core::{Result, Tensor};
 use candle_nn::VarBuilder;
@@ -47,6 +48,16 @@ impl Dense {
         } else {
             kernels::linear(x, &self.weight, self.bias.as_ref())
         }
+    }
+
+    /// `act(ln(x Wᵀ + b))` in one operation ([`kernels::linear_norm_act`]) when the layer has
+    /// no bias (as before every LayerNorm); otherwise as two.
+    pub fn forward_norm_act(&self, x: &Tensor, ln: &LayerNorm, act: NormAct) -> Result<Tensor> {
+        if self.bias.is_some() {
+            return ln.forward_act(&self.forward(x)?, act);
+        }
+        let (wt, tape) = (self.transposed.as_ref(), self.tape.as_ref());
+        kernels::linear_norm_act(x, &self.weight, wt, tape, ln.parts(), act)
     }
 
     /// The same layer for a loop that applies it many times: its weight transposed once into

@@ -86,10 +86,9 @@ impl Module for Mlp {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let mut h = x.clone();
         for (fc, ln) in &self.hidden {
-            h = fc.forward(&h)?;
             h = match ln {
-                Some(ln) => ln.forward_act(&h, NormAct::Silu)?,
-                None => h.relu()?,
+                Some(ln) => fc.forward_norm_act(&h, ln, NormAct::Silu)?,
+                None => fc.forward(&h)?.relu()?,
             };
         }
         match &self.head {

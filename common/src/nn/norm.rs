@@ -31,6 +31,11 @@ impl LayerNorm {
         kernels::norm_act(x, &self.weight, &self.bias, self.eps, act)
     }
 
+    /// `(γ, β, ε)`, for kernels that fuse the normalisation with the layer before it.
+    pub(crate) fn parts(&self) -> (&Tensor, &Tensor, f64) {
+        (&self.weight, &self.bias, self.eps)
+    }
+
     /// The same normalisation on detached (shared) parameters.
     pub fn frozen(&self) -> Self {
         Self {

@@ -17,7 +17,7 @@ use super::kernels::{self, NormAct};
 use super::norm::LayerNorm;
 use super::params::ParamStore;
 use candle_core::backprop::GradStore;
-use candle_core::{DType, Device, Module, Result, Tensor, D};
+use candle_core::{DType, Device, Result, Tensor, D};
 use candle_nn::VarBuilder;
 
 /// Sizes of the RSSM.
@@ -81,7 +81,7 @@ impl NormBlock {
     }
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        self.ln.forward_act(&self.fc.forward(x)?, NormAct::Silu)
+        self.fc.forward_norm_act(x, &self.ln, NormAct::Silu)
     }
 
     fn frozen(&self) -> Self {
@@ -121,9 +121,8 @@ impl Gru {
 
     /// The next state.
     pub fn forward(&self, x: &Tensor, h: &Tensor) -> Result<Tensor> {
-        let parts = self
-            .ln
-            .forward(&self.fc.forward(&Tensor::cat(&[x, h], D::Minus1)?)?)?;
+        let xh = Tensor::cat(&[x, h], D::Minus1)?;
+        let parts = self.fc.forward_norm_act(&xh, &self.ln, NormAct::Identity)?;
         kernels::gru_gates(&parts, h)
     }
 

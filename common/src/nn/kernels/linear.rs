@@ -72,7 +72,7 @@ impl WeightGradTape {
 /// it is `Wᵀ` `[in, out]` and `stored` holds `W` as well: the forward product reads `Wᵀ` and the
 /// input's gradient `g W` reads `W`, the layouts gemm multiplies without packing. With `tape`
 /// the weight's gradient is recorded there rather than returned.
-struct Linear {
+pub(super) struct Linear {
     stored: Option<Tensor>,
     tape: Option<WeightGradTape>,
 }
@@ -168,7 +168,7 @@ fn matmul(
 }
 
 impl Linear {
-    fn fwd(
+    pub(super) fn fwd(
         &self,
         x: (&CpuStorage, &Layout),
         w: (&CpuStorage, &Layout),
@@ -204,7 +204,7 @@ impl Linear {
 
     /// The gradients of `x` `[N, in]` and of the weight for `y = x Wᵀ` (each if wanted):
     /// `dx = g W`, `dW = gᵀ x` (or `dWᵀ = xᵀ g` for a transposed weight).
-    fn bwd_xw(
+    pub(super) fn bwd_xw(
         &self,
         x: &Tensor,
         w: &Tensor,
@@ -315,11 +315,8 @@ impl CustomOp3 for Linear {
 
 /// `x Wᵀ + b` for `x` `[N, in]`, `weight` `[out, in]` and an optional `bias` `[out]`.
 pub fn linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
-    let op = Linear {
-        stored: None,
-        tape: None,
-    };
-    apply(x, weight, bias, op)
+    let (op, weight) = product(weight, None, None)?;
+    apply(x, &weight, bias, op)
 }
 
 /// `x Wᵀ + b` with the weight given in both layouts, `weight_t` `[in, out]` (which takes the
@@ -334,6 +331,24 @@ pub fn linear_t(
     bias: Option<&Tensor>,
     tape: Option<&WeightGradTape>,
 ) -> Result<Tensor> {
+    let (op, weight_t) = product(weight, Some(weight_t), tape)?;
+    apply(x, &weight_t, bias, op)
+}
+
+/// The op of `x Wᵀ` and its weight argument: `weight` `[out, in]` itself, or with `weight_t`
+/// (`[in, out]`, checked to be its transpose's shape) the transposed layout (see [`linear_t`]).
+pub(super) fn product(
+    weight: &Tensor,
+    weight_t: Option<&Tensor>,
+    tape: Option<&WeightGradTape>,
+) -> Result<(Linear, Tensor)> {
+    let Some(weight_t) = weight_t else {
+        let op = Linear {
+            stored: None,
+            tape: tape.cloned(),
+        };
+        return Ok((op, weight.clone()));
+    };
     if weight_t.dims() != weight.t()?.dims() {
         bail!(
             "linear_t: weight_t {:?} is not the transpose of weight {:?}",
@@ -345,7 +360,7 @@ pub fn linear_t(
         stored: Some(weight.detach().contiguous()?),
         tape: tape.cloned(),
     };
-    apply(x, &weight_t.contiguous()?, bias, op)
+    Ok((op, weight_t.contiguous()?))
 }
 
 fn apply(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>, op: Linear) -> Result<Tensor> {

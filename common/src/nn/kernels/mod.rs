@@ -10,6 +10,9 @@
 //! as in a frozen copy of a network, costs nothing in the backward pass.
 //!
 //! - [`linear`], [`linear_t`]: `y = x Wᵀ (+ b)`, the weight as stored or transposed.
+//! - [`linear_norm_act`]: a bias-free [`linear`] then [`norm_act`] as one operation (the product
+//!   stays inside it, so the backward pass hands the normalisation's gradient straight to the
+//!   product's, without a graph node, a zeroed buffer and an addition in between).
 //! - [`norm_act`]: `LayerNorm` then SiLU or the identity:
 //!   `x̂ = (x − μ)/√(σ² + ε)`, `y = act(γ x̂ + β)`; backward
 //!   `dx = (dx̂ − mean(dx̂) − x̂ mean(dx̂ x̂)) / √(σ² + ε)` with `dx̂ = γ act'(·) dy`.
@@ -51,10 +54,10 @@ fn read<R>(t: &Tensor, f: impl FnOnce(&[f32]) -> Result<R>) -> Result<R> {
 /// the baseline, and runs the widest the processor has (checked at run time). The body and the
 /// `#[inline(always)]` helpers it calls vectorise inside each copy.
 macro_rules! vectorised {
-    ($(#[$doc:meta])* fn $name:ident($($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)? $body:block) => {
+    ($(#[$doc:meta])* $vis:vis fn $name:ident($($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)? $body:block) => {
         $(#[$doc])*
         #[allow(clippy::too_many_arguments)]
-        fn $name($($arg: $ty),*) $(-> $ret)? {
+        $vis fn $name($($arg: $ty),*) $(-> $ret)? {
             #[inline(always)]
             #[allow(clippy::too_many_arguments)]
             fn body($($arg: $ty),*) $(-> $ret)? $body
@@ -191,12 +194,14 @@ fn dims2(t: &Tensor) -> Result<(usize, usize)> {
 mod categorical;
 mod gru;
 mod linear;
+mod linear_norm;
 mod norm_act;
 mod twohot;
 
 pub use categorical::{categorical_kl, straight_through_sample};
 pub use gru::gru_gates;
 pub use linear::{linear, linear_t, matmul_flops, WeightGradTape};
+pub use linear_norm::linear_norm_act;
 pub use norm_act::{norm_act, NormAct};
 pub use twohot::{soft_cross_entropy, twohot_decode};
 

@@ -41,7 +41,7 @@ fn row_moments(x: &[f32], eps: f32) -> (f32, f32) {
 
 vectorised! {
     /// `out` (whole rows of `gain.len()`) ← `act(LayerNorm(x))` of the rows of `x` from the first.
-    fn norm_act_rows(x: &[f32], gain: &[f32], bias: &[f32], out: &mut [f32], eps: f32, act: NormAct) {
+    pub(super) fn norm_act_rows(x: &[f32], gain: &[f32], bias: &[f32], out: &mut [f32], eps: f32, act: NormAct) {
         let d = gain.len();
         let bias = &bias[..d];
         // exact-length rows: the loops below run without bounds checks, in vector lanes
@@ -67,7 +67,7 @@ vectorised! {
 vectorised! {
     /// The backward pass of [`norm_act_rows`] over the rows of `dx`: `dx`, and
     /// `dgb = [dγ, dβ]` accumulated.
-    fn norm_act_rows_bwd(
+    pub(super) fn norm_act_rows_bwd(
         x: &[f32],
         gain: &[f32],
         bias: &[f32],

@@ -1,0 +1,129 @@
+//! `act(LayerNorm(x Wᵀ))` as one operation: the block of every DreamerV3 layer.
+//!
+//! As two operations the product `p = x Wᵀ` is a node of candle's graph, and the backward pass
+//! gives it a zeroed gradient buffer that the normalisation's gradient is added into before the
+//! product reads it. Here the product's values stay inside the operation (kept for the backward
+//! pass), and `∂p` goes from the normalisation's backward straight into the product's
+//! (`dx = ∂p W`, `dW = ∂pᵀ x`).
+
+use super::linear::{product, Linear, WeightGradTape};
+use super::norm_act::{norm_act_rows, norm_act_rows_bwd};
+use super::*;
+use std::sync::{Mutex, PoisonError};
+
+struct LinearNormAct {
+    linear: Linear,
+    eps: f32,
+    act: NormAct,
+    /// `x Wᵀ` of the forward pass.
+    product: Mutex<Vec<f32>>,
+}
+
+impl CustomOp3 for LinearNormAct {
+    fn name(&self) -> &'static str {
+        "ctxrace-linear-norm-act"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (p, shape) = self.linear.fwd((s1, l1), (s2, l2), None)?;
+        let CpuStorage::F32(p) = p else {
+            bail!("linear_norm_act: f32 only")
+        };
+        let gb = cpu_slice(s3, l3)?;
+        let d = gb.len() / 2;
+        if d == 0 || gb.len() != 2 * d || shape.dims().last() != Some(&d) {
+            bail!(
+                "linear_norm_act: {d} gains and biases for outputs {:?}",
+                shape.dims()
+            );
+        }
+        let mut out = vec![0f32; p.len()];
+        norm_act_rows(&p, &gb[..d], &gb[d..], &mut out, self.eps, self.act);
+        *self.product.lock().unwrap_or_else(PoisonError::into_inner) = p;
+        Ok((CpuStorage::F32(out), shape))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        w: &Tensor,
+        gain_bias: &Tensor,
+        res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let d = gain_bias.elem_count() / 2;
+        let (dp, dgb) = read(gain_bias, |gb| {
+            read(grad, |dy| {
+                let p = self.product.lock().unwrap_or_else(PoisonError::into_inner);
+                if p.len() != dy.len() {
+                    bail!("linear_norm_act: backward pass without its forward pass");
+                }
+                let mut dp = vec![0f32; p.len()];
+                let mut dgb = vec![0f32; 2 * d];
+                let (gain, bias) = gb.split_at(d);
+                norm_act_rows_bwd(&p, gain, bias, dy, &mut dp, &mut dgb, self.eps, self.act);
+                Ok((dp, dgb))
+            })
+        })?;
+        let dp = Tensor::from_vec(dp, res.shape(), res.device())?;
+        let (dx, dw) = self.linear.bwd_xw(x, w, &dp)?;
+        let dgb = wants_grad(gain_bias)
+            .then(|| Tensor::from_vec(dgb, 2 * d, res.device()))
+            .transpose()?;
+        Ok((dx, dw, dgb))
+    }
+}
+
+/// `act(LayerNorm(x Wᵀ))` for `x` `[N, in]`, `weight` `[out, in]` (or, with `weight_t`, the
+/// transposed layout and optional weight-gradient tape of [`super::linear_t`]) and the
+/// normalisation's `(gain, bias, ε)`, each of `out`: [`super::linear`] then [`super::norm_act`]
+/// in one operation.
+pub fn linear_norm_act(
+    x: &Tensor,
+    weight: &Tensor,
+    weight_t: Option<&Tensor>,
+    tape: Option<&WeightGradTape>,
+    (gain, bias, eps): (&Tensor, &Tensor, f64),
+    act: NormAct,
+) -> Result<Tensor> {
+    let (linear, weight) = product(weight, weight_t, tape)?;
+    let op = LinearNormAct {
+        linear,
+        eps: eps as f32,
+        act,
+        product: Mutex::new(Vec::new()),
+    };
+    let gain_bias = Tensor::cat(&[gain, bias], 0)?;
+    x.contiguous()?.apply_op3(&weight, &gain_bias, op)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::testing::*;
+    use super::*;
+
+    #[test]
+    fn linear_norm_act_matches_the_two_operations() {
+        let (x, w) = (var(&[7, 5], 21), var(&[6, 5], 22));
+        let (g, b) = (var(&[6], 23), var(&[6], 24));
+        let eps = 1e-3;
+        for act in [NormAct::Silu, NormAct::Identity] {
+            let two = |p: Tensor| norm_act(&p, &g, &b, eps, act).unwrap();
+            let composed = two(super::super::linear(&x, &w, None).unwrap());
+            let fused = linear_norm_act(&x, &w, None, None, (&g, &b, eps), act).unwrap();
+            same(fused, composed.clone(), &[&x, &w, &g, &b], 1e-4);
+            // the transposed layout
+            let wt = w.t().unwrap().contiguous().unwrap();
+            let fused = linear_norm_act(&x, &w, Some(&wt), None, (&g, &b, eps), act).unwrap();
+            same(fused, composed, &[&x, &w, &g, &b], 1e-4);
+        }
+    }
+}
