@@ -21,6 +21,30 @@ impl Unimix {
     }
 }
 
+vectorised! {
+    /// One-hot Gumbel-max samples into `out` (zeros) of the unimix categoricals with logits `l`,
+    /// from uniforms `u`, all in rows of `classes`: the argmax of `ln p + g` with
+    /// `g = −ln(−ln U)`, i.e. of `p / (−ln U)`.
+    fn sample_rows(dist: Unimix, l: &[f32], u: &[f32], out: &mut [f32]) {
+        let c = dist.classes;
+        let (mut s, mut p, mut score) = (vec![0f32; c], vec![0f32; c], vec![0f32; c]);
+        let rows = l.chunks_exact(c).zip(u.chunks_exact(c));
+        for ((lr, ur), o) in rows.zip(out.chunks_exact_mut(c)) {
+            dist.probs(lr, &mut s, &mut p);
+            for ((sc, &pk), &uk) in score.iter_mut().zip(&p).zip(ur) {
+                *sc = pk / -ln(uk);
+            }
+            let mut best = (0, f32::NEG_INFINITY);
+            for (k, &v) in score.iter().enumerate() {
+                if v > best.1 {
+                    best = (k, v);
+                }
+            }
+            o[best.0] = 1.0;
+        }
+    }
+}
+
 struct StraightThrough(Unimix);
 
 impl CustomOp2 for StraightThrough {
@@ -45,20 +69,7 @@ impl CustomOp2 for StraightThrough {
             );
         }
         let mut out = vec![0f32; l.len()];
-        let (mut s, mut p) = (vec![0f32; c], vec![0f32; c]);
-        for (i, o) in out.chunks_mut(c).enumerate() {
-            let at = i * c;
-            self.0.probs(&l[at..at + c], &mut s, &mut p);
-            let mut best = (0, f32::NEG_INFINITY);
-            for k in 0..c {
-                // Gumbel-max: argmax of ln p + g with g = −ln(−ln U), i.e. of p / (−ln U)
-                let score = p[k] / -u[at + k].ln();
-                if score > best.1 {
-                    best = (k, score);
-                }
-            }
-            o[best.0] = 1.0;
-        }
+        sample_rows(self.0, l, u, &mut out);
         let rows = l1.shape().dims()[0];
         Ok((CpuStorage::F32(out), Shape::from((rows, l.len() / rows))))
     }
