@@ -27,14 +27,23 @@ pub fn matmul_flops() -> u64 {
 /// of a whole weight-sized matrix per call.
 #[derive(Clone, Debug, Default)]
 pub struct WeightGradTape {
-    /// `(x_t, g_t)` per call, row-major.
-    calls: Arc<Mutex<Vec<(Vec<f32>, Vec<f32>)>>>,
+    calls: Arc<Mutex<Vec<TapedCall>>>,
+}
+
+/// One call's input rows `x_t` and output gradients `g_t`, row-major.
+#[derive(Debug)]
+struct TapedCall {
+    x: Vec<f32>,
+    g: Vec<f32>,
 }
 
 impl WeightGradTape {
     fn record(&self, x: &[f32], g: &[f32]) {
         let mut calls = self.calls.lock().unwrap_or_else(PoisonError::into_inner);
-        calls.push((x.to_vec(), g.to_vec()));
+        calls.push(TapedCall {
+            x: x.to_vec(),
+            g: g.to_vec(),
+        });
     }
 
     /// Adds `Σ_t g_tᵀ x_t` to the gradient of `weight` (`[out, in]`) in `grads` and clears the
@@ -46,9 +55,9 @@ impl WeightGradTape {
         }
         let (output, input) = dims2(weight)?;
         let (mut xs, mut gs) = (Vec::new(), Vec::new());
-        for (x, g) in &calls {
-            xs.extend_from_slice(x);
-            gs.extend_from_slice(g);
+        for call in &calls {
+            xs.extend_from_slice(&call.x);
+            gs.extend_from_slice(&call.g);
         }
         let rows = xs.len() / input.max(1);
         if xs.len() != rows * input || gs.len() != rows * output {
@@ -214,7 +223,12 @@ impl Linear {
         let (rows, input) = dims2(x)?;
         let (output, _) = self.out_in(dims2(w)?);
         if let Some(tape) = &self.tape {
-            read(x, |xv| read(grad, |g| Ok(tape.record(xv, g))))?;
+            read(x, |xv| {
+                read(grad, |g| {
+                    tape.record(xv, g);
+                    Ok(())
+                })
+            })?;
         }
         let (dx, dw) = read(grad, |g| {
             let dx = want_x.then(|| {
