@@ -65,72 +65,78 @@ impl RssmState {
     }
 }
 
-/// A `Linear → LayerNorm → SiLU` block.
+/// A `Linear → LayerNorm → act` block (SiLU, or the identity before the GRU's gates).
 #[derive(Clone, Debug)]
 struct NormBlock {
     fc: Dense,
     ln: LayerNorm,
+    act: NormAct,
 }
 
 impl NormBlock {
-    fn new(input: usize, out: usize, vb: VarBuilder) -> Result<Self> {
+    fn new(input: usize, out: usize, act: NormAct, vb: VarBuilder) -> Result<Self> {
         Ok(Self {
             fc: Dense::new(input, out, false, vb.pp("fc"))?,
             ln: LayerNorm::new(out, 1e-3, vb.pp("ln"))?,
+            act,
         })
     }
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        self.fc.forward_norm_act(x, &self.ln, NormAct::Silu)
+        self.fc.forward_norm_act(x, &self.ln, self.act)
     }
 
     fn frozen(&self) -> Self {
         Self {
             fc: self.fc.frozen(),
             ln: self.ln.frozen(),
+            act: self.act,
         }
     }
 
+    /// For a loop over time steps ([`Dense::looped`], or [`Dense::taped`] if `taped`).
     fn looped(&self, taped: bool) -> Result<Self> {
         Ok(Self {
-            fc: if taped {
-                self.fc.taped()?
-            } else {
-                self.fc.looped()?
-            },
+            fc: looped_dense(&self.fc, taped)?,
             ln: self.ln.clone(),
+            act: self.act,
         })
+    }
+}
+
+/// `d` [`Dense::taped`] if `taped`, else [`Dense::looped`].
+fn looped_dense(d: &Dense, taped: bool) -> Result<Dense> {
+    if taped {
+        d.taped()
+    } else {
+        d.looped()
     }
 }
 
 /// DreamerV3's GRU cell with a LayerNorm on the gates and update bias −1.
 #[derive(Clone, Debug)]
 pub struct Gru {
-    fc: Dense,
-    ln: LayerNorm,
+    /// `LN(W [x, h])`, the normalised gates `[r, ĉ, u]` (parameters `fc`, `ln`).
+    gates: NormBlock,
 }
 
 impl Gru {
     /// A cell from `input` features to a state of `size`.
     pub fn new(input: usize, size: usize, vb: VarBuilder) -> Result<Self> {
-        Ok(Self {
-            fc: Dense::new(input + size, 3 * size, false, vb.pp("fc"))?,
-            ln: LayerNorm::new(3 * size, 1e-3, vb.pp("ln"))?,
-        })
+        let gates = NormBlock::new(input + size, 3 * size, NormAct::Identity, vb)?;
+        Ok(Self { gates })
     }
 
     /// The next state.
     pub fn forward(&self, x: &Tensor, h: &Tensor) -> Result<Tensor> {
-        let xh = Tensor::cat(&[x, h], D::Minus1)?;
-        let parts = self.fc.forward_norm_act(&xh, &self.ln, NormAct::Identity)?;
+        let parts = self.gates.forward(&Tensor::cat(&[x, h], D::Minus1)?)?;
         kernels::gru_gates(&parts, h)
     }
 
     /// The same cell on detached (shared) parameters.
     pub fn frozen(&self) -> Self {
         Self {
-            fc: self.fc.frozen(),
-            ln: self.ln.frozen(),
+            gates: self.gates.frozen(),
         }
     }
 
@@ -138,12 +144,7 @@ impl Gru {
     /// `taped`).
     pub fn looped(&self, taped: bool) -> Result<Self> {
         Ok(Self {
-            fc: if taped {
-                self.fc.taped()?
-            } else {
-                self.fc.looped()?
-            },
-            ln: self.ln.clone(),
+            gates: self.gates.looped(taped)?,
         })
     }
 }
@@ -163,17 +164,23 @@ pub struct Rssm {
 impl Rssm {
     /// Builds the model under `vb`.
     pub fn new(cfg: RssmConfig, vb: VarBuilder) -> Result<Self> {
-        let z = cfg.stoch * cfg.classes;
+        let (z, silu) = (cfg.stoch * cfg.classes, NormAct::Silu);
         Ok(Self {
             img_in: NormBlock::new(
                 z + cfg.act_dim + cfg.context_dim,
                 cfg.hidden,
+                silu,
                 vb.pp("img_in"),
             )?,
             gru: Gru::new(cfg.hidden, cfg.deter, vb.pp("gru"))?,
-            prior_hidden: NormBlock::new(cfg.deter, cfg.hidden, vb.pp("prior"))?,
+            prior_hidden: NormBlock::new(cfg.deter, cfg.hidden, silu, vb.pp("prior"))?,
             prior_out: Dense::new(cfg.hidden, z, true, vb.pp("prior_out"))?,
-            post_hidden: NormBlock::new(cfg.deter + cfg.embed_dim, cfg.hidden, vb.pp("post"))?,
+            post_hidden: NormBlock::new(
+                cfg.deter + cfg.embed_dim,
+                cfg.hidden,
+                silu,
+                vb.pp("post"),
+            )?,
             post_out: Dense::new(cfg.hidden, z, true, vb.pp("post_out"))?,
             cfg,
         })
@@ -206,15 +213,14 @@ impl Rssm {
     }
 
     fn looped_with(&self, taped: bool) -> Result<Self> {
-        let dense = |d: &Dense| if taped { d.taped() } else { d.looped() };
         Ok(Self {
             cfg: self.cfg,
             img_in: self.img_in.looped(taped)?,
             gru: self.gru.looped(taped)?,
             prior_hidden: self.prior_hidden.looped(taped)?,
-            prior_out: dense(&self.prior_out)?,
+            prior_out: looped_dense(&self.prior_out, taped)?,
             post_hidden: self.post_hidden.looped(taped)?,
-            post_out: dense(&self.post_out)?,
+            post_out: looped_dense(&self.post_out, taped)?,
         })
     }
 
@@ -222,7 +228,7 @@ impl Rssm {
     pub fn flush_grads(&self, grads: &mut GradStore) -> Result<()> {
         for d in [
             &self.img_in.fc,
-            &self.gru.fc,
+            &self.gru.gates.fc,
             &self.prior_hidden.fc,
             &self.prior_out,
             &self.post_hidden.fc,
@@ -359,6 +365,39 @@ mod tests {
             embed_dim: 5,
             context_dim,
         }
+    }
+
+    /// Checkpoints name the parameters, and [`ParamStore::init`] draws them in name order: the
+    /// names and shapes are the ones every saved run has.
+    #[test]
+    fn parameter_names_are_those_of_saved_checkpoints() {
+        let (ps, _) = standalone(cfg(2), 0).unwrap();
+        let names: Vec<(String, Vec<usize>)> = ps
+            .named()
+            .into_iter()
+            .map(|(n, v)| (n, v.dims().to_vec()))
+            .collect();
+        let want = [
+            ("rssm.gru.fc.weight", vec![24, 16]),
+            ("rssm.gru.ln.bias", vec![24]),
+            ("rssm.gru.ln.weight", vec![24]),
+            ("rssm.img_in.fc.weight", vec![8, 16]),
+            ("rssm.img_in.ln.bias", vec![8]),
+            ("rssm.img_in.ln.weight", vec![8]),
+            ("rssm.post.fc.weight", vec![8, 13]),
+            ("rssm.post.ln.bias", vec![8]),
+            ("rssm.post.ln.weight", vec![8]),
+            ("rssm.post_out.bias", vec![12]),
+            ("rssm.post_out.weight", vec![12, 8]),
+            ("rssm.prior.fc.weight", vec![8, 8]),
+            ("rssm.prior.ln.bias", vec![8]),
+            ("rssm.prior.ln.weight", vec![8]),
+            ("rssm.prior_out.bias", vec![12]),
+            ("rssm.prior_out.weight", vec![12, 8]),
+        ];
+        let want: Vec<(String, Vec<usize>)> =
+            want.into_iter().map(|(n, d)| (n.to_string(), d)).collect();
+        assert_eq!(names, want);
     }
 
     fn uniform(b: usize, c: &RssmConfig, v: f32) -> Tensor {
