@@ -45,6 +45,40 @@ vectorised! {
     }
 }
 
+vectorised! {
+    /// `dl ← ∂/∂l` of the unimix probabilities' gradient `g`, rows of `classes` (the
+    /// straight-through sample's backward pass).
+    fn probs_rows_bwd(dist: Unimix, l: &[f32], g: &[f32], dl: &mut [f32]) {
+        let c = dist.classes;
+        let (mut s, mut p) = (vec![0f32; c], vec![0f32; c]);
+        let rows = l.chunks_exact(c).zip(g.chunks_exact(c));
+        for ((lr, gr), d) in rows.zip(dl.chunks_exact_mut(c)) {
+            dist.probs(lr, &mut s, &mut p);
+            unimix_softmax_backward(&s, gr, 1.0 - dist.unimix, d);
+        }
+    }
+}
+
+vectorised! {
+    /// `out_i ← Σ_v KL(p_a ‖ p_b)` over the variables (`classes` logits each) of the rows of
+    /// `per_row` logits of `la` and `lb`.
+    fn kl_rows(dist: Unimix, la: &[f32], lb: &[f32], per_row: usize, out: &mut [f32]) {
+        let c = dist.classes;
+        let mut buf = vec![0f32; 4 * c];
+        let (sa, rest) = buf.split_at_mut(c);
+        let (pa, rest) = rest.split_at_mut(c);
+        let (sb, pb) = rest.split_at_mut(c);
+        let rows = la.chunks_exact(per_row).zip(lb.chunks_exact(per_row));
+        for ((ra, rb), o) in rows.zip(out.iter_mut()) {
+            for (va, vb) in ra.chunks_exact(c).zip(rb.chunks_exact(c)) {
+                dist.probs(va, sa, pa);
+                dist.probs(vb, sb, pb);
+                *o += lane_sum(pa, pb, |a, b| a * (ln(a) - ln(b)));
+            }
+        }
+    }
+}
+
 struct StraightThrough(Unimix);
 
 impl CustomOp2 for StraightThrough {
@@ -84,16 +118,10 @@ impl CustomOp2 for StraightThrough {
         if !wants_grad(logits) {
             return Ok((None, None));
         }
-        let c = self.0.classes;
         let dl = read(logits, |l| {
             read(grad, |g| {
                 let mut dl = vec![0f32; l.len()];
-                let (mut s, mut p) = (vec![0f32; c], vec![0f32; c]);
-                for (i, d) in dl.chunks_mut(c).enumerate() {
-                    let at = i * c;
-                    self.0.probs(&l[at..at + c], &mut s, &mut p);
-                    unimix_softmax_backward(&s, &g[at..at + c], 1.0 - self.0.unimix, d);
-                }
+                probs_rows_bwd(self.0, l, g, &mut dl);
                 Ok(dl)
             })
         })?;
@@ -147,20 +175,8 @@ impl CustomOp2 for Kl {
         let rows = l1.shape().dims()[0];
         let (c, per_row) = (self.0.classes, la.len() / rows.max(1));
         let mut out = vec![0f32; rows];
-        let mut buf = vec![0f32; 4 * c];
-        for (i, o) in out.iter_mut().enumerate() {
-            for v in (i * per_row..(i + 1) * per_row).step_by(c) {
-                let (sa, rest) = buf.split_at_mut(c);
-                let (pa, rest) = rest.split_at_mut(c);
-                let (sb, pb) = rest.split_at_mut(c);
-                self.0.probs(&la[v..v + c], sa, pa);
-                self.0.probs(&lb[v..v + c], sb, pb);
-                *o += pa
-                    .iter()
-                    .zip(pb.iter())
-                    .map(|(a, b)| a * (a.ln() - b.ln()))
-                    .sum::<f32>();
-            }
+        if c > 0 && per_row > 0 {
+            kl_rows(self.0, la, lb, per_row, &mut out);
         }
         Ok((CpuStorage::F32(out), Shape::from(rows)))
     }
