@@ -14,6 +14,7 @@
 
 use candle_core::backprop::GradStore;
 use candle_core::{bail, DType, Device, Result, Tensor, Var};
+use ctxrace_common::nn::kernels::{adam_update, sum_of_squares, AdamStep};
 use std::collections::HashMap;
 
 /// First-moment decay `β₁`.
@@ -81,7 +82,7 @@ impl Adam {
                 }
             }
             if let Some(g) = &sum {
-                sq += g.iter().map(|&x| (x as f64) * (x as f64)).sum::<f64>();
+                sq += sum_of_squares(g);
             }
             flat.push(sum);
         }
@@ -98,18 +99,20 @@ impl Adam {
         let t = self.t as i32;
         let lr_t = (self.lr / (1.0 - BETA1.powi(t))) as f32;
         let v_corr = (1.0 / (1.0 - BETA2.powi(t))) as f32;
-        let (b1, b2, eps) = (BETA1 as f32, BETA2 as f32, self.eps as f32);
+        let coefficients = AdamStep {
+            scale,
+            beta1: BETA1 as f32,
+            beta2: BETA2 as f32,
+            lr_t,
+            v_corr,
+            eps: self.eps as f32,
+        };
         for (i, g) in flat.into_iter().enumerate() {
             let Some(g) = g else { continue };
             let var = &self.vars[i];
             let mut w = var.flatten_all()?.to_vec1::<f32>()?;
             let (m, v) = (&mut self.m[i], &mut self.v[i]);
-            for k in 0..w.len() {
-                let gk = g[k] * scale;
-                m[k] = b1 * m[k] + (1.0 - b1) * gk;
-                v[k] = b2 * v[k] + (1.0 - b2) * gk * gk;
-                w[k] -= lr_t * m[k] / ((v[k] * v_corr).sqrt() + eps);
-            }
+            adam_update(&mut w, &g, m, v, coefficients)?;
             var.set(&Tensor::from_vec(w, var.shape(), var.device())?)?;
         }
         Ok(norm)

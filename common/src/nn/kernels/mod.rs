@@ -24,6 +24,8 @@
 //! - [`twohot_decode`]: `symexp(Σ_k softmax(l)_k b_k)`.
 //! - [`soft_cross_entropy`]: `−Σ_k t_k log softmax(l)_k` against fixed targets `t`.
 //!
+//! - [`adam_update`], [`sum_of_squares`]: the elementwise part of an Adam step.
+//!
 //! One file per kernel, each checked against the composed candle operations, values and
 //! gradients, in its tests; the vectorised dispatch and the branch-free maths they share are here.
 
@@ -209,6 +211,7 @@ fn dims2(t: &Tensor) -> Result<(usize, usize)> {
     }
 }
 
+mod adam;
 mod categorical;
 mod gru;
 mod linear;
@@ -216,6 +219,7 @@ mod linear_norm;
 mod norm_act;
 mod twohot;
 
+pub use adam::{adam_update, sum_of_squares, AdamStep};
 pub use categorical::{categorical_kl, straight_through_sample};
 pub use gru::gru_gates;
 pub use linear::{linear, linear_t, matmul_flops, WeightGradTape};
