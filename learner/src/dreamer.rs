@@ -904,6 +904,10 @@ mod tests {
             )
             .unwrap();
             assert_ne!(a.policy_weights().unwrap(), b.policy_weights().unwrap());
+            // a policy made with other weights acts as a's once a's are loaded into it (its
+            // looped copies of the weights are made again)
+            let mut r = b.policy(0).unwrap();
+            r.load(&a.policy_weights().unwrap()).unwrap();
             a.save(&dir).unwrap();
             b.load(&dir).unwrap();
             assert_eq!(a.policy_weights().unwrap(), b.policy_weights().unwrap());
@@ -920,10 +924,12 @@ mod tests {
                 if t == 6 {
                     p.reset();
                     q.reset();
+                    r.reset();
                 }
                 let (ap, mp) = p.act(&obs_of(x), ctx, true).unwrap();
                 let (aq, mq) = q.act(&obs_of(x), ctx, true).unwrap();
                 assert_eq!((ap, mp), (aq, mq));
+                assert_eq!((ap, mp), r.act(&obs_of(x), ctx, true).unwrap());
                 assert_eq!(mp.is_some(), mode == ContextMode::Cmask);
                 assert!(ap.iter().all(|v| v.abs() <= 1.0));
                 x = step_x(x, ap);

@@ -404,6 +404,59 @@ mod tests {
         Tensor::full(v, (b, c.stoch, c.classes), &Device::Cpu).unwrap()
     }
 
+    /// The looped and taped copies compute what the model does, and the taped one's flushed
+    /// weight gradients are the plain backward pass's.
+    #[test]
+    fn looped_and_taped_models_match_the_plain_one() {
+        let c = cfg(2);
+        let (ps, rssm) = standalone(c, 3).unwrap();
+        let dev = &Device::Cpu;
+        let run = |model: &Rssm| {
+            let mut state = model.initial(3).unwrap();
+            let mut total = Tensor::zeros((), DType::F32, dev).unwrap();
+            for t in 0..4 {
+                let a = Tensor::full(0.3 * t as f32 - 0.5, (3, 2), dev).unwrap();
+                let ctx = Tensor::full(0.2f32, (3, 2), dev).unwrap();
+                let e = Tensor::full(0.1 * t as f32, (3, 5), dev).unwrap();
+                let u = uniform(3, &c, 0.3 + 0.1 * t as f32);
+                let (next, post) = model.obs_step(&state, &a, Some(&ctx), &e, &u).unwrap();
+                let prior = model.prior_logits(&next.deter).unwrap();
+                let step = (post.sqr().unwrap().sum_all().unwrap()
+                    + prior.tanh().unwrap().sum_all().unwrap()
+                    + next.deter.sum_all().unwrap())
+                .unwrap();
+                total = (total + step).unwrap();
+                state = next;
+            }
+            total
+        };
+        let plain = run(&rssm);
+        let want = plain.backward().unwrap();
+        let value = |t: &Tensor| t.to_scalar::<f32>().unwrap();
+        assert!((value(&run(&rssm.looped().unwrap())) - value(&plain)).abs() < 1e-4);
+        let taped = rssm.taped().unwrap();
+        let loss = run(&taped);
+        assert!((value(&loss) - value(&plain)).abs() < 1e-4);
+        let mut got = loss.backward().unwrap();
+        taped.flush_grads(&mut got).unwrap();
+        for (name, var) in ps.named() {
+            let flat = |g: &candle_core::backprop::GradStore| -> Vec<f32> {
+                g.get(&var)
+                    .unwrap()
+                    .flatten_all()
+                    .unwrap()
+                    .to_vec1()
+                    .unwrap()
+            };
+            for (a, b) in flat(&got).iter().zip(&flat(&want)) {
+                assert!(
+                    (a - b).abs() <= 1e-4 * (1.0 + b.abs()),
+                    "{name}: {a} vs {b}"
+                );
+            }
+        }
+    }
+
     #[test]
     fn steps_have_the_right_shapes_and_one_hot_samples() {
         let c = cfg(2);
