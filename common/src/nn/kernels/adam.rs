@@ -38,8 +38,8 @@ vectorised! {
 }
 
 vectorised! {
-    /// `Σ x²` in `f64`, in lane-parallel partial sums.
-    fn squares(x: &[f32]) -> f64 {
+    /// `Σ x²` in `f64` (a gradient's squared norm), in lane-parallel partial sums.
+    pub fn sum_of_squares(x: &[f32]) -> f64 {
         let mut acc = [0f64; LANES];
         let chunks = x.chunks_exact(LANES);
         let tail: f64 = chunks.remainder().iter().map(|&v| f64::from(v) * f64::from(v)).sum();
@@ -71,11 +71,6 @@ pub fn adam_update(
     }
     update(w, g, m, v, step);
     Ok(())
-}
-
-/// `Σ x²` in `f64` (a gradient's squared norm).
-pub fn sum_of_squares(x: &[f32]) -> f64 {
-    squares(x)
 }
 
 #[cfg(test)]
