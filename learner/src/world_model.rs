@@ -195,10 +195,7 @@ impl WorldModel {
             metrics.insert(name.into(), scalar(v)?);
         }
         let starts = Starts {
-            state: RssmState {
-                deter: posterior.deter.detach(),
-                stoch: posterior.stoch.detach(),
-            },
+            state: posterior.detach(),
             cont: cont_target,
             ctx: ctx.map(|c| c.detach()),
         };

@@ -51,6 +51,15 @@ pub struct RssmState {
 }
 
 impl RssmState {
+    /// The same state cut from the graph that computed it: gradients stop here, and the
+    /// operations (and tensors) behind it can be freed.
+    pub fn detach(&self) -> Self {
+        Self {
+            deter: self.deter.detach(),
+            stoch: self.stoch.detach(),
+        }
+    }
+
     /// The model features `[h, z]`, `[B, deter + stoch · classes]`.
     pub fn feat(&self) -> Result<Tensor> {
         Tensor::cat(&[&self.deter, &self.stoch], D::Minus1)

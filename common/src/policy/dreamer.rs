@@ -324,12 +324,61 @@ impl DreamerPolicy {
             &uniform,
             noise.as_ref(),
         )?;
-        self.state = state;
-        self.prev_action = action.clone();
+        // cut from the graph: the weights are variables, so each step's results hold the
+        // operations that made them, and a state kept as it is would keep every earlier step
+        // of the episode alive (memory growing by ~80 KB a step, acting slowing down with it)
+        self.state = state.detach();
+        self.prev_action = action.detach();
         let pair = |t: &Tensor| -> Result<[f32; 2]> {
             let v = t.flatten_all()?.to_vec1::<f32>()?;
             Ok([v[0], v[1]])
         };
         Ok((pair(&action)?, mask.as_ref().map(pair).transpose()?))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::agents::{ContextMode, MaskConfig};
+
+    #[test]
+    fn the_kept_state_holds_no_graph_of_earlier_steps() {
+        let cfg = DreamerConfig {
+            context: ContextMode::Cmask,
+            units: 16,
+            layers: 1,
+            deter: 16,
+            hidden: 16,
+            stoch: 4,
+            classes: 4,
+            head_units: 16,
+            head_layers: 1,
+            mask: MaskConfig {
+                units: 16,
+                ..MaskConfig::default()
+            },
+            ..DreamerConfig::default()
+        };
+        let store = ParamStore::new();
+        DreamerNets::new(&cfg, 3, ACT_DIM, store.builder()).unwrap();
+        let mut policy = DreamerPolicy::new(&cfg, 3, &store.to_bytes().unwrap(), 1).unwrap();
+        for deterministic in [true, false] {
+            let (action, mask) = policy
+                .act(&[0.5, 0.2, 0.1], [0.1, -0.1], deterministic)
+                .unwrap();
+            assert!(action
+                .iter()
+                .chain(mask.iter().flatten())
+                .all(|v| v.is_finite()));
+            // the weights are variables, so results are tracked; what the policy keeps is not
+            for t in [
+                &policy.state.deter,
+                &policy.state.stoch,
+                &policy.prev_action,
+            ] {
+                assert!(!t.track_op());
+            }
+        }
     }
 }
