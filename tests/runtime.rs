@@ -589,7 +589,7 @@ fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
     let stderr = finish(child, 2 * minute);
     drop(inject);
     drop(transport);
-    // every message was counted under its reason, and the run reached its target with the
+    // every message was counted under its reason, and the run stopped cleanly with the
     // real actors' data intact
     assert!(stderr.contains("none dropped"), "{stderr}");
     let replay = json(&run.join("replay-status.json"));
