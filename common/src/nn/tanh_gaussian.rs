@@ -53,6 +53,14 @@ impl TanhGaussianActor {
         Ok(Self { net, act_dim })
     }
 
+    /// The same actor on detached (shared) parameters ([`Mlp::frozen`]).
+    pub fn frozen(&self) -> Self {
+        Self {
+            net: self.net.frozen(),
+            act_dim: self.act_dim,
+        }
+    }
+
     /// The same actor for a loop that applies it many times (see [`crate::nn::Dense::looped`]).
     pub fn looped(&self) -> Result<Self> {
         Ok(Self {

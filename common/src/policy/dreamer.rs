@@ -86,6 +86,17 @@ impl DreamerNets {
         })
     }
 
+    /// The same networks on detached (shared) parameters: what they compute tracks no graph.
+    pub fn frozen(&self) -> Self {
+        Self {
+            encoder: self.encoder.frozen(),
+            rssm: self.rssm.frozen(),
+            actor: self.actor.frozen(),
+            mask: self.mask.as_ref().map(TanhGaussianActor::frozen),
+            ..self.clone()
+        }
+    }
+
     /// The same networks for loops that apply them many times (acting step after step, the
     /// imagination's horizon): every weight transposed once ([`crate::nn::Dense::looped`]).
     pub fn looped(&self) -> Result<Self> {
@@ -223,7 +234,9 @@ pub struct DreamerPolicy {
     store: ParamStore,
     /// The networks on `store`'s weights.
     stored: DreamerNets,
-    /// `stored`, [`DreamerNets::looped`] for acting step after step (re-made on every load).
+    /// `stored` [`DreamerNets::frozen`] (acting records no graph, so an episode's earlier steps
+    /// are not kept alive) and [`DreamerNets::looped`] for acting step after step (re-made on
+    /// every load).
     nets: DreamerNets,
     obs_dim: usize,
     zero: RssmState,
@@ -241,9 +254,9 @@ impl DreamerPolicy {
     pub fn new(cfg: &DreamerConfig, obs_dim: usize, weights: &[u8], seed: u64) -> Result<Self> {
         cfg.validate()?;
         let store = ParamStore::new();
-        let nets = DreamerNets::new(cfg, obs_dim, ACT_DIM, store.builder())?;
+        let stored = DreamerNets::new(cfg, obs_dim, ACT_DIM, store.builder())?;
         store.load_bytes(weights)?;
-        let (stored, nets) = (nets.clone(), nets.looped()?);
+        let nets = stored.frozen().looped()?;
         let zero = nets.rssm.initial(1)?;
         let zero_action = Tensor::zeros((1, ACT_DIM), DType::F32, &Device::Cpu)?;
         Ok(Self {
@@ -265,7 +278,7 @@ impl DreamerPolicy {
     /// Replaces the weights (same architecture) without resetting the state.
     pub fn load(&mut self, weights: &[u8]) -> Result<()> {
         self.store.load_bytes(weights)?;
-        self.nets = self.stored.looped()?;
+        self.nets = self.stored.frozen().looped()?;
         Ok(())
     }
 
@@ -324,11 +337,8 @@ impl DreamerPolicy {
             &uniform,
             noise.as_ref(),
         )?;
-        // cut from the graph: the weights are variables, so each step's results hold the
-        // operations that made them, and a state kept as it is would keep every earlier step
-        // of the episode alive (memory growing by ~80 KB a step, acting slowing down with it)
-        self.state = state.detach();
-        self.prev_action = action.detach();
+        self.state = state;
+        self.prev_action = action.clone();
         let pair = |t: &Tensor| -> Result<[f32; 2]> {
             let v = t.flatten_all()?.to_vec1::<f32>()?;
             Ok([v[0], v[1]])
@@ -371,7 +381,8 @@ mod tests {
                 .iter()
                 .chain(mask.iter().flatten())
                 .all(|v| v.is_finite()));
-            // the weights are variables, so results are tracked; what the policy keeps is not
+            // the stored weights are variables, the acting copies are not: what the policy
+            // keeps holds no graph of the episode's earlier steps (memory grew ~80 KB a step)
             for t in [
                 &policy.state.deter,
                 &policy.state.stoch,
