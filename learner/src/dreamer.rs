@@ -140,6 +140,7 @@ impl Dreamer {
             let (hu, hl) = (cfg.head_units, cfg.head_layers);
             let vb = store.builder().pp("critic");
             Mlp::new(feat, hu, hl, Some(cfg.bins), Activation::SiluNorm, vb)
+                .map(|critic| critic.sparse_inputs(nets.rssm.stoch_columns()))
         };
         let critic_store = ParamStore::new();
         let critic = critic_of(&critic_store)?;

@@ -94,9 +94,12 @@ impl WorldModel {
             Some(obs_dim),
             silu,
             hb.pp("decoder"),
-        )?;
-        let reward = Mlp::new(feat, hu, hl, Some(cfg.bins), silu, hb.pp("reward"))?;
-        let cont = Mlp::new(feat, hu, hl, Some(1), silu, hb.pp("cont"))?;
+        )?
+        .sparse_inputs(nets.rssm.stoch_columns());
+        let reward = Mlp::new(feat, hu, hl, Some(cfg.bins), silu, hb.pp("reward"))?
+            .sparse_inputs(nets.rssm.stoch_columns());
+        let cont = Mlp::new(feat, hu, hl, Some(1), silu, hb.pp("cont"))?
+            .sparse_inputs(nets.rssm.stoch_columns());
         heads.init(cfg.seed.wrapping_add(1))?;
         for (n, v) in heads.named() {
             if n == "reward.out.weight" {

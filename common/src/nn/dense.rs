@@ -7,6 +7,7 @@ use super::norm::LayerNorm;
 use candle_core::backprop::GradStore;
 use candle_core::{Result, Tensor};
 use candle_nn::VarBuilder;
+use std::ops::Range;
 
 /// A linear layer, with or without a bias.
 #[derive(Clone, Debug)]
@@ -18,6 +19,8 @@ pub struct Dense {
     transposed: Option<Tensor>,
     /// Where a [`Dense::taped`] layer's backward passes leave the weight's gradient.
     tape: Option<WeightGradTape>,
+    /// Input columns that are mostly zero ([`Dense::sparse_inputs`]).
+    sparse_inputs: Option<Range<usize>>,
 }
 
 impl Dense {
@@ -38,15 +41,32 @@ impl Dense {
             bias,
             transposed: None,
             tape: None,
+            sparse_inputs: None,
         })
+    }
+
+    /// The same layer told that its input columns `columns` are mostly zero (a one-hot latent):
+    /// its products go over their non-zeros only ([`kernels`]' `sparse_inputs`), with the same
+    /// results for any input.
+    pub fn sparse_inputs(self, columns: Range<usize>) -> Self {
+        Self {
+            sparse_inputs: Some(columns),
+            ..self
+        }
     }
 
     /// `x Wᵀ + b` for `x` `[N, in]`.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         if let Some(wt) = &self.transposed {
-            kernels::linear_t(x, wt, &self.weight, self.bias.as_ref(), self.tape.as_ref())
+            let (bias, tape) = (self.bias.as_ref(), self.tape.as_ref());
+            kernels::linear_t(x, wt, &self.weight, bias, tape, self.sparse_inputs.clone())
         } else {
-            kernels::linear(x, &self.weight, self.bias.as_ref())
+            kernels::linear(
+                x,
+                &self.weight,
+                self.bias.as_ref(),
+                self.sparse_inputs.clone(),
+            )
         }
     }
 
@@ -57,7 +77,8 @@ impl Dense {
             return ln.forward_act(&self.forward(x)?, act);
         }
         let (wt, tape) = (self.transposed.as_ref(), self.tape.as_ref());
-        kernels::linear_norm_act(x, &self.weight, wt, tape, ln.parts(), act)
+        let sparse = self.sparse_inputs.clone();
+        kernels::linear_norm_act(x, &self.weight, wt, tape, ln.parts(), act, sparse)
     }
 
     /// The same layer for a loop that applies it many times: its weight transposed once into
@@ -73,6 +94,7 @@ impl Dense {
             bias: self.bias.clone(),
             transposed: Some(transposed),
             tape: None,
+            sparse_inputs: self.sparse_inputs.clone(),
         })
     }
 
@@ -89,6 +111,7 @@ impl Dense {
             bias: self.bias.clone(),
             transposed: Some(self.weight.t()?.contiguous()?.detach()),
             tape: Some(WeightGradTape::default()),
+            sparse_inputs: self.sparse_inputs.clone(),
         })
     }
 
@@ -109,6 +132,7 @@ impl Dense {
             bias: self.bias.as_ref().map(Tensor::detach),
             transposed: self.transposed.as_ref().map(Tensor::detach),
             tape: None,
+            sparse_inputs: self.sparse_inputs.clone(),
         }
     }
 }

@@ -5,6 +5,7 @@ use super::kernels::NormAct;
 use super::norm::LayerNorm;
 use candle_core::{Module, Result, Tensor};
 use candle_nn::VarBuilder;
+use std::ops::Range;
 
 /// Hidden-layer activation.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -55,6 +56,16 @@ impl Mlp {
         Ok(Self { hidden, head, act })
     }
 
+    /// The same network told that its input columns `columns` are mostly zero (the one-hot
+    /// latent of a state, see [`Dense::sparse_inputs`]).
+    pub fn sparse_inputs(mut self, columns: Range<usize>) -> Self {
+        match (self.hidden.first_mut(), &mut self.head) {
+            (Some((fc, _)), _) | (None, Some(fc)) => *fc = fc.clone().sparse_inputs(columns),
+            (None, None) => {}
+        }
+        self
+    }
+
     /// The same network on detached (shared) parameters: gradients reach its input only.
     pub fn frozen(&self) -> Self {
         Self {
@@ -103,6 +114,40 @@ mod tests {
     use super::*;
     use crate::nn::ParamStore;
     use candle_core::{DType, Device};
+
+    #[test]
+    fn sparse_inputs_change_no_value_or_gradient() {
+        let ps = ParamStore::new();
+        let mlp = Mlp::new(4 + 64, 8, 2, Some(3), Activation::SiluNorm, ps.builder()).unwrap();
+        ps.init(7).unwrap();
+        let sparse = mlp.clone().sparse_inputs(4..68);
+        // rows [h, z]: h dense, z four one-hot variables of 16 classes
+        let mut x = vec![0f32; 5 * 68];
+        for (i, row) in x.chunks_exact_mut(68).enumerate() {
+            row[..4].fill(0.3 * i as f32 - 0.5);
+            for s in 0..4 {
+                row[4 + 16 * s + (3 * i + s) % 16] = 1.0;
+            }
+        }
+        let x = candle_core::Var::from_vec(x, (5, 68), &Device::Cpu).unwrap();
+        let run = |net: &Mlp| {
+            let y = net.forward(x.as_tensor()).unwrap();
+            let g = y.sqr().unwrap().sum_all().unwrap().backward().unwrap();
+            let mut all = vec![y];
+            all.extend(
+                ps.named()
+                    .iter()
+                    .map(|(_, v)| g.get(v.as_tensor()).unwrap().clone()),
+            );
+            all.push(g.get(x.as_tensor()).unwrap().clone());
+            all
+        };
+        for (a, b) in run(&mlp).iter().zip(run(&sparse)) {
+            let (a, b) = (a.flatten_all().unwrap(), b.flatten_all().unwrap());
+            let diff = (a - b).unwrap().abs().unwrap().max(0).unwrap();
+            assert!(diff.to_scalar::<f32>().unwrap() < 1e-5);
+        }
+    }
 
     #[test]
     fn every_parameter_gets_a_gradient() {

@@ -91,6 +91,14 @@ impl NormBlock {
         })
     }
 
+    /// The same block told that its input columns `columns` are mostly zero.
+    fn sparse_inputs(self, columns: std::ops::Range<usize>) -> Self {
+        Self {
+            fc: self.fc.sparse_inputs(columns),
+            ..self
+        }
+    }
+
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         self.fc.forward_norm_act(x, &self.ln, self.act)
     }
@@ -180,7 +188,8 @@ impl Rssm {
                 cfg.hidden,
                 silu,
                 vb.pp("img_in"),
-            )?,
+            )?
+            .sparse_inputs(0..z),
             gru: Gru::new(cfg.hidden, cfg.deter, vb.pp("gru"))?,
             prior_hidden: NormBlock::new(cfg.deter, cfg.hidden, silu, vb.pp("prior"))?,
             prior_out: Dense::new(cfg.hidden, z, true, vb.pp("prior_out"))?,
@@ -251,6 +260,13 @@ impl Rssm {
     /// The sizes.
     pub fn config(&self) -> &RssmConfig {
         &self.cfg
+    }
+
+    /// The columns of the one-hot sample `z` in [`RssmState::feat`] and
+    /// [`RssmState::head_input`] (`[h, z, …]`): a layer reading either can be told they are
+    /// mostly zero ([`crate::nn::Mlp::sparse_inputs`]).
+    pub fn stoch_columns(&self) -> std::ops::Range<usize> {
+        self.cfg.deter..self.cfg.deter + self.cfg.stoch * self.cfg.classes
     }
 
     /// Size of [`RssmState::feat`].

@@ -63,7 +63,8 @@ impl DreamerNets {
             Some(2 * act_dim),
             silu,
             vb.pp("actor"),
-        )?;
+        )?
+        .sparse_inputs(rssm.stoch_columns());
         let mask = match cfg.context {
             ContextMode::Cmask => Some(TanhGaussianActor::new(
                 obs_dim,

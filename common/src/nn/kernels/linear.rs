@@ -6,8 +6,10 @@
 //! there. The transposed layout is what gemm's kernel reads directly, so such loops transpose the
 //! weight once ([`crate::nn::Dense::looped`]) and multiply without packing.
 
+use super::sparse_inputs::SparseColumns;
 use super::*;
 use candle_core::backprop::GradStore;
+use std::ops::Range;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 
@@ -96,6 +98,10 @@ vectorised! {
 pub(super) struct Linear {
     stored: Option<Tensor>,
     tape: Option<WeightGradTape>,
+    /// Input columns that are mostly zero ([`super::sparse_inputs`]).
+    sparse: Option<Range<usize>>,
+    /// Their non-zeros in the forward pass's input, for the weight's gradient.
+    gathered: Mutex<Option<SparseColumns>>,
 }
 
 impl Linear {
@@ -107,6 +113,52 @@ impl Linear {
             (r, c)
         }
     }
+
+    /// The rows `rows` of `Wᵀ` as an operand, from the weight argument's values `w` (`m`
+    /// outputs, `k` inputs).
+    fn weight_rows<'a>(
+        &self,
+        w: &'a [f32],
+        m: usize,
+        k: usize,
+        rows: &Range<usize>,
+    ) -> Operand<'a> {
+        if self.stored.is_some() {
+            Operand::rows(&w[rows.start * m..], m)
+        } else {
+            Operand {
+                data: &w[rows.start..],
+                row_stride: 1,
+                col_stride: k,
+            }
+        }
+    }
+
+    /// The sparse columns of `x` (`[N, k]`) and their non-zeros, if the layer has such columns
+    /// and they are sparse enough: `known`, if given, or gathered from `x`.
+    fn sparse_columns(
+        &self,
+        x: &[f32],
+        k: usize,
+        known: Option<SparseColumns>,
+    ) -> Option<(Range<usize>, SparseColumns)> {
+        let columns = self.sparse.as_ref()?;
+        known
+            .or_else(|| SparseColumns::gather(x, k, columns))
+            .map(|s| (columns.clone(), s))
+    }
+}
+
+/// The input columns of `0..k` outside `sparse`: at most two ranges, empty ones left out.
+fn dense_parts(k: usize, sparse: &Range<usize>) -> impl Iterator<Item = Range<usize>> {
+    [0..sparse.start, sparse.end..k]
+        .into_iter()
+        .filter(|r| !r.is_empty())
+}
+
+/// Counts `flops` floating-point operations of the products done outside gemm.
+fn count_flops(flops: usize) {
+    MATMUL_FLOPS.fetch_add(flops as u64, Ordering::Relaxed);
 }
 
 /// A matrix operand of [`matmul`]: its values and the strides of its rows and columns.
@@ -153,7 +205,7 @@ fn matmul(
         dst.resize(m * n, 0.0);
         return dst;
     }
-    MATMUL_FLOPS.fetch_add(2 * (m * n * k) as u64, Ordering::Relaxed);
+    count_flops(2 * m * n * k);
     // the callers' shape checks guarantee these; the unsafe call below relies on them
     assert!(a.data.len() > (m - 1) * a.row_stride + (k - 1) * a.col_stride);
     assert!(b.data.len() > (k - 1) * b.row_stride + (n - 1) * b.col_stride);
@@ -214,13 +266,72 @@ impl Linear {
             }
             None => None,
         };
-        let wt = if self.stored.is_some() {
-            Operand::rows(w, m)
-        } else {
-            Operand::transposed(w, k)
+        let Some((columns, sparse)) = self.sparse_columns(x, k, None) else {
+            let wt = self.weight_rows(w, m, k, &(0..k));
+            let y = matmul(n, m, k, Operand::rows(x, k), wt, init);
+            return Ok((CpuStorage::F32(y), Shape::from((n, m))));
         };
-        let y = matmul(n, m, k, Operand::rows(x, k), wt, init);
+        let mut y = init;
+        for part in dense_parts(k, &columns) {
+            let xs = Operand {
+                data: &x[part.start..],
+                row_stride: k,
+                col_stride: 1,
+            };
+            let wt = self.weight_rows(w, m, k, &part);
+            y = Some(matmul(n, m, part.len(), xs, wt, y));
+        }
+        let mut y = y.unwrap_or_else(|| vec![0f32; n * m]);
+        let wt = if self.stored.is_some() {
+            std::borrow::Cow::Borrowed(&w[columns.start * m..columns.end * m])
+        } else {
+            // the sparse columns' rows of Wᵀ, from W [m, k]
+            let mut wt = vec![0f32; columns.len() * m];
+            for (j, w_j) in w.chunks_exact(k).enumerate() {
+                for (c, &v) in w_j[columns.clone()].iter().enumerate() {
+                    wt[c * m + j] = v;
+                }
+            }
+            std::borrow::Cow::Owned(wt)
+        };
+        sparse.add_products(&wt, m, &mut y);
+        count_flops(2 * m * sparse.nonzeros());
+        *self.gathered.lock().unwrap_or_else(PoisonError::into_inner) = Some(sparse);
         Ok((CpuStorage::F32(y), Shape::from((n, m))))
+    }
+
+    /// The weight's gradient (in the weight argument's layout) for `x` `[n, k]` whose columns
+    /// `columns` are `sparse` and the output gradient `g` `[n, m]`: `dWᵀ = xᵀ g` by gemm over
+    /// the other columns, row by row over the non-zeros of these.
+    fn sparse_weight_grad(
+        &self,
+        (x, g): (&[f32], &[f32]),
+        (n, k, m): (usize, usize, usize),
+        columns: &Range<usize>,
+        sparse: &SparseColumns,
+    ) -> Vec<f32> {
+        let mut dwt = vec![0f32; k * m];
+        for part in dense_parts(k, columns) {
+            let xt = Operand {
+                data: &x[part.start..],
+                row_stride: 1,
+                col_stride: k,
+            };
+            let block = matmul(part.len(), m, n, xt, Operand::rows(g, m), None);
+            dwt[part.start * m..part.end * m].copy_from_slice(&block);
+        }
+        sparse.add_weight_grads(g, m, &mut dwt[columns.start * m..columns.end * m]);
+        count_flops(2 * m * sparse.nonzeros());
+        if self.stored.is_some() {
+            return dwt;
+        }
+        let mut dw = vec![0f32; m * k];
+        for (c, row) in dwt.chunks_exact(m).enumerate() {
+            for (j, &v) in row.iter().enumerate() {
+                dw[j * k + c] = v;
+            }
+        }
+        dw
     }
 
     /// The gradients of `x` `[N, in]` and of the weight for `y = x Wᵀ` (each if wanted):
@@ -258,6 +369,15 @@ impl Linear {
             });
             let dw = want_w.then(|| {
                 read(x, |xv| {
+                    let gathered = self
+                        .gathered
+                        .lock()
+                        .unwrap_or_else(PoisonError::into_inner)
+                        .take();
+                    if let Some((columns, sparse)) = self.sparse_columns(xv, input, gathered) {
+                        let dims = (rows, input, output);
+                        return Ok(self.sparse_weight_grad((xv, g), dims, &columns, &sparse));
+                    }
                     Ok(if self.stored.is_some() {
                         let (xt, g) = (Operand::transposed(xv, input), Operand::rows(g, output));
                         matmul(input, output, rows, xt, g, None)
@@ -347,9 +467,16 @@ impl CustomOp3 for Linear {
     }
 }
 
-/// `x Wᵀ + b` for `x` `[N, in]`, `weight` `[out, in]` and an optional `bias` `[out]`.
-pub fn linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
-    let (op, weight) = product(weight, None, None)?;
+/// `x Wᵀ + b` for `x` `[N, in]`, `weight` `[out, in]` and an optional `bias` `[out]`; the input
+/// columns `sparse_inputs`, if given, are mostly zero and multiplied by their non-zeros
+/// ([`super::sparse_inputs`]).
+pub fn linear(
+    x: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    sparse_inputs: Option<Range<usize>>,
+) -> Result<Tensor> {
+    let (op, weight) = product(weight, None, None, sparse_inputs)?;
     apply(x, &weight, bias, op)
 }
 
@@ -364,8 +491,9 @@ pub fn linear_t(
     weight: &Tensor,
     bias: Option<&Tensor>,
     tape: Option<&WeightGradTape>,
+    sparse_inputs: Option<Range<usize>>,
 ) -> Result<Tensor> {
-    let (op, weight_t) = product(weight, Some(weight_t), tape)?;
+    let (op, weight_t) = product(weight, Some(weight_t), tape, sparse_inputs)?;
     apply(x, &weight_t, bias, op)
 }
 
@@ -375,11 +503,15 @@ pub(super) fn product(
     weight: &Tensor,
     weight_t: Option<&Tensor>,
     tape: Option<&WeightGradTape>,
+    sparse: Option<Range<usize>>,
 ) -> Result<(Linear, Tensor)> {
+    let tape = tape.cloned();
     let Some(weight_t) = weight_t else {
         let op = Linear {
             stored: None,
-            tape: tape.cloned(),
+            tape,
+            sparse,
+            gathered: Mutex::new(None),
         };
         return Ok((op, weight.clone()));
     };
@@ -392,7 +524,9 @@ pub(super) fn product(
     }
     let op = Linear {
         stored: Some(weight.detach().contiguous()?),
-        tape: tape.cloned(),
+        tape,
+        sparse,
+        gathered: Mutex::new(None),
     };
     Ok((op, weight_t.contiguous()?))
 }
@@ -411,6 +545,41 @@ mod tests {
     use super::*;
 
     #[test]
+    fn sparse_inputs_give_the_dense_products_values_and_gradients() {
+        let (x, w, b) = (one_hot_input(9), var(&[6, 37], 42), var(&[6], 43));
+        let composed = || {
+            x.matmul(&w.t().unwrap())
+                .unwrap()
+                .broadcast_add(&b)
+                .unwrap()
+        };
+        for columns in [3..35, 0..35, 3..37] {
+            let sparse = Some(columns);
+            same(
+                linear(&x, &w, Some(&b), sparse.clone()).unwrap(),
+                composed(),
+                &[&x, &w, &b],
+                1e-5,
+            );
+            let wt = w.t().unwrap().contiguous().unwrap();
+            same(
+                linear_t(&x, &wt, &w, Some(&b), None, sparse).unwrap(),
+                composed(),
+                &[&x, &w, &b],
+                1e-5,
+            );
+        }
+        // a dense block under the hint is multiplied densely, with the same results
+        let dense = var(&[9, 37], 44);
+        same(
+            linear(&dense, &w, None, Some(3..35)).unwrap(),
+            dense.matmul(&w.t().unwrap()).unwrap(),
+            &[&dense, &w],
+            1e-5,
+        );
+    }
+
+    #[test]
     fn linear_matches_matmul_and_skips_frozen_weights() {
         let (x, w, b) = (var(&[5, 3], 1), var(&[4, 3], 2), var(&[4], 3));
         let composed = x
@@ -419,13 +588,13 @@ mod tests {
             .broadcast_add(&b)
             .unwrap();
         same(
-            linear(&x, &w, Some(&b)).unwrap(),
+            linear(&x, &w, Some(&b), None).unwrap(),
             composed,
             &[&x, &w, &b],
             1e-5,
         );
         same(
-            linear(&x, &w, None).unwrap(),
+            linear(&x, &w, None, None).unwrap(),
             x.matmul(&w.t().unwrap()).unwrap(),
             &[&x, &w],
             1e-5,
@@ -433,7 +602,7 @@ mod tests {
         // the transposed layout: the same values and gradients
         let wt = w.t().unwrap().contiguous().unwrap();
         same(
-            linear_t(&x, &wt, &w, Some(&b), None).unwrap(),
+            linear_t(&x, &wt, &w, Some(&b), None, None).unwrap(),
             x.matmul(&w.t().unwrap())
                 .unwrap()
                 .broadcast_add(&b)
@@ -444,13 +613,14 @@ mod tests {
         // a taped weight: its gradient, flushed after the backward pass, is the sum over calls
         let tape = WeightGradTape::default();
         let wt = wt.detach();
-        let y1 = linear_t(&x, &wt, &w, Some(&b), Some(&tape)).unwrap();
+        let y1 = linear_t(&x, &wt, &w, Some(&b), Some(&tape), None).unwrap();
         let y2 = linear_t(
             &y1.tanh().unwrap().narrow(1, 0, 3).unwrap(),
             &wt,
             &w,
             None,
             Some(&tape),
+            None,
         );
         let taped =
             (y1.sum_all().unwrap() + y2.unwrap().sqr().unwrap().sum_all().unwrap()).unwrap();
@@ -479,7 +649,7 @@ mod tests {
             }
         }
         // a detached weight receives no gradient; the input still does
-        let y = linear(&x, &w.as_tensor().detach(), None).unwrap();
+        let y = linear(&x, &w.as_tensor().detach(), None, None).unwrap();
         let g = y.sum_all().unwrap().backward().unwrap();
         assert!(g.get(&w).is_none() && g.get(&x).is_some());
     }

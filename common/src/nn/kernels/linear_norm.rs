@@ -85,7 +85,7 @@ impl CustomOp3 for LinearNormAct {
 /// `act(LayerNorm(x Wᵀ))` for `x` `[N, in]`, `weight` `[out, in]` (or, with `weight_t`, the
 /// transposed layout and optional weight-gradient tape of [`super::linear_t`]) and the
 /// normalisation's `(gain, bias, ε)`, each of `out`: [`super::linear`] then [`super::norm_act`]
-/// in one operation.
+/// in one operation; the input columns `sparse_inputs` as in [`super::linear`].
 pub fn linear_norm_act(
     x: &Tensor,
     weight: &Tensor,
@@ -93,8 +93,9 @@ pub fn linear_norm_act(
     tape: Option<&WeightGradTape>,
     (gain, bias, eps): (&Tensor, &Tensor, f64),
     act: NormAct,
+    sparse_inputs: Option<std::ops::Range<usize>>,
 ) -> Result<Tensor> {
-    let (linear, weight) = product(weight, weight_t, tape)?;
+    let (linear, weight) = product(weight, weight_t, tape, sparse_inputs)?;
     let op = LinearNormAct {
         linear,
         eps: eps as f32,
@@ -117,13 +118,30 @@ mod tests {
         let eps = 1e-3;
         for act in [NormAct::Silu, NormAct::Identity] {
             let two = |p: Tensor| norm_act(&p, &g, &b, eps, act).unwrap();
-            let composed = two(super::super::linear(&x, &w, None).unwrap());
-            let fused = linear_norm_act(&x, &w, None, None, (&g, &b, eps), act).unwrap();
+            let composed = two(super::super::linear(&x, &w, None, None).unwrap());
+            let fused = linear_norm_act(&x, &w, None, None, (&g, &b, eps), act, None).unwrap();
             same(fused, composed.clone(), &[&x, &w, &g, &b], 1e-4);
             // the transposed layout
             let wt = w.t().unwrap().contiguous().unwrap();
-            let fused = linear_norm_act(&x, &w, Some(&wt), None, (&g, &b, eps), act).unwrap();
+            let fused = linear_norm_act(&x, &w, Some(&wt), None, (&g, &b, eps), act, None).unwrap();
             same(fused, composed, &[&x, &w, &g, &b], 1e-4);
+        }
+        // input columns 3..35 one-hot, multiplied over their non-zeros
+        let (x, w) = (one_hot_input(8), var(&[6, 37], 25));
+        let composed = norm_act(
+            &super::super::linear(&x, &w, None, None).unwrap(),
+            &g,
+            &b,
+            eps,
+            NormAct::Silu,
+        )
+        .unwrap();
+        let wt = w.t().unwrap().contiguous().unwrap();
+        for weight_t in [None, Some(&wt)] {
+            let sparse = Some(3..35);
+            let fused =
+                linear_norm_act(&x, &w, weight_t, None, (&g, &b, eps), NormAct::Silu, sparse);
+            same(fused.unwrap(), composed.clone(), &[&x, &w, &g, &b], 1e-4);
         }
     }
 }

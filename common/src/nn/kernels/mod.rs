@@ -13,6 +13,8 @@
 //! - [`linear_norm_act`]: a bias-free [`linear`] then [`norm_act`] as one operation (the product
 //!   stays inside it, so the backward pass hands the normalisation's gradient straight to the
 //!   product's, without a graph node, a zeroed buffer and an addition in between).
+//! - [`sparse_inputs`]: the products of [`linear`] and [`linear_norm_act`] over input columns
+//!   that are mostly zero (the one-hot latent of a state), over their non-zeros only.
 //! - [`norm_act`]: `LayerNorm` then SiLU or the identity:
 //!   `x̂ = (x − μ)/√(σ² + ε)`, `y = act(γ x̂ + β)`; backward
 //!   `dx = (dx̂ − mean(dx̂) − x̂ mean(dx̂ x̂)) / √(σ² + ε)` with `dx̂ = γ act'(·) dy`.
@@ -217,6 +219,7 @@ mod gru;
 mod linear;
 mod linear_norm;
 mod norm_act;
+mod sparse_inputs;
 mod twohot;
 
 pub use adam::{adam_update, sum_of_squares, AdamStep};
@@ -276,6 +279,20 @@ mod testing {
         let n: usize = shape.iter().product();
         let v: Vec<f32> = (0..n).map(|_| rng.random_range(-2.0..2.0)).collect();
         Var::from_tensor(&Tensor::from_vec(v, shape, &Device::Cpu).unwrap()).unwrap()
+    }
+
+    /// `[rows, 3 + 32 + 2]` with columns `3..35` two one-hot groups of 16 (values not 1).
+    pub(super) fn one_hot_input(rows: usize) -> Var {
+        let dense = vals(var(&[rows, 5], 41).as_tensor());
+        let mut x = vec![0f32; rows * 37];
+        for i in 0..rows {
+            let row = &mut x[i * 37..(i + 1) * 37];
+            row[..3].copy_from_slice(&dense[i * 5..i * 5 + 3]);
+            row[35..].copy_from_slice(&dense[i * 5 + 3..i * 5 + 5]);
+            row[3 + (i * 7) % 16] = 1.0 + i as f32 * 0.25;
+            row[19 + (i * 3) % 16] = -0.5;
+        }
+        Var::from_tensor(&Tensor::from_vec(x, (rows, 37), &Device::Cpu).unwrap()).unwrap()
     }
 
     pub(super) fn vals(t: &Tensor) -> Vec<f32> {
