@@ -5,8 +5,9 @@
 #   PAPER_GIT_DIR: a git directory of lilpharaoh1/context-f110 (e.g. from the library's `fetch`)
 #   env CTXRACE_BIN: the binary (default target/release/ctxrace); PYTHON_BIN_DIR: a folder whose
 #   python has torch, numpy, pyyaml and gym (default: the one on PATH)
-# The paper's side is ../shared/tools/paper_learner_bench.sh (DreamerV3 and cMask, 2 threads) and
-# deploy/paper_sac_bench.sh (its SAC baseline; python also needs matplotlib).
+# The paper's side is ../shared/tools/paper_learner_bench.sh (DreamerV3 and cMask, 2 threads),
+# deploy/paper_crssm_bench.sh (its cRSSM, 2 threads) and deploy/paper_sac_bench.sh (its SAC
+# baseline; python also needs matplotlib).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 git_dir=${1:?usage: deploy/learner_vs_paper.sh PAPER_GIT_DIR [ROUNDS]}
@@ -23,6 +24,7 @@ for ((round = 1; round <= rounds; round++)); do
     done
     if ((round < rounds)); then
         echo "paper round $round: $(PATH=$path bash "$harness" "$git_dir" 4 | tail -1)"
+        echo "paper cRSSM round $round: $(PATH=$path deploy/paper_crssm_bench.sh "$git_dir" 4 | tail -1)"
         echo "paper SAC round $round: $(PATH=$path deploy/paper_sac_bench.sh "$git_dir" 50 | tail -1)"
     fi
 done
