@@ -113,11 +113,28 @@ fn actor_reports(run: &Path) -> Vec<(String, Value)> {
     v
 }
 
+/// The last lines of every process log of a run, for a failure's message.
+fn logs(run: &Path) -> String {
+    let mut out = String::new();
+    for entry in std::fs::read_dir(run.join("logs"))
+        .into_iter()
+        .flatten()
+        .flatten()
+    {
+        let text = std::fs::read_to_string(entry.path()).unwrap_or_default();
+        let lines: Vec<&str> = text.lines().collect();
+        out += &format!("--- {}\n", entry.path().display());
+        out += &lines[lines.len().saturating_sub(15)..].join("\n");
+        out += "\n";
+    }
+    out
+}
+
 /// Checks a clean run: counts reconcile, versions increase, the train ratio holds.
 fn check_clean_run(run: &Path, actors: usize) {
     let replay = json(&run.join("replay-status.json"));
     let reports = actor_reports(run);
-    assert_eq!(reports.len(), actors, "{reports:?}");
+    assert_eq!(reports.len(), actors, "{reports:?}\n{}", logs(run));
     let sent: u64 = reports
         .iter()
         .map(|(_, r)| r["sent_steps"].as_u64().unwrap())
@@ -610,7 +627,12 @@ fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
         .iter()
         .map(|(_, r)| r["sent_steps"].as_u64().unwrap())
         .sum();
-    assert_eq!(replay["inserted"].as_u64().unwrap(), sent, "{replay}");
+    assert_eq!(
+        replay["inserted"].as_u64().unwrap(),
+        sent,
+        "{replay}\n{reports:?}\n{}",
+        logs(&run)
+    );
     assert_eq!(replay["rejected"].as_u64().unwrap(), 8, "{replay}");
     for (name, r) in &reports {
         assert_eq!(r["dropped_steps"].as_u64().unwrap(), 0, "{name}: {r}");

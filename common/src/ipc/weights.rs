@@ -250,6 +250,24 @@ mod tests {
                 .unwrap();
             assert_eq!(got, Some((4, 1000)));
             assert_eq!(late.current_version(), Some(4));
+
+            // A broadcast that arrives while the newest is held (between two receives of
+            // `latest_with`) is a second borrow from the same publisher: it is taken.
+            let held = t
+                .weights_service()
+                .unwrap()
+                .subscriber_builder()
+                .create()
+                .unwrap();
+            publisher.update_connections().unwrap();
+            publisher.publish(5, &v1).unwrap();
+            let first = held.receive().unwrap().unwrap();
+            publisher.publish(6, &v2).unwrap();
+            let second = held.receive().unwrap().unwrap();
+            assert_eq!(
+                (first.user_header().version, second.user_header().version),
+                (5, 6)
+            );
         }
         let report = cleanup(&prefix).unwrap();
         assert_eq!(report.alive_nodes, 0);
