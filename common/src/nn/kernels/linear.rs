@@ -100,8 +100,9 @@ pub(super) struct Linear {
     tape: Option<WeightGradTape>,
     /// Input columns that are mostly zero ([`super::sparse_inputs`]).
     sparse: Option<Range<usize>>,
-    /// Their non-zeros in the forward pass's input, for the weight's gradient.
-    gathered: Mutex<Option<SparseColumns>>,
+    /// Their non-zeros in the forward pass's input, kept for the weight's gradient when the
+    /// weight takes one here (`None` otherwise: a frozen or taped layer keeps nothing).
+    gathered: Option<Mutex<Option<SparseColumns>>>,
 }
 
 impl Linear {
@@ -296,7 +297,9 @@ impl Linear {
         };
         sparse.add_products(&wt, m, &mut y);
         count_flops(2 * m * sparse.nonzeros());
-        *self.gathered.lock().unwrap_or_else(PoisonError::into_inner) = Some(sparse);
+        if let Some(kept) = &self.gathered {
+            *kept.lock().unwrap_or_else(PoisonError::into_inner) = Some(sparse);
+        }
         Ok((CpuStorage::F32(y), Shape::from((n, m))))
     }
 
@@ -369,11 +372,9 @@ impl Linear {
             });
             let dw = want_w.then(|| {
                 read(x, |xv| {
-                    let gathered = self
-                        .gathered
-                        .lock()
-                        .unwrap_or_else(PoisonError::into_inner)
-                        .take();
+                    let gathered = self.gathered.as_ref().and_then(|kept| {
+                        kept.lock().unwrap_or_else(PoisonError::into_inner).take()
+                    });
                     if let Some((columns, sparse)) = self.sparse_columns(xv, input, gathered) {
                         let dims = (rows, input, output);
                         return Ok(self.sparse_weight_grad((xv, g), dims, &columns, &sparse));
@@ -506,12 +507,14 @@ pub(super) fn product(
     sparse: Option<Range<usize>>,
 ) -> Result<(Linear, Tensor)> {
     let tape = tape.cloned();
+    // the non-zeros are kept from the forward pass only for a weight gradient computed here
+    let keep = |w: &Tensor| (sparse.is_some() && wants_grad(w)).then(|| Mutex::new(None));
     let Some(weight_t) = weight_t else {
         let op = Linear {
             stored: None,
             tape,
+            gathered: keep(weight),
             sparse,
-            gathered: Mutex::new(None),
         };
         return Ok((op, weight.clone()));
     };
@@ -525,8 +528,8 @@ pub(super) fn product(
     let op = Linear {
         stored: Some(weight.detach().contiguous()?),
         tape,
+        gathered: keep(weight_t),
         sparse,
-        gathered: Mutex::new(None),
     };
     Ok((op, weight_t.contiguous()?))
 }
