@@ -71,6 +71,9 @@ use std::path::Path;
 struct ImaginedReturns {
     reward: Tensor,
     value: Tensor,
+    /// The critic's logits at `s_0 … s_H` on the states detached, for its own loss: the same
+    /// forward pass as `value`'s, differentiable in the critic's parameters only.
+    critic_logits: Tensor,
     returns: Tensor,
     weights: Tensor,
 }
@@ -85,12 +88,12 @@ struct Imagined {
 }
 
 /// Detached views of the networks that imagination and the actor loss run through: they share
-/// the trained weights but take no gradient, so the actor's backward pass computes none for them.
+/// the trained weights but take no gradient, so the actor's backward pass computes none for them
+/// (the critic's frozen view comes with its trained one, from [`Mlp::forward_twice`]).
 struct Frozen {
     rssm: Rssm,
     reward: Mlp,
     cont: Mlp,
-    critic: Mlp,
 }
 
 /// On-disk counters of a [`Dreamer`].
@@ -165,7 +168,6 @@ impl Dreamer {
             rssm: nets.rssm.frozen(),
             reward: world_model.reward.frozen(),
             cont: world_model.cont.frozen(),
-            critic: critic.frozen(),
         };
         Ok(Self {
             frozen,
@@ -273,10 +275,10 @@ impl Dreamer {
             .reshape((h, n))?;
         let cont =
             candle_nn::ops::sigmoid(&frozen.cont.forward(&later.detach())?)?.reshape((h, n))?;
-        let value = self
-            .twohot
-            .decode(&frozen.critic.forward(&im.x)?)?
-            .reshape((h + 1, n))?;
+        // one critic pass for the values (frozen, differentiable in the states) and for the
+        // critic's own loss (on the states detached)
+        let (value_logits, critic_logits) = self.critic.forward_twice(&im.x)?;
+        let value = self.twohot.decode(&value_logits)?.reshape((h + 1, n))?;
         let gamma = self.cfg.gamma;
         let returns = lambda_returns(&reward, &cont, &value, gamma, self.cfg.lambda)?;
         // w_t = Π_{k≤t} γ c_k with c_0 the start's; `cont` row t − 1 is c_t
@@ -289,6 +291,7 @@ impl Dreamer {
         Ok(ImaginedReturns {
             reward,
             value,
+            critic_logits,
             returns,
             weights: Tensor::stack(&weights, 0)?,
         })
@@ -305,8 +308,9 @@ impl Dreamer {
     /// The critic loss: two-hot cross-entropy towards the (detached) returns plus the regulariser
     /// towards the slow critic, weighted by the discount weights.
     fn critic_loss(&self, im: &Imagined, r: &ImaginedReturns) -> Result<Tensor> {
-        let x = im.x.narrow(0, 0, self.cfg.horizon * im.n)?.detach();
-        let logits = self.critic.forward(&x)?;
+        let rows = self.cfg.horizon * im.n;
+        let x = im.x.narrow(0, 0, rows)?.detach();
+        let logits = r.critic_logits.narrow(0, 0, rows)?;
         let slow = self.twohot.decode(&self.slow_critic.forward(&x)?)?.detach();
         let target = (self.twohot.encode(&r.returns.detach().flatten_all()?)?
             + (self.twohot.encode(&slow)? * self.cfg.slow_critic_reg)?)?;

@@ -81,6 +81,34 @@ impl Dense {
         kernels::linear_norm_act(x, &self.weight, wt, tape, ln.parts(), act, sparse)
     }
 
+    /// [`Dense::forward`] and [`Dense::forward_norm_act`] (with `norm`) on the two paths
+    /// `(x_frozen, x_trained)` of one input from one product ([`kernels::linear_twice`]):
+    /// `(y_frozen, y_trained)`, where `y_frozen` takes no gradient in the parameters and
+    /// `y_trained` takes them as [`Dense::forward`] does. It multiplies by the stored weight.
+    pub fn forward_twice(
+        &self,
+        x: (&Tensor, &Tensor),
+        norm: Option<(&LayerNorm, NormAct)>,
+    ) -> Result<(Tensor, Tensor)> {
+        let sparse = self.sparse_inputs.clone();
+        match (norm, &self.bias) {
+            (Some((ln, act)), None) => {
+                kernels::linear_norm_act_twice(x, &self.weight, ln.parts(), act, sparse)
+            }
+            (norm, bias) => {
+                let (frozen, trained) =
+                    kernels::linear_twice(x, &self.weight, bias.as_ref(), sparse)?;
+                match norm {
+                    Some((ln, act)) => Ok((
+                        ln.frozen().forward_act(&frozen, act)?,
+                        ln.forward_act(&trained, act)?,
+                    )),
+                    None => Ok((frozen, trained)),
+                }
+            }
+        }
+    }
+
     /// The same layer for a loop that applies it many times: its weight transposed once into
     /// `[in, out]`, the layout gemm multiplies without packing ([`kernels::linear_t`]). The
     /// transposition is differentiable, so gradients reach the original weight.

@@ -103,9 +103,24 @@ pub(super) struct Linear {
     /// Their non-zeros in the forward pass's input, kept for the weight's gradient when the
     /// weight takes one here (`None` otherwise: a frozen or taped layer keeps nothing).
     gathered: Option<Mutex<Option<SparseColumns>>>,
+    /// The product's values, computed already by the same layer on an input of the same values
+    /// (the trained twin of [`linear_twice`]): the forward pass copies them.
+    known: Option<Tensor>,
 }
 
 impl Linear {
+    /// The op of a product whose values `y` are known, on a frozen weight `[out, in]`: its
+    /// backward pass gives the input's gradient only (see [`linear_twice`]).
+    pub(super) fn known(y: Tensor) -> Self {
+        Self {
+            stored: None,
+            tape: None,
+            sparse: None,
+            gathered: None,
+            known: Some(y),
+        }
+    }
+
     /// `(out, in)` of a weight argument of shape `dims`.
     fn out_in(&self, (r, c): (usize, usize)) -> (usize, usize) {
         if self.stored.is_some() {
@@ -255,6 +270,16 @@ impl Linear {
                 "linear: input width {k} but weight {:?}",
                 w.1.shape().dims()
             );
+        }
+        if let Some(known) = &self.known {
+            let y = read(known, |y| Ok(y.to_vec()))?;
+            if y.len() != n * m {
+                bail!(
+                    "linear: {} known values for {n} rows of {m} outputs",
+                    y.len()
+                );
+            }
+            return Ok((CpuStorage::F32(y), Shape::from((n, m))));
         }
         let (x, w) = (cpu_slice(x.0, x.1)?, cpu_slice(w.0, w.1)?);
         let init = match b {
@@ -498,6 +523,27 @@ pub fn linear_t(
     apply(x, &weight_t, bias, op)
 }
 
+/// [`linear`] on the two paths `(x_frozen, x_trained)` of one input (the same values) from one
+/// product: `(y_frozen, y_trained)`, equal values. `y_trained` takes the gradients of [`linear`]
+/// on `x_trained`; `y_frozen` is differentiable in `x_frozen` only, as [`linear`] on the weight
+/// and bias detached. A loss that needs a layer's output both ways (the critic's values in the
+/// λ-returns the actor follows, and its logits in its own loss) multiplies once.
+pub fn linear_twice(
+    (x_frozen, x_trained): (&Tensor, &Tensor),
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    sparse_inputs: Option<Range<usize>>,
+) -> Result<(Tensor, Tensor)> {
+    let trained = linear(x_trained, weight, bias, sparse_inputs)?;
+    let frozen = apply(
+        x_frozen,
+        &weight.detach(),
+        bias.map(Tensor::detach).as_ref(),
+        Linear::known(trained.detach()),
+    )?;
+    Ok((frozen, trained))
+}
+
 /// The op of `x Wᵀ` and its weight argument: `weight` `[out, in]` itself, or with `weight_t`
 /// (`[in, out]`, checked to be its transpose's shape) the transposed layout (see [`linear_t`]).
 pub(super) fn product(
@@ -515,6 +561,7 @@ pub(super) fn product(
             tape,
             gathered: keep(weight),
             sparse,
+            known: None,
         };
         return Ok((op, weight.clone()));
     };
@@ -530,6 +577,7 @@ pub(super) fn product(
         tape,
         gathered: keep(weight_t),
         sparse,
+        known: None,
     };
     Ok((op, weight_t.contiguous()?))
 }
@@ -580,6 +628,29 @@ mod tests {
             &[&dense, &w],
             1e-5,
         );
+    }
+
+    #[test]
+    fn linear_twice_is_a_frozen_and_a_trained_product() {
+        let (x, w, b) = (one_hot_input(9), var(&[6, 37], 45), var(&[6], 46));
+        let x_trained = x.detach();
+        let pair = |(f, t): (Tensor, Tensor)| Tensor::cat(&[f, t], 0).unwrap();
+        for (bias, sparse) in [
+            (Some(&b), None),
+            (Some(&b), Some(3..35)),
+            (None, Some(3..35)),
+        ] {
+            let twice = linear_twice((&x, &x_trained), &w, bias.map(|b| &**b), sparse);
+            let frozen_bias = bias.map(|b| b.detach());
+            let frozen = linear(&x, &w.detach(), frozen_bias.as_ref(), None).unwrap();
+            let trained = linear(&x_trained, &w, bias.map(|b| &**b), None).unwrap();
+            let vars: &[&Var] = if bias.is_some() {
+                &[&x, &w, &b]
+            } else {
+                &[&x, &w]
+            };
+            same(pair(twice.unwrap()), pair((frozen, trained)), vars, 1e-5);
+        }
     }
 
     #[test]

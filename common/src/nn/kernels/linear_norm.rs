@@ -9,14 +9,17 @@
 use super::linear::{product, Linear, WeightGradTape};
 use super::norm_act::{norm_act_rows, norm_act_rows_bwd};
 use super::*;
-use std::sync::{Mutex, PoisonError};
+use std::sync::{Arc, Mutex, PoisonError};
 
 struct LinearNormAct {
     linear: Linear,
     eps: f32,
     act: NormAct,
-    /// `x Wᵀ` of the forward pass.
-    product: Mutex<Vec<f32>>,
+    /// `x Wᵀ` of the forward pass (of the trained twin's, shared, for a frozen twin).
+    product: Arc<Mutex<Vec<f32>>>,
+    /// The output's values, computed already by the trained twin of [`linear_norm_act_twice`]:
+    /// the forward pass copies them and leaves `product` as the twin left it.
+    known: Option<Tensor>,
 }
 
 impl CustomOp3 for LinearNormAct {
@@ -33,6 +36,17 @@ impl CustomOp3 for LinearNormAct {
         s3: &CpuStorage,
         l3: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
+        if let Some(known) = &self.known {
+            let out = read(known, |y| Ok(y.to_vec()))?;
+            let (rows, _) = l1.shape().dims2()?;
+            if known.dims().first() != Some(&rows) {
+                bail!(
+                    "linear_norm_act: known values {:?} for {rows} rows",
+                    known.dims()
+                );
+            }
+            return Ok((CpuStorage::F32(out), known.shape().clone()));
+        }
         let (p, shape) = self.linear.fwd((s1, l1), (s2, l2), None)?;
         let CpuStorage::F32(p) = p else {
             bail!("linear_norm_act: f32 only")
@@ -100,10 +114,49 @@ pub fn linear_norm_act(
         linear,
         eps: eps as f32,
         act,
-        product: Mutex::new(Vec::new()),
+        product: Arc::default(),
+        known: None,
     };
     let gain_bias = Tensor::cat(&[gain, bias], 0)?;
     x.contiguous()?.apply_op3(&weight, &gain_bias, op)
+}
+
+/// [`linear_norm_act`] (stored weight layout) on the two paths `(x_frozen, x_trained)` of one
+/// input from one product and normalisation, as [`super::linear_twice`]: `(y_frozen, y_trained)`,
+/// equal values; `y_trained` takes the gradients of [`linear_norm_act`] on `x_trained`,
+/// `y_frozen` only its input's.
+pub fn linear_norm_act_twice(
+    (x_frozen, x_trained): (&Tensor, &Tensor),
+    weight: &Tensor,
+    (gain, bias, eps): (&Tensor, &Tensor, f64),
+    act: NormAct,
+    sparse_inputs: Option<std::ops::Range<usize>>,
+) -> Result<(Tensor, Tensor)> {
+    let (linear, weight) = product(weight, None, None, sparse_inputs)?;
+    let product: Arc<Mutex<Vec<f32>>> = Arc::default();
+    let trained_op = LinearNormAct {
+        linear,
+        eps: eps as f32,
+        act,
+        product: product.clone(),
+        known: None,
+    };
+    let gain_bias = Tensor::cat(&[gain, bias], 0)?;
+    let trained = x_trained
+        .contiguous()?
+        .apply_op3(&weight, &gain_bias, trained_op)?;
+    let frozen_op = LinearNormAct {
+        linear: Linear::known(trained.detach()),
+        eps: eps as f32,
+        act,
+        product,
+        known: Some(trained.detach()),
+    };
+    let frozen =
+        x_frozen
+            .contiguous()?
+            .apply_op3(&weight.detach(), &gain_bias.detach(), frozen_op)?;
+    Ok((frozen, trained))
 }
 
 #[cfg(test)]
@@ -142,6 +195,29 @@ mod tests {
             let fused =
                 linear_norm_act(&x, &w, weight_t, None, (&g, &b, eps), NormAct::Silu, sparse);
             same(fused.unwrap(), composed.clone(), &[&x, &w, &g, &b], 1e-4);
+        }
+    }
+
+    #[test]
+    fn linear_norm_act_twice_is_a_frozen_and_a_trained_block() {
+        let (x, w) = (one_hot_input(8), var(&[6, 37], 26));
+        let (g, b) = (var(&[6], 27), var(&[6], 28));
+        let eps = 1e-3;
+        let x_trained = x.detach();
+        let pair = |(f, t): (Tensor, Tensor)| Tensor::cat(&[f, t], 0).unwrap();
+        for (act, sparse) in [(NormAct::Silu, None), (NormAct::Identity, Some(3..35))] {
+            let twice =
+                linear_norm_act_twice((&x, &x_trained), &w, (&g, &b, eps), act, sparse).unwrap();
+            let (wf, gf, bf) = (w.detach(), g.detach(), b.detach());
+            let frozen = linear_norm_act(&x, &wf, None, None, (&gf, &bf, eps), act, None).unwrap();
+            let trained =
+                linear_norm_act(&x_trained, &w, None, None, (&g, &b, eps), act, None).unwrap();
+            same(
+                pair(twice),
+                pair((frozen, trained)),
+                &[&x, &w, &g, &b],
+                1e-4,
+            );
         }
     }
 }

@@ -225,8 +225,8 @@ mod twohot;
 pub use adam::{adam_update, sum_of_squares, AdamStep};
 pub use categorical::{categorical_kl, straight_through_sample};
 pub use gru::gru_gates;
-pub use linear::{linear, linear_t, matmul_flops, WeightGradTape};
-pub use linear_norm::linear_norm_act;
+pub use linear::{linear, linear_t, linear_twice, matmul_flops, WeightGradTape};
+pub use linear_norm::{linear_norm_act, linear_norm_act_twice};
 pub use norm_act::{norm_act, NormAct};
 pub use twohot::{soft_cross_entropy, twohot_decode};
 
