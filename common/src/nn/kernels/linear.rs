@@ -109,15 +109,16 @@ pub(super) struct Linear {
 }
 
 impl Linear {
-    /// The op of a product whose values `y` are known, on a frozen weight `[out, in]`: its
-    /// backward pass gives the input's gradient only (see [`linear_twice`]).
-    pub(super) fn known(y: Tensor) -> Self {
+    /// The op of a product on a frozen weight `[out, in]`, its backward pass giving the input's
+    /// gradient only; its values, if `known`, are copied rather than multiplied (the frozen twin
+    /// of [`linear_twice`]).
+    pub(super) fn frozen(known: Option<Tensor>) -> Self {
         Self {
             stored: None,
             tape: None,
             sparse: None,
             gathered: None,
-            known: Some(y),
+            known,
         }
     }
 
@@ -539,7 +540,7 @@ pub fn linear_twice(
         x_frozen,
         &weight.detach(),
         bias.map(Tensor::detach).as_ref(),
-        Linear::known(trained.detach()),
+        Linear::frozen(Some(trained.detach())),
     )?;
     Ok((frozen, trained))
 }

@@ -146,7 +146,7 @@ pub fn linear_norm_act_twice(
         .contiguous()?
         .apply_op3(&weight, &gain_bias, trained_op)?;
     let frozen_op = LinearNormAct {
-        linear: Linear::known(trained.detach()),
+        linear: Linear::frozen(None),
         eps: eps as f32,
         act,
         product,
