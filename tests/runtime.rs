@@ -270,14 +270,32 @@ fn find_pid(run: &Path, role: &str, not: &[u32]) -> Option<u32> {
     })
 }
 
-/// Waits until `f` returns something.
-fn wait_for<T>(what: &str, limit: Duration, mut f: impl FnMut() -> Option<T>) -> T {
+/// The launcher's live `status.json` of `run`, once it is there.
+fn status(run: &Path) -> Option<Value> {
+    serde_json::from_str(&std::fs::read_to_string(run.join("status.json")).ok()?).ok()
+}
+
+/// The steps the learner of `run` resumed at, from its log.
+fn resumed_steps(run: &Path) -> Vec<u64> {
+    let log = std::fs::read_to_string(run.join("logs/learner.log")).unwrap_or_default();
+    log.lines()
+        .filter_map(|l| l.split("learner resumed from ").nth(1))
+        .filter_map(|l| l.rsplit(" at step ").next()?.trim().parse().ok())
+        .collect()
+}
+
+/// Waits until `f` returns something; on a time-out the message carries the run's logs.
+fn wait_for<T>(run: &Path, what: &str, limit: Duration, mut f: impl FnMut() -> Option<T>) -> T {
     let start = Instant::now();
     loop {
         if let Some(x) = f() {
             return x;
         }
-        assert!(start.elapsed() < limit, "timed out waiting for {what}");
+        assert!(
+            start.elapsed() < limit,
+            "timed out waiting for {what}\n{}",
+            logs(run)
+        );
         std::thread::sleep(Duration::from_millis(100));
     }
 }
@@ -288,11 +306,11 @@ fn kill9(pid: u32) {
 }
 
 #[test]
-fn killed_processes_are_restarted_and_training_completes() {
+fn killed_processes_are_restarted_and_training_goes_on() {
     let dir = tempfile::tempdir().unwrap();
-    // long enough that the hung actor's time-out and the three kills and restarts happen well
-    // before the learner's target (12 000 steps took 10 s here)
-    let env_steps = 36_000;
+    // a target beyond the test (a fast machine collected 36 000 steps before the kills were
+    // done): the run is stopped with SIGTERM once the restarted processes have trained on
+    let env_steps = 50_000_000;
     let supervisor = "[supervisor]\nheartbeat_timeout_secs = 5\n";
     // the learner logs where it resumed
     let log = "warn,ctxrace_learner::process=info";
@@ -301,7 +319,7 @@ fn killed_processes_are_restarted_and_training_completes() {
     let minute = Duration::from_secs(60);
     let mut actors = Vec::new();
     while actors.len() < 3 {
-        actors.push(wait_for("actors", minute, || {
+        actors.push(wait_for(&run, "actors", minute, || {
             find_pid(&run, "actor", &actors)
         }));
     }
@@ -313,33 +331,49 @@ fn killed_processes_are_restarted_and_training_completes() {
     // killed (and reaped: no zombie stays in /proc) once its heartbeat timeout has passed, then
     // replaced; on a loaded machine another actor's replacement may come first, so the two are
     // awaited one after the other
-    wait_for("the launcher to kill the hung actor", minute, || {
+    wait_for(&run, "the launcher to kill the hung actor", minute, || {
         std::fs::metadata(format!("/proc/{hung}"))
             .is_err()
             .then_some(())
     });
-    actors.push(wait_for("the hung actor's replacement", minute, || {
-        find_pid(&run, "actor", &actors)
-    }));
+    actors.push(wait_for(
+        &run,
+        "the hung actor's replacement",
+        minute,
+        || find_pid(&run, "actor", &actors),
+    ));
     // then wait for the first checkpoint and kill an actor, the learner and the replay in turn
-    wait_for("a checkpoint", 3 * minute, || {
+    wait_for(&run, "a checkpoint", 3 * minute, || {
         run.join("checkpoints").read_dir().ok()?.next().map(|_| ())
     });
     kill9(actors[1]);
-    wait_for("the actor's restart", minute, || {
+    wait_for(&run, "the actor's restart", minute, || {
         find_pid(&run, "actor", &actors)
     });
-    let learner = wait_for("learner", minute, || find_pid(&run, "learner", &[]));
+    let learner = wait_for(&run, "learner", minute, || find_pid(&run, "learner", &[]));
     kill9(learner);
-    wait_for("the learner's restart", minute, || {
+    wait_for(&run, "the learner's restart", minute, || {
         find_pid(&run, "learner", &[learner])
     });
-    let replay = wait_for("replay", minute, || find_pid(&run, "replay", &[]));
+    let replay = wait_for(&run, "replay", minute, || find_pid(&run, "replay", &[]));
     kill9(replay);
-    wait_for("the replay's restart", minute, || {
+    wait_for(&run, "the replay's restart", minute, || {
         find_pid(&run, "replay", &[replay])
     });
-    let stderr = finish(child, 6 * minute);
+    // the restarted learner trains on past the step it resumed at, then the run is stopped as
+    // a user stops it
+    wait_for(
+        &run,
+        "training to go on after the restarts",
+        3 * minute,
+        || {
+            let resumed = resumed_steps(&run).into_iter().max()?;
+            (status(&run)?["grad_steps"].as_u64()? >= resumed + 200).then_some(())
+        },
+    );
+    // SAFETY: kill(2) on the launcher's pid, which this test still owns (not reaped).
+    unsafe { libc::kill(pid as i32, libc::SIGTERM) };
+    let stderr = finish(child, 2 * minute);
     assert!(stderr.contains("sent no sign of life"), "{stderr}");
     for role in ["actor 1", "learner", "replay"] {
         assert!(
@@ -347,34 +381,32 @@ fn killed_processes_are_restarted_and_training_completes() {
             "no restart of {role} reported: {stderr}"
         );
     }
-    // the learner reached its target across the restart (it resumed from a checkpoint)
-    let last = std::fs::read_dir(run.join("checkpoints"))
-        .unwrap()
-        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-        .max()
-        .unwrap();
-    assert_eq!(
-        last,
-        format!("step-{:010}", ((env_steps - 400) as f64 * 0.25) as u64)
-    );
-    // the restarted learner continued from its checkpoint: the step it resumed at is past 0
-    // and its logged steps never fall back by more than one checkpoint interval
-    let learner_log = std::fs::read_to_string(run.join("logs/learner.log")).unwrap();
-    let resumed: Vec<u64> = learner_log
-        .lines()
-        .filter_map(|l| l.split("learner resumed from ").nth(1))
-        .map(|l| {
-            l.rsplit(" at step ")
-                .next()
-                .unwrap()
-                .trim()
-                .parse()
-                .unwrap()
-        })
-        .collect();
+    // the restarted learner continued from its checkpoint: the step it resumed at is past 0,
+    // its last checkpoint past that, and its logged steps never fall back by more than one
+    // checkpoint interval
+    let resumed = resumed_steps(&run);
+    let learner_log = || std::fs::read_to_string(run.join("logs/learner.log")).unwrap();
     assert!(
         !resumed.is_empty() && resumed.iter().all(|&k| k > 0),
-        "{learner_log}"
+        "{}",
+        learner_log()
+    );
+    let last: u64 = std::fs::read_dir(run.join("checkpoints"))
+        .unwrap()
+        .filter_map(|e| {
+            e.ok()?
+                .file_name()
+                .to_str()?
+                .strip_prefix("step-")?
+                .parse()
+                .ok()
+        })
+        .max()
+        .unwrap();
+    assert!(
+        resumed.iter().all(|&k| last > k),
+        "last checkpoint {last}, resumed at {resumed:?}: {}",
+        learner_log()
     );
     let logged: Vec<f64> = std::fs::read_to_string(run.join("metrics.jsonl"))
         .unwrap()
@@ -461,13 +493,10 @@ fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
     // stops it itself once it has seen training go on
     let (child, run) = launch(dir.path(), 1_000_000, 2);
     let minute = Duration::from_secs(60);
-    let replay = wait_for("replay", minute, || find_pid(&run, "replay", &[]));
+    let replay = wait_for(&run, "replay", minute, || find_pid(&run, "replay", &[]));
     let prefix = arg_after(replay, "--prefix");
-    let status = |run: &Path| -> Option<Value> {
-        serde_json::from_str(&std::fs::read_to_string(run.join("status.json")).ok()?).ok()
-    };
     // each actor's stream is well past its second chunk (episodes are at most 100 steps)
-    wait_for("1500 steps stored", 3 * minute, || {
+    wait_for(&run, "1500 steps stored", 3 * minute, || {
         (status(&run)?["replay"]["inserted"].as_u64()? >= 1500).then_some(())
     });
     let transport = RunTransport::open(&prefix, 2, "injector").unwrap();
@@ -578,7 +607,7 @@ fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
     // when it drains the queues at the end
     let mut last = Value::Null;
     let started = Instant::now();
-    let grad_steps = wait_for("the rejections in status.json", minute, || {
+    let grad_steps = wait_for(&run, "the rejections in status.json", minute, || {
         assert!(
             started.elapsed() < minute - Duration::from_secs(1),
             "status.json: {last}"
@@ -596,9 +625,12 @@ fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
         all.then(|| s["grad_steps"].as_u64()).flatten()
     });
     // the run goes on: the learner keeps training on the real actors' data
-    wait_for("training to go on after the rejections", 2 * minute, || {
-        (status(&run)?["grad_steps"].as_u64()? >= grad_steps + 50).then_some(())
-    });
+    wait_for(
+        &run,
+        "training to go on after the rejections",
+        2 * minute,
+        || (status(&run)?["grad_steps"].as_u64()? >= grad_steps + 50).then_some(()),
+    );
     // stopped as a user stops a run; the injector stays until the end: the replay drains its
     // queues (the injected chunks among them) before it stops
     // SAFETY: kill(2) on the launcher's pid, which this test still owns (not reaped).
