@@ -275,6 +275,23 @@ fn status(run: &Path) -> Option<Value> {
     serde_json::from_str(&std::fs::read_to_string(run.join("status.json")).ok()?).ok()
 }
 
+/// The step of the learner's last checkpoint in `run` (0 without one).
+fn last_checkpoint(run: &Path) -> u64 {
+    std::fs::read_dir(run.join("checkpoints"))
+        .into_iter()
+        .flatten()
+        .filter_map(|e| {
+            e.ok()?
+                .file_name()
+                .to_str()?
+                .strip_prefix("step-")?
+                .parse()
+                .ok()
+        })
+        .max()
+        .unwrap_or(0)
+}
+
 /// The steps the learner of `run` resumed at, from its log.
 fn resumed_steps(run: &Path) -> Vec<u64> {
     let log = std::fs::read_to_string(run.join("logs/learner.log")).unwrap_or_default();
@@ -391,18 +408,7 @@ fn killed_processes_are_restarted_and_training_goes_on() {
         "{}",
         learner_log()
     );
-    let last: u64 = std::fs::read_dir(run.join("checkpoints"))
-        .unwrap()
-        .filter_map(|e| {
-            e.ok()?
-                .file_name()
-                .to_str()?
-                .strip_prefix("step-")?
-                .parse()
-                .ok()
-        })
-        .max()
-        .unwrap();
+    let last = last_checkpoint(&run);
     assert!(
         resumed.iter().all(|&k| last > k),
         "last checkpoint {last}, resumed at {resumed:?}: {}",
@@ -670,18 +676,7 @@ fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
         assert_eq!(r["dropped_steps"].as_u64().unwrap(), 0, "{name}: {r}");
     }
     // the learner's last checkpoint is from after the rejections
-    let last_checkpoint = std::fs::read_dir(run.join("checkpoints"))
-        .unwrap()
-        .filter_map(|e| {
-            e.ok()?
-                .file_name()
-                .to_str()?
-                .strip_prefix("step-")?
-                .parse()
-                .ok()
-        })
-        .max()
-        .unwrap_or(0u64);
+    let last_checkpoint = last_checkpoint(&run);
     assert!(
         last_checkpoint >= grad_steps + 50,
         "{last_checkpoint} < {grad_steps} + 50"
