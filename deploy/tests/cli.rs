@@ -709,7 +709,9 @@ fn a_sweep_runs_its_matrix_once_and_its_emitted_commands_do_the_same() {
 #[test]
 fn an_interrupted_sweep_resumes_its_runs_from_their_checkpoints() {
     let dir = tempfile::tempdir().unwrap();
-    let matrix = tiny_matrix(dir.path(), 1, 1500);
+    // a target far past the first checkpoint (step 20 of 1475): a fast machine trained the
+    // 350 steps of a 1500-step run to its end before the interrupt came
+    let matrix = tiny_matrix(dir.path(), 1, 6000);
     let out = dir.path().join("sweep");
     let args = [
         "sweep",
@@ -726,14 +728,20 @@ fn an_interrupted_sweep_resumes_its_runs_from_their_checkpoints() {
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
-    // interrupt it once the learner has checkpointed
-    let start = std::time::Instant::now();
-    while ctxrace_learner::checkpoint::latest_checkpoint(&run).is_none() {
-        assert!(start.elapsed().as_secs() < 120, "no checkpoint in time");
-        std::thread::sleep(std::time::Duration::from_millis(100));
-    }
-    // the sweep and its run are locked while it runs
+    let wait = |what: &str, done: &dyn Fn() -> bool| {
+        let start = std::time::Instant::now();
+        while !done() {
+            assert!(start.elapsed().as_secs() < 120, "no {what} in time");
+            std::thread::sleep(std::time::Duration::from_millis(10));
+        }
+    };
+    // the sweep and its run are locked while it runs (checked once its learner has started)
+    wait("learner", &|| run.join("logs/learner.log").exists());
     fails_with(&args, "in use by another process");
+    // interrupt it as soon as the learner has checkpointed
+    wait("checkpoint", &|| {
+        ctxrace_learner::checkpoint::latest_checkpoint(&run).is_some()
+    });
     // SAFETY: signalling our own child.
     unsafe {
         libc::kill(child.id() as libc::pid_t, libc::SIGINT);
