@@ -81,32 +81,32 @@ impl Dense {
         kernels::linear_norm_act(x, &self.weight, wt, tape, ln.parts(), act, sparse)
     }
 
-    /// [`Dense::forward`] and [`Dense::forward_norm_act`] (with `norm`) on the two paths
-    /// `(x_frozen, x_trained)` of one input from one product ([`kernels::linear_twice`]):
-    /// `(y_frozen, y_trained)`, where `y_frozen` takes no gradient in the parameters and
-    /// `y_trained` takes them as [`Dense::forward`] does. It multiplies by the stored weight.
-    pub fn forward_twice(
+    /// [`Dense::forward`] on the two paths `(x_frozen, x_trained)` of one input from one product
+    /// ([`kernels::linear_twice`]): `(y_frozen, y_trained)`, where `y_frozen` takes no gradient
+    /// in the parameters and `y_trained` takes them as [`Dense::forward`] does. It multiplies by
+    /// the stored weight.
+    pub fn forward_twice(&self, x: (&Tensor, &Tensor)) -> Result<(Tensor, Tensor)> {
+        let sparse = self.sparse_inputs.clone();
+        kernels::linear_twice(x, &self.weight, self.bias.as_ref(), sparse)
+    }
+
+    /// [`Dense::forward_norm_act`] as [`Dense::forward_twice`]: in one operation
+    /// ([`kernels::linear_norm_act_twice`]) when the layer has no bias; otherwise as two.
+    pub fn forward_norm_act_twice(
         &self,
         x: (&Tensor, &Tensor),
-        norm: Option<(&LayerNorm, NormAct)>,
+        ln: &LayerNorm,
+        act: NormAct,
     ) -> Result<(Tensor, Tensor)> {
-        let sparse = self.sparse_inputs.clone();
-        match (norm, &self.bias) {
-            (Some((ln, act)), None) => {
-                kernels::linear_norm_act_twice(x, &self.weight, ln.parts(), act, sparse)
-            }
-            (norm, bias) => {
-                let (frozen, trained) =
-                    kernels::linear_twice(x, &self.weight, bias.as_ref(), sparse)?;
-                match norm {
-                    Some((ln, act)) => Ok((
-                        ln.frozen().forward_act(&frozen, act)?,
-                        ln.forward_act(&trained, act)?,
-                    )),
-                    None => Ok((frozen, trained)),
-                }
-            }
+        if self.bias.is_some() {
+            let (frozen, trained) = self.forward_twice(x)?;
+            return Ok((
+                ln.frozen().forward_act(&frozen, act)?,
+                ln.forward_act(&trained, act)?,
+            ));
         }
+        let sparse = self.sparse_inputs.clone();
+        kernels::linear_norm_act_twice(x, &self.weight, ln.parts(), act, sparse)
     }
 
     /// The same layer for a loop that applies it many times: its weight transposed once into

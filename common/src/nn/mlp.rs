@@ -73,15 +73,15 @@ impl Mlp {
         let mut h = (x.clone(), x.detach());
         for (fc, ln) in &self.hidden {
             h = match ln {
-                Some(ln) => fc.forward_twice((&h.0, &h.1), Some((ln, NormAct::Silu)))?,
+                Some(ln) => fc.forward_norm_act_twice((&h.0, &h.1), ln, NormAct::Silu)?,
                 None => {
-                    let (frozen, trained) = fc.forward_twice((&h.0, &h.1), None)?;
+                    let (frozen, trained) = fc.forward_twice((&h.0, &h.1))?;
                     (frozen.relu()?, trained.relu()?)
                 }
             };
         }
         match &self.head {
-            Some(head) => head.forward_twice((&h.0, &h.1), None),
+            Some(head) => head.forward_twice((&h.0, &h.1)),
             None => Ok(h),
         }
     }

@@ -22,6 +22,13 @@ struct LinearNormAct {
     known: Option<Tensor>,
 }
 
+impl LinearNormAct {
+    /// The block on `x` with the weight argument and `[γ, β]`.
+    fn apply(self, x: &Tensor, weight: &Tensor, gain_bias: &Tensor) -> Result<Tensor> {
+        x.contiguous()?.apply_op3(weight, gain_bias, self)
+    }
+}
+
 impl CustomOp3 for LinearNormAct {
     fn name(&self) -> &'static str {
         "ctxrace-linear-norm-act"
@@ -117,8 +124,7 @@ pub fn linear_norm_act(
         product: Arc::default(),
         known: None,
     };
-    let gain_bias = Tensor::cat(&[gain, bias], 0)?;
-    x.contiguous()?.apply_op3(&weight, &gain_bias, op)
+    op.apply(x, &weight, &Tensor::cat(&[gain, bias], 0)?)
 }
 
 /// [`linear_norm_act`] (stored weight layout) on the two paths `(x_frozen, x_trained)` of one
@@ -133,29 +139,24 @@ pub fn linear_norm_act_twice(
     sparse_inputs: Option<std::ops::Range<usize>>,
 ) -> Result<(Tensor, Tensor)> {
     let (linear, weight) = product(weight, None, None, sparse_inputs)?;
-    let product: Arc<Mutex<Vec<f32>>> = Arc::default();
-    let trained_op = LinearNormAct {
+    let (eps, product) = (eps as f32, Arc::<Mutex<Vec<f32>>>::default());
+    let gain_bias = Tensor::cat(&[gain, bias], 0)?;
+    let trained = LinearNormAct {
         linear,
-        eps: eps as f32,
+        eps,
         act,
         product: product.clone(),
         known: None,
-    };
-    let gain_bias = Tensor::cat(&[gain, bias], 0)?;
-    let trained = x_trained
-        .contiguous()?
-        .apply_op3(&weight, &gain_bias, trained_op)?;
-    let frozen_op = LinearNormAct {
+    }
+    .apply(x_trained, &weight, &gain_bias)?;
+    let frozen = LinearNormAct {
         linear: Linear::frozen(None),
-        eps: eps as f32,
+        eps,
         act,
         product,
         known: Some(trained.detach()),
-    };
-    let frozen =
-        x_frozen
-            .contiguous()?
-            .apply_op3(&weight.detach(), &gain_bias.detach(), frozen_op)?;
+    }
+    .apply(x_frozen, &weight.detach(), &gain_bias.detach())?;
     Ok((frozen, trained))
 }
 
