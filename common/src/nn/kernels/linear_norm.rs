@@ -66,8 +66,7 @@ impl CustomOp3 for LinearNormAct {
                 shape.dims()
             );
         }
-        let mut out = vec![0f32; p.len()];
-        norm_act_rows(&p, &gb[..d], &gb[d..], &mut out, self.eps, self.act);
+        let out = norm_act_rows(&p, &gb[..d], &gb[d..], self.eps, self.act);
         *self.product.lock().unwrap_or_else(PoisonError::into_inner) = p;
         Ok((CpuStorage::F32(out), shape))
     }
@@ -87,10 +86,9 @@ impl CustomOp3 for LinearNormAct {
                 if p.len() != dy.len() {
                     bail!("linear_norm_act: backward pass without its forward pass");
                 }
-                let mut dp = vec![0f32; p.len()];
                 let mut dgb = vec![0f32; 2 * d];
                 let (gain, bias) = gb.split_at(d);
-                norm_act_rows_bwd(&p, gain, bias, dy, &mut dp, &mut dgb, self.eps, self.act);
+                let dp = norm_act_rows_bwd(&p, gain, bias, dy, &mut dgb, self.eps, self.act);
                 Ok((dp, dgb))
             })
         })?;

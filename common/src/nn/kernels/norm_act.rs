@@ -40,51 +40,47 @@ fn row_moments(x: &[f32], eps: f32) -> (f32, f32) {
 }
 
 vectorised! {
-    /// `out` (whole rows of `gain.len()`) ← `act(LayerNorm(x))` of the rows of `x` from the first.
-    pub(super) fn norm_act_rows(x: &[f32], gain: &[f32], bias: &[f32], out: &mut [f32], eps: f32, act: NormAct) {
+    /// `act(LayerNorm(x))` of the whole rows (of `gain.len()`) of `x`, built row by row
+    /// (written once, never zeroed first).
+    pub(super) fn norm_act_rows(x: &[f32], gain: &[f32], bias: &[f32], eps: f32, act: NormAct) -> Vec<f32> {
         let d = gain.len();
         let bias = &bias[..d];
+        let mut out = Vec::with_capacity(x.len());
         // exact-length rows: the loops below run without bounds checks, in vector lanes
-        for (xr, o) in x.chunks_exact(d).zip(out.chunks_exact_mut(d)) {
+        for xr in x.chunks_exact(d) {
             let (mean, rstd) = row_moments(xr, eps);
-            let lanes = o.iter_mut().zip(xr).zip(gain.iter().zip(bias));
+            let lanes = xr.iter().zip(gain.iter().zip(bias));
             match act {
-                NormAct::Identity => {
-                    for ((o, &x), (&g, &b)) in lanes {
-                        *o = (x - mean) * rstd * g + b;
-                    }
-                }
-                NormAct::Silu => {
-                    for ((o, &x), (&g, &b)) in lanes {
-                        *o = NormAct::Silu.eval((x - mean) * rstd * g + b).0;
-                    }
-                }
+                NormAct::Identity => out.extend(lanes.map(|(&x, (&g, &b))| (x - mean) * rstd * g + b)),
+                NormAct::Silu => out.extend(
+                    lanes.map(|(&x, (&g, &b))| NormAct::Silu.eval((x - mean) * rstd * g + b).0),
+                ),
             }
         }
+        out
     }
 }
 
 vectorised! {
-    /// The backward pass of [`norm_act_rows`] over the rows of `dx`: `dx`, and
-    /// `dgb = [dγ, dβ]` accumulated.
+    /// The backward pass of [`norm_act_rows`] over the whole rows of `x` and `dy`: `dx`
+    /// (built row by row), and `dgb = [dγ, dβ]` accumulated.
     pub(super) fn norm_act_rows_bwd(
         x: &[f32],
         gain: &[f32],
         bias: &[f32],
         dy: &[f32],
-        dx: &mut [f32],
         dgb: &mut [f32],
         eps: f32,
         act: NormAct,
-    ) {
+    ) -> Vec<f32> {
         let d = gain.len();
         let bias = &bias[..d];
         let (dgain, dbias) = dgb.split_at_mut(d);
         let dbias = &mut dbias[..d];
         let mut xh = vec![0f32; d];
         let mut dxh = vec![0f32; d];
-        let rows = x.chunks_exact(d).zip(dy.chunks_exact(d));
-        for ((xr, dyr), dxr) in rows.zip(dx.chunks_exact_mut(d)) {
+        let mut dx = Vec::with_capacity(x.len());
+        for (xr, dyr) in x.chunks_exact(d).zip(dy.chunks_exact(d)) {
             let (mean, rstd) = row_moments(xr, eps);
             for (h, &x) in xh.iter_mut().zip(xr) {
                 *h = (x - mean) * rstd;
@@ -107,10 +103,9 @@ vectorised! {
             }
             let m1 = lane_sum(&dxh, &dxh, |v, _| v) / d as f32;
             let m2 = lane_sum(&dxh, &xh, |v, w| v * w) / d as f32;
-            for ((o, &g), &h) in dxr.iter_mut().zip(&dxh).zip(&xh) {
-                *o = rstd * (g - m1 - h * m2);
-            }
+            dx.extend(dxh.iter().zip(&xh).map(|(&g, &h)| rstd * (g - m1 - h * m2)));
         }
+        dx
     }
 }
 
@@ -133,8 +128,7 @@ impl CustomOp3 for NormActOp {
         if d == 0 || x.len() % d != 0 || b.len() != d {
             bail!("norm_act: input {:?} for a gain of {d}", l1.shape());
         }
-        let mut out = vec![0f32; x.len()];
-        norm_act_rows(x, g, b, &mut out, self.eps, self.act);
+        let out = norm_act_rows(x, g, b, self.eps, self.act);
         Ok((CpuStorage::F32(out), l1.shape().clone()))
     }
 
@@ -152,9 +146,8 @@ impl CustomOp3 for NormActOp {
             read(gain, |g| {
                 read(bias, |b| {
                     read(grad, |dy| {
-                        let mut dx = vec![0f32; x.len()];
                         let mut dgb = vec![0f32; 2 * d];
-                        norm_act_rows_bwd(x, g, b, dy, &mut dx, &mut dgb, self.eps, self.act);
+                        let dx = norm_act_rows_bwd(x, g, b, dy, &mut dgb, self.eps, self.act);
                         Ok((dx, dgb))
                     })
                 })
