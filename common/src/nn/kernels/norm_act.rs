@@ -40,30 +40,40 @@ fn row_moments(x: &[f32], eps: f32) -> (f32, f32) {
 }
 
 vectorised! {
-    /// `act(LayerNorm(x))` of the whole rows (of `gain.len()`) of `x`, built row by row
-    /// (written once, never zeroed first).
+    /// `act(LayerNorm(x))` of the whole rows (of `gain.len()`) of `x`, each value written
+    /// once into the new buffer (never zeroed first).
     pub(super) fn norm_act_rows(x: &[f32], gain: &[f32], bias: &[f32], eps: f32, act: NormAct) -> Vec<f32> {
         let d = gain.len();
         let bias = &bias[..d];
-        let mut out = Vec::with_capacity(x.len());
-        // exact-length rows: the loops below run without bounds checks, in vector lanes
-        for xr in x.chunks_exact(d) {
+        let rows = x.len() / d.max(1);
+        let mut out = Vec::with_capacity(rows * d);
+        // exact-length rows: the loops below run without bounds checks, in vector lanes (and in
+        // this function's body, whose vector width `Vec::extend` would not have)
+        for (xr, o) in x.chunks_exact(d).zip(out.spare_capacity_mut().chunks_exact_mut(d)) {
             let (mean, rstd) = row_moments(xr, eps);
-            let lanes = xr.iter().zip(gain.iter().zip(bias));
+            let lanes = o.iter_mut().zip(xr).zip(gain.iter().zip(bias));
             match act {
-                NormAct::Identity => out.extend(lanes.map(|(&x, (&g, &b))| (x - mean) * rstd * g + b)),
-                NormAct::Silu => out.extend(
-                    lanes.map(|(&x, (&g, &b))| NormAct::Silu.eval((x - mean) * rstd * g + b).0),
-                ),
+                NormAct::Identity => {
+                    for ((o, &x), (&g, &b)) in lanes {
+                        o.write((x - mean) * rstd * g + b);
+                    }
+                }
+                NormAct::Silu => {
+                    for ((o, &x), (&g, &b)) in lanes {
+                        o.write(NormAct::Silu.eval((x - mean) * rstd * g + b).0);
+                    }
+                }
             }
         }
+        // SAFETY: the loop wrote all `d` values of each of the `rows` rows
+        unsafe { out.set_len(rows * d) };
         out
     }
 }
 
 vectorised! {
     /// The backward pass of [`norm_act_rows`] over the whole rows of `x` and `dy`: `dx`
-    /// (built row by row), and `dgb = [dγ, dβ]` accumulated.
+    /// (each value written once), and `dgb = [dγ, dβ]` accumulated.
     pub(super) fn norm_act_rows_bwd(
         x: &[f32],
         gain: &[f32],
@@ -79,8 +89,10 @@ vectorised! {
         let dbias = &mut dbias[..d];
         let mut xh = vec![0f32; d];
         let mut dxh = vec![0f32; d];
-        let mut dx = Vec::with_capacity(x.len());
-        for (xr, dyr) in x.chunks_exact(d).zip(dy.chunks_exact(d)) {
+        let rows = (x.len() / d.max(1)).min(dy.len() / d.max(1));
+        let mut dx = Vec::with_capacity(rows * d);
+        let out_rows = dx.spare_capacity_mut().chunks_exact_mut(d);
+        for ((xr, dyr), dxr) in x.chunks_exact(d).zip(dy.chunks_exact(d)).zip(out_rows) {
             let (mean, rstd) = row_moments(xr, eps);
             for (h, &x) in xh.iter_mut().zip(xr) {
                 *h = (x - mean) * rstd;
@@ -103,8 +115,12 @@ vectorised! {
             }
             let m1 = lane_sum(&dxh, &dxh, |v, _| v) / d as f32;
             let m2 = lane_sum(&dxh, &xh, |v, w| v * w) / d as f32;
-            dx.extend(dxh.iter().zip(&xh).map(|(&g, &h)| rstd * (g - m1 - h * m2)));
+            for ((o, &g), &h) in dxr.iter_mut().zip(&dxh).zip(&xh) {
+                o.write(rstd * (g - m1 - h * m2));
+            }
         }
+        // SAFETY: the loop wrote all `d` values of each of the `rows` rows
+        unsafe { dx.set_len(rows * d) };
         dx
     }
 }
