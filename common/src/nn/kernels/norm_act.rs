@@ -45,10 +45,14 @@ vectorised! {
     pub(super) fn norm_act_rows(x: &[f32], gain: &[f32], bias: &[f32], eps: f32, act: NormAct) -> Vec<f32> {
         let d = gain.len();
         let bias = &bias[..d];
-        let rows = x.len() / d.max(1);
+        if d == 0 {
+            return Vec::new();
+        }
+        let rows = x.len() / d;
         let mut out = Vec::with_capacity(rows * d);
-        // exact-length rows: the loops below run without bounds checks, in vector lanes (and in
-        // this function's body, whose vector width `Vec::extend` would not have)
+        // exact-length rows: the loops below run without bounds checks, in vector lanes; they
+        // write here rather than through `Vec::extend`, which is not inlined into this
+        // function's AVX-512 and AVX2 copies and would run in baseline lanes
         for (xr, o) in x.chunks_exact(d).zip(out.spare_capacity_mut().chunks_exact_mut(d)) {
             let (mean, rstd) = row_moments(xr, eps);
             let lanes = o.iter_mut().zip(xr).zip(gain.iter().zip(bias));
@@ -87,9 +91,12 @@ vectorised! {
         let bias = &bias[..d];
         let (dgain, dbias) = dgb.split_at_mut(d);
         let dbias = &mut dbias[..d];
+        if d == 0 {
+            return Vec::new();
+        }
         let mut xh = vec![0f32; d];
         let mut dxh = vec![0f32; d];
-        let rows = (x.len() / d.max(1)).min(dy.len() / d.max(1));
+        let rows = (x.len() / d).min(dy.len() / d);
         let mut dx = Vec::with_capacity(rows * d);
         let out_rows = dx.spare_capacity_mut().chunks_exact_mut(d);
         for ((xr, dyr), dxr) in x.chunks_exact(d).zip(dy.chunks_exact(d)).zip(out_rows) {
