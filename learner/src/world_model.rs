@@ -16,6 +16,8 @@ use crate::adam::Adam;
 use crate::algorithm::{scalar, Metrics};
 use crate::sequences::SeqData;
 use crate::shards::{on_shards, weighted_mean};
+use crate::time_rows::TimeRows;
+use candle_core::backprop::GradStore;
 use candle_core::{Module, Result, Tensor};
 use ctxrace_common::agents::DreamerConfig;
 use ctxrace_common::nn::{symlog, Activation, Mlp, ParamStore, Rssm, RssmState, TwoHot};
@@ -54,6 +56,27 @@ pub(crate) struct Starts {
     pub(crate) cont: Tensor,
     /// `[N, 2]` the model context, if any.
     pub(crate) ctx: Option<Tensor>,
+}
+
+/// A shard's world-model loss ([`WorldModel::loss`]) with what its gradients need.
+pub(crate) struct ModelLoss {
+    loss: Tensor,
+    metrics: Metrics,
+    starts: Starts,
+    /// The observation embeddings as the sequence loop read them.
+    embed: TimeRows,
+}
+
+impl ModelLoss {
+    /// The gradients of `weight` times the loss in every parameter: the backward pass, the
+    /// taped weight gradients of `rssm` (the loop's [`Rssm::taped`] model), and the encoder's
+    /// from the embeddings' gradients.
+    fn gradients(&self, rssm: &Rssm, weight: f64) -> Result<GradStore> {
+        let mut grads = (&self.loss * weight)?.backward()?;
+        rssm.flush_grads(&mut grads)?;
+        self.embed.backprop(&mut grads)?;
+        Ok(grads)
+    }
 }
 
 /// Encoder, RSSM, decoder, reward and continue heads, and the optimiser that trains them.
@@ -124,20 +147,26 @@ impl WorldModel {
     /// The loss of a shard of sequences `d` (model context `ctx` `[B·T, 2]`, Gumbel noise from the
     /// sequences' streams `rngs`), its metrics and the posterior states to imagine from.
     /// `rssm` is this model's RSSM as [`Rssm::taped`] for the sequence loop; its tapes must be
-    /// flushed into the gradients of the loss.
+    /// flushed into the gradients of the loss, and the embeddings' gradients sent on into the
+    /// encoder ([`ModelLoss::gradients`]).
     pub(crate) fn loss(
         &self,
         rssm: &Rssm,
         d: &SeqData,
         ctx: Option<&Tensor>,
         rngs: &mut [ChaCha8Rng],
-    ) -> Result<(Tensor, Metrics, Starts)> {
+    ) -> Result<ModelLoss> {
         let (b, t_len, n) = (d.batch, d.length, d.batch * d.length);
         let (s, c) = (self.cfg.stoch, self.cfg.classes);
         let target = symlog(&d.flat(&d.obs)?)?;
         // time-major, so that `get(t)` gives contiguous `[B, …]` slices
         let time_major = |x: &Tensor| x.transpose(0, 1)?.contiguous();
-        let embed = time_major(&self.encoder.forward(&target)?.reshape((b, t_len, ()))?)?;
+        // the loop reads one step at a time: as leaves, not `get(t)` views (see `TimeRows`)
+        let embed = TimeRows::new(&time_major(&self.encoder.forward(&target)?.reshape((
+            b,
+            t_len,
+            (),
+        ))?)?)?;
         let actions = time_major(&d.action)?;
         let keeps = time_major(&(1.0 - &d.first)?)?;
         let ctx_tm = ctx
@@ -159,7 +188,7 @@ impl WorldModel {
                 &prev,
                 &action,
                 c_t.as_ref(),
-                &embed.get(t)?,
+                embed.get(t),
                 &uniforms_per(rngs, 1, (s, c))?,
             )?;
             deters.push(next.deter.clone());
@@ -202,7 +231,12 @@ impl WorldModel {
             cont: cont_target,
             ctx: ctx.map(|c| c.detach()),
         };
-        Ok((loss, metrics, starts))
+        Ok(ModelLoss {
+            loss,
+            metrics,
+            starts,
+            embed,
+        })
     }
 
     /// One step of the world model on the batch `d`, its shards' losses and gradients computed by
@@ -220,10 +254,9 @@ impl WorldModel {
             let cs = ctx.map(|c| d.rows_of(c, &shard.rows)).transpose()?;
             // the weights transposed once for the 64 steps, their gradients one product each
             let rssm = self.rssm.taped()?;
-            let (loss, m, starts) = self.loss(&rssm, &ds, cs.as_ref(), rngs)?;
-            let mut grads = (loss * shard.weight)?.backward()?;
-            rssm.flush_grads(&mut grads)?;
-            Ok((shard.weight, m, grads, starts))
+            let shard_loss = self.loss(&rssm, &ds, cs.as_ref(), rngs)?;
+            let grads = shard_loss.gradients(&rssm, shard.weight)?;
+            Ok((shard.weight, shard_loss.metrics, grads, shard_loss.starts))
         })?;
         let mut grads = Vec::with_capacity(parts.len());
         let mut starts = Vec::with_capacity(parts.len());
