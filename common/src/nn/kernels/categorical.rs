@@ -79,6 +79,48 @@ vectorised! {
     }
 }
 
+vectorised! {
+    /// The gradients of the rows' KL divergences of [`kl_rows`] with output gradients `g` (one
+    /// per row of `per_row` logits): `∂/∂l_a` into `da` and `∂/∂l_b` into `db`, each left empty
+    /// when not wanted. Through the probabilities, `∂KL/∂p_a = ln p_a − ln p_b + 1` and
+    /// `∂KL/∂p_b = −p_a / p_b`.
+    fn kl_rows_bwd(
+        dist: Unimix,
+        la: &[f32],
+        lb: &[f32],
+        g: &[f32],
+        per_row: usize,
+        da: &mut [f32],
+        db: &mut [f32],
+    ) {
+        let c = dist.classes;
+        let keep = 1.0 - dist.unimix;
+        let mut buf = vec![0f32; 5 * c];
+        let (sa, rest) = buf.split_at_mut(c);
+        let (pa, rest) = rest.split_at_mut(c);
+        let (sb, rest) = rest.split_at_mut(c);
+        let (pb, dp) = rest.split_at_mut(c);
+        let variables = la.chunks_exact(c).zip(lb.chunks_exact(c)).enumerate();
+        for (i, (va, vb)) in variables {
+            let gi = g[i * c / per_row];
+            dist.probs(va, sa, pa);
+            dist.probs(vb, sb, pb);
+            if let Some(out) = da.get_mut(i * c..(i + 1) * c) {
+                for ((d, &a), &b) in dp.iter_mut().zip(pa.iter()).zip(pb.iter()) {
+                    *d = gi * (ln(a) - ln(b) + 1.0);
+                }
+                unimix_softmax_backward(sa, dp, keep, out);
+            }
+            if let Some(out) = db.get_mut(i * c..(i + 1) * c) {
+                for ((d, &a), &b) in dp.iter_mut().zip(pa.iter()).zip(pb.iter()) {
+                    *d = -gi * a / b;
+                }
+                unimix_softmax_backward(sb, dp, keep, out);
+            }
+        }
+    }
+}
+
 struct StraightThrough(Unimix);
 
 impl CustomOp2 for StraightThrough {
@@ -192,46 +234,13 @@ impl CustomOp2 for Kl {
         if !want_a && !want_b {
             return Ok((None, None));
         }
-        let c = self.0.classes;
-        let keep = 1.0 - self.0.unimix;
         let (da, db) = read(la_t, |la| {
             read(lb_t, |lb| {
                 read(grad, |g| {
                     let per_row = la.len() / g.len().max(1);
-                    // per variable: its c gradients of a, then its c of b
-                    let mut both = vec![0f32; 2 * la.len()];
-                    let mut buf = vec![0f32; 5 * c];
-                    for (i, out) in both.chunks_mut(2 * c).enumerate() {
-                        let v = i * c;
-                        let gi = g[v / per_row];
-                        let (sa, rest) = buf.split_at_mut(c);
-                        let (pa, rest) = rest.split_at_mut(c);
-                        let (sb, rest) = rest.split_at_mut(c);
-                        let (pb, dp) = rest.split_at_mut(c);
-                        self.0.probs(&la[v..v + c], sa, pa);
-                        self.0.probs(&lb[v..v + c], sb, pb);
-                        let (da, db) = out.split_at_mut(c);
-                        if want_a {
-                            for k in 0..c {
-                                dp[k] = gi * (pa[k].ln() - pb[k].ln() + 1.0);
-                            }
-                            unimix_softmax_backward(sa, dp, keep, da);
-                        }
-                        if want_b {
-                            for k in 0..c {
-                                dp[k] = -gi * pa[k] / pb[k];
-                            }
-                            unimix_softmax_backward(sb, dp, keep, db);
-                        }
-                    }
-                    let (da, db) = both.chunks(2 * c).map(|v| v.split_at(c)).fold(
-                        (Vec::with_capacity(la.len()), Vec::with_capacity(la.len())),
-                        |(mut da, mut db), (a, b)| {
-                            da.extend_from_slice(a);
-                            db.extend_from_slice(b);
-                            (da, db)
-                        },
-                    );
+                    let mut da = vec![0f32; if want_a { la.len() } else { 0 }];
+                    let mut db = vec![0f32; if want_b { lb.len() } else { 0 }];
+                    kl_rows_bwd(self.0, la, lb, g, per_row, &mut da, &mut db);
                     Ok((da, db))
                 })
             })
