@@ -19,7 +19,7 @@ impl NormAct {
             NormAct::Identity => (y, 1.0),
             NormAct::Silu => {
                 let s = sigmoid(y);
-                (y * s, s * (1.0 + y * (1.0 - s)))
+                (y * s, s * y.mul_add(1.0 - s, 1.0))
             }
         }
     }
@@ -59,12 +59,12 @@ vectorised! {
             match act {
                 NormAct::Identity => {
                     for ((o, &x), (&g, &b)) in lanes {
-                        o.write((x - mean) * rstd * g + b);
+                        o.write(((x - mean) * rstd).mul_add(g, b));
                     }
                 }
                 NormAct::Silu => {
                     for ((o, &x), (&g, &b)) in lanes {
-                        o.write(NormAct::Silu.eval((x - mean) * rstd * g + b).0);
+                        o.write(NormAct::Silu.eval(((x - mean) * rstd).mul_add(g, b)).0);
                     }
                 }
             }
@@ -110,20 +110,20 @@ vectorised! {
                 NormAct::Silu => {
                     let lanes = dxh.iter_mut().zip(dyr).zip(xh.iter().zip(gain.iter().zip(bias)));
                     for ((o, &dy), (&h, (&g, &b))) in lanes {
-                        *o = dy * NormAct::Silu.eval(h * g + b).1;
+                        *o = dy * NormAct::Silu.eval(h.mul_add(g, b)).1;
                     }
                 }
             }
             let lanes = dxh.iter_mut().zip(&xh).zip(gain.iter());
             for (((o, &h), &g), (dg, db)) in lanes.zip(dgain.iter_mut().zip(dbias.iter_mut())) {
-                *dg += *o * h;
+                *dg = o.mul_add(h, *dg);
                 *db += *o;
                 *o *= g;
             }
             let m1 = lane_sum(&dxh, &dxh, |v, _| v) / d as f32;
             let m2 = lane_sum(&dxh, &xh, |v, w| v * w) / d as f32;
             for ((o, &g), &h) in dxr.iter_mut().zip(&dxh).zip(&xh) {
-                o.write(rstd * (g - m1 - h * m2));
+                o.write(rstd * (-h).mul_add(m2, g - m1));
             }
         }
         // SAFETY: the loop wrote all `d` values of each of the `rows` rows
