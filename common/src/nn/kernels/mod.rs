@@ -98,7 +98,8 @@ fn wants_grad(t: &Tensor) -> bool {
 /// (remainder below `1.2·10⁻⁷`), `2ᵏ` built in the exponent bits. `k` is rounded by adding
 /// `1.5·2²³`, which leaves it in the low mantissa bits. Inputs are clamped to `[−87, 88]`, where
 /// `f32` neither underflows to subnormals nor overflows. The series is in fused multiply-adds
-/// ([`f32::mul_add`]: one instruction in the kernels' AVX-512 and AVX2 copies, and on aarch64).
+/// ([`f32::mul_add`]: one instruction in the kernels' AVX-512 and AVX2 copies, and on aarch64;
+/// in the baseline copy on x86 without FMA a call to libm's `fmaf`: the same values, slower).
 #[inline(always)]
 fn exp(x: f32) -> f32 {
     const ROUND: f32 = 12_582_912.0; // 1.5·2²³
