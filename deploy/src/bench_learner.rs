@@ -6,14 +6,16 @@
 //! matrix products (forward and backward, `2 m n k` each), counted as they run
 //! ([`ctxrace_common::nn::kernels::matmul_flops`]), per phase for the DreamerV3 variants (world
 //! model; behaviour: imagination, actor and critic; cMask's mask SAC). Elementwise work is not
-//! counted, so the fraction is a lower bound of the arithmetic done. The peak is
-//! `threads × 2 FMA units × lanes × 2 flops × clock`, with 16 lanes for AVX-512, 8 for AVX2 with
-//! FMA (4 otherwise) and the highest of the clocks the kernel reports (cpufreq's maximum when it
-//! exposes one, `/proc/cpuinfo`'s "cpu MHz") and the clock measured on a busy core: a virtual
-//! machine's "cpu MHz" is often the nominal clock while its cores boost above it, which would
-//! put the fraction too high (on an EPYC 7002 guest one core's gemm ran at 84 GFLOP/s against a
-//! 72 GFLOP/s "peak" of the reported 2.25 GHz).
-
+//! counted, so the fraction is a lower bound of the arithmetic done. The peak is `threads` times
+//! one core's rate of fused multiply-adds measured on its widest vectors (AVX-512, else AVX2 with
+//! FMA): independent chains of register FMAs, enough to cover their latency, timed on a busy core.
+//! It is a measurement, not `2 FMA units × lanes × clock` from the feature flags, because cores
+//! differ in what they do with a wide instruction: an AMD Zen 4 has AVX-512 but runs each 512-bit
+//! FMA as two 256-bit halves, so its peak is half of what its flags suggest (32, not 64, flops a
+//! cycle), while an Intel Xeon with two 512-bit units reaches 64. The clock is measured too (a
+//! chain of dependent register additions), to show flops per cycle; a virtual machine's
+//! `/proc/cpuinfo` often reports the nominal clock while its busy cores boost above it. Without
+//! an FMA probe (off x86, or no FMA) the peak falls back to `2 units × 4 lanes × 2 × clock`.
 use anyhow::Result;
 use clap::Args;
 use ctxrace_common::batch::{Batch, BatchSpec};
@@ -79,43 +81,117 @@ struct LearnerReport {
     fraction_of_peak: f64,
 }
 
-/// The peak f32 GFLOP/s of `threads` cores (see the module doc), with how it was computed.
+/// The peak f32 GFLOP/s of `threads` cores (see the module doc), with how it was found.
 fn peak_gflops(threads: usize) -> (f64, String) {
-    let lanes = if std::is_x86_feature_detected!("avx512f") {
-        16
-    } else if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
-        8
-    } else {
-        4
-    };
-    let cpufreq = std::fs::read_to_string("/sys/devices/system/cpu/cpu0/cpufreq/cpuinfo_max_freq")
-        .ok()
-        .and_then(|s| s.trim().parse::<f64>().ok())
-        .map(|khz| (khz / 1e6, "cpufreq maximum"));
-    let cpuinfo = || {
-        std::fs::read_to_string("/proc/cpuinfo")
-            .ok()?
-            .lines()
-            .find(|l| l.starts_with("cpu MHz"))?
-            .split(':')
-            .nth(1)?
-            .trim()
-            .parse::<f64>()
-            .ok()
-            .map(|mhz| (mhz / 1e3, "/proc/cpuinfo"))
-    };
-    let (ghz, source) = [cpufreq, cpuinfo(), measured_ghz().map(|g| (g, "measured"))]
-        .into_iter()
-        .flatten()
-        .fold(
-            (0.0, "no clock found"),
-            |best, c| if c.0 > best.0 { c } else { best },
+    let ghz = measured_ghz();
+    if let Some((core, lanes)) = measured_fma_gflops() {
+        let per_cycle = ghz.map_or(String::new(), |g| {
+            format!(": {:.0} flops a cycle at {g:.2} GHz", core / g)
+        });
+        return (
+            threads as f64 * core,
+            format!(
+                "{threads} cores x {core:.1} GFLOP/s, measured with {lanes}-lane FMAs{per_cycle}"
+            ),
         );
-    let peak = threads as f64 * 2.0 * lanes as f64 * 2.0 * ghz;
+    }
+    // 128-bit vectors (SSE, NEON), two units: an assumption, not a measurement
+    let ghz = ghz.unwrap_or(0.0);
     (
-        peak,
-        format!("{threads} cores x 2 FMA x {lanes} lanes x 2 flops x {ghz:.2} GHz ({source})"),
+        threads as f64 * 2.0 * 4.0 * 2.0 * ghz,
+        format!("{threads} cores x 2 FMA x 4 lanes x 2 flops x {ghz:.2} GHz (assumed)"),
     )
+}
+
+/// One core's f32 GFLOP/s in fused multiply-adds on its widest vectors and their lanes: twelve
+/// independent chains of register FMAs (more than latency × throughput on any x86 core), the
+/// fastest of three runs of about a tenth of a second.
+#[cfg(target_arch = "x86_64")]
+fn measured_fma_gflops() -> Option<(f64, usize)> {
+    const ITERATIONS: u64 = 20_000_000; // of 12 FMAs each
+    let (lanes, chains): (usize, unsafe fn(u64)) = if std::is_x86_feature_detected!("avx512f") {
+        (16, fma_chains_avx512)
+    } else if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+        (8, fma_chains_avx2)
+    } else {
+        return None;
+    };
+    let seconds = (0..3)
+        .map(|_| {
+            let started = Instant::now();
+            // SAFETY: the processor has the features `chains` is compiled for (checked above).
+            unsafe { chains(ITERATIONS) };
+            started.elapsed().as_secs_f64()
+        })
+        .fold(f64::INFINITY, f64::min);
+    let flops = ITERATIONS as f64 * 12.0 * lanes as f64 * 2.0;
+    (seconds > 0.0).then(|| (flops / seconds / 1e9, lanes))
+}
+
+/// No FMA probe off x86.
+#[cfg(not(target_arch = "x86_64"))]
+fn measured_fma_gflops() -> Option<(f64, usize)> {
+    None
+}
+
+/// `n` rounds of twelve independent 16-lane FMAs on registers (zeros: no subnormals).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn fma_chains_avx512(n: u64) {
+    // SAFETY: register arithmetic only, on registers declared clobbered; no memory is touched.
+    unsafe {
+        std::arch::asm!(
+            "vpxord zmm0, zmm0, zmm0", "vmovaps zmm1, zmm0", "vmovaps zmm2, zmm0",
+            "vmovaps zmm3, zmm0", "vmovaps zmm4, zmm0", "vmovaps zmm5, zmm0",
+            "vmovaps zmm6, zmm0", "vmovaps zmm7, zmm0", "vmovaps zmm8, zmm0",
+            "vmovaps zmm9, zmm0", "vmovaps zmm10, zmm0", "vmovaps zmm11, zmm0",
+            "vmovaps zmm12, zmm0", "vmovaps zmm13, zmm0",
+            "2:",
+            "vfmadd231ps zmm0, zmm12, zmm13", "vfmadd231ps zmm1, zmm12, zmm13",
+            "vfmadd231ps zmm2, zmm12, zmm13", "vfmadd231ps zmm3, zmm12, zmm13",
+            "vfmadd231ps zmm4, zmm12, zmm13", "vfmadd231ps zmm5, zmm12, zmm13",
+            "vfmadd231ps zmm6, zmm12, zmm13", "vfmadd231ps zmm7, zmm12, zmm13",
+            "vfmadd231ps zmm8, zmm12, zmm13", "vfmadd231ps zmm9, zmm12, zmm13",
+            "vfmadd231ps zmm10, zmm12, zmm13", "vfmadd231ps zmm11, zmm12, zmm13",
+            "dec {n}",
+            "jnz 2b",
+            n = inout(reg) n => _,
+            out("zmm0") _, out("zmm1") _, out("zmm2") _, out("zmm3") _, out("zmm4") _,
+            out("zmm5") _, out("zmm6") _, out("zmm7") _, out("zmm8") _, out("zmm9") _,
+            out("zmm10") _, out("zmm11") _, out("zmm12") _, out("zmm13") _,
+            options(nomem, nostack),
+        );
+    }
+}
+
+/// `n` rounds of twelve independent 8-lane FMAs on registers (zeros: no subnormals).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn fma_chains_avx2(n: u64) {
+    // SAFETY: register arithmetic only, on registers declared clobbered; no memory is touched.
+    unsafe {
+        std::arch::asm!(
+            "vxorps ymm0, ymm0, ymm0", "vmovaps ymm1, ymm0", "vmovaps ymm2, ymm0",
+            "vmovaps ymm3, ymm0", "vmovaps ymm4, ymm0", "vmovaps ymm5, ymm0",
+            "vmovaps ymm6, ymm0", "vmovaps ymm7, ymm0", "vmovaps ymm8, ymm0",
+            "vmovaps ymm9, ymm0", "vmovaps ymm10, ymm0", "vmovaps ymm11, ymm0",
+            "vmovaps ymm12, ymm0", "vmovaps ymm13, ymm0",
+            "2:",
+            "vfmadd231ps ymm0, ymm12, ymm13", "vfmadd231ps ymm1, ymm12, ymm13",
+            "vfmadd231ps ymm2, ymm12, ymm13", "vfmadd231ps ymm3, ymm12, ymm13",
+            "vfmadd231ps ymm4, ymm12, ymm13", "vfmadd231ps ymm5, ymm12, ymm13",
+            "vfmadd231ps ymm6, ymm12, ymm13", "vfmadd231ps ymm7, ymm12, ymm13",
+            "vfmadd231ps ymm8, ymm12, ymm13", "vfmadd231ps ymm9, ymm12, ymm13",
+            "vfmadd231ps ymm10, ymm12, ymm13", "vfmadd231ps ymm11, ymm12, ymm13",
+            "dec {n}",
+            "jnz 2b",
+            n = inout(reg) n => _,
+            out("ymm0") _, out("ymm1") _, out("ymm2") _, out("ymm3") _, out("ymm4") _,
+            out("ymm5") _, out("ymm6") _, out("ymm7") _, out("ymm8") _, out("ymm9") _,
+            out("ymm10") _, out("ymm11") _, out("ymm12") _, out("ymm13") _,
+            options(nomem, nostack),
+        );
+    }
 }
 
 /// The clock of a busy core in GHz, timed on a chain of dependent register additions (one
