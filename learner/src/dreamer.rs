@@ -38,63 +38,36 @@
 //! Gaussian actions and masks) comes from a ChaCha8 stream per sequence of each training step,
 //! so a run is reproducible from its seed, whatever the number of worker threads.
 //!
-//! **Speed.** Imagination and the actor loss run through frozen views of the RSSM and of the
-//! reward, continue and critic heads (detached parameters that share the trained storage): the
-//! actor's backward pass then computes gradients only where they lead to the actor, as
-//! PyTorch's `requires_grad = False` does. The layers run on the fused kernels of
-//! `ctxrace_common::nn::kernels`. Each step splits its batch into one shard of sequences per
-//! worker thread ([`Dreamer::set_workers`], [`crate::shards`]): the shards run the world-model, imagination,
-//! actor, critic and mask-SAC passes in parallel, each loss scaled by its shard's share of the
-//! batch, and the optimisers step on the summed gradients, which are the batch's.
+//! **Speed.** Behaviour learning (imagination, heads, λ-returns, actor and critic losses) is
+//! differentiated by hand on plain buffers ([`crate::behaviour`], on
+//! `ctxrace_common::nn::plain`): it computes the gradients the actor and the critic need and no
+//! others (as PyTorch's `requires_grad = False` on the world model and the frozen heads), with no
+//! graph bookkeeping, in buffers kept from step to step. The world model runs on candle with the
+//! fused kernels of `ctxrace_common::nn::kernels`. Each step splits its batch into one shard of
+//! sequences per worker thread ([`Dreamer::set_workers`], [`crate::shards`]): the shards run the
+//! world-model, imagination, actor, critic and mask-SAC passes in parallel, each loss scaled by
+//! its shard's share of the batch, and the optimisers step on the summed gradients, which are the
+//! batch's.
 
 use crate::adam::Adam;
 use crate::algorithm::{scalar, Algorithm, Batch, Metrics};
+use crate::behaviour::{self, Imagination, Setting};
 use crate::checkpoint;
 use crate::cmask::MaskSac;
-use crate::returns::{lambda_returns, ReturnNorm};
+use crate::returns::ReturnNorm;
 use crate::sac::polyak;
 use crate::sequences::SeqData;
-use crate::shards::{join_worker, on_shards, weighted_mean};
+use crate::shards::{in_parallel, on_shards_with, weighted_mean};
 use crate::world_model::{Starts, WorldModel};
-use candle_core::{bail, Module, Result, Tensor};
+use candle_core::{bail, Result, Tensor};
 use ctxrace_common::agents::{ContextMode, DreamerConfig, CONTEXT_DIM};
-use ctxrace_common::nn::kernels::{matmul_flops, soft_cross_entropy};
-use ctxrace_common::nn::{Activation, Mlp, ParamStore, Rssm, TwoHot};
-use ctxrace_common::policy::{mask_sample, normals_per, uniforms_per, DreamerNets, DreamerPolicy};
+use ctxrace_common::nn::kernels::matmul_flops;
+use ctxrace_common::nn::{Activation, Mlp, ParamStore, TwoHot};
+use ctxrace_common::policy::{mask_sample, normals_per, DreamerNets, DreamerPolicy};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
-
-/// The λ-returns of an imagined trajectory and what they came from, each `[H, N]` (values
-/// `[H + 1, N]`).
-struct ImaginedReturns {
-    reward: Tensor,
-    value: Tensor,
-    /// The critic's logits at `s_0 … s_H` on the states detached, for its own loss: the same
-    /// forward pass as `value`'s, differentiable in the critic's parameters only.
-    critic_logits: Tensor,
-    returns: Tensor,
-    weights: Tensor,
-}
-
-/// An imagined trajectory of `H` actions from `N` starts.
-struct Imagined {
-    /// Head inputs of the states `s_0 … s_H`, time-major `[(H + 1)·N, F]`.
-    x: Tensor,
-    /// Actor entropies at `s_0 … s_{H−1}`, `[H, N]`.
-    entropy: Tensor,
-    n: usize,
-}
-
-/// Detached views of the networks that imagination and the actor loss run through: they share
-/// the trained weights but take no gradient, so the actor's backward pass computes none for them
-/// (the critic's frozen view comes with its trained one, from [`Mlp::forward_twice`]).
-struct Frozen {
-    rssm: Rssm,
-    reward: Mlp,
-    cont: Mlp,
-}
 
 /// On-disk counters of a [`Dreamer`].
 #[derive(Serialize, Deserialize)]
@@ -115,7 +88,6 @@ pub struct Dreamer {
     world_model: WorldModel,
     critic: Mlp,
     slow_critic: Mlp,
-    frozen: Frozen,
     twohot: TwoHot,
     actor_opt: Adam,
     critic_opt: Adam,
@@ -124,6 +96,8 @@ pub struct Dreamer {
     step: u64,
     /// Worker threads a batch is split over.
     workers: usize,
+    /// Each shard's imagination, its buffers kept from one step to the next.
+    imaginations: Vec<Imagination>,
 }
 
 impl Dreamer {
@@ -164,13 +138,7 @@ impl Dreamer {
             ContextMode::Cmask => Some(MaskSac::new(&cfg, obs_dim, &policy)?),
             ContextMode::None | ContextMode::Crssm => None,
         };
-        let frozen = Frozen {
-            rssm: nets.rssm.frozen(),
-            reward: world_model.reward.frozen(),
-            cont: world_model.cont.frozen(),
-        };
         Ok(Self {
-            frozen,
             twohot: TwoHot::new(cfg.bins, -20.0, 20.0)?,
             return_norm: ReturnNorm::new(cfg.return_decay, cfg.return_low, cfg.return_high),
             cfg,
@@ -188,6 +156,7 @@ impl Dreamer {
             mask_sac,
             step: 0,
             workers: ctxrace_common::nn::threads(),
+            imaginations: Vec::new(),
         })
     }
 
@@ -232,144 +201,66 @@ impl Dreamer {
         Ok(Some(m.detach()))
     }
 
-    /// Rolls the actor `H` steps through the frozen prior from `start`, each start's noise from
-    /// the stream of its sequence (`rngs`, `T` starts each).
-    fn imagine(&self, start: &Starts, rngs: &mut [ChaCha8Rng]) -> Result<Imagined> {
-        let n = start.state.deter.dim(0)?;
-        let per_sequence = n / rngs.len().max(1);
-        let ctx = start.ctx.as_ref();
-        let (s, c, a) = (self.cfg.stoch, self.cfg.classes, self.act_dim);
-        // the weights transposed once for the H steps
-        let (rssm, actor) = (self.frozen.rssm.looped()?, self.nets.actor.looped()?);
-        let mut state = start.state.clone();
-        let mut xs = vec![state.head_input(ctx)?];
-        let mut entropies = Vec::with_capacity(self.cfg.horizon);
-        for t in 0..self.cfg.horizon {
-            // the actor sees stop-gradient states; its actions carry gradients into the model
-            let (mean, std) = self.nets.actor_dist_of(&actor, &xs[t].detach())?;
-            let noise = normals_per(rngs, per_sequence, a)?;
-            let action = DreamerNets::sample_action(&mean, &std, &noise)?;
-            let gauss = 0.5 * (1.0 + (2.0 * std::f64::consts::PI).ln());
-            entropies.push((std.log()?.sum(1)? + a as f64 * gauss)?);
-            let uniform = uniforms_per(rngs, per_sequence, (s, c))?;
-            state = rssm.img_step(&state, &action, ctx, &uniform)?.0;
-            xs.push(state.head_input(ctx)?);
-        }
-        Ok(Imagined {
-            x: Tensor::cat(&xs, 0)?,
-            entropy: Tensor::stack(&entropies, 0)?,
-            n,
-        })
-    }
-
-    /// The λ-returns of an imagined trajectory through the frozen heads (differentiable in the
-    /// imagined states), with the values and the discount weights.
-    fn imagined_returns(&self, im: &Imagined, start_cont: &Tensor) -> Result<ImaginedReturns> {
-        let (h, n) = (self.cfg.horizon, im.n);
-        let frozen = &self.frozen;
-        // rewards and continue flags of s_1 … s_H only (time-major rows, so a contiguous view)
-        let later = im.x.narrow(0, n, h * n)?;
-        let reward = self
-            .twohot
-            .decode(&frozen.reward.forward(&later)?)?
-            .reshape((h, n))?;
-        let cont =
-            candle_nn::ops::sigmoid(&frozen.cont.forward(&later.detach())?)?.reshape((h, n))?;
-        // one critic pass for the values (frozen, differentiable in the states) and for the
-        // critic's own loss (on the states detached)
-        let (value_logits, critic_logits) = self.critic.forward_twice(&im.x)?;
-        let value = self.twohot.decode(&value_logits)?.reshape((h + 1, n))?;
-        let gamma = self.cfg.gamma;
-        let returns = lambda_returns(&reward, &cont, &value, gamma, self.cfg.lambda)?;
-        // w_t = Π_{k≤t} γ c_k with c_0 the start's; `cont` row t − 1 is c_t
-        let mut w = start_cont.clone();
-        let mut weights = vec![w.clone()];
-        for t in 1..h {
-            w = (w.mul(&cont.get(t - 1)?)? * gamma)?;
-            weights.push(w.clone());
-        }
-        Ok(ImaginedReturns {
-            reward,
-            value,
-            critic_logits,
-            returns,
-            weights: Tensor::stack(&weights, 0)?,
-        })
-    }
-
-    /// The actor loss `−w ((R − sg v) / S + η H)` for the return scale `S`, with its metrics.
-    fn actor_loss(&self, im: &Imagined, r: &ImaginedReturns, scale: f64) -> Result<Tensor> {
-        let h = self.cfg.horizon;
-        let adv = ((&r.returns - r.value.narrow(0, 0, h)?.detach())? / scale)?;
-        let objective = (adv + (&im.entropy * self.cfg.entropy)?)?;
-        objective.mul(&r.weights)?.neg()?.mean_all()
-    }
-
-    /// The critic loss: two-hot cross-entropy towards the (detached) returns plus the regulariser
-    /// towards the slow critic, weighted by the discount weights.
-    fn critic_loss(&self, im: &Imagined, r: &ImaginedReturns) -> Result<Tensor> {
-        let rows = self.cfg.horizon * im.n;
-        let x = im.x.narrow(0, 0, rows)?.detach();
-        let logits = r.critic_logits.narrow(0, 0, rows)?;
-        let slow = self.twohot.decode(&self.slow_critic.forward(&x)?)?.detach();
-        let target = (self.twohot.encode(&r.returns.detach().flatten_all()?)?
-            + (self.twohot.encode(&slow)? * self.cfg.slow_critic_reg)?)?;
-        soft_cross_entropy(&logits, &target)?
-            .mul(&r.weights.detach().flatten_all()?)?
-            .mean_all()
-    }
-
-    /// One actor and one critic step on imagined trajectories from each shard's `starts`: the
-    /// shards imagine in parallel, the return scale is updated with every shard's returns, then
-    /// the shards' losses are differentiated in parallel and their gradients summed.
+    /// One actor and one critic step on imagined trajectories from each shard's `starts`
+    /// ([`crate::behaviour`]): the shards imagine in parallel, the return scale is updated with
+    /// every shard's returns, then the shards' backward passes run in parallel and their
+    /// gradients are summed.
     fn behaviour_step(
         &mut self,
         starts: &[Starts],
         rngs: &mut [ChaCha8Rng],
         metrics: &mut Metrics,
     ) -> Result<()> {
-        let imagined = on_shards(self.workers, rngs.len(), rngs, |shard, rngs| {
-            let start = &starts[shard.index];
-            let im = self.imagine(start, rngs)?;
-            let r = self.imagined_returns(&im, &start.cont)?;
-            Ok((shard.weight, im, r))
-        })?;
-        let mut all_returns = Vec::new();
-        for (_, _, r) in &imagined {
-            all_returns.extend(r.returns.flatten_all()?.to_vec1::<f32>()?);
-        }
+        let heads = (&self.world_model.reward, &self.world_model.cont);
+        let critics = (&self.critic, &self.slow_critic);
+        let nets = behaviour::Nets::new(&self.nets.rssm, &self.nets.actor, heads, critics)?;
+        let set = Setting {
+            cfg: &self.cfg,
+            act_dim: self.act_dim,
+            twohot: &self.twohot,
+        };
+        let mut work = std::mem::take(&mut self.imaginations);
+        work.resize_with(starts.len(), Imagination::default);
+        let shares = on_shards_with(
+            self.workers,
+            rngs.len(),
+            rngs,
+            &mut work,
+            |shard, rngs, im| {
+                im.forward(&nets, &set, &starts[shard.index], rngs)?;
+                Ok(shard.weight)
+            },
+        )?;
+        let all_returns: Vec<f32> = work.iter().flat_map(|im| im.returns().to_vec()).collect();
         self.return_norm.update(&all_returns);
         let scale = self.return_norm.scale();
-        let this = &*self;
-        let parts = std::thread::scope(|scope| {
-            let handles: Vec<_> = imagined
-                .iter()
-                .map(|(w, im, r)| {
-                    scope.spawn(move || -> Result<_> {
-                        let actor = this.actor_loss(im, r, scale)?;
-                        let critic = this.critic_loss(im, r)?;
-                        let grads = ((&actor + &critic)? * *w)?.backward()?;
-                        let mut m = Metrics::new();
-                        m.insert("actor/loss".into(), scalar(&actor)?);
-                        m.insert("critic/loss".into(), scalar(&critic)?);
-                        m.insert("actor/entropy".into(), scalar(&im.entropy.mean_all()?)?);
-                        m.insert("imag/reward".into(), scalar(&r.reward.mean_all()?)?);
-                        m.insert("imag/return".into(), scalar(&r.returns.mean_all()?)?);
-                        Ok((*w, m, grads))
-                    })
-                })
-                .collect();
-            handles
-                .into_iter()
-                .map(join_worker)
-                .collect::<Result<Vec<_>>>()
+        let parts = in_parallel(&mut work[..shares.len()], |i, im| {
+            let r = im.backward(&nets, &set, scale as f32, shares[i] as f32);
+            Ok(r)
         })?;
-        let (shard_metrics, grads): (Vec<_>, Vec<_>) =
-            parts.into_iter().map(|(w, m, g)| ((w, m), g)).unzip();
+        self.imaginations = work;
+        let (mut actor, mut critic) = (nets.actor.zero_grads(), nets.critic.zero_grads());
+        let mut shard_metrics = Vec::with_capacity(parts.len());
+        for (part, &w) in parts.iter().zip(&shares) {
+            actor.add(&part.actor);
+            critic.add(&part.critic);
+            let mut m = Metrics::new();
+            m.insert("actor/loss".into(), part.actor_loss);
+            m.insert("critic/loss".into(), part.critic_loss);
+            m.insert("actor/entropy".into(), part.entropy);
+            m.insert("imag/reward".into(), part.reward);
+            m.insert("imag/return".into(), part.ret);
+            shard_metrics.push((w, m));
+        }
+        let mut grads = candle_core::backprop::GradStore::default();
+        nets.actor
+            .add_grads_to(&actor, &self.nets.actor, &mut grads)?;
+        nets.critic
+            .add_grads_to(&critic, &self.critic, &mut grads)?;
         metrics.extend(weighted_mean(&shard_metrics));
         metrics.insert("imag/return_scale".into(), scale);
-        metrics.insert("actor/grad_norm".into(), self.actor_opt.step_sum(&grads)?);
-        metrics.insert("critic/grad_norm".into(), self.critic_opt.step_sum(&grads)?);
+        metrics.insert("actor/grad_norm".into(), self.actor_opt.step(&grads)?);
+        metrics.insert("critic/grad_norm".into(), self.critic_opt.step(&grads)?);
         polyak(
             &self.slow_store,
             &self.critic_store,
@@ -506,10 +397,11 @@ impl Algorithm for Dreamer {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use candle_core::{DType, Device, Var};
+    use candle_core::{DType, Device, Module};
     use ctxrace_common::agents::MaskConfig;
-    use ctxrace_common::nn::RssmState;
+    use ctxrace_common::nn::kernels::soft_cross_entropy;
     use ctxrace_common::policy::normals;
+    use ctxrace_common::policy::uniforms_per;
     use ctxrace_common::SequenceBatch;
     use rand::Rng;
 
@@ -602,13 +494,6 @@ mod tests {
                 .extend(s.first[i..i + t].iter().map(|f| 1.0 - f));
         }
         Batch::Sequence(out)
-    }
-
-    fn grad_norm(grads: &candle_core::backprop::GradStore, v: &Var) -> f64 {
-        grads
-            .get(v.as_tensor())
-            .map(|g| scalar(&g.sqr().unwrap().sum_all().unwrap()).unwrap().sqrt())
-            .unwrap_or(0.0)
     }
 
     /// Trains cMask's mask SAC alone on a contextual bandit whose reward depends only on the mask
@@ -795,97 +680,212 @@ mod tests {
         );
     }
 
-    #[test]
-    fn actor_gradients_flow_through_the_world_model_and_only_the_actor_moves() {
-        let mut rng = ChaCha8Rng::seed_from_u64(2);
-        let data = collect(10, &mut rng);
-        let cfg = DreamerConfig {
-            model_lr: 1e-3,
-            ac_lr: 1e-3,
-            entropy: 0.0, // the only path from the loss to the actor is through the dynamics
-            ..tiny(ContextMode::None)
-        };
-        let mut agent = Dreamer::new(cfg, 2, 2).unwrap();
-        // a few steps so that the reward and critic output layers are no longer zero
-        for _ in 0..5 {
-            agent.train_step(&sample(&data, 4, 16, &mut rng)).unwrap();
+    /// The behaviour losses of one shard of `start` composed of candle operations, autograd's
+    /// statement of what [`crate::behaviour`] differentiates by hand: `(actor, critic)` losses,
+    /// each a mean over the `H N` terms, for the return scale `scale`.
+    fn candle_behaviour_losses(
+        agent: &Dreamer,
+        start: &Starts,
+        rngs: &mut [ChaCha8Rng],
+        scale: f64,
+    ) -> (Tensor, Tensor) {
+        let cfg = &agent.cfg;
+        let (h, n, a) = (
+            cfg.horizon,
+            start.state.deter.dim(0).unwrap(),
+            agent.act_dim,
+        );
+        let per_sequence = n / rngs.len();
+        let ctx = start.ctx.as_ref();
+        let rssm = agent.nets.rssm.frozen();
+        let (reward_head, cont_head) = (
+            agent.world_model.reward.frozen(),
+            agent.world_model.cont.frozen(),
+        );
+        let mut state = start.state.clone();
+        let mut xs = vec![state.head_input(ctx).unwrap()];
+        let mut entropies = Vec::new();
+        for t in 0..h {
+            // the actor sees stop-gradient states; its actions carry gradients into the model
+            let (mean, std) = agent.nets.actor_dist(&xs[t].detach()).unwrap();
+            let noise = normals_per(rngs, per_sequence, a).unwrap();
+            let action = DreamerNets::sample_action(&mean, &std, &noise).unwrap();
+            let gauss = 0.5 * (1.0 + (2.0 * std::f64::consts::PI).ln());
+            entropies.push((std.log().unwrap().sum(1).unwrap() + a as f64 * gauss).unwrap());
+            let uniform = uniforms_per(rngs, per_sequence, (cfg.stoch, cfg.classes)).unwrap();
+            state = rssm.img_step(&state, &action, ctx, &uniform).unwrap().0;
+            xs.push(state.head_input(ctx).unwrap());
         }
-        let Batch::Sequence(seq) = sample(&data, 4, 16, &mut rng) else {
-            unreachable!()
-        };
-        let d = SeqData::new(&seq, 2, 2).unwrap();
-        let mut m = Metrics::new();
-        let mut rngs = agent.sequence_rngs(d.batch);
-        let starts = agent
-            .world_model
-            .step(&d, None, 1, &mut rngs, &mut m)
+        let x = Tensor::cat(&xs, 0).unwrap();
+        let entropy = Tensor::stack(&entropies, 0).unwrap();
+        let later = x.narrow(0, n, h * n).unwrap();
+        let decode = |l: &Tensor| agent.twohot.decode(l).unwrap();
+        let reward = decode(&reward_head.forward(&later).unwrap())
+            .reshape((h, n))
             .unwrap();
-        let start = Starts {
-            state: RssmState {
-                deter: Tensor::cat(
-                    &starts.iter().map(|s| &s.state.deter).collect::<Vec<_>>(),
-                    0,
-                )
-                .unwrap(),
-                stoch: Tensor::cat(
-                    &starts.iter().map(|s| &s.state.stoch).collect::<Vec<_>>(),
-                    0,
-                )
-                .unwrap(),
-            },
-            cont: Tensor::cat(&starts.iter().map(|s| &s.cont).collect::<Vec<_>>(), 0).unwrap(),
-            ctx: None,
-        };
-        let im = agent.imagine(&start, &mut rngs).unwrap();
-        let returns = agent.imagined_returns(&im, &start.cont).unwrap();
-        let loss = agent.actor_loss(&im, &returns, 1.0).unwrap();
-        let grads = loss.backward().unwrap();
-        for (name, v) in agent.policy.named() {
-            let g = grad_norm(&grads, &v);
-            if name.starts_with("actor.") {
-                assert!(g > 0.0, "no gradient for {name}");
-            }
+        let cont = cont_head.forward(&later.detach()).unwrap();
+        let cont = candle_nn::ops::sigmoid(&cont)
+            .unwrap()
+            .reshape((h, n))
+            .unwrap();
+        let value = decode(&agent.critic.frozen().forward(&x).unwrap())
+            .reshape((h + 1, n))
+            .unwrap();
+        let returns =
+            crate::returns::lambda_returns(&reward, &cont, &value, cfg.gamma, cfg.lambda).unwrap();
+        let mut w = start.cont.clone();
+        let mut weights = vec![w.clone()];
+        for t in 1..h {
+            w = (w.mul(&cont.get(t - 1).unwrap()).unwrap() * cfg.gamma).unwrap();
+            weights.push(w.clone());
         }
-        // imagination runs through frozen views: no world-model, head or critic weight gets a
-        // gradient from the actor loss (so its backward pass computes none)
-        for store in [&agent.policy, &agent.world_model.heads, &agent.critic_store] {
-            for (name, v) in store.named() {
-                if !name.starts_with("actor.") {
-                    assert!(grads.get(&v).is_none(), "{name} has an actor-loss gradient");
+        let weights = Tensor::stack(&weights, 0).unwrap();
+        let adv = ((&returns - value.narrow(0, 0, h).unwrap().detach()).unwrap() / scale).unwrap();
+        let objective = (adv + (&entropy * cfg.entropy).unwrap()).unwrap();
+        let actor = objective
+            .mul(&weights)
+            .unwrap()
+            .neg()
+            .unwrap()
+            .mean_all()
+            .unwrap();
+        let now = x.narrow(0, 0, h * n).unwrap().detach();
+        let slow = decode(&agent.slow_critic.forward(&now).unwrap()).detach();
+        let encode = |y: &Tensor| agent.twohot.encode(&y.flatten_all().unwrap()).unwrap();
+        let target =
+            (encode(&returns.detach()) + (encode(&slow) * cfg.slow_critic_reg).unwrap()).unwrap();
+        let logits = agent.critic.forward(&now).unwrap();
+        let critic = soft_cross_entropy(&logits, &target)
+            .unwrap()
+            .mul(&weights.detach().flatten_all().unwrap())
+            .unwrap()
+            .mean_all()
+            .unwrap();
+        (actor, critic)
+    }
+
+    /// The hand-differentiated behaviour step ([`crate::behaviour`]) computes the losses and the
+    /// actor's and critic's gradients of the candle composition, with and without a context,
+    /// and without the entropy bonus (the actor's gradient then comes through the world model
+    /// alone); no gradient reaches another network.
+    #[test]
+    fn the_behaviour_step_differentiates_the_candle_composition() {
+        let settings = [
+            (ContextMode::None, 0.0),
+            (ContextMode::Cmask, 0.0),
+            (ContextMode::Cmask, 0.05),
+        ];
+        for (mode, entropy) in settings {
+            let mut rng = ChaCha8Rng::seed_from_u64(2);
+            let data = collect(10, &mut rng);
+            let cfg = DreamerConfig {
+                model_lr: 1e-3,
+                ac_lr: 1e-3,
+                entropy,
+                ..tiny(mode)
+            };
+            let mut agent = Dreamer::new(cfg, 2, 2).unwrap();
+            // reward and value heads that are not (nearly) zero, so that every path of the
+            // gradient weighs: their output layers start at zero
+            let stores = [
+                &agent.world_model.heads,
+                &agent.critic_store,
+                &agent.slow_store,
+            ];
+            for (name, v) in stores.iter().flat_map(|s| s.named()) {
+                if name.ends_with("out.weight") {
+                    v.set(&Tensor::randn(0f32, 0.3, v.shape(), &Device::Cpu).unwrap())
+                        .unwrap();
                 }
             }
-        }
+            for _ in 0..3 {
+                agent.train_step(&sample(&data, 4, 16, &mut rng)).unwrap();
+            }
+            let Batch::Sequence(seq) = sample(&data, 3, 16, &mut rng) else {
+                unreachable!()
+            };
+            let d = SeqData::new(&seq, 2, 2).unwrap();
+            let mut rngs = agent.sequence_rngs(d.batch);
+            let masks = agent.draw_masks(&d, &mut rngs).unwrap();
+            let ctx = agent
+                .nets
+                .context(&d.flat(&d.context).unwrap(), masks.as_ref())
+                .unwrap();
+            let mut m = Metrics::new();
+            let starts = agent
+                .world_model
+                .step(&d, ctx.as_ref(), 1, &mut rngs, &mut m)
+                .unwrap();
+            let scale = 1.7;
+            let (actor, critic) =
+                candle_behaviour_losses(&agent, &starts[0], &mut rngs.clone(), scale);
+            let want = (&actor + &critic).unwrap().backward().unwrap();
 
-        let before_policy = agent.policy.named();
-        let snapshot = |store: &ParamStore| -> Vec<(String, Vec<f32>)> {
-            store
+            let heads = (&agent.world_model.reward, &agent.world_model.cont);
+            let critics = (&agent.critic, &agent.slow_critic);
+            let nets =
+                behaviour::Nets::new(&agent.nets.rssm, &agent.nets.actor, heads, critics).unwrap();
+            let set = Setting {
+                cfg: &agent.cfg,
+                act_dim: agent.act_dim,
+                twohot: &agent.twohot,
+            };
+            let mut im = Imagination::default();
+            im.forward(&nets, &set, &starts[0], &mut rngs).unwrap();
+            let got = im.backward(&nets, &set, scale as f32, 1.0);
+            let value = |t: &Tensor| scalar(t).unwrap();
+            assert!((got.actor_loss - value(&actor)).abs() < 1e-4 * (1.0 + value(&actor).abs()));
+            assert!((got.critic_loss - value(&critic)).abs() < 1e-4 * (1.0 + value(&critic).abs()));
+            let mut grads = candle_core::backprop::GradStore::default();
+            nets.actor
+                .add_grads_to(&got.actor, &agent.nets.actor, &mut grads)
+                .unwrap();
+            nets.critic
+                .add_grads_to(&got.critic, &agent.critic, &mut grads)
+                .unwrap();
+            let vars = agent
+                .policy
                 .named()
                 .into_iter()
-                .map(|(n, v)| (n, v.flatten_all().unwrap().to_vec1().unwrap()))
-                .collect()
-        };
-        let (p0, h0, c0) = (
-            snapshot(&agent.policy),
-            snapshot(&agent.world_model.heads),
-            snapshot(&agent.critic_store),
-        );
-        assert!(agent.actor_opt.minimise(&loss).unwrap() > 0.0);
-        let (p1, h1, c1) = (
-            snapshot(&agent.policy),
-            snapshot(&agent.world_model.heads),
-            snapshot(&agent.critic_store),
-        );
-        assert_eq!(before_policy.len(), p1.len());
-        assert_eq!((h0, c0), (h1, c1));
-        let mut moved = 0;
-        for ((name, a), (_, b)) in p0.iter().zip(&p1) {
-            if name.starts_with("actor.") {
-                moved += (a != b) as usize;
-            } else {
-                assert_eq!(a, b, "{name} changed in the actor step");
+                .chain(agent.critic_store.named());
+            let mut compared = 0;
+            for (name, v) in vars {
+                let flat = |g: &candle_core::backprop::GradStore| -> Option<Vec<f32>> {
+                    Some(
+                        g.get(v.as_tensor())?
+                            .flatten_all()
+                            .unwrap()
+                            .to_vec1()
+                            .unwrap(),
+                    )
+                };
+                let (g, w) = (flat(&grads), flat(&want));
+                if !name.starts_with("actor.") && !name.starts_with("critic.") {
+                    assert!(g.is_none(), "{mode:?}: {name} has a gradient");
+                    continue;
+                }
+                let (g, w) = (
+                    g.unwrap(),
+                    w.unwrap_or_else(|| panic!("{name}: no candle gradient")),
+                );
+                let scale = w.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-6);
+                assert!(
+                    w.iter().any(|&v| v != 0.0),
+                    "{mode:?} {name}: zero gradient"
+                );
+                for (i, (a, b)) in g.iter().zip(&w).enumerate() {
+                    assert!(
+                        (a - b).abs() <= 2e-3 * scale,
+                        "{mode:?} {name}[{i}]: {a} vs {b}"
+                    );
+                }
+                compared += 1;
             }
+            assert_eq!(
+                compared,
+                agent.policy.vars_under(&["actor"]).len() + agent.critic_store.vars().len()
+            );
         }
-        assert_eq!(moved, agent.policy.vars_under(&["actor"]).len());
     }
 
     #[test]

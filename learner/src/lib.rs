@@ -2,6 +2,7 @@
 
 pub mod adam;
 pub mod algorithm;
+mod behaviour;
 pub mod best;
 pub mod checkpoint;
 pub mod cmask;

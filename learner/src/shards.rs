@@ -9,6 +9,7 @@ use candle_core::Result;
 use rand_chacha::ChaCha8Rng;
 
 /// A shard of a batch: the sequences one worker thread trains on.
+#[derive(Clone)]
 pub(crate) struct Shard {
     /// Its position among the shards.
     pub(crate) index: usize,
@@ -26,15 +27,34 @@ pub(crate) fn on_shards<T: Send>(
     rngs: &mut [ChaCha8Rng],
     f: impl Fn(Shard, &mut [ChaCha8Rng]) -> Result<T> + Sync,
 ) -> Result<Vec<T>> {
+    let mut nothing = vec![(); batch];
+    on_shards_with(workers, batch, rngs, &mut nothing, |shard, rngs, _| {
+        f(shard, rngs)
+    })
+}
+
+/// [`on_shards`] with a state of each shard: shard `i` gets `states[i]` (there must be one per
+/// shard: `min(workers, batch)` of them).
+pub(crate) fn on_shards_with<S: Send, T: Send>(
+    workers: usize,
+    batch: usize,
+    rngs: &mut [ChaCha8Rng],
+    states: &mut [S],
+    f: impl Fn(Shard, &mut [ChaCha8Rng], &mut S) -> Result<T> + Sync,
+) -> Result<Vec<T>> {
     let workers = workers.clamp(1, batch.max(1));
     let per = batch.div_ceil(workers).max(1);
     let mut shards = Vec::with_capacity(workers);
     let mut rest = rngs;
+    let mut states = states.iter_mut();
     for (index, start) in (0..batch).step_by(per).enumerate() {
         let rows = start..(start + per).min(batch);
         let (mine, others) = rest.split_at_mut(rows.len());
         rest = others;
         let weight = rows.len() as f64 / batch as f64;
+        let Some(state) = states.next() else {
+            candle_core::bail!("on_shards_with: no state for shard {index}");
+        };
         shards.push((
             Shard {
                 index,
@@ -42,27 +62,36 @@ pub(crate) fn on_shards<T: Send>(
                 weight,
             },
             mine,
+            state,
         ));
     }
-    if shards.len() == 1 {
-        // one worker: on this thread
-        return shards
-            .into_iter()
-            .map(|(shard, rngs)| f(shard, rngs))
-            .collect();
+    in_parallel(&mut shards, |_, (shard, rngs, state)| {
+        f(shard.clone(), rngs, state)
+    })
+}
+
+/// Runs `f` on each of `items` (with its index), each on a thread of its own, in parallel (on
+/// this thread if there is one); returns the results in order.
+pub(crate) fn in_parallel<S: Send, T: Send>(
+    items: &mut [S],
+    f: impl Fn(usize, &mut S) -> Result<T> + Sync,
+) -> Result<Vec<T>> {
+    if let [only] = items {
+        return Ok(vec![f(0, only)?]);
     }
     let f = &f;
     std::thread::scope(|scope| {
-        let handles: Vec<_> = shards
-            .into_iter()
-            .map(|(shard, rngs)| scope.spawn(move || f(shard, rngs)))
+        let handles: Vec<_> = items
+            .iter_mut()
+            .enumerate()
+            .map(|(i, item)| scope.spawn(move || f(i, item)))
             .collect();
         handles.into_iter().map(join_worker).collect()
     })
 }
 
 /// The result of a worker thread; a panic becomes an error.
-pub(crate) fn join_worker<T>(h: std::thread::ScopedJoinHandle<'_, Result<T>>) -> Result<T> {
+fn join_worker<T>(h: std::thread::ScopedJoinHandle<'_, Result<T>>) -> Result<T> {
     h.join()
         .map_err(|_| candle_core::Error::Msg("a training worker thread panicked".into()))?
 }

@@ -55,6 +55,21 @@ impl Dense {
         }
     }
 
+    /// `W` `[out, in]`.
+    pub fn weight(&self) -> &Tensor {
+        &self.weight
+    }
+
+    /// `b` `[out]`, if the layer has one.
+    pub fn bias(&self) -> Option<&Tensor> {
+        self.bias.as_ref()
+    }
+
+    /// The input columns the layer was told are mostly zero ([`Dense::sparse_inputs`]).
+    pub fn sparse_columns(&self) -> Option<&Range<usize>> {
+        self.sparse_inputs.as_ref()
+    }
+
     /// `x Wᵀ + b` for `x` `[N, in]`.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         if let Some(wt) = &self.transposed {

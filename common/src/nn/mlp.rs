@@ -16,10 +16,13 @@ pub enum Activation {
     Relu,
 }
 
+/// A hidden block of an [`Mlp`]: a layer and, for [`Activation::SiluNorm`], its normalisation.
+pub type HiddenBlock = (Dense, Option<LayerNorm>);
+
 /// An MLP: `layers` hidden blocks of width `units`, then a linear head to `out` (if given).
 #[derive(Clone, Debug)]
 pub struct Mlp {
-    hidden: Vec<(Dense, Option<LayerNorm>)>,
+    hidden: Vec<HiddenBlock>,
     head: Option<Dense>,
     act: Activation,
 }
@@ -84,6 +87,12 @@ impl Mlp {
             Some(head) => head.forward_twice((&h.0, &h.1)),
             None => Ok(h),
         }
+    }
+
+    /// Its hidden blocks (each a layer and, for [`Activation::SiluNorm`], its normalisation), its
+    /// output layer and the hidden activation.
+    pub fn parts(&self) -> (&[HiddenBlock], Option<&Dense>, Activation) {
+        (&self.hidden, self.head.as_ref(), self.act)
     }
 
     /// The same network on detached (shared) parameters: gradients reach its input only.

@@ -5,13 +5,14 @@ pub mod kernels;
 pub mod mlp;
 pub mod norm;
 pub mod params;
+pub mod plain;
 pub mod rssm;
 pub mod symlog;
 pub mod tanh_gaussian;
 
 pub use dense::Dense;
 pub use kernels::NormAct;
-pub use mlp::{Activation, Mlp};
+pub use mlp::{Activation, HiddenBlock, Mlp};
 pub use norm::LayerNorm;
 pub use params::ParamStore;
 pub use rssm::{Gru, Rssm, RssmConfig, RssmState};

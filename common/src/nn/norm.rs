@@ -32,7 +32,7 @@ impl LayerNorm {
     }
 
     /// `(γ, β, ε)`, for kernels that fuse the normalisation with the layer before it.
-    pub(crate) fn parts(&self) -> (&Tensor, &Tensor, f64) {
+    pub fn parts(&self) -> (&Tensor, &Tensor, f64) {
         (&self.weight, &self.bias, self.eps)
     }
 

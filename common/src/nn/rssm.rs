@@ -257,6 +257,21 @@ impl Rssm {
         Ok(())
     }
 
+    /// The blocks of an imagination step, in order: the input layer (`f` of the sequence
+    /// model), the GRU's gates, the prior's hidden layer and its output layer, each a layer and,
+    /// but for the last, its normalisation and activation.
+    pub(crate) fn prior_blocks(&self) -> [(&Dense, Option<(&LayerNorm, NormAct)>); 4] {
+        fn block(b: &NormBlock) -> (&Dense, Option<(&LayerNorm, NormAct)>) {
+            (&b.fc, Some((&b.ln, b.act)))
+        }
+        [
+            block(&self.img_in),
+            block(&self.gru.gates),
+            block(&self.prior_hidden),
+            (&self.prior_out, None),
+        ]
+    }
+
     /// The sizes.
     pub fn config(&self) -> &RssmConfig {
         &self.cfg

@@ -50,20 +50,32 @@ impl TwoHot {
         self.bins.len()
     }
 
+    /// The bins' values `b_k` (symlog space).
+    pub fn bins(&self) -> &[f32] {
+        &self.bins
+    }
+
     /// Two-hot targets `[N, K]` for values `y` of shape `[N]` (in the original space).
     pub fn encode(&self, y: &Tensor) -> Result<Tensor> {
-        let values: Vec<f32> = symlog(y)?.to_vec1()?;
-        let step = (self.high - self.low) / (self.bins.len() - 1) as f32;
+        let values: Vec<f32> = y.to_vec1()?;
         let mut out = vec![0f32; values.len() * self.bins.len()];
-        for (i, v) in values.iter().enumerate() {
-            let pos = ((v.clamp(self.low, self.high) - self.low) / step)
-                .min((self.bins.len() - 1) as f32);
-            let below = (pos.floor() as usize).min(self.bins.len() - 2);
-            let frac = pos - below as f32;
-            out[i * self.bins.len() + below] = 1.0 - frac;
-            out[i * self.bins.len() + below + 1] = frac;
-        }
+        self.add_encoded(&values, 1.0, &mut out);
         Tensor::from_vec(out, (values.len(), self.bins.len()), y.device())
+    }
+
+    /// `out_i += scale · twohot(y_i)`: the two-hot encodings of the values `y` (in the original
+    /// space), scaled, added to the rows of `out` (`K` values each).
+    pub fn add_encoded(&self, y: &[f32], scale: f32, out: &mut [f32]) {
+        let k = self.bins.len();
+        let step = (self.high - self.low) / (k - 1) as f32;
+        for (&v, row) in y.iter().zip(out.chunks_exact_mut(k)) {
+            let v = v.signum() * v.abs().ln_1p();
+            let pos = ((v.clamp(self.low, self.high) - self.low) / step).min((k - 1) as f32);
+            let below = (pos.floor() as usize).min(k - 2);
+            let frac = pos - below as f32;
+            row[below] += scale * (1.0 - frac);
+            row[below + 1] += scale * frac;
+        }
     }
 
     /// Decodes logits `[…, K]` to values `[…]` in the original space.

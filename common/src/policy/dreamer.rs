@@ -211,6 +211,17 @@ fn rows_per_stream(
     v
 }
 
+/// Gumbel-max uniforms in `(0, 1)`, `[R·rows, width]` values, `rows` of them from each stream
+/// of `rngs`.
+pub fn uniform_rows(rngs: &mut [ChaCha8Rng], rows: usize, width: usize) -> Vec<f32> {
+    rows_per_stream(rngs, rows, width, |r| r.random_range(1e-6f32..1.0 - 1e-6))
+}
+
+/// Standard-normal noise, `[R·rows, width]` values, `rows` of them from each stream of `rngs`.
+pub fn normal_rows(rngs: &mut [ChaCha8Rng], rows: usize, width: usize) -> Vec<f32> {
+    rows_per_stream(rngs, rows, width, |r| r.sample(StandardNormal))
+}
+
 /// Gumbel-max uniforms `[R·rows, S, C]`, `rows` of them from each stream of `rngs`.
 pub fn uniforms_per(
     rngs: &mut [ChaCha8Rng],
@@ -218,17 +229,14 @@ pub fn uniforms_per(
     (stoch, classes): (usize, usize),
 ) -> Result<Tensor> {
     let n = rngs.len() * rows;
-    let v = rows_per_stream(rngs, rows, stoch * classes, |r| {
-        r.random_range(1e-6f32..1.0 - 1e-6)
-    });
+    let v = uniform_rows(rngs, rows, stoch * classes);
     Tensor::from_vec(v, (n, stoch, classes), &Device::Cpu)
 }
 
 /// Standard-normal noise `[R·rows, width]`, `rows` of them from each stream of `rngs`.
 pub fn normals_per(rngs: &mut [ChaCha8Rng], rows: usize, width: usize) -> Result<Tensor> {
     let n = rngs.len() * rows;
-    let v = rows_per_stream(rngs, rows, width, |r| r.sample(StandardNormal));
-    Tensor::from_vec(v, (n, width), &Device::Cpu)
+    Tensor::from_vec(normal_rows(rngs, rows, width), (n, width), &Device::Cpu)
 }
 /// The acting side of DreamerV3 at batch 1: keeps the recurrent state and the previous action.
 pub struct DreamerPolicy {

@@ -5,7 +5,8 @@ mod dreamer;
 mod sac;
 
 pub use dreamer::{
-    mask_sample, normals, normals_per, uniforms, uniforms_per, DreamerNets, DreamerPolicy,
+    mask_sample, normal_rows, normals, normals_per, uniform_rows, uniforms, uniforms_per,
+    DreamerNets, DreamerPolicy,
 };
 pub use sac::SacPolicy;
 

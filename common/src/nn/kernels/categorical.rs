@@ -4,9 +4,9 @@ use super::*;
 
 /// A unimix categorical over `classes`: `p = (1 − unimix) softmax(l) + unimix / classes`.
 #[derive(Clone, Copy, Debug)]
-struct Unimix {
-    classes: usize,
-    unimix: f32,
+pub(crate) struct Unimix {
+    pub(crate) classes: usize,
+    pub(crate) unimix: f32,
 }
 
 impl Unimix {
@@ -25,7 +25,7 @@ vectorised! {
     /// One-hot Gumbel-max samples into `out` (zeros) of the unimix categoricals with logits `l`,
     /// from uniforms `u`, all in rows of `classes`: the argmax of `ln p + g` with
     /// `g = −ln(−ln U)`, i.e. of `p / (−ln U)`.
-    fn sample_rows(dist: Unimix, l: &[f32], u: &[f32], out: &mut [f32]) {
+    pub(crate) fn sample_rows(dist: Unimix, l: &[f32], u: &[f32], out: &mut [f32]) {
         let c = dist.classes;
         let (mut s, mut p, mut score) = (vec![0f32; c], vec![0f32; c], vec![0f32; c]);
         let rows = l.chunks_exact(c).zip(u.chunks_exact(c));
@@ -48,7 +48,7 @@ vectorised! {
 vectorised! {
     /// `dl ← ∂/∂l` of the unimix probabilities' gradient `g`, rows of `classes` (the
     /// straight-through sample's backward pass).
-    fn probs_rows_bwd(dist: Unimix, l: &[f32], g: &[f32], dl: &mut [f32]) {
+    pub(crate) fn probs_rows_bwd(dist: Unimix, l: &[f32], g: &[f32], dl: &mut [f32]) {
         let c = dist.classes;
         let (mut s, mut p) = (vec![0f32; c], vec![0f32; c]);
         let rows = l.chunks_exact(c).zip(g.chunks_exact(c));

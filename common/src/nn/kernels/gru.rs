@@ -13,7 +13,7 @@ fn gates(pr: f32, pc: f32, pu: f32) -> (f32, f32, f32) {
 
 vectorised! {
     /// `out` (whole rows of `size`) ← the GRU update of the gate rows `p` and states `h`.
-    fn gru_rows(p: &[f32], h: &[f32], out: &mut [f32], size: usize) {
+    pub(crate) fn gru_rows(p: &[f32], h: &[f32], out: &mut [f32], size: usize) {
         let rows = p.chunks_exact(3 * size).zip(h.chunks_exact(size));
         for ((pr, hr), o) in rows.zip(out.chunks_exact_mut(size)) {
             // exact-length slices: the loop runs without bounds checks, in vector lanes
@@ -29,7 +29,7 @@ vectorised! {
 
 vectorised! {
     /// The backward pass of [`gru_rows`] over the rows of `dp` (`3 size` each) and `dh`.
-    fn gru_rows_bwd(p: &[f32], h: &[f32], g: &[f32], dp: &mut [f32], dh: &mut [f32], size: usize) {
+    pub(crate) fn gru_rows_bwd(p: &[f32], h: &[f32], g: &[f32], dp: &mut [f32], dh: &mut [f32], size: usize) {
         let rows = p.chunks_exact(3 * size).zip(h.chunks_exact(size)).zip(g.chunks_exact(size));
         let grads = dp.chunks_exact_mut(3 * size).zip(dh.chunks_exact_mut(size));
         for (((pr, hr), gr), (dpr, dhr)) in rows.zip(grads) {

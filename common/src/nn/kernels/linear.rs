@@ -82,7 +82,7 @@ impl WeightGradTape {
 vectorised! {
     /// `sums += Σ_i g_i` over the rows `g_i` of `g` (`sums.len()` values each): the bias gradient
     /// (candle's `sum(0)` walks the strided path, a fifth of a SAC step).
-    fn column_sums(g: &[f32], sums: &mut [f32]) {
+    pub(crate) fn column_sums(g: &[f32], sums: &mut [f32]) {
         for row in g.chunks_exact(sums.len()) {
             for (s, &v) in sums.iter_mut().zip(row) {
                 *s += v;
@@ -167,28 +167,28 @@ impl Linear {
 }
 
 /// The input columns of `0..k` outside `sparse`: at most two ranges, empty ones left out.
-fn dense_parts(k: usize, sparse: &Range<usize>) -> impl Iterator<Item = Range<usize>> {
+pub(crate) fn dense_parts(k: usize, sparse: &Range<usize>) -> impl Iterator<Item = Range<usize>> {
     [0..sparse.start, sparse.end..k]
         .into_iter()
         .filter(|r| !r.is_empty())
 }
 
 /// Counts `flops` floating-point operations of the products done outside gemm.
-fn count_flops(flops: usize) {
+pub(crate) fn count_flops(flops: usize) {
     MATMUL_FLOPS.fetch_add(flops as u64, Ordering::Relaxed);
 }
 
-/// A matrix operand of [`matmul`]: its values and the strides of its rows and columns.
+/// A matrix operand of [`gemm_into`]: its values and the strides of its rows and columns.
 #[derive(Clone, Copy)]
-struct Operand<'a> {
-    data: &'a [f32],
-    row_stride: usize,
-    col_stride: usize,
+pub(crate) struct Operand<'a> {
+    pub(crate) data: &'a [f32],
+    pub(crate) row_stride: usize,
+    pub(crate) col_stride: usize,
 }
 
 impl<'a> Operand<'a> {
     /// A row-major `[rows, cols]` matrix.
-    fn rows(data: &'a [f32], cols: usize) -> Self {
+    pub(crate) fn rows(data: &'a [f32], cols: usize) -> Self {
         Self {
             data,
             row_stride: cols,
@@ -197,7 +197,7 @@ impl<'a> Operand<'a> {
     }
 
     /// The transpose of a row-major `[rows, cols]` matrix.
-    fn transposed(data: &'a [f32], cols: usize) -> Self {
+    pub(crate) fn transposed(data: &'a [f32], cols: usize) -> Self {
         Self {
             data,
             row_stride: 1,
@@ -222,22 +222,67 @@ fn matmul(
         dst.resize(m * n, 0.0);
         return dst;
     }
+    // SAFETY: `dst` has room for the m×n values at row stride n, which gemm writes (reading them
+    // first only when `accumulate`, where they are initialised) before `set_len` exposes them.
+    unsafe {
+        gemm_raw(dst.as_mut_ptr(), n, accumulate, (m, n, k), a, b);
+        dst.set_len(m * n);
+    }
+    dst
+}
+
+/// `dst ← A B`, or `dst += A B` with `accumulate`, for `A` `[m, k]`, `B` `[k, n]` and `dst` the
+/// `[m, n]` whose rows start `row_stride` apart in `dst` (a block of columns of a wider matrix
+/// when `row_stride > n`).
+pub(crate) fn gemm_into(
+    dst: &mut [f32],
+    row_stride: usize,
+    accumulate: bool,
+    (m, n, k): (usize, usize, usize),
+    a: Operand,
+    b: Operand,
+) {
+    if m == 0 || n == 0 {
+        return;
+    }
+    assert!(n <= row_stride && dst.len() >= (m - 1) * row_stride + n);
+    if k == 0 {
+        if !accumulate {
+            dst.chunks_mut(row_stride).for_each(|r| r[..n].fill(0.0));
+        }
+        return;
+    }
+    // SAFETY: `dst` holds the m rows of n values at `row_stride` (asserted above), initialised.
+    unsafe { gemm_raw(dst.as_mut_ptr(), row_stride, accumulate, (m, n, k), a, b) }
+}
+
+/// gemm of `A B` into the `[m, n]` at `dst` with rows `row_stride` apart (see [`gemm_into`]),
+/// on this thread; counts its operations.
+///
+/// # Safety
+/// `dst` must address `m` rows of `n` values at `row_stride`, initialised if `accumulate`.
+unsafe fn gemm_raw(
+    dst: *mut f32,
+    row_stride: usize,
+    accumulate: bool,
+    (m, n, k): (usize, usize, usize),
+    a: Operand,
+    b: Operand,
+) {
     count_flops(2 * m * n * k);
     // the callers' shape checks guarantee these; the unsafe call below relies on them
     assert!(a.data.len() > (m - 1) * a.row_stride + (k - 1) * a.col_stride);
     assert!(b.data.len() > (k - 1) * b.row_stride + (n - 1) * b.col_stride);
     // SAFETY: `a` and `b` hold the m×k and k×n values their strides address (asserted above);
-    // `dst` has room for m×n values, which
-    // gemm writes (reading them first only when `accumulate`, where they are initialised)
-    // before `set_len` exposes them.
+    // `dst` is as the caller promises.
     unsafe {
         gemm::gemm(
             m,
             n,
             k,
-            dst.as_mut_ptr(),
+            dst,
             1,
-            n as isize,
+            row_stride as isize,
             accumulate,
             a.data.as_ptr(),
             a.col_stride as isize,
@@ -252,9 +297,7 @@ fn matmul(
             false,
             gemm::Parallelism::None,
         );
-        dst.set_len(m * n);
     }
-    dst
 }
 
 impl Linear {

@@ -7,7 +7,7 @@
 //! (`dx = ∂p W`, `dW = ∂pᵀ x`).
 
 use super::linear::{product, Linear, WeightGradTape};
-use super::norm_act::{norm_act_rows, norm_act_rows_bwd};
+use super::norm_act::{norm_act_rows, norm_act_rows_bwd, Norm};
 use super::*;
 use std::sync::{Arc, Mutex, PoisonError};
 
@@ -23,6 +23,17 @@ struct LinearNormAct {
 }
 
 impl LinearNormAct {
+    /// The normalisation of the values `[γ, β]`.
+    fn norm<'a>(&self, gain_bias: &'a [f32]) -> Norm<'a> {
+        let (gain, bias) = gain_bias.split_at(gain_bias.len() / 2);
+        Norm {
+            gain,
+            bias,
+            eps: self.eps,
+            act: self.act,
+        }
+    }
+
     /// The block on `x` with the weight argument and `[γ, β]`.
     fn apply(self, x: &Tensor, weight: &Tensor, gain_bias: &Tensor) -> Result<Tensor> {
         x.contiguous()?.apply_op3(weight, gain_bias, self)
@@ -66,7 +77,7 @@ impl CustomOp3 for LinearNormAct {
                 shape.dims()
             );
         }
-        let out = norm_act_rows(&p, &gb[..d], &gb[d..], self.eps, self.act);
+        let out = norm_act_rows(&p, self.norm(gb));
         *self.product.lock().unwrap_or_else(PoisonError::into_inner) = p;
         Ok((CpuStorage::F32(out), shape))
     }
@@ -87,8 +98,7 @@ impl CustomOp3 for LinearNormAct {
                     bail!("linear_norm_act: backward pass without its forward pass");
                 }
                 let mut dgb = vec![0f32; 2 * d];
-                let (gain, bias) = gb.split_at(d);
-                let dp = norm_act_rows_bwd(&p, gain, bias, dy, &mut dgb, self.eps, self.act);
+                let dp = norm_act_rows_bwd(&p, self.norm(gb), dy, &mut dgb);
                 Ok((dp, dgb))
             })
         })?;

@@ -245,6 +245,13 @@ pub use linear::{linear, linear_t, linear_twice, matmul_flops, WeightGradTape};
 pub use linear_norm::{linear_norm_act, linear_norm_act_twice};
 pub use norm_act::{norm_act, NormAct};
 pub use twohot::{soft_cross_entropy, twohot_decode};
+// the row kernels, for the networks on plain buffers (`crate::nn::plain`)
+pub(crate) use categorical::{probs_rows_bwd, sample_rows, Unimix};
+pub(crate) use gru::{gru_rows, gru_rows_bwd};
+pub(crate) use linear::{column_sums, count_flops, dense_parts, gemm_into, Operand};
+pub(crate) use norm_act::{norm_act_rows_bwd_into, norm_act_rows_into, Norm};
+pub(crate) use sparse_inputs::SparseColumns;
+pub(crate) use twohot::{cross_entropy_rows, cross_entropy_rows_bwd, decode_rows, decode_rows_bwd};
 
 #[cfg(test)]
 mod tests {

@@ -1,6 +1,7 @@
 //! `LayerNorm` then SiLU or the identity, in one pass per row forward and one backward.
 
 use super::*;
+use std::mem::MaybeUninit;
 
 /// The activation after a [`norm_act`] normalisation.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -25,6 +26,19 @@ impl NormAct {
     }
 }
 
+/// A normalisation's parameters: `act(γ (x − μ)/√(σ² + ε) + β)` over rows of `γ.len()`.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Norm<'a> {
+    /// `γ`.
+    pub(crate) gain: &'a [f32],
+    /// `β`, of `γ`'s length.
+    pub(crate) bias: &'a [f32],
+    /// `ε`.
+    pub(crate) eps: f32,
+    /// The activation.
+    pub(crate) act: NormAct,
+}
+
 struct NormActOp {
     eps: f32,
     act: NormAct,
@@ -40,20 +54,17 @@ fn row_moments(x: &[f32], eps: f32) -> (f32, f32) {
 }
 
 vectorised! {
-    /// `act(LayerNorm(x))` of the whole rows (of `gain.len()`) of `x`, each value written
-    /// once into the new buffer (never zeroed first).
-    pub(super) fn norm_act_rows(x: &[f32], gain: &[f32], bias: &[f32], eps: f32, act: NormAct) -> Vec<f32> {
+    /// `out ← act(LayerNorm(x))` over the whole rows (of `gain.len()`) of `x` and `out`, each
+    /// value written once (the buffer need not be initialised).
+    fn norm_act_rows_uninit(x: &[f32], norm: Norm, out: &mut [MaybeUninit<f32>]) {
+        let Norm { gain, bias, eps, act } = norm;
         let d = gain.len();
-        let bias = &bias[..d];
         if d == 0 {
-            return Vec::new();
+            return;
         }
-        let rows = x.len() / d;
-        let mut out = Vec::with_capacity(rows * d);
-        // exact-length rows: the loops below run without bounds checks, in vector lanes; they
-        // write here rather than through `Vec::extend`, which is not inlined into this
-        // function's AVX-512 and AVX2 copies and would run in baseline lanes
-        for (xr, o) in x.chunks_exact(d).zip(out.spare_capacity_mut().chunks_exact_mut(d)) {
+        let bias = &bias[..d];
+        // exact-length rows: the loops below run without bounds checks, in vector lanes
+        for (xr, o) in x.chunks_exact(d).zip(out.chunks_exact_mut(d)) {
             let (mean, rstd) = row_moments(xr, eps);
             let lanes = o.iter_mut().zip(xr).zip(gain.iter().zip(bias));
             match act {
@@ -69,37 +80,48 @@ vectorised! {
                 }
             }
         }
-        // SAFETY: the loop wrote all `d` values of each of the `rows` rows
-        unsafe { out.set_len(rows * d) };
-        out
     }
 }
 
+/// `out ← act(LayerNorm(x))` over the whole rows (of `gain.len()`) of `x` and `out`.
+pub(crate) fn norm_act_rows_into(x: &[f32], norm: Norm, out: &mut [f32]) {
+    norm_act_rows_uninit(x, norm, as_uninit(out));
+}
+
+/// `act(LayerNorm(x))` of the whole rows (of `γ.len()`) of `x`, in a new buffer (written once,
+/// never zeroed first).
+pub(super) fn norm_act_rows(x: &[f32], norm: Norm) -> Vec<f32> {
+    let d = norm.gain.len();
+    let n = x.len() / d.max(1) * d;
+    let mut out = Vec::with_capacity(n);
+    norm_act_rows_uninit(x, norm, &mut out.spare_capacity_mut()[..n]);
+    // SAFETY: the kernel wrote the n values of the whole rows
+    unsafe { out.set_len(n) };
+    out
+}
+
 vectorised! {
-    /// The backward pass of [`norm_act_rows`] over the whole rows of `x` and `dy`: `dx`
-    /// (each value written once), and `dgb = [dγ, dβ]` accumulated.
-    pub(super) fn norm_act_rows_bwd(
+    /// The backward pass of [`norm_act_rows_into`] over the whole rows of `x` and `dy`: `dx`
+    /// (each value written once) and `dgb = [dγ, dβ]` (accumulated).
+    fn norm_act_rows_bwd_uninit(
         x: &[f32],
-        gain: &[f32],
-        bias: &[f32],
+        norm: Norm,
         dy: &[f32],
         dgb: &mut [f32],
-        eps: f32,
-        act: NormAct,
-    ) -> Vec<f32> {
+        dx: &mut [MaybeUninit<f32>],
+    ) {
+        let Norm { gain, bias, eps, act } = norm;
         let d = gain.len();
+        if d == 0 {
+            return;
+        }
         let bias = &bias[..d];
         let (dgain, dbias) = dgb.split_at_mut(d);
         let dbias = &mut dbias[..d];
-        if d == 0 {
-            return Vec::new();
-        }
         let mut xh = vec![0f32; d];
         let mut dxh = vec![0f32; d];
-        let rows = (x.len() / d).min(dy.len() / d);
-        let mut dx = Vec::with_capacity(rows * d);
-        let out_rows = dx.spare_capacity_mut().chunks_exact_mut(d);
-        for ((xr, dyr), dxr) in x.chunks_exact(d).zip(dy.chunks_exact(d)).zip(out_rows) {
+        let rows = x.chunks_exact(d).zip(dy.chunks_exact(d)).zip(dx.chunks_exact_mut(d));
+        for ((xr, dyr), dxr) in rows {
             let (mean, rstd) = row_moments(xr, eps);
             for (h, &x) in xh.iter_mut().zip(xr) {
                 *h = (x - mean) * rstd;
@@ -126,9 +148,50 @@ vectorised! {
                 o.write(rstd * (-h).mul_add(m2, g - m1));
             }
         }
-        // SAFETY: the loop wrote all `d` values of each of the `rows` rows
-        unsafe { dx.set_len(rows * d) };
-        dx
+    }
+}
+
+/// The backward pass of [`norm_act_rows_into`] over the whole rows of `x` and `dy`: `dx`
+/// (overwritten) and `dgb = [dγ, dβ]` (accumulated).
+pub(crate) fn norm_act_rows_bwd_into(
+    x: &[f32],
+    norm: Norm,
+    dy: &[f32],
+    dgb: &mut [f32],
+    dx: &mut [f32],
+) {
+    norm_act_rows_bwd_uninit(x, norm, dy, dgb, as_uninit(dx));
+}
+
+/// [`norm_act_rows_bwd_into`] with `dx` in a new buffer (written once, never zeroed first).
+pub(super) fn norm_act_rows_bwd(x: &[f32], norm: Norm, dy: &[f32], dgb: &mut [f32]) -> Vec<f32> {
+    let d = norm.gain.len();
+    let n = (x.len() / d.max(1)).min(dy.len() / d.max(1)) * d;
+    let mut dx = Vec::with_capacity(n);
+    let out = &mut dx.spare_capacity_mut()[..n];
+    norm_act_rows_bwd_uninit(x, norm, dy, dgb, out);
+    // SAFETY: the kernel wrote the n values of the whole rows
+    unsafe { dx.set_len(n) };
+    dx
+}
+
+/// `x` as a buffer that a kernel writing each value once may fill: the same memory, every value
+/// of which it overwrites with an initialised one.
+fn as_uninit(x: &mut [f32]) -> &mut [MaybeUninit<f32>] {
+    // SAFETY: `MaybeUninit<f32>` has the layout of `f32`; the kernels write only initialised
+    // values through the view, so `x` stays initialised.
+    unsafe { &mut *(x as *mut [f32] as *mut [MaybeUninit<f32>]) }
+}
+
+impl NormActOp {
+    /// The normalisation with gain `g` and bias `b`.
+    fn on<'a>(&self, g: &'a [f32], b: &'a [f32]) -> Norm<'a> {
+        Norm {
+            gain: g,
+            bias: b,
+            eps: self.eps,
+            act: self.act,
+        }
     }
 }
 
@@ -151,7 +214,7 @@ impl CustomOp3 for NormActOp {
         if d == 0 || x.len() % d != 0 || b.len() != d {
             bail!("norm_act: input {:?} for a gain of {d}", l1.shape());
         }
-        let out = norm_act_rows(x, g, b, self.eps, self.act);
+        let out = norm_act_rows(x, self.on(g, b));
         Ok((CpuStorage::F32(out), l1.shape().clone()))
     }
 
@@ -170,7 +233,7 @@ impl CustomOp3 for NormActOp {
                 read(bias, |b| {
                     read(grad, |dy| {
                         let mut dgb = vec![0f32; 2 * d];
-                        let dx = norm_act_rows_bwd(x, g, b, dy, &mut dgb, self.eps, self.act);
+                        let dx = norm_act_rows_bwd(x, self.on(g, b), dy, &mut dgb);
                         Ok((dx, dgb))
                     })
                 })

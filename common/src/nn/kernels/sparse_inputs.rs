@@ -23,7 +23,7 @@ pub(super) const MAX_DENSITY: f64 = 0.125;
 
 /// The non-zeros of the columns `a..b` of a row-major matrix, row by row (compressed rows), the
 /// columns counted from `a`.
-pub(super) struct SparseColumns {
+pub(crate) struct SparseColumns {
     /// Row `i`'s non-zeros are `starts[i]..starts[i + 1]` of `columns` and `values`.
     starts: Vec<usize>,
     columns: Vec<usize>,
@@ -33,7 +33,7 @@ pub(super) struct SparseColumns {
 impl SparseColumns {
     /// The non-zeros of `columns` of `x` (`[rows, width]`), or `None` if more than
     /// [`MAX_DENSITY`] of them are non-zero (or the range is empty or outside the width).
-    pub(super) fn gather(x: &[f32], width: usize, columns: &Range<usize>) -> Option<Self> {
+    pub(crate) fn gather(x: &[f32], width: usize, columns: &Range<usize>) -> Option<Self> {
         if columns.is_empty() || columns.end > width || width == 0 {
             return None;
         }
@@ -66,17 +66,17 @@ impl SparseColumns {
     }
 
     /// The number of non-zeros.
-    pub(super) fn nonzeros(&self) -> usize {
+    pub(crate) fn nonzeros(&self) -> usize {
         self.values.len()
     }
 
     /// `y_i += Σ x_ic Wᵀ_c` for `y` `[rows, out]` and `wt` the rows of `Wᵀ` of the columns.
-    pub(super) fn add_products(&self, wt: &[f32], out: usize, y: &mut [f32]) {
+    pub(crate) fn add_products(&self, wt: &[f32], out: usize, y: &mut [f32]) {
         add_row_products(&self.starts, &self.columns, &self.values, wt, out, y);
     }
 
     /// `dWᵀ_c += Σ_i x_ic g_i` for `g` `[rows, out]` and `dwt` the rows of `dWᵀ` of the columns.
-    pub(super) fn add_weight_grads(&self, g: &[f32], out: usize, dwt: &mut [f32]) {
+    pub(crate) fn add_weight_grads(&self, g: &[f32], out: usize, dwt: &mut [f32]) {
         add_column_grads(&self.starts, &self.columns, &self.values, g, out, dwt);
     }
 }

@@ -4,7 +4,7 @@ use super::*;
 
 vectorised! {
     /// `out_i ← symexp(Σ_k softmax(x_i)_k b_k)` for the rows `x_i` of `bins.len()` values of `x`.
-    fn decode_rows(x: &[f32], bins: &[f32], out: &mut [f32]) {
+    pub(crate) fn decode_rows(x: &[f32], bins: &[f32], out: &mut [f32]) {
         if bins.is_empty() {
             return;
         }
@@ -19,7 +19,7 @@ vectorised! {
 
 vectorised! {
     /// The backward pass of [`decode_rows`]: `dx_ik = g_i e^{|m_i|} p_ik (b_k − m_i)`.
-    fn decode_rows_bwd(x: &[f32], bins: &[f32], g: &[f32], dx: &mut [f32]) {
+    pub(crate) fn decode_rows_bwd(x: &[f32], bins: &[f32], g: &[f32], dx: &mut [f32]) {
         let k = bins.len();
         if k == 0 {
             return;
@@ -39,7 +39,7 @@ vectorised! {
 vectorised! {
     /// `out_i ← Σ_k t_ik (lse(l_i) − l_ik)` for the rows of `l` and `t` (`l.len() / out.len()`
     /// values each).
-    fn cross_entropy_rows(l: &[f32], t: &[f32], out: &mut [f32]) {
+    pub(crate) fn cross_entropy_rows(l: &[f32], t: &[f32], out: &mut [f32]) {
         let k = l.len() / out.len();
         for ((lr, tr), o) in l.chunks_exact(k).zip(t.chunks_exact(k)).zip(out.iter_mut()) {
             let max = lane_max(lr);
@@ -51,7 +51,7 @@ vectorised! {
 
 vectorised! {
     /// The backward pass of [`cross_entropy_rows`]: `dl_ik = g_i (softmax(l_i)_k Σ_j t_ij − t_ik)`.
-    fn cross_entropy_rows_bwd(l: &[f32], t: &[f32], g: &[f32], dl: &mut [f32]) {
+    pub(crate) fn cross_entropy_rows_bwd(l: &[f32], t: &[f32], g: &[f32], dl: &mut [f32]) {
         let k = l.len() / g.len();
         let mut p = vec![0f32; k];
         for (((lr, tr), d), &gr) in l

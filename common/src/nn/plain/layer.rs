@@ -1,0 +1,585 @@
+//! A linear layer and a stack of them on plain buffers: forward into kept traces, backward by
+//! hand.
+//!
+//! A layer is `p = x Wᵀ (+ b)` then `y = act(LayerNorm(p))` (DreamerV3's blocks), `y = max(p, 0)`,
+//! or `y = p`. Backward, from the output's gradient `∂y`: the product's gradient `∂p` (the
+//! normalisation's backward pass, [`crate::nn::kernels`]' `norm_act`), then
+//! `∂W += ∂pᵀ x`, `∂b += Σ_rows ∂p`, and `∂x = ∂p W` for the input columns asked for. Input
+//! columns that are mostly zero (the one-hot `z` of a state, [`crate::nn::Dense::sparse_inputs`])
+//! are multiplied over their non-zeros, forward and in the weight's gradient.
+
+use crate::nn::kernels::{
+    column_sums, count_flops, dense_parts, gemm_into, norm_act_rows_bwd_into, norm_act_rows_into,
+    Norm, NormAct, Operand, SparseColumns,
+};
+use crate::nn::{Activation, Dense, LayerNorm, Mlp};
+use candle_core::backprop::GradStore;
+use candle_core::{bail, Result, Tensor};
+use std::ops::Range;
+
+/// What follows a layer's product.
+#[derive(Clone, Debug)]
+enum After {
+    /// `y = p`.
+    Nothing,
+    /// `y = act(γ (p − μ)/√(σ² + ε) + β)`.
+    Norm(NormParams),
+    /// `y = max(p, 0)`.
+    Relu,
+}
+
+/// A normalisation's parameters, owned ([`Norm`] is their view).
+#[derive(Clone, Debug)]
+struct NormParams {
+    gain: Vec<f32>,
+    bias: Vec<f32>,
+    eps: f32,
+    act: NormAct,
+}
+
+impl NormParams {
+    fn view(&self) -> Norm<'_> {
+        Norm {
+            gain: &self.gain,
+            bias: &self.bias,
+            eps: self.eps,
+            act: self.act,
+        }
+    }
+}
+
+/// A linear layer and what follows it, its parameters copied out of candle.
+#[derive(Clone, Debug)]
+pub struct PlainLayer {
+    inputs: usize,
+    outputs: usize,
+    /// `W` `[out, in]`, for the input's gradient `∂p W`.
+    w: Vec<f32>,
+    /// `Wᵀ` `[in, out]`, for the forward product `x Wᵀ`.
+    wt: Vec<f32>,
+    bias: Option<Vec<f32>>,
+    after: After,
+    /// Input columns that are mostly zero.
+    sparse: Option<Range<usize>>,
+}
+
+/// How a layer multiplies an input ([`PlainLayer::split_inputs`]).
+struct InputSplit {
+    /// Column ranges multiplied by gemm.
+    dense: Vec<Range<usize>>,
+    /// The sparse columns and their non-zeros.
+    sparse: Option<(Range<usize>, SparseColumns)>,
+}
+
+/// The values of a contiguous CPU tensor.
+fn values(t: &Tensor) -> Result<Vec<f32>> {
+    t.flatten_all()?.to_vec1::<f32>()
+}
+
+impl PlainLayer {
+    /// The layer `dense` followed by its normalisation and activation `norm`, or else a ReLU if
+    /// `relu`, or else nothing.
+    pub(super) fn from_parts(
+        dense: &Dense,
+        norm: Option<(&LayerNorm, NormAct)>,
+        relu: bool,
+    ) -> Result<Self> {
+        let (outputs, inputs) = dense.weight().dims2()?;
+        let w = values(dense.weight())?;
+        let mut wt = vec![0f32; w.len()];
+        for (j, row) in w.chunks_exact(inputs).enumerate() {
+            for (i, &v) in row.iter().enumerate() {
+                wt[i * outputs + j] = v;
+            }
+        }
+        let after = match (norm, relu) {
+            (Some((ln, act)), _) => {
+                let (gain, bias, eps) = ln.parts();
+                After::Norm(NormParams {
+                    gain: values(gain)?,
+                    bias: values(bias)?,
+                    eps: eps as f32,
+                    act,
+                })
+            }
+            (None, true) => After::Relu,
+            (None, false) => After::Nothing,
+        };
+        Ok(Self {
+            inputs,
+            outputs,
+            w,
+            wt,
+            bias: dense.bias().map(values).transpose()?,
+            after,
+            sparse: dense.sparse_columns().cloned(),
+        })
+    }
+
+    /// A normalised block (`act(LayerNorm(x Wᵀ))`) of `dense` and `ln`.
+    pub fn normalised(dense: &Dense, ln: &LayerNorm, act: NormAct) -> Result<Self> {
+        Self::from_parts(dense, Some((ln, act)), false)
+    }
+
+    /// The plain product `x Wᵀ + b` of `dense`.
+    pub fn linear(dense: &Dense) -> Result<Self> {
+        Self::from_parts(dense, None, false)
+    }
+
+    /// Input width.
+    pub fn inputs(&self) -> usize {
+        self.inputs
+    }
+
+    /// Output width.
+    pub fn outputs(&self) -> usize {
+        self.outputs
+    }
+
+    /// Whether the output is a separate buffer from the product (a normalisation or a ReLU
+    /// follows it).
+    fn has_output(&self) -> bool {
+        !matches!(self.after, After::Nothing)
+    }
+
+    /// How the layer multiplies `x`: the columns through gemm, and the sparse ones with their
+    /// non-zeros (if the layer has such columns and they are sparse enough in `x`).
+    fn split_inputs(&self, x: &[f32]) -> InputSplit {
+        let k = self.inputs;
+        let sparse = self
+            .sparse
+            .as_ref()
+            .and_then(|c| Some((c.clone(), SparseColumns::gather(x, k, c)?)));
+        let dense = match &sparse {
+            Some((columns, _)) => dense_parts(k, columns).collect(),
+            None => std::iter::once(0..k).collect(),
+        };
+        InputSplit { dense, sparse }
+    }
+
+    /// `product ← x Wᵀ + b` and (if something follows) `output ← after(product)` for the rows
+    /// of `x`.
+    pub fn forward(&self, x: &[f32], product: &mut [f32], output: &mut [f32]) {
+        let (k, m) = (self.inputs, self.outputs);
+        let rows = x.len() / k.max(1);
+        let product = &mut product[..rows * m];
+        let mut started = false;
+        if let Some(b) = &self.bias {
+            product
+                .chunks_exact_mut(m)
+                .for_each(|r| r.copy_from_slice(b));
+            started = true;
+        }
+        let InputSplit { dense, sparse } = self.split_inputs(x);
+        for part in dense {
+            let xs = Operand {
+                data: &x[part.start..],
+                row_stride: k,
+                col_stride: 1,
+            };
+            let wt = Operand::rows(&self.wt[part.start * m..], m);
+            gemm_into(product, m, started, (rows, m, part.len()), xs, wt);
+            started = true;
+        }
+        if let Some((columns, sparse)) = sparse {
+            if !started {
+                product.fill(0.0);
+            }
+            let wt = &self.wt[columns.start * m..columns.end * m];
+            sparse.add_products(wt, m, product);
+            count_flops(2 * m * sparse.nonzeros());
+        }
+        match &self.after {
+            After::Nothing => {}
+            After::Norm(n) => norm_act_rows_into(product, n.view(), &mut output[..rows * m]),
+            After::Relu => {
+                for (o, &p) in output[..rows * m].iter_mut().zip(product.iter()) {
+                    *o = p.max(0.0);
+                }
+            }
+        }
+    }
+
+    /// The product's gradient `dp` from the output's `dy` over the rows of `product`; the
+    /// normalisation's `[∂γ, ∂β]` are added to `dnorm` (`2 out` values; ignored otherwise).
+    /// Without anything after the product, `dp = dy` and nothing is written.
+    pub(super) fn product_grad(
+        &self,
+        (product, output): (&[f32], &[f32]),
+        dy: &[f32],
+        dnorm: &mut [f32],
+        dp: &mut [f32],
+    ) {
+        match &self.after {
+            After::Nothing => {}
+            After::Norm(n) => norm_act_rows_bwd_into(product, n.view(), dy, dnorm, dp),
+            After::Relu => {
+                for ((d, &g), &y) in dp.iter_mut().zip(dy).zip(output) {
+                    *d = if y > 0.0 { g } else { 0.0 };
+                }
+            }
+        }
+    }
+
+    /// `∂W += dpᵀ x` (and `∂b += Σ dp`) into `grads`, for the rows of `x` and `dp`.
+    fn add_weight_grads(&self, x: &[f32], dp: &[f32], grads: &mut LayerGrads) {
+        let (k, m) = (self.inputs, self.outputs);
+        let rows = dp.len() / m;
+        let InputSplit { dense, sparse } = self.split_inputs(x);
+        let dpt = Operand::transposed(dp, m);
+        for part in dense {
+            let xs = Operand {
+                data: &x[part.start..],
+                row_stride: k,
+                col_stride: 1,
+            };
+            let dst = &mut grads.w[part.start..];
+            gemm_into(dst, k, true, (m, part.len(), rows), dpt, xs);
+        }
+        if let Some((columns, sparse)) = sparse {
+            let block = grads
+                .sparse_wt
+                .get_or_insert_with(|| vec![0f32; columns.len() * m]);
+            sparse.add_weight_grads(dp, m, block);
+            count_flops(2 * m * sparse.nonzeros());
+        }
+        if !grads.bias.is_empty() {
+            column_sums(dp, &mut grads.bias);
+        }
+    }
+
+    /// `dx (+)= dp W[:, columns]`: the input's gradient in `columns`, into `dx` whose rows are
+    /// `row_stride` apart and whose first column is input column `columns.start`; added to
+    /// what `dx` holds with `accumulate`.
+    pub fn input_grad(
+        &self,
+        dp: &[f32],
+        columns: Range<usize>,
+        dx: &mut [f32],
+        row_stride: usize,
+        accumulate: bool,
+    ) {
+        let m = self.outputs;
+        let rows = dp.len() / m;
+        let w = Operand {
+            data: &self.w[columns.start..],
+            row_stride: self.inputs,
+            col_stride: 1,
+        };
+        let dims = (rows, columns.len(), m);
+        gemm_into(dx, row_stride, accumulate, dims, Operand::rows(dp, m), w);
+    }
+
+    /// Zeroed gradients of this layer's parameters.
+    fn zero_grads(&self) -> LayerGrads {
+        LayerGrads {
+            w: vec![0f32; self.outputs * self.inputs],
+            sparse_wt: None,
+            bias: vec![0f32; if self.bias.is_some() { self.outputs } else { 0 }],
+            norm: vec![
+                0f32;
+                if matches!(self.after, After::Norm(..)) {
+                    2 * self.outputs
+                } else {
+                    0
+                }
+            ],
+        }
+    }
+}
+
+/// The gradients of one layer's parameters.
+#[derive(Clone, Debug)]
+pub struct LayerGrads {
+    /// `∂W` `[out, in]`, but for the sparse columns.
+    w: Vec<f32>,
+    /// `∂Wᵀ` of the sparse columns, `[columns, out]` (the layout their row-by-row sums write).
+    sparse_wt: Option<Vec<f32>>,
+    /// `∂b` (empty without a bias).
+    bias: Vec<f32>,
+    /// `[∂γ, ∂β]` of the normalisation (empty without one).
+    norm: Vec<f32>,
+}
+
+impl LayerGrads {
+    /// `self += other` (the same layer's).
+    fn add(&mut self, other: &Self) {
+        let add = |a: &mut Vec<f32>, b: &Vec<f32>| a.iter_mut().zip(b).for_each(|(a, b)| *a += b);
+        add(&mut self.w, &other.w);
+        add(&mut self.bias, &other.bias);
+        add(&mut self.norm, &other.norm);
+        match (&mut self.sparse_wt, &other.sparse_wt) {
+            (Some(a), Some(b)) => add(a, b),
+            (None, Some(b)) => self.sparse_wt = Some(b.clone()),
+            _ => {}
+        }
+    }
+
+    /// `∂W` `[out, in]` whole, for the layer `layer`.
+    fn weight(&self, layer: &PlainLayer) -> Vec<f32> {
+        let mut w = self.w.clone();
+        if let (Some(block), Some(columns)) = (&self.sparse_wt, &layer.sparse) {
+            let m = layer.outputs;
+            for (c, row) in block.chunks_exact(m).enumerate() {
+                for (j, &v) in row.iter().enumerate() {
+                    w[j * layer.inputs + columns.start + c] += v;
+                }
+            }
+        }
+        w
+    }
+}
+
+/// An [`Mlp`] on plain buffers: its hidden blocks, then its output layer.
+#[derive(Clone, Debug)]
+pub struct PlainMlp {
+    layers: Vec<PlainLayer>,
+}
+
+/// What a [`PlainMlp`]'s forward pass keeps for its backward pass, for a fixed number of rows:
+/// each layer's product and output, and the backward pass's scratch.
+#[derive(Debug, Default)]
+pub struct MlpTrace {
+    rows: usize,
+    products: Vec<Vec<f32>>,
+    outputs: Vec<Vec<f32>>,
+    /// The backward pass's gradients at a layer's output, at its input and at its product.
+    grad_out: Vec<f32>,
+    grad_in: Vec<f32>,
+    grad_product: Vec<f32>,
+}
+
+/// The gradients of a [`PlainMlp`]'s parameters.
+#[derive(Clone, Debug)]
+pub struct MlpGrads {
+    layers: Vec<LayerGrads>,
+}
+
+impl PlainMlp {
+    /// The weights of `mlp` as they are now.
+    pub fn new(mlp: &Mlp) -> Result<Self> {
+        let (hidden, head, act) = mlp.parts();
+        let mut layers = Vec::with_capacity(hidden.len() + 1);
+        for (dense, ln) in hidden {
+            layers.push(match (act, ln) {
+                (Activation::SiluNorm, Some(ln)) => {
+                    PlainLayer::normalised(dense, ln, NormAct::Silu)?
+                }
+                (Activation::Relu, None) => PlainLayer::from_parts(dense, None, true)?,
+                _ => bail!("plain MLP: a hidden layer of {act:?} without its normalisation"),
+            });
+        }
+        if let Some(head) = head {
+            layers.push(PlainLayer::linear(head)?);
+        }
+        Ok(Self { layers })
+    }
+
+    /// Output width.
+    pub fn outputs(&self) -> usize {
+        self.layers.last().map_or(0, |l| l.outputs)
+    }
+
+    /// Buffers for the forward and backward passes over `rows` rows.
+    pub fn trace(&self, rows: usize) -> MlpTrace {
+        let mut trace = MlpTrace::default();
+        self.fit(&mut trace, rows);
+        trace
+    }
+
+    /// Sizes `trace` for `rows` rows (reusing its buffers).
+    pub fn fit(&self, trace: &mut MlpTrace, rows: usize) {
+        let n = self.layers.len();
+        trace.rows = rows;
+        trace.products.resize_with(n, Vec::new);
+        trace.outputs.resize_with(n, Vec::new);
+        let widest = self.layers.iter().map(|l| l.outputs).max().unwrap_or(0);
+        for (i, l) in self.layers.iter().enumerate() {
+            trace.products[i].resize(rows * l.outputs, 0.0);
+            let out = if l.has_output() { rows * l.outputs } else { 0 };
+            trace.outputs[i].resize(out, 0.0);
+        }
+        let widest = widest.max(self.layers.iter().map(|l| l.inputs).max().unwrap_or(0));
+        for buf in [
+            &mut trace.grad_out,
+            &mut trace.grad_in,
+            &mut trace.grad_product,
+        ] {
+            buf.resize(rows * widest, 0.0);
+        }
+    }
+
+    /// The network on the rows of `x`, kept as the rows `rows` of `trace`.
+    pub fn forward(&self, x: &[f32], trace: &mut MlpTrace, rows: Range<usize>) {
+        for (i, layer) in self.layers.iter().enumerate() {
+            // this layer's buffers, and the layers' below it to read its input from
+            let (products_below, products) = trace.products.split_at_mut(i);
+            let (outputs_below, outputs) = trace.outputs.split_at_mut(i);
+            let input: &[f32] = match i.checked_sub(1) {
+                None => x,
+                Some(j) => {
+                    let below = &self.layers[j];
+                    let kept = if below.has_output() {
+                        &outputs_below[j]
+                    } else {
+                        &products_below[j]
+                    };
+                    &kept[rows.start * below.outputs..rows.end * below.outputs]
+                }
+            };
+            let span = rows.start * layer.outputs..rows.end * layer.outputs;
+            let output: &mut [f32] = if layer.has_output() {
+                &mut outputs[0][span.clone()]
+            } else {
+                &mut []
+            };
+            layer.forward(input, &mut products[0][span], output);
+        }
+    }
+
+    /// The output of the rows `rows` of `trace`.
+    pub fn output<'a>(&self, trace: &'a MlpTrace, rows: Range<usize>) -> &'a [f32] {
+        match self.layers.len().checked_sub(1) {
+            Some(last) => self.layer_output(trace, last, rows),
+            None => &[],
+        }
+    }
+
+    /// The backward pass over the rows `rows` of `trace` (whose input rows are `x`) from the
+    /// output's gradient `dy`: the parameters' gradients added to `grads`, if given, and the
+    /// input's gradient in `dx.columns`, if asked.
+    pub fn backward(
+        &self,
+        x: &[f32],
+        trace: &mut MlpTrace,
+        rows: Range<usize>,
+        dy: &[f32],
+        mut grads: Option<&mut MlpGrads>,
+        mut dx: Option<InputGrad>,
+    ) {
+        let Some(last) = self.layers.len().checked_sub(1) else {
+            return;
+        };
+        let n = rows.len();
+        let mut cur = std::mem::take(&mut trace.grad_out);
+        let mut next = std::mem::take(&mut trace.grad_in);
+        let mut dp_buf = std::mem::take(&mut trace.grad_product);
+        let mut unused_norm = Vec::new();
+        for (i, layer) in self.layers.iter().enumerate().rev() {
+            let m = layer.outputs;
+            let span = rows.start * m..rows.end * m;
+            // the gradient at this layer's output: the caller's, or what the layer above left
+            let g = if i == last {
+                &dy[..n * m]
+            } else {
+                &cur[..n * m]
+            };
+            let dnorm = match grads.as_deref_mut() {
+                Some(gr) => &mut gr.layers[i].norm,
+                None => {
+                    unused_norm.resize(2 * m, 0.0);
+                    &mut unused_norm
+                }
+            };
+            let dp = if layer.has_output() {
+                let kept = (&trace.products[i][span.clone()], &trace.outputs[i][span]);
+                layer.product_grad(kept, g, dnorm, &mut dp_buf[..n * m]);
+                &dp_buf[..n * m]
+            } else {
+                g
+            };
+            if let Some(gr) = grads.as_deref_mut() {
+                let input = match i.checked_sub(1) {
+                    None => x,
+                    Some(j) => self.layer_output(trace, j, rows.clone()),
+                };
+                layer.add_weight_grads(input, dp, &mut gr.layers[i]);
+            }
+            if i > 0 {
+                let k = layer.inputs;
+                layer.input_grad(dp, 0..k, &mut next[..n * k], k, false);
+            } else if let Some(d) = dx.take() {
+                layer.input_grad(dp, d.columns, d.data, d.row_stride, d.accumulate);
+            }
+            std::mem::swap(&mut cur, &mut next);
+        }
+        trace.grad_out = cur;
+        trace.grad_in = next;
+        trace.grad_product = dp_buf;
+    }
+
+    /// The output of layer `j` over the rows `rows` of `trace`.
+    fn layer_output<'a>(&self, trace: &'a MlpTrace, j: usize, rows: Range<usize>) -> &'a [f32] {
+        let layer = &self.layers[j];
+        let kept = if layer.has_output() {
+            &trace.outputs[j]
+        } else {
+            &trace.products[j]
+        };
+        &kept[rows.start * layer.outputs..rows.end * layer.outputs]
+    }
+
+    /// Zeroed gradients of the parameters.
+    pub fn zero_grads(&self) -> MlpGrads {
+        MlpGrads {
+            layers: self.layers.iter().map(PlainLayer::zero_grads).collect(),
+        }
+    }
+
+    /// The gradients as candle tensors of `mlp`'s parameters (the network this one copied),
+    /// added into `store`.
+    pub fn add_grads_to(&self, grads: &MlpGrads, mlp: &Mlp, store: &mut GradStore) -> Result<()> {
+        let (hidden, head, _) = mlp.parts();
+        let denses = hidden
+            .iter()
+            .map(|(d, ln)| (d, ln.as_ref()))
+            .chain(head.map(|h| (h, None)));
+        for ((dense, ln), (layer, g)) in denses.zip(self.layers.iter().zip(&grads.layers)) {
+            add_grad(store, dense.weight(), g.weight(layer))?;
+            if let Some(b) = dense.bias() {
+                add_grad(store, b, g.bias.clone())?;
+            }
+            if let Some(ln) = ln {
+                let (gain, bias, _) = ln.parts();
+                let m = layer.outputs;
+                add_grad(store, gain, g.norm[..m].to_vec())?;
+                add_grad(store, bias, g.norm[m..].to_vec())?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Adds `grad` (the values of a tensor shaped as `param`) to `param`'s gradient in `store`.
+fn add_grad(store: &mut GradStore, param: &Tensor, grad: Vec<f32>) -> Result<()> {
+    let grad = Tensor::from_vec(grad, param.shape(), param.device())?;
+    let sum = match store.get(param) {
+        Some(g) => (g + grad)?,
+        None => grad,
+    };
+    store.insert(param, sum);
+    Ok(())
+}
+
+impl MlpGrads {
+    /// `self += other` (the same network's).
+    pub fn add(&mut self, other: &Self) {
+        for (a, b) in self.layers.iter_mut().zip(&other.layers) {
+            a.add(b);
+        }
+    }
+}
+
+/// Where a backward pass writes an input's gradient: the input columns `columns`, into `data`
+/// whose rows are `row_stride` apart and whose first column is input column `columns.start`,
+/// added to what it holds with `accumulate`.
+pub struct InputGrad<'a> {
+    /// The destination.
+    pub data: &'a mut [f32],
+    /// The distance of its rows.
+    pub row_stride: usize,
+    /// The input columns to compute.
+    pub columns: Range<usize>,
+    /// Add to the destination instead of overwriting it.
+    pub accumulate: bool,
+}

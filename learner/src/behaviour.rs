@@ -1,0 +1,422 @@
+//! DreamerV3's behaviour learning in imagination, differentiated by hand on plain buffers
+//! ([`ctxrace_common::nn::plain`]): the forward pass of one shard of starts, then, once the
+//! return scale is known from every shard, its backward pass to the actor's and the critic's
+//! gradients.
+//!
+//! **Forward.** From `N` start states `s_0` (rows `[h, z, c]`), for `t = 0 … H−1`: the actor's
+//! `Normal(tanh μ, σ)` on `s_t`, `σ = (σ_max − σ_min) sigmoid(ρ + 2) + σ_min`; the action
+//! `a_t = (μ + σ ε) / max(1, |μ + σ ε|)` (the factor a stop-gradient); the RSSM's prior step to
+//! `s_{t+1}`. On the `H + 1` states: rewards `r` and continue probabilities `c` of `s_1 … s_H`,
+//! the critic's values `v` of `s_0 … s_H` (one pass serves the λ-returns and the critic's loss),
+//! the slow critic's values of `s_0 … s_{H−1}`; the λ-returns `R` ([`crate::returns`]) and the
+//! weights `w_t = w_0 Π_{k<t} γ c_{k+1}` (`w_0 = 1 − terminal` of the start).
+//!
+//! **Losses**, means over the `H N` terms: the actor's `−w ((R − sg v)/S + η H[π])`, the critic's
+//! `w CE(critic(s_t), twohot(R_t) + β twohot(v_slow))`; each times the shard's share of the batch.
+//!
+//! **Backward.** `∂R = −w / S` and `∂H[π] = −η w` (per term, times the share over `H N`); the
+//! λ-returns pass theirs on to `r` and `v`: with `G_t` the total gradient of `R_t`,
+//! `G_t = ∂R_t + λ γ c_t G_{t−1}` (from `R_{t−1}`), `∂r_{t+1} = G_t`,
+//! `∂v_{t+1} += (1 − λ) γ c_{t+1} G_t` and, at the end, `∂v_H += λ γ c_H G_{H−1}`. The reward
+//! head and the critic (frozen: their input's gradient only) turn these into the gradients of
+//! `s_1 … s_H`; the RSSM's steps, from the last back, into those of the earlier states and of
+//! the actions; the actions' into the actor's outputs, `∂μ = ∂a (1 − tanh² μ)` and
+//! `∂ρ = (∂a ε + ∂H / σ)(σ_max − σ_min) s (1 − s)` with `s = sigmoid(ρ + 2)` and the factor held
+//! fixed; and those into the actor's parameters, in one pass over all `H N` rows (its input is
+//! detached). The critic's loss gives the critic's parameters theirs. No gradient goes where
+//! none is read: the start states', the critic's last row's, the frozen networks' weights'.
+
+use crate::world_model::Starts;
+use candle_core::Result;
+use ctxrace_common::agents::DreamerConfig;
+use ctxrace_common::nn::plain::{
+    soft_cross_entropy, soft_cross_entropy_backward, twohot_decode, twohot_decode_backward,
+    InputGrad, MlpGrads, MlpTrace, PlainMlp, PlainRssm, StepScratch, StepTrace,
+};
+use ctxrace_common::nn::{Mlp, Rssm, TwoHot};
+use ctxrace_common::policy::{normal_rows, uniform_rows};
+use rand_chacha::ChaCha8Rng;
+
+/// The networks of a behaviour step, their weights as they are at its start.
+pub(crate) struct Nets {
+    pub(crate) rssm: PlainRssm,
+    pub(crate) actor: PlainMlp,
+    pub(crate) reward: PlainMlp,
+    pub(crate) cont: PlainMlp,
+    pub(crate) critic: PlainMlp,
+    pub(crate) slow: PlainMlp,
+}
+
+impl Nets {
+    /// Copies of the candle networks.
+    pub(crate) fn new(
+        rssm: &Rssm,
+        actor: &Mlp,
+        (reward, cont): (&Mlp, &Mlp),
+        (critic, slow): (&Mlp, &Mlp),
+    ) -> Result<Self> {
+        Ok(Self {
+            rssm: PlainRssm::new(rssm)?,
+            actor: PlainMlp::new(actor)?,
+            reward: PlainMlp::new(reward)?,
+            cont: PlainMlp::new(cont)?,
+            critic: PlainMlp::new(critic)?,
+            slow: PlainMlp::new(slow)?,
+        })
+    }
+}
+
+/// The constants of a behaviour step.
+pub(crate) struct Setting<'a> {
+    pub(crate) cfg: &'a DreamerConfig,
+    pub(crate) act_dim: usize,
+    pub(crate) twohot: &'a TwoHot,
+}
+
+/// One shard's imagined trajectories, returns and what the backward pass needs, in buffers kept
+/// from one training step to the next.
+#[derive(Default)]
+pub(crate) struct Imagination {
+    /// Starts `N` and state width `F = D + Z + c`.
+    n: usize,
+    f: usize,
+    /// The states `s_0 … s_H`, time-major rows `[(H + 1) N, F]`.
+    states: Vec<f32>,
+    /// Per action `[H N, A]`: the noise `ε`, `tanh μ`, `σ`, the factor `1 / max(1, |a|)`.
+    noise: Vec<f32>,
+    mean: Vec<f32>,
+    std: Vec<f32>,
+    shrink: Vec<f32>,
+    actions: Vec<f32>,
+    /// Gumbel uniforms of a step `[N, Z]`.
+    uniform: Vec<f32>,
+    actor: MlpTrace,
+    steps: Vec<StepTrace>,
+    reward_head: MlpTrace,
+    cont_head: MlpTrace,
+    critic: MlpTrace,
+    slow: MlpTrace,
+    /// `[H N]`: `r_{t+1}`, `c_{t+1}`, the slow critic's `v(s_t)`, `R_t`, `w_t`, `H[π(·|s_t)]`.
+    reward: Vec<f32>,
+    cont: Vec<f32>,
+    slow_value: Vec<f32>,
+    returns: Vec<f32>,
+    weights: Vec<f32>,
+    entropy: Vec<f32>,
+    /// `v(s_0) … v(s_H)` `[(H + 1) N]`.
+    value: Vec<f32>,
+    /// Backward: the states' gradients `[(H + 1) N, F]`, the actions' `[H N, A]`, the actor's
+    /// outputs' `[H N, 2 A]`, the heads' logits', the CE targets `[H N, K]`.
+    d_states: Vec<f32>,
+    d_actions: Vec<f32>,
+    d_actor_out: Vec<f32>,
+    d_logits: Vec<f32>,
+    targets: Vec<f32>,
+    step_scratch: StepScratch,
+}
+
+/// What a shard's backward pass gives: its parameters' gradients and its metrics.
+pub(crate) struct ShardGrads {
+    pub(crate) actor: MlpGrads,
+    pub(crate) critic: MlpGrads,
+    pub(crate) actor_loss: f64,
+    pub(crate) critic_loss: f64,
+    pub(crate) entropy: f64,
+    pub(crate) reward: f64,
+    pub(crate) ret: f64,
+}
+
+/// `v` resized to `n` values (zeros where it grows) as a slice.
+fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
+    v.resize(n, 0.0);
+    &mut v[..n]
+}
+
+/// The mean of `x` (0 if empty).
+fn mean(x: &[f32]) -> f64 {
+    x.iter().map(|&v| v as f64).sum::<f64>() / x.len().max(1) as f64
+}
+
+/// `1 / (1 + e^{−x})`.
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+impl Imagination {
+    /// The λ-returns `R` `[H N]` of the last [`Imagination::forward`].
+    pub(crate) fn returns(&self) -> &[f32] {
+        &self.returns
+    }
+
+    /// Imagines `H` steps from `start` with the noise of the sequences' streams `rngs` (`T`
+    /// starts each), and computes the heads, the λ-returns and the weights.
+    pub(crate) fn forward(
+        &mut self,
+        nets: &Nets,
+        set: &Setting,
+        start: &Starts,
+        rngs: &mut [ChaCha8Rng],
+    ) -> Result<()> {
+        let cfg = set.cfg;
+        let (h, a) = (cfg.horizon, set.act_dim);
+        let deter = start.state.deter.flatten_all()?.to_vec1::<f32>()?;
+        let stoch = start.state.stoch.flatten_all()?.to_vec1::<f32>()?;
+        let ctx = match &start.ctx {
+            Some(c) => c.flatten_all()?.to_vec1::<f32>()?,
+            None => Vec::new(),
+        };
+        let n = start.cont.dim(0)?;
+        let (d, z) = (deter.len() / n.max(1), stoch.len() / n.max(1));
+        let c = ctx.len() / n.max(1);
+        let f = d + z + c;
+        let per_sequence = n / rngs.len().max(1);
+        (self.n, self.f) = (n, f);
+        let hn = h * n;
+        let states = sized(&mut self.states, (h + 1) * n * f);
+        for (i, row) in states[..n * f].chunks_exact_mut(f).enumerate() {
+            row[..d].copy_from_slice(&deter[i * d..(i + 1) * d]);
+            row[d..d + z].copy_from_slice(&stoch[i * z..(i + 1) * z]);
+            row[d + z..].copy_from_slice(&ctx[i * c..(i + 1) * c]);
+        }
+        nets.actor.fit(&mut self.actor, hn);
+        self.steps.resize_with(h, StepTrace::default);
+        for buf in [
+            &mut self.mean,
+            &mut self.std,
+            &mut self.shrink,
+            &mut self.actions,
+        ] {
+            sized(buf, hn * a);
+        }
+        self.noise.clear();
+        self.entropy.clear();
+        let gauss = 0.5 * (1.0 + (2.0 * std::f32::consts::PI).ln());
+        let (lo, span) = (cfg.min_std as f32, (cfg.max_std - cfg.min_std) as f32);
+        for t in 0..h {
+            let rows = t * n..(t + 1) * n;
+            let (now, later) = self.states.split_at_mut((t + 1) * n * f);
+            let state = &now[t * n * f..];
+            nets.actor.forward(state, &mut self.actor, rows.clone());
+            let out = nets.actor.output(&self.actor, rows.clone());
+            self.noise.extend(normal_rows(rngs, per_sequence, a));
+            for i in 0..n {
+                let (o, k) = (&out[i * 2 * a..(i + 1) * 2 * a], (t * n + i) * a);
+                let mut log_std = 0.0;
+                for j in 0..a {
+                    let m = o[j].tanh();
+                    let s = span * sigmoid(o[a + j] + 2.0) + lo;
+                    let raw = m + s * self.noise[k + j];
+                    let shrink = 1.0 / raw.abs().max(1.0);
+                    self.mean[k + j] = m;
+                    self.std[k + j] = s;
+                    self.shrink[k + j] = shrink;
+                    self.actions[k + j] = raw * shrink;
+                    log_std += s.ln();
+                }
+                self.entropy.push(log_std + a as f32 * gauss);
+            }
+            self.uniform = uniform_rows(rngs, per_sequence, z);
+            let action = &self.actions[t * n * a..(t + 1) * n * a];
+            let next = &mut later[..n * f];
+            nets.rssm
+                .step(state, action, &self.uniform, &mut self.steps[t], next);
+        }
+        self.heads(nets, set, &start.cont.to_vec1::<f32>()?);
+        Ok(())
+    }
+
+    /// The heads on the imagined states, the λ-returns and the weights.
+    fn heads(&mut self, nets: &Nets, set: &Setting, start_cont: &[f32]) {
+        let cfg = set.cfg;
+        let (h, n, f) = (cfg.horizon, self.n, self.f);
+        let hn = h * n;
+        let bins = set.twohot.bins();
+        let (now, later) = (&self.states[..hn * f], &self.states[n * f..]);
+        nets.reward.fit(&mut self.reward_head, hn);
+        nets.reward.forward(later, &mut self.reward_head, 0..hn);
+        let logits = nets.reward.output(&self.reward_head, 0..hn);
+        twohot_decode(logits, bins, sized(&mut self.reward, hn));
+        nets.cont.fit(&mut self.cont_head, hn);
+        nets.cont.forward(later, &mut self.cont_head, 0..hn);
+        let cont = sized(&mut self.cont, hn);
+        for (c, &l) in cont
+            .iter_mut()
+            .zip(nets.cont.output(&self.cont_head, 0..hn))
+        {
+            *c = sigmoid(l);
+        }
+        nets.critic.fit(&mut self.critic, hn + n);
+        nets.critic
+            .forward(&self.states, &mut self.critic, 0..hn + n);
+        let logits = nets.critic.output(&self.critic, 0..hn + n);
+        twohot_decode(logits, bins, sized(&mut self.value, hn + n));
+        nets.slow.fit(&mut self.slow, hn);
+        nets.slow.forward(now, &mut self.slow, 0..hn);
+        let logits = nets.slow.output(&self.slow, 0..hn);
+        twohot_decode(logits, bins, sized(&mut self.slow_value, hn));
+        // R_H = v_H; R_t = r_{t+1} + γ c_{t+1} ((1 − λ) v_{t+1} + λ R_{t+1})
+        let (gamma, lambda) = (cfg.gamma as f32, cfg.lambda as f32);
+        let returns = sized(&mut self.returns, hn);
+        for i in 0..n {
+            let mut next = self.value[hn + i];
+            for t in (0..h).rev() {
+                let k = t * n + i;
+                let blend = (1.0 - lambda) * self.value[k + n] + lambda * next;
+                next = self.reward[k] + gamma * self.cont[k] * blend;
+                returns[k] = next;
+            }
+        }
+        let weights = sized(&mut self.weights, hn);
+        weights[..n].copy_from_slice(start_cont);
+        for t in 1..h {
+            for i in 0..n {
+                let k = t * n + i;
+                weights[k] = weights[k - n] * self.cont[k - n] * gamma;
+            }
+        }
+    }
+
+    /// The backward pass of the shard's losses times `share` (its part of the batch), with the
+    /// return scale `scale`: the actor's and the critic's gradients, and the shard's metrics.
+    pub(crate) fn backward(
+        &mut self,
+        nets: &Nets,
+        set: &Setting,
+        scale: f32,
+        share: f32,
+    ) -> ShardGrads {
+        let cfg = set.cfg;
+        let (h, n, f, a) = (cfg.horizon, self.n, self.f, set.act_dim);
+        let (hn, k) = (h * n, set.twohot.count());
+        let per_term = share / hn as f32;
+        let (gamma, lambda, eta) = (cfg.gamma as f32, cfg.lambda as f32, cfg.entropy as f32);
+        // the λ-returns' gradients into r (held in `reward_grad`) and v (in `value_grad`)
+        let mut reward_grad = vec![0f32; hn];
+        let mut value_grad = vec![0f32; hn + n];
+        for i in 0..n {
+            let mut carried = 0.0;
+            for t in 0..h {
+                let j = t * n + i;
+                let g = -self.weights[j] / scale * per_term + carried;
+                reward_grad[j] = g;
+                let discount = gamma * self.cont[j];
+                value_grad[j + n] += (1.0 - lambda) * discount * g;
+                carried = lambda * discount * g;
+            }
+            value_grad[hn + i] += carried;
+        }
+        let bins = set.twohot.bins();
+        let (later, now) = (&self.states[n * f..], &self.states[..hn * f]);
+        // the states' gradients from the reward head and the critic (frozen), s_1 … s_H
+        let d_states = sized(&mut self.d_states, (h + 1) * n * f);
+        let d_logits = sized(&mut self.d_logits, hn * k);
+        let logits = nets.reward.output(&self.reward_head, 0..hn);
+        twohot_decode_backward(logits, bins, &reward_grad, d_logits);
+        // h and z; the context is fixed
+        let columns = 0..f - cfg.context.context_dim();
+        let d_later = &mut d_states[n * f..];
+        let target = InputGrad {
+            data: d_later,
+            row_stride: f,
+            columns: columns.clone(),
+            accumulate: false,
+        };
+        nets.reward.backward(
+            later,
+            &mut self.reward_head,
+            0..hn,
+            d_logits,
+            None,
+            Some(target),
+        );
+        let logits = nets.critic.output(&self.critic, n..hn + n);
+        twohot_decode_backward(logits, bins, &value_grad[n..], d_logits);
+        let target = InputGrad {
+            data: d_later,
+            row_stride: f,
+            columns,
+            accumulate: true,
+        };
+        nets.critic.backward(
+            later,
+            &mut self.critic,
+            n..hn + n,
+            d_logits,
+            None,
+            Some(target),
+        );
+        // the critic's own loss, on s_0 … s_{H−1} detached
+        let targets = sized(&mut self.targets, hn * k);
+        targets.fill(0.0);
+        set.twohot.add_encoded(&self.returns, 1.0, targets);
+        let reg = cfg.slow_critic_reg as f32;
+        set.twohot.add_encoded(&self.slow_value, reg, targets);
+        let logits = nets.critic.output(&self.critic, 0..hn);
+        let mut ce = vec![0f32; hn];
+        soft_cross_entropy(logits, &self.targets, &mut ce);
+        let ce_grad: Vec<f32> = self.weights.iter().map(|w| w * per_term).collect();
+        soft_cross_entropy_backward(logits, &self.targets, &ce_grad, d_logits);
+        let mut critic = nets.critic.zero_grads();
+        nets.critic.backward(
+            now,
+            &mut self.critic,
+            0..hn,
+            d_logits,
+            Some(&mut critic),
+            None,
+        );
+        // through the imagined steps, the last first: the actions' gradients
+        let d_actions = sized(&mut self.d_actions, hn * a);
+        for t in (0..h).rev() {
+            let (before, after) = d_states.split_at_mut((t + 1) * n * f);
+            let d_next = &after[..n * f];
+            let d_state = (t > 0).then(|| &mut before[t * n * f..]);
+            nets.rssm.step_backward(
+                &self.steps[t],
+                d_next,
+                &mut d_actions[t * n * a..(t + 1) * n * a],
+                d_state,
+                &mut self.step_scratch,
+            );
+        }
+        // into the actor's outputs, then its parameters
+        let d_out = sized(&mut self.d_actor_out, hn * 2 * a);
+        let span = (cfg.max_std - cfg.min_std) as f32;
+        for r in 0..hn {
+            let d_entropy = -self.weights[r] * eta * per_term;
+            for j in 0..a {
+                let q = r * a + j;
+                let d_raw = d_actions[q] * self.shrink[q];
+                let m = self.mean[q];
+                d_out[r * 2 * a + j] = d_raw * (1.0 - m * m);
+                let s = (self.std[q] - cfg.min_std as f32) / span;
+                let d_std = d_raw * self.noise[q] + d_entropy / self.std[q];
+                d_out[r * 2 * a + a + j] = d_std * span * s * (1.0 - s);
+            }
+        }
+        let mut actor = nets.actor.zero_grads();
+        nets.actor
+            .backward(now, &mut self.actor, 0..hn, d_out, Some(&mut actor), None);
+        // metrics: the losses' values
+        let mut actor_loss = 0f64;
+        let mut critic_loss = 0f64;
+        for t in 0..h {
+            for i in 0..n {
+                let j = t * n + i;
+                let w = self.weights[j] as f64;
+                let adv = (self.returns[j] - self.value[j]) as f64 / scale as f64;
+                actor_loss -= w * (adv + cfg.entropy * self.entropy[j] as f64);
+                critic_loss += w * ce[j] as f64;
+            }
+        }
+        ShardGrads {
+            actor,
+            critic,
+            actor_loss: actor_loss / hn as f64,
+            critic_loss: critic_loss / hn as f64,
+            entropy: mean(&self.entropy),
+            reward: mean(&self.reward),
+            ret: mean(&self.returns),
+        }
+    }
+}
