@@ -159,13 +159,8 @@ impl Imagination {
     ) -> Result<()> {
         let cfg = set.cfg;
         let (h, a) = (cfg.horizon, set.act_dim);
-        let deter = start.state.deter.flatten_all()?.to_vec1::<f32>()?;
-        let stoch = start.state.stoch.flatten_all()?.to_vec1::<f32>()?;
-        let ctx = match &start.ctx {
-            Some(c) => c.flatten_all()?.to_vec1::<f32>()?,
-            None => Vec::new(),
-        };
-        let n = start.cont.dim(0)?;
+        let (deter, stoch, ctx) = (&start.deter, &start.stoch, &start.ctx);
+        let n = start.n;
         let (d, z) = (deter.len() / n.max(1), stoch.len() / n.max(1));
         let c = ctx.len() / n.max(1);
         let f = d + z + c;
@@ -221,7 +216,7 @@ impl Imagination {
             nets.rssm
                 .step(state, action, &self.uniform, &mut self.steps[t], next);
         }
-        self.heads(nets, set, &start.cont.to_vec1::<f32>()?);
+        self.heads(nets, set, &start.cont);
         Ok(())
     }
 
@@ -315,12 +310,7 @@ impl Imagination {
         // h and z; the context is fixed
         let columns = 0..f - cfg.context.context_dim();
         let d_later = &mut d_states[n * f..];
-        let target = InputGrad {
-            data: d_later,
-            row_stride: f,
-            columns: columns.clone(),
-            accumulate: false,
-        };
+        let target = InputGrad::new(d_later, f, columns.clone(), false);
         nets.reward.backward(
             later,
             &mut self.reward_head,
@@ -331,12 +321,7 @@ impl Imagination {
         );
         let logits = nets.critic.output(&self.critic, n..hn + n);
         twohot_decode_backward(logits, bins, &value_grad[n..], d_logits);
-        let target = InputGrad {
-            data: d_later,
-            row_stride: f,
-            columns,
-            accumulate: true,
-        };
+        let target = InputGrad::new(d_later, f, columns, true);
         nets.critic.backward(
             later,
             &mut self.critic,
@@ -372,7 +357,7 @@ impl Imagination {
             let d_next = &after[..n * f];
             let d_state = (t > 0).then(|| &mut before[t * n * f..]);
             nets.rssm.step_backward(
-                &self.steps[t],
+                &mut self.steps[t],
                 d_next,
                 &mut d_actions[t * n * a..(t + 1) * n * a],
                 d_state,

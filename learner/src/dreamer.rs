@@ -38,12 +38,11 @@
 //! Gaussian actions and masks) comes from a ChaCha8 stream per sequence of each training step,
 //! so a run is reproducible from its seed, whatever the number of worker threads.
 //!
-//! **Speed.** Behaviour learning (imagination, heads, λ-returns, actor and critic losses) is
-//! differentiated by hand on plain buffers ([`crate::behaviour`], on
-//! `ctxrace_common::nn::plain`): it computes the gradients the actor and the critic need and no
-//! others (as PyTorch's `requires_grad = False` on the world model and the frozen heads), with no
-//! graph bookkeeping, in buffers kept from step to step. The world model runs on candle with the
-//! fused kernels of `ctxrace_common::nn::kernels`. Each step splits its batch into one shard of
+//! **Speed.** The world model ([`crate::world_model`]) and behaviour learning (imagination,
+//! heads, λ-returns, actor and critic losses, [`crate::behaviour`]) are differentiated by hand on
+//! plain buffers (`ctxrace_common::nn::plain`): they compute the gradients the optimisers need
+//! and no others (as PyTorch's `requires_grad = False` on the frozen networks), with no graph
+//! bookkeeping, in buffers kept from step to step. Each step splits its batch into one shard of
 //! sequences per worker thread ([`Dreamer::set_workers`], [`crate::shards`]): the shards run the
 //! world-model, imagination, actor, critic and mask-SAC passes in parallel, each loss scaled by
 //! its shard's share of the batch, and the optimisers step on the summed gradients, which are the
@@ -201,6 +200,14 @@ impl Dreamer {
         Ok(Some(m.detach()))
     }
 
+    /// The model's context of the batch's steps, `[B·T, c]` values (none without a context).
+    fn model_context(&self, d: &SeqData, masks: Option<&Tensor>) -> Result<Vec<f32>> {
+        match self.nets.context(&d.flat(&d.context)?, masks)? {
+            Some(c) => c.flatten_all()?.to_vec1(),
+            None => Ok(Vec::new()),
+        }
+    }
+
     /// One actor and one critic step on imagined trajectories from each shard's `starts`
     /// ([`crate::behaviour`]): the shards imagine in parallel, the return scale is updated with
     /// every shard's returns, then the shards' backward passes run in parallel and their
@@ -337,10 +344,10 @@ impl Algorithm for Dreamer {
         };
 
         let masks = self.draw_masks(&d, &mut rngs)?;
-        let ctx = self.nets.context(&d.flat(&d.context)?, masks.as_ref())?;
-        let starts =
-            self.world_model
-                .step(&d, ctx.as_ref(), self.workers, &mut rngs, &mut metrics)?;
+        let ctx = self.model_context(&d, masks.as_ref())?;
+        let starts = self
+            .world_model
+            .step(seq, &ctx, self.workers, &mut rngs, &mut metrics)?;
         phase_flops(&mut metrics, "model");
         self.behaviour_step(&starts, &mut rngs, &mut metrics)?;
         phase_flops(&mut metrics, "behaviour");
@@ -400,6 +407,7 @@ mod tests {
     use candle_core::{DType, Device, Module};
     use ctxrace_common::agents::MaskConfig;
     use ctxrace_common::nn::kernels::soft_cross_entropy;
+    use ctxrace_common::nn::RssmState;
     use ctxrace_common::policy::normals;
     use ctxrace_common::policy::uniforms_per;
     use ctxrace_common::SequenceBatch;
@@ -650,15 +658,12 @@ mod tests {
                 unreachable!()
             };
             let d = SeqData::new(&seq, 2, 2).unwrap();
-            let ctx = agent
-                .nets
-                .context(&d.flat(&d.context).unwrap(), None)
-                .unwrap();
+            let ctx = agent.model_context(&d, None).unwrap();
             let mut m = Metrics::new();
             let mut rngs = agent.sequence_rngs(d.batch);
             agent
                 .world_model
-                .step(&d, ctx.as_ref(), 1, &mut rngs, &mut m)
+                .step(&seq, &ctx, 1, &mut rngs, &mut m)
                 .unwrap();
             assert!(m.values().all(|v| v.is_finite()), "{m:?}");
             history.push((m["model/recon"], m["model/reward"]));
@@ -690,19 +695,21 @@ mod tests {
         scale: f64,
     ) -> (Tensor, Tensor) {
         let cfg = &agent.cfg;
-        let (h, n, a) = (
-            cfg.horizon,
-            start.state.deter.dim(0).unwrap(),
-            agent.act_dim,
-        );
+        let (h, n, a) = (cfg.horizon, start.n, agent.act_dim);
         let per_sequence = n / rngs.len();
-        let ctx = start.ctx.as_ref();
+        let rows = |v: &[f32]| Tensor::from_slice(v, (n, v.len() / n), &Device::Cpu).unwrap();
+        let ctx = (!start.ctx.is_empty()).then(|| rows(&start.ctx));
+        let ctx = ctx.as_ref();
+        let start_cont = Tensor::from_slice(&start.cont, n, &Device::Cpu).unwrap();
         let rssm = agent.nets.rssm.frozen();
         let (reward_head, cont_head) = (
             agent.world_model.reward.frozen(),
             agent.world_model.cont.frozen(),
         );
-        let mut state = start.state.clone();
+        let mut state = RssmState {
+            deter: rows(&start.deter),
+            stoch: rows(&start.stoch),
+        };
         let mut xs = vec![state.head_input(ctx).unwrap()];
         let mut entropies = Vec::new();
         for t in 0..h {
@@ -733,7 +740,7 @@ mod tests {
             .unwrap();
         let returns =
             crate::returns::lambda_returns(&reward, &cont, &value, cfg.gamma, cfg.lambda).unwrap();
-        let mut w = start.cont.clone();
+        let mut w = start_cont;
         let mut weights = vec![w.clone()];
         for t in 1..h {
             w = (w.mul(&cont.get(t - 1).unwrap()).unwrap() * cfg.gamma).unwrap();
@@ -807,14 +814,11 @@ mod tests {
             let d = SeqData::new(&seq, 2, 2).unwrap();
             let mut rngs = agent.sequence_rngs(d.batch);
             let masks = agent.draw_masks(&d, &mut rngs).unwrap();
-            let ctx = agent
-                .nets
-                .context(&d.flat(&d.context).unwrap(), masks.as_ref())
-                .unwrap();
+            let ctx = agent.model_context(&d, masks.as_ref()).unwrap();
             let mut m = Metrics::new();
             let starts = agent
                 .world_model
-                .step(&d, ctx.as_ref(), 1, &mut rngs, &mut m)
+                .step(&seq, &ctx, 1, &mut rngs, &mut m)
                 .unwrap();
             let scale = 1.7;
             let (actor, critic) =

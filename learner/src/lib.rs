@@ -14,7 +14,6 @@ pub mod sac;
 pub mod sequences;
 pub mod shards;
 pub mod tensorboard;
-mod time_rows;
 pub mod trained;
 pub mod world_model;
 

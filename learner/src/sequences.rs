@@ -66,11 +66,6 @@ impl SeqData {
         })
     }
 
-    /// The rows of the sequences `rows` in a batch-major `[B·T, …]` tensor.
-    pub(crate) fn rows_of(&self, x: &Tensor, rows: &std::ops::Range<usize>) -> Result<Tensor> {
-        x.narrow(0, rows.start * self.length, rows.len() * self.length)
-    }
-
     /// `x` `[B, T, …]` as `[B·T, k]`.
     pub(crate) fn flat(&self, x: &Tensor) -> Result<Tensor> {
         x.reshape((self.batch * self.length, ()))

@@ -9,74 +9,44 @@
 //! `pred + 0.5 max(1, KL(sg q ‖ p)) + 0.1 max(1, KL(q ‖ sg p))`, averaged. One Adam (after
 //! global-norm clipping) steps the encoder, the RSSM and the heads.
 //!
+//! The step is differentiated by hand on plain buffers (`ctxrace_common::nn::plain`): the
+//! sequence loop of the RSSM over `T` steps of a few rows each was mostly candle's per-operation
+//! bookkeeping. Backward: the heads' and the prior's gradients of the posterior states, the KL
+//! terms' of the posterior and prior logits (`∂ max(1, KL) = 0` below the free nats), then the
+//! loop from the last step back ([`PlainRssm::observe_backward`]) to the embeddings, and the
+//! encoder. Everything runs time-major (row `t B + b`); the starts go out batch-major.
+//!
 //! The encoder and the RSSM live in the acting policy's store (the actors run them); the model
 //! holds views of them that share their storage.
 
 use crate::adam::Adam;
-use crate::algorithm::{scalar, Metrics};
-use crate::sequences::SeqData;
-use crate::shards::{on_shards, weighted_mean};
-use crate::time_rows::TimeRows;
+use crate::algorithm::Metrics;
+use crate::shards::{on_shards_with, weighted_mean};
 use candle_core::backprop::GradStore;
-use candle_core::{Module, Result, Tensor};
+use candle_core::Result;
 use ctxrace_common::agents::DreamerConfig;
-use ctxrace_common::nn::{symlog, Activation, Mlp, ParamStore, Rssm, RssmState, TwoHot};
-use ctxrace_common::policy::{uniforms_per, DreamerNets};
+use ctxrace_common::nn::plain::{
+    categorical_kl, categorical_kl_backward, soft_cross_entropy, soft_cross_entropy_backward,
+    InputGrad, MlpGrads, MlpTrace, ObserveTrace, PlainMlp, PlainRssm, RssmGrads,
+};
+use ctxrace_common::nn::{Activation, Mlp, ParamStore, Rssm, TwoHot};
+use ctxrace_common::policy::{uniform_rows, DreamerNets};
+use ctxrace_common::SequenceBatch;
 use rand_chacha::ChaCha8Rng;
 
-/// DreamerV3's KL balancing with free nats, per batch element, from posterior and prior logits
-/// `[N, S, C]`: `(max(free, KL(sg q ‖ p)), max(free, KL(q ‖ sg p)), KL(q ‖ p))`, the last detached.
-/// Below the free nats a term is constant and passes no gradient.
-pub(crate) fn kl_balance(
-    rssm: &Rssm,
-    post: &Tensor,
-    prior: &Tensor,
-    free: f64,
-) -> Result<(Tensor, Tensor, Tensor)> {
-    let dyn_kl = rssm.kl(&post.detach(), prior)?;
-    let rep_kl = rssm.kl(post, &prior.detach())?;
-    Ok((
-        dyn_kl.maximum(free)?,
-        rep_kl.maximum(free)?,
-        dyn_kl.detach(),
-    ))
-}
-
-/// Binary cross-entropy of logits `l` against targets `y`: `max(l, 0) − y l + ln(1 + e^{−|l|})`.
-fn bce_with_logits(logits: &Tensor, target: &Tensor) -> Result<Tensor> {
-    let softplus_tail = (logits.abs()?.neg()?.exp()? + 1.0)?.log()?;
-    (logits.relu()? - logits.mul(target)?)? + softplus_tail
-}
-
-/// Posterior states to imagine from, `N = B·T` of them, detached.
+/// Posterior states to imagine from, `N = B·T` of them (batch-major rows: sequence `b`'s steps
+/// are rows `b T … (b + 1) T − 1`).
 pub(crate) struct Starts {
-    /// Deterministic and stochastic parts, `[N, …]`.
-    pub(crate) state: RssmState,
-    /// `[N]` `1 − terminal`.
-    pub(crate) cont: Tensor,
-    /// `[N, 2]` the model context, if any.
-    pub(crate) ctx: Option<Tensor>,
-}
-
-/// A shard's world-model loss ([`WorldModel::loss`]) with what its gradients need.
-pub(crate) struct ModelLoss {
-    loss: Tensor,
-    metrics: Metrics,
-    starts: Starts,
-    /// The observation embeddings as the sequence loop read them.
-    embed: TimeRows,
-}
-
-impl ModelLoss {
-    /// The gradients of `weight` times the loss in every parameter: the backward pass, the
-    /// taped weight gradients of `rssm` (the loop's [`Rssm::taped`] model), and the encoder's
-    /// from the embeddings' gradients.
-    fn gradients(&self, rssm: &Rssm, weight: f64) -> Result<GradStore> {
-        let mut grads = (&self.loss * weight)?.backward()?;
-        rssm.flush_grads(&mut grads)?;
-        self.embed.backprop(&mut grads)?;
-        Ok(grads)
-    }
+    /// `N`.
+    pub(crate) n: usize,
+    /// `h` `[N, D]`.
+    pub(crate) deter: Vec<f32>,
+    /// `z` `[N, Z]`.
+    pub(crate) stoch: Vec<f32>,
+    /// `1 − terminal` `[N]`.
+    pub(crate) cont: Vec<f32>,
+    /// The model context `[N, c]` (empty without one).
+    pub(crate) ctx: Vec<f32>,
 }
 
 /// Encoder, RSSM, decoder, reward and continue heads, and the optimiser that trains them.
@@ -94,6 +64,93 @@ pub(crate) struct WorldModel {
     /// Adam over the encoder, the RSSM and the heads.
     pub(crate) opt: Adam,
     cfg: DreamerConfig,
+    /// Each shard's buffers, kept from one step to the next.
+    work: Vec<ShardWork>,
+}
+
+/// The networks of one step, their weights as they are at its start.
+struct Nets {
+    encoder: PlainMlp,
+    rssm: PlainRssm,
+    decoder: PlainMlp,
+    reward: PlainMlp,
+    cont: PlainMlp,
+}
+
+/// A shard's gradients of every parameter of the model.
+struct ModelGrads {
+    encoder: MlpGrads,
+    rssm: RssmGrads,
+    decoder: MlpGrads,
+    reward: MlpGrads,
+    cont: MlpGrads,
+}
+
+impl ModelGrads {
+    fn zero(nets: &Nets) -> Self {
+        Self {
+            encoder: nets.encoder.zero_grads(),
+            rssm: nets.rssm.zero_grads(),
+            decoder: nets.decoder.zero_grads(),
+            reward: nets.reward.zero_grads(),
+            cont: nets.cont.zero_grads(),
+        }
+    }
+
+    fn add(&mut self, other: &Self) {
+        self.encoder.add(&other.encoder);
+        self.rssm.add(&other.rssm);
+        self.decoder.add(&other.decoder);
+        self.reward.add(&other.reward);
+        self.cont.add(&other.cont);
+    }
+}
+
+/// One shard's inputs (time-major), traces and gradients' buffers.
+#[derive(Default)]
+struct ShardWork {
+    /// `symlog o` `[N, O]`, the previous actions `[N, A]`, `1 − first` `[N]`, rewards `[N]`,
+    /// `1 − terminal` `[N]`, the contexts `[N, c]`, the Gumbel uniforms `[N, Z]`.
+    target: Vec<f32>,
+    action: Vec<f32>,
+    keep: Vec<f32>,
+    reward: Vec<f32>,
+    cont: Vec<f32>,
+    ctx: Vec<f32>,
+    uniform: Vec<f32>,
+    encoder: MlpTrace,
+    observe: ObserveTrace,
+    prior: MlpTrace,
+    /// The heads' input `[h, z, c]` `[N, F]`.
+    x: Vec<f32>,
+    decoder: MlpTrace,
+    reward_head: MlpTrace,
+    cont_head: MlpTrace,
+    /// Backward buffers.
+    d_x: Vec<f32>,
+    dh: Vec<f32>,
+    dz: Vec<f32>,
+    d_post: Vec<f32>,
+    d_prior: Vec<f32>,
+    d_embed: Vec<f32>,
+    d_out: Vec<f32>,
+    targets: Vec<f32>,
+}
+
+/// `v` resized to `n` values (zeros where it grows) as a slice.
+fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
+    v.resize(n, 0.0);
+    &mut v[..n]
+}
+
+/// `sign(x) ln(1 + |x|)`.
+fn symlog(x: f32) -> f32 {
+    x.signum() * x.abs().ln_1p()
+}
+
+/// `1 / (1 + e^{−x})`.
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
 }
 
 impl WorldModel {
@@ -141,181 +198,536 @@ impl WorldModel {
             heads,
             opt: Adam::new(vars, cfg.model_lr, cfg.model_eps, cfg.model_clip),
             cfg: cfg.clone(),
+            work: Vec::new(),
         })
     }
 
-    /// The loss of a shard of sequences `d` (model context `ctx` `[B·T, 2]`, Gumbel noise from the
-    /// sequences' streams `rngs`), its metrics and the posterior states to imagine from.
-    /// `rssm` is this model's RSSM as [`Rssm::taped`] for the sequence loop; its tapes must be
-    /// flushed into the gradients of the loss, and the embeddings' gradients sent on into the
-    /// encoder ([`ModelLoss::gradients`]).
-    pub(crate) fn loss(
-        &self,
-        rssm: &Rssm,
-        d: &SeqData,
-        ctx: Option<&Tensor>,
-        rngs: &mut [ChaCha8Rng],
-    ) -> Result<ModelLoss> {
-        let (b, t_len, n) = (d.batch, d.length, d.batch * d.length);
-        let (s, c) = (self.cfg.stoch, self.cfg.classes);
-        let target = symlog(&d.flat(&d.obs)?)?;
-        // time-major, so that `get(t)` gives contiguous `[B, …]` slices
-        let time_major = |x: &Tensor| x.transpose(0, 1)?.contiguous();
-        // the loop reads one step at a time: as leaves, not `get(t)` views (see `TimeRows`)
-        let embed = TimeRows::new(&time_major(&self.encoder.forward(&target)?.reshape((
-            b,
-            t_len,
-            (),
-        ))?)?)?;
-        let actions = time_major(&d.action)?;
-        let keeps = time_major(&(1.0 - &d.first)?)?;
-        let ctx_tm = ctx
-            .map(|c| time_major(&c.reshape((b, t_len, ()))?))
-            .transpose()?;
-
-        let mut state = rssm.initial(b)?;
-        let (mut deters, mut stochs) = (Vec::with_capacity(t_len), Vec::with_capacity(t_len));
-        let mut posts = Vec::with_capacity(t_len);
-        for t in 0..t_len {
-            let keep = keeps.get(t)?.unsqueeze(1)?;
-            let prev = RssmState {
-                deter: state.deter.broadcast_mul(&keep)?,
-                stoch: state.stoch.broadcast_mul(&keep)?,
-            };
-            let action = actions.get(t)?.broadcast_mul(&keep)?;
-            let c_t = ctx_tm.as_ref().map(|c| c.get(t)).transpose()?;
-            let (next, post) = rssm.obs_step(
-                &prev,
-                &action,
-                c_t.as_ref(),
-                embed.get(t),
-                &uniforms_per(rngs, 1, (s, c))?,
-            )?;
-            deters.push(next.deter.clone());
-            stochs.push(next.stoch.clone());
-            posts.push(post);
-            state = next;
-        }
-        let batch_major = |xs: &[Tensor]| Tensor::stack(xs, 1)?.reshape((n, ()));
-        let deter = batch_major(&deters)?;
-        let stoch = batch_major(&stochs)?;
-        let prior = rssm.prior_logits(&deter)?;
-        let post = batch_major(&posts)?.reshape((n, s, c))?;
-
-        let posterior = RssmState { deter, stoch };
-        let x = posterior.head_input(ctx)?;
-        let recon = (self.decoder.forward(&x)? - &target)?.sqr()?.sum(1)?;
-        let reward = self
-            .twohot
-            .loss(&self.reward.forward(&x)?, &d.reward.flatten_all()?)?;
-        let cont_target = (1.0 - d.terminal.flatten_all()?)?;
-        let cont = bce_with_logits(&self.cont.forward(&x)?.squeeze(1)?, &cont_target)?;
-        let (dyn_loss, rep_loss, kl) = kl_balance(rssm, &post, &prior, self.cfg.free_nats)?;
-        let pred = ((&recon + &reward)? + &cont)?;
-        let loss = (((pred * self.cfg.pred_scale)? + (&dyn_loss * self.cfg.kl_dyn)?)?
-            + (&rep_loss * self.cfg.kl_rep)?)?
-            .mean_all()?;
-
-        let mut metrics = Metrics::new();
-        for (name, v) in [
-            ("model/loss", &loss),
-            ("model/recon", &recon.mean_all()?),
-            ("model/reward", &reward.mean_all()?),
-            ("model/cont", &cont.mean_all()?),
-            ("model/kl", &kl.mean_all()?),
-        ] {
-            metrics.insert(name.into(), scalar(v)?);
-        }
-        let starts = Starts {
-            state: posterior.detach(),
-            cont: cont_target,
-            ctx: ctx.map(|c| c.detach()),
-        };
-        Ok(ModelLoss {
-            loss,
-            metrics,
-            starts,
-            embed,
-        })
-    }
-
-    /// One step of the world model on the batch `d`, its shards' losses and gradients computed by
-    /// `workers` threads in parallel; returns each shard's posterior states to imagine from.
+    /// One step of the world model on the batch `seq` (model context `ctx` `[B·T, c]`, empty
+    /// without one; Gumbel noise from the sequences' streams `rngs`), its shards' losses and
+    /// gradients computed by `workers` threads in parallel; returns each shard's posterior
+    /// states to imagine from.
     pub(crate) fn step(
         &mut self,
-        d: &SeqData,
-        ctx: Option<&Tensor>,
+        seq: &SequenceBatch,
+        ctx: &[f32],
         workers: usize,
         rngs: &mut [ChaCha8Rng],
         metrics: &mut Metrics,
     ) -> Result<Vec<Starts>> {
-        let parts = on_shards(workers, d.batch, rngs, |shard, rngs| {
-            let ds = d.sequences(&shard.rows)?;
-            let cs = ctx.map(|c| d.rows_of(c, &shard.rows)).transpose()?;
-            // the weights transposed once for the 64 steps, their gradients one product each
-            let rssm = self.rssm.taped()?;
-            let shard_loss = self.loss(&rssm, &ds, cs.as_ref(), rngs)?;
-            let grads = shard_loss.gradients(&rssm, shard.weight)?;
-            Ok((shard.weight, shard_loss.metrics, grads, shard_loss.starts))
+        let (grads, starts) = self.gradients(seq, ctx, workers, rngs, metrics)?;
+        metrics.insert("model/grad_norm".into(), self.opt.step(&grads)?);
+        Ok(starts)
+    }
+
+    /// The gradients of [`WorldModel::step`]'s loss in every parameter, its metrics added to
+    /// `metrics`, and the starts.
+    pub(crate) fn gradients(
+        &mut self,
+        seq: &SequenceBatch,
+        ctx: &[f32],
+        workers: usize,
+        rngs: &mut [ChaCha8Rng],
+        metrics: &mut Metrics,
+    ) -> Result<(GradStore, Vec<Starts>)> {
+        let nets = Nets {
+            encoder: PlainMlp::new(&self.encoder)?,
+            rssm: PlainRssm::new(&self.rssm)?,
+            decoder: PlainMlp::new(&self.decoder)?,
+            reward: PlainMlp::new(&self.reward)?,
+            cont: PlainMlp::new(&self.cont)?,
+        };
+        let mut work = std::mem::take(&mut self.work);
+        work.resize_with(workers.clamp(1, seq.batch.max(1)), ShardWork::default);
+        let this = &*self;
+        let parts = on_shards_with(workers, seq.batch, rngs, &mut work, |shard, rngs, w| {
+            w.load(
+                seq,
+                ctx,
+                &shard.rows,
+                rngs,
+                this.cfg.stoch * this.cfg.classes,
+            );
+            let (m, grads, starts) = this.shard_step(&nets, w, shard.rows.len(), shard.weight);
+            Ok((shard.weight, m, grads, starts))
         })?;
-        let mut grads = Vec::with_capacity(parts.len());
-        let mut starts = Vec::with_capacity(parts.len());
+        self.work = work;
+        let mut total = ModelGrads::zero(&nets);
         let mut shard_metrics = Vec::with_capacity(parts.len());
+        let mut starts = Vec::with_capacity(parts.len());
         for (w, m, g, s) in parts {
+            total.add(&g);
             shard_metrics.push((w, m));
-            grads.push(g);
             starts.push(s);
         }
+        let mut grads = GradStore::default();
+        nets.encoder
+            .add_grads_to(&total.encoder, &self.encoder, &mut grads)?;
+        nets.rssm
+            .add_grads_to(&total.rssm, &self.rssm, &mut grads)?;
+        nets.decoder
+            .add_grads_to(&total.decoder, &self.decoder, &mut grads)?;
+        nets.reward
+            .add_grads_to(&total.reward, &self.reward, &mut grads)?;
+        nets.cont
+            .add_grads_to(&total.cont, &self.cont, &mut grads)?;
         metrics.extend(weighted_mean(&shard_metrics));
-        metrics.insert("model/grad_norm".into(), self.opt.step_sum(&grads)?);
-        Ok(starts)
+        Ok((grads, starts))
+    }
+
+    /// The forward and backward passes of one shard of `batch` sequences (loaded into `w`), its
+    /// loss times `share`: the metrics, the gradients and the starts.
+    fn shard_step(
+        &self,
+        nets: &Nets,
+        w: &mut ShardWork,
+        batch: usize,
+        share: f64,
+    ) -> (Metrics, ModelGrads, Starts) {
+        let cfg = &self.cfg;
+        let n = w.keep.len();
+        let (o, bins) = (w.target.len() / n, self.twohot.count());
+        let rc = nets.rssm.config();
+        let (d, z, c) = (rc.deter, rc.stoch * rc.classes, rc.context_dim);
+        let f = d + z + c;
+        // forward: the embeddings, the loop, the prior, the heads
+        nets.encoder.fit(&mut w.encoder, n);
+        nets.encoder.forward(&w.target, &mut w.encoder, 0..n);
+        let embed = if nets.encoder.outputs() == 0 {
+            &w.target[..]
+        } else {
+            nets.encoder.output(&w.encoder, 0..n)
+        };
+        let inputs = (embed, &w.action[..], &w.ctx[..], &w.keep[..]);
+        nets.rssm.observe(batch, inputs, &w.uniform, &mut w.observe);
+        let (h, zs, post) = w.observe.states();
+        let prior_net = nets.rssm.prior();
+        prior_net.fit(&mut w.prior, n);
+        prior_net.forward(h, &mut w.prior, 0..n);
+        let prior = prior_net.output(&w.prior, 0..n);
+        let x = sized(&mut w.x, n * f);
+        for (i, row) in x.chunks_exact_mut(f).enumerate() {
+            row[..d].copy_from_slice(&h[i * d..(i + 1) * d]);
+            row[d..d + z].copy_from_slice(&zs[i * z..(i + 1) * z]);
+            row[d + z..].copy_from_slice(&w.ctx[i * c..(i + 1) * c]);
+        }
+        for (net, trace) in [
+            (&nets.decoder, &mut w.decoder),
+            (&nets.reward, &mut w.reward_head),
+            (&nets.cont, &mut w.cont_head),
+        ] {
+            net.fit(trace, n);
+            net.forward(&w.x, trace, 0..n);
+        }
+        // the losses per row, and each one's gradient: share / N each
+        let g = (share / n as f64) as f32;
+        let pred_g = g * cfg.pred_scale as f32;
+        let mut grads = ModelGrads::zero(nets);
+        let d_x = sized(&mut w.d_x, n * f);
+        let columns = 0..d + z;
+        // decoder: Σ (dec − symlog o)²
+        let dec = nets.decoder.output(&w.decoder, 0..n);
+        let d_out = sized(&mut w.d_out, n * o);
+        let mut recon = 0f64;
+        for ((dd, &y), &t) in d_out.iter_mut().zip(dec).zip(&w.target) {
+            recon += ((y - t) * (y - t)) as f64;
+            *dd = 2.0 * pred_g * (y - t);
+        }
+        let dec_grads = Some(&mut grads.decoder);
+        nets.decoder.backward(
+            &w.x,
+            &mut w.decoder,
+            0..n,
+            d_out,
+            dec_grads,
+            Some(InputGrad::new(d_x, f, columns.clone(), false)),
+        );
+        // reward: two-hot cross-entropy
+        let targets = sized(&mut w.targets, n * bins);
+        targets.fill(0.0);
+        self.twohot.add_encoded(&w.reward, 1.0, targets);
+        let logits = nets.reward.output(&w.reward_head, 0..n);
+        let mut ce = vec![0f32; n];
+        soft_cross_entropy(logits, &w.targets, &mut ce);
+        let d_out = sized(&mut w.d_out, n * bins);
+        soft_cross_entropy_backward(logits, &w.targets, &vec![pred_g; n], d_out);
+        let rew_grads = Some(&mut grads.reward);
+        nets.reward.backward(
+            &w.x,
+            &mut w.reward_head,
+            0..n,
+            d_out,
+            rew_grads,
+            Some(InputGrad::new(d_x, f, columns.clone(), true)),
+        );
+        // continue: binary cross-entropy of the logit
+        let logits = nets.cont.output(&w.cont_head, 0..n);
+        let d_out = sized(&mut w.d_out, n);
+        let mut bce = 0f64;
+        for ((dd, &l), &y) in d_out.iter_mut().zip(logits).zip(&w.cont) {
+            bce += (l.max(0.0) - y * l + (-l.abs()).exp().ln_1p()) as f64;
+            *dd = pred_g * (sigmoid(l) - y);
+        }
+        let cont_grads = Some(&mut grads.cont);
+        nets.cont.backward(
+            &w.x,
+            &mut w.cont_head,
+            0..n,
+            d_out,
+            cont_grads,
+            Some(InputGrad::new(d_x, f, columns.clone(), true)),
+        );
+        // KL balance: max(free, KL(sg q ‖ p)) trains the prior, max(free, KL(q ‖ sg p)) the
+        // posterior; below the free nats neither
+        let unimix = cfg.unimix as f32;
+        let mut kl = vec![0f32; n];
+        categorical_kl(post, prior, rc.classes, unimix, &mut kl);
+        let free = cfg.free_nats as f32;
+        let above: Vec<f32> = kl.iter().map(|&k| f32::from(k > free)).collect();
+        let dyn_g: Vec<f32> = above.iter().map(|a| a * g * cfg.kl_dyn as f32).collect();
+        let rep_g: Vec<f32> = above.iter().map(|a| a * g * cfg.kl_rep as f32).collect();
+        let d_prior = sized(&mut w.d_prior, n * z);
+        categorical_kl_backward(
+            post,
+            prior,
+            &dyn_g,
+            (rc.classes, unimix),
+            (&mut [], d_prior),
+        );
+        let d_post = sized(&mut w.d_post, n * z);
+        categorical_kl_backward(post, prior, &rep_g, (rc.classes, unimix), (d_post, &mut []));
+        // the states' gradients: the heads', then the prior's
+        let dh = sized(&mut w.dh, n * d);
+        let dz = sized(&mut w.dz, n * z);
+        for ((row, dhr), dzr) in w
+            .d_x
+            .chunks_exact(f)
+            .zip(dh.chunks_exact_mut(d))
+            .zip(dz.chunks_exact_mut(z))
+        {
+            dhr.copy_from_slice(&row[..d]);
+            dzr.copy_from_slice(&row[d..d + z]);
+        }
+        let target = InputGrad::new(dh, d, 0..d, true);
+        let prior_grads = Some(&mut grads.rssm.prior);
+        prior_net.backward(h, &mut w.prior, 0..n, &w.d_prior, prior_grads, Some(target));
+        // the loop, then the encoder
+        let e = embed.len() / n;
+        let d_embed = sized(&mut w.d_embed, n * e);
+        nets.rssm.observe_backward(
+            batch,
+            &w.keep,
+            &mut w.observe,
+            (&mut w.dh, &mut w.dz),
+            &w.d_post,
+            d_embed,
+            &mut grads.rssm,
+        );
+        let enc_grads = Some(&mut grads.encoder);
+        nets.encoder
+            .backward(&w.target, &mut w.encoder, 0..n, &w.d_embed, enc_grads, None);
+        // metrics and the starts, batch-major
+        let per_row = |sum: f64| sum / n as f64;
+        let kl_sum: f64 = kl.iter().map(|&k| k as f64).sum();
+        let reward_sum: f64 = ce.iter().map(|&v| v as f64).sum();
+        let kl_terms: f64 = kl
+            .iter()
+            .map(|&k| (k.max(free) as f64) * (cfg.kl_dyn + cfg.kl_rep))
+            .sum();
+        let pred = (recon + reward_sum + bce) * cfg.pred_scale;
+        let mut metrics = Metrics::new();
+        metrics.insert("model/loss".into(), per_row(pred + kl_terms));
+        metrics.insert("model/recon".into(), per_row(recon));
+        metrics.insert("model/reward".into(), per_row(reward_sum));
+        metrics.insert("model/cont".into(), per_row(bce));
+        metrics.insert("model/kl".into(), per_row(kl_sum));
+        let (h, zs, _) = w.observe.states();
+        let length = n / batch.max(1);
+        let batch_major = |x: &[f32], width: usize| -> Vec<f32> {
+            let mut out = vec![0f32; x.len()];
+            for b in 0..batch {
+                for t in 0..length {
+                    let (from, to) = ((t * batch + b) * width, (b * length + t) * width);
+                    out[to..to + width].copy_from_slice(&x[from..from + width]);
+                }
+            }
+            out
+        };
+        let starts = Starts {
+            n,
+            deter: batch_major(h, d),
+            stoch: batch_major(zs, z),
+            cont: batch_major(&w.cont, 1),
+            ctx: batch_major(&w.ctx, c),
+        };
+        (metrics, grads, starts)
+    }
+}
+
+impl ShardWork {
+    /// The shard's sequences `rows` of `seq` (and of the context `ctx`, batch-major rows of
+    /// `c` values), time-major, with the loop's Gumbel uniforms (`z` per step and sequence)
+    /// from the sequences' streams `rngs`.
+    fn load(
+        &mut self,
+        seq: &SequenceBatch,
+        ctx: &[f32],
+        rows: &std::ops::Range<usize>,
+        rngs: &mut [ChaCha8Rng],
+        z: usize,
+    ) {
+        let (b, t_len) = (rows.len(), seq.length);
+        let (o, a) = (seq.obs_dim, seq.act_dim);
+        let c = ctx.len() / (seq.batch * t_len).max(1);
+        let n = b * t_len;
+        for (v, width) in [
+            (&mut self.target, o),
+            (&mut self.action, a),
+            (&mut self.keep, 1),
+            (&mut self.reward, 1),
+            (&mut self.cont, 1),
+            (&mut self.ctx, c),
+        ] {
+            sized(v, n * width);
+        }
+        for (i, seq_row) in rows.clone().enumerate() {
+            for t in 0..t_len {
+                let (from, to) = (seq_row * t_len + t, t * b + i);
+                for (dst, src) in self.target[to * o..(to + 1) * o]
+                    .iter_mut()
+                    .zip(&seq.obs[from * o..(from + 1) * o])
+                {
+                    *dst = symlog(*src);
+                }
+                self.action[to * a..(to + 1) * a]
+                    .copy_from_slice(&seq.action[from * a..(from + 1) * a]);
+                self.ctx[to * c..(to + 1) * c].copy_from_slice(&ctx[from * c..(from + 1) * c]);
+                self.keep[to] = 1.0 - seq.is_first[from];
+                self.reward[to] = seq.reward[from];
+                self.cont[to] = 1.0 - seq.is_terminal[from];
+            }
+        }
+        self.uniform.clear();
+        for _ in 0..t_len {
+            self.uniform.extend(uniform_rows(rngs, 1, z));
+        }
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use candle_core::{Device, Var};
-    use ctxrace_common::nn::RssmConfig;
+    use crate::sequences::SeqData;
+    use candle_core::{Device, Module, Tensor};
+    use ctxrace_common::agents::ContextMode;
+    use ctxrace_common::nn::{symlog as symlog_tensor, RssmState};
+    use ctxrace_common::policy::uniforms_per;
+    use rand::{Rng, SeedableRng};
 
-    fn grad_norm(grads: &candle_core::backprop::GradStore, v: &Var) -> f64 {
-        grads
-            .get(v.as_tensor())
-            .map(|g| scalar(&g.sqr().unwrap().sum_all().unwrap()).unwrap().sqrt())
-            .unwrap_or(0.0)
+    /// The world model's loss on `d` composed of candle operations, autograd's statement of what
+    /// [`WorldModel::gradients`] differentiates by hand, with the loop's noise from `rngs`.
+    fn candle_loss(
+        m: &WorldModel,
+        d: &SeqData,
+        ctx: Option<&Tensor>,
+        rngs: &mut [ChaCha8Rng],
+    ) -> Tensor {
+        let cfg = &m.cfg;
+        let (b, t_len, n) = (d.batch, d.length, d.batch * d.length);
+        let (s, c) = (cfg.stoch, cfg.classes);
+        let target = symlog_tensor(&d.flat(&d.obs).unwrap()).unwrap();
+        let time_major = |x: &Tensor| x.transpose(0, 1).unwrap().contiguous().unwrap();
+        let embed = m
+            .encoder
+            .forward(&target)
+            .unwrap()
+            .reshape((b, t_len, ()))
+            .unwrap();
+        let embed = time_major(&embed);
+        let actions = time_major(&d.action);
+        let keeps = time_major(&(1.0 - &d.first).unwrap());
+        let ctx_tm = ctx.map(|c| time_major(&c.reshape((b, t_len, ())).unwrap()));
+        let mut state = m.rssm.initial(b).unwrap();
+        let (mut deters, mut stochs, mut posts) = (Vec::new(), Vec::new(), Vec::new());
+        for t in 0..t_len {
+            let keep = keeps.get(t).unwrap().unsqueeze(1).unwrap();
+            let prev = RssmState {
+                deter: state.deter.broadcast_mul(&keep).unwrap(),
+                stoch: state.stoch.broadcast_mul(&keep).unwrap(),
+            };
+            let action = actions.get(t).unwrap().broadcast_mul(&keep).unwrap();
+            let c_t = ctx_tm.as_ref().map(|c| c.get(t).unwrap());
+            let uniform = uniforms_per(rngs, 1, (s, c)).unwrap();
+            let (next, post) = m
+                .rssm
+                .obs_step(
+                    &prev,
+                    &action,
+                    c_t.as_ref(),
+                    &embed.get(t).unwrap(),
+                    &uniform,
+                )
+                .unwrap();
+            deters.push(next.deter.clone());
+            stochs.push(next.stoch.clone());
+            posts.push(post);
+            state = next;
+        }
+        let batch_major = |xs: &[Tensor]| Tensor::stack(xs, 1).unwrap().reshape((n, ())).unwrap();
+        let deter = batch_major(&deters);
+        let prior = m.rssm.prior_logits(&deter).unwrap();
+        let post = batch_major(&posts).reshape((n, s, c)).unwrap();
+        let posterior = RssmState {
+            deter,
+            stoch: batch_major(&stochs),
+        };
+        let x = posterior.head_input(ctx).unwrap();
+        let recon = (m.decoder.forward(&x).unwrap() - &target)
+            .unwrap()
+            .sqr()
+            .unwrap()
+            .sum(1)
+            .unwrap();
+        let reward = m
+            .twohot
+            .loss(
+                &m.reward.forward(&x).unwrap(),
+                &d.reward.flatten_all().unwrap(),
+            )
+            .unwrap();
+        let y = (1.0 - d.terminal.flatten_all().unwrap()).unwrap();
+        let l = m.cont.forward(&x).unwrap().squeeze(1).unwrap();
+        let softplus_tail = (l.abs().unwrap().neg().unwrap().exp().unwrap() + 1.0)
+            .unwrap()
+            .log()
+            .unwrap();
+        let cont = ((l.relu().unwrap() - l.mul(&y).unwrap()).unwrap() + softplus_tail).unwrap();
+        let dyn_kl = m
+            .rssm
+            .kl(&post.detach(), &prior)
+            .unwrap()
+            .maximum(cfg.free_nats)
+            .unwrap();
+        let rep_kl = m
+            .rssm
+            .kl(&post, &prior.detach())
+            .unwrap()
+            .maximum(cfg.free_nats)
+            .unwrap();
+        let pred = ((recon + reward).unwrap() + cont).unwrap();
+        let kl = ((dyn_kl * cfg.kl_dyn).unwrap() + (rep_kl * cfg.kl_rep).unwrap()).unwrap();
+        ((pred * cfg.pred_scale).unwrap() + kl)
+            .unwrap()
+            .mean_all()
+            .unwrap()
     }
 
-    #[test]
-    fn kl_free_nats_below_and_above_the_threshold() {
-        let cfg = RssmConfig {
-            deter: 4,
-            hidden: 4,
-            stoch: 1,
-            classes: 2,
-            unimix: 0.0,
-            act_dim: 1,
-            embed_dim: 1,
-            context_dim: 0,
+    /// A batch of random sequences with episodes starting within them.
+    fn random_batch(b: usize, t: usize, rng: &mut ChaCha8Rng) -> SequenceBatch {
+        let n = b * t;
+        let mut v = |k: usize, lo: f32, hi: f32| -> Vec<f32> {
+            (0..k).map(|_| rng.random_range(lo..hi)).collect()
         };
-        let (_, rssm) = ctxrace_common::nn::rssm::standalone(cfg, 0).unwrap();
-        // q = (1/2, 1/2), p = (3/4, 1/4): KL(q ‖ p) = ½ ln(2/3) + ½ ln 2 = ½ ln(4/3)
-        let want = 0.5 * (4f64 / 3.0).ln();
-        let post = Var::new(&[[[0f32, 0.0]]], &Device::Cpu).unwrap();
-        let prior = Var::new(&[[[3f32.ln(), 0.0]]], &Device::Cpu).unwrap();
-        for (free, expect_grad) in [(1.0, false), (0.1, true)] {
-            let (dyn_kl, rep_kl, kl) =
-                kl_balance(&rssm, post.as_tensor(), prior.as_tensor(), free).unwrap();
-            assert!((scalar(&kl.sum_all().unwrap()).unwrap() - want).abs() < 1e-6);
-            let v = scalar(&dyn_kl.sum_all().unwrap()).unwrap();
-            assert!((v - want.max(free)).abs() < 1e-6, "free {free}: {v}");
-            assert!((scalar(&rep_kl.sum_all().unwrap()).unwrap() - v).abs() < 1e-6);
-            // dyn trains only the prior, rep only the posterior; below the free nats neither
-            let g = dyn_kl.sum_all().unwrap().backward().unwrap();
-            assert_eq!(grad_norm(&g, &prior) > 1e-4, expect_grad, "free {free}");
-            assert_eq!(grad_norm(&g, &post), 0.0);
-            let g = rep_kl.sum_all().unwrap().backward().unwrap();
-            assert_eq!(grad_norm(&g, &post) > 1e-4, expect_grad, "free {free}");
-            assert_eq!(grad_norm(&g, &prior), 0.0);
+        SequenceBatch {
+            batch: b,
+            length: t,
+            obs_dim: 3,
+            act_dim: 2,
+            obs: v(n * 3, -2.0, 2.0),
+            action: v(n * 2, -1.0, 1.0),
+            reward: v(n, -3.0, 3.0),
+            is_first: (0..n)
+                .map(|i| f32::from(i % t == 0 || i % 7 == 3))
+                .collect(),
+            is_terminal: (0..n).map(|i| f32::from(i % 11 == 5)).collect(),
+            context: v(n * 2, -0.15, 0.15),
+            mask: vec![1.0; n * 2],
+            has_mask: vec![1.0; n],
+        }
+    }
+
+    /// The hand-differentiated world model computes the loss and every parameter's gradient of
+    /// the candle composition, with and without a context, over sequences that start anew
+    /// inside the batch, on one shard and on two.
+    #[test]
+    fn the_model_step_differentiates_the_candle_composition() {
+        for (mode, workers) in [(ContextMode::None, 1), (ContextMode::Crssm, 2)] {
+            let cfg = DreamerConfig {
+                context: mode,
+                units: 16,
+                layers: 2,
+                deter: 16,
+                hidden: 12,
+                stoch: 3,
+                classes: 4,
+                head_units: 16,
+                head_layers: 2,
+                free_nats: 0.01,
+                ..DreamerConfig::default()
+            };
+            let policy = ParamStore::new();
+            let nets = DreamerNets::new(&cfg, 3, 2, policy.builder()).unwrap();
+            policy.init(4).unwrap();
+            let mut model = WorldModel::new(&cfg, 3, &nets, &policy).unwrap();
+            // a reward head that is not zero, so that its path weighs
+            for (name, v) in model.heads.named() {
+                if name == "reward.out.weight" {
+                    v.set(&Tensor::randn(0f32, 0.3, v.shape(), &Device::Cpu).unwrap())
+                        .unwrap();
+                }
+            }
+            let mut rng = ChaCha8Rng::seed_from_u64(9);
+            let seq = random_batch(4, 10, &mut rng);
+            let d = SeqData::new(&seq, 3, 2).unwrap();
+            let ctx = nets.context(&d.flat(&d.context).unwrap(), None).unwrap();
+            let ctx_rows = match &ctx {
+                Some(c) => c.flatten_all().unwrap().to_vec1().unwrap(),
+                None => Vec::new(),
+            };
+            let streams = || -> Vec<ChaCha8Rng> {
+                (0..4).map(|b| ChaCha8Rng::seed_from_u64(100 + b)).collect()
+            };
+            let loss = candle_loss(&model, &d, ctx.as_ref(), &mut streams());
+            let want = loss.backward().unwrap();
+            let mut metrics = Metrics::new();
+            let (got, starts) = model
+                .gradients(&seq, &ctx_rows, workers, &mut streams(), &mut metrics)
+                .unwrap();
+            assert_eq!(starts.iter().map(|s| s.n).sum::<usize>(), 40);
+            let l = loss.to_scalar::<f32>().unwrap() as f64;
+            assert!(
+                (metrics["model/loss"] - l).abs() < 1e-4 * (1.0 + l.abs()),
+                "{mode:?}: loss {} vs {l}",
+                metrics["model/loss"]
+            );
+            let vars = policy
+                .vars_under(&["encoder", "rssm"])
+                .into_iter()
+                .chain(model.heads.vars());
+            let named: std::collections::HashMap<_, _> = policy
+                .named()
+                .into_iter()
+                .chain(model.heads.named())
+                .map(|(n, v)| (v.as_tensor().id(), n))
+                .collect();
+            for v in vars {
+                let name = &named[&v.as_tensor().id()];
+                let flat = |g: &GradStore| -> Vec<f32> {
+                    g.get(v.as_tensor())
+                        .unwrap_or_else(|| panic!("{name}: no gradient"))
+                        .flatten_all()
+                        .unwrap()
+                        .to_vec1()
+                        .unwrap()
+                };
+                let (g, w) = (flat(&got), flat(&want));
+                let scale = w.iter().fold(0f32, |m, x| m.max(x.abs())).max(1e-6);
+                for (i, (a, b)) in g.iter().zip(&w).enumerate() {
+                    assert!(
+                        (a - b).abs() <= 2e-3 * scale,
+                        "{mode:?} {name}[{i}]: {a} vs {b}"
+                    );
+                }
+            }
         }
     }
 }

@@ -257,10 +257,10 @@ impl Rssm {
         Ok(())
     }
 
-    /// The blocks of an imagination step, in order: the input layer (`f` of the sequence
-    /// model), the GRU's gates, the prior's hidden layer and its output layer, each a layer and,
-    /// but for the last, its normalisation and activation.
-    pub(crate) fn prior_blocks(&self) -> [(&Dense, Option<(&LayerNorm, NormAct)>); 4] {
+    /// Its blocks, each a layer and its normalisation and activation (none for the output
+    /// layers), in order: the input layer (`f` of the sequence model), the GRU's gates, the
+    /// prior's hidden and output layers, the posterior's hidden and output layers.
+    pub(crate) fn blocks(&self) -> [(&Dense, Option<(&LayerNorm, NormAct)>); 6] {
         fn block(b: &NormBlock) -> (&Dense, Option<(&LayerNorm, NormAct)>) {
             (&b.fc, Some((&b.ln, b.act)))
         }
@@ -269,6 +269,8 @@ impl Rssm {
             block(&self.gru.gates),
             block(&self.prior_hidden),
             (&self.prior_out, None),
+            block(&self.post_hidden),
+            (&self.post_out, None),
         ]
     }
 

@@ -62,7 +62,7 @@ vectorised! {
 vectorised! {
     /// `out_i ← Σ_v KL(p_a ‖ p_b)` over the variables (`classes` logits each) of the rows of
     /// `per_row` logits of `la` and `lb`.
-    fn kl_rows(dist: Unimix, la: &[f32], lb: &[f32], per_row: usize, out: &mut [f32]) {
+    pub(crate) fn kl_rows(dist: Unimix, la: &[f32], lb: &[f32], per_row: usize, out: &mut [f32]) {
         let c = dist.classes;
         let mut buf = vec![0f32; 4 * c];
         let (sa, rest) = buf.split_at_mut(c);
@@ -84,7 +84,7 @@ vectorised! {
     /// per row of `per_row` logits): `∂/∂l_a` into `da` and `∂/∂l_b` into `db`, each left empty
     /// when not wanted. Through the probabilities, `∂KL/∂p_a = ln p_a − ln p_b + 1` and
     /// `∂KL/∂p_b = −p_a / p_b`.
-    fn kl_rows_bwd(
+    pub(crate) fn kl_rows_bwd(
         dist: Unimix,
         la: &[f32],
         lb: &[f32],

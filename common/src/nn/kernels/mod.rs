@@ -246,7 +246,7 @@ pub use linear_norm::{linear_norm_act, linear_norm_act_twice};
 pub use norm_act::{norm_act, NormAct};
 pub use twohot::{soft_cross_entropy, twohot_decode};
 // the row kernels, for the networks on plain buffers (`crate::nn::plain`)
-pub(crate) use categorical::{probs_rows_bwd, sample_rows, Unimix};
+pub(crate) use categorical::{kl_rows, kl_rows_bwd, probs_rows_bwd, sample_rows, Unimix};
 pub(crate) use gru::{gru_rows, gru_rows_bwd};
 pub(crate) use linear::{column_sums, count_flops, dense_parts, gemm_into, Operand};
 pub(crate) use norm_act::{norm_act_rows_bwd_into, norm_act_rows_into, Norm};

@@ -200,10 +200,11 @@ impl PlainLayer {
         }
     }
 
-    /// The product's gradient `dp` from the output's `dy` over the rows of `product`; the
-    /// normalisation's `[∂γ, ∂β]` are added to `dnorm` (`2 out` values; ignored otherwise).
-    /// Without anything after the product, `dp = dy` and nothing is written.
-    pub(super) fn product_grad(
+    /// The product's gradient `dp` from the output's `dy` over the rows of `product` (and of
+    /// `output`, which a ReLU reads); the normalisation's `[∂γ, ∂β]` are added to `dnorm`
+    /// (`2 out` values, [`LayerGrads::norm_mut`]; any scratch for a frozen layer). Without
+    /// anything after the product, `dp = dy` and nothing is written.
+    pub fn product_grad(
         &self,
         (product, output): (&[f32], &[f32]),
         dy: &[f32],
@@ -222,7 +223,7 @@ impl PlainLayer {
     }
 
     /// `∂W += dpᵀ x` (and `∂b += Σ dp`) into `grads`, for the rows of `x` and `dp`.
-    fn add_weight_grads(&self, x: &[f32], dp: &[f32], grads: &mut LayerGrads) {
+    pub fn add_weight_grads(&self, x: &[f32], dp: &[f32], grads: &mut LayerGrads) {
         let (k, m) = (self.inputs, self.outputs);
         let rows = dp.len() / m;
         let InputSplit { dense, sparse } = self.split_inputs(x);
@@ -270,8 +271,30 @@ impl PlainLayer {
         gemm_into(dx, row_stride, accumulate, dims, Operand::rows(dp, m), w);
     }
 
+    /// The gradients `grads` as candle tensors of the parameters of `dense` and `ln` (the layer
+    /// and normalisation this one copied), added into `store`.
+    pub fn add_grads_to(
+        &self,
+        grads: &LayerGrads,
+        dense: &Dense,
+        ln: Option<&LayerNorm>,
+        store: &mut GradStore,
+    ) -> Result<()> {
+        add_grad(store, dense.weight(), grads.weight(self))?;
+        if let Some(b) = dense.bias() {
+            add_grad(store, b, grads.bias.clone())?;
+        }
+        if let Some(ln) = ln {
+            let (gain, bias, _) = ln.parts();
+            let m = self.outputs;
+            add_grad(store, gain, grads.norm[..m].to_vec())?;
+            add_grad(store, bias, grads.norm[m..].to_vec())?;
+        }
+        Ok(())
+    }
+
     /// Zeroed gradients of this layer's parameters.
-    fn zero_grads(&self) -> LayerGrads {
+    pub fn zero_grads(&self) -> LayerGrads {
         LayerGrads {
             w: vec![0f32; self.outputs * self.inputs],
             sparse_wt: None,
@@ -302,8 +325,13 @@ pub struct LayerGrads {
 }
 
 impl LayerGrads {
+    /// `[∂γ, ∂β]` of the normalisation (empty without one), for [`PlainLayer::product_grad`].
+    pub fn norm_mut(&mut self) -> &mut [f32] {
+        &mut self.norm
+    }
+
     /// `self += other` (the same layer's).
-    fn add(&mut self, other: &Self) {
+    pub fn add(&mut self, other: &Self) {
         let add = |a: &mut Vec<f32>, b: &Vec<f32>| a.iter_mut().zip(b).for_each(|(a, b)| *a += b);
         add(&mut self.w, &other.w);
         add(&mut self.bias, &other.bias);
@@ -333,7 +361,7 @@ impl LayerGrads {
 /// An [`Mlp`] on plain buffers: its hidden blocks, then its output layer.
 #[derive(Clone, Debug)]
 pub struct PlainMlp {
-    layers: Vec<PlainLayer>,
+    pub(super) layers: Vec<PlainLayer>,
 }
 
 /// What a [`PlainMlp`]'s forward pass keeps for its backward pass, for a fixed number of rows:
@@ -352,7 +380,7 @@ pub struct MlpTrace {
 /// The gradients of a [`PlainMlp`]'s parameters.
 #[derive(Clone, Debug)]
 pub struct MlpGrads {
-    layers: Vec<LayerGrads>,
+    pub(super) layers: Vec<LayerGrads>,
 }
 
 impl PlainMlp {
@@ -535,16 +563,7 @@ impl PlainMlp {
             .map(|(d, ln)| (d, ln.as_ref()))
             .chain(head.map(|h| (h, None)));
         for ((dense, ln), (layer, g)) in denses.zip(self.layers.iter().zip(&grads.layers)) {
-            add_grad(store, dense.weight(), g.weight(layer))?;
-            if let Some(b) = dense.bias() {
-                add_grad(store, b, g.bias.clone())?;
-            }
-            if let Some(ln) = ln {
-                let (gain, bias, _) = ln.parts();
-                let m = layer.outputs;
-                add_grad(store, gain, g.norm[..m].to_vec())?;
-                add_grad(store, bias, g.norm[m..].to_vec())?;
-            }
+            layer.add_grads_to(g, dense, ln, store)?;
         }
         Ok(())
     }
@@ -582,4 +601,22 @@ pub struct InputGrad<'a> {
     pub columns: Range<usize>,
     /// Add to the destination instead of overwriting it.
     pub accumulate: bool,
+}
+
+impl<'a> InputGrad<'a> {
+    /// The input columns `columns` into `data` (rows `row_stride` apart), added to it with
+    /// `accumulate`.
+    pub fn new(
+        data: &'a mut [f32],
+        row_stride: usize,
+        columns: Range<usize>,
+        accumulate: bool,
+    ) -> Self {
+        Self {
+            data,
+            row_stride,
+            columns,
+            accumulate,
+        }
+    }
 }

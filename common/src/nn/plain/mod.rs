@@ -16,10 +16,13 @@
 mod layer;
 mod rssm;
 
-pub use layer::{InputGrad, MlpGrads, MlpTrace, PlainLayer, PlainMlp};
-pub use rssm::{PlainRssm, StepScratch, StepTrace};
+pub use layer::{InputGrad, LayerGrads, MlpGrads, MlpTrace, PlainLayer, PlainMlp};
+pub use rssm::{ObserveTrace, PlainRssm, RssmGrads, StepScratch, StepTrace};
 
-use super::kernels::{cross_entropy_rows, cross_entropy_rows_bwd, decode_rows, decode_rows_bwd};
+use super::kernels::{
+    cross_entropy_rows, cross_entropy_rows_bwd, decode_rows, decode_rows_bwd, kl_rows, kl_rows_bwd,
+    Unimix,
+};
 
 /// `out_i = symexp(Σ_k softmax(l_i)_k b_k)` for the rows `l_i` of `logits` (`bins.len()` values
 /// each): the two-hot heads' decoded values ([`crate::nn::TwoHot::decode`]).
@@ -45,6 +48,34 @@ pub fn soft_cross_entropy_backward(logits: &[f32], targets: &[f32], g: &[f32], d
     if !g.is_empty() {
         cross_entropy_rows_bwd(logits, targets, g, dl);
     }
+}
+
+/// `out_i = KL(p_a ‖ p_b)` of the unimix categoricals (`classes` each, mixed with `unimix`
+/// uniform) with logits the rows `a_i` and `b_i`, summed over each row's variables
+/// ([`crate::nn::kernels::categorical_kl`]).
+pub fn categorical_kl(a: &[f32], b: &[f32], classes: usize, unimix: f32, out: &mut [f32]) {
+    out.fill(0.0);
+    if out.is_empty() || classes == 0 {
+        return;
+    }
+    let per_row = a.len() / out.len();
+    kl_rows(Unimix { classes, unimix }, a, b, per_row, out);
+}
+
+/// The backward pass of [`categorical_kl`] from the divergences' gradients `g`: the logits'
+/// gradients into `da` and `db`, each left alone when empty.
+pub fn categorical_kl_backward(
+    a: &[f32],
+    b: &[f32],
+    g: &[f32],
+    (classes, unimix): (usize, f32),
+    (da, db): (&mut [f32], &mut [f32]),
+) {
+    if g.is_empty() || classes == 0 {
+        return;
+    }
+    let per_row = a.len() / g.len();
+    kl_rows_bwd(Unimix { classes, unimix }, a, b, g, per_row, da, db);
 }
 
 #[cfg(test)]
@@ -229,7 +260,7 @@ mod tests {
         let mut d_state = vec![0f32; n * f];
         let mut scratch = StepScratch::default();
         plain.step_backward(
-            &trace,
+            &mut trace,
             &d_next,
             &mut d_action,
             Some(&mut d_state),

@@ -1,5 +1,6 @@
-//! The RSSM's imagination step on plain buffers, frozen: its backward pass gives the gradients
-//! of the state and the action, none of its weights.
+//! The RSSM on plain buffers: the imagination step, frozen (its backward pass gives the
+//! gradients of the state and the action, none of its weights), and the observation loop over a
+//! batch of sequences, trained (the world model's).
 //!
 //! A state row is `[h, z, c]` (`D + Z + c` values: GRU state, one-hot sample, context). One step
 //! from `s_t` and the action `a_t`:
@@ -13,58 +14,120 @@
 //!
 //! and backward, from the gradients of `s_{t+1}`: `∂l`, then `∂h'` (its own plus the prior's),
 //! the GRU's `∂g` and `∂h`, `∂u` and `∂h` through `W_g`, and `∂z`, `∂a` through `W_in`.
+//!
+//! An observation step is the same sequence model from the previous posterior state (zeroed,
+//! with the action, where a sequence starts anew), then the posterior
+//! `l = SiLU(LN([h', e] W_qᵀ)) W_rᵀ + b_r` of the observation's embedding `e` instead of the
+//! prior. Backward, its steps from the last to the first pass `∂h` and `∂z` on to the step
+//! before and `∂e` to the encoder; the layers' weight gradients are one product each over all
+//! the steps' rows at the end, not one thin product per step.
 
-use super::layer::PlainLayer;
+use super::layer::{LayerGrads, MlpGrads, PlainLayer, PlainMlp};
 use crate::nn::kernels::{gru_rows, gru_rows_bwd, probs_rows_bwd, sample_rows, Unimix};
 use crate::nn::{Rssm, RssmConfig};
+use candle_core::backprop::GradStore;
 use candle_core::Result;
+use std::ops::Range;
 
-/// An RSSM's imagination step, its weights copied out of candle.
+/// An RSSM, its weights copied out of candle.
 #[derive(Clone, Debug)]
 pub struct PlainRssm {
     cfg: RssmConfig,
     img_in: PlainLayer,
     gates: PlainLayer,
-    prior: PlainLayer,
-    prior_out: PlainLayer,
+    /// The prior's hidden and output layers.
+    prior: PlainMlp,
+    post: PlainLayer,
+    post_out: PlainLayer,
+}
+
+/// The gradients of a [`PlainRssm`]'s parameters.
+#[derive(Clone, Debug)]
+pub struct RssmGrads {
+    img_in: LayerGrads,
+    gates: LayerGrads,
+    /// The prior's (which the world model runs as a [`PlainMlp`], [`PlainRssm::prior`]).
+    pub prior: MlpGrads,
+    post: LayerGrads,
+    post_out: LayerGrads,
+}
+
+impl RssmGrads {
+    /// `self += other` (the same model's).
+    pub fn add(&mut self, other: &Self) {
+        self.img_in.add(&other.img_in);
+        self.gates.add(&other.gates);
+        self.prior.add(&other.prior);
+        self.post.add(&other.post);
+        self.post_out.add(&other.post_out);
+    }
+}
+
+/// The sequence model's buffers over some rows: from `[z, a, c]` and `h` to `h'`, and back.
+#[derive(Debug, Default)]
+struct SequenceTrace {
+    /// `[z, a, c]` `[rows, Z + A + c]` and `h` `[rows, D]`, the inputs.
+    input: Vec<f32>,
+    h_prev: Vec<f32>,
+    in_product: Vec<f32>,
+    /// `u` `[rows, hidden]`.
+    in_output: Vec<f32>,
+    /// `[u, h]` `[rows, hidden + D]`.
+    gru_input: Vec<f32>,
+    gate_product: Vec<f32>,
+    /// `g` `[rows, 3 D]`.
+    gates: Vec<f32>,
+    /// `h'` `[rows, D]`.
+    h: Vec<f32>,
+    /// Backward: the two products' gradients.
+    d_in_product: Vec<f32>,
+    d_gate_product: Vec<f32>,
 }
 
 /// What one imagination step over `N` rows keeps for its backward pass.
 #[derive(Debug, Default)]
 pub struct StepTrace {
-    /// `[z, a, c]` `[N, Z + A + c]`.
-    input: Vec<f32>,
-    in_product: Vec<f32>,
-    /// `u` `[N, hidden]`.
-    in_output: Vec<f32>,
-    /// `[u, h]` `[N, hidden + D]`.
-    gru_input: Vec<f32>,
-    gate_product: Vec<f32>,
-    /// `g` `[N, 3 D]`.
-    gates: Vec<f32>,
-    /// `h` `[N, D]`, and `h'`.
-    h: Vec<f32>,
-    h_next: Vec<f32>,
+    sequence: SequenceTrace,
     prior_product: Vec<f32>,
     prior_output: Vec<f32>,
-    /// `l` `[N, Z]`.
+    /// The prior's logits `[N, Z]` and the sample `z'`.
     logits: Vec<f32>,
-    /// `z'` `[N, Z]`.
     z_next: Vec<f32>,
 }
 
-/// The backward pass's buffers of a [`PlainRssm`] step, reused from step to step.
+/// The observation loop's buffers over `T` steps of `B` sequences, time-major (step `t` is the
+/// rows `t B … (t + 1) B − 1`), kept from one training step to the next.
+#[derive(Debug, Default)]
+pub struct ObserveTrace {
+    /// The sequence model over all the steps (`h_prev` zeroed where a sequence starts).
+    sequence: SequenceTrace,
+    /// The posterior samples `z'` `[T B, Z]` and logits `[T B, Z]`.
+    z: Vec<f32>,
+    logits: Vec<f32>,
+    /// `[h', e]`.
+    post_input: Vec<f32>,
+    post_product: Vec<f32>,
+    post_output: Vec<f32>,
+    /// Backward: the posterior's products' gradients of every step, for the weights' at the end.
+    d_post_product: Vec<f32>,
+    d_logits: Vec<f32>,
+    scratch: StepScratch,
+}
+
+/// The backward passes' buffers of a [`PlainRssm`] step, reused from step to step.
 #[derive(Debug, Default)]
 pub struct StepScratch {
     dz: Vec<f32>,
     dl: Vec<f32>,
-    d_prior: Vec<f32>,
+    d_hidden: Vec<f32>,
+    d_product: Vec<f32>,
     dh: Vec<f32>,
     d_gates: Vec<f32>,
     dh_direct: Vec<f32>,
     du: Vec<f32>,
-    d_in: Vec<f32>,
+    /// Normalisations' gradients of a frozen model (discarded).
     d_norm: Vec<f32>,
+    d_norm_in: Vec<f32>,
 }
 
 /// `v` resized to `n` values (zeros where it grows) as a slice.
@@ -76,15 +139,57 @@ fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
 impl PlainRssm {
     /// The weights of `rssm` as they are now.
     pub fn new(rssm: &Rssm) -> Result<Self> {
-        let [img_in, gates, prior, prior_out] = rssm.prior_blocks();
+        let [img_in, gates, prior, prior_out, post, post_out] = rssm.blocks();
         let layer = |(dense, norm)| PlainLayer::from_parts(dense, norm, false);
         Ok(Self {
             cfg: *rssm.config(),
             img_in: layer(img_in)?,
             gates: layer(gates)?,
-            prior: layer(prior)?,
-            prior_out: layer(prior_out)?,
+            prior: PlainMlp {
+                layers: vec![layer(prior)?, layer(prior_out)?],
+            },
+            post: layer(post)?,
+            post_out: layer(post_out)?,
         })
+    }
+
+    /// The prior's logits from `h` as a network of two layers (hidden, output).
+    pub fn prior(&self) -> &PlainMlp {
+        &self.prior
+    }
+
+    /// Zeroed gradients of the parameters.
+    pub fn zero_grads(&self) -> RssmGrads {
+        RssmGrads {
+            img_in: self.img_in.zero_grads(),
+            gates: self.gates.zero_grads(),
+            prior: self.prior.zero_grads(),
+            post: self.post.zero_grads(),
+            post_out: self.post_out.zero_grads(),
+        }
+    }
+
+    /// The gradients as candle tensors of `rssm`'s parameters (the model this one copied),
+    /// added into `store`.
+    pub fn add_grads_to(
+        &self,
+        grads: &RssmGrads,
+        rssm: &Rssm,
+        store: &mut GradStore,
+    ) -> Result<()> {
+        let [img_in, gates, prior, prior_out, post, post_out] = rssm.blocks();
+        let layers = [
+            (&self.img_in, &grads.img_in, img_in),
+            (&self.gates, &grads.gates, gates),
+            (&self.prior.layers[0], &grads.prior.layers[0], prior),
+            (&self.prior.layers[1], &grads.prior.layers[1], prior_out),
+            (&self.post, &grads.post, post),
+            (&self.post_out, &grads.post_out, post_out),
+        ];
+        for (layer, g, (dense, norm)) in layers {
+            layer.add_grads_to(g, dense, norm.map(|(ln, _)| ln), store)?;
+        }
+        Ok(())
     }
 
     /// The sizes.
@@ -106,6 +211,110 @@ impl PlainRssm {
         }
     }
 
+    /// Sizes `t` for `rows` rows.
+    fn fit(&self, t: &mut SequenceTrace, rows: usize) {
+        let (d, z, c) = self.widths();
+        let (a, hidden) = (self.cfg.act_dim, self.cfg.hidden);
+        for (v, width) in [
+            (&mut t.input, z + a + c),
+            (&mut t.h_prev, d),
+            (&mut t.in_product, hidden),
+            (&mut t.in_output, hidden),
+            (&mut t.gru_input, hidden + d),
+            (&mut t.gate_product, 3 * d),
+            (&mut t.gates, 3 * d),
+            (&mut t.h, d),
+            (&mut t.d_in_product, hidden),
+            (&mut t.d_gate_product, 3 * d),
+        ] {
+            sized(v, rows * width);
+        }
+    }
+
+    /// The sequence model on the rows `r` of `t` (whose `input` and `h_prev` are set): `h'`.
+    fn sequence_forward(&self, t: &mut SequenceTrace, r: Range<usize>) {
+        let (d, hidden) = (self.cfg.deter, self.cfg.hidden);
+        let span = |w: usize| r.start * w..r.end * w;
+        let k = self.img_in.inputs();
+        self.img_in.forward(
+            &t.input[span(k)],
+            &mut t.in_product[span(hidden)],
+            &mut t.in_output[span(hidden)],
+        );
+        let parts = t.in_output[span(hidden)]
+            .chunks_exact(hidden)
+            .zip(t.h_prev[span(d)].chunks_exact(d));
+        for ((u, h), row) in parts.zip(t.gru_input[span(hidden + d)].chunks_exact_mut(hidden + d)) {
+            row[..hidden].copy_from_slice(u);
+            row[hidden..].copy_from_slice(h);
+        }
+        self.gates.forward(
+            &t.gru_input[span(hidden + d)],
+            &mut t.gate_product[span(3 * d)],
+            &mut t.gates[span(3 * d)],
+        );
+        gru_rows(
+            &t.gates[span(3 * d)],
+            &t.h_prev[span(d)],
+            &mut t.h[span(d)],
+            d,
+        );
+    }
+
+    /// The backward pass of [`PlainRssm::sequence_forward`] on the rows `r` from `∂h'` (`dh`,
+    /// those rows'): the products' gradients into `t`, the normalisations' added to `dnorm`
+    /// (gates, input layer), and the GRU's direct `∂h` (not yet through its gates' product:
+    /// [`PlainRssm::add_previous_grads`]) in `s.dh_direct`.
+    fn sequence_backward(
+        &self,
+        t: &mut SequenceTrace,
+        r: Range<usize>,
+        dh: &[f32],
+        (dnorm_gates, dnorm_in): (&mut [f32], &mut [f32]),
+        s: &mut StepScratch,
+    ) {
+        let (d, hidden) = (self.cfg.deter, self.cfg.hidden);
+        let (span, n) = (|w: usize| r.start * w..r.end * w, r.len());
+        gru_rows_bwd(
+            &t.gates[span(3 * d)],
+            &t.h_prev[span(d)],
+            dh,
+            sized(&mut s.d_gates, n * 3 * d),
+            sized(&mut s.dh_direct, n * d),
+            d,
+        );
+        self.gates.product_grad(
+            (&t.gate_product[span(3 * d)], &t.gates[span(3 * d)]),
+            &s.d_gates,
+            dnorm_gates,
+            &mut t.d_gate_product[span(3 * d)],
+        );
+        let du = sized(&mut s.du, n * hidden);
+        self.gates
+            .input_grad(&t.d_gate_product[span(3 * d)], 0..hidden, du, hidden, false);
+        self.img_in.product_grad(
+            (&t.in_product[span(hidden)], &t.in_output[span(hidden)]),
+            &s.du,
+            dnorm_in,
+            &mut t.d_in_product[span(hidden)],
+        );
+    }
+
+    /// The previous state's gradients from the rows `r` of `t` after
+    /// [`PlainRssm::sequence_backward`]: `∂h` into `s.dh_direct` (its direct part plus the
+    /// gates' product's) and `∂z` into `s.dz`.
+    fn add_previous_grads(&self, t: &SequenceTrace, r: Range<usize>, s: &mut StepScratch) {
+        let (d, z, _) = self.widths();
+        let (hidden, n) = (self.cfg.hidden, r.len());
+        let span = |w: usize| r.start * w..r.end * w;
+        let dgp = &t.d_gate_product[span(3 * d)];
+        self.gates
+            .input_grad(dgp, hidden..hidden + d, &mut s.dh_direct, d, true);
+        let dz = sized(&mut s.dz, n * z);
+        self.img_in
+            .input_grad(&t.d_in_product[span(hidden)], 0..z, dz, z, false);
+    }
+
     /// One step from the state rows `state` (`[N, D + Z + c]`) and `action` (`[N, A]`) with
     /// Gumbel uniforms `uniform` (`[N, Z]`): the next state rows into `next` (the context
     /// copied), what the backward pass needs into `trace`.
@@ -120,44 +329,27 @@ impl PlainRssm {
         let (d, z, c) = self.widths();
         let (a, hidden, f) = (self.cfg.act_dim, self.cfg.hidden, d + z + c);
         let n = state.len() / f;
-        let input = sized(&mut trace.input, n * (z + a + c));
-        let h = sized(&mut trace.h, n * d);
+        let seq = &mut trace.sequence;
+        self.fit(seq, n);
         let rows = state.chunks_exact(f).zip(action.chunks_exact(a));
-        for (((s, act), inp), hr) in rows
-            .zip(input.chunks_exact_mut(z + a + c))
-            .zip(h.chunks_exact_mut(d))
-        {
+        let inputs = seq
+            .input
+            .chunks_exact_mut(z + a + c)
+            .zip(seq.h_prev.chunks_exact_mut(d));
+        for ((s, act), (inp, h)) in rows.zip(inputs) {
             inp[..z].copy_from_slice(&s[d..d + z]);
             inp[z..z + a].copy_from_slice(act);
             inp[z + a..].copy_from_slice(&s[d + z..]);
-            hr.copy_from_slice(&s[..d]);
+            h.copy_from_slice(&s[..d]);
         }
-        self.img_in.forward(
-            &trace.input,
-            sized(&mut trace.in_product, n * hidden),
-            sized(&mut trace.in_output, n * hidden),
-        );
-        let gru_input = sized(&mut trace.gru_input, n * (hidden + d));
-        let parts = trace
-            .in_output
-            .chunks_exact(hidden)
-            .zip(trace.h.chunks_exact(d));
-        for ((u, hr), row) in parts.zip(gru_input.chunks_exact_mut(hidden + d)) {
-            row[..hidden].copy_from_slice(u);
-            row[hidden..].copy_from_slice(hr);
-        }
-        self.gates.forward(
-            &trace.gru_input,
-            sized(&mut trace.gate_product, n * 3 * d),
-            sized(&mut trace.gates, n * 3 * d),
-        );
-        gru_rows(&trace.gates, &trace.h, sized(&mut trace.h_next, n * d), d);
-        self.prior.forward(
-            &trace.h_next,
+        self.sequence_forward(seq, 0..n);
+        let [prior, prior_out] = [&self.prior.layers[0], &self.prior.layers[1]];
+        prior.forward(
+            &seq.h,
             sized(&mut trace.prior_product, n * hidden),
             sized(&mut trace.prior_output, n * hidden),
         );
-        self.prior_out.forward(
+        prior_out.forward(
             &trace.prior_output,
             sized(&mut trace.logits, n * z),
             &mut [],
@@ -167,11 +359,12 @@ impl PlainRssm {
         sample_rows(self.unimix(), &trace.logits, uniform, z_next);
         let rows = next.chunks_exact_mut(f).zip(state.chunks_exact(f));
         let parts = trace
-            .h_next
+            .sequence
+            .h
             .chunks_exact(d)
             .zip(trace.z_next.chunks_exact(z));
-        for ((row, s), (hr, zr)) in rows.zip(parts) {
-            row[..d].copy_from_slice(hr);
+        for ((row, s), (h, zr)) in rows.zip(parts) {
+            row[..d].copy_from_slice(h);
             row[d..d + z].copy_from_slice(zr);
             row[d + z..].copy_from_slice(&s[d + z..]);
         }
@@ -182,16 +375,15 @@ impl PlainRssm {
     /// (`[N, A]`) and, if given, the state's (`h` and `z`) added to `d_state`.
     pub fn step_backward(
         &self,
-        trace: &StepTrace,
+        trace: &mut StepTrace,
         d_next: &[f32],
         d_action: &mut [f32],
         d_state: Option<&mut [f32]>,
-        scratch: &mut StepScratch,
+        s: &mut StepScratch,
     ) {
         let (d, z, c) = self.widths();
         let (a, hidden, f) = (self.cfg.act_dim, self.cfg.hidden, d + z + c);
         let n = d_next.len() / f;
-        let s = scratch;
         // ∂z' and ∂h' of the next state, contiguous
         let dz = sized(&mut s.dz, n * z);
         let dh = sized(&mut s.dh, n * d);
@@ -205,63 +397,203 @@ impl PlainRssm {
         }
         probs_rows_bwd(self.unimix(), &trace.logits, &s.dz, sized(&mut s.dl, n * z));
         // the prior: ∂(its hidden output), its product, then ∂h' += … W_p
-        self.prior_out.input_grad(
-            &s.dl,
-            0..hidden,
-            sized(&mut s.d_prior, n * hidden),
-            hidden,
-            false,
-        );
-        let mut d_product = std::mem::take(&mut s.d_in);
-        self.prior.product_grad(
+        let [prior, prior_out] = [&self.prior.layers[0], &self.prior.layers[1]];
+        let d_hidden = sized(&mut s.d_hidden, n * hidden);
+        prior_out.input_grad(&s.dl, 0..hidden, d_hidden, hidden, false);
+        prior.product_grad(
             (&trace.prior_product, &trace.prior_output),
-            &s.d_prior,
+            &s.d_hidden,
             sized(&mut s.d_norm, 2 * hidden),
-            sized(&mut d_product, n * hidden),
+            sized(&mut s.d_product, n * hidden),
         );
-        self.prior.input_grad(&d_product, 0..d, &mut s.dh, d, true);
-        // the GRU: ∂g, the direct ∂h, then the gates' product
-        gru_rows_bwd(
-            &trace.gates,
-            &trace.h,
-            &s.dh,
-            sized(&mut s.d_gates, n * 3 * d),
-            sized(&mut s.dh_direct, n * d),
-            d,
+        prior.input_grad(&s.d_product, 0..d, &mut s.dh, d, true);
+        // the sequence model, then ∂a (and ∂h, ∂z) through its input
+        // the frozen normalisations' gradients go to buffers of their own, then are dropped
+        let (dh, mut dn, mut dn_in) = (
+            std::mem::take(&mut s.dh),
+            std::mem::take(&mut s.d_norm),
+            std::mem::take(&mut s.d_norm_in),
         );
-        let mut d_gate_product = std::mem::take(&mut s.dl);
-        self.gates.product_grad(
-            (&trace.gate_product, &trace.gates),
-            &s.d_gates,
-            sized(&mut s.d_norm, 6 * d),
-            sized(&mut d_gate_product, n * 3 * d),
-        );
-        self.gates.input_grad(
-            &d_gate_product,
-            0..hidden,
-            sized(&mut s.du, n * hidden),
-            hidden,
-            false,
-        );
-        // the input layer: ∂[z, a, c] = … W_in
-        self.img_in.product_grad(
-            (&trace.in_product, &trace.in_output),
-            &s.du,
-            sized(&mut s.d_norm, 2 * hidden),
-            sized(&mut d_product, n * hidden),
-        );
+        let norms = (sized(&mut dn, 6 * d), sized(&mut dn_in, 2 * hidden));
+        self.sequence_backward(&mut trace.sequence, 0..n, &dh, norms, s);
+        (s.dh, s.d_norm, s.d_norm_in) = (dh, dn, dn_in);
+        let seq = &trace.sequence;
         self.img_in
-            .input_grad(&d_product, z..z + a, d_action, a, false);
+            .input_grad(&seq.d_in_product, z..z + a, d_action, a, false);
         if let Some(d_state) = d_state {
-            for (row, dhr) in d_state.chunks_exact_mut(f).zip(s.dh_direct.chunks_exact(d)) {
-                row[..d].iter_mut().zip(dhr).for_each(|(o, v)| *o += v);
+            self.add_previous_grads(seq, 0..n, s);
+            for ((row, dh), dz) in d_state
+                .chunks_exact_mut(f)
+                .zip(s.dh_direct.chunks_exact(d))
+                .zip(s.dz.chunks_exact(z))
+            {
+                row[..d].iter_mut().zip(dh).for_each(|(o, v)| *o += v);
+                row[d..d + z].iter_mut().zip(dz).for_each(|(o, v)| *o += v);
             }
-            self.gates
-                .input_grad(&d_gate_product, hidden..hidden + d, d_state, f, true);
-            self.img_in
-                .input_grad(&d_product, 0..z, &mut d_state[d..], f, true);
         }
-        s.d_in = d_product;
-        s.dl = d_gate_product;
+    }
+
+    /// The observation loop over `T = keep.len() / B` steps of `B` sequences, every input
+    /// time-major: the embeddings `[T B, E]`, the previous actions `[T B, A]`, the contexts
+    /// `[T B, c]`, `keep` `[T B]` (0 where a sequence starts: the previous state and action are
+    /// zeroed) and the Gumbel uniforms `[T B, Z]`; from zeros. The posterior states and logits
+    /// are [`ObserveTrace::states`].
+    pub fn observe(
+        &self,
+        batch: usize,
+        (embed, action, ctx, keep): (&[f32], &[f32], &[f32], &[f32]),
+        uniform: &[f32],
+        trace: &mut ObserveTrace,
+    ) {
+        let (d, z, c) = self.widths();
+        let (a, hidden, e) = (self.cfg.act_dim, self.cfg.hidden, self.cfg.embed_dim);
+        let rows = keep.len();
+        let tr = trace;
+        self.fit(&mut tr.sequence, rows);
+        for (v, width) in [
+            (&mut tr.z, z),
+            (&mut tr.logits, z),
+            (&mut tr.post_input, d + e),
+            (&mut tr.post_product, hidden),
+            (&mut tr.post_output, hidden),
+        ] {
+            sized(v, rows * width);
+        }
+        tr.z.fill(0.0);
+        let k = z + a + c;
+        for t in 0..rows / batch.max(1) {
+            let r = t * batch..(t + 1) * batch;
+            let span = |w: usize| r.start * w..r.end * w;
+            // the previous state and action, zeroed where a sequence starts
+            let seq = &mut tr.sequence;
+            for row in r.clone() {
+                let keep_row = if t == 0 { 0.0 } else { keep[row] };
+                let prev = row.saturating_sub(batch);
+                let scaled = |dst: &mut [f32], src: &[f32]| {
+                    dst.iter_mut()
+                        .zip(src)
+                        .for_each(|(o, &v)| *o = keep_row * v);
+                };
+                let (h_all, z_all) = (&seq.h, &tr.z);
+                let h_prev = &mut seq.h_prev[row * d..(row + 1) * d];
+                scaled(h_prev, &h_all[prev * d..(prev + 1) * d]);
+                let input = &mut seq.input[row * k..(row + 1) * k];
+                scaled(&mut input[..z], &z_all[prev * z..(prev + 1) * z]);
+                scaled(&mut input[z..z + a], &action[row * a..(row + 1) * a]);
+                input[z + a..].copy_from_slice(&ctx[row * c..(row + 1) * c]);
+            }
+            self.sequence_forward(seq, r.clone());
+            let parts = seq.h[span(d)]
+                .chunks_exact(d)
+                .zip(embed[span(e)].chunks_exact(e));
+            for ((h, er), row) in parts.zip(tr.post_input[span(d + e)].chunks_exact_mut(d + e)) {
+                row[..d].copy_from_slice(h);
+                row[d..].copy_from_slice(er);
+            }
+            self.post.forward(
+                &tr.post_input[span(d + e)],
+                &mut tr.post_product[span(hidden)],
+                &mut tr.post_output[span(hidden)],
+            );
+            self.post_out.forward(
+                &tr.post_output[span(hidden)],
+                &mut tr.logits[span(z)],
+                &mut [],
+            );
+            let dist = self.unimix();
+            sample_rows(
+                dist,
+                &tr.logits[span(z)],
+                &uniform[span(z)],
+                &mut tr.z[span(z)],
+            );
+        }
+    }
+
+    /// The backward pass of [`PlainRssm::observe`] from the gradients of the posterior states,
+    /// `dh` `[T B, D]` and `dz` `[T B, Z]` (both used up: the loop adds the later steps' to the
+    /// earlier ones'), and `d_logits` `[T B, Z]` of the posterior logits directly (the KL
+    /// terms'): the embeddings' gradients into `d_embed` `[T B, E]`, the parameters' added to
+    /// `grads` (but the prior's).
+    #[allow(clippy::too_many_arguments)]
+    pub fn observe_backward(
+        &self,
+        batch: usize,
+        keep: &[f32],
+        trace: &mut ObserveTrace,
+        (dh, dz): (&mut [f32], &mut [f32]),
+        d_logits: &[f32],
+        d_embed: &mut [f32],
+        grads: &mut RssmGrads,
+    ) {
+        let (d, z, _) = self.widths();
+        let (hidden, e) = (self.cfg.hidden, self.cfg.embed_dim);
+        let rows = keep.len();
+        let tr = trace;
+        sized(&mut tr.d_post_product, rows * hidden);
+        sized(&mut tr.d_logits, rows * z);
+        let s = &mut tr.scratch;
+        for t in (0..rows / batch.max(1)).rev() {
+            let r = t * batch..(t + 1) * batch;
+            let span = |w: usize| r.start * w..r.end * w;
+            // the posterior: ∂l (straight through, and the KL terms'), then its layers
+            let dl = &mut tr.d_logits[span(z)];
+            probs_rows_bwd(self.unimix(), &tr.logits[span(z)], &dz[span(z)], dl);
+            dl.iter_mut()
+                .zip(&d_logits[span(z)])
+                .for_each(|(o, &v)| *o += v);
+            let d_out = sized(&mut s.d_hidden, batch * hidden);
+            self.post_out
+                .input_grad(&tr.d_logits[span(z)], 0..hidden, d_out, hidden, false);
+            self.post.product_grad(
+                (
+                    &tr.post_product[span(hidden)],
+                    &tr.post_output[span(hidden)],
+                ),
+                &s.d_hidden,
+                grads.post.norm_mut(),
+                &mut tr.d_post_product[span(hidden)],
+            );
+            let dpp = &tr.d_post_product[span(hidden)];
+            self.post.input_grad(dpp, 0..d, &mut dh[span(d)], d, true);
+            self.post
+                .input_grad(dpp, d..d + e, &mut d_embed[span(e)], e, false);
+            // the sequence model, then the previous state's gradients where the step read it
+            let norms = (grads.gates.norm_mut(), grads.img_in.norm_mut());
+            self.sequence_backward(&mut tr.sequence, r.clone(), &dh[span(d)], norms, s);
+            if t == 0 {
+                continue;
+            }
+            self.add_previous_grads(&tr.sequence, r.clone(), s);
+            for (i, row) in (r.start - batch..r.start).enumerate() {
+                let k = keep[r.start + i];
+                let add = |dst: &mut [f32], src: &[f32]| {
+                    dst.iter_mut().zip(src).for_each(|(o, &v)| *o += k * v);
+                };
+                add(
+                    &mut dh[row * d..(row + 1) * d],
+                    &s.dh_direct[i * d..(i + 1) * d],
+                );
+                add(&mut dz[row * z..(row + 1) * z], &s.dz[i * z..(i + 1) * z]);
+            }
+        }
+        // the weights' gradients, one product per layer over all the steps
+        let seq = &tr.sequence;
+        self.img_in
+            .add_weight_grads(&seq.input, &seq.d_in_product, &mut grads.img_in);
+        self.gates
+            .add_weight_grads(&seq.gru_input, &seq.d_gate_product, &mut grads.gates);
+        self.post
+            .add_weight_grads(&tr.post_input, &tr.d_post_product, &mut grads.post);
+        self.post_out
+            .add_weight_grads(&tr.post_output, &tr.d_logits, &mut grads.post_out);
+    }
+}
+
+impl ObserveTrace {
+    /// The posterior states `(h, z)` (`[T B, D]`, `[T B, Z]`) and logits `[T B, Z]` of the last
+    /// [`PlainRssm::observe`].
+    pub fn states(&self) -> (&[f32], &[f32], &[f32]) {
+        (&self.sequence.h, &self.z, &self.logits)
     }
 }
