@@ -21,13 +21,21 @@
 //!
 //! Noise is drawn from ChaCha8 seeded with the configured seed on stream `step`, so a step's noise
 //! depends only on the seed and the step counter, and survives [`Algorithm::save`] / [`Algorithm::load`].
+//!
+//! The losses are differentiated by hand on plain buffers (`ctxrace_common::nn::plain`, the
+//! squashing's backward pass in `ctxrace_common::nn::tanh_gaussian`): at SAC's batch of 100 rows
+//! the matrix products are small and candle's per-operation bookkeeping was a third of a step.
+//! The parameters stay in candle (optimisers, checkpoints, the acting policy).
 
 use crate::adam::Adam;
 use crate::algorithm::{Algorithm, Batch, Metrics};
 use crate::checkpoint;
+use candle_core::backprop::GradStore;
 use candle_core::{bail, Device, Module, Result, Tensor, D};
 use candle_nn::{Init, VarBuilder};
 use ctxrace_common::nn::kernels::matmul_flops;
+use ctxrace_common::nn::plain::{InputGrad, MlpTrace, PlainMlp};
+use ctxrace_common::nn::tanh_gaussian::{squash_rows, squash_rows_backward};
 use ctxrace_common::nn::{Activation, Mlp, ParamStore, TanhGaussianActor};
 use ctxrace_common::policy::SacPolicy;
 use ctxrace_common::{SacConfig, TransitionBatch};
@@ -111,6 +119,8 @@ pub struct Sac {
     critic_opt: Adam,
     alpha_opt: Adam,
     step: u64,
+    /// The update's buffers.
+    work: Workspace,
 }
 
 /// The counters saved beside the weights.
@@ -187,6 +197,7 @@ impl Sac {
             alpha_params,
             log_alpha,
             step: 0,
+            work: Workspace::default(),
         })
     }
 
@@ -213,11 +224,112 @@ impl Sac {
     }
 
     /// Standard-normal noise `[rows, A]` from `rng`.
-    fn noise(&self, rows: usize, rng: &mut impl Rng) -> Result<Tensor> {
-        let data: Vec<f32> = (0..rows * self.act_dim)
+    fn noise(&self, rows: usize, rng: &mut impl Rng) -> Vec<f32> {
+        (0..rows * self.act_dim)
             .map(|_| rng.sample(StandardNormal))
+            .collect()
+    }
+
+    /// The critics' gradients of `L_Q` on `batch` with the next actions' noise `noise`, the
+    /// temperature `alpha` and `actor` (this actor's copy): `(gradients, L_Q, mean Q)`.
+    fn critic_grads(
+        &mut self,
+        batch: &TransitionBatch,
+        noise: &[f32],
+        (alpha, actor): (f32, &PlainMlp),
+    ) -> Result<(GradStore, f64, f64)> {
+        let (b, o, a) = (batch.batch, self.obs_dim, self.act_dim);
+        let [q1, q2] = [&self.critic.q1, &self.critic.q2].map(PlainMlp::new);
+        let [t1, t2] = [&self.target.q1, &self.target.q2].map(PlainMlp::new);
+        let (q1, q2, t1, t2) = (q1?, q2?, t1?, t2?);
+        let w = &mut self.work;
+        // y = r + γ (1 − d) (min_i Q̄_i(o', a') − α log π(a' | o'))
+        let (next_action, next_logp) = w.sample(actor, &batch.next_obs, noise);
+        w.join(&batch.next_obs, &next_action, o, a);
+        let target_q = [(&t1, &mut w.q1), (&t2, &mut w.q2)].map(|(q, trace)| {
+            q.fit(trace, b);
+            q.forward(&w.x, trace, 0..b);
+            q.output(trace, 0..b).to_vec()
+        });
+        let y: Vec<f32> = (0..b)
+            .map(|i| {
+                let soft = target_q[0][i].min(target_q[1][i]) - alpha * next_logp[i];
+                batch.reward[i] + self.cfg.gamma as f32 * (1.0 - batch.terminal[i]) * soft
+            })
             .collect();
-        Tensor::from_vec(data, (rows, self.act_dim), &Device::Cpu)
+        // L_Q = mean (Q_1 − y)² + mean (Q_2 − y)²
+        w.join(&batch.obs, &batch.action, o, a);
+        let mut grads = GradStore::default();
+        let (mut loss, mut q_sum) = (0f64, 0f64);
+        for (q, trace, mlp) in [
+            (&q1, &mut w.q1, &self.critic.q1),
+            (&q2, &mut w.q2, &self.critic.q2),
+        ] {
+            q.forward(&w.x, trace, 0..b);
+            let values = q.output(trace, 0..b);
+            let dq: Vec<f32> = values
+                .iter()
+                .zip(&y)
+                .map(|(v, t)| 2.0 * (v - t) / b as f32)
+                .collect();
+            loss += values
+                .iter()
+                .zip(&y)
+                .map(|(v, t)| ((v - t) * (v - t)) as f64)
+                .sum::<f64>()
+                / b as f64;
+            q_sum += values.iter().map(|&v| v as f64).sum::<f64>();
+            let mut g = q.zero_grads();
+            q.backward(&w.x, trace, 0..b, &dq, Some(&mut g), None);
+            q.add_grads_to(&g, mlp, &mut grads)?;
+        }
+        Ok((grads, loss, q_sum / (2 * b) as f64))
+    }
+
+    /// The actor's gradients of `L_π` on `batch` through the current critics, with the actions'
+    /// noise `noise`, the temperature `alpha` and `actor` (this actor's copy):
+    /// `(gradients, L_π, mean log π)`.
+    fn actor_grads(
+        &mut self,
+        batch: &TransitionBatch,
+        noise: &[f32],
+        (alpha, actor): (f32, &PlainMlp),
+    ) -> Result<(GradStore, f64, f64)> {
+        let (b, o, a) = (batch.batch, self.obs_dim, self.act_dim);
+        let [q1, q2] = [&self.critic.q1, &self.critic.q2].map(PlainMlp::new);
+        let (q1, q2) = (q1?, q2?);
+        let w = &mut self.work;
+        let (action, logp) = w.sample(actor, &batch.obs, noise);
+        w.join(&batch.obs, &action, o, a);
+        let values = [(&q1, &mut w.q1), (&q2, &mut w.q2)].map(|(q, trace)| {
+            q.forward(&w.x, trace, 0..b);
+            q.output(trace, 0..b).to_vec()
+        });
+        // L_π = mean (α log π − min_i Q_i): −1/B to the smaller critic (half each on a tie)
+        let mut loss = 0f64;
+        let mut dq = [vec![0f32; b], vec![0f32; b]];
+        for i in 0..b {
+            let (v1, v2) = (values[0][i], values[1][i]);
+            loss += (alpha * logp[i] - v1.min(v2)) as f64;
+            let share = if v1 == v2 { 0.5 } else { 1.0 };
+            dq[0][i] = if v1 <= v2 { -share / b as f32 } else { 0.0 };
+            dq[1][i] = if v2 <= v1 { -share / b as f32 } else { 0.0 };
+        }
+        let mut d_action = vec![0f32; b * a];
+        for (k, (q, trace)) in [(&q1, &mut w.q1), (&q2, &mut w.q2)].into_iter().enumerate() {
+            let into = InputGrad::new(&mut d_action, a, o..o + a, k > 0);
+            q.backward(&w.x, trace, 0..b, &dq[k], None, Some(into));
+        }
+        let d_logp = vec![alpha / b as f32; b];
+        let mut d_out = vec![0f32; b * 2 * a];
+        let out = actor.output(&w.actor, 0..b);
+        squash_rows_backward(out, noise, &action, (&d_action, &d_logp), &mut d_out);
+        let mut g = actor.zero_grads();
+        actor.backward(&batch.obs, &mut w.actor, 0..b, &d_out, Some(&mut g), None);
+        let mut grads = GradStore::default();
+        actor.add_grads_to(&g, self.actor.net(), &mut grads)?;
+        let mean_logp = logp.iter().map(|&v| v as f64).sum::<f64>() / b as f64;
+        Ok((grads, loss / b as f64, mean_logp))
     }
 
     /// One SAC step on `batch` (see the module doc); returns `critic_loss`, `actor_loss`, `alpha`
@@ -225,53 +337,72 @@ impl Sac {
     pub fn update(&mut self, batch: &TransitionBatch) -> Result<Metrics> {
         let (b, o, a) = (batch.batch, self.obs_dim, self.act_dim);
         batch.validate(o, a).map_err(candle_core::Error::Msg)?;
-        let dev = &Device::Cpu;
-        let obs = Tensor::from_slice(&batch.obs, (b, o), dev)?;
-        let action = Tensor::from_slice(&batch.action, (b, a), dev)?;
-        let reward = Tensor::from_slice(&batch.reward, b, dev)?;
-        let next_obs = Tensor::from_slice(&batch.next_obs, (b, o), dev)?;
-        let not_done = Tensor::from_slice(&batch.terminal, b, dev)?.affine(-1.0, 1.0)?;
         let mut rng = ChaCha8Rng::seed_from_u64(self.cfg.seed);
         rng.set_stream(self.step);
         let alpha = self.alpha()?;
-
-        // critics: regress both onto the soft Bellman target of the target critics
-        let (next_action, next_log_prob) =
-            self.actor.sample(&next_obs, &self.noise(b, &mut rng)?)?;
-        let soft_value = (self.target.min(&next_obs, &next_action)? - (next_log_prob * alpha)?)?;
-        let y = (reward + (not_done * soft_value)?.affine(self.cfg.gamma, 0.0)?)?.detach();
-        let (q1, q2) = self.critic.forward(&obs, &action)?;
-        let critic_loss = ((&q1 - &y)?.sqr()?.mean_all()? + (&q2 - &y)?.sqr()?.mean_all()?)?;
-        self.critic_opt.minimise(&critic_loss)?;
-
-        // actor: maximise min_i Q_i(o, ã) + α H
-        let (pi_action, log_prob) = self.actor.sample(&obs, &self.noise(b, &mut rng)?)?;
-        let actor_loss = ((&log_prob * alpha)? - self.critic.min(&obs, &pi_action)?)?.mean_all()?;
-        self.actor_opt.minimise(&actor_loss)?;
-
-        // temperature: move the policy's entropy towards the target
-        let log_prob = log_prob.detach();
-        let alpha_loss = self
-            .log_alpha
-            .broadcast_mul(&(&log_prob + self.target_entropy)?)?
-            .neg()?
-            .mean_all()?;
-        self.alpha_opt.minimise(&alpha_loss)?;
-
+        // the actor is the same in both passes (it steps after them)
+        let actor = PlainMlp::new(self.actor.net())?;
+        let next_noise = self.noise(b, &mut rng);
+        let with = (alpha as f32, &actor);
+        let (grads, critic_loss, q_mean) = self.critic_grads(batch, &next_noise, with)?;
+        self.critic_opt.step(&grads)?;
+        let noise = self.noise(b, &mut rng);
+        let (grads, actor_loss, mean_logp) = self.actor_grads(batch, &noise, with)?;
+        self.actor_opt.step(&grads)?;
+        // temperature: L_α = −log α (mean log π + H̄), log π detached
+        let mut grads = GradStore::default();
+        let gap = (mean_logp + self.target_entropy) as f32;
+        grads.insert(&self.log_alpha, Tensor::new(&[-gap], &Device::Cpu)?);
+        self.alpha_opt.step(&grads)?;
         polyak(&self.target_params, &self.critic_params, self.cfg.tau)?;
         self.step += 1;
-
-        let scalar = |t: &Tensor| t.to_scalar::<f32>().map(f64::from);
         Ok(Metrics::from([
-            ("critic_loss".to_string(), scalar(&critic_loss)?),
-            ("actor_loss".to_string(), scalar(&actor_loss)?),
+            ("critic_loss".to_string(), critic_loss),
+            ("actor_loss".to_string(), actor_loss),
             ("alpha".to_string(), alpha),
-            ("entropy".to_string(), -scalar(&log_prob.mean_all()?)?),
-            (
-                "q_mean".to_string(),
-                scalar(&((q1 + q2)? * 0.5)?.mean_all()?)?,
-            ),
+            ("entropy".to_string(), -mean_logp),
+            ("q_mean".to_string(), q_mean),
         ]))
+    }
+}
+
+/// The buffers of a SAC update on plain rows, kept from one step to the next.
+#[derive(Default)]
+struct Workspace {
+    actor: MlpTrace,
+    q1: MlpTrace,
+    q2: MlpTrace,
+    /// The critics' input `[o, a]`.
+    x: Vec<f32>,
+}
+
+impl Workspace {
+    /// The actor on the rows `obs` with `noise`: the actions and their log-probabilities (the
+    /// outputs kept in the actor's trace).
+    fn sample(&mut self, actor: &PlainMlp, obs: &[f32], noise: &[f32]) -> (Vec<f32>, Vec<f32>) {
+        let a = actor.outputs() / 2;
+        let b = noise.len() / a.max(1);
+        actor.fit(&mut self.actor, b);
+        actor.forward(obs, &mut self.actor, 0..b);
+        let (mut action, mut logp) = (vec![0f32; b * a], vec![0f32; b]);
+        squash_rows(
+            actor.output(&self.actor, 0..b),
+            noise,
+            &mut action,
+            &mut logp,
+        );
+        (action, logp)
+    }
+
+    /// `x ← [obs, action]` row by row.
+    fn join(&mut self, obs: &[f32], action: &[f32], o: usize, a: usize) {
+        let b = action.len() / a;
+        self.x.resize(b * (o + a), 0.0);
+        let rows = obs.chunks_exact(o).zip(action.chunks_exact(a));
+        for ((ob, ac), row) in rows.zip(self.x.chunks_exact_mut(o + a)) {
+            row[..o].copy_from_slice(ob);
+            row[o..].copy_from_slice(ac);
+        }
     }
 }
 
@@ -353,6 +484,79 @@ mod tests {
 
     fn values(t: &Tensor) -> Vec<f32> {
         t.flatten_all().unwrap().to_vec1().unwrap()
+    }
+
+    /// `(L_Q, L_π)` of the module doc composed of candle operations, autograd's statement of
+    /// what [`Sac::critic_grads`] and [`Sac::actor_grads`] differentiate by hand.
+    fn candle_losses(
+        sac: &Sac,
+        batch: &TransitionBatch,
+        (next_noise, noise): (&[f32], &[f32]),
+        alpha: f64,
+    ) -> (Tensor, Tensor) {
+        let (b, o, a) = (batch.batch, sac.obs_dim, sac.act_dim);
+        let dev = &Device::Cpu;
+        let t = |v: &[f32], cols: usize| Tensor::from_slice(v, (b, cols), dev).unwrap();
+        let (obs, next_obs) = (t(&batch.obs, o), t(&batch.next_obs, o));
+        let reward = Tensor::from_slice(&batch.reward, b, dev).unwrap();
+        let not_done = (1.0 - Tensor::from_slice(&batch.terminal, b, dev).unwrap()).unwrap();
+        let (next_action, next_logp) = sac.actor.sample(&next_obs, &t(next_noise, a)).unwrap();
+        let soft = (sac.target.min(&next_obs, &next_action).unwrap()
+            - (next_logp * alpha).unwrap())
+        .unwrap();
+        let y = (reward + (not_done * soft).unwrap() * sac.cfg.gamma)
+            .unwrap()
+            .detach();
+        let (q1, q2) = sac.critic.forward(&obs, &t(&batch.action, a)).unwrap();
+        let sq = |q: Tensor| (q - &y).unwrap().sqr().unwrap().mean_all().unwrap();
+        let critic = (sq(q1) + sq(q2)).unwrap();
+        let (pi, logp) = sac.actor.sample(&obs, &t(noise, a)).unwrap();
+        let min_q = sac.critic.min(&obs, &pi).unwrap();
+        let actor = ((logp * alpha).unwrap() - min_q)
+            .unwrap()
+            .mean_all()
+            .unwrap();
+        (critic, actor)
+    }
+
+    /// The hand-differentiated critic and actor gradients are those of the candle composition.
+    #[test]
+    fn the_update_differentiates_the_candle_composition() {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let mut sac = Sac::new(6, 2, SacConfig::default()).unwrap();
+        // critics and targets apart, so that the target path weighs
+        for _ in 0..3 {
+            sac.train_step(&Batch::Transition(random_batch(16, 6, 2, &mut rng)))
+                .unwrap();
+        }
+        let batch = random_batch(16, 6, 2, &mut rng);
+        let (next_noise, noise) = (sac.noise(16, &mut rng), sac.noise(16, &mut rng));
+        let alpha = 0.7;
+        let (critic, actor) = candle_losses(&sac, &batch, (&next_noise, &noise), alpha);
+        let (want_c, want_a) = (critic.backward().unwrap(), actor.backward().unwrap());
+        let actor_copy = PlainMlp::new(sac.actor.net()).unwrap();
+        let with = (alpha as f32, &actor_copy);
+        let (got_c, loss_c, _) = sac.critic_grads(&batch, &next_noise, with).unwrap();
+        let (got_a, loss_a, _) = sac.actor_grads(&batch, &noise, with).unwrap();
+        let scalar = |t: &Tensor| t.to_scalar::<f32>().unwrap() as f64;
+        assert!((loss_c - scalar(&critic)).abs() < 1e-5 * (1.0 + loss_c.abs()));
+        assert!((loss_a - scalar(&actor)).abs() < 1e-5 * (1.0 + loss_a.abs()));
+        for (params, got, want) in [
+            (&sac.critic_params, &got_c, &want_c),
+            (&sac.actor_params, &got_a, &want_a),
+        ] {
+            for (name, v) in params.named() {
+                let (g, w) = (
+                    values(got.get(v.as_tensor()).unwrap()),
+                    values(want.get(v.as_tensor()).unwrap()),
+                );
+                let scale = w.iter().fold(0f32, |m, x| m.max(x.abs())).max(1e-6);
+                assert!(w.iter().any(|&x| x != 0.0), "{name}: zero gradient");
+                for (i, (a, b)) in g.iter().zip(&w).enumerate() {
+                    assert!((a - b).abs() <= 1e-4 * scale, "{name}[{i}]: {a} vs {b}");
+                }
+            }
+        }
     }
 
     #[test]

@@ -53,6 +53,11 @@ impl TanhGaussianActor {
         Ok(Self { net, act_dim })
     }
 
+    /// The network from observations to `[μ, log σ]` (before the clamp).
+    pub fn net(&self) -> &Mlp {
+        &self.net
+    }
+
     /// The same actor on detached (shared) parameters ([`Mlp::frozen`]).
     pub fn frozen(&self) -> Self {
         Self {
@@ -108,6 +113,60 @@ pub fn squash(mean: &Tensor, log_std: &Tensor, noise: &Tensor) -> Result<(Tensor
     let log_jacobian = log_one_minus_tanh_sq(&u)?;
     let log_prob = (log_normal - log_jacobian)?.sum(D::Minus1)?;
     Ok((action, log_prob))
+}
+
+/// [`squash`] on plain rows (the learner's hand-differentiated SAC): from the actor's outputs
+/// `out` (`[B, 2A]`: means, then log standard deviations before the clamp) and the noise
+/// `[B, A]`, the actions into `action` `[B, A]` and their log-probabilities into `log_prob`
+/// `[B]`.
+pub fn squash_rows(out: &[f32], noise: &[f32], action: &mut [f32], log_prob: &mut [f32]) {
+    let a = noise.len() / log_prob.len().max(1);
+    let half_ln_2pi = 0.5 * (2.0 * std::f32::consts::PI).ln();
+    let rows = out.chunks_exact(2 * a).zip(noise.chunks_exact(a));
+    for ((o, eps), (act, lp)) in rows.zip(action.chunks_exact_mut(a).zip(log_prob.iter_mut())) {
+        *lp = 0.0;
+        for j in 0..a {
+            let log_std = o[a + j].clamp(LOG_STD_MIN as f32, LOG_STD_MAX as f32);
+            let u = o[j] + log_std.exp() * eps[j];
+            act[j] = u.tanh();
+            let log_jacobian =
+                2.0 * (std::f32::consts::LN_2 - u.abs() - (-2.0 * u.abs()).exp().ln_1p());
+            *lp += -0.5 * eps[j] * eps[j] - log_std - half_ln_2pi - log_jacobian;
+        }
+    }
+}
+
+/// The backward pass of [`squash_rows`]: the outputs' gradients `d_out` `[B, 2A]` from the
+/// actions' `d_action` `[B, A]` and the log-probabilities' `d_log_prob` `[B]`. With
+/// `u = μ + σ ε`: `∂u = ∂a (1 − a²) + 2 a ∂log π` (`∂ −log(1 − tanh² u)/∂u = 2 tanh u`),
+/// `∂μ = ∂u`, `∂log σ = ∂u σ ε − ∂log π` inside the clamp (half at its bounds, as candle's
+/// `clamp` splits a tie; none beyond them).
+pub fn squash_rows_backward(
+    out: &[f32],
+    noise: &[f32],
+    action: &[f32],
+    (d_action, d_log_prob): (&[f32], &[f32]),
+    d_out: &mut [f32],
+) {
+    let a = noise.len() / d_log_prob.len().max(1);
+    let (lo, hi) = (LOG_STD_MIN as f32, LOG_STD_MAX as f32);
+    for (i, (d, &dlp)) in d_out.chunks_exact_mut(2 * a).zip(d_log_prob).enumerate() {
+        for j in 0..a {
+            let (k, raw) = (i * a + j, out[i * 2 * a + a + j]);
+            let act = action[k];
+            let du = d_action[k] * (1.0 - act * act) + 2.0 * act * dlp;
+            d[j] = du;
+            let inside = if lo < raw && raw < hi {
+                1.0
+            } else if raw == lo || raw == hi {
+                0.5
+            } else {
+                0.0
+            };
+            let std = raw.clamp(lo, hi).exp();
+            d[a + j] = inside * (du * std * noise[k] - dlp);
+        }
+    }
 }
 
 /// `log(1 − tanh² u) = 2 (log 2 − |u| − log(1 + e^{−2|u|}))`, elementwise and stable for any `u`.

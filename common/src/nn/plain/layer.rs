@@ -71,6 +71,25 @@ struct InputSplit {
     sparse: Option<(Range<usize>, SparseColumns)>,
 }
 
+/// The transpose `[cols, rows]` of the row-major `[rows, cols]` matrix `m`, in tiles that stay in
+/// the cache (a plain loop writes a whole column of the result per row it reads).
+fn transpose(m: &[f32], rows: usize, cols: usize) -> Vec<f32> {
+    const TILE: usize = 16;
+    let mut t = vec![0f32; m.len()];
+    for r0 in (0..rows).step_by(TILE) {
+        let r1 = (r0 + TILE).min(rows);
+        for c0 in (0..cols).step_by(TILE) {
+            for c in c0..(c0 + TILE).min(cols) {
+                let (dst, src) = (&mut t[c * rows + r0..c * rows + r1], &m[r0 * cols + c..]);
+                for (i, d) in dst.iter_mut().enumerate() {
+                    *d = src[i * cols];
+                }
+            }
+        }
+    }
+    t
+}
+
 /// The values of a contiguous CPU tensor.
 fn values(t: &Tensor) -> Result<Vec<f32>> {
     t.flatten_all()?.to_vec1::<f32>()
@@ -86,12 +105,7 @@ impl PlainLayer {
     ) -> Result<Self> {
         let (outputs, inputs) = dense.weight().dims2()?;
         let w = values(dense.weight())?;
-        let mut wt = vec![0f32; w.len()];
-        for (j, row) in w.chunks_exact(inputs).enumerate() {
-            for (i, &v) in row.iter().enumerate() {
-                wt[i * outputs + j] = v;
-            }
-        }
+        let wt = transpose(&w, outputs, inputs);
         let after = match (norm, relu) {
             (Some((ln, act)), _) => {
                 let (gain, bias, eps) = ln.parts();
