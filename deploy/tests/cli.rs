@@ -750,10 +750,30 @@ fn an_interrupted_sweep_resumes_its_runs_from_their_checkpoints() {
     assert!(!status.success(), "the interrupted sweep reports it");
     assert!(!run.join("eval/contexts.csv").exists());
     let o = ctxrace(&args);
-    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(o.status.success(), "{}\n{}", stderr(&o), logs_below(&out));
     assert!(run.join("eval/contexts.csv").is_file());
     let learner = std::fs::read_to_string(run.join("logs/learner.log")).unwrap();
     assert!(learner.contains("learner resumed from"), "{learner}");
+}
+
+/// The last lines of every log file below `dir`, each under its path: what a failed run said.
+fn logs_below(dir: &std::path::Path) -> String {
+    let mut out = String::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for entry in std::fs::read_dir(&d).into_iter().flatten().flatten() {
+            let path = entry.path();
+            if path.is_dir() {
+                stack.push(path);
+            } else if path.extension().is_some_and(|e| e == "log") {
+                let text = std::fs::read_to_string(&path).unwrap_or_default();
+                let lines: Vec<&str> = text.lines().collect();
+                let tail = lines[lines.len().saturating_sub(20)..].join("\n");
+                out.push_str(&format!("--- {}\n{tail}\n", path.display()));
+            }
+        }
+    }
+    out
 }
 
 /// Serves the files below `root` over HTTP on a loopback port (404 for the rest); returns the
