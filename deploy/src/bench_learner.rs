@@ -5,7 +5,8 @@
 //! **Fraction of peak.** The floating-point operations of a step are those of the linear layers'
 //! matrix products (forward and backward, `2 m n k` each), counted as they run
 //! ([`ctxrace_common::nn::kernels::matmul_flops`]), per phase for the DreamerV3 variants (world
-//! model; behaviour: imagination, actor and critic; cMask's mask SAC). Elementwise work is not
+//! model; imagination: the rollouts, heads and returns; actor_critic: the backward pass to the
+//! actor's and critic's gradients and their steps; cMask's mask SAC). Elementwise work is not
 //! counted, so the fraction is a lower bound of the arithmetic done. The peak is `threads` times
 //! one core's rate of fused multiply-adds measured on its widest vectors (AVX-512, else AVX2 with
 //! FMA): independent chains of register FMAs, enough to cover their latency, timed on a busy core.

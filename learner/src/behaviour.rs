@@ -31,7 +31,7 @@ use candle_core::Result;
 use ctxrace_common::agents::DreamerConfig;
 use ctxrace_common::nn::plain::{
     soft_cross_entropy, soft_cross_entropy_backward, twohot_decode, twohot_decode_backward,
-    InputGrad, MlpGrads, MlpTrace, PlainMlp, PlainRssm, StepScratch, StepTrace,
+    InputGrad, MlpGrads, MlpTrace, NonZeros, PlainMlp, PlainRssm, StepScratch, StepTrace,
 };
 use ctxrace_common::nn::{Mlp, Rssm, TwoHot};
 use ctxrace_common::policy::{normal_rows, uniform_rows};
@@ -80,8 +80,10 @@ pub(crate) struct Imagination {
     /// Starts `N` and state width `F = D + Z + c`.
     n: usize,
     f: usize,
-    /// The states `s_0 … s_H`, time-major rows `[(H + 1) N, F]`.
+    /// The states `s_0 … s_H`, time-major rows `[(H + 1) N, F]`, and the non-zeros of their
+    /// one-hot `z` (for every layer that reads them).
     states: Vec<f32>,
+    non_zeros: NonZeros,
     /// Per action `[H N, A]`: the noise `ε`, `tanh μ`, `σ`, the factor `1 / max(1, |a|)`.
     noise: Vec<f32>,
     mean: Vec<f32>,
@@ -173,6 +175,8 @@ impl Imagination {
             row[d..d + z].copy_from_slice(&stoch[i * z..(i + 1) * z]);
             row[d + z..].copy_from_slice(&ctx[i * c..(i + 1) * c]);
         }
+        self.non_zeros.reset(d..d + z);
+        self.non_zeros.push(&states[..n * f], f);
         nets.actor.fit(&mut self.actor, hn);
         self.steps.resize_with(h, StepTrace::default);
         for buf in [
@@ -191,7 +195,9 @@ impl Imagination {
             let rows = t * n..(t + 1) * n;
             let (now, later) = self.states.split_at_mut((t + 1) * n * f);
             let state = &now[t * n * f..];
-            nets.actor.forward(state, &mut self.actor, rows.clone());
+            let state = &state[..n * f];
+            let input = self.non_zeros.rows(state, rows.clone());
+            nets.actor.forward(input, &mut self.actor, rows.clone());
             let out = nets.actor.output(&self.actor, rows.clone());
             self.noise.extend(normal_rows(rngs, per_sequence, a));
             for i in 0..n {
@@ -215,6 +221,7 @@ impl Imagination {
             let next = &mut later[..n * f];
             nets.rssm
                 .step(state, action, &self.uniform, &mut self.steps[t], next);
+            self.non_zeros.push(next, f);
         }
         self.heads(nets, set, &start.cont);
         Ok(())
@@ -226,7 +233,10 @@ impl Imagination {
         let (h, n, f) = (cfg.horizon, self.n, self.f);
         let hn = h * n;
         let bins = set.twohot.bins();
-        let (now, later) = (&self.states[..hn * f], &self.states[n * f..]);
+        let nz = &self.non_zeros;
+        let now = nz.rows(&self.states[..hn * f], 0..hn);
+        let later = nz.rows(&self.states[n * f..], n..hn + n);
+        let all = nz.rows(&self.states, 0..hn + n);
         nets.reward.fit(&mut self.reward_head, hn);
         nets.reward.forward(later, &mut self.reward_head, 0..hn);
         let logits = nets.reward.output(&self.reward_head, 0..hn);
@@ -241,8 +251,7 @@ impl Imagination {
             *c = sigmoid(l);
         }
         nets.critic.fit(&mut self.critic, hn + n);
-        nets.critic
-            .forward(&self.states, &mut self.critic, 0..hn + n);
+        nets.critic.forward(all, &mut self.critic, 0..hn + n);
         let logits = nets.critic.output(&self.critic, 0..hn + n);
         twohot_decode(logits, bins, sized(&mut self.value, hn + n));
         nets.slow.fit(&mut self.slow, hn);
@@ -301,7 +310,9 @@ impl Imagination {
             value_grad[hn + i] += carried;
         }
         let bins = set.twohot.bins();
-        let (later, now) = (&self.states[n * f..], &self.states[..hn * f]);
+        let nz = &self.non_zeros;
+        let later = nz.rows(&self.states[n * f..], n..hn + n);
+        let now = nz.rows(&self.states[..hn * f], 0..hn);
         // the states' gradients from the reward head and the critic (frozen), s_1 … s_H
         let d_states = sized(&mut self.d_states, (h + 1) * n * f);
         let d_logits = sized(&mut self.d_logits, hn * k);

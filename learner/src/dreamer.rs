@@ -211,12 +211,13 @@ impl Dreamer {
     /// One actor and one critic step on imagined trajectories from each shard's `starts`
     /// ([`crate::behaviour`]): the shards imagine in parallel, the return scale is updated with
     /// every shard's returns, then the shards' backward passes run in parallel and their
-    /// gradients are summed.
+    /// gradients are summed. `phase` marks the end of imagination (the forward passes).
     fn behaviour_step(
         &mut self,
         starts: &[Starts],
         rngs: &mut [ChaCha8Rng],
         metrics: &mut Metrics,
+        phase: &mut dyn FnMut(&mut Metrics, &str),
     ) -> Result<()> {
         let heads = (&self.world_model.reward, &self.world_model.cont);
         let critics = (&self.critic, &self.slow_critic);
@@ -238,12 +239,12 @@ impl Dreamer {
                 Ok(shard.weight)
             },
         )?;
+        phase(metrics, "imagination");
         let all_returns: Vec<f32> = work.iter().flat_map(|im| im.returns().to_vec()).collect();
         self.return_norm.update(&all_returns);
         let scale = self.return_norm.scale();
         let parts = in_parallel(&mut work[..shares.len()], |i, im| {
-            let r = im.backward(&nets, &set, scale as f32, shares[i] as f32);
-            Ok(r)
+            Ok(im.backward(&nets, &set, scale as f32, shares[i] as f32))
         })?;
         self.imaginations = work;
         let (mut actor, mut critic) = (nets.actor.zero_grads(), nets.critic.zero_grads());
@@ -349,8 +350,8 @@ impl Algorithm for Dreamer {
             .world_model
             .step(seq, &ctx, self.workers, &mut rngs, &mut metrics)?;
         phase_flops(&mut metrics, "model");
-        self.behaviour_step(&starts, &mut rngs, &mut metrics)?;
-        phase_flops(&mut metrics, "behaviour");
+        self.behaviour_step(&starts, &mut rngs, &mut metrics, &mut phase_flops)?;
+        phase_flops(&mut metrics, "actor_critic");
         if let (Some(sac), Some(actor), Some(masks)) = (&mut self.mask_sac, &self.nets.mask, &masks)
         {
             metrics.insert("mask/mean".into(), scalar(&masks.mean_all()?)?);

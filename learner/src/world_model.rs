@@ -27,7 +27,7 @@ use candle_core::Result;
 use ctxrace_common::agents::DreamerConfig;
 use ctxrace_common::nn::plain::{
     categorical_kl, categorical_kl_backward, soft_cross_entropy, soft_cross_entropy_backward,
-    InputGrad, MlpGrads, MlpTrace, ObserveTrace, PlainMlp, PlainRssm, RssmGrads,
+    InputGrad, MlpGrads, MlpTrace, NonZeros, ObserveTrace, PlainMlp, PlainRssm, RssmGrads,
 };
 use ctxrace_common::nn::{Activation, Mlp, ParamStore, Rssm, TwoHot};
 use ctxrace_common::policy::{uniform_rows, DreamerNets};
@@ -121,8 +121,9 @@ struct ShardWork {
     encoder: MlpTrace,
     observe: ObserveTrace,
     prior: MlpTrace,
-    /// The heads' input `[h, z, c]` `[N, F]`.
+    /// The heads' input `[h, z, c]` `[N, F]` and the non-zeros of its `z`.
     x: Vec<f32>,
+    x_non_zeros: NonZeros,
     decoder: MlpTrace,
     reward_head: MlpTrace,
     cont_head: MlpTrace,
@@ -310,13 +311,15 @@ impl WorldModel {
             row[d..d + z].copy_from_slice(&zs[i * z..(i + 1) * z]);
             row[d + z..].copy_from_slice(&w.ctx[i * c..(i + 1) * c]);
         }
+        w.x_non_zeros.reset(d..d + z);
+        w.x_non_zeros.push(&w.x, f);
         for (net, trace) in [
             (&nets.decoder, &mut w.decoder),
             (&nets.reward, &mut w.reward_head),
             (&nets.cont, &mut w.cont_head),
         ] {
             net.fit(trace, n);
-            net.forward(&w.x, trace, 0..n);
+            net.forward(w.x_non_zeros.rows(&w.x, 0..n), trace, 0..n);
         }
         // the losses per row, and each one's gradient: share / N each
         let g = (share / n as f64) as f32;
@@ -334,7 +337,7 @@ impl WorldModel {
         }
         let dec_grads = Some(&mut grads.decoder);
         nets.decoder.backward(
-            &w.x,
+            w.x_non_zeros.rows(&w.x, 0..n),
             &mut w.decoder,
             0..n,
             d_out,
@@ -352,7 +355,7 @@ impl WorldModel {
         soft_cross_entropy_backward(logits, &w.targets, &vec![pred_g; n], d_out);
         let rew_grads = Some(&mut grads.reward);
         nets.reward.backward(
-            &w.x,
+            w.x_non_zeros.rows(&w.x, 0..n),
             &mut w.reward_head,
             0..n,
             d_out,
@@ -369,7 +372,7 @@ impl WorldModel {
         }
         let cont_grads = Some(&mut grads.cont);
         nets.cont.backward(
-            &w.x,
+            w.x_non_zeros.rows(&w.x, 0..n),
             &mut w.cont_head,
             0..n,
             d_out,

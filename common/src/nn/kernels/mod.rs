@@ -250,7 +250,7 @@ pub(crate) use categorical::{kl_rows, kl_rows_bwd, probs_rows_bwd, sample_rows, 
 pub(crate) use gru::{gru_rows, gru_rows_bwd};
 pub(crate) use linear::{column_sums, count_flops, dense_parts, gemm_into, Operand};
 pub(crate) use norm_act::{norm_act_rows_bwd_into, norm_act_rows_into, Norm};
-pub(crate) use sparse_inputs::SparseColumns;
+pub(crate) use sparse_inputs::{SparseColumns, SparseRows};
 pub(crate) use twohot::{cross_entropy_rows, cross_entropy_rows_bwd, decode_rows, decode_rows_bwd};
 
 #[cfg(test)]

@@ -23,6 +23,7 @@ pub(super) const MAX_DENSITY: f64 = 0.125;
 
 /// The non-zeros of the columns `a..b` of a row-major matrix, row by row (compressed rows), the
 /// columns counted from `a`.
+#[derive(Debug)]
 pub(crate) struct SparseColumns {
     /// Row `i`'s non-zeros are `starts[i]..starts[i + 1]` of `columns` and `values`.
     starts: Vec<usize>,
@@ -65,6 +66,15 @@ impl SparseColumns {
         Some(sparse)
     }
 
+    /// No rows yet (for [`SparseColumns::append`]).
+    pub(crate) fn empty() -> Self {
+        Self {
+            starts: vec![0],
+            columns: Vec::new(),
+            values: Vec::new(),
+        }
+    }
+
     /// The number of non-zeros.
     pub(crate) fn nonzeros(&self) -> usize {
         self.values.len()
@@ -72,12 +82,66 @@ impl SparseColumns {
 
     /// `y_i += Σ x_ic Wᵀ_c` for `y` `[rows, out]` and `wt` the rows of `Wᵀ` of the columns.
     pub(crate) fn add_products(&self, wt: &[f32], out: usize, y: &mut [f32]) {
-        add_row_products(&self.starts, &self.columns, &self.values, wt, out, y);
+        self.all().add_products(wt, out, y);
     }
 
     /// `dWᵀ_c += Σ_i x_ic g_i` for `g` `[rows, out]` and `dwt` the rows of `dWᵀ` of the columns.
     pub(crate) fn add_weight_grads(&self, g: &[f32], out: usize, dwt: &mut [f32]) {
-        add_column_grads(&self.starts, &self.columns, &self.values, g, out, dwt);
+        self.all().add_weight_grads(g, out, dwt);
+    }
+
+    /// The rows `r`.
+    pub(crate) fn rows(&self, r: std::ops::Range<usize>) -> SparseRows<'_> {
+        SparseRows {
+            starts: &self.starts[r.start..=r.end],
+            columns: &self.columns,
+            values: &self.values,
+        }
+    }
+
+    /// Every row.
+    fn all(&self) -> SparseRows<'_> {
+        self.rows(0..self.starts.len() - 1)
+    }
+
+    /// The number of rows.
+    pub(crate) fn row_count(&self) -> usize {
+        self.starts.len() - 1
+    }
+
+    /// `other`'s rows after these.
+    pub(crate) fn append(&mut self, other: &Self) {
+        let base = self.values.len();
+        self.starts
+            .extend(other.starts[1..].iter().map(|s| s + base));
+        self.columns.extend_from_slice(&other.columns);
+        self.values.extend_from_slice(&other.values);
+    }
+}
+
+/// Some consecutive rows of a [`SparseColumns`].
+#[derive(Clone, Copy)]
+pub(crate) struct SparseRows<'a> {
+    /// Row `i`'s non-zeros are `starts[i]..starts[i + 1]` of `columns` and `values`.
+    starts: &'a [usize],
+    columns: &'a [usize],
+    values: &'a [f32],
+}
+
+impl SparseRows<'_> {
+    /// The number of non-zeros.
+    pub(crate) fn nonzeros(&self) -> usize {
+        self.starts[self.starts.len() - 1] - self.starts[0]
+    }
+
+    /// `y_i += Σ x_ic Wᵀ_c` for `y` `[rows, out]` and `wt` the rows of `Wᵀ` of the columns.
+    pub(crate) fn add_products(&self, wt: &[f32], out: usize, y: &mut [f32]) {
+        add_row_products(self.starts, self.columns, self.values, wt, out, y);
+    }
+
+    /// `dWᵀ_c += Σ_i x_ic g_i` for `g` `[rows, out]` and `dwt` the rows of `dWᵀ` of the columns.
+    pub(crate) fn add_weight_grads(&self, g: &[f32], out: usize, dwt: &mut [f32]) {
+        add_column_grads(self.starts, self.columns, self.values, g, out, dwt);
     }
 }
 

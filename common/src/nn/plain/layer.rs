@@ -10,7 +10,7 @@
 
 use crate::nn::kernels::{
     column_sums, count_flops, dense_parts, gemm_into, norm_act_rows_bwd_into, norm_act_rows_into,
-    Norm, NormAct, Operand, SparseColumns,
+    Norm, NormAct, Operand, SparseColumns, SparseRows,
 };
 use crate::nn::{Activation, Dense, LayerNorm, Mlp};
 use candle_core::backprop::GradStore;
@@ -64,11 +64,87 @@ pub struct PlainLayer {
 }
 
 /// How a layer multiplies an input ([`PlainLayer::split_inputs`]).
-struct InputSplit {
+struct InputSplit<'a> {
     /// Column ranges multiplied by gemm.
     dense: Vec<Range<usize>>,
     /// The sparse columns and their non-zeros.
-    sparse: Option<(Range<usize>, SparseColumns)>,
+    sparse: Option<(Range<usize>, Found<'a>)>,
+}
+
+/// The non-zeros of an input's sparse columns: given with it, or gathered by the layer.
+enum Found<'a> {
+    Given(SparseRows<'a>),
+    Gathered(SparseColumns),
+}
+
+impl Found<'_> {
+    fn rows(&self) -> SparseRows<'_> {
+        match self {
+            Found::Given(r) => *r,
+            Found::Gathered(g) => g.rows(0..g.row_count()),
+        }
+    }
+}
+
+/// Rows of a layer's input: their values and, if found once already for every layer that
+/// reads them ([`NonZeros`]), the non-zeros of some of their columns.
+#[derive(Clone, Copy)]
+pub struct Rows<'a> {
+    values: &'a [f32],
+    non_zeros: Option<(&'a Range<usize>, SparseRows<'a>)>,
+}
+
+impl<'a> From<&'a [f32]> for Rows<'a> {
+    fn from(values: &'a [f32]) -> Self {
+        Self {
+            values,
+            non_zeros: None,
+        }
+    }
+}
+
+impl<'a> From<&'a Vec<f32>> for Rows<'a> {
+    fn from(values: &'a Vec<f32>) -> Self {
+        values.as_slice().into()
+    }
+}
+
+/// The non-zeros of some columns of a matrix whose rows many layers read (the states of an
+/// imagination and their one-hot `z`), found once, block of rows by block as they are written,
+/// instead of by each layer that reads them.
+#[derive(Debug, Default)]
+pub struct NonZeros {
+    columns: Range<usize>,
+    /// `None` when a block was too dense (the layers then find their own).
+    found: Option<SparseColumns>,
+}
+
+impl NonZeros {
+    /// Starts over, for the columns `columns`.
+    pub fn reset(&mut self, columns: Range<usize>) {
+        self.columns = columns;
+        self.found = Some(SparseColumns::empty());
+    }
+
+    /// Finds the non-zeros of the next rows, `x` (`[rows, width]`).
+    pub fn push(&mut self, x: &[f32], width: usize) {
+        if let Some(found) = &mut self.found {
+            match SparseColumns::gather(x, width, &self.columns) {
+                Some(block) => found.append(&block),
+                None => self.found = None,
+            }
+        }
+    }
+
+    /// The rows `r` (counted as pushed) with their values `values`.
+    pub fn rows<'a>(&'a self, values: &'a [f32], r: Range<usize>) -> Rows<'a> {
+        let non_zeros = self
+            .found
+            .as_ref()
+            .filter(|f| r.end <= f.row_count())
+            .map(|f| (&self.columns, f.rows(r)));
+        Rows { values, non_zeros }
+    }
 }
 
 /// The transpose `[cols, rows]` of the row-major `[rows, cols]` matrix `m`, in tiles that stay in
@@ -158,12 +234,15 @@ impl PlainLayer {
 
     /// How the layer multiplies `x`: the columns through gemm, and the sparse ones with their
     /// non-zeros (if the layer has such columns and they are sparse enough in `x`).
-    fn split_inputs(&self, x: &[f32]) -> InputSplit {
+    fn split_inputs<'a>(&self, x: Rows<'a>) -> InputSplit<'a> {
         let k = self.inputs;
-        let sparse = self
-            .sparse
-            .as_ref()
-            .and_then(|c| Some((c.clone(), SparseColumns::gather(x, k, c)?)));
+        let sparse = self.sparse.as_ref().and_then(|c| match x.non_zeros {
+            Some((columns, given)) if columns == c => Some((c.clone(), Found::Given(given))),
+            _ => Some((
+                c.clone(),
+                Found::Gathered(SparseColumns::gather(x.values, k, c)?),
+            )),
+        });
         let dense = match &sparse {
             Some((columns, _)) => dense_parts(k, columns).collect(),
             None => std::iter::once(0..k).collect(),
@@ -173,7 +252,10 @@ impl PlainLayer {
 
     /// `product ← x Wᵀ + b` and (if something follows) `output ← after(product)` for the rows
     /// of `x`.
-    pub fn forward(&self, x: &[f32], product: &mut [f32], output: &mut [f32]) {
+    pub fn forward<'a>(&self, x: impl Into<Rows<'a>>, product: &mut [f32], output: &mut [f32]) {
+        let x = x.into();
+        let InputSplit { dense, sparse } = self.split_inputs(x);
+        let x = x.values;
         let (k, m) = (self.inputs, self.outputs);
         let rows = x.len() / k.max(1);
         let product = &mut product[..rows * m];
@@ -184,7 +266,6 @@ impl PlainLayer {
                 .for_each(|r| r.copy_from_slice(b));
             started = true;
         }
-        let InputSplit { dense, sparse } = self.split_inputs(x);
         for part in dense {
             let xs = Operand {
                 data: &x[part.start..],
@@ -199,7 +280,7 @@ impl PlainLayer {
             if !started {
                 product.fill(0.0);
             }
-            let wt = &self.wt[columns.start * m..columns.end * m];
+            let (wt, sparse) = (&self.wt[columns.start * m..columns.end * m], sparse.rows());
             sparse.add_products(wt, m, product);
             count_flops(2 * m * sparse.nonzeros());
         }
@@ -237,10 +318,12 @@ impl PlainLayer {
     }
 
     /// `∂W += dpᵀ x` (and `∂b += Σ dp`) into `grads`, for the rows of `x` and `dp`.
-    pub fn add_weight_grads(&self, x: &[f32], dp: &[f32], grads: &mut LayerGrads) {
+    pub fn add_weight_grads<'a>(&self, x: impl Into<Rows<'a>>, dp: &[f32], grads: &mut LayerGrads) {
         let (k, m) = (self.inputs, self.outputs);
         let rows = dp.len() / m;
+        let x = x.into();
         let InputSplit { dense, sparse } = self.split_inputs(x);
+        let x = x.values;
         let dpt = Operand::transposed(dp, m);
         for part in dense {
             let xs = Operand {
@@ -255,6 +338,7 @@ impl PlainLayer {
             let block = grads
                 .sparse_wt
                 .get_or_insert_with(|| vec![0f32; columns.len() * m]);
+            let sparse = sparse.rows();
             sparse.add_weight_grads(dp, m, block);
             count_flops(2 * m * sparse.nonzeros());
         }
@@ -452,12 +536,13 @@ impl PlainMlp {
     }
 
     /// The network on the rows of `x`, kept as the rows `rows` of `trace`.
-    pub fn forward(&self, x: &[f32], trace: &mut MlpTrace, rows: Range<usize>) {
+    pub fn forward<'a>(&self, x: impl Into<Rows<'a>>, trace: &mut MlpTrace, rows: Range<usize>) {
+        let x = x.into();
         for (i, layer) in self.layers.iter().enumerate() {
             // this layer's buffers, and the layers' below it to read its input from
             let (products_below, products) = trace.products.split_at_mut(i);
             let (outputs_below, outputs) = trace.outputs.split_at_mut(i);
-            let input: &[f32] = match i.checked_sub(1) {
+            let input: Rows = match i.checked_sub(1) {
                 None => x,
                 Some(j) => {
                     let below = &self.layers[j];
@@ -466,7 +551,7 @@ impl PlainMlp {
                     } else {
                         &products_below[j]
                     };
-                    &kept[rows.start * below.outputs..rows.end * below.outputs]
+                    kept[rows.start * below.outputs..rows.end * below.outputs].into()
                 }
             };
             let span = rows.start * layer.outputs..rows.end * layer.outputs;
@@ -490,9 +575,9 @@ impl PlainMlp {
     /// The backward pass over the rows `rows` of `trace` (whose input rows are `x`) from the
     /// output's gradient `dy`: the parameters' gradients added to `grads`, if given, and the
     /// input's gradient in `dx.columns`, if asked.
-    pub fn backward(
+    pub fn backward<'a>(
         &self,
-        x: &[f32],
+        x: impl Into<Rows<'a>>,
         trace: &mut MlpTrace,
         rows: Range<usize>,
         dy: &[f32],
@@ -502,6 +587,7 @@ impl PlainMlp {
         let Some(last) = self.layers.len().checked_sub(1) else {
             return;
         };
+        let x = x.into();
         let n = rows.len();
         let mut cur = std::mem::take(&mut trace.grad_out);
         let mut next = std::mem::take(&mut trace.grad_in);
@@ -533,7 +619,7 @@ impl PlainMlp {
             if let Some(gr) = grads.as_deref_mut() {
                 let input = match i.checked_sub(1) {
                     None => x,
-                    Some(j) => self.layer_output(trace, j, rows.clone()),
+                    Some(j) => self.layer_output(trace, j, rows.clone()).into(),
                 };
                 layer.add_weight_grads(input, dp, &mut gr.layers[i]);
             }

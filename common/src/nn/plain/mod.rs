@@ -16,7 +16,7 @@
 mod layer;
 mod rssm;
 
-pub use layer::{InputGrad, LayerGrads, MlpGrads, MlpTrace, PlainLayer, PlainMlp};
+pub use layer::{InputGrad, LayerGrads, MlpGrads, MlpTrace, NonZeros, PlainLayer, PlainMlp, Rows};
 pub use rssm::{ObserveTrace, PlainRssm, RssmGrads, StepScratch, StepTrace};
 
 use super::kernels::{
