@@ -15,30 +15,33 @@
 //! π(m' | o'))`, `m' ~ π(· | o')`; actor `α log π(m̃ | o) − min_i Q_i(o, m̃)` with a fresh
 //! `m̃ ~ π(· | o)`; temperature `−log α · (log π + H̄)`. Each worker's shard of sequences sums its
 //! part of a mean (divided by the batch's count of valid transitions) and differentiates it in
-//! parallel ([`crate::shards`]).
+//! parallel ([`crate::shards`]), by hand on plain buffers with SAC's passes
+//! ([`crate::sac::Workspace`]), each transition weighted by `valid / count`.
 
 use crate::adam::Adam;
 use crate::algorithm::{scalar, Metrics};
-use crate::sac::{polyak, TwinQ};
+use crate::sac::{polyak, ActionRange, PassSum, SoftTarget, TwinQ, WeightedTransitions, Workspace};
 use crate::sequences::SeqData;
-use crate::shards::{on_shards, Shard};
-use candle_core::{bail, Result, Tensor};
+use crate::shards::{on_shards_with, Shard};
+use candle_core::backprop::GradStore;
+use candle_core::{bail, Device, Result, Tensor};
 use candle_nn::Init;
 use ctxrace_common::agents::{DreamerConfig, MaskConfig, CONTEXT_DIM};
+use ctxrace_common::nn::plain::PlainMlp;
 use ctxrace_common::nn::{ParamStore, TanhGaussianActor};
-use ctxrace_common::policy::{mask_sample, normals_per};
+use ctxrace_common::policy::normal_rows;
 use rand_chacha::ChaCha8Rng;
 
 /// The mask SAC's transitions `(o_t, m_t, r_{t+1}, o_{t+1}, terminal_{t+1})` for `t < T − 1`,
-/// each `[B·(T−1), …]`, `m_t` the stored mask that acted at `o_t`, with `valid = 0` where
+/// row-major `[B·(T−1), …]`, `m_t` the stored mask that acted at `o_t`, with `valid = 0` where
 /// `o_{t+1}` starts a new episode or no mask chose the action at `o_t`.
 pub(crate) struct Transitions {
-    obs: Tensor,
-    mask: Tensor,
-    reward: Tensor,
-    next_obs: Tensor,
-    terminal: Tensor,
-    valid: Tensor,
+    obs: Vec<f32>,
+    mask: Vec<f32>,
+    reward: Vec<f32>,
+    next_obs: Vec<f32>,
+    terminal: Vec<f32>,
+    valid: Vec<f32>,
 }
 
 impl Transitions {
@@ -49,15 +52,14 @@ impl Transitions {
         if t < 2 {
             return Ok(None);
         }
-        let n = b * (t - 1);
-        let span = |x: &Tensor, start: usize| x.narrow(1, start, t - 1)?.reshape((n, ()));
+        let span = |x: &Tensor, start: usize| x.narrow(1, start, t - 1)?.flatten_all()?.to_vec1();
         Ok(Some(Self {
             obs: span(&d.obs, 0)?,
             mask: span(&d.mask, 1)?,
-            reward: span(&d.reward, 1)?.flatten_all()?,
+            reward: span(&d.reward, 1)?,
             next_obs: span(&d.obs, 1)?,
-            terminal: span(&d.terminal, 1)?.flatten_all()?,
-            valid: Self::valid(d, 0..b)?,
+            terminal: span(&d.terminal, 1)?,
+            valid: Self::valid(d, 0..b)?.to_vec1()?,
         }))
     }
 
@@ -71,6 +73,23 @@ impl Transitions {
         (1.0 - next(&d.first)?)?
             .mul(&next(&d.has_mask)?)?
             .flatten_all()
+    }
+
+    /// The transitions with `weight` per row.
+    fn weighted<'a>(&'a self, weight: &'a [f32]) -> WeightedTransitions<'a> {
+        WeightedTransitions {
+            obs: &self.obs,
+            action: &self.mask,
+            reward: &self.reward,
+            next_obs: &self.next_obs,
+            terminal: &self.terminal,
+            weight,
+        }
+    }
+
+    /// Each row's share of a mean over the batch's `count` valid transitions.
+    fn weights(&self, count: f32) -> Vec<f32> {
+        self.valid.iter().map(|v| v / count).collect()
     }
 }
 
@@ -86,6 +105,16 @@ pub(crate) struct MaskSac {
     pub(crate) critic_opt: Adam,
     pub(crate) alpha_opt: Adam,
     cfg: MaskConfig,
+    /// The buffers of each shard's passes.
+    work: Vec<Workspace>,
+}
+
+/// What a step's passes share: the batch, the temperature and the count of valid transitions.
+#[derive(Clone, Copy)]
+struct StepData<'a> {
+    d: &'a SeqData,
+    alpha: f32,
+    count: f32,
 }
 
 impl MaskSac {
@@ -127,6 +156,7 @@ impl MaskSac {
             q_target,
             log_alpha,
             cfg: m.clone(),
+            work: Vec::new(),
         })
     }
 
@@ -146,11 +176,10 @@ impl MaskSac {
         if d.length < 2 {
             return Ok(());
         }
-        let per_sequence = d.length - 1;
         let valid_count = scalar(&Transitions::valid(d, 0..d.batch)?.sum_all()?)?;
-        let alpha = self.log_alpha.exp()?.detach();
+        let alpha = scalar(&self.log_alpha.exp()?.sum_all()?)?;
         metrics.insert("mask/acted_transitions".into(), valid_count);
-        metrics.insert("mask/alpha".into(), scalar(&alpha.sum_all()?)?);
+        metrics.insert("mask/alpha".into(), alpha);
         if valid_count == 0.0 {
             // the losses over no transitions are zero; nothing is stepped
             for key in ["mask/q_loss", "mask/actor_loss", "mask/entropy"] {
@@ -158,68 +187,122 @@ impl MaskSac {
             }
             return Ok(());
         }
-        let count = valid_count;
-        let shard_transitions = |shard: &Shard| -> Result<Transitions> {
-            Transitions::new(&d.sequences(&shard.rows)?)?
-                .ok_or_else(|| candle_core::Error::Msg("no transitions".into()))
+        let data = StepData {
+            d,
+            alpha: alpha as f32,
+            count: valid_count as f32,
         };
-        // the part of a batch mean that a shard's transitions contribute
-        let part = |x: &Tensor, tr: &Transitions| -> Result<Tensor> {
-            x.mul(&tr.valid)?.sum_all()? / count
-        };
-
-        let this = &*self;
-        let critic_parts = on_shards(workers, d.batch, rngs, |shard, rngs| {
-            let tr = shard_transitions(&shard)?;
-            let noise = normals_per(rngs, per_sequence, CONTEXT_DIM)?;
-            let (next_m, next_logp) = mask_sample(actor, &tr.next_obs, &noise)?;
-            let soft_next =
-                (this.q_target.min(&tr.next_obs, &next_m)? - next_logp.broadcast_mul(&alpha)?)?;
-            let keep = ((1.0 - &tr.terminal)? * this.cfg.gamma)?;
-            let target = (&tr.reward + keep.mul(&soft_next)?)?.detach();
-            let (q1, q2) = this.q.forward(&tr.obs, &tr.mask)?;
-            let q_loss = part(&((q1 - &target)?.sqr()? + (q2 - &target)?.sqr()?)?, &tr)?;
-            Ok((scalar(&q_loss)?, q_loss.backward()?))
-        })?;
-        let (q_losses, grads): (Vec<f64>, Vec<_>) = critic_parts.into_iter().unzip();
-        self.critic_opt.step_sum(&grads)?;
-
-        let this = &*self;
-        let actor_parts = on_shards(workers, d.batch, rngs, |shard, rngs| {
-            let tr = shard_transitions(&shard)?;
-            let noise = normals_per(rngs, per_sequence, CONTEXT_DIM)?;
-            let (m, logp) = mask_sample(actor, &tr.obs, &noise)?;
-            let q = this.q.min(&tr.obs, &m)?;
-            let actor_loss = part(&(logp.broadcast_mul(&alpha)? - q)?, &tr)?;
-            let logp_part = scalar(&part(&logp.detach(), &tr)?)?;
-            Ok((scalar(&actor_loss)?, logp_part, actor_loss.backward()?))
-        })?;
-        let mut grads = Vec::with_capacity(actor_parts.len());
-        let (mut actor_loss, mut mean_logp) = (0.0, 0.0);
-        for (loss, logp, g) in actor_parts {
-            actor_loss += loss;
-            mean_logp += logp;
-            grads.push(g);
-        }
-        self.actor_opt.step_sum(&grads)?;
+        let plain_actor = PlainMlp::new(actor.net())?;
+        let (grads, q_loss) = self.critic_grads(&plain_actor, data, workers, rngs)?;
+        self.critic_opt.step(&grads)?;
+        let (grads, actor_loss, mean_logp) =
+            self.actor_grads(actor, &plain_actor, data, workers, rngs)?;
+        self.actor_opt.step(&grads)?;
 
         // temperature: minimise −log α · mean(log π + target entropy) over the valid transitions
-        let gap = mean_logp + self.cfg.target_entropy;
-        let alpha_loss = (self.log_alpha.sum_all()? * -gap)?;
-        self.alpha_opt.minimise(&alpha_loss)?;
+        let gap = (mean_logp + self.cfg.target_entropy) as f32;
+        let mut grads = GradStore::default();
+        grads.insert(&self.log_alpha, Tensor::new(&[-gap], &Device::Cpu)?);
+        self.alpha_opt.step(&grads)?;
         polyak(&self.target_store, &self.critic_store, self.cfg.tau)?;
 
-        metrics.insert("mask/q_loss".into(), q_losses.iter().sum());
+        metrics.insert("mask/q_loss".into(), q_loss);
         metrics.insert("mask/actor_loss".into(), actor_loss);
         metrics.insert("mask/entropy".into(), -mean_logp);
         Ok(())
+    }
+
+    /// Runs `pass` on each shard's transitions (their weights, and the masks' noise drawn from
+    /// the shard's sequences' streams), one shard per worker in parallel, and sums the results.
+    fn on_transitions<T: PassSum + Send>(
+        &mut self,
+        (d, count): (&SeqData, f32),
+        workers: usize,
+        rngs: &mut [ChaCha8Rng],
+        pass: impl Fn(&mut Workspace, &Transitions, &[f32], &[f32]) -> T + Sync,
+    ) -> Result<T> {
+        self.work
+            .resize_with(workers.clamp(1, d.batch.max(1)), Workspace::default);
+        let per_sequence = d.length - 1;
+        let parts = on_shards_with(
+            workers,
+            d.batch,
+            rngs,
+            &mut self.work,
+            |shard: Shard, rngs, w| {
+                let tr = Transitions::new(&d.sequences(&shard.rows)?)?
+                    .ok_or_else(|| candle_core::Error::Msg("no transitions".into()))?;
+                let noise = normal_rows(rngs, per_sequence, CONTEXT_DIM);
+                Ok(pass(w, &tr, &tr.weights(count), &noise))
+            },
+        )?;
+        let mut parts = parts.into_iter();
+        let Some(mut sum) = parts.next() else {
+            bail!("the mask SAC's batch has no shards");
+        };
+        for part in parts {
+            sum.add(&part);
+        }
+        Ok(sum)
+    }
+
+    /// The critics' gradients of their loss over the valid transitions of `data.d` (the next
+    /// masks drawn from `actor`, this actor's copy) and the loss.
+    fn critic_grads(
+        &mut self,
+        actor: &PlainMlp,
+        data: StepData,
+        workers: usize,
+        rngs: &mut [ChaCha8Rng],
+    ) -> Result<(GradStore, f64)> {
+        let (critics, targets) = (self.q.plain()?, self.q_target.plain()?);
+        let soft = SoftTarget {
+            alpha: data.alpha,
+            gamma: self.cfg.gamma as f32,
+            range: ActionRange::UNIT,
+        };
+        let nets = (&critics, &targets, actor);
+        let sum = self.on_transitions(
+            (data.d, data.count),
+            workers,
+            rngs,
+            |w, tr, weight, noise| w.critic_pass(nets, &tr.weighted(weight), noise, soft),
+        )?;
+        let mut grads = GradStore::default();
+        self.q.add_grads_to(&critics, &sum.grads, &mut grads)?;
+        Ok((grads, sum.loss))
+    }
+
+    /// The mask actor's gradients of its loss over the valid transitions of `data.d` through
+    /// the current critics (`plain` is `actor`'s copy): `(gradients, loss, mean log π)`.
+    fn actor_grads(
+        &mut self,
+        actor: &TanhGaussianActor,
+        plain: &PlainMlp,
+        data: StepData,
+        workers: usize,
+        rngs: &mut [ChaCha8Rng],
+    ) -> Result<(GradStore, f64, f64)> {
+        let critics = self.q.plain()?;
+        let with = (data.alpha, ActionRange::UNIT);
+        let sum = self.on_transitions(
+            (data.d, data.count),
+            workers,
+            rngs,
+            |w, tr, weight, noise| w.actor_pass((&critics, plain), (&tr.obs, weight), noise, with),
+        )?;
+        let mut grads = GradStore::default();
+        plain.add_grads_to(&sum.grads, actor.net(), &mut grads)?;
+        Ok((grads, sum.loss, sum.log_prob))
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use ctxrace_common::policy::mask_sample;
     use ctxrace_common::SequenceBatch;
+    use rand::{Rng, SeedableRng};
 
     #[test]
     fn sac_transitions_take_the_reward_and_mask_of_their_own_step() {
@@ -240,13 +323,149 @@ mod tests {
         };
         let d = SeqData::new(&seq, 1, 1).unwrap();
         let tr = Transitions::new(&d).unwrap().unwrap();
-        let v = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
-        assert_eq!(v(&tr.obs), [0.0, 1.0, 2.0]);
-        assert_eq!(v(&tr.mask), [0.3, 0.4, 0.0, 0.0, 0.7, 0.8]);
-        assert_eq!(v(&tr.reward), [10.0, 20.0, 30.0]);
-        assert_eq!(v(&tr.next_obs), [1.0, 2.0, 3.0]);
-        assert_eq!(v(&tr.terminal), [1.0, 0.0, 0.0]);
+        assert_eq!(tr.obs, [0.0, 1.0, 2.0]);
+        assert_eq!(tr.mask, [0.3, 0.4, 0.0, 0.0, 0.7, 0.8]);
+        assert_eq!(tr.reward, [10.0, 20.0, 30.0]);
+        assert_eq!(tr.next_obs, [1.0, 2.0, 3.0]);
+        assert_eq!(tr.terminal, [1.0, 0.0, 0.0]);
         // o_2 starts a new episode; no mask chose the action into o_3
-        assert_eq!(v(&tr.valid), [1.0, 0.0, 0.0]);
+        assert_eq!(tr.valid, [1.0, 0.0, 0.0]);
+    }
+
+    /// `(critic loss, actor loss)` of the module doc composed of candle operations over the
+    /// whole batch, autograd's statement of what the sharded passes differentiate by hand.
+    fn candle_losses(
+        sac: &MaskSac,
+        actor: &TanhGaussianActor,
+        d: &SeqData,
+        (next_noise, noise): (&[f32], &[f32]),
+        alpha: f64,
+    ) -> Result<(Tensor, Tensor)> {
+        let (b, t) = (d.batch, d.length);
+        let n = b * (t - 1);
+        let span = |x: &Tensor, start: usize| x.narrow(1, start, t - 1)?.reshape((n, ()));
+        let (obs, next_obs, mask) = (span(&d.obs, 0)?, span(&d.obs, 1)?, span(&d.mask, 1)?);
+        let reward = span(&d.reward, 1)?.flatten_all()?;
+        let terminal = span(&d.terminal, 1)?.flatten_all()?;
+        let valid = Transitions::valid(d, 0..b)?;
+        let count = valid.sum_all()?;
+        let mean = |x: &Tensor| x.mul(&valid)?.sum_all()?.div(&count);
+        let noise_of = |v: &[f32]| Tensor::from_slice(v, (n, CONTEXT_DIM), &Device::Cpu);
+        let (next_m, next_logp) = mask_sample(actor, &next_obs, &noise_of(next_noise)?)?;
+        let soft = (sac.q_target.min(&next_obs, &next_m)? - (next_logp * alpha)?)?;
+        let keep = ((1.0 - terminal)? * sac.cfg.gamma)?;
+        let y = (reward + keep.mul(&soft)?)?.detach();
+        let (q1, q2) = sac.q.forward(&obs, &mask)?;
+        let critic = mean(&((q1 - &y)?.sqr()? + (q2 - &y)?.sqr()?)?)?;
+        let (m, logp) = mask_sample(actor, &obs, &noise_of(noise)?)?;
+        let actor_loss = mean(&((logp * alpha)? - sac.q.min(&obs, &m)?)?)?;
+        Ok((critic, actor_loss))
+    }
+
+    /// The sharded, hand-differentiated critic and actor gradients are those of the candle
+    /// composition over the whole batch, whatever the number of shards.
+    #[test]
+    fn the_step_differentiates_the_candle_composition() {
+        let (b, t, o) = (4, 6, 3);
+        let mut rng = ChaCha8Rng::seed_from_u64(8);
+        let mut u = |lo: f32, hi: f32| rng.random_range(lo..hi);
+        let seq = SequenceBatch {
+            batch: b,
+            length: t,
+            obs_dim: o,
+            act_dim: 1,
+            obs: (0..b * t * o).map(|_| u(-1.0, 1.0)).collect(),
+            action: vec![0.0; b * t],
+            reward: (0..b * t).map(|_| u(-1.0, 1.0)).collect(),
+            // a second episode starts inside sequence 1; sequence 2 ends in a terminal
+            is_first: (0..b * t)
+                .map(|k| f32::from(k % t == 0 || k == t + 3))
+                .collect(),
+            is_terminal: (0..b * t).map(|k| f32::from(k == 2 * t + 4)).collect(),
+            context: vec![0.3; b * t * 2],
+            mask: (0..b * t * 2).map(|_| u(0.0, 1.0)).collect(),
+            // the random prefill of sequence 3 chose no masks
+            has_mask: (0..b * t)
+                .map(|k| f32::from(k % t != 0 && k / t != 3))
+                .collect(),
+        };
+        let d = SeqData::new(&seq, o, 1).unwrap();
+        let cfg = DreamerConfig {
+            mask: MaskConfig {
+                units: 16,
+                ..MaskConfig::default()
+            },
+            ..DreamerConfig::default()
+        };
+        let policy = ParamStore::new();
+        let actor =
+            TanhGaussianActor::new(o, CONTEXT_DIM, 16, 2, policy.builder().pp("mask")).unwrap();
+        policy.init(5).unwrap();
+        let mut sac = MaskSac::new(&cfg, o, &policy).unwrap();
+        let streams = |seed: u64| -> Vec<ChaCha8Rng> {
+            (0..b as u64)
+                .map(|i| {
+                    let mut r = ChaCha8Rng::seed_from_u64(seed);
+                    r.set_stream(i);
+                    r
+                })
+                .collect()
+        };
+        // critics and targets apart, so that the target path weighs
+        for k in 0..3 {
+            sac.step(&actor, &d, 2, &mut streams(k), &mut Metrics::new())
+                .unwrap();
+        }
+        let alpha = 0.25;
+        let mut draws = streams(99);
+        let next_noise = normal_rows(&mut draws, t - 1, CONTEXT_DIM);
+        let noise = normal_rows(&mut draws, t - 1, CONTEXT_DIM);
+        let (critic, actor_loss) =
+            candle_losses(&sac, &actor, &d, (&next_noise, &noise), alpha).unwrap();
+        let (want_c, want_a) = (critic.backward().unwrap(), actor_loss.backward().unwrap());
+        let valid = scalar(&Transitions::valid(&d, 0..b).unwrap().sum_all().unwrap()).unwrap();
+        let data = StepData {
+            d: &d,
+            alpha: alpha as f32,
+            count: valid as f32,
+        };
+        let plain = PlainMlp::new(actor.net()).unwrap();
+        for workers in [1, 2, 4] {
+            let mut rngs = streams(99);
+            let (got_c, loss_c) = sac.critic_grads(&plain, data, workers, &mut rngs).unwrap();
+            let (got_a, loss_a, _) = sac
+                .actor_grads(&actor, &plain, data, workers, &mut rngs)
+                .unwrap();
+            let close = |a: f64, t: &Tensor| {
+                let b = scalar(t).unwrap();
+                assert!((a - b).abs() < 1e-5 * (1.0 + b.abs()), "{a} vs {b}");
+            };
+            close(loss_c, &critic);
+            close(loss_a, &actor_loss);
+            for (params, got, want) in [
+                (policy.named(), &got_a, &want_a),
+                (sac.critic_store.named(), &got_c, &want_c),
+            ] {
+                for (name, v) in params {
+                    let values = |g: &GradStore| {
+                        g.get(v.as_tensor())
+                            .unwrap()
+                            .flatten_all()
+                            .unwrap()
+                            .to_vec1::<f32>()
+                            .unwrap()
+                    };
+                    let (g, w) = (values(got), values(want));
+                    let scale = w.iter().fold(0f32, |m, x| m.max(x.abs())).max(1e-6);
+                    assert!(w.iter().any(|&x| x != 0.0), "{name}: zero gradient");
+                    for (i, (a, b)) in g.iter().zip(&w).enumerate() {
+                        assert!(
+                            (a - b).abs() <= 1e-4 * scale,
+                            "{workers} workers, {name}[{i}]: {a} vs {b}"
+                        );
+                    }
+                }
+            }
+        }
     }
 }

@@ -25,16 +25,20 @@
 //! The losses are differentiated by hand on plain buffers (`ctxrace_common::nn::plain`, the
 //! squashing's backward pass in `ctxrace_common::nn::tanh_gaussian`): at SAC's batch of 100 rows
 //! the matrix products are small and candle's per-operation bookkeeping was a third of a step.
-//! The parameters stay in candle (optimisers, checkpoints, the acting policy).
+//! The parameters stay in candle (optimisers, checkpoints, the acting policy). The passes
+//! ([`Workspace::critic_pass`], [`Workspace::actor_pass`]) take a weight per row and the actions'
+//! range, so that cMask's mask SAC ([`crate::cmask`]) runs on them too.
 
 use crate::adam::Adam;
 use crate::algorithm::{Algorithm, Batch, Metrics};
 use crate::checkpoint;
 use candle_core::backprop::GradStore;
-use candle_core::{bail, Device, Module, Result, Tensor, D};
+use candle_core::{bail, Device, Result, Tensor};
+#[cfg(test)]
+use candle_core::{Module, D};
 use candle_nn::{Init, VarBuilder};
 use ctxrace_common::nn::kernels::matmul_flops;
-use ctxrace_common::nn::plain::{InputGrad, MlpTrace, PlainMlp};
+use ctxrace_common::nn::plain::{InputGrad, MlpGrads, MlpTrace, PlainMlp};
 use ctxrace_common::nn::tanh_gaussian::{squash_rows, squash_rows_backward};
 use ctxrace_common::nn::{Activation, Mlp, ParamStore, TanhGaussianActor};
 use ctxrace_common::policy::SacPolicy;
@@ -71,7 +75,9 @@ impl TwinQ {
         })
     }
 
-    /// `(Q_1, Q_2)`, each `[B]`, for observations `[B, O]` and actions `[B, A]`.
+    /// `(Q_1, Q_2)`, each `[B]`, for observations `[B, O]` and actions `[B, A]` (the candle
+    /// composition that the tests hold the plain passes to).
+    #[cfg(test)]
     pub(crate) fn forward(&self, obs: &Tensor, action: &Tensor) -> Result<(Tensor, Tensor)> {
         let x = Tensor::cat(&[obs, action], D::Minus1)?;
         Ok((
@@ -81,9 +87,26 @@ impl TwinQ {
     }
 
     /// `min(Q_1, Q_2)` `[B]`.
+    #[cfg(test)]
     pub(crate) fn min(&self, obs: &Tensor, action: &Tensor) -> Result<Tensor> {
         let (q1, q2) = self.forward(obs, action)?;
         q1.minimum(&q2)
+    }
+
+    /// Both critics on plain buffers (copies of the current weights).
+    pub(crate) fn plain(&self) -> Result<[PlainMlp; 2]> {
+        Ok([PlainMlp::new(&self.q1)?, PlainMlp::new(&self.q2)?])
+    }
+
+    /// Adds the gradients `grads` of the plain copies `plain` ([`TwinQ::plain`]) into `store`.
+    pub(crate) fn add_grads_to(
+        &self,
+        plain: &[PlainMlp; 2],
+        grads: &[MlpGrads; 2],
+        store: &mut GradStore,
+    ) -> Result<()> {
+        plain[0].add_grads_to(&grads[0], &self.q1, store)?;
+        plain[1].add_grads_to(&grads[1], &self.q2, store)
     }
 }
 
@@ -230,6 +253,18 @@ impl Sac {
             .collect()
     }
 
+    /// `batch` as weighted rows: every transition carries `1/B` of the losses' means.
+    fn weighted<'a>(batch: &'a TransitionBatch, weight: &'a [f32]) -> WeightedTransitions<'a> {
+        WeightedTransitions {
+            obs: &batch.obs,
+            action: &batch.action,
+            reward: &batch.reward,
+            next_obs: &batch.next_obs,
+            terminal: &batch.terminal,
+            weight,
+        }
+    }
+
     /// The critics' gradients of `L_Q` on `batch` with the next actions' noise `noise`, the
     /// temperature `alpha` and `actor` (this actor's copy): `(gradients, L_Q, mean Q)`.
     fn critic_grads(
@@ -238,52 +273,24 @@ impl Sac {
         noise: &[f32],
         (alpha, actor): (f32, &PlainMlp),
     ) -> Result<(GradStore, f64, f64)> {
-        let (b, o, a) = (batch.batch, self.obs_dim, self.act_dim);
-        let [q1, q2] = [&self.critic.q1, &self.critic.q2].map(PlainMlp::new);
-        let [t1, t2] = [&self.target.q1, &self.target.q2].map(PlainMlp::new);
-        let (q1, q2, t1, t2) = (q1?, q2?, t1?, t2?);
-        let w = &mut self.work;
-        // y = r + γ (1 − d) (min_i Q̄_i(o', a') − α log π(a' | o'))
-        let (next_action, next_logp) = w.sample(actor, &batch.next_obs, noise);
-        w.join(&batch.next_obs, &next_action, o, a);
-        let target_q = [(&t1, &mut w.q1), (&t2, &mut w.q2)].map(|(q, trace)| {
-            q.fit(trace, b);
-            q.forward(&w.x, trace, 0..b);
-            q.output(trace, 0..b).to_vec()
-        });
-        let y: Vec<f32> = (0..b)
-            .map(|i| {
-                let soft = target_q[0][i].min(target_q[1][i]) - alpha * next_logp[i];
-                batch.reward[i] + self.cfg.gamma as f32 * (1.0 - batch.terminal[i]) * soft
-            })
-            .collect();
-        // L_Q = mean (Q_1 − y)² + mean (Q_2 − y)²
-        w.join(&batch.obs, &batch.action, o, a);
+        let b = batch.batch;
+        let weight = vec![1.0 / b as f32; b];
+        let (critics, targets) = (self.critic.plain()?, self.target.plain()?);
+        let soft = SoftTarget {
+            alpha,
+            gamma: self.cfg.gamma as f32,
+            range: ActionRange::SYMMETRIC,
+        };
+        let pass = self.work.critic_pass(
+            (&critics, &targets, actor),
+            &Self::weighted(batch, &weight),
+            noise,
+            soft,
+        );
         let mut grads = GradStore::default();
-        let (mut loss, mut q_sum) = (0f64, 0f64);
-        for (q, trace, mlp) in [
-            (&q1, &mut w.q1, &self.critic.q1),
-            (&q2, &mut w.q2, &self.critic.q2),
-        ] {
-            q.forward(&w.x, trace, 0..b);
-            let values = q.output(trace, 0..b);
-            let dq: Vec<f32> = values
-                .iter()
-                .zip(&y)
-                .map(|(v, t)| 2.0 * (v - t) / b as f32)
-                .collect();
-            loss += values
-                .iter()
-                .zip(&y)
-                .map(|(v, t)| ((v - t) * (v - t)) as f64)
-                .sum::<f64>()
-                / b as f64;
-            q_sum += values.iter().map(|&v| v as f64).sum::<f64>();
-            let mut g = q.zero_grads();
-            q.backward(&w.x, trace, 0..b, &dq, Some(&mut g), None);
-            q.add_grads_to(&g, mlp, &mut grads)?;
-        }
-        Ok((grads, loss, q_sum / (2 * b) as f64))
+        self.critic
+            .add_grads_to(&critics, &pass.grads, &mut grads)?;
+        Ok((grads, pass.loss, pass.q_sum / (2 * b) as f64))
     }
 
     /// The actor's gradients of `L_π` on `batch` through the current critics, with the actions'
@@ -295,41 +302,18 @@ impl Sac {
         noise: &[f32],
         (alpha, actor): (f32, &PlainMlp),
     ) -> Result<(GradStore, f64, f64)> {
-        let (b, o, a) = (batch.batch, self.obs_dim, self.act_dim);
-        let [q1, q2] = [&self.critic.q1, &self.critic.q2].map(PlainMlp::new);
-        let (q1, q2) = (q1?, q2?);
-        let w = &mut self.work;
-        let (action, logp) = w.sample(actor, &batch.obs, noise);
-        w.join(&batch.obs, &action, o, a);
-        let values = [(&q1, &mut w.q1), (&q2, &mut w.q2)].map(|(q, trace)| {
-            q.forward(&w.x, trace, 0..b);
-            q.output(trace, 0..b).to_vec()
-        });
-        // L_π = mean (α log π − min_i Q_i): −1/B to the smaller critic (half each on a tie)
-        let mut loss = 0f64;
-        let mut dq = [vec![0f32; b], vec![0f32; b]];
-        for i in 0..b {
-            let (v1, v2) = (values[0][i], values[1][i]);
-            loss += (alpha * logp[i] - v1.min(v2)) as f64;
-            let share = if v1 == v2 { 0.5 } else { 1.0 };
-            dq[0][i] = if v1 <= v2 { -share / b as f32 } else { 0.0 };
-            dq[1][i] = if v2 <= v1 { -share / b as f32 } else { 0.0 };
-        }
-        let mut d_action = vec![0f32; b * a];
-        for (k, (q, trace)) in [(&q1, &mut w.q1), (&q2, &mut w.q2)].into_iter().enumerate() {
-            let into = InputGrad::new(&mut d_action, a, o..o + a, k > 0);
-            q.backward(&w.x, trace, 0..b, &dq[k], None, Some(into));
-        }
-        let d_logp = vec![alpha / b as f32; b];
-        let mut d_out = vec![0f32; b * 2 * a];
-        let out = actor.output(&w.actor, 0..b);
-        squash_rows_backward(out, noise, &action, (&d_action, &d_logp), &mut d_out);
-        let mut g = actor.zero_grads();
-        actor.backward(&batch.obs, &mut w.actor, 0..b, &d_out, Some(&mut g), None);
+        let weight = vec![1.0 / batch.batch as f32; batch.batch];
+        let critics = self.critic.plain()?;
+        let range = ActionRange::SYMMETRIC;
+        let pass = self.work.actor_pass(
+            (&critics, actor),
+            (&batch.obs, &weight),
+            noise,
+            (alpha, range),
+        );
         let mut grads = GradStore::default();
-        actor.add_grads_to(&g, self.actor.net(), &mut grads)?;
-        let mean_logp = logp.iter().map(|&v| v as f64).sum::<f64>() / b as f64;
-        Ok((grads, loss / b as f64, mean_logp))
+        actor.add_grads_to(&pass.grads, self.actor.net(), &mut grads)?;
+        Ok((grads, pass.loss, pass.log_prob))
     }
 
     /// One SAC step on `batch` (see the module doc); returns `critic_loss`, `actor_loss`, `alpha`
@@ -366,40 +350,229 @@ impl Sac {
     }
 }
 
-/// The buffers of a SAC update on plain rows, kept from one step to the next.
+/// Transitions as plain rows for a hand-differentiated pass, with the share of the losses' means
+/// each row carries: `1/B` for SAC's batch, `valid / count` for a shard of cMask's masked
+/// transitions.
+pub(crate) struct WeightedTransitions<'a> {
+    pub(crate) obs: &'a [f32],
+    pub(crate) action: &'a [f32],
+    pub(crate) reward: &'a [f32],
+    pub(crate) next_obs: &'a [f32],
+    pub(crate) terminal: &'a [f32],
+    pub(crate) weight: &'a [f32],
+}
+
+/// The actions' range after the tanh, `a = scale · tanh(u) + shift`, which lowers `log π` by
+/// `A log scale`.
+#[derive(Clone, Copy)]
+pub(crate) struct ActionRange {
+    scale: f32,
+    shift: f32,
+}
+
+impl ActionRange {
+    /// `[−1, 1]`: SAC's actions.
+    pub(crate) const SYMMETRIC: Self = Self {
+        scale: 1.0,
+        shift: 0.0,
+    };
+    /// `[0, 1]`: cMask's mask ([`ctxrace_common::policy::mask_sample`]).
+    pub(crate) const UNIT: Self = Self {
+        scale: 0.5,
+        shift: 0.5,
+    };
+}
+
+/// What the soft target `y` is made of: the temperature, the discount and the actions' range.
+#[derive(Clone, Copy)]
+pub(crate) struct SoftTarget {
+    pub(crate) alpha: f32,
+    pub(crate) gamma: f32,
+    pub(crate) range: ActionRange,
+}
+
+/// The critics' side of a pass: their gradients, `L_Q` and the sum of `Q_1` and `Q_2` over the
+/// rows.
+pub(crate) struct CriticPass {
+    pub(crate) grads: [MlpGrads; 2],
+    pub(crate) loss: f64,
+    pub(crate) q_sum: f64,
+}
+
+/// The actor's side of a pass: its gradients, `L_π` and the weighted sum of `log π`.
+pub(crate) struct ActorPass {
+    pub(crate) grads: MlpGrads,
+    pub(crate) loss: f64,
+    pub(crate) log_prob: f64,
+}
+
+/// A pass's results over some rows, which add up over the shards of a batch.
+pub(crate) trait PassSum {
+    /// Adds the results of `other` (other rows of the same batch) into these.
+    fn add(&mut self, other: &Self);
+}
+
+impl PassSum for CriticPass {
+    fn add(&mut self, other: &Self) {
+        self.loss += other.loss;
+        self.q_sum += other.q_sum;
+        for (g, o) in self.grads.iter_mut().zip(&other.grads) {
+            g.add(o);
+        }
+    }
+}
+
+impl PassSum for ActorPass {
+    fn add(&mut self, other: &Self) {
+        self.loss += other.loss;
+        self.log_prob += other.log_prob;
+        self.grads.add(&other.grads);
+    }
+}
+
+/// The buffers of a SAC pass on plain rows, kept from one step to the next.
 #[derive(Default)]
-struct Workspace {
+pub(crate) struct Workspace {
     actor: MlpTrace,
     q1: MlpTrace,
     q2: MlpTrace,
     /// The critics' input `[o, a]`.
     x: Vec<f32>,
+    /// The actions before their range, `tanh u`.
+    tanh: Vec<f32>,
 }
 
 impl Workspace {
-    /// The actor on the rows `obs` with `noise`: the actions and their log-probabilities (the
-    /// outputs kept in the actor's trace).
-    fn sample(&mut self, actor: &PlainMlp, obs: &[f32], noise: &[f32]) -> (Vec<f32>, Vec<f32>) {
+    /// The critics' gradients of `L_Q = Σ_i w_i Σ_k (Q_k(o_i, a_i) − y_i)²` with
+    /// `y = r + γ (1 − d) (min_k Q̄_k(o', a') − α log π(a' | o'))`, `a'` drawn with `noise`.
+    pub(crate) fn critic_pass(
+        &mut self,
+        (critics, targets, actor): (&[PlainMlp; 2], &[PlainMlp; 2], &PlainMlp),
+        tr: &WeightedTransitions,
+        noise: &[f32],
+        soft: SoftTarget,
+    ) -> CriticPass {
+        let b = tr.weight.len();
+        let (next_action, next_logp) = self.sample(actor, tr.next_obs, noise, soft.range);
+        self.join(tr.next_obs, &next_action, b);
+        let target_q =
+            [(&targets[0], &mut self.q1), (&targets[1], &mut self.q2)].map(|(q, trace)| {
+                q.fit(trace, b);
+                q.forward(&self.x, trace, 0..b);
+                q.output(trace, 0..b).to_vec()
+            });
+        let y: Vec<f32> = (0..b)
+            .map(|i| {
+                let min_q = target_q[0][i].min(target_q[1][i]);
+                let keep = soft.gamma * (1.0 - tr.terminal[i]);
+                tr.reward[i] + keep * (min_q - soft.alpha * next_logp[i])
+            })
+            .collect();
+        self.join(tr.obs, tr.action, b);
+        let (mut loss, mut q_sum) = (0f64, 0f64);
+        let grads = [(&critics[0], &mut self.q1), (&critics[1], &mut self.q2)].map(|(q, trace)| {
+            q.forward(&self.x, trace, 0..b);
+            let values = q.output(trace, 0..b);
+            let mut dq = vec![0f32; b];
+            for i in 0..b {
+                let gap = values[i] - y[i];
+                dq[i] = 2.0 * tr.weight[i] * gap;
+                loss += (tr.weight[i] * gap * gap) as f64;
+                q_sum += values[i] as f64;
+            }
+            let mut g = q.zero_grads();
+            q.backward(&self.x, trace, 0..b, &dq, Some(&mut g), None);
+            g
+        });
+        CriticPass { grads, loss, q_sum }
+    }
+
+    /// The actor's gradients of `L_π = Σ_i w_i (α log π(ã_i | o_i) − min_k Q_k(o_i, ã_i))`
+    /// through `critics`, `ã` drawn with `noise`; the observations `obs` and weights `w`.
+    pub(crate) fn actor_pass(
+        &mut self,
+        (critics, actor): (&[PlainMlp; 2], &PlainMlp),
+        (obs, weight): (&[f32], &[f32]),
+        noise: &[f32],
+        (alpha, range): (f32, ActionRange),
+    ) -> ActorPass {
+        let b = weight.len();
+        let a = actor.outputs() / 2;
+        let (action, logp) = self.sample(actor, obs, noise, range);
+        self.join(obs, &action, b);
+        let values =
+            [(&critics[0], &mut self.q1), (&critics[1], &mut self.q2)].map(|(q, trace)| {
+                q.fit(trace, b);
+                q.forward(&self.x, trace, 0..b);
+                q.output(trace, 0..b).to_vec()
+            });
+        // −w to the smaller critic (half each on a tie)
+        let (mut loss, mut log_prob) = (0f64, 0f64);
+        let mut dq = [vec![0f32; b], vec![0f32; b]];
+        for i in 0..b {
+            let (v1, v2, w) = (values[0][i], values[1][i], weight[i]);
+            loss += (w * (alpha * logp[i] - v1.min(v2))) as f64;
+            log_prob += (w * logp[i]) as f64;
+            let share = if v1 == v2 { 0.5 } else { 1.0 };
+            dq[0][i] = if v1 <= v2 { -share * w } else { 0.0 };
+            dq[1][i] = if v2 <= v1 { -share * w } else { 0.0 };
+        }
+        let o = obs.len() / b.max(1);
+        let mut d_action = vec![0f32; b * a];
+        for (k, (q, trace)) in [(&critics[0], &mut self.q1), (&critics[1], &mut self.q2)]
+            .into_iter()
+            .enumerate()
+        {
+            let into = InputGrad::new(&mut d_action, a, o..o + a, k > 0);
+            q.backward(&self.x, trace, 0..b, &dq[k], None, Some(into));
+        }
+        d_action.iter_mut().for_each(|d| *d *= range.scale);
+        let d_logp: Vec<f32> = weight.iter().map(|w| alpha * w).collect();
+        let mut d_out = vec![0f32; b * 2 * a];
+        let out = actor.output(&self.actor, 0..b);
+        squash_rows_backward(out, noise, &self.tanh, (&d_action, &d_logp), &mut d_out);
+        let mut grads = actor.zero_grads();
+        actor.backward(obs, &mut self.actor, 0..b, &d_out, Some(&mut grads), None);
+        ActorPass {
+            grads,
+            loss,
+            log_prob,
+        }
+    }
+
+    /// The actor on the rows `obs` with `noise`: the actions in `range` and their
+    /// log-probabilities (the outputs kept in the actor's trace, `tanh u` in `self.tanh`).
+    fn sample(
+        &mut self,
+        actor: &PlainMlp,
+        obs: &[f32],
+        noise: &[f32],
+        range: ActionRange,
+    ) -> (Vec<f32>, Vec<f32>) {
         let a = actor.outputs() / 2;
         let b = noise.len() / a.max(1);
         actor.fit(&mut self.actor, b);
         actor.forward(obs, &mut self.actor, 0..b);
-        let (mut action, mut logp) = (vec![0f32; b * a], vec![0f32; b]);
-        squash_rows(
-            actor.output(&self.actor, 0..b),
-            noise,
-            &mut action,
-            &mut logp,
-        );
-        (action, logp)
+        self.tanh.resize(b * a, 0.0);
+        let mut logp = vec![0f32; b];
+        let out = actor.output(&self.actor, 0..b);
+        squash_rows(out, noise, &mut self.tanh, &mut logp);
+        let action = self.tanh.iter().map(|t| range.scale * t + range.shift);
+        let shift = a as f32 * range.scale.ln();
+        logp.iter_mut().for_each(|l| *l -= shift);
+        (action.collect(), logp)
     }
 
-    /// `x ← [obs, action]` row by row.
-    fn join(&mut self, obs: &[f32], action: &[f32], o: usize, a: usize) {
-        let b = action.len() / a;
-        self.x.resize(b * (o + a), 0.0);
-        let rows = obs.chunks_exact(o).zip(action.chunks_exact(a));
-        for ((ob, ac), row) in rows.zip(self.x.chunks_exact_mut(o + a)) {
+    /// `x ← [obs, action]` row by row, for `rows` rows.
+    fn join(&mut self, obs: &[f32], action: &[f32], rows: usize) {
+        if rows == 0 {
+            self.x.clear();
+            return;
+        }
+        let (o, a) = (obs.len() / rows, action.len() / rows);
+        self.x.resize(rows * (o + a), 0.0);
+        let pairs = obs.chunks_exact(o).zip(action.chunks_exact(a));
+        for ((ob, ac), row) in pairs.zip(self.x.chunks_exact_mut(o + a)) {
             row[..o].copy_from_slice(ob);
             row[o..].copy_from_slice(ac);
         }

@@ -20,21 +20,9 @@ pub(crate) struct Shard {
 }
 
 /// Runs `f` on each shard of a batch of `batch` sequences, one per worker thread, in parallel,
-/// with the noise streams of the shard's sequences; returns the results in shard order.
-pub(crate) fn on_shards<T: Send>(
-    workers: usize,
-    batch: usize,
-    rngs: &mut [ChaCha8Rng],
-    f: impl Fn(Shard, &mut [ChaCha8Rng]) -> Result<T> + Sync,
-) -> Result<Vec<T>> {
-    let mut nothing = vec![(); batch];
-    on_shards_with(workers, batch, rngs, &mut nothing, |shard, rngs, _| {
-        f(shard, rngs)
-    })
-}
-
-/// [`on_shards`] with a state of each shard: shard `i` gets `states[i]` (there must be one per
-/// shard: `min(workers, batch)` of them).
+/// with the noise streams of the shard's sequences and the shard's state: shard `i` gets
+/// `states[i]` (there must be one per shard: `min(workers, batch)` of them); returns the results
+/// in shard order.
 pub(crate) fn on_shards_with<S: Send, T: Send>(
     workers: usize,
     batch: usize,
