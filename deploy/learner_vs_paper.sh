@@ -8,6 +8,9 @@
 # The paper's side is ../shared/tools/paper_learner_bench.sh (DreamerV3 and cMask, 2 threads),
 # deploy/paper_crssm_bench.sh (its cRSSM, 2 threads) and deploy/paper_sac_bench.sh (its SAC
 # baseline; python also needs matplotlib).
+# AVX2 on an AVX-512 machine: CTXRACE_BIN from `cargo build --release -p ctxrace
+# --no-default-features --target-dir target/avx2`, and torch capped with ATEN_CPU_CAPABILITY=avx2
+# MKL_ENABLE_INSTRUCTIONS=AVX2 ONEDNN_MAX_CPU_ISA=AVX2 in the environment.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 git_dir=${1:?usage: deploy/learner_vs_paper.sh PAPER_GIT_DIR [ROUNDS]}

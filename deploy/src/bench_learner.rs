@@ -8,8 +8,8 @@
 //! model; imagination: the rollouts, heads and returns; actor_critic: the backward pass to the
 //! actor's and critic's gradients and their steps; cMask's mask SAC). Elementwise work is not
 //! counted, so the fraction is a lower bound of the arithmetic done. The peak is `threads` times
-//! one core's rate of fused multiply-adds measured on its widest vectors (AVX-512, else AVX2 with
-//! FMA): independent chains of register FMAs, enough to cover their latency, timed on a busy core.
+//! one core's rate of fused multiply-adds measured on the widest vectors the kernels use (AVX-512
+//! in a build with the `avx512` feature, else AVX2 with FMA): independent chains of register FMAs, enough to cover their latency, timed on a busy core.
 //! It is a measurement, not `2 FMA units × lanes × clock` from the feature flags, because cores
 //! differ in what they do with a wide instruction: an AMD Zen 4 has AVX-512 but runs each 512-bit
 //! FMA as two 256-bit halves, so its peak is half of what its flags suggest (32, not 64, flops a
@@ -110,7 +110,8 @@ fn peak_gflops(threads: usize) -> (f64, String) {
 #[cfg(target_arch = "x86_64")]
 fn measured_fma_gflops() -> Option<(f64, usize)> {
     const ITERATIONS: u64 = 20_000_000; // of 12 FMAs each
-    let (lanes, chains): (usize, unsafe fn(u64)) = if std::is_x86_feature_detected!("avx512f") {
+    let avx512 = cfg!(feature = "avx512") && std::is_x86_feature_detected!("avx512f");
+    let (lanes, chains): (usize, unsafe fn(u64)) = if avx512 {
         (16, fma_chains_avx512)
     } else if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
         (8, fma_chains_avx2)

@@ -55,8 +55,9 @@ fn read<R>(t: &Tensor, f: impl FnOnce(&[f32]) -> Result<R>) -> Result<R> {
 }
 
 /// Defines a function whose body is compiled three times, for AVX-512, for AVX2 with FMA and for
-/// the baseline, and runs the widest the processor has (checked at run time). The body and the
-/// `#[inline(always)]` helpers it calls vectorise inside each copy.
+/// the baseline, and runs the widest the processor has (checked at run time; AVX-512 only with the
+/// `avx512` feature). The body and the `#[inline(always)]` helpers it calls vectorise inside each
+/// copy.
 macro_rules! vectorised {
     ($(#[$doc:meta])* $vis:vis fn $name:ident($($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)? $body:block) => {
         $(#[$doc])*
@@ -73,7 +74,10 @@ macro_rules! vectorised {
                 #[target_feature(enable = "avx2,fma")]
                 #[allow(clippy::too_many_arguments)]
                 unsafe fn v3($($arg: $ty),*) $(-> $ret)? { body($($arg),*) }
-                if std::is_x86_feature_detected!("avx512f") && std::is_x86_feature_detected!("avx512vl") {
+                if cfg!(feature = "avx512")
+                    && std::is_x86_feature_detected!("avx512f")
+                    && std::is_x86_feature_detected!("avx512vl")
+                {
                     // SAFETY: the processor has the features v4 is compiled for.
                     return unsafe { v4($($arg),*) };
                 }
