@@ -9,7 +9,8 @@
 //! actor's and critic's gradients and their steps; cMask's mask SAC). Elementwise work is not
 //! counted, so the fraction is a lower bound of the arithmetic done. The peak is `threads` times
 //! one core's rate of fused multiply-adds measured on the widest vectors the kernels use (AVX-512
-//! in a build with the `avx512` feature, else AVX2 with FMA): independent chains of register FMAs, enough to cover their latency, timed on a busy core.
+//! in a build with the `avx512` feature, else AVX2 with FMA): independent chains of register
+//! FMAs, enough to cover their latency, timed on a busy core.
 //! It is a measurement, not `2 FMA units × lanes × clock` from the feature flags, because cores
 //! differ in what they do with a wide instruction: an AMD Zen 4 has AVX-512 but runs each 512-bit
 //! FMA as two 256-bit halves, so its peak is half of what its flags suggest (32, not 64, flops a

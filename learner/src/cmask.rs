@@ -31,11 +31,14 @@ use ctxrace_common::nn::plain::PlainMlp;
 use ctxrace_common::nn::{ParamStore, TanhGaussianActor};
 use ctxrace_common::policy::normal_rows;
 use rand_chacha::ChaCha8Rng;
+use std::ops::Range;
 
 /// The mask SAC's transitions `(o_t, m_t, r_{t+1}, o_{t+1}, terminal_{t+1})` for `t < T − 1`,
 /// row-major `[B·(T−1), …]`, `m_t` the stored mask that acted at `o_t`, with `valid = 0` where
 /// `o_{t+1}` starts a new episode or no mask chose the action at `o_t`.
 pub(crate) struct Transitions {
+    /// `T − 1` transitions a sequence, sequence after sequence.
+    per_sequence: usize,
     obs: Vec<f32>,
     mask: Vec<f32>,
     reward: Vec<f32>,
@@ -54,6 +57,7 @@ impl Transitions {
         }
         let span = |x: &Tensor, start: usize| x.narrow(1, start, t - 1)?.flatten_all()?.to_vec1();
         Ok(Some(Self {
+            per_sequence: t - 1,
             obs: span(&d.obs, 0)?,
             mask: span(&d.mask, 1)?,
             reward: span(&d.reward, 1)?,
@@ -65,7 +69,7 @@ impl Transitions {
 
     /// `[|rows|·(T−1)]`: 1 where row `t + 1` of the sequences `rows` continues the episode and
     /// its action was chosen through a mask.
-    fn valid(d: &SeqData, rows: std::ops::Range<usize>) -> Result<Tensor> {
+    fn valid(d: &SeqData, rows: Range<usize>) -> Result<Tensor> {
         let next = |x: &Tensor| {
             x.narrow(0, rows.start, rows.len())?
                 .narrow(1, 1, d.length - 1)
@@ -75,21 +79,38 @@ impl Transitions {
             .flatten_all()
     }
 
-    /// The transitions with `weight` per row.
-    fn weighted<'a>(&'a self, weight: &'a [f32]) -> WeightedTransitions<'a> {
+    /// The number of valid transitions.
+    fn valid_count(&self) -> f32 {
+        self.valid.iter().sum()
+    }
+
+    /// The transitions of the sequences `seqs`, with `weight` per transition.
+    fn weighted<'a>(&'a self, seqs: &Range<usize>, weight: &'a [f32]) -> WeightedTransitions<'a> {
+        let r = self.span(seqs);
+        let o = self.obs.len() / self.valid.len().max(1);
+        let rows = |x: &'a [f32], width: usize| &x[r.start * width..r.end * width];
         WeightedTransitions {
-            obs: &self.obs,
-            action: &self.mask,
-            reward: &self.reward,
-            next_obs: &self.next_obs,
-            terminal: &self.terminal,
+            obs: rows(&self.obs, o),
+            action: rows(&self.mask, CONTEXT_DIM),
+            reward: rows(&self.reward, 1),
+            next_obs: rows(&self.next_obs, o),
+            terminal: rows(&self.terminal, 1),
             weight,
         }
     }
 
-    /// Each row's share of a mean over the batch's `count` valid transitions.
-    fn weights(&self, count: f32) -> Vec<f32> {
-        self.valid.iter().map(|v| v / count).collect()
+    /// The share of a mean over `count` valid transitions that each transition of the sequences
+    /// `seqs` carries.
+    fn weights(&self, seqs: &Range<usize>, count: f32) -> Vec<f32> {
+        self.valid[self.span(seqs)]
+            .iter()
+            .map(|v| v / count)
+            .collect()
+    }
+
+    /// The transitions of the sequences `seqs`.
+    fn span(&self, seqs: &Range<usize>) -> Range<usize> {
+        seqs.start * self.per_sequence..seqs.end * self.per_sequence
     }
 }
 
@@ -109,10 +130,11 @@ pub(crate) struct MaskSac {
     work: Vec<Workspace>,
 }
 
-/// What a step's passes share: the batch, the temperature and the count of valid transitions.
+/// What a step's passes share: the batch's transitions, the temperature and the count of valid
+/// transitions.
 #[derive(Clone, Copy)]
 struct StepData<'a> {
-    d: &'a SeqData,
+    transitions: &'a Transitions,
     alpha: f32,
     count: f32,
 }
@@ -173,10 +195,10 @@ impl MaskSac {
         rngs: &mut [ChaCha8Rng],
         metrics: &mut Metrics,
     ) -> Result<()> {
-        if d.length < 2 {
+        let Some(transitions) = Transitions::new(d)? else {
             return Ok(());
-        }
-        let valid_count = scalar(&Transitions::valid(d, 0..d.batch)?.sum_all()?)?;
+        };
+        let valid_count = f64::from(transitions.valid_count());
         let alpha = scalar(&self.log_alpha.exp()?.sum_all()?)?;
         metrics.insert("mask/acted_transitions".into(), valid_count);
         metrics.insert("mask/alpha".into(), alpha);
@@ -188,7 +210,7 @@ impl MaskSac {
             return Ok(());
         }
         let data = StepData {
-            d,
+            transitions: &transitions,
             alpha: alpha as f32,
             count: valid_count as f32,
         };
@@ -212,28 +234,28 @@ impl MaskSac {
         Ok(())
     }
 
-    /// Runs `pass` on each shard's transitions (their weights, and the masks' noise drawn from
-    /// the shard's sequences' streams), one shard per worker in parallel, and sums the results.
+    /// Runs `pass` on each shard's weighted transitions (and the masks' noise drawn from the
+    /// shard's sequences' streams), one shard per worker in parallel, and sums the results.
     fn on_transitions<T: PassSum + Send>(
         &mut self,
-        (d, count): (&SeqData, f32),
+        data: StepData,
         workers: usize,
         rngs: &mut [ChaCha8Rng],
-        pass: impl Fn(&mut Workspace, &Transitions, &[f32], &[f32]) -> T + Sync,
+        pass: impl Fn(&mut Workspace, &WeightedTransitions, &[f32]) -> T + Sync,
     ) -> Result<T> {
+        let tr = data.transitions;
+        let batch = tr.valid.len() / tr.per_sequence;
         self.work
-            .resize_with(workers.clamp(1, d.batch.max(1)), Workspace::default);
-        let per_sequence = d.length - 1;
+            .resize_with(workers.clamp(1, batch.max(1)), Workspace::default);
         let parts = on_shards_with(
             workers,
-            d.batch,
+            batch,
             rngs,
             &mut self.work,
             |shard: Shard, rngs, w| {
-                let tr = Transitions::new(&d.sequences(&shard.rows)?)?
-                    .ok_or_else(|| candle_core::Error::Msg("no transitions".into()))?;
-                let noise = normal_rows(rngs, per_sequence, CONTEXT_DIM);
-                Ok(pass(w, &tr, &tr.weights(count), &noise))
+                let weight = tr.weights(&shard.rows, data.count);
+                let noise = normal_rows(rngs, tr.per_sequence, CONTEXT_DIM);
+                Ok(pass(w, &tr.weighted(&shard.rows, &weight), &noise))
             },
         )?;
         let mut parts = parts.into_iter();
@@ -246,8 +268,8 @@ impl MaskSac {
         Ok(sum)
     }
 
-    /// The critics' gradients of their loss over the valid transitions of `data.d` (the next
-    /// masks drawn from `actor`, this actor's copy) and the loss.
+    /// The critics' gradients of their loss over the valid transitions of `data` (the next masks
+    /// drawn from `actor`, this actor's copy) and the loss.
     fn critic_grads(
         &mut self,
         actor: &PlainMlp,
@@ -262,18 +284,15 @@ impl MaskSac {
             range: ActionRange::UNIT,
         };
         let nets = (&critics, &targets, actor);
-        let sum = self.on_transitions(
-            (data.d, data.count),
-            workers,
-            rngs,
-            |w, tr, weight, noise| w.critic_pass(nets, &tr.weighted(weight), noise, soft),
-        )?;
+        let sum = self.on_transitions(data, workers, rngs, |w, tr, noise| {
+            w.critic_pass(nets, tr, noise, soft)
+        })?;
         let mut grads = GradStore::default();
         self.q.add_grads_to(&critics, &sum.grads, &mut grads)?;
         Ok((grads, sum.loss))
     }
 
-    /// The mask actor's gradients of its loss over the valid transitions of `data.d` through
+    /// The mask actor's gradients of its loss over the valid transitions of `data` through
     /// the current critics (`plain` is `actor`'s copy): `(gradients, loss, mean log π)`.
     fn actor_grads(
         &mut self,
@@ -285,12 +304,9 @@ impl MaskSac {
     ) -> Result<(GradStore, f64, f64)> {
         let critics = self.q.plain()?;
         let with = (data.alpha, ActionRange::UNIT);
-        let sum = self.on_transitions(
-            (data.d, data.count),
-            workers,
-            rngs,
-            |w, tr, weight, noise| w.actor_pass((&critics, plain), (&tr.obs, weight), noise, with),
-        )?;
+        let sum = self.on_transitions(data, workers, rngs, |w, tr, noise| {
+            w.actor_pass((&critics, plain), (tr.obs, tr.weight), noise, with)
+        })?;
         let mut grads = GradStore::default();
         plain.add_grads_to(&sum.grads, actor.net(), &mut grads)?;
         Ok((grads, sum.loss, sum.log_prob))
@@ -423,11 +439,11 @@ mod tests {
         let (critic, actor_loss) =
             candle_losses(&sac, &actor, &d, (&next_noise, &noise), alpha).unwrap();
         let (want_c, want_a) = (critic.backward().unwrap(), actor_loss.backward().unwrap());
-        let valid = scalar(&Transitions::valid(&d, 0..b).unwrap().sum_all().unwrap()).unwrap();
+        let transitions = Transitions::new(&d).unwrap().unwrap();
         let data = StepData {
-            d: &d,
+            transitions: &transitions,
             alpha: alpha as f32,
-            count: valid as f32,
+            count: transitions.valid_count(),
         };
         let plain = PlainMlp::new(actor.net()).unwrap();
         for workers in [1, 2, 4] {

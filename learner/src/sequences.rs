@@ -13,8 +13,6 @@ pub(crate) struct SeqData {
     pub(crate) length: usize,
     /// `[B, T, O]`.
     pub(crate) obs: Tensor,
-    /// `[B, T, A]`.
-    pub(crate) action: Tensor,
     /// `[B, T]`.
     pub(crate) reward: Tensor,
     /// `[B, T]`.
@@ -39,30 +37,12 @@ impl SeqData {
             batch: bs,
             length: t,
             obs: Tensor::from_slice(&b.obs, (bs, t, obs_dim), dev)?,
-            action: Tensor::from_slice(&b.action, (bs, t, act_dim), dev)?,
             reward: Tensor::from_slice(&b.reward, (bs, t), dev)?,
             first: Tensor::from_slice(&b.is_first, (bs, t), dev)?,
             terminal: Tensor::from_slice(&b.is_terminal, (bs, t), dev)?,
             context: Tensor::from_slice(&b.context, (bs, t, CONTEXT_DIM), dev)?,
             mask: Tensor::from_slice(&b.mask, (bs, t, CONTEXT_DIM), dev)?,
             has_mask: Tensor::from_slice(&b.has_mask, (bs, t), dev)?,
-        })
-    }
-
-    /// The sequences `rows` of the batch.
-    pub(crate) fn sequences(&self, rows: &std::ops::Range<usize>) -> Result<Self> {
-        let pick = |x: &Tensor| x.narrow(0, rows.start, rows.len());
-        Ok(Self {
-            batch: rows.len(),
-            length: self.length,
-            obs: pick(&self.obs)?,
-            action: pick(&self.action)?,
-            reward: pick(&self.reward)?,
-            first: pick(&self.first)?,
-            terminal: pick(&self.terminal)?,
-            context: pick(&self.context)?,
-            mask: pick(&self.mask)?,
-            has_mask: pick(&self.has_mask)?,
         })
     }
 

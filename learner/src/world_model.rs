@@ -526,11 +526,12 @@ mod tests {
     use ctxrace_common::policy::uniforms_per;
     use rand::{Rng, SeedableRng};
 
-    /// The world model's loss on `d` composed of candle operations, autograd's statement of what
-    /// [`WorldModel::gradients`] differentiates by hand, with the loop's noise from `rngs`.
+    /// The world model's loss on `d` (its actions `[B, T, A]`) composed of candle operations,
+    /// autograd's statement of what [`WorldModel::gradients`] differentiates by hand, with the
+    /// loop's noise from `rngs`.
     fn candle_loss(
         m: &WorldModel,
-        d: &SeqData,
+        (d, actions): (&SeqData, &Tensor),
         ctx: Option<&Tensor>,
         rngs: &mut [ChaCha8Rng],
     ) -> Tensor {
@@ -546,7 +547,7 @@ mod tests {
             .reshape((b, t_len, ()))
             .unwrap();
         let embed = time_major(&embed);
-        let actions = time_major(&d.action);
+        let actions = time_major(actions);
         let keeps = time_major(&(1.0 - &d.first).unwrap());
         let ctx_tm = ctx.map(|c| time_major(&c.reshape((b, t_len, ())).unwrap()));
         let mut state = m.rssm.initial(b).unwrap();
@@ -689,7 +690,8 @@ mod tests {
             let streams = || -> Vec<ChaCha8Rng> {
                 (0..4).map(|b| ChaCha8Rng::seed_from_u64(100 + b)).collect()
             };
-            let loss = candle_loss(&model, &d, ctx.as_ref(), &mut streams());
+            let actions = Tensor::from_slice(&seq.action, (4, 10, 2), &Device::Cpu).unwrap();
+            let loss = candle_loss(&model, (&d, &actions), ctx.as_ref(), &mut streams());
             let want = loss.backward().unwrap();
             let mut metrics = Metrics::new();
             let (got, starts) = model

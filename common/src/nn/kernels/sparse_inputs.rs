@@ -100,7 +100,7 @@ impl SparseColumns {
     }
 
     /// Every row.
-    fn all(&self) -> SparseRows<'_> {
+    pub(crate) fn all(&self) -> SparseRows<'_> {
         self.rows(0..self.starts.len() - 1)
     }
 

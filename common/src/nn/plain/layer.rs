@@ -81,7 +81,7 @@ impl Found<'_> {
     fn rows(&self) -> SparseRows<'_> {
         match self {
             Found::Given(r) => *r,
-            Found::Gathered(g) => g.rows(0..g.row_count()),
+            Found::Gathered(g) => g.all(),
         }
     }
 }
