@@ -281,7 +281,14 @@ mod tests {
 
     #[test]
     fn norm_act_matches_the_composed_layer_norm() {
-        let (x, g, b) = (var(&[6, 8], 4), var(&[8], 5), var(&[8], 6));
+        // rows shorter than the kernels' lanes, and rows of two lanes' chunks and a tail
+        for width in [8, 2 * LANES + 8] {
+            matches_the_composed_layer_norm(width);
+        }
+    }
+
+    fn matches_the_composed_layer_norm(width: usize) {
+        let (x, g, b) = (var(&[6, width], 4), var(&[width], 5), var(&[width], 6));
         let eps = 1e-3;
         let centred = x
             .broadcast_sub(&x.mean_keepdim(D::Minus1).unwrap())
