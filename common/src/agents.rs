@@ -279,6 +279,25 @@ impl Default for MaskConfig {
     }
 }
 
+/// What behaviour learning differentiates, and over how many imagined steps: the paper's code
+/// (dreamerv3-torch, which produced its tables) or the form ctxrace used before it followed the
+/// code (DreamerV3's horizon count and danijar/dreamerv3's weights).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ImaginationLoss {
+    /// The paper's code: `H` states from the start (`H − 1` imagined steps and returns),
+    /// weights `w_0 = 1`, `w_t = w_{t−1} γ c(s_{t−1})`, and the actor's gradient through
+    /// everything the imagined states feed: the returns' rewards, continue probabilities and
+    /// values, the baseline `v(s_t)`, and the entropy term `−η H[π(·|s_t)]` (not weighted).
+    #[default]
+    PaperCode,
+    /// `H` imagined steps (`H + 1` states), `w_0 = 1 − terminal` of the start and
+    /// `w_t = w_{t−1} γ c(s_t)`; the actor's gradient through the returns' rewards and values
+    /// only (stop-gradient baseline and continue probabilities), its entropy term weighted by
+    /// `w_t` and taken on stop-gradient states.
+    Dreamerv3,
+}
+
 /// DreamerV3's hyper-parameters; the defaults are the paper's (REFERENCE §5).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -329,6 +348,8 @@ pub struct DreamerConfig {
     pub ac_clip: f64,
     /// Imagination horizon `H`.
     pub horizon: usize,
+    /// The imagination losses' form ([`ImaginationLoss`]): `"paper-code"` or `"dreamerv3"`.
+    pub imagination: ImaginationLoss,
     /// Discount `γ`.
     pub gamma: f64,
     /// Return mixing `λ`.
@@ -386,6 +407,7 @@ impl Default for DreamerConfig {
             ac_eps: 1e-5,
             ac_clip: 100.0,
             horizon: 10,
+            imagination: ImaginationLoss::PaperCode,
             gamma: 0.997,
             lambda: 0.95,
             entropy: 3e-4,
@@ -424,6 +446,13 @@ impl DreamerConfig {
         if self.bins < 2 {
             bail!("DreamerV3 config: bins must be at least 2");
         }
+        if self.imagination == ImaginationLoss::PaperCode && self.horizon < 2 {
+            bail!(
+                "DreamerV3 config: horizon must be at least 2 with imagination = \"paper-code\" \
+                 (its H states include the start), got {}",
+                self.horizon
+            );
+        }
         if self.context_range.is_nan() || self.context_range <= 0.0 {
             bail!("DreamerV3 config: context_range must be positive");
         }
@@ -449,7 +478,21 @@ mod tests {
             (ContextMode::Cmask, 5, 0.01, 0.997)
         );
         assert_eq!(agent.sac, SacConfig::default());
+        assert_eq!(cfg.imagination, ImaginationLoss::PaperCode);
+        let form = |text: &str| toml::from_str::<AgentConfig>(text).map(|a| a.dreamer());
+        let cfg = form("[dreamer]\nimagination = \"dreamerv3\"\nhorizon = 1").unwrap();
+        assert_eq!(cfg.imagination, ImaginationLoss::Dreamerv3);
+        assert!(cfg.validate().is_ok());
+        let err = form("[dreamer]\nhorizon = 1")
+            .unwrap()
+            .validate()
+            .unwrap_err();
+        assert!(
+            err.to_string().contains("horizon must be at least 2"),
+            "{err}"
+        );
         for bad in [
+            "[dreamer]\nimagination = \"danijar\"",
             "[dreamer]\nhorizn = 5",
             "[dreamer]\ncontext = \"crssm\"",
             "algo = \"ppo\"",

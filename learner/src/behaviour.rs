@@ -1,34 +1,44 @@
 //! DreamerV3's behaviour learning in imagination, differentiated by hand on plain buffers
 //! ([`ctxrace_common::nn::plain`]): the forward pass of one shard of starts, then, once the
 //! return scale is known from every shard, its backward pass to the actor's and the critic's
-//! gradients.
+//! gradients. Two forms ([`ImaginationLoss`]); the default is the paper's code's.
 //!
-//! **Forward.** From `N` start states `s_0` (rows `[h, z, c]`), for `t = 0 … H−1`: the actor's
-//! `Normal(tanh μ, σ)` on `s_t`, `σ = (σ_max − σ_min) sigmoid(ρ + 2) + σ_min`; the action
+//! **Forward.** From `N` start states `s_0` (rows `[h, z, c]`), for `t = 0 … T−1` (`T = H − 1`
+//! imagined steps in the paper's code, whose `H` states include the start; `T = H` in the
+//! `dreamerv3` form): the actor's `Normal(tanh μ, σ)` on `s_t`,
+//! `σ = (σ_max − σ_min) sigmoid(ρ + 2) + σ_min`; the action
 //! `a_t = (μ + σ ε) / max(1, |μ + σ ε|)` (the factor a stop-gradient); the RSSM's prior step to
-//! `s_{t+1}`. On the `H + 1` states: rewards `r` and continue probabilities `c` of `s_1 … s_H`,
-//! the critic's values `v` of `s_0 … s_H` (one pass serves the λ-returns and the critic's loss),
-//! the slow critic's values of `s_0 … s_{H−1}`; the λ-returns `R` ([`crate::returns`]) and the
-//! weights `w_t = w_0 Π_{k<t} γ c_{k+1}` (`w_0 = 1 − terminal` of the start).
+//! `s_{t+1}`. On the `T + 1` states: rewards `r` of `s_1 … s_T`, continue probabilities `c` and
+//! the critic's values `v` of `s_0 … s_T` (one pass serves the λ-returns, the baseline and the
+//! critic's loss), the slow critic's values of `s_0 … s_{T−1}`; the λ-returns `R`
+//! ([`crate::returns`]) and the stop-gradient weights: `w_0 = 1`, `w_t = w_{t−1} γ c(s_{t−1})`
+//! (paper's code), or `w_0 = 1 − terminal` of the start, `w_t = w_{t−1} γ c(s_t)` (`dreamerv3`).
 //!
-//! **Losses**, means over the `H N` terms: the actor's `−w ((R − sg v)/S + η H[π])`, the critic's
-//! `w CE(critic(s_t), twohot(R_t) + β twohot(v_slow))`; each times the shard's share of the batch.
+//! **Losses**, means over the `T N` terms: the actor's `−w (R − v)/S − η H[π]` (paper's code:
+//! the gradient reaches the actor through every path of the imagined states, `R`'s rewards,
+//! continue probabilities and values, the baseline `v`, and the entropy of `π(·|s_t)`), or
+//! `−w ((R − sg v)/S + η H[π])` (`dreamerv3`: through `R`'s rewards and values only, the entropy
+//! on stop-gradient states); the critic's `w CE(critic(sg s_t), twohot(R_t) + β twohot(v_slow))`;
+//! each times the shard's share of the batch.
 //!
-//! **Backward.** `∂R = −w / S` and `∂H[π] = −η w` (per term, times the share over `H N`); the
-//! λ-returns pass theirs on to `r` and `v`: with `G_t` the total gradient of `R_t`,
+//! **Backward.** `∂R = −w / S`, `∂H[π] = −η` (paper's code) or `−η w` (per term, times the share
+//! over `T N`); the λ-returns pass theirs on: with `G_t` the total gradient of `R_t`,
 //! `G_t = ∂R_t + λ γ c_t G_{t−1}` (from `R_{t−1}`), `∂r_{t+1} = G_t`,
-//! `∂v_{t+1} += (1 − λ) γ c_{t+1} G_t` and, at the end, `∂v_H += λ γ c_H G_{H−1}`. The reward
-//! head and the critic (frozen: their input's gradient only) turn these into the gradients of
-//! `s_1 … s_H`; the RSSM's steps, from the last back, into those of the earlier states and of
-//! the actions; the actions' into the actor's outputs, `∂μ = ∂a (1 − tanh² μ)` and
-//! `∂ρ = (∂a ε + ∂H / σ)(σ_max − σ_min) s (1 − s)` with `s = sigmoid(ρ + 2)` and the factor held
-//! fixed; and those into the actor's parameters, in one pass over all `H N` rows (its input is
-//! detached). The critic's loss gives the critic's parameters theirs. No gradient goes where
-//! none is read: the start states', the critic's last row's, the frozen networks' weights'.
+//! `∂v_{t+1} += (1 − λ) γ c_{t+1} G_t`, at the end `∂v_T += λ γ c_T G_{T−1}`, and in the paper's
+//! code `∂c_{t+1} = γ ((1 − λ) v_{t+1} + λ R_{t+1}) G_t` (`R_T = v_T`) and the baseline's
+//! `∂v_t += w_t / S`. The reward and continue heads and the critic (frozen: their input's
+//! gradient only) turn these into the gradients of `s_1 … s_T`, as does, in the paper's code,
+//! the actor with the entropy's part of `∂ρ`; the RSSM's steps, from the last back, into those
+//! of the earlier states and of the actions; the actions' into the actor's outputs,
+//! `∂μ = ∂a (1 − tanh² μ)` and `∂ρ = (∂a ε + ∂H / σ)(σ_max − σ_min) s (1 − s)` with
+//! `s = sigmoid(ρ + 2)` and the factor held fixed; and those into the actor's parameters, in
+//! one pass over all `T N` rows (the actions read detached states). The critic's loss gives the
+//! critic's parameters theirs. No gradient goes where none is read: the start states', the
+//! critic's last row's, the frozen networks' weights'.
 
 use crate::world_model::Starts;
 use candle_core::Result;
-use ctxrace_common::agents::DreamerConfig;
+use ctxrace_common::agents::{DreamerConfig, ImaginationLoss};
 use ctxrace_common::nn::plain::{
     soft_cross_entropy, soft_cross_entropy_backward, twohot_decode, twohot_decode_backward,
     InputGrad, MlpGrads, MlpTrace, NonZeros, PlainMlp, PlainRssm, StepScratch, StepTrace,
@@ -80,11 +90,11 @@ pub(crate) struct Imagination {
     /// Starts `N` and state width `F = D + Z + c`.
     n: usize,
     f: usize,
-    /// The states `s_0 … s_H`, time-major rows `[(H + 1) N, F]`, and the non-zeros of their
+    /// The states `s_0 … s_T`, time-major rows `[(T + 1) N, F]`, and the non-zeros of their
     /// one-hot `z` (for every layer that reads them).
     states: Vec<f32>,
     non_zeros: NonZeros,
-    /// Per action `[H N, A]`: the noise `ε`, `tanh μ`, `σ`, the factor `1 / max(1, |a|)`.
+    /// Per action `[T N, A]`: the noise `ε`, `tanh μ`, `σ`, the factor `1 / max(1, |a|)`.
     noise: Vec<f32>,
     mean: Vec<f32>,
     std: Vec<f32>,
@@ -98,17 +108,17 @@ pub(crate) struct Imagination {
     cont_head: MlpTrace,
     critic: MlpTrace,
     slow: MlpTrace,
-    /// `[H N]`: `r_{t+1}`, `c_{t+1}`, the slow critic's `v(s_t)`, `R_t`, `w_t`, `H[π(·|s_t)]`.
+    /// `[T N]`: `r_{t+1}`, the slow critic's `v(s_t)`, `R_t`, `w_t`, `H[π(·|s_t)]`.
     reward: Vec<f32>,
-    cont: Vec<f32>,
     slow_value: Vec<f32>,
     returns: Vec<f32>,
     weights: Vec<f32>,
     entropy: Vec<f32>,
-    /// `v(s_0) … v(s_H)` `[(H + 1) N]`.
+    /// `v(s_0) … v(s_T)` and `c(s_0) … c(s_T)` `[(T + 1) N]`.
     value: Vec<f32>,
-    /// Backward: the states' gradients `[(H + 1) N, F]`, the actions' `[H N, A]`, the actor's
-    /// outputs' `[H N, 2 A]`, the heads' logits', the CE targets `[H N, K]`.
+    cont: Vec<f32>,
+    /// Backward: the states' gradients `[(T + 1) N, F]`, the actions' `[T N, A]`, the actor's
+    /// outputs' `[T N, 2 A]`, the heads' logits', the CE targets `[T N, K]`.
     d_states: Vec<f32>,
     d_actions: Vec<f32>,
     d_actor_out: Vec<f32>,
@@ -139,18 +149,27 @@ fn mean(x: &[f32]) -> f64 {
     x.iter().map(|&v| v as f64).sum::<f64>() / x.len().max(1) as f64
 }
 
+/// The imagined steps `T` of a horizon `H`: `H − 1` in the paper's code, whose `H` states
+/// include the start, `H` in the `dreamerv3` form.
+fn imagined_steps(cfg: &DreamerConfig) -> usize {
+    match cfg.imagination {
+        ImaginationLoss::PaperCode => cfg.horizon.saturating_sub(1),
+        ImaginationLoss::Dreamerv3 => cfg.horizon,
+    }
+}
+
 /// `1 / (1 + e^{−x})`.
 fn sigmoid(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())
 }
 
 impl Imagination {
-    /// The λ-returns `R` `[H N]` of the last [`Imagination::forward`].
+    /// The λ-returns `R` `[T N]` of the last [`Imagination::forward`].
     pub(crate) fn returns(&self) -> &[f32] {
         &self.returns
     }
 
-    /// Imagines `H` steps from `start` with the noise of the sequences' streams `rngs` (`T`
+    /// Imagines `T` steps ([`imagined_steps`]) from `start` with the noise of the sequences' streams `rngs` (`T`
     /// starts each), and computes the heads, the λ-returns and the weights.
     pub(crate) fn forward(
         &mut self,
@@ -160,7 +179,7 @@ impl Imagination {
         rngs: &mut [ChaCha8Rng],
     ) -> Result<()> {
         let cfg = set.cfg;
-        let (h, a) = (cfg.horizon, set.act_dim);
+        let (h, a) = (imagined_steps(cfg), set.act_dim);
         let (deter, stoch, ctx) = (&start.deter, &start.stoch, &start.ctx);
         let n = start.n;
         let (d, z) = (deter.len() / n.max(1), stoch.len() / n.max(1));
@@ -230,7 +249,7 @@ impl Imagination {
     /// The heads on the imagined states, the λ-returns and the weights.
     fn heads(&mut self, nets: &Nets, set: &Setting, start_cont: &[f32]) {
         let cfg = set.cfg;
-        let (h, n, f) = (cfg.horizon, self.n, self.f);
+        let (h, n, f) = (imagined_steps(cfg), self.n, self.f);
         let hn = h * n;
         let bins = set.twohot.bins();
         let nz = &self.non_zeros;
@@ -241,12 +260,12 @@ impl Imagination {
         nets.reward.forward(later, &mut self.reward_head, 0..hn);
         let logits = nets.reward.output(&self.reward_head, 0..hn);
         twohot_decode(logits, bins, sized(&mut self.reward, hn));
-        nets.cont.fit(&mut self.cont_head, hn);
-        nets.cont.forward(later, &mut self.cont_head, 0..hn);
-        let cont = sized(&mut self.cont, hn);
+        nets.cont.fit(&mut self.cont_head, hn + n);
+        nets.cont.forward(all, &mut self.cont_head, 0..hn + n);
+        let cont = sized(&mut self.cont, hn + n);
         for (c, &l) in cont
             .iter_mut()
-            .zip(nets.cont.output(&self.cont_head, 0..hn))
+            .zip(nets.cont.output(&self.cont_head, 0..hn + n))
         {
             *c = sigmoid(l);
         }
@@ -258,7 +277,7 @@ impl Imagination {
         nets.slow.forward(now, &mut self.slow, 0..hn);
         let logits = nets.slow.output(&self.slow, 0..hn);
         twohot_decode(logits, bins, sized(&mut self.slow_value, hn));
-        // R_H = v_H; R_t = r_{t+1} + γ c_{t+1} ((1 − λ) v_{t+1} + λ R_{t+1})
+        // R_T = v_T; R_t = r_{t+1} + γ c_{t+1} ((1 − λ) v_{t+1} + λ R_{t+1})
         let (gamma, lambda) = (cfg.gamma as f32, cfg.lambda as f32);
         let returns = sized(&mut self.returns, hn);
         for i in 0..n {
@@ -266,17 +285,21 @@ impl Imagination {
             for t in (0..h).rev() {
                 let k = t * n + i;
                 let blend = (1.0 - lambda) * self.value[k + n] + lambda * next;
-                next = self.reward[k] + gamma * self.cont[k] * blend;
+                next = self.reward[k] + gamma * self.cont[k + n] * blend;
                 returns[k] = next;
             }
         }
+        // w_t = w_{t−1} γ c(s_{t−1}) from 1 (paper's code), or w_{t−1} γ c(s_t) from the start's
+        let paper = cfg.imagination == ImaginationLoss::PaperCode;
         let weights = sized(&mut self.weights, hn);
-        weights[..n].copy_from_slice(start_cont);
-        for t in 1..h {
-            for i in 0..n {
-                let k = t * n + i;
-                weights[k] = weights[k - n] * self.cont[k - n] * gamma;
-            }
+        if paper {
+            weights[..n].fill(1.0);
+        } else {
+            weights[..n].copy_from_slice(start_cont);
+        }
+        let lag = if paper { n } else { 0 };
+        for k in n..hn {
+            weights[k] = weights[k - n] * self.cont[k - lag] * gamma;
         }
     }
 
@@ -290,22 +313,36 @@ impl Imagination {
         share: f32,
     ) -> ShardGrads {
         let cfg = set.cfg;
-        let (h, n, f, a) = (cfg.horizon, self.n, self.f, set.act_dim);
+        let (h, n, f, a) = (imagined_steps(cfg), self.n, self.f, set.act_dim);
         let (hn, k) = (h * n, set.twohot.count());
         let per_term = share / hn as f32;
         let (gamma, lambda, eta) = (cfg.gamma as f32, cfg.lambda as f32, cfg.entropy as f32);
-        // the λ-returns' gradients into r (held in `reward_grad`) and v (in `value_grad`)
+        let paper = cfg.imagination == ImaginationLoss::PaperCode;
+        // the λ-returns' gradients into r (held in `reward_grad`), v (in `value_grad`) and, in
+        // the paper's code, c (in `cont_grad`, at the logits) and the baseline v
         let mut reward_grad = vec![0f32; hn];
         let mut value_grad = vec![0f32; hn + n];
+        let mut cont_grad = vec![0f32; if paper { hn } else { 0 }];
         for i in 0..n {
             let mut carried = 0.0;
             for t in 0..h {
                 let j = t * n + i;
-                let g = -self.weights[j] / scale * per_term + carried;
+                let d_return = -self.weights[j] / scale * per_term;
+                let g = d_return + carried;
                 reward_grad[j] = g;
-                let discount = gamma * self.cont[j];
-                value_grad[j + n] += (1.0 - lambda) * discount * g;
-                carried = lambda * discount * g;
+                let c = self.cont[j + n];
+                value_grad[j + n] += (1.0 - lambda) * gamma * c * g;
+                carried = lambda * gamma * c * g;
+                if paper {
+                    value_grad[j] -= d_return;
+                    let next_return = if t + 1 < h {
+                        self.returns[j + n]
+                    } else {
+                        self.value[j + n]
+                    };
+                    let blend = (1.0 - lambda) * self.value[j + n] + lambda * next_return;
+                    cont_grad[j] = gamma * blend * g * c * (1.0 - c);
+                }
             }
             value_grad[hn + i] += carried;
         }
@@ -332,7 +369,7 @@ impl Imagination {
         );
         let logits = nets.critic.output(&self.critic, n..hn + n);
         twohot_decode_backward(logits, bins, &value_grad[n..], d_logits);
-        let target = InputGrad::new(d_later, f, columns, true);
+        let target = InputGrad::new(d_later, f, columns.clone(), true);
         nets.critic.backward(
             later,
             &mut self.critic,
@@ -341,6 +378,36 @@ impl Imagination {
             None,
             Some(target),
         );
+        // the paper's code: the continue probabilities' and the entropy's, s_1 … s_{T−1}
+        let span = (cfg.max_std - cfg.min_std) as f32;
+        let d_entropy = |r: usize| match paper {
+            true => -eta * per_term,
+            false => -self.weights[r] * eta * per_term,
+        };
+        // ∂ρ from the gradient of σ
+        let d_rho = |q: usize, d_std: f32| {
+            let s = (self.std[q] - cfg.min_std as f32) / span;
+            d_std * span * s * (1.0 - s)
+        };
+        let d_out = sized(&mut self.d_actor_out, hn * 2 * a);
+        if paper {
+            let target = InputGrad::new(d_later, f, columns.clone(), true);
+            let cont_head = &mut self.cont_head;
+            nets.cont
+                .backward(later, cont_head, n..hn + n, &cont_grad, None, Some(target));
+            for r in n..hn {
+                for j in 0..a {
+                    let q = r * a + j;
+                    d_out[r * 2 * a + j] = 0.0;
+                    d_out[r * 2 * a + a + j] = d_rho(q, d_entropy(r) / self.std[q]);
+                }
+            }
+            let states = nz.rows(&self.states[n * f..hn * f], n..hn);
+            let target = InputGrad::new(d_later, f, columns, true);
+            let d_out = &d_out[n * 2 * a..];
+            nets.actor
+                .backward(states, &mut self.actor, n..hn, d_out, None, Some(target));
+        }
         // the critic's own loss, on s_0 … s_{H−1} detached
         let targets = sized(&mut self.targets, hn * k);
         targets.fill(0.0);
@@ -376,18 +443,14 @@ impl Imagination {
             );
         }
         // into the actor's outputs, then its parameters
-        let d_out = sized(&mut self.d_actor_out, hn * 2 * a);
-        let span = (cfg.max_std - cfg.min_std) as f32;
         for r in 0..hn {
-            let d_entropy = -self.weights[r] * eta * per_term;
             for j in 0..a {
                 let q = r * a + j;
                 let d_raw = d_actions[q] * self.shrink[q];
                 let m = self.mean[q];
                 d_out[r * 2 * a + j] = d_raw * (1.0 - m * m);
-                let s = (self.std[q] - cfg.min_std as f32) / span;
-                let d_std = d_raw * self.noise[q] + d_entropy / self.std[q];
-                d_out[r * 2 * a + a + j] = d_std * span * s * (1.0 - s);
+                let d_std = d_raw * self.noise[q] + d_entropy(r) / self.std[q];
+                d_out[r * 2 * a + a + j] = d_rho(q, d_std);
             }
         }
         let mut actor = nets.actor.zero_grads();
@@ -401,7 +464,8 @@ impl Imagination {
                 let j = t * n + i;
                 let w = self.weights[j] as f64;
                 let adv = (self.returns[j] - self.value[j]) as f64 / scale as f64;
-                actor_loss -= w * (adv + cfg.entropy * self.entropy[j] as f64);
+                let bonus = cfg.entropy * self.entropy[j] as f64;
+                actor_loss -= w * adv + if paper { bonus } else { w * bonus };
                 critic_loss += w * ce[j] as f64;
             }
         }

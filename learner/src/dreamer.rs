@@ -5,17 +5,21 @@
 //! decoder, reward and continue heads) on the batch, then behaviour learning in imagination from
 //! its posterior states; cMask adds a step of its mask SAC ([`crate::cmask`]).
 //!
-//! **Behaviour.** From every posterior state (detached, `B·T` starts) the actor imagines `H` steps
-//! through the prior, with the context unchanged. With rewards `r`, continue probabilities `c`
-//! and critic values `v` of the imagined states, the λ-returns `R_t` ([`crate::returns`]) are
-//! normalised by the percentile scale `S`; the actor minimises
-//! `−w_t ((R_t − sg v_t) / S + η H[π(·|s_t)])`, backpropagating `R_t` through the world model
-//! into the reparameterised actions (only the actor's parameters are stepped); the critic
-//! regresses `sg R_t` and its slow EMA copy's value (two-hot), with `w_t = Π_{k≤t} γ c_k` the
-//! stop-gradient discount weight (`c_0 = 1 − terminal` of the start). The actor is
-//! `Normal(tanh μ, σ)`, `σ = (σ_max − σ_min) sigmoid(x + 2) + σ_min`; samples are scaled back into
-//! `[−1, 1]` with a stop-gradient factor `1 / max(1, |a|)` (dreamerv3-torch's `absmax`) so that
-//! imagined actions match the environment's.
+//! **Behaviour.** From every posterior state (detached, `B·T` starts) the actor imagines through
+//! the prior, with the context unchanged: `H` states with the start (`H − 1` steps) as the
+//! paper's code (dreamerv3-torch) counts its horizon. With rewards `r`, continue probabilities
+//! `c` and critic values `v` of the imagined states, the λ-returns `R_t` ([`crate::returns`]) are
+//! normalised by the percentile scale `S`; the actor minimises `−w_t (R_t − v_t) / S − η H[π(·|s_t)]`,
+//! backpropagating through the world model into the reparameterised actions from every use of
+//! an imagined state (the returns' rewards, continue probabilities and values, the baseline
+//! `v_t`, the entropy), as the code's autograd does (only the actor's parameters are stepped);
+//! the critic regresses `sg R_t` and its slow EMA copy's value (two-hot), with
+//! `w_t = Π_{k<t} γ c(s_k)` the stop-gradient discount weight. `[agent.dreamer] imagination =
+//! "dreamerv3"` selects the form ctxrace had before (`H` steps, a stop-gradient baseline, no
+//! gradient through `c`, the entropy weighted by `w_t`; [`crate::behaviour`] states both). The
+//! actor is `Normal(tanh μ, σ)`, `σ = (σ_max − σ_min) sigmoid(x + 2) + σ_min`; samples are scaled
+//! back into `[−1, 1]` with a stop-gradient factor `1 / max(1, |a|)` (dreamerv3-torch's
+//! `absmax`) so that imagined actions match the environment's.
 //!
 //! **Context.** cRSSM feeds `c / range` (`range` = the training range 0.15, so `c ∈ [−1, 1]`) to
 //! the sequence model and every head; cMask replaces it by `c_m = m_t ⊙ c / range` with
@@ -406,7 +410,7 @@ impl Algorithm for Dreamer {
 mod tests {
     use super::*;
     use candle_core::{DType, Device, Module};
-    use ctxrace_common::agents::MaskConfig;
+    use ctxrace_common::agents::{ImaginationLoss, MaskConfig};
     use ctxrace_common::nn::kernels::soft_cross_entropy;
     use ctxrace_common::nn::RssmState;
     use ctxrace_common::policy::normals;
@@ -687,8 +691,10 @@ mod tests {
     }
 
     /// The behaviour losses of one shard of `start` composed of candle operations, autograd's
-    /// statement of what [`crate::behaviour`] differentiates by hand: `(actor, critic)` losses,
-    /// each a mean over the `H N` terms, for the return scale `scale`.
+    /// statement of what [`crate::behaviour`] differentiates by hand in the config's form:
+    /// `(actor, critic)` losses, each a mean over the `T N` terms, for the return scale `scale`.
+    /// The paper's code's form reads as its dreamerv3-torch `ImagBehavior`: `H` states with the
+    /// start, gradients through every use of an imagined state.
     fn candle_behaviour_losses(
         agent: &Dreamer,
         start: &Starts,
@@ -696,7 +702,9 @@ mod tests {
         scale: f64,
     ) -> (Tensor, Tensor) {
         let cfg = &agent.cfg;
-        let (h, n, a) = (cfg.horizon, start.n, agent.act_dim);
+        let paper = cfg.imagination == ImaginationLoss::PaperCode;
+        let h = if paper { cfg.horizon - 1 } else { cfg.horizon };
+        let (n, a) = (start.n, agent.act_dim);
         let per_sequence = n / rngs.len();
         let rows = |v: &[f32]| Tensor::from_slice(v, (n, v.len() / n), &Device::Cpu).unwrap();
         let ctx = (!start.ctx.is_empty()).then(|| rows(&start.ctx));
@@ -719,6 +727,11 @@ mod tests {
             let noise = normals_per(rngs, per_sequence, a).unwrap();
             let action = DreamerNets::sample_action(&mean, &std, &noise).unwrap();
             let gauss = 0.5 * (1.0 + (2.0 * std::f64::consts::PI).ln());
+            // the paper's code takes the entropy of the actor on the states themselves
+            let std = match paper {
+                true => agent.nets.actor_dist(&xs[t]).unwrap().1,
+                false => std,
+            };
             entropies.push((std.log().unwrap().sum(1).unwrap() + a as f64 * gauss).unwrap());
             let uniform = uniforms_per(rngs, per_sequence, (cfg.stoch, cfg.classes)).unwrap();
             state = rssm.img_step(&state, &action, ctx, &uniform).unwrap().0;
@@ -731,32 +744,39 @@ mod tests {
         let reward = decode(&reward_head.forward(&later).unwrap())
             .reshape((h, n))
             .unwrap();
-        let cont = cont_head.forward(&later.detach()).unwrap();
-        let cont = candle_nn::ops::sigmoid(&cont)
+        let cont_input = if paper { x.clone() } else { x.detach() };
+        let cont_all = cont_head.forward(&cont_input).unwrap();
+        let cont_all = candle_nn::ops::sigmoid(&cont_all)
             .unwrap()
-            .reshape((h, n))
+            .reshape((h + 1, n))
             .unwrap();
+        let cont = cont_all.narrow(0, 1, h).unwrap();
         let value = decode(&agent.critic.frozen().forward(&x).unwrap())
             .reshape((h + 1, n))
             .unwrap();
         let returns =
             crate::returns::lambda_returns(&reward, &cont, &value, cfg.gamma, cfg.lambda).unwrap();
-        let mut w = start_cont;
+        // w_t = w_{t−1} γ c(s_{t−1}) from 1 (paper's code), or w_{t−1} γ c(s_t) from the start's
+        let (mut w, lag) = match paper {
+            true => (start_cont.ones_like().unwrap(), 1),
+            false => (start_cont, 0),
+        };
         let mut weights = vec![w.clone()];
         for t in 1..h {
-            w = (w.mul(&cont.get(t - 1).unwrap()).unwrap() * cfg.gamma).unwrap();
+            let c = cont_all.get(t - lag).unwrap().detach();
+            w = (w.mul(&c).unwrap() * cfg.gamma).unwrap();
             weights.push(w.clone());
         }
         let weights = Tensor::stack(&weights, 0).unwrap();
-        let adv = ((&returns - value.narrow(0, 0, h).unwrap().detach()).unwrap() / scale).unwrap();
-        let objective = (adv + (&entropy * cfg.entropy).unwrap()).unwrap();
-        let actor = objective
-            .mul(&weights)
-            .unwrap()
-            .neg()
-            .unwrap()
-            .mean_all()
-            .unwrap();
+        let base = value.narrow(0, 0, h).unwrap();
+        let base = if paper { base } else { base.detach() };
+        let adv = ((&returns - base).unwrap() / scale).unwrap();
+        let bonus = (&entropy * cfg.entropy).unwrap();
+        let objective = match paper {
+            true => (adv.mul(&weights).unwrap() + bonus).unwrap(),
+            false => (adv + bonus).unwrap().mul(&weights).unwrap(),
+        };
+        let actor = objective.neg().unwrap().mean_all().unwrap();
         let now = x.narrow(0, 0, h * n).unwrap().detach();
         let slow = decode(&agent.slow_critic.forward(&now).unwrap()).detach();
         let encode = |y: &Tensor| agent.twohot.encode(&y.flatten_all().unwrap()).unwrap();
@@ -783,13 +803,18 @@ mod tests {
             (ContextMode::Cmask, 0.0),
             (ContextMode::Cmask, 0.05),
         ];
-        for (mode, entropy) in settings {
+        let forms = [ImaginationLoss::PaperCode, ImaginationLoss::Dreamerv3];
+        for ((mode, entropy), imagination) in forms
+            .into_iter()
+            .flat_map(|form| settings.map(|s| (s, form)))
+        {
             let mut rng = ChaCha8Rng::seed_from_u64(2);
             let data = collect(10, &mut rng);
             let cfg = DreamerConfig {
                 model_lr: 1e-3,
                 ac_lr: 1e-3,
                 entropy,
+                imagination,
                 ..tiny(mode)
             };
             let mut agent = Dreamer::new(cfg, 2, 2).unwrap();
@@ -839,6 +864,13 @@ mod tests {
             im.forward(&nets, &set, &starts[0], &mut rngs).unwrap();
             let got = im.backward(&nets, &set, scale as f32, 1.0);
             let value = |t: &Tensor| scalar(t).unwrap();
+            eprintln!(
+                "{imagination:?} {mode:?} {entropy}: actor {} vs {}, critic {} vs {}",
+                got.actor_loss,
+                value(&actor),
+                got.critic_loss,
+                value(&critic)
+            );
             assert!((got.actor_loss - value(&actor)).abs() < 1e-4 * (1.0 + value(&actor).abs()));
             assert!((got.critic_loss - value(&critic)).abs() < 1e-4 * (1.0 + value(&critic).abs()));
             let mut grads = candle_core::backprop::GradStore::default();
