@@ -350,7 +350,7 @@ impl Imagination {
         let nz = &self.non_zeros;
         let later = nz.rows(&self.states[n * f..], n..hn + n);
         let now = nz.rows(&self.states[..hn * f], 0..hn);
-        // the states' gradients from the reward head and the critic (frozen), s_1 … s_H
+        // the states' gradients from the reward head and the critic (frozen), s_1 … s_T
         let d_states = sized(&mut self.d_states, (h + 1) * n * f);
         let d_logits = sized(&mut self.d_logits, hn * k);
         let logits = nets.reward.output(&self.reward_head, 0..hn);
@@ -378,7 +378,7 @@ impl Imagination {
             None,
             Some(target),
         );
-        // the paper's code: the continue probabilities' and the entropy's, s_1 … s_{T−1}
+        // the paper's code: the continue head's (s_1 … s_T) and the entropy's (s_1 … s_{T−1})
         let span = (cfg.max_std - cfg.min_std) as f32;
         let d_entropy = |r: usize| match paper {
             true => -eta * per_term,
@@ -408,7 +408,7 @@ impl Imagination {
             nets.actor
                 .backward(states, &mut self.actor, n..hn, d_out, None, Some(target));
         }
-        // the critic's own loss, on s_0 … s_{H−1} detached
+        // the critic's own loss, on s_0 … s_{T−1} detached
         let targets = sized(&mut self.targets, hn * k);
         targets.fill(0.0);
         set.twohot.add_encoded(&self.returns, 1.0, targets);
