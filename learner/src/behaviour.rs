@@ -151,7 +151,7 @@ fn mean(x: &[f32]) -> f64 {
 
 /// The imagined steps `T` of a horizon `H`: `H − 1` in the paper's code, whose `H` states
 /// include the start, `H` in the `dreamerv3` form.
-fn imagined_steps(cfg: &DreamerConfig) -> usize {
+pub(crate) fn imagined_steps(cfg: &DreamerConfig) -> usize {
     match cfg.imagination {
         ImaginationLoss::PaperCode => cfg.horizon.saturating_sub(1),
         ImaginationLoss::Dreamerv3 => cfg.horizon,
@@ -169,8 +169,9 @@ impl Imagination {
         &self.returns
     }
 
-    /// Imagines `T` steps ([`imagined_steps`]) from `start` with the noise of the sequences' streams `rngs` (`T`
-    /// starts each), and computes the heads, the λ-returns and the weights.
+    /// Imagines `T` steps ([`imagined_steps`]) from `start` with the noise of the sequences'
+    /// streams `rngs` (a start per step of each sequence), and computes the heads, the λ-returns
+    /// and the weights.
     pub(crate) fn forward(
         &mut self,
         nets: &Nets,

@@ -703,7 +703,7 @@ mod tests {
     ) -> (Tensor, Tensor) {
         let cfg = &agent.cfg;
         let paper = cfg.imagination == ImaginationLoss::PaperCode;
-        let h = if paper { cfg.horizon - 1 } else { cfg.horizon };
+        let h = behaviour::imagined_steps(cfg);
         let (n, a) = (start.n, agent.act_dim);
         let per_sequence = n / rngs.len();
         let rows = |v: &[f32]| Tensor::from_slice(v, (n, v.len() / n), &Device::Cpu).unwrap();
