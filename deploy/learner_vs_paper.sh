@@ -11,15 +11,60 @@
 # AVX2 on an AVX-512 machine: CTXRACE_BIN from `cargo build --release -p ctxrace
 # --no-default-features --target-dir target/avx2`, and torch capped with ATEN_CPU_CAPABILITY=avx2
 # MKL_ENABLE_INSTRUCTIONS=AVX2 ONEDNN_MAX_CPU_ISA=AVX2 in the environment.
+# At the end it prints a table: each side's median per gradient step in every round, and the
+# range of the ratios of each paper round to the ctxrace rounds on either side of it (the paper's
+# SAC: the faster of its 1- and 2-thread figures less its buffer's sampling time, which ctxrace
+# spends in the replay process). `deploy/learner_vs_paper.sh --table LOG` prints the table of a
+# saved run's output.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+path=${PYTHON_BIN_DIR:+$PYTHON_BIN_DIR:}$PATH
+
+# table LOG: the medians and ratios of a run's output
+table() {
+    [[ -f $1 ]] || { echo "no file $1: --table reads the saved output of this script" >&2; exit 1; }
+    PATH=$path python3 - "$1" <<'PY'
+import json, re, sys
+algos = ["dreamerv3", "crssm", "cmask", "sac"]
+ours, paper = {a: [] for a in algos}, {a: [] for a in algos}
+for line in open(sys.argv[1]):
+    m = re.match(r"(dreamerv3|crssm|cmask|sac) \(.*median ([0-9.]+) ms\)", line)
+    if m:
+        ours[m.group(1)].append(float(m.group(2)))
+        continue
+    m = re.match(r"paper (round|cRSSM round|SAC round) \d+: (\{.*\})", line)
+    if not m:
+        continue
+    d = json.loads(m.group(2))
+    if "dreamerv3_ms" in d:
+        paper["dreamerv3"].append(d["dreamerv3_ms"])
+        paper["cmask"].append(d["cmask_ms"])
+    if "crssm_ms" in d:
+        paper["crssm"].append(d["crssm_ms"])
+    if "sac_ms_1_thread" in d:
+        paper["sac"].append(min(d[f"sac_ms_{t}"] - d[f"sac_sampling_ms_{t}"]
+                                for t in ("1_thread", "2_threads")))
+print("| ms per gradient step | ctxrace and paper rounds, alternately | paper / ctxrace |")
+print("|---|---|---|")
+for a in algos:
+    c, p = ours[a], paper[a]
+    cells = [f"{v:.4g}" for pair in zip(c, p + [None]) for v in pair if v is not None]
+    ratios = [pv / c[j] for i, pv in enumerate(p) for j in (i, i + 1) if j < len(c)]
+    span = f"{min(ratios):.1f}-{max(ratios):.1f}x" if ratios else "no pairs"
+    print(f"| {a} | {' / '.join(cells)} | {span} |")
+PY
+}
+if [[ ${1:-} == --table ]]; then
+    table "${2:?usage: deploy/learner_vs_paper.sh --table LOG}"
+    exit
+fi
 git_dir=${1:?usage: deploy/learner_vs_paper.sh PAPER_GIT_DIR [ROUNDS]}
 rounds=${2:-3}
 bin=${CTXRACE_BIN:-target/release/ctxrace}
 harness=../shared/tools/paper_learner_bench.sh
 [[ -x "$bin" ]] || { echo "no $bin: build it with cargo build --release" >&2; exit 1; }
 [[ -f "$harness" ]] || { echo "no $harness: the paper's harness lives in ../shared/tools" >&2; exit 1; }
-path=${PYTHON_BIN_DIR:+$PYTHON_BIN_DIR:}$PATH
+log=$(mktemp); trap 'rm -f "$log"' EXIT
 for ((round = 1; round <= rounds; round++)); do
     for algo in dreamerv3 crssm cmask sac; do
         echo "ctxrace round $round $algo:"
@@ -30,4 +75,6 @@ for ((round = 1; round <= rounds; round++)); do
         echo "paper cRSSM round $round: $(PATH=$path deploy/paper_crssm_bench.sh "$git_dir" 4 | tail -1)"
         echo "paper SAC round $round: $(PATH=$path deploy/paper_sac_bench.sh "$git_dir" 50 | tail -1)"
     fi
-done
+done | tee "$log"
+echo
+table "$log"
