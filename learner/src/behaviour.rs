@@ -8,8 +8,9 @@
 //! `dreamerv3` form): the actor's `Normal(tanh μ, σ)` on `s_t`,
 //! `σ = (σ_max − σ_min) sigmoid(ρ + 2) + σ_min`; the action
 //! `a_t = (μ + σ ε) / max(1, |μ + σ ε|)` (the factor a stop-gradient); the RSSM's prior step to
-//! `s_{t+1}`. On the `T + 1` states: rewards `r` of `s_1 … s_T`, continue probabilities `c` and
-//! the critic's values `v` of `s_0 … s_T` (one pass serves the λ-returns, the baseline and the
+//! `s_{t+1}`. On the `T + 1` states: rewards `r` of `s_1 … s_T`, continue probabilities `c` of
+//! `s_0 … s_T` (`s_1 … s_T` in the `dreamerv3` form, whose weights do not read `c(s_0)`), the
+//! critic's values `v` of `s_0 … s_T` (one pass serves the λ-returns, the baseline and the
 //! critic's loss), the slow critic's values of `s_0 … s_{T−1}`; the λ-returns `R`
 //! ([`crate::returns`]) and the stop-gradient weights: `w_0 = 1`, `w_t = w_{t−1} γ c(s_{t−1})`
 //! (paper's code), or `w_0 = 1 − terminal` of the start, `w_t = w_{t−1} γ c(s_t)` (`dreamerv3`).
@@ -114,7 +115,8 @@ pub(crate) struct Imagination {
     returns: Vec<f32>,
     weights: Vec<f32>,
     entropy: Vec<f32>,
-    /// `v(s_0) … v(s_T)` and `c(s_0) … c(s_T)` `[(T + 1) N]`.
+    /// `v(s_0) … v(s_T)` and `c(s_0) … c(s_T)` `[(T + 1) N]` (`c(s_0) = 0` in the `dreamerv3`
+    /// form, which does not compute it).
     value: Vec<f32>,
     cont: Vec<f32>,
     /// Backward: the states' gradients `[(T + 1) N, F]`, the actions' `[T N, A]`, the actor's
@@ -261,12 +263,17 @@ impl Imagination {
         nets.reward.forward(later, &mut self.reward_head, 0..hn);
         let logits = nets.reward.output(&self.reward_head, 0..hn);
         twohot_decode(logits, bins, sized(&mut self.reward, hn));
+        // c(s_0) only for the paper's code's weights; the dreamerv3 form leaves it 0
+        let paper = cfg.imagination == ImaginationLoss::PaperCode;
+        let first = if paper { 0 } else { n };
         nets.cont.fit(&mut self.cont_head, hn + n);
-        nets.cont.forward(all, &mut self.cont_head, 0..hn + n);
+        let input = if paper { all } else { later };
+        nets.cont.forward(input, &mut self.cont_head, first..hn + n);
         let cont = sized(&mut self.cont, hn + n);
-        for (c, &l) in cont
+        cont[..first].fill(0.0);
+        for (c, &l) in cont[first..]
             .iter_mut()
-            .zip(nets.cont.output(&self.cont_head, 0..hn + n))
+            .zip(nets.cont.output(&self.cont_head, first..hn + n))
         {
             *c = sigmoid(l);
         }
@@ -291,7 +298,6 @@ impl Imagination {
             }
         }
         // w_t = w_{t−1} γ c(s_{t−1}) from 1 (paper's code), or w_{t−1} γ c(s_t) from the start's
-        let paper = cfg.imagination == ImaginationLoss::PaperCode;
         let weights = sized(&mut self.weights, hn);
         if paper {
             weights[..n].fill(1.0);
