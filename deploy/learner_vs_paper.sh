@@ -12,7 +12,7 @@
 # --no-default-features --target-dir target/avx2`, and torch capped with ATEN_CPU_CAPABILITY=avx2
 # MKL_ENABLE_INSTRUCTIONS=AVX2 ONEDNN_MAX_CPU_ISA=AVX2 in the environment.
 # At the end it prints a table: each side's median per gradient step in every round, and the
-# range of the ratios of each paper round to the ctxrace rounds on either side of it (the paper's
+# range and median of the ratios of each paper round to the ctxrace rounds on either side of it (the paper's
 # SAC: the faster of its 1- and 2-thread figures less its buffer's sampling time, which ctxrace
 # spends in the replay process). `deploy/learner_vs_paper.sh --table LOG` prints the table of a
 # saved run's output.
@@ -44,13 +44,15 @@ for line in open(sys.argv[1]):
     if "sac_ms_1_thread" in d:
         paper["sac"].append(min(d[f"sac_ms_{t}"] - d[f"sac_sampling_ms_{t}"]
                                 for t in ("1_thread", "2_threads")))
-print("| ms per gradient step | ctxrace and paper rounds, alternately | paper / ctxrace |")
+print("| ms per gradient step | ctxrace and paper rounds, alternately | paper / ctxrace, all pairs |")
 print("|---|---|---|")
 for a in algos:
     c, p = ours[a], paper[a]
     cells = [f"{v:.4g}" for pair in zip(c, p + [None]) for v in pair if v is not None]
     ratios = [pv / c[j] for i, pv in enumerate(p) for j in (i, i + 1) if j < len(c)]
-    span = f"{min(ratios):.1f}-{max(ratios):.1f}x" if ratios else "no pairs"
+    ratios.sort()
+    middle = (ratios[(len(ratios) - 1) // 2] + ratios[len(ratios) // 2]) / 2 if ratios else 0
+    span = f"{ratios[0]:.1f}-{ratios[-1]:.1f}x (median {middle:.2f}x)" if ratios else "no pairs"
     print(f"| {a} | {' / '.join(cells)} | {span} |")
 PY
 }
