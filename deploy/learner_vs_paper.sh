@@ -12,10 +12,10 @@
 # --no-default-features --target-dir target/avx2`, and torch capped with ATEN_CPU_CAPABILITY=avx2
 # MKL_ENABLE_INSTRUCTIONS=AVX2 ONEDNN_MAX_CPU_ISA=AVX2 in the environment.
 # At the end it prints a table: each side's median per gradient step in every round, and the
-# range and median of the ratios of each paper round to the ctxrace rounds on either side of it (the paper's
-# SAC: the faster of its 1- and 2-thread figures less its buffer's sampling time, which ctxrace
-# spends in the replay process). `deploy/learner_vs_paper.sh --table LOG` prints the table of a
-# saved run's output.
+# range and median of the ratios of each paper round to the ctxrace rounds on either side of it
+# (the paper's SAC: the faster of its 1- and 2-thread figures less its buffer's sampling time,
+# which ctxrace spends in the replay process). `deploy/learner_vs_paper.sh --table LOG` prints the
+# table of a saved run's output.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 path=${PYTHON_BIN_DIR:+$PYTHON_BIN_DIR:}$PATH
@@ -27,15 +27,18 @@ table() {
 import json, re, sys
 algos = ["dreamerv3", "crssm", "cmask", "sac"]
 ours, paper = {a: [] for a in algos}, {a: [] for a in algos}
-for line in open(sys.argv[1]):
+for number, line in enumerate(open(sys.argv[1]), 1):
     m = re.match(r"(dreamerv3|crssm|cmask|sac) \(.*median ([0-9.]+) ms\)", line)
     if m:
         ours[m.group(1)].append(float(m.group(2)))
         continue
-    m = re.match(r"paper (round|cRSSM round|SAC round) \d+: (\{.*\})", line)
+    m = re.match(r"paper (round|cRSSM round|SAC round) \d+: (.*)$", line)
     if not m:
         continue
-    d = json.loads(m.group(2))
+    try:
+        d = json.loads(m.group(2))
+    except json.JSONDecodeError as e:
+        sys.exit(f"{sys.argv[1]}:{number}: the paper's figures are not JSON ({e}): is the log cut?")
     if "dreamerv3_ms" in d:
         paper["dreamerv3"].append(d["dreamerv3_ms"])
         paper["cmask"].append(d["cmask_ms"])
@@ -44,6 +47,8 @@ for line in open(sys.argv[1]):
     if "sac_ms_1_thread" in d:
         paper["sac"].append(min(d[f"sac_ms_{t}"] - d[f"sac_sampling_ms_{t}"]
                                 for t in ("1_thread", "2_threads")))
+if not any(ours.values()) and not any(paper.values()):
+    sys.exit(f"{sys.argv[1]}: no figures of ctxrace or the paper: not this script's output?")
 print("| ms per gradient step | ctxrace and paper rounds, alternately | paper / ctxrace, all pairs |")
 print("|---|---|---|")
 for a in algos:
