@@ -864,15 +864,18 @@ mod tests {
             im.forward(&nets, &set, &starts[0], &mut rngs).unwrap();
             let got = im.backward(&nets, &set, scale as f32, 1.0);
             let value = |t: &Tensor| scalar(t).unwrap();
-            eprintln!(
-                "{imagination:?} {mode:?} {entropy}: actor {} vs {}, critic {} vs {}",
-                got.actor_loss,
-                value(&actor),
-                got.critic_loss,
-                value(&critic)
+            let case = format!("{imagination:?} {mode:?} entropy {entropy}");
+            let (actor_loss, critic_loss) = (value(&actor), value(&critic));
+            assert!(
+                (got.actor_loss - actor_loss).abs() < 1e-4 * (1.0 + actor_loss.abs()),
+                "{case}: actor loss {} by hand, {actor_loss} by candle",
+                got.actor_loss
             );
-            assert!((got.actor_loss - value(&actor)).abs() < 1e-4 * (1.0 + value(&actor).abs()));
-            assert!((got.critic_loss - value(&critic)).abs() < 1e-4 * (1.0 + value(&critic).abs()));
+            assert!(
+                (got.critic_loss - critic_loss).abs() < 1e-4 * (1.0 + critic_loss.abs()),
+                "{case}: critic loss {} by hand, {critic_loss} by candle",
+                got.critic_loss
+            );
             let mut grads = candle_core::backprop::GradStore::default();
             nets.actor
                 .add_grads_to(&got.actor, &agent.nets.actor, &mut grads)
