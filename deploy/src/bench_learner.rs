@@ -28,6 +28,7 @@ use ctxrace_common::{
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
+use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -72,7 +73,7 @@ struct LearnerReport {
     /// Matrix-product GFLOP of one step, in all and by phase.
     gflop_per_step: f64,
     gflop_by_phase: Vec<(String, f64)>,
-    /// Wall seconds of each phase of the last step (DreamerV3 variants).
+    /// Median wall seconds of each phase over the timed steps (DreamerV3 variants).
     seconds_by_phase: Vec<(String, f64)>,
     /// Achieved GFLOP/s of the matrix products.
     gflops: f64,
@@ -301,10 +302,16 @@ pub fn run(args: LearnerArgs) -> Result<()> {
     let flops_before = ctxrace_common::nn::kernels::matmul_flops();
     let mut metrics = Default::default();
     let mut step_times = Vec::with_capacity(args.steps.max(1));
+    let mut phase_times: BTreeMap<String, Vec<f64>> = BTreeMap::new();
     for _ in 0..args.steps.max(1) {
         let t = Instant::now();
         metrics = algo.train_step(&batch)?;
         step_times.push(t.elapsed().as_secs_f64());
+        for (k, v) in &metrics {
+            if let Some(phase) = k.strip_prefix("seconds/") {
+                phase_times.entry(phase.to_string()).or_default().push(*v);
+            }
+        }
     }
     let per_step = step_times.iter().sum::<f64>() / step_times.len() as f64;
     step_times.sort_by(f64::total_cmp);
@@ -317,7 +324,13 @@ pub fn run(args: LearnerArgs) -> Result<()> {
     let flops = ctxrace_common::nn::kernels::matmul_flops() - flops_before;
     let gflop_per_step = flops as f64 / args.steps.max(1) as f64 / 1e9;
     let gflop_by_phase = by_phase("flops/", 1e-9);
-    let seconds_by_phase = by_phase("seconds/", 1.0);
+    let seconds_by_phase = phase_times
+        .into_iter()
+        .map(|(phase, mut times)| {
+            times.sort_by(f64::total_cmp);
+            (phase, times[times.len() / 2])
+        })
+        .collect();
     let (peak, peak_from) = peak_gflops(threads);
     let gflops = gflop_per_step / per_step;
 
@@ -401,7 +414,7 @@ pub fn run(args: LearnerArgs) -> Result<()> {
             })
             .collect();
         if !phases.is_empty() {
-            println!("  last step by phase: {}", phases.join(", "));
+            println!("  median by phase: {}", phases.join(", "));
         }
     }
     Ok(())
