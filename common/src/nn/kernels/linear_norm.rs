@@ -92,14 +92,16 @@ impl CustomOp3 for LinearNormAct {
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         let d = gain_bias.elem_count() / 2;
         let (dp, dgb) = read(gain_bias, |gb| {
-            read(grad, |dy| {
-                let p = self.product.lock().unwrap_or_else(PoisonError::into_inner);
-                if p.len() != dy.len() {
-                    bail!("linear_norm_act: backward pass without its forward pass");
-                }
-                let mut dgb = vec![0f32; 2 * d];
-                let dp = norm_act_rows_bwd(&p, self.norm(gb), dy, &mut dgb);
-                Ok((dp, dgb))
+            read(res, |y| {
+                read(grad, |dy| {
+                    let p = self.product.lock().unwrap_or_else(PoisonError::into_inner);
+                    if p.len() != dy.len() || y.len() != dy.len() {
+                        bail!("linear_norm_act: backward pass without its forward pass");
+                    }
+                    let mut dgb = vec![0f32; 2 * d];
+                    let dp = norm_act_rows_bwd((&p, y), self.norm(gb), dy, &mut dgb);
+                    Ok((dp, dgb))
+                })
             })
         })?;
         let dp = Tensor::from_vec(dp, res.shape(), res.device())?;

@@ -308,7 +308,7 @@ impl PlainLayer {
     ) {
         match &self.after {
             After::Nothing => {}
-            After::Norm(n) => norm_act_rows_bwd_into(product, n.view(), dy, dnorm, dp),
+            After::Norm(n) => norm_act_rows_bwd_into((product, output), n.view(), dy, dnorm, dp),
             After::Relu => {
                 for ((d, &g), &y) in dp.iter_mut().zip(dy).zip(output) {
                     *d = if y > 0.0 { g } else { 0.0 };
