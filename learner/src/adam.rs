@@ -14,7 +14,7 @@
 
 use candle_core::backprop::GradStore;
 use candle_core::{bail, DType, Device, Result, Tensor, Var};
-use ctxrace_common::nn::kernels::{adam_update, sum_of_squares, AdamStep};
+use ctxrace_common::nn::kernels::{adam_update_in_place, squared_norm, AdamStep};
 use std::collections::HashMap;
 
 /// First-moment decay `β₁`.
@@ -62,29 +62,17 @@ impl Adam {
     }
 
     /// One step with `grads` (variables without a gradient are left alone); returns the
-    /// gradient norm before clipping.
+    /// gradient norm before clipping. The gradients are read and the weights updated where
+    /// candle stores them, without copies.
     pub fn step(&mut self, grads: &GradStore) -> Result<f64> {
-        self.step_sum(std::slice::from_ref(grads))
-    }
-
-    /// One step with the sum of the gradients in `parts` (the shards of one batch); returns the
-    /// norm of that sum before clipping.
-    pub fn step_sum(&mut self, parts: &[GradStore]) -> Result<f64> {
-        let mut flat: Vec<Option<Vec<f32>>> = Vec::with_capacity(self.vars.len());
+        let found: Vec<Option<&Tensor>> = self
+            .vars
+            .iter()
+            .map(|var| grads.get(var.as_tensor()))
+            .collect();
         let mut sq = 0f64;
-        for var in &self.vars {
-            let mut sum: Option<Vec<f32>> = None;
-            for g in parts.iter().filter_map(|p| p.get(var.as_tensor())) {
-                let g = g.flatten_all()?.to_vec1::<f32>()?;
-                match &mut sum {
-                    Some(s) => s.iter_mut().zip(&g).for_each(|(s, v)| *s += v),
-                    None => sum = Some(g),
-                }
-            }
-            if let Some(g) = &sum {
-                sq += sum_of_squares(g);
-            }
-            flat.push(sum);
+        for g in found.iter().flatten() {
+            sq += squared_norm(g)?;
         }
         let norm = sq.sqrt();
         if !norm.is_finite() {
@@ -107,13 +95,11 @@ impl Adam {
             v_corr,
             eps: self.eps as f32,
         };
-        for (i, g) in flat.into_iter().enumerate() {
-            let Some(g) = g else { continue };
-            let var = &self.vars[i];
-            let mut w = var.flatten_all()?.to_vec1::<f32>()?;
-            let (m, v) = (&mut self.m[i], &mut self.v[i]);
-            adam_update(&mut w, &g, m, v, coefficients)?;
-            var.set(&Tensor::from_vec(w, var.shape(), var.device())?)?;
+        let moments = self.m.iter_mut().zip(self.v.iter_mut());
+        for ((var, g), (m, v)) in self.vars.iter().zip(&found).zip(moments) {
+            if let Some(g) = g {
+                adam_update_in_place(var.as_tensor(), g, (m, v), coefficients)?;
+            }
         }
         Ok(norm)
     }

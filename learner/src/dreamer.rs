@@ -65,6 +65,7 @@ use crate::world_model::{Starts, WorldModel};
 use candle_core::{bail, Result, Tensor};
 use ctxrace_common::agents::{ContextMode, DreamerConfig, CONTEXT_DIM};
 use ctxrace_common::nn::kernels::matmul_flops;
+use ctxrace_common::nn::plain::MlpGrads;
 use ctxrace_common::nn::{Activation, Mlp, ParamStore, TwoHot};
 use ctxrace_common::policy::{mask_sample, normals_per, DreamerNets, DreamerPolicy};
 use rand::SeedableRng;
@@ -251,11 +252,17 @@ impl Dreamer {
             Ok(im.backward(&nets, &set, scale as f32, shares[i] as f32))
         })?;
         self.imaginations = work;
-        let (mut actor, mut critic) = (nets.actor.zero_grads(), nets.critic.zero_grads());
+        // the shards' sums: the first shard's gradients, the others' added
+        let mut sums: Option<(MlpGrads, MlpGrads)> = None;
         let mut shard_metrics = Vec::with_capacity(parts.len());
-        for (part, &w) in parts.iter().zip(&shares) {
-            actor.add(&part.actor);
-            critic.add(&part.critic);
+        for (part, &w) in parts.into_iter().zip(&shares) {
+            match &mut sums {
+                Some((actor, critic)) => {
+                    actor.add(&part.actor);
+                    critic.add(&part.critic);
+                }
+                None => sums = Some((part.actor, part.critic)),
+            }
             let mut m = Metrics::new();
             m.insert("actor/loss".into(), part.actor_loss);
             m.insert("critic/loss".into(), part.critic_loss);
@@ -264,6 +271,9 @@ impl Dreamer {
             m.insert("imag/return".into(), part.ret);
             shard_metrics.push((w, m));
         }
+        let Some((actor, critic)) = sums else {
+            bail!("behaviour learning: no imagined states");
+        };
         let mut grads = candle_core::backprop::GradStore::default();
         nets.actor
             .add_grads_to(&actor, &self.nets.actor, &mut grads)?;

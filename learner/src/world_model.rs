@@ -23,7 +23,7 @@ use crate::adam::Adam;
 use crate::algorithm::Metrics;
 use crate::shards::{on_shards_with, weighted_mean};
 use candle_core::backprop::GradStore;
-use candle_core::Result;
+use candle_core::{bail, Result};
 use ctxrace_common::agents::DreamerConfig;
 use ctxrace_common::nn::plain::{
     categorical_kl, categorical_kl_backward, soft_cross_entropy, soft_cross_entropy_backward,
@@ -252,14 +252,21 @@ impl WorldModel {
             Ok((shard.weight, m, grads, starts))
         })?;
         self.work = work;
-        let mut total = ModelGrads::zero(&nets);
+        // the shards' sum: the first shard's gradients, the others' added
+        let mut total: Option<ModelGrads> = None;
         let mut shard_metrics = Vec::with_capacity(parts.len());
         let mut starts = Vec::with_capacity(parts.len());
         for (w, m, g, s) in parts {
-            total.add(&g);
+            match &mut total {
+                Some(total) => total.add(&g),
+                None => total = Some(g),
+            }
             shard_metrics.push((w, m));
             starts.push(s);
         }
+        let Some(total) = total else {
+            bail!("world model: a batch of no sequences");
+        };
         let mut grads = GradStore::default();
         nets.encoder
             .add_grads_to(&total.encoder, &self.encoder, &mut grads)?;

@@ -26,7 +26,8 @@
 //! - [`twohot_decode`]: `symexp(Σ_k softmax(l)_k b_k)`.
 //! - [`soft_cross_entropy`]: `−Σ_k t_k log softmax(l)_k` against fixed targets `t`.
 //!
-//! - [`adam_update`], [`sum_of_squares`]: the elementwise part of an Adam step.
+//! - [`adam_update`], [`sum_of_squares`]: the elementwise part of an Adam step;
+//!   [`adam_update_in_place`], [`squared_norm`]: the same on tensors, without copies.
 //!
 //! One file per kernel, each checked against the composed candle operations, values and
 //! gradients, in its tests; the vectorised dispatch and the branch-free maths they share are here.
@@ -237,7 +238,7 @@ mod norm_act;
 mod sparse_inputs;
 mod twohot;
 
-pub use adam::{adam_update, sum_of_squares, AdamStep};
+pub use adam::{adam_update, adam_update_in_place, squared_norm, sum_of_squares, AdamStep};
 pub use categorical::{categorical_kl, straight_through_sample};
 pub use gru::gru_gates;
 pub use linear::{linear, linear_t, linear_twice, matmul_flops, WeightGradTape};
