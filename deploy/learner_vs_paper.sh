@@ -14,8 +14,10 @@
 # At the end it prints a table: each side's median per gradient step in every round, and the
 # range and median of the ratios of each paper round to the ctxrace rounds on either side of it
 # (the paper's SAC: the faster of its 1- and 2-thread figures less its buffer's sampling time,
-# which ctxrace spends in the replay process). `deploy/learner_vs_paper.sh --table LOG` prints the
-# table of a saved run's output.
+# which ctxrace spends in the replay process), and the share of the CPUs' time the hypervisor
+# took (steal time, /proc/stat) during each side's rounds: on a shared virtual machine the
+# paper's code, whose threads meet at every operation, slows more than ctxrace when it is high.
+# `deploy/learner_vs_paper.sh --table LOG` prints the table of a saved run's output.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 path=${PYTHON_BIN_DIR:+$PYTHON_BIN_DIR:}$PATH
@@ -27,7 +29,12 @@ table() {
 import json, re, sys
 algos = ["dreamerv3", "crssm", "cmask", "sac"]
 ours, paper = {a: [] for a in algos}, {a: [] for a in algos}
+steal = []
 for number, line in enumerate(open(sys.argv[1]), 1):
+    m = re.match(r"steal (ctxrace|paper) round \d+: ([0-9.]+)%", line)
+    if m:
+        steal.append(m.group(2))
+        continue
     m = re.match(r"(dreamerv3|crssm|cmask|sac) \(.*median ([0-9.]+) ms\)", line)
     if m:
         ours[m.group(1)].append(float(m.group(2)))
@@ -59,6 +66,8 @@ for a in algos:
     middle = (ratios[(len(ratios) - 1) // 2] + ratios[len(ratios) // 2]) / 2 if ratios else 0
     span = f"{ratios[0]:.1f}-{ratios[-1]:.1f}x (median {middle:.2f}x)" if ratios else "no pairs"
     print(f"| {a} | {' / '.join(cells)} | {span} |")
+if steal:
+    print(f"| steal time, % of the CPUs' | {' / '.join(steal)} | |")
 PY
 }
 if [[ ${1:-} == --table ]]; then
@@ -71,16 +80,32 @@ bin=${CTXRACE_BIN:-target/release/ctxrace}
 harness=../shared/tools/paper_learner_bench.sh
 [[ -x "$bin" ]] || { echo "no $bin: build it with cargo build --release" >&2; exit 1; }
 [[ -f "$harness" ]] || { echo "no $harness: the paper's harness lives in ../shared/tools" >&2; exit 1; }
+# cpu_times: the jiffies the hypervisor stole from all CPUs so far, and all their jiffies
+cpu_times() {
+    awk '/^cpu /{t = 0; for (i = 2; i <= 9; i++) t += $i; print $9, t}' /proc/stat 2>/dev/null ||
+        echo "0 0"
+}
+# steal_since "STEAL TOTAL": the percentage of the CPUs' time stolen since cpu_times said so
+steal_since() {
+    local s0 t0 s1 t1
+    read -r s0 t0 <<<"$1"
+    read -r s1 t1 < <(cpu_times)
+    awk -v d=$((s1 - s0)) -v t=$((t1 - t0)) 'BEGIN {printf "%.1f", (t > 0 ? 100 * d / t : 0)}'
+}
 log=$(mktemp); trap 'rm -f "$log"' EXIT
 for ((round = 1; round <= rounds; round++)); do
+    since=$(cpu_times)
     for algo in dreamerv3 crssm cmask sac; do
         echo "ctxrace round $round $algo:"
         "$bin" bench learner --algo "$algo" --steps 5 --act-steps 200
     done
+    echo "steal ctxrace round $round: $(steal_since "$since")%"
     if ((round < rounds)); then
+        since=$(cpu_times)
         echo "paper round $round: $(PATH=$path bash "$harness" "$git_dir" 4 | tail -1)"
         echo "paper cRSSM round $round: $(PATH=$path deploy/paper_crssm_bench.sh "$git_dir" 4 | tail -1)"
         echo "paper SAC round $round: $(PATH=$path deploy/paper_sac_bench.sh "$git_dir" 50 | tail -1)"
+        echo "steal paper round $round: $(steal_since "$since")%"
     fi
 done | tee "$log"
 echo
