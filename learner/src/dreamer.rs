@@ -60,7 +60,7 @@ use crate::cmask::MaskSac;
 use crate::returns::ReturnNorm;
 use crate::sac::polyak;
 use crate::sequences::SeqData;
-use crate::shards::{in_parallel, on_shards_with, weighted_mean};
+use crate::shards::{add_part, in_parallel, on_shards_with, weighted_mean};
 use crate::world_model::{Starts, WorldModel};
 use candle_core::{bail, Result, Tensor};
 use ctxrace_common::agents::{ContextMode, DreamerConfig, CONTEXT_DIM};
@@ -252,17 +252,11 @@ impl Dreamer {
             Ok(im.backward(&nets, &set, scale as f32, shares[i] as f32))
         })?;
         self.imaginations = work;
-        // the shards' sums: the first shard's gradients, the others' added
-        let mut sums: Option<(MlpGrads, MlpGrads)> = None;
+        let (mut actor, mut critic) = (None, None);
         let mut shard_metrics = Vec::with_capacity(parts.len());
         for (part, &w) in parts.into_iter().zip(&shares) {
-            match &mut sums {
-                Some((actor, critic)) => {
-                    actor.add(&part.actor);
-                    critic.add(&part.critic);
-                }
-                None => sums = Some((part.actor, part.critic)),
-            }
+            add_part(&mut actor, part.actor, MlpGrads::add);
+            add_part(&mut critic, part.critic, MlpGrads::add);
             let mut m = Metrics::new();
             m.insert("actor/loss".into(), part.actor_loss);
             m.insert("critic/loss".into(), part.critic_loss);
@@ -271,7 +265,7 @@ impl Dreamer {
             m.insert("imag/return".into(), part.ret);
             shard_metrics.push((w, m));
         }
-        let Some((actor, critic)) = sums else {
+        let (Some(actor), Some(critic)) = (actor, critic) else {
             bail!("behaviour learning: no imagined states");
         };
         let mut grads = candle_core::backprop::GradStore::default();

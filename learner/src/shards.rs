@@ -84,6 +84,15 @@ fn join_worker<T>(h: std::thread::ScopedJoinHandle<'_, Result<T>>) -> Result<T> 
         .map_err(|_| candle_core::Error::Msg("a training worker thread panicked".into()))?
 }
 
+/// Adds a shard's `part` to the running `sum` of the shards' gradients with `add`, or makes it
+/// the sum if it is the first (no zeroed sum to start from).
+pub(crate) fn add_part<T>(sum: &mut Option<T>, part: T, add: impl FnOnce(&mut T, &T)) {
+    match sum {
+        Some(sum) => add(sum, &part),
+        None => *sum = Some(part),
+    }
+}
+
 /// The mean of the shards' metrics, each weighted by its share of the batch.
 pub(crate) fn weighted_mean(parts: &[(f64, Metrics)]) -> Metrics {
     let mut out = Metrics::new();

@@ -21,7 +21,7 @@
 
 use crate::adam::Adam;
 use crate::algorithm::Metrics;
-use crate::shards::{on_shards_with, weighted_mean};
+use crate::shards::{add_part, on_shards_with, weighted_mean};
 use candle_core::backprop::GradStore;
 use candle_core::{bail, Result};
 use ctxrace_common::agents::DreamerConfig;
@@ -252,15 +252,11 @@ impl WorldModel {
             Ok((shard.weight, m, grads, starts))
         })?;
         self.work = work;
-        // the shards' sum: the first shard's gradients, the others' added
-        let mut total: Option<ModelGrads> = None;
+        let mut total = None;
         let mut shard_metrics = Vec::with_capacity(parts.len());
         let mut starts = Vec::with_capacity(parts.len());
         for (w, m, g, s) in parts {
-            match &mut total {
-                Some(total) => total.add(&g),
-                None => total = Some(g),
-            }
+            add_part(&mut total, g, ModelGrads::add);
             shard_metrics.push((w, m));
             starts.push(s);
         }
