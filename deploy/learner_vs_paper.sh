@@ -81,31 +81,34 @@ harness=../shared/tools/paper_learner_bench.sh
 [[ -x "$bin" ]] || { echo "no $bin: build it with cargo build --release" >&2; exit 1; }
 [[ -f "$harness" ]] || { echo "no $harness: the paper's harness lives in ../shared/tools" >&2; exit 1; }
 # cpu_times: the jiffies the hypervisor stole from all CPUs so far, and all their jiffies
+# (Linux's /proc/stat; without it no steal line is printed rather than a made-up 0%)
 cpu_times() {
-    awk '/^cpu /{t = 0; for (i = 2; i <= 9; i++) t += $i; print $9, t}' /proc/stat 2>/dev/null ||
-        echo "0 0"
+    awk '/^cpu /{t = 0; for (i = 2; i <= 9; i++) t += $i; print $9, t}' /proc/stat
 }
-# steal_since "STEAL TOTAL": the percentage of the CPUs' time stolen since cpu_times said so
-steal_since() {
+# steal_line WHO ROUND "STEAL TOTAL": the percentage of the CPUs' time stolen since cpu_times
+# gave STEAL TOTAL, as a line of the log
+steal_line() {
+    [[ -r /proc/stat ]] || return 0
     local s0 t0 s1 t1
-    read -r s0 t0 <<<"$1"
+    read -r s0 t0 <<<"$3"
     read -r s1 t1 < <(cpu_times)
-    awk -v d=$((s1 - s0)) -v t=$((t1 - t0)) 'BEGIN {printf "%.1f", (t > 0 ? 100 * d / t : 0)}'
+    awk -v d=$((s1 - s0)) -v t=$((t1 - t0)) -v who="$1" -v round="$2" \
+        'BEGIN {printf "steal %s round %s: %.1f%%\n", who, round, (t > 0 ? 100 * d / t : 0)}'
 }
 log=$(mktemp); trap 'rm -f "$log"' EXIT
 for ((round = 1; round <= rounds; round++)); do
-    since=$(cpu_times)
+    since=$(cpu_times 2>/dev/null || true)
     for algo in dreamerv3 crssm cmask sac; do
         echo "ctxrace round $round $algo:"
         "$bin" bench learner --algo "$algo" --steps 5 --act-steps 200
     done
-    echo "steal ctxrace round $round: $(steal_since "$since")%"
+    steal_line ctxrace "$round" "$since"
     if ((round < rounds)); then
-        since=$(cpu_times)
+        since=$(cpu_times 2>/dev/null || true)
         echo "paper round $round: $(PATH=$path bash "$harness" "$git_dir" 4 | tail -1)"
         echo "paper cRSSM round $round: $(PATH=$path deploy/paper_crssm_bench.sh "$git_dir" 4 | tail -1)"
         echo "paper SAC round $round: $(PATH=$path deploy/paper_sac_bench.sh "$git_dir" 50 | tail -1)"
-        echo "steal paper round $round: $(steal_since "$since")%"
+        steal_line paper "$round" "$since"
     fi
 done | tee "$log"
 echo
