@@ -12,8 +12,8 @@ pub(crate) struct Unimix {
 impl Unimix {
     /// `(s, p)`: the softmax of `l` and the mixed probabilities.
     #[inline(always)]
-    fn probs(&self, l: &[f32], s: &mut [f32], p: &mut [f32]) {
-        softmax_into(l, s);
+    fn probs<S: Isa>(&self, l: &[f32], s: &mut [f32], p: &mut [f32]) {
+        softmax_into::<S>(l, s);
         let floor = self.unimix / self.classes as f32;
         for (pk, &sk) in p.iter_mut().zip(s.iter()) {
             *pk = (1.0 - self.unimix) * sk + floor;
@@ -30,7 +30,7 @@ vectorised! {
         let (mut s, mut p, mut score) = (vec![0f32; c], vec![0f32; c], vec![0f32; c]);
         let rows = l.chunks_exact(c).zip(u.chunks_exact(c));
         for ((lr, ur), o) in rows.zip(out.chunks_exact_mut(c)) {
-            dist.probs(lr, &mut s, &mut p);
+            dist.probs::<S>(lr, &mut s, &mut p);
             for ((sc, &pk), &uk) in score.iter_mut().zip(&p).zip(ur) {
                 *sc = pk / -ln(uk);
             }
@@ -53,8 +53,8 @@ vectorised! {
         let (mut s, mut p) = (vec![0f32; c], vec![0f32; c]);
         let rows = l.chunks_exact(c).zip(g.chunks_exact(c));
         for ((lr, gr), d) in rows.zip(dl.chunks_exact_mut(c)) {
-            dist.probs(lr, &mut s, &mut p);
-            unimix_softmax_backward(&s, gr, 1.0 - dist.unimix, d);
+            dist.probs::<S>(lr, &mut s, &mut p);
+            unimix_softmax_backward::<S>(&s, gr, 1.0 - dist.unimix, d);
         }
     }
 }
@@ -71,9 +71,9 @@ vectorised! {
         let rows = la.chunks_exact(per_row).zip(lb.chunks_exact(per_row));
         for ((ra, rb), o) in rows.zip(out.iter_mut()) {
             for (va, vb) in ra.chunks_exact(c).zip(rb.chunks_exact(c)) {
-                dist.probs(va, sa, pa);
-                dist.probs(vb, sb, pb);
-                *o += lane_sum(pa, pb, |a, b| a * (ln(a) - ln(b)));
+                dist.probs::<S>(va, sa, pa);
+                dist.probs::<S>(vb, sb, pb);
+                *o += lane_sum::<S>(pa, pb, |a, b| a * (ln(a) - ln(b)));
             }
         }
     }
@@ -103,19 +103,19 @@ vectorised! {
         let variables = la.chunks_exact(c).zip(lb.chunks_exact(c)).enumerate();
         for (i, (va, vb)) in variables {
             let gi = g[i * c / per_row];
-            dist.probs(va, sa, pa);
-            dist.probs(vb, sb, pb);
+            dist.probs::<S>(va, sa, pa);
+            dist.probs::<S>(vb, sb, pb);
             if let Some(out) = da.get_mut(i * c..(i + 1) * c) {
                 for ((d, &a), &b) in dp.iter_mut().zip(pa.iter()).zip(pb.iter()) {
                     *d = gi * (ln(a) - ln(b) + 1.0);
                 }
-                unimix_softmax_backward(sa, dp, keep, out);
+                unimix_softmax_backward::<S>(sa, dp, keep, out);
             }
             if let Some(out) = db.get_mut(i * c..(i + 1) * c) {
                 for ((d, &a), &b) in dp.iter_mut().zip(pa.iter()).zip(pb.iter()) {
                     *d = -gi * a / b;
                 }
-                unimix_softmax_backward(sb, dp, keep, out);
+                unimix_softmax_backward::<S>(sb, dp, keep, out);
             }
         }
     }

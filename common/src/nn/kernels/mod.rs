@@ -35,6 +35,7 @@
 use candle_core::{
     bail, CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Result, Shape, Storage, Tensor,
 };
+use isa::Isa;
 
 /// The contiguous `f32` values of a CPU storage under `layout`.
 fn cpu_slice<'a>(storage: &'a CpuStorage, layout: &Layout) -> Result<&'a [f32]> {
@@ -58,7 +59,8 @@ fn read<R>(t: &Tensor, f: impl FnOnce(&[f32]) -> Result<R>) -> Result<R> {
 /// Defines a function whose body is compiled three times, for AVX-512, for AVX2 with FMA and for
 /// the baseline, and runs the widest the processor has (checked at run time; AVX-512 only with the
 /// `avx512` feature). The body and the `#[inline(always)]` helpers it calls vectorise inside each
-/// copy.
+/// copy; the body is generic over the copy's instruction set `S` ([`isa::Isa`]), which the
+/// reductions ([`lane_sum`], [`lane_max`]) take.
 macro_rules! vectorised {
     ($(#[$doc:meta])* $vis:vis fn $name:ident($($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)? $body:block) => {
         $(#[$doc])*
@@ -66,15 +68,19 @@ macro_rules! vectorised {
         $vis fn $name($($arg: $ty),*) $(-> $ret)? {
             #[inline(always)]
             #[allow(clippy::too_many_arguments)]
-            fn body($($arg: $ty),*) $(-> $ret)? $body
+            fn body<S: $crate::nn::kernels::isa::Isa>($($arg: $ty),*) $(-> $ret)? $body
             #[cfg(target_arch = "x86_64")]
             {
                 #[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
                 #[allow(clippy::too_many_arguments)]
-                unsafe fn v4($($arg: $ty),*) $(-> $ret)? { body($($arg),*) }
+                unsafe fn v4($($arg: $ty),*) $(-> $ret)? {
+                    body::<$crate::nn::kernels::isa::Avx512>($($arg),*)
+                }
                 #[target_feature(enable = "avx2,fma")]
                 #[allow(clippy::too_many_arguments)]
-                unsafe fn v3($($arg: $ty),*) $(-> $ret)? { body($($arg),*) }
+                unsafe fn v3($($arg: $ty),*) $(-> $ret)? {
+                    body::<$crate::nn::kernels::isa::Avx2>($($arg),*)
+                }
                 if cfg!(feature = "avx512")
                     && std::is_x86_feature_detected!("avx512f")
                     && std::is_x86_feature_detected!("avx512vl")
@@ -87,7 +93,7 @@ macro_rules! vectorised {
                     return unsafe { v3($($arg),*) };
                 }
             }
-            body($($arg),*)
+            body::<$crate::nn::kernels::isa::Scalar>($($arg),*)
         }
     };
 }
@@ -168,9 +174,10 @@ fn tanh(x: f32) -> f32 {
 /// of floats cannot be reordered by the compiler).
 const LANES: usize = 16;
 
-/// `Σ_i f(a_i, b_i)` over two slices of one length, in [`LANES`] partial sums.
+/// `Σ_i f(a_i, b_i)` over two slices of one length, in [`LANES`] partial sums reduced by
+/// halves ([`Isa::sum`]).
 #[inline(always)]
-fn lane_sum(a: &[f32], b: &[f32], f: impl Fn(f32, f32) -> f32) -> f32 {
+fn lane_sum<S: Isa>(a: &[f32], b: &[f32], f: impl Fn(f32, f32) -> f32) -> f32 {
     let mut acc = [0f32; LANES];
     let (ca, cb) = (a.chunks_exact(LANES), b.chunks_exact(LANES));
     let (ra, rb) = (ca.remainder(), cb.remainder());
@@ -180,12 +187,13 @@ fn lane_sum(a: &[f32], b: &[f32], f: impl Fn(f32, f32) -> f32) -> f32 {
         }
     }
     let tail: f32 = ra.iter().zip(rb).map(|(&x, &y)| f(x, y)).sum();
-    acc.iter().sum::<f32>() + tail
+    S::sum(acc) + tail
 }
 
-/// The largest value of `x` (`−∞` if empty), in [`LANES`] partial maxima.
+/// The largest value of `x` (`−∞` if empty), in [`LANES`] partial maxima reduced by halves
+/// ([`Isa::max`]).
 #[inline(always)]
-fn lane_max(x: &[f32]) -> f32 {
+fn lane_max<S: Isa>(x: &[f32]) -> f32 {
     let mut acc = [f32::NEG_INFINITY; LANES];
     let chunks = x.chunks_exact(LANES);
     let tail = chunks
@@ -198,25 +206,25 @@ fn lane_max(x: &[f32]) -> f32 {
             acc[l] = acc[l].max(c[l]);
         }
     }
-    acc.iter().copied().fold(tail, f32::max)
+    S::max(acc).max(tail)
 }
 
 /// Softmax of `l` into `out`.
 #[inline(always)]
-fn softmax_into(l: &[f32], out: &mut [f32]) {
-    let max = lane_max(l);
+fn softmax_into<S: Isa>(l: &[f32], out: &mut [f32]) {
+    let max = lane_max::<S>(l);
     for (o, &v) in out.iter_mut().zip(l) {
         *o = exp(v - max);
     }
-    let inv = 1.0 / lane_sum(out, out, |v, _| v);
+    let inv = 1.0 / lane_sum::<S>(out, out, |v, _| v);
     out.iter_mut().for_each(|o| *o *= inv);
 }
 
 /// `out ← ∂/∂l` of a function of `p = (1 − η) softmax(l) + η/C` given `dp` and `s = softmax(l)`:
 /// `(1 − η) s_k (dp_k − Σ_j s_j dp_j)`.
 #[inline(always)]
-fn unimix_softmax_backward(s: &[f32], dp: &[f32], keep: f32, out: &mut [f32]) {
-    let dot = lane_sum(s, dp, |a, b| a * b);
+fn unimix_softmax_backward<S: Isa>(s: &[f32], dp: &[f32], keep: f32, out: &mut [f32]) {
+    let dot = lane_sum::<S>(s, dp, |a, b| a * b);
     for ((o, &sk), &dk) in out.iter_mut().zip(s).zip(dp) {
         *o = keep * sk * (dk - dot);
     }
@@ -232,6 +240,7 @@ fn dims2(t: &Tensor) -> Result<(usize, usize)> {
 mod adam;
 mod categorical;
 mod gru;
+pub(crate) mod isa;
 mod linear;
 mod linear_norm;
 mod norm_act;
@@ -291,8 +300,9 @@ mod tests {
         assert!(super::sigmoid(-200.0) >= 0.0 && super::sigmoid(200.0) == 1.0);
         assert!(super::sigmoid(f32::NAN).is_nan());
         let l = [0.5f32; 37].map(|v| v * 3.0);
-        assert_eq!(super::lane_max(&l), 1.5);
-        assert!((super::lane_sum(&l, &l, |a, b| a * b) - 37.0 * 2.25).abs() < 1e-4);
+        assert_eq!(super::lane_max::<super::isa::Scalar>(&l), 1.5);
+        let sum = super::lane_sum::<super::isa::Scalar>(&l, &l, |a, b| a * b);
+        assert!((sum - 37.0 * 2.25).abs() < 1e-4);
     }
 }
 

@@ -61,10 +61,10 @@ struct NormActOp {
 
 /// Mean and `1/√(σ² + ε)` of a row.
 #[inline(always)]
-fn row_moments(x: &[f32], eps: f32) -> (f32, f32) {
+fn row_moments<S: Isa>(x: &[f32], eps: f32) -> (f32, f32) {
     let n = x.len() as f32;
-    let mean = lane_sum(x, x, |v, _| v) / n;
-    let var = lane_sum(x, x, |v, _| (v - mean) * (v - mean)) / n;
+    let mean = lane_sum::<S>(x, x, |v, _| v) / n;
+    let var = lane_sum::<S>(x, x, |v, _| (v - mean) * (v - mean)) / n;
     (mean, 1.0 / (var + eps).sqrt())
 }
 
@@ -80,7 +80,7 @@ vectorised! {
         let bias = &bias[..d];
         // exact-length rows: the loops below run without bounds checks, in vector lanes
         for (xr, o) in x.chunks_exact(d).zip(out.chunks_exact_mut(d)) {
-            let (mean, rstd) = row_moments(xr, eps);
+            let (mean, rstd) = row_moments::<S>(xr, eps);
             let lanes = o.iter_mut().zip(xr).zip(gain.iter().zip(bias));
             match act {
                 NormAct::Identity => {
@@ -117,7 +117,8 @@ pub(super) fn norm_act_rows(x: &[f32], norm: Norm) -> Vec<f32> {
 
 vectorised! {
     /// The backward pass of [`norm_act_rows_into`] over the whole rows of `x`, its output `y`
-    /// and `dy`: `dx` (each value written once) and `dgb = [dγ, dβ]` (accumulated).
+    /// and `dy`: `dx` (each value written once) and `dgb = [dγ, dβ]` (accumulated; empty for a
+    /// frozen normalisation, whose parameters' gradients are not computed).
     fn norm_act_rows_bwd_uninit(
         xy: (&[f32], &[f32]),
         norm: Norm,
@@ -132,13 +133,13 @@ vectorised! {
             return;
         }
         let bias = &bias[..d];
-        let (dgain, dbias) = dgb.split_at_mut(d);
-        let dbias = &mut dbias[..d];
+        let frozen = dgb.is_empty();
+        let (dgain, dbias) = dgb.split_at_mut(dgb.len().min(d));
         let mut xh = vec![0f32; d];
         let mut dxh = vec![0f32; d];
         let rows = x.chunks_exact(d).zip(dy.chunks_exact(d)).zip(dx.chunks_exact_mut(d));
         for (((xr, dyr), dxr), yr) in rows.zip(y.chunks_exact(d)) {
-            let (mean, rstd) = row_moments(xr, eps);
+            let (mean, rstd) = row_moments::<S>(xr, eps);
             for (h, &x) in xh.iter_mut().zip(xr) {
                 *h = (x - mean) * rstd;
             }
@@ -153,14 +154,19 @@ vectorised! {
                     }
                 }
             }
-            let lanes = dxh.iter_mut().zip(&xh).zip(gain.iter());
-            for (((o, &h), &g), (dg, db)) in lanes.zip(dgain.iter_mut().zip(dbias.iter_mut())) {
-                *dg = o.mul_add(h, *dg);
-                *db += *o;
-                *o *= g;
+            if frozen {
+                dxh.iter_mut().zip(gain).for_each(|(o, &g)| *o *= g);
+            } else {
+                let lanes = dxh.iter_mut().zip(&xh).zip(gain.iter());
+                let sums = dgain.iter_mut().zip(dbias.iter_mut());
+                for (((o, &h), &g), (dg, db)) in lanes.zip(sums) {
+                    *dg = o.mul_add(h, *dg);
+                    *db += *o;
+                    *o *= g;
+                }
             }
-            let m1 = lane_sum(&dxh, &dxh, |v, _| v) / d as f32;
-            let m2 = lane_sum(&dxh, &xh, |v, w| v * w) / d as f32;
+            let m1 = lane_sum::<S>(&dxh, &dxh, |v, _| v) / d as f32;
+            let m2 = lane_sum::<S>(&dxh, &xh, |v, w| v * w) / d as f32;
             for ((o, &g), &h) in dxr.iter_mut().zip(&dxh).zip(&xh) {
                 o.write(rstd * (-h).mul_add(m2, g - m1));
             }
@@ -170,7 +176,7 @@ vectorised! {
 
 /// The backward pass of [`norm_act_rows_into`] over the whole rows of `x`, its output `y` (of
 /// `x`'s length; the activation's slope is read from it) and `dy`: `dx` (overwritten) and
-/// `dgb = [dγ, dβ]` (accumulated).
+/// `dgb = [dγ, dβ]` (accumulated; empty for a frozen normalisation: not computed).
 pub(crate) fn norm_act_rows_bwd_into(
     (x, y): (&[f32], &[f32]),
     norm: Norm,
@@ -179,6 +185,11 @@ pub(crate) fn norm_act_rows_bwd_into(
     dx: &mut [f32],
 ) {
     assert_eq!(x.len(), y.len(), "norm_act backward: the output's length");
+    let d = norm.gain.len();
+    assert!(
+        dgb.is_empty() || dgb.len() == 2 * d,
+        "norm_act backward: [dγ, dβ] of {d}"
+    );
     norm_act_rows_bwd_uninit((x, y), norm, dy, dgb, as_uninit(dx));
 }
 

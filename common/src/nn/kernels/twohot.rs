@@ -10,8 +10,8 @@ vectorised! {
         }
         let mut p = vec![0f32; bins.len()];
         for (xr, o) in x.chunks_exact(bins.len()).zip(out.iter_mut()) {
-            softmax_into(xr, &mut p);
-            let m = lane_sum(&p, bins, |a, b| a * b);
+            softmax_into::<S>(xr, &mut p);
+            let m = lane_sum::<S>(&p, bins, |a, b| a * b);
             *o = m.signum() * (m.abs().exp() - 1.0);
         }
     }
@@ -26,8 +26,8 @@ vectorised! {
         }
         let mut p = vec![0f32; k];
         for ((xr, d), &gr) in x.chunks_exact(k).zip(dx.chunks_exact_mut(k)).zip(g) {
-            softmax_into(xr, &mut p);
-            let m = lane_sum(&p, bins, |a, b| a * b);
+            softmax_into::<S>(xr, &mut p);
+            let m = lane_sum::<S>(&p, bins, |a, b| a * b);
             let dm = gr * m.abs().exp();
             for j in 0..k {
                 d[j] = p[j] * (bins[j] - m) * dm;
@@ -42,9 +42,9 @@ vectorised! {
     pub(crate) fn cross_entropy_rows(l: &[f32], t: &[f32], out: &mut [f32]) {
         let k = l.len() / out.len();
         for ((lr, tr), o) in l.chunks_exact(k).zip(t.chunks_exact(k)).zip(out.iter_mut()) {
-            let max = lane_max(lr);
-            let lse = max + lane_sum(lr, lr, |v, _| exp(v - max)).ln();
-            *o = lane_sum(tr, lr, |tk, lk| tk * (lse - lk));
+            let max = lane_max::<S>(lr);
+            let lse = max + lane_sum::<S>(lr, lr, |v, _| exp(v - max)).ln();
+            *o = lane_sum::<S>(tr, lr, |tk, lk| tk * (lse - lk));
         }
     }
 }
@@ -60,8 +60,8 @@ vectorised! {
             .zip(dl.chunks_exact_mut(k))
             .zip(g)
         {
-            softmax_into(lr, &mut p);
-            let total = lane_sum(tr, tr, |v, _| v);
+            softmax_into::<S>(lr, &mut p);
+            let total = lane_sum::<S>(tr, tr, |v, _| v);
             for j in 0..k {
                 d[j] = gr * (p[j] * total - tr[j]);
             }

@@ -297,7 +297,8 @@ impl PlainLayer {
 
     /// The product's gradient `dp` from the output's `dy` over the rows of `product` (and of
     /// `output`, which a ReLU reads); the normalisation's `[∂γ, ∂β]` are added to `dnorm`
-    /// (`2 out` values, [`LayerGrads::norm_mut`]; any scratch for a frozen layer). Without
+    /// (`2 out` values, [`LayerGrads::norm_mut`]; empty for a frozen layer, whose
+    /// normalisation's gradients are then not computed). Without
     /// anything after the product, `dp = dy` and nothing is written.
     pub fn product_grad(
         &self,
@@ -592,7 +593,6 @@ impl PlainMlp {
         let mut cur = std::mem::take(&mut trace.grad_out);
         let mut next = std::mem::take(&mut trace.grad_in);
         let mut dp_buf = std::mem::take(&mut trace.grad_product);
-        let mut unused_norm = Vec::new();
         for (i, layer) in self.layers.iter().enumerate().rev() {
             let m = layer.outputs;
             let span = rows.start * m..rows.end * m;
@@ -603,11 +603,8 @@ impl PlainMlp {
                 &cur[..n * m]
             };
             let dnorm = match grads.as_deref_mut() {
-                Some(gr) => &mut gr.layers[i].norm,
-                None => {
-                    unused_norm.resize(2 * m, 0.0);
-                    &mut unused_norm
-                }
+                Some(gr) => &mut gr.layers[i].norm[..],
+                None => &mut [],
             };
             let dp = if layer.has_output() {
                 let kept = (&trace.products[i][span.clone()], &trace.outputs[i][span]);

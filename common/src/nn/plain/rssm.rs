@@ -125,9 +125,6 @@ pub struct StepScratch {
     d_gates: Vec<f32>,
     dh_direct: Vec<f32>,
     du: Vec<f32>,
-    /// Normalisations' gradients of a frozen model (discarded).
-    d_norm: Vec<f32>,
-    d_norm_in: Vec<f32>,
 }
 
 /// `v` resized to `n` values (zeros where it grows) as a slice.
@@ -403,20 +400,15 @@ impl PlainRssm {
         prior.product_grad(
             (&trace.prior_product, &trace.prior_output),
             &s.d_hidden,
-            sized(&mut s.d_norm, 2 * hidden),
+            &mut [],
             sized(&mut s.d_product, n * hidden),
         );
         prior.input_grad(&s.d_product, 0..d, &mut s.dh, d, true);
         // the sequence model, then ∂a (and ∂h, ∂z) through its input
-        // the frozen normalisations' gradients go to buffers of their own, then are dropped
-        let (dh, mut dn, mut dn_in) = (
-            std::mem::take(&mut s.dh),
-            std::mem::take(&mut s.d_norm),
-            std::mem::take(&mut s.d_norm_in),
-        );
-        let norms = (sized(&mut dn, 6 * d), sized(&mut dn_in, 2 * hidden));
-        self.sequence_backward(&mut trace.sequence, 0..n, &dh, norms, s);
-        (s.dh, s.d_norm, s.d_norm_in) = (dh, dn, dn_in);
+        // the normalisations are frozen: no gradients of their parameters
+        let dh = std::mem::take(&mut s.dh);
+        self.sequence_backward(&mut trace.sequence, 0..n, &dh, (&mut [], &mut []), s);
+        s.dh = dh;
         let seq = &trace.sequence;
         self.img_in
             .input_grad(&seq.d_in_product, z..z + a, d_action, a, false);
