@@ -9,6 +9,20 @@ pub(crate) struct Unimix {
     pub(crate) unimix: f32,
 }
 
+/// `$f::<S>(c, args…)` with the class count `c` a constant when it is [`PAPER_CLASSES`], so
+/// that the compiler unrolls the loops over a variable's classes into a few vector instructions.
+macro_rules! with_classes {
+    ($classes:expr, $f:ident::<S>($($arg:expr),*)) => {
+        match $classes {
+            PAPER_CLASSES => $f::<S>(PAPER_CLASSES, $($arg),*),
+            c => $f::<S>(c, $($arg),*),
+        }
+    };
+}
+
+/// The classes of each of the paper's latent variables (REFERENCE §5: 16 x 16).
+const PAPER_CLASSES: usize = 16;
+
 impl Unimix {
     /// `(s, p)`: the softmax of `l` and the mixed probabilities.
     #[inline(always)]
@@ -26,22 +40,21 @@ vectorised! {
     /// from uniforms `u`, all in rows of `classes`: the argmax of `ln p + g` with
     /// `g = −ln(−ln U)`, i.e. of `p / (−ln U)`.
     pub(crate) fn sample_rows(dist: Unimix, l: &[f32], u: &[f32], out: &mut [f32]) {
-        let c = dist.classes;
-        let (mut s, mut p, mut score) = (vec![0f32; c], vec![0f32; c], vec![0f32; c]);
-        let rows = l.chunks_exact(c).zip(u.chunks_exact(c));
-        for ((lr, ur), o) in rows.zip(out.chunks_exact_mut(c)) {
-            dist.probs::<S>(lr, &mut s, &mut p);
-            for ((sc, &pk), &uk) in score.iter_mut().zip(&p).zip(ur) {
-                *sc = pk / -ln(uk);
-            }
-            let mut best = (0, f32::NEG_INFINITY);
-            for (k, &v) in score.iter().enumerate() {
-                if v > best.1 {
-                    best = (k, v);
+        #[inline(always)]
+        fn rows<S: Isa>(c: usize, dist: Unimix, l: &[f32], u: &[f32], out: &mut [f32]) {
+            let (mut s, mut p, mut score) = (vec![0f32; c], vec![0f32; c], vec![0f32; c]);
+            let rows = l.chunks_exact(c).zip(u.chunks_exact(c));
+            for ((lr, ur), o) in rows.zip(out.chunks_exact_mut(c)) {
+                dist.probs::<S>(lr, &mut s, &mut p);
+                for ((sc, &pk), &uk) in score.iter_mut().zip(&p).zip(ur) {
+                    *sc = pk / -ln(uk);
                 }
+                // the first class of the largest score, with one branch
+                let best = lane_max::<S>(&score);
+                o[score.iter().position(|&v| v == best).unwrap_or(0)] = 1.0;
             }
-            o[best.0] = 1.0;
         }
+        with_classes!(dist.classes, rows::<S>(dist, l, u, out))
     }
 }
 
@@ -49,13 +62,16 @@ vectorised! {
     /// `dl ← ∂/∂l` of the unimix probabilities' gradient `g`, rows of `classes` (the
     /// straight-through sample's backward pass).
     pub(crate) fn probs_rows_bwd(dist: Unimix, l: &[f32], g: &[f32], dl: &mut [f32]) {
-        let c = dist.classes;
-        let (mut s, mut p) = (vec![0f32; c], vec![0f32; c]);
-        let rows = l.chunks_exact(c).zip(g.chunks_exact(c));
-        for ((lr, gr), d) in rows.zip(dl.chunks_exact_mut(c)) {
-            dist.probs::<S>(lr, &mut s, &mut p);
-            unimix_softmax_backward::<S>(&s, gr, 1.0 - dist.unimix, d);
+        #[inline(always)]
+        fn rows<S: Isa>(c: usize, dist: Unimix, l: &[f32], g: &[f32], dl: &mut [f32]) {
+            let (mut s, mut p) = (vec![0f32; c], vec![0f32; c]);
+            let rows = l.chunks_exact(c).zip(g.chunks_exact(c));
+            for ((lr, gr), d) in rows.zip(dl.chunks_exact_mut(c)) {
+                dist.probs::<S>(lr, &mut s, &mut p);
+                unimix_softmax_backward::<S>(&s, gr, 1.0 - dist.unimix, d);
+            }
         }
+        with_classes!(dist.classes, rows::<S>(dist, l, g, dl))
     }
 }
 
@@ -63,19 +79,22 @@ vectorised! {
     /// `out_i ← Σ_v KL(p_a ‖ p_b)` over the variables (`classes` logits each) of the rows of
     /// `per_row` logits of `la` and `lb`.
     pub(crate) fn kl_rows(dist: Unimix, la: &[f32], lb: &[f32], per_row: usize, out: &mut [f32]) {
-        let c = dist.classes;
-        let mut buf = vec![0f32; 4 * c];
-        let (sa, rest) = buf.split_at_mut(c);
-        let (pa, rest) = rest.split_at_mut(c);
-        let (sb, pb) = rest.split_at_mut(c);
-        let rows = la.chunks_exact(per_row).zip(lb.chunks_exact(per_row));
-        for ((ra, rb), o) in rows.zip(out.iter_mut()) {
-            for (va, vb) in ra.chunks_exact(c).zip(rb.chunks_exact(c)) {
-                dist.probs::<S>(va, sa, pa);
-                dist.probs::<S>(vb, sb, pb);
-                *o += lane_sum::<S>(pa, pb, |a, b| a * (ln(a) - ln(b)));
+        #[inline(always)]
+        fn rows<S: Isa>(c: usize, dist: Unimix, l: (&[f32], &[f32]), per_row: usize, out: &mut [f32]) {
+            let mut buf = vec![0f32; 4 * c];
+            let (sa, rest) = buf.split_at_mut(c);
+            let (pa, rest) = rest.split_at_mut(c);
+            let (sb, pb) = rest.split_at_mut(c);
+            let rows = l.0.chunks_exact(per_row).zip(l.1.chunks_exact(per_row));
+            for ((ra, rb), o) in rows.zip(out.iter_mut()) {
+                for (va, vb) in ra.chunks_exact(c).zip(rb.chunks_exact(c)) {
+                    dist.probs::<S>(va, sa, pa);
+                    dist.probs::<S>(vb, sb, pb);
+                    *o += lane_sum::<S>(pa, pb, |a, b| a * (ln(a) - ln(b)));
+                }
             }
         }
+        with_classes!(dist.classes, rows::<S>(dist, (la, lb), per_row, out))
     }
 }
 
@@ -93,31 +112,41 @@ vectorised! {
         da: &mut [f32],
         db: &mut [f32],
     ) {
-        let c = dist.classes;
-        let keep = 1.0 - dist.unimix;
-        let mut buf = vec![0f32; 5 * c];
-        let (sa, rest) = buf.split_at_mut(c);
-        let (pa, rest) = rest.split_at_mut(c);
-        let (sb, rest) = rest.split_at_mut(c);
-        let (pb, dp) = rest.split_at_mut(c);
-        let variables = la.chunks_exact(c).zip(lb.chunks_exact(c)).enumerate();
-        for (i, (va, vb)) in variables {
-            let gi = g[i * c / per_row];
-            dist.probs::<S>(va, sa, pa);
-            dist.probs::<S>(vb, sb, pb);
-            if let Some(out) = da.get_mut(i * c..(i + 1) * c) {
-                for ((d, &a), &b) in dp.iter_mut().zip(pa.iter()).zip(pb.iter()) {
-                    *d = gi * (ln(a) - ln(b) + 1.0);
+        #[inline(always)]
+        fn rows<S: Isa>(
+            c: usize,
+            dist: Unimix,
+            (la, lb): (&[f32], &[f32]),
+            (g, per_row): (&[f32], usize),
+            da: &mut [f32],
+            db: &mut [f32],
+        ) {
+            let keep = 1.0 - dist.unimix;
+            let mut buf = vec![0f32; 5 * c];
+            let (sa, rest) = buf.split_at_mut(c);
+            let (pa, rest) = rest.split_at_mut(c);
+            let (sb, rest) = rest.split_at_mut(c);
+            let (pb, dp) = rest.split_at_mut(c);
+            let variables = la.chunks_exact(c).zip(lb.chunks_exact(c)).enumerate();
+            for (i, (va, vb)) in variables {
+                let gi = g[i * c / per_row];
+                dist.probs::<S>(va, sa, pa);
+                dist.probs::<S>(vb, sb, pb);
+                if let Some(out) = da.get_mut(i * c..(i + 1) * c) {
+                    for ((d, &a), &b) in dp.iter_mut().zip(pa.iter()).zip(pb.iter()) {
+                        *d = gi * (ln(a) - ln(b) + 1.0);
+                    }
+                    unimix_softmax_backward::<S>(sa, dp, keep, out);
                 }
-                unimix_softmax_backward::<S>(sa, dp, keep, out);
-            }
-            if let Some(out) = db.get_mut(i * c..(i + 1) * c) {
-                for ((d, &a), &b) in dp.iter_mut().zip(pa.iter()).zip(pb.iter()) {
-                    *d = -gi * a / b;
+                if let Some(out) = db.get_mut(i * c..(i + 1) * c) {
+                    for ((d, &a), &b) in dp.iter_mut().zip(pa.iter()).zip(pb.iter()) {
+                        *d = -gi * a / b;
+                    }
+                    unimix_softmax_backward::<S>(sb, dp, keep, out);
                 }
-                unimix_softmax_backward::<S>(sb, dp, keep, out);
             }
         }
+        with_classes!(dist.classes, rows::<S>(dist, (la, lb), (g, per_row), da, db))
     }
 }
 
@@ -291,10 +320,17 @@ mod tests {
 
     #[test]
     fn straight_through_samples_are_one_hot_with_the_probability_gradient() {
-        let l = var(&[3, 2, 4], 12);
-        let u = Tensor::full(0.5f32, (3, 2, 4), &Device::Cpu).unwrap();
+        // any class count, and the paper's, whose loops are unrolled
+        for c in [4, PAPER_CLASSES] {
+            samples_are_one_hot_with_the_probability_gradient(c);
+        }
+    }
+
+    fn samples_are_one_hot_with_the_probability_gradient(c: usize) {
+        let l = var(&[3, 2, c], 12);
+        let u = Tensor::full(0.5f32, (3, 2, c), &Device::Cpu).unwrap();
         let z = straight_through_sample(&l, &u, 0.01).unwrap();
-        assert_eq!(z.dims(), &[3, 8]);
+        assert_eq!(z.dims(), &[3, 2 * c]);
         let p = probs(&l, 0.01);
         // equal uniforms: the sample is the most likely class
         let want = p
@@ -304,23 +340,29 @@ mod tests {
             .unwrap()
             .to_vec1::<u32>()
             .unwrap();
-        for (row, k) in vals(&z).chunks(4).zip(want) {
-            let mut onehot = [0f32; 4];
+        for (row, k) in vals(&z).chunks(c).zip(want) {
+            let mut onehot = vec![0f32; c];
             onehot[k as usize] = 1.0;
             assert_eq!(row, onehot);
         }
-        let composed = (z.detach().reshape((3, 2, 4)).unwrap() + &p)
+        let composed = (z.detach().reshape((3, 2, c)).unwrap() + &p)
             .unwrap()
             .sub(&p.detach())
             .unwrap()
-            .reshape((3, 8))
+            .reshape((3, 2 * c))
             .unwrap();
         same(z, composed, &[&l], 1e-5);
     }
 
     #[test]
     fn categorical_kl_matches_the_composed_divergence() {
-        let (a, b) = (var(&[3, 2, 4], 13), var(&[3, 2, 4], 14));
+        for c in [4, PAPER_CLASSES] {
+            kl_matches_the_composed_divergence(c);
+        }
+    }
+
+    fn kl_matches_the_composed_divergence(c: usize) {
+        let (a, b) = (var(&[3, 2, c], 13), var(&[3, 2, c], 14));
         let (pa, pb) = (probs(&a, 0.01), probs(&b, 0.01));
         let composed = pa
             .mul(&(pa.log().unwrap() - pb.log().unwrap()).unwrap())
