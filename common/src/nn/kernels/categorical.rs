@@ -20,6 +20,22 @@ macro_rules! with_classes {
     };
 }
 
+/// The first index of `x` whose value is `v` (0 if none), without a branch per value: the
+/// equalities as bits of a mask, 32 values at a time.
+#[inline(always)]
+fn first_equal(x: &[f32], v: f32) -> usize {
+    for (i, chunk) in x.chunks(32).enumerate() {
+        let mut mask = 0u32;
+        for (b, &w) in chunk.iter().enumerate() {
+            mask |= u32::from(w == v) << b;
+        }
+        if mask != 0 {
+            return 32 * i + mask.trailing_zeros() as usize;
+        }
+    }
+    0
+}
+
 /// The classes of each of the paper's latent variables (REFERENCE §5: 16 x 16).
 const PAPER_CLASSES: usize = 16;
 
@@ -49,9 +65,9 @@ vectorised! {
                 for ((sc, &pk), &uk) in score.iter_mut().zip(&p).zip(ur) {
                     *sc = pk / -ln(uk);
                 }
-                // the first class of the largest score, with one branch
+                // the first class of the largest score, from a mask of the classes that have it
                 let best = lane_max::<S>(&score);
-                o[score.iter().position(|&v| v == best).unwrap_or(0)] = 1.0;
+                o[first_equal(&score, best)] = 1.0;
             }
         }
         with_classes!(dist.classes, rows::<S>(dist, l, u, out))
