@@ -140,29 +140,33 @@ vectorised! {
         let rows = x.chunks_exact(d).zip(dy.chunks_exact(d)).zip(dx.chunks_exact_mut(d));
         for (((xr, dyr), dxr), yr) in rows.zip(y.chunks_exact(d)) {
             let (mean, rstd) = row_moments::<S>(xr, eps);
-            for (h, &x) in xh.iter_mut().zip(xr) {
-                *h = (x - mean) * rstd;
-            }
-            // dxh ← the gradient at the activation's input
-            match act {
-                NormAct::Identity => dxh.copy_from_slice(dyr),
-                NormAct::Silu => {
-                    let lanes = dxh.iter_mut().zip(dyr.iter().zip(yr));
-                    let params = xh.iter().zip(gain.iter().zip(bias));
-                    for ((o, (&dy, &y)), (&h, (&g, &b))) in lanes.zip(params) {
-                        *o = dy * NormAct::Silu.slope(h.mul_add(g, b), y);
+            // x̂, and the gradient at x̂, γ act'(·) dy, in one pass ([∂γ, ∂β] added unless frozen)
+            let lanes = xh.iter_mut().zip(dxh.iter_mut()).zip(xr.iter().zip(dyr.iter().zip(yr)));
+            let params = gain.iter().zip(bias);
+            match (act, frozen) {
+                (NormAct::Identity, true) => {
+                    for (((h, o), (&x, (&dy, _))), (&g, _)) in lanes.zip(params) {
+                        *h = (x - mean) * rstd;
+                        *o = dy * g;
                     }
                 }
-            }
-            if frozen {
-                dxh.iter_mut().zip(gain).for_each(|(o, &g)| *o *= g);
-            } else {
-                let lanes = dxh.iter_mut().zip(&xh).zip(gain.iter());
-                let sums = dgain.iter_mut().zip(dbias.iter_mut());
-                for (((o, &h), &g), (dg, db)) in lanes.zip(sums) {
-                    *dg = o.mul_add(h, *dg);
-                    *db += *o;
-                    *o *= g;
+                (NormAct::Silu, true) => {
+                    for (((h, o), (&x, (&dy, &y))), (&g, &b)) in lanes.zip(params) {
+                        *h = (x - mean) * rstd;
+                        *o = dy * NormAct::Silu.slope(h.mul_add(g, b), y) * g;
+                    }
+                }
+                (act, false) => {
+                    let sums = dgain.iter_mut().zip(dbias.iter_mut());
+                    for ((((h, o), (&x, (&dy, &y))), (&g, &b)), (dg, db)) in
+                        lanes.zip(params).zip(sums)
+                    {
+                        *h = (x - mean) * rstd;
+                        let pre = dy * act.slope(h.mul_add(g, b), y);
+                        *dg = pre.mul_add(*h, *dg);
+                        *db += pre;
+                        *o = pre * g;
+                    }
                 }
             }
             let m1 = lane_sum::<S>(&dxh, &dxh, |v, _| v) / d as f32;
@@ -269,7 +273,8 @@ impl CustomOp3 for NormActOp {
                 read(gain, |g| {
                     read(bias, |b| {
                         read(grad, |dy| {
-                            let mut dgb = vec![0f32; 2 * d];
+                            // a frozen normalisation's (empty): not computed
+                            let mut dgb = vec![0f32; if want_params { 2 * d } else { 0 }];
                             let dx = norm_act_rows_bwd((x, y), self.on(g, b), dy, &mut dgb);
                             Ok((dx, dgb))
                         })
@@ -361,11 +366,13 @@ mod tests {
             .unwrap();
         let fused = |act| norm_act(&x, &g, &b, eps, act).unwrap();
         same(fused(NormAct::Identity), ln.clone(), &[&x, &g, &b], 1e-4);
-        same(
-            fused(NormAct::Silu),
-            candle_nn::ops::silu(&ln).unwrap(),
-            &[&x, &g, &b],
-            1e-4,
-        );
+        let silu = candle_nn::ops::silu(&ln).unwrap();
+        same(fused(NormAct::Silu), silu.clone(), &[&x, &g, &b], 1e-4);
+        // frozen: γ and β constants, the input's gradient only
+        let (gc, bc) = (g.as_tensor().detach(), b.as_tensor().detach());
+        for (act, composed) in [(NormAct::Identity, ln), (NormAct::Silu, silu)] {
+            let frozen = norm_act(&x, &gc, &bc, eps, act).unwrap();
+            same(frozen, composed, &[&x], 1e-4);
+        }
     }
 }
