@@ -18,7 +18,7 @@ impl NormAct {
     fn apply(self, y: f32) -> f32 {
         match self {
             NormAct::Identity => y,
-            NormAct::Silu => y * sigmoid(y),
+            NormAct::Silu => silu(y),
         }
     }
 
