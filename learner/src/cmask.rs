@@ -288,7 +288,7 @@ impl MaskSac {
             w.critic_pass(nets, tr, noise, soft)
         })?;
         let mut grads = GradStore::default();
-        self.q.add_grads_to(&critics, &sum.grads, &mut grads)?;
+        self.q.add_grads_to(&critics, sum.grads, &mut grads)?;
         Ok((grads, sum.loss))
     }
 
@@ -308,7 +308,7 @@ impl MaskSac {
             w.actor_pass((&critics, plain), (tr.obs, tr.weight), noise, with)
         })?;
         let mut grads = GradStore::default();
-        plain.add_grads_to(&sum.grads, actor.net(), &mut grads)?;
+        plain.add_grads_to(sum.grads, actor.net(), &mut grads)?;
         Ok((grads, sum.loss, sum.log_prob))
     }
 }

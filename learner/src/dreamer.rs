@@ -270,9 +270,8 @@ impl Dreamer {
         };
         let mut grads = candle_core::backprop::GradStore::default();
         nets.actor
-            .add_grads_to(&actor, &self.nets.actor, &mut grads)?;
-        nets.critic
-            .add_grads_to(&critic, &self.critic, &mut grads)?;
+            .add_grads_to(actor, &self.nets.actor, &mut grads)?;
+        nets.critic.add_grads_to(critic, &self.critic, &mut grads)?;
         metrics.extend(weighted_mean(&shard_metrics));
         metrics.insert("imag/return_scale".into(), scale);
         metrics.insert("actor/grad_norm".into(), self.actor_opt.step(&grads)?);
@@ -882,10 +881,10 @@ mod tests {
             );
             let mut grads = candle_core::backprop::GradStore::default();
             nets.actor
-                .add_grads_to(&got.actor, &agent.nets.actor, &mut grads)
+                .add_grads_to(got.actor, &agent.nets.actor, &mut grads)
                 .unwrap();
             nets.critic
-                .add_grads_to(&got.critic, &agent.critic, &mut grads)
+                .add_grads_to(got.critic, &agent.critic, &mut grads)
                 .unwrap();
             let vars = agent
                 .policy

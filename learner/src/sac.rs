@@ -102,11 +102,12 @@ impl TwinQ {
     pub(crate) fn add_grads_to(
         &self,
         plain: &[PlainMlp; 2],
-        grads: &[MlpGrads; 2],
+        grads: [MlpGrads; 2],
         store: &mut GradStore,
     ) -> Result<()> {
-        plain[0].add_grads_to(&grads[0], &self.q1, store)?;
-        plain[1].add_grads_to(&grads[1], &self.q2, store)
+        let [q1, q2] = grads;
+        plain[0].add_grads_to(q1, &self.q1, store)?;
+        plain[1].add_grads_to(q2, &self.q2, store)
     }
 }
 
@@ -288,8 +289,7 @@ impl Sac {
             soft,
         );
         let mut grads = GradStore::default();
-        self.critic
-            .add_grads_to(&critics, &pass.grads, &mut grads)?;
+        self.critic.add_grads_to(&critics, pass.grads, &mut grads)?;
         Ok((grads, pass.loss, pass.q_sum / (2 * b) as f64))
     }
 
@@ -312,7 +312,7 @@ impl Sac {
             (alpha, range),
         );
         let mut grads = GradStore::default();
-        actor.add_grads_to(&pass.grads, self.actor.net(), &mut grads)?;
+        actor.add_grads_to(pass.grads, self.actor.net(), &mut grads)?;
         Ok((grads, pass.loss, pass.log_prob))
     }
 

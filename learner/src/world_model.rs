@@ -265,15 +265,13 @@ impl WorldModel {
         };
         let mut grads = GradStore::default();
         nets.encoder
-            .add_grads_to(&total.encoder, &self.encoder, &mut grads)?;
-        nets.rssm
-            .add_grads_to(&total.rssm, &self.rssm, &mut grads)?;
+            .add_grads_to(total.encoder, &self.encoder, &mut grads)?;
+        nets.rssm.add_grads_to(total.rssm, &self.rssm, &mut grads)?;
         nets.decoder
-            .add_grads_to(&total.decoder, &self.decoder, &mut grads)?;
+            .add_grads_to(total.decoder, &self.decoder, &mut grads)?;
         nets.reward
-            .add_grads_to(&total.reward, &self.reward, &mut grads)?;
-        nets.cont
-            .add_grads_to(&total.cont, &self.cont, &mut grads)?;
+            .add_grads_to(total.reward, &self.reward, &mut grads)?;
+        nets.cont.add_grads_to(total.cont, &self.cont, &mut grads)?;
         metrics.extend(weighted_mean(&shard_metrics));
         Ok((grads, starts))
     }

@@ -374,22 +374,48 @@ impl PlainLayer {
     /// and normalisation this one copied), added into `store`.
     pub fn add_grads_to(
         &self,
-        grads: &LayerGrads,
+        grads: LayerGrads,
         dense: &Dense,
         ln: Option<&LayerNorm>,
         store: &mut GradStore,
     ) -> Result<()> {
-        add_grad(store, dense.weight(), grads.weight(self))?;
+        let LayerGrads {
+            w,
+            sparse_wt,
+            bias,
+            mut norm,
+        } = grads;
+        add_grad(store, dense.weight(), self.whole_weight(w, sparse_wt))?;
         if let Some(b) = dense.bias() {
-            add_grad(store, b, grads.bias.clone())?;
+            add_grad(store, b, bias)?;
         }
         if let Some(ln) = ln {
             let (gain, bias, _) = ln.parts();
-            let m = self.outputs;
-            add_grad(store, gain, grads.norm[..m].to_vec())?;
-            add_grad(store, bias, grads.norm[m..].to_vec())?;
+            let norm_bias = norm.split_off(self.outputs);
+            add_grad(store, gain, norm)?;
+            add_grad(store, bias, norm_bias)?;
         }
         Ok(())
+    }
+
+    /// `∂W` `[out, in]` whole from its dense part `w` and the sparse columns' `∂Wᵀ` rows
+    /// `sparse_wt`, added into its columns in tiles of 16 x 16 (a column of `∂W` is a cache line
+    /// a value; a tile's sixteen lines stay in the cache while it is written).
+    fn whole_weight(&self, mut w: Vec<f32>, sparse_wt: Option<Vec<f32>>) -> Vec<f32> {
+        const TILE: usize = 16;
+        if let (Some(block), Some(columns)) = (sparse_wt, &self.sparse) {
+            let (m, k) = (self.outputs, self.inputs);
+            for c0 in (0..columns.len()).step_by(TILE) {
+                for j0 in (0..m).step_by(TILE) {
+                    for c in c0..(c0 + TILE).min(columns.len()) {
+                        for j in j0..(j0 + TILE).min(m) {
+                            w[j * k + columns.start + c] += block[c * m + j];
+                        }
+                    }
+                }
+            }
+        }
+        w
     }
 
     /// Zeroed gradients of this layer's parameters.
@@ -440,20 +466,6 @@ impl LayerGrads {
             (None, Some(b)) => self.sparse_wt = Some(b.clone()),
             _ => {}
         }
-    }
-
-    /// `∂W` `[out, in]` whole, for the layer `layer`.
-    fn weight(&self, layer: &PlainLayer) -> Vec<f32> {
-        let mut w = self.w.clone();
-        if let (Some(block), Some(columns)) = (&self.sparse_wt, &layer.sparse) {
-            let m = layer.outputs;
-            for (c, row) in block.chunks_exact(m).enumerate() {
-                for (j, &v) in row.iter().enumerate() {
-                    w[j * layer.inputs + columns.start + c] += v;
-                }
-            }
-        }
-        w
     }
 }
 
@@ -653,13 +665,13 @@ impl PlainMlp {
 
     /// The gradients as candle tensors of `mlp`'s parameters (the network this one copied),
     /// added into `store`.
-    pub fn add_grads_to(&self, grads: &MlpGrads, mlp: &Mlp, store: &mut GradStore) -> Result<()> {
+    pub fn add_grads_to(&self, grads: MlpGrads, mlp: &Mlp, store: &mut GradStore) -> Result<()> {
         let (hidden, head, _) = mlp.parts();
         let denses = hidden
             .iter()
             .map(|(d, ln)| (d, ln.as_ref()))
             .chain(head.map(|h| (h, None)));
-        for ((dense, ln), (layer, g)) in denses.zip(self.layers.iter().zip(&grads.layers)) {
+        for ((dense, ln), (layer, g)) in denses.zip(self.layers.iter().zip(grads.layers)) {
             layer.add_grads_to(g, dense, ln, store)?;
         }
         Ok(())

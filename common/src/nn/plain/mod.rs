@@ -181,7 +181,7 @@ mod tests {
                     "input gradient",
                 );
                 let mut got = candle_core::backprop::GradStore::default();
-                plain.add_grads_to(&grads, &mlp, &mut got).unwrap();
+                plain.add_grads_to(grads, &mlp, &mut got).unwrap();
                 for (name, v) in ps.named() {
                     let g =
                         |s: &candle_core::backprop::GradStore| vals(s.get(v.as_tensor()).unwrap());

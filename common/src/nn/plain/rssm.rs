@@ -168,20 +168,19 @@ impl PlainRssm {
 
     /// The gradients as candle tensors of `rssm`'s parameters (the model this one copied),
     /// added into `store`.
-    pub fn add_grads_to(
-        &self,
-        grads: &RssmGrads,
-        rssm: &Rssm,
-        store: &mut GradStore,
-    ) -> Result<()> {
+    pub fn add_grads_to(&self, grads: RssmGrads, rssm: &Rssm, store: &mut GradStore) -> Result<()> {
         let [img_in, gates, prior, prior_out, post, post_out] = rssm.blocks();
+        let [prior_grads, prior_out_grads]: [LayerGrads; 2] =
+            grads.prior.layers.try_into().map_err(|_| {
+                candle_core::Error::Msg("RSSM gradients: a prior of 2 layers".into())
+            })?;
         let layers = [
-            (&self.img_in, &grads.img_in, img_in),
-            (&self.gates, &grads.gates, gates),
-            (&self.prior.layers[0], &grads.prior.layers[0], prior),
-            (&self.prior.layers[1], &grads.prior.layers[1], prior_out),
-            (&self.post, &grads.post, post),
-            (&self.post_out, &grads.post_out, post_out),
+            (&self.img_in, grads.img_in, img_in),
+            (&self.gates, grads.gates, gates),
+            (&self.prior.layers[0], prior_grads, prior),
+            (&self.prior.layers[1], prior_out_grads, prior_out),
+            (&self.post, grads.post, post),
+            (&self.post_out, grads.post_out, post_out),
         ];
         for (layer, g, (dense, norm)) in layers {
             layer.add_grads_to(g, dense, norm.map(|(ln, _)| ln), store)?;
