@@ -376,6 +376,7 @@ impl DreamerPolicy {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::agents::{ContextMode, MaskConfig};
 
     #[test]
     fn uniform_rows_are_rands_random_range_value_by_value() {
@@ -401,7 +402,6 @@ mod tests {
         }
         assert!(uniform_rows(&mut seeded(1), 0, 5).is_empty());
     }
-    use crate::agents::{ContextMode, MaskConfig};
 
     #[test]
     fn the_kept_state_holds_no_graph_of_earlier_steps() {

@@ -76,21 +76,21 @@ impl Isa for Avx2 {
     #[inline(always)]
     fn sum(acc: Lanes) -> f32 {
         // SAFETY: called only from the AVX2 copies, on a processor with AVX2
-        unsafe { sum_avx2(acc) }
+        unsafe { reduce_avx2(&acc, |a, b| _mm_add_ps(a, b)) }
     }
 
     #[inline(always)]
     fn max(acc: Lanes) -> f32 {
         // SAFETY: as for `sum`
-        unsafe { max_avx2(acc) }
+        unsafe { reduce_avx2(&acc, |a, b| _mm_max_ps(a, b)) }
     }
 }
 
-/// [`Isa::sum`] in AVX2.
+/// `acc` reduced by halves with `add`, its two halves in two 256-bit loads.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 #[inline]
-unsafe fn sum_avx2(acc: Lanes) -> f32 {
+unsafe fn reduce_avx2(acc: &Lanes, add: impl Fn(__m128, __m128) -> __m128) -> f32 {
     // SAFETY: `acc` holds 16 values
     let (lo, hi) = unsafe {
         (
@@ -98,22 +98,7 @@ unsafe fn sum_avx2(acc: Lanes) -> f32 {
             _mm256_loadu_ps(acc.as_ptr().add(8)),
         )
     };
-    reduce_halves(lo, hi, |a, b| _mm_add_ps(a, b))
-}
-
-/// [`Isa::max`] in AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-#[inline]
-unsafe fn max_avx2(acc: Lanes) -> f32 {
-    // SAFETY: `acc` holds 16 values
-    let (lo, hi) = unsafe {
-        (
-            _mm256_loadu_ps(acc.as_ptr()),
-            _mm256_loadu_ps(acc.as_ptr().add(8)),
-        )
-    };
-    reduce_halves(lo, hi, |a, b| _mm_max_ps(a, b))
+    reduce_halves(lo, hi, add)
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -121,46 +106,26 @@ impl Isa for Avx512 {
     #[inline(always)]
     fn sum(acc: Lanes) -> f32 {
         // SAFETY: called only from the AVX-512 copies, on a processor with AVX-512
-        unsafe { sum_avx512(acc) }
+        unsafe { reduce_avx512(&acc, |a, b| _mm_add_ps(a, b)) }
     }
 
     #[inline(always)]
     fn max(acc: Lanes) -> f32 {
         // SAFETY: as for `sum`
-        unsafe { max_avx512(acc) }
+        unsafe { reduce_avx512(&acc, |a, b| _mm_max_ps(a, b)) }
     }
 }
 
-/// The two 8-lane halves of `acc` in one 512-bit load.
+/// `acc` reduced by halves with `add`, its two halves from one 512-bit load.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 #[inline]
-unsafe fn halves_avx512(acc: &Lanes) -> (__m256, __m256) {
+unsafe fn reduce_avx512(acc: &Lanes, add: impl Fn(__m128, __m128) -> __m128) -> f32 {
     // SAFETY: `acc` holds 16 values
     let v = unsafe { _mm512_loadu_ps(acc.as_ptr()) };
     let lo = _mm512_castps512_ps256(v);
     let hi = _mm256_castpd_ps(_mm512_extractf64x4_pd::<1>(_mm512_castps_pd(v)));
-    (lo, hi)
-}
-
-/// [`Isa::sum`] in AVX-512.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-#[inline]
-unsafe fn sum_avx512(acc: Lanes) -> f32 {
-    // SAFETY: the caller's processor has AVX-512
-    let (lo, hi) = unsafe { halves_avx512(&acc) };
-    reduce_halves(lo, hi, |a, b| _mm_add_ps(a, b))
-}
-
-/// [`Isa::max`] in AVX-512.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-#[inline]
-unsafe fn max_avx512(acc: Lanes) -> f32 {
-    // SAFETY: the caller's processor has AVX-512
-    let (lo, hi) = unsafe { halves_avx512(&acc) };
-    reduce_halves(lo, hi, |a, b| _mm_max_ps(a, b))
+    reduce_halves(lo, hi, add)
 }
 
 #[cfg(test)]

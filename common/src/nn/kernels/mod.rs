@@ -154,21 +154,28 @@ fn ln(x: f32) -> f32 {
     e as f32 * std::f32::consts::LN_2 + series
 }
 
-/// `1 / (1 + e⁻ˣ)`, with `x` clamped to `[−80, 87]` (`σ(−80) < 2·10⁻³⁵` stays a normal float;
-/// `σ(87)` is 1 in `f32`); NaN stays NaN. One clamp serves [`exp`]'s range too. The reciprocal is
-/// a division: on Zen 4 it runs beside the multiply-adds, and the SiLU forward pass of 512 rows of
-/// 256 (`cargo bench -p ctxrace-common --bench norm_act`) took 88-94 µs with it against 108-110 µs
-/// with three Newton steps from a bit-trick guess (AVX2 copies: 124-148 against 152-161 µs).
+/// `1 + e⁻ˣ`, with `x` clamped to `[−80, 87]` (`σ(−80) < 2·10⁻³⁵` stays a normal float;
+/// `σ(87)` is 1 in `f32`); NaN stays NaN. One clamp serves [`exp`]'s range too: the denominator
+/// of [`sigmoid`] and [`silu`].
 #[inline(always)]
-fn sigmoid(x: f32) -> f32 {
-    1.0 / (1.0 + exp_in_range((-x).clamp(-87.0, 80.0)))
+fn one_plus_exp_neg(x: f32) -> f32 {
+    1.0 + exp_in_range((-x).clamp(-87.0, 80.0))
 }
 
-/// `x σ(x) = x / (1 + e⁻ˣ)`: [`sigmoid`]'s clamps, one division and no multiplication (the
-/// forward pass of 512 rows of 256 through LayerNorm+SiLU: 69.7 -> 66.8 µs against `x σ(x)`).
+/// `1 / (1 + e⁻ˣ)`. The reciprocal is a division: on Zen 4 it runs beside the multiply-adds, and
+/// the SiLU forward pass of 512 rows of 256 (`cargo bench -p ctxrace-common --bench norm_act`)
+/// took 88-94 µs with it against 108-110 µs with three Newton steps from a bit-trick guess (AVX2
+/// copies: 124-148 against 152-161 µs).
+#[inline(always)]
+fn sigmoid(x: f32) -> f32 {
+    1.0 / one_plus_exp_neg(x)
+}
+
+/// `x σ(x) = x / (1 + e⁻ˣ)`: one division and no multiplication (the forward pass of 512 rows of
+/// 256 through LayerNorm+SiLU: 69.7 -> 66.8 µs against `x σ(x)`).
 #[inline(always)]
 fn silu(x: f32) -> f32 {
-    x / (1.0 + exp_in_range((-x).clamp(-87.0, 80.0)))
+    x / one_plus_exp_neg(x)
 }
 
 /// `tanh x = 2 σ(2x) − 1`.
