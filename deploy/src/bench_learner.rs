@@ -18,6 +18,14 @@
 //! chain of dependent register additions), to show flops per cycle; a virtual machine's
 //! `/proc/cpuinfo` often reports the nominal clock while its busy cores boost above it. Without
 //! an FMA probe (off x86, or no FMA) the peak falls back to `2 units × 4 lanes × 2 × clock`.
+//!
+//! **The products' ceiling.** One more step runs with its gemm calls recorded by shape and
+//! strides; the same calls then run again alone on one core, on operands reused from call to call
+//! ([`ctxrace_common::nn::kernels::replay_products`]; the fastest of three replays). Their rate
+//! is what this machine's gemm reaches on the step's shapes with nothing in the way, an upper
+//! bound for the step; their time spread over the step's threads, as a share of the step's, is
+//! how much of the step the products explain (the rest: the row kernels, the one-hot products,
+//! copies, cold operands, waiting threads).
 use anyhow::Result;
 use clap::Args;
 use ctxrace_common::batch::{Batch, BatchSpec};
@@ -82,6 +90,54 @@ struct LearnerReport {
     peak_from: String,
     /// `gflops / peak_gflops`.
     fraction_of_peak: f64,
+    /// The products' ceiling: one step's gemm calls replayed alone on one core (see the module
+    /// doc): their number, GFLOP, seconds, GFLOP/s and fraction of one core's peak.
+    products_alone: ProductsAlone,
+}
+
+/// One step's gemm calls run again alone on one core ([`ctxrace_common::nn::kernels::replay_products`]).
+#[derive(Serialize)]
+struct ProductsAlone {
+    calls: usize,
+    gflop: f64,
+    seconds: f64,
+    gflops: f64,
+    fraction_of_core_peak: f64,
+    /// The step's time if it were these products alone, spread evenly over its threads, as a
+    /// fraction of its measured time: how much of the step the products explain.
+    share_of_step: f64,
+}
+
+/// Records the gemm calls of one more step of `algo` and replays them alone on this thread,
+/// keeping the fastest of three replays.
+fn products_alone(
+    algo: &mut dyn ctxrace_learner::Algorithm,
+    batch: &Batch,
+    (threads, core_peak, per_step): (usize, f64, f64),
+) -> Result<ProductsAlone> {
+    use ctxrace_common::nn::kernels::{record_products, recorded_products, replay_products};
+    record_products(true);
+    let stepped = algo.train_step(batch);
+    record_products(false);
+    stepped?;
+    let calls = recorded_products();
+    let seconds = (0..3)
+        .map(|_| replay_products(&calls))
+        .fold(f64::INFINITY, f64::min);
+    let gflop = calls.iter().map(|c| c.flops()).sum::<u64>() as f64 / 1e9;
+    let gflops = gflop / seconds.max(1e-12);
+    Ok(ProductsAlone {
+        calls: calls.len(),
+        gflop,
+        seconds,
+        gflops,
+        fraction_of_core_peak: if core_peak > 0.0 {
+            gflops / core_peak
+        } else {
+            0.0
+        },
+        share_of_step: seconds / threads as f64 / per_step.max(1e-12),
+    })
 }
 
 /// The peak f32 GFLOP/s of `threads` cores (see the module doc), with how it was found.
@@ -333,6 +389,11 @@ pub fn run(args: LearnerArgs) -> Result<()> {
         .collect();
     let (peak, peak_from) = peak_gflops(threads);
     let gflops = gflop_per_step / per_step;
+    let alone = products_alone(
+        algo.as_mut(),
+        &batch,
+        (threads, peak / threads as f64, per_step),
+    )?;
 
     ctxrace_common::nn::set_threads(1);
     let mut policy = Policy::new(&agent, beams, &algo.policy_weights()?, 0)?;
@@ -368,6 +429,7 @@ pub fn run(args: LearnerArgs) -> Result<()> {
         peak_gflops: peak,
         peak_from,
         fraction_of_peak: if peak > 0.0 { gflops / peak } else { 0.0 },
+        products_alone: alone,
     };
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
@@ -400,6 +462,19 @@ pub fn run(args: LearnerArgs) -> Result<()> {
             100.0 * report.fraction_of_peak,
             report.peak_gflops,
             report.peak_from
+        );
+        let alone = &report.products_alone;
+        println!(
+            "  the same products alone ({} gemm calls, {:.2} GFLOP, replayed on one core): \
+             {:.1} ms, {:.1} GFLOP/s = {:.1}% of a core's peak; over {} threads they would take \
+             {:.1}% of the step",
+            alone.calls,
+            alone.gflop,
+            alone.seconds * 1e3,
+            alone.gflops,
+            100.0 * alone.fraction_of_core_peak,
+            report.threads,
+            100.0 * alone.share_of_step
         );
         let gflop_of = |phase: &str| {
             let found = report.gflop_by_phase.iter().find(|(p, _)| p == phase);

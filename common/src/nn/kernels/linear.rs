@@ -6,6 +6,7 @@
 //! there. The transposed layout is what gemm's kernel reads directly, so such loops transpose the
 //! weight once ([`crate::nn::Dense::looped`]) and multiply without packing.
 
+use super::replay::{self, ProductShape};
 use super::sparse_inputs::SparseColumns;
 use super::*;
 use candle_core::backprop::GradStore;
@@ -225,7 +226,7 @@ fn matmul(
     // SAFETY: `dst` has room for the m×n values at row stride n, which gemm writes (reading them
     // first only when `accumulate`, where they are initialised) before `set_len` exposes them.
     unsafe {
-        gemm_raw(dst.as_mut_ptr(), n, accumulate, (m, n, k), a, b);
+        gemm_raw(dst.as_mut_ptr(), (n, accumulate, true), (m, n, k), a, b);
         dst.set_len(m * n);
     }
     dst
@@ -253,23 +254,40 @@ pub(crate) fn gemm_into(
         return;
     }
     // SAFETY: `dst` holds the m rows of n values at `row_stride` (asserted above), initialised.
-    unsafe { gemm_raw(dst.as_mut_ptr(), row_stride, accumulate, (m, n, k), a, b) }
+    unsafe {
+        gemm_raw(
+            dst.as_mut_ptr(),
+            (row_stride, accumulate, true),
+            (m, n, k),
+            a,
+            b,
+        )
+    }
 }
 
 /// gemm of `A B` into the `[m, n]` at `dst` with rows `row_stride` apart (see [`gemm_into`]),
-/// on this thread; counts its operations.
+/// on this thread; with `counted` it counts its operations and notes its shape ([`replay`]),
+/// as every product of a layer does (a replay's do not).
 ///
 /// # Safety
 /// `dst` must address `m` rows of `n` values at `row_stride`, initialised if `accumulate`.
-unsafe fn gemm_raw(
+pub(super) unsafe fn gemm_raw(
     dst: *mut f32,
-    row_stride: usize,
-    accumulate: bool,
+    (row_stride, accumulate, counted): (usize, bool, bool),
     (m, n, k): (usize, usize, usize),
     a: Operand,
     b: Operand,
 ) {
-    count_flops(2 * m * n * k);
+    if counted {
+        count_flops(2 * m * n * k);
+        replay::note(ProductShape {
+            dims: (m, n, k),
+            a_strides: (a.row_stride, a.col_stride),
+            b_strides: (b.row_stride, b.col_stride),
+            dst_row_stride: row_stride,
+            accumulate,
+        });
+    }
     // the callers' shape checks guarantee these; the unsafe call below relies on them
     assert!(a.data.len() > (m - 1) * a.row_stride + (k - 1) * a.col_stride);
     assert!(b.data.len() > (k - 1) * b.row_stride + (n - 1) * b.col_stride);

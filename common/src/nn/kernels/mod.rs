@@ -29,6 +29,9 @@
 //! - [`adam_update`], [`sum_of_squares`]: the elementwise part of an Adam step;
 //!   [`adam_update_in_place`], [`squared_norm`]: the same on tensors, without copies.
 //!
+//! - [`record_products`], [`replay_products`]: the gemm calls of a stretch of work, noted by
+//!   shape and run again alone (the products' ceiling of `ctxrace bench learner`).
+//!
 //! One file per kernel, each checked against the composed candle operations, values and
 //! gradients, in its tests; the vectorised dispatch and the branch-free maths they share are here.
 
@@ -258,6 +261,7 @@ pub(crate) mod isa;
 mod linear;
 mod linear_norm;
 mod norm_act;
+mod replay;
 mod sparse_inputs;
 mod twohot;
 
@@ -267,6 +271,7 @@ pub use gru::gru_gates;
 pub use linear::{linear, linear_t, linear_twice, matmul_flops, WeightGradTape};
 pub use linear_norm::{linear_norm_act, linear_norm_act_twice};
 pub use norm_act::{norm_act, NormAct};
+pub use replay::{record_products, recorded_products, replay_products, ProductShape};
 pub use twohot::{soft_cross_entropy, twohot_decode};
 // the row kernels, for the networks on plain buffers (`crate::nn::plain`)
 pub(crate) use categorical::{kl_rows, kl_rows_bwd, probs_rows_bwd, sample_rows, Unimix};
