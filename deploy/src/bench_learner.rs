@@ -95,7 +95,8 @@ struct LearnerReport {
     products_alone: ProductsAlone,
 }
 
-/// One step's gemm calls run again alone on one core ([`ctxrace_common::nn::kernels::replay_products`]).
+/// One step's gemm calls run again alone on one core
+/// ([`ctxrace_common::nn::kernels::replay_products`]).
 #[derive(Serialize)]
 struct ProductsAlone {
     calls: usize,

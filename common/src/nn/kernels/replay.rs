@@ -78,9 +78,9 @@ pub(super) fn note(shape: ProductShape) {
 }
 
 /// Runs `calls` again on this thread, in order, and returns the seconds they took. Operands of
-/// random values, one buffer each for `A`, `B` and `dst` as long as the longest call needs,
-/// are filled before the clock starts; empty products are skipped (none left: 0 seconds). Not counted in
-/// [`super::matmul_flops`].
+/// pseudo-random values, one buffer each for `A`, `B` and `dst` as long as the longest call
+/// needs, are filled before the clock starts; empty products are skipped (none left: 0
+/// seconds). Not counted in [`super::matmul_flops`].
 pub fn replay_products(calls: &[ProductShape]) -> f64 {
     let calls: Vec<_> = calls
         .iter()
