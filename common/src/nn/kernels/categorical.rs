@@ -96,7 +96,13 @@ vectorised! {
     /// `per_row` logits of `la` and `lb`.
     pub(crate) fn kl_rows(dist: Unimix, la: &[f32], lb: &[f32], per_row: usize, out: &mut [f32]) {
         #[inline(always)]
-        fn rows<S: Isa>(c: usize, dist: Unimix, l: (&[f32], &[f32]), per_row: usize, out: &mut [f32]) {
+        fn rows<S: Isa>(
+            c: usize,
+            dist: Unimix,
+            l: (&[f32], &[f32]),
+            per_row: usize,
+            out: &mut [f32],
+        ) {
             let mut buf = vec![0f32; 4 * c];
             let (sa, rest) = buf.split_at_mut(c);
             let (pa, rest) = rest.split_at_mut(c);

@@ -15,37 +15,47 @@ use std::arch::x86_64::*;
 /// The partial results a reduction combines: one per lane.
 pub(super) type Lanes = [f32; 16];
 
+/// What a reduction does to two lanes.
+#[derive(Clone, Copy)]
+pub(super) enum Op {
+    Sum,
+    Max,
+}
+
 /// An instruction set a kernel's copy is compiled for.
 pub(super) trait Isa {
+    /// `op` over the lanes of `acc`, by halves.
+    fn reduce(acc: Lanes, op: Op) -> f32;
+
     /// `Σ_l acc_l`, by halves.
-    fn sum(acc: Lanes) -> f32;
+    #[inline(always)]
+    fn sum(acc: Lanes) -> f32 {
+        Self::reduce(acc, Op::Sum)
+    }
+
     /// `max_l acc_l`, by halves (a NaN lane may or may not be passed on).
-    fn max(acc: Lanes) -> f32;
+    #[inline(always)]
+    fn max(acc: Lanes) -> f32 {
+        Self::reduce(acc, Op::Max)
+    }
 }
 
 /// The portable copy.
 pub(super) struct Scalar;
 
-/// `f` over the lanes by halves: `l` with `l + 8`, `l + 4`, `l + 2`, `l + 1`.
-#[inline(always)]
-fn by_halves(mut acc: Lanes, f: impl Fn(f32, f32) -> f32) -> f32 {
-    for half in [8, 4, 2, 1] {
-        for l in 0..half {
-            acc[l] = f(acc[l], acc[l + half]);
-        }
-    }
-    acc[0]
-}
-
 impl Isa for Scalar {
+    /// Lane `l` with `l + 8`, `l + 4`, `l + 2`, `l + 1`.
     #[inline(always)]
-    fn sum(acc: Lanes) -> f32 {
-        by_halves(acc, |a, b| a + b)
-    }
-
-    #[inline(always)]
-    fn max(acc: Lanes) -> f32 {
-        by_halves(acc, f32::max)
+    fn reduce(mut acc: Lanes, op: Op) -> f32 {
+        for half in [8, 4, 2, 1] {
+            for l in 0..half {
+                acc[l] = match op {
+                    Op::Sum => acc[l] + acc[l + half],
+                    Op::Max => acc[l].max(acc[l + half]),
+                };
+            }
+        }
+        acc[0]
     }
 }
 
@@ -57,12 +67,15 @@ pub(super) struct Avx512;
 #[cfg(target_arch = "x86_64")]
 pub(super) struct Avx2;
 
-/// The last three halvings of an 8-lane vector's two halves `lo`, `hi` with `add` (an addition or
-/// a maximum).
+/// The last three halvings of an 8-lane vector's two halves `lo`, `hi` with `op`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 #[inline]
-fn reduce_halves(lo: __m256, hi: __m256, add: impl Fn(__m128, __m128) -> __m128) -> f32 {
+fn reduce_halves(lo: __m256, hi: __m256, op: Op) -> f32 {
+    let add = |a, b| match op {
+        Op::Sum => _mm_add_ps(a, b),
+        Op::Max => _mm_max_ps(a, b),
+    };
     let eight = [_mm256_castps256_ps128(lo), _mm256_extractf128_ps::<1>(lo)];
     let eight_hi = [_mm256_castps256_ps128(hi), _mm256_extractf128_ps::<1>(hi)];
     // l + 8: the two vectors; l + 4: their 128-bit halves
@@ -74,23 +87,17 @@ fn reduce_halves(lo: __m256, hi: __m256, add: impl Fn(__m128, __m128) -> __m128)
 #[cfg(target_arch = "x86_64")]
 impl Isa for Avx2 {
     #[inline(always)]
-    fn sum(acc: Lanes) -> f32 {
+    fn reduce(acc: Lanes, op: Op) -> f32 {
         // SAFETY: called only from the AVX2 copies, on a processor with AVX2
-        unsafe { reduce_avx2(&acc, |a, b| _mm_add_ps(a, b)) }
-    }
-
-    #[inline(always)]
-    fn max(acc: Lanes) -> f32 {
-        // SAFETY: as for `sum`
-        unsafe { reduce_avx2(&acc, |a, b| _mm_max_ps(a, b)) }
+        unsafe { reduce_avx2(&acc, op) }
     }
 }
 
-/// `acc` reduced by halves with `add`, its two halves in two 256-bit loads.
+/// `acc` reduced by halves with `op`, its two halves in two 256-bit loads.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 #[inline]
-unsafe fn reduce_avx2(acc: &Lanes, add: impl Fn(__m128, __m128) -> __m128) -> f32 {
+unsafe fn reduce_avx2(acc: &Lanes, op: Op) -> f32 {
     // SAFETY: `acc` holds 16 values
     let (lo, hi) = unsafe {
         (
@@ -98,34 +105,28 @@ unsafe fn reduce_avx2(acc: &Lanes, add: impl Fn(__m128, __m128) -> __m128) -> f3
             _mm256_loadu_ps(acc.as_ptr().add(8)),
         )
     };
-    reduce_halves(lo, hi, add)
+    reduce_halves(lo, hi, op)
 }
 
 #[cfg(target_arch = "x86_64")]
 impl Isa for Avx512 {
     #[inline(always)]
-    fn sum(acc: Lanes) -> f32 {
+    fn reduce(acc: Lanes, op: Op) -> f32 {
         // SAFETY: called only from the AVX-512 copies, on a processor with AVX-512
-        unsafe { reduce_avx512(&acc, |a, b| _mm_add_ps(a, b)) }
-    }
-
-    #[inline(always)]
-    fn max(acc: Lanes) -> f32 {
-        // SAFETY: as for `sum`
-        unsafe { reduce_avx512(&acc, |a, b| _mm_max_ps(a, b)) }
+        unsafe { reduce_avx512(&acc, op) }
     }
 }
 
-/// `acc` reduced by halves with `add`, its two halves from one 512-bit load.
+/// `acc` reduced by halves with `op`, its two halves from one 512-bit load.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 #[inline]
-unsafe fn reduce_avx512(acc: &Lanes, add: impl Fn(__m128, __m128) -> __m128) -> f32 {
+unsafe fn reduce_avx512(acc: &Lanes, op: Op) -> f32 {
     // SAFETY: `acc` holds 16 values
     let v = unsafe { _mm512_loadu_ps(acc.as_ptr()) };
     let lo = _mm512_castps512_ps256(v);
     let hi = _mm256_castpd_ps(_mm512_extractf64x4_pd::<1>(_mm512_castps_pd(v)));
-    reduce_halves(lo, hi, add)
+    reduce_halves(lo, hi, op)
 }
 
 #[cfg(test)]
