@@ -71,6 +71,18 @@ fn check_lengths(kind: &str, fields: &[(&str, usize, usize)]) -> Result<(), Stri
 }
 
 impl TransitionBatch {
+    /// Its arrays in the order of its fields: the order of a batch message's payload.
+    pub fn arrays(&self) -> [&[f32]; 6] {
+        [
+            &self.obs,
+            &self.action,
+            &self.reward,
+            &self.next_obs,
+            &self.terminal,
+            &self.context,
+        ]
+    }
+
     /// Checks that the batch is non-empty, has the sizes `obs_dim`/`act_dim` and that every
     /// buffer's length matches them.
     pub fn validate(&self, obs_dim: usize, act_dim: usize) -> Result<(), String> {
@@ -97,6 +109,20 @@ impl TransitionBatch {
 }
 
 impl SequenceBatch {
+    /// Its arrays in the order of its fields: the order of a batch message's payload.
+    pub fn arrays(&self) -> [&[f32]; 8] {
+        [
+            &self.obs,
+            &self.action,
+            &self.reward,
+            &self.is_first,
+            &self.is_terminal,
+            &self.context,
+            &self.mask,
+            &self.has_mask,
+        ]
+    }
+
     /// Checks that the batch is non-empty, has the sizes `obs_dim`/`act_dim` and that every
     /// buffer's length matches them.
     pub fn validate(&self, obs_dim: usize, act_dim: usize) -> Result<(), String> {

@@ -316,3 +316,74 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
     assert_eq!(status.pending_requests, 1);
     assert_eq!(status.rejected, 1);
 }
+
+#[test]
+fn a_chunk_rewritten_after_validation_cannot_panic_the_replay_buffer() {
+    use ctxrace_common::ipc::inject::Injector;
+    use ctxrace_common::ipc::wire::{step_stride, ChunkHeader, FORMAT_VERSION};
+    use ctxrace_common::ipc::ReadStage;
+    use ctxrace_replay::ReplayBuffer;
+    use rand::SeedableRng;
+    let isolated = Isolated::new("rewritten");
+    let t = RunTransport::open(&isolated.0, 2, "replay").unwrap();
+    let mut rx = TrajectoryReceiver::new(&t, OBS, ACT).unwrap();
+    let inject = Injector::new(&t).unwrap();
+    let mut buffer = ReplayBuffer::new(100, 2, OBS, ACT);
+    let stride = step_stride(OBS, ACT);
+    let steps = 4;
+    let payload: Vec<f32> = (0..steps * stride)
+        .map(|i| match i % stride {
+            o if o < OBS => i as f32,
+            r if r == OBS + ACT => 1.0,
+            _ => 0.0,
+        })
+        .collect();
+    for (sequence, stage) in [ReadStage::Copied, ReadStage::Validated]
+        .into_iter()
+        .enumerate()
+    {
+        let header = ChunkHeader {
+            format_version: FORMAT_VERSION,
+            actor_id: 0,
+            sequence: sequence as u64,
+            obs_dim: OBS as u32,
+            act_dim: ACT as u32,
+            steps: steps as u32,
+            ..Default::default()
+        };
+        let held = inject.chunk_held(0, header, &payload).unwrap();
+        // an actor id past the buffer's streams, dimensions and a step count past the payload,
+        // and a NaN reward, written into shared memory once the reader has copied or
+        // validated the chunk
+        let mut hook = |at: ReadStage| {
+            if at == stage {
+                held.set_header(ChunkHeader {
+                    actor_id: 9,
+                    obs_dim: 1000,
+                    act_dim: 7,
+                    steps: 64,
+                    ..header
+                });
+                held.set(OBS + ACT, f32::NAN).unwrap();
+            }
+        };
+        // what the replay's loop does with each chunk
+        let taken = rx
+            .receive_observed(1, &mut hook, |c| {
+                buffer.insert_chunk(c.header.actor_id as usize, c.payload, c.after_gap)
+            })
+            .unwrap();
+        assert_eq!(taken, 1);
+    }
+    assert_eq!(rx.rejected(), 0);
+    // both chunks stored as sent, in actor 0's stream
+    assert_eq!(buffer.len(), 2 * steps);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+    let batch = buffer.sample_sequences(1, 2 * steps, &mut rng).unwrap();
+    let obs: Vec<f32> = payload
+        .chunks(stride)
+        .flat_map(|step| step[..OBS].to_vec())
+        .collect();
+    assert_eq!(batch.obs, [obs.clone(), obs].concat());
+    assert_eq!(batch.reward, vec![1.0; 2 * steps]);
+}

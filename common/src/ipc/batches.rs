@@ -8,7 +8,7 @@ use super::transport::{ice, wait_until, RunTransport, Wake};
 use super::wire::{
     check_finite, validate_request, BatchHeader, BatchKind, BatchRequest, WireError, FORMAT_VERSION,
 };
-use super::RejectLog;
+use super::{read_once, ReadStage, RejectLog};
 use crate::batch::{sequence_floats, transition_floats};
 use crate::batch::{Batch, BatchSpec, SequenceBatch, TransitionBatch};
 use anyhow::{anyhow, Result};
@@ -89,6 +89,19 @@ impl ReplayClient {
     /// A replay that went away (its node cleaned up) loses the outstanding request: it is sent
     /// again once a replay is back, and `None` is returned while none is there.
     pub fn next_batch(&mut self, spec: BatchSpec, timeout: Duration) -> Result<Option<Batch>> {
+        self.next_batch_observed(spec, timeout, &mut |_| {})
+    }
+
+    /// [`next_batch`](Self::next_batch), calling `hook` at each [`ReadStage`] of the answer.
+    /// The answer is copied out of shared memory into the batch first, then checked, and only
+    /// the copy is returned: an answer changed in shared memory while it is read is at worst
+    /// rejected (and requested again).
+    pub fn next_batch_observed(
+        &mut self,
+        spec: BatchSpec,
+        timeout: Duration,
+        hook: &mut dyn FnMut(ReadStage),
+    ) -> Result<Option<Batch>> {
         let replay_up = self
             .request_service
             .dynamic_config()
@@ -112,13 +125,18 @@ impl ReplayClient {
         let deadline = Instant::now() + timeout;
         loop {
             while let Some(sample) = self.batches.receive().map_err(ice("receive batch"))? {
-                let header = *sample.user_header();
+                let header = read_once(sample.user_header());
                 if header.request_id != id {
                     continue;
                 }
                 self.outstanding = None;
-                match decode(&header, sample.payload(), spec, self.obs_dim, self.act_dim) {
-                    Ok(batch) => return Ok(Some(batch)),
+                let copy = decode(&header, sample.payload(), spec, self.obs_dim, self.act_dim);
+                hook(ReadStage::Copied);
+                match copy.and_then(|batch| check_finite_batch(&batch).map(|()| batch)) {
+                    Ok(batch) => {
+                        hook(ReadStage::Validated);
+                        return Ok(Some(batch));
+                    }
                     Err(e) => {
                         self.rejects.reject(&e);
                         match self.request(spec)? {
@@ -175,6 +193,9 @@ impl ReplayClient {
     }
 }
 
+/// Copies the payload `p` of an answer with header `h` (a copy) into a batch of `spec`,
+/// checking the header and the sizes; the values are checked on the copy afterwards
+/// ([`check_finite_batch`]).
 fn decode(
     h: &BatchHeader,
     p: &[f32],
@@ -193,7 +214,6 @@ fn decode(
             h.obs_dim, h.act_dim
         )));
     }
-    check_finite(p)?;
     let mut rest = p;
     let mut take = |n: usize| {
         let (a, b) = rest.split_at(n);
@@ -250,6 +270,29 @@ fn decode(
     }
 }
 
+/// Checks that every value of a batch is finite (the error's index counts from the start of
+/// the payload).
+fn check_finite_batch(batch: &Batch) -> Result<(), WireError> {
+    let check = |arrays: &[&[f32]]| {
+        let mut offset = 0;
+        for array in arrays {
+            check_finite(array).map_err(|e| match e {
+                WireError::Value { index, value } => WireError::Value {
+                    index: offset + index,
+                    value,
+                },
+                other => other,
+            })?;
+            offset += array.len();
+        }
+        Ok(())
+    };
+    match batch {
+        Batch::Sequence(b) => check(&b.arrays()),
+        Batch::Transition(b) => check(&b.arrays()),
+    }
+}
+
 /// The replay's end: takes requests and sends batches.
 pub struct BatchServer {
     requests: Subscriber<ipc::Service, BatchRequest, ()>,
@@ -298,7 +341,7 @@ impl BatchServer {
     pub fn receive_requests(&mut self) -> Result<Vec<(BatchRequest, BatchSpec)>> {
         let mut out = Vec::new();
         while let Some(sample) = self.requests.receive().map_err(ice("receive request"))? {
-            let r = *sample.payload();
+            let r = read_once(sample.payload());
             match validate_request(&r, self.obs_dim, self.act_dim, self.max_floats) {
                 Ok(BatchKind::Sequence) => out.push((
                     r,
@@ -333,17 +376,7 @@ impl BatchServer {
             act_dim: u32::try_from(b.act_dim)?,
             reserved: 0,
         };
-        let parts = [
-            &b.obs,
-            &b.action,
-            &b.reward,
-            &b.is_first,
-            &b.is_terminal,
-            &b.context,
-            &b.mask,
-            &b.has_mask,
-        ];
-        self.send(header, &parts)
+        self.send(header, &b.arrays())
     }
 
     /// Sends a transition batch answering `request_id`; `b.obs_dim` is `frames x` frame size.
@@ -364,18 +397,10 @@ impl BatchServer {
             act_dim: u32::try_from(b.act_dim)?,
             reserved: 0,
         };
-        let parts = [
-            &b.obs,
-            &b.action,
-            &b.reward,
-            &b.next_obs,
-            &b.terminal,
-            &b.context,
-        ];
-        self.send(header, &parts)
+        self.send(header, &b.arrays())
     }
 
-    fn send(&self, header: BatchHeader, parts: &[&Vec<f32>]) -> Result<usize> {
+    fn send(&self, header: BatchHeader, parts: &[&[f32]]) -> Result<usize> {
         let len: usize = parts.iter().map(|p| p.len()).sum();
         if len > self.max_floats {
             return Err(anyhow!(

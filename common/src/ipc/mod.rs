@@ -36,6 +36,25 @@ pub use transport::{
     termination_flag, CleanupReport, Next, RunTransport, Wake, SHM_ROOT_ENV, TRAJECTORY_BUFFER,
 };
 pub use weights::{WeightsPublisher, WeightsReceiver, DEFAULT_MAX_WEIGHTS_BYTES};
+
+/// Where a reader of shared memory stands with one message. Readers copy a message out of
+/// shared memory, validate the copy and use only the copy; their `*_observed` variants call a
+/// hook at each stage, so that a fault-injection test can rewrite the message in shared memory
+/// (see [`inject::Held`]) at exactly that point and show that it makes no difference.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ReadStage {
+    /// The message was copied out of shared memory; the copy is not validated yet.
+    Copied,
+    /// The copy was validated; it is not used yet.
+    Validated,
+}
+
+/// Reads a value out of shared memory exactly once (a volatile read), so that the compiler
+/// cannot read the shared memory again in place of the copy: another process may change it.
+pub(crate) fn read_once<T: Copy>(shared: &T) -> T {
+    // SAFETY: a reference is valid for reads and aligned; `T: Copy` has no drop to run twice.
+    unsafe { std::ptr::read_volatile(shared) }
+}
 pub use wire::{
     BatchHeader, BatchRequest, ChunkHeader, EpisodeReport, Heartbeat, ReplayStatus, WeightsHeader,
     WireError,
@@ -70,5 +89,24 @@ impl RejectLog {
 
     pub(crate) fn by_reason(&self) -> [u64; wire::REASONS.len()] {
         self.by_reason
+    }
+}
+
+/// A test's own run prefix, removed even when the test panics.
+#[cfg(test)]
+pub(crate) struct Isolated(pub(crate) String);
+
+#[cfg(test)]
+impl Isolated {
+    /// The prefix `test-<name>-<pid>`.
+    pub(crate) fn new(name: &str) -> Self {
+        Self(run_prefix(&format!("test-{name}-{}", std::process::id())))
+    }
+}
+
+#[cfg(test)]
+impl Drop for Isolated {
+    fn drop(&mut self) {
+        let _ = cleanup(&self.0);
     }
 }

@@ -2,7 +2,7 @@
 
 use super::transport::{ice, RunTransport};
 use super::wire::{EpisodeReport, Heartbeat, ReplayStatus, WireError, FORMAT_VERSION};
-use super::RejectLog;
+use super::{read_once, RejectLog};
 use anyhow::Result;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
@@ -106,7 +106,7 @@ impl EpisodeSubscriber {
     pub fn episodes(&mut self) -> Result<Vec<EpisodeReport>> {
         let mut out = Vec::new();
         while let Some(s) = self.metrics.receive().map_err(ice("receive metrics"))? {
-            let m = *s.payload();
+            let m = read_once(s.payload());
             let values = [m.context[0], m.context[1], m.progress, m.episode_return];
             match check(m.format_version, m.actor_id, self.actors)
                 .and_then(|()| super::wire::check_finite(&values))
@@ -163,7 +163,7 @@ impl TelemetrySubscriber {
     pub fn heartbeats(&mut self) -> Result<Vec<Heartbeat>> {
         let mut out = Vec::new();
         while let Some(s) = self.heartbeat.receive().map_err(ice("receive heartbeat"))? {
-            let b = *s.payload();
+            let b = read_once(s.payload());
             match check(b.format_version, b.actor_id, self.actors) {
                 Ok(()) => out.push(b),
                 Err(e) => self.rejects.reject(&e),
@@ -176,7 +176,7 @@ impl TelemetrySubscriber {
     pub fn replay_status(&mut self) -> Result<Option<ReplayStatus>> {
         let mut newest = None;
         while let Some(s) = self.status.receive().map_err(ice("receive status"))? {
-            let st = *s.payload();
+            let st = read_once(s.payload());
             if st.format_version == FORMAT_VERSION {
                 newest = Some(st);
             } else {

@@ -5,7 +5,7 @@ use super::wire::{
     step_stride, validate_chunk, ChunkHeader, WireError, FORMAT_VERSION, MAX_ACT, MAX_CHUNK,
     MAX_CHUNK_FLOATS, MAX_OBS,
 };
-use super::RejectLog;
+use super::{read_once, ReadStage, RejectLog};
 use anyhow::{anyhow, Result};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
@@ -344,7 +344,7 @@ impl Drop for TrajectorySender {
     }
 }
 
-/// A validated chunk as the replay receives it.
+/// A validated chunk as the replay receives it: a copy, out of shared memory.
 #[derive(Clone, Copy, Debug)]
 pub struct ChunkView<'a> {
     /// Its header.
@@ -371,7 +371,12 @@ pub struct TrajectoryReceiver {
     act_dim: usize,
     next_sequence: Vec<Option<u64>>,
     missing_chunks: u64,
+    /// Chunks of each actor rejected since its last valid one: the sequence numbers they took
+    /// are not missing.
+    rejected_since: Vec<u64>,
     rejects: RejectLog,
+    /// The copy of the chunk being read, reused from chunk to chunk.
+    copy: Vec<f32>,
 }
 
 impl TrajectoryReceiver {
@@ -398,14 +403,29 @@ impl TrajectoryReceiver {
             act_dim,
             next_sequence: vec![None; transport.actors()],
             missing_chunks: 0,
+            rejected_since: vec![0; transport.actors()],
             rejects: RejectLog::new("trajectory chunk"),
+            copy: Vec::with_capacity(MAX_CHUNK_FLOATS),
         })
     }
 
     /// Takes up to `max_chunks` waiting chunks, each from the actor with the fewest steps taken
     /// that has one, handing each valid one to `f`; malformed ones are counted, logged and
     /// skipped. Returns the number of chunks taken (valid or not).
-    pub fn receive(&mut self, max_chunks: usize, mut f: impl FnMut(ChunkView)) -> Result<usize> {
+    pub fn receive(&mut self, max_chunks: usize, f: impl FnMut(ChunkView)) -> Result<usize> {
+        self.receive_observed(max_chunks, &mut |_| {}, f)
+    }
+
+    /// [`receive`](Self::receive), calling `hook` at each [`ReadStage`] of each chunk. Each
+    /// chunk is copied out of shared memory first (into a buffer reused from chunk to chunk),
+    /// then validated, and `f` sees only the copy: a chunk changed in shared memory while it is
+    /// read is at worst rejected.
+    pub fn receive_observed(
+        &mut self,
+        max_chunks: usize,
+        hook: &mut dyn FnMut(ReadStage),
+        mut f: impl FnMut(ChunkView),
+    ) -> Result<usize> {
         let actors = self.subscribers.len();
         let mut taken = 0;
         while taken < max_chunks {
@@ -425,10 +445,24 @@ impl TrajectoryReceiver {
                 break;
             };
             taken += 1;
-            let header = sample.user_header();
+            let header = read_once(sample.user_header());
             let payload = sample.payload();
+            let copied = if payload.len() <= MAX_CHUNK_FLOATS {
+                self.copy.clear();
+                self.copy.extend_from_slice(payload);
+                Ok(())
+            } else {
+                Err(WireError::Dims(format!(
+                    "{} floats, a chunk has at most {MAX_CHUNK_FLOATS}",
+                    payload.len()
+                )))
+            };
+            hook(ReadStage::Copied);
             let expected = &mut self.next_sequence[id];
-            let checked = validate_chunk(header, payload, actors, self.obs_dim, self.act_dim)
+            let checked = copied
+                .and_then(|()| {
+                    validate_chunk(&header, &self.copy, actors, self.obs_dim, self.act_dim)
+                })
                 .and_then(|()| {
                     if header.actor_id as usize != id {
                         return Err(WireError::WrongStream {
@@ -449,17 +483,25 @@ impl TrajectoryReceiver {
                 });
             if let Err(e) = checked {
                 self.rejects.reject(&e);
+                // a chunk going back took no new sequence number
+                if !matches!(e, WireError::OutOfOrder { .. }) {
+                    self.rejected_since[id] += 1;
+                }
                 continue;
             }
+            hook(ReadStage::Validated);
             let after_gap = *expected != Some(header.sequence);
             if let Some(next) = *expected {
-                self.missing_chunks += header.sequence.saturating_sub(next);
+                // a rejected chunk took a sequence number: it is counted as rejected only
+                let gap = header.sequence.saturating_sub(next);
+                self.missing_chunks += gap.saturating_sub(self.rejected_since[id]);
             }
+            self.rejected_since[id] = 0;
             *expected = Some(header.sequence + 1);
             self.taken_steps[id] += u64::from(header.steps);
             f(ChunkView {
-                header,
-                payload,
+                header: &header,
+                payload: &self.copy,
                 after_gap,
             });
         }
@@ -485,7 +527,8 @@ impl TrajectoryReceiver {
         self.rejects.by_reason()
     }
 
-    /// Chunks missing from the actors' sequence numbers (dropped by a sender).
+    /// Chunks missing from the actors' sequence numbers (dropped by a sender), not counting
+    /// the rejected ones.
     pub fn missing_chunks(&self) -> u64 {
         self.missing_chunks
     }

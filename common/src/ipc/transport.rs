@@ -214,9 +214,9 @@ impl RunTransport {
             .max_subscribers(self.max_nodes())
             .max_nodes(self.max_nodes())
             .subscriber_max_buffer_size(1)
-            // `WeightsReceiver::latest_with` holds the newest verified blob while it takes the
-            // next; a broadcast arriving in between is a second borrow from the same publisher
-            // (with one, the receive failed with ExceedsMaxBorrows and the actor stopped)
+            // `WeightsReceiver::latest_with` copies each blob out and releases it at once; two
+            // leave room for a broadcast arriving while another is still held (with one, such a
+            // receive failed with ExceedsMaxBorrows and the actor stopped)
             .subscriber_max_borrowed_samples(2)
             .history_size(1)
             .enable_safe_overflow(true)

@@ -2,7 +2,7 @@
 
 use super::transport::{ice, RunTransport, Wake};
 use super::wire::{validate_weights, WeightsHeader, FORMAT_VERSION};
-use super::RejectLog;
+use super::{read_once, ReadStage, RejectLog};
 use anyhow::{anyhow, Result};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
@@ -108,6 +108,10 @@ pub struct WeightsReceiver {
     wake: Listener<ipc::Service>,
     current: Option<u64>,
     rejects: RejectLog,
+    /// The copy of the blob being read.
+    copy: Vec<u8>,
+    /// The newest verified copy.
+    held: Vec<u8>,
 }
 
 impl WeightsReceiver {
@@ -124,28 +128,46 @@ impl WeightsReceiver {
             wake,
             current: None,
             rejects: RejectLog::new("weights"),
+            copy: Vec::new(),
+            held: Vec::new(),
         })
     }
 
     /// Calls `f(version, bytes)` on the newest verified weights newer than the last ones handed
-    /// out, without copying them out of shared memory; `None` if there are none. Blobs failing
-    /// the checksum are counted, logged and skipped.
+    /// out; `None` if there are none. Blobs failing the checksum are counted, logged and
+    /// skipped.
     pub fn latest_with<R>(&mut self, f: impl FnOnce(u64, &[u8]) -> R) -> Result<Option<R>> {
+        self.latest_with_observed(&mut |_| {}, f)
+    }
+
+    /// [`latest_with`](Self::latest_with), calling `hook` at each [`ReadStage`] of each blob.
+    /// Each blob is copied out of shared memory first (into buffers reused from blob to blob),
+    /// then checked, and `f` sees only the copy: a blob changed in shared memory while it is
+    /// read is at worst rejected.
+    pub fn latest_with_observed<R>(
+        &mut self,
+        hook: &mut dyn FnMut(ReadStage),
+        f: impl FnOnce(u64, &[u8]) -> R,
+    ) -> Result<Option<R>> {
         let mut newest = None;
         while let Some(sample) = self.subscriber.receive().map_err(ice("receive weights"))? {
-            let header = *sample.user_header();
-            if let Err(e) = validate_weights(&header, sample.payload()) {
+            let header = read_once(sample.user_header());
+            self.copy.clear();
+            self.copy.extend_from_slice(sample.payload());
+            hook(ReadStage::Copied);
+            if let Err(e) = validate_weights(&header, &self.copy) {
                 self.rejects.reject(&e);
                 continue;
             }
-            if self.current.is_none_or(|v| header.version > v) {
-                newest = Some(sample);
+            hook(ReadStage::Validated);
+            if self.current.max(newest).is_none_or(|v| header.version > v) {
+                std::mem::swap(&mut self.copy, &mut self.held);
+                newest = Some(header.version);
             }
         }
-        Ok(newest.map(|sample| {
-            let version = sample.user_header().version;
+        Ok(newest.map(|version| {
             self.current = Some(version);
-            f(version, sample.payload())
+            f(version, &self.held)
         }))
     }
 
@@ -196,20 +218,11 @@ impl WeightsReceiver {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ipc::{cleanup, run_prefix};
-
-    /// Removes the test's prefix even when the test panics.
-    struct Isolated(String);
-
-    impl Drop for Isolated {
-        fn drop(&mut self) {
-            let _ = cleanup(&self.0);
-        }
-    }
+    use crate::ipc::{cleanup, Isolated};
 
     #[test]
     fn late_subscriber_gets_the_newest_and_bad_checksums_are_rejected() {
-        let isolated = Isolated(run_prefix(&format!("test-weights-{}", std::process::id())));
+        let isolated = Isolated::new("weights");
         let prefix = isolated.0.clone();
         {
             let t = RunTransport::open(&prefix, 2, "learner").unwrap();
