@@ -215,9 +215,35 @@ struct Progress {
     /// Malformed telemetry and weights the launcher itself refused.
     telemetry_rejected: u64,
     weights_rejected: u64,
+    /// Steps the replay had stored when it last crashed, until its restart reports what its
+    /// snapshot restored.
+    inserted_at_crash: Option<u64>,
+    /// Steps replays stored and lost in a crash (not in the snapshot they restarted from).
+    lost_in_restarts: u64,
 }
 
 impl Progress {
+    /// Takes the replay's newest status; the first one of a restarted replay tells how many
+    /// of the steps stored before the crash its snapshot restored: the rest are lost.
+    fn replay_status(&mut self, s: ReplayStatus) {
+        if let Some(before) = self.inserted_at_crash.take() {
+            self.lost_in_restarts += before.saturating_sub(s.restored_inserts);
+        }
+        self.env_steps = s.inserted;
+        self.fill = s.fill;
+        self.capacity = s.capacity;
+        self.replay = s;
+    }
+
+    /// Notes a replay crash, taking `last`, the dead replay's status not yet read.
+    fn replay_crashed(&mut self, last: Option<ReplayStatus>) {
+        if let Some(s) = last {
+            self.replay_status(s);
+        }
+        // a restart that crashed before its first status restored what the first one held
+        self.inserted_at_crash.get_or_insert(self.replay.inserted);
+    }
+
     fn message(&self, start: Instant) -> String {
         let secs = start.elapsed().as_secs_f64().max(1e-9);
         let mean = if self.recent_progress.is_empty() {
@@ -265,6 +291,7 @@ impl Progress {
                 "rejected": r.rejected,
                 "rejected_by_reason": named_reasons(&r.rejected_by_reason),
                 "restored_inserts": r.restored_inserts,
+                "lost_in_restarts": self.lost_in_restarts,
                 "longest_turn_ms": r.longest_turn_us as f64 / 1e3,
             },
             "launcher_rejected": {
@@ -344,7 +371,7 @@ pub fn run(cfg: &ExperimentConfig, dir: &Path, actors: usize, tracks: &TrackArgs
         .collect();
 
     let transport = RunTransport::open(&prefix, actors, "launcher")?;
-    let result = supervise(
+    let lost = supervise(
         cfg,
         dir,
         &transport,
@@ -367,15 +394,14 @@ pub fn run(cfg: &ExperimentConfig, dir: &Path, actors: usize, tracks: &TrackArgs
         Ok(report) => tracing::info!("shared memory of {prefix} removed: {report:?}"),
         Err(e) => tracing::warn!("cleaning up {prefix}: {e}"),
     }
-    if result.is_ok() {
-        eprintln!("{}", step_summary(dir));
-    }
-    result
+    let lost = lost?;
+    eprintln!("{}", step_summary(dir, lost));
+    Ok(())
 }
 
 /// One line on where the run's steps went: sent by each actor (every start of it), stored by
-/// the replay, dropped, rejected.
-fn step_summary(dir: &Path) -> String {
+/// the replay, rejected, lost in replay crashes (`lost` steps), dropped.
+fn step_summary(dir: &Path, lost: u64) -> String {
     let read = |path: &Path| -> Option<serde_json::Value> {
         serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
     };
@@ -395,12 +421,24 @@ fn step_summary(dir: &Path) -> String {
         shares.join(" / ")
     );
     if let Some(replay) = read(&dir.join(REPLAY_REPORT)) {
+        let stored = replay["inserted"].as_u64().unwrap_or(0);
         line += &format!(
-            ", {} stored by the replay, {} rejected, longest replay stall {:.1} ms",
-            replay["inserted"],
+            ", {stored} stored by the replay, {} rejected, longest replay stall {:.1} ms",
             replay["rejected"],
             replay["longest_turn_ms"].as_f64().unwrap_or(0.0)
         );
+        if lost > 0 {
+            line += &format!(
+                "; {lost} LOST in replay restarts (stored, not in the snapshot it restarted from)"
+            );
+        }
+        let unaccounted = sent.values().sum::<u64>().saturating_sub(stored + lost);
+        if unaccounted > 0 {
+            line += &format!(
+                "; {unaccounted} sent neither stored nor counted lost (in rejected chunks, or \
+                 waiting at a replay that crashed)"
+            );
+        }
     }
     if dropped > 0 {
         line += &format!(
@@ -485,7 +523,8 @@ fn tolerate<T>(read: Result<T>) -> Option<T> {
     read.map_err(|e| tracing::warn!("telemetry: {e:#}")).ok()
 }
 
-/// The supervision loop; returns when the run is complete or interrupted.
+/// The supervision loop; returns when the run is complete or interrupted, with the steps
+/// lost in replay restarts.
 fn supervise(
     cfg: &ExperimentConfig,
     dir: &Path,
@@ -493,7 +532,7 @@ fn supervise(
     replay: &mut Supervised,
     learner: &mut Supervised,
     actors: &mut [Supervised],
-) -> Result<()> {
+) -> Result<u64> {
     let mut telemetry = TelemetrySubscriber::new(transport)?;
     let mut weights = WeightsReceiver::new(transport)?;
     let mut episodes = EpisodeLog::open(dir, "launcher")?;
@@ -511,7 +550,7 @@ fn supervise(
         std::thread::sleep(Duration::from_millis(100));
         if stop.load(Ordering::Relaxed) {
             bar.abandon_with_message("interrupted: stopping (checkpoint, snapshot)");
-            return Ok(());
+            return Ok(p.lost_in_restarts);
         }
         // (re)start what is due
         for proc in std::iter::once(&mut *replay)
@@ -542,10 +581,7 @@ fn supervise(
         }
         if let Some(s) = tolerate(telemetry.replay_status()).flatten() {
             replay.last_sign = Some(Instant::now());
-            p.env_steps = s.inserted;
-            p.fill = s.fill;
-            p.capacity = s.capacity;
-            p.replay = s;
+            p.replay_status(s);
         }
         p.telemetry_rejected = telemetry.rejected();
         p.weights_rejected = weights.rejected();
@@ -587,6 +623,7 @@ fn supervise(
         }
         if let Some(status) = replay.reap()? {
             if !replay.retired {
+                p.replay_crashed(tolerate(telemetry.replay_status()).flatten());
                 replay.failed(&format!("exited ({status})"), &cfg.supervisor)?;
                 crashed = true;
             }
@@ -596,7 +633,7 @@ fn supervise(
                 bar.set_position(p.env_steps.min(cfg.train.env_steps));
                 bar.finish_with_message(p.message(start));
                 crate::results::write_json(&dir.join(STATUS_FILE), &p.status())?;
-                return Ok(());
+                return Ok(p.lost_in_restarts);
             }
             learner.failed(&format!("exited ({status})"), &cfg.supervisor)?;
             crashed = true;
@@ -617,5 +654,62 @@ fn supervise(
                 episodes.rates(p.env_steps, &rates)?;
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn status(inserted: u64, restored_inserts: u64) -> ReplayStatus {
+        ReplayStatus {
+            inserted,
+            restored_inserts,
+            ..ReplayStatus::default()
+        }
+    }
+
+    #[test]
+    fn steps_stored_before_a_replay_crash_and_not_restored_count_as_lost() {
+        let mut p = Progress::default();
+        p.replay_status(status(500, 0));
+        // the dead replay's last status arrives with the crash; its restart restored 300
+        p.replay_crashed(Some(status(800, 0)));
+        p.replay_status(status(300, 300));
+        assert_eq!(p.lost_in_restarts, 500);
+        p.replay_status(status(900, 300));
+        assert_eq!(p.lost_in_restarts, 500);
+        // two crashes before the restart's first status: counted once
+        p.replay_crashed(None);
+        p.replay_crashed(None);
+        p.replay_status(status(850, 850));
+        assert_eq!(p.lost_in_restarts, 550);
+
+        let dir = tempfile::tempdir().unwrap();
+        let actors = dir.path().join(ACTOR_REPORTS);
+        std::fs::create_dir(&actors).unwrap();
+        for (id, sent) in [(0, 700), (1, 500)] {
+            let report = serde_json::json!({ "id": id, "sent_steps": sent, "dropped_steps": 0 });
+            std::fs::write(
+                actors.join(format!("actor-{id}-0.json")),
+                report.to_string(),
+            )
+            .unwrap();
+        }
+        let replay = serde_json::json!({ "inserted": 600, "rejected": 1, "longest_turn_ms": 1.0 });
+        std::fs::write(dir.path().join(REPLAY_REPORT), replay.to_string()).unwrap();
+        let line = step_summary(dir.path(), p.lost_in_restarts);
+        assert!(
+            line.contains("600 stored by the replay, 1 rejected"),
+            "{line}"
+        );
+        assert!(line.contains("550 LOST in replay restarts"), "{line}");
+        assert!(
+            line.contains("50 sent neither stored nor counted lost"),
+            "{line}"
+        );
+        assert!(line.contains("none dropped"), "{line}");
+        let clean = step_summary(dir.path(), 600);
+        assert!(!clean.contains("neither"), "{clean}");
     }
 }
