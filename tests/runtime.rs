@@ -54,8 +54,13 @@ fn launch_logged(
     extra: &str,
     rust_log: &str,
 ) -> (Child, PathBuf) {
+    launch_experiment(dir, &(config(env_steps) + extra), actors, rust_log)
+}
+
+/// Starts `ctxrace train` of the experiment `toml` with `actors` actors in `dir/run`.
+fn launch_experiment(dir: &Path, toml: &str, actors: usize, rust_log: &str) -> (Child, PathBuf) {
     let cfg = dir.join("exp.toml");
-    std::fs::write(&cfg, config(env_steps) + extra).unwrap();
+    std::fs::write(&cfg, toml).unwrap();
     let run = dir.join("run");
     let child = Command::new(env!("CARGO_BIN_EXE_ctxrace"))
         .arg("train")
@@ -680,5 +685,52 @@ fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
     assert!(
         last_checkpoint >= grad_steps + 50,
         "{last_checkpoint} < {grad_steps} + 50"
+    );
+}
+
+#[test]
+fn a_replay_crash_counts_the_steps_it_lost() {
+    let dir = tempfile::tempdir().unwrap();
+    // no periodic snapshot: the restarted replay restores nothing, so every step the killed one
+    // had stored is lost, and the summary must say so
+    let experiment =
+        config(1_000_000).replace("snapshot_every_secs = 1", "snapshot_every_secs = 0");
+    let (child, run) = launch_experiment(dir.path(), &experiment, 2, "warn");
+    let minute = Duration::from_secs(60);
+    let replay = wait_for(&run, "replay", minute, || find_pid(&run, "replay", &[]));
+    let stored = wait_for(&run, "1000 steps stored", 3 * minute, || {
+        status(&run)?["replay"]["inserted"]
+            .as_u64()
+            .filter(|&n| n >= 1000)
+    });
+    kill9(replay);
+    wait_for(&run, "the replay's restart", minute, || {
+        find_pid(&run, "replay", &[replay])
+    });
+    wait_for(&run, "the loss counted", minute, || {
+        (status(&run)?["replay"]["lost_in_restarts"].as_u64()? >= stored).then_some(())
+    });
+    // SAFETY: kill(2) on the launcher's pid, which this test still owns (not reaped).
+    unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
+    let stderr = finish(child, 2 * minute);
+    let lost: u64 = stderr
+        .find(" LOST in replay restarts")
+        .map(|end| {
+            let head = &stderr[..end];
+            head[head.rfind(' ').unwrap() + 1..].parse().unwrap()
+        })
+        .unwrap_or_else(|| panic!("no LOST steps in the summary: {stderr}"));
+    assert!(lost >= stored, "{lost} < {stored}: {stderr}");
+    // no step counted twice: the stored and the lost ones were all sent
+    let sent: u64 = actor_reports(&run)
+        .iter()
+        .map(|(_, r)| r["sent_steps"].as_u64().unwrap())
+        .sum();
+    let inserted = json(&run.join("replay-status.json"))["inserted"]
+        .as_u64()
+        .unwrap();
+    assert!(
+        inserted + lost <= sent,
+        "{inserted} + {lost} > {sent}: {stderr}"
     );
 }
