@@ -219,7 +219,7 @@ impl ExperimentConfig {
     /// nothing; zero-sized batches leave the learner waiting while the actors run unthrottled).
     fn validate_agent(&self) -> Result<(), String> {
         let (s, d) = (&self.agent.sac, &self.agent.dreamer);
-        let (sizes, rates) = match self.agent.algo {
+        let (sizes, rates, fractions, positive) = match self.agent.algo {
             AlgoKind::Sac => (
                 vec![("sac.batch_size", s.batch_size, "the paper: 100")],
                 vec![
@@ -227,19 +227,59 @@ impl ExperimentConfig {
                     ("sac.critic_lr", s.critic_lr),
                     ("sac.alpha_lr", s.alpha_lr),
                 ],
+                vec![],
+                vec![],
             ),
             algo => {
                 let mut rates = vec![("dreamer.model_lr", d.model_lr), ("dreamer.ac_lr", d.ac_lr)];
+                let mut fractions = vec![
+                    ("dreamer.gamma", d.gamma),
+                    ("dreamer.lambda", d.lambda),
+                    ("dreamer.unimix", d.unimix),
+                    ("dreamer.return_decay", d.return_decay),
+                    ("dreamer.return_low", d.return_low),
+                    ("dreamer.return_high", d.return_high),
+                    ("dreamer.slow_critic_rate", d.slow_critic_rate),
+                ];
                 if algo == AlgoKind::Cmask {
                     rates.push(("dreamer.mask.lr", d.mask.lr));
+                    fractions.extend([
+                        ("dreamer.mask.gamma", d.mask.gamma),
+                        ("dreamer.mask.tau", d.mask.tau),
+                    ]);
                 }
                 let sizes = vec![
                     ("dreamer.batch", d.batch, "the paper: 16 sequences"),
                     ("dreamer.length", d.length, "the paper: 64 steps"),
                 ];
-                (sizes, rates)
+                let positive = vec![
+                    ("dreamer.model_eps", d.model_eps),
+                    ("dreamer.ac_eps", d.ac_eps),
+                    ("dreamer.model_clip", d.model_clip),
+                    ("dreamer.ac_clip", d.ac_clip),
+                ];
+                (sizes, rates, fractions, positive)
             }
         };
+        for (key, value) in fractions {
+            in_range(
+                key,
+                value,
+                0.0..=1.0,
+                "a fraction (see DreamerConfig's defaults)",
+            )?;
+        }
+        for (key, value) in positive {
+            let above_zero = (Bound::Excluded(0.0), Bound::Unbounded);
+            in_range(key, value, above_zero, "see DreamerConfig's defaults")?;
+        }
+        if !matches!(self.agent.algo, AlgoKind::Sac) && d.return_low >= d.return_high {
+            return Err(format!(
+                "dreamer.return_low = {} must be below dreamer.return_high = {}; the paper: 0.05 \
+                 and 0.95",
+                d.return_low, d.return_high
+            ));
+        }
         for (key, size, fix) in sizes {
             in_range(key, size, 1.., fix)?;
         }
@@ -424,6 +464,21 @@ mod tests {
             "[agent]\nalgo = \"cmask\"\n[agent.dreamer.mask]\nlr = 0.0",
             1,
             &["dreamer.mask.lr = 0", "above 0"],
+        );
+        refused(
+            "[agent.dreamer]\ngamma = 1.5",
+            1,
+            &["dreamer.gamma = 1.5", "at most 1", "a fraction"],
+        );
+        refused(
+            "[agent.dreamer]\nreturn_low = 0.9\nreturn_high = 0.1",
+            1,
+            &["dreamer.return_low = 0.9 must be below dreamer.return_high = 0.1"],
+        );
+        refused(
+            "[agent.dreamer]\nac_eps = 0.0",
+            1,
+            &["dreamer.ac_eps = 0", "above 0"],
         );
     }
 
