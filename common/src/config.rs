@@ -24,8 +24,15 @@
 //! | `rival.speed_point` | `slowest-ahead` | `nearest` |
 //! | `rival.launch_below` | 0 (off) | 1 m/s (at `launch_speed` 4 m/s) |
 
+use crate::ipc::wire::MAX_OBS;
+use crate::validate::{finite_floats, in_range};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
+
+/// Most physics steps (0.01 s) per agent decision: 10 s of blind driving.
+pub const MAX_PHYSICS_STEPS_PER_ACTION: usize = 1000;
+/// Longest steering delay in physics steps (1 s).
+pub const MAX_STEER_DELAY: usize = 100;
 
 /// A named starting point for a race scenario: keys a file leaves out take the preset's values.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -216,6 +223,7 @@ impl RaceConfig {
 
     /// Checks ranges; the message names the key and its valid range.
     pub fn validate(&self) -> Result<(), String> {
+        finite_floats(self, &self.preset.config())?;
         let positive = [
             ("max_speed", self.max_speed),
             ("max_steer", self.max_steer),
@@ -272,16 +280,30 @@ impl RaceConfig {
                 self.start_gap, self.rivals
             ));
         }
-        if self.physics_steps_per_action == 0 {
-            return Err("physics_steps_per_action must be at least 1".into());
-        }
-        if self.lidar.beams == 0 || !(0.0..=1.0).contains(&self.lidar.noise_sd) {
-            return Err(format!(
-                "lidar.beams = {} must be at least 1 and lidar.noise_sd = {} in [0, 1] m",
-                self.lidar.beams, self.lidar.noise_sd
-            ));
-        }
-        Ok(())
+        in_range(
+            "physics_steps_per_action",
+            self.physics_steps_per_action,
+            1..=MAX_PHYSICS_STEPS_PER_ACTION,
+            "each is 0.01 s of simulation (the paper: 10)",
+        )?;
+        in_range(
+            "steer_delay",
+            self.steer_delay,
+            ..=MAX_STEER_DELAY,
+            "it counts physics steps of 0.01 s (f1tenth_gym: 2)",
+        )?;
+        in_range(
+            "lidar.beams",
+            self.lidar.beams,
+            1..=MAX_OBS,
+            "the wire format carries at most that many (the paper: 108)",
+        )?;
+        in_range(
+            "lidar.noise_sd",
+            self.lidar.noise_sd,
+            0.0..=1.0,
+            "it is in metres (the paper: 0.01)",
+        )
     }
 }
 

@@ -2,10 +2,12 @@
 //! file (`configs/*.toml`). Every table rejects unknown keys and fills missing ones with the
 //! paper's values, so a file only names what it changes.
 
-use crate::agents::AgentConfig;
+use crate::agents::{AgentConfig, AlgoKind};
 use crate::batch::BatchSpec;
 use crate::config::{RaceConfig, ReplayOptions};
+use crate::validate::{finite_floats, in_range};
 use serde::{Deserialize, Serialize};
+use std::ops::Bound;
 use std::path::Path;
 
 /// The training schedule (the `[train]` table).
@@ -151,15 +153,45 @@ impl ExperimentConfig {
         self.train.train_ratio * self.agent.batch_spec().steps() as f64
     }
 
-    /// Checks every table; the message names the key.
+    /// Gradient steps the run takes in all: `train_ratio` per env step after the prefill.
+    pub fn gradient_steps(&self) -> u64 {
+        let t = &self.train;
+        (t.env_steps.saturating_sub(t.prefill) as f64 * t.train_ratio).round() as u64
+    }
+
+    /// Checks every table for a run with one actor ([`ExperimentConfig::validate_run`]).
     pub fn validate(&self) -> Result<(), String> {
+        self.validate_run(1)
+    }
+
+    /// Checks every table for a run of `actors` actors (each fills its own share of the
+    /// replay): every float finite, ranges where they matter; the message names the key, its
+    /// value and the fix.
+    pub fn validate_run(&self, actors: usize) -> Result<(), String> {
+        finite_floats(self, &Self::default())?;
         self.race.validate().map_err(|e| format!("[race] {e}"))?;
+        self.validate_agent().map_err(|e| format!("[agent] {e}"))?;
         self.agent.validate().map_err(|e| format!("[agent] {e}"))?;
         let t = &self.train;
-        if !(t.train_ratio.is_finite() && t.train_ratio >= 0.0) {
+        in_range(
+            "[train] train_ratio",
+            t.train_ratio,
+            (Bound::Excluded(0.0), Bound::Unbounded),
+            "it is the gradient steps per env step (the paper: 1)",
+        )?;
+        if t.env_steps <= t.prefill {
             return Err(format!(
-                "[train] train_ratio = {} must be a number >= 0",
-                t.train_ratio
+                "[train] env_steps = {} must be above prefill = {}: the learner starts after \
+                 the prefill and would take no gradient step; raise env_steps or lower prefill",
+                t.env_steps, t.prefill
+            ));
+        }
+        if self.gradient_steps() == 0 {
+            return Err(format!(
+                "[train] train_ratio = {} gives no gradient step over the {} env steps after \
+                 the prefill; raise train_ratio or env_steps",
+                t.train_ratio,
+                t.env_steps - t.prefill
             ));
         }
         if !(t.context_range.is_finite() && (0.0..=0.9).contains(&t.context_range)) {
@@ -179,12 +211,125 @@ impl ExperimentConfig {
                 s.restart_window_secs, s.heartbeat_timeout_secs
             ));
         }
-        self.validate_replay()
+        self.validate_gains()?;
+        self.validate_replay(actors)
     }
 
-    /// Checks that the replay can serve the agent's batches: they fit its buffer and its
-    /// payload limit, and the rate limiter's window holds one.
-    fn validate_replay(&self) -> Result<(), String> {
+    /// Checks the chosen algorithm's batch sizes and learning rates (a zero rate trains
+    /// nothing; zero-sized batches leave the learner waiting while the actors run unthrottled).
+    fn validate_agent(&self) -> Result<(), String> {
+        let (s, d) = (&self.agent.sac, &self.agent.dreamer);
+        let (sizes, rates, fractions, positive) = match self.agent.algo {
+            AlgoKind::Sac => (
+                vec![("sac.batch_size", s.batch_size, "the paper: 100")],
+                vec![
+                    ("sac.actor_lr", s.actor_lr),
+                    ("sac.critic_lr", s.critic_lr),
+                    ("sac.alpha_lr", s.alpha_lr),
+                ],
+                vec![],
+                vec![],
+            ),
+            algo => {
+                let mut rates = vec![("dreamer.model_lr", d.model_lr), ("dreamer.ac_lr", d.ac_lr)];
+                let mut fractions = vec![
+                    ("dreamer.gamma", d.gamma),
+                    ("dreamer.lambda", d.lambda),
+                    ("dreamer.unimix", d.unimix),
+                    ("dreamer.return_decay", d.return_decay),
+                    ("dreamer.return_low", d.return_low),
+                    ("dreamer.return_high", d.return_high),
+                    ("dreamer.slow_critic_rate", d.slow_critic_rate),
+                ];
+                if algo == AlgoKind::Cmask {
+                    rates.push(("dreamer.mask.lr", d.mask.lr));
+                    fractions.extend([
+                        ("dreamer.mask.gamma", d.mask.gamma),
+                        ("dreamer.mask.tau", d.mask.tau),
+                    ]);
+                }
+                let sizes = vec![
+                    ("dreamer.batch", d.batch, "the paper: 16 sequences"),
+                    ("dreamer.length", d.length, "the paper: 64 steps"),
+                ];
+                let positive = vec![
+                    ("dreamer.model_eps", d.model_eps),
+                    ("dreamer.ac_eps", d.ac_eps),
+                    ("dreamer.model_clip", d.model_clip),
+                    ("dreamer.ac_clip", d.ac_clip),
+                ];
+                (sizes, rates, fractions, positive)
+            }
+        };
+        for (key, value) in fractions {
+            in_range(
+                key,
+                value,
+                0.0..=1.0,
+                "a fraction (see DreamerConfig's defaults)",
+            )?;
+        }
+        for (key, value) in positive {
+            let above_zero = (Bound::Excluded(0.0), Bound::Unbounded);
+            in_range(key, value, above_zero, "see DreamerConfig's defaults")?;
+        }
+        if !matches!(self.agent.algo, AlgoKind::Sac) && d.return_low >= d.return_high {
+            return Err(format!(
+                "dreamer.return_low = {} must be below dreamer.return_high = {}; the paper: 0.05 \
+                 and 0.95",
+                d.return_low, d.return_high
+            ));
+        }
+        for (key, size, fix) in sizes {
+            in_range(key, size, 1.., fix)?;
+        }
+        for (key, rate) in rates {
+            in_range(
+                key,
+                rate,
+                (Bound::Excluded(0.0), Bound::Included(1.0)),
+                "a learning rate (the paper: 3e-5)",
+            )?;
+        }
+        Ok(())
+    }
+
+    /// Checks that every context gain (the default one and each track's) keeps the rival's
+    /// speed and lookahead factors `1 + λ c` positive over the training contexts.
+    fn validate_gains(&self) -> Result<(), String> {
+        let r = self.train.context_range;
+        let limit = if r > 0.0 { 1.0 / r } else { f64::INFINITY };
+        let rival = &self.race.rival;
+        let tracks = rival
+            .tracks
+            .iter()
+            .map(|(name, g)| (format!("[race] rival.tracks.{name}"), g));
+        let fix = format!(
+            "1 + λ·c scales the rival over the training contexts c in [-{r}, {r}] \
+             ([train] context_range) and must stay positive (the paper: 1 and 0.4)"
+        );
+        for (table, gains) in
+            std::iter::once(("[race] rival.gains".to_string(), &rival.gains)).chain(tracks)
+        {
+            for (key, gain) in [
+                ("lambda_v", gains.lambda_v),
+                ("lambda_theta", gains.lambda_theta),
+            ] {
+                in_range(
+                    &format!("{table}.{key}"),
+                    gain,
+                    (Bound::Excluded(-limit), Bound::Excluded(limit)),
+                    &fix,
+                )?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Checks that the replay can serve the agent's batches with `actors` actors: each actor's
+    /// ring holds a sampled window, a batch fits the payload limit, and the rate limiter's
+    /// window holds one.
+    fn validate_replay(&self, actors: usize) -> Result<(), String> {
         let r = &self.replay;
         let spec = self.agent.batch_spec();
         let window = match spec {
@@ -192,10 +337,14 @@ impl ExperimentConfig {
             BatchSpec::Transition { .. } => 2,
         };
         let floats = spec.floats(self.race.lidar.beams, 2);
-        if r.capacity < window {
+        let ring = r.capacity / actors.max(1);
+        if ring < window {
             return Err(format!(
-                "[replay] capacity = {} cannot hold one sampled window of {window} steps; raise it",
-                r.capacity
+                "[replay] capacity = {} gives each of the {actors} actors a ring of {ring} \
+                 steps, less than one sampled window of {window} steps: no batch could ever be \
+                 served; raise capacity to at least {} or run fewer actors",
+                r.capacity,
+                window * actors.max(1)
             ));
         }
         match floats {
@@ -245,7 +394,7 @@ mod tests {
     #[test]
     fn partial_files_keep_the_paper_defaults_and_errors_name_the_key() {
         let cfg = ExperimentConfig::from_toml(
-            "track = \"generated:3\"\n[agent]\nalgo = \"sac\"\n[train]\nenv_steps = 500",
+            "track = \"generated:3\"\n[agent]\nalgo = \"sac\"\n[train]\nenv_steps = 500\nprefill = 100",
             "test.toml",
         )
         .unwrap();
@@ -269,5 +418,158 @@ mod tests {
             let err = ExperimentConfig::from_toml(text, "r.toml").unwrap_err();
             assert!(err.contains(key), "{text}: {err}");
         }
+    }
+
+    /// The error for `text` with `actors` actors; it must name each of `needles` (the key, the
+    /// value, the fix).
+    fn refused(text: &str, actors: usize, needles: &[&str]) {
+        let cfg = ExperimentConfig::from_toml(text, "probe.toml");
+        let err = match cfg {
+            Ok(cfg) => cfg.validate_run(actors).unwrap_err(),
+            Err(e) => e,
+        };
+        for needle in needles {
+            assert!(err.contains(needle), "{text}: no '{needle}' in: {err}");
+        }
+    }
+
+    #[test]
+    fn empty_batches_and_dead_learning_rates_are_refused() {
+        refused(
+            "[agent.dreamer]\nbatch = 0",
+            1,
+            &["dreamer.batch = 0", "at least 1", "the paper: 16"],
+        );
+        refused(
+            "[agent.dreamer]\nlength = 0",
+            1,
+            &["dreamer.length = 0", "at least 1", "the paper: 64"],
+        );
+        refused(
+            "[agent]\nalgo = \"sac\"\n[agent.sac]\nbatch_size = 0",
+            1,
+            &["sac.batch_size = 0", "at least 1"],
+        );
+        refused(
+            "[agent.dreamer]\nmodel_lr = 0.0",
+            1,
+            &["dreamer.model_lr = 0", "above 0", "3e-5"],
+        );
+        refused(
+            "[agent]\nalgo = \"sac\"\n[agent.sac]\ncritic_lr = -0.001",
+            1,
+            &["sac.critic_lr = -0.001", "above 0"],
+        );
+        refused(
+            "[agent]\nalgo = \"cmask\"\n[agent.dreamer.mask]\nlr = 0.0",
+            1,
+            &["dreamer.mask.lr = 0", "above 0"],
+        );
+        refused(
+            "[agent.dreamer]\ngamma = 1.5",
+            1,
+            &["dreamer.gamma = 1.5", "at most 1", "a fraction"],
+        );
+        refused(
+            "[agent.dreamer]\nreturn_low = 0.9\nreturn_high = 0.1",
+            1,
+            &["dreamer.return_low = 0.9 must be below dreamer.return_high = 0.1"],
+        );
+        refused(
+            "[agent.dreamer]\nac_eps = 0.0",
+            1,
+            &["dreamer.ac_eps = 0", "above 0"],
+        );
+    }
+
+    #[test]
+    fn a_replay_whose_actor_rings_cannot_hold_a_window_is_refused_for_that_many_actors() {
+        let text = "[agent.dreamer]\nlength = 32\n[replay]\ncapacity = 40";
+        let cfg = ExperimentConfig::from_toml(text, "probe.toml").unwrap();
+        assert_eq!(cfg.validate_run(1), Ok(()));
+        refused(
+            text,
+            2,
+            &[
+                "[replay] capacity = 40",
+                "2 actors",
+                "ring of 20 steps",
+                "window of 32",
+                "at least 64",
+            ],
+        );
+    }
+
+    #[test]
+    fn non_finite_floats_are_refused_by_key_path_per_track_overrides_included() {
+        refused(
+            "[race.rival.gains]\nlambda_v = nan\nlambda_theta = 0.4",
+            1,
+            &[
+                "race.rival.gains.lambda_v = nan",
+                "finite",
+                "default is 1.0",
+            ],
+        );
+        refused(
+            "[race.rival.tracks.f1_esp]\nlambda_v = 1.0\nlambda_theta = inf",
+            1,
+            &["race.rival.tracks.f1_esp.lambda_theta = inf", "finite"],
+        );
+        refused(
+            "[race.rival.tracks.my_track]\nlambda_v = -inf\nlambda_theta = 0.4",
+            1,
+            &["race.rival.tracks.my_track.lambda_v = -inf", "finite"],
+        );
+        refused(
+            "[agent.dreamer]\ngamma = nan",
+            1,
+            &["agent.dreamer.gamma = nan", "default is 0.997"],
+        );
+        refused(
+            "[race.rival.gains]\nlambda_v = 10.0\nlambda_theta = 0.4",
+            1,
+            &[
+                "rival.gains.lambda_v = 10",
+                "below 6.6",
+                "must stay positive",
+            ],
+        );
+    }
+
+    #[test]
+    fn beams_beyond_the_wire_format_and_endless_physics_steps_are_refused() {
+        refused(
+            "[race.lidar]\nbeams = 300",
+            1,
+            &["lidar.beams = 300", "at most 256", "wire format"],
+        );
+        refused(
+            "[race]\nphysics_steps_per_action = 1000000000",
+            1,
+            &["physics_steps_per_action = 1000000000", "at most 1000"],
+        );
+    }
+
+    #[test]
+    fn a_run_without_gradient_steps_is_refused() {
+        refused(
+            "[train]\nenv_steps = 2500\nprefill = 2500",
+            1,
+            &[
+                "env_steps = 2500",
+                "prefill = 2500",
+                "no gradient step",
+                "raise env_steps",
+            ],
+        );
+        refused(
+            "[train]\nenv_steps = 3000\nprefill = 2500\ntrain_ratio = 0.0001",
+            1,
+            &["train_ratio = 0.0001", "no gradient step"],
+        );
+        let ok = "[train]\nenv_steps = 3000\nprefill = 2500";
+        let cfg = ExperimentConfig::from_toml(ok, "ok.toml").unwrap();
+        assert_eq!(cfg.gradient_steps(), 500);
     }
 }

@@ -10,6 +10,7 @@ pub mod ipc;
 pub mod nn;
 pub mod policy;
 pub mod run_dir;
+pub mod validate;
 
 pub use agents::{AgentConfig, AlgoKind, ContextMode, DreamerConfig, MaskConfig, SacConfig};
 pub use batch::{Batch, BatchSpec, SequenceBatch, TransitionBatch};

@@ -24,6 +24,7 @@ use ctxrace_common::ipc::{
     TelemetrySubscriber, WeightsReceiver,
 };
 use ctxrace_common::run_dir::{ACTOR_REPORTS, LOGS, REPLAY_REPORT, STATUS_FILE};
+use ctxrace_common::validate::CONFIG_EXIT_CODE;
 use ctxrace_common::{ExperimentConfig, SupervisorConfig};
 use std::os::unix::process::CommandExt;
 use std::path::Path;
@@ -147,6 +148,22 @@ impl Supervised {
         );
         self.schedule_restart();
         Ok(())
+    }
+
+    /// Handles its exit with `status`: a [`CONFIG_EXIT_CODE`] exit (an error a restart would
+    /// meet again) stops the run at once with its last log lines; any other counts as a
+    /// failure ([`Supervised::failed`]).
+    fn exited(&mut self, status: ExitStatus, cfg: &SupervisorConfig) -> Result<()> {
+        if status.code() == Some(CONFIG_EXIT_CODE) {
+            bail!(
+                "{} stopped on an error that a restart would meet again; stopping the run. Its \
+                 last log lines ({}):\n{}",
+                self.name,
+                self.log.display(),
+                log_tail(&self.log, 20)
+            );
+        }
+        self.failed(&format!("exited ({status})"), cfg)
     }
 
     /// Kills the process if its last sign of life (or its start, if none came) is older than
@@ -616,7 +633,7 @@ fn supervise(
         for proc in actors.iter_mut() {
             if let Some(status) = proc.reap()? {
                 if !proc.retired {
-                    proc.failed(&format!("exited ({status})"), &cfg.supervisor)?;
+                    proc.exited(status, &cfg.supervisor)?;
                     crashed = true;
                 }
             }
@@ -624,7 +641,7 @@ fn supervise(
         if let Some(status) = replay.reap()? {
             if !replay.retired {
                 p.replay_crashed(tolerate(telemetry.replay_status()).flatten());
-                replay.failed(&format!("exited ({status})"), &cfg.supervisor)?;
+                replay.exited(status, &cfg.supervisor)?;
                 crashed = true;
             }
         }
@@ -635,7 +652,7 @@ fn supervise(
                 crate::results::write_json(&dir.join(STATUS_FILE), &p.status())?;
                 return Ok(p.lost_in_restarts);
             }
-            learner.failed(&format!("exited ({status})"), &cfg.supervisor)?;
+            learner.exited(status, &cfg.supervisor)?;
             crashed = true;
         }
         if crashed {

@@ -28,6 +28,7 @@ mod vehicle_cmd;
 
 use anyhow::{Context as _, Result};
 use clap::{Args, Parser, Subcommand};
+use ctxrace_common::validate::{ConfigError, CONFIG_EXIT_CODE};
 use ctxrace_common::RaceConfig;
 use ctxrace_tracks::{RacelineSource, Track, TrackOptions};
 use std::path::PathBuf;
@@ -177,6 +178,8 @@ fn main() {
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");
-        std::process::exit(1);
+        // a run's process that would fail the same way again tells its launcher so
+        let permanent = e.downcast_ref::<ConfigError>().is_some();
+        std::process::exit(if permanent { CONFIG_EXIT_CODE } else { 1 });
     }
 }

@@ -6,6 +6,7 @@ use anyhow::Result;
 use clap::Args;
 use ctxrace_common::policy::ACT_DIM;
 use ctxrace_common::run_dir::{ACTOR_REPORTS, CONFIG_FILE, REPLAY_REPORT, REPLAY_SNAPSHOT};
+use ctxrace_common::validate::ConfigError;
 use ctxrace_common::ExperimentConfig;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -39,9 +40,9 @@ pub struct ActorArgs {
     tracks: TrackArgs,
 }
 
-/// The run's experiment.
+/// The run's experiment (an error is a [`ConfigError`]: a restart would meet it again).
 pub fn read_experiment(run_dir: &Path) -> Result<ExperimentConfig> {
-    ExperimentConfig::load(&run_dir.join(CONFIG_FILE)).map_err(anyhow::Error::msg)
+    Ok(ExperimentConfig::load(&run_dir.join(CONFIG_FILE)).map_err(ConfigError)?)
 }
 
 /// The replay's settings for a run: its sampling ratio and minimum fill follow `[train]`, its
@@ -103,7 +104,11 @@ pub fn learner(args: RoleArgs) -> Result<()> {
 /// Runs `ctxrace actor`.
 pub fn actor(args: ActorArgs) -> Result<()> {
     let experiment = read_experiment(&args.role.run_dir)?;
-    let track = Arc::new(args.tracks.load(&experiment.track, &experiment.race)?);
+    let track = args
+        .tracks
+        .load(&experiment.track, &experiment.race)
+        .map_err(|e| ConfigError(format!("{e:#}")))?;
+    let track = Arc::new(track);
     let report = ctxrace_actor::process::run(ctxrace_actor::process::ActorOptions {
         prefix: args.role.prefix,
         id: args.id,

@@ -655,7 +655,7 @@ mod tests {
     fn matrix(dir: &Path) -> MatrixFile {
         std::fs::write(
             dir.join("base.toml"),
-            "[race]\nrivals = 1\n[agent]\nalgo = \"sac\"\n[train]\nenv_steps = 500\n",
+            "[race]\nrivals = 1\n[agent]\nalgo = \"sac\"\n[train]\nenv_steps = 500\nprefill = 100\n",
         )
         .unwrap();
         let text = r#"base = "base.toml"

@@ -103,7 +103,11 @@ fn experiment(args: &TrainArgs) -> Result<ExperimentConfig> {
     }
     cfg.race.shipped_raceline |= args.tracks.raceline_file;
     cfg.agent.set_seed(cfg.train.seed);
-    cfg.validate().map_err(anyhow::Error::msg)?;
+    if !args.inline && args.actors == 0 {
+        bail!("--actors = 0: a run needs at least 1 actor process; pass --actors 1 or more");
+    }
+    let actors = if args.inline { 1 } else { args.actors };
+    cfg.validate_run(actors).map_err(anyhow::Error::msg)?;
     Ok(cfg)
 }
 
@@ -185,6 +189,10 @@ pub fn run_name(cfg: &ExperimentConfig) -> String {
 /// Runs `ctxrace train`.
 pub fn run(args: TrainArgs) -> Result<()> {
     let cfg = experiment(&args)?;
+    // everything a process of the run needs is resolved here, before the run directory is
+    // touched: an error it would meet at every restart stops the launch at once
+    let track = Arc::new(args.tracks.load(&cfg.track, &cfg.race)?);
+    let env = RaceEnv::new(track, cfg.race.clone())?;
     let (dir, _lock, resumed) = prepare_run_dir(&args, &cfg)?;
     if resumed && is_trained(&dir, &cfg) {
         println!("{} is trained already", dir.display());
@@ -212,8 +220,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         }
         eprintln!("{}: the inline run starts over", dir.display());
     }
-    let track = Arc::new(args.tracks.load(&cfg.track, &cfg.race)?);
-    run_inline(&cfg, &dir, RaceEnv::new(track, cfg.race.clone())?)?;
+    run_inline(&cfg, &dir, env)?;
     finish(&args, &cfg, &dir)
 }
 

@@ -298,6 +298,77 @@ fn bad_input_gives_clear_errors() {
 }
 
 #[test]
+fn train_refuses_a_run_it_cannot_make_before_writing_its_run_directory() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let tracks = d.join("tracks");
+    std::fs::create_dir_all(&tracks).unwrap();
+    let small = "[agent]\nalgo = \"sac\"\n[train]\nenv_steps = 600\nprefill = 100\n";
+    for (k, (toml, actors, needles)) in [
+        (
+            "track = \"no_such_track\"\n",
+            "1",
+            &["loading track 'no_such_track'"][..],
+        ),
+        (
+            "track = \"generated:abc\"\n",
+            "1",
+            &["generated:abc", "must be a whole number"][..],
+        ),
+        (
+            "track = \"generated:0\"\n[race.lidar]\nbeams = 300\n",
+            "1",
+            &["lidar.beams = 300", "at most 256"][..],
+        ),
+        (
+            "track = \"generated:0\"\n[train]\nenv_steps = 500\nprefill = 500\n",
+            "1",
+            &["env_steps = 500", "prefill = 500", "no gradient step"][..],
+        ),
+        (
+            "track = \"generated:0\"\n[agent.dreamer]\nlength = 32\n[replay]\ncapacity = 40\n\
+             [train]\nenv_steps = 600\nprefill = 100\n",
+            "2",
+            &["[replay] capacity = 40", "ring of 20 steps"][..],
+        ),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        // a small run, so that only the probe's key is wrong
+        let text = if toml.contains("[train]") {
+            toml.to_string()
+        } else {
+            format!("{toml}{small}")
+        };
+        let cfg = write(d, &format!("probe{k}.toml"), &text);
+        let run = d.join(format!("run{k}"));
+        let started = std::time::Instant::now();
+        let o = ctxrace(&[
+            "train",
+            cfg.to_str().unwrap(),
+            "--actors",
+            actors,
+            "--tracks-dir",
+            tracks.to_str().unwrap(),
+            "--run-dir",
+            run.to_str().unwrap(),
+        ]);
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(1), "{text}: {err}");
+        for needle in needles {
+            assert!(err.contains(needle), "{text}: no '{needle}' in: {err}");
+        }
+        assert!(!run.exists(), "{text}: {} was created", run.display());
+        let took = started.elapsed();
+        assert!(
+            took < std::time::Duration::from_secs(10),
+            "{text}: {took:?}"
+        );
+    }
+}
+
+#[test]
 fn the_shipped_scenarios_parse_and_match_their_presets() {
     let configs = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs");
     let read = |name: &str| {

@@ -40,8 +40,7 @@ pub struct LearnerOptions {
 
 /// Gradient steps a run takes in all: `train_ratio` per env step after the prefill.
 pub fn target_steps(cfg: &ExperimentConfig) -> u64 {
-    let t = &cfg.train;
-    (t.env_steps.saturating_sub(t.prefill) as f64 * t.train_ratio).round() as u64
+    cfg.gradient_steps()
 }
 
 /// Trains until the run's gradient-step target or SIGTERM/SIGINT; returns the steps taken.

@@ -111,6 +111,11 @@ impl ReplayBuffer {
         self.streams.iter().map(Stream::cap).sum()
     }
 
+    /// The longest window of contiguous steps one sample can take: the largest actor's ring.
+    pub fn longest_window(&self) -> usize {
+        self.streams.iter().map(Stream::cap).max().unwrap_or(0)
+    }
+
     /// Steps held.
     pub fn len(&self) -> usize {
         self.streams.iter().map(|s| s.len).sum()

@@ -8,12 +8,13 @@ use crate::limiter::RateLimiter;
 use crate::snapshot::{
     encode_snapshot, read_snapshot, write_snapshot, BackgroundWriter, LimiterCounts,
 };
-use anyhow::{bail, Result};
+use anyhow::Result;
 use ctxrace_common::ipc::wire::{ReplayStatus, WireError, FORMAT_VERSION, REASONS};
 use ctxrace_common::ipc::{
     BatchRequest, BatchServer, Next, ReplayBeacon, RunTransport, StatusPublisher,
     TrajectoryReceiver, Wake,
 };
+use ctxrace_common::validate::ConfigError;
 use ctxrace_common::BatchSpec;
 use ctxrace_common::ReplayOptions;
 use rand::SeedableRng;
@@ -28,6 +29,8 @@ const CHUNKS_PER_TURN: usize = 256;
 const TICK: Duration = Duration::from_millis(100);
 /// Seconds between status messages.
 const STATUS_EVERY: Duration = Duration::from_secs(1);
+/// Most batch requests waiting in the queue; more are rejected.
+const MAX_PENDING: usize = 16;
 /// Longest the replay waits, when stopping, for the actors' senders to close.
 const DRAIN_LIMIT: Duration = Duration::from_secs(10);
 
@@ -63,7 +66,8 @@ pub struct ReplayControl {
 #[derive(Default)]
 struct Counters {
     batches: u64,
-    /// Requests larger than the rate limiter's window: they would block the queue forever.
+    /// Requests that could never be served (they would block the queue forever) or found the
+    /// queue full.
     unservable: u64,
     inserted_at_last_batch: u64,
     /// The longest turn of the loop (everything but its sleep): how long batch delivery can
@@ -162,16 +166,16 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
         // Closing actors wait for a turn after their last send (see TrajectorySender).
         beacon.signal();
         for (request, spec) in server.receive_requests()? {
-            if limiter.can_ever_sample(spec.steps() as u64) {
-                pending.push_back((request, spec));
-            } else {
-                counters.unservable += 1;
-                tracing::warn!(
-                    "rejected a request for {} steps ({} so far): larger than the rate \
-                     limiter's window; raise [replay] error_buffer_steps or lower the batch",
-                    spec.steps(),
-                    counters.unservable
-                );
+            match never_served(spec, &buffer, &limiter, pending.len()) {
+                None => pending.push_back((request, spec)),
+                Some(why) => {
+                    counters.unservable += 1;
+                    tracing::warn!(
+                        "rejected batch request {} for {spec:?} ({} so far): {why}",
+                        request.request_id,
+                        counters.unservable
+                    );
+                }
             }
         }
         while let Some(&(request, spec)) = pending.front() {
@@ -258,6 +262,42 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
     Ok(last)
 }
 
+/// Why a request for `spec` would block the queue forever, or why it finds no room in it
+/// (holding `pending` requests); `None` if it may wait in the queue.
+fn never_served(
+    spec: BatchSpec,
+    buffer: &ReplayBuffer,
+    limiter: &RateLimiter,
+    pending: usize,
+) -> Option<String> {
+    let window = match spec {
+        BatchSpec::Sequence { length, .. } => length,
+        BatchSpec::Transition { .. } => 2,
+    };
+    if !limiter.can_ever_sample(spec.steps() as u64) {
+        Some(format!(
+            "its {} steps exceed the rate limiter's window; raise [replay] error_buffer_steps \
+             or lower the batch",
+            spec.steps()
+        ))
+    } else if window > buffer.longest_window() {
+        Some(format!(
+            "its windows of {window} steps exceed each actor's ring of {} steps; raise \
+             [replay] capacity or lower the sequence length",
+            buffer.longest_window()
+        ))
+    } else if pending >= MAX_PENDING {
+        Some(format!(
+            "{MAX_PENDING} requests wait already (a learner has one outstanding)"
+        ))
+    } else {
+        None
+    }
+}
+
+/// The replay's buffer and limiter counts: fresh, or restored from the snapshot. A snapshot
+/// that cannot be read, or whose shape is not the run's, is a [`ConfigError`] whose message says
+/// how to continue: a restarted replay would meet it again.
 fn restore(args: &ReplayArgs) -> Result<(ReplayBuffer, LimiterCounts)> {
     let fresh = ReplayBuffer::new(
         args.options.capacity,
@@ -275,15 +315,22 @@ fn restore(args: &ReplayArgs) -> Result<(ReplayBuffer, LimiterCounts)> {
     if !path.exists() {
         return Ok((fresh, none));
     }
-    let (buffer, counts) = read_snapshot(path)?;
+    let how = format!(
+        "to continue the run with an empty replay (the learner keeps its checkpoints), move \
+         the file away (mv {0} {0}.damaged) and continue the run (`ctxrace train … --resume`)",
+        path.display()
+    );
+    let (buffer, counts) = read_snapshot(path).map_err(|e| ConfigError(format!("{e:#}; {how}")))?;
     let shape = |b: &ReplayBuffer| (b.actors(), b.capacity(), b.obs_dim(), b.act_dim());
     if shape(&buffer) != shape(&fresh) {
-        bail!(
-            "replay snapshot {} holds (actors, capacity, obs_dim, act_dim) = {:?}, the run has {:?}",
+        return Err(ConfigError(format!(
+            "replay snapshot {} holds (actors, capacity, obs_dim, act_dim) = {:?}, the run has \
+             {:?}; {how}",
             path.display(),
             shape(&buffer),
             shape(&fresh)
-        );
+        ))
+        .into());
     }
     tracing::info!(
         "replay: restored {} steps from {}",
@@ -312,4 +359,30 @@ fn snapshot(args: &ReplayArgs, buffer: &ReplayBuffer, limiter: &RateLimiter) -> 
         );
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn requests_that_could_never_be_served_or_find_the_queue_full_are_refused_with_the_reason() {
+        // 40 steps shared by 2 actors: rings of 20
+        let buffer = ReplayBuffer::new(40, 2, 3, 2);
+        let free = RateLimiter::new(0.0, 0, 0.0);
+        let sequences = |length| BatchSpec::Sequence { batch: 4, length };
+        assert_eq!(never_served(sequences(20), &buffer, &free, 0), None);
+        let why = never_served(sequences(32), &buffer, &free, 0).unwrap();
+        assert!(
+            why.contains("windows of 32 steps exceed each actor's ring of 20"),
+            "{why}"
+        );
+        assert!(why.contains("raise [replay] capacity"), "{why}");
+        // a window of 2 · 10 · 1 = 20 samples holds no batch of 4 x 20
+        let tight = RateLimiter::new(1.0, 0, 10.0);
+        let why = never_served(sequences(20), &buffer, &tight, 0).unwrap();
+        assert!(why.contains("rate limiter's window"), "{why}");
+        let why = never_served(sequences(20), &buffer, &free, MAX_PENDING).unwrap();
+        assert!(why.contains("requests wait already"), "{why}");
+    }
 }

@@ -1,0 +1,151 @@
+//! Checks of configuration values whose messages name the key, its value and the fix: every
+//! float of a configuration finite ([`finite_floats`], a walk over its serialized form that
+//! reports the key's path, tables of per-track overrides included), and ranges ([`in_range`]).
+//! [`ConfigError`] marks an error that a restarted process would meet again.
+
+use serde::Serialize;
+use std::fmt::Display;
+use std::ops::{Bound, RangeBounds};
+
+/// Exit code of a process that failed with a [`ConfigError`] (`EX_CONFIG` of sysexits.h): the
+/// launcher does not restart it.
+pub const CONFIG_EXIT_CODE: i32 = 78;
+
+/// An error that a restart would meet again (a bad value in the run's configuration, a damaged
+/// run file): a process failing with it exits with [`CONFIG_EXIT_CODE`], and the launcher stops
+/// the run at once with the process's reason instead of restarting it.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct ConfigError(pub String);
+
+/// Checks that every float of `config`, serialized as TOML, is finite. The error names the
+/// first other one by its key path (`race.rival.gains.lambda_v = nan`) and gives the value
+/// `defaults` holds at that path, when it holds one.
+pub fn finite_floats<T: Serialize>(config: &T, defaults: &T) -> Result<(), String> {
+    let value = toml::Value::try_from(config).map_err(|e| format!("serialising: {e}"))?;
+    let Some((path, bad)) = first_non_finite(&value, &mut Vec::new()) else {
+        return Ok(());
+    };
+    let default = toml::Value::try_from(defaults)
+        .ok()
+        .and_then(|d| {
+            path.iter().try_fold(d, |v, key| match v {
+                toml::Value::Table(mut t) => t.remove(key),
+                _ => None,
+            })
+        })
+        .map_or(String::new(), |d| format!(" (the default is {d})"));
+    Err(format!(
+        "{} = {} is not a finite number; give a finite value{default}",
+        path.join("."),
+        toml::Value::Float(bad)
+    ))
+}
+
+/// The key path and value of the first non-finite float under `value`.
+fn first_non_finite(value: &toml::Value, path: &mut Vec<String>) -> Option<(Vec<String>, f64)> {
+    match value {
+        toml::Value::Float(x) if !x.is_finite() => Some((path.clone(), *x)),
+        toml::Value::Table(table) => table.iter().find_map(|(key, v)| {
+            path.push(key.clone());
+            let found = first_non_finite(v, path);
+            path.pop();
+            found
+        }),
+        toml::Value::Array(items) => items.iter().enumerate().find_map(|(i, v)| {
+            path.push(i.to_string());
+            let found = first_non_finite(v, path);
+            path.pop();
+            found
+        }),
+        _ => None,
+    }
+}
+
+/// Checks that `key = value` lies in `range`; the error names the key, the value, the range and
+/// `fix` (NaN lies in no range).
+pub fn in_range<T: PartialOrd + Display>(
+    key: &str,
+    value: T,
+    range: impl RangeBounds<T>,
+    fix: &str,
+) -> Result<(), String> {
+    if range.contains(&value) {
+        return Ok(());
+    }
+    let lower = match range.start_bound() {
+        Bound::Included(a) => Some(format!("at least {a}")),
+        Bound::Excluded(a) => Some(format!("above {a}")),
+        Bound::Unbounded => None,
+    };
+    let upper = match range.end_bound() {
+        Bound::Included(b) => Some(format!("at most {b}")),
+        Bound::Excluded(b) => Some(format!("below {b}")),
+        Bound::Unbounded => None,
+    };
+    let bounds: Vec<String> = lower.into_iter().chain(upper).collect();
+    Err(format!(
+        "{key} = {value} must be {}; {fix}",
+        bounds.join(" and ")
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(Serialize)]
+    struct Inner {
+        gain: f64,
+        per_track: std::collections::BTreeMap<String, f64>,
+    }
+
+    #[derive(Serialize)]
+    struct Outer {
+        size: usize,
+        inner: Inner,
+    }
+
+    fn outer(gain: f64, track: f64) -> Outer {
+        Outer {
+            size: 3,
+            inner: Inner {
+                gain,
+                per_track: [("f1_esp".to_string(), track)].into(),
+            },
+        }
+    }
+
+    #[test]
+    fn the_first_non_finite_float_is_named_by_its_key_path_with_its_default() {
+        let defaults = outer(1.0, 0.5);
+        assert_eq!(finite_floats(&defaults, &defaults), Ok(()));
+        let err = finite_floats(&outer(f64::NAN, 0.5), &defaults).unwrap_err();
+        assert_eq!(
+            err,
+            "inner.gain = nan is not a finite number; give a finite value (the default is 1.0)"
+        );
+        let err = finite_floats(&outer(1.0, f64::INFINITY), &defaults).unwrap_err();
+        assert!(err.starts_with("inner.per_track.f1_esp = inf"), "{err}");
+    }
+
+    #[test]
+    fn ranges_name_key_value_bounds_and_fix() {
+        assert_eq!(in_range("a", 1, 1..=3, "fix"), Ok(()));
+        assert_eq!(
+            in_range("a", 0, 1..=3, "raise it").unwrap_err(),
+            "a = 0 must be at least 1 and at most 3; raise it"
+        );
+        let err = in_range(
+            "lr",
+            f64::NAN,
+            (Bound::Excluded(0.0), Bound::Unbounded),
+            "x",
+        );
+        assert_eq!(err.unwrap_err(), "lr = NaN must be above 0; x");
+        assert_eq!(
+            in_range("b", 9, ..9, "lower it").unwrap_err(),
+            "b = 9 must be below 9; lower it"
+        );
+    }
+}
