@@ -142,7 +142,8 @@ fn prepare_run_dir(args: &TrainArgs, cfg: &ExperimentConfig) -> Result<(PathBuf,
     }
     let resumed = config.exists();
     let text = cfg.to_toml().map_err(anyhow::Error::msg)?;
-    std::fs::write(&config, text).with_context(|| format!("writing {}", config.display()))?;
+    ctxrace_common::run_dir::write_atomic(&config, text.as_bytes())
+        .with_context(|| format!("writing {}", config.display()))?;
     Ok((dir, lock, resumed))
 }
 
@@ -185,13 +186,13 @@ pub fn run_name(cfg: &ExperimentConfig) -> String {
 /// Runs `ctxrace train`.
 pub fn run(args: TrainArgs) -> Result<()> {
     let cfg = experiment(&args)?;
-    let (dir, _lock, resumed) = prepare_run_dir(&args, &cfg)?;
+    let (dir, lock, resumed) = prepare_run_dir(&args, &cfg)?;
     if resumed && is_trained(&dir, &cfg) {
         println!("{} is trained already", dir.display());
         return Ok(());
     }
     if !args.inline {
-        crate::launcher::run(&cfg, &dir, args.actors, &args.tracks)?;
+        crate::launcher::run(&cfg, &dir, &lock, args.actors, &args.tracks)?;
         return finish(&args, &cfg, &dir);
     }
     if resumed {

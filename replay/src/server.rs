@@ -6,9 +6,9 @@
 use crate::buffer::ReplayBuffer;
 use crate::limiter::RateLimiter;
 use crate::snapshot::{
-    encode_snapshot, read_snapshot, write_snapshot, BackgroundWriter, LimiterCounts,
+    encode_snapshot, read_snapshot, write_snapshot, BackgroundWriter, LimiterCounts, SnapshotShape,
 };
-use anyhow::{bail, Result};
+use anyhow::Result;
 use ctxrace_common::ipc::wire::{ReplayStatus, WireError, FORMAT_VERSION, REASONS};
 use ctxrace_common::ipc::{
     BatchRequest, BatchServer, Next, ReplayBeacon, RunTransport, StatusPublisher,
@@ -275,16 +275,7 @@ fn restore(args: &ReplayArgs) -> Result<(ReplayBuffer, LimiterCounts)> {
     if !path.exists() {
         return Ok((fresh, none));
     }
-    let (buffer, counts) = read_snapshot(path)?;
-    let shape = |b: &ReplayBuffer| (b.actors(), b.capacity(), b.obs_dim(), b.act_dim());
-    if shape(&buffer) != shape(&fresh) {
-        bail!(
-            "replay snapshot {} holds (actors, capacity, obs_dim, act_dim) = {:?}, the run has {:?}",
-            path.display(),
-            shape(&buffer),
-            shape(&fresh)
-        );
-    }
+    let (buffer, counts) = read_snapshot(path, SnapshotShape::of(&fresh))?;
     tracing::info!(
         "replay: restored {} steps from {}",
         buffer.len(),
