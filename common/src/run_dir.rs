@@ -60,3 +60,169 @@ pub const EVAL_EPISODES: &str = "episodes.csv";
 pub const EVAL_CONTEXTS_CSV: &str = "contexts.csv";
 /// The same as JSON.
 pub const EVAL_CONTEXTS_JSON: &str = "contexts.json";
+
+use std::fs::{File, OpenOptions};
+use std::io::{Read, Write};
+use std::os::unix::fs::{OpenOptionsExt, PermissionsExt};
+use std::path::Path;
+
+/// Writes `bytes` to `path` atomically and without following links: into a temporary file
+/// created exclusively (`O_EXCL`, a fresh random name) beside `path`, flushed to disk, then
+/// renamed over `path` (which replaces a link planted there instead of writing through it), and
+/// the folder flushed. A reader sees the old file or the new one, never half of one.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let mut tmp = tempfile::Builder::new()
+        .prefix(".tmp-")
+        .permissions(std::fs::Permissions::from_mode(0o666))
+        .tempfile_in(dir)?;
+    tmp.write_all(bytes)?;
+    tmp.as_file().sync_all()?;
+    tmp.persist(path).map_err(|e| e.error)?;
+    File::open(dir)?.sync_all()
+}
+
+/// Opens `path` for appending, creating it, but only as a regular file: a link planted at
+/// `path` is refused rather than followed, and a FIFO is refused rather than waited on.
+pub fn open_append(path: &Path) -> std::io::Result<File> {
+    regular(
+        OpenOptions::new()
+            .create(true)
+            .append(true)
+            .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK)
+            .open(path),
+        path,
+    )
+}
+
+/// Opens `path` for reading only if it is a regular file: a link, a device or a FIFO (without
+/// waiting on it) is refused with an error naming `path`.
+pub fn open_regular(path: &Path) -> std::io::Result<File> {
+    regular(
+        OpenOptions::new()
+            .read(true)
+            .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK)
+            .open(path),
+        path,
+    )
+}
+
+/// Reads the regular file `path` ([`open_regular`]) whole, refusing a file larger than
+/// `max_bytes` before reading any of it.
+pub fn read_regular(path: &Path, max_bytes: u64) -> std::io::Result<Vec<u8>> {
+    let file = open_regular(path)?;
+    let len = file.metadata()?.len();
+    if len > max_bytes {
+        return Err(std::io::Error::other(format!(
+            "{} holds {len} bytes, more than the {max_bytes} expected",
+            path.display()
+        )));
+    }
+    let mut bytes = Vec::with_capacity(len as usize);
+    file.take(max_bytes.saturating_add(1))
+        .read_to_end(&mut bytes)?;
+    if bytes.len() as u64 > max_bytes {
+        return Err(std::io::Error::other(format!(
+            "{} grew past {max_bytes} bytes while being read",
+            path.display()
+        )));
+    }
+    Ok(bytes)
+}
+
+/// The file `opened` if it is a regular file; a clear error naming `path` otherwise.
+fn regular(opened: std::io::Result<File>, path: &Path) -> std::io::Result<File> {
+    let file = opened.map_err(|e| match e.raw_os_error() {
+        Some(libc::ELOOP) => std::io::Error::other(format!(
+            "{} is a symbolic link; ctxrace neither reads nor writes a run's files through \
+             links: replace it with the file itself",
+            path.display()
+        )),
+        Some(libc::ENXIO) => not_regular(path),
+        _ => e,
+    })?;
+    if !file.metadata()?.is_file() {
+        return Err(not_regular(path));
+    }
+    Ok(file)
+}
+
+fn not_regular(path: &Path) -> std::io::Error {
+    std::io::Error::other(format!(
+        "{} is not a regular file (a FIFO, device or folder); remove it",
+        path.display()
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_link_planted_at_the_path_is_replaced_not_written_through() {
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("target");
+        std::fs::write(&target, "untouched").unwrap();
+        let path = dir.path().join(STATUS_FILE);
+        std::os::unix::fs::symlink(&target, &path).unwrap();
+        write_atomic(&path, b"new").unwrap();
+        assert_eq!(std::fs::read_to_string(&target).unwrap(), "untouched");
+        assert!(!path.symlink_metadata().unwrap().is_symlink());
+        assert_eq!(std::fs::read(&path).unwrap(), b"new");
+        // nothing but the file, its old target and no temporary is left
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
+    }
+
+    #[test]
+    fn appending_refuses_links_and_fifos() {
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("target");
+        std::fs::write(&target, "untouched").unwrap();
+        let log = dir.path().join("learner.log");
+        std::os::unix::fs::symlink(&target, &log).unwrap();
+        let err = open_append(&log).unwrap_err().to_string();
+        assert!(
+            err.contains("symbolic link") && err.contains("learner.log"),
+            "{err}"
+        );
+        assert_eq!(std::fs::read_to_string(&target).unwrap(), "untouched");
+        let fifo = dir.path().join("fifo.log");
+        make_fifo(&fifo);
+        let err = open_append(&fifo).unwrap_err().to_string();
+        assert!(err.contains("not a regular file"), "{err}");
+        let mut file = open_append(&dir.path().join("fresh.log")).unwrap();
+        file.write_all(b"line\n").unwrap();
+    }
+
+    #[test]
+    fn reading_refuses_links_fifos_devices_and_oversized_files_before_reading() {
+        let dir = tempfile::tempdir().unwrap();
+        let zero = dir.path().join("zero");
+        std::os::unix::fs::symlink("/dev/zero", &zero).unwrap();
+        let err = read_regular(&zero, 1 << 20).unwrap_err().to_string();
+        assert!(err.contains("symbolic link"), "{err}");
+        let err = read_regular(Path::new("/dev/zero"), 1 << 20)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("not a regular file"), "{err}");
+        let fifo = dir.path().join("fifo");
+        make_fifo(&fifo);
+        let err = read_regular(&fifo, 1 << 20).unwrap_err().to_string();
+        assert!(err.contains("not a regular file"), "{err}");
+        let big = dir.path().join("big");
+        std::fs::write(&big, vec![0u8; 100]).unwrap();
+        let err = read_regular(&big, 99).unwrap_err().to_string();
+        assert!(err.contains("100 bytes"), "{err}");
+        assert_eq!(read_regular(&big, 100).unwrap().len(), 100);
+    }
+
+    /// Makes a FIFO at `path`.
+    fn make_fifo(path: &Path) {
+        let c = std::ffi::CString::new(path.as_os_str().as_encoded_bytes()).unwrap();
+        // SAFETY: mkfifo reads the NUL-terminated path `c` owns, nothing else.
+        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+    }
+}

@@ -61,8 +61,8 @@ fn image_of(yaml: &str, origin: &str) -> Result<String> {
         serde_yaml::from_str(yaml).with_context(|| format!("parsing {origin}"))?;
     v.get("image")
         .and_then(|i| i.as_str())
-        .map(|s| s.trim().to_string())
-        .filter(|s| !s.is_empty() && !s.contains(['/', '\\']))
+        .and_then(ctxrace_tracks::map::image_beside)
+        .map(str::to_string)
         .with_context(|| format!("{origin} names no map image (a file beside it)"))
 }
 

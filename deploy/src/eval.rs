@@ -12,6 +12,7 @@
 //! (`episode.png`, `episode.svg`).
 
 use crate::driver::{ActMode, EgoSpec};
+use crate::lock::{die_with_parent, DirLock};
 use crate::render::{render_race, Frame};
 use crate::results::{self, EvalMeta};
 use crate::TrackArgs;
@@ -21,7 +22,8 @@ use ctxrace_actor::baseline::BaselineKind;
 use ctxrace_actor::protocol::{self, episode_seed, ContextSummary, EvalEpisode};
 use ctxrace_actor::RaceEnv;
 use ctxrace_common::run_dir::{
-    EVAL_CONTEXTS_CSV, EVAL_CONTEXTS_JSON, EVAL_DIR, EVAL_EPISODES, EVAL_JOB, EVAL_META,
+    open_append, read_regular, write_atomic, EVAL_CONTEXTS_CSV, EVAL_CONTEXTS_JSON, EVAL_DIR,
+    EVAL_EPISODES, EVAL_JOB, EVAL_META,
 };
 use ctxrace_common::{Context, RaceConfig};
 use ctxrace_learner::trained::{CheckpointChoice, TrainedAgent};
@@ -202,7 +204,7 @@ pub fn run(args: EvalArgs) -> Result<()> {
         act: args.act,
         preset: race.preset,
     };
-    let _lock = crate::lock::DirLock::acquire(&out)?;
+    let lock = DirLock::acquire(&out)?;
     prepare_out_dir(&out, &meta, args.fresh)?;
 
     let done = finished_episodes(&out, &meta)?;
@@ -225,7 +227,8 @@ pub fn run(args: EvalArgs) -> Result<()> {
             .clamp(1, job.todo.len());
         let job_path = out.join(EVAL_JOB);
         results::write_json(&job_path, &job)?;
-        run_workers(&out, &meta, &job_path, workers, done.len() as u64, total)?;
+        let progress = (done.len() as u64, total);
+        run_workers(&out, &meta, &job_path, workers, progress, &lock)?;
     }
     finish(&out, &meta, &race, &args.tracks, &spec)
 }
@@ -322,25 +325,30 @@ fn finished_episodes(out: &Path, meta: &EvalMeta) -> Result<HashSet<(usize, usiz
         .collect())
 }
 
-/// Starts the workers and waits for them, showing progress from their result files.
+/// Starts the workers and waits for them, showing progress (episodes `(done, total)`) from
+/// their result files. The workers die with this process and hold `out`'s `lock` with it, so
+/// that a rerun cannot start before the last of them has exited.
 fn run_workers(
     out: &Path,
     meta: &EvalMeta,
     job: &Path,
     workers: usize,
-    done: u64,
-    total: u64,
+    (done, total): (u64, u64),
+    lock: &DirLock,
 ) -> Result<()> {
     let exe = std::env::current_exe().context("locating the ctxrace binary")?;
     let mut children: Vec<Child> = (0..workers)
         .map(|k| {
-            Command::new(&exe)
-                .arg("eval-worker")
-                .arg("--job")
-                .arg(job)
-                .args(["--shard", &k.to_string(), "--shards", &workers.to_string()])
-                .spawn()
-                .context("starting an evaluation worker")
+            let mut worker = Command::new(&exe);
+            worker.arg("eval-worker").arg("--job").arg(job).args([
+                "--shard",
+                &k.to_string(),
+                "--shards",
+                &workers.to_string(),
+            ]);
+            die_with_parent(&mut worker);
+            lock.share_with(&mut worker);
+            worker.spawn().context("starting an evaluation worker")
         })
         .collect::<Result<_>>()?;
     let bar = crate::progress::progress_bar(total, "episodes");
@@ -371,12 +379,14 @@ fn run_workers(
 
 /// Cuts a torn last line (a worker killed mid-write) so that appending starts on a fresh line.
 fn trim_torn_line(path: &Path) -> Result<()> {
-    let Ok(bytes) = std::fs::read(path) else {
-        return Ok(());
+    let bytes = match read_regular(path, u64::MAX) {
+        Ok(bytes) => bytes,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
     };
     if bytes.last().is_some_and(|&b| b != b'\n') {
         let keep = bytes.iter().rposition(|&b| b == b'\n').map_or(0, |i| i + 1);
-        std::fs::write(path, &bytes[..keep])
+        write_atomic(path, &bytes[..keep])
             .with_context(|| format!("repairing {}", path.display()))?;
     }
     Ok(())
@@ -396,11 +406,7 @@ pub fn run_worker(args: WorkerArgs) -> Result<()> {
     let part = out.join(format!("episodes.part-{:03}.csv", args.shard));
     trim_torn_line(&part)?;
     let fresh = !part.exists() || std::fs::metadata(&part)?.len() == 0;
-    let file = std::fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(&part)
-        .with_context(|| format!("opening {}", part.display()))?;
+    let file = open_append(&part).with_context(|| format!("opening {}", part.display()))?;
     let mut writer = csv::WriterBuilder::new()
         .has_headers(fresh)
         .from_writer(file);

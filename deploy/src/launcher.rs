@@ -14,6 +14,7 @@
 //! replay and the learner are stopped together: the replay takes the actors' last chunks whatever
 //! its limiter says, so that a clean run drops no step.
 
+use crate::lock::{die_with_parent, DirLock};
 use crate::progress::{progress_bar, EpisodeLog, RateMeter};
 use crate::results::TrainingEpisode;
 use crate::TrackArgs;
@@ -23,10 +24,9 @@ use ctxrace_common::ipc::{
     claim_run, cleanup, run_prefix, sweep_orphaned_runs, termination_flag, RunTransport,
     TelemetrySubscriber, WeightsReceiver,
 };
-use ctxrace_common::run_dir::{ACTOR_REPORTS, LOGS, REPLAY_REPORT, STATUS_FILE};
+use ctxrace_common::run_dir::{open_append, ACTOR_REPORTS, LOGS, REPLAY_REPORT, STATUS_FILE};
 use ctxrace_common::validate::CONFIG_EXIT_CODE;
 use ctxrace_common::{ExperimentConfig, SupervisorConfig};
-use std::os::unix::process::CommandExt;
 use std::path::Path;
 use std::process::{Child, Command, ExitStatus};
 use std::sync::atomic::Ordering;
@@ -57,11 +57,14 @@ struct Supervised {
     last_sign: Option<Instant>,
     /// When it failed, within the restart window.
     failures: std::collections::VecDeque<Instant>,
+    /// The run directory's lock, which the process holds too while it runs.
+    lock: DirLock,
 }
 
 impl Supervised {
-    fn new(name: String, args: Vec<String>, logs: &Path) -> Self {
+    fn new(name: String, args: Vec<String>, logs: &Path, lock: DirLock) -> Self {
         Self {
+            lock,
             log: logs.join(format!("{}.log", name.replace(' ', "-"))),
             name,
             args,
@@ -87,24 +90,16 @@ impl Supervised {
                 &(self.earlier_starts + self.starts).to_string(),
             ]);
         }
-        let log = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(&self.log)
-            .with_context(|| format!("opening {}", self.log.display()))?;
+        let log =
+            open_append(&self.log).with_context(|| format!("opening {}", self.log.display()))?;
         cmd.stderr(log);
         if std::env::var_os("RUST_LOG").is_none() {
             cmd.env("RUST_LOG", "info");
         }
-        // the children die with the launcher, even when it is killed outright
-        // SAFETY: the closure runs in the forked child before exec and only calls prctl, which is
-        // async-signal-safe, allocating nothing and taking no lock.
-        unsafe {
-            cmd.pre_exec(|| {
-                libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
-                Ok(())
-            });
-        }
+        // the children die with the launcher, even when it is killed outright, and hold the run's
+        // lock until they have exited (a snapshot or checkpoint they finish is theirs)
+        die_with_parent(&mut cmd);
+        self.lock.share_with(&mut cmd);
         self.child = Some(
             cmd.spawn()
                 .with_context(|| format!("starting {}", self.name))?,
@@ -341,7 +336,13 @@ fn track_flags(tracks: &TrackArgs) -> Vec<String> {
 }
 
 /// Runs a training run with `actors` actor processes in `dir` (which holds `config.toml`).
-pub fn run(cfg: &ExperimentConfig, dir: &Path, actors: usize, tracks: &TrackArgs) -> Result<()> {
+pub fn run(
+    cfg: &ExperimentConfig,
+    dir: &Path,
+    lock: &DirLock,
+    actors: usize,
+    tracks: &TrackArgs,
+) -> Result<()> {
     if actors == 0 {
         bail!("--actors must be at least 1");
     }
@@ -374,18 +375,23 @@ pub fn run(cfg: &ExperimentConfig, dir: &Path, actors: usize, tracks: &TrackArgs
     };
     let logs = dir.join(LOGS);
     std::fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
-    let mut replay = Supervised::new("replay".into(), common("replay"), &logs);
-    let mut learner = Supervised::new("learner".into(), common("learner"), &logs);
+    let mut replay = Supervised::new("replay".into(), common("replay"), &logs, lock.try_clone()?);
+    let mut learner = Supervised::new(
+        "learner".into(),
+        common("learner"),
+        &logs,
+        lock.try_clone()?,
+    );
     let mut actor_procs: Vec<Supervised> = (0..actors)
         .map(|k| {
             let mut args = common("actor");
             args.extend(["--id".into(), k.to_string()]);
             args.extend(track_flags(tracks));
-            let mut actor = Supervised::new(format!("actor {k}"), args, &logs);
+            let mut actor = Supervised::new(format!("actor {k}"), args, &logs, lock.try_clone()?);
             actor.earlier_starts = earlier_actor_starts(dir, k);
-            actor
+            Ok(actor)
         })
-        .collect();
+        .collect::<Result<_>>()?;
 
     let transport = RunTransport::open(&prefix, actors, "launcher")?;
     let lost = supervise(

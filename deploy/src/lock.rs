@@ -3,18 +3,26 @@
 //!
 //! A lock is `flock(2)` on `<dir>/.lock`, which also names its holder (pid and command line).
 //! The kernel drops it when the holder exits, however it dies, so a stale lock cannot remain.
+//!
+//! The processes a lock holder starts to write into its directory (the launcher's actors,
+//! replay and learner; `eval`'s workers) hold the lock with it ([`DirLock::share_with`]): the
+//! kernel drops it only once the last of them has exited, so that a second `train` or `eval`
+//! never starts while a child still finishes a snapshot, a checkpoint or a row. Every child the
+//! binary starts dies with its parent ([`die_with_parent`]).
 
 use anyhow::{bail, Context as _, Result};
 use ctxrace_common::run_dir::LOCK_FILE;
 use std::fs::File;
 use std::io::{Read, Seek, Write};
 use std::os::fd::AsRawFd;
+use std::os::unix::process::CommandExt;
 use std::path::Path;
+use std::process::Command;
 
 /// A held lock; dropping it releases it.
 #[derive(Debug)]
 pub struct DirLock {
-    _file: File,
+    file: File,
 }
 
 impl DirLock {
@@ -35,7 +43,8 @@ impl DirLock {
             let mut holder = String::new();
             file.read_to_string(&mut holder).ok();
             bail!(
-                "{} is in use by another process ({}); wait for it to finish or stop it",
+                "{} is in use by another process ({}, or the processes it started, still \
+                 finishing); wait for it to finish or stop it",
                 dir.display(),
                 match holder.trim() {
                     "" => "unknown",
@@ -49,7 +58,52 @@ impl DirLock {
         write!(file, "pid {}: {}", std::process::id(), command.join(" "))
             .and_then(|()| file.flush())
             .with_context(|| format!("writing {}", path.display()))?;
-        Ok(Self { _file: file })
+        Ok(Self { file })
+    }
+
+    /// A second handle on this lock (the same open file, so the same lock), for a part of the
+    /// program that starts children.
+    pub fn try_clone(&self) -> Result<Self> {
+        Ok(Self {
+            file: self.file.try_clone().context("sharing a directory lock")?,
+        })
+    }
+
+    /// Makes the process `cmd` starts hold this lock too (its file descriptor is inherited),
+    /// so that the lock outlives this process until that child has exited as well.
+    pub fn share_with(&self, cmd: &mut Command) {
+        let fd = self.file.as_raw_fd();
+        // SAFETY: the closure runs in the forked child before exec and only calls fcntl on a
+        // descriptor the child inherited, which is async-signal-safe, allocating nothing.
+        unsafe {
+            cmd.pre_exec(move || {
+                if libc::fcntl(fd, libc::F_SETFD, 0) == -1 {
+                    return Err(std::io::Error::last_os_error());
+                }
+                Ok(())
+            });
+        }
+    }
+}
+
+/// Makes the process `cmd` starts die (SIGTERM) when the thread that starts it ends, with its
+/// process, however it ends (even killed outright): start children from a thread that lives as
+/// long as they should. A parent that died before the child set this up is caught too (the
+/// child then no longer has it as parent, and exits at once).
+pub fn die_with_parent(cmd: &mut Command) {
+    let parent = std::process::id() as libc::pid_t;
+    // SAFETY: the closure runs in the forked child before exec and only calls prctl, getppid
+    // and _exit, which are async-signal-safe, allocating nothing and taking no lock.
+    unsafe {
+        cmd.pre_exec(move || {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM) == -1 {
+                return Err(std::io::Error::last_os_error());
+            }
+            if libc::getppid() != parent {
+                libc::_exit(1);
+            }
+            Ok(())
+        });
     }
 }
 
@@ -69,6 +123,94 @@ mod tests {
             "{err}"
         );
         drop(first);
+        DirLock::acquire(dir.path()).unwrap();
+    }
+
+    /// `sleep 30`, dying with this thread and holding `lock`.
+    fn bound_sleep(lock: &DirLock) -> std::process::Child {
+        let mut cmd = Command::new("sleep");
+        cmd.arg("30");
+        die_with_parent(&mut cmd);
+        lock.share_with(&mut cmd);
+        cmd.spawn().unwrap()
+    }
+
+    /// Whether process `pid` has exited (gone, or a zombie nobody reaped yet).
+    fn exited(pid: u32) -> bool {
+        std::fs::read_to_string(format!("/proc/{pid}/stat")).map_or(true, |s| {
+            s.rsplit(')')
+                .next()
+                .unwrap_or("")
+                .trim_start()
+                .starts_with('Z')
+        })
+    }
+
+    #[test]
+    fn a_child_holds_the_lock_until_it_exits() {
+        let dir = tempfile::tempdir().unwrap();
+        let lock = DirLock::acquire(dir.path()).unwrap();
+        let mut child = bound_sleep(&lock);
+        drop(lock);
+        let err = DirLock::acquire(dir.path()).unwrap_err().to_string();
+        assert!(err.contains("processes it started"), "{err}");
+        child.kill().unwrap();
+        child.wait().unwrap();
+        DirLock::acquire(dir.path()).unwrap();
+    }
+
+    /// The folder [`intermediate_parent`] locks, set by the test that starts it.
+    const PARENT_DIR: &str = "CTXRACE_TEST_PARENT_LOCK_DIR";
+
+    #[test]
+    #[ignore = "the parent that a_child_dies_with_its_killed_parent starts and kills"]
+    fn intermediate_parent() {
+        let Some(dir) = std::env::var_os(PARENT_DIR) else {
+            return;
+        };
+        let lock = DirLock::acquire(Path::new(&dir)).unwrap();
+        let mut child = bound_sleep(&lock);
+        println!("child {}", child.id());
+        std::io::stdout().flush().unwrap();
+        // killed by the test long before the child ends
+        child.wait().unwrap();
+    }
+
+    #[test]
+    fn a_child_dies_with_its_killed_parent_and_then_frees_the_lock() {
+        use std::io::BufRead;
+        let dir = tempfile::tempdir().unwrap();
+        let mut parent = Command::new(std::env::current_exe().unwrap())
+            .args(["--exact", "lock::tests::intermediate_parent", "--ignored"])
+            .args(["--nocapture", "--test-threads=1"])
+            .env(PARENT_DIR, dir.path())
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let child: u32 = std::io::BufReader::new(parent.stdout.take().unwrap())
+            .lines()
+            .map_while(|l| l.ok())
+            // libtest prints the test's name before it, on the same line
+            .find_map(|l| {
+                l.rsplit_once("child ")
+                    .and_then(|(_, p)| p.trim().parse().ok())
+            })
+            .unwrap();
+        assert!(!exited(child));
+        // held by the parent and its child
+        assert!(DirLock::acquire(dir.path()).is_err());
+        parent.kill().unwrap();
+        parent.wait().unwrap();
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(5);
+        while !exited(child) && std::time::Instant::now() < deadline {
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        let dead = exited(child);
+        if !dead {
+            // SAFETY: signals the test's own stray `sleep`.
+            unsafe { libc::kill(child as libc::pid_t, libc::SIGKILL) };
+        }
+        assert!(dead, "the child outlived its killed parent");
         DirLock::acquire(dir.path()).unwrap();
     }
 }

@@ -32,10 +32,7 @@ impl EpisodeLog {
     pub fn open(run_dir: &Path, role: &str) -> Result<Self> {
         let path = run_dir.join(TRAINING_EPISODES);
         let fresh = std::fs::metadata(&path).map_or(true, |m| m.len() == 0);
-        let file = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(&path)
+        let file = ctxrace_common::run_dir::open_append(&path)
             .with_context(|| format!("opening {}", path.display()))?;
         Ok(Self {
             writer: csv::WriterBuilder::new()

@@ -58,7 +58,8 @@ pub fn run(args: ReportArgs) -> Result<()> {
     let figures = crate::figures::write_all(&groups, &args.out, &args.tracks, &cfg)?;
     let markdown = markdown(&groups, &figures, &args.out);
     let path = args.out.join("report.md");
-    std::fs::write(&path, &markdown).with_context(|| format!("writing {}", path.display()))?;
+    ctxrace_common::run_dir::write_atomic(&path, markdown.as_bytes())
+        .with_context(|| format!("writing {}", path.display()))?;
     print!("{markdown}");
     Ok(())
 }

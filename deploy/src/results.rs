@@ -13,6 +13,7 @@
 //!
 
 use anyhow::{Context as _, Result};
+use ctxrace_common::run_dir::write_atomic;
 use serde::{de::DeserializeOwned, Deserialize, Serialize};
 use std::path::Path;
 
@@ -101,16 +102,18 @@ pub fn read_csv<T: DeserializeOwned>(path: &Path) -> Result<Vec<T>> {
         .collect()
 }
 
-/// Writes rows as a CSV file with a header (replacing the file).
+/// Writes rows as a CSV file with a header, replacing the file atomically
+/// ([`write_atomic`]: never through a link planted at its path or its temporary's).
 pub fn write_csv<T: Serialize>(path: &Path, rows: &[T]) -> Result<()> {
-    let mut writer =
-        csv::Writer::from_path(path).with_context(|| format!("creating {}", path.display()))?;
+    let mut writer = csv::Writer::from_writer(Vec::new());
     for row in rows {
         writer.serialize(row)?;
     }
-    writer
-        .flush()
-        .with_context(|| format!("writing {}", path.display()))
+    let bytes = writer
+        .into_inner()
+        .map_err(|e| anyhow::anyhow!("{}", e.error()))
+        .with_context(|| format!("writing {}", path.display()))?;
+    write_atomic(path, &bytes).with_context(|| format!("writing {}", path.display()))
 }
 
 /// Reads a JSON file.
@@ -124,10 +127,8 @@ pub fn read_json<T: DeserializeOwned>(path: &Path) -> Result<T> {
 pub fn write_json<T: Serialize + ?Sized>(path: &Path, value: &T) -> Result<()> {
     let text = serde_json::to_string_pretty(value)?;
     // through a temporary file, so that a reader never sees half of it
-    let mut tmp = path.as_os_str().to_os_string();
-    tmp.push(".tmp");
-    std::fs::write(&tmp, text + "\n").with_context(|| format!("writing {}", path.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+    write_atomic(path, (text + "\n").as_bytes())
+        .with_context(|| format!("writing {}", path.display()))
 }
 
 #[cfg(test)]
@@ -152,5 +153,21 @@ mod tests {
         let rows = vec![lap(0.0, 0.1, Some(31.5)), lap(-0.3, 0.3, None)];
         write_csv(&path, &rows).unwrap();
         assert_eq!(read_csv::<EvalEpisode>(&path).unwrap(), rows);
+    }
+
+    #[test]
+    fn links_planted_at_the_file_or_its_old_temporary_are_not_written_through() {
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("target");
+        std::fs::write(&target, "untouched").unwrap();
+        let status = dir.path().join("status.json");
+        std::os::unix::fs::symlink(&target, dir.path().join("status.json.tmp")).unwrap();
+        write_json(&status, &[1, 2]).unwrap();
+        let csv = dir.path().join("contexts.csv");
+        std::os::unix::fs::symlink(&target, &csv).unwrap();
+        write_csv(&csv, &[(1, 2)]).unwrap();
+        assert_eq!(std::fs::read_to_string(&target).unwrap(), "untouched");
+        assert_eq!(read_json::<Vec<u32>>(&status).unwrap(), [1, 2]);
+        assert!(!csv.symlink_metadata().unwrap().is_symlink());
     }
 }

@@ -18,7 +18,7 @@
 //! a Slurm array script of them, so that a cluster runs exactly what the local sweep would.
 
 use crate::driver::ActMode;
-use crate::lock::DirLock;
+use crate::lock::{die_with_parent, DirLock};
 use anyhow::{bail, Context as _, Result};
 use clap::{Args, ValueEnum};
 use ctxrace_common::{AlgoKind, ExperimentConfig};
@@ -360,7 +360,7 @@ fn run_one(matrix: &MatrixFile, run: &MatrixRun, out: &Path, cores: usize) -> Re
     std::fs::create_dir_all(&configs).with_context(|| format!("creating {}", configs.display()))?;
     let config_path = configs.join(format!("{}.toml", run.name));
     let text = run.config.to_toml().map_err(anyhow::Error::msg)?;
-    std::fs::write(&config_path, text)
+    ctxrace_common::run_dir::write_atomic(&config_path, text.as_bytes())
         .with_context(|| format!("writing {}", config_path.display()))?;
     let dir = out.join(&run.name);
     let exe = std::env::current_exe().context("locating the ctxrace binary")?;
@@ -415,8 +415,9 @@ fn run_one(matrix: &MatrixFile, run: &MatrixRun, out: &Path, cores: usize) -> Re
     Ok(())
 }
 
-/// Runs `cmd` to its end; an error names `what` when it fails.
+/// Runs `cmd` to its end (it dies with this process); an error names `what` when it fails.
 fn wait_for(mut cmd: Command, what: &str) -> Result<()> {
+    die_with_parent(&mut cmd);
     let status = cmd
         .status()
         .with_context(|| format!("starting the process {what}"))?;
@@ -450,17 +451,16 @@ fn schedule(
         while running.len() < args.jobs && !stop.load(Ordering::Relaxed) {
             let Some(run) = queue.pop_front() else { break };
             let log = logs.join(format!("{}.log", run.name));
-            let file = std::fs::OpenOptions::new()
-                .create(true)
-                .append(true)
-                .open(&log)
+            let file = ctxrace_common::run_dir::open_append(&log)
                 .with_context(|| format!("opening {}", log.display()))?;
-            let child = Command::new(&exe)
-                .args(own_command(args, &run.name, out, cores))
+            let mut cmd = Command::new(&exe);
+            cmd.args(own_command(args, &run.name, out, cores))
                 .stdout(file.try_clone()?)
                 .stderr(file)
                 .stdin(Stdio::null())
-                .process_group(0)
+                .process_group(0);
+            die_with_parent(&mut cmd);
+            let child = cmd
                 .spawn()
                 .with_context(|| format!("starting the run {}", run.name))?;
             running.push((run.name.clone(), child));

@@ -146,7 +146,8 @@ fn prepare_run_dir(args: &TrainArgs, cfg: &ExperimentConfig) -> Result<(PathBuf,
     }
     let resumed = config.exists();
     let text = cfg.to_toml().map_err(anyhow::Error::msg)?;
-    std::fs::write(&config, text).with_context(|| format!("writing {}", config.display()))?;
+    ctxrace_common::run_dir::write_atomic(&config, text.as_bytes())
+        .with_context(|| format!("writing {}", config.display()))?;
     Ok((dir, lock, resumed))
 }
 
@@ -193,13 +194,13 @@ pub fn run(args: TrainArgs) -> Result<()> {
     // touched: an error it would meet at every restart stops the launch at once
     let track = Arc::new(args.tracks.load(&cfg.track, &cfg.race)?);
     let env = RaceEnv::new(track, cfg.race.clone())?;
-    let (dir, _lock, resumed) = prepare_run_dir(&args, &cfg)?;
+    let (dir, lock, resumed) = prepare_run_dir(&args, &cfg)?;
     if resumed && is_trained(&dir, &cfg) {
         println!("{} is trained already", dir.display());
         return Ok(());
     }
     if !args.inline {
-        crate::launcher::run(&cfg, &dir, args.actors, &args.tracks)?;
+        crate::launcher::run(&cfg, &dir, &lock, args.actors, &args.tracks)?;
         return finish(&args, &cfg, &dir);
     }
     if resumed {

@@ -153,12 +153,10 @@ fn track_info_and_raceline_export_on_the_paper_map() {
     let yaml = out.path().join("esp.yaml");
     std::fs::write(
         &yaml,
-        format!(
-            "image: {}\nresolution: 0.05\norigin: [-38.5, -24.4, 0]\n",
-            dir.join("f1_esp.png").display()
-        ),
+        "image: f1_esp.png\nresolution: 0.05\norigin: [-38.5, -24.4, 0]\n",
     )
     .unwrap();
+    std::fs::copy(dir.join("f1_esp.png"), out.path().join("f1_esp.png")).unwrap();
     std::fs::copy(
         dir.join("f1_esp_centerline.csv"),
         out.path().join("esp_centerline.csv"),
@@ -216,6 +214,21 @@ fn bad_input_gives_clear_errors() {
         &["track", "info", "oval", "--tracks-dir", d.to_str().unwrap()],
         "oval.png",
     );
+    // an image outside the yaml's folder is not opened
+    write(
+        d,
+        "escape.yaml",
+        "image: ../../../../etc/passwd\nresolution: 0.05\norigin: [0, 0, 0]\n",
+    );
+    write(
+        d,
+        "escape_centerline.csv",
+        "0,0,1,1\n4,0,1,1\n4,4,1,1\n0,4,1,1\n",
+    );
+    fails_with(
+        &["track", "info", d.join("escape.yaml").to_str().unwrap()],
+        "image '../../../../etc/passwd' is not a file name beside the yaml",
+    );
     // missing yaml file
     fails_with(
         &["track", "info", d.join("absent.yaml").to_str().unwrap()],
@@ -224,12 +237,10 @@ fn bad_input_gives_clear_errors() {
     // a map and a centreline that do not match, too few points, a bad number
     {
         let shared = shared("tracks");
-        let png = shared.join("f1_esp.png");
-        let yaml = format!(
-            "image: {}\nresolution: 0.05\norigin: [100, 100, 0]\n",
-            png.display()
-        );
-        write(d, "shifted.yaml", &yaml);
+        // the map image lies beside the yaml, as it must
+        std::fs::copy(shared.join("f1_esp.png"), d.join("f1_esp.png")).unwrap();
+        let yaml = "image: f1_esp.png\nresolution: 0.05\norigin: [100, 100, 0]\n";
+        write(d, "shifted.yaml", yaml);
         std::fs::copy(
             shared.join("f1_esp_centerline.csv"),
             d.join("shifted_centerline.csv"),
@@ -239,17 +250,14 @@ fn bad_input_gives_clear_errors() {
             &["track", "info", d.join("shifted.yaml").to_str().unwrap()],
             "outside the image",
         );
-        let yaml = format!(
-            "image: {}\nresolution: 0.05\norigin: [-38.5, -24.4, 0]\n",
-            png.display()
-        );
-        write(d, "few.yaml", &yaml);
+        let yaml = "image: f1_esp.png\nresolution: 0.05\norigin: [-38.5, -24.4, 0]\n";
+        write(d, "few.yaml", yaml);
         write(d, "few_centerline.csv", "0,0,1,1\n1,0,1,1\n1,1,1,1\n");
         fails_with(
             &["track", "info", d.join("few.yaml").to_str().unwrap()],
             "3 distinct points",
         );
-        write(d, "badnum.yaml", &yaml);
+        write(d, "badnum.yaml", yaml);
         write(d, "badnum_centerline.csv", "0,0,1,1\n0.2,zero,1,1\n");
         fails_with(
             &["track", "info", d.join("badnum.yaml").to_str().unwrap()],

@@ -98,24 +98,58 @@ fn sync(path: &Path) -> Result<()> {
         .map_err(|e| io_error("syncing", path, e))
 }
 
-/// Checks the seal of a checkpoint folder: every file its manifest lists has its size and
-/// CRC-32. A folder written before checkpoints were sealed (no manifest) passes unchecked.
+/// A manifest larger than this is damaged (a real one lists a dozen files in a few hundred
+/// bytes).
+const MAX_MANIFEST_BYTES: u64 = 1 << 20;
+
+/// Checks the seal of a checkpoint folder: its manifest lists plain file names of that folder,
+/// and every file it lists is a regular file with the size (checked before reading) and CRC-32
+/// listed. A folder without a manifest is unfinished or damaged and fails too.
 pub fn verify(dir: &Path) -> Result<()> {
     let path = dir.join(MANIFEST_FILE);
-    let text = match std::fs::read_to_string(&path) {
-        Ok(t) => t,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+    let text = match ctxrace_common::run_dir::read_regular(&path, MAX_MANIFEST_BYTES) {
+        Ok(t) => String::from_utf8_lossy(&t).into_owned(),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Err(io_error(
+                "checking",
+                dir,
+                format!(
+                    "no {MANIFEST_FILE}, so its files cannot be verified: an unfinished or \
+                     damaged checkpoint (or one written before checkpoints were sealed); \
+                     choose another checkpoint or train again"
+                ),
+            ))
+        }
         Err(e) => return Err(io_error("reading", &path, e)),
     };
     let manifest: std::collections::BTreeMap<String, Sealed> =
         toml::from_str(&text).map_err(|e| io_error("parsing", &path, e))?;
+    // every file of the folder is listed (subfolders, such as an evaluation's, are not files)
+    let entries = std::fs::read_dir(dir).map_err(|e| io_error("listing", dir, e))?;
+    for entry in entries {
+        let entry = entry.map_err(|e| io_error("listing", dir, e))?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let is_dir = entry.file_type().is_ok_and(|t| t.is_dir());
+        if !is_dir && name != MANIFEST_FILE && !manifest.contains_key(&name) {
+            return Err(io_error(
+                "checking",
+                &entry.path(),
+                "a file its manifest does not list: damaged (or added after the checkpoint \
+                 was sealed; remove it)",
+            ));
+        }
+    }
     for (name, want) in manifest {
+        let plain = Path::new(&name).file_name() == Some(std::ffi::OsStr::new(&name));
+        if !plain || name == MANIFEST_FILE {
+            return Err(io_error(
+                "checking",
+                &path,
+                format!("it lists '{name}', not a file of the checkpoint's folder: damaged"),
+            ));
+        }
         let file = dir.join(&name);
-        let bytes = std::fs::read(&file).map_err(|e| io_error("reading", &file, e))?;
-        let got = Sealed {
-            bytes: bytes.len() as u64,
-            crc32: crc32fast::hash(&bytes),
-        };
+        let got = sealed(&file, want.bytes)?;
         if got != want {
             return Err(io_error(
                 "checking",
@@ -128,6 +162,37 @@ pub fn verify(dir: &Path) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// The size and CRC-32 of the regular file `file`; its CRC-32 only when it has `bytes` bytes
+/// (0 otherwise), so that a file of another size is never read.
+fn sealed(file: &Path, bytes: u64) -> Result<Sealed> {
+    use std::io::Read as _;
+    let mut f =
+        ctxrace_common::run_dir::open_regular(file).map_err(|e| io_error("reading", file, e))?;
+    let len = f
+        .metadata()
+        .map_err(|e| io_error("reading", file, e))?
+        .len();
+    if len != bytes {
+        return Ok(Sealed {
+            bytes: len,
+            crc32: 0,
+        });
+    }
+    let mut hasher = crc32fast::Hasher::new();
+    let mut buf = vec![0u8; 1 << 20];
+    loop {
+        let n = f.read(&mut buf).map_err(|e| io_error("reading", file, e))?;
+        if n == 0 {
+            break;
+        }
+        hasher.update(&buf[..n]);
+    }
+    Ok(Sealed {
+        bytes: len,
+        crc32: hasher.finalize(),
+    })
 }
 
 /// Saves `algo` as `<run>/checkpoints/step-<steps>/`, with the policy weights and the agent's
@@ -169,7 +234,8 @@ pub(crate) fn write_policy_files(
 }
 
 /// Fills a fresh temporary folder beside `final_dir` with `fill` and renames it into place,
-/// replacing an earlier `final_dir`; returns `final_dir`.
+/// replacing an earlier `final_dir`; returns `final_dir`. The temporary folder is created
+/// exclusively under a fresh name, so nothing planted beside `final_dir` is written through.
 pub(crate) fn write_atomically(
     final_dir: &Path,
     fill: impl FnOnce(&Path) -> Result<()>,
@@ -178,21 +244,42 @@ pub(crate) fn write_atomically(
         .file_name()
         .and_then(|n| n.to_str())
         .ok_or_else(|| Error::Msg(format!("{} has no folder name", final_dir.display())))?;
-    let tmp = final_dir.with_file_name(format!(".tmp-{name}"));
-    if tmp.exists() {
-        std::fs::remove_dir_all(&tmp).map_err(|e| io_error("removing", &tmp, e))?;
+    let parent = final_dir
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    std::fs::create_dir_all(parent).map_err(|e| io_error("creating", parent, e))?;
+    // the temporaries a crash left behind (the run's lock keeps other writers out)
+    let prefix = format!(".tmp-{name}");
+    let entries = std::fs::read_dir(parent).map_err(|e| io_error("listing", parent, e))?;
+    for entry in entries.filter_map(|e| e.ok()) {
+        if entry.file_name().to_string_lossy().starts_with(&prefix) {
+            remove(&entry.path())?;
+        }
     }
-    std::fs::create_dir_all(&tmp).map_err(|e| io_error("creating", &tmp, e))?;
-    fill(&tmp)?;
-    seal(&tmp)?;
-    if final_dir.exists() {
-        std::fs::remove_dir_all(final_dir).map_err(|e| io_error("removing", final_dir, e))?;
+    let tmp = tempfile::Builder::new()
+        .prefix(&format!("{prefix}-"))
+        .permissions(std::os::unix::fs::PermissionsExt::from_mode(0o755))
+        .tempdir_in(parent)
+        .map_err(|e| io_error("creating a temporary folder in", parent, e))?;
+    fill(tmp.path())?;
+    seal(tmp.path())?;
+    if final_dir.symlink_metadata().is_ok() {
+        remove(final_dir)?;
     }
-    std::fs::rename(&tmp, final_dir).map_err(|e| io_error("renaming", &tmp, e))?;
-    if let Some(parent) = final_dir.parent() {
-        sync(parent)?;
-    }
+    std::fs::rename(tmp.path(), final_dir).map_err(|e| io_error("renaming", tmp.path(), e))?;
+    let _ = tmp.keep();
+    sync(parent)?;
     Ok(final_dir.to_path_buf())
+}
+
+/// Removes a folder with its files, or a file or link (never what a link points to).
+fn remove(path: &Path) -> Result<()> {
+    let removed = match path.symlink_metadata() {
+        Ok(m) if m.is_dir() => std::fs::remove_dir_all(path),
+        _ => std::fs::remove_file(path),
+    };
+    removed.map_err(|e| io_error("removing", path, e))
 }
 
 /// The complete checkpoints of a run directory, oldest first.
@@ -257,9 +344,81 @@ mod tests {
             "{err}"
         );
         assert_eq!(latest_checkpoint(run.path()), Some(step(1)));
-        // a checkpoint written before they were sealed is taken as it is
+        // a checkpoint without its manifest cannot be verified: refused, and passed over
         std::fs::remove_file(step(2).join(MANIFEST_FILE)).unwrap();
-        assert_eq!(latest_checkpoint(run.path()), Some(step(2)));
+        std::fs::write(step(2).join(POLICY_FILE), vec![2u8; 100]).unwrap();
+        let err = verify(&step(2)).unwrap_err().to_string();
+        assert!(
+            err.contains("step-0000000002") && err.contains("no manifest.toml"),
+            "{err}"
+        );
+        assert_eq!(latest_checkpoint(run.path()), Some(step(1)));
+    }
+
+    /// An empty sealed checkpoint in a temporary run, its manifest replaced by `manifest`.
+    fn with_manifest(manifest: &str) -> (tempfile::TempDir, std::path::PathBuf) {
+        let run = tempfile::tempdir().unwrap();
+        let dir = run.path().join(CHECKPOINTS).join("step-0000000001");
+        write_atomically(&dir, |_| Ok(())).unwrap();
+        std::fs::write(dir.join(MANIFEST_FILE), manifest).unwrap();
+        (run, dir)
+    }
+
+    #[test]
+    fn manifest_names_outside_the_folder_or_not_regular_files_are_refused() {
+        let outside = "bytes = 1\ncrc32 = 0\n";
+        for name in ["../x", "/dev/zero", "sub/x", "..", MANIFEST_FILE] {
+            let (_run, dir) = with_manifest(&format!("[\"{name}\"]\n{outside}"));
+            let err = verify(&dir).unwrap_err().to_string();
+            assert!(
+                err.contains(&format!("lists '{name}'")) && err.contains("damaged"),
+                "{name}: {err}"
+            );
+        }
+        // a file of the folder that is a link to a device is refused, not read
+        let (_run, dir) = with_manifest(&format!("[zero]\n{outside}"));
+        std::os::unix::fs::symlink("/dev/zero", dir.join("zero")).unwrap();
+        let err = verify(&dir).unwrap_err().to_string();
+        assert!(err.contains("symbolic link"), "{err}");
+        // and so is one the manifest does not list
+        let (_run, dir) = with_manifest("");
+        std::os::unix::fs::symlink("/dev/zero", dir.join(POLICY_FILE)).unwrap();
+        let err = verify(&dir).unwrap_err().to_string();
+        assert!(
+            err.contains(POLICY_FILE) && err.contains("does not list"),
+            "{err}"
+        );
+        // a huge manifest is refused before it is read
+        let (_run, dir) = with_manifest("");
+        std::fs::File::create(dir.join(MANIFEST_FILE))
+            .unwrap()
+            .set_len(MAX_MANIFEST_BYTES + 1)
+            .unwrap();
+        let err = verify(&dir).unwrap_err().to_string();
+        assert!(
+            err.contains(MANIFEST_FILE) && err.contains("more than"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn a_link_planted_at_the_temporary_folder_is_not_followed() {
+        let run = tempfile::tempdir().unwrap();
+        let elsewhere = tempfile::tempdir().unwrap();
+        let root = run.path().join(CHECKPOINTS);
+        std::fs::create_dir_all(&root).unwrap();
+        let planted = root.join(".tmp-step-0000000001");
+        std::os::unix::fs::symlink(elsewhere.path(), &planted).unwrap();
+        let dir = root.join("step-0000000001");
+        write_atomically(&dir, |d| {
+            std::fs::write(d.join(STATE_FILE), "step = 1").unwrap();
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(std::fs::read_dir(elsewhere.path()).unwrap().count(), 0);
+        assert!(planted.symlink_metadata().is_err());
+        assert!(verify(&dir).is_ok());
+        assert_eq!(std::fs::read_dir(&root).unwrap().count(), 1);
     }
 
     mod properties {

@@ -5,8 +5,8 @@
 use crate::tensorboard::EventWriter;
 use crate::Metrics;
 use anyhow::{Context as _, Result};
-use ctxrace_common::run_dir::{METRICS_CSV, METRICS_JSONL};
-use std::fs::{File, OpenOptions};
+use ctxrace_common::run_dir::{open_append, METRICS_CSV, METRICS_JSONL};
+use std::fs::File;
 use std::io::Write;
 use std::path::Path;
 
@@ -23,11 +23,7 @@ impl MetricsLog {
     pub fn open(run_dir: &Path, role: &str) -> Result<Self> {
         let open = |name: &str| {
             let path = run_dir.join(name);
-            OpenOptions::new()
-                .create(true)
-                .append(true)
-                .open(&path)
-                .with_context(|| format!("opening {}", path.display()))
+            open_append(&path).with_context(|| format!("opening {}", path.display()))
         };
         let csv_path = run_dir.join(METRICS_CSV);
         let columns = std::fs::read_to_string(&csv_path).ok().and_then(|t| {

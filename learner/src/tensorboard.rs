@@ -83,7 +83,9 @@ impl EventWriter {
             "events.out.tfevents.{secs}.{host}.{}.{role}",
             std::process::id()
         ));
-        let file = File::create(&path).with_context(|| format!("creating {}", path.display()))?;
+        // a new file, never one (or a link) already there
+        let file =
+            File::create_new(&path).with_context(|| format!("creating {}", path.display()))?;
         let mut w = Self {
             file: BufWriter::new(file),
             path,

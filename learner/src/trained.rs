@@ -65,7 +65,7 @@ impl TrainedAgent {
         let (checkpoint, run_dir) = if path.join(POLICY_FILE).exists() {
             let run = path.parent().and_then(Path::parent).map(Path::to_path_buf);
             (path.to_path_buf(), run)
-        } else if latest_checkpoint(path).is_some() {
+        } else if !checkpoints(path).is_empty() || best_checkpoint(path).is_some() {
             (pick_checkpoint(path, choice)?, Some(path.to_path_buf()))
         } else {
             bail!(
@@ -96,7 +96,8 @@ impl TrainedAgent {
     }
 }
 
-/// The checkpoint `choice` of the run directory `run`, or an error saying which there are.
+/// The checkpoint `choice` of the run directory `run`, or an error saying which there are
+/// (the intact `best` among them when every `step-*` is damaged).
 fn pick_checkpoint(run: &Path, choice: CheckpointChoice) -> Result<PathBuf> {
     let found = match choice {
         CheckpointChoice::Best => best_checkpoint(run),
@@ -108,6 +109,7 @@ fn pick_checkpoint(run: &Path, choice: CheckpointChoice) -> Result<PathBuf> {
     found.ok_or_else(|| {
         let steps: Vec<String> = checkpoints(run)
             .iter()
+            .filter(|c| verify(c).is_ok())
             .filter_map(|c| {
                 c.file_name()?
                     .to_str()?
@@ -117,17 +119,87 @@ fn pick_checkpoint(run: &Path, choice: CheckpointChoice) -> Result<PathBuf> {
             })
             .map(|n| format!("step-{n}"))
             .collect();
+        let best_intact = best_checkpoint(run).is_some_and(|b| verify(&b).is_ok());
         let why = match choice {
             CheckpointChoice::Best => {
                 " (the learner saves it when the policy drove a training episode; runs trained \
                  before ctxrace kept it have none)"
             }
+            CheckpointChoice::Latest if !checkpoints(run).is_empty() => {
+                " intact (every step-* checkpoint is damaged; the warnings above say how)"
+            }
             _ => "",
         };
-        anyhow::anyhow!(
-            "{} has no {choice} checkpoint{why}; pass --checkpoint latest or one of {}",
-            run.display(),
-            steps.join(", ")
-        )
+        let alternatives: Vec<String> = (best_intact && choice != CheckpointChoice::Best)
+            .then(|| "best (intact)".to_string())
+            .into_iter()
+            .chain((!steps.is_empty() && choice == CheckpointChoice::Best).then(|| "latest".into()))
+            .chain(steps)
+            .collect();
+        match alternatives.is_empty() {
+            true => anyhow::anyhow!(
+                "{} has no {choice} checkpoint{why} and no other intact one; train it again \
+                 with `ctxrace train`",
+                run.display()
+            ),
+            false => anyhow::anyhow!(
+                "{} has no {choice} checkpoint{why}; pass --checkpoint {}",
+                run.display(),
+                alternatives.join(" or ")
+            ),
+        }
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::checkpoint::{write_atomically, STATE_FILE};
+    use ctxrace_common::run_dir::{BEST_DIR, CHECKPOINTS};
+
+    /// A sealed checkpoint `name` of `run` holding an agent and a policy.
+    fn checkpoint(run: &Path, name: &str) -> PathBuf {
+        let agent = toml::to_string(&AgentConfig::default()).unwrap();
+        write_atomically(&run.join(CHECKPOINTS).join(name), |d| {
+            std::fs::write(d.join(STATE_FILE), "step = 1").unwrap();
+            std::fs::write(d.join(crate::best::BEST_FILE), "").unwrap();
+            std::fs::write(d.join(AGENT_FILE), &agent).unwrap();
+            std::fs::write(d.join(POLICY_FILE), name).unwrap();
+            Ok(())
+        })
+        .unwrap()
+    }
+
+    #[test]
+    fn an_intact_best_is_loaded_and_named_when_every_step_is_damaged() {
+        let run = tempfile::tempdir().unwrap();
+        for name in ["step-0000000001", "step-0000000002"] {
+            let dir = checkpoint(run.path(), name);
+            std::fs::write(dir.join(POLICY_FILE), "damaged").unwrap();
+        }
+        let best = checkpoint(run.path(), BEST_DIR);
+        let agent = TrainedAgent::load(run.path(), CheckpointChoice::Best).unwrap();
+        assert_eq!(agent.checkpoint, best);
+        assert_eq!(agent.weights, BEST_DIR.as_bytes());
+        let err = TrainedAgent::load(run.path(), CheckpointChoice::Latest)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("no latest checkpoint intact")
+                && err.contains("every step-* checkpoint is damaged")
+                && err.contains("pass --checkpoint best (intact)"),
+            "{err}"
+        );
+        // with the best damaged too, nothing is offered
+        std::fs::write(best.join(POLICY_FILE), "damaged").unwrap();
+        let err = format!(
+            "{:#}",
+            TrainedAgent::load(run.path(), CheckpointChoice::Best).unwrap_err()
+        );
+        assert!(err.contains("damaged"), "{err}");
+        let err = TrainedAgent::load(run.path(), CheckpointChoice::Latest)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("no other intact one"), "{err}");
+    }
 }

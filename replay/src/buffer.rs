@@ -58,7 +58,7 @@ impl Stream {
         }
     }
 
-    fn cap(&self) -> usize {
+    pub(crate) fn cap(&self) -> usize {
         self.reward.len()
     }
 

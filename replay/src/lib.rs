@@ -11,4 +11,5 @@ pub use limiter::RateLimiter;
 pub use server::{run, ReplayArgs, ReplayControl};
 pub use snapshot::{
     encode_snapshot, read_snapshot, write_encoded, write_snapshot, BackgroundWriter, LimiterCounts,
+    SnapshotShape,
 };

@@ -6,7 +6,7 @@
 use crate::buffer::ReplayBuffer;
 use crate::limiter::RateLimiter;
 use crate::snapshot::{
-    encode_snapshot, read_snapshot, write_snapshot, BackgroundWriter, LimiterCounts,
+    encode_snapshot, read_snapshot, write_snapshot, BackgroundWriter, LimiterCounts, SnapshotShape,
 };
 use anyhow::Result;
 use ctxrace_common::ipc::wire::{ReplayStatus, WireError, FORMAT_VERSION, REASONS};
@@ -320,18 +320,8 @@ fn restore(args: &ReplayArgs) -> Result<(ReplayBuffer, LimiterCounts)> {
          the file away (mv {0} {0}.damaged) and continue the run (`ctxrace train … --resume`)",
         path.display()
     );
-    let (buffer, counts) = read_snapshot(path).map_err(|e| ConfigError(format!("{e:#}; {how}")))?;
-    let shape = |b: &ReplayBuffer| (b.actors(), b.capacity(), b.obs_dim(), b.act_dim());
-    if shape(&buffer) != shape(&fresh) {
-        return Err(ConfigError(format!(
-            "replay snapshot {} holds (actors, capacity, obs_dim, act_dim) = {:?}, the run has \
-             {:?}; {how}",
-            path.display(),
-            shape(&buffer),
-            shape(&fresh)
-        ))
-        .into());
-    }
+    let (buffer, counts) = read_snapshot(path, SnapshotShape::of(&fresh))
+        .map_err(|e| ConfigError(format!("{e:#}; {how}")))?;
     tracing::info!(
         "replay: restored {} steps from {}",
         buffer.len(),

@@ -6,8 +6,9 @@
 
 use crate::buffer::{ReplayBuffer, Stream};
 use anyhow::{anyhow, bail, Context as _, Result};
+use ctxrace_common::run_dir::write_atomic;
 use std::fs::File;
-use std::io::{BufReader, Read, Write};
+use std::io::{BufReader, Read};
 use std::path::{Path, PathBuf};
 
 const MAGIC: &[u8; 8] = b"CTXRPLY\0";
@@ -78,29 +79,14 @@ pub fn encode_snapshot(buffer: &ReplayBuffer, counts: LimiterCounts) -> Vec<u8> 
     w
 }
 
-/// Appends the CRC-32 to an [`encode_snapshot`] and writes it to `path` atomically: a temporary
-/// file, fsynced, renamed over the old snapshot, the folder fsynced.
+/// Appends the CRC-32 to an [`encode_snapshot`] and writes it to `path` atomically
+/// ([`write_atomic`]: a temporary file created exclusively, fsynced, renamed over the old
+/// snapshot, the folder fsynced).
 pub fn write_encoded(path: &Path, mut bytes: Vec<u8>) -> Result<()> {
     let crc = crc32fast::hash(&bytes);
     bytes.extend_from_slice(&crc.to_le_bytes());
-    let tmp = tmp_path(path);
-    let written = (|| -> std::io::Result<()> {
-        let mut file = File::create(&tmp)?;
-        file.write_all(&bytes)?;
-        file.sync_all()
-    })();
-    if let Err(e) = written {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(e).with_context(|| format!("writing replay snapshot {}", tmp.display()));
-    }
-    std::fs::rename(&tmp, path)
-        .with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        File::open(dir)
-            .and_then(|d| d.sync_all())
-            .with_context(|| format!("syncing folder {}", dir.display()))?;
-    }
-    Ok(())
+    write_atomic(path, &bytes)
+        .with_context(|| format!("writing replay snapshot {}", path.display()))
 }
 
 /// Snapshots written on a thread of their own, so that the replay loop pauses only to encode.
@@ -134,10 +120,49 @@ impl BackgroundWriter {
     }
 }
 
-/// Reads a snapshot; any damage (bad magic, version, sizes, checksum) is an error naming the
-/// file.
-pub fn read_snapshot(path: &Path) -> Result<(ReplayBuffer, LimiterCounts)> {
-    read(path).with_context(|| format!("restoring replay snapshot {}", path.display()))
+/// The shape of a replay buffer, which a snapshot must match to be restored into it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SnapshotShape {
+    /// Streams (one per actor).
+    pub actors: usize,
+    /// Steps each stream holds at most.
+    pub stream_capacity: usize,
+    /// Observation size.
+    pub obs_dim: usize,
+    /// Action size.
+    pub act_dim: usize,
+}
+
+impl SnapshotShape {
+    /// The shape of `buffer`.
+    pub fn of(buffer: &ReplayBuffer) -> Self {
+        Self {
+            actors: buffer.streams.len(),
+            stream_capacity: buffer.streams.first().map_or(0, Stream::cap),
+            obs_dim: buffer.obs_dim,
+            act_dim: buffer.act_dim,
+        }
+    }
+}
+
+impl std::fmt::Display for SnapshotShape {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} actors x {} steps, obs_dim {}, act_dim {}",
+            self.actors, self.stream_capacity, self.obs_dim, self.act_dim
+        )
+    }
+}
+
+/// Reads a snapshot that must have the shape `expected` (the run's buffer): the header is
+/// checked against it before anything is sized from the header; any damage (bad magic,
+/// version, sizes, checksum) or another shape is an error naming the file.
+pub fn read_snapshot(
+    path: &Path,
+    expected: SnapshotShape,
+) -> Result<(ReplayBuffer, LimiterCounts)> {
+    read(path, expected).with_context(|| format!("restoring replay snapshot {}", path.display()))
 }
 
 /// Checks the file's trailing CRC-32 against all bytes before it, reading it once without
@@ -165,7 +190,7 @@ fn verify_checksum(path: &Path, file_len: u64) -> Result<()> {
     Ok(())
 }
 
-fn read(path: &Path) -> Result<(ReplayBuffer, LimiterCounts)> {
+fn read(path: &Path, expected: SnapshotShape) -> Result<(ReplayBuffer, LimiterCounts)> {
     let file = File::open(path)?;
     let file_len = file.metadata()?.len();
     verify_checksum(path, file_len)?;
@@ -184,10 +209,16 @@ fn read(path: &Path) -> Result<(ReplayBuffer, LimiterCounts)> {
     }
     let (obs_dim, act_dim, actors) = (r.u32()? as u64, r.u32()? as u64, r.u32()? as u64);
     let (cap, inserted, inserts, samples) = (r.u64()?, r.u64()?, r.u64()?, r.u64()?);
-    if cap == 0 || actors == 0 || cap > file_len || actors > file_len {
-        bail!("header claims capacity {cap} and {actors} streams: corrupt");
+    let held = SnapshotShape {
+        actors: usize::try_from(actors).unwrap_or(usize::MAX),
+        stream_capacity: usize::try_from(cap).unwrap_or(usize::MAX),
+        obs_dim: obs_dim as usize,
+        act_dim: act_dim as usize,
+    };
+    if held != expected {
+        bail!("the snapshot holds {held}, the run has {expected}: a snapshot of another run or configuration");
     }
-    let (o, a, cap) = (obs_dim as usize, act_dim as usize, cap as usize);
+    let (o, a, cap) = (held.obs_dim, held.act_dim, held.stream_capacity);
     let per_step = 4 * (o + a + 1 + 2 + 2) as u64 + 1 + 8;
     // every stream's steps must fit in what is left of the file before they are allocated
     let mut budget = file_len.saturating_sub(HEADER_BYTES + 4);
@@ -237,12 +268,6 @@ fn read(path: &Path) -> Result<(ReplayBuffer, LimiterCounts)> {
         },
         LimiterCounts { inserts, samples },
     ))
-}
-
-fn tmp_path(path: &Path) -> PathBuf {
-    let mut name = path.file_name().unwrap_or_default().to_os_string();
-    name.push(".tmp");
-    path.with_file_name(name)
 }
 
 /// A reader that hashes every byte passing through.
@@ -300,7 +325,8 @@ mod tests {
             samples: 40,
         };
         write_snapshot(&path, &b, counts).unwrap();
-        let (back, c) = read_snapshot(&path).unwrap();
+        let shape = SnapshotShape::of(&b);
+        let (back, c) = read_snapshot(&path, shape).unwrap();
         assert_eq!(c, counts);
         // the same steps in the same order (the ring may start elsewhere)
         let again = dir.path().join("again.snap");
@@ -316,15 +342,42 @@ mod tests {
         };
         assert_eq!(sample(&back), sample(&b));
         assert!(sample(&b).is_some());
-        assert!(!tmp_path(&path).exists());
+        // the two snapshots and no temporary
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
 
         let mut bytes = std::fs::read(&path).unwrap();
         let mid = bytes.len() / 2;
         bytes[mid] ^= 0x40;
         std::fs::write(&path, &bytes).unwrap();
-        let err = format!("{:#}", read_snapshot(&path).unwrap_err());
+        let err = format!("{:#}", read_snapshot(&path, shape).unwrap_err());
         assert!(
             err.contains("replay.snap") && err.contains("corrupt"),
+            "{err}"
+        );
+
+        // a header claiming another shape, its checksum recomputed, is refused before anything
+        // is sized from it (obs_dim 2^31 - 1 would be 2^31 floats per step)
+        let mut lying = std::fs::read(&again).unwrap();
+        lying.truncate(lying.len() - 4);
+        lying[12..16].copy_from_slice(&0x7fff_ffffu32.to_le_bytes());
+        let crc = crc32fast::hash(&lying);
+        lying.extend_from_slice(&crc.to_le_bytes());
+        std::fs::write(&path, &lying).unwrap();
+        let err = format!("{:#}", read_snapshot(&path, shape).unwrap_err());
+        assert!(
+            err.contains("replay.snap")
+                && err.contains("obs_dim 2147483647")
+                && err.contains("another run"),
+            "{err}"
+        );
+        // so is one of another run's shape
+        let other = SnapshotShape {
+            obs_dim: 3,
+            ..shape
+        };
+        let err = format!("{:#}", read_snapshot(&again, other).unwrap_err());
+        assert!(
+            err.contains("obs_dim 2, act_dim 1") && err.contains("obs_dim 3"),
             "{err}"
         );
 
@@ -332,18 +385,18 @@ mod tests {
         let mut huge = std::fs::read(&again).unwrap();
         huge[8 + 4 * 4 + 7] = 0x7f;
         std::fs::write(&path, &huge).unwrap();
-        let err = format!("{:#}", read_snapshot(&path).unwrap_err());
+        let err = format!("{:#}", read_snapshot(&path, shape).unwrap_err());
         assert!(err.contains("checksum") && err.contains("corrupt"), "{err}");
 
         std::fs::write(&path, &bytes[..100]).unwrap();
-        let err = format!("{:#}", read_snapshot(&path).unwrap_err());
+        let err = format!("{:#}", read_snapshot(&path, shape).unwrap_err());
         assert!(
             err.contains("replay.snap") && err.contains("truncated"),
             "{err}"
         );
 
         std::fs::write(&path, b"garbage").unwrap();
-        assert!(read_snapshot(&path).is_err());
-        assert!(read_snapshot(&dir.path().join("missing")).is_err());
+        assert!(read_snapshot(&path, shape).is_err());
+        assert!(read_snapshot(&dir.path().join("missing"), shape).is_err());
     }
 }

@@ -3,12 +3,17 @@
 //! never a panic, never a buffer sized from a damaged header.
 
 use ctxrace_common::ipc::TrajectoryStep;
-use ctxrace_replay::{read_snapshot, write_snapshot, LimiterCounts, ReplayBuffer};
+use ctxrace_replay::{read_snapshot, write_snapshot, LimiterCounts, ReplayBuffer, SnapshotShape};
 use proptest::prelude::*;
 use std::path::Path;
 
 const OBS: usize = 3;
 const ACT: usize = 2;
+
+/// The shape of the buffer [`valid_snapshot`] saves.
+fn shape() -> SnapshotShape {
+    SnapshotShape::of(&ReplayBuffer::new(64, 2, OBS, ACT))
+}
 
 /// The bytes of a valid snapshot of two actors' steps.
 fn valid_snapshot(dir: &Path) -> Vec<u8> {
@@ -75,7 +80,7 @@ proptest! {
         }
         let path = dir.path().join("damaged.snapshot");
         std::fs::write(&path, &bytes).unwrap();
-        let err = read_snapshot(&path).err();
+        let err = read_snapshot(&path, shape()).err();
         prop_assert!(err.is_some(), "{damage:?} was accepted");
         let message = format!("{:#}", err.unwrap());
         prop_assert!(message.contains("damaged.snapshot"), "{}", message);
@@ -88,7 +93,7 @@ fn the_undamaged_snapshot_reads_back() {
     let bytes = valid_snapshot(dir.path());
     let path = dir.path().join("copy.snapshot");
     std::fs::write(&path, bytes).unwrap();
-    let (buffer, counts) = read_snapshot(&path).unwrap();
+    let (buffer, counts) = read_snapshot(&path, shape()).unwrap();
     assert_eq!(buffer.len(), 20);
     assert_eq!((counts.inserts, counts.samples), (20, 7));
 }

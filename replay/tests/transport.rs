@@ -5,7 +5,7 @@ use ctxrace_common::ipc::{
     TrajectoryReceiver, TrajectorySender, TrajectoryStep, TRAJECTORY_BUFFER,
 };
 use ctxrace_common::{Batch, BatchSpec, ReplayOptions};
-use ctxrace_replay::{read_snapshot, run, ReplayArgs, ReplayControl};
+use ctxrace_replay::{read_snapshot, run, ReplayArgs, ReplayBuffer, ReplayControl, SnapshotShape};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::thread;
@@ -181,7 +181,8 @@ fn two_actors_fill_the_replay_and_the_learner_gets_batches() {
     assert_eq!(status.batches, 2);
     assert_eq!(status.sampled, 4 * 10 + 8);
 
-    let (restored, counts) = read_snapshot(&snap).unwrap();
+    let shape = SnapshotShape::of(&ReplayBuffer::new(10_000, 2, OBS, ACT));
+    let (restored, counts) = read_snapshot(&snap, shape).unwrap();
     assert_eq!(restored.len(), 2 * STEPS);
     assert_eq!(counts.samples, 48);
 

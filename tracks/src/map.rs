@@ -37,6 +37,35 @@ pub struct OccupancyMap {
 /// Grey values at or below this are occupied (f1tenth_gym's threshold).
 const OCCUPIED_AT_OR_BELOW: u8 = 128;
 
+/// The image a map yaml's `image:` names, if it is a plain file name (no folder part, not `.`
+/// or `..`), which confines it to the yaml's folder: the only images ctxrace opens or fetches.
+pub fn image_beside(image: &str) -> Option<&str> {
+    let name = image.trim();
+    (!name.is_empty() && name != "." && name != ".." && !name.contains(['/', '\\'])).then_some(name)
+}
+
+/// Decodes the image at `path` if it is a regular file: a link is not followed and a FIFO is
+/// refused without waiting on it.
+fn open_image(path: &Path) -> std::result::Result<image::DynamicImage, String> {
+    use std::os::unix::fs::OpenOptionsExt;
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK)
+        .open(path)
+        .map_err(|e| match e.raw_os_error() {
+            Some(libc::ELOOP) => "a symbolic link, which ctxrace does not follow".to_string(),
+            _ => e.to_string(),
+        })?;
+    if !file.metadata().map_err(|e| e.to_string())?.is_file() {
+        return Err("not a regular file (a FIFO, device or folder)".into());
+    }
+    image::ImageReader::new(std::io::BufReader::new(file))
+        .with_guessed_format()
+        .map_err(|e| e.to_string())?
+        .decode()
+        .map_err(|e| e.to_string())
+}
+
 impl OccupancyMap {
     /// Loads a map yaml and the image it names (relative to the yaml's folder).
     pub fn load(yaml_path: &Path) -> Result<Self> {
@@ -65,11 +94,18 @@ impl OccupancyMap {
                 yaml.origin
             )));
         }
+        let name = image_beside(&yaml.image).ok_or_else(|| {
+            bad(format!(
+                "image '{}' is not a file name beside the yaml; name a PNG in the yaml's own \
+                 folder (e.g. image: map.png), without a folder part",
+                yaml.image
+            ))
+        })?;
         let image_path = yaml_path
             .parent()
             .unwrap_or_else(|| Path::new("."))
-            .join(&yaml.image);
-        let img = image::open(&image_path)
+            .join(name);
+        let img = open_image(&image_path)
             .map_err(|e| TrackError::Map {
                 path: image_path.clone(),
                 message: format!(
@@ -128,5 +164,53 @@ impl OccupancyMap {
                     self.height as f64 * self.resolution,
                 ),
         )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The error of loading a map yaml whose `image:` is `image`, in `dir`.
+    fn load_error(dir: &Path, image: &str) -> String {
+        let yaml = dir.join("m.yaml");
+        std::fs::write(
+            &yaml,
+            format!("image: {image}\nresolution: 0.05\norigin: [0, 0, 0]\n"),
+        )
+        .unwrap();
+        OccupancyMap::load(&yaml).unwrap_err().to_string()
+    }
+
+    #[test]
+    fn the_image_is_confined_to_regular_files_beside_the_yaml() {
+        let dir = tempfile::tempdir().unwrap();
+        for image in ["../../etc/passwd", "/etc/passwd", "..", "sub/map.png"] {
+            let err = load_error(dir.path(), image);
+            assert!(
+                err.contains(&format!(
+                    "image '{image}' is not a file name beside the yaml"
+                )),
+                "{err}"
+            );
+        }
+        let fifo = std::ffi::CString::new(
+            dir.path()
+                .join("fifo.png")
+                .into_os_string()
+                .into_encoded_bytes(),
+        )
+        .unwrap();
+        // SAFETY: mkfifo reads the NUL-terminated path `fifo` owns, nothing else.
+        assert_eq!(unsafe { libc::mkfifo(fifo.as_ptr(), 0o600) }, 0);
+        let err = load_error(dir.path(), "fifo.png");
+        assert!(
+            err.contains("fifo.png") && err.contains("not a regular file"),
+            "{err}"
+        );
+        std::os::unix::fs::symlink("/etc/passwd", dir.path().join("link.png")).unwrap();
+        let err = load_error(dir.path(), "link.png");
+        assert!(err.contains("symbolic link"), "{err}");
+        assert_eq!(image_beside(" map.png "), Some("map.png"));
     }
 }
