@@ -19,6 +19,11 @@
 //!   eval/                  EVAL_DIR: meta.json (EVAL_META), job.json (EVAL_JOB), episodes.csv
 //!                          (EVAL_EPISODES), contexts.csv and contexts.json (EVAL_CONTEXTS_*)
 //! ```
+//!
+//! A run directory may be shared, so nothing planted in it is trusted: whole files are written
+//! with [`write_atomic`] (a temporary created exclusively, renamed over the file), logs are
+//! opened with [`open_append`], and files read by a name from another file with
+//! [`read_regular`] or [`open_regular`]; none of them follows a link or waits on a FIFO.
 
 /// The experiment as trained.
 pub const CONFIG_FILE: &str = "config.toml";

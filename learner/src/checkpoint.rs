@@ -150,22 +150,23 @@ pub fn verify(dir: &Path) -> Result<()> {
         }
         let file = dir.join(&name);
         let got = sealed(&file, want.bytes)?;
+        let why = if got.bytes != want.bytes {
+            format!("{} bytes, the manifest says {}", got.bytes, want.bytes)
+        } else {
+            format!(
+                "CRC-32 {:#010x}, the manifest says {:#010x}",
+                got.crc32, want.crc32
+            )
+        };
         if got != want {
-            return Err(io_error(
-                "checking",
-                &file,
-                format!(
-                    "{} bytes with CRC-32 {:#010x}, the manifest says {} bytes with {:#010x}: damaged",
-                    got.bytes, got.crc32, want.bytes, want.crc32
-                ),
-            ));
+            return Err(io_error("checking", &file, format!("{why}: damaged")));
         }
     }
     Ok(())
 }
 
 /// The size and CRC-32 of the regular file `file`; its CRC-32 only when it has `bytes` bytes
-/// (0 otherwise), so that a file of another size is never read.
+/// (0 otherwise, unused), so that a file of another size is never read.
 fn sealed(file: &Path, bytes: u64) -> Result<Sealed> {
     use std::io::Read as _;
     let mut f =
