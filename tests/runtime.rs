@@ -165,6 +165,25 @@ fn check_clean_run(run: &Path, actors: usize) {
             versions.windows(2).all(|w| w[0] < w[1]),
             "{name}: {versions:?}"
         );
+        // and followed the learner all along (a broadcast every 10 steps), also while it waited
+        // for the replay: an actor that got ahead at the start used to wait, blocked and
+        // loading nothing, for hundreds of steps (`[0, 470, ...]`)
+        let gap = versions.windows(2).map(|w| w[1] - w[0]).max().unwrap_or(0);
+        assert!(gap <= 100, "{name} lagged {gap} steps: {versions:?}");
+    }
+    // the launcher's status names each actor's policy version and its age in gradient steps
+    let status = json(&run.join("status.json"));
+    let lags = status["actors"].as_array().unwrap();
+    assert_eq!(lags.len(), actors, "{status}");
+    for (id, actor) in lags.iter().enumerate() {
+        assert_eq!(actor["id"].as_u64(), Some(id as u64), "{status}");
+        let version = actor["policy_version"].as_u64().unwrap();
+        let lag = actor["policy_lag"].as_u64().unwrap();
+        assert_eq!(
+            version + lag,
+            status["grad_steps"].as_u64().unwrap(),
+            "{status}"
+        );
     }
     assert_eq!(replay["dropped_chunks"].as_u64().unwrap(), 0, "{replay}");
     // Reverb's ratio: samples per insert beyond the minimum fill, while the learner trained

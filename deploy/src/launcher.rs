@@ -20,8 +20,8 @@ use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use ctxrace_common::ipc::wire::{named_reasons, ReplayStatus};
 use ctxrace_common::ipc::{
-    claim_run, cleanup, run_prefix, sweep_orphaned_runs, termination_flag, RunTransport,
-    TelemetrySubscriber, WeightsReceiver,
+    claim_run, cleanup, remove_dead_nodes, run_prefix, sweep_orphaned_runs, termination_flag,
+    CleanupReport, RunTransport, TelemetrySubscriber, WeightsReceiver,
 };
 use ctxrace_common::run_dir::{ACTOR_REPORTS, LOGS, REPLAY_REPORT, STATUS_FILE};
 use ctxrace_common::{ExperimentConfig, SupervisorConfig};
@@ -29,12 +29,93 @@ use std::os::unix::process::CommandExt;
 use std::path::Path;
 use std::process::{Child, Command, ExitStatus};
 use std::sync::atomic::Ordering;
+use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 /// Longest wait between two restarts of one process.
 const MAX_BACKOFF: Duration = Duration::from_secs(30);
 /// Time the children get to stop after SIGTERM before they are killed.
 const STOP_GRACE: Duration = Duration::from_secs(30);
+/// How long a cleanup of dead nodes may take before the supervisor logs it as overrunning.
+const CLEANUP_LIMIT: Duration = Duration::from_secs(5);
+
+/// Removes the resources of crashed processes' nodes on a thread of its own: a cleanup that
+/// hangs (it sat two minutes on a management segment another user had truncated) must not keep
+/// the supervisor from restarting actors or reaping the learner. One cleanup runs at a time; a
+/// crash during one asks for another once it ends.
+struct DeadNodeCleaner {
+    prefix: String,
+    running: Option<(Instant, mpsc::Receiver<Result<CleanupReport>>)>,
+    overrun_logged: bool,
+    again: bool,
+}
+
+impl DeadNodeCleaner {
+    fn new(prefix: &str) -> Self {
+        Self {
+            prefix: prefix.to_string(),
+            running: None,
+            overrun_logged: false,
+            again: false,
+        }
+    }
+
+    /// Starts a cleanup, or asks for one after the running one.
+    fn request(&mut self) {
+        if self.running.is_some() {
+            self.again = true;
+            return;
+        }
+        let (done, result) = mpsc::channel();
+        let prefix = self.prefix.clone();
+        let spawned = std::thread::Builder::new()
+            .name("dead-node-cleanup".into())
+            .spawn(move || {
+                let _ = done.send(remove_dead_nodes(&prefix));
+            });
+        match spawned {
+            Ok(_) => {
+                self.running = Some((Instant::now(), result));
+                self.overrun_logged = false;
+            }
+            Err(e) => tracing::warn!("starting the cleanup of dead nodes: {e}"),
+        }
+    }
+
+    /// Logs the running cleanup's outcome when it has ended, or once that it overruns
+    /// [`CLEANUP_LIMIT`]; never waits.
+    fn poll(&mut self) {
+        let Some((started, result)) = &self.running else {
+            return;
+        };
+        let took = started.elapsed();
+        match result.try_recv() {
+            Ok(Ok(r)) => tracing::info!(
+                "dead nodes cleaned up in {took:.1?}: {} removed, {} failed",
+                r.dead_nodes_removed,
+                r.dead_nodes_failed
+            ),
+            Ok(Err(e)) => tracing::warn!("cleaning up dead nodes: {e:#}"),
+            Err(mpsc::TryRecvError::Disconnected) => {
+                tracing::warn!("the cleanup of dead nodes ended without a result")
+            }
+            Err(mpsc::TryRecvError::Empty) => {
+                if took > CLEANUP_LIMIT && !self.overrun_logged {
+                    tracing::warn!(
+                        "the cleanup of dead nodes has run for {took:.1?} (limit \
+                         {CLEANUP_LIMIT:?}); supervision goes on without it"
+                    );
+                    self.overrun_logged = true;
+                }
+                return;
+            }
+        }
+        self.running = None;
+        if std::mem::take(&mut self.again) {
+            self.request();
+        }
+    }
+}
 
 /// One supervised child process.
 struct Supervised {
@@ -218,6 +299,14 @@ struct Progress {
 }
 
 impl Progress {
+    /// Each actor's policy age: gradient steps between the learner's newest broadcast and the
+    /// version the actor last reported driving with.
+    fn policy_lags(&self) -> impl Iterator<Item = u64> + '_ {
+        self.actor_versions
+            .iter()
+            .map(|v| self.grad_steps.saturating_sub(*v))
+    }
+
     fn message(&self, start: Instant) -> String {
         let secs = start.elapsed().as_secs_f64().max(1e-9);
         let mean = if self.recent_progress.is_empty() {
@@ -225,12 +314,7 @@ impl Progress {
         } else {
             self.recent_progress.iter().sum::<f64>() / self.recent_progress.len() as f64
         };
-        let lag = self
-            .actor_versions
-            .iter()
-            .map(|v| self.grad_steps.saturating_sub(*v))
-            .max()
-            .unwrap_or(0);
+        let lag = self.policy_lags().max().unwrap_or(0);
         let rejected = self.replay.rejected + self.telemetry_rejected + self.weights_rejected;
         format!(
             "| {} grad ({:.1}/s) | {} episodes, progress {mean:.3} | replay {:.0}% | lag {lag}{}",
@@ -246,15 +330,26 @@ impl Progress {
         )
     }
 
-    /// The live status file's contents: counters, rejections by reason, the replay's longest
-    /// stall.
+    /// The live status file's contents: counters, each actor's policy version and its age in
+    /// gradient steps, rejections by reason, the replay's longest stall.
     fn status(&self) -> serde_json::Value {
         let r = &self.replay;
+        let actors: Vec<serde_json::Value> = self
+            .actor_versions
+            .iter()
+            .zip(self.policy_lags())
+            .enumerate()
+            .map(|(id, (version, lag))| {
+                serde_json::json!({ "id": id, "policy_version": version, "policy_lag": lag })
+            })
+            .collect();
         serde_json::json!({
             "env_steps": self.env_steps,
             "grad_steps": self.grad_steps,
             "episodes": self.episodes,
             "actor_versions": self.actor_versions,
+            "actors": actors,
+            "max_policy_lag": self.policy_lags().max().unwrap_or(0),
             "replay": {
                 "inserted": r.inserted,
                 "sampled": r.sampled,
@@ -506,6 +601,7 @@ fn supervise(
     };
     let mut tick = Instant::now();
     let mut last_status = Instant::now();
+    let mut cleaner = DeadNodeCleaner::new(transport.prefix());
     let stop = termination_flag()?;
     loop {
         std::thread::sleep(Duration::from_millis(100));
@@ -602,9 +698,9 @@ fn supervise(
             crashed = true;
         }
         if crashed {
-            let (removed, failed) = transport.cleanup_dead_nodes();
-            tracing::info!("dead nodes cleaned up: {removed} removed, {failed} failed");
+            cleaner.request();
         }
+        cleaner.poll();
         if last_status.elapsed() >= Duration::from_secs(1) {
             crate::results::write_json(&dir.join(STATUS_FILE), &p.status())?;
             last_status = Instant::now();
