@@ -44,16 +44,28 @@ const CLEANUP_LIMIT: Duration = Duration::from_secs(5);
 /// the supervisor from restarting actors or reaping the learner. One cleanup runs at a time; a
 /// crash during one asks for another once it ends.
 struct DeadNodeCleaner {
-    prefix: String,
+    clean: std::sync::Arc<dyn Fn() -> Result<CleanupReport> + Send + Sync>,
+    limit: Duration,
     running: Option<(Instant, mpsc::Receiver<Result<CleanupReport>>)>,
     overrun_logged: bool,
     again: bool,
 }
 
 impl DeadNodeCleaner {
+    /// A cleaner of the dead nodes of the run with `prefix`.
     fn new(prefix: &str) -> Self {
+        let prefix = prefix.to_string();
+        Self::with(move || remove_dead_nodes(&prefix), CLEANUP_LIMIT)
+    }
+
+    /// A cleaner running `clean`, logged as overrunning after `limit`.
+    fn with(
+        clean: impl Fn() -> Result<CleanupReport> + Send + Sync + 'static,
+        limit: Duration,
+    ) -> Self {
         Self {
-            prefix: prefix.to_string(),
+            clean: std::sync::Arc::new(clean),
+            limit,
             running: None,
             overrun_logged: false,
             again: false,
@@ -67,11 +79,11 @@ impl DeadNodeCleaner {
             return;
         }
         let (done, result) = mpsc::channel();
-        let prefix = self.prefix.clone();
+        let clean = self.clean.clone();
         let spawned = std::thread::Builder::new()
             .name("dead-node-cleanup".into())
             .spawn(move || {
-                let _ = done.send(remove_dead_nodes(&prefix));
+                let _ = done.send(clean());
             });
         match spawned {
             Ok(_) => {
@@ -82,8 +94,8 @@ impl DeadNodeCleaner {
         }
     }
 
-    /// Logs the running cleanup's outcome when it has ended, or once that it overruns
-    /// [`CLEANUP_LIMIT`]; never waits.
+    /// Logs the running cleanup's outcome when it has ended, or once that it overruns its
+    /// limit; never waits.
     fn poll(&mut self) {
         let Some((started, result)) = &self.running else {
             return;
@@ -100,10 +112,11 @@ impl DeadNodeCleaner {
                 tracing::warn!("the cleanup of dead nodes ended without a result")
             }
             Err(mpsc::TryRecvError::Empty) => {
-                if took > CLEANUP_LIMIT && !self.overrun_logged {
+                if took > self.limit && !self.overrun_logged {
                     tracing::warn!(
-                        "the cleanup of dead nodes has run for {took:.1?} (limit \
-                         {CLEANUP_LIMIT:?}); supervision goes on without it"
+                        "the cleanup of dead nodes has run for {took:.1?} (limit {:?}); \
+                         supervision goes on without it",
+                        self.limit
                     );
                     self.overrun_logged = true;
                 }
@@ -713,5 +726,52 @@ fn supervise(
                 episodes.rates(p.env_steps, &rates)?;
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::AtomicU64;
+    use std::sync::Arc;
+
+    /// A cleanup that hangs (as on a truncated management segment) holds up no poll: the
+    /// overrun is noted, a crash meanwhile asks for one more cleanup, which runs once the
+    /// hung one ends.
+    #[test]
+    fn a_hanging_cleanup_never_blocks_the_supervisor() {
+        let runs = Arc::new(AtomicU64::new(0));
+        let counted = runs.clone();
+        let mut cleaner = DeadNodeCleaner::with(
+            move || {
+                if counted.fetch_add(1, Ordering::SeqCst) == 0 {
+                    std::thread::sleep(Duration::from_millis(600));
+                }
+                Ok(CleanupReport::default())
+            },
+            Duration::from_millis(100),
+        );
+        let start = Instant::now();
+        cleaner.request();
+        cleaner.poll();
+        std::thread::sleep(Duration::from_millis(200));
+        cleaner.poll();
+        assert!(cleaner.overrun_logged && cleaner.running.is_some());
+        cleaner.request();
+        assert!(cleaner.again);
+        assert!(
+            start.elapsed() < Duration::from_millis(500),
+            "a poll waited"
+        );
+        while runs.load(Ordering::SeqCst) < 2 || cleaner.running.is_some() {
+            cleaner.poll();
+            assert!(
+                start.elapsed() < Duration::from_secs(10),
+                "no second cleanup"
+            );
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        assert!(!cleaner.again);
+        assert_eq!(runs.load(Ordering::SeqCst), 2);
     }
 }
