@@ -150,6 +150,8 @@ fn check_clean_run(run: &Path, actors: usize) {
         "{replay} vs {reports:?}"
     );
     assert_eq!(replay["rejected"].as_u64().unwrap(), 0);
+    let status = json(&run.join("status.json"));
+    let last_step = status["grad_steps"].as_u64().unwrap();
     // nothing was dropped on the way, and the replay took from every actor in turn: each sent
     // a fair share and, reaching many episode boundaries, loaded strictly increasing versions
     for (name, r) in &reports {
@@ -170,6 +172,26 @@ fn check_clean_run(run: &Path, actors: usize) {
             versions.windows(2).all(|w| w[0] < w[1]),
             "{name}: {versions:?}"
         );
+        // and followed the learner all along, also while it waited for the replay: an actor
+        // that got ahead at the start used to wait, blocked and loading nothing, for a good part
+        // of the run (`[]`, `[0]`, `[130, 140]` of 150 steps; `[0, 470, ...]`). The bound is a
+        // share of the run, not a step count: a fast learner takes many steps while an actor
+        // waits for a core.
+        let bound = last_step / 4;
+        let gap = versions.windows(2).map(|w| w[1] - w[0]).max().unwrap_or(0);
+        assert!(
+            versions[0] <= bound && gap <= bound,
+            "{name} lagged (more than {bound} of {last_step} steps): {versions:?}"
+        );
+    }
+    // the launcher's status names each actor's policy version and its age in gradient steps
+    let lags = status["actors"].as_array().unwrap();
+    assert_eq!(lags.len(), actors, "{status}");
+    for (id, actor) in lags.iter().enumerate() {
+        assert_eq!(actor["id"].as_u64(), Some(id as u64), "{status}");
+        let version = actor["policy_version"].as_u64().unwrap();
+        let lag = actor["policy_lag"].as_u64().unwrap();
+        assert_eq!(lag, last_step.saturating_sub(version), "{status}");
     }
     assert_eq!(replay["dropped_chunks"].as_u64().unwrap(), 0, "{replay}");
     // Reverb's ratio: samples per insert beyond the minimum fill, while the learner trained

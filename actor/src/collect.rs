@@ -73,8 +73,7 @@ impl Collector {
         &self.env
     }
 
-    /// Whether the next [`Collector::step`] starts a new episode (so a new policy may be loaded
-    /// without cutting one).
+    /// Whether the next [`Collector::step`] starts a new episode.
     pub fn at_episode_boundary(&self) -> bool {
         !self.running
     }

@@ -1,7 +1,15 @@
 //! The actor process (`ctxrace actor`): runs [`Collector`] episodes against the run's replay,
-//! acting with the newest policy weights the learner broadcast (picked up at episode
-//! boundaries; uniform random actions until the first weights and for its share of the
-//! prefill), and publishes episode metrics and a heartbeat.
+//! acting with the newest policy weights the learner broadcast (uniform random actions until
+//! the first weights and for its share of the prefill), and publishes episode metrics and a
+//! heartbeat.
+//!
+//! New weights are taken before every decision, mid-episode too (every step carries the
+//! version that chose it), and while the actor waits for the replay to take its chunks. The
+//! replay takes from the actor with the fewest steps taken first, so an actor that got ahead
+//! at the start (it filled its queue while the other was starting) waits, blocked, until the
+//! others catch up: hundreds of gradient steps. When weights were loaded only at episode
+//! boundaries, which a blocked actor does not reach, it came back from that wait with its first
+//! weights (`versions` `[0, 470, ...]` beside `[0, 10, 30, ...]`), or none.
 
 use crate::collect::Collector;
 use crate::race::RaceEnv;
@@ -97,6 +105,23 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport> {
             })?;
             last_beat = Instant::now();
         }
+        // newest weights first, also while we wait below
+        let newest = weights.latest_with(|version, bytes| {
+            match &mut policy {
+                Some((v, p)) => p.load(bytes).map(|_| *v = version),
+                None => Policy::new(&cfg.agent, frame_dim, bytes, seed)
+                    .map(|p| policy = Some((version, p))),
+            }
+            .map(|_| version)
+        })?;
+        match newest {
+            Some(Ok(version)) => versions.push(version),
+            Some(Err(e)) => {
+                weights_refused += 1;
+                tracing::warn!("actor {}: weights rejected: {e}", opts.id)
+            }
+            None => {}
+        }
         // the replay has no room for our chunks (its rate limiter paces the actors to the
         // learner, or it restarts): wait for it instead of stepping, so that nothing is dropped
         if sender.backlog() > 0 {
@@ -106,24 +131,6 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport> {
                 result => result?,
             };
             continue;
-        }
-        if collector.at_episode_boundary() {
-            let newest = weights.latest_with(|version, bytes| {
-                match &mut policy {
-                    Some((v, p)) => p.load(bytes).map(|_| *v = version),
-                    None => Policy::new(&cfg.agent, frame_dim, bytes, seed)
-                        .map(|p| policy = Some((version, p))),
-                }
-                .map(|_| version)
-            })?;
-            match newest {
-                Some(Ok(version)) => versions.push(version),
-                Some(Err(e)) => {
-                    weights_refused += 1;
-                    tracing::warn!("actor {}: weights rejected: {e}", opts.id)
-                }
-                None => {}
-            }
         }
         let version = policy.as_ref().map_or(0, |(v, _)| *v);
         let acting = match &mut policy {

@@ -21,8 +21,8 @@ use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use ctxrace_common::ipc::wire::{named_reasons, ReplayStatus};
 use ctxrace_common::ipc::{
-    claim_run, cleanup, run_prefix, sweep_orphaned_runs, termination_flag, RunTransport,
-    TelemetrySubscriber, WeightsReceiver,
+    claim_run, cleanup, remove_dead_nodes, run_prefix, sweep_orphaned_runs, termination_flag,
+    CleanupReport, RunTransport, TelemetrySubscriber, WeightsReceiver,
 };
 use ctxrace_common::run_dir::{open_append, ACTOR_REPORTS, LOGS, REPLAY_REPORT, STATUS_FILE};
 use ctxrace_common::validate::CONFIG_EXIT_CODE;
@@ -30,12 +30,106 @@ use ctxrace_common::{ExperimentConfig, SupervisorConfig};
 use std::path::Path;
 use std::process::{Child, Command, ExitStatus};
 use std::sync::atomic::Ordering;
+use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 /// Longest wait between two restarts of one process.
 const MAX_BACKOFF: Duration = Duration::from_secs(30);
 /// Time the children get to stop after SIGTERM before they are killed.
 const STOP_GRACE: Duration = Duration::from_secs(30);
+/// How long a cleanup of dead nodes may take before the supervisor logs it as overrunning.
+const CLEANUP_LIMIT: Duration = Duration::from_secs(5);
+
+/// Removes the resources of crashed processes' nodes on a thread of its own: a cleanup that
+/// hangs (it sat two minutes on a management segment another user had truncated) must not keep
+/// the supervisor from restarting actors or reaping the learner. One cleanup runs at a time; a
+/// crash during one asks for another once it ends.
+struct DeadNodeCleaner {
+    clean: std::sync::Arc<dyn Fn() -> Result<CleanupReport> + Send + Sync>,
+    limit: Duration,
+    running: Option<(Instant, mpsc::Receiver<Result<CleanupReport>>)>,
+    overrun_logged: bool,
+    again: bool,
+}
+
+impl DeadNodeCleaner {
+    /// A cleaner of the dead nodes of the run with `prefix`.
+    fn new(prefix: &str) -> Self {
+        let prefix = prefix.to_string();
+        Self::with(move || remove_dead_nodes(&prefix), CLEANUP_LIMIT)
+    }
+
+    /// A cleaner running `clean`, logged as overrunning after `limit`.
+    fn with(
+        clean: impl Fn() -> Result<CleanupReport> + Send + Sync + 'static,
+        limit: Duration,
+    ) -> Self {
+        Self {
+            clean: std::sync::Arc::new(clean),
+            limit,
+            running: None,
+            overrun_logged: false,
+            again: false,
+        }
+    }
+
+    /// Starts a cleanup, or asks for one after the running one.
+    fn request(&mut self) {
+        if self.running.is_some() {
+            self.again = true;
+            return;
+        }
+        let (done, result) = mpsc::channel();
+        let clean = self.clean.clone();
+        let spawned = std::thread::Builder::new()
+            .name("dead-node-cleanup".into())
+            .spawn(move || {
+                let _ = done.send(clean());
+            });
+        match spawned {
+            Ok(_) => {
+                self.running = Some((Instant::now(), result));
+                self.overrun_logged = false;
+            }
+            Err(e) => tracing::warn!("starting the cleanup of dead nodes: {e}"),
+        }
+    }
+
+    /// Logs the running cleanup's outcome when it has ended, or once that it overruns its
+    /// limit; never waits.
+    fn poll(&mut self) {
+        let Some((started, result)) = &self.running else {
+            return;
+        };
+        let took = started.elapsed();
+        match result.try_recv() {
+            Ok(Ok(r)) => tracing::info!(
+                "dead nodes cleaned up in {took:.1?}: {} removed, {} failed",
+                r.dead_nodes_removed,
+                r.dead_nodes_failed
+            ),
+            Ok(Err(e)) => tracing::warn!("cleaning up dead nodes: {e:#}"),
+            Err(mpsc::TryRecvError::Disconnected) => {
+                tracing::warn!("the cleanup of dead nodes ended without a result")
+            }
+            Err(mpsc::TryRecvError::Empty) => {
+                if took > self.limit && !self.overrun_logged {
+                    tracing::warn!(
+                        "the cleanup of dead nodes has run for {took:.1?} (limit {:?}); \
+                         supervision goes on without it",
+                        self.limit
+                    );
+                    self.overrun_logged = true;
+                }
+                return;
+            }
+        }
+        self.running = None;
+        if std::mem::take(&mut self.again) {
+            self.request();
+        }
+    }
+}
 
 /// One supervised child process.
 struct Supervised {
@@ -256,6 +350,14 @@ impl Progress {
         self.inserted_at_crash.get_or_insert(self.replay.inserted);
     }
 
+    /// Each actor's policy age: gradient steps between the learner's newest broadcast and the
+    /// version the actor last reported driving with.
+    fn policy_lags(&self) -> impl Iterator<Item = u64> + '_ {
+        self.actor_versions
+            .iter()
+            .map(|v| self.grad_steps.saturating_sub(*v))
+    }
+
     fn message(&self, start: Instant) -> String {
         let secs = start.elapsed().as_secs_f64().max(1e-9);
         let mean = if self.recent_progress.is_empty() {
@@ -263,12 +365,7 @@ impl Progress {
         } else {
             self.recent_progress.iter().sum::<f64>() / self.recent_progress.len() as f64
         };
-        let lag = self
-            .actor_versions
-            .iter()
-            .map(|v| self.grad_steps.saturating_sub(*v))
-            .max()
-            .unwrap_or(0);
+        let lag = self.policy_lags().max().unwrap_or(0);
         let rejected = self.replay.rejected + self.telemetry_rejected + self.weights_rejected;
         format!(
             "| {} grad ({:.1}/s) | {} episodes, progress {mean:.3} | replay {:.0}% | lag {lag}{}",
@@ -284,15 +381,26 @@ impl Progress {
         )
     }
 
-    /// The live status file's contents: counters, rejections by reason, the replay's longest
-    /// stall.
+    /// The live status file's contents: counters, each actor's policy version and its age in
+    /// gradient steps, rejections by reason, the replay's longest stall.
     fn status(&self) -> serde_json::Value {
         let r = &self.replay;
+        let actors: Vec<serde_json::Value> = self
+            .actor_versions
+            .iter()
+            .zip(self.policy_lags())
+            .enumerate()
+            .map(|(id, (version, lag))| {
+                serde_json::json!({ "id": id, "policy_version": version, "policy_lag": lag })
+            })
+            .collect();
         serde_json::json!({
             "env_steps": self.env_steps,
             "grad_steps": self.grad_steps,
             "episodes": self.episodes,
             "actor_versions": self.actor_versions,
+            "actors": actors,
+            "max_policy_lag": self.policy_lags().max().unwrap_or(0),
             "replay": {
                 "inserted": r.inserted,
                 "sampled": r.sampled,
@@ -568,6 +676,7 @@ fn supervise(
     };
     let mut tick = Instant::now();
     let mut last_status = Instant::now();
+    let mut cleaner = DeadNodeCleaner::new(transport.prefix());
     let stop = termination_flag()?;
     loop {
         std::thread::sleep(Duration::from_millis(100));
@@ -662,9 +771,9 @@ fn supervise(
             crashed = true;
         }
         if crashed {
-            let (removed, failed) = transport.cleanup_dead_nodes();
-            tracing::info!("dead nodes cleaned up: {removed} removed, {failed} failed");
+            cleaner.request();
         }
+        cleaner.poll();
         if last_status.elapsed() >= Duration::from_secs(1) {
             crate::results::write_json(&dir.join(STATUS_FILE), &p.status())?;
             last_status = Instant::now();
@@ -683,6 +792,8 @@ fn supervise(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::sync::atomic::AtomicU64;
+    use std::sync::Arc;
 
     fn status(inserted: u64, restored_inserts: u64) -> ReplayStatus {
         ReplayStatus {
@@ -734,5 +845,45 @@ mod tests {
         assert!(line.contains("none dropped"), "{line}");
         let clean = step_summary(dir.path(), 600);
         assert!(!clean.contains("neither"), "{clean}");
+    }
+
+    /// A cleanup that hangs (as on a truncated management segment) holds up no poll: the
+    /// overrun is noted, a crash meanwhile asks for one more cleanup, which runs once the
+    /// hung one ends.
+    #[test]
+    fn a_hanging_cleanup_never_blocks_the_supervisor() {
+        let runs = Arc::new(AtomicU64::new(0));
+        let counted = runs.clone();
+        let mut cleaner = DeadNodeCleaner::with(
+            move || {
+                if counted.fetch_add(1, Ordering::SeqCst) == 0 {
+                    std::thread::sleep(Duration::from_millis(600));
+                }
+                Ok(CleanupReport::default())
+            },
+            Duration::from_millis(100),
+        );
+        let start = Instant::now();
+        cleaner.request();
+        cleaner.poll();
+        std::thread::sleep(Duration::from_millis(200));
+        cleaner.poll();
+        assert!(cleaner.overrun_logged && cleaner.running.is_some());
+        cleaner.request();
+        assert!(cleaner.again);
+        assert!(
+            start.elapsed() < Duration::from_millis(500),
+            "a poll waited"
+        );
+        while runs.load(Ordering::SeqCst) < 2 || cleaner.running.is_some() {
+            cleaner.poll();
+            assert!(
+                start.elapsed() < Duration::from_secs(10),
+                "no second cleanup"
+            );
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        assert!(!cleaner.again);
+        assert_eq!(runs.load(Ordering::SeqCst), 2);
     }
 }

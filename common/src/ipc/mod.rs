@@ -32,8 +32,9 @@ pub use trajectory::{
     TrajectoryStep,
 };
 pub use transport::{
-    claim_run, cleanup, iceoryx_config, run_prefix, shm_root, sweep_orphaned_runs,
-    termination_flag, CleanupReport, Next, RunTransport, Wake, SHM_ROOT_ENV, TRAJECTORY_BUFFER,
+    claim_run, cleanup, iceoryx_config, remove_dead_nodes, run_prefix, shm_root,
+    sweep_orphaned_runs, termination_flag, CleanupReport, Next, RunTransport, Wake, SHM_ROOT_ENV,
+    TRAJECTORY_BUFFER,
 };
 pub use weights::{WeightsPublisher, WeightsReceiver, DEFAULT_MAX_WEIGHTS_BYTES};
 

@@ -61,7 +61,7 @@ pub const SHM_ROOT_ENV: &str = "CTXRACE_SHM_ROOT";
 /// files): `$CTXRACE_SHM_ROOT`, else `$XDG_RUNTIME_DIR/ctxrace`, else `/tmp/ctxrace-<uid>`.
 /// It is created with mode 0700 and refused when another user owns it or others may enter it: iceoryx2's default root, `/tmp/iceoryx2`, is shared by every
 /// user, and whoever creates it first decides who may use it. (The shared memory itself lives in
-/// `/dev/shm`, readable and writable by its owner only.)
+/// `/dev/shm`, readable and writable by its owner only: see [`RunTransport::open`].)
 pub fn shm_root() -> Result<PathBuf> {
     let uid = std::fs::metadata("/proc/self")
         .map(|m| m.uid())
@@ -135,7 +135,9 @@ pub struct RunTransport {
 
 impl RunTransport {
     /// Joins the run with prefix `prefix` (see [`run_prefix`]) of `actors` actors as a node named
-    /// `role`. Signal handling is left to the process (see [`termination_flag`]).
+    /// `role`. Signal handling is left to the process (see [`termination_flag`]). iceoryx2 0.10
+    /// creates the run's `...node.<version>.global_mgmt` segment in `/dev/shm` readable and
+    /// writable by everyone (mode 0666); the first node of the run closes it to its owner.
     pub fn open(prefix: &str, actors: usize, role: &str) -> Result<Self> {
         if actors == 0 {
             return Err(anyhow!("a run needs at least one actor"));
@@ -148,6 +150,7 @@ impl RunTransport {
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<ipc::Service>()
             .map_err(ice("create node"))?;
+        restrict_to_owner(StdPath::new(SHM_DIR), prefix)?;
         Ok(Self {
             node,
             prefix: prefix.to_string(),
@@ -168,12 +171,6 @@ impl RunTransport {
     /// The process's node.
     pub fn node(&self) -> &Node<ipc::Service> {
         &self.node
-    }
-
-    /// Removes the resources of the run's dead nodes; returns how many were and were not removed.
-    pub fn cleanup_dead_nodes(&self) -> (u64, u64) {
-        let state = self.node.try_cleanup_dead_nodes();
-        (state.cleanups, state.failed_cleanups)
     }
 
     fn max_nodes(&self) -> usize {
@@ -431,9 +428,44 @@ pub struct CleanupReport {
     pub files_removed: u64,
 }
 
-/// Ends a run's transport: removes the resources of its dead nodes and, if none of its nodes is
-/// alive any more, every shared-memory and management file carrying its prefix.
-pub fn cleanup(prefix: &str) -> Result<CleanupReport> {
+/// Where POSIX shared memory lives.
+const SHM_DIR: &str = "/dev/shm";
+
+/// Takes group and others' permissions off every file in `dir` whose name starts with `prefix`
+/// and that this user owns; refuses a file another user owns (it could read or corrupt the run).
+fn restrict_to_owner(dir: &StdPath, prefix: &str) -> Result<()> {
+    let uid = std::fs::metadata("/proc/self")
+        .map(|m| m.uid())
+        .context("reading this process's user id from /proc/self")?;
+    let entries = std::fs::read_dir(dir).with_context(|| format!("listing {}", dir.display()))?;
+    for entry in entries.flatten() {
+        if !entry.file_name().to_string_lossy().starts_with(prefix) {
+            continue;
+        }
+        let path = entry.path();
+        let Ok(meta) = std::fs::symlink_metadata(&path) else {
+            continue; // removed meanwhile
+        };
+        if meta.uid() != uid {
+            bail!(
+                "{} belongs to user {}, not to this user ({uid}): another user could read or                  corrupt this run's shared memory; remove it and start again",
+                path.display(),
+                meta.uid()
+            );
+        }
+        let mode = meta.permissions().mode();
+        if mode & 0o077 != 0 {
+            std::fs::set_permissions(&path, std::fs::Permissions::from_mode(mode & 0o700))
+                .with_context(|| format!("restricting {} to its owner", path.display()))?;
+        }
+    }
+    Ok(())
+}
+
+/// Removes the resources of the dead nodes of the run with `prefix` (a crashed process's
+/// ports, so that its peers stop waiting for it); counts the live nodes. It opens no node, and
+/// can be run on a thread of its own.
+pub fn remove_dead_nodes(prefix: &str) -> Result<CleanupReport> {
     let config = iceoryx_config(prefix, 1)?;
     let mut report = CleanupReport::default();
     let mut alive = 0;
@@ -450,8 +482,15 @@ pub fn cleanup(prefix: &str) -> Result<CleanupReport> {
     })
     .map_err(ice("list nodes"))?;
     report.alive_nodes = alive;
-    if alive == 0 {
-        for dir in [shm_root()?, PathBuf::from("/dev/shm")] {
+    Ok(report)
+}
+
+/// Ends a run's transport: removes the resources of its dead nodes and, if none of its nodes is
+/// alive any more, every shared-memory and management file carrying its prefix.
+pub fn cleanup(prefix: &str) -> Result<CleanupReport> {
+    let mut report = remove_dead_nodes(prefix)?;
+    if report.alive_nodes == 0 {
+        for dir in [shm_root()?, PathBuf::from(SHM_DIR)] {
             report.files_removed += remove_prefixed(&dir, prefix)?;
         }
     }
@@ -591,6 +630,86 @@ mod tests {
         assert!(root.join(format!("{live}{OWNER_SUFFIX}")).exists());
         cleanup(&live).unwrap();
         assert!(!root.join(format!("{live}{OWNER_SUFFIX}")).exists());
+    }
+
+    /// `(path, mode)` of everything under `dir` (recursively) whose name carries `prefix`, or
+    /// that lies in a folder whose name does.
+    fn modes_under(dir: &StdPath, prefix: &str, inside: bool) -> Vec<(PathBuf, u32)> {
+        let mut found = Vec::new();
+        for entry in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+            let path = entry.path();
+            let Ok(meta) = std::fs::symlink_metadata(&path) else {
+                continue;
+            };
+            let ours = inside || entry.file_name().to_string_lossy().contains(prefix);
+            if ours {
+                found.push((path.clone(), meta.permissions().mode() & 0o7777));
+            }
+            if meta.is_dir() {
+                found.extend(modes_under(&path, prefix, ours));
+            }
+        }
+        found
+    }
+
+    #[test]
+    fn every_file_of_a_run_is_closed_to_group_and_others() {
+        let prefix = run_prefix(&format!("test-modes-{}", std::process::id()));
+        let mut listing = Vec::new();
+        {
+            let t = RunTransport::open(&prefix, 2, "learner").unwrap();
+            let peer = RunTransport::open(&prefix, 2, "actor-0").unwrap();
+            // every service, with ports on both sides where data or connections get created
+            let weights = t.weights_service().unwrap();
+            let publisher = weights
+                .publisher_builder()
+                .initial_max_slice_len(64)
+                .create()
+                .unwrap();
+            let peer_weights = peer.weights_service().unwrap();
+            let subscriber = peer_weights.subscriber_builder().create().unwrap();
+            let sample = publisher.loan_slice_uninit(8).unwrap();
+            sample.write_from_slice(&[1u8; 8]).send().unwrap();
+            assert!(subscriber.receive().unwrap().is_some());
+            let chunks = t.trajectory_service(0).unwrap();
+            let _chunk_sub = chunks.subscriber_builder().create().unwrap();
+            let _chunk_pub = peer
+                .trajectory_service(0)
+                .unwrap()
+                .publisher_builder()
+                .initial_max_slice_len(8)
+                .create()
+                .unwrap();
+            let _requests = t.request_service().unwrap().subscriber_builder().create();
+            let _batches = t.batch_service().unwrap().subscriber_builder().create();
+            let _metrics = t.metrics_service().unwrap();
+            let _heartbeats = t.heartbeat_service().unwrap();
+            let _status = t.status_service().unwrap();
+            let _listeners: Vec<_> = [Wake::Replay, Wake::Learner, Wake::Actors, Wake::ReplayReady]
+                .into_iter()
+                .map(|w| (t.listener(w).unwrap(), peer.notifier(w).unwrap()))
+                .collect();
+            for dir in [PathBuf::from(SHM_DIR), shm_root().unwrap()] {
+                listing.extend(modes_under(&dir, &prefix, false));
+            }
+        }
+        cleanup(&prefix).unwrap();
+        let text: Vec<String> = listing
+            .iter()
+            .map(|(p, m)| format!("{m:04o} {}", p.display()))
+            .collect();
+        eprintln!("{}", text.join("\n"));
+        assert!(
+            listing.iter().any(|(p, _)| p.starts_with(SHM_DIR)),
+            "no shared memory listed: {text:?}"
+        );
+        let open: Vec<&String> = listing
+            .iter()
+            .zip(&text)
+            .filter(|((_, mode), _)| mode & 0o077 != 0)
+            .map(|(_, t)| t)
+            .collect();
+        assert!(open.is_empty(), "open to group or others: {open:#?}");
     }
 
     #[test]

@@ -220,6 +220,47 @@ mod tests {
     use super::*;
     use crate::ipc::{cleanup, Isolated};
 
+    /// Two actors and the launcher, each a node of its own, subscribed before and after the
+    /// publisher's first broadcast: every one of them gets every broadcast's version, whoever
+    /// reads first (the lag of issue 34 was not in delivery: see actor::process).
+    #[test]
+    fn every_receiver_gets_each_new_version() {
+        let isolated = Isolated(run_prefix(&format!(
+            "test-weights-all-{}",
+            std::process::id()
+        )));
+        let prefix = isolated.0.clone();
+        let nodes: Vec<RunTransport> = ["launcher", "learner", "actor-0", "actor-1"]
+            .iter()
+            .map(|role| RunTransport::open(&prefix, 2, role).unwrap())
+            .collect();
+        let mut launcher = WeightsReceiver::new(&nodes[0]).unwrap();
+        let publisher = WeightsPublisher::new(&nodes[1], 1 << 16).unwrap();
+        let blob = vec![3u8; 5000];
+        publisher.publish(0, &blob).unwrap();
+        let mut actors: Vec<WeightsReceiver> = nodes[2..]
+            .iter()
+            .map(|t| WeightsReceiver::new(t).unwrap())
+            .collect();
+        for version in (0..100).step_by(10) {
+            publisher.update_connections().unwrap();
+            if version > 0 {
+                assert_eq!(publisher.publish(version, &blob).unwrap(), 3);
+            }
+            // readers take turns at being first
+            let mut readers: Vec<&mut WeightsReceiver> = actors
+                .iter_mut()
+                .chain(std::iter::once(&mut launcher))
+                .collect();
+            readers.rotate_left(version as usize / 10 % 3);
+            let got: Vec<Option<u64>> = readers
+                .into_iter()
+                .map(|r| r.latest_with(|v, _| v).unwrap())
+                .collect();
+            assert_eq!(got, vec![Some(version); 3], "after version {version}");
+        }
+    }
+
     #[test]
     fn late_subscriber_gets_the_newest_and_bad_checksums_are_rejected() {
         let isolated = Isolated::new("weights");
