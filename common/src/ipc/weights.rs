@@ -225,10 +225,7 @@ mod tests {
     /// reads first (the lag of issue 34 was not in delivery: see actor::process).
     #[test]
     fn every_receiver_gets_each_new_version() {
-        let isolated = Isolated(run_prefix(&format!(
-            "test-weights-all-{}",
-            std::process::id()
-        )));
+        let isolated = Isolated::new("weights-all");
         let prefix = isolated.0.clone();
         let nodes: Vec<RunTransport> = ["launcher", "learner", "actor-0", "actor-1"]
             .iter()
