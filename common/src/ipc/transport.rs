@@ -504,7 +504,8 @@ pub fn claim_run(prefix: &str) -> Result<()> {
     let path = shm_root()?.join(format!("{prefix}{OWNER_SUFFIX}"));
     let pid = std::process::id();
     let text = format!("{pid} {}\n", process_start(pid).unwrap_or(0));
-    std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))
+    crate::run_dir::write_atomic(&path, text.as_bytes())
+        .with_context(|| format!("writing {}", path.display()))
 }
 
 const OWNER_SUFFIX: &str = "owner";
@@ -533,7 +534,10 @@ pub fn sweep_orphaned_runs() -> Result<Vec<String>> {
         if !prefix.starts_with("ctxrace_") {
             continue;
         }
-        let owner = std::fs::read_to_string(entry.path()).unwrap_or_default();
+        // a pid and a start time; anything else (a link, a FIFO, a large file) marks no owner
+        let owner = crate::run_dir::read_regular(&entry.path(), 64)
+            .map(|bytes| String::from_utf8_lossy(&bytes).into_owned())
+            .unwrap_or_default();
         let mut fields = owner.split_whitespace().map(|f| f.parse::<u64>().ok());
         let alive = match (fields.next().flatten(), fields.next().flatten()) {
             (Some(pid), Some(start)) => process_start(pid as u32).is_some_and(|s| s == start),
