@@ -737,7 +737,10 @@ mod tests {
             };
             entropies.push((std.log().unwrap().sum(1).unwrap() + a as f64 * gauss).unwrap());
             let uniform = uniforms_per(rngs, per_sequence, (cfg.stoch, cfg.classes)).unwrap();
-            state = rssm.img_step(&state, &action, ctx, &uniform).unwrap().0;
+            let deter = rssm.deter_step(&state, &action, ctx).unwrap();
+            let prior = rssm.prior_logits(&deter).unwrap();
+            let stoch = rssm.sample(&prior, &uniform).unwrap();
+            state = RssmState { deter, stoch };
             xs.push(state.head_input(ctx).unwrap());
         }
         let x = Tensor::cat(&xs, 0).unwrap();

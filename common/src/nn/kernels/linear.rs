@@ -9,10 +9,9 @@
 use super::replay::{self, ProductShape};
 use super::sparse_inputs::SparseColumns;
 use super::*;
-use candle_core::backprop::GradStore;
 use std::ops::Range;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Mutex, PoisonError};
 
 /// Floating-point operations of the matrix products run so far in this process, over all threads.
 static MATMUL_FLOPS: AtomicU64 = AtomicU64::new(0);
@@ -22,62 +21,6 @@ static MATMUL_FLOPS: AtomicU64 = AtomicU64::new(0);
 /// counter behind the learner's `flops/*` metrics and `ctxrace bench learner`'s fraction of peak.
 pub fn matmul_flops() -> u64 {
     MATMUL_FLOPS.load(Ordering::Relaxed)
-}
-
-/// The inputs `x_t` and output gradients `g_t` of a layer's calls in a loop over few rows, kept
-/// by the backward pass so that the weight gradient `Σ_t g_tᵀ x_t` is one matrix product over all
-/// the rows at the end ([`WeightGradTape::flush`]) instead of one thin product and one addition
-/// of a whole weight-sized matrix per call.
-#[derive(Clone, Debug, Default)]
-pub struct WeightGradTape {
-    calls: Arc<Mutex<Vec<TapedCall>>>,
-}
-
-/// One call's input rows `x_t` and output gradients `g_t`, row-major.
-#[derive(Debug)]
-struct TapedCall {
-    x: Vec<f32>,
-    g: Vec<f32>,
-}
-
-impl WeightGradTape {
-    fn record(&self, x: &[f32], g: &[f32]) {
-        let mut calls = self.calls.lock().unwrap_or_else(PoisonError::into_inner);
-        calls.push(TapedCall {
-            x: x.to_vec(),
-            g: g.to_vec(),
-        });
-    }
-
-    /// Adds `Σ_t g_tᵀ x_t` to the gradient of `weight` (`[out, in]`) in `grads` and clears the
-    /// tape; nothing if no call was recorded.
-    pub fn flush(&self, weight: &Tensor, grads: &mut GradStore) -> Result<()> {
-        let calls = std::mem::take(&mut *self.calls.lock().unwrap_or_else(PoisonError::into_inner));
-        if calls.is_empty() {
-            return Ok(());
-        }
-        let (output, input) = dims2(weight)?;
-        let (mut xs, mut gs) = (Vec::new(), Vec::new());
-        for call in &calls {
-            xs.extend_from_slice(&call.x);
-            gs.extend_from_slice(&call.g);
-        }
-        let rows = xs.len() / input.max(1);
-        if xs.len() != rows * input || gs.len() != rows * output {
-            bail!("weight-gradient tape: calls of {input} inputs and {output} outputs expected");
-        }
-        let (gt, xv) = (Operand::transposed(&gs, output), Operand::rows(&xs, input));
-        let existing = match grads.get(weight) {
-            Some(g) => Some(g.flatten_all()?.to_vec1::<f32>()?),
-            None => None,
-        };
-        let dw = matmul(output, input, rows, gt, xv, existing);
-        grads.insert(
-            weight,
-            Tensor::from_vec(dw, weight.shape(), weight.device())?,
-        );
-        Ok(())
-    }
 }
 
 vectorised! {
@@ -94,35 +37,17 @@ vectorised! {
 
 /// `y = x Wᵀ (+ b)` (see [`linear`]). The weight argument is `W` `[out, in]`, or with `stored`
 /// it is `Wᵀ` `[in, out]` and `stored` holds `W` as well: the forward product reads `Wᵀ` and the
-/// input's gradient `g W` reads `W`, the layouts gemm multiplies without packing. With `tape`
-/// the weight's gradient is recorded there rather than returned.
+/// input's gradient `g W` reads `W`, the layouts gemm multiplies without packing.
 pub(super) struct Linear {
     stored: Option<Tensor>,
-    tape: Option<WeightGradTape>,
     /// Input columns that are mostly zero ([`super::sparse_inputs`]).
     sparse: Option<Range<usize>>,
     /// Their non-zeros in the forward pass's input, kept for the weight's gradient when the
-    /// weight takes one here (`None` otherwise: a frozen or taped layer keeps nothing).
+    /// weight takes one here (`None` otherwise: a frozen layer keeps nothing).
     gathered: Option<Mutex<Option<SparseColumns>>>,
-    /// The product's values, computed already by the same layer on an input of the same values
-    /// (the trained twin of [`linear_twice`]): the forward pass copies them.
-    known: Option<Tensor>,
 }
 
 impl Linear {
-    /// The op of a product on a frozen weight `[out, in]`, its backward pass giving the input's
-    /// gradient only; its values, if `known`, are copied rather than multiplied (the frozen twin
-    /// of [`linear_twice`]).
-    pub(super) fn frozen(known: Option<Tensor>) -> Self {
-        Self {
-            stored: None,
-            tape: None,
-            sparse: None,
-            gathered: None,
-            known,
-        }
-    }
-
     /// `(out, in)` of a weight argument of shape `dims`.
     fn out_in(&self, (r, c): (usize, usize)) -> (usize, usize) {
         if self.stored.is_some() {
@@ -333,16 +258,6 @@ impl Linear {
                 w.1.shape().dims()
             );
         }
-        if let Some(known) = &self.known {
-            let y = read(known, |y| Ok(y.to_vec()))?;
-            if y.len() != n * m {
-                bail!(
-                    "linear: {} known values for {n} rows of {m} outputs",
-                    y.len()
-                );
-            }
-            return Ok((CpuStorage::F32(y), Shape::from((n, m))));
-        }
         let (x, w) = (cpu_slice(x.0, x.1)?, cpu_slice(w.0, w.1)?);
         let init = match b {
             Some((s, l)) => {
@@ -435,14 +350,6 @@ impl Linear {
         let (want_x, want_w) = (wants_grad(x), wants_grad(w));
         let (rows, input) = dims2(x)?;
         let (output, _) = self.out_in(dims2(w)?);
-        if let Some(tape) = &self.tape {
-            read(x, |xv| {
-                read(grad, |g| {
-                    tape.record(xv, g);
-                    Ok(())
-                })
-            })?;
-        }
         let (dx, dw) = read(grad, |g| {
             let dx = want_x.then(|| {
                 read(self.stored.as_ref().unwrap_or(w), |wv| {
@@ -564,46 +471,22 @@ pub fn linear(
     bias: Option<&Tensor>,
     sparse_inputs: Option<Range<usize>>,
 ) -> Result<Tensor> {
-    let (op, weight) = product(weight, None, None, sparse_inputs)?;
+    let (op, weight) = product(weight, None, sparse_inputs)?;
     apply(x, &weight, bias, op)
 }
 
 /// `x Wᵀ + b` with the weight given in both layouts, `weight_t` `[in, out]` (which takes the
 /// gradient) and `weight` `[out, in]` (its values, detached): the same product as [`linear`]
-/// without gemm's per-call packing of the weight, forward or backward. With a `tape` the weight's
-/// gradient goes there instead (`weight_t` should then be detached), to be flushed after the
-/// backward pass.
+/// without gemm's per-call packing of the weight, forward or backward.
 pub fn linear_t(
     x: &Tensor,
     weight_t: &Tensor,
     weight: &Tensor,
     bias: Option<&Tensor>,
-    tape: Option<&WeightGradTape>,
     sparse_inputs: Option<Range<usize>>,
 ) -> Result<Tensor> {
-    let (op, weight_t) = product(weight, Some(weight_t), tape, sparse_inputs)?;
+    let (op, weight_t) = product(weight, Some(weight_t), sparse_inputs)?;
     apply(x, &weight_t, bias, op)
-}
-
-/// [`linear`] on the two paths `(x_frozen, x_trained)` of one input (the same values) from one
-/// product: `(y_frozen, y_trained)`, equal values. `y_trained` takes the gradients of [`linear`]
-/// on `x_trained`; `y_frozen` is differentiable in `x_frozen` only, as [`linear`] on the weight
-/// and bias detached. A loss that needs a layer's output both ways (the critic's values in the
-/// λ-returns the actor follows, and its logits in its own loss) multiplies once.
-pub fn linear_twice(
-    (x_frozen, x_trained): (&Tensor, &Tensor),
-    weight: &Tensor,
-    bias: Option<&Tensor>,
-    sparse_inputs: Option<Range<usize>>,
-) -> Result<(Tensor, Tensor)> {
-    let trained = linear(x_trained, weight, bias, sparse_inputs)?;
-    let frozen = apply(
-        x_frozen,
-        &weight.detach(),
-        bias.map(Tensor::detach).as_ref(),
-        Linear::frozen(Some(trained.detach())),
-    )?;
-    Ok((frozen, trained))
 }
 
 /// The op of `x Wᵀ` and its weight argument: `weight` `[out, in]` itself, or with `weight_t`
@@ -611,19 +494,15 @@ pub fn linear_twice(
 pub(super) fn product(
     weight: &Tensor,
     weight_t: Option<&Tensor>,
-    tape: Option<&WeightGradTape>,
     sparse: Option<Range<usize>>,
 ) -> Result<(Linear, Tensor)> {
-    let tape = tape.cloned();
     // the non-zeros are kept from the forward pass only for a weight gradient computed here
     let keep = |w: &Tensor| (sparse.is_some() && wants_grad(w)).then(|| Mutex::new(None));
     let Some(weight_t) = weight_t else {
         let op = Linear {
             stored: None,
-            tape,
             gathered: keep(weight),
             sparse,
-            known: None,
         };
         return Ok((op, weight.clone()));
     };
@@ -636,10 +515,8 @@ pub(super) fn product(
     }
     let op = Linear {
         stored: Some(weight.detach().contiguous()?),
-        tape,
         gathered: keep(weight_t),
         sparse,
-        known: None,
     };
     Ok((op, weight_t.contiguous()?))
 }
@@ -676,7 +553,7 @@ mod tests {
             );
             let wt = w.t().unwrap().contiguous().unwrap();
             same(
-                linear_t(&x, &wt, &w, Some(&b), None, sparse).unwrap(),
+                linear_t(&x, &wt, &w, Some(&b), sparse).unwrap(),
                 composed(),
                 &[&x, &w, &b],
                 1e-5,
@@ -690,29 +567,6 @@ mod tests {
             &[&dense, &w],
             1e-5,
         );
-    }
-
-    #[test]
-    fn linear_twice_is_a_frozen_and_a_trained_product() {
-        let (x, w, b) = (one_hot_input(9), var(&[6, 37], 45), var(&[6], 46));
-        let x_trained = x.detach();
-        let pair = |(f, t): (Tensor, Tensor)| Tensor::cat(&[f, t], 0).unwrap();
-        for (bias, sparse) in [
-            (Some(&b), None),
-            (Some(&b), Some(3..35)),
-            (None, Some(3..35)),
-        ] {
-            let twice = linear_twice((&x, &x_trained), &w, bias.map(|b| &**b), sparse);
-            let frozen_bias = bias.map(|b| b.detach());
-            let frozen = linear(&x, &w.detach(), frozen_bias.as_ref(), None).unwrap();
-            let trained = linear(&x_trained, &w, bias.map(|b| &**b), None).unwrap();
-            let vars: &[&Var] = if bias.is_some() {
-                &[&x, &w, &b]
-            } else {
-                &[&x, &w]
-            };
-            same(pair(twice.unwrap()), pair((frozen, trained)), vars, 1e-5);
-        }
     }
 
     #[test]
@@ -738,7 +592,7 @@ mod tests {
         // the transposed layout: the same values and gradients
         let wt = w.t().unwrap().contiguous().unwrap();
         same(
-            linear_t(&x, &wt, &w, Some(&b), None, None).unwrap(),
+            linear_t(&x, &wt, &w, Some(&b), None).unwrap(),
             x.matmul(&w.t().unwrap())
                 .unwrap()
                 .broadcast_add(&b)
@@ -746,44 +600,6 @@ mod tests {
             &[&x, &w, &b],
             1e-5,
         );
-        // a taped weight: its gradient, flushed after the backward pass, is the sum over calls
-        let tape = WeightGradTape::default();
-        let wt = wt.detach();
-        let y1 = linear_t(&x, &wt, &w, Some(&b), Some(&tape), None).unwrap();
-        let y2 = linear_t(
-            &y1.tanh().unwrap().narrow(1, 0, 3).unwrap(),
-            &wt,
-            &w,
-            None,
-            Some(&tape),
-            None,
-        );
-        let taped =
-            (y1.sum_all().unwrap() + y2.unwrap().sqr().unwrap().sum_all().unwrap()).unwrap();
-        let mut g = taped.backward().unwrap();
-        assert!(g.get(&w).is_none());
-        tape.flush(&w, &mut g).unwrap();
-        let (wd, bd) = (w.as_tensor(), b.as_tensor());
-        let z1 = x
-            .matmul(&wd.t().unwrap())
-            .unwrap()
-            .broadcast_add(bd)
-            .unwrap();
-        let z2 = z1
-            .tanh()
-            .unwrap()
-            .narrow(1, 0, 3)
-            .unwrap()
-            .matmul(&wd.t().unwrap())
-            .unwrap();
-        let plain = (z1.sum_all().unwrap() + z2.sqr().unwrap().sum_all().unwrap()).unwrap();
-        let want = plain.backward().unwrap();
-        for v in [&w, &x, &b] {
-            let (a, e) = (vals(g.get(v).unwrap()), vals(want.get(v).unwrap()));
-            for (p, q) in a.iter().zip(&e) {
-                assert!((p - q).abs() <= 1e-4 * (1.0 + q.abs()), "{p} vs {q}");
-            }
-        }
         // a detached weight receives no gradient; the input still does
         let y = linear(&x, &w.as_tensor().detach(), None, None).unwrap();
         let g = y.sum_all().unwrap().backward().unwrap();
