@@ -256,6 +256,7 @@ fn dims2(t: &Tensor) -> Result<(usize, usize)> {
 
 mod adam;
 mod categorical;
+mod gemm;
 mod gru;
 pub(crate) mod isa;
 mod linear;
@@ -267,16 +268,18 @@ mod twohot;
 
 pub use adam::{adam_update, adam_update_in_place, squared_norm, sum_of_squares, AdamStep};
 pub use categorical::{categorical_kl, straight_through_sample};
+pub use gemm::{matmul_flops, record_products, recorded_products, ProductShape};
 pub use gru::gru_gates;
-pub use linear::{linear, linear_t, matmul_flops};
+pub use linear::{linear, linear_t};
 pub use linear_norm::linear_norm_act;
 pub use norm_act::{norm_act, NormAct};
-pub use replay::{record_products, recorded_products, replay_products, ProductShape};
+pub use replay::replay_products;
 pub use twohot::{soft_cross_entropy, twohot_decode};
 // the row kernels, for the networks on plain buffers (`crate::nn::plain`)
 pub(crate) use categorical::{kl_rows, kl_rows_bwd, probs_rows_bwd, sample_rows, Unimix};
+pub(crate) use gemm::{count_flops, gemm_into, Operand};
 pub(crate) use gru::{gru_rows, gru_rows_bwd};
-pub(crate) use linear::{column_sums, count_flops, dense_parts, gemm_into, Operand};
+pub(crate) use linear::{column_sums, dense_parts};
 pub(crate) use norm_act::{norm_act_rows_bwd_into, norm_act_rows_into, Norm};
 pub(crate) use sparse_inputs::{SparseColumns, SparseRows};
 pub(crate) use twohot::{cross_entropy_rows, cross_entropy_rows_bwd, decode_rows, decode_rows_bwd};
