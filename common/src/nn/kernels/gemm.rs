@@ -1,6 +1,6 @@
 //! The matrix products on gemm: every product of a layer goes through [`gemm_raw`], which counts
 //! its floating-point operations ([`matmul_flops`]) and, while [`record_products`] is on, notes
-//! its shape for [`super::replay`] to run again alone.
+//! its shape for [`super::product_profile`] to run again alone.
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Mutex, PoisonError};

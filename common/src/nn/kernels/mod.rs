@@ -262,7 +262,7 @@ pub(crate) mod isa;
 mod linear;
 mod linear_norm;
 mod norm_act;
-mod replay;
+mod product_profile;
 mod sparse_inputs;
 mod twohot;
 
@@ -273,7 +273,7 @@ pub use gru::gru_gates;
 pub use linear::{linear, linear_t};
 pub use linear_norm::linear_norm_act;
 pub use norm_act::{norm_act, NormAct};
-pub use replay::replay_products;
+pub use product_profile::replay_products;
 pub use twohot::{soft_cross_entropy, twohot_decode};
 // the row kernels, for the networks on plain buffers (`crate::nn::plain`)
 pub(crate) use categorical::{kl_rows, kl_rows_bwd, probs_rows_bwd, sample_rows, Unimix};
