@@ -5,7 +5,7 @@
 //! backward pass, a zeroed gradient to add into; on a training step at the paper's batch that
 //! overhead took four times the matrix products. Each kernel here is one pass over rows of the
 //! input forward and one backward, on the calling thread (the learner parallelises over the
-//! batch instead, see [`super::set_threads`]), and computes
+//! batch instead, see [`super::candle_on_one_thread`]), and computes
 //! the gradient of an argument only when it is tracked ([`Tensor::track_op`]): a detached weight,
 //! as in a frozen copy of a network, costs nothing in the backward pass.
 //!
