@@ -353,8 +353,8 @@ pub fn run(args: LearnerArgs) -> Result<()> {
     let batch = random_batch(spec, beams, &mut rng);
 
     let threads = args.threads.unwrap_or(agent.algo.learner_threads());
-    ctxrace_common::nn::set_threads(threads);
-    let mut algo = ctxrace_learner::build(&agent, beams)?;
+    ctxrace_common::nn::candle_on_one_thread();
+    let mut algo = ctxrace_learner::build(&agent, beams, threads)?;
     algo.train_step(&batch)?;
     let flops_before = ctxrace_common::nn::kernels::matmul_flops();
     let mut metrics = Default::default();
@@ -396,7 +396,6 @@ pub fn run(args: LearnerArgs) -> Result<()> {
         (threads, peak / threads as f64, per_step),
     )?;
 
-    ctxrace_common::nn::set_threads(1);
     let mut policy = Policy::new(&agent, beams, &algo.policy_weights()?, 0)?;
     let obs: Vec<f32> = (0..beams).map(|_| rng.random_range(0.0..1.0)).collect();
     let mut times = Vec::with_capacity(args.act_steps);

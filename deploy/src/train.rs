@@ -269,9 +269,10 @@ fn sample(buffer: &ReplayBuffer, spec: BatchSpec, rng: &mut ChaCha8Rng) -> Optio
 /// every `policy_every` gradient steps, logs and checkpoints.
 pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()> {
     let t = &cfg.train;
-    ctxrace_common::nn::set_threads(t.threads_for(cfg.agent.algo));
+    ctxrace_common::nn::candle_on_one_thread();
     let frame_dim = env.obs_dim();
-    let mut algo = ctxrace_learner::build(&cfg.agent, frame_dim)?;
+    let workers = t.threads_for(cfg.agent.algo);
+    let mut algo = ctxrace_learner::build(&cfg.agent, frame_dim, workers)?;
     let mut policy = Policy::new(&cfg.agent, frame_dim, &algo.policy_weights()?, t.seed)?;
     let mut collector = Collector::new(env, t.context_range, t.seed);
     let mut buffer = ReplayBuffer::new(cfg.replay.capacity, 1, frame_dim, ACT_DIM);
@@ -382,7 +383,7 @@ mod tests {
 
     #[test]
     fn the_world_model_learns_recorded_race_data() {
-        ctxrace_common::nn::set_threads(1);
+        ctxrace_common::nn::candle_on_one_thread();
         // 2000 decisions of a random ego against one rival on a generated circuit
         let track = Arc::new(Track::load("generated:0", &TrackOptions::default()).unwrap());
         let race = RaceConfig {
@@ -417,7 +418,7 @@ mod tests {
             },
             ..AgentConfig::default()
         };
-        let mut algo = ctxrace_learner::build(&agent, frame_dim).unwrap();
+        let mut algo = ctxrace_learner::build(&agent, frame_dim, 1).unwrap();
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let mut history = Vec::new();
         for _ in 0..150 {

@@ -54,16 +54,10 @@ impl Adam {
         self.t
     }
 
-    /// Backpropagates `loss` and takes one step; returns the gradient norm before clipping. A
-    /// non-finite norm skips the step, so that one bad batch cannot poison the weights.
-    pub fn minimise(&mut self, loss: &Tensor) -> Result<f64> {
-        let grads = loss.backward()?;
-        self.step(&grads)
-    }
-
     /// One step with `grads` (variables without a gradient are left alone); returns the
-    /// gradient norm before clipping. The gradients are read and the weights updated where
-    /// candle stores them, without copies.
+    /// gradient norm before clipping. A non-finite norm skips the step, so that one bad batch
+    /// cannot poison the weights. The gradients are read and the weights updated where candle
+    /// stores them, without copies.
     pub fn step(&mut self, grads: &GradStore) -> Result<f64> {
         let found: Vec<Option<&Tensor>> = self
             .vars
@@ -168,7 +162,7 @@ mod tests {
             .unwrap()
             .sum_all()
             .unwrap();
-        let norm = adam.minimise(&loss).unwrap();
+        let norm = adam.step(&loss.backward().unwrap()).unwrap();
         assert!((norm - 10f64.sqrt()).abs() < 1e-6);
         let after = w.to_vec1::<f32>().unwrap();
         for (a, e) in after.iter().zip([0.9f32, -1.9, 0.5]) {
@@ -190,10 +184,10 @@ mod tests {
                 .unwrap()
         };
         // gradient −2·(3, 4), norm 10, clipped to 1: m = 0.1 · (−0.6, −0.8)
-        assert!((adam.minimise(&loss()).unwrap() - 10.0).abs() < 1e-5);
+        assert!((adam.step(&loss().backward().unwrap()).unwrap() - 10.0).abs() < 1e-5);
         assert!((adam.m[0][0] + 0.06).abs() < 1e-7 && (adam.m[0][1] + 0.08).abs() < 1e-7);
         for _ in 0..3 {
-            adam.minimise(&loss()).unwrap();
+            adam.step(&loss().backward().unwrap()).unwrap();
         }
         let bytes = adam.to_bytes().unwrap();
         let mut other = Adam::new(vec![w.clone()], 0.01, 1e-8, 1.0);

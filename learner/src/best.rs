@@ -11,7 +11,7 @@
 //! count, not those of the random prefill. The smoother's state is saved with every regular
 //! checkpoint, so a restarted learner carries on with it.
 
-use crate::checkpoint::{io_error, write_atomically, write_policy_files};
+use crate::checkpoint::{io_error, write_atomically, write_policy_files, write_toml, TRACKER_FILE};
 use crate::Algorithm;
 use candle_core::Result;
 use ctxrace_common::run_dir::{BEST_DIR, CHECKPOINTS};
@@ -22,8 +22,6 @@ use std::path::{Path, PathBuf};
 pub const SMOOTHING: f64 = 0.2;
 /// File in the best checkpoint saying when it was taken ([`BestInfo`]).
 pub const BEST_FILE: &str = "best.toml";
-/// File in every regular checkpoint with the smoother's state ([`ReturnTracker`]).
-pub const TRACKER_FILE: &str = "returns.toml";
 
 /// The exponentially smoothed training return and its peak so far.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -64,13 +62,6 @@ impl ReturnTracker {
             Err(e) => Err(io_error("reading", &path, e)),
         }
     }
-
-    /// Writes the state into checkpoint folder `dir`.
-    pub fn save(&self, dir: &Path) -> Result<()> {
-        let path = dir.join(TRACKER_FILE);
-        let text = toml::to_string(self).map_err(|e| io_error("serialising", &path, e))?;
-        std::fs::write(&path, text).map_err(|e| io_error("writing", &path, e))
-    }
 }
 
 /// When the best checkpoint was taken.
@@ -104,9 +95,7 @@ pub fn write_best(
     };
     write_atomically(&run_dir.join(CHECKPOINTS).join(BEST_DIR), |tmp| {
         write_policy_files(tmp, algo, agent)?;
-        let path = tmp.join(BEST_FILE);
-        let text = toml::to_string(&info).map_err(|e| io_error("serialising", &path, e))?;
-        std::fs::write(&path, text).map_err(|e| io_error("writing", &path, e))
+        write_toml(&tmp.join(BEST_FILE), &info)
     })
 }
 
@@ -129,7 +118,11 @@ mod tests {
             ReturnTracker::load(dir.path()).unwrap(),
             ReturnTracker::default()
         );
-        t.save(dir.path()).unwrap();
+        write_toml(&dir.path().join(TRACKER_FILE), &t).unwrap();
         assert_eq!(ReturnTracker::load(dir.path()).unwrap(), t);
+        // a damaged state is an error naming its file, not a fresh tracker
+        std::fs::write(dir.path().join(TRACKER_FILE), "episodes = [").unwrap();
+        let err = ReturnTracker::load(dir.path()).unwrap_err().to_string();
+        assert!(err.contains(TRACKER_FILE), "{err}");
     }
 }

@@ -13,10 +13,19 @@ use std::path::Path;
 
 /// Name of the counters file in a checkpoint directory.
 pub const STATE_FILE: &str = "state.toml";
+/// File in every regular checkpoint with the smoothed training return's state
+/// ([`crate::best::ReturnTracker`]).
+pub const TRACKER_FILE: &str = "returns.toml";
 
 /// An error naming the file (or folder) and what was being done to it.
 pub(crate) fn io_error(what: &str, path: &Path, e: impl std::fmt::Display) -> Error {
     Error::Msg(format!("{what} {}: {e}", path.display()))
+}
+
+/// Writes `value` as TOML to `path`, naming the file in its error.
+pub(crate) fn write_toml(path: &Path, value: &impl Serialize) -> Result<()> {
+    let text = toml::to_string(value).map_err(|e| io_error("serialising", path, e))?;
+    std::fs::write(path, text).map_err(|e| io_error("writing", path, e))
 }
 
 /// Writes `<dir>/<name>.safetensors` for every blob and the counters `state` as
@@ -27,9 +36,7 @@ pub fn save(dir: &Path, blobs: &[(&str, Vec<u8>)], state: &impl Serialize) -> Re
         let path = dir.join(format!("{name}.safetensors"));
         std::fs::write(&path, bytes).map_err(|e| io_error("writing", &path, e))?;
     }
-    let path = dir.join(STATE_FILE);
-    let text = toml::to_string(state).map_err(|e| io_error("serialising", &path, e))?;
-    std::fs::write(&path, text).map_err(|e| io_error("writing", &path, e))
+    write_toml(&dir.join(STATE_FILE), state)
 }
 
 /// Reads `<dir>/<name>.safetensors` and hands it to `load`, naming the file in its error.
@@ -198,20 +205,20 @@ fn sealed(file: &Path, bytes: u64) -> Result<Sealed> {
 
 /// Saves `algo` as `<run>/checkpoints/step-<steps>/`, with the policy weights and the agent's
 /// configuration beside its own files so that evaluation needs nothing else, and the smoothed
-/// training return `tracker` (see [`crate::best`]). The checkpoint is written to a temporary
+/// training return's state `tracker` as [`TRACKER_FILE`] (see [`crate::best`]). The checkpoint is written to a temporary
 /// folder and renamed into place, so a crash never leaves half of one; only the newest few are
 /// kept. Returns its path.
 pub fn write_checkpoint(
     run_dir: &Path,
     algo: &dyn crate::Algorithm,
     agent: &ctxrace_common::AgentConfig,
-    tracker: &crate::best::ReturnTracker,
+    tracker: &impl Serialize,
 ) -> Result<std::path::PathBuf> {
     let root = run_dir.join(CHECKPOINTS);
     let final_dir = write_atomically(&root.join(format!("step-{:010}", algo.steps())), |tmp| {
         algo.save(tmp)?;
         write_policy_files(tmp, algo, agent)?;
-        tracker.save(tmp)
+        write_toml(&tmp.join(TRACKER_FILE), tracker)
     })?;
     let all = checkpoints(run_dir);
     for old in all.iter().take(all.len().saturating_sub(KEEP)) {
@@ -229,9 +236,7 @@ pub(crate) fn write_policy_files(
 ) -> Result<()> {
     let policy = dir.join(POLICY_FILE);
     std::fs::write(&policy, algo.policy_weights()?).map_err(|e| io_error("writing", &policy, e))?;
-    let agent_path = dir.join(AGENT_FILE);
-    let text = toml::to_string(agent).map_err(|e| io_error("serialising", &agent_path, e))?;
-    std::fs::write(&agent_path, text).map_err(|e| io_error("writing", &agent_path, e))
+    write_toml(&dir.join(AGENT_FILE), agent)
 }
 
 /// Fills a fresh temporary folder beside `final_dir` with `fill` and renames it into place,
@@ -470,7 +475,6 @@ mod tests {
                 std::fs::write(dir.path().join(STATE_FILE), &state).unwrap();
                 let _ = verify(dir.path());
                 let _ = load_state::<toml::Table>(dir.path());
-                let _ = crate::best::ReturnTracker::load(dir.path());
             }
         }
     }

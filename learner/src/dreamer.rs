@@ -159,12 +159,12 @@ impl Dreamer {
             critic_opt,
             mask_sac,
             step: 0,
-            workers: ctxrace_common::nn::threads(),
+            workers: 1,
             imaginations: Vec::new(),
         })
     }
 
-    /// Splits each batch over `n` worker threads (default: [`ctxrace_common::nn::threads`]); the
+    /// Splits each batch over `n` worker threads (default: one); the
     /// step computes the same losses and gradients whatever `n`, up to the order of float sums.
     pub fn set_workers(&mut self, n: usize) {
         self.workers = n.max(1);
@@ -640,7 +640,7 @@ mod tests {
 
     #[test]
     fn world_model_losses_fall_on_point_mass_data() {
-        ctxrace_common::nn::set_threads(1);
+        ctxrace_common::nn::candle_on_one_thread();
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         let data = collect(40, &mut rng);
         // the best constant reward prediction scores the entropy of the mean two-hot target
@@ -737,7 +737,10 @@ mod tests {
             };
             entropies.push((std.log().unwrap().sum(1).unwrap() + a as f64 * gauss).unwrap());
             let uniform = uniforms_per(rngs, per_sequence, (cfg.stoch, cfg.classes)).unwrap();
-            state = rssm.img_step(&state, &action, ctx, &uniform).unwrap().0;
+            let deter = rssm.deter_step(&state, &action, ctx).unwrap();
+            let prior = rssm.prior_logits(&deter).unwrap();
+            let stoch = rssm.sample(&prior, &uniform).unwrap();
+            state = RssmState { deter, stoch };
             xs.push(state.head_input(ctx).unwrap());
         }
         let x = Tensor::cat(&xs, 0).unwrap();
@@ -1115,7 +1118,7 @@ mod tests {
     /// Trains an agent of `mode` for 300 steps on random point-mass data and returns the mean
     /// returns of its deterministic policy and of a random one over the same starts.
     fn point_mass_returns(mode: ContextMode) -> (f64, f64) {
-        ctxrace_common::nn::set_threads(1);
+        ctxrace_common::nn::candle_on_one_thread();
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         let data = collect(60, &mut rng);
         let cfg = DreamerConfig {

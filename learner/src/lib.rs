@@ -25,8 +25,14 @@ use ctxrace_common::agents::{AgentConfig, AlgoKind};
 use ctxrace_common::policy::ACT_DIM;
 
 /// A fresh agent of `agent.algo` for LiDAR frames of `frame_dim` values (SAC stacks
-/// `agent.sac.frames` of them) and the racing actions (steering, speed).
-pub fn build(agent: &AgentConfig, frame_dim: usize) -> candle_core::Result<Box<dyn Algorithm>> {
+/// `agent.sac.frames` of them) and the racing actions (steering, speed). A DreamerV3 variant
+/// splits each batch over `workers` threads ([`Dreamer::set_workers`]); SAC steps on the
+/// calling thread.
+pub fn build(
+    agent: &AgentConfig,
+    frame_dim: usize,
+    workers: usize,
+) -> candle_core::Result<Box<dyn Algorithm>> {
     agent.validate()?;
     Ok(match agent.algo {
         AlgoKind::Sac => Box::new(Sac::new(
@@ -35,7 +41,9 @@ pub fn build(agent: &AgentConfig, frame_dim: usize) -> candle_core::Result<Box<d
             agent.sac.clone(),
         )?),
         AlgoKind::Dreamerv3 | AlgoKind::Crssm | AlgoKind::Cmask => {
-            Box::new(Dreamer::new(agent.dreamer(), frame_dim, ACT_DIM)?)
+            let mut dreamer = Dreamer::new(agent.dreamer(), frame_dim, ACT_DIM)?;
+            dreamer.set_workers(workers);
+            Box::new(dreamer)
         }
     })
 }

@@ -47,8 +47,9 @@ pub fn target_steps(cfg: &ExperimentConfig) -> u64 {
 pub fn run(opts: LearnerOptions) -> Result<u64> {
     let cfg = &opts.experiment;
     let t = &cfg.train;
-    ctxrace_common::nn::set_threads(t.threads_for(cfg.agent.algo));
-    let mut algo = crate::build(&cfg.agent, opts.frame_dim)?;
+    ctxrace_common::nn::candle_on_one_thread();
+    let workers = t.threads_for(cfg.agent.algo);
+    let mut algo = crate::build(&cfg.agent, opts.frame_dim, workers)?;
     let mut tracker = ReturnTracker::default();
     if let Some(ckpt) = latest_checkpoint(&opts.run_dir) {
         algo.load(&ckpt)

@@ -994,7 +994,7 @@ mod tests {
 
     #[test]
     fn learns_to_centre_a_point_mass() {
-        ctxrace_common::nn::set_threads(1);
+        ctxrace_common::nn::candle_on_one_thread();
         // seeds 1..=5 give final |x| 0.003–0.021 (random 0.47–0.60) as well
         let (learned, random) = train_point_mass(0);
         assert!(random > 0.3, "random policy final |x| {random}");

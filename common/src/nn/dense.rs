@@ -2,9 +2,8 @@
 //! kernel, with the parameter names and shapes of candle-nn's `Linear` (`weight` `[out, in]`,
 //! `bias` `[out]`).
 
-use super::kernels::{self, NormAct, WeightGradTape};
+use super::kernels::{self, NormAct};
 use super::norm::LayerNorm;
-use candle_core::backprop::GradStore;
 use candle_core::{Result, Tensor};
 use candle_nn::VarBuilder;
 use std::ops::Range;
@@ -15,10 +14,8 @@ pub struct Dense {
     /// `W` `[out, in]`.
     weight: Tensor,
     bias: Option<Tensor>,
-    /// `Wᵀ` `[in, out]` (from `weight`) in a [`Dense::looped`] or [`Dense::taped`] layer.
+    /// `Wᵀ` `[in, out]` (from `weight`) in a [`Dense::looped`] layer.
     transposed: Option<Tensor>,
-    /// Where a [`Dense::taped`] layer's backward passes leave the weight's gradient.
-    tape: Option<WeightGradTape>,
     /// Input columns that are mostly zero ([`Dense::sparse_inputs`]).
     sparse_inputs: Option<Range<usize>>,
 }
@@ -40,7 +37,6 @@ impl Dense {
             weight,
             bias,
             transposed: None,
-            tape: None,
             sparse_inputs: None,
         })
     }
@@ -73,8 +69,8 @@ impl Dense {
     /// `x Wᵀ + b` for `x` `[N, in]`.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         if let Some(wt) = &self.transposed {
-            let (bias, tape) = (self.bias.as_ref(), self.tape.as_ref());
-            kernels::linear_t(x, wt, &self.weight, bias, tape, self.sparse_inputs.clone())
+            let bias = self.bias.as_ref();
+            kernels::linear_t(x, wt, &self.weight, bias, self.sparse_inputs.clone())
         } else {
             kernels::linear(
                 x,
@@ -91,37 +87,8 @@ impl Dense {
         if self.bias.is_some() {
             return ln.forward_act(&self.forward(x)?, act);
         }
-        let (wt, tape) = (self.transposed.as_ref(), self.tape.as_ref());
-        let sparse = self.sparse_inputs.clone();
-        kernels::linear_norm_act(x, &self.weight, wt, tape, ln.parts(), act, sparse)
-    }
-
-    /// [`Dense::forward`] on the two paths `(x_frozen, x_trained)` of one input from one product
-    /// ([`kernels::linear_twice`]): `(y_frozen, y_trained)`, where `y_frozen` takes no gradient
-    /// in the parameters and `y_trained` takes them as [`Dense::forward`] does. It multiplies by
-    /// the stored weight.
-    pub fn forward_twice(&self, x: (&Tensor, &Tensor)) -> Result<(Tensor, Tensor)> {
-        let sparse = self.sparse_inputs.clone();
-        kernels::linear_twice(x, &self.weight, self.bias.as_ref(), sparse)
-    }
-
-    /// [`Dense::forward_norm_act`] as [`Dense::forward_twice`]: in one operation
-    /// ([`kernels::linear_norm_act_twice`]) when the layer has no bias; otherwise as two.
-    pub fn forward_norm_act_twice(
-        &self,
-        x: (&Tensor, &Tensor),
-        ln: &LayerNorm,
-        act: NormAct,
-    ) -> Result<(Tensor, Tensor)> {
-        if self.bias.is_some() {
-            let (frozen, trained) = self.forward_twice(x)?;
-            return Ok((
-                ln.frozen().forward_act(&frozen, act)?,
-                ln.forward_act(&trained, act)?,
-            ));
-        }
-        let sparse = self.sparse_inputs.clone();
-        kernels::linear_norm_act_twice(x, &self.weight, ln.parts(), act, sparse)
+        let (wt, sparse) = (self.transposed.as_ref(), self.sparse_inputs.clone());
+        kernels::linear_norm_act(x, &self.weight, wt, ln.parts(), act, sparse)
     }
 
     /// The same layer for a loop that applies it many times: its weight transposed once into
@@ -136,35 +103,8 @@ impl Dense {
             weight: self.weight.clone(),
             bias: self.bias.clone(),
             transposed: Some(transposed),
-            tape: None,
             sparse_inputs: self.sparse_inputs.clone(),
         })
-    }
-
-    /// [`Dense::looped`] for a loop over few rows (the RSSM over a batch of sequences): the
-    /// weight's gradient is not summed call by call but kept on a tape and computed as one
-    /// product over all the calls' rows by [`Dense::flush_grads`], which must follow the
-    /// backward pass. A detached (frozen) layer needs no tape and gets none.
-    pub fn taped(&self) -> Result<Self> {
-        if !self.weight.track_op() {
-            return self.looped();
-        }
-        Ok(Self {
-            weight: self.weight.clone(),
-            bias: self.bias.clone(),
-            transposed: Some(self.weight.t()?.contiguous()?.detach()),
-            tape: Some(WeightGradTape::default()),
-            sparse_inputs: self.sparse_inputs.clone(),
-        })
-    }
-
-    /// Adds the taped weight gradient of a [`Dense::taped`] layer to `grads` (nothing for
-    /// another layer).
-    pub fn flush_grads(&self, grads: &mut GradStore) -> Result<()> {
-        match &self.tape {
-            Some(tape) => tape.flush(&self.weight, grads),
-            None => Ok(()),
-        }
     }
 
     /// The same layer on detached parameters: gradients pass to its input but not to its weights
@@ -174,7 +114,6 @@ impl Dense {
             weight: self.weight.detach(),
             bias: self.bias.as_ref().map(Tensor::detach),
             transposed: self.transposed.as_ref().map(Tensor::detach),
-            tape: None,
             sparse_inputs: self.sparse_inputs.clone(),
         }
     }

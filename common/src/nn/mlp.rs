@@ -69,26 +69,6 @@ impl Mlp {
         self
     }
 
-    /// The network's output twice from one forward pass: `(y_frozen, y_trained)`, equal values.
-    /// `y_frozen` is [`Mlp::frozen`]'s output (gradients reach `x` only); `y_trained` is the
-    /// output on `x` detached (gradients reach the parameters only).
-    pub fn forward_twice(&self, x: &Tensor) -> Result<(Tensor, Tensor)> {
-        let mut h = (x.clone(), x.detach());
-        for (fc, ln) in &self.hidden {
-            h = match ln {
-                Some(ln) => fc.forward_norm_act_twice((&h.0, &h.1), ln, NormAct::Silu)?,
-                None => {
-                    let (frozen, trained) = fc.forward_twice((&h.0, &h.1))?;
-                    (frozen.relu()?, trained.relu()?)
-                }
-            };
-        }
-        match &self.head {
-            Some(head) => head.forward_twice((&h.0, &h.1)),
-            None => Ok(h),
-        }
-    }
-
     /// Its hidden blocks (each a layer and, for [`Activation::SiluNorm`], its normalisation), its
     /// output layer and the hidden activation.
     pub fn parts(&self) -> (&[HiddenBlock], Option<&Dense>, Activation) {
@@ -175,47 +155,6 @@ mod tests {
             let (a, b) = (a.flatten_all().unwrap(), b.flatten_all().unwrap());
             let diff = (a - b).unwrap().abs().unwrap().max(0).unwrap();
             assert!(diff.to_scalar::<f32>().unwrap() < 1e-5);
-        }
-    }
-
-    #[test]
-    fn forward_twice_is_the_frozen_network_and_the_network_on_a_detached_input() {
-        for act in [Activation::SiluNorm, Activation::Relu] {
-            let ps = ParamStore::new();
-            let mlp = Mlp::new(4 + 64, 8, 2, Some(3), act, ps.builder()).unwrap();
-            ps.init(9).unwrap();
-            let mlp = mlp.sparse_inputs(4..68);
-            let x = Tensor::randn(0f32, 1.0, (5, 68), &Device::Cpu).unwrap();
-            let x = candle_core::Var::from_tensor(&x).unwrap();
-            let w = Tensor::randn(0f32, 1.0, (10, 3), &Device::Cpu).unwrap();
-            // Σ w·[y_frozen; y_trained]: x's gradient from the first half, the parameters' from
-            // the second
-            let run = |(frozen, trained): (Tensor, Tensor)| {
-                let y = Tensor::cat(&[frozen, trained], 0).unwrap();
-                let g = y.mul(&w).unwrap().sum_all().unwrap().backward().unwrap();
-                let mut all = vec![y];
-                for (_, v) in ps.named() {
-                    all.push(g.get(v.as_tensor()).unwrap().clone());
-                }
-                all.push(g.get(x.as_tensor()).unwrap().clone());
-                all
-            };
-            let twice = run(mlp.forward_twice(x.as_tensor()).unwrap());
-            let apart = run((
-                mlp.frozen().forward(x.as_tensor()).unwrap(),
-                mlp.forward(&x.detach()).unwrap(),
-            ));
-            for (a, b) in twice.iter().zip(&apart) {
-                let diff = (a.flatten_all().unwrap() - b.flatten_all().unwrap()).unwrap();
-                let diff = diff
-                    .abs()
-                    .unwrap()
-                    .max(0)
-                    .unwrap()
-                    .to_scalar::<f32>()
-                    .unwrap();
-                assert!(diff < 1e-5, "{act:?}: differs by {diff}");
-            }
         }
     }
 

@@ -16,7 +16,6 @@ use super::dense::Dense;
 use super::kernels::{self, NormAct};
 use super::norm::LayerNorm;
 use super::params::ParamStore;
-use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Result, Tensor, D};
 use candle_nn::VarBuilder;
 
@@ -111,22 +110,13 @@ impl NormBlock {
         }
     }
 
-    /// For a loop over time steps ([`Dense::looped`], or [`Dense::taped`] if `taped`).
-    fn looped(&self, taped: bool) -> Result<Self> {
+    /// For a loop over time steps ([`Dense::looped`]).
+    fn looped(&self) -> Result<Self> {
         Ok(Self {
-            fc: looped_dense(&self.fc, taped)?,
+            fc: self.fc.looped()?,
             ln: self.ln.clone(),
             act: self.act,
         })
-    }
-}
-
-/// `d` [`Dense::taped`] if `taped`, else [`Dense::looped`].
-fn looped_dense(d: &Dense, taped: bool) -> Result<Dense> {
-    if taped {
-        d.taped()
-    } else {
-        d.looped()
     }
 }
 
@@ -157,11 +147,10 @@ impl Gru {
         }
     }
 
-    /// The same cell for a loop over time steps ([`Dense::looped`], or [`Dense::taped`] if
-    /// `taped`).
-    pub fn looped(&self, taped: bool) -> Result<Self> {
+    /// The same cell for a loop over time steps ([`Dense::looped`]).
+    pub fn looped(&self) -> Result<Self> {
         Ok(Self {
-            gates: self.gates.looped(taped)?,
+            gates: self.gates.looped()?,
         })
     }
 }
@@ -221,40 +210,15 @@ impl Rssm {
     /// The same model for a loop over time steps: every weight transposed once, so that the
     /// steps multiply without re-packing them ([`Dense::looped`]); gradients reach the originals.
     pub fn looped(&self) -> Result<Self> {
-        self.looped_with(false)
-    }
-
-    /// [`Rssm::looped`] for a loop over few rows, its weight gradients taped ([`Dense::taped`]):
-    /// [`Rssm::flush_grads`] must follow the backward pass.
-    pub fn taped(&self) -> Result<Self> {
-        self.looped_with(true)
-    }
-
-    fn looped_with(&self, taped: bool) -> Result<Self> {
         Ok(Self {
             cfg: self.cfg,
-            img_in: self.img_in.looped(taped)?,
-            gru: self.gru.looped(taped)?,
-            prior_hidden: self.prior_hidden.looped(taped)?,
-            prior_out: looped_dense(&self.prior_out, taped)?,
-            post_hidden: self.post_hidden.looped(taped)?,
-            post_out: looped_dense(&self.post_out, taped)?,
+            img_in: self.img_in.looped()?,
+            gru: self.gru.looped()?,
+            prior_hidden: self.prior_hidden.looped()?,
+            prior_out: self.prior_out.looped()?,
+            post_hidden: self.post_hidden.looped()?,
+            post_out: self.post_out.looped()?,
         })
-    }
-
-    /// Adds the taped weight gradients of a [`Rssm::taped`] model to `grads`.
-    pub fn flush_grads(&self, grads: &mut GradStore) -> Result<()> {
-        for d in [
-            &self.img_in.fc,
-            &self.gru.gates.fc,
-            &self.prior_hidden.fc,
-            &self.prior_out,
-            &self.post_hidden.fc,
-            &self.post_out,
-        ] {
-            d.flush_grads(grads)?;
-        }
-        Ok(())
     }
 
     /// Its blocks, each a layer and its normalisation and activation (none for the output
@@ -348,20 +312,6 @@ impl Rssm {
         kernels::straight_through_sample(logits, uniform, self.cfg.unimix)
     }
 
-    /// One imagination step: `(state, prior logits)`.
-    pub fn img_step(
-        &self,
-        prev: &RssmState,
-        action: &Tensor,
-        context: Option<&Tensor>,
-        uniform: &Tensor,
-    ) -> Result<(RssmState, Tensor)> {
-        let deter = self.deter_step(prev, action, context)?;
-        let prior = self.prior_logits(&deter)?;
-        let stoch = self.sample(&prior, uniform)?;
-        Ok((RssmState { deter, stoch }, prior))
-    }
-
     /// One observation step: `(posterior state, posterior logits)`. The prior of `h_t` does not
     /// feed the next step, so a sequence's priors are one batched [`Rssm::prior_logits`] after it.
     pub fn obs_step(
@@ -446,10 +396,9 @@ mod tests {
         Tensor::full(v, (b, c.stoch, c.classes), &Device::Cpu).unwrap()
     }
 
-    /// The looped and taped copies compute what the model does, and the taped one's flushed
-    /// weight gradients are the plain backward pass's.
+    /// The looped copy computes what the model does, values and gradients.
     #[test]
-    fn looped_and_taped_models_match_the_plain_one() {
+    fn the_looped_model_matches_the_plain_one() {
         let c = cfg(2);
         let (ps, rssm) = standalone(c, 3).unwrap();
         let dev = &Device::Cpu;
@@ -475,12 +424,9 @@ mod tests {
         let plain = run(&rssm);
         let want = plain.backward().unwrap();
         let value = |t: &Tensor| t.to_scalar::<f32>().unwrap();
-        assert!((value(&run(&rssm.looped().unwrap())) - value(&plain)).abs() < 1e-4);
-        let taped = rssm.taped().unwrap();
-        let loss = run(&taped);
+        let loss = run(&rssm.looped().unwrap());
         assert!((value(&loss) - value(&plain)).abs() < 1e-4);
-        let mut got = loss.backward().unwrap();
-        taped.flush_grads(&mut got).unwrap();
+        let got = loss.backward().unwrap();
         for (name, var) in ps.named() {
             let flat = |g: &candle_core::backprop::GradStore| -> Vec<f32> {
                 g.get(&var)
@@ -522,10 +468,10 @@ mod tests {
             let zeros = row.iter().filter(|&&v| v.abs() < 1e-6).count();
             assert_eq!((ones, zeros), (1, 3), "{row:?}");
         }
-        let (s2, _) = rssm
-            .img_step(&s1, &a, Some(&ctx), &uniform(4, &c, 0.3))
-            .unwrap();
-        assert_eq!(s2.stoch.dims(), &[4, 12]);
+        let deter = rssm.deter_step(&s1, &a, Some(&ctx)).unwrap();
+        let prior = rssm.prior_logits(&deter).unwrap();
+        let stoch = rssm.sample(&prior, &uniform(4, &c, 0.3)).unwrap();
+        assert_eq!(stoch.dims(), &[4, 12]);
     }
 
     #[test]

@@ -6,20 +6,17 @@
 //! pass), and `∂p` goes from the normalisation's backward straight into the product's
 //! (`dx = ∂p W`, `dW = ∂pᵀ x`).
 
-use super::linear::{product, Linear, WeightGradTape};
+use super::linear::{product, Linear};
 use super::norm_act::{norm_act_rows, norm_act_rows_bwd, Norm};
 use super::*;
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Mutex, PoisonError};
 
 struct LinearNormAct {
     linear: Linear,
     eps: f32,
     act: NormAct,
-    /// `x Wᵀ` of the forward pass (of the trained twin's, shared, for a frozen twin).
-    product: Arc<Mutex<Vec<f32>>>,
-    /// The output's values, computed already by the trained twin of [`linear_norm_act_twice`]:
-    /// the forward pass copies them and leaves `product` as the twin left it.
-    known: Option<Tensor>,
+    /// `x Wᵀ` of the forward pass, kept for the backward pass.
+    product: Mutex<Vec<f32>>,
 }
 
 impl LinearNormAct {
@@ -54,17 +51,6 @@ impl CustomOp3 for LinearNormAct {
         s3: &CpuStorage,
         l3: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        if let Some(known) = &self.known {
-            let out = read(known, |y| Ok(y.to_vec()))?;
-            let (rows, _) = l1.shape().dims2()?;
-            if known.dims().first() != Some(&rows) {
-                bail!(
-                    "linear_norm_act: known values {:?} for {rows} rows",
-                    known.dims()
-                );
-            }
-            return Ok((CpuStorage::F32(out), known.shape().clone()));
-        }
         let (p, shape) = self.linear.fwd((s1, l1), (s2, l2), None)?;
         let CpuStorage::F32(p) = p else {
             bail!("linear_norm_act: f32 only")
@@ -114,60 +100,25 @@ impl CustomOp3 for LinearNormAct {
 }
 
 /// `act(LayerNorm(x Wᵀ))` for `x` `[N, in]`, `weight` `[out, in]` (or, with `weight_t`, the
-/// transposed layout and optional weight-gradient tape of [`super::linear_t`]) and the
+/// transposed layout of [`super::linear_t`]) and the
 /// normalisation's `(gain, bias, ε)`, each of `out`: [`super::linear`] then [`super::norm_act`]
 /// in one operation; the input columns `sparse_inputs` as in [`super::linear`].
 pub fn linear_norm_act(
     x: &Tensor,
     weight: &Tensor,
     weight_t: Option<&Tensor>,
-    tape: Option<&WeightGradTape>,
     (gain, bias, eps): (&Tensor, &Tensor, f64),
     act: NormAct,
     sparse_inputs: Option<std::ops::Range<usize>>,
 ) -> Result<Tensor> {
-    let (linear, weight) = product(weight, weight_t, tape, sparse_inputs)?;
+    let (linear, weight) = product(weight, weight_t, sparse_inputs)?;
     let op = LinearNormAct {
         linear,
         eps: eps as f32,
         act,
-        product: Arc::default(),
-        known: None,
+        product: Mutex::default(),
     };
     op.apply(x, &weight, &Tensor::cat(&[gain, bias], 0)?)
-}
-
-/// [`linear_norm_act`] (stored weight layout) on the two paths `(x_frozen, x_trained)` of one
-/// input from one product and normalisation, as [`super::linear_twice`]: `(y_frozen, y_trained)`,
-/// equal values; `y_trained` takes the gradients of [`linear_norm_act`] on `x_trained`,
-/// `y_frozen` only its input's.
-pub fn linear_norm_act_twice(
-    (x_frozen, x_trained): (&Tensor, &Tensor),
-    weight: &Tensor,
-    (gain, bias, eps): (&Tensor, &Tensor, f64),
-    act: NormAct,
-    sparse_inputs: Option<std::ops::Range<usize>>,
-) -> Result<(Tensor, Tensor)> {
-    let (linear, weight) = product(weight, None, None, sparse_inputs)?;
-    let (eps, product) = (eps as f32, Arc::<Mutex<Vec<f32>>>::default());
-    let gain_bias = Tensor::cat(&[gain, bias], 0)?;
-    let trained = LinearNormAct {
-        linear,
-        eps,
-        act,
-        product: product.clone(),
-        known: None,
-    }
-    .apply(x_trained, &weight, &gain_bias)?;
-    let frozen = LinearNormAct {
-        linear: Linear::frozen(None),
-        eps,
-        act,
-        product,
-        known: Some(trained.detach()),
-    }
-    .apply(x_frozen, &weight.detach(), &gain_bias.detach())?;
-    Ok((frozen, trained))
 }
 
 #[cfg(test)]
@@ -183,11 +134,11 @@ mod tests {
         for act in [NormAct::Silu, NormAct::Identity] {
             let two = |p: Tensor| norm_act(&p, &g, &b, eps, act).unwrap();
             let composed = two(super::super::linear(&x, &w, None, None).unwrap());
-            let fused = linear_norm_act(&x, &w, None, None, (&g, &b, eps), act, None).unwrap();
+            let fused = linear_norm_act(&x, &w, None, (&g, &b, eps), act, None).unwrap();
             same(fused, composed.clone(), &[&x, &w, &g, &b], 1e-4);
             // the transposed layout
             let wt = w.t().unwrap().contiguous().unwrap();
-            let fused = linear_norm_act(&x, &w, Some(&wt), None, (&g, &b, eps), act, None).unwrap();
+            let fused = linear_norm_act(&x, &w, Some(&wt), (&g, &b, eps), act, None).unwrap();
             same(fused, composed, &[&x, &w, &g, &b], 1e-4);
         }
         // input columns 3..35 one-hot, multiplied over their non-zeros
@@ -203,32 +154,8 @@ mod tests {
         let wt = w.t().unwrap().contiguous().unwrap();
         for weight_t in [None, Some(&wt)] {
             let sparse = Some(3..35);
-            let fused =
-                linear_norm_act(&x, &w, weight_t, None, (&g, &b, eps), NormAct::Silu, sparse);
+            let fused = linear_norm_act(&x, &w, weight_t, (&g, &b, eps), NormAct::Silu, sparse);
             same(fused.unwrap(), composed.clone(), &[&x, &w, &g, &b], 1e-4);
-        }
-    }
-
-    #[test]
-    fn linear_norm_act_twice_is_a_frozen_and_a_trained_block() {
-        let (x, w) = (one_hot_input(8), var(&[6, 37], 26));
-        let (g, b) = (var(&[6], 27), var(&[6], 28));
-        let eps = 1e-3;
-        let x_trained = x.detach();
-        let pair = |(f, t): (Tensor, Tensor)| Tensor::cat(&[f, t], 0).unwrap();
-        for (act, sparse) in [(NormAct::Silu, None), (NormAct::Identity, Some(3..35))] {
-            let twice =
-                linear_norm_act_twice((&x, &x_trained), &w, (&g, &b, eps), act, sparse).unwrap();
-            let (wf, gf, bf) = (w.detach(), g.detach(), b.detach());
-            let frozen = linear_norm_act(&x, &wf, None, None, (&gf, &bf, eps), act, None).unwrap();
-            let trained =
-                linear_norm_act(&x_trained, &w, None, None, (&g, &b, eps), act, None).unwrap();
-            same(
-                pair(twice),
-                pair((frozen, trained)),
-                &[&x, &w, &g, &b],
-                1e-4,
-            );
         }
     }
 }

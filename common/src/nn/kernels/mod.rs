@@ -5,7 +5,7 @@
 //! backward pass, a zeroed gradient to add into; on a training step at the paper's batch that
 //! overhead took four times the matrix products. Each kernel here is one pass over rows of the
 //! input forward and one backward, on the calling thread (the learner parallelises over the
-//! batch instead, see [`super::set_threads`]), and computes
+//! batch instead, see [`super::candle_on_one_thread`]), and computes
 //! the gradient of an argument only when it is tracked ([`Tensor::track_op`]): a detached weight,
 //! as in a frozen copy of a network, costs nothing in the backward pass.
 //!
@@ -256,27 +256,30 @@ fn dims2(t: &Tensor) -> Result<(usize, usize)> {
 
 mod adam;
 mod categorical;
+mod gemm;
 mod gru;
 pub(crate) mod isa;
 mod linear;
 mod linear_norm;
 mod norm_act;
-mod replay;
+mod product_profile;
 mod sparse_inputs;
 mod twohot;
 
 pub use adam::{adam_update, adam_update_in_place, squared_norm, sum_of_squares, AdamStep};
 pub use categorical::{categorical_kl, straight_through_sample};
+pub use gemm::{matmul_flops, record_products, recorded_products, ProductShape};
 pub use gru::gru_gates;
-pub use linear::{linear, linear_t, linear_twice, matmul_flops, WeightGradTape};
-pub use linear_norm::{linear_norm_act, linear_norm_act_twice};
+pub use linear::{linear, linear_t};
+pub use linear_norm::linear_norm_act;
 pub use norm_act::{norm_act, NormAct};
-pub use replay::{record_products, recorded_products, replay_products, ProductShape};
+pub use product_profile::replay_products;
 pub use twohot::{soft_cross_entropy, twohot_decode};
 // the row kernels, for the networks on plain buffers (`crate::nn::plain`)
 pub(crate) use categorical::{kl_rows, kl_rows_bwd, probs_rows_bwd, sample_rows, Unimix};
+pub(crate) use gemm::{count_flops, gemm_into, Operand};
 pub(crate) use gru::{gru_rows, gru_rows_bwd};
-pub(crate) use linear::{column_sums, count_flops, dense_parts, gemm_into, Operand};
+pub(crate) use linear::{column_sums, dense_parts};
 pub(crate) use norm_act::{norm_act_rows_bwd_into, norm_act_rows_into, Norm};
 pub(crate) use sparse_inputs::{SparseColumns, SparseRows};
 pub(crate) use twohot::{cross_entropy_rows, cross_entropy_rows_bwd, decode_rows, decode_rows_bwd};

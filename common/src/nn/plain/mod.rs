@@ -192,7 +192,7 @@ mod tests {
     }
 
     /// A plain imagination step's next state and its gradients in the state and the action are
-    /// those of [`crate::nn::Rssm::img_step`].
+    /// those of the candle RSSM's sequence model, prior and sample.
     #[test]
     fn a_plain_imagination_step_matches_the_rssm() {
         let cfg = RssmConfig {
@@ -224,10 +224,17 @@ mod tests {
             stoch: stoch.as_tensor().clone(),
         };
         let u = Tensor::from_vec(uniform.clone(), (n, 3, 4), dev).unwrap();
-        let (next, _) = rssm
-            .frozen()
-            .img_step(&prev, act.as_tensor(), Some(ctx.as_tensor()), &u)
+        let frozen = rssm.frozen();
+        let next_deter = frozen
+            .deter_step(&prev, act.as_tensor(), Some(ctx.as_tensor()))
             .unwrap();
+        let next_stoch = frozen
+            .sample(&frozen.prior_logits(&next_deter).unwrap(), &u)
+            .unwrap();
+        let next = RssmState {
+            deter: next_deter,
+            stoch: next_stoch,
+        };
         let g = Tensor::from_vec(d_next.clone(), (n, f), dev).unwrap();
         let loss = (next
             .deter

@@ -2,80 +2,15 @@
 //! run again alone.
 //!
 //! A training step's time is its products' plus everything around them (row kernels, copies,
-//! the operands' trips through the caches, threads waiting). [`record_products`] notes the shape
+//! the operands' trips through the caches, threads waiting). [`super::record_products`] notes the shape
 //! and strides of every gemm call while it is on; [`replay_products`] runs the same calls again
 //! on the calling thread, one after another, on operands of random values reused from call to
 //! call, and times them. Their rate is what the products reach with nothing else in the way and
 //! their operands as warm as the caches can keep them: the step's fraction of it says how much
 //! of its time goes to the products and how much to the rest, on the machine at hand.
 
-use super::linear::{gemm_raw, Operand};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Mutex, PoisonError};
+use super::gemm::{gemm_raw, Operand, ProductShape};
 use std::time::Instant;
-
-/// Whether gemm calls are being recorded.
-static RECORDING: AtomicBool = AtomicBool::new(false);
-/// The calls recorded since [`record_products`] turned recording on.
-static RECORDED: Mutex<Vec<ProductShape>> = Mutex::new(Vec::new());
-
-/// One gemm call: `dst (+)= A B` with `A` `[m, k]`, `B` `[k, n]` and `dst` `[m, n]`, each
-/// addressed by the strides it had.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct ProductShape {
-    /// `m`, `n`, `k`.
-    pub dims: (usize, usize, usize),
-    /// `A`'s row and column strides.
-    pub a_strides: (usize, usize),
-    /// `B`'s row and column strides.
-    pub b_strides: (usize, usize),
-    /// The distance between `dst`'s rows.
-    pub dst_row_stride: usize,
-    /// Whether the product was added to `dst`.
-    pub accumulate: bool,
-}
-
-impl ProductShape {
-    /// `2 m n k`.
-    pub fn flops(&self) -> u64 {
-        let (m, n, k) = self.dims;
-        2 * (m * n * k) as u64
-    }
-
-    /// Values an operand of `rows` x `cols` at `strides` spans.
-    fn span(rows: usize, cols: usize, (row_stride, col_stride): (usize, usize)) -> usize {
-        (rows - 1) * row_stride + (cols - 1) * col_stride + 1
-    }
-}
-
-/// Turns the recording of gemm calls on (clearing what an earlier recording left) or off.
-pub fn record_products(on: bool) {
-    if on {
-        RECORDED
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .clear();
-    }
-    RECORDING.store(on, Ordering::Relaxed);
-}
-
-/// The calls recorded so far (recording stays as it is).
-pub fn recorded_products() -> Vec<ProductShape> {
-    RECORDED
-        .lock()
-        .unwrap_or_else(PoisonError::into_inner)
-        .clone()
-}
-
-/// Notes a call, if recording.
-pub(super) fn note(shape: ProductShape) {
-    if RECORDING.load(Ordering::Relaxed) {
-        RECORDED
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .push(shape);
-    }
-}
 
 /// Runs `calls` again on this thread, in order, and returns the seconds they took. Operands of
 /// pseudo-random values, one buffer each for `A`, `B` and `dst` as long as the longest call
