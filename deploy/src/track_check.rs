@@ -29,6 +29,17 @@ pub struct CheckPlan {
     pub places: usize,
 }
 
+impl Default for CheckPlan {
+    /// The evaluation protocol's 7 × 7 contexts over `[−0.3, 0.3]²`, grid places 1 to 3.
+    fn default() -> Self {
+        Self {
+            grid: 7,
+            range: 0.3,
+            places: 3,
+        }
+    }
+}
+
 /// One check's result.
 #[derive(Clone, Debug, Serialize)]
 pub struct Finding {
@@ -54,6 +65,23 @@ impl CheckReport {
     pub fn raceable(&self) -> bool {
         self.findings.iter().all(|f| f.passed)
     }
+}
+
+/// Prints `report`: each check (only the failing ones if `failures_only`) marked ok or FAIL,
+/// then the verdict.
+pub fn print_report(report: &CheckReport, failures_only: bool) {
+    for f in &report.findings {
+        if !(failures_only && f.passed) {
+            let mark = if f.passed { "ok  " } else { "FAIL" };
+            println!("{mark} {:<26} {}", f.check, f.detail);
+        }
+    }
+    let verdict = if report.raceable() {
+        "raceable"
+    } else {
+        "not raceable"
+    };
+    println!("{} is {verdict}", report.track);
 }
 
 /// Runs every check of `plan` on `track` in the race `race` describes.

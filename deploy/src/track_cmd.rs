@@ -1,6 +1,6 @@
 //! `ctxrace track info|raceline|check|download`.
 
-use crate::track_check::{check_track, CheckPlan};
+use crate::track_check::{check_track, print_report, CheckPlan};
 use crate::TrackArgs;
 use anyhow::{Context, Result};
 use clap::Subcommand;
@@ -43,13 +43,13 @@ pub enum TrackCommand {
         /// Track name, path to a map yaml, or generated:SEED.
         track: String,
         /// Contexts per axis of the grid (the evaluation protocol's: 7).
-        #[arg(long, default_value_t = 7)]
+        #[arg(long, default_value_t = CheckPlan::default().grid)]
         grid: usize,
         /// Half-width of the contexts' grid.
-        #[arg(long, default_value_t = 0.3)]
+        #[arg(long, default_value_t = CheckPlan::default().range)]
         range: f64,
         /// Check rivals from grid places 1 to this (each a race with that many rivals).
-        #[arg(long, default_value_t = 3)]
+        #[arg(long, default_value_t = CheckPlan::default().places)]
         places: usize,
         /// Race config TOML (see configs/).
         #[arg(long)]
@@ -208,19 +208,7 @@ pub fn run(cmd: TrackCommand) -> Result<()> {
             if json {
                 println!("{}", serde_json::to_string_pretty(&report)?);
             } else {
-                println!("track {}", report.track);
-                for f in &report.findings {
-                    let mark = if f.passed { "ok  " } else { "FAIL" };
-                    println!("{mark} {:<26} {}", f.check, f.detail);
-                }
-                println!(
-                    "{}",
-                    if report.raceable() {
-                        "raceable"
-                    } else {
-                        "not raceable"
-                    }
-                );
+                print_report(&report, false);
             }
             anyhow::ensure!(
                 report.raceable(),
