@@ -6,10 +6,12 @@
 //! the F1TENTH racetracks repository (`NAME/NAME_map.yaml`, …). The map image is the one the yaml
 //! names; the raceline is optional. A track is kept only if it then loads.
 
+use crate::track_check::{check_track, print_report, CheckPlan};
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use ctxrace_common::RaceConfig;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// Where the paper's maps are fetched from.
 pub const PAPER_SOURCE: &str = "https://raw.githubusercontent.com/lilpharaoh1/context-f110/HEAD";
@@ -67,7 +69,8 @@ fn image_of(yaml: &str, origin: &str) -> Result<String> {
 }
 
 /// Downloads the tracks `names` into `into` (default: the per-user tracks folder) from `from`
-/// (default: their public repositories) and checks that each loads.
+/// (default: their public repositories), checks that each loads and says whether it is
+/// raceable (`track check`, its failures listed).
 pub fn run(
     names: &[String],
     from: Option<&str>,
@@ -141,6 +144,13 @@ pub fn run(
             track.length(),
             dir.display()
         );
+        // a map that loads may still not race: say so now rather than in a training run
+        let report = check_track(
+            Arc::new(track),
+            &RaceConfig::default(),
+            CheckPlan::default(),
+        )?;
+        print_report(&report, true);
     }
     Ok(())
 }

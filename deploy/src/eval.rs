@@ -13,7 +13,7 @@
 
 use crate::driver::{ActMode, EgoSpec};
 use crate::lock::{die_with_parent, DirLock};
-use crate::render::{render_race, Frame};
+use crate::render::{race_title, render_race, Frame};
 use crate::results::{self, EvalMeta};
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
@@ -479,7 +479,8 @@ fn finish(
         Some(&mut frames),
     )?;
     for ext in ["png", "svg"] {
-        render_race(&out.join(format!("episode.{ext}")), &track, &frames)?;
+        let title = race_title(&meta.track, &spec.name(), &env);
+        render_race(&out.join(format!("episode.{ext}")), &track, &frames, &title)?;
     }
 
     let mut stdout = std::io::stdout().lock();

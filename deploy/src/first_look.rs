@@ -1,9 +1,9 @@
 //! What `ctxrace train` shows when a run is complete: a short evaluation of the trained agent on
-//! a 3 × 3 grid of contexts beside the random and pure-pursuit egos, a picture of one of its
-//! races, and the commands that go further (the full protocol, the report, TensorBoard).
+//! a 3 × 3 grid of contexts beside the random and pure-pursuit egos, a picture and an animation
+//! of one of its races, and the commands that go further (the full protocol, the report, TensorBoard).
 
 use crate::driver::{ActMode, EgoSpec};
-use crate::render::{render_race, Frame};
+use crate::render::{race_title, render_race, Frame};
 use crate::TrackArgs;
 use anyhow::Result;
 use ctxrace_actor::baseline::BaselineKind;
@@ -87,15 +87,19 @@ pub fn show(cfg: &ExperimentConfig, dir: &Path, tracks: &TrackArgs) -> Result<()
     let mut driver = agent.driver(&env, ActMode::Sample)?;
     let mut frames: Vec<Frame> = Vec::new();
     driver.drive_episode(&mut env, Context::default(), 0, Some(&mut frames))?;
+    let title = race_title(&cfg.track, &agent.name(), &env);
     let picture = dir.join("race.png");
-    render_race(&picture, &track, &frames)?;
+    let animation = dir.join("race.gif");
+    render_race(&picture, &track, &frames, &title)?;
+    render_race(&animation, &track, &frames, &title)?;
     let d = dir.display();
     println!(
-        "\nrun: {d} (a race at c = (0, 0): {})\nnext:\n  \
+        "\nrun: {d} (a race at c = (0, 0): {} and, animated, {})\nnext:\n  \
          ctxrace eval {d}                 # the paper's protocol: 7 x 7 contexts, 50 laps each\n  \
          ctxrace report {d} --out {d}/report\n  \
          tensorboard --logdir {}           # training curves",
         picture.display(),
+        animation.display(),
         dir.parent().unwrap_or(Path::new(".")).display()
     );
     Ok(())

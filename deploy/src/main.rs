@@ -22,6 +22,7 @@ mod results;
 mod roles;
 mod sweep;
 mod table;
+mod track_check;
 mod track_cmd;
 mod train;
 mod vehicle_cmd;

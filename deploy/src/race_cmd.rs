@@ -1,7 +1,7 @@
 //! `ctxrace race`: one episode with a reference ego policy, its metrics, picture and trace.
 
 use crate::driver::{ActMode, EgoSpec};
-use crate::render::{render_race, Frame};
+use crate::render::{check_render_path, ended_by, race_title, render_race, Frame};
 use crate::TrackArgs;
 use anyhow::{Context as _, Result};
 use clap::Args;
@@ -45,7 +45,8 @@ pub struct RaceArgs {
     /// Race config TOML (see configs/); flags override it.
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Draw the track and every car's path coloured by speed (.png or .svg).
+    /// Draw the track and every car's path coloured by speed: a still (.png or .svg) or an
+    /// animation of the cars on the track (.gif).
     #[arg(long)]
     render: Option<PathBuf>,
     /// Write per-step poses, speeds, actions and the ego scan as CSV.
@@ -72,6 +73,9 @@ struct RaceReport<'a> {
 
 /// Runs one episode.
 pub fn run(args: RaceArgs) -> Result<()> {
+    if let Some(path) = &args.render {
+        check_render_path(path)?;
+    }
     let spec = match &args.policy {
         Some(path) => EgoSpec::Trained(Box::new(TrainedAgent::load(path, args.checkpoint)?)),
         None => EgoSpec::Baseline(args.ego),
@@ -91,19 +95,9 @@ pub fn run(args: RaceArgs) -> Result<()> {
     let mut env = RaceEnv::new(track.clone(), cfg)?;
     let mut policy = spec.driver(&env, args.act)?;
     let mut frames = Vec::new();
-    let last = policy.drive_episode(&mut env, args.context, args.seed, Some(&mut frames))?;
-    let ended_by = if last.lap_complete {
-        "lap complete"
-    } else if last.a2a {
-        "collision with a rival"
-    } else if last.wall_crash {
-        "wall crash"
-    } else if last.reversed {
-        "driving backwards"
-    } else {
-        "time limit"
-    };
+    policy.drive_episode(&mut env, args.context, args.seed, Some(&mut frames))?;
     let m = env.metrics();
+    let ended_by = ended_by(m);
     if args.json {
         let report = RaceReport {
             track: &track.name,
@@ -138,7 +132,8 @@ pub fn run(args: RaceArgs) -> Result<()> {
         println!("rivals crashed  {}", m.rivals_crashed);
     }
     if let Some(path) = &args.render {
-        render_race(path, &track, &frames)?;
+        let title = race_title(&track.name, &spec.name(), &env);
+        render_race(path, &track, &frames, &title)?;
         eprintln!("rendered {}", path.display());
     }
     if let Some(path) = &args.trace {

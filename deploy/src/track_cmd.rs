@@ -1,5 +1,6 @@
-//! `ctxrace track info|raceline`.
+//! `ctxrace track info|raceline|check|download`.
 
+use crate::track_check::{check_track, print_report, CheckPlan};
 use crate::TrackArgs;
 use anyhow::{Context, Result};
 use clap::Subcommand;
@@ -9,6 +10,7 @@ use ctxrace_tracks::Track;
 use nalgebra::{Point2, Vector2};
 use serde::Serialize;
 use std::path::PathBuf;
+use std::sync::Arc;
 
 /// Track subcommands.
 #[derive(Subcommand)]
@@ -30,6 +32,31 @@ pub enum TrackCommand {
         /// Output CSV file.
         #[arg(long)]
         out: PathBuf,
+        #[command(flatten)]
+        tracks: TrackArgs,
+    },
+    /// Whether a map is raceable: the pure-pursuit ego laps alone, rivals in every evaluation
+    /// context drive from each grid place round to the line with the ego standing on it, the
+    /// track is wide enough and the raceline's curvature within the car's steering; if not,
+    /// what fails where (and an error exit).
+    Check {
+        /// Track name, path to a map yaml, or generated:SEED.
+        track: String,
+        /// Contexts per axis of the grid (the evaluation protocol's: 7).
+        #[arg(long, default_value_t = CheckPlan::default().grid)]
+        grid: usize,
+        /// Half-width of the contexts' grid.
+        #[arg(long, default_value_t = CheckPlan::default().range)]
+        range: f64,
+        /// Check rivals from grid places 1 to this (each a race with that many rivals).
+        #[arg(long, default_value_t = CheckPlan::default().places)]
+        places: usize,
+        /// Race config TOML (see configs/).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
         #[command(flatten)]
         tracks: TrackArgs,
     },
@@ -91,16 +118,26 @@ struct TrackInfo {
     raceline_max_speed_mps: f64,
 }
 
+/// Wall-to-wall width across the centreline at each of its points (m, at most 40).
+pub fn drawn_widths(track: &Track) -> Vec<f64> {
+    let c = &track.centreline;
+    let pts = c.curve.points();
+    (0..pts.len())
+        .map(|i| {
+            let d = c.curve.segment_vector(i).normalize();
+            let normal = Vector2::new(-d.y as f32, d.x as f32);
+            let o = Point2::new(pts[i].x as f32, pts[i].y as f32);
+            let side =
+                |dir: Vector2<f32>| track.walls.cast_ray(o, dir, 20.0).unwrap_or(20.0) as f64;
+            side(normal) + side(-normal)
+        })
+        .collect()
+}
+
 fn info(track: &Track) -> TrackInfo {
     let c = &track.centreline;
     let pts = c.curve.points();
-    let drawn = (0..pts.len()).map(|i| {
-        let d = c.curve.segment_vector(i).normalize();
-        let normal = Vector2::new(-d.y as f32, d.x as f32);
-        let o = Point2::new(pts[i].x as f32, pts[i].y as f32);
-        let side = |dir: Vector2<f32>| track.walls.cast_ray(o, dir, 20.0).unwrap_or(20.0) as f64;
-        side(normal) + side(-normal)
-    });
+    let drawn = drawn_widths(track).into_iter();
     TrackInfo {
         name: track.name.clone(),
         length_m: track.length(),
@@ -144,6 +181,41 @@ pub fn run(cmd: TrackCommand) -> Result<()> {
                     i.raceline_length_m, i.raceline_lap_time_s, i.raceline_max_speed_mps
                 );
             }
+        }
+        TrackCommand::Check {
+            track,
+            grid,
+            range,
+            places,
+            config,
+            json,
+            tracks,
+        } => {
+            if grid == 0 || places == 0 || !(0.0..=0.9).contains(&range) {
+                anyhow::bail!(
+                    "--grid {grid} and --places {places} must be positive and --range {range} \
+                     in [0, 0.9]"
+                );
+            }
+            let race = crate::load_race_config(config.as_ref())?;
+            let t = Arc::new(tracks.load(&track, &race)?);
+            let plan = CheckPlan {
+                grid,
+                range,
+                places,
+            };
+            let report = check_track(t, &race, plan)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&report)?);
+            } else {
+                print_report(&report, false);
+            }
+            anyhow::ensure!(
+                report.raceable(),
+                "{} is not raceable: {} check(s) fail",
+                report.track,
+                report.findings.iter().filter(|f| !f.passed).count()
+            );
         }
         TrackCommand::Download {
             names,

@@ -95,6 +95,23 @@ fn race_on_a_generated_track_renders_traces_and_reports_json() {
     ]);
     assert_eq!(stdout(&again), stdout(&o));
     assert!(std::fs::read_to_string(&svg).unwrap().contains("<svg"));
+    // and as an animation
+    let gif = dir.path().join("race.gif");
+    let animated = ctxrace(&[
+        "race",
+        "generated:3",
+        "--rivals",
+        "2",
+        "--context",
+        "-0.3,0.2",
+        "--seed",
+        "5",
+        "--json",
+        "--render",
+        gif.to_str().unwrap(),
+    ]);
+    assert_eq!(stdout(&animated), stdout(&o));
+    assert_eq!(&std::fs::read(&gif).unwrap()[..6], b"GIF89a");
 }
 
 #[test]
@@ -288,9 +305,9 @@ fn bad_input_gives_clear_errors() {
             "race",
             "generated:1",
             "--render",
-            d.join("x.gif").to_str().unwrap(),
+            d.join("x.jpg").to_str().unwrap(),
         ],
-        ".png or .svg",
+        ".png or .svg (a still) or .gif (an animation)",
     );
     // bad controls and configs
     let controls = write(d, "controls.csv", "steer,speed\n0.1,abc\n");
