@@ -1,7 +1,7 @@
 //! A head-to-head race (paper §III–IV): the ego against 0–7 rivals for one lap.
 //!
 //! All cars start in a line on the centreline, ego last at arc length 0 (the start/finish line),
-//! rival `i` at `i · gap · L` ahead. Every decision (10 physics steps of 0.01 s) the ego acts with
+//! rival `i` at `i` grid spacings ahead (`start_grid`: a fixed distance, or a fraction of the lap). Every decision (10 physics steps of 0.01 s) the ego acts with
 //! `a ∈ [-1, 1]²` — steering `δ = −a₀ θ_max` (negative `a₀` turns left, as the paper states) and speed
 //! `v = v_min + (a₁ + 1)/2 · (v_max − v_min)` — and each rival plans with pure pursuit.
 //!
@@ -178,6 +178,8 @@ impl RaceEnv {
     /// An environment on `track`; call [`RaceEnv::reset`] before stepping.
     pub fn new(track: Arc<Track>, cfg: RaceConfig) -> Result<Self, RaceError> {
         cfg.validate().map_err(RaceError::Config)?;
+        cfg.validate_grid(&track.name, track.length())
+            .map_err(RaceError::Config)?;
         let params = VehicleParams::default();
         let steps_per_decision = cfg.physics_steps_per_action as f64 * DT;
         Ok(Self {
@@ -207,10 +209,10 @@ impl RaceEnv {
         self.context = context;
         let gains = self.cfg.rival.gains_for(&self.track.name);
         let centre = &self.track.centreline.curve;
-        let length = centre.length();
+        let spacing = self.cfg.grid_spacing(&self.track.name, self.track.length());
         self.cars = (0..=self.cfg.rivals)
             .map(|i| {
-                let s = i as f64 * self.cfg.start_gap * length;
+                let s = i as f64 * spacing;
                 let p = centre.point_at(s);
                 let (seg, _) = centre.locate(s);
                 Car {

@@ -115,3 +115,43 @@ fn pure_pursuit_ego_laps_both_paper_tracks_alone() {
             .all(|s| s.obs.iter().all(|v| (0.0..=1.0).contains(v))));
     }
 }
+
+#[test]
+fn the_grid_spaces_cars_in_metres_or_in_lap_fractions() {
+    let track = generated();
+    let length = track.length();
+    let grid = |cfg: RaceConfig| {
+        let mut env = RaceEnv::new(track.clone(), cfg).unwrap();
+        env.reset(0, Context::default());
+        env.cars().iter().map(|c| c.travelled).collect::<Vec<_>>()
+    };
+    // the default: the tables' code, 5.5 m apart on a track without an entry of its own
+    let metres = grid(RaceConfig {
+        rivals: 3,
+        ..Default::default()
+    });
+    for (i, s) in metres.iter().enumerate() {
+        assert!((s - 5.5 * i as f64).abs() < 1e-9, "car {i} at {s}");
+    }
+    // a track's own entry replaces start_spacing
+    let mut cfg = RaceConfig::from_toml(
+        "rivals = 2\nstart_spacing = 3.0\n[start_spacing_tracks]\n\"generated:1\" = 4.0\n",
+    )
+    .unwrap();
+    assert_eq!(grid(cfg.clone())[2], 8.0);
+    cfg.start_spacing_tracks.clear();
+    assert_eq!(grid(cfg)[2], 6.0);
+    // the release's grid: 5% of the lap
+    let fraction =
+        grid(RaceConfig::from_toml("rivals = 3\nstart_grid = \"lap-fraction\"").unwrap());
+    assert!((fraction[3] - 0.15 * length).abs() < 1e-9, "{fraction:?}");
+    // a grid longer than the lap is refused, naming the key
+    let err = RaceEnv::new(
+        track.clone(),
+        RaceConfig::from_toml(&format!("rivals = 7\nstart_spacing = {}", length / 7.0)).unwrap(),
+    )
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(err.contains("start_spacing:"), "{err}");
+}
