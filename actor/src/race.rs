@@ -8,16 +8,17 @@
 //! Reward: see [`reward`]. The episode ends when the ego completes the lap, hits a wall, collides
 //! with a rival or (with `reverse_limit`) drives backwards (terminated), or at the time limit
 //! (truncated, or terminated with `timeout_is_terminal`). A rival that crashes stops and stays as
-//! an obstacle.
+//! an obstacle (with `crashed_rivals = "coast"` it brakes under a zero command instead).
 //!
 //! Metrics: PG, the largest fraction of the lap the ego completed; OT, the sum of the rank changes;
-//! A2A, whether the episode ended in an ego–rival collision.
+//! A2A, whether the episode ended in an ego–rival collision. `crashed_rivals`,
+//! `overtakes_last_step` and `progress_past_line` select the paper code's forms.
 
 use crate::collision::CarBox;
 use crate::lidar::{Lidar, NearbyWalls};
 use crate::rival::PurePursuit;
 use crate::vehicle::{State, Vehicle, VehicleParams, DT};
-use ctxrace_common::{Context, RaceConfig};
+use ctxrace_common::{Context, CrashedRivals, RaceConfig};
 use ctxrace_tracks::Track;
 use nalgebra::Point2;
 use rand::SeedableRng;
@@ -296,8 +297,9 @@ impl RaceEnv {
             self.centres
                 .extend(self.cars.iter().map(|c| centre_f32(&c.vehicle)));
             self.cars[0].vehicle.step(steer, speed);
+            let coast = self.cfg.crashed_rivals == CrashedRivals::Coast;
             for (car, &(st, sp)) in self.cars[1..].iter_mut().zip(&commands) {
-                if !car.crashed {
+                if coast || !car.crashed {
                     car.vehicle.step(st, sp);
                 }
             }
@@ -355,14 +357,20 @@ impl RaceEnv {
         self.finished = terminated || truncated;
 
         let m = &mut self.metrics;
-        m.overtakes += overtakes;
+        if !self.finished || self.cfg.overtakes_last_step {
+            m.overtakes += overtakes;
+        }
         m.a2a |= a2a;
         m.wall_crash |= wall_crash;
         m.reversed |= reversed;
         m.steps = self.steps;
         m.episode_return += reward;
         if lap_complete {
-            m.progress = 1.0;
+            m.progress = if self.cfg.progress_past_line {
+                ego.travelled / length
+            } else {
+                1.0
+            };
             m.lap_time = Some(time);
         }
         m.rivals_crashed = self.cars[1..].iter().filter(|c| c.crashed).count();
@@ -441,7 +449,9 @@ impl RaceEnv {
 
     fn crash(&mut self, i: usize) {
         self.cars[i].crashed = true;
-        self.cars[i].vehicle.stop();
+        if i == 0 || self.cfg.crashed_rivals == CrashedRivals::Stop {
+            self.cars[i].vehicle.stop();
+        }
     }
 
     /// Moves car `i`'s progress to its current position.

@@ -155,3 +155,50 @@ fn the_grid_spaces_cars_in_metres_or_in_lap_fractions() {
     .to_string();
     assert!(err.contains("start_spacing:"), "{err}");
 }
+
+/// A race on the generated track whose one rival, 15 m ahead at three times the raceline's
+/// speed, crashes at the first bend, where the pure-pursuit ego passes it after 4.2 s.
+fn crashing_rival(extra: &str, max_time: f64) -> (RaceEnv, Vec<Step>) {
+    let cfg = RaceConfig::from_toml(&format!(
+        "rivals = 1\nstart_spacing = 15.0\nmax_time = {max_time}\n{extra}\n[rival]\nspeed_factor = 3.0\nmax_speed = 20.0\n"
+    ))
+    .unwrap();
+    let mut env = RaceEnv::new(generated(), cfg).unwrap();
+    let (_, steps) = episode(&mut env, BaselineKind::PurePursuit, 0, Context::default());
+    (env, steps)
+}
+
+#[test]
+fn the_paper_codes_crashed_rivals_ot_and_pg_are_reachable() {
+    // the ego passes the crashed rival at some step k
+    let (env, steps) = crashing_rival("", 240.0);
+    assert!(env.cars()[1].crashed);
+    let k = steps
+        .iter()
+        .position(|s| s.info.overtakes == 1)
+        .expect("a pass");
+    // ending the episode (time-out) right at that step: the code leaves its rank change out
+    let at_k = (k + 1) as f64 * 0.1;
+    let (env, steps) = crashing_rival("", at_k);
+    assert_eq!((steps.len(), steps[k].info.overtakes), (k + 1, 1));
+    assert_eq!(env.metrics().overtakes, 1);
+    let (env, _) = crashing_rival("overtakes_last_step = false", at_k);
+    assert_eq!(env.metrics().overtakes, 0);
+    // a stopped rival stays put; a coasting one brakes from its crash speed
+    let rival_at = |extra: &str, t: f64| {
+        let (env, _) = crashing_rival(extra, t);
+        let car = &env.cars()[1];
+        assert!(car.crashed, "{extra} at {t} s");
+        (car.vehicle.position(), car.vehicle.speed())
+    };
+    let ((early, v_early), (late, v_late)) = (rival_at("", 3.0), rival_at("", 3.5));
+    assert_eq!((early, v_early, v_late), (late, 0.0, 0.0));
+    let coast = "crashed_rivals = \"coast\"";
+    let ((early, v_early), (late, v_late)) = (rival_at(coast, 3.0), rival_at(coast, 3.5));
+    assert!(early != late && v_early > v_late, "{v_early} {v_late}");
+    // PG past the line: the distance driven over the lap's length
+    let (env, steps) = crashing_rival("progress_past_line = true", 240.0);
+    assert!(steps.last().unwrap().info.lap_complete);
+    let pg = env.metrics().progress;
+    assert!(pg > 1.0 && pg < 1.05, "{pg}");
+}

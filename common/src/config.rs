@@ -21,6 +21,9 @@
 //! | `wall_contact` | `footprint` | `centre` |
 //! | `integrator` | `rk4` | `euler` |
 //! | `ego_launch_below` | 0 (off) | 1 m/s (at `ego_launch_speed` 7 m/s) |
+//! | `crashed_rivals` | `stop` | `coast` |
+//! | `overtakes_last_step` | true | false |
+//! | `progress_past_line` | false | true |
 //! | `rival.steer_lookahead` | none (the target's distance) | 1.5 m |
 //! | `rival.target_at_vertex` | false | true |
 //! | `rival.speed_point` | `slowest-ahead` | `nearest` |
@@ -93,6 +96,19 @@ pub enum StartGrid {
     LapFraction,
 }
 
+/// What a rival that crashed does for the rest of the episode.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CrashedRivals {
+    /// It stops where it crashed and stays there as an obstacle.
+    #[default]
+    Stop,
+    /// It is still simulated under the command (0 rad, 0 m/s), braking from its speed and
+    /// passing through walls (the paper's code: its planners' command for a crashed car, in a
+    /// gym without wall physics).
+    Coast,
+}
+
 /// One head-to-head race scenario.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -146,6 +162,14 @@ pub struct RaceConfig {
     pub ego_launch_below: f64,
     /// The ego's launch speed command (m/s; the paper's code: 7).
     pub ego_launch_speed: f64,
+    /// What a crashed rival does.
+    pub crashed_rivals: CrashedRivals,
+    /// OT counts the rank change of the episode's last step (the paper's code left it out: it
+    /// summed each step's change before stepping, so the step that ends the episode is lost).
+    pub overtakes_last_step: bool,
+    /// PG of a completed lap is the distance driven over the lap's length, a little above 1
+    /// (the paper's code) instead of exactly 1.
+    pub progress_past_line: bool,
     /// Physics steps (0.01 s) per agent decision.
     pub physics_steps_per_action: usize,
     /// Steering command delay in physics steps (f1tenth_gym: 2).
@@ -184,6 +208,9 @@ impl Default for RaceConfig {
             integrator: Integrator::Rk4,
             ego_launch_below: 0.0,
             ego_launch_speed: 7.0,
+            crashed_rivals: CrashedRivals::Stop,
+            overtakes_last_step: true,
+            progress_past_line: false,
             physics_steps_per_action: 10,
             steer_delay: 2,
             max_time: 240.0,
@@ -214,6 +241,9 @@ impl RaceConfig {
             wall_contact: WallContact::Centre,
             integrator: Integrator::Euler,
             ego_launch_below: 1.0,
+            crashed_rivals: CrashedRivals::Coast,
+            overtakes_last_step: false,
+            progress_past_line: true,
             rival: RivalConfig {
                 steer_lookahead: Some(1.5),
                 target_at_vertex: true,
@@ -592,6 +622,8 @@ mod tests {
         assert_eq!(c.rival.speed_point, SpeedPoint::Nearest);
         assert_eq!(c.reward_speed, 8.0);
         assert!(c.timeout_is_terminal && c.shipped_raceline);
+        assert_eq!(c.crashed_rivals, CrashedRivals::Coast);
+        assert!(!c.overtakes_last_step && c.progress_past_line && c.max_steer == 0.4);
         // a resolved config round-trips, preset included
         let text = toml::to_string(&c).unwrap();
         assert_eq!(RaceConfig::from_toml(&text).unwrap(), c);
@@ -619,6 +651,8 @@ mod tests {
                 "start_spacing_tracks.f1_esp",
             ),
             ("start_grid = \"x-axis\"", "start_grid"),
+            ("crashed_rivals = \"remove\"", "crashed_rivals"),
+            ("overtakes_last_step = 1", "overtakes_last_step"),
             (
                 "preset = \"paper-code\"\n[rival]\nspeed_pont = \"target\"",
                 "speed_pont",
