@@ -257,21 +257,27 @@ impl RaceEnv {
     /// racing as usual) until it is that fast, as the paper's code did before its agents took
     /// over. From the back of the grid this takes about 0.1 s and cannot reach a rival.
     fn launch(&mut self) {
+        self.launch_decisions();
+        self.rank = self.ego_rank();
+    }
+
+    /// The launch's decisions, while the ego is slower than `ego_launch_below` (at most
+    /// [`MAX_LAUNCH_DECISIONS`], none past the time limit); returns (ego hit a wall, ego hit a
+    /// rival) as [`RaceEnv::advance`].
+    fn launch_decisions(&mut self) -> (bool, bool) {
         let below = self.cfg.ego_launch_below;
-        if below <= 0.0 {
-            return;
-        }
         // a stand-still start reaches 1 m/s in 1–2 decisions; the bound only guards odd configs
         for _ in 0..MAX_LAUNCH_DECISIONS {
-            if self.cars[0].vehicle.speed() >= below {
+            if below <= 0.0 || self.cars[0].vehicle.speed() >= below || self.steps >= self.max_steps
+            {
                 break;
             }
             let (wall_crash, a2a) = self.advance(0.0, self.cfg.ego_launch_speed);
             if wall_crash || a2a {
-                break;
+                return (wall_crash, a2a);
             }
         }
-        self.rank = self.ego_rank();
+        (false, false)
     }
 
     /// One decision of physics: the rivals plan, then every car drives `physics_steps_per_action`
@@ -324,7 +330,11 @@ impl RaceEnv {
             return Err(RaceError::BadAction(action));
         }
         let (steer, speed) = self.action_to_command(action);
-        let (wall_crash, a2a) = self.advance(steer, speed);
+        let (mut wall_crash, mut a2a) = self.advance(steer, speed);
+        if self.cfg.ego_relaunch && !(wall_crash || a2a) {
+            // the launch's decisions belong to this step: the agent sees none of them
+            (wall_crash, a2a) = self.launch_decisions();
+        }
         let ego = &self.cars[0];
         let ego_proj = self.track.project(&ego.vehicle.position(), Some(ego.hint));
         let length = self.track.length();

@@ -202,3 +202,32 @@ fn the_paper_codes_crashed_rivals_ot_and_pg_are_reachable() {
     let pg = env.metrics().progress;
     assert!(pg > 1.0 && pg < 1.05, "{pg}");
 }
+
+#[test]
+fn the_relaunch_takes_over_whenever_the_ego_slows_below_its_threshold() {
+    let ego_after_braking = |relaunch: bool| {
+        let cfg = RaceConfig::from_toml(&format!(
+            "rivals = 0\nego_launch_below = 1.0\nego_relaunch = {relaunch}\n"
+        ))
+        .unwrap();
+        let mut env = RaceEnv::new(generated(), cfg).unwrap();
+        env.reset(0, Context::default());
+        let mut speeds = Vec::new();
+        for _ in 0..5 {
+            // full brake: the command 0 m/s
+            let step = env.step([0.0, -1.0]).unwrap();
+            assert!(!step.terminated);
+            speeds.push(env.ego_state()[ctxrace_actor::vehicle::idx::V]);
+        }
+        (speeds, env.metrics().steps)
+    };
+    // launched only at the start, the ego stops
+    let (speeds, once) = ego_after_braking(false);
+    assert!(speeds[4] < 0.1, "{speeds:?}");
+    // relaunched, it never ends a step below 1 m/s: the launch's decisions add to the agent's
+    let (speeds, again) = ego_after_braking(true);
+    assert!(
+        speeds.iter().all(|&v| v >= 1.0) && again > once,
+        "{speeds:?} {again} {once}"
+    );
+}

@@ -21,6 +21,7 @@
 //! | `wall_contact` | `footprint` | `centre` |
 //! | `integrator` | `rk4` | `euler` |
 //! | `ego_launch_below` | 0 (off) | 1 m/s (at `ego_launch_speed` 7 m/s) |
+//! | `ego_relaunch` | false | true |
 //! | `crashed_rivals` | `stop` | `coast` |
 //! | `overtakes_last_step` | true | false |
 //! | `progress_past_line` | false | true |
@@ -162,6 +163,10 @@ pub struct RaceConfig {
     pub ego_launch_below: f64,
     /// The ego's launch speed command (m/s; the paper's code: 7).
     pub ego_launch_speed: f64,
+    /// The launch also takes over whenever the ego drops below `ego_launch_below` mid-episode
+    /// (the paper's code, whose planners applied it every step); its decisions are folded into
+    /// the agent's step that slowed the ego, which sees none of them.
+    pub ego_relaunch: bool,
     /// What a crashed rival does.
     pub crashed_rivals: CrashedRivals,
     /// OT counts the rank change of the episode's last step (the paper's code left it out: it
@@ -208,6 +213,7 @@ impl Default for RaceConfig {
             integrator: Integrator::Rk4,
             ego_launch_below: 0.0,
             ego_launch_speed: 7.0,
+            ego_relaunch: false,
             crashed_rivals: CrashedRivals::Stop,
             overtakes_last_step: true,
             progress_past_line: false,
@@ -241,6 +247,7 @@ impl RaceConfig {
             wall_contact: WallContact::Centre,
             integrator: Integrator::Euler,
             ego_launch_below: 1.0,
+            ego_relaunch: true,
             crashed_rivals: CrashedRivals::Coast,
             overtakes_last_step: false,
             progress_past_line: true,
@@ -623,6 +630,7 @@ mod tests {
         assert_eq!(c.reward_speed, 8.0);
         assert!(c.timeout_is_terminal && c.shipped_raceline);
         assert_eq!(c.crashed_rivals, CrashedRivals::Coast);
+        assert!(c.ego_relaunch);
         assert!(!c.overtakes_last_step && c.progress_past_line && c.max_steer == 0.4);
         // a resolved config round-trips, preset included
         let text = toml::to_string(&c).unwrap();
