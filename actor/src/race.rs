@@ -1,23 +1,24 @@
 //! A head-to-head race (paper §III–IV): the ego against 0–7 rivals for one lap.
 //!
 //! All cars start in a line on the centreline, ego last at arc length 0 (the start/finish line),
-//! rival `i` at `i · gap · L` ahead. Every decision (10 physics steps of 0.01 s) the ego acts with
+//! rival `i` at `i` grid spacings ahead (`start_grid`: a fixed distance, or a fraction of the lap). Every decision (10 physics steps of 0.01 s) the ego acts with
 //! `a ∈ [-1, 1]²` — steering `δ = −a₀ θ_max` (negative `a₀` turns left, as the paper states) and speed
 //! `v = v_min + (a₁ + 1)/2 · (v_max − v_min)` — and each rival plans with pure pursuit.
 //!
 //! Reward: see [`reward`]. The episode ends when the ego completes the lap, hits a wall, collides
 //! with a rival or (with `reverse_limit`) drives backwards (terminated), or at the time limit
 //! (truncated, or terminated with `timeout_is_terminal`). A rival that crashes stops and stays as
-//! an obstacle.
+//! an obstacle (with `crashed_rivals = "coast"` it brakes under a zero command instead).
 //!
 //! Metrics: PG, the largest fraction of the lap the ego completed; OT, the sum of the rank changes;
-//! A2A, whether the episode ended in an ego–rival collision.
+//! A2A, whether the episode ended in an ego–rival collision. `crashed_rivals`,
+//! `overtakes_last_step` and `progress_past_line` select the paper code's forms.
 
 use crate::collision::CarBox;
 use crate::lidar::{Lidar, NearbyWalls};
 use crate::rival::PurePursuit;
 use crate::vehicle::{State, Vehicle, VehicleParams, DT};
-use ctxrace_common::{Context, RaceConfig};
+use ctxrace_common::{Context, CrashedRivals, RaceConfig};
 use ctxrace_tracks::Track;
 use nalgebra::Point2;
 use rand::SeedableRng;
@@ -178,6 +179,8 @@ impl RaceEnv {
     /// An environment on `track`; call [`RaceEnv::reset`] before stepping.
     pub fn new(track: Arc<Track>, cfg: RaceConfig) -> Result<Self, RaceError> {
         cfg.validate().map_err(RaceError::Config)?;
+        cfg.validate_grid(&track.name, track.length())
+            .map_err(RaceError::Config)?;
         let params = VehicleParams::default();
         let steps_per_decision = cfg.physics_steps_per_action as f64 * DT;
         Ok(Self {
@@ -207,10 +210,10 @@ impl RaceEnv {
         self.context = context;
         let gains = self.cfg.rival.gains_for(&self.track.name);
         let centre = &self.track.centreline.curve;
-        let length = centre.length();
+        let spacing = self.cfg.grid_spacing(&self.track.name, self.track.length());
         self.cars = (0..=self.cfg.rivals)
             .map(|i| {
-                let s = i as f64 * self.cfg.start_gap * length;
+                let s = i as f64 * spacing;
                 let p = centre.point_at(s);
                 let (seg, _) = centre.locate(s);
                 Car {
@@ -254,21 +257,27 @@ impl RaceEnv {
     /// racing as usual) until it is that fast, as the paper's code did before its agents took
     /// over. From the back of the grid this takes about 0.1 s and cannot reach a rival.
     fn launch(&mut self) {
+        self.launch_decisions();
+        self.rank = self.ego_rank();
+    }
+
+    /// The launch's decisions, while the ego is slower than `ego_launch_below` (at most
+    /// [`MAX_LAUNCH_DECISIONS`], none past the time limit); returns (ego hit a wall, ego hit a
+    /// rival) as [`RaceEnv::advance`].
+    fn launch_decisions(&mut self) -> (bool, bool) {
         let below = self.cfg.ego_launch_below;
-        if below <= 0.0 {
-            return;
-        }
         // a stand-still start reaches 1 m/s in 1–2 decisions; the bound only guards odd configs
         for _ in 0..MAX_LAUNCH_DECISIONS {
-            if self.cars[0].vehicle.speed() >= below {
+            if below <= 0.0 || self.cars[0].vehicle.speed() >= below || self.steps >= self.max_steps
+            {
                 break;
             }
             let (wall_crash, a2a) = self.advance(0.0, self.cfg.ego_launch_speed);
             if wall_crash || a2a {
-                break;
+                return (wall_crash, a2a);
             }
         }
-        self.rank = self.ego_rank();
+        (false, false)
     }
 
     /// One decision of physics: the rivals plan, then every car drives `physics_steps_per_action`
@@ -294,8 +303,9 @@ impl RaceEnv {
             self.centres
                 .extend(self.cars.iter().map(|c| centre_f32(&c.vehicle)));
             self.cars[0].vehicle.step(steer, speed);
+            let coast = self.cfg.crashed_rivals == CrashedRivals::Coast;
             for (car, &(st, sp)) in self.cars[1..].iter_mut().zip(&commands) {
-                if !car.crashed {
+                if coast || !car.crashed {
                     car.vehicle.step(st, sp);
                 }
             }
@@ -320,7 +330,11 @@ impl RaceEnv {
             return Err(RaceError::BadAction(action));
         }
         let (steer, speed) = self.action_to_command(action);
-        let (wall_crash, a2a) = self.advance(steer, speed);
+        let (mut wall_crash, mut a2a) = self.advance(steer, speed);
+        if self.cfg.ego_relaunch && !(wall_crash || a2a) {
+            // the launch's decisions belong to this step: the agent sees none of them
+            (wall_crash, a2a) = self.launch_decisions();
+        }
         let ego = &self.cars[0];
         let ego_proj = self.track.project(&ego.vehicle.position(), Some(ego.hint));
         let length = self.track.length();
@@ -353,14 +367,20 @@ impl RaceEnv {
         self.finished = terminated || truncated;
 
         let m = &mut self.metrics;
-        m.overtakes += overtakes;
+        if !self.finished || self.cfg.overtakes_last_step {
+            m.overtakes += overtakes;
+        }
         m.a2a |= a2a;
         m.wall_crash |= wall_crash;
         m.reversed |= reversed;
         m.steps = self.steps;
         m.episode_return += reward;
         if lap_complete {
-            m.progress = 1.0;
+            m.progress = if self.cfg.progress_past_line {
+                ego.travelled / length
+            } else {
+                1.0
+            };
             m.lap_time = Some(time);
         }
         m.rivals_crashed = self.cars[1..].iter().filter(|c| c.crashed).count();
@@ -439,7 +459,9 @@ impl RaceEnv {
 
     fn crash(&mut self, i: usize) {
         self.cars[i].crashed = true;
-        self.cars[i].vehicle.stop();
+        if i == 0 || self.cfg.crashed_rivals == CrashedRivals::Stop {
+            self.cars[i].vehicle.stop();
+        }
     }
 
     /// Moves car `i`'s progress to its current position.

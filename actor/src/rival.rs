@@ -5,7 +5,7 @@
 //! `k = 0.1` s, the paper's code). It steers with the pure-pursuit law `δ = atan(2 L y / L_d²)`,
 //! where `y` is the lateral offset of `g` in the car frame and `L` the wheelbase. The speed
 //! command is the raceline speed read at [`SpeedPoint`], capped at `v_cap`, times
-//! `f (1 + λ_v c_v)` with the speed factor `f` (the paper's runs: 0.8).
+//! `f (1 + λ_v c_v)` with the speed factor `f` (0.85 in the code that produced the paper's tables).
 //!
 //! **ctxrace's driver (the default).** `L_d = r`, and the context scales the whole lookahead:
 //! `r = (d_0 + k v)(1 + λ_θ c_θ)`. The speed is the slowest raceline speed between the car and

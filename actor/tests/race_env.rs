@@ -115,3 +115,119 @@ fn pure_pursuit_ego_laps_both_paper_tracks_alone() {
             .all(|s| s.obs.iter().all(|v| (0.0..=1.0).contains(v))));
     }
 }
+
+#[test]
+fn the_grid_spaces_cars_in_metres_or_in_lap_fractions() {
+    let track = generated();
+    let length = track.length();
+    let grid = |cfg: RaceConfig| {
+        let mut env = RaceEnv::new(track.clone(), cfg).unwrap();
+        env.reset(0, Context::default());
+        env.cars().iter().map(|c| c.travelled).collect::<Vec<_>>()
+    };
+    // the default: the tables' code, 5.5 m apart on a track without an entry of its own
+    let metres = grid(RaceConfig {
+        rivals: 3,
+        ..Default::default()
+    });
+    for (i, s) in metres.iter().enumerate() {
+        assert!((s - 5.5 * i as f64).abs() < 1e-9, "car {i} at {s}");
+    }
+    // a track's own entry replaces start_spacing
+    let mut cfg = RaceConfig::from_toml(
+        "rivals = 2\nstart_spacing = 3.0\n[start_spacing_tracks]\n\"generated:1\" = 4.0\n",
+    )
+    .unwrap();
+    assert_eq!(grid(cfg.clone())[2], 8.0);
+    cfg.start_spacing_tracks.clear();
+    assert_eq!(grid(cfg)[2], 6.0);
+    // the release's grid: 5% of the lap
+    let fraction =
+        grid(RaceConfig::from_toml("rivals = 3\nstart_grid = \"lap-fraction\"").unwrap());
+    assert!((fraction[3] - 0.15 * length).abs() < 1e-9, "{fraction:?}");
+    // a grid longer than the lap is refused, naming the key
+    let err = RaceEnv::new(
+        track.clone(),
+        RaceConfig::from_toml(&format!("rivals = 7\nstart_spacing = {}", length / 7.0)).unwrap(),
+    )
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(err.contains("start_spacing:"), "{err}");
+}
+
+/// A race on the generated track whose one rival, 15 m ahead at three times the raceline's
+/// speed, crashes at the first bend, where the pure-pursuit ego passes it after 4.2 s.
+fn crashing_rival(extra: &str, max_time: f64) -> (RaceEnv, Vec<Step>) {
+    let cfg = RaceConfig::from_toml(&format!(
+        "rivals = 1\nstart_spacing = 15.0\nmax_time = {max_time}\n{extra}\n[rival]\nspeed_factor = 3.0\nmax_speed = 20.0\n"
+    ))
+    .unwrap();
+    let mut env = RaceEnv::new(generated(), cfg).unwrap();
+    let (_, steps) = episode(&mut env, BaselineKind::PurePursuit, 0, Context::default());
+    (env, steps)
+}
+
+#[test]
+fn the_paper_codes_crashed_rivals_ot_and_pg_are_reachable() {
+    // the ego passes the crashed rival at some step k
+    let (env, steps) = crashing_rival("", 240.0);
+    assert!(env.cars()[1].crashed);
+    let k = steps
+        .iter()
+        .position(|s| s.info.overtakes == 1)
+        .expect("a pass");
+    // ending the episode (time-out) right at that step: the code leaves its rank change out
+    let at_k = (k + 1) as f64 * 0.1;
+    let (env, steps) = crashing_rival("", at_k);
+    assert_eq!((steps.len(), steps[k].info.overtakes), (k + 1, 1));
+    assert_eq!(env.metrics().overtakes, 1);
+    let (env, _) = crashing_rival("overtakes_last_step = false", at_k);
+    assert_eq!(env.metrics().overtakes, 0);
+    // a stopped rival stays put; a coasting one brakes from its crash speed
+    let rival_at = |extra: &str, t: f64| {
+        let (env, _) = crashing_rival(extra, t);
+        let car = &env.cars()[1];
+        assert!(car.crashed, "{extra} at {t} s");
+        (car.vehicle.position(), car.vehicle.speed())
+    };
+    let ((early, v_early), (late, v_late)) = (rival_at("", 3.0), rival_at("", 3.5));
+    assert_eq!((early, v_early, v_late), (late, 0.0, 0.0));
+    let coast = "crashed_rivals = \"coast\"";
+    let ((early, v_early), (late, v_late)) = (rival_at(coast, 3.0), rival_at(coast, 3.5));
+    assert!(early != late && v_early > v_late, "{v_early} {v_late}");
+    // PG past the line: the distance driven over the lap's length
+    let (env, steps) = crashing_rival("progress_past_line = true", 240.0);
+    assert!(steps.last().unwrap().info.lap_complete);
+    let pg = env.metrics().progress;
+    assert!(pg > 1.0 && pg < 1.05, "{pg}");
+}
+
+#[test]
+fn the_relaunch_takes_over_whenever_the_ego_slows_below_its_threshold() {
+    let ego_after_braking = |relaunch: bool| {
+        let cfg = RaceConfig::from_toml(&format!(
+            "rivals = 0\nego_launch_below = 1.0\nego_relaunch = {relaunch}\n"
+        ))
+        .unwrap();
+        let mut env = RaceEnv::new(generated(), cfg).unwrap();
+        env.reset(0, Context::default());
+        let mut speeds = Vec::new();
+        for _ in 0..5 {
+            // full brake: the command 0 m/s
+            let step = env.step([0.0, -1.0]).unwrap();
+            assert!(!step.terminated);
+            speeds.push(env.ego_state()[ctxrace_actor::vehicle::idx::V]);
+        }
+        (speeds, env.metrics().steps)
+    };
+    // launched only at the start, the ego stops
+    let (speeds, once) = ego_after_braking(false);
+    assert!(speeds[4] < 0.1, "{speeds:?}");
+    // relaunched, it never ends a step below 1 m/s: the launch's decisions add to the agent's
+    let (speeds, again) = ego_after_braking(true);
+    assert!(
+        speeds.iter().all(|&v| v >= 1.0) && again > once,
+        "{speeds:?} {again} {once}"
+    );
+}

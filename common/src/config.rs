@@ -1,7 +1,8 @@
 //! Race configuration: the scenario, the ego's sensor and action mapping, and the rivals.
 //!
 //! Every struct rejects unknown keys and fills missing ones from a preset: by default ctxrace's
-//! scenario (the paper's text, with the rival speed its code used and the fixes listed below),
+//! scenario (the paper's text, with the rival speed and starting grid of the code that produced
+//! its tables, and the fixes listed below),
 //! or with `preset = "paper-code"` the race exactly as the paper's public code ran it
 //! ([`RaceConfig::paper_code`]). A TOML file only names what it changes.
 //!
@@ -10,6 +11,7 @@
 //! | key | default | `paper-code` |
 //! |---|---|---|
 //! | `min_speed` | 0 (paper text) | 1 |
+//! | `max_steer` | 0.4189 (the car's limit) | 0.4 (`max_steer` of config_file.yaml) |
 //! | `reward_speed` | 6 (`v_max`, paper text) | 8 |
 //! | `step_reward_floor` | none | 0 |
 //! | `terminal_rewards_replace_step` | false (added, paper text) | true |
@@ -19,6 +21,10 @@
 //! | `wall_contact` | `footprint` | `centre` |
 //! | `integrator` | `rk4` | `euler` |
 //! | `ego_launch_below` | 0 (off) | 1 m/s (at `ego_launch_speed` 7 m/s) |
+//! | `ego_relaunch` | false | true |
+//! | `crashed_rivals` | `stop` | `coast` |
+//! | `overtakes_last_step` | true | false |
+//! | `progress_past_line` | false | true |
 //! | `rival.steer_lookahead` | none (the target's distance) | 1.5 m |
 //! | `rival.target_at_vertex` | false | true |
 //! | `rival.speed_point` | `slowest-ahead` | `nearest` |
@@ -78,6 +84,32 @@ pub enum Integrator {
     Euler,
 }
 
+/// How the cars are spaced on the starting grid (all on the centreline, the ego last).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum StartGrid {
+    /// `start_spacing` metres apart along the centreline: the code that produced the paper's
+    /// tables (c0fd903 `TestSimulation.calc_offsets`, which spaced them along the map's x axis
+    /// from the origin, where f1_esp and f1_gbr start facing +x).
+    #[default]
+    Spacing,
+    /// `start_gap` of the lap apart (the release of the paper's code, from 017a176, Dec 2025).
+    LapFraction,
+}
+
+/// What a rival that crashed does for the rest of the episode.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CrashedRivals {
+    /// It stops where it crashed and stays there as an obstacle.
+    #[default]
+    Stop,
+    /// It is still simulated under the command (0 rad, 0 m/s), braking from its speed and
+    /// passing through walls (the paper's code: its planners' command for a crashed car, in a
+    /// gym without wall physics).
+    Coast,
+}
+
 /// One head-to-head race scenario.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -86,13 +118,24 @@ pub struct RaceConfig {
     pub preset: RacePreset,
     /// Number of rival cars, 0 to 7.
     pub rivals: usize,
-    /// Gap between consecutive cars on the starting line, as a fraction of the lap (paper code: 0.05).
+    /// How far apart the cars start: a fixed distance (`spacing`) or a fraction of the lap.
+    pub start_grid: StartGrid,
+    /// Distance between consecutive cars on the grid, along the centreline (m), on tracks
+    /// without an entry in `start_spacing_tracks` (`start_grid = "spacing"`; the paper's code
+    /// at c0fd903: 5.5).
+    pub start_spacing: f64,
+    /// `start_spacing` per track name (the paper's code: 5.5 m on f1_esp, 4.0 on f1_gbr, 3.0 on
+    /// f1_mco).
+    pub start_spacing_tracks: BTreeMap<String, f64>,
+    /// Gap between consecutive cars on the grid as a fraction of the lap
+    /// (`start_grid = "lap-fraction"`; the release of the paper's code, Dec 2025: 0.05).
     pub start_gap: f64,
     /// Ego speed range top: action `a_1 ∈ [-1, 1]` maps onto `[min_speed, max_speed]` m/s.
     pub max_speed: f64,
     /// Ego speed range bottom (paper: 0; the paper's code: 1).
     pub min_speed: f64,
-    /// Ego steering range: `a_0 ∈ [-1, 1]` maps onto `[-max_steer, max_steer]` rad, negative = left.
+    /// Ego steering range: `a_0 ∈ [-1, 1]` maps onto `[-max_steer, max_steer]` rad, negative = left
+    /// (the car's limit 0.4189; the paper's code: 0.4).
     pub max_steer: f64,
     /// Speed that normalises the reward's `v / v_max` term (m/s; paper: `v_max` = 6, its code: 8).
     pub reward_speed: f64,
@@ -120,6 +163,18 @@ pub struct RaceConfig {
     pub ego_launch_below: f64,
     /// The ego's launch speed command (m/s; the paper's code: 7).
     pub ego_launch_speed: f64,
+    /// The launch also takes over whenever the ego drops below `ego_launch_below` mid-episode
+    /// (the paper's code, whose planners applied it every step); its decisions are folded into
+    /// the agent's step that slowed the ego, which sees none of them.
+    pub ego_relaunch: bool,
+    /// What a crashed rival does.
+    pub crashed_rivals: CrashedRivals,
+    /// OT counts the rank change of the episode's last step (the paper's code left it out: it
+    /// summed each step's change before stepping, so the step that ends the episode is lost).
+    pub overtakes_last_step: bool,
+    /// PG of a completed lap is the distance driven over the lap's length, a little above 1
+    /// (the paper's code) instead of exactly 1.
+    pub progress_past_line: bool,
     /// Physics steps (0.01 s) per agent decision.
     pub physics_steps_per_action: usize,
     /// Steering command delay in physics steps (f1tenth_gym: 2).
@@ -137,6 +192,13 @@ impl Default for RaceConfig {
         Self {
             preset: RacePreset::Default,
             rivals: 1,
+            start_grid: StartGrid::Spacing,
+            start_spacing: 5.5,
+            start_spacing_tracks: BTreeMap::from([
+                ("f1_esp".to_string(), 5.5),
+                ("f1_gbr".to_string(), 4.0),
+                ("f1_mco".to_string(), 3.0),
+            ]),
             start_gap: 0.05,
             max_speed: 6.0,
             min_speed: 0.0,
@@ -151,6 +213,10 @@ impl Default for RaceConfig {
             integrator: Integrator::Rk4,
             ego_launch_below: 0.0,
             ego_launch_speed: 7.0,
+            ego_relaunch: false,
+            crashed_rivals: CrashedRivals::Stop,
+            overtakes_last_step: true,
+            progress_past_line: false,
             physics_steps_per_action: 10,
             steer_delay: 2,
             max_time: 240.0,
@@ -161,7 +227,8 @@ impl Default for RaceConfig {
 }
 
 impl RaceConfig {
-    /// The race as the paper's public code (lilpharaoh1/context-f110) ran it: its reward
+    /// The race as the paper's public code (lilpharaoh1/context-f110) ran it when it produced
+    /// the tables (the `paper` branch, c0fd903, Jun 2025, `TrajectoryAidedLearning/`): its reward
     /// (RewardSignals.py `CrossTrackHeadReward`), ego speed map and launch, backwards-driving
     /// end, time-outs stored as terminal (TestSimulation.py, the planners), its gym's Euler
     /// integration and centre-point wall check (f110_gym), the shipped raceline and its pure
@@ -170,6 +237,7 @@ impl RaceConfig {
         Self {
             preset: RacePreset::PaperCode,
             min_speed: 1.0,
+            max_steer: 0.4,
             reward_speed: 8.0,
             step_reward_floor: Some(0.0),
             terminal_rewards_replace_step: true,
@@ -179,6 +247,10 @@ impl RaceConfig {
             wall_contact: WallContact::Centre,
             integrator: Integrator::Euler,
             ego_launch_below: 1.0,
+            ego_relaunch: true,
+            crashed_rivals: CrashedRivals::Coast,
+            overtakes_last_step: false,
+            progress_past_line: true,
             rival: RivalConfig {
                 steer_lookahead: Some(1.5),
                 target_at_vertex: true,
@@ -221,6 +293,39 @@ impl RaceConfig {
         Self::from_table(toml::from_str(text).map_err(|e| e.to_string())?)
     }
 
+    /// Distance between consecutive cars on the grid of `track` (m along the centreline), on a
+    /// lap of `length` m.
+    pub fn grid_spacing(&self, track: &str, length: f64) -> f64 {
+        match self.start_grid {
+            StartGrid::Spacing => self
+                .start_spacing_tracks
+                .get(track)
+                .copied()
+                .unwrap_or(self.start_spacing),
+            StartGrid::LapFraction => self.start_gap * length,
+        }
+    }
+
+    /// Checks that the grid fits on a lap of `length` m of `track`: the rivals within 90% of it.
+    pub fn validate_grid(&self, track: &str, length: f64) -> Result<(), String> {
+        let spacing = self.grid_spacing(track, length);
+        if spacing * self.rivals as f64 > 0.9 * length {
+            let key = match self.start_grid {
+                StartGrid::Spacing if self.start_spacing_tracks.contains_key(track) => {
+                    format!("start_spacing_tracks.{track}")
+                }
+                StartGrid::Spacing => "start_spacing".to_string(),
+                StartGrid::LapFraction => "start_gap".to_string(),
+            };
+            return Err(format!(
+                "{key}: {} rivals {spacing:.1} m apart do not fit within 90% of {track}'s {length:.1} m lap; \
+                 lower it or the number of rivals",
+                self.rivals
+            ));
+        }
+        Ok(())
+    }
+
     /// Checks ranges; the message names the key and its valid range.
     pub fn validate(&self) -> Result<(), String> {
         finite_floats(self, &self.preset.config())?;
@@ -236,14 +341,21 @@ impl RaceConfig {
             ("rival.max_speed", self.rival.max_speed),
             ("rival.launch_speed", self.rival.launch_speed),
             ("ego_launch_speed", self.ego_launch_speed),
+            ("start_spacing", self.start_spacing),
         ];
         let optional = [
             ("reverse_limit", self.reverse_limit),
             ("rival.steer_lookahead", self.rival.steer_lookahead),
         ];
+        let per_track = self
+            .start_spacing_tracks
+            .iter()
+            .map(|(t, v)| (format!("start_spacing_tracks.{t}"), *v));
         for (k, v) in positive
             .into_iter()
             .chain(optional.into_iter().filter_map(|(k, v)| v.map(|v| (k, v))))
+            .map(|(k, v)| (k.to_string(), v))
+            .chain(per_track)
         {
             if !(v.is_finite() && v > 0.0) {
                 return Err(format!("{k} = {v} must be a positive number"));
@@ -365,8 +477,9 @@ pub enum SpeedPoint {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct RivalConfig {
-    /// Fraction of the raceline speed driven (the paper's runs: 0.8; its text says "reduced by
-    /// 70%", i.e. 0.3, which its code never used).
+    /// Fraction of the raceline speed driven (`slow_down`: 0.85 in the code that produced the
+    /// paper's tables, c0fd903 and the development line before it; 0.8 in the release; its text
+    /// says "reduced by 70%", i.e. 0.3, which its code never used).
     pub speed_factor: f64,
     /// Raceline speeds are capped at this before scaling (paper code: the ego's max speed, 6 m/s).
     pub max_speed: f64,
@@ -402,7 +515,7 @@ impl Default for RivalConfig {
             lambda_theta,
         };
         Self {
-            speed_factor: 0.8,
+            speed_factor: 0.85,
             max_speed: 6.0,
             lookahead: 1.0,
             lookahead_gain: 0.1,
@@ -516,13 +629,20 @@ mod tests {
         assert_eq!(c.rival.speed_point, SpeedPoint::Nearest);
         assert_eq!(c.reward_speed, 8.0);
         assert!(c.timeout_is_terminal && c.shipped_raceline);
+        assert_eq!(c.crashed_rivals, CrashedRivals::Coast);
+        assert!(c.ego_relaunch);
+        assert!(!c.overtakes_last_step && c.progress_past_line && c.max_steer == 0.4);
         // a resolved config round-trips, preset included
         let text = toml::to_string(&c).unwrap();
         assert_eq!(RaceConfig::from_toml(&text).unwrap(), c);
         // the default scenario: the paper's runs' rival speed, the text's reward
         let d = RaceConfig::from_toml("").unwrap();
         assert_eq!(d, RaceConfig::default());
-        assert_eq!(d.rival.speed_factor, 0.8);
+        assert_eq!(d.rival.speed_factor, 0.85);
+        assert_eq!(d.start_grid, StartGrid::Spacing);
+        assert_eq!(d.grid_spacing("f1_gbr", 500.0), 4.0);
+        assert_eq!(d.grid_spacing("generated:1", 500.0), 5.5);
+        assert_eq!(c.grid_spacing("f1_esp", 500.0), 5.5);
         assert_eq!(d.step_reward_floor, None);
         for (text, key) in [
             ("preset = \"paper\"", "preset"),
@@ -533,6 +653,14 @@ mod tests {
             ("[rival]\nsteer_lookahead = 0.0", "rival.steer_lookahead"),
             ("[rival]\nlaunch_below = -1.0", "rival.launch_below"),
             ("[rival]\nspeed_point = \"middle\"", "speed_point"),
+            ("start_spacing = 0.0", "start_spacing"),
+            (
+                "[start_spacing_tracks]\nf1_esp = -4.0",
+                "start_spacing_tracks.f1_esp",
+            ),
+            ("start_grid = \"x-axis\"", "start_grid"),
+            ("crashed_rivals = \"remove\"", "crashed_rivals"),
+            ("overtakes_last_step = 1", "overtakes_last_step"),
             (
                 "preset = \"paper-code\"\n[rival]\nspeed_pont = \"target\"",
                 "speed_pont",

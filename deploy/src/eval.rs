@@ -58,6 +58,11 @@ pub struct EvalArgs {
     /// Half-width of the context grid.
     #[arg(long, default_value_t = 0.3)]
     range: f64,
+    /// Race only these contexts of the grid, by index in its `c_v`-major order (the paper's
+    /// code's): a list of indices and ranges (`17-48,3`), or `skip-first:K` (the paper branch,
+    /// c0fd903, skipped its first 17) [default: all].
+    #[arg(long)]
+    contexts: Option<String>,
     /// Episodes (laps) per context.
     #[arg(long, default_value_t = 50)]
     laps: usize,
@@ -112,9 +117,60 @@ pub struct WorkerArgs {
     shards: usize,
 }
 
-/// The contexts of an evaluation.
+/// The contexts of an evaluation's grid (all of them, raced or not: indices stay the grid's).
 fn contexts(meta: &EvalMeta) -> Vec<Context> {
     Context::grid(meta.grid, meta.range)
+}
+
+/// The grid indices an evaluation races.
+fn raced(meta: &EvalMeta) -> Vec<usize> {
+    match &meta.contexts {
+        Some(chosen) => chosen.clone(),
+        None => (0..meta.grid * meta.grid).collect(),
+    }
+}
+
+/// Parses `--contexts` for a grid of `n` contexts: `skip-first:K`, or a comma-separated list
+/// of indices and inclusive ranges `a-b`. Returns the sorted, distinct indices.
+pub fn parse_contexts(spec: &str, n: usize) -> Result<Vec<usize>> {
+    let bad = |why: String| {
+        anyhow::anyhow!(
+            "--contexts {spec:?}: {why}; give indices 0 to {} of the grid (c_v major), \
+             ranges such as 17-48, or skip-first:K",
+            n - 1
+        )
+    };
+    let index = |t: &str| -> Result<usize> {
+        let i: usize = t
+            .trim()
+            .parse()
+            .map_err(|_| bad(format!("{t:?} is not an index")))?;
+        if i >= n {
+            return Err(bad(format!("{i} is outside the grid")));
+        }
+        Ok(i)
+    };
+    let mut chosen = Vec::new();
+    if let Some(k) = spec.strip_prefix("skip-first:") {
+        let k: usize = k
+            .trim()
+            .parse()
+            .map_err(|_| bad(format!("{k:?} is not a count")))?;
+        chosen.extend(k..n);
+    } else {
+        for part in spec.split(',') {
+            match part.split_once('-') {
+                Some((a, b)) => chosen.extend(index(a)?..=index(b)?),
+                None => chosen.push(index(part)?),
+            }
+        }
+    }
+    chosen.sort_unstable();
+    chosen.dedup();
+    if chosen.is_empty() {
+        return Err(bad("it selects no context".into()));
+    }
+    Ok(chosen)
 }
 
 /// The trained agent (checkpoint `choice` of a run) or reference policy named by `source`.
@@ -203,17 +259,23 @@ pub fn run(args: EvalArgs) -> Result<()> {
         },
         act: args.act,
         preset: race.preset,
+        contexts: args
+            .contexts
+            .as_deref()
+            .map(|spec| parse_contexts(spec, args.grid * args.grid))
+            .transpose()?,
     };
     let lock = DirLock::acquire(&out)?;
     prepare_out_dir(&out, &meta, args.fresh)?;
 
     let done = finished_episodes(&out, &meta)?;
-    let n_contexts = contexts(&meta).len();
-    let todo: Vec<(usize, usize)> = (0..n_contexts)
-        .flat_map(|c| (0..meta.laps).map(move |l| (c, l)))
+    let chosen = raced(&meta);
+    let todo: Vec<(usize, usize)> = chosen
+        .iter()
+        .flat_map(|&c| (0..meta.laps).map(move |l| (c, l)))
         .filter(|key| !done.contains(key))
         .collect();
-    let total = (n_contexts * meta.laps) as u64;
+    let total = (chosen.len() * meta.laps) as u64;
     let job = EvalJob {
         meta: meta.clone(),
         race: race.clone(),
@@ -286,6 +348,7 @@ fn part_files(out: &Path) -> Result<Vec<PathBuf>> {
 /// last line of a killed worker is skipped).
 fn read_parts(out: &Path, meta: &EvalMeta) -> Result<Vec<(usize, EvalEpisode)>> {
     let grid = contexts(meta);
+    let chosen = raced(meta);
     let mut rows = Vec::new();
     for part in part_files(out)? {
         let mut reader =
@@ -302,7 +365,7 @@ fn read_parts(out: &Path, meta: &EvalMeta) -> Result<Vec<(usize, EvalEpisode)>> 
                 .iter()
                 .position(|c| c.speed == e.context_speed && c.steer == e.context_steer);
             match index {
-                Some(i) if e.lap < meta.laps => rows.push((i, e)),
+                Some(i) if e.lap < meta.laps && chosen.contains(&i) => rows.push((i, e)),
                 _ => bail!(
                     "{} holds an episode outside this evaluation (context {}, {}, lap {}); \
                      pass --fresh",
@@ -451,7 +514,7 @@ fn finish(
     let mut rows = read_parts(out, meta)?;
     rows.sort_by_key(|(c, e)| (*c, e.lap));
     rows.dedup_by_key(|(c, e)| (*c, e.lap));
-    let expected = contexts(meta).len() * meta.laps;
+    let expected = raced(meta).len() * meta.laps;
     if rows.len() != expected {
         bail!(
             "{} holds {} of {expected} episodes; rerun the same command to finish",
@@ -527,6 +590,29 @@ mod tests {
             .flat_map(|c| (0..50).map(move |l| episode_seed(7, c, l)))
             .collect();
         assert_eq!(seeds.len(), 49 * 50);
+    }
+
+    #[test]
+    fn a_context_subset_parses_as_grid_indices() {
+        // the paper branch's evaluation: the last 32 of the 49
+        assert_eq!(
+            parse_contexts("skip-first:17", 49).unwrap(),
+            (17..49).collect::<Vec<_>>()
+        );
+        assert_eq!(parse_contexts("5,0-2, 2", 9).unwrap(), [0, 1, 2, 5]);
+        for (spec, why) in [
+            ("49", "outside the grid"),
+            ("3-x", "not an index"),
+            ("skip-first:49", "no context"),
+            ("skip-first:-1", "not a count"),
+            ("", "not an index"),
+        ] {
+            let err = parse_contexts(spec, 49).unwrap_err().to_string();
+            assert!(
+                err.contains("--contexts") && err.contains(why),
+                "{spec}: {err}"
+            );
+        }
     }
 
     #[test]

@@ -416,6 +416,7 @@ mod tests {
             checkpoint: "best".into(),
             act: crate::driver::ActMode::Sample,
             preset: ctxrace_common::RacePreset::Default,
+            contexts: None,
         }
     }
 

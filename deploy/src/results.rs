@@ -52,6 +52,9 @@ pub struct EvalMeta {
     /// The race scenario's preset.
     #[serde(default)]
     pub preset: ctxrace_common::RacePreset,
+    /// Indices (in the grid's `c_v`-major order) of the contexts raced; none: the whole grid.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub contexts: Option<Vec<usize>>,
 }
 
 fn newest_checkpoint() -> String {

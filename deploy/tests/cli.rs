@@ -698,6 +698,49 @@ fn inline_training_then_evaluation_report_and_race_with_the_policy() {
     );
 }
 
+#[test]
+fn eval_races_only_the_chosen_contexts() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("ev");
+    let args = |contexts: &str| {
+        ctxrace(&[
+            "eval",
+            "pure-pursuit",
+            "--track",
+            "generated:0",
+            "--rivals",
+            "1",
+            "--grid",
+            "3",
+            "--laps",
+            "1",
+            "--workers",
+            "1",
+            "--contexts",
+            contexts,
+            "--out",
+            out.to_str().unwrap(),
+        ])
+    };
+    let o = args("skip-first:7");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let summary = std::fs::read_to_string(out.join("contexts.csv")).unwrap();
+    // the last two of the 3 x 3 grid, both at c_v = 0.3
+    assert_eq!(summary.lines().count(), 3, "{summary}");
+    assert!(
+        summary.lines().skip(1).all(|l| l.starts_with("0.3,")),
+        "{summary}"
+    );
+    let meta = std::fs::read_to_string(out.join("meta.json")).unwrap();
+    assert!(meta.contains("\"contexts\""), "{meta}");
+    let o = args("9");
+    assert!(
+        !o.status.success() && stderr(&o).contains("--contexts \"9\": 9 is outside the grid"),
+        "{}",
+        stderr(&o)
+    );
+}
+
 /// A matrix of two tiny SAC runs on a generated track, trained with `actors` actors (0:
 /// inline) and evaluated on one context for one lap.
 fn tiny_matrix(dir: &Path, actors: usize, env_steps: u64) -> PathBuf {
