@@ -5,6 +5,7 @@
 pub mod baseline;
 pub mod collect;
 pub mod collision;
+pub mod grid;
 pub mod lidar;
 pub mod process;
 pub mod protocol;

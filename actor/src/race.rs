@@ -1,7 +1,9 @@
 //! A head-to-head race (paper §III–IV): the ego against 0–7 rivals for one lap.
 //!
-//! All cars start in a line on the centreline, ego last at arc length 0 (the start/finish line),
-//! rival `i` at `i` grid spacings ahead (`start_grid`: a fixed distance, or a fraction of the lap). Every decision (10 physics steps of 0.01 s) the ego acts with
+//! All cars start in a line, ego last at centreline arc length 0 (the start/finish line), rival
+//! `i` at `i` grid spacings ahead (`start_grid`: a fixed distance, or a fraction of the lap), each
+//! on the raceline beside its place (`grid_line`; the paper's code: on the centreline). Every
+//! decision (10 physics steps of 0.01 s) the ego acts with
 //! `a ∈ [-1, 1]²` — steering `δ = −a₀ θ_max` (negative `a₀` turns left, as the paper states) and speed
 //! `v = v_min + (a₁ + 1)/2 · (v_max − v_min)` — and each rival plans with pure pursuit.
 //!
@@ -15,6 +17,7 @@
 //! `overtakes_last_step` and `progress_past_line` select the paper code's forms.
 
 use crate::collision::CarBox;
+use crate::grid::grid_pose;
 use crate::lidar::{Lidar, NearbyWalls};
 use crate::rival::PurePursuit;
 use crate::vehicle::{State, Vehicle, VehicleParams, DT};
@@ -214,17 +217,11 @@ impl RaceEnv {
         self.cars = (0..=self.cfg.rivals)
             .map(|i| {
                 let s = i as f64 * spacing;
-                let p = centre.point_at(s);
+                let (p, yaw) = grid_pose(&self.track, self.cfg.grid_line, s);
                 let (seg, _) = centre.locate(s);
                 Car {
-                    vehicle: Vehicle::new(
-                        self.params.clone(),
-                        p.x,
-                        p.y,
-                        centre.heading_at(s),
-                        self.cfg.steer_delay,
-                    )
-                    .with_integrator(self.cfg.integrator),
+                    vehicle: Vehicle::new(self.params.clone(), p.x, p.y, yaw, self.cfg.steer_delay)
+                        .with_integrator(self.cfg.integrator),
                     crashed: false,
                     travelled: s,
                     furthest: s,

@@ -257,15 +257,9 @@ pub fn drive_solo_lap(
     use crate::vehicle::{Vehicle, VehicleParams, DT};
     let params = VehicleParams::default();
     let centre = &track.centreline.curve;
-    let p0 = centre.point_at(start_s);
-    let mut car = Vehicle::new(
-        params.clone(),
-        p0.x,
-        p0.y,
-        centre.heading_at(start_s),
-        cfg.steer_delay,
-    )
-    .with_integrator(cfg.integrator);
+    let (p0, yaw) = crate::grid::grid_pose(track, cfg.grid_line, start_s);
+    let mut car = Vehicle::new(params.clone(), p0.x, p0.y, yaw, cfg.steer_delay)
+        .with_integrator(cfg.integrator);
     let gains = cfg.rival.gains_for(&track.name);
     let mut driver =
         PurePursuit::rival(&cfg.rival, gains, context, params.wheelbase(), params.s_max);

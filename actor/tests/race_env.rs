@@ -156,6 +156,32 @@ fn the_grid_spaces_cars_in_metres_or_in_lap_fractions() {
     assert!(err.contains("start_spacing:"), "{err}");
 }
 
+/// Each car stands on the raceline beside its grid place, facing along it (the default), or
+/// on the centreline (`grid_line = "centreline"`, the paper's code).
+#[test]
+fn cars_stand_on_the_chosen_line() {
+    let track = generated();
+    let on = |cfg: &str| {
+        let mut env = RaceEnv::new(track.clone(), RaceConfig::from_toml(cfg).unwrap()).unwrap();
+        env.reset(0, Context::default());
+        env.cars()
+            .iter()
+            .map(|c| {
+                let p = c.vehicle.position();
+                let to_line = track.raceline.curve.project(&p).lateral.abs();
+                let to_centre = track.centreline.curve.project(&p).lateral.abs();
+                (to_line, to_centre)
+            })
+            .collect::<Vec<_>>()
+    };
+    let raceline = on("rivals = 3");
+    let centreline = on("rivals = 3\ngrid_line = \"centreline\"");
+    assert!(raceline.iter().all(|&(l, _)| l < 1e-6), "{raceline:?}");
+    assert!(centreline.iter().all(|&(_, c)| c < 1e-6), "{centreline:?}");
+    // the generated track's raceline leaves the centreline somewhere on the grid
+    assert!(raceline.iter().any(|&(_, c)| c > 0.05), "{raceline:?}");
+}
+
 /// A race on the generated track whose one rival, 15 m ahead at three times the raceline's
 /// speed, crashes at the first bend, where the pure-pursuit ego passes it after 4.2 s.
 fn crashing_rival(extra: &str, max_time: f64) -> (RaceEnv, Vec<Step>) {

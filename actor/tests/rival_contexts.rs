@@ -67,24 +67,17 @@ fn failures(preset: RacePreset) -> Vec<Failure> {
 }
 
 /// At the tables' grid, place 3 on f1_esp is 16.5 m out, 0.45 m beside the raceline and 3.5 m
-/// before a bend: ctxrace's driver, joining the line while accelerating hard, overshoots it
-/// into the wall in fast out-of-distribution contexts (`c_v >= 0.2`) within its first second
-/// (at the release's 5%-of-the-lap grid all 49 contexts lapped from every place). Every
-/// training context must lap from every place, and no context may fail once under way.
+/// before a bend: a rival standing on the centreline there, joining the line while it
+/// accelerates hard, overshot it into the wall in fast contexts (`c_v >= 0.2`) within its first
+/// second. On the raceline (`grid_line = "raceline"`, the default) every context laps from every
+/// place.
 #[test]
 fn rivals_lap_both_paper_tracks_in_all_49_contexts() {
     let failed = failures(RacePreset::Default);
-    let inside: Vec<_> = failed.iter().filter(|f| f.context.within(0.15)).collect();
-    assert!(inside.is_empty(), "in-distribution failures: {inside:?}");
-    let under_way: Vec<_> = failed.iter().filter(|f| f.time > 1.0).collect();
     assert!(
-        under_way.is_empty(),
-        "failures after the start: {under_way:?}"
-    );
-    eprintln!(
-        "default: {} of {} laps hit a wall, all out of distribution and in the first second",
-        failed.len(),
-        2 * 49 * 3
+        failed.is_empty(),
+        "{} laps hit a wall: {failed:?}",
+        failed.len()
     );
 }
 

@@ -23,6 +23,7 @@
 //! | `ego_launch_below` | 0 (off) | 1 m/s (at `ego_launch_speed` 7 m/s) |
 //! | `ego_relaunch` | false | true |
 //! | `crashed_rivals` | `stop` | `coast` |
+//! | `grid_line` | `raceline` | `centreline` |
 //! | `overtakes_last_step` | true | false |
 //! | `progress_past_line` | false | true |
 //! | `rival.steer_lookahead` | none (the target's distance) | 1.5 m |
@@ -84,7 +85,7 @@ pub enum Integrator {
     Euler,
 }
 
-/// How the cars are spaced on the starting grid (all on the centreline, the ego last).
+/// How the cars are spaced on the starting grid, along the centreline, the ego last.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum StartGrid {
@@ -95,6 +96,19 @@ pub enum StartGrid {
     Spacing,
     /// `start_gap` of the lap apart (the release of the paper's code, from 017a176, Dec 2025).
     LapFraction,
+}
+
+/// The line the cars stand on at their grid places.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum GridLine {
+    /// On the raceline beside each grid place, facing along it: a rival then drives off along
+    /// the line it follows instead of joining it from the side while it accelerates.
+    #[default]
+    Raceline,
+    /// On the centreline, facing along it (the paper's code: the map's x axis from the
+    /// origin, which is the centreline of f1_esp's and f1_gbr's start).
+    Centreline,
 }
 
 /// What a rival that crashed does for the rest of the episode.
@@ -120,6 +134,9 @@ pub struct RaceConfig {
     pub rivals: usize,
     /// How far apart the cars start: a fixed distance (`spacing`) or a fraction of the lap.
     pub start_grid: StartGrid,
+    /// Which line the cars stand on at their grid places (`raceline` or `centreline`); the
+    /// places themselves are measured along the centreline.
+    pub grid_line: GridLine,
     /// Distance between consecutive cars on the grid, along the centreline (m), on tracks
     /// without an entry in `start_spacing_tracks` (`start_grid = "spacing"`; the paper's code
     /// at c0fd903: 5.5).
@@ -193,6 +210,7 @@ impl Default for RaceConfig {
             preset: RacePreset::Default,
             rivals: 1,
             start_grid: StartGrid::Spacing,
+            grid_line: GridLine::Raceline,
             start_spacing: 5.5,
             start_spacing_tracks: BTreeMap::from([
                 ("f1_esp".to_string(), 5.5),
@@ -249,6 +267,7 @@ impl RaceConfig {
             ego_launch_below: 1.0,
             ego_relaunch: true,
             crashed_rivals: CrashedRivals::Coast,
+            grid_line: GridLine::Centreline,
             overtakes_last_step: false,
             progress_past_line: true,
             rival: RivalConfig {
@@ -630,6 +649,7 @@ mod tests {
         assert_eq!(c.reward_speed, 8.0);
         assert!(c.timeout_is_terminal && c.shipped_raceline);
         assert_eq!(c.crashed_rivals, CrashedRivals::Coast);
+        assert_eq!(c.grid_line, GridLine::Centreline);
         assert!(c.ego_relaunch);
         assert!(!c.overtakes_last_step && c.progress_past_line && c.max_steer == 0.4);
         // a resolved config round-trips, preset included
@@ -640,6 +660,7 @@ mod tests {
         assert_eq!(d, RaceConfig::default());
         assert_eq!(d.rival.speed_factor, 0.85);
         assert_eq!(d.start_grid, StartGrid::Spacing);
+        assert_eq!(d.grid_line, GridLine::Raceline);
         assert_eq!(d.grid_spacing("f1_gbr", 500.0), 4.0);
         assert_eq!(d.grid_spacing("generated:1", 500.0), 5.5);
         assert_eq!(c.grid_spacing("f1_esp", 500.0), 5.5);
@@ -660,6 +681,7 @@ mod tests {
             ),
             ("start_grid = \"x-axis\"", "start_grid"),
             ("crashed_rivals = \"remove\"", "crashed_rivals"),
+            ("grid_line = \"outside\"", "grid_line"),
             ("overtakes_last_step = 1", "overtakes_last_step"),
             (
                 "preset = \"paper-code\"\n[rival]\nspeed_pont = \"target\"",

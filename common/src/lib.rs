@@ -15,8 +15,8 @@ pub mod validate;
 pub use agents::{AgentConfig, AlgoKind, ContextMode, DreamerConfig, MaskConfig, SacConfig};
 pub use batch::{Batch, BatchSpec, SequenceBatch, TransitionBatch};
 pub use config::{
-    ContextGains, CrashedRivals, Integrator, LidarConfig, RaceConfig, RacePreset, ReplayOptions,
-    RivalConfig, SpeedPoint, StartGrid, WallContact,
+    ContextGains, CrashedRivals, GridLine, Integrator, LidarConfig, RaceConfig, RacePreset,
+    ReplayOptions, RivalConfig, SpeedPoint, StartGrid, WallContact,
 };
 pub use context::{Context, ContextError};
 pub use experiment::{ExperimentConfig, SupervisorConfig, TrainConfig};
