@@ -15,6 +15,7 @@ use crate::driver::{ActMode, EgoSpec};
 use crate::lock::{die_with_parent, DirLock};
 use crate::render::{race_title, render_race, Frame};
 use crate::results::{self, EvalMeta};
+use crate::track_check::{check_track, CheckPlan};
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use clap::Args;
@@ -221,6 +222,16 @@ pub fn run(args: EvalArgs) -> Result<()> {
         .clone()
         .or_else(|| experiment.as_ref().map(|e| e.track.clone()))
         .unwrap_or_else(|| "f1_esp".into());
+    // the protocol's rows mean little where the rivals or the reference ego crash on their own
+    let check = CheckPlan {
+        grid: args.grid,
+        range: args.range,
+        places: race.rivals,
+    };
+    let report = check_track(Arc::new(args.tracks.load(&track, &race)?), &race, check)?;
+    for f in report.failures() {
+        eprintln!("warning: {track}: {}: {}", f.check, f.detail);
+    }
     let train_range = args
         .train_range
         .or_else(|| experiment.as_ref().map(|e| e.train.context_range))

@@ -65,7 +65,20 @@ impl CheckReport {
     pub fn raceable(&self) -> bool {
         self.findings.iter().all(|f| f.passed)
     }
+
+    /// Whether some rival failed to drive (crashed on its own, or never reached the line).
+    pub fn rivals_fail(&self) -> bool {
+        self.failures().any(|f| f.check == RIVALS_DRIVE)
+    }
+
+    /// The failing findings.
+    pub fn failures(&self) -> impl Iterator<Item = &Finding> {
+        self.findings.iter().filter(|f| !f.passed)
+    }
 }
+
+/// The name of the rivals' check.
+const RIVALS_DRIVE: &str = "rivals drive";
 
 /// Prints `report`: each check (only the failing ones if `failures_only`) marked ok or FAIL,
 /// then the verdict.
@@ -84,8 +97,14 @@ pub fn print_report(report: &CheckReport, failures_only: bool) {
     println!("{} is {verdict}", report.track);
 }
 
-/// Runs every check of `plan` on `track` in the race `race` describes.
+/// Runs every check of `plan` on `track` in the race `race` describes. The cars get at least
+/// the default race's time for their lap: the checks ask whether they drive, not whether they
+/// finish within a short episode's time limit.
 pub fn check_track(track: Arc<Track>, race: &RaceConfig, plan: CheckPlan) -> Result<CheckReport> {
+    let race = &RaceConfig {
+        max_time: race.max_time.max(RaceConfig::default().max_time),
+        ..race.clone()
+    };
     let mut findings = vec![width(&track), curvature(&track, race)];
     findings.push(ego_laps(&track, race)?);
     findings.extend(rivals_drive(&track, race, plan)?);
@@ -224,7 +243,7 @@ fn rivals_drive(track: &Track, race: &RaceConfig, plan: CheckPlan) -> Result<Vec
             if let Some(why) = outcome {
                 failed += 1;
                 findings.push(Finding {
-                    check: "rivals drive",
+                    check: RIVALS_DRIVE,
                     passed: false,
                     detail: format!(
                         "context c_v {:+.2}, c_t {:+.2}, rival from grid place {places}: {why}",
@@ -236,7 +255,7 @@ fn rivals_drive(track: &Track, race: &RaceConfig, plan: CheckPlan) -> Result<Vec
     }
     let races = contexts.len() * plan.places;
     findings.push(Finding {
-        check: "rivals drive",
+        check: RIVALS_DRIVE,
         passed: failed == 0,
         detail: format!(
             "{} of {races} races ({} contexts x grid places 1..={}) reach the line",

@@ -10,6 +10,7 @@
 use crate::lock::DirLock;
 use crate::progress::{progress_bar, EpisodeLog, RateMeter};
 use crate::results::TrainingEpisode;
+use crate::track_check::{check_track, CheckPlan};
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use clap::Args;
@@ -26,6 +27,7 @@ use ctxrace_learner::checkpoint::write_checkpoint;
 use ctxrace_learner::runlog::MetricsLog;
 use ctxrace_learner::Algorithm;
 use ctxrace_replay::ReplayBuffer;
+use ctxrace_tracks::Track;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::path::{Path, PathBuf};
@@ -72,6 +74,10 @@ pub struct TrainArgs {
     /// Learner worker threads [default: the config's, else the algorithm's].
     #[arg(long)]
     threads: Option<usize>,
+    /// Train even where `ctxrace track check` finds that rivals crash on their own in the
+    /// training contexts.
+    #[arg(long)]
+    no_track_check: bool,
     #[command(flatten)]
     tracks: TrackArgs,
 }
@@ -187,12 +193,57 @@ pub fn run_name(cfg: &ExperimentConfig) -> String {
     )
 }
 
+/// Refuses a map on which rivals cannot drive the training contexts (they would crash on their
+/// own in the episodes the agent learns from); other failing checks of `track check` are
+/// warnings. Checked over a 7 × 7 grid of the training contexts, from every grid place.
+fn check_training_track(track: &Arc<Track>, cfg: &ExperimentConfig) -> Result<()> {
+    let plan = CheckPlan {
+        grid: 7,
+        range: cfg.train.context_range,
+        places: cfg.race.rivals,
+    };
+    let report = check_track(track.clone(), &cfg.race, plan)?;
+    let failures: Vec<String> = report
+        .failures()
+        .map(|f| format!("  {}: {}", f.check, f.detail))
+        .collect();
+    if report.rivals_fail() {
+        // the first few races that failed, then the rivals' summary (the last finding)
+        const SHOWN: usize = 5;
+        let mut failures = failures;
+        if failures.len() > SHOWN + 1 {
+            let more = failures.len() - SHOWN - 1;
+            failures.splice(
+                SHOWN..failures.len() - 1,
+                [format!("  ... and {more} more")],
+            );
+        }
+        bail!(
+            "{} is not raceable in the training contexts (|c| <= {}, {} rival(s)):\n{}\nchoose \
+             another track, fewer rivals or a narrower train.context_range, see `ctxrace track \
+             check {}`, or pass --no-track-check to train on it anyway",
+            track.name,
+            cfg.train.context_range,
+            cfg.race.rivals,
+            failures.join("\n"),
+            track.name
+        );
+    }
+    for line in failures {
+        eprintln!("warning: {}{line}", track.name);
+    }
+    Ok(())
+}
+
 /// Runs `ctxrace train`.
 pub fn run(args: TrainArgs) -> Result<()> {
     let cfg = experiment(&args)?;
     // everything a process of the run needs is resolved here, before the run directory is
     // touched: an error it would meet at every restart stops the launch at once
     let track = Arc::new(args.tracks.load(&cfg.track, &cfg.race)?);
+    if !args.no_track_check {
+        check_training_track(&track, &cfg)?;
+    }
     let env = RaceEnv::new(track, cfg.race.clone())?;
     let (dir, lock, resumed) = prepare_run_dir(&args, &cfg)?;
     if resumed && is_trained(&dir, &cfg) {

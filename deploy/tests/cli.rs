@@ -343,6 +343,16 @@ fn train_refuses_a_run_it_cannot_make_before_writing_its_run_directory() {
             "2",
             &["[replay] capacity = 40", "ring of 20 steps"][..],
         ),
+        (
+            // rivals at three times the raceline's speed crash at the first bend on their own
+            "track = \"generated:0\"\n[race.rival]\nspeed_factor = 3.0\nmax_speed = 20.0\n",
+            "1",
+            &[
+                "not raceable in the training contexts",
+                "hit a wall",
+                "--no-track-check",
+            ][..],
+        ),
     ]
     .into_iter()
     .enumerate()
