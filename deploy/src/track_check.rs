@@ -127,7 +127,7 @@ fn place(track: &Track, x: f64, y: f64) -> String {
 /// The narrowest wall-to-wall width across the centreline against the car's width and margins.
 fn width(track: &Track) -> Finding {
     let need = VehicleParams::default().width + 2.0 * SIDE_MARGIN_M;
-    let widths = crate::track_cmd::drawn_widths(track);
+    let widths = track.drawn_widths();
     let (i, narrowest) = widths
         .iter()
         .copied()

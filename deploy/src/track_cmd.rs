@@ -7,7 +7,6 @@ use clap::Subcommand;
 use ctxrace_common::RaceConfig;
 use ctxrace_tracks::files::write_raceline;
 use ctxrace_tracks::Track;
-use nalgebra::{Point2, Vector2};
 use serde::Serialize;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -118,26 +117,10 @@ struct TrackInfo {
     raceline_max_speed_mps: f64,
 }
 
-/// Wall-to-wall width across the centreline at each of its points (m, at most 40).
-pub fn drawn_widths(track: &Track) -> Vec<f64> {
-    let c = &track.centreline;
-    let pts = c.curve.points();
-    (0..pts.len())
-        .map(|i| {
-            let d = c.curve.segment_vector(i).normalize();
-            let normal = Vector2::new(-d.y as f32, d.x as f32);
-            let o = Point2::new(pts[i].x as f32, pts[i].y as f32);
-            let side =
-                |dir: Vector2<f32>| track.walls.cast_ray(o, dir, 20.0).unwrap_or(20.0) as f64;
-            side(normal) + side(-normal)
-        })
-        .collect()
-}
-
 fn info(track: &Track) -> TrackInfo {
     let c = &track.centreline;
     let pts = c.curve.points();
-    let drawn = drawn_widths(track).into_iter();
+    let drawn = track.drawn_widths().into_iter();
     TrackInfo {
         name: track.name.clone(),
         length_m: track.length(),

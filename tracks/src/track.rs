@@ -7,7 +7,7 @@ use crate::map::OccupancyMap;
 use crate::mincurv::{min_curvature_raceline, RacelineParams};
 use crate::path::{Centreline, Projection, Raceline};
 use crate::walls::Walls;
-use nalgebra::Point2;
+use nalgebra::{Point2, Vector2};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
@@ -113,6 +113,23 @@ impl Track {
     /// Centreline length (m).
     pub fn length(&self) -> f64 {
         self.centreline.curve.length()
+    }
+
+    /// Wall-to-wall width across the centreline at each of its points (m, at most 40), as the
+    /// walls are drawn on the map.
+    pub fn drawn_widths(&self) -> Vec<f64> {
+        let curve = &self.centreline.curve;
+        let pts = curve.points();
+        (0..pts.len())
+            .map(|i| {
+                let d = curve.segment_vector(i).normalize();
+                let normal = Vector2::new(-d.y as f32, d.x as f32);
+                let o = Point2::new(pts[i].x as f32, pts[i].y as f32);
+                let side =
+                    |dir: Vector2<f32>| self.walls.cast_ray(o, dir, 20.0).unwrap_or(20.0) as f64;
+                side(normal) + side(-normal)
+            })
+            .collect()
     }
 
     /// Projects a point on the centreline, searching near `hint` when given.
