@@ -60,6 +60,19 @@ impl EgoSpec {
     }
 }
 
+/// One decision of an episode, as [`Driver::drive_observed`] shows it.
+#[derive(Clone, Copy, Debug)]
+pub struct Decided<'a> {
+    /// The ego action taken.
+    pub action: [f64; 2],
+    /// cMask's context mask that chose it.
+    pub mask: Option<[f32; 2]>,
+    /// The reward it earned.
+    pub reward: f64,
+    /// The observation after it.
+    pub obs: &'a [f32],
+}
+
 /// An ego driver with its per-episode state.
 pub enum Driver {
     /// A reference policy.
@@ -90,18 +103,42 @@ impl Driver {
         seed: u64,
         mut frames: Option<&mut Vec<Frame>>,
     ) -> Result<StepInfo> {
+        self.drive_observed(env, context, seed, |env, d| {
+            if let Some(f) = frames.as_deref_mut() {
+                f.push(Frame::capture(env, d.action, d.reward, d.obs));
+            }
+        })
+    }
+
+    /// Runs one episode like [`Driver::drive_episode`], showing `observe` the environment after
+    /// its reset (a [`Decided`] with no action, mask or reward) and after every decision.
+    pub fn drive_observed(
+        &mut self,
+        env: &mut RaceEnv,
+        context: ctxrace_common::Context,
+        seed: u64,
+        mut observe: impl FnMut(&RaceEnv, Decided),
+    ) -> Result<StepInfo> {
         let mut obs = env.reset(seed, context);
         self.reset(env, seed);
-        if let Some(f) = frames.as_deref_mut() {
-            f.push(Frame::capture(env, [0.0, 0.0], 0.0, &obs));
-        }
+        let start = Decided {
+            action: [0.0, 0.0],
+            mask: None,
+            reward: 0.0,
+            obs: &obs,
+        };
+        observe(env, start);
         loop {
-            let (action, _) = self.act(env, &obs)?;
+            let (action, mask) = self.act(env, &obs)?;
             let step = env.step(action)?;
             obs = step.obs;
-            if let Some(f) = frames.as_deref_mut() {
-                f.push(Frame::capture(env, action, step.reward, &obs));
-            }
+            let decided = Decided {
+                action,
+                mask,
+                reward: step.reward,
+                obs: &obs,
+            };
+            observe(env, decided);
             if step.terminated || step.truncated {
                 return Ok(step.info);
             }

@@ -11,8 +11,9 @@
 //! context (`contexts.csv`, `contexts.json`, see [`crate::results`]) and one episode is drawn
 //! (`episode.png`, `episode.svg`).
 
-use crate::driver::{ActMode, EgoSpec};
+use crate::driver::{ActMode, Decided, EgoSpec};
 use crate::lock::{die_with_parent, DirLock};
+use crate::masks::{self, MaskRecorder};
 use crate::render::{race_title, render_race, Frame};
 use crate::results::{self, EvalMeta};
 use crate::track_check::{check_track, CheckPlan};
@@ -315,7 +316,10 @@ fn prepare_out_dir(out: &Path, meta: &EvalMeta, fresh: bool) -> Result<()> {
         for entry in std::fs::read_dir(out)? {
             let path = entry?.path();
             let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
-            if name.starts_with("episodes") || name.starts_with("contexts") {
+            if ["episodes", "contexts", "masks"]
+                .iter()
+                .any(|prefix| name.starts_with(prefix))
+            {
                 std::fs::remove_file(&path)
                     .with_context(|| format!("removing {}", path.display()))?;
             }
@@ -477,33 +481,54 @@ pub fn run_worker(args: WorkerArgs) -> Result<()> {
     let mut env = RaceEnv::new(track, job.race.clone())?;
     let mut driver = spec.driver(&env, job.meta.act)?;
     let grid = contexts(&job.meta);
-    let part = out.join(format!("episodes.part-{:03}.csv", args.shard));
-    trim_torn_line(&part)?;
-    let fresh = !part.exists() || std::fs::metadata(&part)?.len() == 0;
-    let file = open_append(&part).with_context(|| format!("opening {}", part.display()))?;
-    let mut writer = csv::WriterBuilder::new()
-        .has_headers(fresh)
-        .from_writer(file);
+    let mut writer = append_csv(&out.join(format!("episodes.part-{:03}.csv", args.shard)))?;
+    let mut masks = None;
     for &(index, lap) in job.todo.iter().skip(args.shard).step_by(args.shards) {
         let context = grid[index];
         let seed = episode_seed(job.meta.seed, index, lap);
-        let episode = run_episode(&mut env, &mut driver, context, seed, lap, None)?;
+        let mut recorder = MaskRecorder::new(context, lap);
+        let episode = run_episode(&mut env, &mut driver, context, seed, lap, |env, d| {
+            recorder.observe(env, &d)
+        })?;
+        // an episode's masks before its row: a resumed evaluation never lacks them
+        let rows = recorder.into_rows();
+        if !rows.is_empty() {
+            if masks.is_none() {
+                masks = Some(append_csv(&masks::part_path(out, args.shard))?);
+            }
+            let masks = masks.as_mut().expect("opened above");
+            for row in rows {
+                masks.serialize(row)?;
+            }
+            masks.flush()?;
+        }
         writer.serialize(episode)?;
         writer.flush()?;
     }
     Ok(())
 }
 
-/// Runs one episode to its end, optionally recording frames.
+/// A CSV writer appending to `path` (after cutting a torn last line), with a header when the
+/// file is new or empty.
+fn append_csv(path: &Path) -> Result<csv::Writer<std::fs::File>> {
+    trim_torn_line(path)?;
+    let fresh = !path.exists() || std::fs::metadata(path)?.len() == 0;
+    let file = open_append(path).with_context(|| format!("opening {}", path.display()))?;
+    Ok(csv::WriterBuilder::new()
+        .has_headers(fresh)
+        .from_writer(file))
+}
+
+/// Runs one episode to its end, showing `observe` every decision.
 fn run_episode(
     env: &mut RaceEnv,
     driver: &mut crate::driver::Driver,
     context: Context,
     seed: u64,
     lap: usize,
-    frames: Option<&mut Vec<Frame>>,
+    observe: impl FnMut(&RaceEnv, Decided),
 ) -> Result<EvalEpisode> {
-    let last = driver.drive_episode(env, context, seed, frames)?;
+    let last = driver.drive_observed(env, context, seed, observe)?;
     Ok(EvalEpisode::new(
         context,
         lap,
@@ -538,6 +563,16 @@ fn finish(
     let summary = protocol::summarise(&episodes, meta.train_range);
     results::write_csv(&out.join(EVAL_CONTEXTS_CSV), &summary)?;
     results::write_json(&out.join(EVAL_CONTEXTS_JSON), &summary)?;
+    let grid = contexts(meta);
+    let chosen = raced(meta);
+    let kept = |c: Context, lap: usize| {
+        lap < meta.laps
+            && grid
+                .iter()
+                .position(|&g| g == c)
+                .is_some_and(|i| chosen.contains(&i))
+    };
+    let masks = masks::merge_parts(out, kept)?;
 
     let track = Arc::new(tracks.load(&meta.track, race)?);
     let mut env = RaceEnv::new(track.clone(), race.clone())?;
@@ -550,7 +585,7 @@ fn finish(
         centre,
         episode_seed(meta.seed, usize::MAX, 0),
         0,
-        Some(&mut frames),
+        |env, d| frames.push(Frame::capture(env, d.action, d.reward, d.obs)),
     )?;
     for ext in ["png", "svg"] {
         let title = race_title(&meta.track, &spec.name(), &env);
@@ -586,6 +621,13 @@ fn finish(
             mean(|s| s.overtakes),
             mean(|s| s.a2a),
             100.0 * mean(|s| s.wall_crash)
+        )?;
+    }
+    if let Some(rows) = masks {
+        writeln!(
+            stdout,
+            "  cMask's masks: {rows} decisions -> {}",
+            out.join(masks::MASKS_FILE).display()
         )?;
     }
     Ok(())

@@ -2,7 +2,10 @@
 //! the rivals' speed profiles and race lines under different contexts (paper Figs. 3–4), and the
 //! evaluation's episode pictures copied over.
 
-use crate::groups::{sections, Group, Metric};
+use crate::groups::{sections, Group, Metric, Run};
+use crate::masks::{ContextMasks, PROGRESS_BINS};
+use crate::paper::bootstrap_ci;
+use crate::parity::ParityCurves;
 use crate::plot::{plot_err, register_font, save_png_and_svg, Figure};
 use crate::render::{bounds, draw_track, track_picture_size, TrackChart};
 use crate::results::TrainingEpisode;
@@ -31,6 +34,21 @@ pub fn write_all(
     for g in groups {
         let stem = format!("heatmap_{}", group_stem(g));
         files.extend(save_png_and_svg(&Heatmap { group: g }, out, &stem)?);
+        if g.runs.iter().any(|r| r.masks.is_some()) {
+            let stem = group_stem(g);
+            let heatmap = MaskHeatmap { group: g };
+            files.extend(save_png_and_svg(
+                &heatmap,
+                out,
+                &format!("mask_heatmap_{stem}"),
+            )?);
+            let along = MaskAlongLap { group: g };
+            files.extend(save_png_and_svg(
+                &along,
+                out,
+                &format!("mask_along_{stem}"),
+            )?);
+        }
     }
     for section in sections(groups) {
         let trained: Vec<&Group> = section
@@ -39,11 +57,25 @@ pub fn write_all(
             .collect();
         if let Some(first) = trained.first() {
             let stem = format!("training_{}_{}r", slug(&first.track), first.rivals);
-            files.extend(save_png_and_svg(
-                &TrainingCurves { groups: trained },
-                out,
-                &stem,
-            )?);
+            let series = trained
+                .iter()
+                .map(|g| CurveSeries {
+                    label: g.display_name(),
+                    runs: g
+                        .runs
+                        .iter()
+                        .filter(|r| !r.training.is_empty())
+                        .map(|r| r.training.as_slice())
+                        .collect(),
+                })
+                .collect();
+            let curves = TrainingCurves {
+                title: format!("Training on {}", first.section()),
+                series,
+                band: Band::MinMax,
+                panels: &CURVE_PANELS,
+            };
+            files.extend(save_png_and_svg(&curves, out, &stem)?);
         }
     }
     let mut names: Vec<&str> = groups.iter().map(|g| g.track.as_str()).collect();
@@ -95,16 +127,17 @@ fn font(size: u32) -> TextStyle<'static> {
     ("sans-serif", size).into_font().into()
 }
 
-/// Seed-averaged value of `metric` per context of a group: `(c_v, c_θ, value)`.
-fn context_means(g: &Group, metric: Metric) -> Vec<(f64, f64, f64)> {
+/// Seed-averaged values per context of a group, from each run's `(c_v, c_θ, value)`:
+/// `(c_v, c_θ, mean)`.
+fn context_means(g: &Group, values: impl Fn(&Run) -> Vec<(f64, f64, f64)>) -> Vec<(f64, f64, f64)> {
     let mut cells: Vec<(f64, f64, Vec<f64>)> = Vec::new();
-    for c in g.runs.iter().flat_map(|r| &r.contexts) {
+    for (cv, ct, v) in g.runs.iter().flat_map(values) {
         let same = |cell: &&mut (f64, f64, Vec<f64>)| {
-            (cell.0 - c.context_speed).abs() < 1e-9 && (cell.1 - c.context_steer).abs() < 1e-9
+            (cell.0 - cv).abs() < 1e-9 && (cell.1 - ct).abs() < 1e-9
         };
         match cells.iter_mut().find(same) {
-            Some(cell) => cell.2.push(metric.of(c)),
-            None => cells.push((c.context_speed, c.context_steer, vec![metric.of(c)])),
+            Some(cell) => cell.2.push(v),
+            None => cells.push((cv, ct, vec![v])),
         }
     }
     cells
@@ -156,17 +189,28 @@ impl Figure for Heatmap<'_> {
         let train_range = g.runs.first().map_or(0.0, |r| r.meta.train_range);
         let panels = root.split_evenly((1, HEATMAP_METRICS.len()));
         for (area, (metric, top)) in panels.iter().zip(HEATMAP_METRICS) {
-            heatmap_panel(area, &context_means(g, metric), metric, top, train_range)?;
+            let caption = format!("{} per context {}", metric.label(), arrow_note(metric));
+            let decimals = if metric == Metric::A2a { 1 } else { 2 };
+            let cells = context_means(g, |r| {
+                r.contexts
+                    .iter()
+                    .map(|c| (c.context_speed, c.context_steer, metric.of(c)))
+                    .collect()
+            });
+            heatmap_panel(area, &cells, &caption, decimals, top, train_range)?;
         }
         Ok(())
     }
 }
 
-/// One heatmap with its colour bar on the right.
+/// One heatmap with its colour bar on the right: `cells` `(c_v, c_θ, value)` on a `[0, top]`
+/// scale, values written in with `decimals` places on grids of at most [`MAX_LABELLED_GRID`]
+/// values per axis.
 fn heatmap_panel<DB: DrawingBackend>(
     area: &DrawingArea<DB, Shift>,
     cells: &[(f64, f64, f64)],
-    metric: Metric,
+    caption: &str,
+    decimals: usize,
     top: f64,
     train_range: f64,
 ) -> Result<()>
@@ -181,10 +225,7 @@ where
         .fold(train_range, f64::max)
         + half;
     let mut chart = ChartBuilder::on(&plot)
-        .caption(
-            format!("{} per context {}", metric.label(), arrow_note(metric)),
-            font(22),
-        )
+        .caption(caption, font(22))
         .margin(10)
         .x_label_area_size(50)
         .y_label_area_size(70)
@@ -215,7 +256,6 @@ where
     columns.sort_by(f64::total_cmp);
     columns.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
     if columns.len() <= MAX_LABELLED_GRID {
-        let decimals = if metric == Metric::A2a { 1 } else { 2 };
         chart
             .draw_series(cells.iter().map(|&(cv, ct, v)| {
                 let ink = if v / top < 0.5 { &WHITE } else { &BLACK };
@@ -261,6 +301,165 @@ where
     Ok(())
 }
 
+/// The mask components: their index in a mask and name.
+const MASK_COMPONENTS: [(usize, &str); 2] = [(0, "c_v (rival speed)"), (1, "c_θ (rival steering)")];
+
+/// The mean of each cMask mask component over the context grid of one group (seeds averaged),
+/// with the training range outlined.
+struct MaskHeatmap<'a> {
+    group: &'a Group,
+}
+
+impl Figure for MaskHeatmap<'_> {
+    fn size(&self) -> (u32, u32) {
+        (1300, 620)
+    }
+
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<()>
+    where
+        DB::ErrorType: 'static,
+    {
+        let g = self.group;
+        root.fill(&WHITE).map_err(plot_err)?;
+        let seeds = g.runs.iter().filter(|r| r.masks.is_some()).count();
+        let title = format!(
+            "{} on {}: mean context mask per context over every decision ({seeds} seed(s); red box: training range)",
+            g.display_name(),
+            g.section(),
+        );
+        let root = root.titled(&title, font(22)).map_err(plot_err)?;
+        let train_range = g.runs.first().map_or(0.0, |r| r.meta.train_range);
+        let panels = root.split_evenly((1, MASK_COMPONENTS.len()));
+        for (area, (k, name)) in panels.iter().zip(MASK_COMPONENTS) {
+            let cells = context_means(g, |r| {
+                r.masks
+                    .iter()
+                    .flat_map(|m| &m.contexts)
+                    .map(|c| (c.context_speed, c.context_steer, c.mean(k)))
+                    .collect()
+            });
+            let caption = format!("mask on {name}");
+            heatmap_panel(area, &cells, &caption, 2, 1.0, train_range)?;
+        }
+        Ok(())
+    }
+}
+
+/// How many contexts the mask-along-the-lap figure shows.
+const ALONG_CONTEXTS: usize = 3;
+
+/// The contexts of a group's masks nearest the grid's low corner, centre and high corner
+/// (`(−r, −r)`, `(0, 0)`, `(r, r)`), each with its decisions summed over the seeds.
+fn along_contexts(g: &Group) -> Vec<ContextMasks> {
+    let all: Vec<&ContextMasks> = g
+        .runs
+        .iter()
+        .flat_map(|r| r.masks.iter())
+        .flat_map(|m| &m.contexts)
+        .collect();
+    let r = all
+        .iter()
+        .map(|c| c.context_speed.abs().max(c.context_steer.abs()))
+        .fold(0.0, f64::max);
+    let mut chosen: Vec<ContextMasks> = Vec::new();
+    for target in [-r, 0.0, r] {
+        let distance =
+            |c: &ContextMasks| (c.context_speed - target).hypot(c.context_steer - target);
+        let Some(nearest) = all
+            .iter()
+            .min_by(|a, b| distance(a).total_cmp(&distance(b)))
+        else {
+            continue;
+        };
+        if chosen.iter().any(|c| c.context() == nearest.context()) {
+            continue;
+        }
+        let mut sum = ContextMasks {
+            context_speed: nearest.context_speed,
+            context_steer: nearest.context_steer,
+            along: vec![([0.0; 2], 0); PROGRESS_BINS],
+            ..ContextMasks::default()
+        };
+        for c in all.iter().filter(|c| c.context() == nearest.context()) {
+            sum.count += c.count;
+            for (total, (m, n)) in sum.along.iter_mut().zip(&c.along) {
+                total.0[0] += m[0];
+                total.0[1] += m[1];
+                total.1 += n;
+            }
+        }
+        chosen.push(sum);
+    }
+    chosen.truncate(ALONG_CONTEXTS);
+    chosen
+}
+
+/// Each mask component along the lap (mean per bin of lap progress over every lap and seed)
+/// for a few contexts of one group, as the paper's `plot_masks.py` draws one lap's.
+struct MaskAlongLap<'a> {
+    group: &'a Group,
+}
+
+impl Figure for MaskAlongLap<'_> {
+    fn size(&self) -> (u32, u32) {
+        (1400, 560)
+    }
+
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<()>
+    where
+        DB::ErrorType: 'static,
+    {
+        let g = self.group;
+        root.fill(&WHITE).map_err(plot_err)?;
+        let title = format!(
+            "{} on {}: context mask along the lap (mean over laps and seeds)",
+            g.display_name(),
+            g.section()
+        );
+        let root = root.titled(&title, font(24)).map_err(plot_err)?;
+        let contexts = along_contexts(g);
+        let panels = root.split_evenly((1, MASK_COMPONENTS.len()));
+        for (area, (k, name)) in panels.iter().zip(MASK_COMPONENTS) {
+            let mut chart = ChartBuilder::on(area)
+                .caption(format!("mask on {name}"), font(20))
+                .margin(15)
+                .x_label_area_size(50)
+                .y_label_area_size(60)
+                .build_cartesian_2d(0.0..1.0, 0.0..1.0)
+                .map_err(plot_err)?;
+            chart
+                .configure_mesh()
+                .x_desc("lap progress")
+                .y_desc("mask")
+                .label_style(font(14))
+                .axis_desc_style(font(16))
+                .draw()
+                .map_err(plot_err)?;
+            for (i, c) in contexts.iter().enumerate() {
+                let colour = Palette99::pick(i).to_rgba();
+                let points = c
+                    .along
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, (_, n))| *n > 0)
+                    .map(|(b, (m, n))| ((b as f64 + 0.5) / PROGRESS_BINS as f64, m[k] / *n as f64));
+                chart
+                    .draw_series(LineSeries::new(points, colour.stroke_width(2)))
+                    .map_err(plot_err)?
+                    .label(format!(
+                        "c_v = {:+.2}, c_θ = {:+.2} ({} decisions)",
+                        c.context_speed, c.context_steer, c.count
+                    ))
+                    .legend(move |(x, y)| {
+                        PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
+                    });
+            }
+            legend(&mut chart, SeriesLabelPosition::LowerRight)?;
+        }
+        Ok(())
+    }
+}
+
 /// A context value on an axis, one decimal, without a sign on 0.
 fn context_label(v: &f64) -> String {
     format!("{:.1}", (v * 10.0).round() / 10.0 + 0.0)
@@ -278,20 +477,54 @@ fn arrow_note(metric: Metric) -> &'static str {
 /// Bins of environment steps the training curves are averaged over.
 const CURVE_BINS: usize = 40;
 
-/// A training curve point: bin centre (env steps), mean over seeds, and the seeds' min and max.
+/// A training curve point: bin centre (env steps), mean over seeds, and the band's low and
+/// high ends.
 type CurvePoint = (f64, f64, f64, f64);
 
-/// Per-bin means of `value` for each run of `g`, then their mean, min and max over the runs that
-/// have episodes in the bin.
-fn binned_curve(g: &Group, value: fn(&TrainingEpisode) -> f64, width: f64) -> Vec<CurvePoint> {
+/// The band drawn around a training curve's mean over seeds.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Band {
+    /// The seeds' smallest and largest value.
+    MinMax,
+    /// The 95% bootstrap interval of the mean over the seeds ([`bootstrap_ci`]).
+    Bootstrap95,
+}
+
+impl Band {
+    /// The band's ends for per-seed `values` (not empty).
+    fn ends(self, values: &[f64]) -> (f64, f64) {
+        match self {
+            Band::MinMax => (
+                values.iter().copied().fold(f64::INFINITY, f64::min),
+                values.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+            ),
+            Band::Bootstrap95 => bootstrap_ci(values).expect("values are not empty"),
+        }
+    }
+
+    /// How a title names it.
+    fn label(self) -> &'static str {
+        match self {
+            Band::MinMax => "band min–max",
+            Band::Bootstrap95 => "band 95% bootstrap interval over seeds",
+        }
+    }
+}
+
+/// Per-bin means of `value` for each seed's episodes in `runs`, then their mean and `band` over
+/// the seeds that have episodes in the bin.
+fn binned_curve(
+    runs: &[&[TrainingEpisode]],
+    value: fn(&TrainingEpisode) -> f64,
+    width: f64,
+    band: Band,
+) -> Vec<CurvePoint> {
     let bin = |e: &TrainingEpisode| ((e.env_steps as f64 / width) as usize).min(CURVE_BINS - 1);
-    let per_run: Vec<Vec<Option<f64>>> = g
-        .runs
+    let per_run: Vec<Vec<Option<f64>>> = runs
         .iter()
-        .filter(|r| !r.training.is_empty())
-        .map(|r| {
+        .map(|episodes| {
             let mut sums = vec![(0.0, 0usize); CURVE_BINS];
-            for e in &r.training {
+            for e in episodes.iter() {
                 let s = &mut sums[bin(e)];
                 *s = (s.0 + value(e), s.1 + 1);
             }
@@ -305,8 +538,7 @@ fn binned_curve(g: &Group, value: fn(&TrainingEpisode) -> f64, width: f64) -> Ve
             let v: Vec<f64> = per_run.iter().filter_map(|r| r[b]).collect();
             (!v.is_empty()).then(|| {
                 let mean = v.iter().sum::<f64>() / v.len() as f64;
-                let lo = v.iter().copied().fold(f64::INFINITY, f64::min);
-                let hi = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                let (lo, hi) = band.ends(&v);
                 ((b as f64 + 0.5) * width, mean, lo, hi)
             })
         })
@@ -322,15 +554,35 @@ const CURVE_PANELS: [CurvePanel; 2] = [
     ("episode return", |e| e.episode_return),
 ];
 
-/// Progress and return against environment steps for the algorithms of one section: mean over
-/// seeds with a min–max band.
+/// The panels of the parity figure: the training curves and the episodes ending in a collision.
+const PARITY_PANELS: [CurvePanel; 3] = [
+    CURVE_PANELS[0],
+    CURVE_PANELS[1],
+    ("episodes ending in a collision", |e| {
+        f64::from(u8::from(e.a2a || e.wall_crash))
+    }),
+];
+
+/// One curve of a training figure: its legend label and each seed's episodes.
+pub struct CurveSeries<'a> {
+    /// The legend label (the seeds are counted after it).
+    pub label: String,
+    /// The episodes of each seed (none empty).
+    pub runs: Vec<&'a [TrainingEpisode]>,
+}
+
+/// Panels of training curves against environment steps: each series' mean over seeds with a
+/// band.
 struct TrainingCurves<'a> {
-    groups: Vec<&'a Group>,
+    title: String,
+    series: Vec<CurveSeries<'a>>,
+    band: Band,
+    panels: &'static [CurvePanel],
 }
 
 impl Figure for TrainingCurves<'_> {
     fn size(&self) -> (u32, u32) {
-        (1400, 560)
+        (700 * self.panels.len() as u32, 560)
     }
 
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<()>
@@ -338,27 +590,24 @@ impl Figure for TrainingCurves<'_> {
         DB::ErrorType: 'static,
     {
         root.fill(&WHITE).map_err(plot_err)?;
-        let title = format!(
-            "Training on {}: mean over seeds, band min–max",
-            self.groups[0].section()
-        );
+        let title = format!("{}: mean over seeds, {}", self.title, self.band.label());
         let root = root.titled(&title, font(26)).map_err(plot_err)?;
         let max_steps = self
-            .groups
+            .series
             .iter()
-            .flat_map(|g| &g.runs)
-            .flat_map(|r| &r.training)
+            .flat_map(|s| &s.runs)
+            .flat_map(|r| r.iter())
             .map(|e| e.env_steps)
             .max()
             .unwrap_or(0)
             .max(1) as f64;
         let width = max_steps / CURVE_BINS as f64;
-        let panels = root.split_evenly((1, CURVE_PANELS.len()));
-        for (area, (name, value)) in panels.iter().zip(CURVE_PANELS) {
+        let panels = root.split_evenly((1, self.panels.len()));
+        for (area, &(name, value)) in panels.iter().zip(self.panels) {
             let curves: Vec<Vec<CurvePoint>> = self
-                .groups
+                .series
                 .iter()
-                .map(|g| binned_curve(g, value, width))
+                .map(|s| binned_curve(&s.runs, value, width, self.band))
                 .collect();
             let (lo, hi) = curves
                 .iter()
@@ -383,7 +632,7 @@ impl Figure for TrainingCurves<'_> {
                 .axis_desc_style(font(16))
                 .draw()
                 .map_err(plot_err)?;
-            for (i, (g, curve)) in self.groups.iter().zip(&curves).enumerate() {
+            for (i, (series, curve)) in self.series.iter().zip(&curves).enumerate() {
                 let colour = Palette99::pick(i).to_rgba();
                 let band: Vec<(f64, f64)> = curve
                     .iter()
@@ -396,14 +645,13 @@ impl Figure for TrainingCurves<'_> {
                         colour.mix(0.2).filled(),
                     )))
                     .map_err(plot_err)?;
-                let seeds = g.runs.iter().filter(|r| !r.training.is_empty()).count();
                 chart
                     .draw_series(LineSeries::new(
                         curve.iter().map(|p| (p.0, p.1)),
                         colour.stroke_width(2),
                     ))
                     .map_err(plot_err)?
-                    .label(format!("{} ({seeds} seed(s))", g.display_name()))
+                    .label(format!("{} ({} seed(s))", series.label, series.runs.len()))
                     .legend(move |(x, y)| {
                         PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
                     });
@@ -412,6 +660,35 @@ impl Figure for TrainingCurves<'_> {
         }
         Ok(())
     }
+}
+
+/// Draws one figure per algorithm of a parity folder: each side's training curves (PG, return,
+/// collisions) with the 95% bootstrap interval over its seeds; returns the files written.
+pub fn write_parity(parity: &[ParityCurves], out: &Path) -> Result<Vec<PathBuf>> {
+    register_font()?;
+    let mut files = Vec::new();
+    for algo in parity {
+        let series = algo
+            .sides
+            .iter()
+            .map(|(side, seeds)| CurveSeries {
+                label: side.clone(),
+                runs: seeds.iter().map(|(_, e)| e.as_slice()).collect(),
+            })
+            .collect();
+        let figure = TrainingCurves {
+            title: format!("{}: ctxrace and the paper's code", algo.algo),
+            series,
+            band: Band::Bootstrap95,
+            panels: &PARITY_PANELS,
+        };
+        files.extend(save_png_and_svg(
+            &figure,
+            out,
+            &format!("parity_{}", slug(&algo.algo)),
+        )?);
+    }
+    Ok(files)
 }
 
 /// The context values of the rival figures (paper Figs. 3–4) and their colours: orange, green,

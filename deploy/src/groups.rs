@@ -2,6 +2,7 @@
 //! runs are its training seeds), with the paper's metrics and splits: each run's metric averaged
 //! over its in- or out-of-distribution contexts, and those per-run means over a group's seeds.
 
+use crate::masks::{load_summary, MaskSummary};
 use crate::results::{read_csv, read_json, EvalMeta, TrainingEpisode};
 use anyhow::{bail, Result};
 use ctxrace_actor::baseline::BaselineKind;
@@ -22,6 +23,8 @@ pub struct Run {
     pub contexts: Vec<ContextSummary>,
     /// The training episodes, when the run was given as a training run directory that has them.
     pub training: Vec<TrainingEpisode>,
+    /// cMask's masks in the evaluation, when it recorded them.
+    pub masks: Option<MaskSummary>,
 }
 
 impl Run {
@@ -54,11 +57,13 @@ impl Run {
             );
         }
         let contexts = load_contexts(&dir, meta.train_range)?;
+        let masks = load_summary(&dir)?;
         Ok(Self {
             dir,
             meta,
             contexts,
             training,
+            masks,
         })
     }
 }

@@ -23,8 +23,13 @@ use std::path::{Path, PathBuf};
 pub struct ReportArgs {
     /// Evaluation directories (holding meta.json) or training run directories (holding
     /// eval/meta.json, and episodes.csv for the training curves).
-    #[arg(required = true)]
+    #[arg(required_unless_present = "parity")]
     runs: Vec<PathBuf>,
+    /// A folder of `deploy/paper_parity.sh` (`{ctxrace,paper}/<algo>/seed<S>/episodes.csv`):
+    /// one figure per algorithm of both sides' training curves (mean and 95% bootstrap
+    /// interval over seeds), `parity_<algo>.png` and `.svg`.
+    #[arg(long)]
+    parity: Option<PathBuf>,
     /// Folder the tables and figures are written to (created if missing).
     #[arg(long, default_value = "report")]
     out: PathBuf,
@@ -37,6 +42,17 @@ pub struct ReportArgs {
 
 /// Writes the tables and figures, and prints the Markdown report.
 pub fn run(args: ReportArgs) -> Result<()> {
+    if let Some(dir) = &args.parity {
+        let curves = crate::parity::load(dir)?;
+        std::fs::create_dir_all(&args.out)
+            .with_context(|| format!("creating {}", args.out.display()))?;
+        for file in crate::figures::write_parity(&curves, &args.out)? {
+            println!("{}", file.display());
+        }
+        if args.runs.is_empty() {
+            return Ok(());
+        }
+    }
     let runs = args
         .runs
         .iter()
@@ -435,6 +451,7 @@ mod tests {
                 ctx(-0.2, 0.3, po, oo, ao),
             ],
             training: Vec::new(),
+            masks: None,
         }
     }
 

@@ -646,6 +646,55 @@ fn inline_training_then_evaluation_report_and_race_with_the_policy() {
     assert_eq!(rows("episodes.csv"), 1 + 4 * 2);
     assert_eq!(rows("contexts.csv"), 1 + 4);
     assert!(run.join("eval/episode.png").exists());
+    // cMask's masks: one row per decision of every episode, in the mask's range
+    let gz = std::fs::File::open(run.join("eval/masks.csv.gz")).unwrap();
+    let mut masks = csv::Reader::from_reader(flate2::read::MultiGzDecoder::new(gz));
+    assert_eq!(
+        masks.headers().unwrap(),
+        vec![
+            "context_speed",
+            "context_steer",
+            "lap",
+            "step",
+            "progress",
+            "x",
+            "y",
+            "mask_speed",
+            "mask_steer"
+        ]
+    );
+    let masks: Vec<Vec<f64>> = masks
+        .records()
+        .map(|r| r.unwrap().iter().map(|v| v.parse().unwrap()).collect())
+        .collect();
+    let mut episodes = csv::Reader::from_path(run.join("eval/episodes.csv")).unwrap();
+    let steps_column = episodes
+        .headers()
+        .unwrap()
+        .iter()
+        .position(|h| h == "steps");
+    let decisions: f64 = episodes
+        .records()
+        .map(|r| r.unwrap()[steps_column.unwrap()].parse::<f64>().unwrap())
+        .sum();
+    assert_eq!(masks.len() as f64, decisions);
+    for m in &masks {
+        assert!([m[0], m[1]].iter().all(|c| c.abs() <= 0.3 + 1e-9), "{m:?}");
+        assert!(
+            (0.0..=1.0).contains(&m[7]) && (0.0..=1.0).contains(&m[8]),
+            "{m:?}"
+        );
+        assert!(m[4] > -0.1 && m[4] <= 1.5 && m[5].is_finite() && m[6].is_finite());
+    }
+    // the first decision of an episode is taken on the start line
+    assert!(masks
+        .iter()
+        .filter(|m| m[3] == 0.0)
+        .all(|m| m[4].abs() < 0.01));
+    let parts = std::fs::read_dir(run.join("eval")).unwrap();
+    assert!(!parts
+        .map(|p| p.unwrap().file_name().into_string().unwrap())
+        .any(|name| name.starts_with("masks.part-")));
     // the paper's protocol by default: the best checkpoint, sampled actions
     let meta: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(run.join("eval/meta.json")).unwrap())
@@ -696,6 +745,14 @@ fn inline_training_then_evaluation_report_and_race_with_the_policy() {
     assert!(std::fs::read_to_string(out.join("report.md"))
         .unwrap()
         .contains("cMask"));
+    for figure in ["mask_heatmap", "mask_along"] {
+        let png = out.join(format!("{figure}_cmask_generated_0_1r.png"));
+        assert!(
+            std::fs::metadata(&png).unwrap().len() > 1000,
+            "{}",
+            png.display()
+        );
+    }
 
     let o = ctxrace(&["race", "generated:0", "--policy", run_s, "--json"]);
     assert!(o.status.success(), "{}", stderr(&o));
