@@ -12,13 +12,16 @@ use std::path::Path;
 /// The sides of a parity folder, in drawing order.
 pub const SIDES: [&str; 2] = ["ctxrace", "paper"];
 
+/// Each seed's training episodes, by seed.
+pub type SeedCurves = Vec<(u64, Vec<TrainingEpisode>)>;
+
 /// One algorithm's curves: per side, each seed's training episodes.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ParityCurves {
     /// The algorithm (ctxrace's name).
     pub algo: String,
     /// Per side that has it: the side and each seed's episodes (by seed).
-    pub sides: Vec<(String, Vec<(u64, Vec<TrainingEpisode>)>)>,
+    pub sides: Vec<(String, SeedCurves)>,
 }
 
 /// The names of the folders under `dir`, sorted.
