@@ -9,7 +9,8 @@
 //! so an interrupted evaluation resumes where it stopped: a rerun skips every (context, lap)
 //! already on disk. When all are done the rows are merged into `episodes.csv`, summarised per
 //! context (`contexts.csv`, `contexts.json`, see [`crate::results`]) and one episode is drawn
-//! (`episode.png`, `episode.svg`).
+//! (`episode.png`, `episode.svg`). A cMask agent's masks at every decision go to
+//! `masks.part-K.csv` beside, merged into `masks.csv.gz` ([`crate::masks`]).
 
 use crate::driver::{ActMode, Decided, EgoSpec};
 use crate::lock::{die_with_parent, DirLock};

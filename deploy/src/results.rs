@@ -7,6 +7,7 @@
 //! - `episodes.csv`: one `EvalEpisode` per evaluation episode (lap);
 //! - `contexts.csv` and `contexts.json`: one `ContextSummary` per context of the grid (both
 //!   defined, with the metrics, by the protocol in `ctxrace_actor::protocol`).
+//! - `masks.csv.gz` (cMask agents): the context mask at every decision ([`crate::masks`]).
 //!
 //! A training run directory holds `episodes.csv` with one [`TrainingEpisode`] per finished
 //! training episode (the training curves).
