@@ -107,9 +107,11 @@ export_paper() {
     mkdir -p "$dest/Data/Vehicles"
     cat >"$dest/parity_driver.py" <<'PY'
 """Trains one run of the paper's code for its n_train_steps, printing per training episode its
-environment and gradient steps (::Episode) and rival context (::Context); no test afterwards."""
+environment and gradient steps and wall seconds since the start (::Episode) and rival context
+(::Context); no test afterwards."""
 import os
 import sys
+import time
 
 import numpy as np
 import torch
@@ -120,6 +122,7 @@ from TrajectoryAidedLearning.Utils.HistoryStructs import VehicleStateHistory
 from TrajectoryAidedLearning.Utils.StdTrack import StdTrack
 
 torch.set_num_threads(int(os.environ.get("THREADS", "2")))
+started = time.monotonic()
 
 
 class ParityTraining(ta.TrainSimulation):
@@ -132,7 +135,8 @@ class ParityTraining(ta.TrainSimulation):
         ego = observations[0]
         if ego["lap_done"] or ego["colision_done"] or ego["current_laptime"] > self.conf.max_laptime:
             print(f"::Episode env_steps={self.env_steps} grad_steps={self.grad_steps} "
-                  f"a2a={int(bool(ego['colision_a2a']))}", flush=True)
+                  f"a2a={int(bool(ego['colision_a2a']))} wall={time.monotonic() - started:.1f}",
+                  flush=True)
         return observations
 
 
@@ -179,7 +183,7 @@ def counted_train():
 agent.train = counted_train
 sim.vehicle_state_history = [VehicleStateHistory(run, f"Training/agent_{i}") for i in range(run.num_agents)]
 sim.completed_laps, sim.places, sim.progresses = 0, [], []
-print(f"::Run {run.path}{run.run_name}", flush=True)
+print(f"::Run {run.path}{run.run_name} (set up in {time.monotonic() - started:.1f} s)", flush=True)
 sim.run_training(run)
 PY
 }
@@ -296,7 +300,7 @@ paper() {
     (cd "$work" && THREADS=${THREADS:-2} "$venv/bin/python" -u parity_driver.py parity) >"$dest/train.log" 2>&1 || {
         tail -n 20 "$dest/train.log" >&2; exit 1; }
     local run_dir
-    run_dir=$work/Data/Vehicles/$(sed -n 's/^::Run //p' "$dest/train.log" | tail -n 1)
+    run_dir=$work/Data/Vehicles/$(sed -n 's/^::Run \([^ ]*\).*/\1/p' "$dest/train.log" | tail -n 1)
     cp "$run_dir/training_data_episodes.csv" "$dest/"
     convert "$run_dir" "$dest/train.log" "$dest"
     echo "paper $arch seed $seed: $((SECONDS - t0)) s"
