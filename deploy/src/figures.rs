@@ -82,7 +82,15 @@ pub fn write_all(
     names.dedup();
     for name in names {
         match tracks.load(name, cfg) {
-            Ok(track) => files.extend(rival_figures(&track, cfg, out)?),
+            Ok(track) => {
+                files.extend(rival_figures(&track, cfg, out)?);
+                for g in groups.iter().filter(|g| g.track == name) {
+                    if let Some(figure) = MaskOnTrack::of(g, &track) {
+                        let stem = format!("mask_track_{}", group_stem(g));
+                        files.extend(save_png_and_svg(&figure, out, &stem)?);
+                    }
+                }
+            }
             Err(e) => tracing::warn!("skipping the rival figures of track '{name}': {e:#}"),
         }
     }
@@ -455,6 +463,84 @@ impl Figure for MaskAlongLap<'_> {
                     });
             }
             legend(&mut chart, SeriesLabelPosition::LowerRight)?;
+        }
+        Ok(())
+    }
+}
+
+/// Each mask component as the colour of the path of one lap on the track (as the paper's
+/// `plot_masks_map.py`): the longest lap in the context nearest `(0, 0)` of the group's first
+/// seed with masks.
+struct MaskOnTrack<'a> {
+    group: &'a Group,
+    track: &'a Track,
+    seed: u64,
+    lap: &'a ContextMasks,
+}
+
+impl<'a> MaskOnTrack<'a> {
+    /// The figure of `g` on `track`, if it has masks.
+    fn of(g: &'a Group, track: &'a Track) -> Option<Self> {
+        let run = g.runs.iter().find(|r| r.masks.is_some())?;
+        let centre = |c: &&ContextMasks| c.context_speed.hypot(c.context_steer);
+        let lap = run
+            .masks
+            .as_ref()?
+            .contexts
+            .iter()
+            .min_by(|a, b| centre(a).total_cmp(&centre(b)))?;
+        Some(Self {
+            group: g,
+            track,
+            seed: run.meta.train_seed,
+            lap,
+        })
+    }
+}
+
+impl Figure for MaskOnTrack<'_> {
+    fn size(&self) -> (u32, u32) {
+        let (w, h) = track_picture_size(self.track);
+        (w, 2 * h + 60)
+    }
+
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<()>
+    where
+        DB::ErrorType: 'static,
+    {
+        root.fill(&WHITE).map_err(plot_err)?;
+        let c = self.lap;
+        let title = format!(
+            "{} on {}: context mask along its longest lap at c_v = {:+.2}, c_θ = {:+.2} \
+             (seed {}, {} decisions)",
+            self.group.display_name(),
+            self.group.section(),
+            c.context_speed,
+            c.context_steer,
+            self.seed,
+            c.longest_lap.len()
+        );
+        let root = root.titled(&title, font(24)).map_err(plot_err)?;
+        let (lo, hi) = bounds(self.track);
+        for (area, (k, name)) in root.split_evenly((2, 1)).iter().zip(MASK_COMPONENTS) {
+            let mut chart = ChartBuilder::on(area)
+                .caption(
+                    format!("mask on {name}: colour 0 (dark blue) to 1 (yellow)"),
+                    font(20),
+                )
+                .margin(10)
+                .build_cartesian_2d(lo.0..hi.0, lo.1..hi.1)
+                .map_err(plot_err)?;
+            draw_track(&mut chart, self.track)?;
+            chart
+                .draw_series(c.longest_lap.windows(2).map(|w| {
+                    let colour = ViridisRGB::get_color_normalized(w[0].2[k] as f32, 0.0, 1.0);
+                    PathElement::new(
+                        vec![(w[0].0, w[0].1), (w[1].0, w[1].1)],
+                        colour.stroke_width(5),
+                    )
+                }))
+                .map_err(plot_err)?;
         }
         Ok(())
     }

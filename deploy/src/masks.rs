@@ -204,7 +204,12 @@ pub struct ContextMasks {
     /// Sums of both masks and decisions per bin of lap progress (of [`PROGRESS_BINS`] over
     /// `[0, 1]`, progress clamped into it).
     pub along: Vec<([f64; 2], usize)>,
+    /// The decisions of its longest lap (the first of equals): position and both masks.
+    pub longest_lap: Vec<LapPoint>,
 }
+
+/// One decision of a lap drawn on the track: position x, y (m) and both masks.
+pub type LapPoint = (f64, f64, [f64; 2]);
 
 impl ContextMasks {
     /// The context.
@@ -250,6 +255,8 @@ pub fn load_summary(dir: &Path) -> Result<Option<MaskSummary>> {
         range: [(f64::INFINITY, f64::NEG_INFINITY); 2],
         ..MaskSummary::default()
     };
+    // the lap being read (rows come lap by lap): its context, lap index and points
+    let mut lap: Option<(Context, usize, Vec<LapPoint>)> = None;
     for (i, row) in reader.deserialize::<MaskStep>().enumerate() {
         let r = row.with_context(|| format!("{} row {}", path.display(), i + 2))?;
         let masks = [r.mask_speed, r.mask_steer];
@@ -265,9 +272,17 @@ pub fn load_summary(dir: &Path) -> Result<Option<MaskSummary>> {
                 r.mask_steer
             );
         }
-        let same = |c: &&mut ContextMasks| {
-            c.context_speed == r.context_speed && c.context_steer == r.context_steer
+        let context = Context {
+            speed: r.context_speed,
+            steer: r.context_steer,
         };
+        if lap.as_ref().is_some_and(|l| (l.0, l.1) != (context, r.lap)) {
+            keep_if_longest(&mut summary, lap.take());
+        }
+        lap.get_or_insert_with(|| (context, r.lap, Vec::new()))
+            .2
+            .push((r.x, r.y, masks));
+        let same = |c: &&mut ContextMasks| c.context() == context;
         let cell = match summary.contexts.iter_mut().find(same) {
             Some(c) => c,
             None => {
@@ -291,10 +306,23 @@ pub fn load_summary(dir: &Path) -> Result<Option<MaskSummary>> {
         bin.1 += 1;
         summary.decisions += 1;
     }
+    keep_if_longest(&mut summary, lap);
     if summary.decisions == 0 {
         bail!("{}: no decisions", path.display());
     }
     Ok(Some(summary))
+}
+
+/// Makes a finished `lap` its context's longest lap if it has more decisions.
+fn keep_if_longest(summary: &mut MaskSummary, lap: Option<(Context, usize, Vec<LapPoint>)>) {
+    let Some((context, _, points)) = lap else {
+        return;
+    };
+    if let Some(c) = summary.contexts.iter_mut().find(|c| c.context() == context) {
+        if points.len() > c.longest_lap.len() {
+            c.longest_lap = points;
+        }
+    }
 }
 
 #[cfg(test)]
@@ -362,6 +390,10 @@ mod tests {
         assert_eq!((cell(-0.3).count, cell(-0.3).mean(1)), (1, 1.0));
         assert_eq!(cell(0.3).along[progress_bin(0.5)], ([0.5, 0.25], 1));
         assert_eq!(cell(-0.3).along[PROGRESS_BINS - 1], ([0.0, 1.0], 1));
+        assert_eq!(
+            cell(0.3).longest_lap,
+            [(1.0, 2.0, [1.0, 0.0]), (1.0, 2.0, [0.5, 0.25])]
+        );
     }
 
     #[test]

@@ -12,6 +12,7 @@
 //!   ([`crate::paper`]).
 
 use crate::groups::{group, sections, Group, Metric, Run, Split, Stat};
+use crate::masks::ContextMasks;
 use crate::table::Table;
 use crate::TrackArgs;
 use anyhow::{Context as _, Result};
@@ -67,6 +68,7 @@ pub fn run(args: ReportArgs) -> Result<()> {
         ("table2.csv", table2_csv(&groups)),
         ("table3.csv", table3_csv(&groups)),
         ("paper.csv", crate::paper::comparison_csv(&groups)),
+        ("masks.csv", masks_csv(&groups)),
     ];
     for (name, table) in &tables {
         table.write_csv(&args.out.join(name))?;
@@ -162,6 +164,53 @@ fn algorithms(groups: &[Group]) -> Vec<(String, String)> {
         }
     }
     algos
+}
+
+/// cMask's mean masks per context as CSV: one row per group with masks and context, the
+/// seeds' decisions pooled (no rows without cMask evaluations).
+fn masks_csv(groups: &[Group]) -> Table {
+    let mut table = Table::new([
+        "track",
+        "rivals",
+        "algo",
+        "seeds",
+        "context_speed",
+        "context_steer",
+        "decisions",
+        "mask_speed",
+        "mask_steer",
+    ]);
+    for g in groups {
+        let summaries: Vec<_> = g.runs.iter().filter_map(|r| r.masks.as_ref()).collect();
+        let mut cells: Vec<ContextMasks> = Vec::new();
+        for c in summaries.iter().flat_map(|m| &m.contexts) {
+            match cells.iter_mut().find(|d| d.context() == c.context()) {
+                Some(d) => {
+                    d.count += c.count;
+                    d.sum = [d.sum[0] + c.sum[0], d.sum[1] + c.sum[1]];
+                }
+                None => cells.push(ContextMasks {
+                    along: Vec::new(),
+                    longest_lap: Vec::new(),
+                    ..c.clone()
+                }),
+            }
+        }
+        for c in cells {
+            table.push(vec![
+                g.track.clone(),
+                g.rivals.to_string(),
+                g.algo.clone(),
+                summaries.len().to_string(),
+                c.context_speed.to_string(),
+                c.context_steer.to_string(),
+                c.count.to_string(),
+                format!("{:.4}", c.mean(0)),
+                format!("{:.4}", c.mean(1)),
+            ]);
+        }
+    }
+    table
 }
 
 /// Table I in Markdown: PG per algorithm, an In and an Out column per section.

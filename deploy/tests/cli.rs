@@ -745,7 +745,9 @@ fn inline_training_then_evaluation_report_and_race_with_the_policy() {
     assert!(std::fs::read_to_string(out.join("report.md"))
         .unwrap()
         .contains("cMask"));
-    for figure in ["mask_heatmap", "mask_along"] {
+    let masks = std::fs::read_to_string(out.join("masks.csv")).unwrap();
+    assert_eq!(masks.lines().count(), 1 + 4, "{masks}");
+    for figure in ["mask_heatmap", "mask_along", "mask_track"] {
         let png = out.join(format!("{figure}_cmask_generated_0_1r.png"));
         assert!(
             std::fs::metadata(&png).unwrap().len() > 1000,
