@@ -53,7 +53,7 @@
 # context_steer, progress, overtakes, a2a, wall_crash, episode_return, steps.
 #
 # Measured on this project's 2-core machine while other builds ran (load average 8-12): `setup`
-# 1 min 46 s (5.4 GB, torch with its CUDA libraries from PyPI); `paper` for 300 env steps
+# 1 min 46 s (6.0 GB, torch with its CUDA libraries from PyPI); `paper` for 300 env steps
 # before training starts (DreamerV3, cbDreamer): 2-6 min: about 15 s of imports, 4 s of set-up,
 # about 45 s of numba compilation in the first episode, then about 5 env steps/s (each episode
 # also saves plots, the model and the buffer); conversion under a second. `ctxrace` for 1500
