@@ -290,7 +290,9 @@ PY
 
 paper() {
     local algo=$1 seed=$2 steps=$3 out=$4
-    read -r arch prefix <<<"$(paper_algo "$algo")"
+    local names
+    names=$(paper_algo "$algo")
+    read -r arch prefix <<<"$names"
     [[ -x $venv/bin/python ]] || { echo "$venv: no Python environment; run '$0 setup' first" >&2; exit 1; }
     work=${PAPER_WORK:-}
     if [[ -z $work ]]; then
