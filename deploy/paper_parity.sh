@@ -323,6 +323,15 @@ ours() {
     echo "ctxrace $algo seed $seed: $((SECONDS - t0)) s"
 }
 
+# SEED and STEPS of the training commands: whole numbers
+numbers() {
+    [[ $1 =~ ^[0-9]+$ && $2 =~ ^[1-9][0-9]*$ ]] || {
+        echo "SEED '$1' and STEPS '$2' must be whole numbers, STEPS above 0" >&2; exit 2; }
+}
+
+case ${1:-} in
+    paper | ctxrace | both) [[ $# -eq 5 ]] || usage; numbers "$3" "$4" ;;
+esac
 case ${1:-} in
     setup) setup ;;
     paper) [[ $# -eq 5 ]] || usage; paper "$2" "$3" "$4" "$5" ;;
