@@ -29,6 +29,9 @@
 #   MODEL_LR AC_LR  world-model and actor/critic learning rates [the paper's 3e-5 and 3e-5]
 #   RIVALS          rivals [1]; TRACK: the paper's map name [f1_esp]
 #   THREADS         torch threads [2]
+#   TEST_LAPS       laps per context of the code's own test after training [0: no test]; with
+#                   it `paper` also writes OUT/paper/ALGO/seed<SEED>/eval/ (see evaldir), so
+#                   that the folder reads as a ctxrace run directory to `ctxrace report`
 #   CTXRACE_BIN     [target/release/ctxrace]; CTXRACE_CONFIG [configs/paper/reduced-base.toml]
 #
 # What is edited in the exported paper code, nothing else (never committed here):
@@ -193,6 +196,18 @@ sim.vehicle_state_history = [VehicleStateHistory(run, f"Training/agent_{i}") for
 sim.completed_laps, sim.places, sim.progresses = 0, [], []
 print(f"::Run {run.path}{run.run_name} (set up in {time.monotonic() - started:.1f} s)", flush=True)
 sim.run_training(run)
+
+test_laps = int(os.environ.get("TEST_LAPS", "0"))
+if test_laps > 0:
+    # the code's own test, as run_training_evaluation runs it after training (best checkpoint,
+    # its contexts 17-48 of the 7 x 7 grid), with TEST_LAPS laps per context
+    print(f"::Test {test_laps} laps per context (wall {time.monotonic() - started:.1f} s)", flush=True)
+    run.n_test_laps = sim.n_test_laps = test_laps
+    sim.target_planner = select_agent(run, sim.conf, run.architecture, train=False, init=False)
+    sim.vehicle_state_history = [VehicleStateHistory(run, f"Testing/agent_{i}") for i in range(run.num_agents)]
+    sim.lap_times, sim.completed_laps, sim.places, sim.progresses = [], 0, [], []
+    sim.run_testing(run)
+    print(f"::Tested (wall {time.monotonic() - started:.1f} s)", flush=True)
 PY
 }
 
@@ -225,6 +240,8 @@ with open(rows_path) as f:
     rows = [r for r in csv.reader(f) if r]
 episodes, contexts, ends = [], [], []
 for line in open(log_path, errors="replace"):
+    if line.startswith("::Test"):
+        break  # the evaluation after training
     m = re.match(r"::Episode env_steps=(\d+) grad_steps=(\d+) a2a=([01])", line)
     if m:
         episodes.append(tuple(int(g) for g in m.groups()))
@@ -328,206 +345,6 @@ PY
 }
 
 paper() {
-    local dest=$1 git_dir=${PAPER_GIT:?set PAPER_GIT to a git directory or clone address of the paper\'s repository (lilpharaoh1/context-f110)}
-    if [[ ! -d $git_dir ]]; then
-        git clone --quiet --bare "$git_dir" "$dest/.paper.git"
-        git_dir=$dest/.paper.git
-    fi
-    git --git-dir="$git_dir" archive "$commit" | tar -x -C "$dest"
-    local w=${WIDTH:-64} s=${STOCH:-8} l=${LENGTH:-32} lr=${AC_LR:-0.00003}
-    for d in "$dest"/TrajectoryAidedLearning/Utils/*dreamer*/; do
-        find "$d" -name '*.py' -exec sed -i -e "s/'cuda:0'/'cpu'/g" -e 's/"cuda:0"/"cpu"/g' \
-            -e "s/'cuda'/'cpu'/g" -e 's/"cuda"/"cpu"/g' {} +
-        # dreamerv2 keeps its settings elsewhere; the others in configs.yaml
-        if [[ -f "$d"configs.yaml ]]; then
-            sed -i -E -e "s/device: 'cuda:0'/device: 'cpu'/" -e 's/compile: True/compile: False/' \
-                -e "s/\b(dyn_hidden|dyn_deter|units|mlp_units): 256\b/\1: $w/g" \
-                -e "s/\b(dyn_stoch|dyn_discrete): 16\b/\1: $s/g" \
-                -e "s/\bbatch_length: 64\b/batch_length: $l/" \
-                -e "s/\blr: 0.00003\b/lr: $lr/g" "$d"configs.yaml
-        fi
-        if grep -rqE "['\"]cuda(:0)?['\"]" "$d" --include='*.py' --include=configs.yaml; then
-            echo "$d: still names a cuda device after the edits" >&2; exit 1
-        fi
-    done
-    mkdir -p "$dest/Data/Vehicles"
-    cat >"$dest/parity_driver.py" <<'PY'
-"""Trains one run of the paper's code for its n_train_steps, printing per training episode its
-environment and gradient steps and wall seconds since the start (::Episode) and rival context
-(::Context); no test afterwards."""
-import os
-import sys
-import time
-
-import numpy as np
-import torch
-
-import TrainAgents as ta
-from TrajectoryAidedLearning.f110_gym.f110_env import F110Env
-from TrajectoryAidedLearning.Utils.HistoryStructs import VehicleStateHistory
-from TrajectoryAidedLearning.Utils.StdTrack import StdTrack
-
-torch.set_num_threads(int(os.environ.get("THREADS", "2")))
-started = time.monotonic()
-
-
-class ParityTraining(ta.TrainSimulation):
-    env_steps = 0
-    grad_steps = 0
-
-    def run_step(self, actions):
-        observations = super().run_step(actions)
-        self.env_steps += 1
-        ego = observations[0]
-        if ego["lap_done"] or ego["colision_done"] or ego["current_laptime"] > self.conf.max_laptime:
-            print(f"::Episode env_steps={self.env_steps} grad_steps={self.grad_steps} "
-                  f"a2a={int(bool(ego['colision_a2a']))} wall={time.monotonic() - started:.1f}",
-                  flush=True)
-        return observations
-
-
-sim = ParityTraining(sys.argv[1])
-run = sim.run_data[0]
-select_agent = ta.select_agent
-rivals_made = 0
-
-
-def select_and_log(run_, conf, architecture, train=True, init=False, ma_info=(0.0, 0.0)):
-    """The code's select_agent, printing the context of each episode's rivals once."""
-    global rivals_made
-    if architecture != run_.architecture:
-        if rivals_made % len(run_.adversaries) == 0:
-            print(f"::Context {ma_info[0]} {ma_info[1]}", flush=True)
-        rivals_made += 1
-    return select_agent(run_, conf, architecture, train=train, init=init, ma_info=list(ma_info))
-
-
-ta.select_agent = select_and_log
-seed = run.random_seed + 10 * run.n
-np.random.seed(seed)
-torch.use_deterministic_algorithms(True)
-torch.manual_seed(seed)
-sim.env = F110Env(map=run.map_name, num_agents=run.num_agents)
-sim.map_name, sim.num_agents = run.map_name, run.num_agents
-sim.target_position = run.target_position
-sim.start_train_steps, sim.n_train_steps = run.start_train_steps, run.n_train_steps
-sim.std_track = StdTrack(run.map_name, num_agents=run.num_agents)
-sim.reward = ta.select_reward_function(run, sim.conf, sim.std_track)
-sim.target_planner = select_and_log(run, sim.conf, run.architecture, init=True)
-agent = sim.target_planner.agent
-agent_train = agent.train
-
-
-def counted_train():
-    """The agent's train(), counting the calls that take a gradient step (it returns at once
-    until its buffer holds 2 batches of episodes)."""
-    if len(agent.buffer_eps) >= agent._config.batch_size * 2:
-        sim.grad_steps += 1
-    return agent_train()
-
-
-agent.train = counted_train
-sim.vehicle_state_history = [VehicleStateHistory(run, f"Training/agent_{i}") for i in range(run.num_agents)]
-sim.completed_laps, sim.places, sim.progresses = 0, [], []
-print(f"::Run {run.path}{run.run_name} (set up in {time.monotonic() - started:.1f} s)", flush=True)
-sim.run_training(run)
-PY
-}
-
-# the run file: the paper's own for the algorithm and track, trimmed to one run
-write_run_file() {
-    local dest=$1 prefix=$2 seed=$3 steps=$4
-    "$venv/bin/python" - "$dest" "$prefix" "$seed" "$steps" "${RIVALS:-1}" "${TRACK:-f1_esp}" "${MODEL_LR:-0.00003}" <<'PY'
-import sys, yaml
-dest, prefix, seed, steps, rivals, track, lr = sys.argv[1:]
-with open(f"{dest}/config/{prefix}_multiagent_classic_esp.yaml") as f:
-    run = yaml.safe_load(f)
-chosen = [r for r in run["runs"] if r["num_agents"] == int(rivals) + 1]
-if not chosen:
-    sys.exit(f"the paper's run file has no run with {rivals} rival(s)")
-run.update(test_name="parity", start_n=int(seed), n=int(seed) + 1, start_train_steps=0,
-           n_train_steps=int(steps), map_name=track, lr=float(lr), runs=chosen[:1])
-with open(f"{dest}/config/parity.yaml", "w") as f:
-    yaml.safe_dump(run, f)
-PY
-}
-
-# convert PAPER_RUN_DIR LOG DEST: the paper's training curve in ctxrace's format
-convert() {
-    local run_dir=$1 log=$2 dest=$3
-    mkdir -p "$dest"
-    "$venv/bin/python" - "$run_dir/training_data_episodes.csv" "$log" "$dest/episodes.csv" <<'PY'
-import csv, re, sys
-rows_path, log_path, out_path = sys.argv[1:]
-with open(rows_path) as f:
-    rows = [r for r in csv.reader(f) if r]
-episodes, contexts, ends = [], [], []
-for line in open(log_path, errors="replace"):
-    m = re.match(r"::Episode env_steps=(\d+) grad_steps=(\d+) a2a=([01])", line)
-    if m:
-        episodes.append(tuple(int(g) for g in m.groups()))
-    m = re.match(r"::Context (\S+) (\S+)", line)
-    if m:
-        contexts.append((float(m.group(1)), float(m.group(2))))
-    m = re.match(r"\d+::(Lap Complete|Crashed|LapTime Exceeded)", line)
-    if m:
-        ends.append(m.group(1))
-n = len(rows)
-if not (len(episodes) >= n and len(ends) >= n):
-    sys.exit(f"{rows_path}: {n} episodes, but {log_path} has {len(episodes)} ::Episode and "
-             f"{len(ends)} episode end lines: not the log of this run?")
-header = ["env_steps", "grad_steps", "actor", "episode", "context_speed", "context_steer",
-          "progress", "overtakes", "a2a", "wall_crash", "episode_return", "steps"]
-with open(out_path, "w", newline="") as f:
-    w = csv.writer(f)
-    w.writerow(header)
-    for k, r in enumerate(rows):
-        if len(r) < 5:
-            sys.exit(f"{rows_path} row {k + 1}: {len(r)} columns, expected episode, return, "
-                     "length, progress, overtakes")
-        env_steps, grad_steps, a2a = episodes[k]
-        crashed = ends[k] == "Crashed"
-        cv, ct = contexts[k] if k < len(contexts) else (0.0, 0.0)
-        w.writerow([env_steps, grad_steps, 0, int(float(r[0])), cv, ct, float(r[3]),
-                    round(float(r[4])), str(crashed and a2a == 1).lower(),
-                    str(crashed and a2a == 0).lower(), float(r[1]), int(float(r[2]))])
-print(f"{out_path}: {n} episodes, {episodes[n - 1][0] if n else 0} env steps")
-PY
-}
-
-# masks TESTING_DIR DEST: the paper's per-lap evaluation records (Testing_<context index>/
-# agent_0/Lap_<lap>_history_*.npy: state x, y, ..., actions, progress, then its two masks) in
-# ctxrace eval's masks.csv.gz format; the grid is the code's: 7 x 7 over ±0.3, c_v major
-masks() {
-    local testing=$1 dest=$2
-    mkdir -p "$dest"
-    "$venv/bin/python" - "$testing" "$dest/masks.csv.gz" "${GRID:-7}" "${RANGE:-0.3}" <<'PY'
-import csv, glob, gzip, os, re, sys
-import numpy as np
-testing, out_path, grid, rng = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
-values = np.round(np.linspace(-rng, rng, grid), 12)
-rows = 0
-with gzip.open(out_path, "wt", newline="") as f:
-    w = csv.writer(f)
-    w.writerow(["context_speed", "context_steer", "lap", "step", "progress", "x", "y",
-                "mask_speed", "mask_steer"])
-    for folder in sorted(glob.glob(f"{testing}/Testing_*"), key=lambda p: int(p.rsplit("_", 1)[1])):
-        index = int(folder.rsplit("_", 1)[1])
-        cv, ct = values[index // grid], values[index % grid]
-        for path in glob.glob(f"{folder}/agent_0/Lap_*_history_*.npy"):
-            lap = int(re.search(r"Lap_(\d+)_history", path).group(1))
-            h = np.load(path)
-            if h.shape[1] < 12:
-                continue  # no masks: not a cbDreamer run
-            for step, r in enumerate(h):
-                w.writerow([cv, ct, lap, step, round(float(r[9]), 4), round(float(r[0]), 3),
-                            round(float(r[1]), 3), round(float(r[10]), 4), round(float(r[11]), 4)])
-                rows += 1
-print(f"{out_path}: {rows} decisions")
-PY
-}
-
-paper() {
     local algo=$1 seed=$2 steps=$3 out=$4
     local names
     names=$(paper_algo "$algo")
@@ -551,6 +368,9 @@ paper() {
     run_dir=$work/Data/Vehicles/$(sed -n 's/^::Run \([^ ]*\).*/\1/p' "$dest/train.log" | tail -n 1)
     cp "$run_dir/training_data_episodes.csv" "$dest/"
     convert "$run_dir" "$dest/train.log" "$dest"
+    if [[ ${TEST_LAPS:-0} -gt 0 ]]; then
+        evaldir "$run_dir" "$dest/eval"
+    fi
     echo "paper $arch seed $seed: $((SECONDS - t0)) s"
 }
 
