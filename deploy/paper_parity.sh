@@ -280,13 +280,14 @@ PY
 # laps, lap completion, return; wall_crash: the laps neither completed nor ended on a rival,
 # time-outs included, which the code does not count apart) and, for cbDreamer, masks.csv.gz from
 # its per-lap records Testing/Testing_K/agent_0/Lap_N_history_*.npy (x, y, ..., progress in
-# column 9, the two masks in 10 and 11, as plot_masks.py reads them). K indexes the code's grid,
+# column 9, the two masks in 10 and 11, as plot_masks.py reads them; the steps of its launch below
+# v_min_plan, where no mask was chosen and zeros are recorded, left out). K indexes the code's grid,
 # 7 x 7 over ±0.3, c_v major, as ctxrace's; the code races K >= 17 only (meta.json says so).
 evaldir() {
     local run_dir=$1 dest=$2
     mkdir -p "$dest"
     "$venv/bin/python" - "$run_dir" "$dest" <<'PY'
-import csv, glob, gzip, json, re, sys
+import csv, glob, gzip, json, os, re, sys
 import numpy as np
 import yaml
 run_dir, dest = sys.argv[1:]
@@ -334,11 +335,14 @@ with gzip.open(f"{dest}/masks.csv.gz", "wt", newline="") as f:
             if h.ndim != 2 or h.shape[1] < 12:
                 continue  # no masks: not a cbDreamer run
             for step, r in enumerate(h):
+                if r[10] == 0 and r[11] == 0:
+                    # no mask chosen (the code's launch below v_min_plan, recorded as zeros one
+                    # row late); a sampled mask is never exactly (0, 0)
+                    continue
                 w.writerow([cv, ct, lap, step, round(float(r[9]), 4), round(float(r[0]), 3),
                             round(float(r[1]), 3), round(float(r[10]), 4), round(float(r[11]), 4)])
                 rows += 1
 if rows == 0:
-    import os
     os.remove(f"{dest}/masks.csv.gz")
 print(f"{dest}: {len(records)} contexts, {rows} mask records")
 PY
