@@ -116,17 +116,7 @@ pub fn part_path(out: &Path, shard: usize) -> PathBuf {
 
 /// The workers' mask files in `out`.
 fn part_files(out: &Path) -> Result<Vec<PathBuf>> {
-    let mut parts: Vec<PathBuf> = std::fs::read_dir(out)
-        .with_context(|| format!("listing {}", out.display()))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| {
-            p.file_name()
-                .and_then(|n| n.to_str())
-                .is_some_and(|n| n.starts_with(PART_PREFIX) && n.ends_with(".csv"))
-        })
-        .collect();
-    parts.sort();
-    Ok(parts)
+    crate::eval::part_files(out, PART_PREFIX)
 }
 
 /// Merges the workers' mask files of `out` into [`MASKS_FILE`], keeping the rows of the
