@@ -16,7 +16,6 @@ use anyhow::{bail, Context as _, Result};
 use clap::Args;
 use ctxrace_actor::collect::{Collector, Finished};
 use ctxrace_actor::RaceEnv;
-use ctxrace_common::batch::{Batch, BatchSpec};
 use ctxrace_common::policy::ACT_DIM;
 use ctxrace_common::run_dir::{
     CHECKPOINTS, CONFIG_FILE, METRICS_CSV, METRICS_JSONL, TRAINING_EPISODES,
