@@ -549,7 +549,9 @@ pub(crate) mod tests {
     /// lengths: `[episode, first step]` of each part of each sequence.
     #[test]
     fn the_paper_code_sampler_draws_what_the_code_drew() {
-        let cases: [(&[usize], usize, &[&[[usize; 2]]]); 3] = [
+        // (episode lengths, sequence length, the pieces of each sequence)
+        type Case = (&'static [usize], usize, &'static [&'static [[usize; 2]]]);
+        let cases: [Case; 3] = [
             (
                 &[1, 1, 3, 1, 2, 1, 4],
                 6,
@@ -648,7 +650,7 @@ pub(crate) mod tests {
             panic!("no uniform batch")
         };
         for (v, f) in u.reward.iter().zip(&u.is_first) {
-            assert_eq!(*f, f32::from(u8::from(*v as usize % 1000 == 0)));
+            assert_eq!(*f, f32::from(u8::from((*v as usize).is_multiple_of(1000))));
         }
     }
 
