@@ -144,7 +144,8 @@ pub enum Warmup {
     /// The untrained policy acts from the first step, and training starts once the replay
     /// holds `warmup_episodes` episodes, the one running included (the paper's code: its
     /// `train` returns while `len(buffer_eps) < 2 · batch_size`, 32 episodes). Only the
-    /// single-process trainer (`train --inline`) runs it.
+    /// single-process trainer (`train --inline`) runs it. It applies to every algorithm (the
+    /// code's SAC baseline started at 200 stored transitions instead).
     Episodes,
 }
 
