@@ -1,6 +1,20 @@
 //! The agents' hyper-parameters, shared by the learner (training) and the actors (acting): the
 //! algorithm name, [`SacConfig`] and [`DreamerConfig`], with the paper's values as defaults
 //! (REFERENCE §5), read from the `[agent]` table of an experiment's TOML file.
+//!
+//! Like `[race]`, the `[agent]` table starts from a preset: keys a file leaves out take its
+//! values. `preset = "default"` is ctxrace's learner; `preset = "paper-code"` is the learner as
+//! the paper's public code trained it (lilpharaoh1/context-f110, `paper` branch c0fd903, Jun
+//! 2025, `TrajectoryAidedLearning/`: cbdreamer's `dreamerv3.py` and `cbtools.py`, and
+//! `TrainAgents.py`), see [`AgentConfig::paper_code`]. The presets differ in these keys (the
+//! README has the full table with the reasons):
+//!
+//! | key | default | `paper-code` |
+//! |---|---|---|
+//! | `sampler` | `uniform` | `paper-code` |
+//! | `warmup` | `random-steps` (`[train] prefill`) | `episodes` |
+//! | `warmup_episodes` | 32 (used with `warmup = "episodes"`) | 32 |
+//! | `context_scale` | `normalised` (`c / dreamer.context_range`) | `raw` |
 
 use crate::batch::BatchSpec;
 use candle_core::{bail, Result};
@@ -81,23 +95,157 @@ impl FromStr for AlgoKind {
     }
 }
 
+/// A named starting point for the `[agent]` table: keys a file leaves out take the preset's
+/// values.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AgentPreset {
+    /// ctxrace's learner ([`AgentConfig::default`]).
+    #[default]
+    Default,
+    /// The learner as the paper's public code trained it ([`AgentConfig::paper_code`]).
+    PaperCode,
+}
+
+impl AgentPreset {
+    /// The agent configuration of the preset.
+    pub fn config(self) -> AgentConfig {
+        match self {
+            AgentPreset::Default => AgentConfig::default(),
+            AgentPreset::PaperCode => AgentConfig::paper_code(),
+        }
+    }
+}
+
+/// How the sequences of a DreamerV3 batch are drawn from the replay.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Sampler {
+    /// Each sequence a uniformly drawn window of contiguous steps of one actor, from a
+    /// generator seeded once per run that advances from batch to batch.
+    #[default]
+    Uniform,
+    /// As the paper's code drew them (cbdreamer `cbtools.sample_episodes`, rebuilt at every
+    /// training step): a fresh numpy `RandomState(0)` per batch; each sequence starts in an
+    /// episode chosen with probability proportional to its length, at a uniform index that is
+    /// never the episode's last, and where that episode ends before `length` steps it goes on
+    /// from the start of the next chosen episode, `is_first` set at each join and at the
+    /// sequence's first step. The same buffer gives the same batch, whatever the seed.
+    PaperCode,
+}
+
+/// When training starts and what acts before it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Warmup {
+    /// `[train] prefill` steps of uniformly random actions, then training.
+    #[default]
+    RandomSteps,
+    /// The untrained policy acts from the first step, and training starts once the replay
+    /// holds `warmup_episodes` episodes, the one running included (the paper's code: its
+    /// `train` returns while `len(buffer_eps) < 2 · batch_size`, 32 episodes). Only the
+    /// single-process trainer (`train --inline`) runs it. It applies to every algorithm (the
+    /// code's SAC baseline started at 200 stored transitions instead).
+    Episodes,
+}
+
+/// How the race context `c` (each value in `[−r, r]`, `r` = `[train] context_range`) enters
+/// the networks.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ContextScale {
+    /// `c / dreamer.context_range`, in `[−1, 1]` over the training range.
+    #[default]
+    Normalised,
+    /// `c` as it is (the paper's code: ±0.15 in training, ±0.3 in evaluation).
+    Raw,
+}
+
 /// Which agent to train and its hyper-parameters (the `[agent]` table).
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct AgentConfig {
+    /// The preset the other keys start from (see [`AgentConfig::from_table`]).
+    pub preset: AgentPreset,
     /// The algorithm.
     pub algo: AlgoKind,
+    /// How DreamerV3 batches are drawn from the replay (`"uniform"` or `"paper-code"`; SAC's
+    /// transitions are always uniform).
+    pub sampler: Sampler,
+    /// When training starts and what acts before (`"random-steps"` or `"episodes"`).
+    pub warmup: Warmup,
+    /// Episodes held before training starts with `warmup = "episodes"` (the paper's code: 32).
+    pub warmup_episodes: u64,
+    /// How the context enters the world model, actor, critic and (cMask) the masked context
+    /// (`"normalised"` or `"raw"`), in training and acting alike.
+    pub context_scale: ContextScale,
     /// SAC's hyper-parameters (used when `algo = "sac"`).
     pub sac: SacConfig,
     /// DreamerV3's hyper-parameters (the other three algorithms); its `context` follows `algo`.
     pub dreamer: DreamerConfig,
 }
 
+impl Default for AgentConfig {
+    fn default() -> Self {
+        Self {
+            preset: AgentPreset::Default,
+            algo: AlgoKind::default(),
+            sampler: Sampler::Uniform,
+            warmup: Warmup::RandomSteps,
+            warmup_episodes: 32,
+            context_scale: ContextScale::Normalised,
+            sac: SacConfig::default(),
+            dreamer: DreamerConfig::default(),
+        }
+    }
+}
+
 impl AgentConfig {
-    /// The DreamerV3 configuration with the context mode of [`AgentConfig::algo`].
+    /// The learner as the paper's public code trained it (the `paper` branch, c0fd903, Jun
+    /// 2025, `TrajectoryAidedLearning/`): batches drawn as cbdreamer's `sample_episodes` drew
+    /// them, training from the 32nd stored episode on with the untrained policy acting until
+    /// then (`dreamerv3.py` `train`, `TrainAgents.py`), the raw context in the networks.
+    pub fn paper_code() -> Self {
+        Self {
+            preset: AgentPreset::PaperCode,
+            sampler: Sampler::PaperCode,
+            warmup: Warmup::Episodes,
+            warmup_episodes: 32,
+            context_scale: ContextScale::Raw,
+            // the paper-code values of the SAC, world-model and mask-SAC keys are set here
+            // by their structs' `with_paper_code_*` methods
+            sac: SacConfig::default(),
+            dreamer: DreamerConfig::default(),
+            ..Self::default()
+        }
+    }
+
+    /// Reads an `[agent]` table: keys it leaves out take the values of its `preset` (the
+    /// default learner when it names none). Unknown keys and bad values are errors naming the
+    /// key.
+    pub fn from_table(table: toml::Table) -> std::result::Result<Self, String> {
+        let preset = match table.get("preset") {
+            Some(v) => v
+                .clone()
+                .try_into::<AgentPreset>()
+                .map_err(|e| format!("preset: {e} (use \"default\" or \"paper-code\")"))?,
+            None => AgentPreset::Default,
+        };
+        let base = toml::Table::try_from(preset.config())
+            .map_err(|e| format!("serialising the {preset:?} preset: {e}"))?;
+        let cfg: Self = toml::Value::Table(crate::config::merge_tables(base, table))
+            .try_into()
+            .map_err(|e: toml::de::Error| e.message().to_string())?;
+        cfg.validate().map_err(|e| e.to_string())?;
+        Ok(cfg)
+    }
+
+    /// The DreamerV3 configuration with the context mode of [`AgentConfig::algo`] and the
+    /// context scale of [`AgentConfig::context_scale`].
     pub fn dreamer(&self) -> DreamerConfig {
         DreamerConfig {
             context: self.algo.context_mode(),
+            context_scale: self.context_scale,
             ..self.dreamer.clone()
         }
     }
@@ -132,6 +280,12 @@ impl AgentConfig {
 
     /// Checks the chosen algorithm's configuration.
     pub fn validate(&self) -> Result<()> {
+        if self.warmup == Warmup::Episodes && self.warmup_episodes == 0 {
+            bail!(
+                "warmup_episodes = 0 must be at least 1 with warmup = \"episodes\" (the paper's \
+                 code: 32)"
+            );
+        }
         match self.algo {
             AlgoKind::Sac => self.sac.validate(),
             _ => self.dreamer().validate(),
@@ -306,6 +460,10 @@ pub struct DreamerConfig {
     /// decides it).
     #[serde(skip)]
     pub context: ContextMode,
+    /// How the context is scaled for the networks (not read from files:
+    /// [`AgentConfig::context_scale`] decides it).
+    #[serde(skip)]
+    pub context_scale: ContextScale,
     /// Encoder and decoder width (the embedding size too).
     pub units: usize,
     /// Encoder and decoder depth.
@@ -374,7 +532,7 @@ pub struct DreamerConfig {
     pub batch: usize,
     /// Steps per sequence (for the replay sampler).
     pub length: usize,
-    /// Training context range: `c` is divided by it.
+    /// Training context range: `c` is divided by it (with `context_scale = "normalised"`).
     pub context_range: f64,
     /// cMask's mask SAC.
     pub mask: MaskConfig,
@@ -386,6 +544,7 @@ impl Default for DreamerConfig {
     fn default() -> Self {
         Self {
             context: ContextMode::None,
+            context_scale: ContextScale::Normalised,
             units: 256,
             layers: 3,
             deter: 256,
@@ -428,6 +587,15 @@ impl Default for DreamerConfig {
 }
 
 impl DreamerConfig {
+    /// What the raw context is divided by before it enters the networks:
+    /// [`DreamerConfig::context_range`], or 1 with [`ContextScale::Raw`].
+    pub fn context_divisor(&self) -> f64 {
+        match self.context_scale {
+            ContextScale::Normalised => self.context_range,
+            ContextScale::Raw => 1.0,
+        }
+    }
+
     /// Checks sizes and ranges, naming the offending key.
     pub fn validate(&self) -> Result<()> {
         let sizes = [
@@ -505,9 +673,52 @@ mod tests {
             );
         }
         assert_eq!("CMask".parse::<AlgoKind>(), Ok(AlgoKind::Cmask));
+        assert_eq!(
+            AgentConfig::from_table(toml::Table::new()).unwrap(),
+            AgentConfig::default()
+        );
         assert!("ppo"
             .parse::<AlgoKind>()
             .unwrap_err()
             .contains("expected one of"));
+    }
+
+    #[test]
+    fn the_paper_code_preset_fills_what_a_file_leaves_out() {
+        let table = |text: &str| toml::from_str::<toml::Table>(text).unwrap();
+        let a = AgentConfig::from_table(table(
+            "preset = \"paper-code\"\nalgo = \"crssm\"\ncontext_scale = \"normalised\"\n\
+             [dreamer]\nhorizon = 5",
+        ))
+        .unwrap();
+        assert_eq!(
+            (a.preset, a.algo, a.sampler, a.warmup, a.warmup_episodes),
+            (
+                AgentPreset::PaperCode,
+                AlgoKind::Crssm,
+                Sampler::PaperCode,
+                Warmup::Episodes,
+                32
+            )
+        );
+        // the file's key overrides the preset's
+        assert_eq!(a.context_scale, ContextScale::Normalised);
+        assert_eq!(a.dreamer.horizon, 5);
+        let p = AgentConfig::paper_code();
+        assert_eq!(p.context_scale, ContextScale::Raw);
+        assert_eq!(p.dreamer().context_divisor(), 1.0);
+        assert_eq!(AgentConfig::default().dreamer().context_divisor(), 0.15);
+        // a resolved configuration round-trips, preset included
+        let text = toml::to_string(&a).unwrap();
+        assert_eq!(AgentConfig::from_table(table(&text)).unwrap(), a);
+        let d = AgentConfig::default();
+        assert_eq!(
+            (d.sampler, d.warmup, d.context_scale),
+            (
+                Sampler::Uniform,
+                Warmup::RandomSteps,
+                ContextScale::Normalised
+            )
+        );
     }
 }

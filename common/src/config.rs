@@ -592,6 +592,10 @@ pub struct ReplayOptions {
     pub seed: u64,
     /// Largest batch payload in floats.
     pub max_batch_floats: usize,
+    /// How sequence batches are drawn (not read from `[replay]`: the launcher sets it from
+    /// `[agent] sampler`).
+    #[serde(skip)]
+    pub sampler: crate::agents::Sampler,
 }
 
 impl Default for ReplayOptions {
@@ -605,6 +609,7 @@ impl Default for ReplayOptions {
             snapshot_path: None,
             seed: 0,
             max_batch_floats: crate::ipc::DEFAULT_MAX_BATCH_FLOATS,
+            sampler: crate::agents::Sampler::Uniform,
         }
     }
 }

@@ -2,7 +2,7 @@
 //! file (`configs/*.toml`). Every table rejects unknown keys and fills missing ones with the
 //! paper's values, so a file only names what it changes.
 
-use crate::agents::{AgentConfig, AlgoKind};
+use crate::agents::{AgentConfig, AlgoKind, Warmup};
 use crate::batch::BatchSpec;
 use crate::config::{RaceConfig, ReplayOptions};
 use crate::validate::{finite_floats, in_range};
@@ -16,7 +16,8 @@ use std::path::Path;
 pub struct TrainConfig {
     /// Environment steps (decisions) to collect in all (the paper: 100k).
     pub env_steps: u64,
-    /// Steps collected with uniformly random actions before the first gradient step.
+    /// Steps collected with uniformly random actions before the first gradient step (with
+    /// `[agent] warmup = "random-steps"`, the default).
     pub prefill: u64,
     /// Gradient steps per environment step (the paper's code: 1).
     pub train_ratio: f64,
@@ -121,15 +122,21 @@ impl ExperimentConfig {
     pub fn from_toml(text: &str, origin: &str) -> Result<Self, String> {
         // parsed as the struct first so that syntax and unknown keys are reported with their line
         let mut cfg: Self = toml::from_str(text).map_err(|e| format!("{origin}: {e}"))?;
-        if cfg.race.preset != crate::RacePreset::Default {
+        let table = |name: &str| -> Result<toml::Table, String> {
             let mut table: toml::Table =
                 toml::from_str(text).map_err(|e| format!("{origin}: {e}"))?;
-            let race = match table.remove("race") {
+            Ok(match table.remove(name) {
                 Some(toml::Value::Table(t)) => t,
                 _ => toml::Table::new(),
-            };
-            cfg.race =
-                crate::RaceConfig::from_table(race).map_err(|e| format!("{origin}: [race] {e}"))?;
+            })
+        };
+        if cfg.race.preset != crate::RacePreset::Default {
+            cfg.race = crate::RaceConfig::from_table(table("race")?)
+                .map_err(|e| format!("{origin}: [race] {e}"))?;
+        }
+        if cfg.agent.preset != crate::AgentPreset::Default {
+            cfg.agent = AgentConfig::from_table(table("agent")?)
+                .map_err(|e| format!("{origin}: [agent] {e}"))?;
         }
         cfg.validate().map_err(|e| format!("{origin}: {e}"))?;
         Ok(cfg)
@@ -153,10 +160,39 @@ impl ExperimentConfig {
         self.train.train_ratio * self.agent.batch_spec().steps() as f64
     }
 
-    /// Gradient steps the run takes in all: `train_ratio` per env step after the prefill.
+    /// Gradient steps the run takes in all: `train_ratio` per env step after the prefill. With
+    /// `[agent] warmup = "episodes"` the steps before training are not known in advance: then
+    /// the most it can take, `train_ratio` per env step.
     pub fn gradient_steps(&self) -> u64 {
         let t = &self.train;
-        (t.env_steps.saturating_sub(t.prefill) as f64 * t.train_ratio).round() as u64
+        let before = match self.agent.warmup {
+            Warmup::RandomSteps => t.prefill,
+            Warmup::Episodes => 0,
+        };
+        (t.env_steps.saturating_sub(before) as f64 * t.train_ratio).round() as u64
+    }
+
+    /// Whether the agent's policy chooses the action after `decisions` decisions (not the
+    /// uniformly random actions of the prefill).
+    pub fn acts_by_policy(&self, decisions: u64) -> bool {
+        match self.agent.warmup {
+            Warmup::RandomSteps => decisions >= self.train.prefill,
+            Warmup::Episodes => true,
+        }
+    }
+
+    /// The decision count after which `train_ratio` gradient steps per env step are due, once
+    /// the warm-up is over after `decisions` decisions in `episodes` episodes (the running one
+    /// included); `None` while it lasts. `random-steps`: the prefill; `episodes`: the decision
+    /// before the one that brought the replay's episodes to `warmup_episodes`, so that it is
+    /// followed by a gradient step, as the paper's code trains after every env step from then.
+    pub fn warmup_end(&self, decisions: u64, episodes: u64) -> Option<u64> {
+        match self.agent.warmup {
+            Warmup::RandomSteps => (decisions > self.train.prefill).then_some(self.train.prefill),
+            Warmup::Episodes => {
+                (episodes >= self.agent.warmup_episodes && decisions > 0).then(|| decisions - 1)
+            }
+        }
     }
 
     /// Checks every table for a run with one actor ([`ExperimentConfig::validate_run`]).
@@ -179,7 +215,7 @@ impl ExperimentConfig {
             (Bound::Excluded(0.0), Bound::Unbounded),
             "it is the gradient steps per env step (the paper: 1)",
         )?;
-        if t.env_steps <= t.prefill {
+        if self.agent.warmup == Warmup::RandomSteps && t.env_steps <= t.prefill {
             return Err(format!(
                 "[train] env_steps = {} must be above prefill = {}: the learner starts after \
                  the prefill and would take no gradient step; raise env_steps or lower prefill",
@@ -191,7 +227,7 @@ impl ExperimentConfig {
                 "[train] train_ratio = {} gives no gradient step over the {} env steps after \
                  the prefill; raise train_ratio or env_steps",
                 t.train_ratio,
-                t.env_steps - t.prefill
+                t.env_steps.saturating_sub(t.prefill)
             ));
         }
         if !(t.context_range.is_finite() && (0.0..=0.9).contains(&t.context_range)) {
@@ -377,6 +413,68 @@ impl ExperimentConfig {
 mod tests {
     use super::*;
     use crate::agents::AlgoKind;
+
+    #[test]
+    fn the_agent_preset_reads_from_files_and_bad_keys_name_themselves() {
+        let cfg = ExperimentConfig::from_toml(
+            "[agent]\npreset = \"paper-code\"\nalgo = \"cmask\"\n[agent.dreamer]\nbatch = 8\n",
+            "p.toml",
+        )
+        .unwrap();
+        assert_eq!(cfg.agent.sampler, crate::Sampler::PaperCode);
+        assert_eq!(cfg.agent.warmup, Warmup::Episodes);
+        assert_eq!(cfg.agent.dreamer.batch, 8);
+        assert_eq!(cfg.agent.algo, AlgoKind::Cmask);
+        // what a run directory records reads back the same
+        let again = ExperimentConfig::from_toml(&cfg.to_toml().unwrap(), "again").unwrap();
+        assert_eq!(again, cfg);
+        for (text, key, allowed) in [
+            ("preset = \"paper\"", "preset", "paper-code"),
+            ("sampler = \"numpy\"", "sampler", "paper-code"),
+            ("warmup = \"laps\"", "warmup", "random-steps"),
+            ("context_scale = \"scaled\"", "context_scale", "normalised"),
+            (
+                "preset = \"paper-code\"\nwarmup_episodes = 0",
+                "warmup_episodes",
+                "at least 1",
+            ),
+            (
+                "warmup = \"episodes\"\nwarmup_episodes = 0",
+                "warmup_episodes",
+                "32",
+            ),
+            ("warmup_episodes = -1", "warmup_episodes", "u64"),
+        ] {
+            let err =
+                ExperimentConfig::from_toml(&format!("[agent]\n{text}\n"), "a.toml").unwrap_err();
+            assert!(
+                err.contains(key) && err.contains(allowed) && err.contains("a.toml"),
+                "{text}: {err}"
+            );
+        }
+    }
+
+    #[test]
+    fn warmup_by_episodes_waits_for_the_episodes_and_lets_the_policy_act() {
+        let mut cfg = ExperimentConfig::default();
+        // the default: 2,500 random steps, training after them
+        assert!(!cfg.acts_by_policy(2499) && cfg.acts_by_policy(2500));
+        assert_eq!(cfg.warmup_end(2500, 40), None);
+        assert_eq!(cfg.warmup_end(2501, 1), Some(2500));
+        assert_eq!(cfg.gradient_steps(), 97_500);
+        cfg.agent = AgentConfig::paper_code();
+        assert!(cfg.acts_by_policy(0));
+        // 31 episodes, however many steps: still warming up; the 32nd's first step ends it
+        assert_eq!(cfg.warmup_end(5000, 31), None);
+        assert_eq!(cfg.warmup_end(812, 32), Some(811));
+        cfg.agent.warmup_episodes = 3;
+        assert_eq!(cfg.warmup_end(40, 2), None);
+        assert_eq!(cfg.warmup_end(41, 3), Some(40));
+        // the prefill no longer counts: env_steps may be below it
+        cfg.train.env_steps = 1000;
+        assert!(cfg.validate().is_ok());
+        assert_eq!(cfg.gradient_steps(), 1000);
+    }
 
     #[test]
     fn the_shipped_experiment_configs_load() {

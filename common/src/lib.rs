@@ -12,7 +12,10 @@ pub mod policy;
 pub mod run_dir;
 pub mod validate;
 
-pub use agents::{AgentConfig, AlgoKind, ContextMode, DreamerConfig, MaskConfig, SacConfig};
+pub use agents::{
+    AgentConfig, AgentPreset, AlgoKind, ContextMode, ContextScale, DreamerConfig, MaskConfig,
+    SacConfig, Sampler, Warmup,
+};
 pub use batch::{Batch, BatchSpec, SequenceBatch, TransitionBatch};
 pub use config::{
     ContextGains, CrashedRivals, GridLine, Integrator, LidarConfig, RaceConfig, RacePreset,

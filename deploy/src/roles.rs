@@ -46,12 +46,13 @@ pub fn read_experiment(run_dir: &Path) -> Result<ExperimentConfig> {
 }
 
 /// The replay's settings for a run: its sampling ratio and minimum fill follow `[train]`, its
-/// snapshot lives in the run directory.
+/// sampler `[agent]`, its snapshot lives in the run directory.
 pub fn replay_options(cfg: &ExperimentConfig, run_dir: &Path) -> ctxrace_common::ReplayOptions {
     let mut o = cfg.replay.clone();
     o.samples_per_insert = cfg.samples_per_insert();
     o.min_fill = o.min_fill.max(cfg.train.prefill as usize);
     o.seed = cfg.train.seed;
+    o.sampler = cfg.agent.sampler;
     o.snapshot_path
         .get_or_insert_with(|| run_dir.join(REPLAY_SNAPSHOT));
     o

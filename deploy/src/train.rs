@@ -16,12 +16,11 @@ use anyhow::{bail, Context as _, Result};
 use clap::Args;
 use ctxrace_actor::collect::{Collector, Finished};
 use ctxrace_actor::RaceEnv;
-use ctxrace_common::batch::{Batch, BatchSpec};
 use ctxrace_common::policy::ACT_DIM;
 use ctxrace_common::run_dir::{
     CHECKPOINTS, CONFIG_FILE, METRICS_CSV, METRICS_JSONL, TRAINING_EPISODES,
 };
-use ctxrace_common::{AlgoKind, ExperimentConfig, Policy};
+use ctxrace_common::{AlgoKind, ExperimentConfig, Policy, Warmup};
 use ctxrace_learner::best::{write_best, ReturnTracker};
 use ctxrace_learner::checkpoint::write_checkpoint;
 use ctxrace_learner::runlog::MetricsLog;
@@ -111,6 +110,13 @@ fn experiment(args: &TrainArgs) -> Result<ExperimentConfig> {
     cfg.agent.set_seed(cfg.train.seed);
     if !args.inline && args.actors == 0 {
         bail!("--actors = 0: a run needs at least 1 actor process; pass --actors 1 or more");
+    }
+    if !args.inline && cfg.agent.warmup == Warmup::Episodes {
+        bail!(
+            "[agent] warmup = \"episodes\" runs only in the single-process trainer: pass \
+             --inline, or set warmup = \"random-steps\" (with [train] prefill) for a run of \
+             actor processes"
+        );
     }
     let actors = if args.inline { 1 } else { args.actors };
     cfg.validate_run(actors).map_err(anyhow::Error::msg)?;
@@ -252,7 +258,8 @@ pub fn run(args: TrainArgs) -> Result<()> {
     }
     if !args.inline {
         crate::launcher::run(&cfg, &dir, &lock, args.actors, &args.tracks)?;
-        return finish(&args, &cfg, &dir);
+        let trained = is_trained(&dir, &cfg);
+        return finish(&args, &cfg, &dir, trained);
     }
     if resumed {
         // the inline trainer keeps its replay in memory: an interrupted run starts over
@@ -273,12 +280,14 @@ pub fn run(args: TrainArgs) -> Result<()> {
         eprintln!("{}: the inline run starts over", dir.display());
     }
     run_inline(&cfg, &dir, env)?;
-    finish(&args, &cfg, &dir)
+    // the inline run ran to its end (with warm-up by episodes its step count is not known
+    // in advance)
+    finish(&args, &cfg, &dir, true)
 }
 
 /// After a complete run, unless it was resumed (as sweeps do): a first look at what it learned.
-fn finish(args: &TrainArgs, cfg: &ExperimentConfig, dir: &Path) -> Result<()> {
-    if args.resume || !is_trained(dir, cfg) {
+fn finish(args: &TrainArgs, cfg: &ExperimentConfig, dir: &Path, trained: bool) -> Result<()> {
+    if args.resume || !trained {
         return Ok(());
     }
     crate::first_look::show(cfg, dir, &args.tracks)
@@ -302,22 +311,13 @@ fn training_episode(f: &Finished, actor: u32, env_steps: u64, grad_steps: u64) -
     }
 }
 
-/// Samples one batch of `spec` from `buffer`, if it holds enough.
-fn sample(buffer: &ReplayBuffer, spec: BatchSpec, rng: &mut ChaCha8Rng) -> Option<Batch> {
-    match spec {
-        BatchSpec::Sequence { batch, length } => buffer
-            .sample_sequences(batch, length, rng)
-            .map(Batch::Sequence),
-        BatchSpec::Transition { batch, frames } => buffer
-            .sample_transitions(batch, frames, rng)
-            .map(Batch::Transition),
-    }
-}
-
 /// The single-process trainer: one collector, an in-memory replay buffer and the learner in
-/// one loop. After `prefill` random steps it keeps the gradient steps at `train_ratio` per env
-/// step (as many in all as [`ctxrace_learner::process::target_steps`]), reloads the acting policy at the first episode boundary after
-/// every `policy_every` gradient steps, logs and checkpoints.
+/// one loop. After the warm-up (`prefill` random steps, or with `[agent] warmup = "episodes"`
+/// `warmup_episodes` episodes of the untrained policy) it keeps the gradient steps at
+/// `train_ratio` per env step (with random steps as many in all as
+/// [`ctxrace_learner::process::target_steps`]), drawing batches with `[agent] sampler`, reloads
+/// the acting policy at the first episode boundary after every `policy_every` gradient steps,
+/// logs and checkpoints.
 pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()> {
     let t = &cfg.train;
     ctxrace_common::nn::candle_on_one_thread();
@@ -337,10 +337,11 @@ pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()
     let (mut stale_policy, mut recent) = (false, Vec::<f64>::new());
     let mut payload = Vec::new();
     let mut tracker = ReturnTracker::default();
+    let mut trained_after = None;
     while collector.decisions() < t.env_steps {
-        let learning = collector.decisions() >= t.prefill;
         payload.clear();
-        let acting = if learning { Some(&mut policy) } else { None };
+        let by_policy = cfg.acts_by_policy(collector.decisions());
+        let acting = if by_policy { Some(&mut policy) } else { None };
         let finished = collector.step(acting, |s| s.encode(&mut payload))?;
         buffer.insert_chunk(0, &payload, false);
         bar.inc(1);
@@ -355,10 +356,13 @@ pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()
                 write_best(dir, algo.as_ref(), &cfg.agent, &tracker)?;
             }
         }
-        if learning {
-            let due = ((collector.decisions() - t.prefill) as f64 * t.train_ratio).round() as u64;
+        if trained_after.is_none() {
+            trained_after = cfg.warmup_end(collector.decisions(), collector.episodes());
+        }
+        if let Some(after) = trained_after {
+            let due = ((collector.decisions() - after) as f64 * t.train_ratio).round() as u64;
             while algo.steps() < due {
-                let Some(batch) = sample(&buffer, spec, &mut rng) else {
+                let Some(batch) = buffer.sample(spec, cfg.agent.sampler, &mut rng) else {
                     break;
                 };
                 let mut m = algo.train_step(&batch)?;
@@ -473,7 +477,9 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let mut history = Vec::new();
         for _ in 0..150 {
-            let batch = sample(&buffer, agent.batch_spec(), &mut rng).unwrap();
+            let batch = buffer
+                .sample(agent.batch_spec(), agent.sampler, &mut rng)
+                .unwrap();
             let m = algo.train_step(&batch).unwrap();
             history.push((m["model/recon"], m["model/reward"]));
         }

@@ -333,6 +333,13 @@ fn train_refuses_a_run_it_cannot_make_before_writing_its_run_directory() {
             &["lidar.beams = 300", "at most 256"][..],
         ),
         (
+            // the code's warm-up runs only in the single-process trainer
+            "track = \"generated:0\"\n[agent]\nalgo = \"sac\"\nwarmup = \"episodes\"\n\
+             [train]\nenv_steps = 600\n",
+            "1",
+            &["warmup = \"episodes\"", "--inline"][..],
+        ),
+        (
             "track = \"generated:0\"\n[train]\nenv_steps = 500\nprefill = 500\n",
             "1",
             &["env_steps = 500", "prefill = 500", "no gradient step"][..],

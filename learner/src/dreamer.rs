@@ -638,6 +638,37 @@ mod tests {
         );
     }
 
+    /// The learner feeds its networks the context at the agent's scale, as the acting policy
+    /// does (`ctxrace_common::policy::dreamer`'s `acting_feeds_the_context_at_its_scale`): both
+    /// build their networks from [`ctxrace_common::AgentConfig::dreamer`].
+    #[test]
+    fn training_feeds_the_context_at_the_agents_scale() {
+        use ctxrace_common::{AgentConfig, AlgoKind, ContextScale};
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let data = collect(2, &mut rng);
+        let Batch::Sequence(seq) = sample(&data, 2, 8, &mut rng) else {
+            unreachable!()
+        };
+        for (scale, divisor) in [(ContextScale::Raw, 1.0), (ContextScale::Normalised, 0.15)] {
+            let agent = AgentConfig {
+                algo: AlgoKind::Crssm,
+                context_scale: scale,
+                dreamer: tiny(ContextMode::None),
+                ..AgentConfig::default()
+            };
+            let learner = Dreamer::new(agent.dreamer(), 2, 2).unwrap();
+            let d = SeqData::new(&seq, 2, 2).unwrap();
+            let fed = learner.model_context(&d, None).unwrap();
+            assert_eq!(fed.len(), seq.context.len());
+            for (f, c) in fed.iter().zip(&seq.context) {
+                assert!(
+                    (f - c / divisor as f32).abs() < 1e-6,
+                    "{scale:?}: {f} vs {c}"
+                );
+            }
+        }
+    }
+
     #[test]
     fn world_model_losses_fall_on_point_mass_data() {
         ctxrace_common::nn::candle_on_one_thread();

@@ -6,9 +6,13 @@
 //! wherever the stream is not contiguous (the actor's first chunk, chunks dropped on the way);
 //! samples never span two segments. Sequences may span episodes, with `is_first` set only at
 //! true episode starts (DreamerV3's convention); transitions never cross an episode end.
+//!
+//! [`ReplayBuffer::sample_sequences_paper_code`] draws sequences as the paper's code did instead
+//! (cbdreamer `cbtools.sample_episodes`): episode by episode, with numpy's `RandomState(0)`.
 
+use crate::numpy_rng::{ChoiceCdf, RandomState};
 use ctxrace_common::ipc::wire::step_stride;
-use ctxrace_common::{SequenceBatch, TransitionBatch};
+use ctxrace_common::{Batch, BatchSpec, Sampler, SequenceBatch, TransitionBatch};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
@@ -161,6 +165,34 @@ impl ReplayBuffer {
         }
     }
 
+    /// One batch of `spec`: sequences drawn by `sampler`, transitions uniformly; `None` if the
+    /// buffer cannot serve it yet.
+    pub fn sample(&self, spec: BatchSpec, sampler: Sampler, rng: &mut ChaCha8Rng) -> Option<Batch> {
+        match spec {
+            BatchSpec::Sequence { batch, length } => self
+                .sample_sequences_by(sampler, batch, length, rng)
+                .map(Batch::Sequence),
+            BatchSpec::Transition { batch, frames } => self
+                .sample_transitions(batch, frames, rng)
+                .map(Batch::Transition),
+        }
+    }
+
+    /// `batch` sequences of `length` steps drawn by `sampler` (the paper-code sampler does not
+    /// use `rng`).
+    pub fn sample_sequences_by(
+        &self,
+        sampler: Sampler,
+        batch: usize,
+        length: usize,
+        rng: &mut ChaCha8Rng,
+    ) -> Option<SequenceBatch> {
+        match sampler {
+            Sampler::Uniform => self.sample_sequences(batch, length, rng),
+            Sampler::PaperCode => self.sample_sequences_paper_code(batch, length),
+        }
+    }
+
     /// Picks a stream with probability proportional to its steps usable for a window of `w`.
     fn pick_stream(&self, w: usize, rng: &mut ChaCha8Rng) -> Option<usize> {
         let weight = |s: &Stream| (s.len + 1).saturating_sub(w);
@@ -179,17 +211,11 @@ impl ReplayBuffer {
         None
     }
 
-    /// `batch` sequences of `length` contiguous steps of one actor segment each; `None` if
-    /// none could be found (too little or too fragmented data).
-    pub fn sample_sequences(
-        &self,
-        batch: usize,
-        length: usize,
-        rng: &mut ChaCha8Rng,
-    ) -> Option<SequenceBatch> {
+    /// An empty batch of `batch` sequences of `length` steps, its buffers reserved.
+    fn sequence_batch(&self, batch: usize, length: usize) -> SequenceBatch {
         let (o, a) = (self.obs_dim, self.act_dim);
         let n = batch * length;
-        let mut out = SequenceBatch {
+        SequenceBatch {
             batch,
             length,
             obs_dim: o,
@@ -202,22 +228,105 @@ impl ReplayBuffer {
             context: Vec::with_capacity(n * 2),
             mask: Vec::with_capacity(n * 2),
             has_mask: Vec::with_capacity(n),
-        };
+        }
+    }
+
+    /// Appends the step in slot `i` of `s` to `out`, its `is_first` set also where `first`.
+    fn push_step(&self, out: &mut SequenceBatch, s: &Stream, i: usize, first: bool) {
+        let (o, a) = (self.obs_dim, self.act_dim);
+        out.obs.extend_from_slice(&s.obs[i * o..(i + 1) * o]);
+        out.action.extend_from_slice(&s.action[i * a..(i + 1) * a]);
+        out.reward.push(s.reward[i]);
+        out.is_first
+            .push(if first { 1.0 } else { flag(s.flags[i], FIRST) });
+        out.is_terminal.push(flag(s.flags[i], TERMINAL));
+        out.context.extend_from_slice(&s.context[i * 2..i * 2 + 2]);
+        out.mask.extend_from_slice(&s.mask[i * 2..i * 2 + 2]);
+        out.has_mask.push(flag(s.flags[i], MASKED));
+    }
+
+    /// `batch` sequences of `length` contiguous steps of one actor segment each; `None` if
+    /// none could be found (too little or too fragmented data).
+    pub fn sample_sequences(
+        &self,
+        batch: usize,
+        length: usize,
+        rng: &mut ChaCha8Rng,
+    ) -> Option<SequenceBatch> {
+        let mut out = self.sequence_batch(batch, length);
         for _ in 0..batch {
             let (k, start) = self.find(length, rng, |s, start| {
                 s.segments[s.slot(start)] == s.segments[s.slot(start + length - 1)]
             })?;
             let s = &self.streams[k];
             for t in 0..length {
-                let i = s.slot(start + t);
-                out.obs.extend_from_slice(&s.obs[i * o..(i + 1) * o]);
-                out.action.extend_from_slice(&s.action[i * a..(i + 1) * a]);
-                out.reward.push(s.reward[i]);
-                out.is_first.push(flag(s.flags[i], FIRST));
-                out.is_terminal.push(flag(s.flags[i], TERMINAL));
-                out.context.extend_from_slice(&s.context[i * 2..i * 2 + 2]);
-                out.mask.extend_from_slice(&s.mask[i * 2..i * 2 + 2]);
-                out.has_mask.push(flag(s.flags[i], MASKED));
+                self.push_step(&mut out, s, s.slot(start + t), false);
+            }
+        }
+        Some(out)
+    }
+
+    /// The episodes held, stream by stream and oldest first: `(stream, first logical step,
+    /// steps)`. An episode starts at a step flagged [`FIRST`], at a new segment, or at the
+    /// oldest step held; the one still running is included with the steps it has so far.
+    pub fn episodes(&self) -> Vec<(usize, usize, usize)> {
+        let mut episodes = Vec::new();
+        for (k, s) in self.streams.iter().enumerate() {
+            let mut start = 0;
+            for t in 1..=s.len {
+                let ends = t == s.len || {
+                    let (prev, i) = (s.slot(t - 1), s.slot(t));
+                    s.flags[i] & FIRST != 0 || s.segments[i] != s.segments[prev]
+                };
+                if ends {
+                    episodes.push((k, start, t - start));
+                    start = t;
+                }
+            }
+        }
+        episodes
+    }
+
+    /// `batch` sequences of `length` steps drawn as the paper's code drew them (cbdreamer
+    /// `cbtools.sample_episodes` under `from_generator`, c0fd903), from a fresh numpy
+    /// `RandomState(0)`: each sequence starts in an episode chosen with probability
+    /// proportional to its steps (`choice(p=)`), at `randint(0, steps − 1)` (never its last
+    /// step); where the episode ends first, the sequence goes on from the first step of the
+    /// next chosen episode. Episodes of fewer than 2 steps are chosen and passed over.
+    /// `is_first` is set at the sequence's first step and at each join, besides true episode
+    /// starts; `is_terminal` is as stored. The same buffer gives the same batch. `None` if no
+    /// episode has 2 steps.
+    pub fn sample_sequences_paper_code(
+        &self,
+        batch: usize,
+        length: usize,
+    ) -> Option<SequenceBatch> {
+        let episodes = self.episodes();
+        if episodes.iter().all(|&(_, _, n)| n < 2) {
+            return None;
+        }
+        let steps: Vec<u64> = episodes.iter().map(|&(_, _, n)| n as u64).collect();
+        let cdf = ChoiceCdf::new(&steps)?;
+        let mut rs = RandomState::new(0);
+        let mut out = self.sequence_batch(batch, length);
+        for _ in 0..batch {
+            let mut size = 0;
+            while size < length {
+                let (k, start, n) = episodes[rs.choice(&cdf)];
+                if n < 2 {
+                    continue;
+                }
+                let from = if size == 0 {
+                    rs.randint(0, n as i64 - 1) as usize
+                } else {
+                    0
+                };
+                let take = (n - from).min(length - size);
+                let s = &self.streams[k];
+                for t in 0..take {
+                    self.push_step(&mut out, s, s.slot(start + from + t), t == 0);
+                }
+                size += take;
             }
         }
         Some(out)
@@ -406,6 +515,142 @@ pub(crate) mod tests {
                 assert_eq!(s.has_mask[k * 3 + t], masked, "step {value}");
                 assert_eq!(&s.mask[(k * 3 + t) * 2..(k * 3 + t + 1) * 2], &[0.25, 0.75]);
             }
+        }
+    }
+
+    /// One stream of episodes of `lengths` steps whose step `r` of episode `e` holds the value
+    /// `1000 e + r`; each episode terminates at its last step.
+    fn episodes_buffer(lengths: &[usize]) -> ReplayBuffer {
+        let mut b = ReplayBuffer::new(10_000, 1, 2, 1);
+        for (e, &n) in lengths.iter().enumerate() {
+            let values: Vec<f32> = (0..n).map(|r| (1000 * e + r) as f32).collect();
+            b.insert_chunk(0, &payload(0.0, &values, &[0], &[n - 1]), e == 0);
+        }
+        b
+    }
+
+    /// The pieces `[episode, first step]` of each sampled sequence, split where `is_first` is set.
+    fn pieces(s: &SequenceBatch) -> Vec<Vec<[usize; 2]>> {
+        (0..s.batch)
+            .map(|k| {
+                let rows = k * s.length..(k + 1) * s.length;
+                rows.filter(|&i| s.is_first[i] == 1.0)
+                    .map(|i| {
+                        let v = s.reward[i] as usize;
+                        [v / 1000, v % 1000]
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+
+    /// The expected pieces are what the paper's code (c0fd903, cbdreamer `cbtools.py`
+    /// `sample_episodes` under `from_generator`) returned with numpy 2.4 on the same episode
+    /// lengths: `[episode, first step]` of each part of each sequence.
+    #[test]
+    fn the_paper_code_sampler_draws_what_the_code_drew() {
+        // (episode lengths, sequence length, the pieces of each sequence)
+        type Case = (&'static [usize], usize, &'static [&'static [[usize; 2]]]);
+        let cases: [Case; 3] = [
+            (
+                &[1, 1, 3, 1, 2, 1, 4],
+                6,
+                &[
+                    &[[4, 0], [6, 0]],
+                    &[[4, 0], [4, 0], [6, 0]],
+                    &[[6, 2], [4, 0], [6, 0]],
+                    &[[4, 0], [6, 0]],
+                    &[[2, 0], [6, 0]],
+                ],
+            ),
+            (
+                &[5, 1, 12, 2, 30, 7],
+                8,
+                &[
+                    &[[4, 21]],
+                    &[[4, 27], [4, 0]],
+                    &[[4, 21]],
+                    &[[4, 23], [5, 0]],
+                    &[[5, 2], [4, 0]],
+                    &[[4, 14]],
+                ],
+            ),
+            (
+                &[5, 1, 12, 2, 30, 7, 3, 64, 2, 9],
+                16,
+                &[
+                    &[[7, 53], [7, 0]],
+                    &[[7, 39]],
+                    &[[6, 1], [5, 0], [4, 0]],
+                    &[[2, 10], [7, 0]],
+                    &[[7, 46]],
+                    &[[7, 37]],
+                    &[[7, 8]],
+                    &[[2, 3], [4, 0]],
+                ],
+            ),
+        ];
+        for (lengths, length, want) in cases {
+            let b = episodes_buffer(lengths);
+            let s = b.sample_sequences_paper_code(want.len(), length).unwrap();
+            let got = pieces(&s);
+            assert_eq!(got, want, "episodes of {lengths:?}");
+            // every piece runs on inside its episode, one step at a time
+            for k in 0..s.batch {
+                for i in k * length + 1..(k + 1) * length {
+                    if s.is_first[i] == 0.0 {
+                        assert_eq!(s.reward[i], s.reward[i - 1] + 1.0);
+                    }
+                }
+            }
+            // the seed does not enter: another draw of the same buffer is the same batch
+            assert_eq!(b.sample_sequences_paper_code(want.len(), length), Some(s));
+        }
+        assert!(episodes_buffer(&[1, 1])
+            .sample_sequences_paper_code(2, 4)
+            .is_none());
+    }
+
+    #[test]
+    fn paper_code_sequences_crossing_an_episode_end_say_so() {
+        // episodes of 3 and 4 steps: a sequence of 6 must cross from one into the next
+        let b = episodes_buffer(&[3, 4]);
+        let s = b.sample_sequences_paper_code(20, 6).unwrap();
+        let mut crossed = 0;
+        for k in 0..s.batch {
+            let rows = k * 6..(k + 1) * 6;
+            assert_eq!(s.is_first[rows.start], 1.0, "a sequence starts a state");
+            for i in rows.clone().skip(1) {
+                let (prev, now) = (s.reward[i - 1] as usize, s.reward[i] as usize);
+                if now % 1000 == 0 {
+                    // a join: the new episode starts a state, the one before ended (continue 0)
+                    crossed += 1;
+                    assert_eq!(s.is_first[i], 1.0);
+                    assert_eq!(s.is_terminal[i - 1], 1.0, "{prev} -> {now}");
+                    assert_eq!(s.has_mask[i], 0.0);
+                } else {
+                    assert_eq!((now, s.is_first[i]), (prev + 1, 0.0));
+                    let last = [2, 1003].contains(&prev);
+                    assert_eq!(s.is_terminal[i - 1], f32::from(u8::from(last)));
+                }
+            }
+        }
+        assert!(crossed >= s.batch, "every sequence crosses at least once");
+        // the uniform sampler too may cross, but it leaves is_first to true starts
+        let mut rng = rng();
+        let u = b.sample(
+            ctxrace_common::BatchSpec::Sequence {
+                batch: 50,
+                length: 6,
+            },
+            Sampler::Uniform,
+            &mut rng,
+        );
+        let Some(Batch::Sequence(u)) = u else {
+            panic!("no uniform batch")
+        };
+        for (v, f) in u.reward.iter().zip(&u.is_first) {
+            assert_eq!(*f, f32::from(u8::from((*v as usize).is_multiple_of(1000))));
         }
     }
 

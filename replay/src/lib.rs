@@ -3,6 +3,7 @@
 
 pub mod buffer;
 pub mod limiter;
+pub mod numpy_rng;
 pub mod server;
 pub mod snapshot;
 

@@ -185,7 +185,7 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
             }
             let sent = match spec {
                 BatchSpec::Sequence { batch, length } => buffer
-                    .sample_sequences(batch, length, &mut rng)
+                    .sample_sequences_by(opts.sampler, batch, length, &mut rng)
                     .map(|b| server.send_sequence(request.request_id, &b)),
                 BatchSpec::Transition { batch, frames } => buffer
                     .sample_transitions(batch, frames, &mut rng)

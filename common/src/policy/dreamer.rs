@@ -30,8 +30,9 @@ pub struct DreamerNets {
     pub min_std: f64,
     /// Largest actor standard deviation.
     pub max_std: f64,
-    /// Training context range: raw contexts are divided by it.
-    pub context_range: f64,
+    /// Raw contexts are divided by it ([`DreamerConfig::context_divisor`]): the training
+    /// context range, or 1 for the raw context.
+    pub context_divisor: f64,
 }
 
 impl DreamerNets {
@@ -83,7 +84,7 @@ impl DreamerNets {
             act_dim,
             min_std: cfg.min_std,
             max_std: cfg.max_std,
-            context_range: cfg.context_range,
+            context_divisor: cfg.context_divisor(),
         })
     }
 
@@ -119,7 +120,7 @@ impl DreamerNets {
         if self.rssm.config().context_dim == 0 {
             return Ok(None);
         }
-        let c = (raw / self.context_range)?;
+        let c = (raw / self.context_divisor)?;
         Ok(Some(match mask {
             Some(m) => c.mul(m)?,
             None => c,
@@ -376,7 +377,7 @@ impl DreamerPolicy {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::agents::{ContextMode, MaskConfig};
+    use crate::agents::{ContextMode, ContextScale, MaskConfig};
 
     #[test]
     fn uniform_rows_are_rands_random_range_value_by_value() {
@@ -401,6 +402,57 @@ mod tests {
             }
         }
         assert!(uniform_rows(&mut seeded(1), 0, 5).is_empty());
+    }
+
+    /// The acting policy feeds the context as `context_scale` says: raw, the network sees `c`
+    /// where, normalised, it sees `c / 0.15` (so a raw policy at `c` acts as a normalised one
+    /// at `0.15 c`), the mask of cMask multiplying the scaled context.
+    #[test]
+    fn acting_feeds_the_context_at_its_scale() {
+        for context in [ContextMode::Crssm, ContextMode::Cmask] {
+            let cfg = |scale| DreamerConfig {
+                context,
+                context_scale: scale,
+                units: 16,
+                layers: 1,
+                deter: 16,
+                hidden: 16,
+                stoch: 4,
+                classes: 4,
+                head_units: 16,
+                head_layers: 1,
+                mask: MaskConfig {
+                    units: 16,
+                    ..MaskConfig::default()
+                },
+                ..DreamerConfig::default()
+            };
+            let (raw, normalised) = (cfg(ContextScale::Raw), cfg(ContextScale::Normalised));
+            let store = ParamStore::new();
+            let nets = DreamerNets::new(&raw, 3, ACT_DIM, store.builder()).unwrap();
+            let c = Tensor::new(&[[0.1f32, -0.3]], &Device::Cpu).unwrap();
+            let fed: Vec<Vec<f32>> = nets.context(&c, None).unwrap().unwrap().to_vec2().unwrap();
+            assert_eq!(fed, [[0.1, -0.3]]);
+            let weights = store.to_bytes().unwrap();
+            let act = |cfg: &DreamerConfig, c: [f32; 2]| {
+                let mut policy = DreamerPolicy::new(cfg, 3, &weights, 1).unwrap();
+                (0..3)
+                    .map(|_| policy.act(&[0.5, 0.2, 0.1], c, true).unwrap().0)
+                    .collect::<Vec<_>>()
+            };
+            let (a, b) = (act(&raw, [0.06, -0.09]), act(&normalised, [0.009, -0.0135]));
+            for (x, y) in a.iter().flatten().zip(b.iter().flatten()) {
+                assert!((x - y).abs() < 1e-5, "{a:?} vs {b:?}");
+            }
+            let other = act(&normalised, [0.06, -0.09]);
+            assert!(
+                a.iter()
+                    .flatten()
+                    .zip(other.iter().flatten())
+                    .any(|(x, y)| (x - y).abs() > 1e-4),
+                "the context scale changes nothing: {a:?} vs {other:?}"
+            );
+        }
     }
 
     #[test]
