@@ -5,6 +5,12 @@
 //! zero action and zero reward; each later step the observation reached, the action that led
 //! to it with (cMask) the context mask that chose it, and the reward received.
 //!
+//! [`Collector::with_paper_code_rows`] stores them as the paper's code does instead
+//! (`[agent.dreamer] step_alignment = "paper-code"`, c0fd903 `Planners/*DreamerPlanners.py`
+//! `add_memory_entry`): one row per decision holding the observation, the action chosen at it
+//! (and its mask) and the reward that followed, flagged terminal or last when the episode ended
+//! after it; an episode's last observation is never stored.
+//!
 //! The inline trainer and the actor process both run this; only their sinks differ.
 
 use crate::race::{EpisodeMetrics, RaceEnv};
@@ -39,6 +45,10 @@ pub struct Collector {
     decisions: u64,
     /// Random actions taken in the running episode.
     random_actions: u64,
+    /// Rows as the paper's code stores them ([`Collector::with_paper_code_rows`]).
+    paper_code_rows: bool,
+    /// The next decision is the running episode's first.
+    first_decision: bool,
 }
 
 impl Collector {
@@ -55,6 +65,17 @@ impl Collector {
             running: false,
             decisions: 0,
             random_actions: 0,
+            paper_code_rows: false,
+            first_decision: false,
+        }
+    }
+
+    /// The same collector storing rows as the paper's code does when `on` (see the module
+    /// doc; [`ctxrace_common::AgentConfig::stores_paper_code_rows`]).
+    pub fn with_paper_code_rows(self, on: bool) -> Self {
+        Self {
+            paper_code_rows: on,
+            ..self
         }
     }
 
@@ -101,17 +122,21 @@ impl Collector {
             self.running = true;
             self.episode += 1;
             self.random_actions = 0;
-            sink(&TrajectoryStep {
-                obs: &self.obs,
-                action: &[0.0; 2],
-                reward: 0.0,
-                is_first: true,
-                is_terminal: false,
-                is_last: false,
-                context: [c_f32(self.context.speed), c_f32(self.context.steer)],
-                mask: None,
-            });
+            self.first_decision = true;
+            if !self.paper_code_rows {
+                sink(&TrajectoryStep {
+                    obs: &self.obs,
+                    action: &[0.0; 2],
+                    reward: 0.0,
+                    is_first: true,
+                    is_terminal: false,
+                    is_last: false,
+                    context: [c_f32(self.context.speed), c_f32(self.context.steer)],
+                    mask: None,
+                });
+            }
         }
+        let first_decision = std::mem::take(&mut self.first_decision);
         let context = [c_f32(self.context.speed), c_f32(self.context.steer)];
         let (action, mask) = match policy {
             Some(p) => {
@@ -132,12 +157,17 @@ impl Collector {
         let step = self.env.step(action.map(f64::from))?;
         self.decisions += 1;
         let last = step.terminated || step.truncated;
-        self.obs = step.obs;
+        // the paper's code: the observation the action was chosen at; ctxrace: the one reached
+        let seen = std::mem::replace(&mut self.obs, step.obs);
         sink(&TrajectoryStep {
-            obs: &self.obs,
+            obs: if self.paper_code_rows {
+                &seen
+            } else {
+                &self.obs
+            },
             action: &action,
             reward: step.reward as f32,
-            is_first: false,
+            is_first: self.paper_code_rows && first_decision,
             is_terminal: step.terminated,
             is_last: last,
             context,
@@ -194,5 +224,49 @@ mod tests {
         }
         assert_eq!(c.decisions() as usize, flags.len() - 2);
         assert_ne!(finished[0].context, finished[1].context);
+    }
+
+    /// A row as the test compares it: observation, action, reward, first, terminal, last.
+    type Row = (Vec<f32>, [f32; 2], f32, bool, bool, bool);
+
+    /// Two three-decision episodes (timed out, stored as terminal), random actions: ctxrace
+    /// stores four rows each, `(o_0, 0, 0)` first and `(o_t, a_{t−1}, r_t)` after; the paper
+    /// code's form stores three, `(o_t, a_t, r_{t+1})` with the first flag on `o_0` and the
+    /// terminal and last flags on `o_2`, `o_3` never stored.
+    #[test]
+    fn paper_code_rows_hold_the_action_chosen_at_the_observation_and_drop_the_last_one() {
+        let track = Arc::new(Track::load("generated:0", &TrackOptions::default()).unwrap());
+        let mut race = RaceConfig {
+            timeout_is_terminal: true,
+            ..RaceConfig::default()
+        };
+        race.max_time = 3.0 * race.physics_steps_per_action as f64 * 0.01;
+        let rows = |paper_code: bool| -> Vec<Vec<Row>> {
+            let env = RaceEnv::new(track.clone(), race.clone()).unwrap();
+            let mut c = Collector::new(env, 0.15, 7).with_paper_code_rows(paper_code);
+            let mut rows = Vec::new();
+            while c.episodes() < 2 || !c.at_episode_boundary() {
+                c.step(None, |s| {
+                    let action = [s.action[0], s.action[1]];
+                    let flags = (s.is_first, s.is_terminal, s.is_last);
+                    rows.push((s.obs.to_vec(), action, s.reward, flags.0, flags.1, flags.2));
+                })
+                .unwrap();
+            }
+            rows.split_inclusive(|r: &Row| r.5)
+                .map(|episode| episode.to_vec())
+                .collect()
+        };
+        let (ours, code) = (rows(false), rows(true));
+        assert_eq!((ours.len(), code.len()), (2, 2));
+        for (ep, code_ep) in ours.iter().zip(&code) {
+            assert_eq!((ep.len(), code_ep.len()), (4, 3), "three decisions");
+            assert!(ep[0].3 && ep[0].1 == [0.0; 2] && ep[3].4 && ep[3].5);
+            for (t, row) in code_ep.iter().enumerate() {
+                let (seen, next) = (&ep[t], &ep[t + 1]);
+                let want = (seen.0.clone(), next.1, next.2, t == 0, next.4, next.5);
+                assert_eq!(*row, want, "row {t}");
+            }
+        }
     }
 }

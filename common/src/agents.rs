@@ -212,10 +212,8 @@ impl AgentConfig {
             warmup: Warmup::Episodes,
             warmup_episodes: 32,
             context_scale: ContextScale::Raw,
-            // the paper-code values of the SAC, world-model and mask-SAC keys are set here
-            // by their structs' `with_paper_code_*` methods
             sac: SacConfig::default(),
-            dreamer: DreamerConfig::default(),
+            dreamer: DreamerConfig::default().with_paper_code_world_model(),
             ..Self::default()
         }
     }
@@ -276,6 +274,12 @@ impl AgentConfig {
                 length: self.dreamer.length,
             },
         }
+    }
+
+    /// Whether actors store steps as the paper's code does ([`StepAlignment::PaperCode`]):
+    /// a DreamerV3 variant with `step_alignment = "paper-code"`.
+    pub fn stores_paper_code_rows(&self) -> bool {
+        self.algo != AlgoKind::Sac && self.dreamer.step_alignment == StepAlignment::PaperCode
     }
 
     /// Checks the chosen algorithm's configuration.
@@ -452,6 +456,43 @@ pub enum ImaginationLoss {
     Dreamerv3,
 }
 
+/// What a stored step holds and what the world model reads from it (`[agent.dreamer]
+/// step_alignment`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum StepAlignment {
+    /// DreamerV3's rows: `(o_t, a_{t−1}, r_t)`, the reset observation stored with a zero action,
+    /// the terminal flag on the last observation; the sequence model reads `a_{t−1}` before the
+    /// posterior of `o_t`, in training as in acting; the encoder reads `symlog o_t` and the
+    /// decoder reconstructs it.
+    #[default]
+    Ctxrace,
+    /// The paper's code (c0fd903, `Planners/*DreamerPlanners.py` `add_memory_entry` and
+    /// `Utils/dreamerv3/networks.py` `MultiEncoder`/`MultiDecoder`): rows `(o_t, a_t, r_{t+1})`
+    /// (the action chosen after seeing `o_t`), the last observation of an episode never
+    /// stored and the terminal flag on the row before it; training feeds the row's action `a_t`
+    /// to the sequence model before the posterior of `o_t` (zero where a sequence starts), while
+    /// acting feeds `a_{t−1}`; the encoder reads `symlog [o_t, a]` (the row's action in training,
+    /// the previous one in acting) and the decoder reconstructs `symlog [o_t, a_t]` (its action
+    /// target zeroed where an episode starts inside a sequence, as the code's in-place
+    /// `prev_action *= 1 − is_first` leaves it).
+    PaperCode,
+}
+
+/// The RSSM state a sequence starts from (`[agent.dreamer] initial_state`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum InitialState {
+    /// `h = 0`, `z = 0`.
+    #[default]
+    Zeros,
+    /// The paper's code (`initial: learned`, `networks.py` `RSSM.initial`): `h = tanh(w)` for a
+    /// learned `w` (starting at zero, the parameter `rssm.initial_state.w`), `z` the mode of the
+    /// prior `p(z | h)` (one-hot of the most likely class, its gradient straight through the
+    /// log-probabilities).
+    Learned,
+}
+
 /// DreamerV3's hyper-parameters; the defaults are the paper's (REFERENCE §5).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -536,6 +577,11 @@ pub struct DreamerConfig {
     pub context_range: f64,
     /// cMask's mask SAC.
     pub mask: MaskConfig,
+    /// What a stored step holds and what the world model reads from it ([`StepAlignment`]):
+    /// `"ctxrace"` or `"paper-code"`.
+    pub step_alignment: StepAlignment,
+    /// The RSSM state sequences start from ([`InitialState`]): `"zeros"` or `"learned"`.
+    pub initial_state: InitialState,
     /// Seed of initialisation and noise.
     pub seed: u64,
 }
@@ -581,6 +627,8 @@ impl Default for DreamerConfig {
             length: 64,
             context_range: 0.15,
             mask: MaskConfig::default(),
+            step_alignment: StepAlignment::Ctxrace,
+            initial_state: InitialState::Zeros,
             seed: 0,
         }
     }
@@ -593,6 +641,25 @@ impl DreamerConfig {
         match self.context_scale {
             ContextScale::Normalised => self.context_range,
             ContextScale::Raw => 1.0,
+        }
+    }
+
+    /// The world model as the paper's code (c0fd903) trains it: `step_alignment = "paper-code"`
+    /// and `initial_state = "learned"`; every other key as it was.
+    pub fn with_paper_code_world_model(self) -> Self {
+        Self {
+            step_alignment: StepAlignment::PaperCode,
+            initial_state: InitialState::Learned,
+            ..self
+        }
+    }
+
+    /// Width of the encoder's input for observations of `obs_dim` and actions of `act_dim`:
+    /// the observation, and the action too with `step_alignment = "paper-code"`.
+    pub fn encoder_inputs(&self, obs_dim: usize, act_dim: usize) -> usize {
+        match self.step_alignment {
+            StepAlignment::Ctxrace => obs_dim,
+            StepAlignment::PaperCode => obs_dim + act_dim,
         }
     }
 
@@ -720,5 +787,48 @@ mod tests {
                 ContextScale::Normalised
             )
         );
+    }
+
+    #[test]
+    fn world_model_keys_default_to_ctxrace_and_name_themselves_when_wrong() {
+        let cfg = DreamerConfig::default();
+        assert_eq!(
+            (cfg.step_alignment, cfg.initial_state),
+            (StepAlignment::Ctxrace, InitialState::Zeros)
+        );
+        let code = cfg.clone().with_paper_code_world_model();
+        assert_eq!(
+            (code.step_alignment, code.initial_state),
+            (StepAlignment::PaperCode, InitialState::Learned)
+        );
+        assert_eq!(
+            DreamerConfig {
+                step_alignment: StepAlignment::Ctxrace,
+                initial_state: InitialState::Zeros,
+                ..code.clone()
+            },
+            cfg
+        );
+        assert_eq!(
+            (cfg.encoder_inputs(108, 2), code.encoder_inputs(108, 2)),
+            (108, 110)
+        );
+        let agent: AgentConfig = toml::from_str(
+            "[dreamer]\nstep_alignment = \"paper-code\"\ninitial_state = \"learned\"",
+        )
+        .unwrap();
+        assert_eq!(agent.dreamer(), code);
+        assert!(agent.stores_paper_code_rows());
+        let sac = AgentConfig {
+            algo: AlgoKind::Sac,
+            ..agent
+        };
+        assert!(!sac.stores_paper_code_rows());
+        for (key, bad) in [("step_alignment", "paper"), ("initial_state", "random")] {
+            let err = toml::from_str::<AgentConfig>(&format!("[dreamer]\n{key} = \"{bad}\""))
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains(key) && err.contains(bad), "{err}");
+        }
     }
 }

@@ -27,7 +27,11 @@ pub struct TransitionBatch {
 /// `B` sequences of `T` steps: the input of DreamerV3, cRSSM and cMask. Step `t` holds the
 /// observation `o_t`, the action `a_{t-1}` that led to it (zero at the first step) and cMask's
 /// context mask `m_{t-1}` that chose it, the reward `r_t` received on arriving, and flags;
-/// `is_first` marks the start of an episode inside the sequence.
+/// `is_first` marks the start of an episode inside the sequence. With `[agent.dreamer]
+/// step_alignment = "paper-code"` the actors store the paper code's rows instead
+/// ([`crate::agents::StepAlignment::PaperCode`]): `o_t`, the action `a_t` chosen at it and its
+/// mask `m_t`, the reward `r_{t+1}` that followed, the terminal flag on the row before the
+/// episode's last observation, which is not stored.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct SequenceBatch {
     /// Batch size `B`.

@@ -325,7 +325,8 @@ pub fn run_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()
     let workers = t.threads_for(cfg.agent.algo);
     let mut algo = ctxrace_learner::build(&cfg.agent, frame_dim, workers)?;
     let mut policy = Policy::new(&cfg.agent, frame_dim, &algo.policy_weights()?, t.seed)?;
-    let mut collector = Collector::new(env, t.context_range, t.seed);
+    let mut collector = Collector::new(env, t.context_range, t.seed)
+        .with_paper_code_rows(cfg.agent.stores_paper_code_rows());
     let mut buffer = ReplayBuffer::new(cfg.replay.capacity, 1, frame_dim, ACT_DIM);
     let mut rng = ChaCha8Rng::seed_from_u64(t.seed ^ 0x7265_706c_6179);
     let spec = cfg.agent.batch_spec();

@@ -16,6 +16,13 @@
 //! loop from the last step back ([`PlainRssm::observe_backward`]) to the embeddings, and the
 //! encoder. Everything runs time-major (row `t B + b`); the starts go out batch-major.
 //!
+//! `[agent.dreamer] step_alignment = "paper-code"` reads the rows as the paper's code stores
+//! them (`(o_t, a_t, r_{t+1})`, [`StepAlignment::PaperCode`]): the loop is the same (each row's
+//! action enters the sequence model before that row's posterior), the encoder reads
+//! `symlog [o_t, a_t]` and the decoder reconstructs it (its action target zeroed where an
+//! episode starts inside a sequence, as the code leaves it). `initial_state = "learned"` starts
+//! the sequences from the learned state ([`Rssm::initial`]), which the loss trains.
+//!
 //! The encoder and the RSSM live in the acting policy's store (the actors run them); the model
 //! holds views of them that share their storage.
 
@@ -24,7 +31,7 @@ use crate::algorithm::Metrics;
 use crate::shards::{add_part, on_shards_with, weighted_mean};
 use candle_core::backprop::GradStore;
 use candle_core::{bail, Result};
-use ctxrace_common::agents::DreamerConfig;
+use ctxrace_common::agents::{DreamerConfig, StepAlignment};
 use ctxrace_common::nn::plain::{
     categorical_kl, categorical_kl_backward, soft_cross_entropy, soft_cross_entropy_backward,
     InputGrad, MlpGrads, MlpTrace, NonZeros, ObserveTrace, PlainMlp, PlainRssm, RssmGrads,
@@ -109,8 +116,10 @@ impl ModelGrads {
 /// One shard's inputs (time-major), traces and gradients' buffers.
 #[derive(Default)]
 struct ShardWork {
-    /// `symlog o` `[N, O]`, the previous actions `[N, A]`, `1 − first` `[N]`, rewards `[N]`,
+    /// The encoder's input `[N, I]` (`symlog o`, or `symlog [o, a]`), the decoder's target
+    /// `[N, I]`, the rows' actions `[N, A]`, `1 − first` `[N]`, rewards `[N]`,
     /// `1 − terminal` `[N]`, the contexts `[N, c]`, the Gumbel uniforms `[N, Z]`.
+    input: Vec<f32>,
     target: Vec<f32>,
     action: Vec<f32>,
     keep: Vec<f32>,
@@ -156,7 +165,8 @@ fn sigmoid(x: f32) -> f32 {
 
 impl WorldModel {
     /// Heads for observations of `obs_dim` on the encoder and RSSM of `nets` (in the store
-    /// `policy`), initialised from `cfg.seed + 1`, the reward head's output layer at zero.
+    /// `policy`), initialised from `cfg.seed + 1`, the reward head's output layer at zero; the
+    /// decoder reconstructs what the encoder reads.
     pub(crate) fn new(
         cfg: &DreamerConfig,
         obs_dim: usize,
@@ -172,7 +182,7 @@ impl WorldModel {
             feat,
             cfg.units,
             cfg.layers,
-            Some(obs_dim),
+            Some(cfg.encoder_inputs(obs_dim, nets.act_dim)),
             silu,
             hb.pp("decoder"),
         )?
@@ -241,13 +251,8 @@ impl WorldModel {
         work.resize_with(workers.clamp(1, seq.batch.max(1)), ShardWork::default);
         let this = &*self;
         let parts = on_shards_with(workers, seq.batch, rngs, &mut work, |shard, rngs, w| {
-            w.load(
-                seq,
-                ctx,
-                &shard.rows,
-                rngs,
-                this.cfg.stoch * this.cfg.classes,
-            );
+            let z = this.cfg.stoch * this.cfg.classes;
+            w.load(seq, ctx, &shard.rows, rngs, (z, this.cfg.step_alignment));
             let (m, grads, starts) = this.shard_step(&nets, w, shard.rows.len(), shard.weight);
             Ok((shard.weight, m, grads, starts))
         })?;
@@ -293,9 +298,9 @@ impl WorldModel {
         let f = d + z + c;
         // forward: the embeddings, the loop, the prior, the heads
         nets.encoder.fit(&mut w.encoder, n);
-        nets.encoder.forward(&w.target, &mut w.encoder, 0..n);
+        nets.encoder.forward(&w.input, &mut w.encoder, 0..n);
         let embed = if nets.encoder.outputs() == 0 {
-            &w.target[..]
+            &w.input[..]
         } else {
             nets.encoder.output(&w.encoder, 0..n)
         };
@@ -328,7 +333,7 @@ impl WorldModel {
         let mut grads = ModelGrads::zero(nets);
         let d_x = sized(&mut w.d_x, n * f);
         let columns = 0..d + z;
-        // decoder: Σ (dec − symlog o)²
+        // decoder: Σ (dec − target)²
         let dec = nets.decoder.output(&w.decoder, 0..n);
         let d_out = sized(&mut w.d_out, n * o);
         let mut recon = 0f64;
@@ -428,7 +433,7 @@ impl WorldModel {
         );
         let enc_grads = Some(&mut grads.encoder);
         nets.encoder
-            .backward(&w.target, &mut w.encoder, 0..n, &w.d_embed, enc_grads, None);
+            .backward(&w.input, &mut w.encoder, 0..n, &w.d_embed, enc_grads, None);
         // metrics and the starts, batch-major
         let per_row = |sum: f64| sum / n as f64;
         let kl_sum: f64 = kl.iter().map(|&k| k as f64).sum();
@@ -469,22 +474,25 @@ impl WorldModel {
 
 impl ShardWork {
     /// The shard's sequences `rows` of `seq` (and of the context `ctx`, batch-major rows of
-    /// `c` values), time-major, with the loop's Gumbel uniforms (`z` per step and sequence)
-    /// from the sequences' streams `rngs`.
+    /// `c` values), time-major, read as `alignment` says, with the loop's Gumbel uniforms (`z`
+    /// per step and sequence) from the sequences' streams `rngs`.
     fn load(
         &mut self,
         seq: &SequenceBatch,
         ctx: &[f32],
         rows: &std::ops::Range<usize>,
         rngs: &mut [ChaCha8Rng],
-        z: usize,
+        (z, alignment): (usize, StepAlignment),
     ) {
         let (b, t_len) = (rows.len(), seq.length);
         let (o, a) = (seq.obs_dim, seq.act_dim);
         let c = ctx.len() / (seq.batch * t_len).max(1);
         let n = b * t_len;
+        let with_action = alignment == StepAlignment::PaperCode;
+        let i_w = if with_action { o + a } else { o };
         for (v, width) in [
-            (&mut self.target, o),
+            (&mut self.input, i_w),
+            (&mut self.target, i_w),
             (&mut self.action, a),
             (&mut self.keep, 1),
             (&mut self.reward, 1),
@@ -496,14 +504,24 @@ impl ShardWork {
         for (i, seq_row) in rows.clone().enumerate() {
             for t in 0..t_len {
                 let (from, to) = (seq_row * t_len + t, t * b + i);
-                for (dst, src) in self.target[to * o..(to + 1) * o]
-                    .iter_mut()
-                    .zip(&seq.obs[from * o..(from + 1) * o])
-                {
+                let action = &seq.action[from * a..(from + 1) * a];
+                let input = &mut self.input[to * i_w..(to + 1) * i_w];
+                for (dst, src) in input.iter_mut().zip(&seq.obs[from * o..(from + 1) * o]) {
                     *dst = symlog(*src);
                 }
-                self.action[to * a..(to + 1) * a]
-                    .copy_from_slice(&seq.action[from * a..(from + 1) * a]);
+                if with_action {
+                    for (dst, src) in input[o..].iter_mut().zip(action) {
+                        *dst = symlog(*src);
+                    }
+                }
+                let target = &mut self.target[to * i_w..(to + 1) * i_w];
+                target.copy_from_slice(input);
+                if with_action && t > 0 && seq.is_first[from] == 1.0 {
+                    // the code zeroes the row's action in place (`prev_action *= 1 − is_first`)
+                    // after the encoder read it and before the decoder's loss does
+                    target[o..].fill(0.0);
+                }
+                self.action[to * a..(to + 1) * a].copy_from_slice(action);
                 self.ctx[to * c..(to + 1) * c].copy_from_slice(&ctx[from * c..(from + 1) * c]);
                 self.keep[to] = 1.0 - seq.is_first[from];
                 self.reward[to] = seq.reward[from];
@@ -522,7 +540,7 @@ mod tests {
     use super::*;
     use crate::sequences::SeqData;
     use candle_core::{Device, Module, Tensor};
-    use ctxrace_common::agents::ContextMode;
+    use ctxrace_common::agents::{ContextMode, InitialState};
     use ctxrace_common::nn::{symlog as symlog_tensor, RssmState};
     use ctxrace_common::policy::uniforms_per;
     use rand::{Rng, SeedableRng};
@@ -539,11 +557,28 @@ mod tests {
         let cfg = &m.cfg;
         let (b, t_len, n) = (d.batch, d.length, d.batch * d.length);
         let (s, c) = (cfg.stoch, cfg.classes);
-        let target = symlog_tensor(&d.flat(&d.obs).unwrap()).unwrap();
+        let obs = symlog_tensor(&d.flat(&d.obs).unwrap()).unwrap();
+        let (input, target) = match cfg.step_alignment {
+            StepAlignment::Ctxrace => (obs.clone(), obs),
+            StepAlignment::PaperCode => {
+                let a = symlog_tensor(&actions.reshape((n, ())).unwrap()).unwrap();
+                // the decoder's action target is zero where an episode starts at t > 0
+                let first: Vec<f32> = d.first.flatten_all().unwrap().to_vec1().unwrap();
+                let kept: Vec<f32> = (0..n)
+                    .map(|i| 1.0 - f32::from(i % t_len > 0) * first[i])
+                    .collect();
+                let kept = Tensor::from_vec(kept, (n, 1), &Device::Cpu).unwrap();
+                let a_target = a.broadcast_mul(&kept).unwrap();
+                (
+                    Tensor::cat(&[&obs, &a], 1).unwrap(),
+                    Tensor::cat(&[&obs, &a_target], 1).unwrap(),
+                )
+            }
+        };
         let time_major = |x: &Tensor| x.transpose(0, 1).unwrap().contiguous().unwrap();
         let embed = m
             .encoder
-            .forward(&target)
+            .forward(&input)
             .unwrap()
             .reshape((b, t_len, ()))
             .unwrap();
@@ -551,13 +586,18 @@ mod tests {
         let actions = time_major(actions);
         let keeps = time_major(&(1.0 - &d.first).unwrap());
         let ctx_tm = ctx.map(|c| time_major(&c.reshape((b, t_len, ())).unwrap()));
-        let mut state = m.rssm.initial(b).unwrap();
+        let init = m.rssm.initial(b).unwrap();
+        let mut state = init.clone();
         let (mut deters, mut stochs, mut posts) = (Vec::new(), Vec::new(), Vec::new());
         for t in 0..t_len {
             let keep = keeps.get(t).unwrap().unsqueeze(1).unwrap();
+            let blend = |x: &Tensor, x0: &Tensor| {
+                let start = x0.broadcast_mul(&(1.0 - &keep).unwrap()).unwrap();
+                (x.broadcast_mul(&keep).unwrap() + start).unwrap()
+            };
             let prev = RssmState {
-                deter: state.deter.broadcast_mul(&keep).unwrap(),
-                stoch: state.stoch.broadcast_mul(&keep).unwrap(),
+                deter: blend(&state.deter, &init.deter),
+                stoch: blend(&state.stoch, &init.stoch),
             };
             let action = actions.get(t).unwrap().broadcast_mul(&keep).unwrap();
             let c_t = ctx_tm.as_ref().map(|c| c.get(t).unwrap());
@@ -652,10 +692,18 @@ mod tests {
 
     /// The hand-differentiated world model computes the loss and every parameter's gradient of
     /// the candle composition, with and without a context, over sequences that start anew
-    /// inside the batch, on one shard and on two.
+    /// inside the batch, on one shard and on two, as ctxrace reads its rows from zeros and as the
+    /// paper's code does from its learned initial state.
     #[test]
     fn the_model_step_differentiates_the_candle_composition() {
-        for (mode, workers) in [(ContextMode::None, 1), (ContextMode::Crssm, 2)] {
+        let ctxrace = DreamerConfig::default();
+        let code = DreamerConfig::default().with_paper_code_world_model();
+        for (mode, workers, form) in [
+            (ContextMode::None, 1, &ctxrace),
+            (ContextMode::Crssm, 2, &ctxrace),
+            (ContextMode::None, 1, &code),
+            (ContextMode::Crssm, 2, &code),
+        ] {
             let cfg = DreamerConfig {
                 context: mode,
                 units: 16,
@@ -667,11 +715,18 @@ mod tests {
                 head_units: 16,
                 head_layers: 2,
                 free_nats: 0.01,
-                ..DreamerConfig::default()
+                ..form.clone()
             };
             let policy = ParamStore::new();
             let nets = DreamerNets::new(&cfg, 3, 2, policy.builder()).unwrap();
             policy.init(4).unwrap();
+            // a learned initial state away from zero, where its prior's classes do not tie
+            for (name, v) in policy.named() {
+                if name == "rssm.initial_state.w" {
+                    v.set(&Tensor::randn(0f32, 1.0, v.shape(), &Device::Cpu).unwrap())
+                        .unwrap();
+                }
+            }
             let mut model = WorldModel::new(&cfg, 3, &nets, &policy).unwrap();
             // a reward head that is not zero, so that its path weighs
             for (name, v) in model.heads.named() {
@@ -705,6 +760,9 @@ mod tests {
                 "{mode:?}: loss {} vs {l}",
                 metrics["model/loss"]
             );
+            let names: Vec<String> = policy.named().into_iter().map(|(n, _)| n).collect();
+            let learned = cfg.initial_state == InitialState::Learned;
+            assert_eq!(names.contains(&"rssm.initial_state.w".into()), learned);
             let vars = policy
                 .vars_under(&["encoder", "rssm"])
                 .into_iter()
@@ -730,9 +788,126 @@ mod tests {
                 for (i, (a, b)) in g.iter().zip(&w).enumerate() {
                     assert!(
                         (a - b).abs() <= 2e-3 * scale,
-                        "{mode:?} {name}[{i}]: {a} vs {b}"
+                        "{mode:?} {:?} {name}[{i}]: {a} vs {b}",
+                        cfg.step_alignment
                     );
                 }
+            }
+        }
+    }
+
+    /// The episode `o_0 −a_0→ o_1 (r_1) −a_1→ o_2 (r_2) −a_2→ o_3 (r_3, terminated)` as each form
+    /// stores it (the actors' rows, [`ctxrace_common::agents::StepAlignment`]) and what the
+    /// world model reads of it: ctxrace's four rows feed `0, a_0, a_1, a_2` to the sequence
+    /// model and `symlog o_t` to the encoder, with the terminal flag on `o_3`; the paper code's
+    /// three rows (`o_3` never stored) feed `0, a_1, a_2` (the row's own action, zeroed where
+    /// the episode starts), `symlog [o_t, a_t]` to the encoder, `r_{t+1}` to the reward head and
+    /// the terminal flag on `o_2`. Which action reached the sequence model is read from the
+    /// loop's states: each equals a candle observation step fed the expected action.
+    #[test]
+    fn a_three_step_episode_reaches_the_world_model_as_each_form_stores_it() {
+        let o = |k: usize| [k as f32 + 1.0, -(k as f32) - 1.0, 0.5 * k as f32];
+        let a = |k: usize| [0.1 * (k as f32 + 1.0), -0.2 * (k as f32 + 1.0)];
+        let r = |k: usize| 10.0 * k as f32;
+        // rows (obs, action, reward, first, terminal)
+        let ctxrace_rows = vec![
+            (o(0), [0.0; 2], 0.0, 1.0, 0.0),
+            (o(1), a(0), r(1), 0.0, 0.0),
+            (o(2), a(1), r(2), 0.0, 0.0),
+            (o(3), a(2), r(3), 0.0, 1.0),
+        ];
+        let code_rows = vec![
+            (o(0), a(0), r(1), 1.0, 0.0),
+            (o(1), a(1), r(2), 0.0, 0.0),
+            (o(2), a(2), r(3), 0.0, 1.0),
+        ];
+        let base = DreamerConfig {
+            units: 8,
+            layers: 1,
+            deter: 8,
+            hidden: 8,
+            stoch: 2,
+            classes: 3,
+            head_units: 8,
+            head_layers: 1,
+            ..DreamerConfig::default()
+        };
+        let cases = [
+            (base.clone(), ctxrace_rows, vec![[0.0; 2], a(0), a(1), a(2)]),
+            (
+                base.with_paper_code_world_model(),
+                code_rows,
+                vec![[0.0; 2], a(1), a(2)],
+            ),
+        ];
+        for (cfg, rows, into_gru) in cases {
+            let t_len = rows.len();
+            let seq = SequenceBatch {
+                batch: 1,
+                length: t_len,
+                obs_dim: 3,
+                act_dim: 2,
+                obs: rows.iter().flat_map(|row| row.0).collect(),
+                action: rows.iter().flat_map(|row| row.1).collect(),
+                reward: rows.iter().map(|row| row.2).collect(),
+                is_first: rows.iter().map(|row| row.3).collect(),
+                is_terminal: rows.iter().map(|row| row.4).collect(),
+                context: vec![0.0; t_len * 2],
+                mask: vec![0.0; t_len * 2],
+                has_mask: vec![0.0; t_len],
+            };
+            let alignment = cfg.step_alignment;
+            let mut w = ShardWork::default();
+            let mut rngs = vec![ChaCha8Rng::seed_from_u64(5)];
+            let z = cfg.stoch * cfg.classes;
+            w.load(&seq, &[], &(0..1), &mut rngs, (z, alignment));
+            // the encoder's input and the heads' targets
+            let symlogged = |v: &[f32]| v.iter().map(|&x| symlog(x)).collect::<Vec<f32>>();
+            let want_input: Vec<f32> = rows
+                .iter()
+                .flat_map(|row| match alignment {
+                    StepAlignment::Ctxrace => symlogged(&row.0),
+                    StepAlignment::PaperCode => symlogged(&[&row.0[..], &row.1[..]].concat()),
+                })
+                .collect();
+            assert_eq!(w.input, want_input, "{alignment:?}");
+            assert_eq!(
+                w.target, want_input,
+                "{alignment:?}: one episode, nothing zeroed"
+            );
+            let rewards: Vec<f32> = rows.iter().map(|row| row.2).collect();
+            assert_eq!(w.reward, rewards, "{alignment:?}");
+            let mut cont = vec![1.0; t_len];
+            cont[t_len - 1] = 0.0;
+            assert_eq!(
+                w.cont, cont,
+                "{alignment:?}: the terminal flag on the last row"
+            );
+            // the loop: its states are candle steps fed the expected actions from zeros
+            let policy = ParamStore::new();
+            let nets = DreamerNets::new(&cfg, 3, 2, policy.builder()).unwrap();
+            policy.init(6).unwrap();
+            let dev = &Device::Cpu;
+            let input = Tensor::from_slice(&w.input, (t_len, w.input.len() / t_len), dev).unwrap();
+            let embed = nets.encoder.forward(&input).unwrap();
+            let embed_rows: Vec<f32> = embed.flatten_all().unwrap().to_vec1().unwrap();
+            let plain = PlainRssm::new(&nets.rssm).unwrap();
+            let mut trace = ObserveTrace::default();
+            let inputs = (&embed_rows[..], &w.action[..], &w.ctx[..], &w.keep[..]);
+            plain.observe(1, inputs, &w.uniform, &mut trace);
+            let (h, _, _) = trace.states();
+            let mut state = nets.rssm.initial(1).unwrap();
+            for (t, action) in into_gru.iter().enumerate() {
+                let u = &w.uniform[t * z..(t + 1) * z];
+                let u = Tensor::from_slice(u, (1, cfg.stoch, cfg.classes), dev).unwrap();
+                let action = Tensor::from_slice(action, (1, 2), dev).unwrap();
+                let e = embed.narrow(0, t, 1).unwrap();
+                let (next, _) = nets.rssm.obs_step(&state, &action, None, &e, &u).unwrap();
+                let want: Vec<f32> = next.deter.flatten_all().unwrap().to_vec1().unwrap();
+                for (got, want) in h[t * cfg.deter..(t + 1) * cfg.deter].iter().zip(&want) {
+                    assert!((got - want).abs() < 1e-5, "{alignment:?} step {t}");
+                }
+                state = next;
             }
         }
     }

@@ -38,6 +38,8 @@ pub struct RssmConfig {
     pub embed_dim: usize,
     /// Context size fed to the sequence model (0 for DreamerV3, 2 for cRSSM and cMask).
     pub context_dim: usize,
+    /// Sequences start from a learned state ([`Rssm::initial`]) rather than from zeros.
+    pub learned_initial: bool,
 }
 
 /// A batch of RSSM states.
@@ -165,6 +167,9 @@ pub struct Rssm {
     prior_out: Dense,
     post_hidden: NormBlock,
     post_out: Dense,
+    /// The learned initial state's `w` (`[D]`, `h_0 = tanh(w)`), the parameter
+    /// `initial_state.w`; `None` where sequences start from zeros.
+    initial_w: Option<Tensor>,
 }
 
 impl Rssm {
@@ -189,6 +194,15 @@ impl Rssm {
                 vb.pp("post"),
             )?,
             post_out: Dense::new(cfg.hidden, z, true, vb.pp("post_out"))?,
+            initial_w: match cfg.learned_initial {
+                // a vector not named `bias`: [`ParamStore::init`] leaves it at zero
+                true => Some(vb.pp("initial_state").get_with_hints(
+                    cfg.deter,
+                    "w",
+                    candle_nn::Init::Const(0.0),
+                )?),
+                false => None,
+            },
             cfg,
         })
     }
@@ -204,6 +218,7 @@ impl Rssm {
             prior_out: self.prior_out.frozen(),
             post_hidden: self.post_hidden.frozen(),
             post_out: self.post_out.frozen(),
+            initial_w: self.initial_w.as_ref().map(Tensor::detach),
         }
     }
 
@@ -218,6 +233,7 @@ impl Rssm {
             prior_out: self.prior_out.looped()?,
             post_hidden: self.post_hidden.looped()?,
             post_out: self.post_out.looped()?,
+            initial_w: self.initial_w.clone(),
         })
     }
 
@@ -243,6 +259,11 @@ impl Rssm {
         &self.cfg
     }
 
+    /// The learned initial state's `w` (`[D]`), if sequences start from it.
+    pub fn initial_weight(&self) -> Option<&Tensor> {
+        self.initial_w.as_ref()
+    }
+
     /// The columns of the one-hot sample `z` in [`RssmState::feat`] and
     /// [`RssmState::head_input`] (`[h, z, …]`): a layer reading either can be told they are
     /// mostly zero ([`crate::nn::Mlp::sparse_inputs`]).
@@ -255,8 +276,27 @@ impl Rssm {
         self.cfg.deter + self.cfg.stoch * self.cfg.classes
     }
 
-    /// The all-zero state of a batch.
+    /// The state a batch of sequences starts from: zeros, or the learned state (the paper's
+    /// code, `networks.py` `RSSM.initial`): `h = tanh(w)` and `z` the mode of the prior
+    /// `p(z | h)`, `onehot(argmax) + ln p − sg(ln p)` (`ln p` of the unimix probabilities, so
+    /// that gradients reach `w` and the prior straight through the log-probabilities).
     pub fn initial(&self, batch: usize) -> Result<RssmState> {
+        if let Some(w) = &self.initial_w {
+            let (d, z) = (self.cfg.deter, self.cfg.stoch * self.cfg.classes);
+            let deter = w.tanh()?.unsqueeze(0)?;
+            let log_p = self.probs(&self.prior_logits(&deter)?)?.log()?;
+            let classes = Tensor::arange(0u32, self.cfg.classes as u32, &Device::Cpu)?
+                .reshape((1, 1, self.cfg.classes))?;
+            let one_hot = log_p
+                .argmax_keepdim(D::Minus1)?
+                .broadcast_eq(&classes)?
+                .to_dtype(DType::F32)?;
+            let stoch = (one_hot + (&log_p - log_p.detach())?)?.reshape((1, z))?;
+            return Ok(RssmState {
+                deter: deter.broadcast_as((batch, d))?.contiguous()?,
+                stoch: stoch.broadcast_as((batch, z))?.contiguous()?,
+            });
+        }
         Ok(RssmState {
             deter: Tensor::zeros((batch, self.cfg.deter), DType::F32, &Device::Cpu)?,
             stoch: Tensor::zeros(
@@ -356,6 +396,7 @@ mod tests {
             act_dim: 2,
             embed_dim: 5,
             context_dim,
+            learned_initial: false,
         }
     }
 
@@ -525,5 +566,67 @@ mod tests {
             .to_vec1()
             .unwrap();
         assert!(g.iter().any(|v| v.abs() > 1e-4), "{g:?}");
+    }
+
+    /// The learned initial state adds one parameter, `rssm.initial_state.w` `[D]`, at zero
+    /// after initialisation and drawn from no random number, so that every other parameter
+    /// starts as without it; it starts sequences at `h = tanh(w)` and the one-hot mode of the
+    /// prior. Weights saved without it (the default, every older checkpoint) still load into the
+    /// default model and are refused by a learned one.
+    #[test]
+    fn the_learned_initial_state_is_one_named_parameter_starting_at_zero() {
+        let learned = RssmConfig {
+            learned_initial: true,
+            ..cfg(2)
+        };
+        let (ps, rssm) = standalone(learned, 5).unwrap();
+        let (old, zeros) = standalone(cfg(2), 5).unwrap();
+        let values = |t: &Tensor| -> Vec<f32> { t.flatten_all().unwrap().to_vec1().unwrap() };
+        let new: std::collections::HashMap<String, Vec<f32>> = ps
+            .named()
+            .into_iter()
+            .map(|(n, v)| (n, values(v.as_tensor())))
+            .collect();
+        assert_eq!(new.len(), old.named().len() + 1);
+        assert_eq!(new["rssm.initial_state.w"], vec![0.0; 8]);
+        for (name, v) in old.named() {
+            assert_eq!(new[&name], values(v.as_tensor()), "{name}");
+        }
+        let (_, var) = ps
+            .named()
+            .into_iter()
+            .find(|(n, _)| n == "rssm.initial_state.w")
+            .unwrap();
+        var.set(&Tensor::randn(0f32, 1.0, 8, &Device::Cpu).unwrap())
+            .unwrap();
+        let w = rssm.initial_weight().unwrap();
+        let s0 = rssm.initial(3).unwrap();
+        let h0: Vec<f32> = values(&w.tanh().unwrap());
+        let mode = values(
+            &rssm
+                .prior_logits(&w.tanh().unwrap().unsqueeze(0).unwrap())
+                .unwrap()
+                .argmax(D::Minus1)
+                .unwrap()
+                .to_dtype(DType::F32)
+                .unwrap(),
+        );
+        let z: Vec<Vec<f32>> = s0.stoch.to_vec2().unwrap();
+        for (row, h) in z.iter().zip(s0.deter.to_vec2::<f32>().unwrap()) {
+            assert_eq!(h, h0);
+            for (var, &k) in row.chunks_exact(4).zip(&mode) {
+                let one_hot: Vec<f32> = (0..4).map(|j| f32::from(j == k as usize)).collect();
+                assert_eq!(var, &one_hot[..]);
+            }
+        }
+        assert!(zeros.initial_weight().is_none());
+        let z0 = zeros.initial(2).unwrap();
+        assert!(values(&z0.deter)
+            .iter()
+            .chain(&values(&z0.stoch))
+            .all(|&v| v == 0.0));
+        let saved = old.to_bytes().unwrap();
+        assert!(old.load_bytes(&saved).is_ok());
+        assert!(ps.load_bytes(&saved).is_err());
     }
 }

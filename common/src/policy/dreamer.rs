@@ -4,7 +4,7 @@
 //! The learner trains the same [`DreamerNets`] and ships their "policy" parameter store.
 
 use super::ACT_DIM;
-use crate::agents::{ContextMode, DreamerConfig, CONTEXT_DIM};
+use crate::agents::{ContextMode, DreamerConfig, InitialState, StepAlignment, CONTEXT_DIM};
 use crate::nn::{
     symlog, Activation, Mlp, ParamStore, Rssm, RssmConfig, RssmState, TanhGaussianActor,
 };
@@ -16,8 +16,11 @@ use rand_distr::StandardNormal;
 /// The networks that act: encoder, RSSM, actor and (cMask) mask actor.
 #[derive(Clone, Debug)]
 pub struct DreamerNets {
-    /// Observation encoder (on `symlog o`).
+    /// Observation encoder (on `symlog o`, or on `symlog [o, a]` with
+    /// [`StepAlignment::PaperCode`]).
     pub encoder: Mlp,
+    /// The encoder reads the action beside the observation ([`StepAlignment::PaperCode`]).
+    pub action_in_encoder: bool,
     /// The recurrent state-space model.
     pub rssm: Rssm,
     /// Actor head on `[h, z, c]`: means and raw standard deviations.
@@ -45,7 +48,8 @@ impl DreamerNets {
     ) -> Result<Self> {
         let silu = Activation::SiluNorm;
         let context_dim = cfg.context.context_dim();
-        let encoder = Mlp::new(obs_dim, cfg.units, cfg.layers, None, silu, vb.pp("encoder"))?;
+        let enc_in = cfg.encoder_inputs(obs_dim, act_dim);
+        let encoder = Mlp::new(enc_in, cfg.units, cfg.layers, None, silu, vb.pp("encoder"))?;
         let rssm_cfg = RssmConfig {
             deter: cfg.deter,
             hidden: cfg.hidden,
@@ -53,8 +57,9 @@ impl DreamerNets {
             classes: cfg.classes,
             unimix: cfg.unimix,
             act_dim,
-            embed_dim: if cfg.layers == 0 { obs_dim } else { cfg.units },
+            embed_dim: if cfg.layers == 0 { enc_in } else { cfg.units },
             context_dim,
+            learned_initial: cfg.initial_state == InitialState::Learned,
         };
         let rssm = Rssm::new(rssm_cfg, vb.pp("rssm"))?;
         let actor = Mlp::new(
@@ -78,6 +83,7 @@ impl DreamerNets {
         };
         Ok(Self {
             encoder,
+            action_in_encoder: cfg.step_alignment == StepAlignment::PaperCode,
             rssm,
             actor,
             mask,
@@ -150,8 +156,9 @@ impl DreamerNets {
         a.mul(&shrink)
     }
 
-    /// One observation step at batch `N`: the next state and the action (sampled with `noise`,
-    /// else the mean).
+    /// One observation step at batch `N` (acting): the sequence model reads the previous action,
+    /// the encoder `symlog o` (`symlog [o, a_{t−1}]` with [`StepAlignment::PaperCode`], as the
+    /// paper's code acts); the next state and the action (sampled with `noise`, else the mean).
     pub fn observe(
         &self,
         state: &RssmState,
@@ -161,7 +168,11 @@ impl DreamerNets {
         uniform: &Tensor,
         noise: Option<&Tensor>,
     ) -> Result<(RssmState, Tensor)> {
-        let embed = self.encoder.forward(&symlog(obs)?)?;
+        let input = match self.action_in_encoder {
+            true => Tensor::cat(&[obs, prev_action], 1)?,
+            false => obs.clone(),
+        };
+        let embed = self.encoder.forward(&symlog(&input)?)?;
         let (next, _) = self
             .rssm
             .obs_step(state, prev_action, ctx, &embed, uniform)?;
@@ -266,6 +277,7 @@ pub struct DreamerPolicy {
     /// every load).
     nets: DreamerNets,
     obs_dim: usize,
+    /// The state episodes start from ([`Rssm::initial`] of the loaded weights).
     zero: RssmState,
     state: RssmState,
     zero_action: Tensor,
@@ -302,10 +314,12 @@ impl DreamerPolicy {
         })
     }
 
-    /// Replaces the weights (same architecture) without resetting the state.
+    /// Replaces the weights (same architecture) without resetting the state (the next
+    /// episode starts from the new weights' initial state).
     pub fn load(&mut self, weights: &[u8]) -> Result<()> {
         self.store.load_bytes(weights)?;
         self.nets = self.stored.frozen().looped()?;
+        self.zero = self.nets.rssm.initial(1)?;
         Ok(())
     }
 
@@ -314,7 +328,7 @@ impl DreamerPolicy {
         self.rng = ChaCha8Rng::seed_from_u64(seed);
     }
 
-    /// Starts a new episode: zero state and previous action.
+    /// Starts a new episode: the initial state and a zero previous action.
     pub fn reset(&mut self) {
         self.state = self.zero.clone();
         self.prev_action = self.zero_action.clone();
@@ -493,6 +507,54 @@ mod tests {
             ] {
                 assert!(!t.track_op());
             }
+        }
+    }
+
+    /// With the paper code's world model the policy acts as the code does: the sequence model
+    /// reads the previous action (zero at the first step), the encoder `symlog [o_t, a_{t−1}]`,
+    /// from the learned initial state; its state after two steps is the candle composition's.
+    #[test]
+    fn the_paper_code_policy_feeds_the_previous_action_to_the_encoder() {
+        let cfg = DreamerConfig {
+            units: 16,
+            layers: 1,
+            deter: 16,
+            hidden: 16,
+            stoch: 4,
+            classes: 4,
+            head_units: 16,
+            head_layers: 1,
+            ..DreamerConfig::default()
+        }
+        .with_paper_code_world_model();
+        let store = ParamStore::new();
+        let nets = DreamerNets::new(&cfg, 3, ACT_DIM, store.builder()).unwrap();
+        store.init(2).unwrap();
+        for (name, v) in store.named() {
+            if name == "rssm.initial_state.w" {
+                v.set(&Tensor::randn(0f32, 1.0, v.shape(), &Device::Cpu).unwrap())
+                    .unwrap();
+            }
+        }
+        let mut policy = DreamerPolicy::new(&cfg, 3, &store.to_bytes().unwrap(), 1).unwrap();
+        let dev = &Device::Cpu;
+        let mut state = nets.rssm.initial(1).unwrap();
+        let mut prev = Tensor::zeros((1, ACT_DIM), DType::F32, dev).unwrap();
+        let u = Tensor::full(0.5f32, (1, 4, 4), dev).unwrap();
+        for obs in [[0.5f32, 0.2, 0.1], [0.3, -0.4, 0.9]] {
+            let (action, _) = policy.act(&obs, [0.0; 2], true).unwrap();
+            let o = Tensor::from_slice(&obs, (1, 3), dev).unwrap();
+            let input = symlog(&Tensor::cat(&[&o, &prev], 1).unwrap()).unwrap();
+            let embed = nets.encoder.forward(&input).unwrap();
+            let (next, _) = nets.rssm.obs_step(&state, &prev, None, &embed, &u).unwrap();
+            let (mean, _) = nets.actor_dist(&next.feat().unwrap()).unwrap();
+            let want: Vec<f32> = mean.flatten_all().unwrap().to_vec1().unwrap();
+            let got: Vec<f32> = policy.state.deter.flatten_all().unwrap().to_vec1().unwrap();
+            let deter: Vec<f32> = next.deter.flatten_all().unwrap().to_vec1().unwrap();
+            for (a, b) in got.iter().zip(&deter).chain(action.iter().zip(&want)) {
+                assert!((a - b).abs() < 1e-5, "{a} vs {b}");
+            }
+            (state, prev) = (next, mean);
         }
     }
 }

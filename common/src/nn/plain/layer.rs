@@ -679,7 +679,7 @@ impl PlainMlp {
 }
 
 /// Adds `grad` (the values of a tensor shaped as `param`) to `param`'s gradient in `store`.
-fn add_grad(store: &mut GradStore, param: &Tensor, grad: Vec<f32>) -> Result<()> {
+pub(super) fn add_grad(store: &mut GradStore, param: &Tensor, grad: Vec<f32>) -> Result<()> {
     let grad = Tensor::from_vec(grad, param.shape(), param.device())?;
     let sum = match store.get(param) {
         Some(g) => (g + grad)?,

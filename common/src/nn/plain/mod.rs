@@ -204,6 +204,7 @@ mod tests {
             act_dim: 2,
             embed_dim: 5,
             context_dim: 2,
+            learned_initial: false,
         };
         let (_, rssm) = standalone(cfg, 4).unwrap();
         let (n, f) = (9, 8 + 12 + 2);

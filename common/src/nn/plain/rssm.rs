@@ -15,14 +15,16 @@
 //! and backward, from the gradients of `s_{t+1}`: `∂l`, then `∂h'` (its own plus the prior's),
 //! the GRU's `∂g` and `∂h`, `∂u` and `∂h` through `W_g`, and `∂z`, `∂a` through `W_in`.
 //!
-//! An observation step is the same sequence model from the previous posterior state (zeroed,
-//! with the action, where a sequence starts anew), then the posterior
+//! An observation step is the same sequence model from the previous posterior state (the initial
+//! state, and a zero action, where a sequence starts anew: zeros, or the learned `h_0 = tanh(w)`
+//! and `z_0` the mode of the prior `p(z | h_0)` with its gradient straight through `ln p`), then
+//! the posterior
 //! `l = SiLU(LN([h', e] W_qᵀ)) W_rᵀ + b_r` of the observation's embedding `e` instead of the
 //! prior. Backward, its steps from the last to the first pass `∂h` and `∂z` on to the step
 //! before and `∂e` to the encoder; the layers' weight gradients are one product each over all
 //! the steps' rows at the end, not one thin product per step.
 
-use super::layer::{LayerGrads, MlpGrads, PlainLayer, PlainMlp};
+use super::layer::{add_grad, InputGrad, LayerGrads, MlpGrads, MlpTrace, PlainLayer, PlainMlp};
 use crate::nn::kernels::{gru_rows, gru_rows_bwd, probs_rows_bwd, sample_rows, Unimix};
 use crate::nn::{Rssm, RssmConfig};
 use candle_core::backprop::GradStore;
@@ -39,6 +41,8 @@ pub struct PlainRssm {
     prior: PlainMlp,
     post: PlainLayer,
     post_out: PlainLayer,
+    /// The learned initial state's `w` (`[D]`), if sequences start from it.
+    initial_w: Option<Vec<f32>>,
 }
 
 /// The gradients of a [`PlainRssm`]'s parameters.
@@ -50,6 +54,8 @@ pub struct RssmGrads {
     pub prior: MlpGrads,
     post: LayerGrads,
     post_out: LayerGrads,
+    /// The learned initial state's `w` (`[D]`; empty without one).
+    initial_w: Vec<f32>,
 }
 
 impl RssmGrads {
@@ -60,6 +66,9 @@ impl RssmGrads {
         self.prior.add(&other.prior);
         self.post.add(&other.post);
         self.post_out.add(&other.post_out);
+        for (a, b) in self.initial_w.iter_mut().zip(&other.initial_w) {
+            *a += b;
+        }
     }
 }
 
@@ -112,6 +121,22 @@ pub struct ObserveTrace {
     d_post_product: Vec<f32>,
     d_logits: Vec<f32>,
     scratch: StepScratch,
+    /// The state the sequences start from.
+    initial: InitialTrace,
+}
+
+/// The initial state of an observation loop and its backward pass.
+#[derive(Debug, Default)]
+struct InitialTrace {
+    /// `h_0` `[D]` and `z_0` `[Z]` (zeros without a learned state).
+    h: Vec<f32>,
+    z: Vec<f32>,
+    /// The prior on `h_0` (a learned state's).
+    prior: MlpTrace,
+    /// Backward: `∂h_0` and `∂z_0`, summed over the rows that start from them, and `∂l_0`.
+    dh: Vec<f32>,
+    dz: Vec<f32>,
+    dl: Vec<f32>,
 }
 
 /// The backward passes' buffers of a [`PlainRssm`] step, reused from step to step.
@@ -147,6 +172,7 @@ impl PlainRssm {
             },
             post: layer(post)?,
             post_out: layer(post_out)?,
+            initial_w: rssm.initial_weight().map(|w| w.to_vec1()).transpose()?,
         })
     }
 
@@ -163,6 +189,7 @@ impl PlainRssm {
             prior: self.prior.zero_grads(),
             post: self.post.zero_grads(),
             post_out: self.post_out.zero_grads(),
+            initial_w: vec![0.0; self.initial_w.as_ref().map_or(0, Vec::len)],
         }
     }
 
@@ -184,6 +211,9 @@ impl PlainRssm {
         ];
         for (layer, g, (dense, norm)) in layers {
             layer.add_grads_to(g, dense, norm.map(|(ln, _)| ln), store)?;
+        }
+        if let Some(w) = rssm.initial_weight() {
+            add_grad(store, w, grads.initial_w)?;
         }
         Ok(())
     }
@@ -451,26 +481,32 @@ impl PlainRssm {
             sized(v, rows * width);
         }
         tr.z.fill(0.0);
+        self.initial_forward(&mut tr.initial);
         let k = z + a + c;
         for t in 0..rows / batch.max(1) {
             let r = t * batch..(t + 1) * batch;
             let span = |w: usize| r.start * w..r.end * w;
-            // the previous state and action, zeroed where a sequence starts
+            // the previous state and action, the initial state and a zero action where a
+            // sequence starts
             let seq = &mut tr.sequence;
+            let init = &tr.initial;
             for row in r.clone() {
                 let keep_row = if t == 0 { 0.0 } else { keep[row] };
                 let prev = row.saturating_sub(batch);
-                let scaled = |dst: &mut [f32], src: &[f32]| {
-                    dst.iter_mut()
-                        .zip(src)
-                        .for_each(|(o, &v)| *o = keep_row * v);
+                let blend = |dst: &mut [f32], src: &[f32], start: &[f32]| {
+                    for ((o, &v), &v0) in dst.iter_mut().zip(src).zip(start) {
+                        *o = keep_row * v + (1.0 - keep_row) * v0;
+                    }
                 };
                 let (h_all, z_all) = (&seq.h, &tr.z);
                 let h_prev = &mut seq.h_prev[row * d..(row + 1) * d];
-                scaled(h_prev, &h_all[prev * d..(prev + 1) * d]);
+                blend(h_prev, &h_all[prev * d..(prev + 1) * d], &init.h);
                 let input = &mut seq.input[row * k..(row + 1) * k];
-                scaled(&mut input[..z], &z_all[prev * z..(prev + 1) * z]);
-                scaled(&mut input[z..z + a], &action[row * a..(row + 1) * a]);
+                blend(&mut input[..z], &z_all[prev * z..(prev + 1) * z], &init.z);
+                let act = &action[row * a..(row + 1) * a];
+                for (o, &v) in input[z..z + a].iter_mut().zip(act) {
+                    *o = keep_row * v;
+                }
                 input[z + a..].copy_from_slice(&ctx[row * c..(row + 1) * c]);
             }
             self.sequence_forward(seq, r.clone());
@@ -505,7 +541,7 @@ impl PlainRssm {
     /// `dh` `[T B, D]` and `dz` `[T B, Z]` (both used up: the loop adds the later steps' to the
     /// earlier ones'), and `d_logits` `[T B, Z]` of the posterior logits directly (the KL
     /// terms'): the embeddings' gradients into `d_embed` `[T B, E]`, the parameters' added to
-    /// `grads` (but the prior's).
+    /// `grads` (the prior's only through a learned initial state).
     #[allow(clippy::too_many_arguments)]
     pub fn observe_backward(
         &self,
@@ -524,6 +560,10 @@ impl PlainRssm {
         sized(&mut tr.d_post_product, rows * hidden);
         sized(&mut tr.d_logits, rows * z);
         let s = &mut tr.scratch;
+        let learned = self.initial_w.is_some();
+        let init = &mut tr.initial;
+        sized(&mut init.dh, if learned { d } else { 0 }).fill(0.0);
+        sized(&mut init.dz, if learned { z } else { 0 }).fill(0.0);
         for t in (0..rows / batch.max(1)).rev() {
             let r = t * batch..(t + 1) * batch;
             let span = |w: usize| r.start * w..r.end * w;
@@ -552,22 +592,30 @@ impl PlainRssm {
             // the sequence model, then the previous state's gradients where the step read it
             let norms = (grads.gates.norm_mut(), grads.img_in.norm_mut());
             self.sequence_backward(&mut tr.sequence, r.clone(), &dh[span(d)], norms, s);
-            if t == 0 {
+            if t == 0 && !learned {
                 continue;
             }
+            // the previous state's gradients: the previous step's, and the initial state's
+            // where the step started from it
             self.add_previous_grads(&tr.sequence, r.clone(), s);
-            for (i, row) in (r.start - batch..r.start).enumerate() {
-                let k = keep[r.start + i];
-                let add = |dst: &mut [f32], src: &[f32]| {
-                    dst.iter_mut().zip(src).for_each(|(o, &v)| *o += k * v);
-                };
-                add(
-                    &mut dh[row * d..(row + 1) * d],
-                    &s.dh_direct[i * d..(i + 1) * d],
-                );
-                add(&mut dz[row * z..(row + 1) * z], &s.dz[i * z..(i + 1) * z]);
+            let add = |dst: &mut [f32], src: &[f32], k: f32| {
+                dst.iter_mut().zip(src).for_each(|(o, &v)| *o += k * v);
+            };
+            for i in 0..batch {
+                let (dh_i, dz_i) = (&s.dh_direct[i * d..(i + 1) * d], &s.dz[i * z..(i + 1) * z]);
+                let k = if t == 0 { 0.0 } else { keep[r.start + i] };
+                if t > 0 {
+                    let row = r.start - batch + i;
+                    add(&mut dh[row * d..(row + 1) * d], dh_i, k);
+                    add(&mut dz[row * z..(row + 1) * z], dz_i, k);
+                }
+                if learned {
+                    add(&mut init.dh, dh_i, 1.0 - k);
+                    add(&mut init.dz, dz_i, 1.0 - k);
+                }
             }
         }
+        self.initial_backward(init, grads);
         // the weights' gradients, one product per layer over all the steps
         let seq = &tr.sequence;
         self.img_in
@@ -578,6 +626,82 @@ impl PlainRssm {
             .add_weight_grads(&tr.post_input, &tr.d_post_product, &mut grads.post);
         self.post_out
             .add_weight_grads(&tr.post_output, &tr.d_logits, &mut grads.post_out);
+    }
+}
+
+impl PlainRssm {
+    /// The initial state into `init`: zeros, or the learned `h_0 = tanh(w)` and `z_0` the
+    /// one-hot mode of the prior `p(z | h_0)` (the first most likely class of each variable).
+    fn initial_forward(&self, init: &mut InitialTrace) {
+        let (d, z, _) = self.widths();
+        let (h0, z0) = (sized(&mut init.h, d), sized(&mut init.z, z));
+        z0.fill(0.0);
+        let Some(w) = &self.initial_w else {
+            h0.fill(0.0);
+            return;
+        };
+        h0.iter_mut().zip(w).for_each(|(h, &w)| *h = w.tanh());
+        self.prior.fit(&mut init.prior, 1);
+        self.prior.forward(&init.h[..], &mut init.prior, 0..1);
+        let logits = self.prior.output(&init.prior, 0..1);
+        let classes = self.cfg.classes;
+        for (l, onehot) in logits
+            .chunks_exact(classes)
+            .zip(init.z.chunks_exact_mut(classes))
+        {
+            let best = (1..classes).fold(0, |b, j| if l[j] > l[b] { j } else { b });
+            onehot[best] = 1.0;
+        }
+    }
+
+    /// The learned initial state's backward pass from `∂h_0` and `∂z_0` in `init`: `∂l_0` of
+    /// `ln p` (the mode's straight-through path), the prior's parameters' gradients and its
+    /// `∂h_0`, then `∂w = ∂h_0 (1 − h_0²)`; nothing without a learned state.
+    fn initial_backward(&self, init: &mut InitialTrace, grads: &mut RssmGrads) {
+        if self.initial_w.is_none() {
+            return;
+        }
+        let (d, z, _) = self.widths();
+        let logits = self.prior.output(&init.prior, 0..1);
+        log_probs_rows_bwd(self.unimix(), logits, &init.dz, sized(&mut init.dl, z));
+        let target = InputGrad::new(&mut init.dh, d, 0..d, true);
+        self.prior.backward(
+            &init.h[..],
+            &mut init.prior,
+            0..1,
+            &init.dl,
+            Some(&mut grads.prior),
+            Some(target),
+        );
+        for ((g, &dh), &h) in grads.initial_w.iter_mut().zip(&init.dh).zip(&init.h) {
+            *g += dh * (1.0 - h * h);
+        }
+    }
+}
+
+/// `∂l` from `∂ ln p` (`dlp`) for rows of logits `l` of `classes` values each, `p` the
+/// unimix probabilities `(1 − u) softmax(l) + u / C`: with `s = softmax(l)` and
+/// `g_j = ∂ln p_j s_j / p_j`, `∂l_k = (1 − u)(g_k − s_k Σ_j g_j)`.
+fn log_probs_rows_bwd(dist: Unimix, logits: &[f32], dlp: &[f32], dl: &mut [f32]) {
+    let (c, u) = (dist.classes, dist.unimix);
+    let mut s = vec![0f32; c];
+    let rows = logits
+        .chunks_exact(c)
+        .zip(dlp.chunks_exact(c))
+        .zip(dl.chunks_exact_mut(c));
+    for ((l, dlp), out) in rows {
+        let max = l.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+        s.iter_mut().zip(l).for_each(|(e, &v)| *e = (v - max).exp());
+        let total: f32 = s.iter().sum();
+        s.iter_mut().for_each(|e| *e /= total);
+        let mut sum_g = 0f32;
+        for ((o, &sj), &gj) in out.iter_mut().zip(&s).zip(dlp) {
+            *o = gj * sj / ((1.0 - u) * sj + u / c as f32);
+            sum_g += *o;
+        }
+        for (o, &sj) in out.iter_mut().zip(&s) {
+            *o = (1.0 - u) * (*o - sj * sum_g);
+        }
     }
 }
 
