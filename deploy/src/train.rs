@@ -308,8 +308,12 @@ fn sample(buffer: &ReplayBuffer, spec: BatchSpec, rng: &mut ChaCha8Rng) -> Optio
         BatchSpec::Sequence { batch, length } => buffer
             .sample_sequences(batch, length, rng)
             .map(Batch::Sequence),
-        BatchSpec::Transition { batch, frames } => buffer
-            .sample_transitions(batch, frames, rng)
+        BatchSpec::Transition {
+            batch,
+            frames,
+            reward_delay,
+        } => buffer
+            .sample_transitions(batch, frames, reward_delay, rng)
             .map(Batch::Transition),
     }
 }

@@ -156,6 +156,7 @@ fn two_actors_fill_the_replay_and_the_learner_gets_batches() {
     let spec = BatchSpec::Transition {
         batch: 8,
         frames: 2,
+        reward_delay: 0,
     };
     let Some(Batch::Transition(tr)) = client.next_batch(spec, Duration::from_secs(10)).unwrap()
     else {
@@ -288,6 +289,7 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
     let too_big = BatchSpec::Transition {
         batch: 101,
         frames: 1,
+        reward_delay: 0,
     };
     assert!(client
         .next_batch(too_big, Duration::from_millis(500))
@@ -296,6 +298,7 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
     let spec = BatchSpec::Transition {
         batch: 50,
         frames: 1,
+        reward_delay: 0,
     };
     let mut batches = 0;
     while client

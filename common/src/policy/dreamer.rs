@@ -4,7 +4,7 @@
 //! The learner trains the same [`DreamerNets`] and ships their "policy" parameter store.
 
 use super::ACT_DIM;
-use crate::agents::{ContextMode, DreamerConfig, CONTEXT_DIM};
+use crate::agents::{ContextMode, DreamerConfig, MaskSpace, CONTEXT_DIM};
 use crate::nn::{
     symlog, Activation, Mlp, ParamStore, Rssm, RssmConfig, RssmState, TanhGaussianActor,
 };
@@ -24,6 +24,8 @@ pub struct DreamerNets {
     pub actor: Mlp,
     /// cMask's mask actor on the observation.
     pub mask: Option<TanhGaussianActor>,
+    /// How the mask actor's samples become masks ([`MaskSpace`]).
+    pub mask_space: MaskSpace,
     /// Action size.
     pub act_dim: usize,
     /// Smallest actor standard deviation.
@@ -66,13 +68,16 @@ impl DreamerNets {
         )?
         .sparse_inputs(rssm.stoch_columns());
         let mask = match cfg.context {
-            ContextMode::Cmask => Some(TanhGaussianActor::new(
-                obs_dim,
-                CONTEXT_DIM,
-                cfg.mask.units,
-                cfg.mask.layers,
-                vb.pp("mask"),
-            )?),
+            ContextMode::Cmask => Some(
+                TanhGaussianActor::new(
+                    obs_dim,
+                    CONTEXT_DIM,
+                    cfg.mask.units,
+                    cfg.mask.layers,
+                    vb.pp("mask"),
+                )?
+                .with_log_std_clamp(cfg.mask.log_std_clamp),
+            ),
             ContextMode::None | ContextMode::Crssm => None,
         };
         Ok(Self {
@@ -80,6 +85,7 @@ impl DreamerNets {
             rssm,
             actor,
             mask,
+            mask_space: cfg.mask.mask_space,
             act_dim,
             min_std: cfg.min_std,
             max_std: cfg.max_std,
@@ -173,17 +179,30 @@ impl DreamerNets {
     }
 }
 
-/// `m = (a + 1) / 2` and `log π(m) = log π(a) + |m| ln 2` for a tanh-Gaussian mask sample.
+/// The mask of the mask actor's squashed value `a = tanh u` in `space`: `(a + 1) / 2` (unit),
+/// `sigmoid(a)` (the paper's code).
+pub fn mask_of(a: &Tensor, space: MaskSpace) -> Result<Tensor> {
+    match space {
+        MaskSpace::Unit => a.affine(0.5, 0.5),
+        MaskSpace::PaperCode => candle_nn::ops::sigmoid(a),
+    }
+}
+
+/// A mask sample from the tanh-Gaussian mask actor and `log π` in `space`: unit,
+/// `m = (a + 1) / 2` and its density `log π(m) = log π(a) + |m| ln 2`; the paper's code,
+/// `m = sigmoid(a)` and the density of `a` itself (where the code takes its entropy).
 pub fn mask_sample(
     actor: &TanhGaussianActor,
     obs: &Tensor,
     noise: &Tensor,
+    space: MaskSpace,
 ) -> Result<(Tensor, Tensor)> {
     let (a, log_prob) = actor.sample(obs, noise)?;
-    Ok((
-        a.affine(0.5, 0.5)?,
-        (log_prob + CONTEXT_DIM as f64 * std::f64::consts::LN_2)?,
-    ))
+    let log_prob = match space {
+        MaskSpace::Unit => (log_prob + CONTEXT_DIM as f64 * std::f64::consts::LN_2)?,
+        MaskSpace::PaperCode => log_prob,
+    };
+    Ok((mask_of(&a, space)?, log_prob))
 }
 
 /// Gumbel-max uniforms in `(0, 1)`.
@@ -320,8 +339,8 @@ impl DreamerPolicy {
     }
 
     /// The action in `[−1, 1]²` for observation `obs` and raw context `[c_v, c_θ]`, and (cMask) the
-    /// mask used. Deterministic: the mean action, the most likely latent and the mask mode
-    /// `(tanh μ + 1)/2`; otherwise samples.
+    /// mask used. Deterministic: the mean action, the most likely latent and the mask of
+    /// `tanh μ` ([`mask_of`]); otherwise samples.
     pub fn act(
         &mut self,
         obs: &[f32],
@@ -337,10 +356,12 @@ impl DreamerPolicy {
         }
         let dev = &Device::Cpu;
         let o = Tensor::from_slice(obs, (1, self.obs_dim), dev)?;
+        let space = self.nets.mask_space;
         let mask = match &self.nets.mask {
-            Some(actor) if deterministic => Some(actor.mean_action(&o)?.affine(0.5, 0.5)?),
+            Some(actor) if deterministic => Some(mask_of(&actor.mean_action(&o)?, space)?),
             Some(actor) => {
-                Some(mask_sample(actor, &o, &normals(&mut self.rng, (1, CONTEXT_DIM))?)?.0)
+                let noise = normals(&mut self.rng, (1, CONTEXT_DIM))?;
+                Some(mask_sample(actor, &o, &noise, space)?.0)
             }
             None => None,
         };
