@@ -424,6 +424,62 @@ mod tests {
         assert!(uniform_rows(&mut seeded(1), 0, 5).is_empty());
     }
 
+    /// The acting masks of each [`MaskSpace`]: `(1 + tanh u)/2` over `(0, 1)`, the paper's code's
+    /// `sigmoid(tanh u)` inside `(σ(−1), σ(1)) ≈ (0.269, 0.731)`; the deterministic mask is the
+    /// space's map of `tanh μ`.
+    #[test]
+    fn the_policy_acts_with_the_mask_of_its_space() {
+        let unit = MaskConfig {
+            units: 16,
+            ..MaskConfig::default()
+        };
+        for mask in [unit.clone(), unit.with_paper_code_mask()] {
+            let cfg = DreamerConfig {
+                context: ContextMode::Cmask,
+                units: 16,
+                layers: 1,
+                deter: 16,
+                hidden: 16,
+                stoch: 4,
+                classes: 4,
+                head_units: 16,
+                head_layers: 1,
+                mask,
+                ..DreamerConfig::default()
+            };
+            let store = ParamStore::new();
+            let nets = DreamerNets::new(&cfg, 3, ACT_DIM, store.builder()).unwrap();
+            let mut policy = DreamerPolicy::new(&cfg, 3, &store.to_bytes().unwrap(), 1).unwrap();
+            let sigmoid = |x: f32| 1.0 / (1.0 + (-x).exp());
+            let (lo, hi) = match cfg.mask.mask_space {
+                MaskSpace::Unit => (0.0, 1.0),
+                MaskSpace::PaperCode => (sigmoid(-1.0), sigmoid(1.0)),
+            };
+            let (mut least, mut most) = (1f32, 0f32);
+            for k in 0..200 {
+                let obs = [0.5, 0.2, (k as f32 * 0.37).sin() * 3.0];
+                let (_, m) = policy.act(&obs, [0.1, -0.1], false).unwrap();
+                for v in m.unwrap() {
+                    assert!(lo <= v && v <= hi, "{:?}: {v}", cfg.mask.mask_space);
+                    (least, most) = (least.min(v), most.max(v));
+                }
+            }
+            // the samples spread over the range (an untrained actor's σ is about 1)
+            assert!(most - least > 0.5 * (hi - lo), "{least}..{most}");
+            let obs = [0.5, 0.2, 0.1];
+            let (_, m) = policy.act(&obs, [0.1, -0.1], true).unwrap();
+            let o = Tensor::from_slice(&obs, (1, 3), &Device::Cpu).unwrap();
+            let mode = nets.mask.as_ref().unwrap().mean_action(&o).unwrap();
+            let want: Vec<f32> = mask_of(&mode, cfg.mask.mask_space)
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap();
+            assert_eq!(m.unwrap().to_vec(), want);
+        }
+    }
+
     #[test]
     fn the_kept_state_holds_no_graph_of_earlier_steps() {
         let cfg = DreamerConfig {
