@@ -419,8 +419,10 @@ impl MaskConfig {
     /// This configuration with the mask SAC as the paper's code trained it (commit c0fd903,
     /// `TrajectoryAidedLearning/Utils/cbdreamer/cbmodels.py`, `CtxMask`): the code's mask
     /// spaces, bootstrapping at terminals, the target critics updated every second step,
-    /// `log σ` clamped to `[−20, 2]`, the reward one step late and the entropy target `−2` (on
-    /// `tanh u` there).
+    /// `log σ` clamped to `[−20, 2]` and the reward one step late. The code's entropy target
+    /// `−2` (on `tanh u` there) is `target_entropy`'s default, which `mask_space` applies to
+    /// `tanh u`; its other values (`units` 256, `layers` 2, `lr` 3e-5, `tau` 0.005, `gamma` 0.99)
+    /// are the defaults too.
     pub fn with_paper_code_mask(self) -> Self {
         Self {
             mask_space: MaskSpace::PaperCode,
@@ -428,7 +430,6 @@ impl MaskConfig {
             target_every: 2,
             log_std_clamp: [-20.0, 2.0],
             reward_delay: 1,
-            target_entropy: -2.0,
             ..self
         }
     }
