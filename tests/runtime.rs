@@ -613,7 +613,8 @@ fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
     let unservable = BatchRequest {
         kind: 1,
         batch: 2000,
-        length: 0,
+        // a transition's length: 1 + its reward delay
+        length: 1,
         frames: 1,
         ..request
     };

@@ -17,7 +17,8 @@
 //! | `context_scale` | `normalised` (`c / dreamer.context_range`) | `raw` |
 
 use crate::batch::BatchSpec;
-use candle_core::{bail, Result};
+use crate::nn::tanh_gaussian::{validate_log_std_clamp, LOG_STD_CLAMP};
+use candle_core::{bail, Error, Result};
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::str::FromStr;
@@ -212,8 +213,11 @@ impl AgentConfig {
             warmup: Warmup::Episodes,
             warmup_episodes: 32,
             context_scale: ContextScale::Raw,
-            sac: SacConfig::default(),
-            dreamer: DreamerConfig::default().with_paper_code_world_model(),
+            sac: SacConfig::default().with_paper_code_sac(),
+            dreamer: DreamerConfig {
+                mask: MaskConfig::default().with_paper_code_mask(),
+                ..DreamerConfig::default().with_paper_code_world_model()
+            },
             ..Self::default()
         }
     }
@@ -268,6 +272,7 @@ impl AgentConfig {
             AlgoKind::Sac => BatchSpec::Transition {
                 batch: self.sac.batch_size,
                 frames: self.sac.frames,
+                reward_delay: self.sac.reward_delay,
             },
             _ => BatchSpec::Sequence {
                 batch: self.dreamer.batch,
@@ -325,6 +330,27 @@ pub struct SacConfig {
     pub seed: u64,
     /// Consecutive LiDAR frames stacked into one observation (the paper's 2).
     pub frames: usize,
+    /// Steps by which a transition's reward lags its action: 0 pairs `(o_t, a_t, o_{t+1})` with
+    /// the reward `a_t` earned; 1 with the next action's reward (and its terminal flag), as the
+    /// paper's code's windowed replay buffer does.
+    pub reward_delay: usize,
+    /// Standard deviation of TD3-style smoothing noise added to the target's next actions
+    /// (0: none, plain SAC).
+    pub target_noise: f64,
+    /// Bound of the smoothing noise: it is clipped to `±target_noise_clip`, and the noisy next
+    /// action to `[−1, 1]`.
+    pub target_noise_clip: f64,
+    /// Standard deviation of Gaussian noise the acting policy adds to its action (then clipped
+    /// to `[−1, 1]`), in training and in evaluation, sampled or deterministic alike (0: none).
+    pub explore_noise: f64,
+    /// Whether the acting policy empties its frame stack at each episode's start (else the
+    /// first observation of an episode is stacked behind the previous episode's last).
+    pub reset_frame_stack: bool,
+    /// Gradient steps per Polyak update of the target critics (1: every step; 2: on every
+    /// second step, the first included).
+    pub target_every: usize,
+    /// Bounds `[lower, upper]` of the actor's log standard deviation.
+    pub log_std_clamp: [f64; 2],
 }
 
 impl Default for SacConfig {
@@ -342,6 +368,13 @@ impl Default for SacConfig {
             target_entropy: None,
             seed: 0,
             frames: 2,
+            reward_delay: 0,
+            target_noise: 0.0,
+            target_noise_clip: 0.5,
+            explore_noise: 0.0,
+            reset_frame_stack: true,
+            target_every: 1,
+            log_std_clamp: LOG_STD_CLAMP,
         }
     }
 }
@@ -373,8 +406,52 @@ impl SacConfig {
                 self.initial_alpha
             );
         }
+        if self.reward_delay > 1 {
+            bail!(
+                "agent.sac.reward_delay must be 0 (the reward of the transition's own action) or 1 \
+                 (the next action's, as the paper's code pairs them), got {}",
+                self.reward_delay
+            );
+        }
+        let noises = [
+            ("target_noise", self.target_noise),
+            ("target_noise_clip", self.target_noise_clip),
+            ("explore_noise", self.explore_noise),
+        ];
+        if let Some((key, v)) = noises.iter().find(|(_, v)| !(v.is_finite() && *v >= 0.0)) {
+            bail!("agent.sac.{key} must be a finite standard deviation >= 0 (0: none), got {v}");
+        }
+        check_target_every("agent.sac.target_every", self.target_every)?;
+        validate_log_std_clamp("agent.sac.log_std_clamp", self.log_std_clamp)
+            .map_err(Error::Msg)?;
         Ok(())
     }
+
+    /// This configuration with the SAC baseline as the paper's code trained it (commit c0fd903,
+    /// `TrajectoryAidedLearning/Utils/SAC.py`, `Utils/Buffer.py`, `Planners/SACPlanners.py`):
+    /// the reward one step late, target smoothing noise `N(0, 0.5)` clipped at `±0.5`,
+    /// exploration noise `N(0, 0.1)` in training and evaluation, a frame stack never reset,
+    /// the target critics updated every second step and `log σ` clamped to `[−20, 2]`.
+    pub fn with_paper_code_sac(self) -> Self {
+        Self {
+            reward_delay: 1,
+            target_noise: 0.5,
+            target_noise_clip: 0.5,
+            explore_noise: 0.1,
+            reset_frame_stack: false,
+            target_every: 2,
+            log_std_clamp: [-20.0, 2.0],
+            ..self
+        }
+    }
+}
+
+/// Checks a `target_every` key (named `key` in the error).
+fn check_target_every(key: &str, every: usize) -> Result<()> {
+    if every == 0 {
+        bail!("{key} must be at least 1 (1: a Polyak update every step, 2: every second step)");
+    }
+    Ok(())
 }
 
 /// Size of the context `c` and of the mask `m`.
@@ -403,6 +480,25 @@ impl ContextMode {
     }
 }
 
+/// How cMask's mask SAC maps its actor's squashed sample `tanh u` to masks: which mask acts
+/// and is stored, where the critics are evaluated, and whose density `log π` is.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MaskSpace {
+    /// ctxrace: one space throughout. The mask `m = (1 + tanh u) / 2 ∈ (0, 1)²` acts, is
+    /// stored, and is the critics' input in all three losses; `log π` is the mask's density,
+    /// `log π(tanh u) + 2 ln 2`. The target entropy `H̄` therefore applies to `m`: the default
+    /// `−2` is `−2 + 2 ln 2 ≈ −0.614` on `tanh u` (the code's `−2` on `tanh u` is `≈ −3.386`
+    /// on `m`).
+    #[default]
+    Unit,
+    /// The paper's code (c0fd903, `Utils/cbdreamer/cbmodels.py`, `CtxMask`): the mask
+    /// `sigmoid(tanh u) ∈ (0.27, 0.73)²` acts and is stored, and the critics are fitted on the
+    /// stored masks; the actor's loss evaluates them at `tanh u ∈ (−1, 1)²`, the target at
+    /// `clamp(tanh u', 0, 1)`; `log π` is the density of `tanh u`.
+    PaperCode,
+}
+
 /// Hyper-parameters of cMask's mask SAC.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -417,10 +513,24 @@ pub struct MaskConfig {
     pub tau: f64,
     /// Discount of the mask critics (the paper gives none: SAC's usual 0.99).
     pub gamma: f64,
-    /// Target entropy of the mask distribution (`−|m|`).
+    /// Target entropy `H̄` of the mask distribution (`−|m|`), of the density [`MaskSpace`] names
+    /// (with `mask_space = "unit"` the default `−2` on `m` is `≈ −0.614` on `tanh u`).
     pub target_entropy: f64,
     /// Initial temperature `α` (the paper gives none).
     pub init_alpha: f64,
+    /// The masks' space ([`MaskSpace`]): `"unit"` or `"paper-code"`.
+    pub mask_space: MaskSpace,
+    /// Whether the critics' target bootstraps at a terminal step too (`y = r + γ V(o')` always,
+    /// as the paper's code does) instead of `y = r` there.
+    pub bootstrap_terminals: bool,
+    /// Steps per Polyak update of the target critics (1: every step; 2: on every second step,
+    /// the first included).
+    pub target_every: usize,
+    /// Bounds `[lower, upper]` of the mask actor's log standard deviation.
+    pub log_std_clamp: [f64; 2],
+    /// Steps by which a transition's reward lags its mask: 0 pairs `(o_t, m_t)` with the reward
+    /// `r_{t+1}` the step earned; 1 with `r_{t+2}`, as the paper's code pairs its rows.
+    pub reward_delay: usize,
 }
 
 impl Default for MaskConfig {
@@ -433,6 +543,55 @@ impl Default for MaskConfig {
             gamma: 0.99,
             target_entropy: -2.0,
             init_alpha: 1.0,
+            mask_space: MaskSpace::Unit,
+            bootstrap_terminals: false,
+            target_every: 1,
+            log_std_clamp: LOG_STD_CLAMP,
+            reward_delay: 0,
+        }
+    }
+}
+
+impl MaskConfig {
+    /// Checks the keys, naming the offending one.
+    pub fn validate(&self) -> Result<()> {
+        if self.units == 0 {
+            bail!("agent.dreamer.mask.units must be positive");
+        }
+        check_target_every("agent.dreamer.mask.target_every", self.target_every)?;
+        validate_log_std_clamp("agent.dreamer.mask.log_std_clamp", self.log_std_clamp)
+            .map_err(Error::Msg)?;
+        if self.reward_delay > 1 {
+            bail!(
+                "agent.dreamer.mask.reward_delay must be 0 (the reward the mask's step earned) or 1 \
+                 (the next step's, as the paper's code pairs them), got {}",
+                self.reward_delay
+            );
+        }
+        if !self.target_entropy.is_finite() {
+            bail!(
+                "agent.dreamer.mask.target_entropy must be finite, got {}",
+                self.target_entropy
+            );
+        }
+        Ok(())
+    }
+
+    /// This configuration with the mask SAC as the paper's code trained it (commit c0fd903,
+    /// `TrajectoryAidedLearning/Utils/cbdreamer/cbmodels.py`, `CtxMask`): the code's mask
+    /// spaces, bootstrapping at terminals, the target critics updated every second step,
+    /// `log σ` clamped to `[−20, 2]` and the reward one step late. The code's entropy target
+    /// `−2` (on `tanh u` there) is `target_entropy`'s default, which `mask_space` applies to
+    /// `tanh u`; its other values (`units` 256, `layers` 2, `lr` 3e-5, `tau` 0.005, `gamma` 0.99)
+    /// are the defaults too.
+    pub fn with_paper_code_mask(self) -> Self {
+        Self {
+            mask_space: MaskSpace::PaperCode,
+            bootstrap_terminals: true,
+            target_every: 2,
+            log_std_clamp: [-20.0, 2.0],
+            reward_delay: 1,
+            ..self
         }
     }
 }
@@ -673,7 +832,6 @@ impl DreamerConfig {
             ("classes", self.classes),
             ("head_units", self.head_units),
             ("horizon", self.horizon),
-            ("mask.units", self.mask.units),
         ];
         if let Some((name, _)) = sizes.iter().find(|(_, v)| *v == 0) {
             bail!("DreamerV3 config: {name} must be positive");
@@ -694,7 +852,7 @@ impl DreamerConfig {
         if !(0.0 < self.min_std && self.min_std < self.max_std) {
             bail!("DreamerV3 config: need 0 < min_std < max_std");
         }
-        Ok(())
+        self.mask.validate()
     }
 }
 
@@ -744,6 +902,8 @@ mod tests {
             AgentConfig::from_table(toml::Table::new()).unwrap(),
             AgentConfig::default()
         );
+        let cfg = form("algo = \"cmask\"\n[dreamer.mask]\nmask_space = \"paper-code\"").unwrap();
+        assert_eq!(cfg.mask.mask_space, MaskSpace::PaperCode);
         assert!("ppo"
             .parse::<AlgoKind>()
             .unwrap_err()
@@ -829,6 +989,106 @@ mod tests {
                 .unwrap_err()
                 .to_string();
             assert!(err.contains(key) && err.contains(bad), "{err}");
+        }
+    }
+
+    /// The paper-code methods set the code's values and only the keys they own; ctxrace's
+    /// defaults are the present behaviour.
+    #[test]
+    fn the_paper_code_methods_set_the_codes_values() {
+        let sac = SacConfig::default();
+        assert_eq!(
+            (sac.reward_delay, sac.target_noise, sac.explore_noise),
+            (0, 0.0, 0.0)
+        );
+        assert!(sac.reset_frame_stack && sac.target_every == 1);
+        let code = sac.clone().with_paper_code_sac();
+        assert_eq!(
+            (code.reward_delay, code.target_noise, code.target_noise_clip),
+            (1, 0.5, 0.5)
+        );
+        assert_eq!((code.explore_noise, code.target_every), (0.1, 2));
+        assert!(!code.reset_frame_stack);
+        assert_eq!(code.log_std_clamp, [-20.0, 2.0]);
+        assert_eq!((code.gamma, code.hidden, code.frames), (sac.gamma, 100, 2));
+        assert!(code.validate().is_ok());
+        let mask = MaskConfig::default();
+        assert_eq!(mask.mask_space, MaskSpace::Unit);
+        assert!(!mask.bootstrap_terminals);
+        let code = mask.clone().with_paper_code_mask();
+        assert_eq!(code.mask_space, MaskSpace::PaperCode);
+        assert!(code.bootstrap_terminals);
+        assert_eq!((code.target_every, code.reward_delay), (2, 1));
+        assert_eq!(
+            (code.log_std_clamp, code.target_entropy),
+            ([-20.0, 2.0], -2.0)
+        );
+        assert_eq!((code.units, code.lr, code.gamma), (256, 3e-5, 0.99));
+        assert!(code.validate().is_ok());
+    }
+
+    /// Every key of the paper-code variants rejects a bad value with an error naming it.
+    #[test]
+    fn the_paper_code_keys_reject_bad_values_by_name() {
+        for (text, key) in [
+            (
+                "algo = \"sac\"\n[sac]\nreward_delay = 2",
+                "agent.sac.reward_delay",
+            ),
+            (
+                "algo = \"sac\"\n[sac]\ntarget_noise = -0.5",
+                "agent.sac.target_noise ",
+            ),
+            (
+                "algo = \"sac\"\n[sac]\ntarget_noise_clip = nan",
+                "agent.sac.target_noise_clip",
+            ),
+            (
+                "algo = \"sac\"\n[sac]\nexplore_noise = inf",
+                "agent.sac.explore_noise",
+            ),
+            (
+                "algo = \"sac\"\n[sac]\ntarget_every = 0",
+                "agent.sac.target_every",
+            ),
+            (
+                "algo = \"sac\"\n[sac]\nlog_std_clamp = [2.0, -20.0]",
+                "agent.sac.log_std_clamp",
+            ),
+            (
+                "algo = \"cmask\"\n[dreamer.mask]\ntarget_every = 0",
+                "agent.dreamer.mask.target_every",
+            ),
+            (
+                "algo = \"cmask\"\n[dreamer.mask]\nreward_delay = 3",
+                "agent.dreamer.mask.reward_delay",
+            ),
+            (
+                "algo = \"cmask\"\n[dreamer.mask]\nlog_std_clamp = [1.0, 1.0]",
+                "agent.dreamer.mask.log_std_clamp",
+            ),
+            (
+                "algo = \"cmask\"\n[dreamer.mask]\ntarget_entropy = nan",
+                "agent.dreamer.mask.target_entropy",
+            ),
+            (
+                "algo = \"cmask\"\n[dreamer.mask]\nunits = 0",
+                "agent.dreamer.mask.units",
+            ),
+        ] {
+            let agent: AgentConfig = toml::from_str(text).unwrap();
+            let err = agent.validate().unwrap_err().to_string();
+            assert!(err.contains(key), "{text:?}: {err}");
+        }
+        for text in [
+            "[dreamer.mask]\nmask_space = \"sigmoid\"",
+            "[dreamer.mask]\nbootstrap_terminals = 1",
+            "[sac]\nreset_frame_stack = \"no\"",
+            "[sac]\nlog_std_clamp = [-20.0]",
+        ] {
+            let err = toml::from_str::<AgentConfig>(text).unwrap_err().to_string();
+            let key = text.split(['\n', ' ']).nth(1).unwrap();
+            assert!(err.contains(key), "{text:?}: {err}");
         }
     }
 }

@@ -170,6 +170,9 @@ pub enum BatchSpec {
         batch: usize,
         /// Frames per observation.
         frames: usize,
+        /// Steps by which the reward (and terminal flag) lags the action: 0 or 1
+        /// ([`crate::SacConfig::reward_delay`]).
+        reward_delay: usize,
     },
 }
 
@@ -190,7 +193,7 @@ impl BatchSpec {
             BatchSpec::Sequence { batch, length } => {
                 sequence_floats(batch, length, obs_dim, act_dim)
             }
-            BatchSpec::Transition { batch, frames } => {
+            BatchSpec::Transition { batch, frames, .. } => {
                 transition_floats(batch, frames, obs_dim, act_dim)
             }
         }

@@ -370,7 +370,7 @@ impl ExperimentConfig {
         let spec = self.agent.batch_spec();
         let window = match spec {
             BatchSpec::Sequence { length, .. } => length,
-            BatchSpec::Transition { .. } => 2,
+            BatchSpec::Transition { reward_delay, .. } => 2 + reward_delay,
         };
         let floats = spec.floats(self.race.lidar.beams, 2);
         let ring = r.capacity / actors.max(1);

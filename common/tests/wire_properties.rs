@@ -78,6 +78,8 @@ proptest! {
             prop_assert!(batch > 0);
             let per = if kind == 0 { length as u128 * (108 + 2 + 8) } else { frames as u128 * 216 + 6 };
             prop_assert!(batch as u128 * per <= max_floats as u128);
+            // a transition's reward lags its action by at most one step
+            prop_assert!(kind == 0 || (1..=2).contains(&length));
         }
     }
 

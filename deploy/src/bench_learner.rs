@@ -322,7 +322,7 @@ fn random_batch(spec: BatchSpec, beams: usize, rng: &mut ChaCha8Rng) -> Batch {
                 has_mask,
             })
         }
-        BatchSpec::Transition { batch, frames } => Batch::Transition(TransitionBatch {
+        BatchSpec::Transition { batch, frames, .. } => Batch::Transition(TransitionBatch {
             batch,
             obs_dim: beams * frames,
             act_dim: ACT_DIM,
@@ -410,7 +410,7 @@ pub fn run(args: LearnerArgs) -> Result<()> {
         algo: agent.algo.to_string(),
         batch: match spec {
             BatchSpec::Sequence { batch, length } => format!("{batch} x {length} sequences"),
-            BatchSpec::Transition { batch, frames } => {
+            BatchSpec::Transition { batch, frames, .. } => {
                 format!("{batch} transitions x {frames} frames")
             }
         },

@@ -17,27 +17,47 @@
 //! part of a mean (divided by the batch's count of valid transitions) and differentiates it in
 //! parallel ([`crate::shards`]), by hand on plain buffers with SAC's passes
 //! ([`crate::sac::Workspace`]), each transition weighted by `valid / count`.
+//!
+//! **The paper's code** (c0fd903, `Utils/cbdreamer/cbmodels.py`, `CtxMask._train`) differs in
+//! five ways, each a key of [`MaskConfig`] (`with_paper_code_mask` sets them all):
+//! `mask_space = "paper-code"` ([`MaskSpace::PaperCode`]: the critics fitted on the stored
+//! `sigmoid(tanh u)` masks, the actor's loss evaluating them at `tanh ũ`, the target at
+//! `clamp(tanh u', 0, 1)`, `log π` of `tanh u`); `bootstrap_terminals` (`d = 0` always);
+//! `target_every = 2` (Polyak on every second step, the first included); `log_std_clamp =
+//! [−20, 2]`; `reward_delay = 1` (`(o_t, m_t, r_{t+2}, o_{t+1})`: the code's rows hold
+//! `(o_t, a_t, r_{t+1}, m_t)` and it pairs row `t` with the reward of row `t + 1`; the
+//! transition is dropped where `t + 2` starts a new episode). Not reproduced: the code's
+//! transitions across an episode end (ctxrace's rows store an episode's last observation, and a
+//! first row carries no mask), its first step's `α = 0.2` before `log α = 0` takes over, and its
+//! temperature loss on a fresh sample after the actor's step.
 
 use crate::adam::Adam;
 use crate::algorithm::{scalar, Metrics};
-use crate::sac::{polyak, ActionRange, PassSum, SoftTarget, TwinQ, WeightedTransitions, Workspace};
+use crate::sac::{
+    polyak, ActionRange, PassSum, PlainActor, SoftTarget, TwinQ, WeightedTransitions, Workspace,
+};
 use crate::sequences::SeqData;
 use crate::shards::{on_shards_with, Shard};
 use candle_core::backprop::GradStore;
 use candle_core::{bail, Device, Result, Tensor};
 use candle_nn::Init;
-use ctxrace_common::agents::{DreamerConfig, MaskConfig, CONTEXT_DIM};
+use ctxrace_common::agents::{DreamerConfig, MaskConfig, MaskSpace, StepAlignment, CONTEXT_DIM};
 use ctxrace_common::nn::plain::PlainMlp;
 use ctxrace_common::nn::{ParamStore, TanhGaussianActor};
 use ctxrace_common::policy::normal_rows;
 use rand_chacha::ChaCha8Rng;
 use std::ops::Range;
 
-/// The mask SAC's transitions `(o_t, m_t, r_{t+1}, o_{t+1}, terminal_{t+1})` for `t < T − 1`,
-/// row-major `[B·(T−1), …]`, `m_t` the stored mask that acted at `o_t`, with `valid = 0` where
-/// `o_{t+1}` starts a new episode or no mask chose the action at `o_t`.
+/// The mask SAC's transitions `(o_t, m_t, r_{t+1+δ}, o_{t+1}, terminal_{t+1})` for
+/// `t < T − 1 − δ` (`δ` = `reward_delay`), row-major `[B·(T−1−δ), …]`, `m_t` the stored mask
+/// that acted at `o_t`, with `valid = 0` where `o_{t+1}` (or, delayed, `o_{t+2}`) starts a new
+/// episode or no mask chose the action at `o_t`; every terminal flag 0 with
+/// `bootstrap_terminals`. Where the mask, reward and terminal flag of `o_t`'s choice are stored
+/// follows the rows' [`StepAlignment`] ([`choice_row`]); a transition whose next row starts an
+/// episode is left out in both (the paper's code, whose sequences cross episode ends, bootstraps
+/// across them).
 pub(crate) struct Transitions {
-    /// `T − 1` transitions a sequence, sequence after sequence.
+    /// `T − 1 − δ` transitions a sequence, sequence after sequence.
     per_sequence: usize,
     obs: Vec<f32>,
     mask: Vec<f32>,
@@ -47,36 +67,55 @@ pub(crate) struct Transitions {
     valid: Vec<f32>,
 }
 
+/// The row, counted from `o_t`'s, that stores the mask, reward and terminal flag of the choice
+/// made at `o_t`: the next (ctxrace's rows `(o_t, a_{t−1}, r_t)`) or its own (the paper code's
+/// `(o_t, a_t, r_{t+1})`).
+pub(crate) fn choice_row(alignment: StepAlignment) -> usize {
+    match alignment {
+        StepAlignment::Ctxrace => 1,
+        StepAlignment::PaperCode => 0,
+    }
+}
+
 impl Transitions {
-    /// From a batch (row `t + 1` stores the action and mask chosen at `o_t`); `None` for
-    /// sequences of one step.
-    fn new(d: &SeqData) -> Result<Option<Self>> {
-        let (b, t) = (d.batch, d.length);
-        if t < 2 {
+    /// From a batch whose rows are laid out by `alignment` under `cfg`'s `reward_delay` and
+    /// `bootstrap_terminals`; `None` for sequences too short for one transition.
+    fn new(d: &SeqData, cfg: &MaskConfig, alignment: StepAlignment) -> Result<Option<Self>> {
+        let (b, t, delay) = (d.batch, d.length, cfg.reward_delay);
+        let row = choice_row(alignment);
+        if t < 2 + delay {
             return Ok(None);
         }
-        let span = |x: &Tensor, start: usize| x.narrow(1, start, t - 1)?.flatten_all()?.to_vec1();
+        let n = t - 1 - delay;
+        let span = |x: &Tensor, start: usize| x.narrow(1, start, n)?.flatten_all()?.to_vec1();
+        let terminal = span(&d.terminal, row)?;
         Ok(Some(Self {
-            per_sequence: t - 1,
+            per_sequence: n,
             obs: span(&d.obs, 0)?,
-            mask: span(&d.mask, 1)?,
-            reward: span(&d.reward, 1)?,
+            mask: span(&d.mask, row)?,
+            reward: span(&d.reward, row + delay)?,
             next_obs: span(&d.obs, 1)?,
-            terminal: span(&d.terminal, 1)?,
-            valid: Self::valid(d, 0..b)?.to_vec1()?,
+            terminal: if cfg.bootstrap_terminals {
+                vec![0.0; terminal.len()]
+            } else {
+                terminal
+            },
+            valid: Self::valid(d, 0..b, delay, row)?.to_vec1()?,
         }))
     }
 
-    /// `[|rows|·(T−1)]`: 1 where row `t + 1` of the sequences `rows` continues the episode and
-    /// its action was chosen through a mask.
-    fn valid(d: &SeqData, rows: Range<usize>) -> Result<Tensor> {
-        let next = |x: &Tensor| {
-            x.narrow(0, rows.start, rows.len())?
-                .narrow(1, 1, d.length - 1)
-        };
-        (1.0 - next(&d.first)?)?
-            .mul(&next(&d.has_mask)?)?
-            .flatten_all()
+    /// `[|rows|·(T−1−delay)]`: 1 where rows `t + 1 … t + max(1, row + delay)` of the sequences
+    /// `rows` continue the episode and the action of row `t + row` was chosen through a mask
+    /// (`row` from [`choice_row`]).
+    fn valid(d: &SeqData, rows: Range<usize>, delay: usize, row: usize) -> Result<Tensor> {
+        let n = d.length - 1 - delay;
+        let from =
+            |x: &Tensor, start: usize| x.narrow(0, rows.start, rows.len())?.narrow(1, start, n);
+        let mut valid = from(&d.has_mask, row)?;
+        for start in 1..=(row + delay).max(1) {
+            valid = (1.0 - from(&d.first, start)?)?.mul(&valid)?;
+        }
+        valid.flatten_all()
     }
 
     /// The number of valid transitions.
@@ -126,6 +165,8 @@ pub(crate) struct MaskSac {
     pub(crate) critic_opt: Adam,
     pub(crate) alpha_opt: Adam,
     cfg: MaskConfig,
+    /// How the batches' rows are laid out (where a choice's mask and reward are stored).
+    alignment: StepAlignment,
     /// The buffers of each shard's passes.
     work: Vec<Workspace>,
 }
@@ -178,12 +219,14 @@ impl MaskSac {
             q_target,
             log_alpha,
             cfg: m.clone(),
+            alignment: cfg.step_alignment,
             work: Vec::new(),
         })
     }
 
     /// One SAC step (critics, actor, temperature, targets) on the transitions of the batch `d`
-    /// and the masks stored with them. The critic and actor losses are means over the valid
+    /// and the masks stored with them, the learner's step `step` (the targets move when it is a
+    /// multiple of `target_every`). The critic and actor losses are means over the valid
     /// transitions; each of the `workers` shards of sequences sums its part (divided by the
     /// batch's count) and differentiates it in parallel, and the gradients are summed. A batch
     /// without valid transitions (all random prefill) takes no step.
@@ -191,11 +234,11 @@ impl MaskSac {
         &mut self,
         actor: &TanhGaussianActor,
         d: &SeqData,
-        workers: usize,
+        (step, workers): (u64, usize),
         rngs: &mut [ChaCha8Rng],
         metrics: &mut Metrics,
     ) -> Result<()> {
-        let Some(transitions) = Transitions::new(d)? else {
+        let Some(transitions) = Transitions::new(d, &self.cfg, self.alignment)? else {
             return Ok(());
         };
         let valid_count = f64::from(transitions.valid_count());
@@ -215,7 +258,8 @@ impl MaskSac {
             count: valid_count as f32,
         };
         let plain_actor = PlainMlp::new(actor.net())?;
-        let (grads, q_loss) = self.critic_grads(&plain_actor, data, workers, rngs)?;
+        let copy = PlainActor::new(&plain_actor, actor);
+        let (grads, q_loss) = self.critic_grads(copy, data, workers, rngs)?;
         self.critic_opt.step(&grads)?;
         let (grads, actor_loss, mean_logp) =
             self.actor_grads(actor, &plain_actor, data, workers, rngs)?;
@@ -226,7 +270,9 @@ impl MaskSac {
         let mut grads = GradStore::default();
         grads.insert(&self.log_alpha, Tensor::new(&[-gap], &Device::Cpu)?);
         self.alpha_opt.step(&grads)?;
-        polyak(&self.target_store, &self.critic_store, self.cfg.tau)?;
+        if step.is_multiple_of(self.cfg.target_every as u64) {
+            polyak(&self.target_store, &self.critic_store, self.cfg.tau)?;
+        }
 
         metrics.insert("mask/q_loss".into(), q_loss);
         metrics.insert("mask/actor_loss".into(), actor_loss);
@@ -268,11 +314,20 @@ impl MaskSac {
         Ok(sum)
     }
 
+    /// Where the critics see the actor's samples: the unit mask `(1 + tanh u) / 2`, or (the
+    /// paper's code) `tanh u` itself, the target's clamped to `[0, 1]`.
+    fn range(&self) -> ActionRange {
+        match self.cfg.mask_space {
+            MaskSpace::Unit => ActionRange::UNIT,
+            MaskSpace::PaperCode => ActionRange::SYMMETRIC,
+        }
+    }
+
     /// The critics' gradients of their loss over the valid transitions of `data` (the next masks
     /// drawn from `actor`, this actor's copy) and the loss.
     fn critic_grads(
         &mut self,
-        actor: &PlainMlp,
+        actor: PlainActor,
         data: StepData,
         workers: usize,
         rngs: &mut [ChaCha8Rng],
@@ -281,7 +336,9 @@ impl MaskSac {
         let soft = SoftTarget {
             alpha: data.alpha,
             gamma: self.cfg.gamma as f32,
-            range: ActionRange::UNIT,
+            range: self.range(),
+            bounds: [0.0, 1.0],
+            smoothing: &[],
         };
         let nets = (&critics, &targets, actor);
         let sum = self.on_transitions(data, workers, rngs, |w, tr, noise| {
@@ -303,9 +360,10 @@ impl MaskSac {
         rngs: &mut [ChaCha8Rng],
     ) -> Result<(GradStore, f64, f64)> {
         let critics = self.q.plain()?;
-        let with = (data.alpha, ActionRange::UNIT);
+        let with = (data.alpha, self.range());
+        let plain_actor = PlainActor::new(plain, actor);
         let sum = self.on_transitions(data, workers, rngs, |w, tr, noise| {
-            w.actor_pass((&critics, plain), (tr.obs, tr.weight), noise, with)
+            w.actor_pass((&critics, plain_actor), (tr.obs, tr.weight), noise, with)
         })?;
         let mut grads = GradStore::default();
         plain.add_grads_to(sum.grads, actor.net(), &mut grads)?;
@@ -316,7 +374,6 @@ impl MaskSac {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use ctxrace_common::policy::mask_sample;
     use ctxrace_common::SequenceBatch;
     use rand::{Rng, SeedableRng};
 
@@ -338,7 +395,9 @@ mod tests {
             has_mask: vec![0.0, 1.0, 0.0, 0.0],
         };
         let d = SeqData::new(&seq, 1, 1).unwrap();
-        let tr = Transitions::new(&d).unwrap().unwrap();
+        let tr = Transitions::new(&d, &MaskConfig::default(), StepAlignment::Ctxrace)
+            .unwrap()
+            .unwrap();
         assert_eq!(tr.obs, [0.0, 1.0, 2.0]);
         assert_eq!(tr.mask, [0.3, 0.4, 0.0, 0.0, 0.7, 0.8]);
         assert_eq!(tr.reward, [10.0, 20.0, 30.0]);
@@ -348,8 +407,127 @@ mod tests {
         assert_eq!(tr.valid, [1.0, 0.0, 0.0]);
     }
 
-    /// `(critic loss, actor loss)` of the module doc composed of candle operations over the
-    /// whole batch, autograd's statement of what the sharded passes differentiate by hand.
+    /// The paper's code's rows: `(o_t, m_t)` with the reward of step `t + 2`, no terminal
+    /// flags, and no transition whose delayed reward lies in the next episode.
+    #[test]
+    fn paper_code_transitions_take_the_next_reward_and_bootstrap_terminals() {
+        let seq = SequenceBatch {
+            batch: 1,
+            length: 5,
+            obs_dim: 1,
+            act_dim: 1,
+            obs: vec![0.0, 1.0, 2.0, 3.0, 4.0],
+            action: vec![0.0; 5],
+            reward: vec![0.0, 10.0, 20.0, 30.0, 40.0],
+            is_first: vec![1.0, 0.0, 0.0, 0.0, 1.0],
+            is_terminal: vec![0.0, 0.0, 0.0, 1.0, 0.0],
+            context: vec![0.0; 10],
+            mask: vec![0.0, 0.0, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.0, 0.0],
+            has_mask: vec![0.0, 1.0, 1.0, 1.0, 0.0],
+        };
+        let d = SeqData::new(&seq, 1, 1).unwrap();
+        let ours = Transitions::new(&d, &MaskConfig::default(), StepAlignment::Ctxrace)
+            .unwrap()
+            .unwrap();
+        assert_eq!(ours.reward, [10.0, 20.0, 30.0, 40.0]);
+        assert_eq!(ours.terminal, [0.0, 0.0, 1.0, 0.0]);
+        assert_eq!(ours.valid, [1.0, 1.0, 1.0, 0.0]);
+        let code = MaskConfig::default().with_paper_code_mask();
+        let tr = Transitions::new(&d, &code, StepAlignment::Ctxrace)
+            .unwrap()
+            .unwrap();
+        assert_eq!(tr.obs, [0.0, 1.0, 2.0]);
+        assert_eq!(tr.mask, [0.3, 0.4, 0.5, 0.6, 0.7, 0.8]);
+        assert_eq!(tr.reward, [20.0, 30.0, 40.0]);
+        assert_eq!(tr.next_obs, [1.0, 2.0, 3.0]);
+        assert_eq!(tr.terminal, [0.0, 0.0, 0.0]);
+        // o_4 starts a new episode: the last mask's delayed reward is not its own episode's
+        assert_eq!(tr.valid, [1.0, 1.0, 0.0]);
+        let short = SeqData::new(
+            &SequenceBatch {
+                length: 2,
+                obs: vec![0.0; 2],
+                action: vec![0.0; 2],
+                reward: vec![0.0; 2],
+                is_first: vec![1.0, 0.0],
+                is_terminal: vec![0.0; 2],
+                context: vec![0.0; 4],
+                mask: vec![0.0; 4],
+                has_mask: vec![0.0, 1.0],
+                ..seq
+            },
+            1,
+            1,
+        )
+        .unwrap();
+        assert!(Transitions::new(&short, &code, StepAlignment::Ctxrace)
+            .unwrap()
+            .is_none());
+    }
+
+    /// Under the paper code's rows `(o_t, a_t, r_{t+1})` (`step_alignment = "paper-code"`) the
+    /// choice at `o_t` is paired with the mask, reward and terminal flag of its own row, and its
+    /// reward `reward_delay` rows later; a transition into a row that starts an episode is out.
+    #[test]
+    fn paper_code_rows_pair_each_observation_with_its_own_rows_choice() {
+        let seq = SequenceBatch {
+            batch: 1,
+            length: 5,
+            obs_dim: 1,
+            act_dim: 1,
+            obs: vec![0.0, 1.0, 2.0, 3.0, 4.0],
+            action: vec![0.0; 5],
+            reward: vec![10.0, 20.0, 30.0, 40.0, 50.0],
+            is_first: vec![1.0, 0.0, 0.0, 0.0, 1.0],
+            is_terminal: vec![0.0, 0.0, 0.0, 1.0, 0.0],
+            context: vec![0.0; 10],
+            mask: vec![0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0],
+            has_mask: vec![1.0, 1.0, 0.0, 1.0, 1.0],
+        };
+        let d = SeqData::new(&seq, 1, 1).unwrap();
+        let own = Transitions::new(&d, &MaskConfig::default(), StepAlignment::PaperCode)
+            .unwrap()
+            .unwrap();
+        assert_eq!(own.obs, [0.0, 1.0, 2.0, 3.0]);
+        assert_eq!(own.mask, [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8]);
+        assert_eq!(own.reward, [10.0, 20.0, 30.0, 40.0]);
+        assert_eq!(own.next_obs, [1.0, 2.0, 3.0, 4.0]);
+        assert_eq!(own.terminal, [0.0, 0.0, 0.0, 1.0]);
+        // no mask chose at o_2; o_4 starts the next episode
+        assert_eq!(own.valid, [1.0, 1.0, 0.0, 0.0]);
+        let late = MaskConfig {
+            reward_delay: 1,
+            ..MaskConfig::default()
+        };
+        let tr = Transitions::new(&d, &late, StepAlignment::PaperCode)
+            .unwrap()
+            .unwrap();
+        assert_eq!(tr.mask, [0.1, 0.2, 0.3, 0.4, 0.5, 0.6]);
+        assert_eq!(tr.reward, [20.0, 30.0, 40.0]);
+        assert_eq!(tr.valid, [1.0, 1.0, 0.0]);
+    }
+
+    /// The critics' input for the actor's sample `a = tanh u` with `log π(a)` under `cfg`, and
+    /// `log π` of that input: the unit mask `(1 + a)/2` (its density), or the paper's code's
+    /// `a` itself (the target's clamped to `[0, 1]` by `bound`).
+    fn critic_input(
+        cfg: &MaskConfig,
+        (a, log_prob): (Tensor, Tensor),
+        bound: bool,
+    ) -> Result<(Tensor, Tensor)> {
+        match cfg.mask_space {
+            MaskSpace::Unit => Ok((
+                a.affine(0.5, 0.5)?,
+                (log_prob + CONTEXT_DIM as f64 * std::f64::consts::LN_2)?,
+            )),
+            MaskSpace::PaperCode if bound => Ok((a.clamp(0f32, 1f32)?, log_prob)),
+            MaskSpace::PaperCode => Ok((a, log_prob)),
+        }
+    }
+
+    /// `(critic loss, actor loss)` of the module doc (in the form `sac.cfg` selects) composed of
+    /// candle operations over the whole batch, autograd's statement of what the sharded passes
+    /// differentiate by hand.
     fn candle_losses(
         sac: &MaskSac,
         actor: &TanhGaussianActor,
@@ -357,31 +535,46 @@ mod tests {
         (next_noise, noise): (&[f32], &[f32]),
         alpha: f64,
     ) -> Result<(Tensor, Tensor)> {
-        let (b, t) = (d.batch, d.length);
-        let n = b * (t - 1);
-        let span = |x: &Tensor, start: usize| x.narrow(1, start, t - 1)?.reshape((n, ()));
-        let (obs, next_obs, mask) = (span(&d.obs, 0)?, span(&d.obs, 1)?, span(&d.mask, 1)?);
-        let reward = span(&d.reward, 1)?.flatten_all()?;
-        let terminal = span(&d.terminal, 1)?.flatten_all()?;
-        let valid = Transitions::valid(d, 0..b)?;
+        let cfg = &sac.cfg;
+        let (b, per) = (d.batch, d.length - 1 - cfg.reward_delay);
+        let n = b * per;
+        let span = |x: &Tensor, start: usize| x.narrow(1, start, per)?.reshape((n, ()));
+        let row = choice_row(sac.alignment);
+        let (obs, next_obs, mask) = (span(&d.obs, 0)?, span(&d.obs, 1)?, span(&d.mask, row)?);
+        let reward = span(&d.reward, row + cfg.reward_delay)?.flatten_all()?;
+        let terminal = span(&d.terminal, row)?.flatten_all()?;
+        let terminal = (terminal * f64::from(u8::from(!cfg.bootstrap_terminals)))?;
+        let valid = Transitions::valid(d, 0..b, cfg.reward_delay, row)?;
         let count = valid.sum_all()?;
         let mean = |x: &Tensor| x.mul(&valid)?.sum_all()?.div(&count);
         let noise_of = |v: &[f32]| Tensor::from_slice(v, (n, CONTEXT_DIM), &Device::Cpu);
-        let (next_m, next_logp) = mask_sample(actor, &next_obs, &noise_of(next_noise)?)?;
+        let next = actor.sample(&next_obs, &noise_of(next_noise)?)?;
+        let (next_m, next_logp) = critic_input(cfg, next, true)?;
         let soft = (sac.q_target.min(&next_obs, &next_m)? - (next_logp * alpha)?)?;
-        let keep = ((1.0 - terminal)? * sac.cfg.gamma)?;
+        let keep = ((1.0 - terminal)? * cfg.gamma)?;
         let y = (reward + keep.mul(&soft)?)?.detach();
         let (q1, q2) = sac.q.forward(&obs, &mask)?;
         let critic = mean(&((q1 - &y)?.sqr()? + (q2 - &y)?.sqr()?)?)?;
-        let (m, logp) = mask_sample(actor, &obs, &noise_of(noise)?)?;
+        let sample = actor.sample(&obs, &noise_of(noise)?)?;
+        let (m, logp) = critic_input(cfg, sample, false)?;
         let actor_loss = mean(&((logp * alpha)? - sac.q.min(&obs, &m)?)?)?;
         Ok((critic, actor_loss))
     }
 
     /// The sharded, hand-differentiated critic and actor gradients are those of the candle
-    /// composition over the whole batch, whatever the number of shards.
+    /// composition over the whole batch, whatever the number of shards, in ctxrace's form and
+    /// in the paper's code's.
     #[test]
     fn the_step_differentiates_the_candle_composition() {
+        let small = MaskConfig {
+            units: 16,
+            ..MaskConfig::default()
+        };
+        the_step_differentiates_the_candle_composition_of(small.clone());
+        the_step_differentiates_the_candle_composition_of(small.with_paper_code_mask());
+    }
+
+    fn the_step_differentiates_the_candle_composition_of(mask: MaskConfig) {
         let (b, t, o) = (4, 6, 3);
         let mut rng = ChaCha8Rng::seed_from_u64(8);
         let mut u = |lo: f32, hi: f32| rng.random_range(lo..hi);
@@ -407,15 +600,13 @@ mod tests {
         };
         let d = SeqData::new(&seq, o, 1).unwrap();
         let cfg = DreamerConfig {
-            mask: MaskConfig {
-                units: 16,
-                ..MaskConfig::default()
-            },
+            mask,
             ..DreamerConfig::default()
         };
         let policy = ParamStore::new();
-        let actor =
-            TanhGaussianActor::new(o, CONTEXT_DIM, 16, 2, policy.builder().pp("mask")).unwrap();
+        let actor = TanhGaussianActor::new(o, CONTEXT_DIM, 16, 2, policy.builder().pp("mask"))
+            .unwrap()
+            .with_log_std_clamp(cfg.mask.log_std_clamp);
         policy.init(5).unwrap();
         let mut sac = MaskSac::new(&cfg, o, &policy).unwrap();
         let streams = |seed: u64| -> Vec<ChaCha8Rng> {
@@ -429,17 +620,20 @@ mod tests {
         };
         // critics and targets apart, so that the target path weighs
         for k in 0..3 {
-            sac.step(&actor, &d, 2, &mut streams(k), &mut Metrics::new())
+            sac.step(&actor, &d, (k, 2), &mut streams(k), &mut Metrics::new())
                 .unwrap();
         }
         let alpha = 0.25;
         let mut draws = streams(99);
-        let next_noise = normal_rows(&mut draws, t - 1, CONTEXT_DIM);
-        let noise = normal_rows(&mut draws, t - 1, CONTEXT_DIM);
+        let per = t - 1 - cfg.mask.reward_delay;
+        let next_noise = normal_rows(&mut draws, per, CONTEXT_DIM);
+        let noise = normal_rows(&mut draws, per, CONTEXT_DIM);
         let (critic, actor_loss) =
             candle_losses(&sac, &actor, &d, (&next_noise, &noise), alpha).unwrap();
         let (want_c, want_a) = (critic.backward().unwrap(), actor_loss.backward().unwrap());
-        let transitions = Transitions::new(&d).unwrap().unwrap();
+        let transitions = Transitions::new(&d, &cfg.mask, cfg.step_alignment)
+            .unwrap()
+            .unwrap();
         let data = StepData {
             transitions: &transitions,
             alpha: alpha as f32,
@@ -448,7 +642,8 @@ mod tests {
         let plain = PlainMlp::new(actor.net()).unwrap();
         for workers in [1, 2, 4] {
             let mut rngs = streams(99);
-            let (got_c, loss_c) = sac.critic_grads(&plain, data, workers, &mut rngs).unwrap();
+            let copy = PlainActor::new(&plain, &actor);
+            let (got_c, loss_c) = sac.critic_grads(copy, data, workers, &mut rngs).unwrap();
             let (got_a, loss_a, _) = sac
                 .actor_grads(&actor, &plain, data, workers, &mut rngs)
                 .unwrap();

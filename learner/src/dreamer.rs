@@ -27,10 +27,12 @@
 //! critics learn from the mask stored with each step, the one that acted). The world model and
 //! imagination use one fresh (stop-gradient) mask per `o_t`, as the paper's code does. Three deliberate departures from the paper's code:
 //! 1. `m = (tanh u + 1)/2`, which reaches 0 and 1 (the code's `sigmoid(tanh u)` stays in
-//!    `[0.27, 0.73]`, so it can neither mask nor pass the context fully);
-//! 2. the SAC transition takes the reward of that transition (the code paired `o_t` with `r_t`,
-//!    one step off); transitions into a new episode, and those whose action no mask chose
-//!    (random prefill steps), are dropped;
+//!    `[0.27, 0.73]`, so it can neither mask nor pass the context fully; `[agent.dreamer.mask]
+//!    mask_space = "paper-code"` restores it);
+//! 2. the SAC transition takes the reward of that transition (the code paired `(o_t, m_t)` with
+//!    `r_{t+2}`, one step late: `reward_delay = 1`); transitions into a new episode, and those
+//!    whose action no mask chose (random prefill steps), are dropped (the mask SAC's other
+//!    paper-code keys: [`crate::cmask`]);
 //! 3. imagination carries the *masked* context of each start state (the code used the unmasked one).
 //!
 //! **Parameters.** Four [`ParamStore`]s: "policy" (`encoder`, `rssm`, `actor` and, for cMask, the
@@ -201,7 +203,7 @@ impl Dreamer {
             return Ok(None);
         };
         let noise = normals_per(rngs, d.length, CONTEXT_DIM)?;
-        let (m, _) = mask_sample(actor, &d.flat(&d.obs)?, &noise)?;
+        let (m, _) = mask_sample(actor, &d.flat(&d.obs)?, &noise, self.nets.mask_space)?;
         Ok(Some(m.detach()))
     }
 
@@ -362,7 +364,13 @@ impl Algorithm for Dreamer {
         if let (Some(sac), Some(actor), Some(masks)) = (&mut self.mask_sac, &self.nets.mask, &masks)
         {
             metrics.insert("mask/mean".into(), scalar(&masks.mean_all()?)?);
-            sac.step(actor, &d, self.workers, &mut rngs, &mut metrics)?;
+            sac.step(
+                actor,
+                &d,
+                (self.step, self.workers),
+                &mut rngs,
+                &mut metrics,
+            )?;
             phase_flops(&mut metrics, "mask");
         }
         self.step += 1;
@@ -413,11 +421,11 @@ impl Algorithm for Dreamer {
 mod tests {
     use super::*;
     use candle_core::{DType, Device, Module};
-    use ctxrace_common::agents::{ImaginationLoss, MaskConfig};
+    use ctxrace_common::agents::{ImaginationLoss, MaskConfig, MaskSpace};
     use ctxrace_common::nn::kernels::soft_cross_entropy;
     use ctxrace_common::nn::RssmState;
-    use ctxrace_common::policy::normals;
     use ctxrace_common::policy::uniforms_per;
+    use ctxrace_common::policy::{mask_of, normals};
     use ctxrace_common::SequenceBatch;
     use rand::Rng;
 
@@ -517,16 +525,20 @@ mod tests {
     /// `(1, 0)` is the best mask. Each step acts with the current mask actor on a fresh batch of
     /// 8 × 16 steps and takes one SAC step on it, its critics fitted on the acting masks or, with
     /// `fresh_masks`, on masks drawn anew for every `o_t` (ctxrace before it stored the masks).
-    /// Returns the critics' `Q(o, (1, 0)) − Q(o, (0, 1))` and the mask actor's mode, both
-    /// averaged over 64 observations.
-    fn mask_bandit(fresh_masks: bool) -> (f64, [f64; 2]) {
+    /// The mask SAC's form is `form` applied to the bandit's learning rates. Returns the
+    /// critics' `Q(o, best) − Q(o, worst)` for the best and worst masks the form can act with
+    /// (`(1, 0)` and `(0, 1)`; `(σ(1), σ(−1))` and `(σ(−1), σ(1))` for the paper's code's
+    /// `sigmoid(tanh u)`) and the mask actor's mode, both averaged over 64 observations.
+    fn mask_bandit(fresh_masks: bool, form: MaskForm) -> (f64, [f64; 2]) {
+        let mask = form(MaskConfig {
+            units: 32,
+            lr: 3e-3,
+            gamma: 0.9,
+            ..MaskConfig::default()
+        });
+        let space = mask.mask_space;
         let cfg = DreamerConfig {
-            mask: MaskConfig {
-                units: 32,
-                lr: 3e-3,
-                gamma: 0.9,
-                ..MaskConfig::default()
-            },
+            mask,
             ..tiny(ContextMode::Cmask)
         };
         let mut agent = Dreamer::new(cfg, 2, 2).unwrap();
@@ -540,13 +552,13 @@ mod tests {
                 .collect();
             let o = Tensor::from_slice(&obs, (b * t, 2), dev).unwrap();
             let mut noise = ChaCha8Rng::seed_from_u64(1000 + step);
-            let acted = mask_sample(actor, &o, &normals(&mut noise, (b * t, 2)).unwrap())
+            let acted = mask_sample(actor, &o, &normals(&mut noise, (b * t, 2)).unwrap(), space)
                 .unwrap()
                 .0
                 .to_vec2::<f32>()
                 .unwrap();
             let stored = if fresh_masks {
-                mask_sample(actor, &o, &normals(&mut noise, (b * t, 2)).unwrap())
+                mask_sample(actor, &o, &normals(&mut noise, (b * t, 2)).unwrap(), space)
                     .unwrap()
                     .0
                     .to_vec2::<f32>()
@@ -591,7 +603,8 @@ mod tests {
                 agent.mask_sac.as_mut().unwrap(),
                 agent.nets.mask.as_ref().unwrap(),
             );
-            sac.step(actor, &d, 1, &mut rngs, &mut m).unwrap();
+            sac.step(actor, &d, (agent.step, 1), &mut rngs, &mut m)
+                .unwrap();
             agent.step += 1;
         }
         let probe: Vec<f32> = (0..128).map(|_| rng.random_range(-1.0..1.0)).collect();
@@ -601,32 +614,128 @@ mod tests {
             let masks = Tensor::from_slice(&m.repeat(64), (64, 2), dev).unwrap();
             scalar(&sac.q.min(&o, &masks).unwrap().mean_all().unwrap()).unwrap()
         };
-        let gap = q_of([1.0, 0.0]) - q_of([0.0, 1.0]);
+        let (hi, lo) = match space {
+            MaskSpace::Unit => (1.0, 0.0),
+            MaskSpace::PaperCode => (sigmoid(1.0), sigmoid(-1.0)),
+        };
+        let gap = q_of([hi, lo]) - q_of([lo, hi]);
         let mode = agent.nets.mask.as_ref().unwrap().mean_action(&o).unwrap();
-        let mode: Vec<f32> = mode
-            .affine(0.5, 0.5)
+        let mode: Vec<f32> = mask_of(&mode, space)
             .unwrap()
             .mean(0)
             .unwrap()
             .to_vec1()
             .unwrap();
         eprintln!(
-            "mask bandit (fresh masks: {fresh_masks}): Q gap {gap:.3}, mode ({:.3}, {:.3})",
+            "mask bandit ({space:?}, fresh masks: {fresh_masks}): Q gap {gap:.3}, \
+             mode ({:.3}, {:.3})",
             mode[0], mode[1]
         );
         (gap, [mode[0] as f64, mode[1] as f64])
     }
 
+    /// `σ(x)`.
+    fn sigmoid(x: f32) -> f32 {
+        1.0 / (1.0 + (-x).exp())
+    }
+
     #[test]
     fn the_mask_critic_learns_from_the_mask_that_acted() {
         // the best and worst masks differ by 2 in reward; the actor starts at the mode (½, ½)
-        let (gap, mode) = mask_bandit(false);
+        let (gap, mode) = mask_bandit(false, |m| m);
         assert!(gap > 1.0, "Q gap {gap}");
         assert!(mode[0] > 0.7 && mode[1] < 0.3, "mode {mode:?}");
         // a critic fitted on freshly drawn masks cannot tell them apart: the actor stays put
-        let (gap, mode) = mask_bandit(true);
+        let (gap, mode) = mask_bandit(true, |m| m);
         assert!(gap.abs() < 0.5, "fresh-mask Q gap {gap}");
         assert!((mode[0] - 0.5).abs() < 0.15, "fresh-mask mode {mode:?}");
+    }
+
+    /// Whether the bandit's critics tell the best reachable mask from the worst and the actor's
+    /// mode moved towards the best (from `(½, ½)`): `Some(true)` learnt, `Some(false)` stayed
+    /// put, `None` neither clearly.
+    fn learnt((gap, mode): (f64, [f64; 2])) -> Option<bool> {
+        if gap > 0.3 && mode[0] > 0.6 && mode[1] < 0.4 {
+            Some(true)
+        } else if gap.abs() < 0.3 && mode.iter().all(|m| (m - 0.5).abs() < 0.1) {
+            Some(false)
+        } else {
+            None
+        }
+    }
+
+    /// The paper's code's mask SAC, reward pairing aside, learns the bandit within the masks it
+    /// can act with, `sigmoid(tanh u) ∈ (0.27, 0.73)`: its critics, fitted there, are evaluated
+    /// by the actor's loss at `tanh u ∈ (−1, 1)`, where they extrapolate the right slope
+    /// (the best reachable mask `(0.73, 0.27)` earns 0.92 more than the worst; Q gap 0.57,
+    /// mode (0.67, 0.33) here). With the code's reward pairing it cannot: `m_t` is paired with
+    /// `r_{t+2}`, the next mask's reward, which the bandit draws independently of `m_t` (on a
+    /// race track, where rewards persist from step to step, it carries some signal).
+    #[test]
+    fn the_paper_codes_mask_sac_learns_the_bandit_only_without_its_late_reward() {
+        let on_time = mask_bandit(false, |m| MaskConfig {
+            reward_delay: 0,
+            ..m.with_paper_code_mask()
+        });
+        assert_eq!(learnt(on_time), Some(true), "{on_time:?}");
+        let coded = mask_bandit(false, MaskConfig::with_paper_code_mask);
+        assert_eq!(learnt(coded), Some(false), "{coded:?}");
+    }
+
+    /// A change to the bandit's mask SAC configuration.
+    type MaskForm = fn(MaskConfig) -> MaskConfig;
+
+    /// Each paper-code key alone on ctxrace's mask SAC: only the late reward stops it from
+    /// learning the bandit (the bandit has no terminals, so `bootstrap_terminals` changes
+    /// nothing there; its effect is `paper_code_transitions_take_the_next_reward_and_bootstrap_terminals`).
+    #[test]
+    fn each_paper_code_mask_key_alone_on_the_bandit() {
+        let forms: [(&str, MaskForm, bool); 5] = [
+            (
+                "mask_space",
+                |m| MaskConfig {
+                    mask_space: MaskSpace::PaperCode,
+                    ..m
+                },
+                true,
+            ),
+            (
+                "bootstrap_terminals",
+                |m| MaskConfig {
+                    bootstrap_terminals: true,
+                    ..m
+                },
+                true,
+            ),
+            (
+                "target_every",
+                |m| MaskConfig {
+                    target_every: 2,
+                    ..m
+                },
+                true,
+            ),
+            (
+                "log_std_clamp",
+                |m| MaskConfig {
+                    log_std_clamp: [-20.0, 2.0],
+                    ..m
+                },
+                true,
+            ),
+            (
+                "reward_delay",
+                |m| MaskConfig {
+                    reward_delay: 1,
+                    ..m
+                },
+                false,
+            ),
+        ];
+        for (key, form, learns) in forms {
+            let result = mask_bandit(false, form);
+            assert_eq!(learnt(result), Some(learns), "{key}: {result:?}");
+        }
     }
 
     #[test]

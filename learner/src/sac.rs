@@ -19,6 +19,13 @@
 //! entropy, `−|A|` unless configured: `L_α` lowers `α` while the policy's entropy `−log π` is above
 //! `H̄` and raises it while below.
 //!
+//! The paper's code's variants are keys of [`SacConfig`] (`with_paper_code_sac` sets them all):
+//! `target_noise` adds TD3's clipped smoothing noise to `a'` (`a' ← clip(a' + clip(σ ε, ±c),
+//! −1, 1)`, `log π(a' | o')` of the sample before the noise), `target_every = 2` updates the
+//! targets on every second step only (steps 0, 2, 4, …), `log_std_clamp` bounds the actor's
+//! `log σ`; `reward_delay` is the replay's ([`ctxrace_common::BatchSpec`]) and `explore_noise`
+//! and `reset_frame_stack` the acting policy's ([`SacPolicy`]).
+//!
 //! Noise is drawn from ChaCha8 seeded with the configured seed on stream `step`, so a step's noise
 //! depends only on the seed and the step counter, and survives [`Algorithm::save`] / [`Algorithm::load`].
 //!
@@ -179,7 +186,8 @@ impl Sac {
             cfg.hidden,
             cfg.layers,
             actor_params.builder(),
-        )?;
+        )?
+        .with_log_std_clamp(cfg.log_std_clamp);
         actor_params.init(cfg.seed)?;
         let critic_params = ParamStore::new();
         let critic = TwinQ::new(
@@ -254,6 +262,28 @@ impl Sac {
             .collect()
     }
 
+    /// The target's smoothing noise `[rows, A]` from `rng`: `N(0, target_noise²)` clipped to
+    /// `±target_noise_clip`; none (empty, nothing drawn) when `target_noise` is 0.
+    fn smoothing_noise(&self, rows: usize, rng: &mut impl Rng) -> Vec<f32> {
+        if self.cfg.target_noise == 0.0 {
+            return Vec::new();
+        }
+        let (std, clip) = (
+            self.cfg.target_noise as f32,
+            self.cfg.target_noise_clip as f32,
+        );
+        let mut noise = self.noise(rows, rng);
+        noise
+            .iter_mut()
+            .for_each(|n| *n = (*n * std).clamp(-clip, clip));
+        noise
+    }
+
+    /// The actor's plain copy `net` with its log-std bounds.
+    fn plain_actor<'a>(&self, net: &'a PlainMlp) -> PlainActor<'a> {
+        PlainActor::new(net, &self.actor)
+    }
+
     /// `batch` as weighted rows: every transition carries `1/B` of the losses' means.
     fn weighted<'a>(batch: &'a TransitionBatch, weight: &'a [f32]) -> WeightedTransitions<'a> {
         WeightedTransitions {
@@ -266,12 +296,13 @@ impl Sac {
         }
     }
 
-    /// The critics' gradients of `L_Q` on `batch` with the next actions' noise `noise`, the
-    /// temperature `alpha` and `actor` (this actor's copy): `(gradients, L_Q, mean Q)`.
+    /// The critics' gradients of `L_Q` on `batch` with the next actions' noise `noise` and
+    /// their smoothing noise `smoothing` (empty for none), the temperature `alpha` and `actor`
+    /// (this actor's copy): `(gradients, L_Q, mean Q)`.
     fn critic_grads(
         &mut self,
         batch: &TransitionBatch,
-        noise: &[f32],
+        (noise, smoothing): (&[f32], &[f32]),
         (alpha, actor): (f32, &PlainMlp),
     ) -> Result<(GradStore, f64, f64)> {
         let b = batch.batch;
@@ -281,9 +312,11 @@ impl Sac {
             alpha,
             gamma: self.cfg.gamma as f32,
             range: ActionRange::SYMMETRIC,
+            bounds: [-1.0, 1.0],
+            smoothing,
         };
         let pass = self.work.critic_pass(
-            (&critics, &targets, actor),
+            (&critics, &targets, self.plain_actor(actor)),
             &Self::weighted(batch, &weight),
             noise,
             soft,
@@ -306,7 +339,7 @@ impl Sac {
         let critics = self.critic.plain()?;
         let range = ActionRange::SYMMETRIC;
         let pass = self.work.actor_pass(
-            (&critics, actor),
+            (&critics, self.plain_actor(actor)),
             (&batch.obs, &weight),
             noise,
             (alpha, range),
@@ -327,8 +360,10 @@ impl Sac {
         // the actor is the same in both passes (it steps after them)
         let actor = PlainMlp::new(self.actor.net())?;
         let next_noise = self.noise(b, &mut rng);
+        let smoothing = self.smoothing_noise(b, &mut rng);
         let with = (alpha as f32, &actor);
-        let (grads, critic_loss, q_mean) = self.critic_grads(batch, &next_noise, with)?;
+        let (grads, critic_loss, q_mean) =
+            self.critic_grads(batch, (&next_noise, &smoothing), with)?;
         self.critic_opt.step(&grads)?;
         let noise = self.noise(b, &mut rng);
         let (grads, actor_loss, mean_logp) = self.actor_grads(batch, &noise, with)?;
@@ -338,7 +373,9 @@ impl Sac {
         let gap = (mean_logp + self.target_entropy) as f32;
         grads.insert(&self.log_alpha, Tensor::new(&[-gap], &Device::Cpu)?);
         self.alpha_opt.step(&grads)?;
-        polyak(&self.target_params, &self.critic_params, self.cfg.tau)?;
+        if self.step.is_multiple_of(self.cfg.target_every as u64) {
+            polyak(&self.target_params, &self.critic_params, self.cfg.tau)?;
+        }
         self.step += 1;
         Ok(Metrics::from([
             ("critic_loss".to_string(), critic_loss),
@@ -383,12 +420,37 @@ impl ActionRange {
     };
 }
 
-/// What the soft target `y` is made of: the temperature, the discount and the actions' range.
+/// What the soft target `y` is made of: the temperature, the discount, the next actions' range,
+/// the bounds they are clamped to after the smoothing noise, and that noise.
 #[derive(Clone, Copy)]
-pub(crate) struct SoftTarget {
+pub(crate) struct SoftTarget<'a> {
     pub(crate) alpha: f32,
     pub(crate) gamma: f32,
     pub(crate) range: ActionRange,
+    /// `[lower, upper]` of the next actions the target critics see (no-op bounds of `range`,
+    /// or cMask's paper-code `[0, 1]` on `tanh u`).
+    pub(crate) bounds: [f32; 2],
+    /// Clipped noise `[B, A]` added to the next actions before the clamp (TD3's smoothing);
+    /// empty for none.
+    pub(crate) smoothing: &'a [f32],
+}
+
+/// An actor's plain copy with the bounds of its log standard deviation.
+#[derive(Clone, Copy)]
+pub(crate) struct PlainActor<'a> {
+    pub(crate) net: &'a PlainMlp,
+    pub(crate) log_std_clamp: [f32; 2],
+}
+
+impl<'a> PlainActor<'a> {
+    /// `net`, a plain copy of `actor`'s network, with `actor`'s log-std bounds.
+    pub(crate) fn new(net: &'a PlainMlp, actor: &TanhGaussianActor) -> Self {
+        let [lo, hi] = actor.log_std_clamp();
+        Self {
+            net,
+            log_std_clamp: [lo as f32, hi as f32],
+        }
+    }
 }
 
 /// The critics' side of a pass: their gradients, `L_Q` and the sum of `Q_1` and `Q_2` over the
@@ -444,16 +506,21 @@ pub(crate) struct Workspace {
 
 impl Workspace {
     /// The critics' gradients of `L_Q = Σ_i w_i Σ_k (Q_k(o_i, a_i) − y_i)²` with
-    /// `y = r + γ (1 − d) (min_k Q̄_k(o', a') − α log π(a' | o'))`, `a'` drawn with `noise`.
+    /// `y = r + γ (1 − d) (min_k Q̄_k(o', a') − α log π(a' | o'))`, `a'` drawn with `noise`,
+    /// the smoothing noise added and clamped to the target's bounds.
     pub(crate) fn critic_pass(
         &mut self,
-        (critics, targets, actor): (&[PlainMlp; 2], &[PlainMlp; 2], &PlainMlp),
+        (critics, targets, actor): (&[PlainMlp; 2], &[PlainMlp; 2], PlainActor),
         tr: &WeightedTransitions,
         noise: &[f32],
         soft: SoftTarget,
     ) -> CriticPass {
         let b = tr.weight.len();
-        let (next_action, next_logp) = self.sample(actor, tr.next_obs, noise, soft.range);
+        let (mut next_action, next_logp) = self.sample(actor, tr.next_obs, noise, soft.range);
+        for (k, a) in next_action.iter_mut().enumerate() {
+            let smoothed = *a + soft.smoothing.get(k).copied().unwrap_or(0.0);
+            *a = smoothed.clamp(soft.bounds[0], soft.bounds[1]);
+        }
         self.join(tr.next_obs, &next_action, b);
         let target_q =
             [(&targets[0], &mut self.q1), (&targets[1], &mut self.q2)].map(|(q, trace)| {
@@ -491,13 +558,13 @@ impl Workspace {
     /// through `critics`, `ã` drawn with `noise`; the observations `obs` and weights `w`.
     pub(crate) fn actor_pass(
         &mut self,
-        (critics, actor): (&[PlainMlp; 2], &PlainMlp),
+        (critics, actor): (&[PlainMlp; 2], PlainActor),
         (obs, weight): (&[f32], &[f32]),
         noise: &[f32],
         (alpha, range): (f32, ActionRange),
     ) -> ActorPass {
         let b = weight.len();
-        let a = actor.outputs() / 2;
+        let a = actor.net.outputs() / 2;
         let (action, logp) = self.sample(actor, obs, noise, range);
         self.join(obs, &action, b);
         let values =
@@ -529,10 +596,13 @@ impl Workspace {
         d_action.iter_mut().for_each(|d| *d *= range.scale);
         let d_logp: Vec<f32> = weight.iter().map(|w| alpha * w).collect();
         let mut d_out = vec![0f32; b * 2 * a];
-        let out = actor.output(&self.actor, 0..b);
-        squash_rows_backward(out, noise, &self.tanh, (&d_action, &d_logp), &mut d_out);
-        let mut grads = actor.zero_grads();
-        actor.backward(obs, &mut self.actor, 0..b, &d_out, Some(&mut grads), None);
+        let out = actor.net.output(&self.actor, 0..b);
+        let with = (noise, actor.log_std_clamp);
+        squash_rows_backward(out, with, &self.tanh, (&d_action, &d_logp), &mut d_out);
+        let mut grads = actor.net.zero_grads();
+        actor
+            .net
+            .backward(obs, &mut self.actor, 0..b, &d_out, Some(&mut grads), None);
         ActorPass {
             grads,
             loss,
@@ -544,19 +614,19 @@ impl Workspace {
     /// log-probabilities (the outputs kept in the actor's trace, `tanh u` in `self.tanh`).
     fn sample(
         &mut self,
-        actor: &PlainMlp,
+        actor: PlainActor,
         obs: &[f32],
         noise: &[f32],
         range: ActionRange,
     ) -> (Vec<f32>, Vec<f32>) {
-        let a = actor.outputs() / 2;
+        let a = actor.net.outputs() / 2;
         let b = noise.len() / a.max(1);
-        actor.fit(&mut self.actor, b);
-        actor.forward(obs, &mut self.actor, 0..b);
+        actor.net.fit(&mut self.actor, b);
+        actor.net.forward(obs, &mut self.actor, 0..b);
         self.tanh.resize(b * a, 0.0);
         let mut logp = vec![0f32; b];
-        let out = actor.output(&self.actor, 0..b);
-        squash_rows(out, noise, &mut self.tanh, &mut logp);
+        let out = actor.net.output(&self.actor, 0..b);
+        squash_rows(out, noise, actor.log_std_clamp, &mut self.tanh, &mut logp);
         let action = self.tanh.iter().map(|t| range.scale * t + range.shift);
         let shift = a as f32 * range.scale.ln();
         logp.iter_mut().for_each(|l| *l -= shift);
@@ -660,11 +730,12 @@ mod tests {
     }
 
     /// `(L_Q, L_π)` of the module doc composed of candle operations, autograd's statement of
-    /// what [`Sac::critic_grads`] and [`Sac::actor_grads`] differentiate by hand.
+    /// what [`Sac::critic_grads`] and [`Sac::actor_grads`] differentiate by hand; `smoothing`
+    /// is the target's clipped noise (empty for none).
     fn candle_losses(
         sac: &Sac,
         batch: &TransitionBatch,
-        (next_noise, noise): (&[f32], &[f32]),
+        (next_noise, smoothing, noise): (&[f32], &[f32], &[f32]),
         alpha: f64,
     ) -> (Tensor, Tensor) {
         let (b, o, a) = (batch.batch, sac.obs_dim, sac.act_dim);
@@ -673,7 +744,13 @@ mod tests {
         let (obs, next_obs) = (t(&batch.obs, o), t(&batch.next_obs, o));
         let reward = Tensor::from_slice(&batch.reward, b, dev).unwrap();
         let not_done = (1.0 - Tensor::from_slice(&batch.terminal, b, dev).unwrap()).unwrap();
-        let (next_action, next_logp) = sac.actor.sample(&next_obs, &t(next_noise, a)).unwrap();
+        let (mut next_action, next_logp) = sac.actor.sample(&next_obs, &t(next_noise, a)).unwrap();
+        if !smoothing.is_empty() {
+            next_action = (next_action + t(smoothing, a))
+                .unwrap()
+                .clamp(-1f32, 1f32)
+                .unwrap();
+        }
         let soft = (sac.target.min(&next_obs, &next_action).unwrap()
             - (next_logp * alpha).unwrap())
         .unwrap();
@@ -692,24 +769,42 @@ mod tests {
         (critic, actor)
     }
 
-    /// The hand-differentiated critic and actor gradients are those of the candle composition.
+    /// The hand-differentiated critic and actor gradients are those of the candle composition,
+    /// in ctxrace's form and in the paper's code's (target smoothing noise, `log σ` in
+    /// `[−20, 2]`, the targets moved every second step).
     #[test]
     fn the_update_differentiates_the_candle_composition() {
+        the_update_differentiates_the_candle_composition_of(SacConfig::default());
+        the_update_differentiates_the_candle_composition_of(
+            SacConfig::default().with_paper_code_sac(),
+        );
+    }
+
+    fn the_update_differentiates_the_candle_composition_of(cfg: SacConfig) {
         let mut rng = ChaCha8Rng::seed_from_u64(4);
-        let mut sac = Sac::new(6, 2, SacConfig::default()).unwrap();
+        let mut sac = Sac::new(6, 2, cfg).unwrap();
         // critics and targets apart, so that the target path weighs
         for _ in 0..3 {
             sac.train_step(&Batch::Transition(random_batch(16, 6, 2, &mut rng)))
                 .unwrap();
         }
         let batch = random_batch(16, 6, 2, &mut rng);
-        let (next_noise, noise) = (sac.noise(16, &mut rng), sac.noise(16, &mut rng));
+        let next_noise = sac.noise(16, &mut rng);
+        let smoothing = sac.smoothing_noise(16, &mut rng);
+        let noise = sac.noise(16, &mut rng);
         let alpha = 0.7;
-        let (critic, actor) = candle_losses(&sac, &batch, (&next_noise, &noise), alpha);
+        let noises = (
+            next_noise.as_slice(),
+            smoothing.as_slice(),
+            noise.as_slice(),
+        );
+        let (critic, actor) = candle_losses(&sac, &batch, noises, alpha);
         let (want_c, want_a) = (critic.backward().unwrap(), actor.backward().unwrap());
         let actor_copy = PlainMlp::new(sac.actor.net()).unwrap();
         let with = (alpha as f32, &actor_copy);
-        let (got_c, loss_c, _) = sac.critic_grads(&batch, &next_noise, with).unwrap();
+        let (got_c, loss_c, _) = sac
+            .critic_grads(&batch, (&next_noise, &smoothing), with)
+            .unwrap();
         let (got_a, loss_a, _) = sac.actor_grads(&batch, &noise, with).unwrap();
         let scalar = |t: &Tensor| t.to_scalar::<f32>().unwrap() as f64;
         assert!((loss_c - scalar(&critic)).abs() < 1e-5 * (1.0 + loss_c.abs()));
@@ -774,9 +869,16 @@ mod tests {
 
     #[test]
     fn polyak_update_blends_the_targets_towards_the_critics() {
+        polyak_update_blends_the_targets_every(1);
+        // the paper's code: on steps 0, 2, 4, … only
+        polyak_update_blends_the_targets_every(2);
+    }
+
+    fn polyak_update_blends_the_targets_every(target_every: usize) {
         let cfg = SacConfig {
             tau: 0.1,
             critic_lr: 1e-2,
+            target_every,
             ..SacConfig::default()
         };
         let mut sac = Sac::new(6, 2, cfg).unwrap();
@@ -798,6 +900,7 @@ mod tests {
             let target = sac.target_params.named();
             assert_eq!(online.len(), 6 * 2);
             let mut moved = false;
+            let blends = step % target_every == 0;
             for (((name, o), (tname, t)), old) in online.iter().zip(&target).zip(&old) {
                 assert_eq!(name, tname);
                 for ((o, t), old) in values(o.as_tensor())
@@ -805,7 +908,7 @@ mod tests {
                     .zip(values(t.as_tensor()))
                     .zip(old)
                 {
-                    let expected = 0.1 * o + 0.9 * old;
+                    let expected = if blends { 0.1 * o + 0.9 * old } else { *old };
                     assert!(
                         (t - expected).abs() <= 1e-6 * expected.abs().max(1.0),
                         "{name} step {step}"
@@ -813,8 +916,29 @@ mod tests {
                     moved |= t != *old;
                 }
             }
-            assert!(moved);
+            assert_eq!(moved, blends, "step {step} of every {target_every}");
         }
+    }
+
+    /// The paper's code's target smoothing noise: `N(0, 0.5²)` clipped to `±0.5`, so bounded
+    /// and often at its bounds (`P(|ε| > 1) ≈ 0.32`); none drawn by default.
+    #[test]
+    fn target_smoothing_noise_is_clipped_normal_noise() {
+        let mut rng = ChaCha8Rng::seed_from_u64(6);
+        let plain = Sac::new(4, 2, SacConfig::default()).unwrap();
+        assert!(plain.smoothing_noise(100, &mut rng).is_empty());
+        let code = Sac::new(4, 2, SacConfig::default().with_paper_code_sac()).unwrap();
+        let noise = code.smoothing_noise(5000, &mut rng);
+        assert_eq!(noise.len(), 10_000);
+        assert!(noise.iter().all(|n| n.abs() <= 0.5));
+        let at_bound = noise.iter().filter(|n| n.abs() == 0.5).count() as f64 / 1e4;
+        assert!(
+            (at_bound - 0.317).abs() < 0.02,
+            "share at the bounds {at_bound}"
+        );
+        let inside: Vec<f32> = noise.iter().copied().filter(|n| n.abs() < 0.5).collect();
+        let mean = inside.iter().sum::<f32>() / inside.len() as f32;
+        assert!(mean.abs() < 0.02, "mean {mean}");
     }
 
     #[test]

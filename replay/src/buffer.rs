@@ -172,8 +172,12 @@ impl ReplayBuffer {
             BatchSpec::Sequence { batch, length } => self
                 .sample_sequences_by(sampler, batch, length, rng)
                 .map(Batch::Sequence),
-            BatchSpec::Transition { batch, frames } => self
-                .sample_transitions(batch, frames, rng)
+            BatchSpec::Transition {
+                batch,
+                frames,
+                reward_delay,
+            } => self
+                .sample_transitions(batch, frames, reward_delay, rng)
                 .map(Batch::Transition),
         }
     }
@@ -332,13 +336,17 @@ impl ReplayBuffer {
         Some(out)
     }
 
-    /// `batch` transitions `(o_t, a_t, r_{t+1}, o_{t+1}, terminal_{t+1}, c)` inside episodes,
-    /// observations stacking the last `frames` frames of the episode (oldest first, the
-    /// episode's first frame repeated before its start); `None` if none could be found.
+    /// `batch` transitions `(o_t, a_t, r_{t+1+d}, o_{t+1}, terminal_{t+1+d}, c)` inside
+    /// episodes, with `d = reward_delay` (0, or 1 for the paper's code's reward of the next
+    /// action: then steps `t … t + 2` lie in one episode, and an episode's last action has no
+    /// transition), observations stacking the last `frames` frames of the episode (oldest
+    /// first, the episode's first frame repeated before its start); `None` if none could be
+    /// found.
     pub fn sample_transitions(
         &self,
         batch: usize,
         frames: usize,
+        reward_delay: usize,
         rng: &mut ChaCha8Rng,
     ) -> Option<TransitionBatch> {
         let (o, a) = (self.obs_dim, self.act_dim);
@@ -355,17 +363,21 @@ impl ReplayBuffer {
             context: Vec::with_capacity(batch * 2),
         };
         for _ in 0..batch {
-            let (k, t) = self.find(2, rng, |s, t| {
-                let (i, j) = (s.slot(t), s.slot(t + 1));
-                s.segments[i] == s.segments[j] && s.flags[i] & LAST == 0 && s.flags[j] & FIRST == 0
+            let (k, t) = self.find(2 + reward_delay, rng, |s, t| {
+                (t + 1..=t + 1 + reward_delay).all(|u| {
+                    let (i, j) = (s.slot(u - 1), s.slot(u));
+                    s.segments[i] == s.segments[j]
+                        && s.flags[i] & LAST == 0
+                        && s.flags[j] & FIRST == 0
+                })
             })?;
             let s = &self.streams[k];
-            let j = s.slot(t + 1);
+            let (j, late) = (s.slot(t + 1), s.slot(t + 1 + reward_delay));
             self.stack(s, t, frames, &mut out.obs);
             out.action.extend_from_slice(&s.action[j * a..(j + 1) * a]);
-            out.reward.push(s.reward[j]);
+            out.reward.push(s.reward[late]);
             self.stack(s, t + 1, frames, &mut out.next_obs);
-            out.terminal.push(flag(s.flags[j], TERMINAL));
+            out.terminal.push(flag(s.flags[late], TERMINAL));
             out.context.extend_from_slice(&s.context[j * 2..j * 2 + 2]);
         }
         Some(out)
@@ -659,7 +671,7 @@ pub(crate) mod tests {
         let mut b = ReplayBuffer::new(100, 1, 2, 1);
         let v: Vec<f32> = (0..10).map(|v| v as f32).collect();
         b.insert_chunk(0, &payload(0.0, &v, &[0, 5], &[4, 9]), true);
-        let t = b.sample_transitions(300, 3, &mut rng()).unwrap();
+        let t = b.sample_transitions(300, 3, 0, &mut rng()).unwrap();
         assert_eq!(t.obs_dim, 6);
         let mut saw_start = false;
         for k in 0..300 {
@@ -686,5 +698,31 @@ pub(crate) mod tests {
         }
         assert!(saw_start);
         assert_eq!(&t.context[..2], &[0.5, -0.5]);
+    }
+
+    /// With `reward_delay = 1` (the paper's code's SAC buffer) a transition from `o_t` takes
+    /// `a_t` and `o_{t+1}` but the reward and terminal flag of `t + 2`, and an episode's last
+    /// action has no transition.
+    #[test]
+    fn a_reward_delay_pairs_each_action_with_the_next_ones_reward() {
+        let mut b = ReplayBuffer::new(100, 1, 2, 1);
+        let v: Vec<f32> = (0..10).map(|v| v as f32).collect();
+        b.insert_chunk(0, &payload(0.0, &v, &[0, 5], &[4, 9]), true);
+        let t = b.sample_transitions(300, 2, 1, &mut rng()).unwrap();
+        let mut seen = [false; 10];
+        for k in 0..300 {
+            let cur = t.obs[k * 4 + 3];
+            seen[cur as usize] = true;
+            assert_eq!(t.next_obs[k * 4 + 3], cur + 1.0);
+            assert_eq!(t.action[k], cur + 1.0);
+            assert_eq!(t.reward[k], cur + 2.0, "from step {cur}");
+            let term = f32::from(u8::from(cur + 2.0 == 4.0 || cur + 2.0 == 9.0));
+            assert_eq!(t.terminal[k], term);
+        }
+        // steps 3 and 8 take the episode's last action; 4 and 9 end it
+        assert_eq!(
+            seen,
+            [true, true, true, false, false, true, true, true, false, false]
+        );
     }
 }

@@ -187,8 +187,12 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
                 BatchSpec::Sequence { batch, length } => buffer
                     .sample_sequences_by(opts.sampler, batch, length, &mut rng)
                     .map(|b| server.send_sequence(request.request_id, &b)),
-                BatchSpec::Transition { batch, frames } => buffer
-                    .sample_transitions(batch, frames, &mut rng)
+                BatchSpec::Transition {
+                    batch,
+                    frames,
+                    reward_delay,
+                } => buffer
+                    .sample_transitions(batch, frames, reward_delay, &mut rng)
                     .map(|b| server.send_transition(request.request_id, frames, &b)),
             };
             match sent {
@@ -272,7 +276,7 @@ fn never_served(
 ) -> Option<String> {
     let window = match spec {
         BatchSpec::Sequence { length, .. } => length,
-        BatchSpec::Transition { .. } => 2,
+        BatchSpec::Transition { reward_delay, .. } => 2 + reward_delay,
     };
     if !limiter.can_ever_sample(spec.steps() as u64) {
         Some(format!(

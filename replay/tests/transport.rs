@@ -153,15 +153,25 @@ fn two_actors_fill_the_replay_and_the_learner_gets_batches() {
         };
         assert_eq!(s.mask[2 * i..2 * i + 2], want);
     }
+    // the paper's code's pairing travels with the request: the reward and terminal flag of the
+    // step after next, so no transition starts at an episode's last two steps
     let spec = BatchSpec::Transition {
         batch: 8,
         frames: 2,
+        reward_delay: 1,
     };
     let Some(Batch::Transition(tr)) = client.next_batch(spec, Duration::from_secs(10)).unwrap()
     else {
         panic!("no transition batch");
     };
     assert_eq!((tr.batch, tr.obs_dim, tr.act_dim), (8, 2 * OBS, ACT));
+    for (i, terminal) in tr.terminal.iter().enumerate() {
+        let k = tr.obs[i * 2 * OBS + OBS + 1] as usize;
+        assert!(k % EPISODE < EPISODE - 2, "a transition from step {k}");
+        let late = k + 2;
+        let ends = late % EPISODE == EPISODE - 1 && (late / EPISODE).is_multiple_of(2);
+        assert_eq!(*terminal == 1.0, ends, "step {k}");
+    }
     assert_eq!(client.rejected(), 0);
 
     let start = Instant::now();
@@ -288,6 +298,7 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
     let too_big = BatchSpec::Transition {
         batch: 101,
         frames: 1,
+        reward_delay: 0,
     };
     assert!(client
         .next_batch(too_big, Duration::from_millis(500))
@@ -296,6 +307,7 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
     let spec = BatchSpec::Transition {
         batch: 50,
         frames: 1,
+        reward_delay: 0,
     };
     let mut batches = 0;
     while client

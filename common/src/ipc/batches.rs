@@ -162,7 +162,11 @@ impl ReplayClient {
         self.next_id += 1;
         let (kind, batch, length, frames) = match spec {
             BatchSpec::Sequence { batch, length } => (BatchKind::Sequence, batch, length, 1),
-            BatchSpec::Transition { batch, frames } => (BatchKind::Transition, batch, 1, frames),
+            BatchSpec::Transition {
+                batch,
+                frames,
+                reward_delay,
+            } => (BatchKind::Transition, batch, 1 + reward_delay, frames),
         };
         let request = BatchRequest {
             format_version: FORMAT_VERSION,
@@ -246,7 +250,7 @@ fn decode(
                 has_mask: take(n),
             }))
         }
-        BatchSpec::Transition { batch, frames } => {
+        BatchSpec::Transition { batch, frames, .. } => {
             let ok = h.kind == BatchKind::Transition.code()
                 && h.batch as usize == batch
                 && h.frames as usize == frames
@@ -355,6 +359,7 @@ impl BatchServer {
                     BatchSpec::Transition {
                         batch: r.batch as usize,
                         frames: r.frames as usize,
+                        reward_delay: r.length as usize - 1,
                     },
                 )),
                 Err(e) => self.rejects.reject(&e),

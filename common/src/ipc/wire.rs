@@ -117,7 +117,8 @@ pub struct BatchRequest {
     pub request_id: u64,
     /// `B`.
     pub batch: u32,
-    /// `T` for sequences; ignored for transitions.
+    /// `T` for sequences; for transitions the steps from the action to its reward, `1 +
+    /// reward_delay` (1 or 2).
     pub length: u32,
     /// Stacked frames per transition observation; ignored for sequences.
     pub frames: u32,
@@ -455,14 +456,14 @@ pub fn validate_request(
     );
     let floats = match kind {
         BatchKind::Sequence => (b > 0 && t > 0).then(|| sequence_floats(b, t, obs_dim, act_dim)),
-        BatchKind::Transition => {
-            (b > 0 && f > 0).then(|| transition_floats(b, f, obs_dim, act_dim))
-        }
+        BatchKind::Transition => (b > 0 && f > 0 && (1..=2).contains(&t))
+            .then(|| transition_floats(b, f, obs_dim, act_dim)),
     };
     match floats {
         Some(Some(n)) if n <= max_floats => Ok(kind),
         _ => Err(WireError::Dims(format!(
-            "batch {b} length {t} frames {f} is empty or exceeds {max_floats} floats"
+            "batch {b} length {t} frames {f} is empty, exceeds {max_floats} floats, or asks \
+             transitions whose reward lags by more than one step (length above 2)"
         ))),
     }
 }
@@ -571,6 +572,17 @@ mod tests {
             ..r
         };
         assert!(validate_request(&huge, usize::MAX / 4, 2, usize::MAX).is_err());
+        // a transition request's length is 1 + its reward delay: 1 or 2
+        let transitions = |length| BatchRequest {
+            kind: BatchKind::Transition.code(),
+            frames: 2,
+            length,
+            ..r
+        };
+        for (length, ok) in [(0, false), (1, true), (2, true), (3, false)] {
+            let got = validate_request(&transitions(length), 3, 2, 1000);
+            assert_eq!(got.is_ok(), ok, "length {length}: {got:?}");
+        }
         assert_eq!(sequence_floats(usize::MAX, 2, 1, 1), None);
         assert_eq!(transition_floats(2, usize::MAX, 1, 1), None);
     }

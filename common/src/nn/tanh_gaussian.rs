@@ -1,7 +1,7 @@
 //! A tanh-squashed diagonal Gaussian policy, SAC's actor.
 //!
 //! An MLP maps the observation `o` to a mean `μ` and a log standard deviation `log σ` (clamped to
-//! `[−5, 2]`). An action is drawn by reparameterisation from noise `ε ~ N(0, I)` that the caller
+//! `[−5, 2]` unless [`TanhGaussianActor::with_log_std_clamp`] sets other bounds). An action is drawn by reparameterisation from noise `ε ~ N(0, I)` that the caller
 //! draws from its own seeded generator (candle's CPU generator cannot be seeded):
 //!
 //! ```text
@@ -25,11 +25,28 @@ pub const LOG_STD_MIN: f64 = -5.0;
 /// Upper bound of the log standard deviation.
 pub const LOG_STD_MAX: f64 = 2.0;
 
+/// The default bounds `[LOG_STD_MIN, LOG_STD_MAX]` of the log standard deviation.
+pub const LOG_STD_CLAMP: [f64; 2] = [LOG_STD_MIN, LOG_STD_MAX];
+
+/// Checks bounds of the log standard deviation (finite, lower below upper), naming the config
+/// key `key` in the error.
+pub fn validate_log_std_clamp(key: &str, [lo, hi]: [f64; 2]) -> std::result::Result<(), String> {
+    if lo.is_finite() && hi.is_finite() && lo < hi {
+        Ok(())
+    } else {
+        Err(format!(
+            "{key} must be two finite bounds [lower, upper] with lower < upper, got [{lo}, {hi}] \
+             (ctxrace's default is [{LOG_STD_MIN}, {LOG_STD_MAX}], the paper's code's [-20, 2])"
+        ))
+    }
+}
+
 /// A tanh-squashed Gaussian policy `π(a | o)` over actions in `(−1, 1)^A` (see the module doc).
 #[derive(Clone, Debug)]
 pub struct TanhGaussianActor {
     net: Mlp,
     act_dim: usize,
+    log_std_clamp: [f64; 2],
 }
 
 impl TanhGaussianActor {
@@ -50,7 +67,24 @@ impl TanhGaussianActor {
             Activation::Relu,
             vb,
         )?;
-        Ok(Self { net, act_dim })
+        Ok(Self {
+            net,
+            act_dim,
+            log_std_clamp: LOG_STD_CLAMP,
+        })
+    }
+
+    /// The same actor with its log standard deviation clamped to `[lower, upper]`.
+    pub fn with_log_std_clamp(self, log_std_clamp: [f64; 2]) -> Self {
+        Self {
+            log_std_clamp,
+            ..self
+        }
+    }
+
+    /// The bounds `[lower, upper]` of the log standard deviation.
+    pub fn log_std_clamp(&self) -> [f64; 2] {
+        self.log_std_clamp
     }
 
     /// The network from observations to `[μ, log σ]` (before the clamp).
@@ -63,6 +97,7 @@ impl TanhGaussianActor {
         Self {
             net: self.net.frozen(),
             act_dim: self.act_dim,
+            log_std_clamp: self.log_std_clamp,
         }
     }
 
@@ -71,6 +106,7 @@ impl TanhGaussianActor {
         Ok(Self {
             net: self.net.looped()?,
             act_dim: self.act_dim,
+            log_std_clamp: self.log_std_clamp,
         })
     }
 
@@ -85,7 +121,7 @@ impl TanhGaussianActor {
         let mean = out.narrow(D::Minus1, 0, self.act_dim)?;
         let log_std = out
             .narrow(D::Minus1, self.act_dim, self.act_dim)?
-            .clamp(LOG_STD_MIN, LOG_STD_MAX)?;
+            .clamp(self.log_std_clamp[0], self.log_std_clamp[1])?;
         Ok((mean, log_std))
     }
 
@@ -116,17 +152,23 @@ pub fn squash(mean: &Tensor, log_std: &Tensor, noise: &Tensor) -> Result<(Tensor
 }
 
 /// [`squash`] on plain rows (the learner's hand-differentiated SAC): from the actor's outputs
-/// `out` (`[B, 2A]`: means, then log standard deviations before the clamp) and the noise
-/// `[B, A]`, the actions into `action` `[B, A]` and their log-probabilities into `log_prob`
-/// `[B]`.
-pub fn squash_rows(out: &[f32], noise: &[f32], action: &mut [f32], log_prob: &mut [f32]) {
+/// `out` (`[B, 2A]`: means, then log standard deviations before the clamp to `log_std_clamp`)
+/// and the noise `[B, A]`, the actions into `action` `[B, A]` and their log-probabilities into
+/// `log_prob` `[B]`.
+pub fn squash_rows(
+    out: &[f32],
+    noise: &[f32],
+    [lo, hi]: [f32; 2],
+    action: &mut [f32],
+    log_prob: &mut [f32],
+) {
     let a = noise.len() / log_prob.len().max(1);
     let half_ln_2pi = 0.5 * (2.0 * std::f32::consts::PI).ln();
     let rows = out.chunks_exact(2 * a).zip(noise.chunks_exact(a));
     for ((o, eps), (act, lp)) in rows.zip(action.chunks_exact_mut(a).zip(log_prob.iter_mut())) {
         *lp = 0.0;
         for j in 0..a {
-            let log_std = o[a + j].clamp(LOG_STD_MIN as f32, LOG_STD_MAX as f32);
+            let log_std = o[a + j].clamp(lo, hi);
             let u = o[j] + log_std.exp() * eps[j];
             act[j] = u.tanh();
             let log_jacobian =
@@ -136,20 +178,20 @@ pub fn squash_rows(out: &[f32], noise: &[f32], action: &mut [f32], log_prob: &mu
     }
 }
 
-/// The backward pass of [`squash_rows`]: the outputs' gradients `d_out` `[B, 2A]` from the
+/// The backward pass of [`squash_rows`] (the same noise and log-std bounds): the outputs'
+/// gradients `d_out` `[B, 2A]` from the
 /// actions' `d_action` `[B, A]` and the log-probabilities' `d_log_prob` `[B]`. With
 /// `u = μ + σ ε`: `∂u = ∂a (1 − a²) + 2 a ∂log π` (`∂ −log(1 − tanh² u)/∂u = 2 tanh u`),
 /// `∂μ = ∂u`, `∂log σ = ∂u σ ε − ∂log π` inside the clamp (half at its bounds, as candle's
 /// `clamp` splits a tie; none beyond them).
 pub fn squash_rows_backward(
     out: &[f32],
-    noise: &[f32],
+    (noise, [lo, hi]): (&[f32], [f32; 2]),
     action: &[f32],
     (d_action, d_log_prob): (&[f32], &[f32]),
     d_out: &mut [f32],
 ) {
     let a = noise.len() / d_log_prob.len().max(1);
-    let (lo, hi) = (LOG_STD_MIN as f32, LOG_STD_MAX as f32);
     for (i, (d, &dlp)) in d_out.chunks_exact_mut(2 * a).zip(d_log_prob).enumerate() {
         for j in 0..a {
             let (k, raw) = (i * a + j, out[i * 2 * a + a + j]);
@@ -306,5 +348,13 @@ mod tests {
         assert!((a[0][0] as f64 - ea[0]).abs() < 1e-6 && (a[0][1] as f64 - ea[1]).abs() < 1e-6);
         assert!((lp[0] as f64 - elp).abs() < 1e-4, "{} vs {elp}", lp[0]);
         assert_eq!(a[1], det[1]);
+        // the paper's code's bounds [−20, 2] keep the raw −9
+        let (_, log_std) = actor.with_log_std_clamp([-20.0, 2.0]).dist(&obs).unwrap();
+        assert_eq!(log_std.to_vec2::<f32>().unwrap(), vec![vec![2.0, -9.0]; 2]);
+        assert!(validate_log_std_clamp("sac.log_std_clamp", [-20.0, 2.0]).is_ok());
+        for bad in [[2.0, -20.0], [1.0, 1.0], [f64::NAN, 2.0]] {
+            let err = validate_log_std_clamp("sac.log_std_clamp", bad).unwrap_err();
+            assert!(err.contains("sac.log_std_clamp must be"), "{err}");
+        }
     }
 }

@@ -4,7 +4,9 @@
 //! The learner trains the same [`DreamerNets`] and ships their "policy" parameter store.
 
 use super::ACT_DIM;
-use crate::agents::{ContextMode, DreamerConfig, InitialState, StepAlignment, CONTEXT_DIM};
+use crate::agents::{
+    ContextMode, DreamerConfig, InitialState, MaskSpace, StepAlignment, CONTEXT_DIM,
+};
 use crate::nn::{
     symlog, Activation, Mlp, ParamStore, Rssm, RssmConfig, RssmState, TanhGaussianActor,
 };
@@ -27,6 +29,8 @@ pub struct DreamerNets {
     pub actor: Mlp,
     /// cMask's mask actor on the observation.
     pub mask: Option<TanhGaussianActor>,
+    /// How the mask actor's samples become masks ([`MaskSpace`]).
+    pub mask_space: MaskSpace,
     /// Action size.
     pub act_dim: usize,
     /// Smallest actor standard deviation.
@@ -72,13 +76,16 @@ impl DreamerNets {
         )?
         .sparse_inputs(rssm.stoch_columns());
         let mask = match cfg.context {
-            ContextMode::Cmask => Some(TanhGaussianActor::new(
-                obs_dim,
-                CONTEXT_DIM,
-                cfg.mask.units,
-                cfg.mask.layers,
-                vb.pp("mask"),
-            )?),
+            ContextMode::Cmask => Some(
+                TanhGaussianActor::new(
+                    obs_dim,
+                    CONTEXT_DIM,
+                    cfg.mask.units,
+                    cfg.mask.layers,
+                    vb.pp("mask"),
+                )?
+                .with_log_std_clamp(cfg.mask.log_std_clamp),
+            ),
             ContextMode::None | ContextMode::Crssm => None,
         };
         Ok(Self {
@@ -87,6 +94,7 @@ impl DreamerNets {
             rssm,
             actor,
             mask,
+            mask_space: cfg.mask.mask_space,
             act_dim,
             min_std: cfg.min_std,
             max_std: cfg.max_std,
@@ -185,17 +193,30 @@ impl DreamerNets {
     }
 }
 
-/// `m = (a + 1) / 2` and `log π(m) = log π(a) + |m| ln 2` for a tanh-Gaussian mask sample.
+/// The mask of the mask actor's squashed value `a = tanh u` in `space`: `(a + 1) / 2` (unit),
+/// `sigmoid(a)` (the paper's code).
+pub fn mask_of(a: &Tensor, space: MaskSpace) -> Result<Tensor> {
+    match space {
+        MaskSpace::Unit => a.affine(0.5, 0.5),
+        MaskSpace::PaperCode => candle_nn::ops::sigmoid(a),
+    }
+}
+
+/// A mask sample from the tanh-Gaussian mask actor and `log π` in `space`: unit,
+/// `m = (a + 1) / 2` and its density `log π(m) = log π(a) + |m| ln 2`; the paper's code,
+/// `m = sigmoid(a)` and the density of `a` itself (where the code takes its entropy).
 pub fn mask_sample(
     actor: &TanhGaussianActor,
     obs: &Tensor,
     noise: &Tensor,
+    space: MaskSpace,
 ) -> Result<(Tensor, Tensor)> {
     let (a, log_prob) = actor.sample(obs, noise)?;
-    Ok((
-        a.affine(0.5, 0.5)?,
-        (log_prob + CONTEXT_DIM as f64 * std::f64::consts::LN_2)?,
-    ))
+    let log_prob = match space {
+        MaskSpace::Unit => (log_prob + CONTEXT_DIM as f64 * std::f64::consts::LN_2)?,
+        MaskSpace::PaperCode => log_prob,
+    };
+    Ok((mask_of(&a, space)?, log_prob))
 }
 
 /// Gumbel-max uniforms in `(0, 1)`.
@@ -335,8 +356,8 @@ impl DreamerPolicy {
     }
 
     /// The action in `[−1, 1]²` for observation `obs` and raw context `[c_v, c_θ]`, and (cMask) the
-    /// mask used. Deterministic: the mean action, the most likely latent and the mask mode
-    /// `(tanh μ + 1)/2`; otherwise samples.
+    /// mask used. Deterministic: the mean action, the most likely latent and the mask of
+    /// `tanh μ` ([`mask_of`]); otherwise samples.
     pub fn act(
         &mut self,
         obs: &[f32],
@@ -352,10 +373,12 @@ impl DreamerPolicy {
         }
         let dev = &Device::Cpu;
         let o = Tensor::from_slice(obs, (1, self.obs_dim), dev)?;
+        let space = self.nets.mask_space;
         let mask = match &self.nets.mask {
-            Some(actor) if deterministic => Some(actor.mean_action(&o)?.affine(0.5, 0.5)?),
+            Some(actor) if deterministic => Some(mask_of(&actor.mean_action(&o)?, space)?),
             Some(actor) => {
-                Some(mask_sample(actor, &o, &normals(&mut self.rng, (1, CONTEXT_DIM))?)?.0)
+                let noise = normals(&mut self.rng, (1, CONTEXT_DIM))?;
+                Some(mask_sample(actor, &o, &noise, space)?.0)
             }
             None => None,
         };
@@ -466,6 +489,62 @@ mod tests {
                     .any(|(x, y)| (x - y).abs() > 1e-4),
                 "the context scale changes nothing: {a:?} vs {other:?}"
             );
+        }
+    }
+
+    /// The acting masks of each [`MaskSpace`]: `(1 + tanh u)/2` over `(0, 1)`, the paper's code's
+    /// `sigmoid(tanh u)` inside `(σ(−1), σ(1)) ≈ (0.269, 0.731)`; the deterministic mask is the
+    /// space's map of `tanh μ`.
+    #[test]
+    fn the_policy_acts_with_the_mask_of_its_space() {
+        let unit = MaskConfig {
+            units: 16,
+            ..MaskConfig::default()
+        };
+        for mask in [unit.clone(), unit.with_paper_code_mask()] {
+            let cfg = DreamerConfig {
+                context: ContextMode::Cmask,
+                units: 16,
+                layers: 1,
+                deter: 16,
+                hidden: 16,
+                stoch: 4,
+                classes: 4,
+                head_units: 16,
+                head_layers: 1,
+                mask,
+                ..DreamerConfig::default()
+            };
+            let store = ParamStore::new();
+            let nets = DreamerNets::new(&cfg, 3, ACT_DIM, store.builder()).unwrap();
+            let mut policy = DreamerPolicy::new(&cfg, 3, &store.to_bytes().unwrap(), 1).unwrap();
+            let sigmoid = |x: f32| 1.0 / (1.0 + (-x).exp());
+            let (lo, hi) = match cfg.mask.mask_space {
+                MaskSpace::Unit => (0.0, 1.0),
+                MaskSpace::PaperCode => (sigmoid(-1.0), sigmoid(1.0)),
+            };
+            let (mut least, mut most) = (1f32, 0f32);
+            for k in 0..200 {
+                let obs = [0.5, 0.2, (k as f32 * 0.37).sin() * 3.0];
+                let (_, m) = policy.act(&obs, [0.1, -0.1], false).unwrap();
+                for v in m.unwrap() {
+                    assert!(lo <= v && v <= hi, "{:?}: {v}", cfg.mask.mask_space);
+                    (least, most) = (least.min(v), most.max(v));
+                }
+            }
+            // the samples spread over the range (an untrained actor's σ is about 1)
+            assert!(most - least > 0.5 * (hi - lo), "{least}..{most}");
+            let obs = [0.5, 0.2, 0.1];
+            let (_, m) = policy.act(&obs, [0.1, -0.1], true).unwrap();
+            let o = Tensor::from_slice(&obs, (1, 3), &Device::Cpu).unwrap();
+            let mode = nets.mask.as_ref().unwrap().mean_action(&o).unwrap();
+            let want: Vec<f32> = mask_of(&mode, cfg.mask.mask_space)
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap();
+            assert_eq!(m.unwrap().to_vec(), want);
         }
     }
 

@@ -5,7 +5,7 @@ mod dreamer;
 mod sac;
 
 pub use dreamer::{
-    mask_sample, normal_rows, normals, normals_per, uniform_rows, uniforms, uniforms_per,
+    mask_of, mask_sample, normal_rows, normals, normals_per, uniform_rows, uniforms, uniforms_per,
     DreamerNets, DreamerPolicy,
 };
 pub use sac::SacPolicy;

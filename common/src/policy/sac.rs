@@ -1,5 +1,8 @@
 //! SAC's acting side: the tanh-Gaussian actor on the last `frames` LiDAR frames stacked
-//! (oldest first; at an episode's start the first frame fills the stack).
+//! (oldest first; at an episode's start the first frame fills the stack, or with
+//! `reset_frame_stack = false` the stack carries on from the previous episode as in the paper's
+//! code), plus Gaussian exploration noise `explore_noise` (the code's `N(0, 0.1)`, then clipped
+//! to `[−1, 1]`) when configured, in training and evaluation alike.
 
 use crate::agents::SacConfig;
 use crate::nn::{ParamStore, TanhGaussianActor};
@@ -18,6 +21,10 @@ pub struct SacPolicy {
     frames: usize,
     stack: VecDeque<Vec<f32>>,
     rng: ChaCha8Rng,
+    /// Standard deviation of the noise added to every action (0: none).
+    explore_noise: f32,
+    /// Whether [`SacPolicy::reset`] empties the frame stack.
+    reset_frame_stack: bool,
 }
 
 impl SacPolicy {
@@ -38,7 +45,8 @@ impl SacPolicy {
             cfg.hidden,
             cfg.layers,
             store.builder(),
-        )?;
+        )?
+        .with_log_std_clamp(cfg.log_std_clamp);
         store.load_bytes(weights)?;
         Ok(Self {
             store,
@@ -48,6 +56,8 @@ impl SacPolicy {
             frames: cfg.frames,
             stack: VecDeque::with_capacity(cfg.frames),
             rng: ChaCha8Rng::seed_from_u64(seed),
+            explore_noise: cfg.explore_noise as f32,
+            reset_frame_stack: cfg.reset_frame_stack,
         })
     }
 
@@ -61,13 +71,15 @@ impl SacPolicy {
         self.rng = ChaCha8Rng::seed_from_u64(seed);
     }
 
-    /// Starts a new episode: empties the frame stack.
+    /// Starts a new episode: empties the frame stack (unless `reset_frame_stack` is off).
     pub fn reset(&mut self) {
-        self.stack.clear();
+        if self.reset_frame_stack {
+            self.stack.clear();
+        }
     }
 
     /// The action in `[−1, 1]^A` for the newest frame `obs`: `tanh μ` if `deterministic`, else a
-    /// sample.
+    /// sample; plus the exploration noise, if any, clipped to `[−1, 1]`.
     pub fn act(&mut self, obs: &[f32], deterministic: bool) -> Result<Vec<f32>> {
         if obs.len() != self.frame_dim {
             bail!(
@@ -94,7 +106,14 @@ impl SacPolicy {
             let noise = Tensor::from_vec(noise, (1, self.act_dim), &Device::Cpu)?;
             self.actor.sample(&x, &noise)?.0
         };
-        action.flatten_all()?.to_vec1::<f32>()
+        let mut action = action.flatten_all()?.to_vec1::<f32>()?;
+        if self.explore_noise > 0.0 {
+            for a in &mut action {
+                let n: f32 = self.rng.sample(StandardNormal);
+                *a = (*a + self.explore_noise * n).clamp(-1.0, 1.0);
+            }
+        }
+        Ok(action)
     }
 }
 
@@ -103,11 +122,16 @@ mod tests {
     use super::*;
 
     fn policy(frames: usize) -> SacPolicy {
-        let cfg = SacConfig {
-            hidden: 8,
+        policy_of(SacConfig {
             frames,
             ..SacConfig::default()
-        };
+        })
+    }
+
+    /// The policy of `cfg` (8 hidden units) for frames of 3 values and actions of 2.
+    fn policy_of(cfg: SacConfig) -> SacPolicy {
+        let cfg = SacConfig { hidden: 8, ..cfg };
+        let frames = cfg.frames;
         let store = ParamStore::new();
         TanhGaussianActor::new(3 * frames, 2, 8, 2, store.builder()).unwrap();
         store.init(5).unwrap();
@@ -125,5 +149,59 @@ mod tests {
         let d = p.act(&[0.9, 0.9, 0.9], true).unwrap();
         assert_ne!(c, d, "after reset the stack holds only the new frame");
         assert!(p.act(&[0.0; 2], true).is_err());
+    }
+
+    /// With `reset_frame_stack = false` (the paper's code) an episode's first observation is
+    /// stacked behind the previous episode's last: the first action after the reset is the one
+    /// of the stack `[old, new]`, not of `[new, new]`.
+    #[test]
+    fn the_paper_codes_frame_stack_carries_across_an_episode_boundary() {
+        let cfg = SacConfig {
+            reset_frame_stack: false,
+            ..SacConfig::default()
+        };
+        let (old, new) = ([0.1, 0.2, 0.3], [0.9, 0.9, 0.9]);
+        let mut kept = policy_of(cfg);
+        kept.act(&old, true).unwrap();
+        kept.reset();
+        let carried = kept.act(&new, true).unwrap();
+        let mut fresh = policy(2);
+        fresh.act(&old, true).unwrap();
+        let across = fresh.act(&new, true).unwrap();
+        fresh.reset();
+        let restarted = fresh.act(&new, true).unwrap();
+        assert_eq!(carried, across, "the stack [old, new] survives the reset");
+        assert_ne!(carried, restarted);
+    }
+
+    /// `explore_noise` moves even the deterministic action by about its standard deviation and
+    /// keeps it in `[−1, 1]`; without it the deterministic action is repeatable.
+    #[test]
+    fn exploration_noise_perturbs_every_action_within_the_bounds() {
+        let frame = [0.1, 0.2, 0.3];
+        let mean = policy(2).act(&frame, true).unwrap();
+        for deterministic in [true, false] {
+            let mut quiet = policy(2);
+            let mut noisy = policy_of(SacConfig {
+                explore_noise: 0.1,
+                ..SacConfig::default()
+            });
+            let mut sq = 0.0;
+            for _ in 0..400 {
+                let (q, n) = (
+                    quiet.act(&frame, deterministic).unwrap(),
+                    noisy.act(&frame, deterministic).unwrap(),
+                );
+                assert!(n.iter().all(|a| (-1.0..=1.0).contains(a)));
+                if deterministic {
+                    assert_eq!(q, mean);
+                    sq += n.iter().zip(&q).map(|(n, q)| (n - q).powi(2)).sum::<f32>();
+                }
+            }
+            if deterministic {
+                let std = (sq / 800.0).sqrt();
+                assert!((std - 0.1).abs() < 0.02, "noise std {std}");
+            }
+        }
     }
 }
