@@ -39,11 +39,14 @@ pub fn write_all(
             .collect();
         if let Some(first) = trained.first() {
             let stem = format!("training_{}_{}r", slug(&first.track), first.rivals);
-            files.extend(save_png_and_svg(
-                &TrainingCurves { groups: trained },
-                out,
-                &stem,
-            )?);
+            let curves = TrainingCurves {
+                title: format!(
+                    "Training on {}: mean over seeds, band min–max",
+                    first.section()
+                ),
+                series: trained.iter().map(|g| CurveSeries::of_group(g)).collect(),
+            };
+            files.extend(save_png_and_svg(&curves, out, &stem)?);
         }
     }
     let mut names: Vec<&str> = groups.iter().map(|g| g.track.as_str()).collect();
@@ -275,23 +278,27 @@ fn arrow_note(metric: Metric) -> &'static str {
     }
 }
 
-/// Bins of environment steps the training curves are averaged over.
+/// Bins of environment steps the report's training curves are averaged over.
 const CURVE_BINS: usize = 40;
 
-/// A training curve point: bin centre (env steps), mean over seeds, and the seeds' min and max.
-type CurvePoint = (f64, f64, f64, f64);
+/// A training curve point: bin centre (env steps), mean over runs, and the runs' min and max.
+pub type CurvePoint = (f64, f64, f64, f64);
 
-/// Per-bin means of `value` for each run of `g`, then their mean, min and max over the runs that
-/// have episodes in the bin.
-fn binned_curve(g: &Group, value: fn(&TrainingEpisode) -> f64, width: f64) -> Vec<CurvePoint> {
-    let bin = |e: &TrainingEpisode| ((e.env_steps as f64 / width) as usize).min(CURVE_BINS - 1);
-    let per_run: Vec<Vec<Option<f64>>> = g
-        .runs
+/// Per-bin means of `value` for each of `runs` (their training episodes) over `bins` bins of
+/// `width` environment steps, then their mean, min and max over the runs that have episodes in
+/// the bin.
+pub fn binned_curve(
+    runs: &[&[TrainingEpisode]],
+    value: fn(&TrainingEpisode) -> f64,
+    bins: usize,
+    width: f64,
+) -> Vec<CurvePoint> {
+    let bin = |e: &TrainingEpisode| ((e.env_steps as f64 / width) as usize).min(bins - 1);
+    let per_run: Vec<Vec<Option<f64>>> = runs
         .iter()
-        .filter(|r| !r.training.is_empty())
-        .map(|r| {
-            let mut sums = vec![(0.0, 0usize); CURVE_BINS];
-            for e in &r.training {
+        .map(|episodes| {
+            let mut sums = vec![(0.0, 0usize); bins];
+            for e in episodes.iter() {
                 let s = &mut sums[bin(e)];
                 *s = (s.0 + value(e), s.1 + 1);
             }
@@ -300,7 +307,7 @@ fn binned_curve(g: &Group, value: fn(&TrainingEpisode) -> f64, width: f64) -> Ve
                 .collect()
         })
         .collect();
-    (0..CURVE_BINS)
+    (0..bins)
         .filter_map(|b| {
             let v: Vec<f64> = per_run.iter().filter_map(|r| r[b]).collect();
             (!v.is_empty()).then(|| {
@@ -314,18 +321,46 @@ fn binned_curve(g: &Group, value: fn(&TrainingEpisode) -> f64, width: f64) -> Ve
 }
 
 /// A training-curve panel: its title and the value it plots.
-type CurvePanel = (&'static str, fn(&TrainingEpisode) -> f64);
+pub type CurvePanel = (&'static str, fn(&TrainingEpisode) -> f64);
 
 /// The panels of the training curves.
-const CURVE_PANELS: [CurvePanel; 2] = [
+pub const CURVE_PANELS: [CurvePanel; 2] = [
     ("track progress (PG)", |e| e.progress),
     ("episode return", |e| e.episode_return),
 ];
 
-/// Progress and return against environment steps for the algorithms of one section: mean over
-/// seeds with a min–max band.
-struct TrainingCurves<'a> {
-    groups: Vec<&'a Group>,
+/// One line of the training curves: its legend label and the training episodes of its runs.
+pub struct CurveSeries<'a> {
+    /// The legend label.
+    pub label: String,
+    /// Each run's training episodes (runs without any are left out).
+    pub runs: Vec<&'a [TrainingEpisode]>,
+}
+
+impl<'a> CurveSeries<'a> {
+    /// The trained runs of a group, labelled with its name and number of seeds.
+    fn of_group(g: &'a Group) -> Self {
+        let runs: Vec<&[TrainingEpisode]> = g
+            .runs
+            .iter()
+            .filter(|r| !r.training.is_empty())
+            .map(|r| r.training.as_slice())
+            .collect();
+        Self {
+            label: format!("{} ({} seed(s))", g.display_name(), runs.len()),
+            runs,
+        }
+    }
+}
+
+/// Progress and return against environment steps, one line per series: the mean over its runs
+/// with a min–max band (the report's, one series per algorithm of a section, and the one run's
+/// `learning_curve.png` that `ctxrace train` draws).
+pub struct TrainingCurves<'a> {
+    /// The picture's title.
+    pub title: String,
+    /// The lines.
+    pub series: Vec<CurveSeries<'a>>,
 }
 
 impl Figure for TrainingCurves<'_> {
@@ -338,16 +373,12 @@ impl Figure for TrainingCurves<'_> {
         DB::ErrorType: 'static,
     {
         root.fill(&WHITE).map_err(plot_err)?;
-        let title = format!(
-            "Training on {}: mean over seeds, band min–max",
-            self.groups[0].section()
-        );
-        let root = root.titled(&title, font(26)).map_err(plot_err)?;
+        let root = root.titled(&self.title, font(26)).map_err(plot_err)?;
         let max_steps = self
-            .groups
+            .series
             .iter()
-            .flat_map(|g| &g.runs)
-            .flat_map(|r| &r.training)
+            .flat_map(|s| &s.runs)
+            .flat_map(|r| r.iter())
             .map(|e| e.env_steps)
             .max()
             .unwrap_or(0)
@@ -356,9 +387,9 @@ impl Figure for TrainingCurves<'_> {
         let panels = root.split_evenly((1, CURVE_PANELS.len()));
         for (area, (name, value)) in panels.iter().zip(CURVE_PANELS) {
             let curves: Vec<Vec<CurvePoint>> = self
-                .groups
+                .series
                 .iter()
-                .map(|g| binned_curve(g, value, width))
+                .map(|s| binned_curve(&s.runs, value, CURVE_BINS, width))
                 .collect();
             let (lo, hi) = curves
                 .iter()
@@ -383,7 +414,7 @@ impl Figure for TrainingCurves<'_> {
                 .axis_desc_style(font(16))
                 .draw()
                 .map_err(plot_err)?;
-            for (i, (g, curve)) in self.groups.iter().zip(&curves).enumerate() {
+            for (i, (s, curve)) in self.series.iter().zip(&curves).enumerate() {
                 let colour = Palette99::pick(i).to_rgba();
                 let band: Vec<(f64, f64)> = curve
                     .iter()
@@ -396,14 +427,13 @@ impl Figure for TrainingCurves<'_> {
                         colour.mix(0.2).filled(),
                     )))
                     .map_err(plot_err)?;
-                let seeds = g.runs.iter().filter(|r| !r.training.is_empty()).count();
                 chart
                     .draw_series(LineSeries::new(
                         curve.iter().map(|p| (p.0, p.1)),
                         colour.stroke_width(2),
                     ))
                     .map_err(plot_err)?
-                    .label(format!("{} ({seeds} seed(s))", g.display_name()))
+                    .label(s.label.as_str())
                     .legend(move |(x, y)| {
                         PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
                     });
@@ -620,4 +650,46 @@ where
         .position(position)
         .draw()
         .map_err(plot_err)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn episode(env_steps: u64, progress: f64) -> TrainingEpisode {
+        TrainingEpisode {
+            env_steps,
+            grad_steps: 0,
+            actor: 0,
+            episode: 0,
+            context_speed: 0.0,
+            context_steer: 0.0,
+            progress,
+            overtakes: 0,
+            a2a: false,
+            wall_crash: false,
+            episode_return: 0.0,
+            steps: 1,
+        }
+    }
+
+    #[test]
+    fn a_curve_averages_each_run_per_bin_then_over_the_runs() {
+        let a = [episode(10, 0.1), episode(90, 0.3), episode(150, 0.8)];
+        let b = [episode(50, 0.4), episode(250, 1.0)];
+        let runs = [a.as_slice(), b.as_slice()];
+        // bins of 100 env steps: [0, 100) holds a's 0.1 and 0.3 and b's 0.4; the last bin
+        // takes every later episode (b's at 250)
+        let curve = binned_curve(&runs, |e| e.progress, 2, 100.0);
+        assert_eq!(curve.len(), 2);
+        let (x, mean, lo, hi) = curve[0];
+        assert_eq!(x, 50.0);
+        assert!((mean - 0.3).abs() < 1e-12 && (lo - 0.2).abs() < 1e-12 && hi == 0.4);
+        let (x, mean, lo, hi) = curve[1];
+        assert_eq!((x, lo, hi), (150.0, 0.8, 1.0));
+        assert!((mean - 0.9).abs() < 1e-12);
+        // a bin no run has an episode in is left out
+        let gap = binned_curve(&[&a[..1]], |e| e.progress, 3, 100.0);
+        assert_eq!(gap.len(), 1);
+    }
 }
