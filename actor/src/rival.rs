@@ -10,7 +10,14 @@
 //! **ctxrace's driver (the default).** `L_d = r`, and the context scales the whole lookahead:
 //! `r = (d_0 + k v)(1 + λ_θ c_θ)`. The speed is the slowest raceline speed between the car and
 //! `g`, so the rival brakes for a corner as early as when reading it at `g` (the paper's text)
-//! and does not accelerate before the corner's exit. It always steers.
+//! and does not accelerate before the corner's exit. It always steers. A rival told to drive
+//! faster than its line (`f (1 + λ_v c_v) > 1`: `c_v ≥ 0.2` at `f = 0.85`) that has run more than
+//! `lift_off_line` (0.15 m) wide lifts to the line's speed until it is back on it, as a driver
+//! lifts off the throttle: pure pursuit's path error grows with speed, and at `c_v = +0.3` the
+//! rivals ran 0.25 to 0.35 m off the line on every map (0.12 m at `c_v = 0`), more than the
+//! raceline's 0.25 m wall margin leaves on the corner exits of f1_mco, Monza, Oschersleben and
+//! Spielberg, where 1 to 5 of 147 fast races hit the wall; with the lift none do, and rivals at
+//! `c_v ≤ 0.1` and the reference ego (never faster than the line) drive exactly as before.
 //!
 //! **The paper's code** (Planners/PurePursuit.py; `preset = "paper-code"`) searched `g` at the
 //! unscaled `1 + 0.1 v` but steered as if it were a fixed `L_d = 1.5 (1 + λ_θ c_θ)` away
@@ -48,6 +55,9 @@ pub struct PurePursuit {
     launch: Option<(f64, f64)>,
     /// Multiplier on the capped raceline speed.
     speed_scale: f64,
+    /// With `speed_scale > 1`: farther off the line than this (m), drive at the line's speed;
+    /// 0 never.
+    lift_off_line: f64,
     /// Cap on the raceline speed before scaling.
     speed_cap: f64,
     wheelbase: f64,
@@ -91,6 +101,7 @@ impl PurePursuit {
             speed_point: cfg.speed_point,
             launch: (cfg.launch_below > 0.0).then_some((cfg.launch_below, cfg.launch_speed)),
             speed_scale: 1.0,
+            lift_off_line: cfg.lift_off_line,
             speed_cap,
             wheelbase,
             max_steer,
@@ -132,7 +143,13 @@ impl PurePursuit {
             SpeedPoint::Target => raceline.speed_at(cut.s),
             SpeedPoint::SlowestAhead => slowest_between(raceline, proj.s, cut.s),
         };
-        (steer, line_speed.min(self.speed_cap) * self.speed_scale)
+        let lifted = self.lift_off_line > 0.0 && proj.lateral.abs() > self.lift_off_line;
+        let scale = if lifted {
+            self.speed_scale.min(1.0)
+        } else {
+            self.speed_scale
+        };
+        (steer, line_speed.min(self.speed_cap) * scale)
     }
 }
 
@@ -302,4 +319,64 @@ pub fn drive_solo_lap(
         }
     }
     lap
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ctxrace_tracks::{Track, TrackOptions};
+
+    /// The speed a rival in `context` commands standing `offset` m left of the raceline at arc
+    /// length `s`, facing along it, at 5 m/s.
+    fn speed_command(
+        track: &Track,
+        cfg: &RivalConfig,
+        context: Context,
+        s: f64,
+        offset: f64,
+    ) -> f64 {
+        let line = &track.raceline.curve;
+        let (p, heading) = (line.point_at(s), line.heading_at(s));
+        let mut x: State = [0.0; 7];
+        x[idx::X] = p.x - heading.sin() * offset;
+        x[idx::Y] = p.y + heading.cos() * offset;
+        x[idx::YAW] = heading;
+        x[idx::V] = 5.0;
+        PurePursuit::rival(cfg, cfg.gains, context, 0.33, 0.4189)
+            .command(&track.raceline, &x)
+            .1
+    }
+
+    #[test]
+    fn a_rival_faster_than_its_line_lifts_to_the_line_speed_when_it_runs_wide() {
+        let track = Track::load("generated:0", &TrackOptions::default()).unwrap();
+        let lift = RivalConfig::default();
+        assert_eq!(lift.lift_off_line, 0.15);
+        let never = RivalConfig {
+            lift_off_line: 0.0,
+            ..RivalConfig::default()
+        };
+        let fast = Context {
+            speed: 0.3,
+            steer: 0.0,
+        };
+        let scale = lift.speed_factor * (1.0 + fast.speed);
+        for s in [5.0, 20.0, 40.0, 60.0] {
+            // 0.3 m wide: the lifted rival drives the line's speed, the other 1.105 times it
+            let (lifted, pushed) = (
+                speed_command(&track, &lift, fast, s, 0.3),
+                speed_command(&track, &never, fast, s, 0.3),
+            );
+            assert!(
+                (lifted * scale - pushed).abs() < 1e-9,
+                "s {s}: {lifted} {pushed}"
+            );
+            // on the line, and at any offset for a rival no faster than its line, nothing changes
+            for (context, offset) in [(fast, 0.1), (fast, -0.1), (Context::default(), 0.3)] {
+                let a = speed_command(&track, &lift, context, s, offset);
+                let b = speed_command(&track, &never, context, s, offset);
+                assert_eq!(a, b, "s {s}, {context:?}, offset {offset}");
+            }
+        }
+    }
 }

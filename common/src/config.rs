@@ -30,6 +30,7 @@
 //! | `rival.target_at_vertex` | false | true |
 //! | `rival.speed_point` | `slowest-ahead` | `nearest` |
 //! | `rival.launch_below` | 0 (off) | 1 m/s (at `launch_speed` 4 m/s) |
+//! | `rival.lift_off_line` | 0.15 m | 0 (off) |
 
 use crate::ipc::wire::MAX_OBS;
 use crate::validate::{finite_floats, in_range};
@@ -276,6 +277,7 @@ impl RaceConfig {
                 speed_point: SpeedPoint::Nearest,
                 launch_below: 1.0,
                 launch_speed: 4.0,
+                lift_off_line: 0.0,
                 ..RivalConfig::default()
             },
             ..Self::default()
@@ -383,6 +385,7 @@ impl RaceConfig {
         for (k, v) in [
             ("rival.lookahead_gain", self.rival.lookahead_gain),
             ("rival.launch_below", self.rival.launch_below),
+            ("rival.lift_off_line", self.rival.lift_off_line),
             ("ego_launch_below", self.ego_launch_below),
         ] {
             if !(v.is_finite() && v >= 0.0) {
@@ -521,6 +524,10 @@ pub struct RivalConfig {
     pub launch_below: f64,
     /// Speed commanded below `launch_below`, unscaled (m/s; the paper's code: 4).
     pub launch_speed: f64,
+    /// A rival told to drive faster than its line (`speed_factor (1 + λ_v c_v) > 1`) that is
+    /// more than this far off the line (m) lifts to the line's speed until it is back; 0
+    /// disables it (the paper's code).
+    pub lift_off_line: f64,
     /// Context gains used on tracks without an entry in `tracks`.
     pub gains: ContextGains,
     /// Context gains per track name (paper code: λ_θ = 0.4 on f1_esp and f1_gbr, 0.3 on f1_mco).
@@ -543,6 +550,7 @@ impl Default for RivalConfig {
             speed_point: SpeedPoint::default(),
             launch_below: 0.0,
             launch_speed: 4.0,
+            lift_off_line: 0.15,
             gains: paper(0.4),
             tracks: BTreeMap::from([
                 ("f1_esp".to_string(), paper(0.4)),

@@ -560,16 +560,16 @@ fn arrow_note(metric: Metric) -> &'static str {
     }
 }
 
-/// Bins of environment steps the training curves are averaged over.
+/// Bins of environment steps the report's training curves are averaged over.
 const CURVE_BINS: usize = 40;
 
 /// A training curve point: bin centre (env steps), mean over seeds, and the band's low and
 /// high ends.
-type CurvePoint = (f64, f64, f64, f64);
+pub type CurvePoint = (f64, f64, f64, f64);
 
 /// The band drawn around a training curve's mean over seeds.
 #[derive(Clone, Copy, Debug, PartialEq)]
-enum Band {
+pub enum Band {
     /// The seeds' smallest and largest value.
     MinMax,
     /// The 95% bootstrap interval of the mean over the seeds ([`bootstrap_ci`]).
@@ -597,19 +597,20 @@ impl Band {
     }
 }
 
-/// Per-bin means of `value` for each seed's episodes in `runs`, then their mean and `band` over
-/// the seeds that have episodes in the bin.
-fn binned_curve(
+/// Per-bin means of `value` for each seed's episodes in `runs` over `bins` bins of `width`
+/// environment steps (the last takes every later episode), then their mean and `band` over the
+/// seeds that have episodes in the bin; bins without any are left out.
+pub fn binned_curve(
     runs: &[&[TrainingEpisode]],
     value: fn(&TrainingEpisode) -> f64,
-    width: f64,
+    (bins, width): (usize, f64),
     band: Band,
 ) -> Vec<CurvePoint> {
-    let bin = |e: &TrainingEpisode| ((e.env_steps as f64 / width) as usize).min(CURVE_BINS - 1);
+    let bin = |e: &TrainingEpisode| ((e.env_steps as f64 / width) as usize).min(bins - 1);
     let per_run: Vec<Vec<Option<f64>>> = runs
         .iter()
         .map(|episodes| {
-            let mut sums = vec![(0.0, 0usize); CURVE_BINS];
+            let mut sums = vec![(0.0, 0usize); bins];
             for e in episodes.iter() {
                 let s = &mut sums[bin(e)];
                 *s = (s.0 + value(e), s.1 + 1);
@@ -619,7 +620,7 @@ fn binned_curve(
                 .collect()
         })
         .collect();
-    (0..CURVE_BINS)
+    (0..bins)
         .filter_map(|b| {
             let v: Vec<f64> = per_run.iter().filter_map(|r| r[b]).collect();
             (!v.is_empty()).then(|| {
@@ -632,10 +633,10 @@ fn binned_curve(
 }
 
 /// A training-curve panel: its title and the value it plots.
-type CurvePanel = (&'static str, fn(&TrainingEpisode) -> f64);
+pub type CurvePanel = (&'static str, fn(&TrainingEpisode) -> f64);
 
 /// The panels of the training curves.
-const CURVE_PANELS: [CurvePanel; 2] = [
+pub const CURVE_PANELS: [CurvePanel; 2] = [
     ("track progress (PG)", |e| e.progress),
     ("episode return", |e| e.episode_return),
 ];
@@ -658,12 +659,17 @@ pub struct CurveSeries<'a> {
 }
 
 /// Panels of training curves against environment steps: each series' mean over seeds with a
-/// band.
-struct TrainingCurves<'a> {
-    title: String,
-    series: Vec<CurveSeries<'a>>,
-    band: Band,
-    panels: &'static [CurvePanel],
+/// band (the report's, one series per algorithm of a section; the parity figure's, one per
+/// side; and the one run's `learning_curve.png` that `ctxrace train` draws).
+pub struct TrainingCurves<'a> {
+    /// The picture's title (the band's kind is added to it).
+    pub title: String,
+    /// The lines.
+    pub series: Vec<CurveSeries<'a>>,
+    /// The band around each line.
+    pub band: Band,
+    /// What each panel plots.
+    pub panels: &'static [CurvePanel],
 }
 
 impl Figure for TrainingCurves<'_> {
@@ -693,7 +699,7 @@ impl Figure for TrainingCurves<'_> {
             let curves: Vec<Vec<CurvePoint>> = self
                 .series
                 .iter()
-                .map(|s| binned_curve(&s.runs, value, width, self.band))
+                .map(|s| binned_curve(&s.runs, value, (CURVE_BINS, width), self.band))
                 .collect();
             let (lo, hi) = curves
                 .iter()
@@ -983,4 +989,46 @@ where
         .position(position)
         .draw()
         .map_err(plot_err)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn episode(env_steps: u64, progress: f64) -> TrainingEpisode {
+        TrainingEpisode {
+            env_steps,
+            grad_steps: 0,
+            actor: 0,
+            episode: 0,
+            context_speed: 0.0,
+            context_steer: 0.0,
+            progress,
+            overtakes: 0,
+            a2a: false,
+            wall_crash: false,
+            episode_return: 0.0,
+            steps: 1,
+        }
+    }
+
+    #[test]
+    fn a_curve_averages_each_run_per_bin_then_over_the_runs() {
+        let a = [episode(10, 0.1), episode(90, 0.3), episode(150, 0.8)];
+        let b = [episode(50, 0.4), episode(250, 1.0)];
+        let runs = [a.as_slice(), b.as_slice()];
+        // bins of 100 env steps: [0, 100) holds a's 0.1 and 0.3 and b's 0.4; the last bin
+        // takes every later episode (b's at 250)
+        let curve = binned_curve(&runs, |e| e.progress, (2, 100.0), Band::MinMax);
+        assert_eq!(curve.len(), 2);
+        let (x, mean, lo, hi) = curve[0];
+        assert_eq!(x, 50.0);
+        assert!((mean - 0.3).abs() < 1e-12 && (lo - 0.2).abs() < 1e-12 && hi == 0.4);
+        let (x, mean, lo, hi) = curve[1];
+        assert_eq!((x, lo, hi), (150.0, 0.8, 1.0));
+        assert!((mean - 0.9).abs() < 1e-12);
+        // a bin no run has an episode in is left out
+        let gap = binned_curve(&[&a[..1]], |e| e.progress, (3, 100.0), Band::MinMax);
+        assert_eq!(gap.len(), 1);
+    }
 }

@@ -1,20 +1,78 @@
-//! What `ctxrace train` shows when a run is complete: a short evaluation of the trained agent on
-//! a 3 × 3 grid of contexts beside the random and pure-pursuit egos, a picture and an animation
-//! of one of its races, and the commands that go further (the full protocol, the report, TensorBoard).
+//! What `ctxrace train` shows when a run is complete: its learning curve (a table here and
+//! `learning_curve.png`), a short evaluation of the trained agent on a 3 × 3 grid of contexts
+//! beside the random and pure-pursuit egos, a picture and an animation of one of its races, and
+//! the commands that go further (the full protocol, the report, TensorBoard).
 
 use crate::driver::{ActMode, EgoSpec};
+use crate::figures::{binned_curve, Band, CurveSeries, TrainingCurves, CURVE_PANELS};
+use crate::plot::{register_font, save};
 use crate::render::{race_title, render_race, Frame};
+use crate::results::{read_csv, TrainingEpisode};
 use crate::TrackArgs;
 use anyhow::Result;
 use ctxrace_actor::baseline::BaselineKind;
 use ctxrace_actor::RaceEnv;
+use ctxrace_common::run_dir::TRAINING_EPISODES;
 use ctxrace_common::{Context, ExperimentConfig};
 use ctxrace_learner::trained::{CheckpointChoice, TrainedAgent};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 /// Laps per context of the short evaluation.
 const LAPS: usize = 2;
+
+/// Rows of the learning curve's table (bins of environment steps).
+const CURVE_ROWS: usize = 10;
+
+/// Width in characters of the table's PG bar at PG = 1.
+const BAR_WIDTH: f64 = 30.0;
+
+/// The picture of the learning curve in a run directory.
+pub const LEARNING_CURVE: &str = "learning_curve.png";
+
+/// Prints the run's learning curve (its training episodes' mean PG and return per bin of
+/// environment steps, PG also as a bar) and draws it, as the report does, into
+/// `<dir>/learning_curve.png`; returns the picture's path.
+fn learning_curve(cfg: &ExperimentConfig, dir: &Path) -> Result<PathBuf> {
+    let episodes: Vec<TrainingEpisode> = read_csv(&dir.join(TRAINING_EPISODES))?;
+    let max_steps = episodes
+        .iter()
+        .map(|e| e.env_steps)
+        .max()
+        .unwrap_or(0)
+        .max(1);
+    let width = max_steps as f64 / CURVE_ROWS as f64;
+    let runs = [episodes.as_slice()];
+    let [(_, progress), (_, episode_return)] = CURVE_PANELS;
+    let pg = binned_curve(&runs, progress, (CURVE_ROWS, width), Band::MinMax);
+    let ret = binned_curve(&runs, episode_return, (CURVE_ROWS, width), Band::MinMax);
+    println!(
+        "\nlearning curve: {} training episodes, mean per {:.0} env steps",
+        episodes.len(),
+        width
+    );
+    println!("  {:>9} {:>7} {:>8}", "env steps", "PG", "return");
+    for (p, r) in pg.iter().zip(&ret) {
+        let bar = "#".repeat((p.1.clamp(0.0, 1.0) * BAR_WIDTH).round() as usize);
+        println!("  {:>9.0} {:>7.3} {:>8.1}  {bar}", p.0, p.1, r.1);
+    }
+    register_font()?;
+    let path = dir.join(LEARNING_CURVE);
+    let curves = TrainingCurves {
+        title: format!(
+            "{} on {} against {} rival(s): training episodes",
+            cfg.agent.algo, cfg.track, cfg.race.rivals
+        ),
+        series: vec![CurveSeries {
+            label: format!("{}, seed {}", cfg.agent.algo, cfg.train.seed),
+            runs: runs.to_vec(),
+        }],
+        band: Band::MinMax,
+        panels: &CURVE_PANELS,
+    };
+    save(&curves, &path)?;
+    Ok(path)
+}
 
 /// The metrics of one ego over the short evaluation.
 #[derive(Default)]
@@ -27,8 +85,10 @@ struct Tally {
     episodes: usize,
 }
 
-/// Prints the short evaluation of the run in `dir` and writes `<dir>/race.png`.
+/// Prints the learning curve and the short evaluation of the run in `dir`, and writes
+/// `<dir>/learning_curve.png`, `<dir>/race.png` and `<dir>/race.gif`.
 pub fn show(cfg: &ExperimentConfig, dir: &Path, tracks: &TrackArgs) -> Result<()> {
+    let curve = learning_curve(cfg, dir)?;
     let track = Arc::new(tracks.load(&cfg.track, &cfg.race)?);
     let mut env = RaceEnv::new(track.clone(), cfg.race.clone())?;
     let choice = if ctxrace_learner::best::best_checkpoint(dir).is_some() {
@@ -94,10 +154,11 @@ pub fn show(cfg: &ExperimentConfig, dir: &Path, tracks: &TrackArgs) -> Result<()
     render_race(&animation, &track, &frames, &title)?;
     let d = dir.display();
     println!(
-        "\nrun: {d} (a race at c = (0, 0): {} and, animated, {})\nnext:\n  \
+        "\nrun: {d} (the learning curve: {}; a race at c = (0, 0): {} and, animated, {})\nnext:\n  \
          ctxrace eval {d}                 # the paper's protocol: 7 x 7 contexts, 50 laps each\n  \
          ctxrace report {d} --out {d}/report\n  \
          tensorboard --logdir {}           # training curves",
+        curve.display(),
         picture.display(),
         animation.display(),
         dir.parent().unwrap_or(Path::new(".")).display()

@@ -312,6 +312,10 @@ struct Progress {
     env_steps: u64,
     grad_steps: u64,
     episodes: u64,
+    /// Each actor's env steps at its newest reported episode: their sum is an episode row's
+    /// env steps while the replay's count lags behind (it reports once a second, and the first
+    /// second holds the prefill and more).
+    actor_steps: Vec<u64>,
     recent_progress: Vec<f64>,
     fill: u64,
     capacity: u64,
@@ -672,6 +676,7 @@ fn supervise(
     let start = Instant::now();
     let mut p = Progress {
         actor_versions: vec![0; actors.len()],
+        actor_steps: vec![0; actors.len()],
         ..Progress::default()
     };
     let mut tick = Instant::now();
@@ -719,12 +724,15 @@ fn supervise(
         p.weights_rejected = weights.rejected();
         for e in tolerate(telemetry.episodes()).unwrap_or_default() {
             p.episodes += 1;
+            if let Some(steps) = p.actor_steps.get_mut(e.actor_id as usize) {
+                *steps = e.env_steps;
+            }
             p.recent_progress.push(e.progress as f64);
             if p.recent_progress.len() > 20 {
                 p.recent_progress.remove(0);
             }
             episodes.write(&TrainingEpisode {
-                env_steps: p.env_steps,
+                env_steps: p.env_steps.max(p.actor_steps.iter().sum()),
                 grad_steps: p.grad_steps,
                 actor: e.actor_id,
                 episode: e.episode_id,

@@ -580,6 +580,20 @@ fn inline_training_then_evaluation_report_and_race_with_the_policy() {
         "{}",
         stdout(&o)
     );
+    // the first look: the learning curve as a table and a picture, then the short evaluation
+    let out = stdout(&o);
+    let table = out.find("learning curve: ").expect(&out);
+    let first_look = out.find("PG in").expect(&out);
+    assert!(table < first_look, "{out}");
+    assert!(
+        out[table..first_look].contains("env steps      PG   return"),
+        "{out}"
+    );
+    let curve = std::fs::read(run.join("learning_curve.png")).unwrap();
+    assert!(
+        curve.starts_with(b"\x89PNG"),
+        "learning_curve.png is no PNG"
+    );
     let episodes = std::fs::read_to_string(run.join("episodes.csv")).unwrap();
     assert!(episodes.starts_with("env_steps,grad_steps,actor,episode"));
     let checkpoints: Vec<_> = std::fs::read_dir(run.join("checkpoints"))
