@@ -377,23 +377,43 @@ mod tests {
     use ctxrace_common::SequenceBatch;
     use rand::{Rng, SeedableRng};
 
-    #[test]
-    fn sac_transitions_take_the_reward_and_mask_of_their_own_step() {
-        let seq = SequenceBatch {
+    /// One sequence of one-value observations and actions (actions and contexts zero): its
+    /// observations, rewards, `(is_first, is_terminal)` flags and `(mask, has_mask)` per row.
+    fn one_sequence(
+        obs: Vec<f32>,
+        reward: Vec<f32>,
+        (is_first, is_terminal): (Vec<f32>, Vec<f32>),
+        (mask, has_mask): (Vec<f32>, Vec<f32>),
+    ) -> SequenceBatch {
+        let length = obs.len();
+        SequenceBatch {
             batch: 1,
-            length: 4,
+            length,
             obs_dim: 1,
             act_dim: 1,
-            obs: vec![0.0, 1.0, 2.0, 3.0],
-            action: vec![0.0; 4],
-            reward: vec![0.0, 10.0, 20.0, 30.0],
-            is_first: vec![1.0, 0.0, 1.0, 0.0],
-            is_terminal: vec![0.0, 1.0, 0.0, 0.0],
-            context: vec![0.0; 8],
+            obs,
+            action: vec![0.0; length],
+            reward,
+            is_first,
+            is_terminal,
+            context: vec![0.0; 2 * length],
+            mask,
+            has_mask,
+        }
+    }
+
+    #[test]
+    fn sac_transitions_take_the_reward_and_mask_of_their_own_step() {
+        let seq = one_sequence(
+            vec![0.0, 1.0, 2.0, 3.0],
+            vec![0.0, 10.0, 20.0, 30.0],
+            (vec![1.0, 0.0, 1.0, 0.0], vec![0.0, 1.0, 0.0, 0.0]),
             // row t + 1 holds the mask that acted at o_t; the action into o_3 had none
-            mask: vec![0.0, 0.0, 0.3, 0.4, 0.0, 0.0, 0.7, 0.8],
-            has_mask: vec![0.0, 1.0, 0.0, 0.0],
-        };
+            (
+                vec![0.0, 0.0, 0.3, 0.4, 0.0, 0.0, 0.7, 0.8],
+                vec![0.0, 1.0, 0.0, 0.0],
+            ),
+        );
         let d = SeqData::new(&seq, 1, 1).unwrap();
         let tr = Transitions::new(&d, &MaskConfig::default(), StepAlignment::Ctxrace)
             .unwrap()
@@ -411,20 +431,15 @@ mod tests {
     /// flags, and no transition whose delayed reward lies in the next episode.
     #[test]
     fn paper_code_transitions_take_the_next_reward_and_bootstrap_terminals() {
-        let seq = SequenceBatch {
-            batch: 1,
-            length: 5,
-            obs_dim: 1,
-            act_dim: 1,
-            obs: vec![0.0, 1.0, 2.0, 3.0, 4.0],
-            action: vec![0.0; 5],
-            reward: vec![0.0, 10.0, 20.0, 30.0, 40.0],
-            is_first: vec![1.0, 0.0, 0.0, 0.0, 1.0],
-            is_terminal: vec![0.0, 0.0, 0.0, 1.0, 0.0],
-            context: vec![0.0; 10],
-            mask: vec![0.0, 0.0, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.0, 0.0],
-            has_mask: vec![0.0, 1.0, 1.0, 1.0, 0.0],
-        };
+        let seq = one_sequence(
+            vec![0.0, 1.0, 2.0, 3.0, 4.0],
+            vec![0.0, 10.0, 20.0, 30.0, 40.0],
+            (vec![1.0, 0.0, 0.0, 0.0, 1.0], vec![0.0, 0.0, 0.0, 1.0, 0.0]),
+            (
+                vec![0.0, 0.0, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.0, 0.0],
+                vec![0.0, 1.0, 1.0, 1.0, 0.0],
+            ),
+        );
         let d = SeqData::new(&seq, 1, 1).unwrap();
         let ours = Transitions::new(&d, &MaskConfig::default(), StepAlignment::Ctxrace)
             .unwrap()
@@ -470,20 +485,15 @@ mod tests {
     /// reward `reward_delay` rows later; a transition into a row that starts an episode is out.
     #[test]
     fn paper_code_rows_pair_each_observation_with_its_own_rows_choice() {
-        let seq = SequenceBatch {
-            batch: 1,
-            length: 5,
-            obs_dim: 1,
-            act_dim: 1,
-            obs: vec![0.0, 1.0, 2.0, 3.0, 4.0],
-            action: vec![0.0; 5],
-            reward: vec![10.0, 20.0, 30.0, 40.0, 50.0],
-            is_first: vec![1.0, 0.0, 0.0, 0.0, 1.0],
-            is_terminal: vec![0.0, 0.0, 0.0, 1.0, 0.0],
-            context: vec![0.0; 10],
-            mask: vec![0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0],
-            has_mask: vec![1.0, 1.0, 0.0, 1.0, 1.0],
-        };
+        let seq = one_sequence(
+            vec![0.0, 1.0, 2.0, 3.0, 4.0],
+            vec![10.0, 20.0, 30.0, 40.0, 50.0],
+            (vec![1.0, 0.0, 0.0, 0.0, 1.0], vec![0.0, 0.0, 0.0, 1.0, 0.0]),
+            (
+                vec![0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0],
+                vec![1.0, 1.0, 0.0, 1.0, 1.0],
+            ),
+        );
         let d = SeqData::new(&seq, 1, 1).unwrap();
         let own = Transitions::new(&d, &MaskConfig::default(), StepAlignment::PaperCode)
             .unwrap()

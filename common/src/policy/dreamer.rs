@@ -416,6 +416,25 @@ mod tests {
     use super::*;
     use crate::agents::{ContextMode, ContextScale, MaskConfig};
 
+    /// A DreamerV3 configuration small enough for a test, with the context mode `context`.
+    fn tiny(context: ContextMode) -> DreamerConfig {
+        DreamerConfig {
+            context,
+            units: 16,
+            layers: 1,
+            deter: 16,
+            hidden: 16,
+            stoch: 4,
+            classes: 4,
+            head_units: 16,
+            head_layers: 1,
+            mask: MaskConfig {
+                units: 16,
+                ..MaskConfig::default()
+            },
+            ..DreamerConfig::default()
+        }
+    }
     #[test]
     fn uniform_rows_are_rands_random_range_value_by_value() {
         let seeded = |s: u64| {
@@ -448,21 +467,8 @@ mod tests {
     fn acting_feeds_the_context_at_its_scale() {
         for context in [ContextMode::Crssm, ContextMode::Cmask] {
             let cfg = |scale| DreamerConfig {
-                context,
                 context_scale: scale,
-                units: 16,
-                layers: 1,
-                deter: 16,
-                hidden: 16,
-                stoch: 4,
-                classes: 4,
-                head_units: 16,
-                head_layers: 1,
-                mask: MaskConfig {
-                    units: 16,
-                    ..MaskConfig::default()
-                },
-                ..DreamerConfig::default()
+                ..tiny(context)
             };
             let (raw, normalised) = (cfg(ContextScale::Raw), cfg(ContextScale::Normalised));
             let store = ParamStore::new();
@@ -503,17 +509,8 @@ mod tests {
         };
         for mask in [unit.clone(), unit.with_paper_code_mask()] {
             let cfg = DreamerConfig {
-                context: ContextMode::Cmask,
-                units: 16,
-                layers: 1,
-                deter: 16,
-                hidden: 16,
-                stoch: 4,
-                classes: 4,
-                head_units: 16,
-                head_layers: 1,
                 mask,
-                ..DreamerConfig::default()
+                ..tiny(ContextMode::Cmask)
             };
             let store = ParamStore::new();
             let nets = DreamerNets::new(&cfg, 3, ACT_DIM, store.builder()).unwrap();
@@ -544,28 +541,17 @@ mod tests {
                 .unwrap()
                 .to_vec1()
                 .unwrap();
-            assert_eq!(m.unwrap().to_vec(), want);
+            // the acting pass and the candle composition may round differently (one ulp)
+            let got = m.unwrap();
+            for (g, w) in got.iter().zip(&want) {
+                assert!((g - w).abs() < 1e-6, "{got:?} vs {want:?}");
+            }
         }
     }
 
     #[test]
     fn the_kept_state_holds_no_graph_of_earlier_steps() {
-        let cfg = DreamerConfig {
-            context: ContextMode::Cmask,
-            units: 16,
-            layers: 1,
-            deter: 16,
-            hidden: 16,
-            stoch: 4,
-            classes: 4,
-            head_units: 16,
-            head_layers: 1,
-            mask: MaskConfig {
-                units: 16,
-                ..MaskConfig::default()
-            },
-            ..DreamerConfig::default()
-        };
+        let cfg = tiny(ContextMode::Cmask);
         let store = ParamStore::new();
         DreamerNets::new(&cfg, 3, ACT_DIM, store.builder()).unwrap();
         let mut policy = DreamerPolicy::new(&cfg, 3, &store.to_bytes().unwrap(), 1).unwrap();
@@ -594,18 +580,7 @@ mod tests {
     /// from the learned initial state; its state after two steps is the candle composition's.
     #[test]
     fn the_paper_code_policy_feeds_the_previous_action_to_the_encoder() {
-        let cfg = DreamerConfig {
-            units: 16,
-            layers: 1,
-            deter: 16,
-            hidden: 16,
-            stoch: 4,
-            classes: 4,
-            head_units: 16,
-            head_layers: 1,
-            ..DreamerConfig::default()
-        }
-        .with_paper_code_world_model();
+        let cfg = tiny(ContextMode::None).with_paper_code_world_model();
         let store = ParamStore::new();
         let nets = DreamerNets::new(&cfg, 3, ACT_DIM, store.builder()).unwrap();
         store.init(2).unwrap();
