@@ -201,8 +201,12 @@ fn rivals_drive(track: &Track, race: &RaceConfig, plan: CheckPlan) -> Result<Vec
     let contexts = Context::grid(plan.grid, plan.range);
     let mut failed = 0;
     for places in 1..=plan.places {
+        // the ego stands still whatever the race's ego keys: the paper code's speed range from
+        // 1 m/s would make it crawl into a wall, and its launch rule drive it off at 7 m/s
         let cfg = RaceConfig {
             rivals: places,
+            min_speed: 0.0,
+            ego_relaunch: false,
             ..race.clone()
         };
         let mut env = RaceEnv::new(Arc::new(track.clone()), cfg)?;
@@ -302,6 +306,16 @@ mod tests {
             ]
         );
         assert!(report.findings[3].detail.starts_with("18 of 18 races"));
+        // under the paper code's race too, whose ego could not stand still (from 1 m/s it
+        // crawled into a wall after 24.8 s, ending every race of the check)
+        // (over the training contexts: at c_v = +0.3 the code's driver crashes 4 of 147 laps)
+        let training = CheckPlan {
+            range: 0.15,
+            ..plan
+        };
+        let code = check_track(load("f1_esp", &opts), &RaceConfig::paper_code(), training);
+        let code = code.unwrap();
+        assert!(code.raceable(), "{:#?}", code.findings);
     }
 
     #[test]
