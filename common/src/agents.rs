@@ -226,18 +226,7 @@ impl AgentConfig {
     /// default learner when it names none). Unknown keys and bad values are errors naming the
     /// key.
     pub fn from_table(table: toml::Table) -> std::result::Result<Self, String> {
-        let preset = match table.get("preset") {
-            Some(v) => v
-                .clone()
-                .try_into::<AgentPreset>()
-                .map_err(|e| format!("preset: {e} (use \"default\" or \"paper-code\")"))?,
-            None => AgentPreset::Default,
-        };
-        let base = toml::Table::try_from(preset.config())
-            .map_err(|e| format!("serialising the {preset:?} preset: {e}"))?;
-        let cfg: Self = toml::Value::Table(crate::config::merge_tables(base, table))
-            .try_into()
-            .map_err(|e: toml::de::Error| e.message().to_string())?;
+        let cfg = crate::preset::resolve(table, AgentPreset::config)?;
         cfg.validate().map_err(|e| e.to_string())?;
         Ok(cfg)
     }

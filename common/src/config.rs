@@ -287,18 +287,7 @@ impl RaceConfig {
     /// Reads a race table: keys it leaves out take the values of its `preset` (the default
     /// scenario when it names none). Unknown keys and bad values are errors naming the key.
     pub fn from_table(table: toml::Table) -> Result<Self, String> {
-        let preset = match table.get("preset") {
-            Some(v) => v
-                .clone()
-                .try_into::<RacePreset>()
-                .map_err(|e| format!("preset: {e} (use \"default\" or \"paper-code\")"))?,
-            None => RacePreset::Default,
-        };
-        let base = toml::Table::try_from(preset.config())
-            .map_err(|e| format!("serialising the {preset:?} preset: {e}"))?;
-        let cfg: Self = toml::Value::Table(merge_tables(base, table))
-            .try_into()
-            .map_err(|e: toml::de::Error| e.message().to_string())?;
+        let cfg: Self = crate::preset::resolve(table, RacePreset::config)?;
         cfg.validate()?;
         Ok(cfg)
     }
@@ -439,20 +428,6 @@ impl RaceConfig {
             "it is in metres (the paper: 0.01)",
         )
     }
-}
-
-/// `over` laid on `base`: keys of `over` replace those of `base`, tables merge key by key.
-pub fn merge_tables(mut base: toml::Table, over: toml::Table) -> toml::Table {
-    for (key, value) in over {
-        let merged = match (base.remove(&key), value) {
-            (Some(toml::Value::Table(b)), toml::Value::Table(o)) => {
-                toml::Value::Table(merge_tables(b, o))
-            }
-            (_, v) => v,
-        };
-        base.insert(key, merged);
-    }
-    base
 }
 
 /// The ego's 2D LiDAR.

@@ -9,6 +9,7 @@ pub mod experiment;
 pub mod ipc;
 pub mod nn;
 pub mod policy;
+pub mod preset;
 pub mod run_dir;
 pub mod validate;
 

@@ -345,29 +345,13 @@ fn prepare_out_dir(out: &Path, meta: &EvalMeta, fresh: bool) -> Result<()> {
     results::write_json(&meta_path, meta)
 }
 
-/// The workers' part files of `out` whose names start with `prefix` and end in `.csv`, sorted
-/// (result rows `episodes.part-*`, masks `masks.part-*`).
-pub(crate) fn part_files(out: &Path, prefix: &str) -> Result<Vec<PathBuf>> {
-    let mut parts: Vec<PathBuf> = std::fs::read_dir(out)
-        .with_context(|| format!("listing {}", out.display()))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| {
-            p.file_name()
-                .and_then(|n| n.to_str())
-                .is_some_and(|n| n.starts_with(prefix) && n.ends_with(".csv"))
-        })
-        .collect();
-    parts.sort();
-    Ok(parts)
-}
-
 /// Every finished episode on disk with its context's index in the grid of `meta` (a torn
 /// last line of a killed worker is skipped).
 fn read_parts(out: &Path, meta: &EvalMeta) -> Result<Vec<(usize, EvalEpisode)>> {
     let grid = contexts(meta);
     let chosen = raced(meta);
     let mut rows = Vec::new();
-    for part in part_files(out, "episodes.part-")? {
+    for part in results::part_files(out, "episodes.part-")? {
         let mut reader =
             csv::Reader::from_path(&part).with_context(|| format!("opening {}", part.display()))?;
         for row in reader.deserialize::<EvalEpisode>() {

@@ -116,7 +116,7 @@ pub fn part_path(out: &Path, shard: usize) -> PathBuf {
 
 /// The workers' mask files in `out`.
 fn part_files(out: &Path) -> Result<Vec<PathBuf>> {
-    crate::eval::part_files(out, PART_PREFIX)
+    crate::results::part_files(out, PART_PREFIX)
 }
 
 /// Merges the workers' mask files of `out` into [`MASKS_FILE`], keeping the rows of the

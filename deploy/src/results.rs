@@ -7,7 +7,7 @@
 //! - `episodes.csv`: one `EvalEpisode` per evaluation episode (lap);
 //! - `contexts.csv` and `contexts.json`: one `ContextSummary` per context of the grid (both
 //!   defined, with the metrics, by the protocol in `ctxrace_actor::protocol`).
-//! - `masks.csv.gz` (cMask agents): the context mask at every decision ([`crate::masks`]).
+//! - `masks.csv.gz` (cMask agents): the context mask at every decision (written by the masks module).
 //!
 //! A training run directory holds `episodes.csv` with one [`TrainingEpisode`] per finished
 //! training episode (the training curves).
@@ -16,7 +16,7 @@
 use anyhow::{Context as _, Result};
 use ctxrace_common::run_dir::write_atomic;
 use serde::{de::DeserializeOwned, Deserialize, Serialize};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// What was evaluated, and how.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -133,6 +133,22 @@ pub fn write_json<T: Serialize + ?Sized>(path: &Path, value: &T) -> Result<()> {
     // through a temporary file, so that a reader never sees half of it
     write_atomic(path, (text + "\n").as_bytes())
         .with_context(|| format!("writing {}", path.display()))
+}
+
+/// The workers' part files of `out` whose names start with `prefix` and end in `.csv`, sorted
+/// (result rows `episodes.part-*`, masks `masks.part-*`).
+pub fn part_files(out: &Path, prefix: &str) -> Result<Vec<PathBuf>> {
+    let mut parts: Vec<PathBuf> = std::fs::read_dir(out)
+        .with_context(|| format!("listing {}", out.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| n.starts_with(prefix) && n.ends_with(".csv"))
+        })
+        .collect();
+    parts.sort();
+    Ok(parts)
 }
 
 #[cfg(test)]

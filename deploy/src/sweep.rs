@@ -194,7 +194,7 @@ impl MatrixFile {
         for &algo in &self.algos {
             let mut table = base.clone();
             if let Some(over) = self.algo.get(algo.name()) {
-                table = ctxrace_common::config::merge_tables(table, over.clone());
+                table = ctxrace_common::preset::merge_tables(table, over.clone());
             }
             for track in &self.tracks {
                 for &rivals in &self.rivals {
