@@ -333,7 +333,7 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
 #[test]
 fn a_chunk_rewritten_after_validation_cannot_panic_the_replay_buffer() {
     use ctxrace_common::ipc::inject::Injector;
-    use ctxrace_common::ipc::wire::{step_stride, ChunkHeader, FORMAT_VERSION};
+    use ctxrace_common::ipc::wire::{step_stride, ChunkHeader};
     use ctxrace_common::ipc::ReadStage;
     use ctxrace_replay::ReplayBuffer;
     use rand::SeedableRng;
@@ -356,13 +356,9 @@ fn a_chunk_rewritten_after_validation_cannot_panic_the_replay_buffer() {
         .enumerate()
     {
         let header = ChunkHeader {
-            format_version: FORMAT_VERSION,
-            actor_id: 0,
             sequence: sequence as u64,
-            obs_dim: OBS as u32,
-            act_dim: ACT as u32,
             steps: steps as u32,
-            ..Default::default()
+            ..ChunkHeader::for_actor(0, OBS, ACT)
         };
         let held = inject.chunk_held(0, header, &payload).unwrap();
         // an actor id past the buffer's streams, dimensions and a step count past the payload,

@@ -274,13 +274,9 @@ mod tests {
         let order = [WHEN[1], WHEN[0], WHEN[2]];
         for (sequence, when) in order.into_iter().enumerate() {
             let header = ChunkHeader {
-                format_version: FORMAT_VERSION,
-                actor_id: 0,
                 sequence: sequence as u64,
-                obs_dim: OBS as u32,
-                act_dim: ACT as u32,
                 steps: steps as u32,
-                ..Default::default()
+                ..ChunkHeader::for_actor(0, OBS, ACT)
             };
             let held = inject.chunk_held(0, header, &payload).unwrap();
             assert_eq!(held.reached, 1);

@@ -2,8 +2,8 @@
 
 use super::transport::{ice, wait_until, RunTransport, Wake};
 use super::wire::{
-    step_stride, validate_chunk, ChunkHeader, WireError, FORMAT_VERSION, MAX_ACT, MAX_CHUNK,
-    MAX_CHUNK_FLOATS, MAX_OBS,
+    step_stride, validate_chunk, ChunkHeader, WireError, MAX_ACT, MAX_CHUNK, MAX_CHUNK_FLOATS,
+    MAX_OBS,
 };
 use super::{read_once, ReadStage, RejectLog};
 use anyhow::{anyhow, Result};
@@ -178,13 +178,7 @@ impl TrajectorySender {
             turns: ready,
             close_timeout: opts.close_timeout,
             unconfirmed: false,
-            header: ChunkHeader {
-                format_version: FORMAT_VERSION,
-                actor_id,
-                obs_dim: obs_dim as u32,
-                act_dim: act_dim as u32,
-                ..Default::default()
-            },
+            header: ChunkHeader::for_actor(actor_id, obs_dim, act_dim),
             buf: Vec::with_capacity(MAX_CHUNK * step_stride(obs_dim, act_dim)),
             backlog: VecDeque::new(),
             spare: Vec::new(),

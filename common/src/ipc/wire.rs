@@ -61,6 +61,20 @@ pub struct ChunkHeader {
     pub reserved: u32,
 }
 
+impl ChunkHeader {
+    /// The header of actor `actor_id`'s chunks of steps of `obs_dim` and `act_dim` values, this
+    /// format's version; episode, sequence, policy version and step count still 0.
+    pub fn for_actor(actor_id: u32, obs_dim: usize, act_dim: usize) -> Self {
+        Self {
+            format_version: FORMAT_VERSION,
+            actor_id,
+            obs_dim: obs_dim as u32,
+            act_dim: act_dim as u32,
+            ..Self::default()
+        }
+    }
+}
+
 /// Header of a weights broadcast; the payload is `len` bytes.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
 #[type_name("ctxrace_WeightsHeader_v1")]
