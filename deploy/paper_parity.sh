@@ -29,6 +29,7 @@
 #   MODEL_LR AC_LR  world-model and actor/critic learning rates [the paper's 3e-5 and 3e-5]
 #   RIVALS          rivals [1]; TRACK: the paper's map name [f1_esp]
 #   THREADS         torch threads [2]
+#   PARITY_CONTEXTS the grid indices the code's test races [17-48, as the code]
 #   TEST_LAPS       laps per context of the code's own test after training [0: no test]; with
 #                   it `paper` also writes OUT/paper/ALGO/seed<SEED>/eval/ (see evaldir), so
 #                   that the folder reads as a ctxrace run directory to `ctxrace report`
@@ -39,6 +40,8 @@
 #     packages import each other's `tools` by bare name, so all of them);
 #   - every Utils/*dreamer*/configs.yaml: device 'cpu', compile False, the widths above;
 #   - Data/Vehicles/ created (the code's os.mkdir is not recursive);
+#   - TestSimulation.run_testing's `if ma_idx < 17: continue` reads the contexts to race from
+#     PARITY_CONTEXTS (comma-separated grid indices) when it is set, 17-48 otherwise;
 #   - a driver (parity_driver.py) instead of TrainAgents.main(), which hard-codes one run file:
 #     it trains only (TrainAgents also runs its 49-context test afterwards), from a run file
 #     config/parity.yaml made from the paper's own <algo>_multiagent_classic_<track>.yaml with
@@ -115,6 +118,11 @@ export_paper() {
             echo "$d: still names a cuda device after the edits" >&2; exit 1
         fi
     done
+    # the code's test races contexts 17-48 of its 7 x 7 grid (`if ma_idx < 17: continue`);
+    # PARITY_CONTEXTS (comma-separated indices) races those instead
+    local test_file=$dest/TrajectoryAidedLearning/TestSimulation.py
+    sed -i 's/if ma_idx < 17:/if str(ma_idx) not in os.environ.get("PARITY_CONTEXTS", ",".join(map(str, range(17, 49)))).split(","):/' "$test_file"
+    grep -q 'PARITY_CONTEXTS' "$test_file" || { echo "$test_file: the context filter 'if ma_idx < 17:' was not found" >&2; exit 1; }
     mkdir -p "$dest/Data/Vehicles"
     cat >"$dest/parity_driver.py" <<'PY'
 """Trains one run of the paper's code for its n_train_steps, printing per training episode its
