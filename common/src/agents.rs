@@ -14,7 +14,6 @@
 //! | `sampler` | `uniform` | `paper-code` |
 //! | `warmup` | `random-steps` (`[train] prefill`) | `episodes` |
 //! | `warmup_episodes` | 32 (used with `warmup = "episodes"`) | 32 |
-//! | `context_scale` | `normalised` (`c / dreamer.context_range`) | `raw` |
 
 use crate::batch::BatchSpec;
 use crate::nn::tanh_gaussian::{validate_log_std_clamp, LOG_STD_CLAMP};
@@ -156,10 +155,25 @@ pub enum Warmup {
 #[serde(rename_all = "kebab-case")]
 pub enum ContextScale {
     /// `c / dreamer.context_range`, in `[−1, 1]` over the training range.
-    #[default]
     Normalised,
     /// `c` as it is (the paper's code: ±0.15 in training, ±0.3 in evaluation).
+    #[default]
     Raw,
+}
+
+impl ContextScale {
+    /// What an `[agent]` table saved without `context_scale` meant: checkpoints and run
+    /// directories written before the key existed (ctxrace before 2026-12-05) trained with the
+    /// normalised context, whatever the default is now.
+    pub const SAVED_WITHOUT_KEY: Self = Self::Normalised;
+
+    /// Gives a saved `[agent]` table without `context_scale` the scale it was trained with
+    /// ([`ContextScale::SAVED_WITHOUT_KEY`]).
+    pub fn fill_saved_table(agent: &mut toml::Table) {
+        agent
+            .entry("context_scale")
+            .or_insert_with(|| "normalised".into());
+    }
 }
 
 /// Which agent to train and its hyper-parameters (the `[agent]` table).
@@ -194,7 +208,7 @@ impl Default for AgentConfig {
             sampler: Sampler::Uniform,
             warmup: Warmup::RandomSteps,
             warmup_episodes: 32,
-            context_scale: ContextScale::Normalised,
+            context_scale: ContextScale::Raw,
             sac: SacConfig::default(),
             dreamer: DreamerConfig::default(),
         }
@@ -229,6 +243,13 @@ impl AgentConfig {
         let cfg = crate::preset::resolve(table, AgentPreset::config)?;
         cfg.validate().map_err(|e| e.to_string())?;
         Ok(cfg)
+    }
+
+    /// Reads an `[agent]` table a checkpoint saved (`agent.toml`): as [`AgentConfig::from_table`],
+    /// a table saved before `context_scale` existed reading as the scale it trained with.
+    pub fn from_saved_table(mut table: toml::Table) -> std::result::Result<Self, String> {
+        ContextScale::fill_saved_table(&mut table);
+        Self::from_table(table)
     }
 
     /// The DreamerV3 configuration with the context mode of [`AgentConfig::algo`] and the
@@ -738,7 +759,7 @@ impl Default for DreamerConfig {
     fn default() -> Self {
         Self {
             context: ContextMode::None,
-            context_scale: ContextScale::Normalised,
+            context_scale: ContextScale::default(),
             units: 256,
             layers: 3,
             deter: 256,
@@ -923,19 +944,31 @@ mod tests {
         let p = AgentConfig::paper_code();
         assert_eq!(p.context_scale, ContextScale::Raw);
         assert_eq!(p.dreamer().context_divisor(), 1.0);
-        assert_eq!(AgentConfig::default().dreamer().context_divisor(), 0.15);
+        assert_eq!(AgentConfig::default().dreamer().context_divisor(), 1.0);
         // a resolved configuration round-trips, preset included
         let text = toml::to_string(&a).unwrap();
         assert_eq!(AgentConfig::from_table(table(&text)).unwrap(), a);
         let d = AgentConfig::default();
         assert_eq!(
             (d.sampler, d.warmup, d.context_scale),
-            (
-                Sampler::Uniform,
-                Warmup::RandomSteps,
-                ContextScale::Normalised
-            )
+            (Sampler::Uniform, Warmup::RandomSteps, ContextScale::Raw)
         );
+    }
+
+    /// A checkpoint's `agent.toml` written before `context_scale` existed trained with the
+    /// normalised context and still acts with it; one written since keeps its own key.
+    #[test]
+    fn a_saved_table_without_context_scale_reads_as_normalised() {
+        let table = |text: &str| toml::from_str::<toml::Table>(text).unwrap();
+        let old = AgentConfig::from_saved_table(table("algo = \"cmask\"")).unwrap();
+        assert_eq!(old.context_scale, ContextScale::Normalised);
+        assert_eq!(old.dreamer().context_divisor(), 0.15);
+        let saved = toml::to_string(&AgentConfig::default()).unwrap();
+        let new = AgentConfig::from_saved_table(table(&saved)).unwrap();
+        assert_eq!(new.context_scale, ContextScale::Raw);
+        // a user's file without the key takes today's default
+        let user = AgentConfig::from_table(table("algo = \"cmask\"")).unwrap();
+        assert_eq!(user.context_scale, ContextScale::Raw);
     }
 
     #[test]

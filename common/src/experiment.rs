@@ -149,6 +149,24 @@ impl ExperimentConfig {
         Self::from_toml(&text, &path.display().to_string())
     }
 
+    /// Reads the experiment a run directory recorded (its `config.toml`): as
+    /// [`ExperimentConfig::load`], an `[agent]` recorded before `context_scale` existed reading
+    /// as the scale that run trained with ([`crate::ContextScale::SAVED_WITHOUT_KEY`]).
+    pub fn load_saved(path: &Path) -> Result<Self, String> {
+        let origin = path.display().to_string();
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| format!("reading experiment config {origin}: {e}"))?;
+        let mut table: toml::Table = toml::from_str(&text).map_err(|e| format!("{origin}: {e}"))?;
+        let agent = table
+            .entry("agent")
+            .or_insert_with(|| toml::Table::new().into());
+        if let toml::Value::Table(agent) = agent {
+            crate::ContextScale::fill_saved_table(agent);
+        }
+        let text = toml::to_string(&table).map_err(|e| format!("{origin}: {e}"))?;
+        Self::from_toml(&text, &origin)
+    }
+
     /// The configuration as TOML (what a run directory records).
     pub fn to_toml(&self) -> Result<String, String> {
         toml::to_string(self).map_err(|e| format!("serialising the experiment config: {e}"))
@@ -413,6 +431,27 @@ impl ExperimentConfig {
 mod tests {
     use super::*;
     use crate::agents::AlgoKind;
+
+    /// A run directory recorded before `context_scale` existed trained with the normalised
+    /// context: resuming or evaluating it reads that back; a run recorded since keeps its key.
+    #[test]
+    fn a_run_recorded_without_context_scale_reads_as_normalised() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("config.toml");
+        let mut old = ExperimentConfig::default().to_toml().unwrap();
+        old = old.replace("context_scale = \"raw\"\n", "");
+        assert!(!old.contains("context_scale"));
+        std::fs::write(&path, &old).unwrap();
+        let saved = ExperimentConfig::load_saved(&path).unwrap();
+        assert_eq!(saved.agent.context_scale, crate::ContextScale::Normalised);
+        assert_eq!(
+            ExperimentConfig::load(&path).unwrap().agent.context_scale,
+            crate::ContextScale::Raw
+        );
+        std::fs::write(&path, ExperimentConfig::default().to_toml().unwrap()).unwrap();
+        let now = ExperimentConfig::load_saved(&path).unwrap();
+        assert_eq!(now, ExperimentConfig::default());
+    }
 
     #[test]
     fn the_agent_preset_reads_from_files_and_bad_keys_name_themselves() {

@@ -78,13 +78,17 @@ impl TrainedAgent {
         let agent_path = checkpoint.join(AGENT_FILE);
         let text = std::fs::read_to_string(&agent_path)
             .with_context(|| format!("reading {}", agent_path.display()))?;
-        let agent: AgentConfig =
+        let table: toml::Table =
             toml::from_str(&text).with_context(|| format!("parsing {}", agent_path.display()))?;
+        let agent = AgentConfig::from_saved_table(table)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", agent_path.display()))?;
         let policy_path = checkpoint.join(POLICY_FILE);
         let weights = std::fs::read(&policy_path)
             .with_context(|| format!("reading {}", policy_path.display()))?;
         let experiment = match run_dir.map(|r| r.join(CONFIG_FILE)) {
-            Some(p) if p.exists() => Some(ExperimentConfig::load(&p).map_err(anyhow::Error::msg)?),
+            Some(p) if p.exists() => {
+                Some(ExperimentConfig::load_saved(&p).map_err(anyhow::Error::msg)?)
+            }
             _ => None,
         };
         Ok(Self {
