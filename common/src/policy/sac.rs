@@ -37,7 +37,7 @@ impl SacPolicy {
         weights: &[u8],
         seed: u64,
     ) -> Result<Self> {
-        cfg.validate()?;
+        cfg.validate().map_err(candle_core::Error::wrap)?;
         let store = ParamStore::new();
         let actor = TanhGaussianActor::new(
             frame_dim * cfg.frames,
