@@ -17,10 +17,28 @@
 
 use crate::batch::BatchSpec;
 use crate::nn::tanh_gaussian::{validate_log_std_clamp, LOG_STD_CLAMP};
-use candle_core::{bail, Error, Result};
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::str::FromStr;
+
+/// Why an agent configuration cannot be trained or acted with.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum AgentConfigError {
+    /// A key's value lies outside what the networks or the learner accept; the message names
+    /// the key, the value and the values allowed.
+    #[error("{0}")]
+    OutOfRange(String),
+}
+
+/// The outcome of checking an agent configuration.
+type Result<T> = std::result::Result<T, AgentConfigError>;
+
+/// Returns [`AgentConfigError::OutOfRange`] with a formatted message.
+macro_rules! bail {
+    ($($message:tt)*) => {
+        return Err(AgentConfigError::OutOfRange(format!($($message)*)))
+    };
+}
 
 /// The training algorithms, by the names the command line and configs use.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -433,7 +451,7 @@ impl SacConfig {
         }
         check_target_every("agent.sac.target_every", self.target_every)?;
         validate_log_std_clamp("agent.sac.log_std_clamp", self.log_std_clamp)
-            .map_err(Error::Msg)?;
+            .map_err(AgentConfigError::OutOfRange)?;
         Ok(())
     }
 
@@ -570,7 +588,7 @@ impl MaskConfig {
         }
         check_target_every("agent.dreamer.mask.target_every", self.target_every)?;
         validate_log_std_clamp("agent.dreamer.mask.log_std_clamp", self.log_std_clamp)
-            .map_err(Error::Msg)?;
+            .map_err(AgentConfigError::OutOfRange)?;
         if self.reward_delay > 1 {
             bail!(
                 "agent.dreamer.mask.reward_delay must be 0 (the reward the mask's step earned) or 1 \

@@ -1,6 +1,7 @@
 //! The interface every training algorithm implements, so that the inline trainer and the learner
 //! process can drive any of them by name.
 
+use crate::checkpoint::CheckpointError;
 use candle_core::{DType, Result, Tensor};
 pub use ctxrace_common::batch::Batch;
 use std::collections::BTreeMap;
@@ -16,9 +17,9 @@ pub trait Algorithm {
     /// The acting policy's weights as safetensors bytes.
     fn policy_weights(&self) -> Result<Vec<u8>>;
     /// Writes every weight, optimiser state and counter into `dir`.
-    fn save(&self, dir: &Path) -> Result<()>;
+    fn save(&self, dir: &Path) -> std::result::Result<(), CheckpointError>;
     /// Restores what [`Algorithm::save`] wrote.
-    fn load(&mut self, dir: &Path) -> Result<()>;
+    fn load(&mut self, dir: &Path) -> std::result::Result<(), CheckpointError>;
     /// Training steps taken.
     fn steps(&self) -> u64;
 }

@@ -11,9 +11,10 @@
 //! count, not those of the random prefill. The smoother's state is saved with every regular
 //! checkpoint, so a restarted learner carries on with it.
 
-use crate::checkpoint::{io_error, write_atomically, write_policy_files, write_toml, TRACKER_FILE};
+use crate::checkpoint::{
+    io_error, write_atomically, write_policy_files, write_toml, Result, TRACKER_FILE,
+};
 use crate::Algorithm;
-use candle_core::Result;
 use ctxrace_common::run_dir::{BEST_DIR, CHECKPOINTS};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};

@@ -6,20 +6,45 @@
 //! fsynced, so that a crash leaves either the whole checkpoint or none of it. Reading verifies
 //! the seal: a damaged newest checkpoint is passed over, with a warning, for the one before.
 
-use candle_core::{Error, Result};
 use ctxrace_common::run_dir::{AGENT_FILE, CHECKPOINTS, POLICY_FILE};
 use serde::{de::DeserializeOwned, Serialize};
-use std::path::Path;
+use std::path::{Path, PathBuf};
+
+/// Why a checkpoint could not be written, read or trusted.
+#[derive(Debug, thiserror::Error)]
+pub enum CheckpointError {
+    /// A file or folder of the checkpoint: what was being done to it, where, and what went
+    /// wrong.
+    #[error("{what} {}: {reason}", path.display())]
+    File {
+        /// What was being done (`"reading"`, `"checking"`, ...).
+        what: String,
+        /// The file or folder.
+        path: PathBuf,
+        /// What went wrong.
+        reason: String,
+    },
+    /// The algorithm could not serialise or restore its networks and optimisers.
+    #[error("the networks' state: {0}")]
+    Networks(#[from] candle_core::Error),
+}
+
+/// The outcome of a checkpoint operation.
+pub type Result<T> = std::result::Result<T, CheckpointError>;
 
 /// Name of the counters file in a checkpoint directory.
 pub const STATE_FILE: &str = "state.toml";
-/// File in every regular checkpoint with the smoothed training return's state
-/// ([`crate::best::ReturnTracker`]).
+/// File in every regular checkpoint with the state of the learner's smoothed training return
+/// (written as [`write_checkpoint`] is given it).
 pub const TRACKER_FILE: &str = "returns.toml";
 
 /// An error naming the file (or folder) and what was being done to it.
-pub(crate) fn io_error(what: &str, path: &Path, e: impl std::fmt::Display) -> Error {
-    Error::Msg(format!("{what} {}: {e}", path.display()))
+pub(crate) fn io_error(what: &str, path: &Path, e: impl std::fmt::Display) -> CheckpointError {
+    CheckpointError::File {
+        what: what.to_string(),
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    }
 }
 
 /// Writes `value` as TOML to `path`, naming the file in its error.
@@ -40,7 +65,11 @@ pub fn save(dir: &Path, blobs: &[(&str, Vec<u8>)], state: &impl Serialize) -> Re
 }
 
 /// Reads `<dir>/<name>.safetensors` and hands it to `load`, naming the file in its error.
-pub fn load_blob(dir: &Path, name: &str, load: impl FnOnce(&[u8]) -> Result<()>) -> Result<()> {
+pub fn load_blob(
+    dir: &Path,
+    name: &str,
+    load: impl FnOnce(&[u8]) -> candle_core::Result<()>,
+) -> Result<()> {
     let path = dir.join(format!("{name}.safetensors"));
     let bytes = std::fs::read(&path).map_err(|e| io_error("reading", &path, e))?;
     load(&bytes).map_err(|e| io_error("loading", &path, e))
@@ -205,7 +234,7 @@ fn sealed(file: &Path, bytes: u64) -> Result<Sealed> {
 
 /// Saves `algo` as `<run>/checkpoints/step-<steps>/`, with the policy weights and the agent's
 /// configuration beside its own files so that evaluation needs nothing else, and the smoothed
-/// training return's state `tracker` as [`TRACKER_FILE`] (see [`crate::best`]). The checkpoint is written to a temporary
+/// training return's state `tracker` as [`TRACKER_FILE`]. The checkpoint is written to a temporary
 /// folder and renamed into place, so a crash never leaves half of one; only the newest few are
 /// kept. Returns its path.
 pub fn write_checkpoint(
@@ -249,7 +278,7 @@ pub(crate) fn write_atomically(
     let name = final_dir
         .file_name()
         .and_then(|n| n.to_str())
-        .ok_or_else(|| Error::Msg(format!("{} has no folder name", final_dir.display())))?;
+        .ok_or_else(|| io_error("naming", final_dir, "the path ends in no folder name"))?;
     let parent = final_dir
         .parent()
         .filter(|p| !p.as_os_str().is_empty())
@@ -325,6 +354,41 @@ pub fn latest_checkpoint(run_dir: &Path) -> Option<std::path::PathBuf> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A cMask checkpoint written by the binary of commit d6b5c40 (the last before the networks
+    /// were rewritten over a named-parameter store; `testdata/d6b5c40/README.md`) loads into a
+    /// learner of its configuration, and that learner saves back every blob byte for byte and
+    /// the same policy weights: every tensor's name, shape and value read as written.
+    #[test]
+    fn a_checkpoint_written_by_d6b5c40_loads_and_saves_back_the_same_bytes() {
+        let dir =
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../testdata/d6b5c40/cmask/checkpoint");
+        verify(&dir).unwrap();
+        let text = std::fs::read_to_string(dir.join(AGENT_FILE)).unwrap();
+        let agent: ctxrace_common::AgentConfig = toml::from_str(&text).unwrap();
+        let mut algo = crate::build(&agent, 108, 1).unwrap();
+        algo.load(&dir).unwrap();
+        assert_eq!(algo.steps(), 20);
+        let again = tempfile::tempdir().unwrap();
+        algo.save(again.path()).unwrap();
+        let mut blobs = 0;
+        for entry in std::fs::read_dir(again.path()).unwrap() {
+            let name = entry.unwrap().file_name();
+            if name.to_string_lossy().ends_with(".safetensors") {
+                let saved = std::fs::read(again.path().join(&name)).unwrap();
+                assert!(
+                    saved == std::fs::read(dir.join(&name)).unwrap(),
+                    "{name:?} differs"
+                );
+                blobs += 1;
+            }
+        }
+        assert_eq!(
+            blobs, 13,
+            "weights and optimiser states of the world model, actor, critics and mask"
+        );
+        assert!(algo.policy_weights().unwrap() == std::fs::read(dir.join(POLICY_FILE)).unwrap());
+    }
 
     #[test]
     fn a_damaged_newest_checkpoint_falls_back_to_the_one_before() {

@@ -110,7 +110,7 @@ impl Dreamer {
     /// A freshly initialised agent for observations of `obs_dim` and actions of `act_dim`
     /// (reward and critic output layers start at zero, as in DreamerV3).
     pub fn new(cfg: DreamerConfig, obs_dim: usize, act_dim: usize) -> Result<Self> {
-        cfg.validate()?;
+        cfg.validate().map_err(candle_core::Error::wrap)?;
         if obs_dim == 0 || act_dim == 0 {
             bail!("DreamerV3 needs observations and actions (sizes {obs_dim}, {act_dim})");
         }
@@ -384,7 +384,7 @@ impl Algorithm for Dreamer {
 
     /// Writes every parameter store and optimiser (`<name>.safetensors`) and the counters (step
     /// and return normaliser).
-    fn save(&self, dir: &Path) -> Result<()> {
+    fn save(&self, dir: &Path) -> checkpoint::Result<()> {
         let mut blobs = Vec::new();
         for (name, store) in self.stores() {
             blobs.push((name, store.to_bytes()?));
@@ -399,7 +399,7 @@ impl Algorithm for Dreamer {
         checkpoint::save(dir, &blobs, &state)
     }
 
-    fn load(&mut self, dir: &Path) -> Result<()> {
+    fn load(&mut self, dir: &Path) -> checkpoint::Result<()> {
         for (name, store) in self.stores() {
             checkpoint::load_blob(dir, name, |b| store.load_bytes(b))?;
         }

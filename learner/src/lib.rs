@@ -33,7 +33,7 @@ pub fn build(
     frame_dim: usize,
     workers: usize,
 ) -> candle_core::Result<Box<dyn Algorithm>> {
-    agent.validate()?;
+    agent.validate().map_err(candle_core::Error::wrap)?;
     Ok(match agent.algo {
         AlgoKind::Sac => Box::new(Sac::new(
             frame_dim * agent.sac.frames,

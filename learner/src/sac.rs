@@ -171,7 +171,7 @@ impl Sac {
                 cfg.hidden
             );
         }
-        cfg.validate()?;
+        cfg.validate().map_err(candle_core::Error::wrap)?;
         if !obs_dim.is_multiple_of(cfg.frames) {
             bail!(
                 "SAC observation size {obs_dim} is not a multiple of frames = {}",
@@ -669,7 +669,7 @@ impl Algorithm for Sac {
 
     /// Writes the actor, critics, target critics, `log α` and their optimisers as safetensors
     /// files and the step counter.
-    fn save(&self, dir: &Path) -> Result<()> {
+    fn save(&self, dir: &Path) -> checkpoint::Result<()> {
         let blobs = [
             ("actor", self.actor_params.to_bytes()?),
             ("critic", self.critic_params.to_bytes()?),
@@ -683,7 +683,7 @@ impl Algorithm for Sac {
     }
 
     /// Restores what [`Algorithm::save`] wrote into an agent of the same sizes.
-    fn load(&mut self, dir: &Path) -> Result<()> {
+    fn load(&mut self, dir: &Path) -> checkpoint::Result<()> {
         let state: SavedState = checkpoint::load_state(dir)?;
         checkpoint::load_blob(dir, "actor", |b| self.actor_params.load_bytes(b))?;
         checkpoint::load_blob(dir, "critic", |b| self.critic_params.load_bytes(b))?;

@@ -16,6 +16,24 @@ pub enum Activation {
     Relu,
 }
 
+/// The LayerNorms' `ε` in an [`Mlp`]'s hidden blocks.
+pub const LAYER_NORM_EPS: f64 = 1e-3;
+
+/// The sizes of an [`Mlp`]: what [`Mlp::new`] is given besides its parameters.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MlpShape {
+    /// Input width.
+    pub input: usize,
+    /// Width of each hidden block.
+    pub units: usize,
+    /// Number of hidden blocks.
+    pub layers: usize,
+    /// Width of the output layer, if the network has one.
+    pub out: Option<usize>,
+    /// The hidden blocks' activation.
+    pub act: Activation,
+}
+
 /// A hidden block of an [`Mlp`]: a layer and, for [`Activation::SiluNorm`], its normalisation.
 pub type HiddenBlock = (Dense, Option<LayerNorm>);
 
@@ -45,7 +63,7 @@ impl Mlp {
             // with a LayerNorm after it the linear layer's bias is redundant
             let fc = Dense::new(width, units, !norm, vb_i.pp("fc"))?;
             let ln = if norm {
-                Some(LayerNorm::new(units, 1e-3, vb_i.pp("ln"))?)
+                Some(LayerNorm::new(units, LAYER_NORM_EPS, vb_i.pp("ln"))?)
             } else {
                 None
             };

@@ -9,15 +9,17 @@ pub mod plain;
 pub mod rssm;
 pub mod symlog;
 pub mod tanh_gaussian;
+pub mod weights;
 
 pub use dense::Dense;
 pub use kernels::NormAct;
-pub use mlp::{Activation, HiddenBlock, Mlp};
+pub use mlp::{Activation, HiddenBlock, Mlp, MlpShape};
 pub use norm::LayerNorm;
 pub use params::ParamStore;
 pub use rssm::{Gru, Rssm, RssmConfig, RssmState};
 pub use symlog::{symexp, symlog, TwoHot};
 pub use tanh_gaussian::TanhGaussianActor;
+pub use weights::{Weights, WeightsError};
 
 /// Makes candle's own kernels run on the calling thread. The learner parallelises over the
 /// batch instead (DreamerV3 splits each batch over its workers, see

@@ -312,7 +312,7 @@ impl DreamerPolicy {
     /// A policy of the architecture `cfg` for observations of `obs_dim`, with the bytes of
     /// the learner's policy weights; `seed` seeds its sampling noise.
     pub fn new(cfg: &DreamerConfig, obs_dim: usize, weights: &[u8], seed: u64) -> Result<Self> {
-        cfg.validate()?;
+        cfg.validate().map_err(candle_core::Error::wrap)?;
         let store = ParamStore::new();
         let stored = DreamerNets::new(cfg, obs_dim, ACT_DIM, store.builder())?;
         store.load_bytes(weights)?;

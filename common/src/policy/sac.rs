@@ -3,10 +3,15 @@
 //! `reset_frame_stack = false` the stack carries on from the previous episode as in the paper's
 //! code), plus Gaussian exploration noise `explore_noise` (the code's `N(0, 0.1)`, then clipped
 //! to `[−1, 1]`) when configured, in training and evaluation alike.
+//!
+//! The actor runs on the plain network the learner trains ([`PlainMlp`]), read from the
+//! learner's weights by name ([`Weights`]).
 
 use crate::agents::SacConfig;
-use crate::nn::{ParamStore, TanhGaussianActor};
-use candle_core::{bail, Device, Result, Tensor};
+use crate::nn::plain::{MlpTrace, PlainMlp};
+use crate::nn::tanh_gaussian::squash_rows;
+use crate::nn::{Activation, MlpShape, Weights};
+use candle_core::{bail, Result};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -14,8 +19,13 @@ use std::collections::VecDeque;
 
 /// The SAC actor at batch 1 with its frame stack.
 pub struct SacPolicy {
-    store: ParamStore,
-    actor: TanhGaussianActor,
+    /// The actor's sizes, to read new weights with.
+    shape: MlpShape,
+    actor: PlainMlp,
+    /// The actor's buffers for one row.
+    trace: MlpTrace,
+    /// Bounds of `log σ`.
+    log_std_clamp: [f32; 2],
     frame_dim: usize,
     act_dim: usize,
     frames: usize,
@@ -25,6 +35,15 @@ pub struct SacPolicy {
     explore_noise: f32,
     /// Whether [`SacPolicy::reset`] empties the frame stack.
     reset_frame_stack: bool,
+}
+
+/// The actor of `shape` from the learner's weights (safetensors bytes).
+fn read_actor(shape: &MlpShape, weights: &[u8]) -> Result<PlainMlp> {
+    let mut weights = Weights::from_safetensors(weights).map_err(candle_core::Error::wrap)?;
+    let actor =
+        PlainMlp::from_weights(&mut weights, "", shape).map_err(candle_core::Error::wrap)?;
+    weights.finish().map_err(candle_core::Error::wrap)?;
+    Ok(actor)
 }
 
 impl SacPolicy {
@@ -37,20 +56,21 @@ impl SacPolicy {
         weights: &[u8],
         seed: u64,
     ) -> Result<Self> {
-        cfg.validate()?;
-        let store = ParamStore::new();
-        let actor = TanhGaussianActor::new(
-            frame_dim * cfg.frames,
-            act_dim,
-            cfg.hidden,
-            cfg.layers,
-            store.builder(),
-        )?
-        .with_log_std_clamp(cfg.log_std_clamp);
-        store.load_bytes(weights)?;
+        cfg.validate().map_err(candle_core::Error::wrap)?;
+        // the learner's TanhGaussianActor: a ReLU MLP to the means, then the log-σs
+        let shape = MlpShape {
+            input: frame_dim * cfg.frames,
+            units: cfg.hidden,
+            layers: cfg.layers,
+            out: Some(2 * act_dim),
+            act: Activation::Relu,
+        };
+        let actor = read_actor(&shape, weights)?;
         Ok(Self {
-            store,
+            trace: actor.trace(1),
             actor,
+            shape,
+            log_std_clamp: cfg.log_std_clamp.map(|b| b as f32),
             frame_dim,
             act_dim,
             frames: cfg.frames,
@@ -63,7 +83,8 @@ impl SacPolicy {
 
     /// Replaces the weights (same architecture) without clearing the frame stack.
     pub fn load(&mut self, weights: &[u8]) -> Result<()> {
-        self.store.load_bytes(weights)
+        self.actor = read_actor(&self.shape, weights)?;
+        Ok(())
     }
 
     /// Restarts the sampling noise from `seed`.
@@ -96,17 +117,20 @@ impl SacPolicy {
         }
         self.stack.push_back(obs.to_vec());
         let stacked: Vec<f32> = self.stack.iter().flatten().copied().collect();
-        let x = Tensor::from_vec(stacked, (1, self.frame_dim * self.frames), &Device::Cpu)?;
-        let action = if deterministic {
-            self.actor.mean_action(&x)?
+        self.actor
+            .forward(stacked.as_slice(), &mut self.trace, 0..1);
+        let out = self.actor.output(&self.trace, 0..1);
+        let mut action = vec![0f32; self.act_dim];
+        if deterministic {
+            for (a, mean) in action.iter_mut().zip(out) {
+                *a = mean.tanh();
+            }
         } else {
             let noise: Vec<f32> = (0..self.act_dim)
                 .map(|_| self.rng.sample(StandardNormal))
                 .collect();
-            let noise = Tensor::from_vec(noise, (1, self.act_dim), &Device::Cpu)?;
-            self.actor.sample(&x, &noise)?.0
-        };
-        let mut action = action.flatten_all()?.to_vec1::<f32>()?;
+            squash_rows(out, &noise, self.log_std_clamp, &mut action, &mut [0.0]);
+        }
         if self.explore_noise > 0.0 {
             for a in &mut action {
                 let n: f32 = self.rng.sample(StandardNormal);
@@ -120,6 +144,42 @@ impl SacPolicy {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::nn::{ParamStore, TanhGaussianActor};
+    use candle_core::{Device, Tensor};
+
+    /// The plain actor acts as the candle module the learner's weights come from (the
+    /// oracle), deterministic and sampled, at batch 1.
+    #[test]
+    fn acts_as_the_candle_actor() {
+        let cfg = SacConfig {
+            hidden: 8,
+            ..SacConfig::default()
+        };
+        let store = ParamStore::new();
+        let oracle = TanhGaussianActor::new(6, 2, 8, cfg.layers, store.builder())
+            .unwrap()
+            .with_log_std_clamp(cfg.log_std_clamp);
+        store.init(5).unwrap();
+        let mut policy = SacPolicy::new(&cfg, 3, 2, &store.to_bytes().unwrap(), 9).unwrap();
+        let frame = [0.1, -0.4, 0.7];
+        let x = Tensor::from_slice(&[frame, frame].concat(), (1, 6), &Device::Cpu).unwrap();
+        let values = |t: Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let noise: Vec<f32> = (0..2).map(|_| rng.sample(StandardNormal)).collect();
+        let noise = Tensor::from_vec(noise, (1, 2), &Device::Cpu).unwrap();
+        let want = [
+            values(oracle.mean_action(&x).unwrap()),
+            values(oracle.sample(&x, &noise).unwrap().0),
+        ];
+        for (deterministic, want) in [true, false].into_iter().zip(want) {
+            policy.reset();
+            policy.reseed(9);
+            let got = policy.act(&frame, deterministic).unwrap();
+            for (g, w) in got.iter().zip(&want) {
+                assert!((g - w).abs() <= 1e-6, "{got:?} vs {want:?}");
+            }
+        }
+    }
 
     fn policy(frames: usize) -> SacPolicy {
         policy_of(SacConfig {

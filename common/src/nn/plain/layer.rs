@@ -12,6 +12,8 @@ use crate::nn::kernels::{
     column_sums, count_flops, dense_parts, gemm_into, norm_act_rows_bwd_into, norm_act_rows_into,
     Norm, NormAct, Operand, SparseColumns, SparseRows,
 };
+use crate::nn::mlp::{MlpShape, LAYER_NORM_EPS};
+use crate::nn::weights::{Weights, WeightsError};
 use crate::nn::{Activation, Dense, LayerNorm, Mlp};
 use candle_core::backprop::GradStore;
 use candle_core::{bail, Result, Tensor};
@@ -180,8 +182,6 @@ impl PlainLayer {
         relu: bool,
     ) -> Result<Self> {
         let (outputs, inputs) = dense.weight().dims2()?;
-        let w = values(dense.weight())?;
-        let wt = transpose(&w, outputs, inputs);
         let after = match (norm, relu) {
             (Some((ln, act)), _) => {
                 let (gain, bias, eps) = ln.parts();
@@ -195,15 +195,48 @@ impl PlainLayer {
             (None, true) => After::Relu,
             (None, false) => After::Nothing,
         };
+        let bias = dense.bias().map(values).transpose()?;
+        let layer = Self::from_values(values(dense.weight())?, (outputs, inputs), bias, after);
         Ok(Self {
+            sparse: dense.sparse_columns().cloned(),
+            ..layer
+        })
+    }
+
+    /// The layer of `W` `[outputs, inputs]` (row-major) and `bias`, followed by `after`.
+    fn from_values(
+        w: Vec<f32>,
+        (outputs, inputs): (usize, usize),
+        bias: Option<Vec<f32>>,
+        after: After,
+    ) -> Self {
+        let wt = transpose(&w, outputs, inputs);
+        Self {
             inputs,
             outputs,
             w,
             wt,
-            bias: dense.bias().map(values).transpose()?,
+            bias,
             after,
-            sparse: dense.sparse_columns().cloned(),
-        })
+            sparse: None,
+        }
+    }
+
+    /// The layer `{name}.weight` `[outputs, inputs]` (and `{name}.bias` if `bias`) of
+    /// `weights`, followed by `after`.
+    fn from_weights(
+        weights: &mut Weights,
+        name: &str,
+        (inputs, outputs): (usize, usize),
+        bias: bool,
+        after: After,
+    ) -> std::result::Result<Self, WeightsError> {
+        let w = weights.take(&format!("{name}.weight"), &[outputs, inputs])?;
+        let bias = match bias {
+            true => Some(weights.take(&format!("{name}.bias"), &[outputs])?),
+            false => None,
+        };
+        Ok(Self::from_values(w, (outputs, inputs), bias, after))
     }
 
     /// A normalised block (`act(LayerNorm(x Wᵀ))`) of `dense` and `ln`.
@@ -510,6 +543,53 @@ impl PlainMlp {
         }
         if let Some(head) = head {
             layers.push(PlainLayer::linear(head)?);
+        }
+        Ok(Self { layers })
+    }
+
+    /// The network of `shape` read from `weights` under the names [`Mlp::new`] gives its
+    /// parameters, after `prefix` (`"encoder."`; empty for none): `l{i}.fc` and `l{i}.ln` for
+    /// the hidden blocks, `out` for the output layer.
+    pub fn from_weights(
+        weights: &mut Weights,
+        prefix: &str,
+        shape: &MlpShape,
+    ) -> std::result::Result<Self, WeightsError> {
+        let mut layers = Vec::with_capacity(shape.layers + 1);
+        let mut width = shape.input;
+        for i in 0..shape.layers {
+            let block = format!("{prefix}l{i}");
+            let size = (width, shape.units);
+            layers.push(match shape.act {
+                Activation::SiluNorm => {
+                    let norm = NormParams {
+                        gain: weights.take(&format!("{block}.ln.weight"), &[shape.units])?,
+                        bias: weights.take(&format!("{block}.ln.bias"), &[shape.units])?,
+                        eps: LAYER_NORM_EPS as f32,
+                        act: NormAct::Silu,
+                    };
+                    let fc = format!("{block}.fc");
+                    PlainLayer::from_weights(weights, &fc, size, false, After::Norm(norm))?
+                }
+                Activation::Relu => PlainLayer::from_weights(
+                    weights,
+                    &format!("{block}.fc"),
+                    size,
+                    true,
+                    After::Relu,
+                )?,
+            });
+            width = shape.units;
+        }
+        if let Some(out) = shape.out {
+            let name = format!("{prefix}out");
+            layers.push(PlainLayer::from_weights(
+                weights,
+                &name,
+                (width, out),
+                true,
+                After::Nothing,
+            )?);
         }
         Ok(Self { layers })
     }

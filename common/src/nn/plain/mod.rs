@@ -9,7 +9,8 @@
 //! ([`MlpTrace`], [`StepTrace`]), and a backward pass computes just the gradients it is asked for,
 //! on the same fused row kernels and gemm products as the candle modules
 //! ([`crate::nn::kernels`]). The weights are copied out of the candle modules they mirror
-//! ([`PlainMlp::new`], [`PlainRssm::new`]) and the parameters' gradients go back as candle
+//! ([`PlainMlp::new`], [`PlainRssm::new`]) or read by name from the learner's weights
+//! ([`PlainMlp::from_weights`], as the SAC policy acts) and the parameters' gradients go back as candle
 //! tensors keyed by them ([`PlainMlp::add_grads_to`]), so optimisers and checkpoints are
 //! unchanged. Each piece is checked against its candle module, values and gradients.
 
@@ -85,6 +86,34 @@ mod tests {
     use crate::nn::{Activation, Mlp, ParamStore, RssmConfig, RssmState};
     use candle_core::{Device, Tensor, Var};
     use rand::{Rng, SeedableRng};
+
+    /// A network read by name from the learner's weights is the one copied out of its candle
+    /// module, for both activations and under a prefix.
+    #[test]
+    fn a_network_read_by_name_equals_the_one_copied_from_its_candle_module() {
+        for act in [Activation::SiluNorm, Activation::Relu] {
+            let store = ParamStore::new();
+            let mlp = Mlp::new(5, 7, 2, Some(3), act, store.builder().pp("encoder")).unwrap();
+            store.init(11).unwrap();
+            let shape = crate::nn::MlpShape {
+                input: 5,
+                units: 7,
+                layers: 2,
+                out: Some(3),
+                act,
+            };
+            let mut weights =
+                crate::nn::Weights::from_safetensors(&store.to_bytes().unwrap()).unwrap();
+            let read = PlainMlp::from_weights(&mut weights, "encoder.", &shape).unwrap();
+            weights.finish().unwrap();
+            let copied = PlainMlp::new(&mlp).unwrap();
+            let x: Vec<f32> = (0..10).map(|i| (i as f32 * 0.7).sin()).collect();
+            let (mut a, mut b) = (read.trace(2), copied.trace(2));
+            read.forward(x.as_slice(), &mut a, 0..2);
+            copied.forward(x.as_slice(), &mut b, 0..2);
+            assert_eq!(read.output(&a, 0..2), copied.output(&b, 0..2), "{act:?}");
+        }
+    }
 
     /// Rows `[h, z, c]`: `h` of `d` and `c` of `c` normal values, `z` one-hot over `s` variables
     /// of `classes`.
