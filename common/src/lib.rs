@@ -23,5 +23,5 @@ pub use config::{
     ReplayOptions, RivalConfig, SpeedPoint, StartGrid, WallContact,
 };
 pub use context::{Context, ContextError};
-pub use experiment::{ExperimentConfig, SupervisorConfig, TrainConfig};
+pub use experiment::{ExperimentConfig, ExperimentError, SupervisorConfig, TrainConfig};
 pub use policy::{Decision, Policy};

@@ -42,7 +42,8 @@ pub struct ActorArgs {
 
 /// The run's experiment (an error is a [`ConfigError`]: a restart would meet it again).
 pub fn read_experiment(run_dir: &Path) -> Result<ExperimentConfig> {
-    Ok(ExperimentConfig::load(&run_dir.join(CONFIG_FILE)).map_err(ConfigError)?)
+    Ok(ExperimentConfig::load(&run_dir.join(CONFIG_FILE))
+        .map_err(|e| ConfigError(e.to_string()))?)
 }
 
 /// The replay's settings for a run: its sampling ratio and minimum fill follow `[train]`, its
