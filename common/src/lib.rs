@@ -1,5 +1,5 @@
 //! What ctxrace processes share: the race context, the experiment configuration types, the
-//! neural-network modules and the acting policies.
+//! neural-network modules and the acting policies, run-directory names and result rows.
 
 pub mod agents;
 pub mod batch;
@@ -10,6 +10,7 @@ pub mod ipc;
 pub mod nn;
 pub mod policy;
 pub mod preset;
+pub mod results;
 pub mod run_dir;
 pub mod validate;
 
@@ -23,5 +24,5 @@ pub use config::{
     ReplayOptions, RivalConfig, SpeedPoint, StartGrid, WallContact,
 };
 pub use context::{Context, ContextError};
-pub use experiment::{ExperimentConfig, SupervisorConfig, TrainConfig};
+pub use experiment::{ExperimentConfig, ExperimentError, SupervisorConfig, TrainConfig};
 pub use policy::{Decision, Policy};

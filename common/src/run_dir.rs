@@ -2,7 +2,7 @@
 //! that read them (`train` and its roles write, `eval`, `report`, `sweep` and `race` read).
 //!
 //! ```text
-//! runs/<algo>-<track>-<rivals>r-s<seed>/
+//! runs/<algo>-<track>-<rivals>r-s<seed>/   (run_name)
 //!   config.toml            CONFIG_FILE: the experiment as trained (eval and report reuse it)
 //!   .lock                  LOCK_FILE: held by the process writing the directory
 //!   status.json            STATUS_FILE: the launcher's live counters
@@ -24,6 +24,18 @@
 //! with [`write_atomic`] (a temporary created exclusively, renamed over the file), logs are
 //! opened with [`open_append`], and files read by a name from another file with
 //! [`read_regular`] or [`open_regular`]; none of them follows a link or waits on a FIFO.
+
+/// The name of a run: `<algo>-<track>-<rivals>r-s<seed>`, e.g. `cmask-f1_esp-3r-s0` (its
+/// directory under `runs/` unless another is given).
+pub fn run_name(cfg: &ExperimentConfig) -> String {
+    format!(
+        "{}-{}-{}r-s{}",
+        cfg.agent.algo,
+        cfg.track.replace([':', '/'], "_"),
+        cfg.race.rivals,
+        cfg.train.seed
+    )
+}
 
 /// The experiment as trained.
 pub const CONFIG_FILE: &str = "config.toml";
@@ -66,6 +78,7 @@ pub const EVAL_CONTEXTS_CSV: &str = "contexts.csv";
 /// The same as JSON.
 pub const EVAL_CONTEXTS_JSON: &str = "contexts.json";
 
+use crate::ExperimentConfig;
 use std::fs::{File, OpenOptions};
 use std::io::{Read, Write};
 use std::os::unix::fs::{OpenOptionsExt, PermissionsExt};
@@ -165,6 +178,18 @@ fn not_regular(path: &Path) -> std::io::Error {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn run_names_carry_every_axis_of_the_paper_matrix() {
+        let mut cfg = ExperimentConfig::default();
+        cfg.race.rivals = 3;
+        cfg.train.seed = 4;
+        assert_eq!(run_name(&cfg), "dreamerv3-f1_esp-3r-s4");
+        cfg.track = "generated:7".into();
+        cfg.agent.algo = crate::AlgoKind::Sac;
+        cfg.race.rivals = 1;
+        assert_eq!(run_name(&cfg), "sac-generated_7-1r-s4");
+    }
 
     #[test]
     fn a_link_planted_at_the_path_is_replaced_not_written_through() {

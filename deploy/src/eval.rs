@@ -8,22 +8,26 @@
 //! Each worker appends its finished episodes to `episodes.part-K.csv` in the output directory,
 //! so an interrupted evaluation resumes where it stopped: a rerun skips every (context, lap)
 //! already on disk. When all are done the rows are merged into `episodes.csv`, summarised per
-//! context (`contexts.csv`, `contexts.json`, see [`crate::results`]) and one episode is drawn
+//! context (`contexts.csv`, `contexts.json`, see `ctxrace_actor::evaluation`) and one episode is drawn
 //! (`episode.png`, `episode.svg`). A cMask agent's masks at every decision go to
 //! `masks.part-K.csv` beside, merged into `masks.csv.gz` ([`crate::masks`]).
 
-use crate::driver::{ActMode, Decided, EgoSpec};
+use crate::ego::EgoSpec;
 use crate::lock::{die_with_parent, DirLock};
 use crate::masks::{self, MaskRecorder};
 use crate::render::{race_title, render_race, Frame};
-use crate::results::{self, EvalMeta};
+
 use crate::track_check::{check_track, CheckPlan};
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use clap::Args;
 use ctxrace_actor::baseline::BaselineKind;
-use ctxrace_actor::protocol::{self, episode_seed, ContextSummary, EvalEpisode};
+use ctxrace_actor::driver::ActMode;
+use ctxrace_actor::evaluation::{
+    self, episode_seed, run_episode, ContextSummary, EvalEpisode, EvalMeta,
+};
 use ctxrace_actor::RaceEnv;
+use ctxrace_common::results;
 use ctxrace_common::run_dir::{
     open_append, read_regular, write_atomic, EVAL_CONTEXTS_CSV, EVAL_CONTEXTS_JSON, EVAL_DIR,
     EVAL_EPISODES, EVAL_JOB, EVAL_META,
@@ -342,7 +346,7 @@ fn prepare_out_dir(out: &Path, meta: &EvalMeta, fresh: bool) -> Result<()> {
             );
         }
     }
-    results::write_json(&meta_path, meta)
+    Ok(results::write_json(&meta_path, meta)?)
 }
 
 /// Every finished episode on disk with its context's index in the grid of `meta` (a torn
@@ -505,25 +509,6 @@ fn append_csv(path: &Path) -> Result<csv::Writer<std::fs::File>> {
         .from_writer(file))
 }
 
-/// Runs one episode to its end, showing `observe` every decision.
-fn run_episode(
-    env: &mut RaceEnv,
-    driver: &mut crate::driver::Driver,
-    context: Context,
-    seed: u64,
-    lap: usize,
-    observe: impl FnMut(&RaceEnv, Decided),
-) -> Result<EvalEpisode> {
-    let last = driver.drive_observed(env, context, seed, observe)?;
-    Ok(EvalEpisode::new(
-        context,
-        lap,
-        seed,
-        env.metrics(),
-        last.lap_complete,
-    ))
-}
-
 /// Merges the workers' rows, writes the per-context summaries, draws one episode and prints
 /// the in- and out-of-distribution means.
 fn finish(
@@ -546,7 +531,7 @@ fn finish(
     }
     let episodes: Vec<EvalEpisode> = rows.into_iter().map(|(_, e)| e).collect();
     results::write_csv(&out.join(EVAL_EPISODES), &episodes)?;
-    let summary = protocol::summarise(&episodes, meta.train_range);
+    let summary = evaluation::summarise(&episodes, meta.train_range);
     results::write_csv(&out.join(EVAL_CONTEXTS_CSV), &summary)?;
     results::write_json(&out.join(EVAL_CONTEXTS_JSON), &summary)?;
     let grid = contexts(meta);

@@ -3,15 +3,16 @@
 //! beside the random and pure-pursuit egos, a picture and an animation of one of its races, and
 //! the commands that go further (the full protocol, the report, TensorBoard).
 
-use crate::driver::{ActMode, EgoSpec};
+use crate::ego::EgoSpec;
 use crate::figures::{binned_curve, Band, CurveSeries, TrainingCurves, CURVE_PANELS};
 use crate::plot::{register_font, save};
 use crate::render::{race_title, render_race, Frame};
-use crate::results::{read_csv, TrainingEpisode};
 use crate::TrackArgs;
 use anyhow::Result;
 use ctxrace_actor::baseline::BaselineKind;
+use ctxrace_actor::driver::ActMode;
 use ctxrace_actor::RaceEnv;
+use ctxrace_common::results::{read_csv, TrainingEpisode};
 use ctxrace_common::run_dir::TRAINING_EPISODES;
 use ctxrace_common::{Context, ExperimentConfig};
 use ctxrace_learner::trained::{CheckpointChoice, TrainedAgent};
@@ -119,7 +120,7 @@ pub fn show(cfg: &ExperimentConfig, dir: &Path, tracks: &TrackArgs) -> Result<()
         let mut t = Tally::default();
         for (i, &context) in contexts.iter().enumerate() {
             for lap in 0..LAPS {
-                driver.drive_episode(&mut env, context, (i * LAPS + lap) as u64, None)?;
+                driver.drive_episode(&mut env, context, (i * LAPS + lap) as u64)?;
                 let m = env.metrics();
                 if context.within(cfg.train.context_range) {
                     t.progress_in.push(m.progress);
@@ -146,7 +147,7 @@ pub fn show(cfg: &ExperimentConfig, dir: &Path, tracks: &TrackArgs) -> Result<()
     }
     let mut driver = agent.driver(&env, ActMode::Sample)?;
     let mut frames: Vec<Frame> = Vec::new();
-    driver.drive_episode(&mut env, Context::default(), 0, Some(&mut frames))?;
+    crate::render::drive_recorded(&mut driver, &mut env, Context::default(), 0, &mut frames)?;
     let title = race_title(&cfg.track, &agent.name(), &env);
     let picture = dir.join("race.png");
     let animation = dir.join("race.gif");

@@ -3,10 +3,11 @@
 //! over its in- or out-of-distribution contexts, and those per-run means over a group's seeds.
 
 use crate::masks::{load_summary, MaskSummary};
-use crate::results::{read_csv, read_json, EvalMeta, TrainingEpisode};
 use anyhow::{bail, Result};
 use ctxrace_actor::baseline::BaselineKind;
-use ctxrace_actor::protocol::{summarise, ContextSummary, EvalEpisode};
+use ctxrace_actor::evaluation::EvalMeta;
+use ctxrace_actor::evaluation::{summarise, ContextSummary, EvalEpisode};
+use ctxrace_common::results::{read_csv, read_json, TrainingEpisode};
 use ctxrace_common::run_dir::{
     EVAL_CONTEXTS_CSV, EVAL_DIR, EVAL_EPISODES, EVAL_META, TRAINING_EPISODES,
 };

@@ -12,8 +12,8 @@
 //! `ctxrace report` reads the file back as a [`MaskSummary`]: the mean of each mask component per
 //! context and along the lap.
 
-use crate::driver::Decided;
 use anyhow::{bail, Context as _, Result};
+use ctxrace_actor::driver::Decided;
 use ctxrace_actor::RaceEnv;
 use ctxrace_common::run_dir::write_atomic;
 use ctxrace_common::Context;
@@ -82,7 +82,7 @@ impl MaskRecorder {
         }
     }
 
-    /// Takes one observation of [`crate::driver::Driver::drive_observed`].
+    /// Takes one observation of [`ctxrace_actor::driver::Driver::drive_observed`].
     pub fn observe(&mut self, env: &RaceEnv, decided: &Decided) {
         if let Some([speed, steer]) = decided.mask {
             let (progress, x, y) = self.pose;
@@ -116,7 +116,7 @@ pub fn part_path(out: &Path, shard: usize) -> PathBuf {
 
 /// The workers' mask files in `out`.
 fn part_files(out: &Path) -> Result<Vec<PathBuf>> {
-    crate::results::part_files(out, PART_PREFIX)
+    Ok(ctxrace_common::results::part_files(out, PART_PREFIX)?)
 }
 
 /// Merges the workers' mask files of `out` into [`MASKS_FILE`], keeping the rows of the

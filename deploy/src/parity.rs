@@ -4,8 +4,8 @@
 //! with side `ctxrace` or `paper`. `ctxrace report --parity DIR` draws them
 //! ([`crate::figures::write_parity`]).
 
-use crate::results::{read_csv, TrainingEpisode};
 use anyhow::{bail, Context as _, Result};
+use ctxrace_common::results::{read_csv, TrainingEpisode};
 use ctxrace_common::run_dir::TRAINING_EPISODES;
 use std::path::Path;
 

@@ -1,11 +1,12 @@
 //! `ctxrace race`: one episode with a reference ego policy, its metrics, picture and trace.
 
-use crate::driver::{ActMode, EgoSpec};
+use crate::ego::EgoSpec;
 use crate::render::{check_render_path, ended_by, race_title, render_race, Frame};
 use crate::TrackArgs;
 use anyhow::{Context as _, Result};
 use clap::Args;
 use ctxrace_actor::baseline::BaselineKind;
+use ctxrace_actor::driver::ActMode;
 use ctxrace_actor::vehicle::idx;
 use ctxrace_actor::RaceEnv;
 use ctxrace_common::Context;
@@ -95,7 +96,7 @@ pub fn run(args: RaceArgs) -> Result<()> {
     let mut env = RaceEnv::new(track.clone(), cfg)?;
     let mut policy = spec.driver(&env, args.act)?;
     let mut frames = Vec::new();
-    policy.drive_episode(&mut env, args.context, args.seed, Some(&mut frames))?;
+    crate::render::drive_recorded(&mut policy, &mut env, args.context, args.seed, &mut frames)?;
     let m = env.metrics();
     let ended_by = ended_by(m);
     if args.json {

@@ -6,8 +6,9 @@
 
 use crate::plot::{plot_err, register_font, save, Figure};
 use anyhow::{bail, Context as _, Result};
+use ctxrace_actor::driver::Driver;
 use ctxrace_actor::vehicle::{idx, State, VehicleParams};
-use ctxrace_actor::{EpisodeMetrics, RaceEnv};
+use ctxrace_actor::{EpisodeMetrics, RaceEnv, StepInfo};
 use ctxrace_tracks::Track;
 use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
@@ -40,6 +41,20 @@ pub struct Frame {
     pub scan: Vec<f32>,
     /// Every car, ego first.
     pub cars: Vec<CarSnapshot>,
+}
+
+/// Runs one episode of `env` under `context` from `seed` with `driver`, recording a frame
+/// after the reset and after every decision into `frames`; returns the last step's details.
+pub fn drive_recorded(
+    driver: &mut Driver,
+    env: &mut RaceEnv,
+    context: ctxrace_common::Context,
+    seed: u64,
+    frames: &mut Vec<Frame>,
+) -> Result<StepInfo> {
+    driver.drive_observed(env, context, seed, |env, d| {
+        frames.push(Frame::capture(env, d.action, d.reward, d.obs))
+    })
 }
 
 impl Frame {
@@ -670,8 +685,9 @@ fn changed_part(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::driver::{ActMode, EgoSpec};
+    use crate::ego::EgoSpec;
     use ctxrace_actor::baseline::BaselineKind;
+    use ctxrace_actor::driver::ActMode;
     use ctxrace_common::{Context, RaceConfig};
     use ctxrace_tracks::TrackOptions;
     use std::sync::Arc;
@@ -688,9 +704,7 @@ mod tests {
         let spec = EgoSpec::Baseline(BaselineKind::PurePursuit);
         let mut driver = spec.driver(&env, ActMode::Mode).unwrap();
         let mut frames = Vec::new();
-        driver
-            .drive_episode(&mut env, context, 0, Some(&mut frames))
-            .unwrap();
+        drive_recorded(&mut driver, &mut env, context, 0, &mut frames).unwrap();
         let title = race_title(&track.name, &spec.name(), &env);
         (track, frames, title)
     }

@@ -440,8 +440,9 @@ fn markdown(groups: &[Group], figures: &[PathBuf], out: &Path) -> String {
 mod tests {
     use super::*;
     use crate::groups::split_mean;
-    use crate::results::{write_csv, write_json, EvalMeta, TrainingEpisode};
-    use ctxrace_actor::protocol::{ContextSummary, EvalEpisode};
+    use ctxrace_actor::evaluation::EvalMeta;
+    use ctxrace_actor::evaluation::{ContextSummary, EvalEpisode};
+    use ctxrace_common::results::{write_csv, write_json, TrainingEpisode};
     use ctxrace_common::Context;
 
     const TRAIN_RANGE: f64 = 0.15;
@@ -479,7 +480,7 @@ mod tests {
             seed: 0,
             source: format!("runs/{algo}-{seed}"),
             checkpoint: "best".into(),
-            act: crate::driver::ActMode::Sample,
+            act: ctxrace_actor::driver::ActMode::Sample,
             preset: ctxrace_common::RacePreset::Default,
             contexts: None,
         }

@@ -42,7 +42,8 @@ pub struct ActorArgs {
 
 /// The run's experiment (an error is a [`ConfigError`]: a restart would meet it again).
 pub fn read_experiment(run_dir: &Path) -> Result<ExperimentConfig> {
-    Ok(ExperimentConfig::load(&run_dir.join(CONFIG_FILE)).map_err(ConfigError)?)
+    Ok(ExperimentConfig::load(&run_dir.join(CONFIG_FILE))
+        .map_err(|e| ConfigError(e.to_string()))?)
 }
 
 /// The replay's settings for a run: its sampling ratio and minimum fill follow `[train]`, its
@@ -86,7 +87,10 @@ pub fn replay(args: RoleArgs) -> Result<()> {
         "samples_per_insert": replay_args.options.samples_per_insert,
         "min_fill": replay_args.options.min_fill,
     });
-    crate::results::write_json(&args.run_dir.join(REPLAY_REPORT), &report)
+    Ok(ctxrace_common::results::write_json(
+        &args.run_dir.join(REPLAY_REPORT),
+        &report,
+    )?)
 }
 
 /// Runs `ctxrace learner`.
@@ -121,5 +125,8 @@ pub fn actor(args: ActorArgs) -> Result<()> {
     let dir = args.role.run_dir.join(ACTOR_REPORTS);
     std::fs::create_dir_all(&dir)?;
     let name = format!("actor-{}-{}.json", args.id, args.incarnation);
-    crate::results::write_json(&dir.join(name), &report)
+    Ok(ctxrace_common::results::write_json(
+        &dir.join(name),
+        &report,
+    )?)
 }

@@ -17,10 +17,10 @@
 //! rerunning the command continues. `--emit list` prints each run's command and `--emit slurm`
 //! a Slurm array script of them, so that a cluster runs exactly what the local sweep would.
 
-use crate::driver::ActMode;
 use crate::lock::{die_with_parent, DirLock};
 use anyhow::{bail, Context as _, Result};
 use clap::{Args, ValueEnum};
+use ctxrace_actor::driver::ActMode;
 use ctxrace_common::{AlgoKind, ExperimentConfig};
 use serde::Deserialize;
 use std::collections::BTreeMap;
@@ -211,7 +211,7 @@ impl MatrixFile {
                         let config = resolve(&table, algo, track, rivals, seed)
                             .with_context(|| format!("the run {algo} {track} {rivals}r s{seed}"))?;
                         runs.push(MatrixRun {
-                            name: crate::train::run_name(&config),
+                            name: ctxrace_common::run_dir::run_name(&config),
                             config,
                         });
                     }
@@ -340,9 +340,9 @@ pub fn run(args: SweepArgs) -> Result<()> {
 /// Whether the run in `dir` has a complete evaluation of the sweep's protocol.
 fn is_evaluated(dir: &Path, eval: &SweepEval) -> bool {
     let eval_dir = dir.join("eval");
-    let Ok(meta) =
-        crate::results::read_json::<crate::results::EvalMeta>(&eval_dir.join("meta.json"))
-    else {
+    let Ok(meta) = ctxrace_common::results::read_json::<ctxrace_actor::evaluation::EvalMeta>(
+        &eval_dir.join("meta.json"),
+    ) else {
         return false;
     };
     eval_dir.join("contexts.csv").is_file()

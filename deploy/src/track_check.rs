@@ -4,10 +4,11 @@
 //! enough for a car with a margin each side; the raceline's curvature must lie within the car's
 //! steering limit. Each failure says where on the track it happened.
 
-use crate::driver::{ActMode, EgoSpec};
+use crate::ego::EgoSpec;
 use crate::render::ended_by;
 use anyhow::Result;
 use ctxrace_actor::baseline::{Baseline, BaselineKind};
+use ctxrace_actor::driver::ActMode;
 use ctxrace_actor::vehicle::{idx, VehicleParams};
 use ctxrace_actor::RaceEnv;
 use ctxrace_common::{Context, RaceConfig};
@@ -177,7 +178,7 @@ fn ego_laps(track: &Track, race: &RaceConfig) -> Result<Finding> {
     let mut env = RaceEnv::new(Arc::new(track.clone()), cfg)?;
     let spec = EgoSpec::Baseline(BaselineKind::PurePursuit);
     spec.driver(&env, ActMode::Mode)?
-        .drive_episode(&mut env, Context::default(), 0, None)?;
+        .drive_episode(&mut env, Context::default(), 0)?;
     let m = env.metrics();
     let detail = match m.lap_time {
         Some(t) => format!("lap in {t:.1} s"),

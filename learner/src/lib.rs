@@ -1,12 +1,16 @@
-//! ctxrace's training algorithms behind one [`Algorithm`] trait.
+//! ctxrace's training algorithms behind one [`Algorithm`] trait, the learner process
+//! ([`process`]) and the single-process trainer ([`inline`]), which share one cadence of logs,
+//! checkpoints and best policy ([`cadence`]).
 
 pub mod adam;
 pub mod algorithm;
 mod behaviour;
 pub mod best;
+pub mod cadence;
 pub mod checkpoint;
 pub mod cmask;
 pub mod dreamer;
+pub mod inline;
 pub mod process;
 pub mod returns;
 pub mod runlog;

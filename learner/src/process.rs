@@ -2,12 +2,12 @@
 //! the policy weights every `policy_every` gradient steps, logs every `log_every` and
 //! checkpoints every `checkpoint_every` (and on SIGTERM/SIGINT). It smooths the returns of the
 //! actors' finished episodes and saves the policy as the run's best checkpoint at each new peak
-//! ([`crate::best`]). It resumes from the newest checkpoint of the run directory, so a restarted
+//! ([`crate::best`]); the cadence is [`crate::cadence`]'s, as the single-process trainer's. It resumes from the newest checkpoint of the run directory, so a restarted
 //! learner carries on where it stopped.
 
-use crate::best::{write_best, ReturnTracker};
-use crate::checkpoint::{latest_checkpoint, write_checkpoint};
-use crate::runlog::MetricsLog;
+use crate::best::ReturnTracker;
+use crate::cadence::Cadence;
+use crate::checkpoint::latest_checkpoint;
 use anyhow::{Context as _, Result};
 use ctxrace_common::ipc::{
     termination_flag, EpisodeSubscriber, ReplayClient, RunTransport, WeightsPublisher,
@@ -15,9 +15,9 @@ use ctxrace_common::ipc::{
 };
 use ctxrace_common::policy::ACT_DIM;
 use ctxrace_common::ExperimentConfig;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 /// How long the learner waits for the replay to come up.
 const HANDSHAKE: Duration = Duration::from_secs(60);
@@ -43,6 +43,20 @@ pub fn target_steps(cfg: &ExperimentConfig) -> u64 {
     cfg.gradient_steps()
 }
 
+/// Whether the run in `dir` has taken all its gradient steps (its newest checkpoint is the
+/// learner's last).
+pub fn is_trained(dir: &Path, cfg: &ExperimentConfig) -> bool {
+    latest_checkpoint(dir)
+        .and_then(|c| {
+            c.file_name()?
+                .to_str()?
+                .strip_prefix("step-")?
+                .parse::<u64>()
+                .ok()
+        })
+        .is_some_and(|step| step >= target_steps(cfg))
+}
+
 /// Trains until the run's gradient-step target or SIGTERM/SIGINT; returns the steps taken.
 pub fn run(opts: LearnerOptions) -> Result<u64> {
     let cfg = &opts.experiment;
@@ -66,48 +80,30 @@ pub fn run(opts: LearnerOptions) -> Result<u64> {
     weights.publish(algo.steps(), &algo.policy_weights()?)?;
     let mut replay = ReplayClient::new(&transport, opts.frame_dim, ACT_DIM, HANDSHAKE)?;
     let mut episodes = EpisodeSubscriber::new(&transport)?;
-    let mut log = MetricsLog::open(&opts.run_dir, "learner")?;
+    let first = algo.steps();
+    let mut cadence = Cadence::open(&opts.run_dir, cfg, "learner", tracker)?.with_rate_since(first);
     let spec = cfg.agent.batch_spec();
     let target = target_steps(cfg);
-    let start = Instant::now();
-    let first = algo.steps();
     let stop = termination_flag()?;
     while algo.steps() < target && !stop.load(Ordering::Relaxed) {
         // late or restarted actors get the newest weights only when the publisher acts
         weights.update_connections()?;
-        let mut new_best = false;
-        for e in episodes.episodes()? {
-            // every episode moves the smoothed return, so no short-circuit here
-            if e.by_policy == 1 {
-                new_best |= tracker.observe(e.episode_return as f64);
-            }
-        }
-        if new_best {
-            write_best(&opts.run_dir, algo.as_ref(), &cfg.agent, &tracker)?;
-        }
+        let policy_returns = episodes
+            .episodes()?
+            .into_iter()
+            .filter(|e| e.by_policy == 1)
+            .map(|e| e.episode_return as f64);
+        cadence.observe_returns(algo.as_ref(), policy_returns)?;
         let Some(batch) = replay.next_batch(spec, BATCH_WAIT)? else {
             continue;
         };
-        let mut m = algo.train_step(&batch)?;
-        let steps = algo.steps();
-        if steps.is_multiple_of(t.policy_every) {
-            weights.publish(steps, &algo.policy_weights()?)?;
-        }
-        if steps.is_multiple_of(t.log_every) {
-            m.insert("grad_steps".into(), steps as f64);
-            m.insert("seconds".into(), start.elapsed().as_secs_f64());
-            m.insert(
-                "grad_steps_per_second".into(),
-                (steps - first) as f64 / start.elapsed().as_secs_f64(),
-            );
-            log.write(&m)?;
-        }
-        if t.checkpoint_every > 0 && steps.is_multiple_of(t.checkpoint_every) {
-            write_checkpoint(&opts.run_dir, algo.as_ref(), &cfg.agent, &tracker)?;
+        let metrics = algo.train_step(&batch)?;
+        if cadence.after_step(algo.as_ref(), metrics, None)? {
+            weights.publish(algo.steps(), &algo.policy_weights()?)?;
         }
     }
     weights.publish(algo.steps(), &algo.policy_weights()?)?;
-    let last = write_checkpoint(&opts.run_dir, algo.as_ref(), &cfg.agent, &tracker)?;
+    let last = cadence.finish(algo.as_ref())?;
     tracing::info!(
         "learner stopping at step {}: {}",
         algo.steps(),

@@ -1,16 +1,16 @@
-//! Who drives the ego: a reference policy or a trained agent loaded from a checkpoint
-//! (`ctxrace_learner::trained`).
+//! Who drives the ego in an evaluation episode: a reference policy or a trained agent's acting
+//! policy, sampling its distributions or taking their modes; and the episode loop that drives
+//! it (reset, decisions, the end), showing every decision to an observer.
 
-use crate::render::Frame;
-use anyhow::{Context as _, Result};
-use ctxrace_actor::baseline::{Baseline, BaselineKind};
-use ctxrace_actor::{RaceEnv, StepInfo};
-use ctxrace_common::Policy;
-use ctxrace_learner::trained::TrainedAgent;
+use crate::baseline::{Baseline, BaselineKind};
+use crate::race::{RaceEnv, StepInfo};
+use anyhow::Result;
+use ctxrace_common::{AgentConfig, Context, Policy};
 use serde::{Deserialize, Serialize};
 
 /// How a trained agent picks its actions.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum ActMode {
     /// Samples its action (and cMask its mask) distribution, seeded per episode: the paper's
@@ -18,46 +18,6 @@ pub enum ActMode {
     Sample,
     /// Takes the mode of each distribution.
     Mode,
-}
-
-/// What drives the ego.
-#[derive(Clone, Debug)]
-pub enum EgoSpec {
-    /// A reference policy.
-    Baseline(BaselineKind),
-    /// A trained agent.
-    Trained(Box<TrainedAgent>),
-}
-
-impl EgoSpec {
-    /// The name reports group by: the algorithm or the baseline.
-    pub fn name(&self) -> String {
-        match self {
-            EgoSpec::Baseline(BaselineKind::PurePursuit) => "pure-pursuit".into(),
-            EgoSpec::Baseline(BaselineKind::Random) => "random".into(),
-            EgoSpec::Baseline(BaselineKind::Still) => "still".into(),
-            EgoSpec::Trained(t) => t.agent.algo.name().into(),
-        }
-    }
-
-    /// A driver for `env`'s episodes; a trained agent acts by `act`.
-    pub fn driver(&self, env: &RaceEnv, act: ActMode) -> Result<Driver> {
-        Ok(match self {
-            EgoSpec::Baseline(kind) => Driver::Baseline(*kind, Baseline::new(*kind, env, 0)),
-            EgoSpec::Trained(t) => Driver::Agent(
-                Box::new(
-                    Policy::new(&t.agent, env.obs_dim(), &t.weights, 0).with_context(|| {
-                        format!(
-                            "the checkpoint {} does not fit this race's observations ({} values)",
-                            t.checkpoint.display(),
-                            env.obs_dim()
-                        )
-                    })?,
-                ),
-                act,
-            ),
-        })
-    }
 }
 
 /// One decision of an episode, as [`Driver::drive_observed`] shows it.
@@ -82,6 +42,18 @@ pub enum Driver {
 }
 
 impl Driver {
+    /// A reference policy driving `env`'s ego.
+    pub fn baseline(kind: BaselineKind, env: &RaceEnv) -> Self {
+        Driver::Baseline(kind, Baseline::new(kind, env, 0))
+    }
+
+    /// A trained agent (its configuration and policy weights, safetensors bytes) driving
+    /// `env`'s ego, acting by `act`.
+    pub fn agent(agent: &AgentConfig, weights: &[u8], env: &RaceEnv, act: ActMode) -> Result<Self> {
+        let policy = Policy::new(agent, env.obs_dim(), weights, 0)?;
+        Ok(Driver::Agent(Box::new(policy), act))
+    }
+
     /// Starts an episode of `env` (after its reset); `seed` drives the random baseline and a
     /// sampling agent's noise.
     pub fn reset(&mut self, env: &RaceEnv, seed: u64) {
@@ -94,20 +66,15 @@ impl Driver {
         }
     }
 
-    /// Runs one episode of `env` under `context` from `seed` to its end, recording a frame per
-    /// decision into `frames` if given; returns the last step's details.
+    /// Runs one episode of `env` under `context` from `seed` to its end; returns the last
+    /// step's details.
     pub fn drive_episode(
         &mut self,
         env: &mut RaceEnv,
-        context: ctxrace_common::Context,
+        context: Context,
         seed: u64,
-        mut frames: Option<&mut Vec<Frame>>,
     ) -> Result<StepInfo> {
-        self.drive_observed(env, context, seed, |env, d| {
-            if let Some(f) = frames.as_deref_mut() {
-                f.push(Frame::capture(env, d.action, d.reward, d.obs));
-            }
-        })
+        self.drive_observed(env, context, seed, |_, _| {})
     }
 
     /// Runs one episode like [`Driver::drive_episode`], showing `observe` the environment after
@@ -115,7 +82,7 @@ impl Driver {
     pub fn drive_observed(
         &mut self,
         env: &mut RaceEnv,
-        context: ctxrace_common::Context,
+        context: Context,
         seed: u64,
         mut observe: impl FnMut(&RaceEnv, Decided),
     ) -> Result<StepInfo> {

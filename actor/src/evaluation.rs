@@ -9,13 +9,68 @@
 //! reported as the number of such episodes per 50 laps, as the paper does. A context is
 //! in-distribution when both of its values lie inside the training range `[−r, r]`
 //! ([`Context::within`]).
+//!
+//! **Records.** An evaluation directory holds [`EvalMeta`] (`meta.json`), one [`EvalEpisode`]
+//! per episode (`episodes.csv`) and one [`ContextSummary`] per context (`contexts.csv`,
+//! `contexts.json`); the file names are in `ctxrace_common::run_dir`, the readers and writers
+//! in `ctxrace_common::results`. [`run_episode`] races one episode of the grid.
 
-use crate::race::EpisodeMetrics;
+use crate::driver::{ActMode, Decided, Driver};
+use crate::race::{EpisodeMetrics, RaceEnv};
+use anyhow::Result;
 use ctxrace_common::Context;
 use serde::{Deserialize, Serialize};
 
 /// Laps per context that A2A counts are scaled to (the paper's protocol).
 pub const A2A_PER_LAPS: f64 = 50.0;
+
+/// What was evaluated, and how (an evaluation directory's `meta.json`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EvalMeta {
+    /// Algorithm name (`sac`, `dreamerv3`, `crssm`, `cmask`) or baseline (`random`, `pure-pursuit`).
+    pub algo: String,
+    /// Track name.
+    pub track: String,
+    /// Number of rivals.
+    pub rivals: usize,
+    /// Training seed of the agent (groups runs for seed averaging).
+    pub train_seed: u64,
+    /// Half-width of the training context range (in-distribution bound).
+    pub train_range: f64,
+    /// Grid points per context dimension.
+    pub grid: usize,
+    /// Half-width of the evaluation grid.
+    pub range: f64,
+    /// Laps (episodes) per context.
+    pub laps: usize,
+    /// Seed of the evaluation episodes.
+    pub seed: u64,
+    /// Checkpoint directory evaluated, or the baseline's name.
+    pub source: String,
+    /// Which checkpoint of the run: `best`, `latest` or `step-N` (`given` for a checkpoint
+    /// directory, `-` for a baseline); evaluations written before it was recorded used the
+    /// newest.
+    #[serde(default = "newest_checkpoint")]
+    pub checkpoint: String,
+    /// How a trained agent acted: `sample` (the paper's) or `mode` (what evaluations written
+    /// before it was recorded did).
+    #[serde(default = "mode_of_policy")]
+    pub act: ActMode,
+    /// The race scenario's preset.
+    #[serde(default)]
+    pub preset: ctxrace_common::RacePreset,
+    /// Indices (in the grid's `c_v`-major order) of the contexts raced; none: the whole grid.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub contexts: Option<Vec<usize>>,
+}
+
+fn newest_checkpoint() -> String {
+    "latest".into()
+}
+
+fn mode_of_policy() -> ActMode {
+    ActMode::Mode
+}
 
 /// One evaluation episode.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -151,6 +206,26 @@ impl EvalEpisode {
     }
 }
 
+/// Races lap `lap` of `context` from `seed` to its end with `driver`, showing `observe` every
+/// decision ([`Driver::drive_observed`]); returns its record.
+pub fn run_episode(
+    env: &mut RaceEnv,
+    driver: &mut Driver,
+    context: Context,
+    seed: u64,
+    lap: usize,
+    observe: impl FnMut(&RaceEnv, Decided),
+) -> Result<EvalEpisode> {
+    let last = driver.drive_observed(env, context, seed, observe)?;
+    Ok(EvalEpisode::new(
+        context,
+        lap,
+        seed,
+        env.metrics(),
+        last.lap_complete,
+    ))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -170,6 +245,24 @@ mod tests {
             steps: 10,
             episode_return: 2.0,
         }
+    }
+
+    #[test]
+    fn csv_round_trip_keeps_missing_lap_times() {
+        use ctxrace_common::results::{read_csv, write_csv};
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("e.csv");
+        let lap = |speed, steer, lap_time| {
+            let metrics = EpisodeMetrics {
+                progress: 0.4,
+                lap_time,
+                ..EpisodeMetrics::default()
+            };
+            EvalEpisode::new(Context { speed, steer }, 0, 7, &metrics, lap_time.is_some())
+        };
+        let rows = vec![lap(0.0, 0.1, Some(31.5)), lap(-0.3, 0.3, None)];
+        write_csv(&path, &rows).unwrap();
+        assert_eq!(read_csv::<EvalEpisode>(&path).unwrap(), rows);
     }
 
     #[test]

@@ -1,0 +1,304 @@
+//! The single-process trainer (`ctxrace train --inline`): the environment, an in-memory replay
+//! buffer and the learner in one loop, for development, tests and notebooks. It writes the run
+//! directory the learner process and the launcher write (`episodes.csv`, the metrics, the
+//! checkpoints and the best policy, by [`crate::cadence`]) and reports its progress to the
+//! caller, which may show it.
+
+use crate::cadence::Cadence;
+use crate::runlog::{EpisodeLog, RateMeter};
+use anyhow::Result;
+use ctxrace_actor::collect::{Collector, Finished};
+use ctxrace_actor::RaceEnv;
+use ctxrace_common::policy::ACT_DIM;
+use ctxrace_common::results::TrainingEpisode;
+use ctxrace_common::{ExperimentConfig, Policy};
+use ctxrace_replay::ReplayBuffer;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// Episodes whose mean progress [`InlineProgress::recent_progress`] reports.
+const RECENT: usize = 10;
+
+/// Where a single-process run stands (after each decision and at its end).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct InlineProgress {
+    /// Decisions (environment steps) taken.
+    pub decisions: u64,
+    /// Gradient steps taken.
+    pub grad_steps: u64,
+    /// Training episodes started (the running one included).
+    pub episodes: u64,
+    /// Mean progress (PG) of the last 10 episodes, 0 before the first.
+    pub recent_progress: f64,
+    /// Time since the loop started.
+    pub elapsed: Duration,
+}
+
+/// A finished single-process run.
+#[derive(Clone, Debug, PartialEq)]
+pub struct InlineRun {
+    /// Where it ended.
+    pub progress: InlineProgress,
+    /// Its last checkpoint.
+    pub checkpoint: PathBuf,
+}
+
+/// The row of a finished episode.
+fn training_episode(f: &Finished, actor: u32, env_steps: u64, grad_steps: u64) -> TrainingEpisode {
+    TrainingEpisode {
+        env_steps,
+        grad_steps,
+        actor,
+        episode: f.episode,
+        context_speed: f.context.speed,
+        context_steer: f.context.steer,
+        progress: f.metrics.progress,
+        overtakes: f.metrics.overtakes,
+        a2a: f.metrics.a2a,
+        wall_crash: f.metrics.wall_crash,
+        episode_return: f.metrics.episode_return,
+        steps: f.metrics.steps,
+    }
+}
+
+/// Trains `cfg`'s agent on `env` into the run directory `dir` in one loop: one collector, an
+/// in-memory replay buffer and the learner. After the warm-up (`prefill` random steps, or with
+/// `[agent] warmup = "episodes"` `warmup_episodes` episodes of the untrained policy) it keeps
+/// the gradient steps at `train_ratio` per env step (with random steps as many in all as
+/// [`crate::process::target_steps`]), drawing batches with `[agent] sampler`, reloads the
+/// acting policy at the first episode boundary after every `policy_every` gradient steps, logs
+/// and checkpoints. `on_decision` sees the progress after every decision.
+pub fn run_inline(
+    cfg: &ExperimentConfig,
+    dir: &Path,
+    env: RaceEnv,
+    mut on_decision: impl FnMut(&InlineProgress),
+) -> Result<InlineRun> {
+    let t = &cfg.train;
+    ctxrace_common::nn::candle_on_one_thread();
+    let frame_dim = env.obs_dim();
+    let workers = t.threads_for(cfg.agent.algo);
+    let mut algo = crate::build(&cfg.agent, frame_dim, workers)?;
+    let mut policy = Policy::new(&cfg.agent, frame_dim, &algo.policy_weights()?, t.seed)?;
+    let mut collector = Collector::new(env, t.context_range, t.seed)
+        .with_paper_code_rows(cfg.agent.stores_paper_code_rows());
+    let mut buffer = ReplayBuffer::new(cfg.replay.capacity, 1, frame_dim, ACT_DIM);
+    let mut rng = ChaCha8Rng::seed_from_u64(t.seed ^ 0x7265_706c_6179);
+    let spec = cfg.agent.batch_spec();
+    let mut episodes = EpisodeLog::open(dir, "inline")?;
+    let mut cadence = Cadence::open(dir, cfg, "inline-learner", Default::default())?;
+    let mut meter = RateMeter::default();
+    let start = Instant::now();
+    let (mut stale_policy, mut recent) = (false, Vec::<f64>::new());
+    let mut payload = Vec::new();
+    let mut trained_after = None;
+    let progress = |collector: &Collector, grad_steps: u64, recent: &[f64]| InlineProgress {
+        decisions: collector.decisions(),
+        grad_steps,
+        episodes: collector.episodes(),
+        recent_progress: if recent.is_empty() {
+            0.0
+        } else {
+            recent.iter().sum::<f64>() / recent.len() as f64
+        },
+        elapsed: start.elapsed(),
+    };
+    while collector.decisions() < t.env_steps {
+        payload.clear();
+        let by_policy = cfg.acts_by_policy(collector.decisions());
+        let acting = if by_policy { Some(&mut policy) } else { None };
+        let finished = collector.step(acting, |s| s.encode(&mut payload))?;
+        buffer.insert_chunk(0, &payload, false);
+        if let Some(f) = finished {
+            let row = training_episode(&f, 0, collector.decisions(), algo.steps());
+            episodes.write(&row)?;
+            recent.push(row.progress);
+            if recent.len() > RECENT {
+                recent.remove(0);
+            }
+            let policy_return = f.by_policy.then_some(f.metrics.episode_return);
+            cadence.observe_returns(algo.as_ref(), policy_return)?;
+        }
+        if trained_after.is_none() {
+            trained_after = cfg.warmup_end(collector.decisions(), collector.episodes());
+        }
+        if let Some(after) = trained_after {
+            let due = ((collector.decisions() - after) as f64 * t.train_ratio).round() as u64;
+            while algo.steps() < due {
+                let Some(batch) = buffer.sample(spec, cfg.agent.sampler, &mut rng) else {
+                    break;
+                };
+                let metrics = algo.train_step(&batch)?;
+                let env_steps = Some(collector.decisions());
+                stale_policy |= cadence.after_step(algo.as_ref(), metrics, env_steps)?;
+            }
+            if stale_policy && collector.at_episode_boundary() {
+                policy.load(&algo.policy_weights()?)?;
+                stale_policy = false;
+            }
+        }
+        if collector.decisions().is_multiple_of(50) {
+            let held = (buffer.len() as u64, buffer.capacity() as u64);
+            if let Some(rates) = meter.read(collector.decisions(), algo.steps(), held) {
+                episodes.rates(collector.decisions(), &rates)?;
+            }
+        }
+        on_decision(&progress(&collector, algo.steps(), &recent));
+    }
+    let checkpoint = cadence.finish(algo.as_ref())?;
+    Ok(InlineRun {
+        progress: progress(&collector, algo.steps(), &recent),
+        checkpoint,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::process::is_trained;
+    use crate::trained::{CheckpointChoice, TrainedAgent};
+    use ctxrace_actor::driver::{ActMode, Driver};
+    use ctxrace_actor::evaluation::{episode_seed, run_episode};
+    use ctxrace_common::results::read_csv;
+    use ctxrace_common::run_dir::{METRICS_JSONL, TRAINING_EPISODES};
+    use ctxrace_common::{AgentConfig, AlgoKind, Context, DreamerConfig, RaceConfig};
+    use ctxrace_tracks::{Track, TrackOptions};
+    use std::sync::Arc;
+
+    /// A cMask run of 300 decisions on tiny networks (as the CLI tests' `train --inline`).
+    const TINY_CMASK: &str = r#"track = "generated:0"
+[race]
+rivals = 1
+max_time = 20.0
+[agent]
+algo = "cmask"
+[agent.dreamer]
+units = 16
+layers = 1
+deter = 16
+hidden = 16
+stoch = 4
+classes = 4
+head_units = 16
+head_layers = 1
+batch = 2
+length = 8
+[agent.dreamer.mask]
+units = 16
+[train]
+env_steps = 300
+prefill = 200
+train_ratio = 0.1
+checkpoint_every = 5
+log_every = 2
+threads = 1
+"#;
+
+    fn env(cfg: &ExperimentConfig) -> RaceEnv {
+        let track = Arc::new(Track::load(&cfg.track, &TrackOptions::default()).unwrap());
+        RaceEnv::new(track, cfg.race.clone()).unwrap()
+    }
+
+    #[test]
+    fn a_program_trains_evaluates_and_reads_results_without_the_command_line() {
+        let cfg = ExperimentConfig::from_toml(TINY_CMASK, "tiny").unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let mut seen = 0;
+        let run = run_inline(&cfg, dir.path(), env(&cfg), |p| {
+            seen += 1;
+            assert_eq!(p.decisions, seen);
+        })
+        .unwrap();
+        assert_eq!(seen, 300);
+        assert_eq!(run.progress.decisions, 300);
+        assert_eq!(run.progress.grad_steps, 10);
+        assert!(is_trained(dir.path(), &cfg));
+        assert!(run.checkpoint.ends_with("step-0000000010"));
+        // the training curve and the metrics rows, read back as `ctxrace report` reads them
+        let rows: Vec<TrainingEpisode> = read_csv(&dir.path().join(TRAINING_EPISODES)).unwrap();
+        // every episode started but the one running at the end
+        assert_eq!(rows.len() as u64, run.progress.episodes - 1);
+        assert!(!rows.is_empty());
+        assert!(rows.windows(2).all(|w| w[0].env_steps < w[1].env_steps));
+        assert!(rows
+            .iter()
+            .all(|r| r.env_steps <= 300 && r.grad_steps <= 10));
+        let metrics = std::fs::read_to_string(dir.path().join(METRICS_JSONL)).unwrap();
+        assert_eq!(metrics.lines().count(), 5);
+        assert!(metrics.lines().all(|l| l.contains("\"env_steps\"")));
+        // one evaluation episode of the trained policy, driven as `ctxrace eval` drives it
+        let trained = TrainedAgent::load(dir.path(), CheckpointChoice::Latest).unwrap();
+        let mut race = env(&cfg);
+        let mut driver =
+            Driver::agent(&trained.agent, &trained.weights, &race, ActMode::Sample).unwrap();
+        let context = Context::default();
+        let seed = episode_seed(0, 0, 0);
+        let mut decisions = 0;
+        let lap = run_episode(&mut race, &mut driver, context, seed, 0, |_, _| {
+            decisions += 1
+        })
+        .unwrap();
+        assert_eq!(lap.steps + 1, decisions);
+        assert_eq!((lap.seed, lap.context_speed), (seed, 0.0));
+    }
+
+    #[test]
+    fn the_world_model_learns_recorded_race_data() {
+        ctxrace_common::nn::candle_on_one_thread();
+        // 2000 decisions of a random ego against one rival on a generated circuit
+        let track = Arc::new(Track::load("generated:0", &TrackOptions::default()).unwrap());
+        let race = RaceConfig {
+            rivals: 1,
+            ..RaceConfig::default()
+        };
+        let env = RaceEnv::new(track, race).unwrap();
+        let frame_dim = env.obs_dim();
+        let mut collector = Collector::new(env, 0.15, 1);
+        let mut buffer = ReplayBuffer::new(10_000, 1, frame_dim, ACT_DIM);
+        let mut payload = Vec::new();
+        while collector.decisions() < 2000 {
+            payload.clear();
+            collector.step(None, |s| s.encode(&mut payload)).unwrap();
+            buffer.insert_chunk(0, &payload, false);
+        }
+        let agent = AgentConfig {
+            algo: AlgoKind::Dreamerv3,
+            dreamer: DreamerConfig {
+                units: 64,
+                layers: 2,
+                deter: 64,
+                hidden: 64,
+                stoch: 8,
+                classes: 8,
+                head_units: 64,
+                head_layers: 2,
+                batch: 8,
+                length: 16,
+                model_lr: 1e-3,
+                ..DreamerConfig::default()
+            },
+            ..AgentConfig::default()
+        };
+        let mut algo = crate::build(&agent, frame_dim, 1).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let mut history = Vec::new();
+        for _ in 0..150 {
+            let batch = buffer
+                .sample(agent.batch_spec(), agent.sampler, &mut rng)
+                .unwrap();
+            let m = algo.train_step(&batch).unwrap();
+            history.push((m["model/recon"], m["model/reward"]));
+        }
+        let mean = |xs: &[(f64, f64)]| {
+            let n = xs.len() as f64;
+            let sum = xs.iter().fold((0.0, 0.0), |s, x| (s.0 + x.0, s.1 + x.1));
+            (sum.0 / n, sum.1 / n)
+        };
+        let ((recon0, reward0), (recon1, reward1)) = (mean(&history[..10]), mean(&history[140..]));
+        eprintln!("recon {recon0:.3} -> {recon1:.3}, reward {reward0:.3} -> {reward1:.3}");
+        assert!(recon1 < 0.5 * recon0, "recon {recon0} -> {recon1}");
+        assert!(reward1 < 0.5 * reward0, "reward {reward0} -> {reward1}");
+    }
+}
