@@ -11,12 +11,14 @@
 //! (and its mask) and the reward that followed, flagged terminal or last when the episode ended
 //! after it; an episode's last observation is never stored.
 //!
-//! The inline trainer and the actor process both run this; only their sinks differ.
+//! The inline trainer (as its [`ExperienceSource`]) and the actor process both run this; only
+//! their sinks differ.
 
 use crate::race::{EpisodeMetrics, RaceEnv};
 use anyhow::Result;
+use ctxrace_common::experience::{EndedEpisode, ExperienceSource};
 use ctxrace_common::ipc::TrajectoryStep;
-use ctxrace_common::{Context, Policy};
+use ctxrace_common::{Context, ExperimentConfig, Policy};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -68,6 +70,13 @@ impl Collector {
             paper_code_rows: false,
             first_decision: false,
         }
+    }
+
+    /// The collector `cfg` asks for on `env`: contexts from its training range, rows as its
+    /// agent stores them; `seed` as in [`Collector::new`].
+    pub fn for_experiment(env: RaceEnv, cfg: &ExperimentConfig, seed: u64) -> Self {
+        Self::new(env, cfg.train.context_range, seed)
+            .with_paper_code_rows(cfg.agent.stores_paper_code_rows())
     }
 
     /// The same collector storing rows as the paper's code does when `on` (see the module
@@ -182,6 +191,43 @@ impl Collector {
             context: self.context,
             metrics: self.env.metrics().clone(),
             by_policy: self.random_actions == 0,
+        }))
+    }
+}
+
+impl ExperienceSource for Collector {
+    fn obs_dim(&self) -> usize {
+        self.env.obs_dim()
+    }
+
+    fn decisions(&self) -> u64 {
+        Collector::decisions(self)
+    }
+
+    fn episodes(&self) -> u64 {
+        Collector::episodes(self)
+    }
+
+    fn at_episode_boundary(&self) -> bool {
+        Collector::at_episode_boundary(self)
+    }
+
+    fn step(
+        &mut self,
+        policy: Option<&mut Policy>,
+        sink: &mut dyn FnMut(&TrajectoryStep),
+    ) -> Result<Option<EndedEpisode>> {
+        let finished = Collector::step(self, policy, sink)?;
+        Ok(finished.map(|f| EndedEpisode {
+            episode: f.episode,
+            context: f.context,
+            progress: f.metrics.progress,
+            overtakes: f.metrics.overtakes,
+            a2a: f.metrics.a2a,
+            wall_crash: f.metrics.wall_crash,
+            episode_return: f.metrics.episode_return,
+            steps: f.metrics.steps,
+            by_policy: f.by_policy,
         }))
     }
 }

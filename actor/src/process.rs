@@ -75,8 +75,7 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport> {
         .wrapping_add(1 + opts.id as u64)
         .wrapping_mul(0x9E37_79B9_7F4A_7C15)
         .wrapping_add(opts.incarnation);
-    let mut collector = Collector::new(env, cfg.train.context_range, seed)
-        .with_paper_code_rows(cfg.agent.stores_paper_code_rows());
+    let mut collector = Collector::for_experiment(env, cfg, seed);
     let transport = RunTransport::open(&opts.prefix, opts.actors, &format!("actor-{}", opts.id))?;
     let mut weights = WeightsReceiver::new(&transport)?;
     let telemetry = MetricsPublisher::new(&transport)?;

@@ -1,10 +1,12 @@
 //! What ctxrace processes share: the race context, the experiment configuration types, the
-//! neural-network modules and the acting policies, run-directory names and result rows.
+//! neural-network modules and the acting policies, run-directory names and result rows, and the
+//! traits a single-process trainer runs on (`experience`).
 
 pub mod agents;
 pub mod batch;
 pub mod config;
 pub mod context;
+pub mod experience;
 pub mod experiment;
 pub mod ipc;
 pub mod nn;

@@ -13,13 +13,16 @@ use crate::track_check::{check_track, CheckPlan};
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use clap::Args;
+use ctxrace_actor::collect::Collector;
 use ctxrace_actor::RaceEnv;
+use ctxrace_common::policy::ACT_DIM;
 use ctxrace_common::run_dir::{
     run_name, CHECKPOINTS, CONFIG_FILE, METRICS_CSV, METRICS_JSONL, TRAINING_EPISODES,
 };
 use ctxrace_common::{AlgoKind, ExperimentConfig, Warmup};
 use ctxrace_learner::inline::InlineProgress;
 use ctxrace_learner::process::is_trained;
+use ctxrace_replay::ReplayBuffer;
 use ctxrace_tracks::Track;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -258,11 +261,14 @@ fn finish(args: &TrainArgs, cfg: &ExperimentConfig, dir: &Path, trained: bool) -
     crate::first_look::show(cfg, dir, &args.tracks)
 }
 
-/// Runs the single-process trainer ([`ctxrace_learner::inline`]) with a progress bar, and
-/// says what it did.
+/// Runs the single-process trainer ([`ctxrace_learner::inline`]) on `env`'s collector and an
+/// in-memory replay buffer with a progress bar, and says what it did.
 fn train_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()> {
     let bar = progress_bar(cfg.train.env_steps, "env steps");
-    let run = ctxrace_learner::inline::run_inline(cfg, dir, env, |p| {
+    let frame_dim = env.obs_dim();
+    let mut collector = Collector::for_experiment(env, cfg, cfg.train.seed);
+    let mut buffer = ReplayBuffer::new(cfg.replay.capacity, 1, frame_dim, ACT_DIM);
+    let run = ctxrace_learner::inline::run_inline(cfg, dir, &mut collector, &mut buffer, |p| {
         bar.inc(1);
         if p.decisions.is_multiple_of(50) {
             bar.set_message(status(p));

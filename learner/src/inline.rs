@@ -1,18 +1,19 @@
-//! The single-process trainer (`ctxrace train --inline`): the environment, an in-memory replay
-//! buffer and the learner in one loop, for development, tests and notebooks. It writes the run
+//! The single-process trainer (`ctxrace train --inline`): an experience source, a sample store
+//! and the learner in one loop, for development, tests and notebooks. It writes the run
 //! directory the learner process and the launcher write (`episodes.csv`, the metrics, the
 //! checkpoints and the best policy, by [`crate::cadence`]) and reports its progress to the
 //! caller, which may show it.
+//!
+//! The source and the store are the traits of [`ctxrace_common::experience`]: the caller builds
+//! them (the actor's `Collector` on a race, the replay's `ReplayBuffer` in memory) and passes
+//! them in, so that the learner depends on the common crate only.
 
 use crate::cadence::Cadence;
 use crate::runlog::{EpisodeLog, RateMeter};
-use anyhow::Result;
-use ctxrace_actor::collect::{Collector, Finished};
-use ctxrace_actor::RaceEnv;
+use anyhow::{ensure, Result};
+use ctxrace_common::experience::{ExperienceSource, SampleStore};
 use ctxrace_common::policy::ACT_DIM;
-use ctxrace_common::results::TrainingEpisode;
 use ctxrace_common::{ExperimentConfig, Policy};
-use ctxrace_replay::ReplayBuffer;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::path::{Path, PathBuf};
@@ -45,46 +46,37 @@ pub struct InlineRun {
     pub checkpoint: PathBuf,
 }
 
-/// The row of a finished episode.
-fn training_episode(f: &Finished, actor: u32, env_steps: u64, grad_steps: u64) -> TrainingEpisode {
-    TrainingEpisode {
-        env_steps,
-        grad_steps,
-        actor,
-        episode: f.episode,
-        context_speed: f.context.speed,
-        context_steer: f.context.steer,
-        progress: f.metrics.progress,
-        overtakes: f.metrics.overtakes,
-        a2a: f.metrics.a2a,
-        wall_crash: f.metrics.wall_crash,
-        episode_return: f.metrics.episode_return,
-        steps: f.metrics.steps,
-    }
-}
-
-/// Trains `cfg`'s agent on `env` into the run directory `dir` in one loop: one collector, an
-/// in-memory replay buffer and the learner. After the warm-up (`prefill` random steps, or with
+/// Trains `cfg`'s agent into the run directory `dir` in one loop on the experience of `source`,
+/// kept in `store` (its stream 0). After the warm-up (`prefill` random steps, or with
 /// `[agent] warmup = "episodes"` `warmup_episodes` episodes of the untrained policy) it keeps
 /// the gradient steps at `train_ratio` per env step (with random steps as many in all as
 /// [`crate::process::target_steps`]), drawing batches with `[agent] sampler`, reloads the
 /// acting policy at the first episode boundary after every `policy_every` gradient steps, logs
 /// and checkpoints. `on_decision` sees the progress after every decision.
-pub fn run_inline(
+///
+/// A run reproduces from `cfg`'s seed when `source` is as `cfg` asks (the actor's
+/// `Collector::for_experiment` with `[train] seed`) and `store` is new (`[replay] capacity`,
+/// one stream). A store whose steps are not the source's fails before the first step.
+pub fn run_inline<S: ExperienceSource, B: SampleStore>(
     cfg: &ExperimentConfig,
     dir: &Path,
-    env: RaceEnv,
+    source: &mut S,
+    store: &mut B,
     mut on_decision: impl FnMut(&InlineProgress),
 ) -> Result<InlineRun> {
     let t = &cfg.train;
     ctxrace_common::nn::candle_on_one_thread();
-    let frame_dim = env.obs_dim();
+    let frame_dim = source.obs_dim();
+    ensure!(
+        (store.obs_dim(), store.act_dim()) == (frame_dim, ACT_DIM),
+        "the sample store holds steps of {} observation and {} action values, the experience \
+         source makes {frame_dim} and {ACT_DIM}: build the store for the source's observation",
+        store.obs_dim(),
+        store.act_dim()
+    );
     let workers = t.threads_for(cfg.agent.algo);
     let mut algo = crate::build(&cfg.agent, frame_dim, workers)?;
     let mut policy = Policy::new(&cfg.agent, frame_dim, &algo.policy_weights()?, t.seed)?;
-    let mut collector = Collector::new(env, t.context_range, t.seed)
-        .with_paper_code_rows(cfg.agent.stores_paper_code_rows());
-    let mut buffer = ReplayBuffer::new(cfg.replay.capacity, 1, frame_dim, ACT_DIM);
     let mut rng = ChaCha8Rng::seed_from_u64(t.seed ^ 0x7265_706c_6179);
     let spec = cfg.agent.batch_spec();
     let mut episodes = EpisodeLog::open(dir, "inline")?;
@@ -94,10 +86,10 @@ pub fn run_inline(
     let (mut stale_policy, mut recent) = (false, Vec::<f64>::new());
     let mut payload = Vec::new();
     let mut trained_after = None;
-    let progress = |collector: &Collector, grad_steps: u64, recent: &[f64]| InlineProgress {
-        decisions: collector.decisions(),
+    let progress = |source: &S, grad_steps: u64, recent: &[f64]| InlineProgress {
+        decisions: source.decisions(),
         grad_steps,
-        episodes: collector.episodes(),
+        episodes: source.episodes(),
         recent_progress: if recent.is_empty() {
             0.0
         } else {
@@ -105,51 +97,51 @@ pub fn run_inline(
         },
         elapsed: start.elapsed(),
     };
-    while collector.decisions() < t.env_steps {
+    while source.decisions() < t.env_steps {
         payload.clear();
-        let by_policy = cfg.acts_by_policy(collector.decisions());
+        let by_policy = cfg.acts_by_policy(source.decisions());
         let acting = if by_policy { Some(&mut policy) } else { None };
-        let finished = collector.step(acting, |s| s.encode(&mut payload))?;
-        buffer.insert_chunk(0, &payload, false);
+        let finished = source.step(acting, &mut |s| s.encode(&mut payload))?;
+        store.insert_chunk(0, &payload, false);
         if let Some(f) = finished {
-            let row = training_episode(&f, 0, collector.decisions(), algo.steps());
+            let row = f.row(0, source.decisions(), algo.steps());
             episodes.write(&row)?;
             recent.push(row.progress);
             if recent.len() > RECENT {
                 recent.remove(0);
             }
-            let policy_return = f.by_policy.then_some(f.metrics.episode_return);
+            let policy_return = f.by_policy.then_some(f.episode_return);
             cadence.observe_returns(algo.as_ref(), policy_return)?;
         }
         if trained_after.is_none() {
-            trained_after = cfg.warmup_end(collector.decisions(), collector.episodes());
+            trained_after = cfg.warmup_end(source.decisions(), source.episodes());
         }
         if let Some(after) = trained_after {
-            let due = ((collector.decisions() - after) as f64 * t.train_ratio).round() as u64;
+            let due = ((source.decisions() - after) as f64 * t.train_ratio).round() as u64;
             while algo.steps() < due {
-                let Some(batch) = buffer.sample(spec, cfg.agent.sampler, &mut rng) else {
+                let Some(batch) = store.sample(spec, cfg.agent.sampler, &mut rng) else {
                     break;
                 };
                 let metrics = algo.train_step(&batch)?;
-                let env_steps = Some(collector.decisions());
+                let env_steps = Some(source.decisions());
                 stale_policy |= cadence.after_step(algo.as_ref(), metrics, env_steps)?;
             }
-            if stale_policy && collector.at_episode_boundary() {
+            if stale_policy && source.at_episode_boundary() {
                 policy.load(&algo.policy_weights()?)?;
                 stale_policy = false;
             }
         }
-        if collector.decisions().is_multiple_of(50) {
-            let held = (buffer.len() as u64, buffer.capacity() as u64);
-            if let Some(rates) = meter.read(collector.decisions(), algo.steps(), held) {
-                episodes.rates(collector.decisions(), &rates)?;
+        if source.decisions().is_multiple_of(50) {
+            let held = (store.len() as u64, store.capacity() as u64);
+            if let Some(rates) = meter.read(source.decisions(), algo.steps(), held) {
+                episodes.rates(source.decisions(), &rates)?;
             }
         }
-        on_decision(&progress(&collector, algo.steps(), &recent));
+        on_decision(&progress(source, algo.steps(), &recent));
     }
     let checkpoint = cadence.finish(algo.as_ref())?;
     Ok(InlineRun {
-        progress: progress(&collector, algo.steps(), &recent),
+        progress: progress(source, algo.steps(), &recent),
         checkpoint,
     })
 }
@@ -159,11 +151,14 @@ mod tests {
     use super::*;
     use crate::process::is_trained;
     use crate::trained::{CheckpointChoice, TrainedAgent};
+    use ctxrace_actor::collect::Collector;
     use ctxrace_actor::driver::{ActMode, Driver};
     use ctxrace_actor::evaluation::{episode_seed, run_episode};
-    use ctxrace_common::results::read_csv;
+    use ctxrace_actor::RaceEnv;
+    use ctxrace_common::results::{read_csv, TrainingEpisode};
     use ctxrace_common::run_dir::{METRICS_JSONL, TRAINING_EPISODES};
     use ctxrace_common::{AgentConfig, AlgoKind, Context, DreamerConfig, RaceConfig};
+    use ctxrace_replay::ReplayBuffer;
     use ctxrace_tracks::{Track, TrackOptions};
     use std::sync::Arc;
 
@@ -205,12 +200,18 @@ threads = 1
     fn a_program_trains_evaluates_and_reads_results_without_the_command_line() {
         let cfg = ExperimentConfig::from_toml(TINY_CMASK, "tiny").unwrap();
         let dir = tempfile::tempdir().unwrap();
+        // the program composes the run: the actor's collector, the replay's buffer in memory
+        let race = env(&cfg);
+        let frame_dim = race.obs_dim();
+        let mut collector = Collector::for_experiment(race, &cfg, cfg.train.seed);
+        let mut buffer = ReplayBuffer::new(cfg.replay.capacity, 1, frame_dim, ACT_DIM);
         let mut seen = 0;
-        let run = run_inline(&cfg, dir.path(), env(&cfg), |p| {
+        let run = run_inline(&cfg, dir.path(), &mut collector, &mut buffer, |p| {
             seen += 1;
             assert_eq!(p.decisions, seen);
         })
         .unwrap();
+        assert_eq!(buffer.inserted(), 300 + run.progress.episodes);
         assert_eq!(seen, 300);
         assert_eq!(run.progress.decisions, 300);
         assert_eq!(run.progress.grad_steps, 10);
@@ -242,6 +243,25 @@ threads = 1
         .unwrap();
         assert_eq!(lap.steps + 1, decisions);
         assert_eq!((lap.seed, lap.context_speed), (seed, 0.0));
+    }
+
+    #[test]
+    fn a_store_for_another_observation_fails_before_the_first_step() {
+        let cfg = ExperimentConfig::from_toml(TINY_CMASK, "tiny").unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let race = env(&cfg);
+        let frame_dim = race.obs_dim();
+        let mut collector = Collector::for_experiment(race, &cfg, 0);
+        let mut buffer = ReplayBuffer::new(100, 1, frame_dim + 1, ACT_DIM);
+        let err = run_inline(&cfg, dir.path(), &mut collector, &mut buffer, |_| {})
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains(&format!("{} observation", frame_dim + 1)) && err.contains("source"),
+            "{err}"
+        );
+        assert_eq!(collector.decisions(), 0);
+        assert!(std::fs::read_dir(dir.path()).unwrap().next().is_none());
     }
 
     #[test]

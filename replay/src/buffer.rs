@@ -11,6 +11,7 @@
 //! (cbdreamer `cbtools.sample_episodes`): episode by episode, with numpy's `RandomState(0)`.
 
 use crate::numpy_rng::{ChoiceCdf, RandomState};
+use ctxrace_common::experience::SampleStore;
 use ctxrace_common::ipc::wire::step_stride;
 use ctxrace_common::{Batch, BatchSpec, Sampler, SequenceBatch, TransitionBatch};
 use rand::Rng;
@@ -417,6 +418,34 @@ impl ReplayBuffer {
             }
         }
         None
+    }
+}
+
+/// The single-process trainer's store (one stream per actor, the payload trusted as the
+/// trainer's own).
+impl SampleStore for ReplayBuffer {
+    fn obs_dim(&self) -> usize {
+        ReplayBuffer::obs_dim(self)
+    }
+
+    fn act_dim(&self) -> usize {
+        ReplayBuffer::act_dim(self)
+    }
+
+    fn len(&self) -> usize {
+        ReplayBuffer::len(self)
+    }
+
+    fn capacity(&self) -> usize {
+        ReplayBuffer::capacity(self)
+    }
+
+    fn insert_chunk(&mut self, actor: usize, payload: &[f32], after_gap: bool) {
+        ReplayBuffer::insert_chunk(self, actor, payload, after_gap);
+    }
+
+    fn sample(&self, spec: BatchSpec, sampler: Sampler, rng: &mut ChaCha8Rng) -> Option<Batch> {
+        ReplayBuffer::sample(self, spec, sampler, rng)
     }
 }
 

@@ -1,0 +1,107 @@
+//! What a single-process trainer runs on, as two small traits every crate can see: an
+//! [`ExperienceSource`] that runs episodes one decision at a time (the actor's collector) and a
+//! [`SampleStore`] that keeps the steps and draws training batches (the replay buffer). The
+//! learner trains over them without depending on the crates that implement them; whoever
+//! composes a run builds both and passes them in.
+
+use crate::ipc::TrajectoryStep;
+use crate::results::TrainingEpisode;
+use crate::{Batch, BatchSpec, Context, Policy, Sampler};
+use rand_chacha::ChaCha8Rng;
+
+/// A training episode as its source reports it when it ends.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EndedEpisode {
+    /// Index of the episode within its source.
+    pub episode: u64,
+    /// Its context.
+    pub context: Context,
+    /// PG: the largest fraction of the lap completed.
+    pub progress: f64,
+    /// OT: overtakes minus times overtaken.
+    pub overtakes: i32,
+    /// The episode ended in an ego–rival collision.
+    pub a2a: bool,
+    /// The episode ended with the ego hitting a wall.
+    pub wall_crash: bool,
+    /// Sum of rewards.
+    pub episode_return: f64,
+    /// Decisions taken.
+    pub steps: usize,
+    /// The policy chose every action of the episode (no random prefill action).
+    pub by_policy: bool,
+}
+
+impl EndedEpisode {
+    /// Its row of the training curves (`episodes.csv`), run by `actor` and ended when the run
+    /// had taken `env_steps` environment steps and `grad_steps` gradient steps.
+    pub fn row(&self, actor: u32, env_steps: u64, grad_steps: u64) -> TrainingEpisode {
+        TrainingEpisode {
+            env_steps,
+            grad_steps,
+            actor,
+            episode: self.episode,
+            context_speed: self.context.speed,
+            context_steer: self.context.steer,
+            progress: self.progress,
+            overtakes: self.overtakes,
+            a2a: self.a2a,
+            wall_crash: self.wall_crash,
+            episode_return: self.episode_return,
+            steps: self.steps,
+        }
+    }
+}
+
+/// Runs training episodes one decision at a time and reports every step in the replay's
+/// convention ([`TrajectoryStep`]).
+pub trait ExperienceSource {
+    /// Length of one observation frame.
+    fn obs_dim(&self) -> usize;
+
+    /// Decisions taken so far.
+    fn decisions(&self) -> u64;
+
+    /// Episodes started so far.
+    fn episodes(&self) -> u64;
+
+    /// Whether the next [`ExperienceSource::step`] starts a new episode.
+    fn at_episode_boundary(&self) -> bool;
+
+    /// Takes one decision with `policy` (uniform random actions when `None`), starting an
+    /// episode first if none is running; passes the steps to `sink` and returns the episode
+    /// if it ended.
+    fn step(
+        &mut self,
+        policy: Option<&mut Policy>,
+        sink: &mut dyn FnMut(&TrajectoryStep),
+    ) -> anyhow::Result<Option<EndedEpisode>>;
+}
+
+/// Keeps the steps of a run's streams and draws training batches from them.
+pub trait SampleStore {
+    /// Length of the observation frame of a stored step.
+    fn obs_dim(&self) -> usize;
+
+    /// Length of the action of a stored step.
+    fn act_dim(&self) -> usize;
+
+    /// Steps held.
+    fn len(&self) -> usize;
+
+    /// Whether it holds no step.
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Steps it can hold.
+    fn capacity(&self) -> usize;
+
+    /// Appends a chunk payload (steps encoded by [`TrajectoryStep::encode`]) to stream
+    /// `actor`; `after_gap` starts a new segment.
+    fn insert_chunk(&mut self, actor: usize, payload: &[f32], after_gap: bool);
+
+    /// One batch of `spec`: sequences drawn by `sampler`, transitions uniformly; `None` if the
+    /// store cannot serve it yet.
+    fn sample(&self, spec: BatchSpec, sampler: Sampler, rng: &mut ChaCha8Rng) -> Option<Batch>;
+}
