@@ -305,18 +305,22 @@ impl ExperimentConfig {
     /// Reads the experiment a run directory recorded (its `config.toml`): as
     /// [`ExperimentConfig::load`], an `[agent]` recorded before `context_scale` existed reading
     /// as the scale that run trained with ([`crate::ContextScale::SAVED_WITHOUT_KEY`]).
-    pub fn load_saved(path: &Path) -> Result<Self, String> {
+    pub fn load_saved(path: &Path) -> Result<Self, ExperimentError> {
         let origin = path.display().to_string();
-        let text = std::fs::read_to_string(path)
-            .map_err(|e| format!("reading experiment config {origin}: {e}"))?;
-        let mut table: toml::Table = toml::from_str(&text).map_err(|e| format!("{origin}: {e}"))?;
+        let text = std::fs::read_to_string(path).map_err(|cause| ExperimentError::Read {
+            path: path.to_path_buf(),
+            cause,
+        })?;
+        let mut table: toml::Table = toml::from_str(&text)
+            .map_err(|e| ExperimentError::Toml(e).within(&origin))?;
         let agent = table
             .entry("agent")
             .or_insert_with(|| toml::Table::new().into());
         if let toml::Value::Table(agent) = agent {
             crate::ContextScale::fill_saved_table(agent);
         }
-        let text = toml::to_string(&table).map_err(|e| format!("{origin}: {e}"))?;
+        // a table read from TOML always writes back
+        let text = toml::to_string(&table).map_err(ExperimentError::Serialise)?;
         Self::from_toml(&text, &origin)
     }
 

@@ -137,7 +137,7 @@ fn prepare_run_dir(args: &TrainArgs, cfg: &ExperimentConfig) -> Result<(PathBuf,
                 dir.display()
             );
         }
-        let mut held = ExperimentConfig::load_saved(&config).map_err(anyhow::Error::msg)?;
+        let mut held = ExperimentConfig::load_saved(&config)?;
         // the thread count changes how fast a run trains, not what it computes
         held.train.threads = cfg.train.threads;
         if &held != cfg {

@@ -87,7 +87,7 @@ impl TrainedAgent {
             .with_context(|| format!("reading {}", policy_path.display()))?;
         let experiment = match run_dir.map(|r| r.join(CONFIG_FILE)) {
             Some(p) if p.exists() => {
-                Some(ExperimentConfig::load_saved(&p).map_err(anyhow::Error::msg)?)
+                Some(ExperimentConfig::load_saved(&p)?)
             }
             _ => None,
         };
