@@ -1096,7 +1096,7 @@ mod tests {
             .unwrap();
             assert_ne!(a.policy_weights().unwrap(), b.policy_weights().unwrap());
             // a policy made with other weights acts as a's once a's are loaded into it (its
-            // looped copies of the weights are made again)
+            // networks are read again)
             let mut r = b.policy(0).unwrap();
             r.load(&a.policy_weights().unwrap()).unwrap();
             a.save(&dir).unwrap();

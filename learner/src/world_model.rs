@@ -36,7 +36,7 @@ use ctxrace_common::nn::plain::{
     categorical_kl, categorical_kl_backward, soft_cross_entropy, soft_cross_entropy_backward,
     InputGrad, MlpGrads, MlpTrace, NonZeros, ObserveTrace, PlainMlp, PlainRssm, RssmGrads,
 };
-use ctxrace_common::nn::{Activation, Mlp, ParamStore, Rssm, TwoHot};
+use ctxrace_common::nn::{symlog_value as symlog, Activation, Mlp, ParamStore, Rssm, TwoHot};
 use ctxrace_common::policy::{uniform_rows, DreamerNets};
 use ctxrace_common::SequenceBatch;
 use rand_chacha::ChaCha8Rng;
@@ -151,11 +151,6 @@ struct ShardWork {
 fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
     v.resize(n, 0.0);
     &mut v[..n]
-}
-
-/// `sign(x) ln(1 + |x|)`.
-fn symlog(x: f32) -> f32 {
-    x.signum() * x.abs().ln_1p()
 }
 
 /// `1 / (1 + e^{−x})`.

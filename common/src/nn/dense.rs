@@ -14,8 +14,6 @@ pub struct Dense {
     /// `W` `[out, in]`.
     weight: Tensor,
     bias: Option<Tensor>,
-    /// `Wᵀ` `[in, out]` (from `weight`) in a [`Dense::looped`] layer.
-    transposed: Option<Tensor>,
     /// Input columns that are mostly zero ([`Dense::sparse_inputs`]).
     sparse_inputs: Option<Range<usize>>,
 }
@@ -36,7 +34,6 @@ impl Dense {
         Ok(Self {
             weight,
             bias,
-            transposed: None,
             sparse_inputs: None,
         })
     }
@@ -68,17 +65,12 @@ impl Dense {
 
     /// `x Wᵀ + b` for `x` `[N, in]`.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        if let Some(wt) = &self.transposed {
-            let bias = self.bias.as_ref();
-            kernels::linear_t(x, wt, &self.weight, bias, self.sparse_inputs.clone())
-        } else {
-            kernels::linear(
-                x,
-                &self.weight,
-                self.bias.as_ref(),
-                self.sparse_inputs.clone(),
-            )
-        }
+        kernels::linear(
+            x,
+            &self.weight,
+            self.bias.as_ref(),
+            self.sparse_inputs.clone(),
+        )
     }
 
     /// `act(ln(x Wᵀ + b))` in one operation ([`kernels::linear_norm_act`]) when the layer has
@@ -87,24 +79,8 @@ impl Dense {
         if self.bias.is_some() {
             return ln.forward_act(&self.forward(x)?, act);
         }
-        let (wt, sparse) = (self.transposed.as_ref(), self.sparse_inputs.clone());
-        kernels::linear_norm_act(x, &self.weight, wt, ln.parts(), act, sparse)
-    }
-
-    /// The same layer for a loop that applies it many times: its weight transposed once into
-    /// `[in, out]`, the layout gemm multiplies without packing ([`kernels::linear_t`]). The
-    /// transposition is differentiable, so gradients reach the original weight.
-    pub fn looped(&self) -> Result<Self> {
-        let transposed = match &self.transposed {
-            Some(wt) => wt.clone(),
-            None => self.weight.t()?.contiguous()?,
-        };
-        Ok(Self {
-            weight: self.weight.clone(),
-            bias: self.bias.clone(),
-            transposed: Some(transposed),
-            sparse_inputs: self.sparse_inputs.clone(),
-        })
+        let sparse = self.sparse_inputs.clone();
+        kernels::linear_norm_act(x, &self.weight, ln.parts(), act, sparse)
     }
 
     /// The same layer on detached parameters: gradients pass to its input but not to its weights
@@ -113,7 +89,6 @@ impl Dense {
         Self {
             weight: self.weight.detach(),
             bias: self.bias.as_ref().map(Tensor::detach),
-            transposed: self.transposed.as_ref().map(Tensor::detach),
             sparse_inputs: self.sparse_inputs.clone(),
         }
     }

@@ -105,19 +105,6 @@ impl Mlp {
             act: self.act,
         }
     }
-
-    /// The same network for a loop that applies it many times (see [`Dense::looped`]).
-    pub fn looped(&self) -> Result<Self> {
-        Ok(Self {
-            hidden: self
-                .hidden
-                .iter()
-                .map(|(fc, ln)| Ok((fc.looped()?, ln.clone())))
-                .collect::<Result<_>>()?,
-            head: self.head.as_ref().map(Dense::looped).transpose()?,
-            act: self.act,
-        })
-    }
 }
 
 impl Module for Mlp {

@@ -17,7 +17,7 @@ pub use mlp::{Activation, HiddenBlock, Mlp, MlpShape};
 pub use norm::LayerNorm;
 pub use params::ParamStore;
 pub use rssm::{Gru, Rssm, RssmConfig, RssmState};
-pub use symlog::{symexp, symlog, TwoHot};
+pub use symlog::{symexp, symlog, symlog_value, TwoHot};
 pub use tanh_gaussian::TanhGaussianActor;
 pub use weights::{Weights, WeightsError};
 

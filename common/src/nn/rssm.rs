@@ -111,15 +111,6 @@ impl NormBlock {
             act: self.act,
         }
     }
-
-    /// For a loop over time steps ([`Dense::looped`]).
-    fn looped(&self) -> Result<Self> {
-        Ok(Self {
-            fc: self.fc.looped()?,
-            ln: self.ln.clone(),
-            act: self.act,
-        })
-    }
 }
 
 /// DreamerV3's GRU cell with a LayerNorm on the gates and update bias −1.
@@ -147,13 +138,6 @@ impl Gru {
         Self {
             gates: self.gates.frozen(),
         }
-    }
-
-    /// The same cell for a loop over time steps ([`Dense::looped`]).
-    pub fn looped(&self) -> Result<Self> {
-        Ok(Self {
-            gates: self.gates.looped()?,
-        })
     }
 }
 
@@ -220,21 +204,6 @@ impl Rssm {
             post_out: self.post_out.frozen(),
             initial_w: self.initial_w.as_ref().map(Tensor::detach),
         }
-    }
-
-    /// The same model for a loop over time steps: every weight transposed once, so that the
-    /// steps multiply without re-packing them ([`Dense::looped`]); gradients reach the originals.
-    pub fn looped(&self) -> Result<Self> {
-        Ok(Self {
-            cfg: self.cfg,
-            img_in: self.img_in.looped()?,
-            gru: self.gru.looped()?,
-            prior_hidden: self.prior_hidden.looped()?,
-            prior_out: self.prior_out.looped()?,
-            post_hidden: self.post_hidden.looped()?,
-            post_out: self.post_out.looped()?,
-            initial_w: self.initial_w.clone(),
-        })
     }
 
     /// Its blocks, each a layer and its normalisation and activation (none for the output
@@ -435,55 +404,6 @@ mod tests {
 
     fn uniform(b: usize, c: &RssmConfig, v: f32) -> Tensor {
         Tensor::full(v, (b, c.stoch, c.classes), &Device::Cpu).unwrap()
-    }
-
-    /// The looped copy computes what the model does, values and gradients.
-    #[test]
-    fn the_looped_model_matches_the_plain_one() {
-        let c = cfg(2);
-        let (ps, rssm) = standalone(c, 3).unwrap();
-        let dev = &Device::Cpu;
-        let run = |model: &Rssm| {
-            let mut state = model.initial(3).unwrap();
-            let mut total = Tensor::zeros((), DType::F32, dev).unwrap();
-            for t in 0..4 {
-                let a = Tensor::full(0.3 * t as f32 - 0.5, (3, 2), dev).unwrap();
-                let ctx = Tensor::full(0.2f32, (3, 2), dev).unwrap();
-                let e = Tensor::full(0.1 * t as f32, (3, 5), dev).unwrap();
-                let u = uniform(3, &c, 0.3 + 0.1 * t as f32);
-                let (next, post) = model.obs_step(&state, &a, Some(&ctx), &e, &u).unwrap();
-                let prior = model.prior_logits(&next.deter).unwrap();
-                let step = (post.sqr().unwrap().sum_all().unwrap()
-                    + prior.tanh().unwrap().sum_all().unwrap()
-                    + next.deter.sum_all().unwrap())
-                .unwrap();
-                total = (total + step).unwrap();
-                state = next;
-            }
-            total
-        };
-        let plain = run(&rssm);
-        let want = plain.backward().unwrap();
-        let value = |t: &Tensor| t.to_scalar::<f32>().unwrap();
-        let loss = run(&rssm.looped().unwrap());
-        assert!((value(&loss) - value(&plain)).abs() < 1e-4);
-        let got = loss.backward().unwrap();
-        for (name, var) in ps.named() {
-            let flat = |g: &candle_core::backprop::GradStore| -> Vec<f32> {
-                g.get(&var)
-                    .unwrap()
-                    .flatten_all()
-                    .unwrap()
-                    .to_vec1()
-                    .unwrap()
-            };
-            for (a, b) in flat(&got).iter().zip(&flat(&want)) {
-                assert!(
-                    (a - b).abs() <= 1e-4 * (1.0 + b.abs()),
-                    "{name}: {a} vs {b}"
-                );
-            }
-        }
     }
 
     #[test]

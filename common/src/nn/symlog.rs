@@ -15,6 +15,11 @@ pub fn symlog(x: &Tensor) -> Result<Tensor> {
     x.sign()?.mul(&(x.abs()? + 1.0)?.log()?)
 }
 
+/// `sign(x) ln(1 + |x|)` of one value ([`symlog`] on plain buffers).
+pub fn symlog_value(x: f32) -> f32 {
+    x.signum() * x.abs().ln_1p()
+}
+
 /// `sign(x) (e^{|x|} − 1)`.
 pub fn symexp(x: &Tensor) -> Result<Tensor> {
     x.sign()?.mul(&(x.abs()?.exp()? - 1.0)?)

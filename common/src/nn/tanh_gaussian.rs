@@ -92,24 +92,6 @@ impl TanhGaussianActor {
         &self.net
     }
 
-    /// The same actor on detached (shared) parameters ([`Mlp::frozen`]).
-    pub fn frozen(&self) -> Self {
-        Self {
-            net: self.net.frozen(),
-            act_dim: self.act_dim,
-            log_std_clamp: self.log_std_clamp,
-        }
-    }
-
-    /// The same actor for a loop that applies it many times (see [`crate::nn::Dense::looped`]).
-    pub fn looped(&self) -> Result<Self> {
-        Ok(Self {
-            net: self.net.looped()?,
-            act_dim: self.act_dim,
-            log_std_clamp: self.log_std_clamp,
-        })
-    }
-
     /// Action size `A`.
     pub fn act_dim(&self) -> usize {
         self.act_dim

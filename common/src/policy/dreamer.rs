@@ -1,16 +1,21 @@
 //! DreamerV3's acting networks (encoder, RSSM, actor and cMask's mask actor) and the batch-1
 //! policy that runs them in the actors: at each step the observation updates the posterior
 //! state, the actor reads `[h, z, c]` and (cMask) the mask actor masks the context first.
-//! The learner trains the same [`DreamerNets`] and ships their "policy" parameter store.
+//! The learner trains the same [`DreamerNets`] and ships their "policy" parameter store; the
+//! policy reads those weights by name into the plain networks the learner's training steps run
+//! ([`crate::nn::plain`]) and acts with their forward passes at batch 1.
 
 use super::ACT_DIM;
 use crate::agents::{
     ContextMode, DreamerConfig, InitialState, MaskSpace, StepAlignment, CONTEXT_DIM,
 };
+use crate::nn::plain::{MlpTrace, ObserveTrace, PlainMlp, PlainRssm};
+use crate::nn::tanh_gaussian::squash_rows;
 use crate::nn::{
-    symlog, Activation, Mlp, ParamStore, Rssm, RssmConfig, RssmState, TanhGaussianActor,
+    symlog_value, Activation, Mlp, MlpShape, Rssm, RssmConfig, TanhGaussianActor, Weights,
+    WeightsError,
 };
-use candle_core::{bail, DType, Device, Module, Result, Tensor};
+use candle_core::{bail, Device, Module, Result, Tensor};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -54,18 +59,7 @@ impl DreamerNets {
         let context_dim = cfg.context.context_dim();
         let enc_in = cfg.encoder_inputs(obs_dim, act_dim);
         let encoder = Mlp::new(enc_in, cfg.units, cfg.layers, None, silu, vb.pp("encoder"))?;
-        let rssm_cfg = RssmConfig {
-            deter: cfg.deter,
-            hidden: cfg.hidden,
-            stoch: cfg.stoch,
-            classes: cfg.classes,
-            unimix: cfg.unimix,
-            act_dim,
-            embed_dim: if cfg.layers == 0 { enc_in } else { cfg.units },
-            context_dim,
-            learned_initial: cfg.initial_state == InitialState::Learned,
-        };
-        let rssm = Rssm::new(rssm_cfg, vb.pp("rssm"))?;
+        let rssm = Rssm::new(rssm_config(cfg, obs_dim, act_dim), vb.pp("rssm"))?;
         let actor = Mlp::new(
             rssm.feat_dim() + context_dim,
             cfg.head_units,
@@ -102,33 +96,6 @@ impl DreamerNets {
         })
     }
 
-    /// The same networks on detached (shared) parameters: what they compute tracks no graph.
-    pub fn frozen(&self) -> Self {
-        Self {
-            encoder: self.encoder.frozen(),
-            rssm: self.rssm.frozen(),
-            actor: self.actor.frozen(),
-            mask: self.mask.as_ref().map(TanhGaussianActor::frozen),
-            ..self.clone()
-        }
-    }
-
-    /// The same networks for loops that apply them many times (acting step after step, the
-    /// imagination's horizon): every weight transposed once ([`crate::nn::Dense::looped`]).
-    pub fn looped(&self) -> Result<Self> {
-        Ok(Self {
-            encoder: self.encoder.looped()?,
-            rssm: self.rssm.looped()?,
-            actor: self.actor.looped()?,
-            mask: self
-                .mask
-                .as_ref()
-                .map(TanhGaussianActor::looped)
-                .transpose()?,
-            ..self.clone()
-        })
-    }
-
     /// The model's context input `[N, 2]` for raw contexts and (cMask) masks, or `None`.
     pub fn context(&self, raw: &Tensor, mask: Option<&Tensor>) -> Result<Option<Tensor>> {
         if self.rssm.config().context_dim == 0 {
@@ -143,12 +110,7 @@ impl DreamerNets {
 
     /// The actor's mean `tanh μ` and standard deviation, each `[N, A]`.
     pub fn actor_dist(&self, x: &Tensor) -> Result<(Tensor, Tensor)> {
-        self.actor_dist_of(&self.actor, x)
-    }
-
-    /// [`DreamerNets::actor_dist`] through `actor`, a view of this actor (e.g. [`Mlp::looped`]).
-    pub fn actor_dist_of(&self, actor: &Mlp, x: &Tensor) -> Result<(Tensor, Tensor)> {
-        let out = actor.forward(x)?;
+        let out = self.actor.forward(x)?;
         let mean = out.narrow(1, 0, self.act_dim)?.tanh()?;
         let raw = (out.narrow(1, self.act_dim, self.act_dim)? + 2.0)?;
         let std =
@@ -163,33 +125,21 @@ impl DreamerNets {
         let shrink = a.abs()?.maximum(1.0)?.recip()?.detach();
         a.mul(&shrink)
     }
+}
 
-    /// One observation step at batch `N` (acting): the sequence model reads the previous action,
-    /// the encoder `symlog o` (`symlog [o, a_{t−1}]` with [`StepAlignment::PaperCode`], as the
-    /// paper's code acts); the next state and the action (sampled with `noise`, else the mean).
-    pub fn observe(
-        &self,
-        state: &RssmState,
-        prev_action: &Tensor,
-        obs: &Tensor,
-        ctx: Option<&Tensor>,
-        uniform: &Tensor,
-        noise: Option<&Tensor>,
-    ) -> Result<(RssmState, Tensor)> {
-        let input = match self.action_in_encoder {
-            true => Tensor::cat(&[obs, prev_action], 1)?,
-            false => obs.clone(),
-        };
-        let embed = self.encoder.forward(&symlog(&input)?)?;
-        let (next, _) = self
-            .rssm
-            .obs_step(state, prev_action, ctx, &embed, uniform)?;
-        let (mean, std) = self.actor_dist(&next.head_input(ctx)?)?;
-        let action = match noise {
-            Some(n) => Self::sample_action(&mean, &std, n)?,
-            None => mean,
-        };
-        Ok((next, action))
+/// The RSSM's sizes for `cfg`, observations of `obs_dim` and actions of `act_dim`.
+fn rssm_config(cfg: &DreamerConfig, obs_dim: usize, act_dim: usize) -> RssmConfig {
+    let enc_in = cfg.encoder_inputs(obs_dim, act_dim);
+    RssmConfig {
+        deter: cfg.deter,
+        hidden: cfg.hidden,
+        stoch: cfg.stoch,
+        classes: cfg.classes,
+        unimix: cfg.unimix,
+        act_dim,
+        embed_dim: if cfg.layers == 0 { enc_in } else { cfg.units },
+        context_dim: cfg.context.context_dim(),
+        learned_initial: cfg.initial_state == InitialState::Learned,
     }
 }
 
@@ -288,23 +238,109 @@ pub fn normals_per(rngs: &mut [ChaCha8Rng], rows: usize, width: usize) -> Result
     let n = rngs.len() * rows;
     Tensor::from_vec(normal_rows(rngs, rows, width), (n, width), &Device::Cpu)
 }
+/// The networks that act, read by name from the policy weights: encoder, RSSM, actor and
+/// (cMask) mask actor.
+#[derive(Clone, Debug)]
+struct ActingNets {
+    encoder: PlainMlp,
+    rssm: PlainRssm,
+    actor: PlainMlp,
+    mask: Option<PlainMlp>,
+}
+
+impl ActingNets {
+    /// The networks of `cfg` for observations of `obs_dim` from the policy weights `bytes`
+    /// (safetensors, the names [`DreamerNets::new`] gives), every tensor used.
+    fn read(
+        cfg: &DreamerConfig,
+        obs_dim: usize,
+        bytes: &[u8],
+    ) -> std::result::Result<Self, WeightsError> {
+        let mut weights = Weights::from_safetensors(bytes)?;
+        let rssm_cfg = rssm_config(cfg, obs_dim, ACT_DIM);
+        let silu = Activation::SiluNorm;
+        let encoder = MlpShape {
+            input: cfg.encoder_inputs(obs_dim, ACT_DIM),
+            units: cfg.units,
+            layers: cfg.layers,
+            out: None,
+            act: silu,
+        };
+        let encoder = PlainMlp::from_weights(&mut weights, "encoder.", &encoder)?;
+        let rssm = PlainRssm::from_weights(&mut weights, "rssm.", rssm_cfg)?;
+        let (d, z) = (rssm_cfg.deter, rssm_cfg.stoch * rssm_cfg.classes);
+        let actor = MlpShape {
+            input: d + z + rssm_cfg.context_dim,
+            units: cfg.head_units,
+            layers: cfg.head_layers,
+            out: Some(2 * ACT_DIM),
+            act: silu,
+        };
+        let actor = PlainMlp::from_weights(&mut weights, "actor.", &actor)?.sparse_inputs(d..d + z);
+        let mask = match cfg.context {
+            ContextMode::Cmask => {
+                // the learner's TanhGaussianActor: a ReLU MLP to the means, then the log-σs
+                let shape = MlpShape {
+                    input: obs_dim,
+                    units: cfg.mask.units,
+                    layers: cfg.mask.layers,
+                    out: Some(2 * CONTEXT_DIM),
+                    act: Activation::Relu,
+                };
+                Some(PlainMlp::from_weights(&mut weights, "mask.", &shape)?)
+            }
+            ContextMode::None | ContextMode::Crssm => None,
+        };
+        weights.finish()?;
+        Ok(Self {
+            encoder,
+            rssm,
+            actor,
+            mask,
+        })
+    }
+}
+
+/// The buffers of one step, kept from step to step.
+#[derive(Debug, Default)]
+struct ActingTraces {
+    /// `symlog o` (`symlog [o, a_{t−1}]` with [`StepAlignment::PaperCode`]).
+    input: Vec<f32>,
+    encoder: MlpTrace,
+    rssm: ObserveTrace,
+    /// `[h, z, c]`.
+    head_input: Vec<f32>,
+    actor: MlpTrace,
+    mask: MlpTrace,
+}
+
+/// `1 / (1 + e^{−x})`.
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// The mask of one squashed value `a = tanh u` of the mask actor in `space` ([`mask_of`]).
+fn mask_value(a: f32, space: MaskSpace) -> f32 {
+    match space {
+        MaskSpace::Unit => a * 0.5 + 0.5,
+        MaskSpace::PaperCode => sigmoid(a),
+    }
+}
+
 /// The acting side of DreamerV3 at batch 1: keeps the recurrent state and the previous action.
 pub struct DreamerPolicy {
-    store: ParamStore,
-    /// The networks on `store`'s weights.
-    stored: DreamerNets,
-    /// `stored` [`DreamerNets::frozen`] (acting records no graph, so an episode's earlier steps
-    /// are not kept alive) and [`DreamerNets::looped`] for acting step after step (re-made on
-    /// every load).
-    nets: DreamerNets,
+    cfg: DreamerConfig,
     obs_dim: usize,
-    /// The state episodes start from ([`Rssm::initial`] of the loaded weights).
-    zero: RssmState,
-    state: RssmState,
-    zero_action: Tensor,
-    prev_action: Tensor,
-    uniform_mode: Tensor,
-    stoch: (usize, usize),
+    nets: ActingNets,
+    traces: ActingTraces,
+    /// The state episodes start from, `(h_0, z_0)` ([`PlainRssm::initial_state`] of the
+    /// loaded weights).
+    zero: (Vec<f32>, Vec<f32>),
+    /// The posterior state `(h, z)`.
+    state: (Vec<f32>, Vec<f32>),
+    prev_action: [f32; ACT_DIM],
+    /// Equal Gumbel noise (the sample is the most likely class), `[Z]`.
+    uniform_mode: Vec<f32>,
     rng: ChaCha8Rng,
 }
 
@@ -313,34 +349,41 @@ impl DreamerPolicy {
     /// the learner's policy weights; `seed` seeds its sampling noise.
     pub fn new(cfg: &DreamerConfig, obs_dim: usize, weights: &[u8], seed: u64) -> Result<Self> {
         cfg.validate().map_err(candle_core::Error::wrap)?;
-        let store = ParamStore::new();
-        let stored = DreamerNets::new(cfg, obs_dim, ACT_DIM, store.builder())?;
-        store.load_bytes(weights)?;
-        let nets = stored.frozen().looped()?;
-        let zero = nets.rssm.initial(1)?;
-        let zero_action = Tensor::zeros((1, ACT_DIM), DType::F32, &Device::Cpu)?;
-        Ok(Self {
-            store,
+        let nets = ActingNets::read(cfg, obs_dim, weights).map_err(candle_core::Error::wrap)?;
+        let mut policy = Self {
+            cfg: cfg.clone(),
             obs_dim,
-            state: zero.clone(),
-            zero,
-            prev_action: zero_action.clone(),
-            zero_action,
-            // equal Gumbel noise: the sample is the most likely class
-            uniform_mode: Tensor::full(0.5f32, (1, cfg.stoch, cfg.classes), &Device::Cpu)?,
-            stoch: (cfg.stoch, cfg.classes),
-            stored,
             nets,
+            traces: ActingTraces::default(),
+            zero: (Vec::new(), Vec::new()),
+            state: (Vec::new(), Vec::new()),
+            prev_action: [0.0; ACT_DIM],
+            uniform_mode: vec![0.5; cfg.stoch * cfg.classes],
             rng: ChaCha8Rng::seed_from_u64(seed),
-        })
+        };
+        policy.start_from_loaded();
+        policy.reset();
+        Ok(policy)
+    }
+
+    /// The initial state of the loaded weights, and the traces sized for them.
+    fn start_from_loaded(&mut self) {
+        let (nets, tr) = (&self.nets, &mut self.traces);
+        let (h, z) = nets.rssm.initial_state(&mut tr.rssm);
+        self.zero = (h.to_vec(), z.to_vec());
+        tr.encoder = nets.encoder.trace(1);
+        tr.actor = nets.actor.trace(1);
+        if let Some(mask) = &nets.mask {
+            tr.mask = mask.trace(1);
+        }
     }
 
     /// Replaces the weights (same architecture) without resetting the state (the next
     /// episode starts from the new weights' initial state).
     pub fn load(&mut self, weights: &[u8]) -> Result<()> {
-        self.store.load_bytes(weights)?;
-        self.nets = self.stored.frozen().looped()?;
-        self.zero = self.nets.rssm.initial(1)?;
+        self.nets =
+            ActingNets::read(&self.cfg, self.obs_dim, weights).map_err(candle_core::Error::wrap)?;
+        self.start_from_loaded();
         Ok(())
     }
 
@@ -352,7 +395,28 @@ impl DreamerPolicy {
     /// Starts a new episode: the initial state and a zero previous action.
     pub fn reset(&mut self) {
         self.state = self.zero.clone();
-        self.prev_action = self.zero_action.clone();
+        self.prev_action = [0.0; ACT_DIM];
+    }
+
+    /// cMask's mask for observation `obs` (`None` for the other agents): the mask of `tanh μ`
+    /// if `deterministic`, else of a sample ([`mask_sample`]).
+    fn mask(&mut self, obs: &[f32], deterministic: bool) -> Option<[f32; CONTEXT_DIM]> {
+        let net = self.nets.mask.as_ref()?;
+        let trace = &mut self.traces.mask;
+        net.forward(obs, trace, 0..1);
+        let out = net.output(trace, 0..1);
+        let mut a = [0f32; CONTEXT_DIM];
+        if deterministic {
+            a.iter_mut()
+                .zip(out)
+                .for_each(|(a, &mean)| *a = mean.tanh());
+        } else {
+            let noise: [f32; CONTEXT_DIM] =
+                std::array::from_fn(|_| self.rng.sample(StandardNormal));
+            let clamp = self.cfg.mask.log_std_clamp.map(|b| b as f32);
+            squash_rows(out, &noise, clamp, &mut a, &mut [0.0]);
+        }
+        Some(a.map(|a| mask_value(a, self.cfg.mask.mask_space)))
     }
 
     /// The action in `[−1, 1]²` for observation `obs` and raw context `[c_v, c_θ]`, and (cMask) the
@@ -371,43 +435,65 @@ impl DreamerPolicy {
                 self.obs_dim
             );
         }
-        let dev = &Device::Cpu;
-        let o = Tensor::from_slice(obs, (1, self.obs_dim), dev)?;
-        let space = self.nets.mask_space;
-        let mask = match &self.nets.mask {
-            Some(actor) if deterministic => Some(mask_of(&actor.mean_action(&o)?, space)?),
-            Some(actor) => {
-                let noise = normals(&mut self.rng, (1, CONTEXT_DIM))?;
-                Some(mask_sample(actor, &o, &noise, space)?.0)
-            }
-            None => None,
-        };
-        let ctx = self.nets.context(
-            &Tensor::from_slice(&context, (1, CONTEXT_DIM), dev)?,
-            mask.as_ref(),
-        )?;
+        let mask = self.mask(obs, deterministic);
+        // the model's context: the raw one scaled (and masked), or none
+        let scale = (1.0 / self.cfg.context_divisor()) as f32;
+        let ctx: [f32; CONTEXT_DIM] =
+            std::array::from_fn(|i| context[i] * scale * mask.map_or(1.0, |m| m[i]));
+        let ctx = &ctx[..self.nets.rssm.config().context_dim];
+        let z = self.cfg.stoch * self.cfg.classes;
         let (uniform, noise) = if deterministic {
-            (self.uniform_mode.clone(), None)
+            (None, None)
         } else {
-            let (s, c) = self.stoch;
-            let u = uniforms(&mut self.rng, (1, s, c))?;
-            (u, Some(normals(&mut self.rng, (1, ACT_DIM))?))
+            let u = uniform_rows(std::slice::from_mut(&mut self.rng), 1, z);
+            let n: [f32; ACT_DIM] = std::array::from_fn(|_| self.rng.sample(StandardNormal));
+            (Some(u), Some(n))
         };
-        let (state, action) = self.nets.observe(
-            &self.state,
-            &self.prev_action,
-            &o,
-            ctx.as_ref(),
-            &uniform,
-            noise.as_ref(),
-        )?;
-        self.state = state;
-        self.prev_action = action.clone();
-        let pair = |t: &Tensor| -> Result<[f32; 2]> {
-            let v = t.flatten_all()?.to_vec1::<f32>()?;
-            Ok([v[0], v[1]])
+        let (nets, tr) = (&self.nets, &mut self.traces);
+        // the embedding of symlog o (symlog [o, a_{t−1}] as the paper's code acts)
+        tr.input.clear();
+        tr.input.extend(obs.iter().map(|&v| symlog_value(v)));
+        if self.cfg.step_alignment == StepAlignment::PaperCode {
+            tr.input
+                .extend(self.prev_action.iter().map(|&v| symlog_value(v)));
+        }
+        nets.encoder
+            .forward(tr.input.as_slice(), &mut tr.encoder, 0..1);
+        let embed = match nets.encoder.outputs() {
+            0 => &tr.input[..],
+            _ => nets.encoder.output(&tr.encoder, 0..1),
         };
-        Ok((pair(&action)?, mask.as_ref().map(pair).transpose()?))
+        let (h, zs) = (&self.state.0[..], &self.state.1[..]);
+        let uniform = uniform.as_deref().unwrap_or(&self.uniform_mode);
+        let inputs = (&self.prev_action[..], ctx, embed);
+        nets.rssm
+            .posterior_step((h, zs), inputs, uniform, &mut tr.rssm);
+        let (h, zs, _) = tr.rssm.states();
+        self.state.0.copy_from_slice(h);
+        self.state.1.copy_from_slice(zs);
+        tr.head_input.clear();
+        for part in [h, zs, ctx] {
+            tr.head_input.extend_from_slice(part);
+        }
+        nets.actor
+            .forward(tr.head_input.as_slice(), &mut tr.actor, 0..1);
+        let out = nets.actor.output(&tr.actor, 0..1);
+        let (lo, span) = (
+            self.cfg.min_std as f32,
+            (self.cfg.max_std - self.cfg.min_std) as f32,
+        );
+        let action: [f32; ACT_DIM] = std::array::from_fn(|j| {
+            let mean = out[j].tanh();
+            match noise {
+                None => mean,
+                Some(n) => {
+                    let a = mean + (sigmoid(out[ACT_DIM + j] + 2.0) * span + lo) * n[j];
+                    a * (1.0 / a.abs().max(1.0))
+                }
+            }
+        });
+        self.prev_action = action;
+        Ok((action, mask))
     }
 }
 
@@ -415,6 +501,8 @@ impl DreamerPolicy {
 mod tests {
     use super::*;
     use crate::agents::{ContextMode, ContextScale, MaskConfig};
+    use crate::nn::{symlog, ParamStore, RssmState};
+    use candle_core::DType;
 
     /// A DreamerV3 configuration small enough for a test, with the context mode `context`.
     fn tiny(context: ContextMode) -> DreamerConfig {
@@ -549,66 +637,148 @@ mod tests {
         }
     }
 
-    #[test]
-    fn the_kept_state_holds_no_graph_of_earlier_steps() {
-        let cfg = tiny(ContextMode::Cmask);
-        let store = ParamStore::new();
-        DreamerNets::new(&cfg, 3, ACT_DIM, store.builder()).unwrap();
-        let mut policy = DreamerPolicy::new(&cfg, 3, &store.to_bytes().unwrap(), 1).unwrap();
-        for deterministic in [true, false] {
-            let (action, mask) = policy
-                .act(&[0.5, 0.2, 0.1], [0.1, -0.1], deterministic)
+    /// The candle composition the policy acted with before it ran the plain networks (the
+    /// oracle): the networks on the learner's parameters, the state and the previous action.
+    struct CandleActor {
+        nets: DreamerNets,
+        paper_code: bool,
+        state: RssmState,
+        prev: Tensor,
+        rng: ChaCha8Rng,
+    }
+
+    impl CandleActor {
+        /// One step as `DreamerNets::observe` and the candle policy computed it.
+        fn act(
+            &mut self,
+            obs: &[f32],
+            context: [f32; 2],
+            deterministic: bool,
+        ) -> (Vec<f32>, Option<Vec<f32>>) {
+            let dev = &Device::Cpu;
+            let nets = &self.nets;
+            let o = Tensor::from_slice(obs, (1, obs.len()), dev).unwrap();
+            let space = nets.mask_space;
+            let mask = nets.mask.as_ref().map(|actor| match deterministic {
+                true => mask_of(&actor.mean_action(&o).unwrap(), space).unwrap(),
+                false => {
+                    let noise = normals(&mut self.rng, (1, CONTEXT_DIM)).unwrap();
+                    mask_sample(actor, &o, &noise, space).unwrap().0
+                }
+            });
+            let raw = Tensor::from_slice(&context, (1, CONTEXT_DIM), dev).unwrap();
+            let ctx = nets.context(&raw, mask.as_ref()).unwrap();
+            let (s, c) = {
+                let rc = nets.rssm.config();
+                (rc.stoch, rc.classes)
+            };
+            let (uniform, noise) = match deterministic {
+                true => (Tensor::full(0.5f32, (1, s, c), dev).unwrap(), None),
+                false => {
+                    let u = uniforms(&mut self.rng, (1, s, c)).unwrap();
+                    (u, Some(normals(&mut self.rng, (1, ACT_DIM)).unwrap()))
+                }
+            };
+            let input = match self.paper_code {
+                true => Tensor::cat(&[&o, &self.prev], 1).unwrap(),
+                false => o,
+            };
+            let embed = nets.encoder.forward(&symlog(&input).unwrap()).unwrap();
+            let (next, _) = nets
+                .rssm
+                .obs_step(&self.state, &self.prev, ctx.as_ref(), &embed, &uniform)
                 .unwrap();
-            assert!(action
-                .iter()
-                .chain(mask.iter().flatten())
-                .all(|v| v.is_finite()));
-            // the stored weights are variables, the acting copies are not: what the policy
-            // keeps holds no graph of the episode's earlier steps (memory grew ~80 KB a step)
-            for t in [
-                &policy.state.deter,
-                &policy.state.stoch,
-                &policy.prev_action,
-            ] {
-                assert!(!t.track_op());
+            let (mean, std) = nets
+                .actor_dist(&next.head_input(ctx.as_ref()).unwrap())
+                .unwrap();
+            let action = match noise {
+                Some(n) => DreamerNets::sample_action(&mean, &std, &n).unwrap(),
+                None => mean,
+            };
+            let values = |t: &Tensor| -> Vec<f32> { t.flatten_all().unwrap().to_vec1().unwrap() };
+            let decision = (values(&action), mask.as_ref().map(values));
+            (self.state, self.prev) = (next, action);
+            decision
+        }
+    }
+
+    /// The policy on the plain networks acts as the candle networks it was read from did, on
+    /// random weights (a random learned initial state too), for each context mode and both step
+    /// alignments, deterministic and sampled, step after step: actions, masks and the state.
+    #[test]
+    fn acts_as_the_candle_networks_did() {
+        let close = |got: &[f32], want: &[f32], what: &str| {
+            assert_eq!(got.len(), want.len(), "{what}");
+            for (g, w) in got.iter().zip(want) {
+                assert!((g - w).abs() <= 1e-5, "{what}: {got:?} vs {want:?}");
+            }
+        };
+        for context in [ContextMode::None, ContextMode::Crssm, ContextMode::Cmask] {
+            for paper_code in [false, true] {
+                let cfg = match paper_code {
+                    true => tiny(context).with_paper_code_world_model(),
+                    false => tiny(context),
+                };
+                let store = ParamStore::new();
+                let nets = DreamerNets::new(&cfg, 3, ACT_DIM, store.builder()).unwrap();
+                store.init(4).unwrap();
+                for (name, v) in store.named() {
+                    if name == "rssm.initial_state.w" {
+                        v.set(&Tensor::randn(0f32, 1.0, v.shape(), &Device::Cpu).unwrap())
+                            .unwrap();
+                    }
+                }
+                let mut policy =
+                    DreamerPolicy::new(&cfg, 3, &store.to_bytes().unwrap(), 0).unwrap();
+                for deterministic in [true, false] {
+                    policy.reset();
+                    policy.reseed(5);
+                    let mut oracle = CandleActor {
+                        state: nets.rssm.initial(1).unwrap(),
+                        prev: Tensor::zeros((1, ACT_DIM), DType::F32, &Device::Cpu).unwrap(),
+                        nets: nets.clone(),
+                        paper_code,
+                        rng: ChaCha8Rng::seed_from_u64(5),
+                    };
+                    for t in 0..4 {
+                        let what =
+                            format!("{context:?} paper code {paper_code} {deterministic} {t}");
+                        let obs = [0.5, (t as f32 * 0.9).sin() * 2.0, 0.1 * t as f32];
+                        let ctx = [0.1, -0.05 * t as f32];
+                        let (action, mask) = policy.act(&obs, ctx, deterministic).unwrap();
+                        let (want_action, want_mask) = oracle.act(&obs, ctx, deterministic);
+                        close(&action, &want_action, &what);
+                        assert_eq!(mask.is_some(), want_mask.is_some(), "{what}");
+                        if let (Some(m), Some(w)) = (mask, want_mask) {
+                            close(&m, &w, &what);
+                        }
+                        let h: Vec<f32> =
+                            oracle.state.deter.flatten_all().unwrap().to_vec1().unwrap();
+                        let z: Vec<f32> =
+                            oracle.state.stoch.flatten_all().unwrap().to_vec1().unwrap();
+                        close(&policy.state.0, &h, &what);
+                        close(&policy.state.1, &z, &what);
+                    }
+                }
             }
         }
     }
 
-    /// With the paper code's world model the policy acts as the code does: the sequence model
-    /// reads the previous action (zero at the first step), the encoder `symlog [o_t, a_{t−1}]`,
-    /// from the learned initial state; its state after two steps is the candle composition's.
+    /// Weights of another architecture are refused, naming the tensor.
     #[test]
-    fn the_paper_code_policy_feeds_the_previous_action_to_the_encoder() {
-        let cfg = tiny(ContextMode::None).with_paper_code_world_model();
+    fn weights_of_another_architecture_are_refused() {
         let store = ParamStore::new();
-        let nets = DreamerNets::new(&cfg, 3, ACT_DIM, store.builder()).unwrap();
-        store.init(2).unwrap();
-        for (name, v) in store.named() {
-            if name == "rssm.initial_state.w" {
-                v.set(&Tensor::randn(0f32, 1.0, v.shape(), &Device::Cpu).unwrap())
-                    .unwrap();
-            }
-        }
-        let mut policy = DreamerPolicy::new(&cfg, 3, &store.to_bytes().unwrap(), 1).unwrap();
-        let dev = &Device::Cpu;
-        let mut state = nets.rssm.initial(1).unwrap();
-        let mut prev = Tensor::zeros((1, ACT_DIM), DType::F32, dev).unwrap();
-        let u = Tensor::full(0.5f32, (1, 4, 4), dev).unwrap();
-        for obs in [[0.5f32, 0.2, 0.1], [0.3, -0.4, 0.9]] {
-            let (action, _) = policy.act(&obs, [0.0; 2], true).unwrap();
-            let o = Tensor::from_slice(&obs, (1, 3), dev).unwrap();
-            let input = symlog(&Tensor::cat(&[&o, &prev], 1).unwrap()).unwrap();
-            let embed = nets.encoder.forward(&input).unwrap();
-            let (next, _) = nets.rssm.obs_step(&state, &prev, None, &embed, &u).unwrap();
-            let (mean, _) = nets.actor_dist(&next.feat().unwrap()).unwrap();
-            let want: Vec<f32> = mean.flatten_all().unwrap().to_vec1().unwrap();
-            let got: Vec<f32> = policy.state.deter.flatten_all().unwrap().to_vec1().unwrap();
-            let deter: Vec<f32> = next.deter.flatten_all().unwrap().to_vec1().unwrap();
-            for (a, b) in got.iter().zip(&deter).chain(action.iter().zip(&want)) {
-                assert!((a - b).abs() < 1e-5, "{a} vs {b}");
-            }
-            (state, prev) = (next, mean);
-        }
+        DreamerNets::new(&tiny(ContextMode::Crssm), 3, ACT_DIM, store.builder()).unwrap();
+        let weights = store.to_bytes().unwrap();
+        let err = DreamerPolicy::new(&tiny(ContextMode::Cmask), 3, &weights, 0)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(err.contains("mask.l0.fc.weight"), "{err}");
+        let err = DreamerPolicy::new(&tiny(ContextMode::None), 3, &weights, 0)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(err.contains("rssm.img_in.fc.weight"), "{err}");
     }
 }

@@ -1,10 +1,4 @@
 //! `y = x Wᵀ (+ b)` on gemm, the gradients of `x` and `W` only where they are tracked.
-//!
-//! The weight comes as stored (`W` `[out, in]`) or transposed once (`Wᵀ` `[in, out]`, contiguous).
-//! gemm reads the stored layout only after packing it, on every call; a loop that applies a layer
-//! many times to a few rows (the RSSM over a sequence, acting at batch 1) spends most of its time
-//! there. The transposed layout is what gemm's kernel reads directly, so such loops transpose the
-//! weight once ([`crate::nn::Dense::looped`]) and multiply without packing.
 
 use super::gemm::{count_flops, matmul, Operand};
 use super::sparse_inputs::SparseColumns;
@@ -24,11 +18,8 @@ vectorised! {
     }
 }
 
-/// `y = x Wᵀ (+ b)` (see [`linear`]). The weight argument is `W` `[out, in]`, or with `stored`
-/// it is `Wᵀ` `[in, out]` and `stored` holds `W` as well: the forward product reads `Wᵀ` and the
-/// input's gradient `g W` reads `W`, the layouts gemm multiplies without packing.
+/// `y = x Wᵀ (+ b)` (see [`linear`]), the weight argument `W` `[out, in]`.
 pub(super) struct Linear {
-    stored: Option<Tensor>,
     /// Input columns that are mostly zero ([`super::sparse_inputs`]).
     sparse: Option<Range<usize>>,
     /// Their non-zeros in the forward pass's input, kept for the weight's gradient when the
@@ -37,32 +28,12 @@ pub(super) struct Linear {
 }
 
 impl Linear {
-    /// `(out, in)` of a weight argument of shape `dims`.
-    fn out_in(&self, (r, c): (usize, usize)) -> (usize, usize) {
-        if self.stored.is_some() {
-            (c, r)
-        } else {
-            (r, c)
-        }
-    }
-
-    /// The rows `rows` of `Wᵀ` as an operand, from the weight argument's values `w` (`m`
-    /// outputs, `k` inputs).
-    fn weight_rows<'a>(
-        &self,
-        w: &'a [f32],
-        m: usize,
-        k: usize,
-        rows: &Range<usize>,
-    ) -> Operand<'a> {
-        if self.stored.is_some() {
-            Operand::rows(&w[rows.start * m..], m)
-        } else {
-            Operand {
-                data: &w[rows.start..],
-                row_stride: 1,
-                col_stride: k,
-            }
+    /// The rows `rows` of `Wᵀ` as an operand, from the weight's values `w` (`k` inputs).
+    fn weight_rows<'a>(w: &'a [f32], k: usize, rows: &Range<usize>) -> Operand<'a> {
+        Operand {
+            data: &w[rows.start..],
+            row_stride: 1,
+            col_stride: k,
         }
     }
 
@@ -96,7 +67,7 @@ impl Linear {
         b: Option<(&CpuStorage, &Layout)>,
     ) -> Result<(CpuStorage, Shape)> {
         let (n, k) = x.1.shape().dims2()?;
-        let (m, k2) = self.out_in(w.1.shape().dims2()?);
+        let (m, k2) = w.1.shape().dims2()?;
         if k != k2 {
             bail!(
                 "linear: input width {k} but weight {:?}",
@@ -115,7 +86,7 @@ impl Linear {
             None => None,
         };
         let Some((columns, sparse)) = self.sparse_columns(x, k, None) else {
-            let wt = self.weight_rows(w, m, k, &(0..k));
+            let wt = Self::weight_rows(w, k, &(0..k));
             let y = matmul(n, m, k, Operand::rows(x, k), wt, init);
             return Ok((CpuStorage::F32(y), Shape::from((n, m))));
         };
@@ -126,22 +97,17 @@ impl Linear {
                 row_stride: k,
                 col_stride: 1,
             };
-            let wt = self.weight_rows(w, m, k, &part);
+            let wt = Self::weight_rows(w, k, &part);
             y = Some(matmul(n, m, part.len(), xs, wt, y));
         }
         let mut y = y.unwrap_or_else(|| vec![0f32; n * m]);
-        let wt = if self.stored.is_some() {
-            std::borrow::Cow::Borrowed(&w[columns.start * m..columns.end * m])
-        } else {
-            // the sparse columns' rows of Wᵀ, from W [m, k]
-            let mut wt = vec![0f32; columns.len() * m];
-            for (j, w_j) in w.chunks_exact(k).enumerate() {
-                for (c, &v) in w_j[columns.clone()].iter().enumerate() {
-                    wt[c * m + j] = v;
-                }
+        // the sparse columns' rows of Wᵀ, from W [m, k]
+        let mut wt = vec![0f32; columns.len() * m];
+        for (j, w_j) in w.chunks_exact(k).enumerate() {
+            for (c, &v) in w_j[columns.clone()].iter().enumerate() {
+                wt[c * m + j] = v;
             }
-            std::borrow::Cow::Owned(wt)
-        };
+        }
         sparse.add_products(&wt, m, &mut y);
         count_flops(2 * m * sparse.nonzeros());
         if let Some(kept) = &self.gathered {
@@ -150,7 +116,7 @@ impl Linear {
         Ok((CpuStorage::F32(y), Shape::from((n, m))))
     }
 
-    /// The weight's gradient (in the weight argument's layout) for `x` `[n, k]` whose columns
+    /// The weight's gradient `[m, k]` for `x` `[n, k]` whose columns
     /// `columns` are `sparse` and the output gradient `g` `[n, m]`: `dWᵀ = xᵀ g` by gemm over
     /// the other columns, row by row over the non-zeros of these.
     fn sparse_weight_grad(
@@ -172,9 +138,6 @@ impl Linear {
         }
         sparse.add_weight_grads(g, m, &mut dwt[columns.start * m..columns.end * m]);
         count_flops(2 * m * sparse.nonzeros());
-        if self.stored.is_some() {
-            return dwt;
-        }
         let mut dw = vec![0f32; m * k];
         for (c, row) in dwt.chunks_exact(m).enumerate() {
             for (j, &v) in row.iter().enumerate() {
@@ -185,7 +148,7 @@ impl Linear {
     }
 
     /// The gradients of `x` `[N, in]` and of the weight for `y = x Wᵀ` (each if wanted):
-    /// `dx = g W`, `dW = gᵀ x` (or `dWᵀ = xᵀ g` for a transposed weight).
+    /// `dx = g W`, `dW = gᵀ x`.
     pub(super) fn bwd_xw(
         &self,
         x: &Tensor,
@@ -194,10 +157,10 @@ impl Linear {
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let (want_x, want_w) = (wants_grad(x), wants_grad(w));
         let (rows, input) = dims2(x)?;
-        let (output, _) = self.out_in(dims2(w)?);
+        let (output, _) = dims2(w)?;
         let (dx, dw) = read(grad, |g| {
             let dx = want_x.then(|| {
-                read(self.stored.as_ref().unwrap_or(w), |wv| {
+                read(w, |wv| {
                     let wv = Operand::rows(wv, input);
                     Ok(matmul(
                         rows,
@@ -218,13 +181,8 @@ impl Linear {
                         let dims = (rows, input, output);
                         return Ok(self.sparse_weight_grad((xv, g), dims, &columns, &sparse));
                     }
-                    Ok(if self.stored.is_some() {
-                        let (xt, g) = (Operand::transposed(xv, input), Operand::rows(g, output));
-                        matmul(input, output, rows, xt, g, None)
-                    } else {
-                        let (gt, xv) = (Operand::transposed(g, output), Operand::rows(xv, input));
-                        matmul(output, input, rows, gt, xv, None)
-                    })
+                    let (gt, xv) = (Operand::transposed(g, output), Operand::rows(xv, input));
+                    Ok(matmul(output, input, rows, gt, xv, None))
                 })
             });
             Ok((dx.transpose()?, dw.transpose()?))
@@ -316,54 +274,14 @@ pub fn linear(
     bias: Option<&Tensor>,
     sparse_inputs: Option<Range<usize>>,
 ) -> Result<Tensor> {
-    let (op, weight) = product(weight, None, sparse_inputs)?;
-    apply(x, &weight, bias, op)
+    apply(x, weight, bias, product(weight, sparse_inputs))
 }
 
-/// `x Wᵀ + b` with the weight given in both layouts, `weight_t` `[in, out]` (which takes the
-/// gradient) and `weight` `[out, in]` (its values, detached): the same product as [`linear`]
-/// without gemm's per-call packing of the weight, forward or backward.
-pub fn linear_t(
-    x: &Tensor,
-    weight_t: &Tensor,
-    weight: &Tensor,
-    bias: Option<&Tensor>,
-    sparse_inputs: Option<Range<usize>>,
-) -> Result<Tensor> {
-    let (op, weight_t) = product(weight, Some(weight_t), sparse_inputs)?;
-    apply(x, &weight_t, bias, op)
-}
-
-/// The op of `x Wᵀ` and its weight argument: `weight` `[out, in]` itself, or with `weight_t`
-/// (`[in, out]`, checked to be its transpose's shape) the transposed layout (see [`linear_t`]).
-pub(super) fn product(
-    weight: &Tensor,
-    weight_t: Option<&Tensor>,
-    sparse: Option<Range<usize>>,
-) -> Result<(Linear, Tensor)> {
+/// The op of `x Wᵀ` for `weight` `[out, in]` whose input columns `sparse` are mostly zero.
+pub(super) fn product(weight: &Tensor, sparse: Option<Range<usize>>) -> Linear {
     // the non-zeros are kept from the forward pass only for a weight gradient computed here
-    let keep = |w: &Tensor| (sparse.is_some() && wants_grad(w)).then(|| Mutex::new(None));
-    let Some(weight_t) = weight_t else {
-        let op = Linear {
-            stored: None,
-            gathered: keep(weight),
-            sparse,
-        };
-        return Ok((op, weight.clone()));
-    };
-    if weight_t.dims() != weight.t()?.dims() {
-        bail!(
-            "linear_t: weight_t {:?} is not the transpose of weight {:?}",
-            weight_t.dims(),
-            weight.dims()
-        );
-    }
-    let op = Linear {
-        stored: Some(weight.detach().contiguous()?),
-        gathered: keep(weight_t),
-        sparse,
-    };
-    Ok((op, weight_t.contiguous()?))
+    let gathered = (sparse.is_some() && wants_grad(weight)).then(|| Mutex::new(None));
+    Linear { gathered, sparse }
 }
 
 fn apply(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>, op: Linear) -> Result<Tensor> {
@@ -391,14 +309,7 @@ mod tests {
         for columns in [3..35, 0..35, 3..37] {
             let sparse = Some(columns);
             same(
-                linear(&x, &w, Some(&b), sparse.clone()).unwrap(),
-                composed(),
-                &[&x, &w, &b],
-                1e-5,
-            );
-            let wt = w.t().unwrap().contiguous().unwrap();
-            same(
-                linear_t(&x, &wt, &w, Some(&b), sparse).unwrap(),
+                linear(&x, &w, Some(&b), sparse).unwrap(),
                 composed(),
                 &[&x, &w, &b],
                 1e-5,
@@ -432,17 +343,6 @@ mod tests {
             linear(&x, &w, None, None).unwrap(),
             x.matmul(&w.t().unwrap()).unwrap(),
             &[&x, &w],
-            1e-5,
-        );
-        // the transposed layout: the same values and gradients
-        let wt = w.t().unwrap().contiguous().unwrap();
-        same(
-            linear_t(&x, &wt, &w, Some(&b), None).unwrap(),
-            x.matmul(&w.t().unwrap())
-                .unwrap()
-                .broadcast_add(&b)
-                .unwrap(),
-            &[&x, &w, &b],
             1e-5,
         );
         // a detached weight receives no gradient; the input still does

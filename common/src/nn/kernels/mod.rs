@@ -9,7 +9,7 @@
 //! the gradient of an argument only when it is tracked ([`Tensor::track_op`]): a detached weight,
 //! as in a frozen copy of a network, costs nothing in the backward pass.
 //!
-//! - [`linear`], [`linear_t`]: `y = x Wᵀ (+ b)`, the weight as stored or transposed.
+//! - [`linear`]: `y = x Wᵀ (+ b)`.
 //! - [`linear_norm_act`]: a bias-free [`linear`] then [`norm_act`] as one operation (the product
 //!   stays inside it, so the backward pass hands the normalisation's gradient straight to the
 //!   product's, without a graph node, a zeroed buffer and an addition in between).
@@ -270,7 +270,7 @@ pub use adam::{adam_update, adam_update_in_place, squared_norm, sum_of_squares, 
 pub use categorical::{categorical_kl, straight_through_sample};
 pub use gemm::{matmul_flops, record_products, recorded_products, ProductShape};
 pub use gru::gru_gates;
-pub use linear::{linear, linear_t};
+pub use linear::linear;
 pub use linear_norm::linear_norm_act;
 pub use norm_act::{norm_act, NormAct};
 pub use product_profile::replay_products;

@@ -239,6 +239,42 @@ impl PlainLayer {
         Ok(Self::from_values(w, (outputs, inputs), bias, after))
     }
 
+    /// The normalised block `{name}.fc` (no bias), `{name}.ln` of `weights`, then `act`:
+    /// DreamerV3's hidden blocks under the names the candle modules give them.
+    pub(super) fn normalised_from_weights(
+        weights: &mut Weights,
+        name: &str,
+        (inputs, outputs): (usize, usize),
+        act: NormAct,
+    ) -> std::result::Result<Self, WeightsError> {
+        let norm = NormParams {
+            gain: weights.take(&format!("{name}.ln.weight"), &[outputs])?,
+            bias: weights.take(&format!("{name}.ln.bias"), &[outputs])?,
+            eps: LAYER_NORM_EPS as f32,
+            act,
+        };
+        let fc = format!("{name}.fc");
+        Self::from_weights(weights, &fc, (inputs, outputs), false, After::Norm(norm))
+    }
+
+    /// The plain product `x Wᵀ + b` of `{name}.weight`, `{name}.bias` in `weights`.
+    pub(super) fn linear_from_weights(
+        weights: &mut Weights,
+        name: &str,
+        size: (usize, usize),
+    ) -> std::result::Result<Self, WeightsError> {
+        Self::from_weights(weights, name, size, true, After::Nothing)
+    }
+
+    /// The same layer told that its input columns `columns` are mostly zero (a one-hot
+    /// latent), as [`Dense::sparse_inputs`]: the same results, fewer products.
+    pub(super) fn sparse_inputs(self, columns: Range<usize>) -> Self {
+        Self {
+            sparse: Some(columns),
+            ..self
+        }
+    }
+
     /// A normalised block (`act(LayerNorm(x Wᵀ))`) of `dense` and `ln`.
     pub fn normalised(dense: &Dense, ln: &LayerNorm, act: NormAct) -> Result<Self> {
         Self::from_parts(dense, Some((ln, act)), false)
@@ -562,14 +598,7 @@ impl PlainMlp {
             let size = (width, shape.units);
             layers.push(match shape.act {
                 Activation::SiluNorm => {
-                    let norm = NormParams {
-                        gain: weights.take(&format!("{block}.ln.weight"), &[shape.units])?,
-                        bias: weights.take(&format!("{block}.ln.bias"), &[shape.units])?,
-                        eps: LAYER_NORM_EPS as f32,
-                        act: NormAct::Silu,
-                    };
-                    let fc = format!("{block}.fc");
-                    PlainLayer::from_weights(weights, &fc, size, false, After::Norm(norm))?
+                    PlainLayer::normalised_from_weights(weights, &block, size, NormAct::Silu)?
                 }
                 Activation::Relu => PlainLayer::from_weights(
                     weights,
@@ -583,15 +612,22 @@ impl PlainMlp {
         }
         if let Some(out) = shape.out {
             let name = format!("{prefix}out");
-            layers.push(PlainLayer::from_weights(
+            layers.push(PlainLayer::linear_from_weights(
                 weights,
                 &name,
                 (width, out),
-                true,
-                After::Nothing,
             )?);
         }
         Ok(Self { layers })
+    }
+
+    /// The same network told that its input columns `columns` are mostly zero (the one-hot
+    /// `z` of `[h, z, c]`), as [`Mlp::sparse_inputs`].
+    pub fn sparse_inputs(mut self, columns: Range<usize>) -> Self {
+        if let Some(first) = self.layers.first_mut() {
+            first.sparse = Some(columns);
+        }
+        self
     }
 
     /// Output width.

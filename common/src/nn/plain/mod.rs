@@ -10,7 +10,8 @@
 //! on the same fused row kernels and gemm products as the candle modules
 //! ([`crate::nn::kernels`]). The weights are copied out of the candle modules they mirror
 //! ([`PlainMlp::new`], [`PlainRssm::new`]) or read by name from the learner's weights
-//! ([`PlainMlp::from_weights`], as the SAC policy acts) and the parameters' gradients go back as candle
+//! ([`PlainMlp::from_weights`], [`PlainRssm::from_weights`]: the acting policies run on these at
+//! batch 1, [`PlainRssm::posterior_step`]) and the parameters' gradients go back as candle
 //! tensors keyed by them ([`PlainMlp::add_grads_to`]), so optimisers and checkpoints are
 //! unchanged. Each piece is checked against its candle module, values and gradients.
 

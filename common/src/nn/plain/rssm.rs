@@ -25,7 +25,8 @@
 //! the steps' rows at the end, not one thin product per step.
 
 use super::layer::{add_grad, InputGrad, LayerGrads, MlpGrads, MlpTrace, PlainLayer, PlainMlp};
-use crate::nn::kernels::{gru_rows, gru_rows_bwd, probs_rows_bwd, sample_rows, Unimix};
+use crate::nn::kernels::{gru_rows, gru_rows_bwd, probs_rows_bwd, sample_rows, NormAct, Unimix};
+use crate::nn::weights::{Weights, WeightsError};
 use crate::nn::{Rssm, RssmConfig};
 use candle_core::backprop::GradStore;
 use candle_core::Result;
@@ -173,6 +174,53 @@ impl PlainRssm {
             post: layer(post)?,
             post_out: layer(post_out)?,
             initial_w: rssm.initial_weight().map(|w| w.to_vec1()).transpose()?,
+        })
+    }
+
+    /// The model of `cfg` read from `weights` under the names [`Rssm::new`] gives its
+    /// parameters, after `prefix` (`"rssm."`): `img_in`, `gru`, `prior`, `post` (each `fc`
+    /// and `ln`), `prior_out`, `post_out` and, with a learned initial state, `initial_state.w`.
+    pub fn from_weights(
+        weights: &mut Weights,
+        prefix: &str,
+        cfg: RssmConfig,
+    ) -> std::result::Result<Self, WeightsError> {
+        let z = cfg.stoch * cfg.classes;
+        let mut block = |name: &str, size, act| {
+            PlainLayer::normalised_from_weights(weights, &format!("{prefix}{name}"), size, act)
+        };
+        let silu = NormAct::Silu;
+        let img_in = block(
+            "img_in",
+            (z + cfg.act_dim + cfg.context_dim, cfg.hidden),
+            silu,
+        )?
+        .sparse_inputs(0..z);
+        let gates = block(
+            "gru",
+            (cfg.hidden + cfg.deter, 3 * cfg.deter),
+            NormAct::Identity,
+        )?;
+        let prior = block("prior", (cfg.deter, cfg.hidden), silu)?;
+        let post = block("post", (cfg.deter + cfg.embed_dim, cfg.hidden), silu)?;
+        let mut linear = |name: &str| {
+            PlainLayer::linear_from_weights(weights, &format!("{prefix}{name}"), (cfg.hidden, z))
+        };
+        let (prior_out, post_out) = (linear("prior_out")?, linear("post_out")?);
+        let initial_w = match cfg.learned_initial {
+            true => Some(weights.take(&format!("{prefix}initial_state.w"), &[cfg.deter])?),
+            false => None,
+        };
+        Ok(Self {
+            cfg,
+            img_in,
+            gates,
+            prior: PlainMlp {
+                layers: vec![prior, prior_out],
+            },
+            post,
+            post_out,
+            initial_w,
         })
     }
 
@@ -467,25 +515,14 @@ impl PlainRssm {
         trace: &mut ObserveTrace,
     ) {
         let (d, z, c) = self.widths();
-        let (a, hidden, e) = (self.cfg.act_dim, self.cfg.hidden, self.cfg.embed_dim);
+        let (a, e) = (self.cfg.act_dim, self.cfg.embed_dim);
         let rows = keep.len();
         let tr = trace;
-        self.fit(&mut tr.sequence, rows);
-        for (v, width) in [
-            (&mut tr.z, z),
-            (&mut tr.logits, z),
-            (&mut tr.post_input, d + e),
-            (&mut tr.post_product, hidden),
-            (&mut tr.post_output, hidden),
-        ] {
-            sized(v, rows * width);
-        }
-        tr.z.fill(0.0);
+        self.fit_observe(tr, rows);
         self.initial_forward(&mut tr.initial);
         let k = z + a + c;
         for t in 0..rows / batch.max(1) {
             let r = t * batch..(t + 1) * batch;
-            let span = |w: usize| r.start * w..r.end * w;
             // the previous state and action, the initial state and a zero action where a
             // sequence starts
             let seq = &mut tr.sequence;
@@ -509,32 +546,93 @@ impl PlainRssm {
                 }
                 input[z + a..].copy_from_slice(&ctx[row * c..(row + 1) * c]);
             }
-            self.sequence_forward(seq, r.clone());
-            let parts = seq.h[span(d)]
-                .chunks_exact(d)
-                .zip(embed[span(e)].chunks_exact(e));
-            for ((h, er), row) in parts.zip(tr.post_input[span(d + e)].chunks_exact_mut(d + e)) {
-                row[..d].copy_from_slice(h);
-                row[d..].copy_from_slice(er);
-            }
-            self.post.forward(
-                &tr.post_input[span(d + e)],
-                &mut tr.post_product[span(hidden)],
-                &mut tr.post_output[span(hidden)],
-            );
-            self.post_out.forward(
-                &tr.post_output[span(hidden)],
-                &mut tr.logits[span(z)],
-                &mut [],
-            );
-            let dist = self.unimix();
-            sample_rows(
-                dist,
-                &tr.logits[span(z)],
-                &uniform[span(z)],
-                &mut tr.z[span(z)],
-            );
+            self.posterior_forward(tr, &embed[r.start * e..r.end * e], uniform, r);
         }
+    }
+
+    /// Sizes `tr` for an observation loop over `rows` rows.
+    fn fit_observe(&self, tr: &mut ObserveTrace, rows: usize) {
+        let (d, z, _) = self.widths();
+        let (hidden, e) = (self.cfg.hidden, self.cfg.embed_dim);
+        self.fit(&mut tr.sequence, rows);
+        for (v, width) in [
+            (&mut tr.z, z),
+            (&mut tr.logits, z),
+            (&mut tr.post_input, d + e),
+            (&mut tr.post_product, hidden),
+            (&mut tr.post_output, hidden),
+        ] {
+            sized(v, rows * width);
+        }
+    }
+
+    /// The posterior step on the rows `r` of `tr`, whose sequence model's inputs are set: `h'`,
+    /// the posterior's logits of `[h', e]` (`embed`, those rows') and its samples with the
+    /// Gumbel uniforms of those rows in `uniform` (all the rows').
+    fn posterior_forward(
+        &self,
+        tr: &mut ObserveTrace,
+        embed: &[f32],
+        uniform: &[f32],
+        r: Range<usize>,
+    ) {
+        let (d, z, _) = self.widths();
+        let (hidden, e) = (self.cfg.hidden, self.cfg.embed_dim);
+        let span = |w: usize| r.start * w..r.end * w;
+        let seq = &mut tr.sequence;
+        self.sequence_forward(seq, r.clone());
+        let parts = seq.h[span(d)].chunks_exact(d).zip(embed.chunks_exact(e));
+        for ((h, er), row) in parts.zip(tr.post_input[span(d + e)].chunks_exact_mut(d + e)) {
+            row[..d].copy_from_slice(h);
+            row[d..].copy_from_slice(er);
+        }
+        self.post.forward(
+            &tr.post_input[span(d + e)],
+            &mut tr.post_product[span(hidden)],
+            &mut tr.post_output[span(hidden)],
+        );
+        self.post_out.forward(
+            &tr.post_output[span(hidden)],
+            &mut tr.logits[span(z)],
+            &mut [],
+        );
+        let z_rows = &mut tr.z[span(z)];
+        z_rows.fill(0.0);
+        sample_rows(
+            self.unimix(),
+            &tr.logits[span(z)],
+            &uniform[span(z)],
+            z_rows,
+        );
+    }
+
+    /// The state a sequence starts from, `(h_0, z_0)` (`[D]`, `[Z]`), into `trace`: zeros, or
+    /// the learned `h_0 = tanh(w)` and `z_0` the one-hot mode of the prior `p(z | h_0)`.
+    pub fn initial_state<'a>(&self, trace: &'a mut ObserveTrace) -> (&'a [f32], &'a [f32]) {
+        self.initial_forward(&mut trace.initial);
+        (&trace.initial.h, &trace.initial.z)
+    }
+
+    /// One observation step of one sequence (acting, batch 1): from the previous state `h`
+    /// `[D]` and `z` `[Z]`, the previous action `[A]`, the context `[c]`, the observation's
+    /// embedding `[E]` and the Gumbel uniforms `[Z]`, the posterior state `(h', z')` and its
+    /// logits ([`ObserveTrace::states`], one row), as [`PlainRssm::observe`] computes a step.
+    pub fn posterior_step(
+        &self,
+        (h, z): (&[f32], &[f32]),
+        (action, ctx, embed): (&[f32], &[f32], &[f32]),
+        uniform: &[f32],
+        trace: &mut ObserveTrace,
+    ) {
+        let (d, zw, c) = self.widths();
+        self.fit_observe(trace, 1);
+        let seq = &mut trace.sequence;
+        seq.h_prev.copy_from_slice(&h[..d]);
+        let input = &mut seq.input;
+        input[..zw].copy_from_slice(&z[..zw]);
+        input[zw..zw + action.len()].copy_from_slice(action);
+        input[zw + action.len()..].copy_from_slice(&ctx[..c]);
+        self.posterior_forward(trace, embed, uniform, 0..1);
     }
 
     /// The backward pass of [`PlainRssm::observe`] from the gradients of the posterior states,
