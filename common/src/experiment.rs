@@ -311,8 +311,8 @@ impl ExperimentConfig {
             path: path.to_path_buf(),
             cause,
         })?;
-        let mut table: toml::Table = toml::from_str(&text)
-            .map_err(|e| ExperimentError::Toml(e).within(&origin))?;
+        let mut table: toml::Table =
+            toml::from_str(&text).map_err(|e| ExperimentError::Toml(e).within(&origin))?;
         let agent = table
             .entry("agent")
             .or_insert_with(|| toml::Table::new().into());

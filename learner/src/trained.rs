@@ -86,9 +86,7 @@ impl TrainedAgent {
         let weights = std::fs::read(&policy_path)
             .with_context(|| format!("reading {}", policy_path.display()))?;
         let experiment = match run_dir.map(|r| r.join(CONFIG_FILE)) {
-            Some(p) if p.exists() => {
-                Some(ExperimentConfig::load_saved(&p)?)
-            }
+            Some(p) if p.exists() => Some(ExperimentConfig::load_saved(&p)?),
             _ => None,
         };
         Ok(Self {
