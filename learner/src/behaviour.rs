@@ -40,12 +40,12 @@
 use crate::world_model::Starts;
 use candle_core::Result;
 use ctxrace_common::agents::{DreamerConfig, ImaginationLoss};
+use ctxrace_common::nn::dreamer::{normal_rows, uniform_rows};
 use ctxrace_common::nn::plain::{
     soft_cross_entropy, soft_cross_entropy_backward, twohot_decode, twohot_decode_backward,
     InputGrad, MlpGrads, MlpTrace, NonZeros, PlainMlp, PlainRssm, StepScratch, StepTrace,
 };
 use ctxrace_common::nn::{Mlp, Rssm, TwoHot};
-use ctxrace_common::policy::{normal_rows, uniform_rows};
 use rand_chacha::ChaCha8Rng;
 
 /// The networks of a behaviour step, their weights as they are at its start.

@@ -42,9 +42,9 @@ use candle_core::backprop::GradStore;
 use candle_core::{bail, Device, Result, Tensor};
 use candle_nn::Init;
 use ctxrace_common::agents::{DreamerConfig, MaskConfig, MaskSpace, StepAlignment, CONTEXT_DIM};
+use ctxrace_common::nn::dreamer::normal_rows;
 use ctxrace_common::nn::plain::PlainMlp;
 use ctxrace_common::nn::{ParamStore, TanhGaussianActor};
-use ctxrace_common::policy::normal_rows;
 use rand_chacha::ChaCha8Rng;
 use std::ops::Range;
 

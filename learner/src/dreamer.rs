@@ -66,10 +66,11 @@ use crate::shards::{add_part, in_parallel, on_shards_with, weighted_mean};
 use crate::world_model::{Starts, WorldModel};
 use candle_core::{bail, Result, Tensor};
 use ctxrace_common::agents::{ContextMode, DreamerConfig, CONTEXT_DIM};
+use ctxrace_common::nn::dreamer::{mask_sample, normals_per, DreamerNets};
 use ctxrace_common::nn::kernels::matmul_flops;
 use ctxrace_common::nn::plain::MlpGrads;
 use ctxrace_common::nn::{Activation, Mlp, ParamStore, TwoHot};
-use ctxrace_common::policy::{mask_sample, normals_per, DreamerNets, DreamerPolicy};
+use ctxrace_common::policy::DreamerPolicy;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -178,8 +179,9 @@ impl Dreamer {
     }
 
     /// The acting policy with the current weights, its noise seeded by `seed`.
-    pub fn policy(&self, seed: u64) -> Result<DreamerPolicy> {
-        DreamerPolicy::new(&self.cfg, self.obs_dim, &self.policy.to_bytes()?, seed)
+    pub fn policy(&self, seed: u64) -> anyhow::Result<DreamerPolicy> {
+        let weights = self.policy.to_bytes()?;
+        Ok(DreamerPolicy::new(&self.cfg, self.obs_dim, &weights, seed)?)
     }
 
     /// One noise stream per sequence of this step's batch (Gumbel uniforms, actor and mask
@@ -422,10 +424,10 @@ mod tests {
     use super::*;
     use candle_core::{DType, Device, Module};
     use ctxrace_common::agents::{ImaginationLoss, MaskConfig, MaskSpace};
+    use ctxrace_common::nn::dreamer::uniforms_per;
+    use ctxrace_common::nn::dreamer::{mask_of, normals};
     use ctxrace_common::nn::kernels::soft_cross_entropy;
     use ctxrace_common::nn::RssmState;
-    use ctxrace_common::policy::uniforms_per;
-    use ctxrace_common::policy::{mask_of, normals};
     use ctxrace_common::SequenceBatch;
     use rand::Rng;
 

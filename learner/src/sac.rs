@@ -245,14 +245,16 @@ impl Sac {
 
     /// The acting policy with the current actor weights, its noise seeded by `seed`; it stacks
     /// `cfg.frames` frames of `obs_dim / frames` values itself.
-    pub fn policy(&self, seed: u64) -> Result<SacPolicy> {
-        SacPolicy::new(
+    pub fn policy(&self, seed: u64) -> anyhow::Result<SacPolicy> {
+        let frame_dim = self.obs_dim / self.cfg.frames;
+        let weights = self.actor_params.to_bytes()?;
+        Ok(SacPolicy::new(
             &self.cfg,
-            self.obs_dim / self.cfg.frames,
+            frame_dim,
             self.act_dim,
-            &self.actor_params.to_bytes()?,
+            &weights,
             seed,
-        )
+        )?)
     }
 
     /// Standard-normal noise `[rows, A]` from `rng`.
@@ -413,7 +415,7 @@ impl ActionRange {
         scale: 1.0,
         shift: 0.0,
     };
-    /// `[0, 1]`: cMask's mask ([`ctxrace_common::policy::mask_sample`]).
+    /// `[0, 1]`: cMask's mask ([`ctxrace_common::nn::dreamer::mask_sample`]).
     pub(crate) const UNIT: Self = Self {
         scale: 0.5,
         shift: 0.5,

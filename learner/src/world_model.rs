@@ -32,12 +32,12 @@ use crate::shards::{add_part, on_shards_with, weighted_mean};
 use candle_core::backprop::GradStore;
 use candle_core::{bail, Result};
 use ctxrace_common::agents::{DreamerConfig, StepAlignment};
+use ctxrace_common::nn::dreamer::{uniform_rows, DreamerNets};
 use ctxrace_common::nn::plain::{
     categorical_kl, categorical_kl_backward, soft_cross_entropy, soft_cross_entropy_backward,
     InputGrad, MlpGrads, MlpTrace, NonZeros, ObserveTrace, PlainMlp, PlainRssm, RssmGrads,
 };
 use ctxrace_common::nn::{symlog_value as symlog, Activation, Mlp, ParamStore, Rssm, TwoHot};
-use ctxrace_common::policy::{uniform_rows, DreamerNets};
 use ctxrace_common::SequenceBatch;
 use rand_chacha::ChaCha8Rng;
 
@@ -536,8 +536,8 @@ mod tests {
     use crate::sequences::SeqData;
     use candle_core::{Device, Module, Tensor};
     use ctxrace_common::agents::{ContextMode, InitialState};
+    use ctxrace_common::nn::dreamer::uniforms_per;
     use ctxrace_common::nn::{symlog as symlog_tensor, RssmState};
-    use ctxrace_common::policy::uniforms_per;
     use rand::{Rng, SeedableRng};
 
     /// The world model's loss on `d` (its actions `[B, T, A]`) composed of candle operations,

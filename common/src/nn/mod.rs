@@ -1,6 +1,7 @@
 //! Neural-network modules shared by acting and training (candle, CPU, f32).
 
 pub mod dense;
+pub mod dreamer;
 pub mod kernels;
 pub mod mlp;
 pub mod norm;

@@ -4,14 +4,41 @@
 mod dreamer;
 mod sac;
 
-pub use dreamer::{
-    mask_of, mask_sample, normal_rows, normals, normals_per, uniform_rows, uniforms, uniforms_per,
-    DreamerNets, DreamerPolicy,
-};
+pub use dreamer::DreamerPolicy;
 pub use sac::SacPolicy;
 
-use crate::agents::{AgentConfig, AlgoKind};
-use candle_core::Result;
+use crate::agents::{AgentConfig, AgentConfigError, AlgoKind};
+use crate::nn::WeightsError;
+
+/// Why a policy cannot be built from an agent configuration and policy weights, or cannot act
+/// on an observation.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum PolicyError {
+    /// The agent configuration is not one a policy can be built from (its message names the key).
+    #[error("the [agent] table cannot act: {0}")]
+    Config(#[from] AgentConfigError),
+    /// The weights are not a safetensors file of `f32` tensors, or are of another architecture
+    /// than the agent configuration's.
+    #[error(
+        "the policy weights do not fit the [agent] table: {0}; act with the agent.toml of the \
+         run that wrote them"
+    )]
+    Weights(#[from] WeightsError),
+    /// An observation's size differs from the one the policy was built for.
+    #[error(
+        "an observation of {found} values reached a policy built for {want}; the [race] \
+         lidar.beams must be the one the agent was trained with"
+    )]
+    Observation {
+        /// Values in the observation.
+        found: usize,
+        /// Values the policy was built for.
+        want: usize,
+    },
+}
+
+/// The outcome of building a policy or of one decision.
+pub type Result<T> = std::result::Result<T, PolicyError>;
 
 /// Action size of the racing policies: steering and speed.
 pub const ACT_DIM: usize = 2;

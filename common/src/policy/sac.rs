@@ -7,11 +7,11 @@
 //! The actor runs on the plain network the learner trains ([`PlainMlp`]), read from the
 //! learner's weights by name ([`Weights`]).
 
+use super::{PolicyError, Result};
 use crate::agents::SacConfig;
 use crate::nn::plain::{MlpTrace, PlainMlp};
 use crate::nn::tanh_gaussian::squash_rows;
 use crate::nn::{Activation, MlpShape, Weights};
-use candle_core::{bail, Result};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -39,10 +39,9 @@ pub struct SacPolicy {
 
 /// The actor of `shape` from the learner's weights (safetensors bytes).
 fn read_actor(shape: &MlpShape, weights: &[u8]) -> Result<PlainMlp> {
-    let mut weights = Weights::from_safetensors(weights).map_err(candle_core::Error::wrap)?;
-    let actor =
-        PlainMlp::from_weights(&mut weights, "", shape).map_err(candle_core::Error::wrap)?;
-    weights.finish().map_err(candle_core::Error::wrap)?;
+    let mut weights = Weights::from_safetensors(weights)?;
+    let actor = PlainMlp::from_weights(&mut weights, "", shape)?;
+    weights.finish()?;
     Ok(actor)
 }
 
@@ -56,7 +55,7 @@ impl SacPolicy {
         weights: &[u8],
         seed: u64,
     ) -> Result<Self> {
-        cfg.validate().map_err(candle_core::Error::wrap)?;
+        cfg.validate()?;
         // the learner's TanhGaussianActor: a ReLU MLP to the means, then the log-σs
         let shape = MlpShape {
             input: frame_dim * cfg.frames,
@@ -103,11 +102,10 @@ impl SacPolicy {
     /// sample; plus the exploration noise, if any, clipped to `[−1, 1]`.
     pub fn act(&mut self, obs: &[f32], deterministic: bool) -> Result<Vec<f32>> {
         if obs.len() != self.frame_dim {
-            bail!(
-                "observation has {} values, the SAC policy expects {}",
-                obs.len(),
-                self.frame_dim
-            );
+            return Err(PolicyError::Observation {
+                found: obs.len(),
+                want: self.frame_dim,
+            });
         }
         while self.stack.len() < self.frames - 1 {
             self.stack.push_back(obs.to_vec());
@@ -208,7 +206,11 @@ mod tests {
         p.reset();
         let d = p.act(&[0.9, 0.9, 0.9], true).unwrap();
         assert_ne!(c, d, "after reset the stack holds only the new frame");
-        assert!(p.act(&[0.0; 2], true).is_err());
+        assert_eq!(
+            p.act(&[0.0; 2], true),
+            Err(PolicyError::Observation { found: 2, want: 3 }),
+            "an observation of another size is refused, naming both sizes"
+        );
     }
 
     /// With `reset_frame_stack = false` (the paper's code) an episode's first observation is
