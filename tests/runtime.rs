@@ -174,10 +174,12 @@ fn check_clean_run(run: &Path, actors: usize) {
         );
         // and followed the learner all along, also while it waited for the replay: an actor
         // that got ahead at the start used to wait, blocked and loading nothing, for a good part
-        // of the run (`[]`, `[0]`, `[130, 140]` of 150 steps; `[0, 470, ...]`). The bound is a
-        // share of the run, not a step count: a fast learner takes many steps while an actor
-        // waits for a core.
-        let bound = last_step / 4;
+        // of the run (`[]`, `[0]`, `[130, 140]` of 150 steps; `[0, 470, ...]` of 900). The bound
+        // is a share of the run, not a step count: a fast learner takes many steps while an
+        // actor waits for a core. Two fifths still catches both of those (87% and 52%) and
+        // leaves room for a loaded machine, where a healthy run's first version came at 250 of
+        // 900 steps (with two runs and the other runtime tests sharing 2 busy cores).
+        let bound = last_step * 2 / 5;
         let gap = versions.windows(2).map(|w| w[1] - w[0]).max().unwrap_or(0);
         assert!(
             versions[0] <= bound && gap <= bound,
