@@ -163,33 +163,7 @@ mod tests {
     use std::sync::Arc;
 
     /// A cMask run of 300 decisions on tiny networks (as the CLI tests' `train --inline`).
-    const TINY_CMASK: &str = r#"track = "generated:0"
-[race]
-rivals = 1
-max_time = 20.0
-[agent]
-algo = "cmask"
-[agent.dreamer]
-units = 16
-layers = 1
-deter = 16
-hidden = 16
-stoch = 4
-classes = 4
-head_units = 16
-head_layers = 1
-batch = 2
-length = 8
-[agent.dreamer.mask]
-units = 16
-[train]
-env_steps = 300
-prefill = 200
-train_ratio = 0.1
-checkpoint_every = 5
-log_every = 2
-threads = 1
-"#;
+    const TINY_CMASK: &str = include_str!("../../testdata/tiny-cmask.toml");
 
     fn env(cfg: &ExperimentConfig) -> RaceEnv {
         let track = Arc::new(Track::load(&cfg.track, &TrackOptions::default()).unwrap());
