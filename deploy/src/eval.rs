@@ -483,10 +483,10 @@ pub fn run_worker(args: WorkerArgs) -> Result<()> {
         // an episode's masks before its row: a resumed evaluation never lacks them
         let rows = recorder.into_rows();
         if !rows.is_empty() {
-            if masks.is_none() {
-                masks = Some(append_csv(&masks::part_path(out, args.shard))?);
-            }
-            let masks = masks.as_mut().expect("opened above");
+            let masks = match masks.as_mut() {
+                Some(open) => open,
+                None => masks.insert(append_csv(&masks::part_path(out, args.shard))?),
+            };
             for row in rows {
                 masks.serialize(row)?;
             }

@@ -584,7 +584,8 @@ impl Band {
                 values.iter().copied().fold(f64::INFINITY, f64::min),
                 values.iter().copied().fold(f64::NEG_INFINITY, f64::max),
             ),
-            Band::Bootstrap95 => bootstrap_ci(values).expect("values are not empty"),
+            // no interval from no values: the band is then empty, as min-max's
+            Band::Bootstrap95 => bootstrap_ci(values).unwrap_or_else(|| Band::MinMax.ends(values)),
         }
     }
 

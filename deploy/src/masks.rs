@@ -272,9 +272,8 @@ pub fn load_summary(dir: &Path) -> Result<Option<MaskSummary>> {
         lap.get_or_insert_with(|| (context, r.lap, Vec::new()))
             .2
             .push((r.x, r.y, masks));
-        let same = |c: &&mut ContextMasks| c.context() == context;
-        let cell = match summary.contexts.iter_mut().find(same) {
-            Some(c) => c,
+        let index = match summary.contexts.iter().position(|c| c.context() == context) {
+            Some(i) => i,
             None => {
                 summary.contexts.push(ContextMasks {
                     context_speed: r.context_speed,
@@ -282,9 +281,10 @@ pub fn load_summary(dir: &Path) -> Result<Option<MaskSummary>> {
                     along: vec![([0.0; 2], 0); PROGRESS_BINS],
                     ..ContextMasks::default()
                 });
-                summary.contexts.last_mut().expect("just pushed")
+                summary.contexts.len() - 1
             }
         };
+        let cell = &mut summary.contexts[index];
         let bin = &mut cell.along[progress_bin(r.progress)];
         for (k, m) in masks.into_iter().enumerate() {
             cell.sum[k] += m;

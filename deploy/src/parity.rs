@@ -71,16 +71,17 @@ pub fn load(dir: &Path) -> Result<Vec<ParityCurves>> {
                 continue;
             }
             seeds.sort_by_key(|(s, _)| *s);
-            let entry = match curves.iter_mut().find(|c| c.algo == algo) {
-                Some(c) => c,
+            let index = match curves.iter().position(|c| c.algo == algo) {
+                Some(i) => i,
                 None => {
                     curves.push(ParityCurves {
                         algo: algo.clone(),
                         sides: Vec::new(),
                     });
-                    curves.last_mut().expect("just pushed")
+                    curves.len() - 1
                 }
             };
+            let entry = &mut curves[index];
             entry.sides.push((side.to_string(), seeds));
         }
     }
