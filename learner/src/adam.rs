@@ -1,5 +1,5 @@
-//! Adam (Kingma & Ba 2015) with global-norm gradient clipping, and moments that can be saved:
-//! candle's `AdamW` keeps its moments private, so a resumed run would restart them from zero.
+//! Adam (Kingma & Ba 2015) with global-norm gradient clipping, on the networks' own tensors, and
+//! moments that can be saved (a resumed run continues them).
 //!
 //! For each parameter `w` with gradient `g`, at step `t` (from 1):
 //!
@@ -9,22 +9,51 @@
 //! w ← w − lr · (m / (1 − β₁ᵗ)) / (√(v / (1 − β₂ᵗ)) + ε)
 //! ```
 //!
-//! (PyTorch's `Adam` without weight decay). The update runs on plain `f32` buffers, one pass
-//! per parameter.
+//! (PyTorch's `Adam` without weight decay). The update runs where the network keeps its
+//! weights ([`Parameters::update`]), one pass per tensor.
 
-use candle_core::backprop::GradStore;
-use candle_core::{bail, DType, Device, Result, Tensor, Var};
-use ctxrace_common::nn::kernels::{adam_update_in_place, squared_norm, AdamStep};
-use std::collections::HashMap;
+use ctxrace_common::nn::kernels::{adam_update, sum_of_squares, AdamStep};
+use ctxrace_common::nn::plain::Parameters;
+use safetensors::tensor::TensorView;
+use safetensors::{Dtype, SafeTensors};
 
 /// First-moment decay `β₁`.
 const BETA1: f64 = 0.9;
 /// Second-moment decay `β₂`.
 const BETA2: f64 = 0.999;
 
-/// An Adam optimiser over a fixed list of variables.
+/// Why an optimiser step or its saved state does not fit the networks it optimises.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum AdamError {
+    /// A step was given gradients of another set of tensors.
+    #[error("the optimiser was given {given} gradients for {tensors} tensors")]
+    Gradients {
+        /// Gradients given.
+        given: usize,
+        /// Tensors optimised.
+        tensors: usize,
+    },
+    /// A gradient's length differs from its tensor's.
+    #[error("the gradient of '{name}' has {given} values, the tensor {want}")]
+    GradientLength {
+        /// The tensor's name.
+        name: String,
+        /// Values in the gradient.
+        given: usize,
+        /// Values in the tensor.
+        want: usize,
+    },
+    /// The saved state is not of these networks' optimiser.
+    #[error("optimiser state: {0}")]
+    State(String),
+}
+
+/// An Adam optimiser over the tensors of a fixed set of networks.
 pub struct Adam {
-    vars: Vec<Var>,
+    /// For each tensor, in the networks' order, its index in name order (that of the moments).
+    slots: Vec<usize>,
+    /// The tensors' names, in the networks' order.
+    names: Vec<String>,
     m: Vec<Vec<f32>>,
     v: Vec<Vec<f32>>,
     t: u64,
@@ -34,14 +63,22 @@ pub struct Adam {
 }
 
 impl Adam {
-    /// Adam over `vars` with learning rate `lr`, `ε = eps` and the gradient norm clipped to
-    /// `clip` (`f64::INFINITY`: no clipping).
-    pub fn new(vars: Vec<Var>, lr: f64, eps: f64, clip: f64) -> Self {
-        let zeros = || vars.iter().map(|v| vec![0f32; v.elem_count()]).collect();
+    /// Adam over the tensors of `nets` with learning rate `lr`, `ε = eps` and the gradient norm
+    /// clipped to `clip` (`f64::INFINITY`: no clipping).
+    pub fn new<P: Parameters + ?Sized>(nets: &P, lr: f64, eps: f64, clip: f64) -> Self {
+        let tensors = nets.tensors();
+        let mut by_name: Vec<usize> = (0..tensors.len()).collect();
+        by_name.sort_by(|&a, &b| tensors[a].name.cmp(tensors[b].name));
+        let mut slots = vec![0; tensors.len()];
+        for (slot, &i) in by_name.iter().enumerate() {
+            slots[i] = slot;
+        }
+        let zeros = || by_name.iter().map(|&i| vec![0f32; tensors[i].values.len()]);
         Self {
-            m: zeros(),
-            v: zeros(),
-            vars,
+            slots,
+            names: tensors.iter().map(|t| t.name.to_string()).collect(),
+            m: zeros().collect(),
+            v: zeros().collect(),
             t: 0,
             lr,
             eps,
@@ -54,21 +91,32 @@ impl Adam {
         self.t
     }
 
-    /// One step with `grads` (variables without a gradient are left alone); returns the
-    /// gradient norm before clipping. A non-finite norm skips the step, so that one bad batch
-    /// cannot poison the weights. The gradients are read and the weights updated where candle
-    /// stores them, without copies.
-    pub fn step(&mut self, grads: &GradStore) -> Result<f64> {
-        let found: Vec<Option<&Tensor>> = self
-            .vars
-            .iter()
-            .map(|var| grads.get(var.as_tensor()))
-            .collect();
-        let mut sq = 0f64;
-        for g in found.iter().flatten() {
-            sq += squared_norm(g)?;
+    /// One step of `nets` (those this optimiser was made for, in the same order) with `grads`,
+    /// one per tensor in their order (an empty one: that tensor has none and is left alone);
+    /// returns the gradient norm before clipping. A non-finite norm skips the step, so that
+    /// one bad batch cannot poison the weights.
+    pub fn step<P: Parameters + ?Sized>(
+        &mut self,
+        nets: &mut P,
+        grads: &[Vec<f32>],
+    ) -> Result<f64, AdamError> {
+        if grads.len() != self.slots.len() {
+            return Err(AdamError::Gradients {
+                given: grads.len(),
+                tensors: self.slots.len(),
+            });
         }
-        let norm = sq.sqrt();
+        for (i, g) in grads.iter().enumerate() {
+            let want = self.m[self.slots[i]].len();
+            if !g.is_empty() && g.len() != want {
+                return Err(AdamError::GradientLength {
+                    name: self.names[i].clone(),
+                    given: g.len(),
+                    want,
+                });
+            }
+        }
+        let norm = grads.iter().map(|g| sum_of_squares(g)).sum::<f64>().sqrt();
         if !norm.is_finite() {
             return Ok(norm);
         }
@@ -79,70 +127,99 @@ impl Adam {
         };
         self.t += 1;
         let t = self.t as i32;
-        let lr_t = (self.lr / (1.0 - BETA1.powi(t))) as f32;
-        let v_corr = (1.0 / (1.0 - BETA2.powi(t))) as f32;
         let coefficients = AdamStep {
             scale,
             beta1: BETA1 as f32,
             beta2: BETA2 as f32,
-            lr_t,
-            v_corr,
+            lr_t: (self.lr / (1.0 - BETA1.powi(t))) as f32,
+            v_corr: (1.0 / (1.0 - BETA2.powi(t))) as f32,
             eps: self.eps as f32,
         };
-        let moments = self.m.iter_mut().zip(self.v.iter_mut());
-        for ((var, g), (m, v)) in self.vars.iter().zip(&found).zip(moments) {
-            if let Some(g) = g {
-                adam_update_in_place(var.as_tensor(), g, (m, v), coefficients)?;
+        let (slots, m, v) = (&self.slots, &mut self.m, &mut self.v);
+        let mut failed = None;
+        nets.update(&mut |i, w| {
+            let (g, slot) = (&grads[i], slots[i]);
+            if !g.is_empty() && w.len() == g.len() {
+                if let Err(e) = adam_update(w, g, &mut m[slot], &mut v[slot], coefficients) {
+                    failed = Some(e.to_string());
+                }
             }
+        });
+        match failed {
+            Some(e) => Err(AdamError::State(e)),
+            None => Ok(norm),
         }
-        Ok(norm)
     }
 
-    /// The moments and step counter as safetensors bytes.
-    pub fn to_bytes(&self) -> Result<Vec<u8>> {
-        let dev = &Device::Cpu;
-        let mut tensors = HashMap::new();
+    /// The moments and step counter as safetensors bytes (`m.{i}`, `v.{i}` for the `i`-th tensor
+    /// in name order, and `t`).
+    pub fn to_bytes(&self) -> Result<Vec<u8>, AdamError> {
+        let as_bytes = |x: &[f32]| x.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>();
+        let mut named: Vec<(String, Dtype, Vec<u8>)> = Vec::new();
         for (i, (m, v)) in self.m.iter().zip(&self.v).enumerate() {
-            tensors.insert(format!("m.{i}"), Tensor::from_slice(m, m.len(), dev)?);
-            tensors.insert(format!("v.{i}"), Tensor::from_slice(v, v.len(), dev)?);
+            named.push((format!("m.{i}"), Dtype::F32, as_bytes(m)));
+            named.push((format!("v.{i}"), Dtype::F32, as_bytes(v)));
         }
-        tensors.insert("t".into(), Tensor::new(&[self.t as f64], dev)?);
-        safetensors::serialize(tensors.iter().map(|(k, t)| (k.as_str(), t)), None)
-            .map_err(|e| candle_core::Error::Msg(format!("serialising optimiser state: {e}")))
+        named.push((
+            "t".into(),
+            Dtype::F64,
+            (self.t as f64).to_le_bytes().to_vec(),
+        ));
+        let views = named
+            .iter()
+            .map(|(name, dtype, bytes)| {
+                let len = 8 * bytes.len() / dtype.bitsize();
+                TensorView::new(*dtype, vec![len], bytes)
+                    .map(|view| (name.as_str(), view))
+                    .map_err(|e| AdamError::State(e.to_string()))
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        safetensors::serialize(views, None).map_err(|e| AdamError::State(e.to_string()))
     }
 
-    /// Restores what [`Adam::to_bytes`] wrote for the same variables.
-    pub fn load_bytes(&mut self, bytes: &[u8]) -> Result<()> {
-        let tensors = candle_core::safetensors::load_buffer(bytes, &Device::Cpu)?;
-        let get = |name: &str, len: usize| -> Result<Vec<f32>> {
-            let Some(t) = tensors.get(name) else {
-                bail!("optimiser state has no `{name}`");
-            };
-            let data = t.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
-            if data.len() != len {
-                bail!(
-                    "optimiser state `{name}` has {} values, the parameter {len}",
-                    data.len()
-                );
+    /// Restores what [`Adam::to_bytes`] wrote for the same networks; on an error nothing changes.
+    pub fn load_bytes(&mut self, bytes: &[u8]) -> Result<(), AdamError> {
+        let file = SafeTensors::deserialize(bytes).map_err(|e| AdamError::State(e.to_string()))?;
+        let values = |name: &str, dtype: Dtype| -> Result<Vec<u8>, AdamError> {
+            let view = file
+                .tensor(name)
+                .map_err(|_| AdamError::State(format!("no `{name}`")))?;
+            if view.dtype() != dtype {
+                return Err(AdamError::State(format!(
+                    "`{name}` holds {} values, expected {dtype}",
+                    view.dtype()
+                )));
             }
-            Ok(data)
+            Ok(view.data().to_vec())
         };
-        let mut m = Vec::with_capacity(self.vars.len());
-        let mut v = Vec::with_capacity(self.vars.len());
-        for (i, var) in self.vars.iter().enumerate() {
-            m.push(get(&format!("m.{i}"), var.elem_count())?);
-            v.push(get(&format!("v.{i}"), var.elem_count())?);
+        let floats = |name: &str, len: usize| -> Result<Vec<f32>, AdamError> {
+            let data = values(name, Dtype::F32)?;
+            if data.len() != 4 * len {
+                return Err(AdamError::State(format!(
+                    "`{name}` has {} values, the parameter {len}",
+                    data.len() / 4
+                )));
+            }
+            let f = |b: &[u8]| f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+            Ok(data.chunks_exact(4).map(f).collect())
+        };
+        let tensors = self.m.len();
+        if file.len() != 2 * tensors + 1 {
+            return Err(AdamError::State(format!(
+                "it holds {} tensors, expected {}",
+                file.len(),
+                2 * tensors + 1
+            )));
         }
-        if tensors.len() != 2 * self.vars.len() + 1 {
-            bail!(
-                "optimiser state holds {} tensors, expected {}",
-                tensors.len(),
-                2 * self.vars.len() + 1
-            );
+        let mut m = Vec::with_capacity(tensors);
+        let mut v = Vec::with_capacity(tensors);
+        for (i, len) in self.m.iter().map(Vec::len).enumerate() {
+            m.push(floats(&format!("m.{i}"), len)?);
+            v.push(floats(&format!("v.{i}"), len)?);
         }
-        let t = match tensors.get("t") {
-            Some(t) => t.to_dtype(DType::F64)?.to_vec1::<f64>()?[0],
-            None => bail!("optimiser state has no step counter `t`"),
+        let t = match values("t", Dtype::F64)?.as_slice().try_into() {
+            Ok(b) => f64::from_le_bytes(b),
+            Err(_) => return Err(AdamError::State("`t` is not one value".into())),
         };
         (self.m, self.v, self.t) = (m, v, t as u64);
         Ok(())
@@ -152,60 +229,70 @@ impl Adam {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use ctxrace_common::nn::plain::NamedTensor;
 
-    #[test]
-    fn first_step_moves_each_weight_by_lr_against_its_gradient_sign() {
-        // at t = 1, m̂ = g and v̂ = g², so Δw = −lr g / (|g| + ε)
-        let w = Var::from_vec(vec![1f32, -2.0, 0.5], 3, &Device::Cpu).unwrap();
-        let mut adam = Adam::new(vec![w.clone()], 0.1, 1e-8, f64::INFINITY);
-        let loss = (w.as_tensor() * &Tensor::new(&[3f32, -1.0, 0.0], &Device::Cpu).unwrap())
-            .unwrap()
-            .sum_all()
-            .unwrap();
-        let norm = adam.step(&loss.backward().unwrap()).unwrap();
-        assert!((norm - 10f64.sqrt()).abs() < 1e-6);
-        let after = w.to_vec1::<f32>().unwrap();
-        for (a, e) in after.iter().zip([0.9f32, -1.9, 0.5]) {
-            assert!((a - e).abs() < 1e-6, "{after:?}");
+    /// A vector of weights as a network.
+    struct Vector(Vec<f32>);
+
+    impl Parameters for Vector {
+        fn tensors(&self) -> Vec<NamedTensor<'_>> {
+            vec![NamedTensor {
+                name: "w",
+                shape: vec![self.0.len()],
+                values: &self.0,
+            }]
+        }
+
+        fn update(&mut self, f: &mut dyn FnMut(usize, &mut [f32])) {
+            f(0, &mut self.0);
         }
     }
 
     #[test]
+    fn first_step_moves_each_weight_by_lr_against_its_gradient_sign() {
+        // at t = 1, m̂ = g and v̂ = g², so Δw = −lr g / (|g| + ε)
+        let mut w = Vector(vec![1.0, -2.0, 0.5]);
+        let mut adam = Adam::new(&w, 0.1, 1e-8, f64::INFINITY);
+        let norm = adam.step(&mut w, &[vec![3.0, -1.0, 0.0]]).unwrap();
+        assert!((norm - 10f64.sqrt()).abs() < 1e-6);
+        for (a, e) in w.0.iter().zip([0.9f32, -1.9, 0.5]) {
+            assert!((a - e).abs() < 1e-6, "{:?}", w.0);
+        }
+        // no gradient: left alone, and the step still counts
+        adam.step(&mut w, &[vec![]]).unwrap();
+        assert_eq!((adam.steps(), w.0[2]), (2, 0.5));
+    }
+
+    #[test]
     fn clipping_scales_the_gradient_and_state_round_trips() {
-        let w = Var::from_vec(vec![0f32, 0.0], 2, &Device::Cpu).unwrap();
-        let target = Tensor::new(&[3f32, 4.0], &Device::Cpu).unwrap();
-        let mut adam = Adam::new(vec![w.clone()], 0.01, 1e-8, 1.0);
-        let loss = || {
-            (w.as_tensor() - &target)
-                .unwrap()
-                .sqr()
-                .unwrap()
-                .sum_all()
-                .unwrap()
-        };
+        let mut w = Vector(vec![0.0, 0.0]);
+        let mut adam = Adam::new(&w, 0.01, 1e-8, 1.0);
+        let grad = |w: &Vector| vec![vec![2.0 * (w.0[0] - 3.0), 2.0 * (w.0[1] - 4.0)]];
         // gradient −2·(3, 4), norm 10, clipped to 1: m = 0.1 · (−0.6, −0.8)
-        assert!((adam.step(&loss().backward().unwrap()).unwrap() - 10.0).abs() < 1e-5);
+        let g = grad(&w);
+        assert!((adam.step(&mut w, &g).unwrap() - 10.0).abs() < 1e-5);
         assert!((adam.m[0][0] + 0.06).abs() < 1e-7 && (adam.m[0][1] + 0.08).abs() < 1e-7);
         for _ in 0..3 {
-            adam.step(&loss().backward().unwrap()).unwrap();
+            let g = grad(&w);
+            adam.step(&mut w, &g).unwrap();
         }
         let bytes = adam.to_bytes().unwrap();
-        let mut other = Adam::new(vec![w.clone()], 0.01, 1e-8, 1.0);
+        let mut other = Adam::new(&w, 0.01, 1e-8, 1.0);
         other.load_bytes(&bytes).unwrap();
         assert_eq!(
             (other.m.clone(), other.v.clone(), other.t),
             (adam.m.clone(), adam.v.clone(), 4)
         );
-        let mut wrong = Adam::new(
-            vec![Var::zeros(3, DType::F32, &Device::Cpu).unwrap()],
-            0.01,
-            1e-8,
-            1.0,
-        );
-        assert!(wrong
-            .load_bytes(&bytes)
-            .unwrap_err()
-            .to_string()
-            .contains("3"));
+        let mut wrong = Adam::new(&Vector(vec![0.0; 3]), 0.01, 1e-8, 1.0);
+        let err = wrong.load_bytes(&bytes).unwrap_err().to_string();
+        assert!(err.contains('3'), "{err}");
+        assert!(matches!(
+            adam.step(&mut w, &[vec![1.0; 3]]),
+            Err(AdamError::GradientLength { .. })
+        ));
+        assert!(matches!(
+            adam.step(&mut w, &[]),
+            Err(AdamError::Gradients { .. })
+        ));
     }
 }

@@ -31,8 +31,8 @@
 //! first row carries no mask), its first step's `α = 0.2` before `log α = 0` takes over, and its
 //! temperature loss on a fresh sample after the actor's step.
 
-use crate::adam::Adam;
 use crate::algorithm::{scalar, Metrics};
+use crate::candle_adam::CandleAdam as Adam;
 use crate::sac::{
     polyak, ActionRange, PassSum, PlainActor, SoftTarget, TwinQ, WeightedTransitions, Workspace,
 };

@@ -54,9 +54,9 @@
 //! its shard's share of the batch, and the optimisers step on the summed gradients, which are the
 //! batch's.
 
-use crate::adam::Adam;
 use crate::algorithm::{scalar, Algorithm, Batch, Metrics};
 use crate::behaviour::{self, Imagination, Setting};
+use crate::candle_adam::CandleAdam as Adam;
 use crate::checkpoint;
 use crate::cmask::MaskSac;
 use crate::returns::ReturnNorm;

@@ -7,6 +7,7 @@ pub mod algorithm;
 mod behaviour;
 pub mod best;
 pub mod cadence;
+mod candle_adam;
 pub mod checkpoint;
 pub mod cmask;
 pub mod dreamer;

@@ -36,8 +36,8 @@
 //! ([`Workspace::critic_pass`], [`Workspace::actor_pass`]) take a weight per row and the actions'
 //! range, so that cMask's mask SAC ([`crate::cmask`]) runs on them too.
 
-use crate::adam::Adam;
 use crate::algorithm::{Algorithm, Batch, Metrics};
+use crate::candle_adam::CandleAdam as Adam;
 use crate::checkpoint;
 use candle_core::backprop::GradStore;
 use candle_core::{bail, Device, Result, Tensor};

@@ -26,8 +26,8 @@
 //! The encoder and the RSSM live in the acting policy's store (the actors run them); the model
 //! holds views of them that share their storage.
 
-use crate::adam::Adam;
 use crate::algorithm::Metrics;
+use crate::candle_adam::CandleAdam as Adam;
 use crate::shards::{add_part, on_shards_with, weighted_mean};
 use candle_core::backprop::GradStore;
 use candle_core::{bail, Result};

@@ -48,9 +48,21 @@ pub enum WeightsError {
 #[derive(Clone, Debug, Default)]
 pub struct Weights {
     tensors: BTreeMap<String, (Vec<usize>, Vec<f32>)>,
+    /// Every tensor asked for is at its initial value ([`Weights::initial`]).
+    initial: bool,
 }
 
 impl Weights {
+    /// Weights that hold every tensor a network asks for at its construction value: zero, or
+    /// the value given to [`Weights::take_or`] (LayerNorm gains one). A network built from
+    /// them and then given [`crate::nn::plain::init`] is a freshly initialised one.
+    pub fn initial() -> Self {
+        Self {
+            tensors: BTreeMap::new(),
+            initial: true,
+        }
+    }
+
     /// Reads safetensors bytes of `f32` tensors.
     pub fn from_safetensors(bytes: &[u8]) -> Result<Self, WeightsError> {
         let file =
@@ -70,11 +82,27 @@ impl Weights {
                 .collect();
             tensors.insert(name.to_string(), (view.shape().to_vec(), values));
         }
-        Ok(Self { tensors })
+        Ok(Self {
+            tensors,
+            initial: false,
+        })
     }
 
     /// Takes the values of tensor `name`, which must have the shape `shape`.
     pub fn take(&mut self, name: &str, shape: &[usize]) -> Result<Vec<f32>, WeightsError> {
+        self.take_or(name, shape, 0.0)
+    }
+
+    /// [`Weights::take`], where weights [`Weights::initial`] give every value `initial`.
+    pub fn take_or(
+        &mut self,
+        name: &str,
+        shape: &[usize],
+        initial: f32,
+    ) -> Result<Vec<f32>, WeightsError> {
+        if self.initial {
+            return Ok(vec![initial; shape.iter().product()]);
+        }
         let Some((found, values)) = self.tensors.remove(name) else {
             return Err(WeightsError::Missing(name.to_string()));
         };

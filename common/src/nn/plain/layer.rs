@@ -8,6 +8,7 @@
 //! columns that are mostly zero (the one-hot `z` of a state, [`crate::nn::Dense::sparse_inputs`])
 //! are multiplied over their non-zeros, forward and in the weight's gradient.
 
+use super::parameters::{update_each, NamedTensor, Parameters};
 use crate::nn::kernels::{
     column_sums, count_flops, dense_parts, gemm_into, norm_act_rows_bwd_into, norm_act_rows_into,
     Norm, NormAct, Operand, SparseColumns, SparseRows,
@@ -63,6 +64,9 @@ pub struct PlainLayer {
     after: After,
     /// Input columns that are mostly zero.
     sparse: Option<Range<usize>>,
+    /// The names of its tensors in the order of [`Parameters::tensors`] (`W`, `b`, the
+    /// normalisation's `γ` and `β`, those it has); empty for a layer copied out of candle.
+    names: Vec<String>,
 }
 
 /// How a layer multiplies an input ([`PlainLayer::split_inputs`]).
@@ -152,8 +156,14 @@ impl NonZeros {
 /// The transpose `[cols, rows]` of the row-major `[rows, cols]` matrix `m`, in tiles that stay in
 /// the cache (a plain loop writes a whole column of the result per row it reads).
 fn transpose(m: &[f32], rows: usize, cols: usize) -> Vec<f32> {
-    const TILE: usize = 16;
     let mut t = vec![0f32; m.len()];
+    transpose_into(m, rows, cols, &mut t);
+    t
+}
+
+/// [`transpose`] into `t` (as long as `m`).
+fn transpose_into(m: &[f32], rows: usize, cols: usize, t: &mut [f32]) {
+    const TILE: usize = 16;
     for r0 in (0..rows).step_by(TILE) {
         let r1 = (r0 + TILE).min(rows);
         for c0 in (0..cols).step_by(TILE) {
@@ -165,7 +175,6 @@ fn transpose(m: &[f32], rows: usize, cols: usize) -> Vec<f32> {
             }
         }
     }
-    t
 }
 
 /// The values of a contiguous CPU tensor.
@@ -219,6 +228,7 @@ impl PlainLayer {
             bias,
             after,
             sparse: None,
+            names: Vec::new(),
         }
     }
 
@@ -231,12 +241,19 @@ impl PlainLayer {
         bias: bool,
         after: After,
     ) -> std::result::Result<Self, WeightsError> {
-        let w = weights.take(&format!("{name}.weight"), &[outputs, inputs])?;
+        let mut names = vec![format!("{name}.weight")];
+        let w = weights.take(&names[0], &[outputs, inputs])?;
         let bias = match bias {
-            true => Some(weights.take(&format!("{name}.bias"), &[outputs])?),
+            true => {
+                names.push(format!("{name}.bias"));
+                Some(weights.take(&names[1], &[outputs])?)
+            }
             false => None,
         };
-        Ok(Self::from_values(w, (outputs, inputs), bias, after))
+        Ok(Self {
+            names,
+            ..Self::from_values(w, (outputs, inputs), bias, after)
+        })
     }
 
     /// The normalised block `{name}.fc` (no bias), `{name}.ln` of `weights`, then `act`:
@@ -247,14 +264,18 @@ impl PlainLayer {
         (inputs, outputs): (usize, usize),
         act: NormAct,
     ) -> std::result::Result<Self, WeightsError> {
+        let norm_names = [format!("{name}.ln.weight"), format!("{name}.ln.bias")];
         let norm = NormParams {
-            gain: weights.take(&format!("{name}.ln.weight"), &[outputs])?,
-            bias: weights.take(&format!("{name}.ln.bias"), &[outputs])?,
+            gain: weights.take_or(&norm_names[0], &[outputs], 1.0)?,
+            bias: weights.take(&norm_names[1], &[outputs])?,
             eps: LAYER_NORM_EPS as f32,
             act,
         };
         let fc = format!("{name}.fc");
-        Self::from_weights(weights, &fc, (inputs, outputs), false, After::Norm(norm))
+        let mut layer =
+            Self::from_weights(weights, &fc, (inputs, outputs), false, After::Norm(norm))?;
+        layer.names.extend(norm_names);
+        Ok(layer)
     }
 
     /// The plain product `x Wᵀ + b` of `{name}.weight`, `{name}.bias` in `weights`.
@@ -505,6 +526,42 @@ impl PlainLayer {
     }
 }
 
+impl Parameters for PlainLayer {
+    fn tensors(&self) -> Vec<NamedTensor<'_>> {
+        let (m, k) = (self.outputs, self.inputs);
+        let mut values: Vec<(&[f32], Vec<usize>)> = vec![(&self.w, vec![m, k])];
+        if let Some(b) = &self.bias {
+            values.push((b, vec![m]));
+        }
+        if let After::Norm(n) = &self.after {
+            values.extend([(&n.gain[..], vec![m]), (&n.bias[..], vec![m])]);
+        }
+        let names = self.names.iter().map(String::as_str);
+        names
+            .zip(values)
+            .map(|(name, (values, shape))| NamedTensor {
+                name,
+                shape,
+                values,
+            })
+            .collect()
+    }
+
+    fn update(&mut self, f: &mut dyn FnMut(usize, &mut [f32])) {
+        f(0, &mut self.w);
+        let mut i = 1;
+        if let Some(b) = &mut self.bias {
+            f(i, b);
+            i += 1;
+        }
+        if let After::Norm(n) = &mut self.after {
+            f(i, &mut n.gain);
+            f(i + 1, &mut n.bias);
+        }
+        transpose_into(&self.w, self.outputs, self.inputs, &mut self.wt);
+    }
+}
+
 /// The gradients of one layer's parameters.
 #[derive(Clone, Debug)]
 pub struct LayerGrads {
@@ -519,6 +576,25 @@ pub struct LayerGrads {
 }
 
 impl LayerGrads {
+    /// The gradients of `layer`'s tensors in the order of [`Parameters::tensors`] (a frozen
+    /// normalisation's empty), added to `out`.
+    pub fn push_tensors(self, layer: &PlainLayer, out: &mut Vec<Vec<f32>>) {
+        let Self {
+            w,
+            sparse_wt,
+            bias,
+            mut norm,
+        } = self;
+        out.push(layer.whole_weight(w, sparse_wt));
+        if layer.bias.is_some() {
+            out.push(bias);
+        }
+        if let After::Norm(..) = layer.after {
+            let norm_bias = norm.split_off(norm.len().min(layer.outputs));
+            out.extend([norm, norm_bias]);
+        }
+    }
+
     /// `[∂γ, ∂β]` of the normalisation (empty without one), for [`PlainLayer::product_grad`].
     pub fn norm_mut(&mut self) -> &mut [f32] {
         &mut self.norm
@@ -805,7 +881,31 @@ pub(super) fn add_grad(store: &mut GradStore, param: &Tensor, grad: Vec<f32>) ->
     Ok(())
 }
 
+impl Parameters for PlainMlp {
+    fn tensors(&self) -> Vec<NamedTensor<'_>> {
+        self.layers.iter().flat_map(|l| l.tensors()).collect()
+    }
+
+    fn update(&mut self, f: &mut dyn FnMut(usize, &mut [f32])) {
+        update_each(self.layers.iter_mut().map(|l| l as &mut dyn Parameters), f);
+    }
+}
+
 impl MlpGrads {
+    /// The gradients of `mlp`'s tensors in the order of [`Parameters::tensors`].
+    pub fn into_tensors(self, mlp: &PlainMlp) -> Vec<Vec<f32>> {
+        let mut out = Vec::new();
+        self.push_tensors(mlp, &mut out);
+        out
+    }
+
+    /// [`MlpGrads::into_tensors`], added to `out`.
+    pub fn push_tensors(self, mlp: &PlainMlp, out: &mut Vec<Vec<f32>>) {
+        for (g, layer) in self.layers.into_iter().zip(&mlp.layers) {
+            g.push_tensors(layer, out);
+        }
+    }
+
     /// `self += other` (the same network's).
     pub fn add(&mut self, other: &Self) {
         for (a, b) in self.layers.iter_mut().zip(&other.layers) {

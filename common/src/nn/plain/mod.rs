@@ -16,9 +16,14 @@
 //! unchanged. Each piece is checked against its candle module, values and gradients.
 
 mod layer;
+mod parameters;
 mod rssm;
 
 pub use layer::{InputGrad, LayerGrads, MlpGrads, MlpTrace, NonZeros, PlainLayer, PlainMlp, Rows};
+pub use parameters::{
+    copy, count, init, load_safetensors, polyak, to_safetensors, update_each, NamedTensor,
+    Parameters,
+};
 pub use rssm::{ObserveTrace, PlainRssm, RssmGrads, StepScratch, StepTrace};
 
 use super::kernels::{
@@ -87,6 +92,94 @@ mod tests {
     use crate::nn::{Activation, Mlp, ParamStore, RssmConfig, RssmState};
     use candle_core::{Device, Tensor, Var};
     use rand::{Rng, SeedableRng};
+
+    /// Networks built from [`crate::nn::Weights::initial`] and initialised from a seed are, to
+    /// the byte, the candle modules the same seed initialised (names, shapes, values: a seed
+    /// still gives the same run), and they save and load their weights.
+    #[test]
+    fn networks_initialised_in_place_are_the_candle_stores_to_the_byte() {
+        let rssm_cfg = RssmConfig {
+            deter: 8,
+            hidden: 6,
+            stoch: 3,
+            classes: 4,
+            unimix: 0.01,
+            act_dim: 2,
+            embed_dim: 5,
+            context_dim: 2,
+            learned_initial: true,
+        };
+        for act in [Activation::SiluNorm, Activation::Relu] {
+            let shape = crate::nn::MlpShape {
+                input: 5,
+                units: 7,
+                layers: 2,
+                out: Some(3),
+                act,
+            };
+            let store = ParamStore::new();
+            Mlp::new(5, 7, 2, Some(3), act, store.builder().pp("encoder")).unwrap();
+            crate::nn::Rssm::new(rssm_cfg, store.builder().pp("rssm")).unwrap();
+            store.init(19).unwrap();
+            let mut fresh = crate::nn::Weights::initial();
+            let mut encoder = PlainMlp::from_weights(&mut fresh, "encoder.", &shape).unwrap();
+            let mut rssm = PlainRssm::from_weights(&mut fresh, "rssm.", rssm_cfg).unwrap();
+            fresh.finish().unwrap();
+            let nets: &mut [&mut dyn Parameters] = &mut [&mut encoder, &mut rssm];
+            init(nets, 19);
+            let bytes = to_safetensors(nets).unwrap();
+            assert_eq!(bytes, store.to_bytes().unwrap(), "{act:?}");
+            assert_eq!(count(nets), store.count());
+            init(nets, 20);
+            assert_ne!(to_safetensors(nets).unwrap(), bytes);
+            load_safetensors(nets, &bytes).unwrap();
+            assert_eq!(to_safetensors(nets).unwrap(), bytes);
+            // the forward pass reads the loaded weights (the transpose is refreshed)
+            let copied = PlainMlp::new(
+                &Mlp::new(5, 7, 2, Some(3), act, store.builder().pp("encoder")).unwrap(),
+            )
+            .unwrap();
+            let x: Vec<f32> = (0..10).map(|i| (i as f32 * 0.7).sin()).collect();
+            let (mut a, mut b) = (encoder.trace(2), copied.trace(2));
+            encoder.forward(x.as_slice(), &mut a, 0..2);
+            copied.forward(x.as_slice(), &mut b, 0..2);
+            assert_eq!(encoder.output(&a, 0..2), copied.output(&b, 0..2), "{act:?}");
+        }
+    }
+
+    /// Weights of another architecture are refused by name and leave the network unchanged;
+    /// Polyak averaging and copies blend tensor by tensor.
+    #[test]
+    fn loading_checks_names_and_polyak_blends() {
+        let shape = |units| crate::nn::MlpShape {
+            input: 3,
+            units,
+            layers: 1,
+            out: Some(2),
+            act: Activation::Relu,
+        };
+        let build = |units, seed| {
+            let mut net =
+                PlainMlp::from_weights(&mut crate::nn::Weights::initial(), "q.", &shape(units))
+                    .unwrap();
+            init(&mut net, seed);
+            net
+        };
+        let (mut a, b, other) = (build(4, 1), build(4, 2), build(5, 1));
+        let before = to_safetensors(&a).unwrap();
+        let err = load_safetensors(&mut a, &to_safetensors(&other).unwrap()).unwrap_err();
+        assert!(err.to_string().contains("q.l0.fc.weight"), "{err}");
+        assert_eq!(to_safetensors(&a).unwrap(), before);
+        let original = a.clone();
+        polyak(&mut a, &b, 0.25);
+        for ((x, y), z) in a.tensors().iter().zip(b.tensors()).zip(original.tensors()) {
+            for ((x, y), z) in x.values.iter().zip(y.values).zip(z.values) {
+                assert_eq!(*x, z * 0.75 + y * 0.25);
+            }
+        }
+        copy(&mut a, &b);
+        assert_eq!(to_safetensors(&a).unwrap(), to_safetensors(&b).unwrap());
+    }
 
     /// A network read by name from the learner's weights is the one copied out of its candle
     /// module, for both activations and under a prefix.

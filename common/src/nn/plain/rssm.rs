@@ -25,6 +25,7 @@
 //! the steps' rows at the end, not one thin product per step.
 
 use super::layer::{add_grad, InputGrad, LayerGrads, MlpGrads, MlpTrace, PlainLayer, PlainMlp};
+use super::parameters::{update_each, NamedTensor, Parameters};
 use crate::nn::kernels::{gru_rows, gru_rows_bwd, probs_rows_bwd, sample_rows, NormAct, Unimix};
 use crate::nn::weights::{Weights, WeightsError};
 use crate::nn::{Rssm, RssmConfig};
@@ -44,6 +45,8 @@ pub struct PlainRssm {
     post_out: PlainLayer,
     /// The learned initial state's `w` (`[D]`), if sequences start from it.
     initial_w: Option<Vec<f32>>,
+    /// The name of `initial_w` (empty for a model copied out of candle).
+    initial_name: String,
 }
 
 /// The gradients of a [`PlainRssm`]'s parameters.
@@ -59,7 +62,69 @@ pub struct RssmGrads {
     initial_w: Vec<f32>,
 }
 
+impl Parameters for PlainRssm {
+    fn tensors(&self) -> Vec<NamedTensor<'_>> {
+        let mut tensors: Vec<_> = self
+            .layers()
+            .into_iter()
+            .flat_map(|l| l.tensors())
+            .collect();
+        if let Some(w) = &self.initial_w {
+            tensors.push(NamedTensor {
+                name: &self.initial_name,
+                shape: vec![w.len()],
+                values: w,
+            });
+        }
+        tensors
+    }
+
+    fn update(&mut self, f: &mut dyn FnMut(usize, &mut [f32])) {
+        let (prior, prior_out) = match self.prior.layers.as_mut_slice() {
+            [prior, prior_out] => (prior, prior_out),
+            _ => return,
+        };
+        let layers = [
+            &mut self.img_in,
+            &mut self.gates,
+            prior,
+            prior_out,
+            &mut self.post,
+            &mut self.post_out,
+        ];
+        let first: usize = layers.iter().map(|l| l.tensors().len()).sum();
+        update_each(layers.map(|l| l as &mut dyn Parameters), f);
+        if let Some(w) = &mut self.initial_w {
+            f(first, w);
+        }
+    }
+}
+
 impl RssmGrads {
+    /// The gradients of `rssm`'s tensors in the order of [`Parameters::tensors`].
+    pub fn into_tensors(self, rssm: &PlainRssm) -> Vec<Vec<f32>> {
+        let mut out = Vec::new();
+        let mut prior = self.prior.layers.into_iter();
+        let grads = [
+            Some(self.img_in),
+            Some(self.gates),
+            prior.next(),
+            prior.next(),
+        ]
+        .into_iter()
+        .chain([Some(self.post), Some(self.post_out)]);
+        for (g, layer) in grads.zip(rssm.layers()) {
+            match g {
+                Some(g) => g.push_tensors(layer, &mut out),
+                None => out.extend(layer.tensors().iter().map(|_| Vec::new())),
+            }
+        }
+        if rssm.initial_w.is_some() {
+            out.push(self.initial_w);
+        }
+        out
+    }
+
     /// `self += other` (the same model's).
     pub fn add(&mut self, other: &Self) {
         self.img_in.add(&other.img_in);
@@ -174,6 +239,7 @@ impl PlainRssm {
             post: layer(post)?,
             post_out: layer(post_out)?,
             initial_w: rssm.initial_weight().map(|w| w.to_vec1()).transpose()?,
+            initial_name: String::new(),
         })
     }
 
@@ -207,8 +273,9 @@ impl PlainRssm {
             PlainLayer::linear_from_weights(weights, &format!("{prefix}{name}"), (cfg.hidden, z))
         };
         let (prior_out, post_out) = (linear("prior_out")?, linear("post_out")?);
+        let initial_name = format!("{prefix}initial_state.w");
         let initial_w = match cfg.learned_initial {
-            true => Some(weights.take(&format!("{prefix}initial_state.w"), &[cfg.deter])?),
+            true => Some(weights.take(&initial_name, &[cfg.deter])?),
             false => None,
         };
         Ok(Self {
@@ -221,7 +288,16 @@ impl PlainRssm {
             post,
             post_out,
             initial_w,
+            initial_name,
         })
+    }
+
+    /// Its layers in the order of [`Parameters::tensors`].
+    fn layers(&self) -> [&PlainLayer; 6] {
+        let [prior, prior_out] = [&self.prior.layers[0], &self.prior.layers[1]];
+        let (img_in, gates, post, post_out) =
+            (&self.img_in, &self.gates, &self.post, &self.post_out);
+        [img_in, gates, prior, prior_out, post, post_out]
     }
 
     /// The prior's logits from `h` as a network of two layers (hidden, output).
