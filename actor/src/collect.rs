@@ -17,6 +17,7 @@
 use crate::race::{EpisodeMetrics, RaceEnv};
 use anyhow::Result;
 use ctxrace_common::experience::{EndedEpisode, ExperienceSource};
+use ctxrace_common::results::TrainingEpisode;
 use ctxrace_common::ipc::TrajectoryStep;
 use ctxrace_common::{Context, ExperimentConfig, Policy};
 use rand::{Rng, SeedableRng};
@@ -219,14 +220,20 @@ impl ExperienceSource for Collector {
     ) -> Result<Option<EndedEpisode>> {
         let finished = Collector::step(self, policy, sink)?;
         Ok(finished.map(|f| EndedEpisode {
-            episode: f.episode,
-            context: f.context,
-            progress: f.metrics.progress,
-            overtakes: f.metrics.overtakes,
-            a2a: f.metrics.a2a,
-            wall_crash: f.metrics.wall_crash,
-            episode_return: f.metrics.episode_return,
-            steps: f.metrics.steps,
+            record: TrainingEpisode {
+                env_steps: 0,
+                grad_steps: 0,
+                actor: 0,
+                episode: f.episode,
+                context_speed: f.context.speed,
+                context_steer: f.context.steer,
+                progress: f.metrics.progress,
+                overtakes: f.metrics.overtakes,
+                a2a: f.metrics.a2a,
+                wall_crash: f.metrics.wall_crash,
+                episode_return: f.metrics.episode_return,
+                steps: f.metrics.steps,
+            },
             by_policy: f.by_policy,
         }))
     }

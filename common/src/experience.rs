@@ -6,28 +6,15 @@
 
 use crate::ipc::TrajectoryStep;
 use crate::results::TrainingEpisode;
-use crate::{Batch, BatchSpec, Context, Policy, Sampler};
+use crate::{Batch, BatchSpec, Policy, Sampler};
 use rand_chacha::ChaCha8Rng;
 
 /// A training episode as its source reports it when it ends.
 #[derive(Clone, Debug, PartialEq)]
 pub struct EndedEpisode {
-    /// Index of the episode within its source.
-    pub episode: u64,
-    /// Its context.
-    pub context: Context,
-    /// PG: the largest fraction of the lap completed.
-    pub progress: f64,
-    /// OT: overtakes minus times overtaken.
-    pub overtakes: i32,
-    /// The episode ended in an ego–rival collision.
-    pub a2a: bool,
-    /// The episode ended with the ego hitting a wall.
-    pub wall_crash: bool,
-    /// Sum of rewards.
-    pub episode_return: f64,
-    /// Decisions taken.
-    pub steps: usize,
+    /// Its row of the training curves, but for the run's counters (`env_steps`, `grad_steps`,
+    /// `actor`: zero until [`EndedEpisode::row`] sets them).
+    pub record: TrainingEpisode,
     /// The policy chose every action of the episode (no random prefill action).
     pub by_policy: bool,
 }
@@ -40,15 +27,7 @@ impl EndedEpisode {
             env_steps,
             grad_steps,
             actor,
-            episode: self.episode,
-            context_speed: self.context.speed,
-            context_steer: self.context.steer,
-            progress: self.progress,
-            overtakes: self.overtakes,
-            a2a: self.a2a,
-            wall_crash: self.wall_crash,
-            episode_return: self.episode_return,
-            steps: self.steps,
+            ..self.record.clone()
         }
     }
 }

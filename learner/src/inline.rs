@@ -110,7 +110,7 @@ pub fn run_inline<S: ExperienceSource, B: SampleStore>(
             if recent.len() > RECENT {
                 recent.remove(0);
             }
-            let policy_return = f.by_policy.then_some(f.episode_return);
+            let policy_return = f.by_policy.then_some(f.record.episode_return);
             cadence.observe_returns(algo.as_ref(), policy_return)?;
         }
         if trained_after.is_none() {
