@@ -12,7 +12,7 @@ use candle_core::{Device, Tensor};
 use ctxrace_common::agents::DreamerConfig;
 use ctxrace_common::nn::dreamer::{normal_rows, uniform_rows};
 use ctxrace_common::SequenceBatch;
-use ctxrace_learner::{Algorithm, Batch, Dreamer};
+use ctxrace_learner::{Algorithm, Batch, Dreamer, Metrics};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::collections::HashMap;
@@ -176,14 +176,18 @@ fn the_torch_samples_used_ctxraces_noise() {
     );
 }
 
-/// One training step of ctxrace's agent with the file's weights on its batch: the metrics, and
-/// the stores before and after.
-fn step_once() -> (
-    HashMap<String, Tensor>,
-    ctxrace_learner::Metrics,
-    HashMap<String, Vec<f32>>,
-    HashMap<String, Vec<f32>>,
-) {
+/// One training step of ctxrace's agent with the file's weights on its batch.
+struct OneStep {
+    /// The file's tensors.
+    file: HashMap<String, Tensor>,
+    /// The step's metrics.
+    metrics: Metrics,
+    /// The stores' weights before and after the step, by `store/name`.
+    before: HashMap<String, Vec<f32>>,
+    after: HashMap<String, Vec<f32>>,
+}
+
+fn step_once() -> OneStep {
     let file = read();
     let cfg = config(&file);
     let dir = tempfile::tempdir().unwrap();
@@ -194,17 +198,18 @@ fn step_once() -> (
         .unwrap();
     agent.save(&dir.path().join("after")).unwrap();
     let after = stored(&dir.path().join("after"));
-    (file, metrics, before, after)
+    OneStep {
+        file,
+        metrics,
+        before,
+        after,
+    }
 }
 
 /// ctxrace's metric `ours` is torch's `theirs` to `tolerance`, relative to `max(1, |torch|)`.
-fn agrees(
-    metrics: &ctxrace_learner::Metrics,
-    file: &HashMap<String, Tensor>,
-    pairs: &[(&str, &str, f64)],
-) {
+fn agrees(step: &OneStep, pairs: &[(&str, &str, f64)]) {
     for &(ours, theirs, tolerance) in pairs {
-        let (got, want) = (metrics[ours], scalar(file, theirs));
+        let (got, want) = (step.metrics[ours], scalar(&step.file, theirs));
         let err = (got - want).abs() / want.abs().max(1.0);
         println!("{ours}: ctxrace {got:.7}, torch {want:.7} (relative {err:.1e})");
         assert!(err < tolerance, "{ours}: ctxrace {got} vs torch {want}");
@@ -217,10 +222,8 @@ fn agrees(
 /// of up to 255 terms and a 16-step recurrence (measured: 6e-8 or less).
 #[test]
 fn the_world_model_step_agrees_with_the_papers_torch_model() {
-    let (file, metrics, _, _) = step_once();
     agrees(
-        &metrics,
-        &file,
+        &step_once(),
         &[
             ("model/loss", "torch/model_loss", 1e-5),
             ("model/recon", "torch/recon", 1e-5),
@@ -238,10 +241,8 @@ fn the_world_model_step_agrees_with_the_papers_torch_model() {
 /// the last bits, and 9 imagined steps through it compound them).
 #[test]
 fn behaviour_learning_agrees_with_the_papers_torch_model() {
-    let (file, metrics, _, _) = step_once();
     agrees(
-        &metrics,
-        &file,
+        &step_once(),
         &[
             ("imag/return", "torch/return", 1e-4),
             ("imag/return_scale", "torch/return_scale", 1e-4),
@@ -259,14 +260,14 @@ fn behaviour_learning_agrees_with_the_papers_torch_model() {
 /// the gradients agree part by part, not only in norm.
 #[test]
 fn every_parameter_moves_against_torchs_gradient() {
-    let (file, _, before, after) = step_once();
+    let step = step_once();
     let (mut checked, mut total) = (0, 0);
-    for (name, g) in &file {
+    for (name, g) in &step.file {
         let Some(param) = name.strip_prefix("grad/") else {
             continue;
         };
         let g = values(g);
-        let (w0, w1) = (&before[param], &after[param]);
+        let (w0, w1) = (&step.before[param], &step.after[param]);
         assert_eq!(g.len(), w0.len(), "{param}");
         let largest = g.iter().fold(0f32, |m, v| m.max(v.abs()));
         total += g.len();
