@@ -21,7 +21,10 @@ world model's (`models.WorldModel._train`), then behaviour learning from its pos
   Gumbel uniforms; `noise/imag_normal`, `noise/imag_uniform`: the imagined actions' normals
   and priors' uniforms), so that both sides sample the same latents and actions;
 - torch's loss terms, λ-return, return scale and gradient norms (`torch/...`), the gradient norm
-  of each part (`torch/grad_norm/...`), and every gradient under ctxrace's names (`grad/...`).
+  of each part (`torch/grad_norm/...`), and every gradient under ctxrace's names (`grad/...`);
+- the same terms of a second step on the same batch with the noise of ctxrace's step 1
+  (`torch2/...`), after the first step's updates (Adam's moments, the slow critic, the return
+  normaliser).
 
 Three weights are moved from the code's initial values so that their paths carry gradients:
 the reward head's and the critic's output layers (zero at the code's initialisation) and the
@@ -90,12 +93,12 @@ class Stream:
     """One ChaCha8 stream as ctxrace's noise reads it: consecutive u32 words (rand's
     `fill` and `next_u64`, low word first, read the same keystream)."""
 
-    def __init__(self, seed):
-        self.seed, self.words, self.pos = pcg32_seed(seed), [], 0
+    def __init__(self, seed, stream):
+        self.seed, self.stream, self.words, self.pos = pcg32_seed(seed), stream, [], 0
 
     def word(self):
         if self.pos == len(self.words):
-            self.words += chacha8_words(self.seed, 0, 16, len(self.words) // 16)
+            self.words += chacha8_words(self.seed, self.stream, 16, len(self.words) // 16)
         self.pos += 1
         return self.words[self.pos - 1]
 
@@ -161,15 +164,15 @@ def ziggurat_tables():
 ZIGGURAT = None
 
 
-def ctxrace_noise(seed, batch, length, z, act, horizon):
-    """What ctxrace's DreamerV3 step 0 draws (`Dreamer::sequence_rngs`: stream b seeded with
-    `seed ^ (b + 1) * golden`, stream number 0), in its order: the world model's posterior
+def ctxrace_noise(seed, batch, length, z, act, horizon, step):
+    """What ctxrace's DreamerV3 step `step` draws (`Dreamer::sequence_rngs`: sequence b's stream
+    seeded with `seed ^ (b + 1) * golden`, stream number `step`), in its order: the world model's posterior
     uniforms, per step t `Z` of each stream in turn (`[T, B, Z]`); then per imagined step the
     actor's normals, `T * A` of each stream (its T starts), and the prior's uniforms, `T * Z` of
     each (`[H - 1, B * T, A]` and `[H - 1, B * T, Z]`)."""
     global ZIGGURAT
     ZIGGURAT = ZIGGURAT or ziggurat_tables()
-    streams = [Stream(seed ^ (((b + 1) * GOLDEN) & MASK64)) for b in range(batch)]
+    streams = [Stream(seed ^ (((b + 1) * GOLDEN) & MASK64), step) for b in range(batch)]
     model = np.stack([np.stack([s.uniforms(z) for s in streams]) for _ in range(length)])
     normals, uniforms = [], []
     for _ in range(horizon - 1):
@@ -351,7 +354,7 @@ def main():
     rng = np.random.default_rng(SEED)
     episodes = buffer_episodes(buffer) if buffer else synthetic_episodes(rng)
     data = one_batch(tools, episodes)
-    model_u, imag_normal, imag_u = ctxrace_noise(SEED, BATCH, LENGTH, z, 2, horizon)
+    draws = {}
 
     # ctxrace's noise in the code's samples: the posteriors' and the imagined priors' one-hot
     # by Gumbel-max, argmax_k p_k / (-ln u_k), with the unimix probabilities' straight-through
@@ -372,12 +375,12 @@ def main():
             noise["call"] += 1
             if noise["call"] == 1:  # obs_step's prior (img_step): not in the loss
                 return mode
-            return gumbel_max(probs, model_u[noise["t"]])
+            return gumbel_max(probs, draws["model"][noise["t"]])
         if noise["phase"] == "imagine":
             t = noise["t"]
             noise["t"] += 1
             # the code imagines one step past the last state it keeps
-            return gumbel_max(probs, imag_u[t]) if t < horizon - 1 else mode
+            return gumbel_max(probs, draws["prior"][t]) if t < horizon - 1 else mode
         return code_onehot(self, sample_shape, seed)
 
     def cont_sample(self, sample_shape=()):
@@ -385,7 +388,7 @@ def main():
             return code_cont(self, sample_shape)
         base = self._dist.base_dist
         t = noise["t"]
-        eps = torch.from_numpy(imag_normal[t]) if t < horizon - 1 else torch.zeros_like(base.loc)
+        eps = torch.from_numpy(draws["action"][t]) if t < horizon - 1 else torch.zeros_like(base.loc)
         out = base.loc + base.scale * eps
         return out * (self.absmax / torch.clip(torch.abs(out), min=self.absmax)).detach()
 
@@ -412,6 +415,8 @@ def main():
     clip = torch.nn.utils.clip_grad_norm_
 
     def clip_and_keep(params, max_norm, *a, **k):
+        if len(calls) == len(parts):  # a later step's
+            return clip(params, max_norm, *a, **k)
         optimiser, modules, prefixes = parts[len(calls)]
         calls.append(optimiser)
         grads.update({name: g for name, g in ctxrace_weights(agent, grad_of).items()
@@ -422,14 +427,40 @@ def main():
         return clip(params, max_norm, *a, **k)
 
     torch.nn.utils.clip_grad_norm_ = clip_and_keep
-    noise.update(phase="observe", t=0)
-    post, _, metrics = agent._wm._train({k: np.array(v) for k, v in data.items()})
-    assert noise["call"] == 2, "the code's obs_step drew other than one prior and one posterior"
-    noise.update(phase="imagine", t=0)
     reward = lambda f, s, a: agent._wm.heads["reward"](agent._wm.dynamics.get_feat(s)).mode()
-    metrics.update(beh._train(post, reward)[-1])
-    assert noise["t"] == horizon, "the code's imagination drew other than one action and prior a step"
-    noise["phase"] = None
+
+    def code_step(step):
+        """The code's training step (as its `train()`, on this batch) with ctxrace's noise of
+        step `step`: its loss terms, returns and gradient norms."""
+        draws["model"], draws["action"], draws["prior"] = ctxrace_noise(SEED, BATCH, LENGTH, z, 2, horizon, step)
+        noise.update(phase="observe", t=0)
+        post, _, metrics = agent._wm._train({k: np.array(v) for k, v in data.items()})
+        assert noise["call"] == 2, "the code's obs_step drew other than one prior and one posterior"
+        noise.update(phase="imagine", t=0)
+        metrics.update(beh._train(post, reward)[-1])
+        assert noise["t"] == horizon, "the code's imagination drew other than one action and prior a step"
+        noise["phase"] = None
+        ema = beh.ema_vals.detach().numpy()
+        return {
+            "model_loss": metrics["model_loss"],
+            "recon": metrics["image_loss"].mean() + metrics["action_loss"].mean(),
+            "reward": metrics["reward_loss"].mean(),
+            "cont": metrics["cont_loss"].mean(),
+            "kl": metrics["kl"],
+            "model_grad_norm": metrics["model_grad_norm"],
+            "actor_loss": metrics["actor_loss"],
+            "critic_loss": metrics["value_loss"],
+            "return": metrics["target_mean"],
+            "return_scale": max(1.0, float(ema[1] - ema[0])),
+            "actor_grad_norm": metrics["actor_grad_norm"],
+            "critic_grad_norm": metrics["value_grad_norm"],
+        }
+
+    terms = code_step(0)
+    first_noise = dict(draws)
+    # a second step on the same batch (the code draws the same one from an unchanged replay):
+    # Adam's moments, the slow critic and the return normaliser after one update
+    second = code_step(1)
 
     result = dict(weights)
     result.update({f"grad/{name}": g for name, g in grads.items()})
@@ -437,31 +468,17 @@ def main():
     batch = {"obs": data["image"].reshape(BATCH, LENGTH, 108), "action": data["action"].reshape(BATCH, LENGTH, 2),
              "reward": data["reward"], "is_first": data["is_first"], "is_terminal": data["is_terminal"]}
     result.update({f"batch/{k}": np.asarray(v, dtype=np.float32) for k, v in batch.items()})
-    result.update({"noise/model_uniform": model_u, "noise/imag_normal": imag_normal,
-                   "noise/imag_uniform": imag_u})
-    ema = beh.ema_vals.detach().numpy()
-    terms = {
-        "model_loss": metrics["model_loss"],
-        "recon": metrics["image_loss"].mean() + metrics["action_loss"].mean(),
-        "reward": metrics["reward_loss"].mean(),
-        "cont": metrics["cont_loss"].mean(),
-        "kl": metrics["kl"],
-        "model_grad_norm": metrics["model_grad_norm"],
-        "actor_loss": metrics["actor_loss"],
-        "critic_loss": metrics["value_loss"],
-        "return": metrics["target_mean"],
-        "return_scale": max(1.0, float(ema[1] - ema[0])),
-        "actor_grad_norm": metrics["actor_grad_norm"],
-        "critic_grad_norm": metrics["value_grad_norm"],
-    }
+    result.update({"noise/model_uniform": first_noise["model"], "noise/imag_normal": first_noise["action"],
+                   "noise/imag_uniform": first_noise["prior"]})
     result.update({f"torch/{k}": np.array([float(v)], dtype=np.float32) for k, v in terms.items()})
+    result.update({f"torch2/{k}": np.array([float(v)], dtype=np.float32) for k, v in second.items()})
     result["config"] = np.array([width, stoch, classes, BATCH, LENGTH, SEED, args.model_lr, cfg.actor["lr"],
                                  horizon], dtype=np.float32)
     write_safetensors(out_path, result)
     print(f"{out_path}: {len(result)} tensors, {os.path.getsize(out_path)} bytes; "
           f"{int(data['is_first'].sum())} sequence starts, {int(data['is_terminal'].sum())} terminal rows")
     for k, v in terms.items():
-        print(f"  torch {k} = {float(v):.6f}")
+        print(f"  torch {k} = {float(v):.6f} (second step {float(second[k]):.6f})")
     for name, v in norms.items():
         print(f"  torch gradient norm of {name} = {v:.6f}")
 
