@@ -12,6 +12,8 @@
 #   deploy/paper_parity.sh evaldir PAPER_RUN_DIR DEST   a paper run's evaluation (its Testing/
 #                                                        and RunConfig_K_record.yaml) as a ctxrace
 #                                                        evaluation directory for `ctxrace report`
+#   deploy/paper_parity.sh export DIR                   the paper's code exported into DIR with the
+#                                                        edits below (for deploy/paper_one_batch.py)
 # ALGO: dreamerv3, crssm or cmask (the paper's DreamerV3, cDreamer, cbDreamer). Each side writes
 # OUT/<side>/ALGO/seed<SEED>/episodes.csv (ctxrace: the whole run directory there; paper: the
 # converted curve beside its raw training_data_episodes.csv and its printed log, train.log).
@@ -426,5 +428,6 @@ case ${1:-} in
     both) [[ $# -eq 5 ]] || usage; ours "$2" "$3" "$4" "$5"; paper "$2" "$3" "$4" "$5" ;;
     convert) [[ $# -eq 4 ]] || usage; convert "$2" "$3" "$4" ;;
     evaldir) [[ $# -eq 3 ]] || usage; evaldir "$2" "$3" ;;
+    export) [[ $# -eq 2 ]] || usage; mkdir -p "$2"; export_paper "$2" ;;
     *) usage ;;
 esac
