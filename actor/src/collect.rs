@@ -17,8 +17,8 @@
 use crate::race::{EpisodeMetrics, RaceEnv};
 use anyhow::Result;
 use ctxrace_common::experience::{EndedEpisode, ExperienceSource};
-use ctxrace_common::results::TrainingEpisode;
 use ctxrace_common::ipc::TrajectoryStep;
+use ctxrace_common::results::TrainingEpisode;
 use ctxrace_common::{Context, ExperimentConfig, Policy};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;

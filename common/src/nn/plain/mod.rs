@@ -21,8 +21,8 @@ mod rssm;
 
 pub use layer::{InputGrad, LayerGrads, MlpGrads, MlpTrace, NonZeros, PlainLayer, PlainMlp, Rows};
 pub use parameters::{
-    copy, count, init, load_safetensors, polyak, to_safetensors, update_each, NamedTensor,
-    Parameters,
+    copy, count, ctxrace_draw, fan_avg_draw, init, init_with, load_safetensors, polyak,
+    to_safetensors, update_each, Draw, NamedTensor, Parameters,
 };
 pub use rssm::{ObserveTrace, PlainRssm, RssmGrads, StepScratch, StepTrace};
 

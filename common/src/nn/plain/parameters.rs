@@ -6,7 +6,8 @@
 //! always gives the same weights: matrices `[out, in]` uniform in `±1/√in` (PyTorch's default
 //! for linear layers), vectors named `*.bias` zero, other vectors (LayerNorm gains, a learned
 //! initial state, `log α`) left at the value the network was built with
-//! ([`crate::nn::Weights::initial`]).
+//! ([`crate::nn::Weights::initial`]). [`init_with`] draws each tensor as a rule says instead
+//! ([`fan_avg_draw`]: the draws of the paper's PyTorch code).
 
 use crate::nn::weights::WeightsError;
 use rand::{Rng, SeedableRng};
@@ -65,8 +66,92 @@ pub fn count<P: Parameters + ?Sized>(net: &P) -> usize {
     net.tensors().iter().map(|t| t.values.len()).sum()
 }
 
-/// Draws `net`'s initial weights from `seed` (see the module doc).
+/// How a tensor's initial values are drawn ([`init_with`]).
+#[derive(Clone, Debug, PartialEq)]
+pub enum Draw {
+    /// Left at the value the network was built with.
+    Keep,
+    /// Zero.
+    Zero,
+    /// Uniform in `[−limit, limit]`.
+    Uniform(f32),
+    /// Normal of standard deviation `std` (before truncation), redrawn outside `±2 std`
+    /// (PyTorch's `trunc_normal_(std, a = −2 std, b = 2 std)`).
+    TruncatedNormal(f32),
+    /// A matrix's rows in blocks, each `(rows, draw)` (layers joined into one, as a head's
+    /// mean and standard deviation).
+    Rows(Vec<(usize, Draw)>),
+}
+
+impl Draw {
+    /// Appends `count` values drawn from `rng` to `out`; `Keep` appends the `current` ones.
+    fn fill(&self, current: &[f32], count: usize, rng: &mut ChaCha8Rng, out: &mut Vec<f32>) {
+        match self {
+            Draw::Keep => out.extend_from_slice(&current[..count.min(current.len())]),
+            Draw::Zero => out.extend(std::iter::repeat_n(0.0, count)),
+            &Draw::Uniform(limit) => {
+                out.extend((0..count).map(|_| rng.random_range(-limit..=limit)));
+            }
+            Draw::TruncatedNormal(std) => {
+                let Ok(normal) = rand_distr::Normal::new(0.0, *std) else {
+                    return out.extend(std::iter::repeat_n(0.0, count));
+                };
+                out.extend((0..count).map(|_| loop {
+                    let x: f32 = rng.sample(normal);
+                    if x.abs() <= 2.0 * std {
+                        break x;
+                    }
+                }));
+            }
+            Draw::Rows(blocks) => {
+                let width = current.len() / blocks.iter().map(|b| b.0).sum::<usize>().max(1);
+                let mut start = 0;
+                for (rows, draw) in blocks {
+                    let end = (start + rows * width).min(current.len());
+                    draw.fill(&current[start..end], end - start, rng, out);
+                    start = end;
+                }
+            }
+        }
+    }
+}
+
+/// ctxrace's draw (see the module doc): matrices `[out, in]` uniform in `±1/√in`, vectors named
+/// `*.bias` zero, others kept.
+pub fn ctxrace_draw(t: &NamedTensor) -> Draw {
+    match t.shape.as_slice() {
+        [_, inp] => Draw::Uniform(1.0 / (*inp as f32).sqrt()),
+        [_] if t.name.ends_with("bias") => Draw::Zero,
+        _ => Draw::Keep,
+    }
+}
+
+/// The draws of DreamerV3's PyTorch code (`tools.weight_init`, `uniform_weight_init`) for a
+/// matrix of `inputs` columns and `outputs` rows, `fan_avg = (in + out) / 2`: a hidden layer's
+/// truncated normal of variance `1 / fan_avg`; an output layer's uniform of variance
+/// `scale / fan_avg` (`scale` 1 for logits, decoder, continue and actor, 0 for reward and
+/// critic); Xavier's uniform is the latter with scale 1.
+pub fn fan_avg_draw(inputs: usize, outputs: usize, output_scale: Option<f32>) -> Draw {
+    let fan_avg = (inputs + outputs) as f32 / 2.0;
+    match output_scale {
+        None => Draw::TruncatedNormal((1.0 / fan_avg).sqrt() / 0.879_625_7),
+        Some(0.0) => Draw::Zero,
+        Some(scale) => Draw::Uniform((3.0 * scale / fan_avg).sqrt()),
+    }
+}
+
+/// Draws `net`'s initial weights from `seed` with ctxrace's draw (see the module doc).
 pub fn init<P: Parameters + ?Sized>(net: &mut P, seed: u64) {
+    init_with(net, seed, &ctxrace_draw);
+}
+
+/// Draws `net`'s initial weights from `seed`, each tensor as `draw` says, in sorted name order
+/// from one generator (a seed always gives the same weights).
+pub fn init_with<P: Parameters + ?Sized>(
+    net: &mut P,
+    seed: u64,
+    draw: &dyn Fn(&NamedTensor) -> Draw,
+) {
     let tensors = net.tensors();
     let mut order: Vec<usize> = (0..tensors.len()).collect();
     order.sort_by(|&a, &b| tensors[a].name.cmp(tensors[b].name));
@@ -74,23 +159,16 @@ pub fn init<P: Parameters + ?Sized>(net: &mut P, seed: u64) {
     let mut drawn: Vec<Option<Vec<f32>>> = vec![None; tensors.len()];
     for i in order {
         let t = &tensors[i];
-        drawn[i] = match t.shape.as_slice() {
-            [out, inp] => {
-                let bound = 1.0 / (*inp as f32).sqrt();
-                Some(
-                    (0..out * inp)
-                        .map(|_| rng.random_range(-bound..=bound))
-                        .collect(),
-                )
-            }
-            [len] if t.name.ends_with("bias") => Some(vec![0.0; *len]),
-            _ => None,
-        };
-    }
-    net.update(&mut |i, values| {
-        if let Some(new) = &drawn[i] {
-            values.copy_from_slice(new);
+        let how = draw(t);
+        if how != Draw::Keep {
+            let mut values = Vec::with_capacity(t.values.len());
+            how.fill(t.values, t.values.len(), &mut rng, &mut values);
+            drawn[i] = Some(values);
         }
+    }
+    net.update(&mut |i, values| match &drawn[i] {
+        Some(new) if new.len() == values.len() => values.copy_from_slice(new),
+        _ => {}
     });
 }
 
@@ -145,4 +223,78 @@ pub fn polyak<P: Parameters + ?Sized>(target: &mut P, source: &P, tau: f64) {
 pub fn copy<P: Parameters + ?Sized>(target: &mut P, source: &P) {
     let source = source.tensors();
     target.update(&mut |i, values| values.copy_from_slice(source[i].values));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A few matrices as a network.
+    struct Matrices(Vec<(String, [usize; 2], Vec<f32>)>);
+
+    impl Parameters for Matrices {
+        fn tensors(&self) -> Vec<NamedTensor<'_>> {
+            self.0
+                .iter()
+                .map(|(name, shape, values)| NamedTensor {
+                    name: name.as_str(),
+                    shape: shape.to_vec(),
+                    values: values.as_slice(),
+                })
+                .collect()
+        }
+
+        fn update(&mut self, f: &mut dyn FnMut(usize, &mut [f32])) {
+            for (i, (_, _, values)) in self.0.iter_mut().enumerate() {
+                f(i, values);
+            }
+        }
+    }
+
+    fn std_of(x: &[f32]) -> f32 {
+        let mean = x.iter().sum::<f32>() / x.len() as f32;
+        (x.iter().map(|v| (v - mean).powi(2)).sum::<f32>() / x.len() as f32).sqrt()
+    }
+
+    /// The paper code's draws have the variances its PyTorch initialisers give: `1 / fan_avg`
+    /// for hidden layers (truncated at two standard deviations of the normal drawn), `scale /
+    /// fan_avg` for output layers, zero at scale 0; joined layers draw each block by its own
+    /// rule; a seed gives the same weights.
+    #[test]
+    fn fan_avg_draws_have_the_torch_initialisers_variances() {
+        let (inp, out) = (200, 120);
+        let net = || {
+            Matrices(vec![
+                ("hidden".into(), [out, inp], vec![0.0; out * inp]),
+                ("head".into(), [out, inp], vec![0.0; out * inp]),
+                ("joined".into(), [4, inp], vec![7.0; 4 * inp]),
+            ])
+        };
+        let rule = move |t: &NamedTensor<'_>| -> Draw {
+            match t.name {
+                "hidden" => fan_avg_draw(inp, out, None),
+                "head" => fan_avg_draw(inp, out, Some(1.0)),
+                _ => Draw::Rows(vec![(2, fan_avg_draw(inp, 2, Some(0.0))), (2, Draw::Keep)]),
+            }
+        };
+        let (mut a, mut b) = (net(), net());
+        init_with(&mut a, 5, &rule);
+        init_with(&mut b, 5, &rule);
+        assert_eq!(a.0, b.0);
+        let fan_avg = (inp + out) as f32 / 2.0;
+        let hidden = &a.0[0].2;
+        let limit = 2.0 * (1.0 / fan_avg).sqrt() / 0.879_625_7;
+        assert!(hidden.iter().all(|x| x.abs() <= limit));
+        let want = (1.0 / fan_avg).sqrt();
+        assert!(
+            (std_of(hidden) / want - 1.0).abs() < 0.03,
+            "{}",
+            std_of(hidden)
+        );
+        let head = &a.0[1].2;
+        assert!((std_of(head) / want - 1.0).abs() < 0.03, "{}", std_of(head));
+        let joined = &a.0[2].2;
+        assert!(joined[..2 * inp].iter().all(|&x| x == 0.0));
+        assert!(joined[2 * inp..].iter().all(|&x| x == 7.0));
+    }
 }
