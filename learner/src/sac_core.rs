@@ -151,8 +151,11 @@ impl Parameters for LogAlpha {
 /// The learning rates of the three optimisers (Adam with PyTorch's defaults, no clipping).
 #[derive(Clone, Copy)]
 pub(crate) struct LearningRates {
+    /// The actor's.
     pub(crate) actor: f64,
+    /// The critics'.
     pub(crate) critic: f64,
+    /// The temperature's.
     pub(crate) alpha: f64,
 }
 
@@ -188,11 +191,17 @@ pub(crate) struct CoreConfig {
 
 /// The file names (without `.safetensors`) a core's state is saved under in a checkpoint.
 pub(crate) struct BlobNames {
+    /// The critics' weights.
     pub(crate) critic: &'static str,
+    /// The target critics' weights.
     pub(crate) target: &'static str,
+    /// `log α`.
     pub(crate) alpha: &'static str,
+    /// The actor's optimiser.
     pub(crate) opt_actor: &'static str,
+    /// The critics' optimiser.
     pub(crate) opt_critic: &'static str,
+    /// The temperature's optimiser.
     pub(crate) opt_alpha: &'static str,
 }
 
@@ -224,34 +233,41 @@ pub(crate) trait Passes {
 /// `L_π` and the weighted sum of `log π` (the mean, for weights summing to one).
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct StepLosses {
+    /// The `α` of the step (before its temperature update).
     pub(crate) alpha: f64,
+    /// `L_Q`.
     pub(crate) critic_loss: f64,
+    /// `Σ_rows (Q_1 + Q_2)`.
     pub(crate) q_sum: f64,
+    /// `L_π`.
     pub(crate) actor_loss: f64,
+    /// `Σ_rows w log π`.
     pub(crate) log_prob: f64,
 }
 
 /// SAC's twin critics, their targets, `log α` and the three optimisers (see the module doc).
 pub(crate) struct SacCore {
+    /// `Q_1, Q_2`.
     pub(crate) critics: TwinCritics,
+    /// `Q̄_1, Q̄_2`.
     pub(crate) targets: TwinCritics,
+    /// `log α`.
     pub(crate) log_alpha: LogAlpha,
+    /// The actor's optimiser (over the network a step is given).
     pub(crate) actor_opt: Adam,
+    /// The critics' optimiser.
     pub(crate) critic_opt: Adam,
+    /// The temperature's optimiser.
     pub(crate) alpha_opt: Adam,
+    /// What it was built with.
     pub(crate) cfg: CoreConfig,
 }
 
 impl SacCore {
     /// A fresh core for `actor` (the network its actor optimiser steps): critics drawn from
-    /// `cfg.seed`, targets equal to them, `α = cfg.initial_alpha`.
-    pub(crate) fn new(cfg: CoreConfig, actor: &PlainMlp) -> Result<Self, SacError> {
-        if !(cfg.initial_alpha > 0.0 && cfg.initial_alpha.is_finite()) {
-            return Err(SacError::Config(format!(
-                "the initial temperature must be positive and finite, got {}",
-                cfg.initial_alpha
-            )));
-        }
+    /// `cfg.seed`, targets equal to them, `α = cfg.initial_alpha` (positive: the callers'
+    /// configurations check it, naming their key).
+    pub(crate) fn new(cfg: CoreConfig, actor: &PlainMlp) -> Result<Self, WeightsError> {
         let critics = TwinCritics::new(cfg.input, cfg.hidden, cfg.layers, cfg.seed)?;
         let targets = critics.clone();
         let log_alpha = LogAlpha::new(cfg.initial_alpha);
