@@ -609,6 +609,143 @@ mod tests {
         }
     }
 
+    /// A batch's rows `rows` as weighted transitions.
+    fn shard<'a>(
+        batch: &'a TransitionBatch,
+        weight: &'a [f32],
+        rows: std::ops::Range<usize>,
+    ) -> WeightedTransitions<'a> {
+        let (o, a) = (batch.obs_dim, batch.act_dim);
+        let cut = |x: &'a [f32], width: usize| &x[rows.start * width..rows.end * width];
+        WeightedTransitions {
+            obs: cut(&batch.obs, o),
+            action: cut(&batch.action, a),
+            reward: cut(&batch.reward, 1),
+            next_obs: cut(&batch.next_obs, o),
+            terminal: cut(&batch.terminal, 1),
+            weight: cut(weight, 1),
+        }
+    }
+
+    /// SAC's batch in two shards of rows, each with its own workspace, their passes summed: the
+    /// way cMask's mask SAC runs the core (no smoothing noise).
+    struct TwoShards<'a> {
+        work: [Workspace; 2],
+        batch: &'a TransitionBatch,
+        weight: Vec<f32>,
+        noise: Noise,
+    }
+
+    impl TwoShards<'_> {
+        /// `pass` on each shard with its rows of `noise`, summed.
+        fn each<T: PassSum>(
+            &mut self,
+            noise: &[f32],
+            pass: impl Fn(&mut Workspace, &WeightedTransitions, &[f32]) -> T,
+        ) -> T {
+            let (b, a) = (self.batch.batch, self.batch.act_dim);
+            let mut parts = self.work.iter_mut().enumerate().map(|(k, work)| {
+                let rows = k * b / 2..(k + 1) * b / 2;
+                let noise = &noise[rows.start * a..rows.end * a];
+                pass(work, &shard(self.batch, &self.weight, rows), noise)
+            });
+            let mut sum = parts.next().unwrap();
+            parts.for_each(|part| sum.add(&part));
+            sum
+        }
+    }
+
+    impl Passes for TwoShards<'_> {
+        type Error = SacError;
+
+        fn critic(
+            &mut self,
+            nets: (&[PlainMlp; 2], &[PlainMlp; 2], PlainActor),
+            soft: SoftTarget,
+        ) -> Result<CriticPass, SacError> {
+            let noise = self.noise.normal(self.batch.batch);
+            Ok(self.each(&noise, |w, tr, noise| w.critic_pass(nets, tr, noise, soft)))
+        }
+
+        fn actor(
+            &mut self,
+            nets: (&[PlainMlp; 2], PlainActor),
+            with: (f32, ActionRange),
+        ) -> Result<ActorPass, SacError> {
+            let noise = self.noise.normal(self.batch.batch);
+            Ok(self.each(&noise, |w, tr, noise| {
+                w.actor_pass(nets, (tr.obs, tr.weight), noise, with)
+            }))
+        }
+    }
+
+    /// The core steps alike (up to the order of the sums) whether its passes run on the whole
+    /// batch or on shards of it summed, as the mask SAC's do.
+    #[test]
+    fn the_core_steps_alike_on_a_batch_and_on_its_shards() {
+        let cfg = SacConfig {
+            actor_lr: 1e-3,
+            critic_lr: 1e-3,
+            alpha_lr: 1e-3,
+            ..SacConfig::default()
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(8);
+        let (mut whole, mut sharded) = (
+            Sac::new(6, 2, cfg.clone()).unwrap(),
+            Sac::new(6, 2, cfg).unwrap(),
+        );
+        for step in 0..3 {
+            let batch = random_batch(16, 6, 2, &mut rng);
+            let want = whole.update(&batch).unwrap();
+            let mut passes = TwoShards {
+                work: Default::default(),
+                batch: &batch,
+                weight: vec![1.0 / 16.0; 16],
+                noise: sharded.noise(step),
+            };
+            let actor = (&mut sharded.actor, sharded.log_std_clamp);
+            let got = sharded.core.step(actor, &mut passes, step).unwrap();
+            for (name, got) in [
+                ("critic_loss", got.critic_loss),
+                ("actor_loss", got.actor_loss),
+                ("alpha", got.alpha),
+                ("entropy", -got.log_prob),
+                ("q_mean", got.q_sum / 32.0),
+            ] {
+                let w = want[name];
+                assert!(
+                    (got - w).abs() <= 1e-5 * w.abs().max(1.0),
+                    "{name}: {got} vs {w}"
+                );
+            }
+        }
+        // Adam moves a weight by at most about its learning rate a step, whatever the sum's order
+        for (name, got, want) in [
+            ("actor", by_name(&sharded.actor), by_name(&whole.actor)),
+            (
+                "critics",
+                by_name(&sharded.core.critics),
+                by_name(&whole.core.critics),
+            ),
+            (
+                "targets",
+                by_name(&sharded.core.targets),
+                by_name(&whole.core.targets),
+            ),
+            (
+                "log α",
+                by_name(&sharded.core.log_alpha),
+                by_name(&whole.core.log_alpha),
+            ),
+        ] {
+            for ((tensor, g), w) in got.iter().zip(want.values()) {
+                for (a, b) in g.iter().zip(w) {
+                    assert!((a - b).abs() <= 1e-4, "{name} {tensor}: {a} vs {b}");
+                }
+            }
+        }
+    }
+
     #[test]
     fn entropy_tuning_moves_alpha_towards_the_target() {
         let mut rng = ChaCha8Rng::seed_from_u64(1);
