@@ -65,10 +65,10 @@ pub fn save(dir: &Path, blobs: &[(&str, Vec<u8>)], state: &impl Serialize) -> Re
 }
 
 /// Reads `<dir>/<name>.safetensors` and hands it to `load`, naming the file in its error.
-pub fn load_blob(
+pub fn load_blob<E: std::fmt::Display>(
     dir: &Path,
     name: &str,
-    load: impl FnOnce(&[u8]) -> candle_core::Result<()>,
+    load: impl FnOnce(&[u8]) -> std::result::Result<(), E>,
 ) -> Result<()> {
     let path = dir.join(format!("{name}.safetensors"));
     let bytes = std::fs::read(&path).map_err(|e| io_error("reading", &path, e))?;

@@ -8,6 +8,7 @@ mod behaviour;
 pub mod best;
 pub mod cadence;
 mod candle_adam;
+mod candle_sac;
 pub mod checkpoint;
 pub mod cmask;
 pub mod dreamer;
@@ -16,6 +17,7 @@ pub mod process;
 pub mod returns;
 pub mod runlog;
 pub mod sac;
+mod sac_core;
 pub mod sequences;
 pub mod shards;
 pub mod tensorboard;
@@ -40,11 +42,10 @@ pub fn build(
 ) -> candle_core::Result<Box<dyn Algorithm>> {
     agent.validate().map_err(candle_core::Error::wrap)?;
     Ok(match agent.algo {
-        AlgoKind::Sac => Box::new(Sac::new(
-            frame_dim * agent.sac.frames,
-            ACT_DIM,
-            agent.sac.clone(),
-        )?),
+        AlgoKind::Sac => Box::new(
+            Sac::new(frame_dim * agent.sac.frames, ACT_DIM, agent.sac.clone())
+                .map_err(candle_core::Error::wrap)?,
+        ),
         AlgoKind::Dreamerv3 | AlgoKind::Crssm | AlgoKind::Cmask => {
             let mut dreamer = Dreamer::new(agent.dreamer(), frame_dim, ACT_DIM)?;
             dreamer.set_workers(workers);

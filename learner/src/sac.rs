@@ -29,25 +29,25 @@
 //! Noise is drawn from ChaCha8 seeded with the configured seed on stream `step`, so a step's noise
 //! depends only on the seed and the step counter, and survives [`Algorithm::save`] / [`Algorithm::load`].
 //!
-//! The losses are differentiated by hand on plain buffers (`ctxrace_common::nn::plain`, the
-//! squashing's backward pass in `ctxrace_common::nn::tanh_gaussian`): at SAC's batch of 100 rows
-//! the matrix products are small and candle's per-operation bookkeeping was a third of a step.
-//! The parameters stay in candle (optimisers, checkpoints, the acting policy). The passes
-//! ([`Workspace::critic_pass`], [`Workspace::actor_pass`]) take a weight per row and the actions'
-//! range, so that cMask's mask SAC ([`crate::cmask`]) runs on them too.
+//! The networks train in place ([`crate::sac_core`]: the critics, targets, temperature and
+//! optimisers, and the passes that differentiate the losses by hand, which cMask's mask SAC
+//! ([`crate::cmask`]) shares); the actor's safetensors bytes are the acting policy's
+//! ([`SacPolicy`]).
 
 use crate::algorithm::{Algorithm, Batch, Metrics};
-use crate::candle_adam::CandleAdam as Adam;
+// the candle-held critics and Polyak of cMask's mask SAC and Dreamer, until they train in place
+pub(crate) use crate::candle_sac::{polyak, TwinQ};
 use crate::checkpoint;
-use candle_core::backprop::GradStore;
-use candle_core::{bail, Device, Result, Tensor};
-#[cfg(test)]
-use candle_core::{Module, D};
-use candle_nn::{Init, VarBuilder};
+pub use crate::sac_core::SacError;
+pub(crate) use crate::sac_core::{
+    ActionRange, PassSum, PlainActor, SoftTarget, WeightedTransitions, Workspace,
+};
+use crate::sac_core::{
+    ActorPass, BlobNames, CoreConfig, CriticPass, LearningRates, Passes, SacCore,
+};
 use ctxrace_common::nn::kernels::matmul_flops;
-use ctxrace_common::nn::plain::{InputGrad, MlpGrads, MlpTrace, PlainMlp};
-use ctxrace_common::nn::tanh_gaussian::{squash_rows, squash_rows_backward};
-use ctxrace_common::nn::{Activation, Mlp, ParamStore, TanhGaussianActor};
+use ctxrace_common::nn::plain::{init, load_safetensors, to_safetensors, PlainMlp};
+use ctxrace_common::nn::{Activation, MlpShape, Weights};
 use ctxrace_common::policy::SacPolicy;
 use ctxrace_common::{SacConfig, TransitionBatch};
 use rand::{Rng, SeedableRng};
@@ -56,99 +56,27 @@ use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
-/// Twin critics `Q_1, Q_2 (o, a)`: two ReLU MLPs `q1`, `q2` on `[o, a]` (SAC's, and cMask's mask
-/// SAC's with the mask as the action).
-pub(crate) struct TwinQ {
-    q1: Mlp,
-    q2: Mlp,
-}
-
-impl TwinQ {
-    /// Critics on inputs `[o, a]` of `input` values, `layers` hidden layers of `hidden` units.
-    pub(crate) fn new(input: usize, hidden: usize, layers: usize, vb: VarBuilder) -> Result<Self> {
-        let q = |name: &str| {
-            Mlp::new(
-                input,
-                hidden,
-                layers,
-                Some(1),
-                Activation::Relu,
-                vb.pp(name),
-            )
-        };
-        Ok(Self {
-            q1: q("q1")?,
-            q2: q("q2")?,
-        })
-    }
-
-    /// `(Q_1, Q_2)`, each `[B]`, for observations `[B, O]` and actions `[B, A]` (the candle
-    /// composition that the tests hold the plain passes to).
-    #[cfg(test)]
-    pub(crate) fn forward(&self, obs: &Tensor, action: &Tensor) -> Result<(Tensor, Tensor)> {
-        let x = Tensor::cat(&[obs, action], D::Minus1)?;
-        Ok((
-            self.q1.forward(&x)?.squeeze(D::Minus1)?,
-            self.q2.forward(&x)?.squeeze(D::Minus1)?,
-        ))
-    }
-
-    /// `min(Q_1, Q_2)` `[B]`.
-    #[cfg(test)]
-    pub(crate) fn min(&self, obs: &Tensor, action: &Tensor) -> Result<Tensor> {
-        let (q1, q2) = self.forward(obs, action)?;
-        q1.minimum(&q2)
-    }
-
-    /// Both critics on plain buffers (copies of the current weights).
-    pub(crate) fn plain(&self) -> Result<[PlainMlp; 2]> {
-        Ok([PlainMlp::new(&self.q1)?, PlainMlp::new(&self.q2)?])
-    }
-
-    /// Adds the gradients `grads` of the plain copies `plain` ([`TwinQ::plain`]) into `store`.
-    pub(crate) fn add_grads_to(
-        &self,
-        plain: &[PlainMlp; 2],
-        grads: [MlpGrads; 2],
-        store: &mut GradStore,
-    ) -> Result<()> {
-        let [q1, q2] = grads;
-        plain[0].add_grads_to(q1, &self.q1, store)?;
-        plain[1].add_grads_to(q2, &self.q2, store)
-    }
-}
-
-/// Polyak averaging `target ← (1 − τ) target + τ source`, parameter by parameter (the two stores
-/// hold the same names).
-pub(crate) fn polyak(target: &ParamStore, source: &ParamStore, tau: f64) -> Result<()> {
-    for ((_, t), (_, s)) in target.named().iter().zip(source.named()) {
-        t.set(&((t.as_tensor() * (1.0 - tau))? + (s.as_tensor() * tau)?)?)?;
-    }
-    Ok(())
-}
-
-/// Adam with PyTorch's defaults and no clipping.
-fn adam(params: &ParamStore, lr: f64) -> Adam {
-    Adam::new(params.vars(), lr, 1e-8, f64::INFINITY)
-}
+/// The checkpoint files of SAC's core.
+const BLOBS: BlobNames = BlobNames {
+    critic: "critic",
+    target: "critic_target",
+    alpha: "log_alpha",
+    opt_actor: "opt_actor",
+    opt_critic: "opt_critic",
+    opt_alpha: "opt_alpha",
+};
 
 /// Soft actor-critic (see the module doc).
 pub struct Sac {
     cfg: SacConfig,
     obs_dim: usize,
     act_dim: usize,
-    target_entropy: f64,
-    actor_params: ParamStore,
-    actor: TanhGaussianActor,
-    critic_params: ParamStore,
-    critic: TwinQ,
-    target_params: ParamStore,
-    target: TwinQ,
-    alpha_params: ParamStore,
-    log_alpha: Tensor,
-    actor_opt: Adam,
-    critic_opt: Adam,
-    alpha_opt: Adam,
+    /// The actor's network `o ↦ [mean, log σ]`, tensors named `l0.fc.weight`, ….
+    actor: PlainMlp,
+    /// The actor's `log σ` bounds.
+    log_std_clamp: [f32; 2],
+    /// The critics, targets, temperature and optimisers.
+    core: SacCore,
     step: u64,
     /// The update's buffers.
     work: Workspace,
@@ -163,71 +91,62 @@ struct SavedState {
 
 impl Sac {
     /// A fresh agent for observations of size `obs_dim` and actions in `[−1, 1]^act_dim`, its
-    /// weights initialised from `cfg.seed` and the target critics equal to the critics.
-    pub fn new(obs_dim: usize, act_dim: usize, cfg: SacConfig) -> Result<Self> {
+    /// weights initialised from `cfg.seed` (the actor) and `cfg.seed + 1` (the critics), the
+    /// target critics equal to the critics.
+    pub fn new(obs_dim: usize, act_dim: usize, cfg: SacConfig) -> Result<Self, SacError> {
         if obs_dim == 0 || act_dim == 0 || cfg.hidden == 0 {
-            bail!(
-                "SAC needs positive sizes, got obs {obs_dim}, action {act_dim}, hidden {}",
-                cfg.hidden
-            );
+            return Err(SacError::Sizes {
+                obs: obs_dim,
+                action: act_dim,
+                hidden: cfg.hidden,
+            });
         }
-        cfg.validate().map_err(candle_core::Error::wrap)?;
+        cfg.validate()
+            .map_err(|e| SacError::Config(format!("{e:#}")))?;
         if !obs_dim.is_multiple_of(cfg.frames) {
-            bail!(
-                "SAC observation size {obs_dim} is not a multiple of frames = {}",
-                cfg.frames
-            );
+            return Err(SacError::Frames {
+                obs: obs_dim,
+                frames: cfg.frames,
+            });
         }
-
-        let actor_params = ParamStore::new();
-        let actor = TanhGaussianActor::new(
-            obs_dim,
-            act_dim,
-            cfg.hidden,
-            cfg.layers,
-            actor_params.builder(),
-        )?
-        .with_log_std_clamp(cfg.log_std_clamp);
-        actor_params.init(cfg.seed)?;
-        let critic_params = ParamStore::new();
-        let critic = TwinQ::new(
-            obs_dim + act_dim,
-            cfg.hidden,
-            cfg.layers,
-            critic_params.builder(),
+        let shape = MlpShape {
+            input: obs_dim,
+            units: cfg.hidden,
+            layers: cfg.layers,
+            out: Some(2 * act_dim),
+            act: Activation::Relu,
+        };
+        let mut actor = PlainMlp::from_weights(&mut Weights::initial(), "", &shape)?;
+        init(&mut actor, cfg.seed);
+        let core = SacCore::new(
+            CoreConfig {
+                input: obs_dim + act_dim,
+                hidden: cfg.hidden,
+                layers: cfg.layers,
+                seed: cfg.seed.wrapping_add(1),
+                initial_alpha: cfg.initial_alpha,
+                lr: LearningRates {
+                    actor: cfg.actor_lr,
+                    critic: cfg.critic_lr,
+                    alpha: cfg.alpha_lr,
+                },
+                gamma: cfg.gamma,
+                tau: cfg.tau,
+                target_every: cfg.target_every,
+                target_entropy: cfg.target_entropy.unwrap_or(-(act_dim as f64)),
+                range: ActionRange::SYMMETRIC,
+                bounds: [-1.0, 1.0],
+            },
+            &actor,
         )?;
-        critic_params.init(cfg.seed.wrapping_add(1))?;
-        let target_params = ParamStore::new();
-        let target = TwinQ::new(
-            obs_dim + act_dim,
-            cfg.hidden,
-            cfg.layers,
-            target_params.builder(),
-        )?;
-        target_params.load_bytes(&critic_params.to_bytes()?)?;
-        let alpha_params = ParamStore::new();
-        let log_alpha = alpha_params.builder().get_with_hints(
-            1,
-            "log_alpha",
-            Init::Const(cfg.initial_alpha.ln()),
-        )?;
-
+        let [lo, hi] = cfg.log_std_clamp;
         Ok(Self {
-            target_entropy: cfg.target_entropy.unwrap_or(-(act_dim as f64)),
-            actor_opt: adam(&actor_params, cfg.actor_lr),
-            critic_opt: adam(&critic_params, cfg.critic_lr),
-            alpha_opt: adam(&alpha_params, cfg.alpha_lr),
+            log_std_clamp: [lo as f32, hi as f32],
             cfg,
             obs_dim,
             act_dim,
-            actor_params,
             actor,
-            critic_params,
-            critic,
-            target_params,
-            target,
-            alpha_params,
-            log_alpha,
+            core,
             step: 0,
             work: Workspace::default(),
         })
@@ -239,15 +158,15 @@ impl Sac {
     }
 
     /// The current temperature `α`.
-    pub fn alpha(&self) -> Result<f64> {
-        Ok(self.log_alpha.exp()?.to_vec1::<f32>()?[0] as f64)
+    pub fn alpha(&self) -> f64 {
+        self.core.alpha()
     }
 
     /// The acting policy with the current actor weights, its noise seeded by `seed`; it stacks
     /// `cfg.frames` frames of `obs_dim / frames` values itself.
     pub fn policy(&self, seed: u64) -> anyhow::Result<SacPolicy> {
         let frame_dim = self.obs_dim / self.cfg.frames;
-        let weights = self.actor_params.to_bytes()?;
+        let weights = to_safetensors(&self.actor)?;
         Ok(SacPolicy::new(
             &self.cfg,
             frame_dim,
@@ -257,443 +176,160 @@ impl Sac {
         )?)
     }
 
-    /// Standard-normal noise `[rows, A]` from `rng`.
-    fn noise(&self, rows: usize, rng: &mut impl Rng) -> Vec<f32> {
+    /// The noise of step `step`: ChaCha8 seeded with the configured seed on stream `step`.
+    fn noise(&self, step: u64) -> Noise {
+        let mut rng = ChaCha8Rng::seed_from_u64(self.cfg.seed);
+        rng.set_stream(step);
+        Noise {
+            rng,
+            act_dim: self.act_dim,
+            smoothing: [
+                self.cfg.target_noise as f32,
+                self.cfg.target_noise_clip as f32,
+            ],
+        }
+    }
+
+    /// One SAC step on `batch` (see the module doc); returns `critic_loss`, `actor_loss`, `alpha`
+    /// (the value used in this step), `entropy` (`−log π` averaged over the batch) and `q_mean`.
+    pub fn update(&mut self, batch: &TransitionBatch) -> Result<Metrics, SacError> {
+        let (b, o, a) = (batch.batch, self.obs_dim, self.act_dim);
+        batch.validate(o, a).map_err(SacError::Batch)?;
+        let weight = vec![1.0 / b as f32; b];
+        let noise = self.noise(self.step);
+        let mut passes = BatchPasses {
+            work: &mut self.work,
+            rows: weighted(batch, &weight),
+            noise,
+        };
+        let actor = (&mut self.actor, self.log_std_clamp);
+        let losses = self.core.step(actor, &mut passes, self.step)?;
+        self.step += 1;
+        Ok(Metrics::from([
+            ("critic_loss".to_string(), losses.critic_loss),
+            ("actor_loss".to_string(), losses.actor_loss),
+            ("alpha".to_string(), losses.alpha),
+            ("entropy".to_string(), -losses.log_prob),
+            ("q_mean".to_string(), losses.q_sum / (2 * b) as f64),
+        ]))
+    }
+}
+
+/// `batch` as weighted rows, each transition carrying `weight` of the losses' means.
+fn weighted<'a>(batch: &'a TransitionBatch, weight: &'a [f32]) -> WeightedTransitions<'a> {
+    WeightedTransitions {
+        obs: &batch.obs,
+        action: &batch.action,
+        reward: &batch.reward,
+        next_obs: &batch.next_obs,
+        terminal: &batch.terminal,
+        weight,
+    }
+}
+
+/// A step's noise, drawn in the order the passes need it: the next actions', the target's
+/// smoothing noise, the actor's samples'.
+#[derive(Clone)]
+struct Noise {
+    rng: ChaCha8Rng,
+    act_dim: usize,
+    /// `[σ, c]` of the target's smoothing noise (`σ = 0`: none).
+    smoothing: [f32; 2],
+}
+
+impl Noise {
+    /// Standard-normal noise `[rows, A]`.
+    fn normal(&mut self, rows: usize) -> Vec<f32> {
         (0..rows * self.act_dim)
-            .map(|_| rng.sample(StandardNormal))
+            .map(|_| self.rng.sample(StandardNormal))
             .collect()
     }
 
-    /// The target's smoothing noise `[rows, A]` from `rng`: `N(0, target_noise²)` clipped to
-    /// `±target_noise_clip`; none (empty, nothing drawn) when `target_noise` is 0.
-    fn smoothing_noise(&self, rows: usize, rng: &mut impl Rng) -> Vec<f32> {
-        if self.cfg.target_noise == 0.0 {
+    /// The target's smoothing noise `[rows, A]`: `N(0, σ²)` clipped to `±c`; none (empty,
+    /// nothing drawn) when `σ` is 0.
+    fn smoothing(&mut self, rows: usize) -> Vec<f32> {
+        let [std, clip] = self.smoothing;
+        if std == 0.0 {
             return Vec::new();
         }
-        let (std, clip) = (
-            self.cfg.target_noise as f32,
-            self.cfg.target_noise_clip as f32,
-        );
-        let mut noise = self.noise(rows, rng);
+        let mut noise = self.normal(rows);
         noise
             .iter_mut()
             .for_each(|n| *n = (*n * std).clamp(-clip, clip));
         noise
     }
+}
 
-    /// The actor's plain copy `net` with its log-std bounds.
-    fn plain_actor<'a>(&self, net: &'a PlainMlp) -> PlainActor<'a> {
-        PlainActor::new(net, &self.actor)
-    }
+/// SAC's passes: the whole batch on the calling thread, with the step's noise.
+struct BatchPasses<'a> {
+    work: &'a mut Workspace,
+    rows: WeightedTransitions<'a>,
+    noise: Noise,
+}
 
-    /// `batch` as weighted rows: every transition carries `1/B` of the losses' means.
-    fn weighted<'a>(batch: &'a TransitionBatch, weight: &'a [f32]) -> WeightedTransitions<'a> {
-        WeightedTransitions {
-            obs: &batch.obs,
-            action: &batch.action,
-            reward: &batch.reward,
-            next_obs: &batch.next_obs,
-            terminal: &batch.terminal,
-            weight,
-        }
-    }
+impl Passes for BatchPasses<'_> {
+    type Error = SacError;
 
-    /// The critics' gradients of `L_Q` on `batch` with the next actions' noise `noise` and
-    /// their smoothing noise `smoothing` (empty for none), the temperature `alpha` and `actor`
-    /// (this actor's copy): `(gradients, L_Q, mean Q)`.
-    fn critic_grads(
+    fn critic(
         &mut self,
-        batch: &TransitionBatch,
-        (noise, smoothing): (&[f32], &[f32]),
-        (alpha, actor): (f32, &PlainMlp),
-    ) -> Result<(GradStore, f64, f64)> {
-        let b = batch.batch;
-        let weight = vec![1.0 / b as f32; b];
-        let (critics, targets) = (self.critic.plain()?, self.target.plain()?);
-        let soft = SoftTarget {
-            alpha,
-            gamma: self.cfg.gamma as f32,
-            range: ActionRange::SYMMETRIC,
-            bounds: [-1.0, 1.0],
-            smoothing,
-        };
-        let pass = self.work.critic_pass(
-            (&critics, &targets, self.plain_actor(actor)),
-            &Self::weighted(batch, &weight),
-            noise,
-            soft,
-        );
-        let mut grads = GradStore::default();
-        self.critic.add_grads_to(&critics, pass.grads, &mut grads)?;
-        Ok((grads, pass.loss, pass.q_sum / (2 * b) as f64))
-    }
-
-    /// The actor's gradients of `L_π` on `batch` through the current critics, with the actions'
-    /// noise `noise`, the temperature `alpha` and `actor` (this actor's copy):
-    /// `(gradients, L_π, mean log π)`.
-    fn actor_grads(
-        &mut self,
-        batch: &TransitionBatch,
-        noise: &[f32],
-        (alpha, actor): (f32, &PlainMlp),
-    ) -> Result<(GradStore, f64, f64)> {
-        let weight = vec![1.0 / batch.batch as f32; batch.batch];
-        let critics = self.critic.plain()?;
-        let range = ActionRange::SYMMETRIC;
-        let pass = self.work.actor_pass(
-            (&critics, self.plain_actor(actor)),
-            (&batch.obs, &weight),
-            noise,
-            (alpha, range),
-        );
-        let mut grads = GradStore::default();
-        actor.add_grads_to(pass.grads, self.actor.net(), &mut grads)?;
-        Ok((grads, pass.loss, pass.log_prob))
-    }
-
-    /// One SAC step on `batch` (see the module doc); returns `critic_loss`, `actor_loss`, `alpha`
-    /// (the value used in this step), `entropy` (`−log π` averaged over the batch) and `q_mean`.
-    pub fn update(&mut self, batch: &TransitionBatch) -> Result<Metrics> {
-        let (b, o, a) = (batch.batch, self.obs_dim, self.act_dim);
-        batch.validate(o, a).map_err(candle_core::Error::Msg)?;
-        let mut rng = ChaCha8Rng::seed_from_u64(self.cfg.seed);
-        rng.set_stream(self.step);
-        let alpha = self.alpha()?;
-        // the actor is the same in both passes (it steps after them)
-        let actor = PlainMlp::new(self.actor.net())?;
-        let next_noise = self.noise(b, &mut rng);
-        let smoothing = self.smoothing_noise(b, &mut rng);
-        let with = (alpha as f32, &actor);
-        let (grads, critic_loss, q_mean) =
-            self.critic_grads(batch, (&next_noise, &smoothing), with)?;
-        self.critic_opt.step(&grads)?;
-        let noise = self.noise(b, &mut rng);
-        let (grads, actor_loss, mean_logp) = self.actor_grads(batch, &noise, with)?;
-        self.actor_opt.step(&grads)?;
-        // temperature: L_α = −log α (mean log π + H̄), log π detached
-        let mut grads = GradStore::default();
-        let gap = (mean_logp + self.target_entropy) as f32;
-        grads.insert(&self.log_alpha, Tensor::new(&[-gap], &Device::Cpu)?);
-        self.alpha_opt.step(&grads)?;
-        if self.step.is_multiple_of(self.cfg.target_every as u64) {
-            polyak(&self.target_params, &self.critic_params, self.cfg.tau)?;
-        }
-        self.step += 1;
-        Ok(Metrics::from([
-            ("critic_loss".to_string(), critic_loss),
-            ("actor_loss".to_string(), actor_loss),
-            ("alpha".to_string(), alpha),
-            ("entropy".to_string(), -mean_logp),
-            ("q_mean".to_string(), q_mean),
-        ]))
-    }
-}
-
-/// Transitions as plain rows for a hand-differentiated pass, with the share of the losses' means
-/// each row carries: `1/B` for SAC's batch, `valid / count` for a shard of cMask's masked
-/// transitions.
-pub(crate) struct WeightedTransitions<'a> {
-    pub(crate) obs: &'a [f32],
-    pub(crate) action: &'a [f32],
-    pub(crate) reward: &'a [f32],
-    pub(crate) next_obs: &'a [f32],
-    pub(crate) terminal: &'a [f32],
-    pub(crate) weight: &'a [f32],
-}
-
-/// The actions' range after the tanh, `a = scale · tanh(u) + shift`, which lowers `log π` by
-/// `A log scale`.
-#[derive(Clone, Copy)]
-pub(crate) struct ActionRange {
-    scale: f32,
-    shift: f32,
-}
-
-impl ActionRange {
-    /// `[−1, 1]`: SAC's actions.
-    pub(crate) const SYMMETRIC: Self = Self {
-        scale: 1.0,
-        shift: 0.0,
-    };
-    /// `[0, 1]`: cMask's mask ([`ctxrace_common::nn::dreamer::mask_sample`]).
-    pub(crate) const UNIT: Self = Self {
-        scale: 0.5,
-        shift: 0.5,
-    };
-}
-
-/// What the soft target `y` is made of: the temperature, the discount, the next actions' range,
-/// the bounds they are clamped to after the smoothing noise, and that noise.
-#[derive(Clone, Copy)]
-pub(crate) struct SoftTarget<'a> {
-    pub(crate) alpha: f32,
-    pub(crate) gamma: f32,
-    pub(crate) range: ActionRange,
-    /// `[lower, upper]` of the next actions the target critics see (no-op bounds of `range`,
-    /// or cMask's paper-code `[0, 1]` on `tanh u`).
-    pub(crate) bounds: [f32; 2],
-    /// Clipped noise `[B, A]` added to the next actions before the clamp (TD3's smoothing);
-    /// empty for none.
-    pub(crate) smoothing: &'a [f32],
-}
-
-/// An actor's plain copy with the bounds of its log standard deviation.
-#[derive(Clone, Copy)]
-pub(crate) struct PlainActor<'a> {
-    pub(crate) net: &'a PlainMlp,
-    pub(crate) log_std_clamp: [f32; 2],
-}
-
-impl<'a> PlainActor<'a> {
-    /// `net`, a plain copy of `actor`'s network, with `actor`'s log-std bounds.
-    pub(crate) fn new(net: &'a PlainMlp, actor: &TanhGaussianActor) -> Self {
-        let [lo, hi] = actor.log_std_clamp();
-        Self {
-            net,
-            log_std_clamp: [lo as f32, hi as f32],
-        }
-    }
-}
-
-/// The critics' side of a pass: their gradients, `L_Q` and the sum of `Q_1` and `Q_2` over the
-/// rows.
-pub(crate) struct CriticPass {
-    pub(crate) grads: [MlpGrads; 2],
-    pub(crate) loss: f64,
-    pub(crate) q_sum: f64,
-}
-
-/// The actor's side of a pass: its gradients, `L_π` and the weighted sum of `log π`.
-pub(crate) struct ActorPass {
-    pub(crate) grads: MlpGrads,
-    pub(crate) loss: f64,
-    pub(crate) log_prob: f64,
-}
-
-/// A pass's results over some rows, which add up over the shards of a batch.
-pub(crate) trait PassSum {
-    /// Adds the results of `other` (other rows of the same batch) into these.
-    fn add(&mut self, other: &Self);
-}
-
-impl PassSum for CriticPass {
-    fn add(&mut self, other: &Self) {
-        self.loss += other.loss;
-        self.q_sum += other.q_sum;
-        for (g, o) in self.grads.iter_mut().zip(&other.grads) {
-            g.add(o);
-        }
-    }
-}
-
-impl PassSum for ActorPass {
-    fn add(&mut self, other: &Self) {
-        self.loss += other.loss;
-        self.log_prob += other.log_prob;
-        self.grads.add(&other.grads);
-    }
-}
-
-/// The buffers of a SAC pass on plain rows, kept from one step to the next.
-#[derive(Default)]
-pub(crate) struct Workspace {
-    actor: MlpTrace,
-    q1: MlpTrace,
-    q2: MlpTrace,
-    /// The critics' input `[o, a]`.
-    x: Vec<f32>,
-    /// The actions before their range, `tanh u`.
-    tanh: Vec<f32>,
-}
-
-impl Workspace {
-    /// The critics' gradients of `L_Q = Σ_i w_i Σ_k (Q_k(o_i, a_i) − y_i)²` with
-    /// `y = r + γ (1 − d) (min_k Q̄_k(o', a') − α log π(a' | o'))`, `a'` drawn with `noise`,
-    /// the smoothing noise added and clamped to the target's bounds.
-    pub(crate) fn critic_pass(
-        &mut self,
-        (critics, targets, actor): (&[PlainMlp; 2], &[PlainMlp; 2], PlainActor),
-        tr: &WeightedTransitions,
-        noise: &[f32],
+        nets: (&[PlainMlp; 2], &[PlainMlp; 2], PlainActor),
         soft: SoftTarget,
-    ) -> CriticPass {
-        let b = tr.weight.len();
-        let (mut next_action, next_logp) = self.sample(actor, tr.next_obs, noise, soft.range);
-        for (k, a) in next_action.iter_mut().enumerate() {
-            let smoothed = *a + soft.smoothing.get(k).copied().unwrap_or(0.0);
-            *a = smoothed.clamp(soft.bounds[0], soft.bounds[1]);
-        }
-        self.join(tr.next_obs, &next_action, b);
-        let target_q =
-            [(&targets[0], &mut self.q1), (&targets[1], &mut self.q2)].map(|(q, trace)| {
-                q.fit(trace, b);
-                q.forward(&self.x, trace, 0..b);
-                q.output(trace, 0..b).to_vec()
-            });
-        let y: Vec<f32> = (0..b)
-            .map(|i| {
-                let min_q = target_q[0][i].min(target_q[1][i]);
-                let keep = soft.gamma * (1.0 - tr.terminal[i]);
-                tr.reward[i] + keep * (min_q - soft.alpha * next_logp[i])
-            })
-            .collect();
-        self.join(tr.obs, tr.action, b);
-        let (mut loss, mut q_sum) = (0f64, 0f64);
-        let grads = [(&critics[0], &mut self.q1), (&critics[1], &mut self.q2)].map(|(q, trace)| {
-            q.forward(&self.x, trace, 0..b);
-            let values = q.output(trace, 0..b);
-            let mut dq = vec![0f32; b];
-            for i in 0..b {
-                let gap = values[i] - y[i];
-                dq[i] = 2.0 * tr.weight[i] * gap;
-                loss += (tr.weight[i] * gap * gap) as f64;
-                q_sum += values[i] as f64;
-            }
-            let mut g = q.zero_grads();
-            q.backward(&self.x, trace, 0..b, &dq, Some(&mut g), None);
-            g
-        });
-        CriticPass { grads, loss, q_sum }
+    ) -> Result<CriticPass, SacError> {
+        let b = self.rows.weight.len();
+        let next_noise = self.noise.normal(b);
+        let smoothing = self.noise.smoothing(b);
+        let soft = SoftTarget {
+            smoothing: &smoothing,
+            ..soft
+        };
+        Ok(self.work.critic_pass(nets, &self.rows, &next_noise, soft))
     }
 
-    /// The actor's gradients of `L_π = Σ_i w_i (α log π(ã_i | o_i) − min_k Q_k(o_i, ã_i))`
-    /// through `critics`, `ã` drawn with `noise`; the observations `obs` and weights `w`.
-    pub(crate) fn actor_pass(
+    fn actor(
         &mut self,
-        (critics, actor): (&[PlainMlp; 2], PlainActor),
-        (obs, weight): (&[f32], &[f32]),
-        noise: &[f32],
-        (alpha, range): (f32, ActionRange),
-    ) -> ActorPass {
-        let b = weight.len();
-        let a = actor.net.outputs() / 2;
-        let (action, logp) = self.sample(actor, obs, noise, range);
-        self.join(obs, &action, b);
-        let values =
-            [(&critics[0], &mut self.q1), (&critics[1], &mut self.q2)].map(|(q, trace)| {
-                q.fit(trace, b);
-                q.forward(&self.x, trace, 0..b);
-                q.output(trace, 0..b).to_vec()
-            });
-        // −w to the smaller critic (half each on a tie)
-        let (mut loss, mut log_prob) = (0f64, 0f64);
-        let mut dq = [vec![0f32; b], vec![0f32; b]];
-        for i in 0..b {
-            let (v1, v2, w) = (values[0][i], values[1][i], weight[i]);
-            loss += (w * (alpha * logp[i] - v1.min(v2))) as f64;
-            log_prob += (w * logp[i]) as f64;
-            let share = if v1 == v2 { 0.5 } else { 1.0 };
-            dq[0][i] = if v1 <= v2 { -share * w } else { 0.0 };
-            dq[1][i] = if v2 <= v1 { -share * w } else { 0.0 };
-        }
-        let o = obs.len() / b.max(1);
-        let mut d_action = vec![0f32; b * a];
-        for (k, (q, trace)) in [(&critics[0], &mut self.q1), (&critics[1], &mut self.q2)]
-            .into_iter()
-            .enumerate()
-        {
-            let into = InputGrad::new(&mut d_action, a, o..o + a, k > 0);
-            q.backward(&self.x, trace, 0..b, &dq[k], None, Some(into));
-        }
-        d_action.iter_mut().for_each(|d| *d *= range.scale);
-        let d_logp: Vec<f32> = weight.iter().map(|w| alpha * w).collect();
-        let mut d_out = vec![0f32; b * 2 * a];
-        let out = actor.net.output(&self.actor, 0..b);
-        let with = (noise, actor.log_std_clamp);
-        squash_rows_backward(out, with, &self.tanh, (&d_action, &d_logp), &mut d_out);
-        let mut grads = actor.net.zero_grads();
-        actor
-            .net
-            .backward(obs, &mut self.actor, 0..b, &d_out, Some(&mut grads), None);
-        ActorPass {
-            grads,
-            loss,
-            log_prob,
-        }
-    }
-
-    /// The actor on the rows `obs` with `noise`: the actions in `range` and their
-    /// log-probabilities (the outputs kept in the actor's trace, `tanh u` in `self.tanh`).
-    fn sample(
-        &mut self,
-        actor: PlainActor,
-        obs: &[f32],
-        noise: &[f32],
-        range: ActionRange,
-    ) -> (Vec<f32>, Vec<f32>) {
-        let a = actor.net.outputs() / 2;
-        let b = noise.len() / a.max(1);
-        actor.net.fit(&mut self.actor, b);
-        actor.net.forward(obs, &mut self.actor, 0..b);
-        self.tanh.resize(b * a, 0.0);
-        let mut logp = vec![0f32; b];
-        let out = actor.net.output(&self.actor, 0..b);
-        squash_rows(out, noise, actor.log_std_clamp, &mut self.tanh, &mut logp);
-        let action = self.tanh.iter().map(|t| range.scale * t + range.shift);
-        let shift = a as f32 * range.scale.ln();
-        logp.iter_mut().for_each(|l| *l -= shift);
-        (action.collect(), logp)
-    }
-
-    /// `x ← [obs, action]` row by row, for `rows` rows.
-    fn join(&mut self, obs: &[f32], action: &[f32], rows: usize) {
-        if rows == 0 {
-            self.x.clear();
-            return;
-        }
-        let (o, a) = (obs.len() / rows, action.len() / rows);
-        self.x.resize(rows * (o + a), 0.0);
-        let pairs = obs.chunks_exact(o).zip(action.chunks_exact(a));
-        for ((ob, ac), row) in pairs.zip(self.x.chunks_exact_mut(o + a)) {
-            row[..o].copy_from_slice(ob);
-            row[o..].copy_from_slice(ac);
-        }
+        nets: (&[PlainMlp; 2], PlainActor),
+        with: (f32, ActionRange),
+    ) -> Result<ActorPass, SacError> {
+        let noise = self.noise.normal(self.rows.weight.len());
+        let rows = (self.rows.obs, self.rows.weight);
+        Ok(self.work.actor_pass(nets, rows, &noise, with))
     }
 }
 
 impl Algorithm for Sac {
-    fn train_step(&mut self, batch: &Batch) -> Result<Metrics> {
-        match batch {
-            Batch::Transition(t) => {
-                let before = matmul_flops();
-                let mut metrics = self.update(t)?;
-                let flops = matmul_flops().saturating_sub(before);
-                metrics.insert("flops/step".into(), flops as f64);
-                Ok(metrics)
-            }
-            Batch::Sequence(_) => bail!("SAC trains on transitions, not sequences"),
-        }
+    /// One step on transitions; the error crosses the trait's candle `Result` wrapped.
+    fn train_step(&mut self, batch: &Batch) -> candle_core::Result<Metrics> {
+        let Batch::Transition(t) = batch else {
+            return Err(candle_core::Error::wrap(SacError::Sequences));
+        };
+        let before = matmul_flops();
+        let mut metrics = self.update(t).map_err(candle_core::Error::wrap)?;
+        let flops = matmul_flops().saturating_sub(before);
+        metrics.insert("flops/step".into(), flops as f64);
+        Ok(metrics)
     }
 
-    fn policy_weights(&self) -> Result<Vec<u8>> {
-        self.actor_params.to_bytes()
+    fn policy_weights(&self) -> candle_core::Result<Vec<u8>> {
+        to_safetensors(&self.actor).map_err(candle_core::Error::wrap)
     }
 
     /// Writes the actor, critics, target critics, `log α` and their optimisers as safetensors
     /// files and the step counter.
     fn save(&self, dir: &Path) -> checkpoint::Result<()> {
-        let blobs = [
-            ("actor", self.actor_params.to_bytes()?),
-            ("critic", self.critic_params.to_bytes()?),
-            ("critic_target", self.target_params.to_bytes()?),
-            ("log_alpha", self.alpha_params.to_bytes()?),
-            ("opt_actor", self.actor_opt.to_bytes()?),
-            ("opt_critic", self.critic_opt.to_bytes()?),
-            ("opt_alpha", self.alpha_opt.to_bytes()?),
-        ];
+        let serialising = |e: SacError| checkpoint::io_error("serialising the agent for", dir, e);
+        let mut blobs = vec![(
+            "actor",
+            to_safetensors(&self.actor).map_err(|e| serialising(e.into()))?,
+        )];
+        blobs.extend(self.core.blobs(&BLOBS).map_err(serialising)?);
         checkpoint::save(dir, &blobs, &SavedState { step: self.step })
     }
 
     /// Restores what [`Algorithm::save`] wrote into an agent of the same sizes.
     fn load(&mut self, dir: &Path) -> checkpoint::Result<()> {
         let state: SavedState = checkpoint::load_state(dir)?;
-        checkpoint::load_blob(dir, "actor", |b| self.actor_params.load_bytes(b))?;
-        checkpoint::load_blob(dir, "critic", |b| self.critic_params.load_bytes(b))?;
-        checkpoint::load_blob(dir, "critic_target", |b| self.target_params.load_bytes(b))?;
-        checkpoint::load_blob(dir, "log_alpha", |b| self.alpha_params.load_bytes(b))?;
-        checkpoint::load_blob(dir, "opt_actor", |b| self.actor_opt.load_bytes(b))?;
-        checkpoint::load_blob(dir, "opt_critic", |b| self.critic_opt.load_bytes(b))?;
-        checkpoint::load_blob(dir, "opt_alpha", |b| self.alpha_opt.load_bytes(b))?;
+        checkpoint::load_blob(dir, "actor", |b| load_safetensors(&mut self.actor, b))?;
+        self.core.load(dir, &BLOBS)?;
         self.step = state.step;
         Ok(())
     }
@@ -706,6 +342,12 @@ impl Algorithm for Sac {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::candle_sac::TwinQ;
+    use candle_core::{Device, Tensor};
+    use candle_nn::Init;
+    use ctxrace_common::nn::plain::Parameters;
+    use ctxrace_common::nn::{ParamStore, TanhGaussianActor};
+    use std::collections::BTreeMap;
 
     /// `b` random transitions with observations in `[−1, 1]^o` and actions in `[−1, 1]^a`.
     fn random_batch(b: usize, o: usize, a: usize, rng: &mut ChaCha8Rng) -> TransitionBatch {
@@ -731,11 +373,77 @@ mod tests {
         t.flatten_all().unwrap().to_vec1().unwrap()
     }
 
-    /// `(L_Q, L_π)` of the module doc composed of candle operations, autograd's statement of
-    /// what [`Sac::critic_grads`] and [`Sac::actor_grads`] differentiate by hand; `smoothing`
-    /// is the target's clipped noise (empty for none).
+    /// `net`'s tensors' values by name.
+    fn by_name(net: &dyn Parameters) -> BTreeMap<String, Vec<f32>> {
+        let tensors = net.tensors();
+        tensors
+            .iter()
+            .map(|t| (t.name.to_string(), t.values.to_vec()))
+            .collect()
+    }
+
+    /// The candle modules SAC was built of before it trained in place, the test's oracle.
+    struct Oracle {
+        actor_params: ParamStore,
+        actor: TanhGaussianActor,
+        critic_params: ParamStore,
+        critic: TwinQ,
+        target: TwinQ,
+    }
+
+    impl Oracle {
+        /// Fresh candle modules of `sac`'s sizes, initialised by their stores as SAC's were.
+        fn fresh(sac: &Sac) -> (Self, ParamStore) {
+            let cfg = &sac.cfg;
+            let actor_params = ParamStore::new();
+            let actor = TanhGaussianActor::new(
+                sac.obs_dim,
+                sac.act_dim,
+                cfg.hidden,
+                cfg.layers,
+                actor_params.builder(),
+            )
+            .unwrap()
+            .with_log_std_clamp(cfg.log_std_clamp);
+            actor_params.init(cfg.seed).unwrap();
+            let twin = |store: &ParamStore| {
+                let input = sac.obs_dim + sac.act_dim;
+                TwinQ::new(input, cfg.hidden, cfg.layers, store.builder()).unwrap()
+            };
+            let (critic_params, target_params) = (ParamStore::new(), ParamStore::new());
+            let (critic, target) = (twin(&critic_params), twin(&target_params));
+            critic_params.init(cfg.seed.wrapping_add(1)).unwrap();
+            target_params
+                .load_bytes(&critic_params.to_bytes().unwrap())
+                .unwrap();
+            let oracle = Self {
+                actor_params,
+                actor,
+                critic_params,
+                critic,
+                target,
+            };
+            (oracle, target_params)
+        }
+
+        /// The candle modules holding `sac`'s current weights.
+        fn of(sac: &Sac) -> Self {
+            let (oracle, target_params) = Self::fresh(sac);
+            let load = |store: &ParamStore, net: &dyn Parameters| {
+                store.load_bytes(&to_safetensors(net).unwrap()).unwrap()
+            };
+            load(&oracle.actor_params, &sac.actor);
+            load(&oracle.critic_params, &sac.core.critics);
+            load(&target_params, &sac.core.targets);
+            oracle
+        }
+    }
+
+    /// `(L_Q, L_π)` of the module doc composed of candle operations on `oracle`, autograd's
+    /// statement of what [`Workspace::critic_pass`] and [`Workspace::actor_pass`] differentiate
+    /// by hand; `smoothing` is the target's clipped noise (empty for none).
     fn candle_losses(
-        sac: &Sac,
+        (sac, oracle): (&Sac, &Oracle),
         batch: &TransitionBatch,
         (next_noise, smoothing, noise): (&[f32], &[f32], &[f32]),
         alpha: f64,
@@ -746,29 +454,71 @@ mod tests {
         let (obs, next_obs) = (t(&batch.obs, o), t(&batch.next_obs, o));
         let reward = Tensor::from_slice(&batch.reward, b, dev).unwrap();
         let not_done = (1.0 - Tensor::from_slice(&batch.terminal, b, dev).unwrap()).unwrap();
-        let (mut next_action, next_logp) = sac.actor.sample(&next_obs, &t(next_noise, a)).unwrap();
+        let (mut next_action, next_logp) =
+            oracle.actor.sample(&next_obs, &t(next_noise, a)).unwrap();
         if !smoothing.is_empty() {
             next_action = (next_action + t(smoothing, a))
                 .unwrap()
                 .clamp(-1f32, 1f32)
                 .unwrap();
         }
-        let soft = (sac.target.min(&next_obs, &next_action).unwrap()
+        let soft = (oracle.target.min(&next_obs, &next_action).unwrap()
             - (next_logp * alpha).unwrap())
         .unwrap();
         let y = (reward + (not_done * soft).unwrap() * sac.cfg.gamma)
             .unwrap()
             .detach();
-        let (q1, q2) = sac.critic.forward(&obs, &t(&batch.action, a)).unwrap();
+        let (q1, q2) = oracle.critic.forward(&obs, &t(&batch.action, a)).unwrap();
         let sq = |q: Tensor| (q - &y).unwrap().sqr().unwrap().mean_all().unwrap();
         let critic = (sq(q1) + sq(q2)).unwrap();
-        let (pi, logp) = sac.actor.sample(&obs, &t(noise, a)).unwrap();
-        let min_q = sac.critic.min(&obs, &pi).unwrap();
+        let (pi, logp) = oracle.actor.sample(&obs, &t(noise, a)).unwrap();
+        let min_q = oracle.critic.min(&obs, &pi).unwrap();
         let actor = ((logp * alpha).unwrap() - min_q)
             .unwrap()
             .mean_all()
             .unwrap();
         (critic, actor)
+    }
+
+    /// A fresh agent's networks are, byte for byte, those the candle stores drew from the same
+    /// seeds before SAC trained in place (actor from `seed`, critics from `seed + 1`, targets
+    /// their copy, `log α = ln initial_alpha`), so that a seed still reproduces a run.
+    #[test]
+    fn fresh_networks_are_the_candle_stores_to_the_byte() {
+        for cfg in [
+            SacConfig::default(),
+            SacConfig {
+                seed: 17,
+                hidden: 24,
+                layers: 3,
+                initial_alpha: 0.2,
+                ..SacConfig::default()
+            },
+        ] {
+            let sac = Sac::new(6, 2, cfg.clone()).unwrap();
+            let (oracle, target_params) = Oracle::fresh(&sac);
+            let alpha_params = ParamStore::new();
+            alpha_params
+                .builder()
+                .get_with_hints(1, "log_alpha", Init::Const(cfg.initial_alpha.ln()))
+                .unwrap();
+            for (name, got, want) in [
+                ("actor", to_safetensors(&sac.actor), &oracle.actor_params),
+                (
+                    "critic",
+                    to_safetensors(&sac.core.critics),
+                    &oracle.critic_params,
+                ),
+                ("target", to_safetensors(&sac.core.targets), &target_params),
+                ("log α", to_safetensors(&sac.core.log_alpha), &alpha_params),
+            ] {
+                assert!(got.unwrap() == want.to_bytes().unwrap(), "{name}");
+            }
+            // α as candle computed it from its `log α`
+            let (_, log_alpha) = &alpha_params.named()[0];
+            let alpha = values(&log_alpha.as_tensor().exp().unwrap())[0];
+            assert_eq!(sac.alpha(), alpha as f64);
+        }
     }
 
     /// The hand-differentiated critic and actor gradients are those of the candle composition,
@@ -791,39 +541,206 @@ mod tests {
                 .unwrap();
         }
         let batch = random_batch(16, 6, 2, &mut rng);
-        let next_noise = sac.noise(16, &mut rng);
-        let smoothing = sac.smoothing_noise(16, &mut rng);
-        let noise = sac.noise(16, &mut rng);
+        let noise = sac.noise(99);
+        let mut drawn = noise.clone();
+        let next_noise = drawn.normal(16);
+        let smoothing = drawn.smoothing(16);
+        let actor_noise = drawn.normal(16);
         let alpha = 0.7;
         let noises = (
             next_noise.as_slice(),
             smoothing.as_slice(),
-            noise.as_slice(),
+            actor_noise.as_slice(),
         );
-        let (critic, actor) = candle_losses(&sac, &batch, noises, alpha);
+        let oracle = Oracle::of(&sac);
+        let (critic, actor) = candle_losses((&sac, &oracle), &batch, noises, alpha);
         let (want_c, want_a) = (critic.backward().unwrap(), actor.backward().unwrap());
-        let actor_copy = PlainMlp::new(sac.actor.net()).unwrap();
-        let with = (alpha as f32, &actor_copy);
-        let (got_c, loss_c, _) = sac
-            .critic_grads(&batch, (&next_noise, &smoothing), with)
-            .unwrap();
-        let (got_a, loss_a, _) = sac.actor_grads(&batch, &noise, with).unwrap();
+
+        let weight = vec![1.0 / 16.0; 16];
+        let mut work = Workspace::default();
+        let mut passes = BatchPasses {
+            work: &mut work,
+            rows: weighted(&batch, &weight),
+            noise,
+        };
+        let view = PlainActor {
+            net: &sac.actor,
+            log_std_clamp: sac.log_std_clamp,
+        };
+        let soft = SoftTarget {
+            alpha: alpha as f32,
+            gamma: sac.cfg.gamma as f32,
+            range: ActionRange::SYMMETRIC,
+            bounds: [-1.0, 1.0],
+            smoothing: &[],
+        };
+        let (critics, targets) = (&sac.core.critics, &sac.core.targets);
+        let got_c = passes.critic((&critics.q, &targets.q, view), soft).unwrap();
+        let with = (alpha as f32, ActionRange::SYMMETRIC);
+        let got_a = passes.actor((&critics.q, view), with).unwrap();
         let scalar = |t: &Tensor| t.to_scalar::<f32>().unwrap() as f64;
+        let (loss_c, loss_a) = (got_c.loss, got_a.loss);
         assert!((loss_c - scalar(&critic)).abs() < 1e-5 * (1.0 + loss_c.abs()));
         assert!((loss_a - scalar(&actor)).abs() < 1e-5 * (1.0 + loss_a.abs()));
-        for (params, got, want) in [
-            (&sac.critic_params, &got_c, &want_c),
-            (&sac.actor_params, &got_a, &want_a),
-        ] {
+        let named = |net: &dyn Parameters, grads: Vec<Vec<f32>>| {
+            let names = net.tensors().iter().map(|t| t.name.to_string()).collect();
+            std::iter::zip::<Vec<String>, _>(names, grads).collect::<BTreeMap<_, _>>()
+        };
+        let got = [
+            named(critics, critics.grad_tensors(got_c.grads)),
+            named(&sac.actor, got_a.grads.into_tensors(&sac.actor)),
+        ];
+        for ((params, want), got) in [
+            (&oracle.critic_params, &want_c),
+            (&oracle.actor_params, &want_a),
+        ]
+        .into_iter()
+        .zip(got)
+        {
+            assert_eq!(got.len(), params.named().len());
             for (name, v) in params.named() {
-                let (g, w) = (
-                    values(got.get(v.as_tensor()).unwrap()),
-                    values(want.get(v.as_tensor()).unwrap()),
-                );
+                let (g, w) = (&got[&name], values(want.get(v.as_tensor()).unwrap()));
                 let scale = w.iter().fold(0f32, |m, x| m.max(x.abs())).max(1e-6);
                 assert!(w.iter().any(|&x| x != 0.0), "{name}: zero gradient");
                 for (i, (a, b)) in g.iter().zip(&w).enumerate() {
                     assert!((a - b).abs() <= 1e-4 * scale, "{name}[{i}]: {a} vs {b}");
+                }
+            }
+        }
+    }
+
+    /// A batch's rows `rows` as weighted transitions.
+    fn shard<'a>(
+        batch: &'a TransitionBatch,
+        weight: &'a [f32],
+        rows: std::ops::Range<usize>,
+    ) -> WeightedTransitions<'a> {
+        let (o, a) = (batch.obs_dim, batch.act_dim);
+        let cut = |x: &'a [f32], width: usize| &x[rows.start * width..rows.end * width];
+        WeightedTransitions {
+            obs: cut(&batch.obs, o),
+            action: cut(&batch.action, a),
+            reward: cut(&batch.reward, 1),
+            next_obs: cut(&batch.next_obs, o),
+            terminal: cut(&batch.terminal, 1),
+            weight: cut(weight, 1),
+        }
+    }
+
+    /// SAC's batch in two shards of rows, each with its own workspace, their passes summed: the
+    /// way cMask's mask SAC runs the core (no smoothing noise).
+    struct TwoShards<'a> {
+        work: [Workspace; 2],
+        batch: &'a TransitionBatch,
+        weight: Vec<f32>,
+        noise: Noise,
+    }
+
+    impl TwoShards<'_> {
+        /// `pass` on each shard with its rows of `noise`, summed.
+        fn each<T: PassSum>(
+            &mut self,
+            noise: &[f32],
+            pass: impl Fn(&mut Workspace, &WeightedTransitions, &[f32]) -> T,
+        ) -> T {
+            let (b, a) = (self.batch.batch, self.batch.act_dim);
+            let mut parts = self.work.iter_mut().enumerate().map(|(k, work)| {
+                let rows = k * b / 2..(k + 1) * b / 2;
+                let noise = &noise[rows.start * a..rows.end * a];
+                pass(work, &shard(self.batch, &self.weight, rows), noise)
+            });
+            let mut sum = parts.next().unwrap();
+            parts.for_each(|part| sum.add(&part));
+            sum
+        }
+    }
+
+    impl Passes for TwoShards<'_> {
+        type Error = SacError;
+
+        fn critic(
+            &mut self,
+            nets: (&[PlainMlp; 2], &[PlainMlp; 2], PlainActor),
+            soft: SoftTarget,
+        ) -> Result<CriticPass, SacError> {
+            let noise = self.noise.normal(self.batch.batch);
+            Ok(self.each(&noise, |w, tr, noise| w.critic_pass(nets, tr, noise, soft)))
+        }
+
+        fn actor(
+            &mut self,
+            nets: (&[PlainMlp; 2], PlainActor),
+            with: (f32, ActionRange),
+        ) -> Result<ActorPass, SacError> {
+            let noise = self.noise.normal(self.batch.batch);
+            Ok(self.each(&noise, |w, tr, noise| {
+                w.actor_pass(nets, (tr.obs, tr.weight), noise, with)
+            }))
+        }
+    }
+
+    /// The core steps alike (up to the order of the sums) whether its passes run on the whole
+    /// batch or on shards of it summed, as the mask SAC's do.
+    #[test]
+    fn the_core_steps_alike_on_a_batch_and_on_its_shards() {
+        let cfg = SacConfig {
+            actor_lr: 1e-3,
+            critic_lr: 1e-3,
+            alpha_lr: 1e-3,
+            ..SacConfig::default()
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(8);
+        let (mut whole, mut sharded) = (
+            Sac::new(6, 2, cfg.clone()).unwrap(),
+            Sac::new(6, 2, cfg).unwrap(),
+        );
+        for step in 0..3 {
+            let batch = random_batch(16, 6, 2, &mut rng);
+            let want = whole.update(&batch).unwrap();
+            let mut passes = TwoShards {
+                work: Default::default(),
+                batch: &batch,
+                weight: vec![1.0 / 16.0; 16],
+                noise: sharded.noise(step),
+            };
+            let actor = (&mut sharded.actor, sharded.log_std_clamp);
+            let got = sharded.core.step(actor, &mut passes, step).unwrap();
+            for (name, got) in [
+                ("critic_loss", got.critic_loss),
+                ("actor_loss", got.actor_loss),
+                ("alpha", got.alpha),
+                ("entropy", -got.log_prob),
+                ("q_mean", got.q_sum / 32.0),
+            ] {
+                let w = want[name];
+                assert!(
+                    (got - w).abs() <= 1e-5 * w.abs().max(1.0),
+                    "{name}: {got} vs {w}"
+                );
+            }
+        }
+        // Adam moves a weight by at most about its learning rate a step, whatever the sum's order
+        for (name, got, want) in [
+            ("actor", by_name(&sharded.actor), by_name(&whole.actor)),
+            (
+                "critics",
+                by_name(&sharded.core.critics),
+                by_name(&whole.core.critics),
+            ),
+            (
+                "targets",
+                by_name(&sharded.core.targets),
+                by_name(&whole.core.targets),
+            ),
+            (
+                "log α",
+                by_name(&sharded.core.log_alpha),
+                by_name(&whole.core.log_alpha),
+            ),
+        ] {
+            for ((tensor, g), w) in got.iter().zip(want.values()) {
+                for (a, b) in g.iter().zip(w) {
+                    assert!((a - b).abs() <= 1e-4, "{name} {tensor}: {a} vs {b}");
                 }
             }
         }
@@ -844,19 +761,19 @@ mod tests {
                 ..SacConfig::default()
             };
             let mut sac = Sac::new(4, 2, cfg).unwrap();
-            assert_eq!(sac.target_entropy, target.unwrap_or(-2.0));
+            assert_eq!(sac.core.cfg.target_entropy, target.unwrap_or(-2.0));
             let policy = sac.policy_weights().unwrap();
-            let mut alpha = sac.alpha().unwrap();
+            let mut alpha = sac.alpha();
             assert_eq!(alpha, 1.0);
             for batch in &batches {
                 let m = sac.train_step(batch).unwrap();
                 assert_eq!(
-                    m["entropy"] > sac.target_entropy,
+                    m["entropy"] > sac.core.cfg.target_entropy,
                     falls,
                     "entropy {}",
                     m["entropy"]
                 );
-                let next = sac.alpha().unwrap();
+                let next = sac.alpha();
                 assert_eq!(next < alpha, falls, "alpha {alpha} → {next}");
                 alpha = next;
             }
@@ -884,38 +801,26 @@ mod tests {
             ..SacConfig::default()
         };
         let mut sac = Sac::new(6, 2, cfg).unwrap();
-        assert_eq!(
-            sac.target_params.to_bytes().unwrap(),
-            sac.critic_params.to_bytes().unwrap()
-        );
+        assert_eq!(by_name(&sac.core.targets), by_name(&sac.core.critics));
         let mut rng = ChaCha8Rng::seed_from_u64(2);
         for step in 0..3 {
-            let old: Vec<Vec<f32>> = sac
-                .target_params
-                .vars()
-                .iter()
-                .map(|v| values(v.as_tensor()))
-                .collect();
+            let old = by_name(&sac.core.targets);
             sac.train_step(&Batch::Transition(random_batch(16, 6, 2, &mut rng)))
                 .unwrap();
-            let online = sac.critic_params.named();
-            let target = sac.target_params.named();
+            let online = by_name(&sac.core.critics);
+            let target = by_name(&sac.core.targets);
             assert_eq!(online.len(), 6 * 2);
             let mut moved = false;
             let blends = step % target_every == 0;
-            for (((name, o), (tname, t)), old) in online.iter().zip(&target).zip(&old) {
+            for (((name, o), (tname, t)), (_, old)) in online.iter().zip(&target).zip(&old) {
                 assert_eq!(name, tname);
-                for ((o, t), old) in values(o.as_tensor())
-                    .iter()
-                    .zip(values(t.as_tensor()))
-                    .zip(old)
-                {
+                for ((o, t), old) in o.iter().zip(t).zip(old) {
                     let expected = if blends { 0.1 * o + 0.9 * old } else { *old };
                     assert!(
                         (t - expected).abs() <= 1e-6 * expected.abs().max(1.0),
                         "{name} step {step}"
                     );
-                    moved |= t != *old;
+                    moved |= t != old;
                 }
             }
             assert_eq!(moved, blends, "step {step} of every {target_every}");
@@ -926,11 +831,10 @@ mod tests {
     /// and often at its bounds (`P(|ε| > 1) ≈ 0.32`); none drawn by default.
     #[test]
     fn target_smoothing_noise_is_clipped_normal_noise() {
-        let mut rng = ChaCha8Rng::seed_from_u64(6);
         let plain = Sac::new(4, 2, SacConfig::default()).unwrap();
-        assert!(plain.smoothing_noise(100, &mut rng).is_empty());
+        assert!(plain.noise(0).smoothing(100).is_empty());
         let code = Sac::new(4, 2, SacConfig::default().with_paper_code_sac()).unwrap();
-        let noise = code.smoothing_noise(5000, &mut rng);
+        let noise = code.noise(6).smoothing(5000);
         assert_eq!(noise.len(), 10_000);
         assert!(noise.iter().all(|n| n.abs() <= 0.5));
         let at_bound = noise.iter().filter(|n| n.abs() == 0.5).count() as f64 / 1e4;
@@ -980,15 +884,13 @@ mod tests {
             other.policy_weights().unwrap(),
             sac.policy_weights().unwrap()
         );
-        assert_eq!(
-            other.critic_params.to_bytes().unwrap(),
-            sac.critic_params.to_bytes().unwrap()
-        );
-        assert_eq!(
-            other.target_params.to_bytes().unwrap(),
-            sac.target_params.to_bytes().unwrap()
-        );
-        assert_eq!(other.alpha().unwrap(), sac.alpha().unwrap());
+        assert_eq!(by_name(&other.core.critics), by_name(&sac.core.critics));
+        assert_eq!(by_name(&other.core.targets), by_name(&sac.core.targets));
+        assert_eq!(other.alpha(), sac.alpha());
+        // and saves back the same files, optimiser moments included
+        let again = tempfile::tempdir().unwrap();
+        other.save(again.path()).unwrap();
+        assert_eq!(same_blobs(&dir, again.path()), 7);
         assert_eq!(other.steps(), 5);
         let (mut p, mut q) = (sac.policy(0).unwrap(), other.policy(0).unwrap());
         for _ in 0..10 {
@@ -1007,6 +909,67 @@ mod tests {
         assert!(err.contains("shape"), "{err}");
         assert!(p.act(&[0.0; 5], true).is_err());
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// How many safetensors files `dir` holds, asserting that `other` holds each with the same
+    /// bytes.
+    fn same_blobs(dir: &Path, other: &Path) -> usize {
+        let mut blobs = 0;
+        for entry in std::fs::read_dir(dir).unwrap() {
+            let name = entry.unwrap().file_name();
+            if name.to_string_lossy().ends_with(".safetensors") {
+                let (a, b) = (dir.join(&name), other.join(&name));
+                assert!(
+                    std::fs::read(a).unwrap() == std::fs::read(b).unwrap(),
+                    "{name:?}"
+                );
+                blobs += 1;
+            }
+        }
+        blobs
+    }
+
+    /// The agent of the configuration `dir/agent.toml` (108 LiDAR values a frame).
+    fn agent_of(dir: &Path) -> Box<dyn Algorithm> {
+        let text = std::fs::read_to_string(dir.join("agent.toml")).unwrap();
+        let agent: ctxrace_common::AgentConfig = toml::from_str(&text).unwrap();
+        crate::build(&agent, 108, 1).unwrap()
+    }
+
+    /// A SAC checkpoint written by the binary of commit 3d8d1ce (the last whose SAC held its
+    /// networks and optimisers in candle; `testdata/3d8d1ce/README.md`) loads, and the agent
+    /// saves back every weight and optimiser file byte for byte and the same policy: every
+    /// tensor's name, shape and value, and every moment, read as written.
+    #[test]
+    fn a_checkpoint_written_by_3d8d1ce_loads_and_saves_back_the_same_bytes() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../testdata/3d8d1ce/sac/checkpoint");
+        let mut sac = agent_of(&dir);
+        sac.load(&dir).unwrap();
+        assert_eq!(sac.steps(), 20);
+        let again = tempfile::tempdir().unwrap();
+        sac.save(again.path()).unwrap();
+        assert_eq!(
+            same_blobs(again.path(), &dir),
+            7,
+            "actor, critics, targets, log α and their optimisers"
+        );
+        let policy = std::fs::read(dir.join("policy.safetensors")).unwrap();
+        assert!(sac.policy_weights().unwrap() == policy);
+    }
+
+    /// The `best/` policy written by the binary of commit d6b5c40 (`testdata/d6b5c40/sac`) is
+    /// an actor that SAC loads and writes back unchanged.
+    #[test]
+    fn the_policy_written_by_d6b5c40_loads_as_the_actor() {
+        let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("../testdata/d6b5c40/sac");
+        let mut sac = agent_of(&fixture);
+        let dir = tempfile::tempdir().unwrap();
+        sac.save(dir.path()).unwrap();
+        let policy = std::fs::read(fixture.join("policy.safetensors")).unwrap();
+        assert!(sac.policy_weights().unwrap() != policy);
+        std::fs::write(dir.path().join("actor.safetensors"), &policy).unwrap();
+        sac.load(dir.path()).unwrap();
+        assert!(sac.policy_weights().unwrap() == policy);
     }
 
     #[test]
