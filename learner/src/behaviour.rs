@@ -45,36 +45,18 @@ use ctxrace_common::nn::plain::{
     soft_cross_entropy, soft_cross_entropy_backward, twohot_decode, twohot_decode_backward,
     InputGrad, MlpGrads, MlpTrace, NonZeros, PlainMlp, PlainRssm, StepScratch, StepTrace,
 };
-use ctxrace_common::nn::{Mlp, Rssm, TwoHot};
+use ctxrace_common::nn::TwoHot;
 use rand_chacha::ChaCha8Rng;
 
-/// The networks of a behaviour step, their weights as they are at its start.
-pub(crate) struct Nets {
-    pub(crate) rssm: PlainRssm,
-    pub(crate) actor: PlainMlp,
-    pub(crate) reward: PlainMlp,
-    pub(crate) cont: PlainMlp,
-    pub(crate) critic: PlainMlp,
-    pub(crate) slow: PlainMlp,
-}
-
-impl Nets {
-    /// Copies of the candle networks.
-    pub(crate) fn new(
-        rssm: &Rssm,
-        actor: &Mlp,
-        (reward, cont): (&Mlp, &Mlp),
-        (critic, slow): (&Mlp, &Mlp),
-    ) -> Result<Self> {
-        Ok(Self {
-            rssm: PlainRssm::new(rssm)?,
-            actor: PlainMlp::new(actor)?,
-            reward: PlainMlp::new(reward)?,
-            cont: PlainMlp::new(cont)?,
-            critic: PlainMlp::new(critic)?,
-            slow: PlainMlp::new(slow)?,
-        })
-    }
+/// The networks of a behaviour step (the actor's and the critic's weights as they are at its
+/// start: the optimisers step after the backward passes).
+pub(crate) struct Nets<'a> {
+    pub(crate) rssm: &'a PlainRssm,
+    pub(crate) actor: &'a PlainMlp,
+    pub(crate) reward: &'a PlainMlp,
+    pub(crate) cont: &'a PlainMlp,
+    pub(crate) critic: &'a PlainMlp,
+    pub(crate) slow: &'a PlainMlp,
 }
 
 /// The constants of a behaviour step.

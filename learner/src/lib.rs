@@ -16,7 +16,8 @@ pub mod process;
 pub mod returns;
 pub mod runlog;
 pub mod sac;
-pub mod sequences;
+#[cfg(test)]
+mod sequences;
 pub mod shards;
 pub mod tensorboard;
 pub mod trained;
