@@ -38,7 +38,6 @@
 //! critic's last row's, the frozen networks' weights'.
 
 use crate::world_model::Starts;
-use candle_core::Result;
 use ctxrace_common::agents::{DreamerConfig, ImaginationLoss};
 use ctxrace_common::nn::dreamer::{normal_rows, uniform_rows};
 use ctxrace_common::nn::plain::{
@@ -162,7 +161,7 @@ impl Imagination {
         set: &Setting,
         start: &Starts,
         rngs: &mut [ChaCha8Rng],
-    ) -> Result<()> {
+    ) {
         let cfg = set.cfg;
         let (h, a) = (imagined_steps(cfg), set.act_dim);
         let (deter, stoch, ctx) = (&start.deter, &start.stoch, &start.ctx);
@@ -228,7 +227,6 @@ impl Imagination {
             self.non_zeros.push(next, f);
         }
         self.heads(nets, set, &start.cont);
-        Ok(())
     }
 
     /// The heads on the imagined states, the λ-returns and the weights.

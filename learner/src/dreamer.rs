@@ -252,7 +252,7 @@ impl Dreamer {
             rngs,
             &mut work,
             |shard, rngs, im| {
-                im.forward(&nets, &set, &starts[shard.index], rngs)?;
+                im.forward(&nets, &set, &starts[shard.index], rngs);
                 Ok(shard.weight)
             },
         )?;
@@ -410,12 +410,12 @@ impl Algorithm for Dreamer {
         Ok(metrics)
     }
 
-    /// The "policy" store: encoder, RSSM, actor and (cMask) mask actor, for [`DreamerPolicy`].
+    /// The "policy" weights: encoder, RSSM, actor and (cMask) mask actor, for [`DreamerPolicy`].
     fn policy_weights(&self) -> Result<Vec<u8>> {
         to_safetensors(&self.policy).map_err(wrap)
     }
 
-    /// Writes every parameter store and optimiser (`<name>.safetensors`) and the counters (step
+    /// Writes every group of networks and optimiser (`<name>.safetensors`) and the counters (step
     /// and return normaliser).
     fn save(&self, dir: &Path) -> checkpoint::Result<()> {
         let mut blobs = Vec::new();
@@ -1070,7 +1070,7 @@ mod tests {
                 twohot: &agent.twohot,
             };
             let mut im = Imagination::default();
-            im.forward(&nets, &set, &starts[0], &mut rngs).unwrap();
+            im.forward(&nets, &set, &starts[0], &mut rngs);
             let got = im.backward(&nets, &set, scale as f32, 1.0);
             let value = |t: &Tensor| scalar(t).unwrap();
             let case = format!("{imagination:?} {mode:?} entropy {entropy}");
