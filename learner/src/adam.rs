@@ -317,4 +317,42 @@ mod tests {
             Err(AdamError::Gradients { .. })
         ));
     }
+
+    /// A named vector of weights as a network.
+    struct Named(&'static str, Vec<f32>);
+
+    impl Parameters for Named {
+        fn tensors(&self) -> Vec<NamedTensor<'_>> {
+            vec![NamedTensor {
+                name: self.0,
+                shape: vec![self.1.len()],
+                values: &self.1,
+            }]
+        }
+
+        fn update(&mut self, f: &mut dyn FnMut(usize, &mut [f32])) {
+            f(0, &mut self.1);
+        }
+    }
+
+    #[test]
+    fn moments_are_ordered_by_name_within_each_group() {
+        let (mut z, mut y, mut a) = (
+            Named("z", vec![0.0]),
+            Named("y", vec![0.0; 2]),
+            Named("a", vec![0.0; 3]),
+        );
+        let nets: &mut [&mut dyn Parameters] = &mut [&mut z, &mut y, &mut a];
+        let lengths = |adam: &Adam| adam.m.iter().map(Vec::len).collect::<Vec<_>>();
+        assert_eq!(lengths(&Adam::new(nets, 0.1, 1e-8, 1.0)), [3, 2, 1]);
+        let mut grouped = Adam::in_groups(nets, &[2], 0.1, 1e-8, 1.0);
+        assert_eq!(lengths(&grouped), [2, 1, 3]);
+        // each gradient still reaches its own tensor
+        let grads = [vec![1.0], vec![0.0, 2.0], vec![0.0; 3]];
+        grouped.step(nets, &grads).unwrap();
+        assert_eq!(
+            (z.1[0] < 0.0, y.1[0], y.1[1] < 0.0, a.1),
+            (true, 0.0, true, vec![0.0; 3])
+        );
+    }
 }
