@@ -782,6 +782,65 @@ mod tests {
         );
     }
 
+    /// A fresh agent's every group of networks is, to the byte, the candle store that ctxrace
+    /// built for the same seed before the networks were plain: the same names, groups, seeds and
+    /// draws, the reward and critic output layers zero, the slow critic and the mask SAC's
+    /// targets copies, `log α` at `ln init_alpha`.
+    #[test]
+    fn fresh_networks_are_the_candle_stores_of_the_same_seed() {
+        let cfg = tiny(ContextMode::Cmask);
+        let agent = Dreamer::new(cfg.clone(), 3, 2).unwrap();
+        let seeded = |seed: u64, build: &dyn Fn(candle_nn::VarBuilder)| {
+            let store = ParamStore::new();
+            build(store.builder());
+            store.init(seed).unwrap();
+            store
+        };
+        let zero = |store: &ParamStore, name: &str| {
+            let (_, v) = store.named().into_iter().find(|(n, _)| n == name).unwrap();
+            v.set(&v.zeros_like().unwrap()).unwrap();
+        };
+        let size = (cfg.head_units, cfg.head_layers);
+        let policy = seeded(cfg.seed, &|vb| {
+            DreamerNets::new(&cfg, 3, 2, vb).unwrap();
+        });
+        let heads = seeded(cfg.seed + 1, &|vb| {
+            oracle::head(&cfg, vb.pp("decoder"), (cfg.units, cfg.layers), 3);
+            oracle::head(&cfg, vb.pp("reward"), size, cfg.bins);
+            oracle::head(&cfg, vb.pp("cont"), size, 1);
+        });
+        zero(&heads, "reward.out.weight");
+        let critic = seeded(cfg.seed + 2, &|vb| {
+            oracle::head(&cfg, vb.pp("critic"), size, cfg.bins);
+        });
+        zero(&critic, "critic.out.weight");
+        let critics = seeded(cfg.seed + 3, &|vb| {
+            crate::sac::TwinQ::new(3 + CONTEXT_DIM, cfg.mask.units, cfg.mask.layers, vb).unwrap();
+        });
+        let alpha = ParamStore::new();
+        let init = candle_nn::Init::Const(cfg.mask.init_alpha.ln());
+        alpha
+            .builder()
+            .get_with_hints(1, "log_alpha", init)
+            .unwrap();
+        let want = [
+            ("policy", &policy),
+            ("heads", &heads),
+            ("critic", &critic),
+            ("slow_critic", &critic),
+            ("mask_critic", &critics),
+            ("mask_target", &critics),
+            ("mask_alpha", &alpha),
+        ];
+        let got = agent.stores();
+        assert_eq!(got.len(), want.len());
+        for ((name, nets), (want_name, store)) in got.into_iter().zip(want) {
+            assert_eq!(name, want_name);
+            let bytes = to_safetensors(nets).unwrap();
+            assert!(bytes == store.to_bytes().unwrap(), "{name} differs");
+        }
+    }
+
     /// The learner feeds its networks the context at the agent's scale, as the acting policy
     /// does (`ctxrace_common::policy::dreamer`'s `acting_feeds_the_context_at_its_scale`): both
     /// build their networks from [`ctxrace_common::AgentConfig::dreamer`].

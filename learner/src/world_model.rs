@@ -681,7 +681,6 @@ mod tests {
     use candle_core::{Device, Module, Tensor};
     use ctxrace_common::agents::{ContextMode, InitialState};
     use ctxrace_common::nn::dreamer::{uniforms_per, DreamerNets};
-    use ctxrace_common::nn::plain::to_safetensors;
     use ctxrace_common::nn::{symlog as symlog_tensor, Mlp, ParamStore, RssmState};
     use rand::{Rng, SeedableRng};
 
@@ -929,45 +928,6 @@ mod tests {
                 }
             }
         }
-    }
-
-    /// Heads and a policy freshly made for a seed are, to the byte, the candle stores that
-    /// ctxrace built before the networks were plain (the same names, groups and draws), the
-    /// reward head's output layer zero.
-    #[test]
-    fn fresh_networks_are_the_candle_stores_of_the_same_seed() {
-        let cfg = DreamerConfig {
-            context: ContextMode::Cmask,
-            units: 8,
-            layers: 2,
-            deter: 8,
-            hidden: 6,
-            stoch: 2,
-            classes: 3,
-            head_units: 8,
-            head_layers: 2,
-            ..DreamerConfig::default()
-        };
-        let mut policy = PolicyNets::initial(&cfg, 3, 2).unwrap();
-        let model = WorldModel::new(&cfg, (3, 2), &mut policy).unwrap();
-        let store = ParamStore::new();
-        DreamerNets::new(&cfg, 3, 2, store.builder()).unwrap();
-        store.init(cfg.seed).unwrap();
-        assert_eq!(to_safetensors(&policy).unwrap(), store.to_bytes().unwrap());
-        let heads = ParamStore::new();
-        oracle::head(&cfg, heads.builder().pp("decoder"), (8, 2), 3);
-        oracle::head(&cfg, heads.builder().pp("reward"), (8, 2), cfg.bins);
-        oracle::head(&cfg, heads.builder().pp("cont"), (8, 2), 1);
-        heads.init(cfg.seed + 1).unwrap();
-        for (name, v) in heads.named() {
-            if name == "reward.out.weight" {
-                v.set(&v.zeros_like().unwrap()).unwrap();
-            }
-        }
-        assert_eq!(
-            to_safetensors(&model.heads).unwrap(),
-            heads.to_bytes().unwrap()
-        );
     }
 
     /// The episode `o_0 −a_0→ o_1 (r_1) −a_1→ o_2 (r_2) −a_2→ o_3 (r_3, terminated)` as each form
