@@ -50,7 +50,8 @@ pub enum AdamError {
 
 /// An Adam optimiser over the tensors of a fixed set of networks.
 pub struct Adam {
-    /// For each tensor, in the networks' order, its index in name order (that of the moments).
+    /// For each tensor, in the networks' order, its index in the moments' order (by name, group by
+    /// group: [`Adam::in_groups`]).
     slots: Vec<usize>,
     /// The tensors' names, in the networks' order.
     names: Vec<String>,
@@ -66,9 +67,25 @@ impl Adam {
     /// Adam over the tensors of `nets` with learning rate `lr`, `ε = eps` and the gradient norm
     /// clipped to `clip` (`f64::INFINITY`: no clipping).
     pub fn new<P: Parameters + ?Sized>(nets: &P, lr: f64, eps: f64, clip: f64) -> Self {
+        Self::in_groups(nets, &[], lr, eps, clip)
+    }
+
+    /// [`Adam::new`] whose moments are ordered group by group, each group's tensors by name: the
+    /// tensors of `nets` before index `ends[0]`, then those before `ends[1]`, …, then the rest
+    /// (the order of an optimiser over the parameters of several stores, one after the other:
+    /// the world model's, over the policy's encoder and RSSM, then the heads).
+    pub fn in_groups<P: Parameters + ?Sized>(
+        nets: &P,
+        ends: &[usize],
+        lr: f64,
+        eps: f64,
+        clip: f64,
+    ) -> Self {
         let tensors = nets.tensors();
+        let group = |i: usize| ends.iter().filter(|&&end| end <= i).count();
+        let key = |i: usize| (group(i), tensors[i].name);
         let mut by_name: Vec<usize> = (0..tensors.len()).collect();
-        by_name.sort_by(|&a, &b| tensors[a].name.cmp(tensors[b].name));
+        by_name.sort_by(|&a, &b| key(a).cmp(&key(b)));
         let mut slots = vec![0; tensors.len()];
         for (slot, &i) in by_name.iter().enumerate() {
             slots[i] = slot;
@@ -116,7 +133,12 @@ impl Adam {
                 });
             }
         }
-        let norm = grads.iter().map(|g| sum_of_squares(g)).sum::<f64>().sqrt();
+        // summed in the moments' order, whatever order the networks give their tensors in
+        let mut squares = vec![0f64; grads.len()];
+        for (g, &slot) in grads.iter().zip(&self.slots) {
+            squares[slot] = sum_of_squares(g);
+        }
+        let norm = squares.iter().sum::<f64>().sqrt();
         if !norm.is_finite() {
             return Ok(norm);
         }
@@ -152,7 +174,7 @@ impl Adam {
     }
 
     /// The moments and step counter as safetensors bytes (`m.{i}`, `v.{i}` for the `i`-th tensor
-    /// in name order, and `t`).
+    /// in the moments' order, and `t`).
     pub fn to_bytes(&self) -> Result<Vec<u8>, AdamError> {
         let as_bytes = |x: &[f32]| x.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>();
         let mut named: Vec<(String, Dtype, Vec<u8>)> = Vec::new();
@@ -294,5 +316,43 @@ mod tests {
             adam.step(&mut w, &[]),
             Err(AdamError::Gradients { .. })
         ));
+    }
+
+    /// A named vector of weights as a network.
+    struct Named(&'static str, Vec<f32>);
+
+    impl Parameters for Named {
+        fn tensors(&self) -> Vec<NamedTensor<'_>> {
+            vec![NamedTensor {
+                name: self.0,
+                shape: vec![self.1.len()],
+                values: &self.1,
+            }]
+        }
+
+        fn update(&mut self, f: &mut dyn FnMut(usize, &mut [f32])) {
+            f(0, &mut self.1);
+        }
+    }
+
+    #[test]
+    fn moments_are_ordered_by_name_within_each_group() {
+        let (mut z, mut y, mut a) = (
+            Named("z", vec![0.0]),
+            Named("y", vec![0.0; 2]),
+            Named("a", vec![0.0; 3]),
+        );
+        let nets: &mut [&mut dyn Parameters] = &mut [&mut z, &mut y, &mut a];
+        let lengths = |adam: &Adam| adam.m.iter().map(Vec::len).collect::<Vec<_>>();
+        assert_eq!(lengths(&Adam::new(nets, 0.1, 1e-8, 1.0)), [3, 2, 1]);
+        let mut grouped = Adam::in_groups(nets, &[2], 0.1, 1e-8, 1.0);
+        assert_eq!(lengths(&grouped), [2, 1, 3]);
+        // each gradient still reaches its own tensor
+        let grads = [vec![1.0], vec![0.0, 2.0], vec![0.0; 3]];
+        grouped.step(nets, &grads).unwrap();
+        assert_eq!(
+            (z.1[0] < 0.0, y.1[0], y.1[1] < 0.0, a.1),
+            (true, 0.0, true, vec![0.0; 3])
+        );
     }
 }

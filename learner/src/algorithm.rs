@@ -2,7 +2,7 @@
 //! process can drive any of them by name.
 
 use crate::checkpoint::CheckpointError;
-use candle_core::{DType, Result, Tensor};
+use candle_core::Result;
 pub use ctxrace_common::batch::Batch;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -25,6 +25,7 @@ pub trait Algorithm {
 }
 
 /// The value of a one-element tensor, for [`Metrics`].
-pub(crate) fn scalar(t: &Tensor) -> Result<f64> {
-    Ok(t.to_dtype(DType::F32)?.to_scalar::<f32>()? as f64)
+#[cfg(test)]
+pub(crate) fn scalar(t: &candle_core::Tensor) -> Result<f64> {
+    Ok(t.to_dtype(candle_core::DType::F32)?.to_scalar::<f32>()? as f64)
 }

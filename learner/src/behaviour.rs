@@ -38,43 +38,24 @@
 //! critic's last row's, the frozen networks' weights'.
 
 use crate::world_model::Starts;
-use candle_core::Result;
 use ctxrace_common::agents::{DreamerConfig, ImaginationLoss};
 use ctxrace_common::nn::dreamer::{normal_rows, uniform_rows};
 use ctxrace_common::nn::plain::{
     soft_cross_entropy, soft_cross_entropy_backward, twohot_decode, twohot_decode_backward,
     InputGrad, MlpGrads, MlpTrace, NonZeros, PlainMlp, PlainRssm, StepScratch, StepTrace,
 };
-use ctxrace_common::nn::{Mlp, Rssm, TwoHot};
+use ctxrace_common::nn::TwoHot;
 use rand_chacha::ChaCha8Rng;
 
-/// The networks of a behaviour step, their weights as they are at its start.
-pub(crate) struct Nets {
-    pub(crate) rssm: PlainRssm,
-    pub(crate) actor: PlainMlp,
-    pub(crate) reward: PlainMlp,
-    pub(crate) cont: PlainMlp,
-    pub(crate) critic: PlainMlp,
-    pub(crate) slow: PlainMlp,
-}
-
-impl Nets {
-    /// Copies of the candle networks.
-    pub(crate) fn new(
-        rssm: &Rssm,
-        actor: &Mlp,
-        (reward, cont): (&Mlp, &Mlp),
-        (critic, slow): (&Mlp, &Mlp),
-    ) -> Result<Self> {
-        Ok(Self {
-            rssm: PlainRssm::new(rssm)?,
-            actor: PlainMlp::new(actor)?,
-            reward: PlainMlp::new(reward)?,
-            cont: PlainMlp::new(cont)?,
-            critic: PlainMlp::new(critic)?,
-            slow: PlainMlp::new(slow)?,
-        })
-    }
+/// The networks of a behaviour step (the actor's and the critic's weights as they are at its
+/// start: the optimisers step after the backward passes).
+pub(crate) struct Nets<'a> {
+    pub(crate) rssm: &'a PlainRssm,
+    pub(crate) actor: &'a PlainMlp,
+    pub(crate) reward: &'a PlainMlp,
+    pub(crate) cont: &'a PlainMlp,
+    pub(crate) critic: &'a PlainMlp,
+    pub(crate) slow: &'a PlainMlp,
 }
 
 /// The constants of a behaviour step.
@@ -180,7 +161,7 @@ impl Imagination {
         set: &Setting,
         start: &Starts,
         rngs: &mut [ChaCha8Rng],
-    ) -> Result<()> {
+    ) {
         let cfg = set.cfg;
         let (h, a) = (imagined_steps(cfg), set.act_dim);
         let (deter, stoch, ctx) = (&start.deter, &start.stoch, &start.ctx);
@@ -246,7 +227,6 @@ impl Imagination {
             self.non_zeros.push(next, f);
         }
         self.heads(nets, set, &start.cont);
-        Ok(())
     }
 
     /// The heads on the imagined states, the λ-returns and the weights.

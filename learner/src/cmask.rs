@@ -31,20 +31,16 @@
 //! first row carries no mask), its first step's `α = 0.2` before `log α = 0` takes over, and its
 //! temperature loss on a fresh sample after the actor's step.
 
-use crate::algorithm::{scalar, Metrics};
-use crate::candle_adam::CandleAdam as Adam;
-use crate::sac::{
-    polyak, ActionRange, PassSum, PlainActor, SoftTarget, TwinQ, WeightedTransitions, Workspace,
-};
-use crate::sequences::SeqData;
+use crate::adam::Adam;
+use crate::algorithm::Metrics;
+use crate::sac::{ActionRange, PassSum, PlainActor, SoftTarget, WeightedTransitions, Workspace};
 use crate::shards::{on_shards_with, Shard};
-use candle_core::backprop::GradStore;
-use candle_core::{bail, Device, Result, Tensor};
-use candle_nn::Init;
+use candle_core::{bail, Result};
 use ctxrace_common::agents::{DreamerConfig, MaskConfig, MaskSpace, StepAlignment, CONTEXT_DIM};
 use ctxrace_common::nn::dreamer::normal_rows;
-use ctxrace_common::nn::plain::PlainMlp;
-use ctxrace_common::nn::{ParamStore, TanhGaussianActor};
+use ctxrace_common::nn::plain::{init, polyak, update_each, NamedTensor, Parameters, PlainMlp};
+use ctxrace_common::nn::{Activation, MlpShape, Weights};
+use ctxrace_common::SequenceBatch;
 use rand_chacha::ChaCha8Rng;
 use std::ops::Range;
 
@@ -80,42 +76,55 @@ pub(crate) fn choice_row(alignment: StepAlignment) -> usize {
 impl Transitions {
     /// From a batch whose rows are laid out by `alignment` under `cfg`'s `reward_delay` and
     /// `bootstrap_terminals`; `None` for sequences too short for one transition.
-    fn new(d: &SeqData, cfg: &MaskConfig, alignment: StepAlignment) -> Result<Option<Self>> {
-        let (b, t, delay) = (d.batch, d.length, cfg.reward_delay);
+    fn new(seq: &SequenceBatch, cfg: &MaskConfig, alignment: StepAlignment) -> Option<Self> {
+        let (t, delay) = (seq.length, cfg.reward_delay);
         let row = choice_row(alignment);
         if t < 2 + delay {
-            return Ok(None);
+            return None;
         }
         let n = t - 1 - delay;
-        let span = |x: &Tensor, start: usize| x.narrow(1, start, n)?.flatten_all()?.to_vec1();
-        let terminal = span(&d.terminal, row)?;
-        Ok(Some(Self {
+        // rows `start … start + n − 1` of every sequence of `x` (`width` values a row)
+        let span = |x: &[f32], width: usize, start: usize| -> Vec<f32> {
+            (0..seq.batch)
+                .flat_map(|b| {
+                    let first = (b * t + start) * width;
+                    x[first..first + n * width].iter().copied()
+                })
+                .collect()
+        };
+        let terminal = if cfg.bootstrap_terminals {
+            vec![0.0; seq.batch * n]
+        } else {
+            span(&seq.is_terminal, 1, row)
+        };
+        Some(Self {
             per_sequence: n,
-            obs: span(&d.obs, 0)?,
-            mask: span(&d.mask, row)?,
-            reward: span(&d.reward, row + delay)?,
-            next_obs: span(&d.obs, 1)?,
-            terminal: if cfg.bootstrap_terminals {
-                vec![0.0; terminal.len()]
-            } else {
-                terminal
-            },
-            valid: Self::valid(d, 0..b, delay, row)?.to_vec1()?,
-        }))
+            obs: span(&seq.obs, seq.obs_dim, 0),
+            mask: span(&seq.mask, CONTEXT_DIM, row),
+            reward: span(&seq.reward, 1, row + delay),
+            next_obs: span(&seq.obs, seq.obs_dim, 1),
+            terminal,
+            valid: Self::valid(seq, delay, row),
+        })
     }
 
-    /// `[|rows|·(T−1−delay)]`: 1 where rows `t + 1 … t + max(1, row + delay)` of the sequences
-    /// `rows` continue the episode and the action of row `t + row` was chosen through a mask
-    /// (`row` from [`choice_row`]).
-    fn valid(d: &SeqData, rows: Range<usize>, delay: usize, row: usize) -> Result<Tensor> {
-        let n = d.length - 1 - delay;
-        let from =
-            |x: &Tensor, start: usize| x.narrow(0, rows.start, rows.len())?.narrow(1, start, n);
-        let mut valid = from(&d.has_mask, row)?;
-        for start in 1..=(row + delay).max(1) {
-            valid = (1.0 - from(&d.first, start)?)?.mul(&valid)?;
+    /// `[B·(T−1−delay)]`: 1 where rows `t + 1 … t + max(1, row + delay)` of the sequences
+    /// continue the episode and the action of row `t + row` was chosen through a mask (`row`
+    /// from [`choice_row`]).
+    fn valid(seq: &SequenceBatch, delay: usize, row: usize) -> Vec<f32> {
+        let (t, n) = (seq.length, seq.length - 1 - delay);
+        let mut valid = Vec::with_capacity(seq.batch * n);
+        for b in 0..seq.batch {
+            for i in b * t..b * t + n {
+                let continues = (1..=(row + delay).max(1)).all(|s| seq.is_first[i + s] == 0.0);
+                valid.push(if continues {
+                    seq.has_mask[i + row]
+                } else {
+                    0.0
+                });
+            }
         }
-        valid.flatten_all()
+        valid
     }
 
     /// The number of valid transitions.
@@ -153,14 +162,60 @@ impl Transitions {
     }
 }
 
-/// cMask's mask SAC (the actor lives in the policy store under `mask`).
+/// The twin critics `Q_1, Q_2 (o, m)`: ReLU MLPs `q1`, `q2` on `[o, m]`.
+pub(crate) struct TwinCritics(pub(crate) [PlainMlp; 2]);
+
+impl TwinCritics {
+    /// Critics of `cfg` for observations of `obs_dim`, at their construction values.
+    fn new(cfg: &MaskConfig, obs_dim: usize) -> Result<Self> {
+        let shape = MlpShape {
+            input: obs_dim + CONTEXT_DIM,
+            units: cfg.units,
+            layers: cfg.layers,
+            out: Some(1),
+            act: Activation::Relu,
+        };
+        let w = &mut Weights::initial();
+        let q = |w: &mut Weights, prefix: &str| {
+            PlainMlp::from_weights(w, prefix, &shape).map_err(candle_core::Error::wrap)
+        };
+        Ok(Self([q(w, "q1.")?, q(w, "q2.")?]))
+    }
+}
+
+impl Parameters for TwinCritics {
+    fn tensors(&self) -> Vec<NamedTensor<'_>> {
+        self.0.iter().flat_map(|q| q.tensors()).collect()
+    }
+
+    fn update(&mut self, f: &mut dyn FnMut(usize, &mut [f32])) {
+        update_each(self.0.iter_mut().map(|q| q as &mut dyn Parameters), f);
+    }
+}
+
+/// The temperature's logarithm `log α` (the "mask_alpha" weights).
+pub(crate) struct LogAlpha(Vec<f32>);
+
+impl Parameters for LogAlpha {
+    fn tensors(&self) -> Vec<NamedTensor<'_>> {
+        vec![NamedTensor {
+            name: "log_alpha",
+            shape: vec![1],
+            values: &self.0,
+        }]
+    }
+
+    fn update(&mut self, f: &mut dyn FnMut(usize, &mut [f32])) {
+        f(0, &mut self.0);
+    }
+}
+
+/// cMask's mask SAC (the actor is the policy's `mask`).
 pub(crate) struct MaskSac {
-    pub(crate) critic_store: ParamStore,
-    pub(crate) target_store: ParamStore,
-    pub(crate) alpha_store: ParamStore,
-    pub(crate) q: TwinQ,
-    q_target: TwinQ,
-    log_alpha: Tensor,
+    /// The twin critics ("mask_critic"), their Polyak targets ("mask_target") and `log α`.
+    pub(crate) critics: TwinCritics,
+    pub(crate) targets: TwinCritics,
+    pub(crate) log_alpha: LogAlpha,
     pub(crate) actor_opt: Adam,
     pub(crate) critic_opt: Adam,
     pub(crate) alpha_opt: Adam,
@@ -181,42 +236,24 @@ struct StepData<'a> {
 }
 
 impl MaskSac {
-    pub(crate) fn new(cfg: &DreamerConfig, obs_dim: usize, policy: &ParamStore) -> Result<Self> {
+    /// The mask SAC of `cfg` for observations of `obs_dim` and the mask actor `actor`: critics
+    /// initialised from `cfg.seed + 3`, the targets their copy, `log α` from `init_alpha`.
+    pub(crate) fn new(cfg: &DreamerConfig, obs_dim: usize, actor: &PlainMlp) -> Result<Self> {
         let m = &cfg.mask;
-        let critic_store = ParamStore::new();
-        let q = TwinQ::new(
-            obs_dim + CONTEXT_DIM,
-            m.units,
-            m.layers,
-            critic_store.builder(),
-        )?;
-        let target_store = ParamStore::new();
-        let q_target = TwinQ::new(
-            obs_dim + CONTEXT_DIM,
-            m.units,
-            m.layers,
-            target_store.builder(),
-        )?;
-        critic_store.init(cfg.seed.wrapping_add(3))?;
-        target_store.load_bytes(&critic_store.to_bytes()?)?;
         if m.init_alpha.is_nan() || m.init_alpha <= 0.0 {
             bail!("mask.init_alpha must be positive");
         }
-        let alpha_store = ParamStore::new();
-        let log_alpha =
-            alpha_store
-                .builder()
-                .get_with_hints(1, "log_alpha", Init::Const(m.init_alpha.ln()))?;
+        let mut critics = TwinCritics::new(m, obs_dim)?;
+        init(&mut critics, cfg.seed.wrapping_add(3));
+        let targets = TwinCritics(critics.0.clone());
+        let log_alpha = LogAlpha(vec![m.init_alpha.ln() as f32]);
         let no_clip = f64::INFINITY;
         Ok(Self {
-            actor_opt: Adam::new(policy.vars_under(&["mask"]), m.lr, 1e-8, no_clip),
-            critic_opt: Adam::new(critic_store.vars(), m.lr, 1e-8, no_clip),
-            alpha_opt: Adam::new(alpha_store.vars(), m.lr, 1e-8, no_clip),
-            critic_store,
-            target_store,
-            alpha_store,
-            q,
-            q_target,
+            actor_opt: Adam::new(actor, m.lr, 1e-8, no_clip),
+            critic_opt: Adam::new(&critics, m.lr, 1e-8, no_clip),
+            alpha_opt: Adam::new(&log_alpha, m.lr, 1e-8, no_clip),
+            critics,
+            targets,
             log_alpha,
             cfg: m.clone(),
             alignment: cfg.step_alignment,
@@ -224,7 +261,15 @@ impl MaskSac {
         })
     }
 
-    /// One SAC step (critics, actor, temperature, targets) on the transitions of the batch `d`
+    /// The mask actor with its log-std bounds.
+    fn plain_actor<'a>(&self, net: &'a PlainMlp) -> PlainActor<'a> {
+        PlainActor {
+            net,
+            log_std_clamp: self.cfg.log_std_clamp.map(|b| b as f32),
+        }
+    }
+
+    /// One SAC step (critics, actor, temperature, targets) on the transitions of the batch `seq`
     /// and the masks stored with them, the learner's step `step` (the targets move when it is a
     /// multiple of `target_every`). The critic and actor losses are means over the valid
     /// transitions; each of the `workers` shards of sequences sums its part (divided by the
@@ -232,17 +277,17 @@ impl MaskSac {
     /// without valid transitions (all random prefill) takes no step.
     pub(crate) fn step(
         &mut self,
-        actor: &TanhGaussianActor,
-        d: &SeqData,
+        actor: &mut PlainMlp,
+        seq: &SequenceBatch,
         (step, workers): (u64, usize),
         rngs: &mut [ChaCha8Rng],
         metrics: &mut Metrics,
     ) -> Result<()> {
-        let Some(transitions) = Transitions::new(d, &self.cfg, self.alignment)? else {
+        let Some(transitions) = Transitions::new(seq, &self.cfg, self.alignment) else {
             return Ok(());
         };
         let valid_count = f64::from(transitions.valid_count());
-        let alpha = scalar(&self.log_alpha.exp()?.sum_all()?)?;
+        let alpha = f64::from(self.log_alpha.0[0].exp());
         metrics.insert("mask/acted_transitions".into(), valid_count);
         metrics.insert("mask/alpha".into(), alpha);
         if valid_count == 0.0 {
@@ -257,21 +302,21 @@ impl MaskSac {
             alpha: alpha as f32,
             count: valid_count as f32,
         };
-        let plain_actor = PlainMlp::new(actor.net())?;
-        let copy = PlainActor::new(&plain_actor, actor);
-        let (grads, q_loss) = self.critic_grads(copy, data, workers, rngs)?;
-        self.critic_opt.step(&grads)?;
-        let (grads, actor_loss, mean_logp) =
-            self.actor_grads(actor, &plain_actor, data, workers, rngs)?;
-        self.actor_opt.step(&grads)?;
+        let wrap = candle_core::Error::wrap;
+        let (grads, q_loss) = self.critic_grads(actor, data, workers, rngs)?;
+        self.critic_opt
+            .step(&mut self.critics, &grads)
+            .map_err(wrap)?;
+        let (grads, actor_loss, mean_logp) = self.actor_grads(actor, data, workers, rngs)?;
+        self.actor_opt.step(actor, &grads).map_err(wrap)?;
 
         // temperature: minimise −log α · mean(log π + target entropy) over the valid transitions
         let gap = (mean_logp + self.cfg.target_entropy) as f32;
-        let mut grads = GradStore::default();
-        grads.insert(&self.log_alpha, Tensor::new(&[-gap], &Device::Cpu)?);
-        self.alpha_opt.step(&grads)?;
+        self.alpha_opt
+            .step(&mut self.log_alpha, &[vec![-gap]])
+            .map_err(wrap)?;
         if step.is_multiple_of(self.cfg.target_every as u64) {
-            polyak(&self.target_store, &self.critic_store, self.cfg.tau)?;
+            polyak(&mut self.targets, &self.critics, self.cfg.tau);
         }
 
         metrics.insert("mask/q_loss".into(), q_loss);
@@ -283,7 +328,7 @@ impl MaskSac {
     /// Runs `pass` on each shard's weighted transitions (and the masks' noise drawn from the
     /// shard's sequences' streams), one shard per worker in parallel, and sums the results.
     fn on_transitions<T: PassSum + Send>(
-        &mut self,
+        work: &mut Vec<Workspace>,
         data: StepData,
         workers: usize,
         rngs: &mut [ChaCha8Rng],
@@ -291,19 +336,12 @@ impl MaskSac {
     ) -> Result<T> {
         let tr = data.transitions;
         let batch = tr.valid.len() / tr.per_sequence;
-        self.work
-            .resize_with(workers.clamp(1, batch.max(1)), Workspace::default);
-        let parts = on_shards_with(
-            workers,
-            batch,
-            rngs,
-            &mut self.work,
-            |shard: Shard, rngs, w| {
-                let weight = tr.weights(&shard.rows, data.count);
-                let noise = normal_rows(rngs, tr.per_sequence, CONTEXT_DIM);
-                Ok(pass(w, &tr.weighted(&shard.rows, &weight), &noise))
-            },
-        )?;
+        work.resize_with(workers.clamp(1, batch.max(1)), Workspace::default);
+        let parts = on_shards_with(workers, batch, rngs, work, |shard: Shard, rngs, w| {
+            let weight = tr.weights(&shard.rows, data.count);
+            let noise = normal_rows(rngs, tr.per_sequence, CONTEXT_DIM);
+            Ok(pass(w, &tr.weighted(&shard.rows, &weight), &noise))
+        })?;
         let mut parts = parts.into_iter();
         let Some(mut sum) = parts.next() else {
             bail!("the mask SAC's batch has no shards");
@@ -324,15 +362,14 @@ impl MaskSac {
     }
 
     /// The critics' gradients of their loss over the valid transitions of `data` (the next masks
-    /// drawn from `actor`, this actor's copy) and the loss.
+    /// drawn from `actor`) and the loss.
     fn critic_grads(
         &mut self,
-        actor: PlainActor,
+        actor: &PlainMlp,
         data: StepData,
         workers: usize,
         rngs: &mut [ChaCha8Rng],
-    ) -> Result<(GradStore, f64)> {
-        let (critics, targets) = (self.q.plain()?, self.q_target.plain()?);
+    ) -> Result<(Vec<Vec<f32>>, f64)> {
         let soft = SoftTarget {
             alpha: data.alpha,
             gamma: self.cfg.gamma as f32,
@@ -340,41 +377,43 @@ impl MaskSac {
             bounds: [0.0, 1.0],
             smoothing: &[],
         };
-        let nets = (&critics, &targets, actor);
-        let sum = self.on_transitions(data, workers, rngs, |w, tr, noise| {
+        let nets = (&self.critics.0, &self.targets.0, self.plain_actor(actor));
+        let sum = Self::on_transitions(&mut self.work, data, workers, rngs, |w, tr, noise| {
             w.critic_pass(nets, tr, noise, soft)
         })?;
-        let mut grads = GradStore::default();
-        self.q.add_grads_to(&critics, sum.grads, &mut grads)?;
+        let [q1, q2] = sum.grads;
+        let mut grads = q1.into_tensors(&self.critics.0[0]);
+        q2.push_tensors(&self.critics.0[1], &mut grads);
         Ok((grads, sum.loss))
     }
 
     /// The mask actor's gradients of its loss over the valid transitions of `data` through
-    /// the current critics (`plain` is `actor`'s copy): `(gradients, loss, mean log π)`.
+    /// the current critics: `(gradients, loss, mean log π)`.
     fn actor_grads(
         &mut self,
-        actor: &TanhGaussianActor,
-        plain: &PlainMlp,
+        actor: &PlainMlp,
         data: StepData,
         workers: usize,
         rngs: &mut [ChaCha8Rng],
-    ) -> Result<(GradStore, f64, f64)> {
-        let critics = self.q.plain()?;
+    ) -> Result<(Vec<Vec<f32>>, f64, f64)> {
         let with = (data.alpha, self.range());
-        let plain_actor = PlainActor::new(plain, actor);
-        let sum = self.on_transitions(data, workers, rngs, |w, tr, noise| {
-            w.actor_pass((&critics, plain_actor), (tr.obs, tr.weight), noise, with)
+        let nets = (&self.critics.0, self.plain_actor(actor));
+        let sum = Self::on_transitions(&mut self.work, data, workers, rngs, |w, tr, noise| {
+            w.actor_pass(nets, (tr.obs, tr.weight), noise, with)
         })?;
-        let mut grads = GradStore::default();
-        plain.add_grads_to(sum.grads, actor.net(), &mut grads)?;
-        Ok((grads, sum.loss, sum.log_prob))
+        Ok((sum.grads.into_tensors(actor), sum.loss, sum.log_prob))
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use ctxrace_common::SequenceBatch;
+    use crate::algorithm::scalar;
+    use crate::candle_sac::TwinQ;
+    use crate::sequences::SeqData;
+    use crate::world_model::oracle;
+    use candle_core::{Device, Tensor};
+    use ctxrace_common::nn::TanhGaussianActor;
     use rand::{Rng, SeedableRng};
 
     /// One sequence of one-value observations and actions (actions and contexts zero): its
@@ -414,10 +453,7 @@ mod tests {
                 vec![0.0, 1.0, 0.0, 0.0],
             ),
         );
-        let d = SeqData::new(&seq, 1, 1).unwrap();
-        let tr = Transitions::new(&d, &MaskConfig::default(), StepAlignment::Ctxrace)
-            .unwrap()
-            .unwrap();
+        let tr = Transitions::new(&seq, &MaskConfig::default(), StepAlignment::Ctxrace).unwrap();
         assert_eq!(tr.obs, [0.0, 1.0, 2.0]);
         assert_eq!(tr.mask, [0.3, 0.4, 0.0, 0.0, 0.7, 0.8]);
         assert_eq!(tr.reward, [10.0, 20.0, 30.0]);
@@ -440,17 +476,12 @@ mod tests {
                 vec![0.0, 1.0, 1.0, 1.0, 0.0],
             ),
         );
-        let d = SeqData::new(&seq, 1, 1).unwrap();
-        let ours = Transitions::new(&d, &MaskConfig::default(), StepAlignment::Ctxrace)
-            .unwrap()
-            .unwrap();
+        let ours = Transitions::new(&seq, &MaskConfig::default(), StepAlignment::Ctxrace).unwrap();
         assert_eq!(ours.reward, [10.0, 20.0, 30.0, 40.0]);
         assert_eq!(ours.terminal, [0.0, 0.0, 1.0, 0.0]);
         assert_eq!(ours.valid, [1.0, 1.0, 1.0, 0.0]);
         let code = MaskConfig::default().with_paper_code_mask();
-        let tr = Transitions::new(&d, &code, StepAlignment::Ctxrace)
-            .unwrap()
-            .unwrap();
+        let tr = Transitions::new(&seq, &code, StepAlignment::Ctxrace).unwrap();
         assert_eq!(tr.obs, [0.0, 1.0, 2.0]);
         assert_eq!(tr.mask, [0.3, 0.4, 0.5, 0.6, 0.7, 0.8]);
         assert_eq!(tr.reward, [20.0, 30.0, 40.0]);
@@ -458,26 +489,19 @@ mod tests {
         assert_eq!(tr.terminal, [0.0, 0.0, 0.0]);
         // o_4 starts a new episode: the last mask's delayed reward is not its own episode's
         assert_eq!(tr.valid, [1.0, 1.0, 0.0]);
-        let short = SeqData::new(
-            &SequenceBatch {
-                length: 2,
-                obs: vec![0.0; 2],
-                action: vec![0.0; 2],
-                reward: vec![0.0; 2],
-                is_first: vec![1.0, 0.0],
-                is_terminal: vec![0.0; 2],
-                context: vec![0.0; 4],
-                mask: vec![0.0; 4],
-                has_mask: vec![0.0, 1.0],
-                ..seq
-            },
-            1,
-            1,
-        )
-        .unwrap();
-        assert!(Transitions::new(&short, &code, StepAlignment::Ctxrace)
-            .unwrap()
-            .is_none());
+        let short = SequenceBatch {
+            length: 2,
+            obs: vec![0.0; 2],
+            action: vec![0.0; 2],
+            reward: vec![0.0; 2],
+            is_first: vec![1.0, 0.0],
+            is_terminal: vec![0.0; 2],
+            context: vec![0.0; 4],
+            mask: vec![0.0; 4],
+            has_mask: vec![0.0, 1.0],
+            ..seq
+        };
+        assert!(Transitions::new(&short, &code, StepAlignment::Ctxrace).is_none());
     }
 
     /// Under the paper code's rows `(o_t, a_t, r_{t+1})` (`step_alignment = "paper-code"`) the
@@ -494,10 +518,7 @@ mod tests {
                 vec![1.0, 1.0, 0.0, 1.0, 1.0],
             ),
         );
-        let d = SeqData::new(&seq, 1, 1).unwrap();
-        let own = Transitions::new(&d, &MaskConfig::default(), StepAlignment::PaperCode)
-            .unwrap()
-            .unwrap();
+        let own = Transitions::new(&seq, &MaskConfig::default(), StepAlignment::PaperCode).unwrap();
         assert_eq!(own.obs, [0.0, 1.0, 2.0, 3.0]);
         assert_eq!(own.mask, [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8]);
         assert_eq!(own.reward, [10.0, 20.0, 30.0, 40.0]);
@@ -509,9 +530,7 @@ mod tests {
             reward_delay: 1,
             ..MaskConfig::default()
         };
-        let tr = Transitions::new(&d, &late, StepAlignment::PaperCode)
-            .unwrap()
-            .unwrap();
+        let tr = Transitions::new(&seq, &late, StepAlignment::PaperCode).unwrap();
         assert_eq!(tr.mask, [0.1, 0.2, 0.3, 0.4, 0.5, 0.6]);
         assert_eq!(tr.reward, [20.0, 30.0, 40.0]);
         assert_eq!(tr.valid, [1.0, 1.0, 0.0]);
@@ -540,8 +559,8 @@ mod tests {
     /// differentiate by hand.
     fn candle_losses(
         sac: &MaskSac,
-        actor: &TanhGaussianActor,
-        d: &SeqData,
+        (actor, q, q_target): (&TanhGaussianActor, &TwinQ, &TwinQ),
+        (seq, d): (&SequenceBatch, &SeqData),
         (next_noise, noise): (&[f32], &[f32]),
         alpha: f64,
     ) -> Result<(Tensor, Tensor)> {
@@ -554,20 +573,21 @@ mod tests {
         let reward = span(&d.reward, row + cfg.reward_delay)?.flatten_all()?;
         let terminal = span(&d.terminal, row)?.flatten_all()?;
         let terminal = (terminal * f64::from(u8::from(!cfg.bootstrap_terminals)))?;
-        let valid = Transitions::valid(d, 0..b, cfg.reward_delay, row)?;
+        let valid = Transitions::valid(seq, cfg.reward_delay, row);
+        let valid = Tensor::from_vec(valid, n, &Device::Cpu)?;
         let count = valid.sum_all()?;
         let mean = |x: &Tensor| x.mul(&valid)?.sum_all()?.div(&count);
         let noise_of = |v: &[f32]| Tensor::from_slice(v, (n, CONTEXT_DIM), &Device::Cpu);
         let next = actor.sample(&next_obs, &noise_of(next_noise)?)?;
         let (next_m, next_logp) = critic_input(cfg, next, true)?;
-        let soft = (sac.q_target.min(&next_obs, &next_m)? - (next_logp * alpha)?)?;
+        let soft = (q_target.min(&next_obs, &next_m)? - (next_logp * alpha)?)?;
         let keep = ((1.0 - terminal)? * cfg.gamma)?;
         let y = (reward + keep.mul(&soft)?)?.detach();
-        let (q1, q2) = sac.q.forward(&obs, &mask)?;
+        let (q1, q2) = q.forward(&obs, &mask)?;
         let critic = mean(&((q1 - &y)?.sqr()? + (q2 - &y)?.sqr()?)?)?;
         let sample = actor.sample(&obs, &noise_of(noise)?)?;
         let (m, logp) = critic_input(cfg, sample, false)?;
-        let actor_loss = mean(&((logp * alpha)? - sac.q.min(&obs, &m)?)?)?;
+        let actor_loss = mean(&((logp * alpha)? - q.min(&obs, &m)?)?)?;
         Ok((critic, actor_loss))
     }
 
@@ -608,17 +628,20 @@ mod tests {
                 .map(|k| f32::from(k % t != 0 && k / t != 3))
                 .collect(),
         };
-        let d = SeqData::new(&seq, o, 1).unwrap();
         let cfg = DreamerConfig {
             mask,
             ..DreamerConfig::default()
         };
-        let policy = ParamStore::new();
-        let actor = TanhGaussianActor::new(o, CONTEXT_DIM, 16, 2, policy.builder().pp("mask"))
-            .unwrap()
-            .with_log_std_clamp(cfg.mask.log_std_clamp);
-        policy.init(5).unwrap();
-        let mut sac = MaskSac::new(&cfg, o, &policy).unwrap();
+        let shape = MlpShape {
+            input: o,
+            units: 16,
+            layers: 2,
+            out: Some(2 * CONTEXT_DIM),
+            act: Activation::Relu,
+        };
+        let mut actor = PlainMlp::from_weights(&mut Weights::initial(), "mask.", &shape).unwrap();
+        init(&mut actor, 5);
+        let mut sac = MaskSac::new(&cfg, o, &actor).unwrap();
         let streams = |seed: u64| -> Vec<ChaCha8Rng> {
             (0..b as u64)
                 .map(|i| {
@@ -630,53 +653,62 @@ mod tests {
         };
         // critics and targets apart, so that the target path weighs
         for k in 0..3 {
-            sac.step(&actor, &d, (k, 2), &mut streams(k), &mut Metrics::new())
-                .unwrap();
+            sac.step(
+                &mut actor,
+                &seq,
+                (k, 2),
+                &mut streams(k),
+                &mut Metrics::new(),
+            )
+            .unwrap();
         }
+        // the candle oracle of the networks as they are now
+        let clamp = cfg.mask.log_std_clamp;
+        let (actor_store, candle_actor) = oracle::store_of(&actor, |vb| {
+            TanhGaussianActor::new(o, CONTEXT_DIM, 16, 2, vb.pp("mask"))
+                .unwrap()
+                .with_log_std_clamp(clamp)
+        });
+        let twin = |vb: candle_nn::VarBuilder| TwinQ::new(o + CONTEXT_DIM, 16, 2, vb).unwrap();
+        let (critic_store, q) = oracle::store_of(&sac.critics, twin);
+        let (_, q_target) = oracle::store_of(&sac.targets, twin);
         let alpha = 0.25;
         let mut draws = streams(99);
         let per = t - 1 - cfg.mask.reward_delay;
         let next_noise = normal_rows(&mut draws, per, CONTEXT_DIM);
         let noise = normal_rows(&mut draws, per, CONTEXT_DIM);
+        let d = SeqData::new(&seq, o, 1).unwrap();
+        let candle_nets = (&candle_actor, &q, &q_target);
         let (critic, actor_loss) =
-            candle_losses(&sac, &actor, &d, (&next_noise, &noise), alpha).unwrap();
+            candle_losses(&sac, candle_nets, (&seq, &d), (&next_noise, &noise), alpha).unwrap();
         let (want_c, want_a) = (critic.backward().unwrap(), actor_loss.backward().unwrap());
-        let transitions = Transitions::new(&d, &cfg.mask, cfg.step_alignment)
-            .unwrap()
-            .unwrap();
+        let transitions = Transitions::new(&seq, &cfg.mask, cfg.step_alignment).unwrap();
         let data = StepData {
             transitions: &transitions,
             alpha: alpha as f32,
             count: transitions.valid_count(),
         };
-        let plain = PlainMlp::new(actor.net()).unwrap();
         for workers in [1, 2, 4] {
             let mut rngs = streams(99);
-            let copy = PlainActor::new(&plain, &actor);
-            let (got_c, loss_c) = sac.critic_grads(copy, data, workers, &mut rngs).unwrap();
-            let (got_a, loss_a, _) = sac
-                .actor_grads(&actor, &plain, data, workers, &mut rngs)
-                .unwrap();
+            let (got_c, loss_c) = sac.critic_grads(&actor, data, workers, &mut rngs).unwrap();
+            let (got_a, loss_a, _) = sac.actor_grads(&actor, data, workers, &mut rngs).unwrap();
             let close = |a: f64, t: &Tensor| {
                 let b = scalar(t).unwrap();
                 assert!((a - b).abs() < 1e-5 * (1.0 + b.abs()), "{a} vs {b}");
             };
             close(loss_c, &critic);
             close(loss_a, &actor_loss);
-            for (params, got, want) in [
-                (policy.named(), &got_a, &want_a),
-                (sac.critic_store.named(), &got_c, &want_c),
+            let actor_tensors = actor.tensors();
+            let critic_tensors = sac.critics.tensors();
+            for (tensors, store, got, want) in [
+                (&actor_tensors, &actor_store, &got_a, &want_a),
+                (&critic_tensors, &critic_store, &got_c, &want_c),
             ] {
-                for (name, v) in params {
-                    let values = |g: &GradStore| {
-                        g.get(v.as_tensor())
-                            .unwrap()
-                            .flatten_all()
-                            .unwrap()
-                            .to_vec1::<f32>()
-                            .unwrap()
-                    };
-                    let (g, w) = (values(got), values(want));
+                assert_eq!(tensors.len(), got.len());
+                for (t, g) in tensors.iter().zip(got) {
+                    let name = t.name;
+                    let w: Vec<f32> = oracle::grad(want, store, name).unwrap();
+                    assert_eq!(g.len(), w.len(), "{name}");
                     let scale = w.iter().fold(0f32, |m, x| m.max(x.abs())).max(1e-6);
                     assert!(w.iter().any(|&x| x != 0.0), "{name}: zero gradient");
                     for (i, (a, b)) in g.iter().zip(&w).enumerate() {

@@ -7,7 +7,7 @@ pub mod algorithm;
 mod behaviour;
 pub mod best;
 pub mod cadence;
-mod candle_adam;
+#[cfg(test)]
 mod candle_sac;
 pub mod checkpoint;
 pub mod cmask;
@@ -18,7 +18,8 @@ pub mod returns;
 pub mod runlog;
 pub mod sac;
 mod sac_core;
-pub mod sequences;
+#[cfg(test)]
+mod sequences;
 pub mod shards;
 pub mod tensorboard;
 pub mod trained;

@@ -1,5 +1,5 @@
-//! DreamerV3's return maths: λ-returns over an imagined trajectory and the percentile return
-//! normaliser.
+//! DreamerV3's return maths: λ-returns over an imagined trajectory (computed on plain buffers by
+//! [`crate::behaviour`]; here as the tests' candle oracle) and the percentile return normaliser.
 //!
 //! λ-return, for rewards `r_{t+1}`, continue probabilities `c_{t+1}` and values `v_t` of the
 //! states `s_0 … s_H` of a trajectory:
@@ -11,12 +11,15 @@
 //! Return normalisation: `lo ← d·lo + (1 − d)·P5(R)`, `hi ← d·hi + (1 − d)·P95(R)` from zero
 //! (no bias correction, as DreamerV3 does), and returns are divided by `S = max(1, hi − lo)`.
 
+#[cfg(test)]
 use candle_core::{Result, Tensor};
 use serde::{Deserialize, Serialize};
 
 /// λ-returns `R_0 … R_{H−1}` `[H, N]` from `reward` `[H, N]` (`r_1 … r_H`), `cont` `[H, N]`
-/// (`c_1 … c_H`) and `value` `[H + 1, N]` (`v_0 … v_H`); differentiable in all three.
-pub fn lambda_returns(
+/// (`c_1 … c_H`) and `value` `[H + 1, N]` (`v_0 … v_H`), as candle tensors differentiable in all
+/// three: the oracle of the hand-differentiated returns of [`crate::behaviour`].
+#[cfg(test)]
+pub(crate) fn lambda_returns(
     reward: &Tensor,
     cont: &Tensor,
     value: &Tensor,

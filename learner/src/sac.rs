@@ -36,7 +36,6 @@
 
 use crate::algorithm::{Algorithm, Batch, Metrics};
 // the candle-held critics and Polyak of cMask's mask SAC and Dreamer, until they train in place
-pub(crate) use crate::candle_sac::{polyak, TwinQ};
 use crate::checkpoint;
 pub use crate::sac_core::SacError;
 pub(crate) use crate::sac_core::{

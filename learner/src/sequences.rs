@@ -1,5 +1,5 @@
-//! A sequence batch of the replay as tensors, for the world model, the behaviour learning and
-//! cMask's mask SAC.
+//! A sequence batch of the replay as candle tensors, for the tests' candle compositions of the
+//! world model and cMask's mask SAC (the training steps read the batch's rows as they are).
 
 use candle_core::{Device, Result, Tensor};
 use ctxrace_common::agents::CONTEXT_DIM;
@@ -23,8 +23,6 @@ pub(crate) struct SeqData {
     pub(crate) context: Tensor,
     /// `[B, T, 2]` the mask that chose the action before step `t`.
     pub(crate) mask: Tensor,
-    /// `[B, T]` 1 where that action was chosen through a mask.
-    pub(crate) has_mask: Tensor,
 }
 
 impl SeqData {
@@ -42,7 +40,6 @@ impl SeqData {
             terminal: Tensor::from_slice(&b.is_terminal, (bs, t), dev)?,
             context: Tensor::from_slice(&b.context, (bs, t, CONTEXT_DIM), dev)?,
             mask: Tensor::from_slice(&b.mask, (bs, t, CONTEXT_DIM), dev)?,
-            has_mask: Tensor::from_slice(&b.has_mask, (bs, t), dev)?,
         })
     }
 

@@ -21,23 +21,23 @@
 //! action enters the sequence model before that row's posterior), the encoder reads
 //! `symlog [o_t, a_t]` and the decoder reconstructs it (its action target zeroed where an
 //! episode starts inside a sequence, as the code leaves it). `initial_state = "learned"` starts
-//! the sequences from the learned state ([`Rssm::initial`]), which the loss trains.
+//! the sequences from the learned state ([`PlainRssm::initial_state`]), which the loss trains.
 //!
-//! The encoder and the RSSM live in the acting policy's store (the actors run them); the model
-//! holds views of them that share their storage.
+//! The encoder and the RSSM are the acting policy's ([`PolicyNets`]: the actors run them); the
+//! model holds the heads and trains all of them in place.
 
+use crate::adam::Adam;
 use crate::algorithm::Metrics;
-use crate::candle_adam::CandleAdam as Adam;
 use crate::shards::{add_part, on_shards_with, weighted_mean};
-use candle_core::backprop::GradStore;
 use candle_core::{bail, Result};
 use ctxrace_common::agents::{DreamerConfig, StepAlignment};
-use ctxrace_common::nn::dreamer::{uniform_rows, DreamerNets};
+use ctxrace_common::nn::dreamer::{state_head, uniform_rows, PolicyNets};
 use ctxrace_common::nn::plain::{
-    categorical_kl, categorical_kl_backward, soft_cross_entropy, soft_cross_entropy_backward,
-    InputGrad, MlpGrads, MlpTrace, NonZeros, ObserveTrace, PlainMlp, PlainRssm, RssmGrads,
+    categorical_kl, categorical_kl_backward, init, soft_cross_entropy, soft_cross_entropy_backward,
+    update_each, InputGrad, MlpGrads, MlpTrace, NamedTensor, NonZeros, ObserveTrace, Parameters,
+    PlainMlp, PlainRssm, RssmGrads,
 };
-use ctxrace_common::nn::{symlog_value as symlog, Activation, Mlp, ParamStore, Rssm, TwoHot};
+use ctxrace_common::nn::{symlog_value as symlog, TwoHot, Weights};
 use ctxrace_common::SequenceBatch;
 use rand_chacha::ChaCha8Rng;
 
@@ -56,18 +56,63 @@ pub(crate) struct Starts {
     pub(crate) ctx: Vec<f32>,
 }
 
-/// Encoder, RSSM, decoder, reward and continue heads, and the optimiser that trains them.
+/// Sets the tensor `name` of `net` to zero (an output layer that starts silent).
+pub(crate) fn zero_tensor<P: Parameters + ?Sized>(net: &mut P, name: &str) {
+    let found = net.tensors().iter().position(|t| t.name == name);
+    net.update(&mut |i, values| {
+        if Some(i) == found {
+            values.fill(0.0);
+        }
+    });
+}
+
+/// The decoder, reward and continue heads on `[h, z, c]` (the "heads" weights).
+pub(crate) struct Heads {
+    pub(crate) decoder: PlainMlp,
+    pub(crate) reward: PlainMlp,
+    pub(crate) cont: PlainMlp,
+}
+
+impl Heads {
+    /// Heads of `cfg` for observations of `obs_dim` and actions of `act_dim`, initialised from
+    /// `cfg.seed + 1`, the reward head's output layer at zero; the decoder reconstructs what
+    /// the encoder reads.
+    fn initial(cfg: &DreamerConfig, obs_dim: usize, act_dim: usize) -> Result<Self> {
+        let w = &mut Weights::initial();
+        let head = (cfg.head_units, cfg.head_layers);
+        let decoded = cfg.encoder_inputs(obs_dim, act_dim);
+        let mut heads = Self {
+            decoder: state_head(cfg, w, "decoder.", (cfg.units, cfg.layers), decoded)
+                .map_err(candle_core::Error::wrap)?,
+            reward: state_head(cfg, w, "reward.", head, cfg.bins)
+                .map_err(candle_core::Error::wrap)?,
+            cont: state_head(cfg, w, "cont.", head, 1).map_err(candle_core::Error::wrap)?,
+        };
+        init(&mut heads, cfg.seed.wrapping_add(1));
+        zero_tensor(&mut heads, "reward.out.weight");
+        Ok(heads)
+    }
+}
+
+impl Parameters for Heads {
+    fn tensors(&self) -> Vec<NamedTensor<'_>> {
+        let mut v = self.decoder.tensors();
+        v.extend(self.reward.tensors());
+        v.extend(self.cont.tensors());
+        v
+    }
+
+    fn update(&mut self, f: &mut dyn FnMut(usize, &mut [f32])) {
+        let nets: [&mut dyn Parameters; 3] = [&mut self.decoder, &mut self.reward, &mut self.cont];
+        update_each(nets, f);
+    }
+}
+
+/// The decoder, reward and continue heads and the optimiser that trains them with the
+/// policy's encoder and RSSM.
 pub(crate) struct WorldModel {
-    /// `enc(symlog o)` (a view of the policy's).
-    encoder: Mlp,
-    /// The sequence model (a view of the policy's).
-    rssm: Rssm,
-    decoder: Mlp,
-    pub(crate) reward: Mlp,
-    pub(crate) cont: Mlp,
+    pub(crate) heads: Heads,
     twohot: TwoHot,
-    /// The heads' parameters: `decoder`, `reward`, `cont`.
-    pub(crate) heads: ParamStore,
     /// Adam over the encoder, the RSSM and the heads.
     pub(crate) opt: Adam,
     cfg: DreamerConfig,
@@ -75,13 +120,13 @@ pub(crate) struct WorldModel {
     work: Vec<ShardWork>,
 }
 
-/// The networks of one step, their weights as they are at its start.
-struct Nets {
-    encoder: PlainMlp,
-    rssm: PlainRssm,
-    decoder: PlainMlp,
-    reward: PlainMlp,
-    cont: PlainMlp,
+/// The networks of one step.
+struct Nets<'a> {
+    encoder: &'a PlainMlp,
+    rssm: &'a PlainRssm,
+    decoder: &'a PlainMlp,
+    reward: &'a PlainMlp,
+    cont: &'a PlainMlp,
 }
 
 /// A shard's gradients of every parameter of the model.
@@ -94,6 +139,17 @@ struct ModelGrads {
 }
 
 impl ModelGrads {
+    /// Every gradient in the order of the optimiser's networks: encoder, RSSM, decoder, reward
+    /// and continue heads.
+    fn into_tensors(self, nets: &Nets) -> Vec<Vec<f32>> {
+        let mut out = self.encoder.into_tensors(nets.encoder);
+        out.extend(self.rssm.into_tensors(nets.rssm));
+        self.decoder.push_tensors(nets.decoder, &mut out);
+        self.reward.push_tensors(nets.reward, &mut out);
+        self.cont.push_tensors(nets.cont, &mut out);
+        out
+    }
+
     fn zero(nets: &Nets) -> Self {
         Self {
             encoder: nets.encoder.zero_grads(),
@@ -159,99 +215,94 @@ fn sigmoid(x: f32) -> f32 {
 }
 
 impl WorldModel {
-    /// Heads for observations of `obs_dim` on the encoder and RSSM of `nets` (in the store
-    /// `policy`), initialised from `cfg.seed + 1`, the reward head's output layer at zero; the
-    /// decoder reconstructs what the encoder reads.
+    /// Heads for observations of `obs_dim` and actions of `act_dim` ([`Heads::initial`]), and
+    /// the optimiser of the policy's encoder and RSSM and the heads.
     pub(crate) fn new(
         cfg: &DreamerConfig,
-        obs_dim: usize,
-        nets: &DreamerNets,
-        policy: &ParamStore,
+        (obs_dim, act_dim): (usize, usize),
+        policy: &mut PolicyNets,
     ) -> Result<Self> {
-        let silu = Activation::SiluNorm;
-        let feat = nets.rssm.feat_dim() + cfg.context.context_dim();
-        let heads = ParamStore::new();
-        let hb = heads.builder();
-        let (hu, hl) = (cfg.head_units, cfg.head_layers);
-        let decoder = Mlp::new(
-            feat,
-            cfg.units,
-            cfg.layers,
-            Some(cfg.encoder_inputs(obs_dim, nets.act_dim)),
-            silu,
-            hb.pp("decoder"),
-        )?
-        .sparse_inputs(nets.rssm.stoch_columns());
-        let reward = Mlp::new(feat, hu, hl, Some(cfg.bins), silu, hb.pp("reward"))?
-            .sparse_inputs(nets.rssm.stoch_columns());
-        let cont = Mlp::new(feat, hu, hl, Some(1), silu, hb.pp("cont"))?
-            .sparse_inputs(nets.rssm.stoch_columns());
-        heads.init(cfg.seed.wrapping_add(1))?;
-        for (n, v) in heads.named() {
-            if n == "reward.out.weight" {
-                v.set(&v.zeros_like()?)?;
-            }
-        }
-        let mut vars = policy.vars_under(&["encoder", "rssm"]);
-        vars.extend(heads.vars());
+        let mut heads = Heads::initial(cfg, obs_dim, act_dim)?;
+        // the moments of the policy's networks, then the heads' (the file's order)
+        let policy_tensors = policy.encoder.tensors().len() + policy.rssm.tensors().len();
+        let opt = Adam::in_groups(
+            &Self::trained(policy, &mut heads)[..],
+            &[policy_tensors],
+            cfg.model_lr,
+            cfg.model_eps,
+            cfg.model_clip,
+        );
         Ok(Self {
-            encoder: nets.encoder.clone(),
-            rssm: nets.rssm.clone(),
-            decoder,
-            reward,
-            cont,
-            twohot: TwoHot::new(cfg.bins, -20.0, 20.0)?,
             heads,
-            opt: Adam::new(vars, cfg.model_lr, cfg.model_eps, cfg.model_clip),
+            twohot: TwoHot::new(cfg.bins, -20.0, 20.0)?,
+            opt,
             cfg: cfg.clone(),
             work: Vec::new(),
         })
     }
 
-    /// One step of the world model on the batch `seq` (model context `ctx` `[B·T, c]`, empty
-    /// without one; Gumbel noise from the sequences' streams `rngs`), its shards' losses and
-    /// gradients computed by `workers` threads in parallel; returns each shard's posterior
-    /// states to imagine from.
+    /// The networks the optimiser steps, in its order: encoder, RSSM, decoder, reward, cont.
+    fn trained<'a>(
+        policy: &'a mut PolicyNets,
+        heads: &'a mut Heads,
+    ) -> [&'a mut dyn Parameters; 5] {
+        [
+            &mut policy.encoder,
+            &mut policy.rssm,
+            &mut heads.decoder,
+            &mut heads.reward,
+            &mut heads.cont,
+        ]
+    }
+
+    /// One step of the world model (with the policy's encoder and RSSM) on the batch `seq`
+    /// (model context `ctx` `[B·T, c]`, empty without one; Gumbel noise from the sequences'
+    /// streams `rngs`), its shards' losses and gradients computed by `workers` threads in
+    /// parallel; returns each shard's posterior states to imagine from.
     pub(crate) fn step(
         &mut self,
+        policy: &mut PolicyNets,
         seq: &SequenceBatch,
-        ctx: &[f32],
-        workers: usize,
+        (ctx, workers): (&[f32], usize),
         rngs: &mut [ChaCha8Rng],
         metrics: &mut Metrics,
     ) -> Result<Vec<Starts>> {
-        let (grads, starts) = self.gradients(seq, ctx, workers, rngs, metrics)?;
-        metrics.insert("model/grad_norm".into(), self.opt.step(&grads)?);
+        let (grads, starts) = self.gradients(policy, seq, (ctx, workers), rngs, metrics)?;
+        let nets = &mut Self::trained(policy, &mut self.heads)[..];
+        let norm = self
+            .opt
+            .step(nets, &grads)
+            .map_err(candle_core::Error::wrap)?;
+        metrics.insert("model/grad_norm".into(), norm);
         Ok(starts)
     }
 
-    /// The gradients of [`WorldModel::step`]'s loss in every parameter, its metrics added to
-    /// `metrics`, and the starts.
+    /// The gradients of [`WorldModel::step`]'s loss in every parameter (in the optimiser's
+    /// order), its metrics added to `metrics`, and the starts.
     pub(crate) fn gradients(
         &mut self,
+        policy: &PolicyNets,
         seq: &SequenceBatch,
-        ctx: &[f32],
-        workers: usize,
+        (ctx, workers): (&[f32], usize),
         rngs: &mut [ChaCha8Rng],
         metrics: &mut Metrics,
-    ) -> Result<(GradStore, Vec<Starts>)> {
-        let nets = Nets {
-            encoder: PlainMlp::new(&self.encoder)?,
-            rssm: PlainRssm::new(&self.rssm)?,
-            decoder: PlainMlp::new(&self.decoder)?,
-            reward: PlainMlp::new(&self.reward)?,
-            cont: PlainMlp::new(&self.cont)?,
-        };
+    ) -> Result<(Vec<Vec<f32>>, Vec<Starts>)> {
         let mut work = std::mem::take(&mut self.work);
         work.resize_with(workers.clamp(1, seq.batch.max(1)), ShardWork::default);
         let this = &*self;
+        let nets = Nets {
+            encoder: &policy.encoder,
+            rssm: &policy.rssm,
+            decoder: &this.heads.decoder,
+            reward: &this.heads.reward,
+            cont: &this.heads.cont,
+        };
         let parts = on_shards_with(workers, seq.batch, rngs, &mut work, |shard, rngs, w| {
             let z = this.cfg.stoch * this.cfg.classes;
             w.load(seq, ctx, &shard.rows, rngs, (z, this.cfg.step_alignment));
             let (m, grads, starts) = this.shard_step(&nets, w, shard.rows.len(), shard.weight);
             Ok((shard.weight, m, grads, starts))
         })?;
-        self.work = work;
         let mut total = None;
         let mut shard_metrics = Vec::with_capacity(parts.len());
         let mut starts = Vec::with_capacity(parts.len());
@@ -263,15 +314,8 @@ impl WorldModel {
         let Some(total) = total else {
             bail!("world model: a batch of no sequences");
         };
-        let mut grads = GradStore::default();
-        nets.encoder
-            .add_grads_to(total.encoder, &self.encoder, &mut grads)?;
-        nets.rssm.add_grads_to(total.rssm, &self.rssm, &mut grads)?;
-        nets.decoder
-            .add_grads_to(total.decoder, &self.decoder, &mut grads)?;
-        nets.reward
-            .add_grads_to(total.reward, &self.reward, &mut grads)?;
-        nets.cont.add_grads_to(total.cont, &self.cont, &mut grads)?;
+        let grads = total.into_tensors(&nets);
+        self.work = work;
         metrics.extend(weighted_mean(&shard_metrics));
         Ok((grads, starts))
     }
@@ -531,20 +575,122 @@ impl ShardWork {
 }
 
 #[cfg(test)]
+pub(crate) mod oracle {
+    //! The networks as candle modules holding the plain networks' weights: the tests' oracle.
+    use super::*;
+    use candle_core::backprop::GradStore;
+    use ctxrace_common::nn::dreamer::DreamerNets;
+    use ctxrace_common::nn::plain::to_safetensors;
+    use ctxrace_common::nn::{Activation, Mlp, ParamStore};
+
+    /// A candle head on `[h, z, c]` of `cfg` under `vb` ([`state_head`]'s).
+    pub(crate) fn head(
+        cfg: &DreamerConfig,
+        vb: candle_nn::VarBuilder,
+        (units, layers): (usize, usize),
+        out: usize,
+    ) -> Mlp {
+        let (d, z) = (cfg.deter, cfg.stoch * cfg.classes);
+        let input = d + z + cfg.context.context_dim();
+        Mlp::new(input, units, layers, Some(out), Activation::SiluNorm, vb)
+            .unwrap()
+            .sparse_inputs(d..d + z)
+    }
+
+    /// The candle modules `build` makes in a store that then holds the weights of `nets`.
+    pub(crate) fn store_of<N: Parameters + ?Sized, T>(
+        nets: &N,
+        build: impl FnOnce(candle_nn::VarBuilder) -> T,
+    ) -> (ParamStore, T) {
+        let store = ParamStore::new();
+        let built = build(store.builder());
+        store.load_bytes(&to_safetensors(nets).unwrap()).unwrap();
+        (store, built)
+    }
+
+    /// The policy's networks as candle modules.
+    pub(crate) fn policy(
+        cfg: &DreamerConfig,
+        (obs_dim, act_dim): (usize, usize),
+        nets: &PolicyNets,
+    ) -> (ParamStore, DreamerNets) {
+        store_of(nets, |vb| {
+            DreamerNets::new(cfg, obs_dim, act_dim, vb).unwrap()
+        })
+    }
+
+    /// The heads as candle modules: decoder, reward, continue.
+    pub(crate) fn heads(
+        cfg: &DreamerConfig,
+        (obs_dim, act_dim): (usize, usize),
+        heads: &Heads,
+    ) -> (ParamStore, [Mlp; 3]) {
+        store_of(heads, |vb| {
+            let size = (cfg.head_units, cfg.head_layers);
+            let decoded = cfg.encoder_inputs(obs_dim, act_dim);
+            [
+                head(cfg, vb.pp("decoder"), (cfg.units, cfg.layers), decoded),
+                head(cfg, vb.pp("reward"), size, cfg.bins),
+                head(cfg, vb.pp("cont"), size, 1),
+            ]
+        })
+    }
+
+    /// The values of the gradient `grads` holds for the tensor `name` of `store`.
+    pub(crate) fn grad(grads: &GradStore, store: &ParamStore, name: &str) -> Option<Vec<f32>> {
+        let (_, var) = store.named().into_iter().find(|(n, _)| n == name)?;
+        grads
+            .get(var.as_tensor())?
+            .flatten_all()
+            .ok()?
+            .to_vec1()
+            .ok()
+    }
+
+    /// Sets every tensor of `net` named `*out.weight` to normal values of deviation `std` (an
+    /// output layer that is not zero, so that its path weighs).
+    pub(crate) fn randomise_outputs<P: Parameters + ?Sized>(net: &mut P, std: f32, seed: u64) {
+        randomise(net, |name| name.ends_with("out.weight"), std, seed);
+    }
+
+    /// Sets the tensors of `net` whose names `pick` picks to normal values of deviation `std`.
+    pub(crate) fn randomise<P: Parameters + ?Sized>(
+        net: &mut P,
+        pick: impl Fn(&str) -> bool,
+        std: f32,
+        seed: u64,
+    ) {
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, Normal};
+        let picked: Vec<bool> = net.tensors().iter().map(|t| pick(t.name)).collect();
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let normal = Normal::new(0.0, std).unwrap();
+        net.update(&mut |i, values| {
+            if picked[i] {
+                values.iter_mut().for_each(|v| *v = normal.sample(&mut rng));
+            }
+        });
+    }
+}
+
+#[cfg(test)]
 mod tests {
+    use super::oracle::{grad, randomise};
     use super::*;
     use crate::sequences::SeqData;
     use candle_core::{Device, Module, Tensor};
     use ctxrace_common::agents::{ContextMode, InitialState};
-    use ctxrace_common::nn::dreamer::uniforms_per;
-    use ctxrace_common::nn::{symlog as symlog_tensor, RssmState};
+    use ctxrace_common::nn::dreamer::{uniforms_per, DreamerNets};
+    use ctxrace_common::nn::{symlog as symlog_tensor, Mlp, ParamStore, RssmState};
     use rand::{Rng, SeedableRng};
 
-    /// The world model's loss on `d` (its actions `[B, T, A]`) composed of candle operations,
-    /// autograd's statement of what [`WorldModel::gradients`] differentiates by hand, with the
-    /// loop's noise from `rngs`.
+    /// The world model's loss on `d` (its actions `[B, T, A]`) composed of candle operations on
+    /// the candle copies `nets` and `[decoder, reward, cont]` of its networks, autograd's
+    /// statement of what [`WorldModel::gradients`] differentiates by hand, with the loop's
+    /// noise from `rngs`.
     fn candle_loss(
         m: &WorldModel,
+        (nets, [decoder, reward, cont]): (&DreamerNets, &[Mlp; 3]),
         (d, actions): (&SeqData, &Tensor),
         ctx: Option<&Tensor>,
         rngs: &mut [ChaCha8Rng],
@@ -571,7 +717,7 @@ mod tests {
             }
         };
         let time_major = |x: &Tensor| x.transpose(0, 1).unwrap().contiguous().unwrap();
-        let embed = m
+        let embed = nets
             .encoder
             .forward(&input)
             .unwrap()
@@ -581,7 +727,7 @@ mod tests {
         let actions = time_major(actions);
         let keeps = time_major(&(1.0 - &d.first).unwrap());
         let ctx_tm = ctx.map(|c| time_major(&c.reshape((b, t_len, ())).unwrap()));
-        let init = m.rssm.initial(b).unwrap();
+        let init = nets.rssm.initial(b).unwrap();
         let mut state = init.clone();
         let (mut deters, mut stochs, mut posts) = (Vec::new(), Vec::new(), Vec::new());
         for t in 0..t_len {
@@ -597,7 +743,7 @@ mod tests {
             let action = actions.get(t).unwrap().broadcast_mul(&keep).unwrap();
             let c_t = ctx_tm.as_ref().map(|c| c.get(t).unwrap());
             let uniform = uniforms_per(rngs, 1, (s, c)).unwrap();
-            let (next, post) = m
+            let (next, post) = nets
                 .rssm
                 .obs_step(
                     &prev,
@@ -614,14 +760,14 @@ mod tests {
         }
         let batch_major = |xs: &[Tensor]| Tensor::stack(xs, 1).unwrap().reshape((n, ())).unwrap();
         let deter = batch_major(&deters);
-        let prior = m.rssm.prior_logits(&deter).unwrap();
+        let prior = nets.rssm.prior_logits(&deter).unwrap();
         let post = batch_major(&posts).reshape((n, s, c)).unwrap();
         let posterior = RssmState {
             deter,
             stoch: batch_major(&stochs),
         };
         let x = posterior.head_input(ctx).unwrap();
-        let recon = (m.decoder.forward(&x).unwrap() - &target)
+        let recon = (decoder.forward(&x).unwrap() - &target)
             .unwrap()
             .sqr()
             .unwrap()
@@ -630,24 +776,24 @@ mod tests {
         let reward = m
             .twohot
             .loss(
-                &m.reward.forward(&x).unwrap(),
+                &reward.forward(&x).unwrap(),
                 &d.reward.flatten_all().unwrap(),
             )
             .unwrap();
         let y = (1.0 - d.terminal.flatten_all().unwrap()).unwrap();
-        let l = m.cont.forward(&x).unwrap().squeeze(1).unwrap();
+        let l = cont.forward(&x).unwrap().squeeze(1).unwrap();
         let softplus_tail = (l.abs().unwrap().neg().unwrap().exp().unwrap() + 1.0)
             .unwrap()
             .log()
             .unwrap();
         let cont = ((l.relu().unwrap() - l.mul(&y).unwrap()).unwrap() + softplus_tail).unwrap();
-        let dyn_kl = m
+        let dyn_kl = nets
             .rssm
             .kl(&post.detach(), &prior)
             .unwrap()
             .maximum(cfg.free_nats)
             .unwrap();
-        let rep_kl = m
+        let rep_kl = nets
             .rssm
             .kl(&post, &prior.detach())
             .unwrap()
@@ -712,24 +858,15 @@ mod tests {
                 free_nats: 0.01,
                 ..form.clone()
             };
-            let policy = ParamStore::new();
-            let nets = DreamerNets::new(&cfg, 3, 2, policy.builder()).unwrap();
-            policy.init(4).unwrap();
+            let mut policy = PolicyNets::from_weights(&cfg, 3, 2, &mut Weights::initial()).unwrap();
+            init(&mut policy, 4);
             // a learned initial state away from zero, where its prior's classes do not tie
-            for (name, v) in policy.named() {
-                if name == "rssm.initial_state.w" {
-                    v.set(&Tensor::randn(0f32, 1.0, v.shape(), &Device::Cpu).unwrap())
-                        .unwrap();
-                }
-            }
-            let mut model = WorldModel::new(&cfg, 3, &nets, &policy).unwrap();
+            randomise(&mut policy, |n| n == "rssm.initial_state.w", 1.0, 1);
+            let mut model = WorldModel::new(&cfg, (3, 2), &mut policy).unwrap();
             // a reward head that is not zero, so that its path weighs
-            for (name, v) in model.heads.named() {
-                if name == "reward.out.weight" {
-                    v.set(&Tensor::randn(0f32, 0.3, v.shape(), &Device::Cpu).unwrap())
-                        .unwrap();
-                }
-            }
+            randomise(&mut model.heads, |n| n == "reward.out.weight", 0.3, 2);
+            let (policy_store, nets) = oracle::policy(&cfg, (3, 2), &policy);
+            let (heads_store, heads) = oracle::heads(&cfg, (3, 2), &model.heads);
             let mut rng = ChaCha8Rng::seed_from_u64(9);
             let seq = random_batch(4, 10, &mut rng);
             let d = SeqData::new(&seq, 3, 2).unwrap();
@@ -742,11 +879,23 @@ mod tests {
                 (0..4).map(|b| ChaCha8Rng::seed_from_u64(100 + b)).collect()
             };
             let actions = Tensor::from_slice(&seq.action, (4, 10, 2), &Device::Cpu).unwrap();
-            let loss = candle_loss(&model, (&d, &actions), ctx.as_ref(), &mut streams());
+            let loss = candle_loss(
+                &model,
+                (&nets, &heads),
+                (&d, &actions),
+                ctx.as_ref(),
+                &mut streams(),
+            );
             let want = loss.backward().unwrap();
             let mut metrics = Metrics::new();
             let (got, starts) = model
-                .gradients(&seq, &ctx_rows, workers, &mut streams(), &mut metrics)
+                .gradients(
+                    &policy,
+                    &seq,
+                    (&ctx_rows, workers),
+                    &mut streams(),
+                    &mut metrics,
+                )
                 .unwrap();
             assert_eq!(starts.iter().map(|s| s.n).sum::<usize>(), 40);
             let l = loss.to_scalar::<f32>().unwrap() as f64;
@@ -755,30 +904,20 @@ mod tests {
                 "{mode:?}: loss {} vs {l}",
                 metrics["model/loss"]
             );
-            let names: Vec<String> = policy.named().into_iter().map(|(n, _)| n).collect();
             let learned = cfg.initial_state == InitialState::Learned;
+            let names: Vec<String> = policy_store.named().into_iter().map(|(n, _)| n).collect();
             assert_eq!(names.contains(&"rssm.initial_state.w".into()), learned);
-            let vars = policy
-                .vars_under(&["encoder", "rssm"])
-                .into_iter()
-                .chain(model.heads.vars());
-            let named: std::collections::HashMap<_, _> = policy
-                .named()
-                .into_iter()
-                .chain(model.heads.named())
-                .map(|(n, v)| (v.as_tensor().id(), n))
-                .collect();
-            for v in vars {
-                let name = &named[&v.as_tensor().id()];
-                let flat = |g: &GradStore| -> Vec<f32> {
-                    g.get(v.as_tensor())
-                        .unwrap_or_else(|| panic!("{name}: no gradient"))
-                        .flatten_all()
-                        .unwrap()
-                        .to_vec1()
-                        .unwrap()
+            let trained = &WorldModel::trained(&mut policy, &mut model.heads)[..];
+            let tensors = trained.tensors();
+            assert_eq!(got.len(), tensors.len());
+            for (t, g) in tensors.iter().zip(&got) {
+                let name = t.name;
+                let store = match name.starts_with("encoder.") || name.starts_with("rssm.") {
+                    true => &policy_store,
+                    false => &heads_store,
                 };
-                let (g, w) = (flat(&got), flat(&want));
+                let w = grad(&want, store, name).unwrap_or_else(|| panic!("{name}: no gradient"));
+                assert_eq!(g.len(), w.len(), "{name}");
                 let scale = w.iter().fold(0f32, |m, x| m.max(x.abs())).max(1e-6);
                 for (i, (a, b)) in g.iter().zip(&w).enumerate() {
                     assert!(

@@ -1,17 +1,133 @@
-//! DreamerV3's networks as candle modules (encoder, RSSM, actor and cMask's mask actor,
-//! [`DreamerNets`]), the parameter names the learner's policy weights carry, and the noise the
-//! learner and the acting policies draw (Gumbel uniforms, standard normals), per stream.
+//! DreamerV3's acting networks (encoder, RSSM, actor and cMask's mask actor): [`PolicyNets`] on
+//! plain buffers, which the learner trains and the actors run, and [`DreamerNets`], the same as
+//! candle modules (the oracle the hand-written passes are tested against); the heads on the
+//! model state ([`state_head`]), the parameter names the learner's policy weights carry, and the
+//! noise the learner and the acting policies draw (Gumbel uniforms, standard normals), per stream.
 
 use crate::agents::{
     ContextMode, DreamerConfig, InitialState, MaskSpace, StepAlignment, CONTEXT_DIM,
 };
-use crate::nn::{Activation, Mlp, Rssm, RssmConfig, TanhGaussianActor};
+use crate::nn::plain::{init, update_each, NamedTensor, Parameters, PlainMlp, PlainRssm};
+use crate::nn::{
+    Activation, Mlp, MlpShape, Rssm, RssmConfig, TanhGaussianActor, Weights, WeightsError,
+};
 use candle_core::{Device, Module, Result, Tensor};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
-/// The networks that act: encoder, RSSM, actor and (cMask) mask actor.
+/// The networks that act, on plain buffers: encoder, RSSM, actor and (cMask) mask actor, under
+/// the names `encoder.`, `rssm.`, `actor.`, `mask.` (the learner's "policy" weights).
+#[derive(Clone, Debug)]
+pub struct PolicyNets {
+    /// Observation encoder (on `symlog o`, or on `symlog [o, a]` with
+    /// [`StepAlignment::PaperCode`]).
+    pub encoder: PlainMlp,
+    /// The recurrent state-space model.
+    pub rssm: PlainRssm,
+    /// Actor head on `[h, z, c]`: means and raw standard deviations.
+    pub actor: PlainMlp,
+    /// cMask's mask actor on the observation: a ReLU MLP to the means, then the log-σs.
+    pub mask: Option<PlainMlp>,
+}
+
+impl PolicyNets {
+    /// The networks of `cfg` for observations of `obs_dim` and actions of `act_dim`, read from
+    /// `weights` (those of a policy file, or [`Weights::initial`]).
+    pub fn from_weights(
+        cfg: &DreamerConfig,
+        obs_dim: usize,
+        act_dim: usize,
+        weights: &mut Weights,
+    ) -> std::result::Result<Self, WeightsError> {
+        let encoder = MlpShape {
+            input: cfg.encoder_inputs(obs_dim, act_dim),
+            units: cfg.units,
+            layers: cfg.layers,
+            out: None,
+            act: Activation::SiluNorm,
+        };
+        let encoder = PlainMlp::from_weights(weights, "encoder.", &encoder)?;
+        let rssm = PlainRssm::from_weights(weights, "rssm.", rssm_config(cfg, obs_dim, act_dim))?;
+        let size = (cfg.head_units, cfg.head_layers);
+        let actor = state_head(cfg, weights, "actor.", size, 2 * act_dim)?;
+        let mask = match cfg.context {
+            ContextMode::Cmask => {
+                let shape = MlpShape {
+                    input: obs_dim,
+                    units: cfg.mask.units,
+                    layers: cfg.mask.layers,
+                    out: Some(2 * CONTEXT_DIM),
+                    act: Activation::Relu,
+                };
+                Some(PlainMlp::from_weights(weights, "mask.", &shape)?)
+            }
+            ContextMode::None | ContextMode::Crssm => None,
+        };
+        Ok(Self {
+            encoder,
+            rssm,
+            actor,
+            mask,
+        })
+    }
+
+    /// Freshly initialised networks of `cfg` ([`init`] from `cfg.seed`).
+    pub fn initial(
+        cfg: &DreamerConfig,
+        obs_dim: usize,
+        act_dim: usize,
+    ) -> std::result::Result<Self, WeightsError> {
+        let mut nets = Self::from_weights(cfg, obs_dim, act_dim, &mut Weights::initial())?;
+        init(&mut nets, cfg.seed);
+        Ok(nets)
+    }
+}
+
+impl Parameters for PolicyNets {
+    fn tensors(&self) -> Vec<NamedTensor<'_>> {
+        let mut v = self.encoder.tensors();
+        v.extend(self.rssm.tensors());
+        v.extend(self.actor.tensors());
+        if let Some(mask) = &self.mask {
+            v.extend(mask.tensors());
+        }
+        v
+    }
+
+    fn update(&mut self, f: &mut dyn FnMut(usize, &mut [f32])) {
+        let mut nets: Vec<&mut dyn Parameters> =
+            vec![&mut self.encoder, &mut self.rssm, &mut self.actor];
+        if let Some(mask) = &mut self.mask {
+            nets.push(mask);
+        }
+        update_each(nets, f);
+    }
+}
+
+/// A SiLU-LayerNorm MLP of `layers` layers of `units` on the model state `[h, z, c]` of `cfg`
+/// to `out` outputs (actor, critics, decoder, reward and continue heads), read from `weights`
+/// under `prefix`, told that the one-hot `z` columns are mostly zero.
+pub fn state_head(
+    cfg: &DreamerConfig,
+    weights: &mut Weights,
+    prefix: &str,
+    (units, layers): (usize, usize),
+    out: usize,
+) -> std::result::Result<PlainMlp, WeightsError> {
+    let (d, z) = (cfg.deter, cfg.stoch * cfg.classes);
+    let shape = MlpShape {
+        input: d + z + cfg.context.context_dim(),
+        units,
+        layers,
+        out: Some(out),
+        act: Activation::SiluNorm,
+    };
+    Ok(PlainMlp::from_weights(weights, prefix, &shape)?.sparse_inputs(d..d + z))
+}
+
+/// The networks that act as candle modules (the oracle of the tests): encoder, RSSM, actor and
+/// (cMask) mask actor.
 #[derive(Clone, Debug)]
 pub struct DreamerNets {
     /// Observation encoder (on `symlog o`, or on `symlog [o, a]` with
@@ -158,6 +274,14 @@ pub fn mask_sample(
         MaskSpace::PaperCode => log_prob,
     };
     Ok((mask_of(&a, space)?, log_prob))
+}
+
+/// The mask of one squashed value `a = tanh u` of the mask actor in `space` ([`mask_of`]).
+pub fn mask_value(a: f32, space: MaskSpace) -> f32 {
+    match space {
+        MaskSpace::Unit => a * 0.5 + 0.5,
+        MaskSpace::PaperCode => 1.0 / (1.0 + (-a).exp()),
+    }
 }
 
 /// Gumbel-max uniforms in `(0, 1)`.

@@ -1,81 +1,30 @@
 //! DreamerV3's acting networks (encoder, RSSM, actor and cMask's mask actor) and the batch-1
 //! policy that runs them in the actors: at each step the observation updates the posterior
 //! state, the actor reads `[h, z, c]` and (cMask) the mask actor masks the context first.
-//! The learner trains the same [`crate::nn::dreamer::DreamerNets`] and ships their "policy" parameter store; the
-//! policy reads those weights by name into the plain networks the learner's training steps run
-//! ([`crate::nn::plain`]) and acts with their forward passes at batch 1.
+//! The learner trains the same [`PolicyNets`] and ships their weights ("policy"); the policy
+//! reads them by name and acts with the networks' forward passes at batch 1.
 
 use super::{PolicyError, Result, ACT_DIM};
-use crate::agents::{ContextMode, DreamerConfig, MaskSpace, StepAlignment, CONTEXT_DIM};
-use crate::nn::dreamer::{rssm_config, uniform_rows};
-use crate::nn::plain::{MlpTrace, ObserveTrace, PlainMlp, PlainRssm};
+use crate::agents::{DreamerConfig, StepAlignment, CONTEXT_DIM};
+use crate::nn::dreamer::{mask_value, uniform_rows, PolicyNets};
+use crate::nn::plain::{MlpTrace, ObserveTrace};
 use crate::nn::tanh_gaussian::squash_rows;
-use crate::nn::{symlog_value, Activation, MlpShape, Weights, WeightsError};
+use crate::nn::{symlog_value, Weights, WeightsError};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
-/// The networks that act, read by name from the policy weights: encoder, RSSM, actor and
-/// (cMask) mask actor.
-#[derive(Clone, Debug)]
-struct ActingNets {
-    encoder: PlainMlp,
-    rssm: PlainRssm,
-    actor: PlainMlp,
-    mask: Option<PlainMlp>,
-}
-
-impl ActingNets {
-    /// The networks of `cfg` for observations of `obs_dim` from the policy weights `bytes`
-    /// (safetensors, the names [`crate::nn::dreamer::DreamerNets::new`] gives), every tensor used.
-    fn read(
-        cfg: &DreamerConfig,
-        obs_dim: usize,
-        bytes: &[u8],
-    ) -> std::result::Result<Self, WeightsError> {
-        let mut weights = Weights::from_safetensors(bytes)?;
-        let rssm_cfg = rssm_config(cfg, obs_dim, ACT_DIM);
-        let silu = Activation::SiluNorm;
-        let encoder = MlpShape {
-            input: cfg.encoder_inputs(obs_dim, ACT_DIM),
-            units: cfg.units,
-            layers: cfg.layers,
-            out: None,
-            act: silu,
-        };
-        let encoder = PlainMlp::from_weights(&mut weights, "encoder.", &encoder)?;
-        let rssm = PlainRssm::from_weights(&mut weights, "rssm.", rssm_cfg)?;
-        let (d, z) = (rssm_cfg.deter, rssm_cfg.stoch * rssm_cfg.classes);
-        let actor = MlpShape {
-            input: d + z + rssm_cfg.context_dim,
-            units: cfg.head_units,
-            layers: cfg.head_layers,
-            out: Some(2 * ACT_DIM),
-            act: silu,
-        };
-        let actor = PlainMlp::from_weights(&mut weights, "actor.", &actor)?.sparse_inputs(d..d + z);
-        let mask = match cfg.context {
-            ContextMode::Cmask => {
-                // the learner's TanhGaussianActor: a ReLU MLP to the means, then the log-σs
-                let shape = MlpShape {
-                    input: obs_dim,
-                    units: cfg.mask.units,
-                    layers: cfg.mask.layers,
-                    out: Some(2 * CONTEXT_DIM),
-                    act: Activation::Relu,
-                };
-                Some(PlainMlp::from_weights(&mut weights, "mask.", &shape)?)
-            }
-            ContextMode::None | ContextMode::Crssm => None,
-        };
-        weights.finish()?;
-        Ok(Self {
-            encoder,
-            rssm,
-            actor,
-            mask,
-        })
-    }
+/// The networks that act, read by name from the policy weights `bytes` of `cfg` for
+/// observations of `obs_dim` (safetensors, the names [`PolicyNets`] gives), every tensor used.
+fn read_nets(
+    cfg: &DreamerConfig,
+    obs_dim: usize,
+    bytes: &[u8],
+) -> std::result::Result<PolicyNets, WeightsError> {
+    let mut weights = Weights::from_safetensors(bytes)?;
+    let nets = PolicyNets::from_weights(cfg, obs_dim, ACT_DIM, &mut weights)?;
+    weights.finish()?;
+    Ok(nets)
 }
 
 /// The buffers of one step, kept from step to step.
@@ -96,21 +45,13 @@ fn sigmoid(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())
 }
 
-/// The mask of one squashed value `a = tanh u` of the mask actor in `space` ([`crate::nn::dreamer::mask_of`]).
-fn mask_value(a: f32, space: MaskSpace) -> f32 {
-    match space {
-        MaskSpace::Unit => a * 0.5 + 0.5,
-        MaskSpace::PaperCode => sigmoid(a),
-    }
-}
-
 /// The acting side of DreamerV3 at batch 1: keeps the recurrent state and the previous action.
 pub struct DreamerPolicy {
     cfg: DreamerConfig,
     obs_dim: usize,
-    nets: ActingNets,
+    nets: PolicyNets,
     traces: ActingTraces,
-    /// The state episodes start from, `(h_0, z_0)` ([`PlainRssm::initial_state`] of the
+    /// The state episodes start from, `(h_0, z_0)` ([`crate::nn::plain::PlainRssm::initial_state`] of the
     /// loaded weights).
     zero: (Vec<f32>, Vec<f32>),
     /// The posterior state `(h, z)`.
@@ -126,7 +67,7 @@ impl DreamerPolicy {
     /// the learner's policy weights; `seed` seeds its sampling noise.
     pub fn new(cfg: &DreamerConfig, obs_dim: usize, weights: &[u8], seed: u64) -> Result<Self> {
         cfg.validate()?;
-        let nets = ActingNets::read(cfg, obs_dim, weights)?;
+        let nets = read_nets(cfg, obs_dim, weights)?;
         let mut policy = Self {
             cfg: cfg.clone(),
             obs_dim,
@@ -158,7 +99,7 @@ impl DreamerPolicy {
     /// Replaces the weights (same architecture) without resetting the state (the next
     /// episode starts from the new weights' initial state).
     pub fn load(&mut self, weights: &[u8]) -> Result<()> {
-        self.nets = ActingNets::read(&self.cfg, self.obs_dim, weights)?;
+        self.nets = read_nets(&self.cfg, self.obs_dim, weights)?;
         self.start_from_loaded();
         Ok(())
     }
@@ -275,7 +216,7 @@ impl DreamerPolicy {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::agents::{ContextMode, ContextScale, MaskConfig};
+    use crate::agents::{ContextMode, ContextScale, MaskConfig, MaskSpace};
     use crate::nn::dreamer::{mask_of, mask_sample, normals, uniforms, DreamerNets};
     use crate::nn::{symlog, ParamStore, RssmState};
     use candle_core::{DType, Device, Module, Tensor};

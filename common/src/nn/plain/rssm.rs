@@ -24,12 +24,11 @@
 //! before and `∂e` to the encoder; the layers' weight gradients are one product each over all
 //! the steps' rows at the end, not one thin product per step.
 
-use super::layer::{add_grad, InputGrad, LayerGrads, MlpGrads, MlpTrace, PlainLayer, PlainMlp};
+use super::layer::{InputGrad, LayerGrads, MlpGrads, MlpTrace, PlainLayer, PlainMlp};
 use super::parameters::{update_each, NamedTensor, Parameters};
 use crate::nn::kernels::{gru_rows, gru_rows_bwd, probs_rows_bwd, sample_rows, NormAct, Unimix};
 use crate::nn::weights::{Weights, WeightsError};
 use crate::nn::{Rssm, RssmConfig};
-use candle_core::backprop::GradStore;
 use candle_core::Result;
 use std::ops::Range;
 
@@ -315,31 +314,6 @@ impl PlainRssm {
             post_out: self.post_out.zero_grads(),
             initial_w: vec![0.0; self.initial_w.as_ref().map_or(0, Vec::len)],
         }
-    }
-
-    /// The gradients as candle tensors of `rssm`'s parameters (the model this one copied),
-    /// added into `store`.
-    pub fn add_grads_to(&self, grads: RssmGrads, rssm: &Rssm, store: &mut GradStore) -> Result<()> {
-        let [img_in, gates, prior, prior_out, post, post_out] = rssm.blocks();
-        let [prior_grads, prior_out_grads]: [LayerGrads; 2] =
-            grads.prior.layers.try_into().map_err(|_| {
-                candle_core::Error::Msg("RSSM gradients: a prior of 2 layers".into())
-            })?;
-        let layers = [
-            (&self.img_in, grads.img_in, img_in),
-            (&self.gates, grads.gates, gates),
-            (&self.prior.layers[0], prior_grads, prior),
-            (&self.prior.layers[1], prior_out_grads, prior_out),
-            (&self.post, grads.post, post),
-            (&self.post_out, grads.post_out, post_out),
-        ];
-        for (layer, g, (dense, norm)) in layers {
-            layer.add_grads_to(g, dense, norm.map(|(ln, _)| ln), store)?;
-        }
-        if let Some(w) = rssm.initial_weight() {
-            add_grad(store, w, grads.initial_w)?;
-        }
-        Ok(())
     }
 
     /// The sizes.
