@@ -14,6 +14,8 @@
 //! | `sampler` | `uniform` | `paper-code` |
 //! | `warmup` | `random-steps` (`[train] prefill`) | `episodes` |
 //! | `warmup_episodes` | 32 (used with `warmup = "episodes"`) | 32 |
+//! | `dreamer.init` | `ctxrace` | `paper-code` ([`WeightInit`]) |
+//! | `dreamer.mask.imagination_context` | `masked` | `raw` ([`ImaginationContext`]) |
 
 use crate::batch::BatchSpec;
 use crate::nn::tanh_gaussian::{validate_log_std_clamp, LOG_STD_CLAMP};
@@ -237,7 +239,8 @@ impl AgentConfig {
     /// The learner as the paper's public code trained it (the `paper` branch, c0fd903, Jun
     /// 2025, `TrajectoryAidedLearning/`): batches drawn as cbdreamer's `sample_episodes` drew
     /// them, training from the 32nd stored episode on with the untrained policy acting until
-    /// then (`dreamerv3.py` `train`, `TrainAgents.py`), the raw context in the networks.
+    /// then (`dreamerv3.py` `train`, `TrainAgents.py`), the raw context in the networks, the
+    /// networks' initial weights drawn as its PyTorch initialisers draw them.
     pub fn paper_code() -> Self {
         Self {
             preset: AgentPreset::PaperCode,
@@ -248,6 +251,7 @@ impl AgentConfig {
             sac: SacConfig::default().with_paper_code_sac(),
             dreamer: DreamerConfig {
                 mask: MaskConfig::default().with_paper_code_mask(),
+                init: WeightInit::PaperCode,
                 ..DreamerConfig::default().with_paper_code_world_model()
             },
             ..Self::default()
@@ -559,6 +563,9 @@ pub struct MaskConfig {
     /// Steps by which a transition's reward lags its mask: 0 pairs `(o_t, m_t)` with the reward
     /// `r_{t+1}` the step earned; 1 with `r_{t+2}`, as the paper's code pairs its rows.
     pub reward_delay: usize,
+    /// The context behaviour learning imagines with ([`ImaginationContext`]): `"masked"` or
+    /// `"raw"`.
+    pub imagination_context: ImaginationContext,
 }
 
 impl Default for MaskConfig {
@@ -576,8 +583,24 @@ impl Default for MaskConfig {
             target_every: 1,
             log_std_clamp: LOG_STD_CLAMP,
             reward_delay: 0,
+            imagination_context: ImaginationContext::Masked,
         }
     }
+}
+
+/// The context cMask's imagined trajectories carry (`[agent.dreamer.mask] imagination_context`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ImaginationContext {
+    /// The masked context `m ⊙ c` of each start state, as the world model saw it and the
+    /// policy acts with.
+    #[default]
+    Masked,
+    /// The unmasked `c` (scaled as the networks read it): the paper's code (c0fd903,
+    /// `Utils/cbdreamer/dreamerv3.py` l. 239 hands behaviour learning the batch's raw
+    /// `data['context']`, `cbmodels.py` l. 594-595, 651-667), while its world model and acting
+    /// policy read the masked one.
+    Raw,
 }
 
 impl MaskConfig {
@@ -619,6 +642,7 @@ impl MaskConfig {
             target_every: 2,
             log_std_clamp: [-20.0, 2.0],
             reward_delay: 1,
+            imagination_context: ImaginationContext::Raw,
             ..self
         }
     }
@@ -678,6 +702,22 @@ pub enum InitialState {
     /// prior `p(z | h)` (one-hot of the most likely class, its gradient straight through the
     /// log-probabilities).
     Learned,
+}
+
+/// How the DreamerV3 networks' initial weights are drawn (`[agent.dreamer] init`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum WeightInit {
+    /// Every matrix uniform in `±1/√fan_in`, biases zero (`crate::nn::plain::ctxrace_draw`).
+    #[default]
+    Ctxrace,
+    /// The paper's code (c0fd903, `Utils/dreamerv3/tools.py` `weight_init` and
+    /// `uniform_weight_init`, cbmodels.py `weights_init_`): hidden layers a truncated normal of
+    /// variance `1/fan_avg`, output layers uniform of variance `outscale/fan_avg` (outscale 1
+    /// for the latent logits, the decoder, the continue head and the actor, each joined part
+    /// by its own fan; 0 for the reward head and the critic), the mask SAC's layers Xavier
+    /// uniform; `fan_avg = (fan_in + fan_out) / 2` (`crate::nn::plain::fan_avg_draw`).
+    PaperCode,
 }
 
 /// DreamerV3's hyper-parameters; the defaults are the paper's (REFERENCE §5).
@@ -769,6 +809,8 @@ pub struct DreamerConfig {
     pub step_alignment: StepAlignment,
     /// The RSSM state sequences start from ([`InitialState`]): `"zeros"` or `"learned"`.
     pub initial_state: InitialState,
+    /// How the initial weights are drawn ([`WeightInit`]): `"ctxrace"` or `"paper-code"`.
+    pub init: WeightInit,
     /// Seed of initialisation and noise.
     pub seed: u64,
 }
@@ -816,6 +858,7 @@ impl Default for DreamerConfig {
             mask: MaskConfig::default(),
             step_alignment: StepAlignment::Ctxrace,
             initial_state: InitialState::Zeros,
+            init: WeightInit::Ctxrace,
             seed: 0,
         }
     }

@@ -38,6 +38,7 @@ use crate::shards::{on_shards_with, Shard};
 use candle_core::{bail, Result};
 use ctxrace_common::agents::{DreamerConfig, MaskConfig, MaskSpace, StepAlignment, CONTEXT_DIM};
 use ctxrace_common::nn::dreamer::normal_rows;
+use ctxrace_common::nn::initial_weights::init_dreamer;
 use ctxrace_common::nn::plain::{init, polyak, update_each, NamedTensor, Parameters, PlainMlp};
 use ctxrace_common::nn::{Activation, MlpShape, Weights};
 use ctxrace_common::SequenceBatch;
@@ -244,7 +245,7 @@ impl MaskSac {
             bail!("mask.init_alpha must be positive");
         }
         let mut critics = TwinCritics::new(m, obs_dim)?;
-        init(&mut critics, cfg.seed.wrapping_add(3));
+        init_dreamer(&mut critics, cfg.seed.wrapping_add(3), cfg, (obs_dim, 0));
         let targets = TwinCritics(critics.0.clone());
         let log_alpha = LogAlpha(vec![m.init_alpha.ln() as f32]);
         let no_clip = f64::INFINITY;

@@ -33,7 +33,8 @@
 //!    `r_{t+2}`, one step late: `reward_delay = 1`); transitions into a new episode, and those
 //!    whose action no mask chose (random prefill steps), are dropped (the mask SAC's other
 //!    paper-code keys: [`crate::cmask`]);
-//! 3. imagination carries the *masked* context of each start state (the code used the unmasked one).
+//! 3. imagination carries the *masked* context of each start state (the code used the unmasked one;
+//!    `[agent.dreamer.mask] imagination_context = "raw"` restores it).
 //!
 //! **Parameters.** The networks are plain structs trained in place, saved in four groups:
 //! "policy" ([`PolicyNets`]: `encoder`, `rssm`, `actor` and, for cMask, the mask actor `mask`:
@@ -64,8 +65,9 @@ use crate::returns::ReturnNorm;
 use crate::shards::{add_part, in_parallel, on_shards_with, weighted_mean};
 use crate::world_model::{zero_tensor, Starts, WorldModel};
 use candle_core::{bail, Result};
-use ctxrace_common::agents::{DreamerConfig, CONTEXT_DIM};
+use ctxrace_common::agents::{DreamerConfig, ImaginationContext, CONTEXT_DIM};
 use ctxrace_common::nn::dreamer::{mask_value, normal_rows, state_head, PolicyNets};
+use ctxrace_common::nn::initial_weights::init_dreamer;
 use ctxrace_common::nn::kernels::matmul_flops;
 use ctxrace_common::nn::plain::{
     init, load_safetensors, polyak, to_safetensors, MlpGrads, MlpTrace, Parameters, PlainMlp,
@@ -127,7 +129,12 @@ impl Dreamer {
         let head = (cfg.head_units, cfg.head_layers);
         let mut critic =
             state_head(&cfg, &mut Weights::initial(), "critic.", head, cfg.bins).map_err(wrap)?;
-        init(&mut critic, cfg.seed.wrapping_add(2));
+        init_dreamer(
+            &mut critic,
+            cfg.seed.wrapping_add(2),
+            &cfg,
+            (obs_dim, act_dim),
+        );
         zero_tensor(&mut critic, "critic.out.weight");
         let slow_critic = critic.clone();
         let actor_opt = Adam::new(&policy.actor, cfg.ac_lr, cfg.ac_eps, cfg.ac_clip);
@@ -359,6 +366,20 @@ impl Dreamer {
     }
 }
 
+/// Sets the contexts of the starts of imagination to `ctx` (`[B·T, c]`, batch-major rows, the
+/// shards' starts in order): cMask imagining with the unmasked context
+/// (`imagination_context = "raw"`, the paper's code).
+fn set_start_contexts(starts: &mut [Starts], ctx: &[f32]) {
+    let mut rest = ctx;
+    for start in starts {
+        let (own, more) = rest.split_at(start.ctx.len().min(rest.len()));
+        if own.len() == start.ctx.len() {
+            start.ctx.copy_from_slice(own);
+        }
+        rest = more;
+    }
+}
+
 impl Algorithm for Dreamer {
     /// One world-model step, one actor and one critic step on imagined trajectories from every
     /// posterior state, and (cMask) one mask-SAC step, all on `batch`.
@@ -382,13 +403,16 @@ impl Algorithm for Dreamer {
 
         let masks = self.draw_masks(&seq.obs, &mut rngs);
         let ctx = self.model_context(&seq.context, masks.as_deref());
-        let starts = self.world_model.step(
+        let mut starts = self.world_model.step(
             &mut self.policy,
             seq,
             (&ctx, self.workers),
             &mut rngs,
             &mut metrics,
         )?;
+        if masks.is_some() && self.cfg.mask.imagination_context == ImaginationContext::Raw {
+            set_start_contexts(&mut starts, &self.model_context(&seq.context, None));
+        }
         phase_flops(&mut metrics, "model");
         self.behaviour_step(&starts, &mut rngs, &mut metrics, &mut phase_flops)?;
         phase_flops(&mut metrics, "actor_critic");
@@ -815,7 +839,8 @@ mod tests {
         });
         zero(&critic, "critic.out.weight");
         let critics = seeded(cfg.seed + 3, &|vb| {
-            crate::candle_sac::TwinQ::new(3 + CONTEXT_DIM, cfg.mask.units, cfg.mask.layers, vb).unwrap();
+            crate::candle_sac::TwinQ::new(3 + CONTEXT_DIM, cfg.mask.units, cfg.mask.layers, vb)
+                .unwrap();
         });
         let alpha = ParamStore::new();
         let init = candle_nn::Init::Const(cfg.mask.init_alpha.ln());
@@ -1183,6 +1208,37 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn cmask_imagines_with_the_raw_context_only_when_asked() {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let data = collect(6, &mut rng);
+        let batch = sample(&data, 4, 16, &mut rng);
+        let step = |imagination_context| {
+            let mut cfg = tiny(ContextMode::Cmask);
+            cfg.mask.imagination_context = imagination_context;
+            Dreamer::new(cfg, 2, 2).unwrap().train_step(&batch).unwrap()
+        };
+        let (masked, raw) = (
+            step(ImaginationContext::Masked),
+            step(ImaginationContext::Raw),
+        );
+        // the world model saw the masked context either way; imagination did not
+        for key in ["model/loss", "model/kl", "mask/mean"] {
+            assert_eq!(masked[key], raw[key], "{key}");
+        }
+        assert_ne!(masked["actor/loss"], raw["actor/loss"]);
+        let mut starts = [1, 2].map(|n| Starts {
+            n,
+            deter: Vec::new(),
+            stoch: Vec::new(),
+            cont: Vec::new(),
+            ctx: vec![0.0; 2 * n],
+        });
+        set_start_contexts(&mut starts, &[1.0, 2.0, 3.0, 4.0, 5.0, 6.0]);
+        assert_eq!(starts[0].ctx, [1.0, 2.0]);
+        assert_eq!(starts[1].ctx, [3.0, 4.0, 5.0, 6.0]);
     }
 
     #[test]

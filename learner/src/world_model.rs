@@ -32,6 +32,7 @@ use crate::shards::{add_part, on_shards_with, weighted_mean};
 use candle_core::{bail, Result};
 use ctxrace_common::agents::{DreamerConfig, StepAlignment};
 use ctxrace_common::nn::dreamer::{state_head, uniform_rows, PolicyNets};
+use ctxrace_common::nn::initial_weights::init_dreamer;
 use ctxrace_common::nn::plain::{
     categorical_kl, categorical_kl_backward, init, soft_cross_entropy, soft_cross_entropy_backward,
     update_each, InputGrad, MlpGrads, MlpTrace, NamedTensor, NonZeros, ObserveTrace, Parameters,
@@ -88,7 +89,12 @@ impl Heads {
                 .map_err(candle_core::Error::wrap)?,
             cont: state_head(cfg, w, "cont.", head, 1).map_err(candle_core::Error::wrap)?,
         };
-        init(&mut heads, cfg.seed.wrapping_add(1));
+        init_dreamer(
+            &mut heads,
+            cfg.seed.wrapping_add(1),
+            cfg,
+            (obs_dim, act_dim),
+        );
         zero_tensor(&mut heads, "reward.out.weight");
         Ok(heads)
     }

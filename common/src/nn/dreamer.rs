@@ -7,7 +7,8 @@
 use crate::agents::{
     ContextMode, DreamerConfig, InitialState, MaskSpace, StepAlignment, CONTEXT_DIM,
 };
-use crate::nn::plain::{init, update_each, NamedTensor, Parameters, PlainMlp, PlainRssm};
+use crate::nn::initial_weights::init_dreamer;
+use crate::nn::plain::{update_each, NamedTensor, Parameters, PlainMlp, PlainRssm};
 use crate::nn::{
     Activation, Mlp, MlpShape, Rssm, RssmConfig, TanhGaussianActor, Weights, WeightsError,
 };
@@ -72,14 +73,15 @@ impl PolicyNets {
         })
     }
 
-    /// Freshly initialised networks of `cfg` ([`init`] from `cfg.seed`).
+    /// Freshly initialised networks of `cfg` (drawn from `cfg.seed` as `cfg.init` says,
+    /// [`init_dreamer`]).
     pub fn initial(
         cfg: &DreamerConfig,
         obs_dim: usize,
         act_dim: usize,
     ) -> std::result::Result<Self, WeightsError> {
         let mut nets = Self::from_weights(cfg, obs_dim, act_dim, &mut Weights::initial())?;
-        init(&mut nets, cfg.seed);
+        init_dreamer(&mut nets, cfg.seed, cfg, (obs_dim, act_dim));
         Ok(nets)
     }
 }

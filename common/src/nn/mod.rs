@@ -2,6 +2,7 @@
 
 pub mod dense;
 pub mod dreamer;
+pub mod initial_weights;
 pub mod kernels;
 pub mod mlp;
 pub mod norm;
