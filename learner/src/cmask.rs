@@ -39,7 +39,7 @@ use candle_core::{bail, Result};
 use ctxrace_common::agents::{DreamerConfig, MaskConfig, MaskSpace, StepAlignment, CONTEXT_DIM};
 use ctxrace_common::nn::dreamer::normal_rows;
 use ctxrace_common::nn::initial_weights::init_dreamer;
-use ctxrace_common::nn::plain::{init, polyak, update_each, NamedTensor, Parameters, PlainMlp};
+use ctxrace_common::nn::plain::{polyak, update_each, NamedTensor, Parameters, PlainMlp};
 use ctxrace_common::nn::{Activation, MlpShape, Weights};
 use ctxrace_common::SequenceBatch;
 use rand_chacha::ChaCha8Rng;
@@ -641,7 +641,7 @@ mod tests {
             act: Activation::Relu,
         };
         let mut actor = PlainMlp::from_weights(&mut Weights::initial(), "mask.", &shape).unwrap();
-        init(&mut actor, 5);
+        ctxrace_common::nn::plain::init(&mut actor, 5);
         let mut sac = MaskSac::new(&cfg, o, &actor).unwrap();
         let streams = |seed: u64| -> Vec<ChaCha8Rng> {
             (0..b as u64)

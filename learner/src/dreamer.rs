@@ -70,7 +70,7 @@ use ctxrace_common::nn::dreamer::{mask_value, normal_rows, state_head, PolicyNet
 use ctxrace_common::nn::initial_weights::init_dreamer;
 use ctxrace_common::nn::kernels::matmul_flops;
 use ctxrace_common::nn::plain::{
-    init, load_safetensors, polyak, to_safetensors, MlpGrads, MlpTrace, Parameters, PlainMlp,
+    load_safetensors, polyak, to_safetensors, MlpGrads, MlpTrace, Parameters, PlainMlp,
 };
 use ctxrace_common::nn::tanh_gaussian::squash_rows;
 use ctxrace_common::nn::{TwoHot, Weights};

@@ -34,7 +34,7 @@ use ctxrace_common::agents::{DreamerConfig, StepAlignment};
 use ctxrace_common::nn::dreamer::{state_head, uniform_rows, PolicyNets};
 use ctxrace_common::nn::initial_weights::init_dreamer;
 use ctxrace_common::nn::plain::{
-    categorical_kl, categorical_kl_backward, init, soft_cross_entropy, soft_cross_entropy_backward,
+    categorical_kl, categorical_kl_backward, soft_cross_entropy, soft_cross_entropy_backward,
     update_each, InputGrad, MlpGrads, MlpTrace, NamedTensor, NonZeros, ObserveTrace, Parameters,
     PlainMlp, PlainRssm, RssmGrads,
 };
@@ -865,7 +865,7 @@ mod tests {
                 ..form.clone()
             };
             let mut policy = PolicyNets::from_weights(&cfg, 3, 2, &mut Weights::initial()).unwrap();
-            init(&mut policy, 4);
+            ctxrace_common::nn::plain::init(&mut policy, 4);
             // a learned initial state away from zero, where its prior's classes do not tie
             randomise(&mut policy, |n| n == "rssm.initial_state.w", 1.0, 1);
             let mut model = WorldModel::new(&cfg, (3, 2), &mut policy).unwrap();
