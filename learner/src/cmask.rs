@@ -31,16 +31,17 @@
 //! first row carries no mask), its first step's `α = 0.2` before `log α = 0` takes over, and its
 //! temperature loss on a fresh sample after the actor's step.
 
-use crate::adam::Adam;
 use crate::algorithm::Metrics;
 use crate::sac::{ActionRange, PassSum, PlainActor, SoftTarget, WeightedTransitions, Workspace};
+use crate::sac_core::{
+    ActorPass, CoreConfig, CriticPass, LearningRates, Passes, SacCore, SacError,
+};
 use crate::shards::{on_shards_with, Shard};
 use candle_core::{bail, Result};
 use ctxrace_common::agents::{DreamerConfig, MaskConfig, MaskSpace, StepAlignment, CONTEXT_DIM};
 use ctxrace_common::nn::dreamer::normal_rows;
 use ctxrace_common::nn::initial_weights::init_dreamer;
-use ctxrace_common::nn::plain::{polyak, update_each, NamedTensor, Parameters, PlainMlp};
-use ctxrace_common::nn::{Activation, MlpShape, Weights};
+use ctxrace_common::nn::plain::PlainMlp;
 use ctxrace_common::SequenceBatch;
 use rand_chacha::ChaCha8Rng;
 use std::ops::Range;
@@ -163,63 +164,12 @@ impl Transitions {
     }
 }
 
-/// The twin critics `Q_1, Q_2 (o, m)`: ReLU MLPs `q1`, `q2` on `[o, m]`.
-pub(crate) struct TwinCritics(pub(crate) [PlainMlp; 2]);
-
-impl TwinCritics {
-    /// Critics of `cfg` for observations of `obs_dim`, at their construction values.
-    fn new(cfg: &MaskConfig, obs_dim: usize) -> Result<Self> {
-        let shape = MlpShape {
-            input: obs_dim + CONTEXT_DIM,
-            units: cfg.units,
-            layers: cfg.layers,
-            out: Some(1),
-            act: Activation::Relu,
-        };
-        let w = &mut Weights::initial();
-        let q = |w: &mut Weights, prefix: &str| {
-            PlainMlp::from_weights(w, prefix, &shape).map_err(candle_core::Error::wrap)
-        };
-        Ok(Self([q(w, "q1.")?, q(w, "q2.")?]))
-    }
-}
-
-impl Parameters for TwinCritics {
-    fn tensors(&self) -> Vec<NamedTensor<'_>> {
-        self.0.iter().flat_map(|q| q.tensors()).collect()
-    }
-
-    fn update(&mut self, f: &mut dyn FnMut(usize, &mut [f32])) {
-        update_each(self.0.iter_mut().map(|q| q as &mut dyn Parameters), f);
-    }
-}
-
-/// The temperature's logarithm `log α` (the "mask_alpha" weights).
-pub(crate) struct LogAlpha(Vec<f32>);
-
-impl Parameters for LogAlpha {
-    fn tensors(&self) -> Vec<NamedTensor<'_>> {
-        vec![NamedTensor {
-            name: "log_alpha",
-            shape: vec![1],
-            values: &self.0,
-        }]
-    }
-
-    fn update(&mut self, f: &mut dyn FnMut(usize, &mut [f32])) {
-        f(0, &mut self.0);
-    }
-}
-
-/// cMask's mask SAC (the actor is the policy's `mask`).
+/// cMask's mask SAC: SAC's core ([`SacCore`]: twin critics, targets, temperature, optimisers)
+/// stepping the policy's mask actor on the batch's masked transitions.
 pub(crate) struct MaskSac {
-    /// The twin critics ("mask_critic"), their Polyak targets ("mask_target") and `log α`.
-    pub(crate) critics: TwinCritics,
-    pub(crate) targets: TwinCritics,
-    pub(crate) log_alpha: LogAlpha,
-    pub(crate) actor_opt: Adam,
-    pub(crate) critic_opt: Adam,
-    pub(crate) alpha_opt: Adam,
+    /// The critics ("mask_critic"), targets ("mask_target"), `log α` ("mask_alpha") and the
+    /// optimisers.
+    pub(crate) core: SacCore,
     cfg: MaskConfig,
     /// How the batches' rows are laid out (where a choice's mask and reward are stored).
     alignment: StepAlignment,
@@ -227,47 +177,112 @@ pub(crate) struct MaskSac {
     work: Vec<Workspace>,
 }
 
-/// What a step's passes share: the batch's transitions, the temperature and the count of valid
-/// transitions.
-#[derive(Clone, Copy)]
-struct StepData<'a> {
+/// A step's passes over the valid transitions of a batch, shard by shard in parallel, the
+/// masks' noise drawn from each shard's sequences' streams.
+struct MaskPasses<'a> {
     transitions: &'a Transitions,
-    alpha: f32,
+    /// The count of valid transitions (the means' divisor).
     count: f32,
+    workers: usize,
+    rngs: &'a mut [ChaCha8Rng],
+    work: &'a mut Vec<Workspace>,
+}
+
+impl MaskPasses<'_> {
+    /// Runs `pass` on each shard's weighted transitions, one shard per worker in parallel, and
+    /// sums the results.
+    fn on_transitions<T: PassSum + Send>(
+        &mut self,
+        pass: impl Fn(&mut Workspace, &WeightedTransitions, &[f32]) -> T + Sync,
+    ) -> std::result::Result<T, SacError> {
+        let (tr, count) = (self.transitions, self.count);
+        let batch = tr.valid.len() / tr.per_sequence;
+        let work = &mut *self.work;
+        work.resize_with(self.workers.clamp(1, batch.max(1)), Workspace::default);
+        let shards = on_shards_with(
+            self.workers,
+            batch,
+            self.rngs,
+            work,
+            |shard: Shard, rngs, w| {
+                let weight = tr.weights(&shard.rows, count);
+                let noise = normal_rows(rngs, tr.per_sequence, CONTEXT_DIM);
+                Ok(pass(w, &tr.weighted(&shard.rows, &weight), &noise))
+            },
+        );
+        let mut parts = shards
+            .map_err(|e| SacError::Batch(format!("the mask SAC's shards: {e}")))?
+            .into_iter();
+        let Some(mut sum) = parts.next() else {
+            return Err(SacError::Batch("the mask SAC's batch has no shards".into()));
+        };
+        for part in parts {
+            sum.add(&part);
+        }
+        Ok(sum)
+    }
+}
+
+impl Passes for MaskPasses<'_> {
+    type Error = SacError;
+
+    fn critic(
+        &mut self,
+        nets: (&[PlainMlp; 2], &[PlainMlp; 2], PlainActor),
+        soft: SoftTarget,
+    ) -> std::result::Result<CriticPass, SacError> {
+        self.on_transitions(|w, tr, noise| w.critic_pass(nets, tr, noise, soft))
+    }
+
+    fn actor(
+        &mut self,
+        nets: (&[PlainMlp; 2], PlainActor),
+        with: (f32, ActionRange),
+    ) -> std::result::Result<ActorPass, SacError> {
+        self.on_transitions(|w, tr, noise| w.actor_pass(nets, (tr.obs, tr.weight), noise, with))
+    }
 }
 
 impl MaskSac {
     /// The mask SAC of `cfg` for observations of `obs_dim` and the mask actor `actor`: critics
-    /// initialised from `cfg.seed + 3`, the targets their copy, `log α` from `init_alpha`.
+    /// drawn from `cfg.seed + 3` (as `cfg.init` says), the targets their copy, `log α` from
+    /// `init_alpha`.
     pub(crate) fn new(cfg: &DreamerConfig, obs_dim: usize, actor: &PlainMlp) -> Result<Self> {
         let m = &cfg.mask;
         if m.init_alpha.is_nan() || m.init_alpha <= 0.0 {
             bail!("mask.init_alpha must be positive");
         }
-        let mut critics = TwinCritics::new(m, obs_dim)?;
-        init_dreamer(&mut critics, cfg.seed.wrapping_add(3), cfg, (obs_dim, 0));
-        let targets = TwinCritics(critics.0.clone());
-        let log_alpha = LogAlpha(vec![m.init_alpha.ln() as f32]);
-        let no_clip = f64::INFINITY;
+        let seed = cfg.seed.wrapping_add(3);
+        let core = CoreConfig {
+            input: obs_dim + CONTEXT_DIM,
+            hidden: m.units,
+            layers: m.layers,
+            seed,
+            initial_alpha: m.init_alpha,
+            lr: LearningRates {
+                actor: m.lr,
+                critic: m.lr,
+                alpha: m.lr,
+            },
+            gamma: m.gamma,
+            tau: m.tau,
+            target_every: m.target_every,
+            target_entropy: m.target_entropy,
+            range: match m.mask_space {
+                MaskSpace::Unit => ActionRange::UNIT,
+                MaskSpace::PaperCode => ActionRange::SYMMETRIC,
+            },
+            bounds: [0.0, 1.0],
+        };
+        let mut core = SacCore::new(core, actor).map_err(candle_core::Error::wrap)?;
+        init_dreamer(&mut core.critics, seed, cfg, (obs_dim, 0));
+        core.targets = core.critics.clone();
         Ok(Self {
-            actor_opt: Adam::new(actor, m.lr, 1e-8, no_clip),
-            critic_opt: Adam::new(&critics, m.lr, 1e-8, no_clip),
-            alpha_opt: Adam::new(&log_alpha, m.lr, 1e-8, no_clip),
-            critics,
-            targets,
-            log_alpha,
+            core,
             cfg: m.clone(),
             alignment: cfg.step_alignment,
             work: Vec::new(),
         })
-    }
-
-    /// The mask actor with its log-std bounds.
-    fn plain_actor<'a>(&self, net: &'a PlainMlp) -> PlainActor<'a> {
-        PlainActor {
-            net,
-            log_std_clamp: self.cfg.log_std_clamp.map(|b| b as f32),
-        }
     }
 
     /// One SAC step (critics, actor, temperature, targets) on the transitions of the batch `seq`
@@ -288,9 +303,8 @@ impl MaskSac {
             return Ok(());
         };
         let valid_count = f64::from(transitions.valid_count());
-        let alpha = f64::from(self.log_alpha.0[0].exp());
         metrics.insert("mask/acted_transitions".into(), valid_count);
-        metrics.insert("mask/alpha".into(), alpha);
+        metrics.insert("mask/alpha".into(), self.core.alpha());
         if valid_count == 0.0 {
             // the losses over no transitions are zero; nothing is stepped
             for key in ["mask/q_loss", "mask/actor_loss", "mask/entropy"] {
@@ -298,111 +312,22 @@ impl MaskSac {
             }
             return Ok(());
         }
-        let data = StepData {
+        let mut passes = MaskPasses {
             transitions: &transitions,
-            alpha: alpha as f32,
             count: valid_count as f32,
+            workers,
+            rngs,
+            work: &mut self.work,
         };
-        let wrap = candle_core::Error::wrap;
-        let (grads, q_loss) = self.critic_grads(actor, data, workers, rngs)?;
-        self.critic_opt
-            .step(&mut self.critics, &grads)
-            .map_err(wrap)?;
-        let (grads, actor_loss, mean_logp) = self.actor_grads(actor, data, workers, rngs)?;
-        self.actor_opt.step(actor, &grads).map_err(wrap)?;
-
-        // temperature: minimise −log α · mean(log π + target entropy) over the valid transitions
-        let gap = (mean_logp + self.cfg.target_entropy) as f32;
-        self.alpha_opt
-            .step(&mut self.log_alpha, &[vec![-gap]])
-            .map_err(wrap)?;
-        if step.is_multiple_of(self.cfg.target_every as u64) {
-            polyak(&mut self.targets, &self.critics, self.cfg.tau);
-        }
-
-        metrics.insert("mask/q_loss".into(), q_loss);
-        metrics.insert("mask/actor_loss".into(), actor_loss);
-        metrics.insert("mask/entropy".into(), -mean_logp);
+        let clamp = self.cfg.log_std_clamp.map(|b| b as f32);
+        let losses = self
+            .core
+            .step((actor, clamp), &mut passes, step)
+            .map_err(candle_core::Error::wrap)?;
+        metrics.insert("mask/q_loss".into(), losses.critic_loss);
+        metrics.insert("mask/actor_loss".into(), losses.actor_loss);
+        metrics.insert("mask/entropy".into(), -losses.log_prob);
         Ok(())
-    }
-
-    /// Runs `pass` on each shard's weighted transitions (and the masks' noise drawn from the
-    /// shard's sequences' streams), one shard per worker in parallel, and sums the results.
-    fn on_transitions<T: PassSum + Send>(
-        work: &mut Vec<Workspace>,
-        data: StepData,
-        workers: usize,
-        rngs: &mut [ChaCha8Rng],
-        pass: impl Fn(&mut Workspace, &WeightedTransitions, &[f32]) -> T + Sync,
-    ) -> Result<T> {
-        let tr = data.transitions;
-        let batch = tr.valid.len() / tr.per_sequence;
-        work.resize_with(workers.clamp(1, batch.max(1)), Workspace::default);
-        let parts = on_shards_with(workers, batch, rngs, work, |shard: Shard, rngs, w| {
-            let weight = tr.weights(&shard.rows, data.count);
-            let noise = normal_rows(rngs, tr.per_sequence, CONTEXT_DIM);
-            Ok(pass(w, &tr.weighted(&shard.rows, &weight), &noise))
-        })?;
-        let mut parts = parts.into_iter();
-        let Some(mut sum) = parts.next() else {
-            bail!("the mask SAC's batch has no shards");
-        };
-        for part in parts {
-            sum.add(&part);
-        }
-        Ok(sum)
-    }
-
-    /// Where the critics see the actor's samples: the unit mask `(1 + tanh u) / 2`, or (the
-    /// paper's code) `tanh u` itself, the target's clamped to `[0, 1]`.
-    fn range(&self) -> ActionRange {
-        match self.cfg.mask_space {
-            MaskSpace::Unit => ActionRange::UNIT,
-            MaskSpace::PaperCode => ActionRange::SYMMETRIC,
-        }
-    }
-
-    /// The critics' gradients of their loss over the valid transitions of `data` (the next masks
-    /// drawn from `actor`) and the loss.
-    fn critic_grads(
-        &mut self,
-        actor: &PlainMlp,
-        data: StepData,
-        workers: usize,
-        rngs: &mut [ChaCha8Rng],
-    ) -> Result<(Vec<Vec<f32>>, f64)> {
-        let soft = SoftTarget {
-            alpha: data.alpha,
-            gamma: self.cfg.gamma as f32,
-            range: self.range(),
-            bounds: [0.0, 1.0],
-            smoothing: &[],
-        };
-        let nets = (&self.critics.0, &self.targets.0, self.plain_actor(actor));
-        let sum = Self::on_transitions(&mut self.work, data, workers, rngs, |w, tr, noise| {
-            w.critic_pass(nets, tr, noise, soft)
-        })?;
-        let [q1, q2] = sum.grads;
-        let mut grads = q1.into_tensors(&self.critics.0[0]);
-        q2.push_tensors(&self.critics.0[1], &mut grads);
-        Ok((grads, sum.loss))
-    }
-
-    /// The mask actor's gradients of its loss over the valid transitions of `data` through
-    /// the current critics: `(gradients, loss, mean log π)`.
-    fn actor_grads(
-        &mut self,
-        actor: &PlainMlp,
-        data: StepData,
-        workers: usize,
-        rngs: &mut [ChaCha8Rng],
-    ) -> Result<(Vec<Vec<f32>>, f64, f64)> {
-        let with = (data.alpha, self.range());
-        let nets = (&self.critics.0, self.plain_actor(actor));
-        let sum = Self::on_transitions(&mut self.work, data, workers, rngs, |w, tr, noise| {
-            w.actor_pass(nets, (tr.obs, tr.weight), noise, with)
-        })?;
-        Ok((sum.grads.into_tensors(actor), sum.loss, sum.log_prob))
     }
 }
 
@@ -414,7 +339,8 @@ mod tests {
     use crate::sequences::SeqData;
     use crate::world_model::oracle;
     use candle_core::{Device, Tensor};
-    use ctxrace_common::nn::TanhGaussianActor;
+    use ctxrace_common::nn::plain::Parameters;
+    use ctxrace_common::nn::{Activation, MlpShape, TanhGaussianActor, Weights};
     use rand::{Rng, SeedableRng};
 
     /// One sequence of one-value observations and actions (actions and contexts zero): its
@@ -671,8 +597,8 @@ mod tests {
                 .with_log_std_clamp(clamp)
         });
         let twin = |vb: candle_nn::VarBuilder| TwinQ::new(o + CONTEXT_DIM, 16, 2, vb).unwrap();
-        let (critic_store, q) = oracle::store_of(&sac.critics, twin);
-        let (_, q_target) = oracle::store_of(&sac.targets, twin);
+        let (critic_store, q) = oracle::store_of(&sac.core.critics, twin);
+        let (_, q_target) = oracle::store_of(&sac.core.targets, twin);
         let alpha = 0.25;
         let mut draws = streams(99);
         let per = t - 1 - cfg.mask.reward_delay;
@@ -684,15 +610,36 @@ mod tests {
             candle_losses(&sac, candle_nets, (&seq, &d), (&next_noise, &noise), alpha).unwrap();
         let (want_c, want_a) = (critic.backward().unwrap(), actor_loss.backward().unwrap());
         let transitions = Transitions::new(&seq, &cfg.mask, cfg.step_alignment).unwrap();
-        let data = StepData {
-            transitions: &transitions,
+        let view = PlainActor {
+            net: &actor,
+            log_std_clamp: clamp.map(|b| b as f32),
+        };
+        let range = sac.core.cfg.range;
+        let soft = SoftTarget {
             alpha: alpha as f32,
-            count: transitions.valid_count(),
+            gamma: cfg.mask.gamma as f32,
+            range,
+            bounds: [0.0, 1.0],
+            smoothing: &[],
         };
         for workers in [1, 2, 4] {
             let mut rngs = streams(99);
-            let (got_c, loss_c) = sac.critic_grads(&actor, data, workers, &mut rngs).unwrap();
-            let (got_a, loss_a, _) = sac.actor_grads(&actor, data, workers, &mut rngs).unwrap();
+            let mut work = Vec::new();
+            let mut passes = MaskPasses {
+                transitions: &transitions,
+                count: transitions.valid_count(),
+                workers,
+                rngs: &mut rngs,
+                work: &mut work,
+            };
+            let (critics, targets) = (&sac.core.critics, &sac.core.targets);
+            let critic_pass = passes.critic((&critics.q, &targets.q, view), soft).unwrap();
+            let actor_pass = passes
+                .actor((&critics.q, view), (alpha as f32, range))
+                .unwrap();
+            let (loss_c, loss_a) = (critic_pass.loss, actor_pass.loss);
+            let got_c = critics.grad_tensors(critic_pass.grads);
+            let got_a = actor_pass.grads.into_tensors(&actor);
             let close = |a: f64, t: &Tensor| {
                 let b = scalar(t).unwrap();
                 assert!((a - b).abs() < 1e-5 * (1.0 + b.abs()), "{a} vs {b}");
@@ -700,7 +647,7 @@ mod tests {
             close(loss_c, &critic);
             close(loss_a, &actor_loss);
             let actor_tensors = actor.tensors();
-            let critic_tensors = sac.critics.tensors();
+            let critic_tensors = sac.core.critics.tensors();
             for (tensors, store, got, want) in [
                 (&actor_tensors, &actor_store, &got_a, &want_a),
                 (&critic_tensors, &critic_store, &got_c, &want_c),

@@ -311,9 +311,9 @@ impl Dreamer {
             ("opt_critic", &self.critic_opt),
         ];
         if let Some(sac) = &self.mask_sac {
-            v.push(("opt_mask_actor", &sac.actor_opt));
-            v.push(("opt_mask_critic", &sac.critic_opt));
-            v.push(("opt_mask_alpha", &sac.alpha_opt));
+            v.push(("opt_mask_actor", &sac.core.actor_opt));
+            v.push(("opt_mask_critic", &sac.core.critic_opt));
+            v.push(("opt_mask_alpha", &sac.core.alpha_opt));
         }
         v
     }
@@ -326,9 +326,9 @@ impl Dreamer {
             ("opt_critic", &mut self.critic_opt),
         ];
         if let Some(sac) = &mut self.mask_sac {
-            v.push(("opt_mask_actor", &mut sac.actor_opt));
-            v.push(("opt_mask_critic", &mut sac.critic_opt));
-            v.push(("opt_mask_alpha", &mut sac.alpha_opt));
+            v.push(("opt_mask_actor", &mut sac.core.actor_opt));
+            v.push(("opt_mask_critic", &mut sac.core.critic_opt));
+            v.push(("opt_mask_alpha", &mut sac.core.alpha_opt));
         }
         v
     }
@@ -342,9 +342,9 @@ impl Dreamer {
             ("slow_critic", &self.slow_critic),
         ];
         if let Some(sac) = &self.mask_sac {
-            v.push(("mask_critic", &sac.critics));
-            v.push(("mask_target", &sac.targets));
-            v.push(("mask_alpha", &sac.log_alpha));
+            v.push(("mask_critic", &sac.core.critics));
+            v.push(("mask_target", &sac.core.targets));
+            v.push(("mask_alpha", &sac.core.log_alpha));
         }
         v
     }
@@ -358,9 +358,9 @@ impl Dreamer {
             ("slow_critic", &mut self.slow_critic),
         ];
         if let Some(sac) = &mut self.mask_sac {
-            v.push(("mask_critic", &mut sac.critics));
-            v.push(("mask_target", &mut sac.targets));
-            v.push(("mask_alpha", &mut sac.log_alpha));
+            v.push(("mask_critic", &mut sac.core.critics));
+            v.push(("mask_target", &mut sac.core.targets));
+            v.push(("mask_alpha", &mut sac.core.log_alpha));
         }
         v
     }
@@ -661,7 +661,7 @@ mod tests {
                 .chunks(2)
                 .flat_map(|o| [o[0], o[1], m[0], m[1]])
                 .collect();
-            let [q1, q2] = &sac.critics.0;
+            let [q1, q2] = &sac.core.critics.q;
             let (q1, q2) = (outputs(q1, &x, 64), outputs(q2, &x, 64));
             let min = q1.iter().zip(&q2).map(|(a, b)| f64::from(a.min(*b)));
             min.sum::<f64>() / 64.0
@@ -1347,7 +1347,12 @@ mod tests {
         let bytes = |agent: &Dreamer| {
             let sac = agent.mask_sac.as_ref().unwrap();
             let mask = agent.policy.mask.as_ref().unwrap();
-            let nets: [&dyn Parameters; 4] = [&sac.critics, &sac.targets, &sac.log_alpha, mask];
+            let nets: [&dyn Parameters; 4] = [
+                &sac.core.critics,
+                &sac.core.targets,
+                &sac.core.log_alpha,
+                mask,
+            ];
             nets.map(|n| to_safetensors(n).unwrap())
         };
         let before = bytes(&agent);
