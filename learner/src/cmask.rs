@@ -33,13 +33,13 @@
 
 use crate::adam::Adam;
 use crate::algorithm::Metrics;
+use crate::error::{LearnerError, Result};
 use crate::sac::{ActionRange, PassSum, PlainActor, SoftTarget, WeightedTransitions, Workspace};
 use crate::shards::{on_shards_with, Shard};
-use candle_core::{bail, Result};
 use ctxrace_common::agents::{DreamerConfig, MaskConfig, MaskSpace, StepAlignment, CONTEXT_DIM};
 use ctxrace_common::nn::dreamer::normal_rows;
 use ctxrace_common::nn::initial_weights::init_dreamer;
-use ctxrace_common::nn::plain::{init, polyak, update_each, NamedTensor, Parameters, PlainMlp};
+use ctxrace_common::nn::plain::{polyak, update_each, NamedTensor, Parameters, PlainMlp};
 use ctxrace_common::nn::{Activation, MlpShape, Weights};
 use ctxrace_common::SequenceBatch;
 use rand_chacha::ChaCha8Rng;
@@ -177,9 +177,7 @@ impl TwinCritics {
             act: Activation::Relu,
         };
         let w = &mut Weights::initial();
-        let q = |w: &mut Weights, prefix: &str| {
-            PlainMlp::from_weights(w, prefix, &shape).map_err(candle_core::Error::wrap)
-        };
+        let q = |w: &mut Weights, prefix: &str| PlainMlp::from_weights(w, prefix, &shape);
         Ok(Self([q(w, "q1.")?, q(w, "q2.")?]))
     }
 }
@@ -242,7 +240,9 @@ impl MaskSac {
     pub(crate) fn new(cfg: &DreamerConfig, obs_dim: usize, actor: &PlainMlp) -> Result<Self> {
         let m = &cfg.mask;
         if m.init_alpha.is_nan() || m.init_alpha <= 0.0 {
-            bail!("mask.init_alpha must be positive");
+            return Err(LearnerError::Config(
+                "agent.dreamer.mask.init_alpha must be positive".into(),
+            ));
         }
         let mut critics = TwinCritics::new(m, obs_dim)?;
         init_dreamer(&mut critics, cfg.seed.wrapping_add(3), cfg, (obs_dim, 0));
@@ -303,19 +303,14 @@ impl MaskSac {
             alpha: alpha as f32,
             count: valid_count as f32,
         };
-        let wrap = candle_core::Error::wrap;
         let (grads, q_loss) = self.critic_grads(actor, data, workers, rngs)?;
-        self.critic_opt
-            .step(&mut self.critics, &grads)
-            .map_err(wrap)?;
+        self.critic_opt.step(&mut self.critics, &grads)?;
         let (grads, actor_loss, mean_logp) = self.actor_grads(actor, data, workers, rngs)?;
-        self.actor_opt.step(actor, &grads).map_err(wrap)?;
+        self.actor_opt.step(actor, &grads)?;
 
         // temperature: minimise −log α · mean(log π + target entropy) over the valid transitions
         let gap = (mean_logp + self.cfg.target_entropy) as f32;
-        self.alpha_opt
-            .step(&mut self.log_alpha, &[vec![-gap]])
-            .map_err(wrap)?;
+        self.alpha_opt.step(&mut self.log_alpha, &[vec![-gap]])?;
         if step.is_multiple_of(self.cfg.target_every as u64) {
             polyak(&mut self.targets, &self.critics, self.cfg.tau);
         }
@@ -345,7 +340,9 @@ impl MaskSac {
         })?;
         let mut parts = parts.into_iter();
         let Some(mut sum) = parts.next() else {
-            bail!("the mask SAC's batch has no shards");
+            return Err(LearnerError::Batch(
+                "the mask SAC's batch has no shards".into(),
+            ));
         };
         for part in parts {
             sum.add(&part);
@@ -413,7 +410,8 @@ mod tests {
     use crate::candle_sac::TwinQ;
     use crate::sequences::SeqData;
     use crate::world_model::oracle;
-    use candle_core::{Device, Tensor};
+    use candle_core::{Device, Result, Tensor};
+    use ctxrace_common::nn::plain::init;
     use ctxrace_common::nn::TanhGaussianActor;
     use rand::{Rng, SeedableRng};
 

@@ -35,19 +35,19 @@ pub struct TwoHot {
 
 impl TwoHot {
     /// DreamerV3's 255 bins over `[−20, 20]`.
-    pub fn dreamer() -> Result<Self> {
+    pub fn dreamer() -> Self {
         Self::new(255, -20.0, 20.0)
     }
 
     /// `count ≥ 2` bins over `[low, high]` (symlog space).
-    pub fn new(count: usize, low: f32, high: f32) -> Result<Self> {
+    pub fn new(count: usize, low: f32, high: f32) -> Self {
         let step = (high - low) / (count - 1) as f32;
         let values: Vec<f32> = (0..count).map(|k| low + step * k as f32).collect();
-        Ok(Self {
+        Self {
             low,
             high,
             bins: values,
-        })
+        }
     }
 
     /// Number of bins.
@@ -121,7 +121,7 @@ mod tests {
     #[test]
     fn twohot_encodes_between_neighbouring_bins_and_decodes_back() {
         // 5 bins over [-2, 2]: -2, -1, 0, 1, 2 (symlog space)
-        let th = TwoHot::new(5, -2.0, 2.0).unwrap();
+        let th = TwoHot::new(5, -2.0, 2.0);
         // symlog(e^0.25 − 1) = 0.25: 75 % on bin 0, 25 % on bin 1
         let y = t(&[0.25f32.exp() - 1.0, 0.0, 1000.0]);
         let enc: Vec<Vec<f32>> = th.encode(&y).unwrap().to_vec2().unwrap();
@@ -152,12 +152,12 @@ mod tests {
 
     #[test]
     fn twohot_loss_is_the_cross_entropy() {
-        let th = TwoHot::new(3, -1.0, 1.0).unwrap();
+        let th = TwoHot::new(3, -1.0, 1.0);
         let logits = Tensor::new(&[[0.0f32, 1.0, 2.0]], &Device::Cpu).unwrap();
         let y = t(&[0.0]); // all weight on the middle bin
         let loss: Vec<f32> = th.loss(&logits, &y).unwrap().to_vec1().unwrap();
         let lse = (1f32 + 1f32.exp() + 2f32.exp()).ln();
         assert!((loss[0] - (lse - 1.0)).abs() < 1e-5);
-        assert_eq!(TwoHot::dreamer().unwrap().count(), 255);
+        assert_eq!(TwoHot::dreamer().count(), 255);
     }
 }
