@@ -353,7 +353,6 @@ pub fn run(args: LearnerArgs) -> Result<()> {
     let batch = random_batch(spec, beams, &mut rng);
 
     let threads = args.threads.unwrap_or(agent.algo.learner_threads());
-    ctxrace_common::nn::candle_on_one_thread();
     let mut algo = ctxrace_learner::build(&agent, beams, threads)?;
     algo.train_step(&batch)?;
     let flops_before = ctxrace_common::nn::kernels::matmul_flops();

@@ -7,10 +7,13 @@
 //! `w_k = 1 − |symlog(y) − b_k| / (b_{k+1} − b_k)`; a prediction decodes as
 //! `symexp(Σ_k softmax(logits)_k b_k)`.
 
+#[cfg(any(test, feature = "oracle"))]
 use super::kernels;
+#[cfg(any(test, feature = "oracle"))]
 use candle_core::{Result, Tensor};
 
 /// `sign(x) ln(1 + |x|)`.
+#[cfg(any(test, feature = "oracle"))]
 pub fn symlog(x: &Tensor) -> Result<Tensor> {
     x.sign()?.mul(&(x.abs()? + 1.0)?.log()?)
 }
@@ -21,6 +24,7 @@ pub fn symlog_value(x: f32) -> f32 {
 }
 
 /// `sign(x) (e^{|x|} − 1)`.
+#[cfg(any(test, feature = "oracle"))]
 pub fn symexp(x: &Tensor) -> Result<Tensor> {
     x.sign()?.mul(&(x.abs()?.exp()? - 1.0)?)
 }
@@ -61,6 +65,7 @@ impl TwoHot {
     }
 
     /// Two-hot targets `[N, K]` for values `y` of shape `[N]` (in the original space).
+    #[cfg(any(test, feature = "oracle"))]
     pub fn encode(&self, y: &Tensor) -> Result<Tensor> {
         let values: Vec<f32> = y.to_vec1()?;
         let mut out = vec![0f32; values.len() * self.bins.len()];
@@ -84,12 +89,14 @@ impl TwoHot {
     }
 
     /// Decodes logits `[…, K]` to values `[…]` in the original space.
+    #[cfg(any(test, feature = "oracle"))]
     pub fn decode(&self, logits: &Tensor) -> Result<Tensor> {
         kernels::twohot_decode(logits, &self.bins)
     }
 
     /// Cross-entropy `−Σ_k t_k log softmax(logits)_k` of logits `[N, K]` against the two-hot
     /// targets of `y` `[N]`; returns `[N]`.
+    #[cfg(any(test, feature = "oracle"))]
     pub fn loss(&self, logits: &Tensor, y: &Tensor) -> Result<Tensor> {
         kernels::soft_cross_entropy(logits, &self.encode(&y.detach())?)
     }
