@@ -25,7 +25,7 @@
 //!
 //! - [`adam_update`], [`sum_of_squares`]: the elementwise part of an Adam step.
 //!
-//! - [`record_products`], [`replay_products`]: the gemm calls of a stretch of work, noted by
+//! - [`record_products`], [`rerun_products`]: the gemm calls of a stretch of work, noted by
 //!   shape and run again alone (the products' ceiling of `ctxrace bench learner`).
 //!
 //! One file per kernel, each checked against the composed candle operations, values and
@@ -271,7 +271,7 @@ mod twohot;
 pub use adam::{adam_update, sum_of_squares, AdamStep};
 pub use gemm::{matmul_flops, record_products, recorded_products, ProductShape};
 pub use norm_act::NormAct;
-pub use product_profile::replay_products;
+pub use product_profile::rerun_products;
 
 // the candle custom ops around the row kernels: the tests' oracle (`oracle` feature)
 #[cfg(any(test, feature = "oracle"))]
