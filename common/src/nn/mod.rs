@@ -35,7 +35,7 @@ pub use params::ParamStore;
 #[cfg(any(test, feature = "oracle"))]
 pub use rssm::{Gru, Rssm, RssmState};
 #[cfg(any(test, feature = "oracle"))]
-pub use symlog::{symexp, symlog};
+pub use symlog::symlog;
 #[cfg(any(test, feature = "oracle"))]
 pub use tanh_gaussian::TanhGaussianActor;
 
