@@ -65,7 +65,6 @@ pub struct ActorReport {
 
 /// Runs the actor until SIGTERM/SIGINT.
 pub fn run(opts: ActorOptions) -> Result<ActorReport> {
-    ctxrace_common::nn::candle_on_one_thread();
     let cfg = &opts.experiment;
     let env = RaceEnv::new(opts.track.clone(), cfg.race.clone())?;
     let frame_dim = env.obs_dim();

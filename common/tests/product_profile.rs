@@ -4,7 +4,7 @@
 
 use candle_core::{DType, Device, Tensor, Var};
 use ctxrace_common::nn::kernels::{
-    linear, matmul_flops, record_products, recorded_products, replay_products, ProductShape,
+    linear, matmul_flops, record_products, recorded_products, rerun_products, ProductShape,
 };
 
 #[test]
@@ -35,9 +35,9 @@ fn a_layer_records_its_three_products_and_they_replay() {
     let flops: u64 = calls.iter().map(ProductShape::flops).sum();
     assert_eq!(flops, matmul_flops() - before);
 
-    // the replay runs them (uncounted) and takes some time
+    // the rerun runs them (uncounted) and takes some time
     let counted = matmul_flops();
-    let seconds = replay_products(&calls);
+    let seconds = rerun_products(&calls);
     assert!(seconds > 0.0 && seconds.is_finite());
     assert_eq!(matmul_flops(), counted);
 
@@ -49,5 +49,5 @@ fn a_layer_records_its_three_products_and_they_replay() {
 
 #[test]
 fn a_replay_of_nothing_takes_no_time() {
-    assert_eq!(replay_products(&[]), 0.0);
+    assert_eq!(rerun_products(&[]), 0.0);
 }

@@ -21,7 +21,7 @@
 //!
 //! **The products' ceiling.** One more step runs with its gemm calls recorded by shape and
 //! strides; the same calls then run again alone on one core, on operands reused from call to call
-//! ([`ctxrace_common::nn::kernels::replay_products`]; the fastest of three replays). Their rate
+//! ([`ctxrace_common::nn::kernels::rerun_products`]; the fastest of three reruns). Their rate
 //! is what this machine's gemm reaches on the step's shapes with nothing in the way, an upper
 //! bound for the step; their time spread over the step's threads, as a share of the step's, is
 //! how much of the step the products explain (the rest: the row kernels, the one-hot products,
@@ -96,7 +96,7 @@ struct LearnerReport {
 }
 
 /// One step's gemm calls run again alone on one core
-/// ([`ctxrace_common::nn::kernels::replay_products`]).
+/// ([`ctxrace_common::nn::kernels::rerun_products`]).
 #[derive(Serialize)]
 struct ProductsAlone {
     calls: usize,
@@ -109,21 +109,21 @@ struct ProductsAlone {
     share_of_step: f64,
 }
 
-/// Records the gemm calls of one more step of `algo` and replays them alone on this thread,
-/// keeping the fastest of three replays.
+/// Records the gemm calls of one more step of `algo` and runs them again alone on this thread,
+/// keeping the fastest of three reruns.
 fn products_alone(
     algo: &mut dyn ctxrace_learner::Algorithm,
     batch: &Batch,
     (threads, core_peak, per_step): (usize, f64, f64),
 ) -> Result<ProductsAlone> {
-    use ctxrace_common::nn::kernels::{record_products, recorded_products, replay_products};
+    use ctxrace_common::nn::kernels::{record_products, recorded_products, rerun_products};
     record_products(true);
     let stepped = algo.train_step(batch);
     record_products(false);
     stepped?;
     let calls = recorded_products();
     let seconds = (0..3)
-        .map(|_| replay_products(&calls))
+        .map(|_| rerun_products(&calls))
         .fold(f64::INFINITY, f64::min);
     let gflop = calls.iter().map(|c| c.flops()).sum::<u64>() as f64 / 1e9;
     let gflops = gflop / seconds.max(1e-12);
@@ -353,7 +353,6 @@ pub fn run(args: LearnerArgs) -> Result<()> {
     let batch = random_batch(spec, beams, &mut rng);
 
     let threads = args.threads.unwrap_or(agent.algo.learner_threads());
-    ctxrace_common::nn::candle_on_one_thread();
     let mut algo = ctxrace_learner::build(&agent, beams, threads)?;
     algo.train_step(&batch)?;
     let flops_before = ctxrace_common::nn::kernels::matmul_flops();

@@ -466,7 +466,6 @@ pub fn run_worker(args: WorkerArgs) -> Result<()> {
     let out = args.job.parent().unwrap_or(Path::new("."));
     // `source` names the resolved checkpoint directory (or the baseline)
     let spec = ego_spec(&job.meta.source, CheckpointChoice::Latest)?;
-    ctxrace_common::nn::candle_on_one_thread();
     let track = Arc::new(job.tracks.load(&job.meta.track, &job.race)?);
     let mut env = RaceEnv::new(track, job.race.clone())?;
     let mut driver = spec.driver(&env, job.meta.act)?;

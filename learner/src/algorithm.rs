@@ -2,7 +2,7 @@
 //! process can drive any of them by name.
 
 use crate::checkpoint::CheckpointError;
-use candle_core::Result;
+use crate::error::Result;
 pub use ctxrace_common::batch::Batch;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -24,8 +24,8 @@ pub trait Algorithm {
     fn steps(&self) -> u64;
 }
 
-/// The value of a one-element tensor, for [`Metrics`].
+/// The value of a one-element candle tensor (the tests' oracle), for [`Metrics`].
 #[cfg(test)]
-pub(crate) fn scalar(t: &candle_core::Tensor) -> Result<f64> {
+pub(crate) fn scalar(t: &candle_core::Tensor) -> candle_core::Result<f64> {
     Ok(t.to_dtype(candle_core::DType::F32)?.to_scalar::<f32>()? as f64)
 }

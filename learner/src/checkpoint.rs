@@ -24,9 +24,6 @@ pub enum CheckpointError {
         /// What went wrong.
         reason: String,
     },
-    /// The algorithm could not serialise or restore its networks and optimisers.
-    #[error("the networks' state: {0}")]
-    Networks(#[from] candle_core::Error),
 }
 
 /// The outcome of a checkpoint operation.
@@ -264,7 +261,10 @@ pub(crate) fn write_policy_files(
     agent: &ctxrace_common::AgentConfig,
 ) -> Result<()> {
     let policy = dir.join(POLICY_FILE);
-    std::fs::write(&policy, algo.policy_weights()?).map_err(|e| io_error("writing", &policy, e))?;
+    let weights = algo
+        .policy_weights()
+        .map_err(|e| io_error("serialising the policy for", &policy, e))?;
+    std::fs::write(&policy, weights).map_err(|e| io_error("writing", &policy, e))?;
     write_toml(&dir.join(AGENT_FILE), agent)
 }
 

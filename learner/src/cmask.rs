@@ -32,12 +32,12 @@
 //! temperature loss on a fresh sample after the actor's step.
 
 use crate::algorithm::Metrics;
+use crate::error::{LearnerError, Result};
 use crate::sac::{ActionRange, PassSum, PlainActor, SoftTarget, WeightedTransitions, Workspace};
 use crate::sac_core::{
     ActorPass, CoreConfig, CriticPass, LearningRates, Passes, SacCore, SacError,
 };
 use crate::shards::{on_shards_with, Shard};
-use candle_core::{bail, Result};
 use ctxrace_common::agents::{DreamerConfig, MaskConfig, MaskSpace, StepAlignment, CONTEXT_DIM};
 use ctxrace_common::nn::dreamer::normal_rows;
 use ctxrace_common::nn::initial_weights::init_dreamer;
@@ -250,7 +250,9 @@ impl MaskSac {
     pub(crate) fn new(cfg: &DreamerConfig, obs_dim: usize, actor: &PlainMlp) -> Result<Self> {
         let m = &cfg.mask;
         if m.init_alpha.is_nan() || m.init_alpha <= 0.0 {
-            bail!("mask.init_alpha must be positive");
+            return Err(LearnerError::Config(
+                "agent.dreamer.mask.init_alpha must be positive".into(),
+            ));
         }
         let seed = cfg.seed.wrapping_add(3);
         let core = CoreConfig {
@@ -274,7 +276,7 @@ impl MaskSac {
             },
             bounds: [0.0, 1.0],
         };
-        let mut core = SacCore::new(core, actor).map_err(candle_core::Error::wrap)?;
+        let mut core = SacCore::new(core, actor)?;
         init_dreamer(&mut core.critics, seed, cfg, (obs_dim, 0));
         core.targets = core.critics.clone();
         Ok(Self {
@@ -320,10 +322,7 @@ impl MaskSac {
             work: &mut self.work,
         };
         let clamp = self.cfg.log_std_clamp.map(|b| b as f32);
-        let losses = self
-            .core
-            .step((actor, clamp), &mut passes, step)
-            .map_err(candle_core::Error::wrap)?;
+        let losses = self.core.step((actor, clamp), &mut passes, step)?;
         metrics.insert("mask/q_loss".into(), losses.critic_loss);
         metrics.insert("mask/actor_loss".into(), losses.actor_loss);
         metrics.insert("mask/entropy".into(), -losses.log_prob);
@@ -338,7 +337,7 @@ mod tests {
     use crate::candle_sac::TwinQ;
     use crate::sequences::SeqData;
     use crate::world_model::oracle;
-    use candle_core::{Device, Tensor};
+    use candle_core::{Device, Result, Tensor};
     use ctxrace_common::nn::plain::Parameters;
     use ctxrace_common::nn::{Activation, MlpShape, TanhGaussianActor, Weights};
     use rand::{Rng, SeedableRng};

@@ -61,10 +61,10 @@ use crate::algorithm::{Algorithm, Batch, Metrics};
 use crate::behaviour::{self, Imagination, Setting};
 use crate::checkpoint;
 use crate::cmask::MaskSac;
+use crate::error::{LearnerError, Result};
 use crate::returns::ReturnNorm;
 use crate::shards::{add_part, in_parallel, on_shards_with, weighted_mean};
 use crate::world_model::{zero_tensor, Starts, WorldModel};
-use candle_core::{bail, Result};
 use ctxrace_common::agents::{DreamerConfig, ImaginationContext, CONTEXT_DIM};
 use ctxrace_common::nn::dreamer::{mask_value, normal_rows, state_head, PolicyNets};
 use ctxrace_common::nn::initial_weights::init_dreamer;
@@ -111,24 +111,21 @@ pub struct Dreamer {
     mask_trace: MlpTrace,
 }
 
-/// `candle_core::Error` of a library error (the [`Algorithm`] interface's error).
-fn wrap(e: impl std::error::Error + Send + Sync + 'static) -> candle_core::Error {
-    candle_core::Error::wrap(e)
-}
-
 impl Dreamer {
     /// A freshly initialised agent for observations of `obs_dim` and actions of `act_dim`
     /// (reward and critic output layers start at zero, as in DreamerV3).
     pub fn new(cfg: DreamerConfig, obs_dim: usize, act_dim: usize) -> Result<Self> {
-        cfg.validate().map_err(candle_core::Error::wrap)?;
+        cfg.validate()
+            .map_err(|e| LearnerError::Config(format!("{e:#}")))?;
         if obs_dim == 0 || act_dim == 0 {
-            bail!("DreamerV3 needs observations and actions (sizes {obs_dim}, {act_dim})");
+            return Err(LearnerError::Config(format!(
+                "DreamerV3 needs observations and actions (sizes {obs_dim}, {act_dim})"
+            )));
         }
-        let mut policy = PolicyNets::initial(&cfg, obs_dim, act_dim).map_err(wrap)?;
+        let mut policy = PolicyNets::initial(&cfg, obs_dim, act_dim)?;
         let world_model = WorldModel::new(&cfg, (obs_dim, act_dim), &mut policy)?;
         let head = (cfg.head_units, cfg.head_layers);
-        let mut critic =
-            state_head(&cfg, &mut Weights::initial(), "critic.", head, cfg.bins).map_err(wrap)?;
+        let mut critic = state_head(&cfg, &mut Weights::initial(), "critic.", head, cfg.bins)?;
         init_dreamer(
             &mut critic,
             cfg.seed.wrapping_add(2),
@@ -144,7 +141,7 @@ impl Dreamer {
             None => None,
         };
         Ok(Self {
-            twohot: TwoHot::new(cfg.bins, -20.0, 20.0)?,
+            twohot: TwoHot::new(cfg.bins, -20.0, 20.0),
             return_norm: ReturnNorm::new(cfg.return_decay, cfg.return_low, cfg.return_high),
             cfg,
             obs_dim,
@@ -285,16 +282,18 @@ impl Dreamer {
             shard_metrics.push((w, m));
         }
         let (Some(actor), Some(critic)) = (actor, critic) else {
-            bail!("behaviour learning: no imagined states");
+            return Err(LearnerError::Batch(
+                "behaviour learning: no imagined states".into(),
+            ));
         };
         let actor = actor.into_tensors(&self.policy.actor);
         let critic = critic.into_tensors(&self.critic);
         metrics.extend(weighted_mean(&shard_metrics));
         metrics.insert("imag/return_scale".into(), scale);
         let actor_norm = self.actor_opt.step(&mut self.policy.actor, &actor);
-        metrics.insert("actor/grad_norm".into(), actor_norm.map_err(wrap)?);
+        metrics.insert("actor/grad_norm".into(), actor_norm?);
         let critic_norm = self.critic_opt.step(&mut self.critic, &critic);
-        metrics.insert("critic/grad_norm".into(), critic_norm.map_err(wrap)?);
+        metrics.insert("critic/grad_norm".into(), critic_norm?);
         polyak(
             &mut self.slow_critic,
             &self.critic,
@@ -385,10 +384,12 @@ impl Algorithm for Dreamer {
     /// posterior state, and (cMask) one mask-SAC step, all on `batch`.
     fn train_step(&mut self, batch: &Batch) -> Result<Metrics> {
         let Batch::Sequence(seq) = batch else {
-            bail!("DreamerV3 trains on sequence batches, not transitions");
+            return Err(LearnerError::Batch(
+                "DreamerV3 trains on sequence batches, not transitions".into(),
+            ));
         };
         seq.validate(self.obs_dim, self.act_dim)
-            .map_err(candle_core::Error::Msg)?;
+            .map_err(LearnerError::Batch)?;
         let mut rngs = self.sequence_rngs(seq.batch);
         let mut metrics = Metrics::new();
         // the matrix-product FLOPs (the process's counter; one step at a time) and the wall
@@ -436,7 +437,7 @@ impl Algorithm for Dreamer {
 
     /// The "policy" weights: encoder, RSSM, actor and (cMask) mask actor, for [`DreamerPolicy`].
     fn policy_weights(&self) -> Result<Vec<u8>> {
-        to_safetensors(&self.policy).map_err(wrap)
+        Ok(to_safetensors(&self.policy)?)
     }
 
     /// Writes every group of networks and optimiser (`<name>.safetensors`) and the counters (step
@@ -444,10 +445,16 @@ impl Algorithm for Dreamer {
     fn save(&self, dir: &Path) -> checkpoint::Result<()> {
         let mut blobs = Vec::new();
         for (name, nets) in self.stores() {
-            blobs.push((name, to_safetensors(nets).map_err(wrap)?));
+            let bytes = to_safetensors(nets)
+                .map_err(|e| checkpoint::io_error("serialising the agent for", dir, e))?;
+            blobs.push((name, bytes));
         }
         for (name, opt) in self.optimisers_ref() {
-            blobs.push((name, opt.to_bytes().map_err(wrap)?));
+            blobs.push((
+                name,
+                opt.to_bytes()
+                    .map_err(|e| checkpoint::io_error("serialising the agent for", dir, e))?,
+            ));
         }
         let state = TrainState {
             step: self.step,
@@ -458,10 +465,10 @@ impl Algorithm for Dreamer {
 
     fn load(&mut self, dir: &Path) -> checkpoint::Result<()> {
         for (name, nets) in self.stores_mut() {
-            checkpoint::load_blob(dir, name, |b| load_safetensors(nets, b).map_err(wrap))?;
+            checkpoint::load_blob(dir, name, |b| load_safetensors(nets, b))?;
         }
         for (name, opt) in self.optimisers() {
-            checkpoint::load_blob(dir, name, |b| opt.load_bytes(b).map_err(wrap))?;
+            checkpoint::load_blob(dir, name, |b| opt.load_bytes(b))?;
         }
         let state: TrainState = checkpoint::load_state(dir)?;
         self.step = state.step;
@@ -903,7 +910,6 @@ mod tests {
         let data = collect(40, &mut rng);
         // the best constant reward prediction scores the entropy of the mean two-hot target
         let targets = TwoHot::dreamer()
-            .unwrap()
             .encode(&Tensor::new(data.reward.as_slice(), &Device::Cpu).unwrap())
             .unwrap();
         let marginal: Vec<f32> = targets.mean(0).unwrap().to_vec1().unwrap();

@@ -65,7 +65,6 @@ pub fn run_inline<S: ExperienceSource, B: SampleStore>(
     mut on_decision: impl FnMut(&InlineProgress),
 ) -> Result<InlineRun> {
     let t = &cfg.train;
-    ctxrace_common::nn::candle_on_one_thread();
     let frame_dim = source.obs_dim();
     ensure!(
         (store.obs_dim(), store.act_dim()) == (frame_dim, ACT_DIM),
@@ -240,7 +239,6 @@ mod tests {
 
     #[test]
     fn the_world_model_learns_recorded_race_data() {
-        ctxrace_common::nn::candle_on_one_thread();
         // 2000 decisions of a random ego against one rival on a generated circuit
         let track = Arc::new(Track::load("generated:0", &TrackOptions::default()).unwrap());
         let race = RaceConfig {

@@ -12,6 +12,7 @@ mod candle_sac;
 pub mod checkpoint;
 pub mod cmask;
 pub mod dreamer;
+pub mod error;
 pub mod inline;
 pub mod process;
 pub mod returns;
@@ -27,6 +28,7 @@ pub mod world_model;
 
 pub use algorithm::{Algorithm, Batch, Metrics};
 pub use dreamer::Dreamer;
+pub use error::{LearnerError, Result};
 pub use sac::Sac;
 
 use ctxrace_common::agents::{AgentConfig, AlgoKind};
@@ -36,17 +38,16 @@ use ctxrace_common::policy::ACT_DIM;
 /// `agent.sac.frames` of them) and the racing actions (steering, speed). A DreamerV3 variant
 /// splits each batch over `workers` threads ([`Dreamer::set_workers`]); SAC steps on the
 /// calling thread.
-pub fn build(
-    agent: &AgentConfig,
-    frame_dim: usize,
-    workers: usize,
-) -> candle_core::Result<Box<dyn Algorithm>> {
-    agent.validate().map_err(candle_core::Error::wrap)?;
+pub fn build(agent: &AgentConfig, frame_dim: usize, workers: usize) -> Result<Box<dyn Algorithm>> {
+    agent
+        .validate()
+        .map_err(|e| LearnerError::Config(format!("{e:#}")))?;
     Ok(match agent.algo {
-        AlgoKind::Sac => Box::new(
-            Sac::new(frame_dim * agent.sac.frames, ACT_DIM, agent.sac.clone())
-                .map_err(candle_core::Error::wrap)?,
-        ),
+        AlgoKind::Sac => Box::new(Sac::new(
+            frame_dim * agent.sac.frames,
+            ACT_DIM,
+            agent.sac.clone(),
+        )?),
         AlgoKind::Dreamerv3 | AlgoKind::Crssm | AlgoKind::Cmask => {
             let mut dreamer = Dreamer::new(agent.dreamer(), frame_dim, ACT_DIM)?;
             dreamer.set_workers(workers);

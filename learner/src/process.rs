@@ -61,7 +61,6 @@ pub fn is_trained(dir: &Path, cfg: &ExperimentConfig) -> bool {
 pub fn run(opts: LearnerOptions) -> Result<u64> {
     let cfg = &opts.experiment;
     let t = &cfg.train;
-    ctxrace_common::nn::candle_on_one_thread();
     let workers = t.threads_for(cfg.agent.algo);
     let mut algo = crate::build(&cfg.agent, opts.frame_dim, workers)?;
     let mut tracker = ReturnTracker::default();

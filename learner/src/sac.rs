@@ -35,7 +35,6 @@
 //! ([`SacPolicy`]).
 
 use crate::algorithm::{Algorithm, Batch, Metrics};
-// the candle-held critics and Polyak of cMask's mask SAC and Dreamer, until they train in place
 use crate::checkpoint;
 pub use crate::sac_core::SacError;
 pub(crate) use crate::sac_core::{
@@ -296,20 +295,20 @@ impl Passes for BatchPasses<'_> {
 }
 
 impl Algorithm for Sac {
-    /// One step on transitions; the error crosses the trait's candle `Result` wrapped.
-    fn train_step(&mut self, batch: &Batch) -> candle_core::Result<Metrics> {
+    /// One step on transitions.
+    fn train_step(&mut self, batch: &Batch) -> crate::Result<Metrics> {
         let Batch::Transition(t) = batch else {
-            return Err(candle_core::Error::wrap(SacError::Sequences));
+            return Err(SacError::Sequences.into());
         };
         let before = matmul_flops();
-        let mut metrics = self.update(t).map_err(candle_core::Error::wrap)?;
+        let mut metrics = self.update(t)?;
         let flops = matmul_flops().saturating_sub(before);
         metrics.insert("flops/step".into(), flops as f64);
         Ok(metrics)
     }
 
-    fn policy_weights(&self) -> candle_core::Result<Vec<u8>> {
-        to_safetensors(&self.actor).map_err(candle_core::Error::wrap)
+    fn policy_weights(&self) -> crate::Result<Vec<u8>> {
+        Ok(to_safetensors(&self.actor)?)
     }
 
     /// Writes the actor, critics, target critics, `log α` and their optimisers as safetensors

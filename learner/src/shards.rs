@@ -5,7 +5,7 @@
 //! stream, so a step computes the same losses whatever the number of workers.
 
 use crate::algorithm::Metrics;
-use candle_core::Result;
+use crate::error::{LearnerError, Result};
 use rand_chacha::ChaCha8Rng;
 
 /// A shard of a batch: the sequences one worker thread trains on.
@@ -41,7 +41,7 @@ pub(crate) fn on_shards_with<S: Send, T: Send>(
         rest = others;
         let weight = rows.len() as f64 / batch as f64;
         let Some(state) = states.next() else {
-            candle_core::bail!("on_shards_with: no state for shard {index}");
+            panic!("on_shards_with: no state for shard {index} (a caller passes one per shard)");
         };
         shards.push((
             Shard {
@@ -80,8 +80,7 @@ pub(crate) fn in_parallel<S: Send, T: Send>(
 
 /// The result of a worker thread; a panic becomes an error.
 fn join_worker<T>(h: std::thread::ScopedJoinHandle<'_, Result<T>>) -> Result<T> {
-    h.join()
-        .map_err(|_| candle_core::Error::Msg("a training worker thread panicked".into()))?
+    h.join().map_err(|_| LearnerError::WorkerPanicked)?
 }
 
 /// Adds a shard's `part` to the running `sum` of the shards' gradients with `add`, or makes it

@@ -28,8 +28,8 @@
 
 use crate::adam::Adam;
 use crate::algorithm::Metrics;
+use crate::error::{LearnerError, Result};
 use crate::shards::{add_part, on_shards_with, weighted_mean};
-use candle_core::{bail, Result};
 use ctxrace_common::agents::{DreamerConfig, StepAlignment};
 use ctxrace_common::nn::dreamer::{state_head, uniform_rows, PolicyNets};
 use ctxrace_common::nn::initial_weights::init_dreamer;
@@ -83,11 +83,9 @@ impl Heads {
         let head = (cfg.head_units, cfg.head_layers);
         let decoded = cfg.encoder_inputs(obs_dim, act_dim);
         let mut heads = Self {
-            decoder: state_head(cfg, w, "decoder.", (cfg.units, cfg.layers), decoded)
-                .map_err(candle_core::Error::wrap)?,
-            reward: state_head(cfg, w, "reward.", head, cfg.bins)
-                .map_err(candle_core::Error::wrap)?,
-            cont: state_head(cfg, w, "cont.", head, 1).map_err(candle_core::Error::wrap)?,
+            decoder: state_head(cfg, w, "decoder.", (cfg.units, cfg.layers), decoded)?,
+            reward: state_head(cfg, w, "reward.", head, cfg.bins)?,
+            cont: state_head(cfg, w, "cont.", head, 1)?,
         };
         init_dreamer(
             &mut heads,
@@ -240,7 +238,7 @@ impl WorldModel {
         );
         Ok(Self {
             heads,
-            twohot: TwoHot::new(cfg.bins, -20.0, 20.0)?,
+            twohot: TwoHot::new(cfg.bins, -20.0, 20.0),
             opt,
             cfg: cfg.clone(),
             work: Vec::new(),
@@ -275,10 +273,7 @@ impl WorldModel {
     ) -> Result<Vec<Starts>> {
         let (grads, starts) = self.gradients(policy, seq, (ctx, workers), rngs, metrics)?;
         let nets = &mut Self::trained(policy, &mut self.heads)[..];
-        let norm = self
-            .opt
-            .step(nets, &grads)
-            .map_err(candle_core::Error::wrap)?;
+        let norm = self.opt.step(nets, &grads)?;
         metrics.insert("model/grad_norm".into(), norm);
         Ok(starts)
     }
@@ -318,7 +313,9 @@ impl WorldModel {
             starts.push(s);
         }
         let Some(total) = total else {
-            bail!("world model: a batch of no sequences");
+            return Err(LearnerError::Batch(
+                "world model: a batch of no sequences".into(),
+            ));
         };
         let grads = total.into_tensors(&nets);
         self.work = work;

@@ -4,14 +4,15 @@
 //! model state ([`state_head`]), the parameter names the learner's policy weights carry, and the
 //! noise the learner and the acting policies draw (Gumbel uniforms, standard normals), per stream.
 
-use crate::agents::{
-    ContextMode, DreamerConfig, InitialState, MaskSpace, StepAlignment, CONTEXT_DIM,
-};
+#[cfg(any(test, feature = "oracle"))]
+use crate::agents::StepAlignment;
+use crate::agents::{ContextMode, DreamerConfig, InitialState, MaskSpace, CONTEXT_DIM};
 use crate::nn::initial_weights::init_dreamer;
 use crate::nn::plain::{update_each, NamedTensor, Parameters, PlainMlp, PlainRssm};
-use crate::nn::{
-    Activation, Mlp, MlpShape, Rssm, RssmConfig, TanhGaussianActor, Weights, WeightsError,
-};
+use crate::nn::{Activation, MlpShape, RssmConfig, Weights, WeightsError};
+#[cfg(any(test, feature = "oracle"))]
+use crate::nn::{Mlp, Rssm, TanhGaussianActor};
+#[cfg(any(test, feature = "oracle"))]
 use candle_core::{Device, Module, Result, Tensor};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -130,6 +131,7 @@ pub fn state_head(
 
 /// The networks that act as candle modules (the oracle of the tests): encoder, RSSM, actor and
 /// (cMask) mask actor.
+#[cfg(any(test, feature = "oracle"))]
 #[derive(Clone, Debug)]
 pub struct DreamerNets {
     /// Observation encoder (on `symlog o`, or on `symlog [o, a]` with
@@ -156,6 +158,7 @@ pub struct DreamerNets {
     pub context_divisor: f64,
 }
 
+#[cfg(any(test, feature = "oracle"))]
 impl DreamerNets {
     /// The networks of `cfg` for observations of `obs_dim` and actions of `act_dim`, built under `vb`.
     pub fn new(
@@ -254,6 +257,7 @@ pub(crate) fn rssm_config(cfg: &DreamerConfig, obs_dim: usize, act_dim: usize) -
 
 /// The mask of the mask actor's squashed value `a = tanh u` in `space`: `(a + 1) / 2` (unit),
 /// `sigmoid(a)` (the paper's code).
+#[cfg(any(test, feature = "oracle"))]
 pub fn mask_of(a: &Tensor, space: MaskSpace) -> Result<Tensor> {
     match space {
         MaskSpace::Unit => a.affine(0.5, 0.5),
@@ -264,6 +268,7 @@ pub fn mask_of(a: &Tensor, space: MaskSpace) -> Result<Tensor> {
 /// A mask sample from the tanh-Gaussian mask actor and `log π` in `space`: unit,
 /// `m = (a + 1) / 2` and its density `log π(m) = log π(a) + |m| ln 2`; the paper's code,
 /// `m = sigmoid(a)` and the density of `a` itself (where the code takes its entropy).
+#[cfg(any(test, feature = "oracle"))]
 pub fn mask_sample(
     actor: &TanhGaussianActor,
     obs: &Tensor,
@@ -287,11 +292,13 @@ pub fn mask_value(a: f32, space: MaskSpace) -> f32 {
 }
 
 /// Gumbel-max uniforms in `(0, 1)`.
+#[cfg(any(test, feature = "oracle"))]
 pub fn uniforms(rng: &mut ChaCha8Rng, shape: (usize, usize, usize)) -> Result<Tensor> {
     uniforms_per(std::slice::from_mut(rng), shape.0, (shape.1, shape.2))
 }
 
 /// Standard-normal noise.
+#[cfg(any(test, feature = "oracle"))]
 pub fn normals(rng: &mut ChaCha8Rng, shape: (usize, usize)) -> Result<Tensor> {
     normals_per(std::slice::from_mut(rng), shape.0, shape.1)
 }
@@ -340,6 +347,7 @@ pub fn normal_rows(rngs: &mut [ChaCha8Rng], rows: usize, width: usize) -> Vec<f3
 }
 
 /// Gumbel-max uniforms `[R·rows, S, C]`, `rows` of them from each stream of `rngs`.
+#[cfg(any(test, feature = "oracle"))]
 pub fn uniforms_per(
     rngs: &mut [ChaCha8Rng],
     rows: usize,
@@ -351,6 +359,7 @@ pub fn uniforms_per(
 }
 
 /// Standard-normal noise `[R·rows, width]`, `rows` of them from each stream of `rngs`.
+#[cfg(any(test, feature = "oracle"))]
 pub fn normals_per(rngs: &mut [ChaCha8Rng], rows: usize, width: usize) -> Result<Tensor> {
     let n = rngs.len() * rows;
     Tensor::from_vec(normal_rows(rngs, rows, width), (n, width), &Device::Cpu)

@@ -1,10 +1,16 @@
 //! Multi-layer perceptrons: `Linear → [LayerNorm] → activation` blocks, then an optional output layer.
 
+#[cfg(any(test, feature = "oracle"))]
 use super::dense::Dense;
+#[cfg(any(test, feature = "oracle"))]
 use super::kernels::NormAct;
+#[cfg(any(test, feature = "oracle"))]
 use super::norm::LayerNorm;
+#[cfg(any(test, feature = "oracle"))]
 use candle_core::{Module, Result, Tensor};
+#[cfg(any(test, feature = "oracle"))]
 use candle_nn::VarBuilder;
+#[cfg(any(test, feature = "oracle"))]
 use std::ops::Range;
 
 /// Hidden-layer activation.
@@ -35,9 +41,11 @@ pub struct MlpShape {
 }
 
 /// A hidden block of an [`Mlp`]: a layer and, for [`Activation::SiluNorm`], its normalisation.
+#[cfg(any(test, feature = "oracle"))]
 pub type HiddenBlock = (Dense, Option<LayerNorm>);
 
 /// An MLP: `layers` hidden blocks of width `units`, then a linear head to `out` (if given).
+#[cfg(any(test, feature = "oracle"))]
 #[derive(Clone, Debug)]
 pub struct Mlp {
     hidden: Vec<HiddenBlock>,
@@ -45,6 +53,7 @@ pub struct Mlp {
     act: Activation,
 }
 
+#[cfg(any(test, feature = "oracle"))]
 impl Mlp {
     /// Builds the layers under `vb` (`l{i}.fc`, `l{i}.ln`, `out`).
     pub fn new(
@@ -107,6 +116,7 @@ impl Mlp {
     }
 }
 
+#[cfg(any(test, feature = "oracle"))]
 impl Module for Mlp {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let mut h = x.clone();

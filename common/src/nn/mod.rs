@@ -1,11 +1,15 @@
-//! Neural-network modules shared by acting and training (candle, CPU, f32).
+//! The networks shared by acting and training (plain buffers, CPU, f32); candle's modules and
+//! custom ops are the tests' oracle only (`cfg(test)` or the `oracle` feature).
 
+#[cfg(any(test, feature = "oracle"))]
 pub mod dense;
 pub mod dreamer;
 pub mod initial_weights;
 pub mod kernels;
 pub mod mlp;
+#[cfg(any(test, feature = "oracle"))]
 pub mod norm;
+#[cfg(any(test, feature = "oracle"))]
 pub mod params;
 pub mod plain;
 pub mod rssm;
@@ -13,24 +17,35 @@ pub mod symlog;
 pub mod tanh_gaussian;
 pub mod weights;
 
-pub use dense::Dense;
 pub use kernels::NormAct;
-pub use mlp::{Activation, HiddenBlock, Mlp, MlpShape};
-pub use norm::LayerNorm;
-pub use params::ParamStore;
-pub use rssm::{Gru, Rssm, RssmConfig, RssmState};
-pub use symlog::{symexp, symlog, symlog_value, TwoHot};
-pub use tanh_gaussian::TanhGaussianActor;
+pub use mlp::{Activation, MlpShape};
+pub use rssm::RssmConfig;
+pub use symlog::{symlog_value, TwoHot};
 pub use weights::{Weights, WeightsError};
 
-/// Makes candle's own kernels run on the calling thread. The learner parallelises over the
-/// batch instead (DreamerV3 splits each batch over its workers, see
-/// `ctxrace_learner::build`), which on two cores is twice as fast as splitting each tensor
-/// operation: those are small and memory-bound, and their threads spin against each other; and
-/// unset, candle re-derives its thread count on every matrix product, which is several times
-/// slower at batch 1. candle reads these settings from the environment only, so this sets
-/// `RAYON_NUM_THREADS` (read on every product) and `CANDLE_NUM_THREADS` (read once, for the pool
-/// of its elementwise kernels). Call once at start-up, before other threads start.
+// candle's modules: the tests' oracle (`oracle` feature)
+#[cfg(any(test, feature = "oracle"))]
+pub use dense::Dense;
+#[cfg(any(test, feature = "oracle"))]
+pub use mlp::{HiddenBlock, Mlp};
+#[cfg(any(test, feature = "oracle"))]
+pub use norm::LayerNorm;
+#[cfg(any(test, feature = "oracle"))]
+pub use params::ParamStore;
+#[cfg(any(test, feature = "oracle"))]
+pub use rssm::{Gru, Rssm, RssmState};
+#[cfg(any(test, feature = "oracle"))]
+pub use symlog::symlog;
+#[cfg(any(test, feature = "oracle"))]
+pub use tanh_gaussian::TanhGaussianActor;
+
+/// Makes candle's own kernels run on the calling thread, for the tests' candle oracles (no
+/// production code runs candle: the networks, the learner's and the actors', run the plain
+/// passes on gemm without its thread pool). The learner splits a batch over the worker threads
+/// it is given instead; candle's threads spin against them on small products, and unset,
+/// candle re-derives its thread count on every product. candle reads these settings from the
+/// environment only, so this sets `RAYON_NUM_THREADS` and `CANDLE_NUM_THREADS`.
+#[cfg(any(test, feature = "oracle"))]
 pub fn candle_on_one_thread() {
     std::env::set_var("RAYON_NUM_THREADS", "1");
     std::env::set_var("CANDLE_NUM_THREADS", "1");

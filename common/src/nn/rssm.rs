@@ -12,11 +12,17 @@
 //! Samples use the Gumbel-max trick on noise the caller draws from its own seeded generator, and
 //! pass gradients straight through: `z = onehot + p − sg(p)` ([`kernels::straight_through_sample`]).
 
+#[cfg(any(test, feature = "oracle"))]
 use super::dense::Dense;
+#[cfg(any(test, feature = "oracle"))]
 use super::kernels::{self, NormAct};
+#[cfg(any(test, feature = "oracle"))]
 use super::norm::LayerNorm;
+#[cfg(any(test, feature = "oracle"))]
 use super::params::ParamStore;
+#[cfg(any(test, feature = "oracle"))]
 use candle_core::{DType, Device, Result, Tensor, D};
+#[cfg(any(test, feature = "oracle"))]
 use candle_nn::VarBuilder;
 
 /// Sizes of the RSSM.
@@ -43,6 +49,7 @@ pub struct RssmConfig {
 }
 
 /// A batch of RSSM states.
+#[cfg(any(test, feature = "oracle"))]
 #[derive(Clone, Debug)]
 pub struct RssmState {
     /// `[B, deter]`.
@@ -51,6 +58,7 @@ pub struct RssmState {
     pub stoch: Tensor,
 }
 
+#[cfg(any(test, feature = "oracle"))]
 impl RssmState {
     /// The same state cut from the graph that computed it: gradients stop here, and the
     /// operations (and tensors) behind it can be freed.
@@ -76,6 +84,7 @@ impl RssmState {
 }
 
 /// A `Linear → LayerNorm → act` block (SiLU, or the identity before the GRU's gates).
+#[cfg(any(test, feature = "oracle"))]
 #[derive(Clone, Debug)]
 struct NormBlock {
     fc: Dense,
@@ -83,6 +92,7 @@ struct NormBlock {
     act: NormAct,
 }
 
+#[cfg(any(test, feature = "oracle"))]
 impl NormBlock {
     fn new(input: usize, out: usize, act: NormAct, vb: VarBuilder) -> Result<Self> {
         Ok(Self {
@@ -114,12 +124,14 @@ impl NormBlock {
 }
 
 /// DreamerV3's GRU cell with a LayerNorm on the gates and update bias −1.
+#[cfg(any(test, feature = "oracle"))]
 #[derive(Clone, Debug)]
 pub struct Gru {
     /// `LN(W [x, h])`, the normalised gates `[r, ĉ, u]` (parameters `fc`, `ln`).
     gates: NormBlock,
 }
 
+#[cfg(any(test, feature = "oracle"))]
 impl Gru {
     /// A cell from `input` features to a state of `size`.
     pub fn new(input: usize, size: usize, vb: VarBuilder) -> Result<Self> {
@@ -142,6 +154,7 @@ impl Gru {
 }
 
 /// The recurrent state-space model.
+#[cfg(any(test, feature = "oracle"))]
 #[derive(Clone, Debug)]
 pub struct Rssm {
     cfg: RssmConfig,
@@ -156,6 +169,7 @@ pub struct Rssm {
     initial_w: Option<Tensor>,
 }
 
+#[cfg(any(test, feature = "oracle"))]
 impl Rssm {
     /// Builds the model under `vb`.
     pub fn new(cfg: RssmConfig, vb: VarBuilder) -> Result<Self> {
@@ -344,6 +358,7 @@ impl Rssm {
 }
 
 /// Builds an RSSM in a fresh store initialised from `seed` (for tests and tools).
+#[cfg(any(test, feature = "oracle"))]
 pub fn standalone(cfg: RssmConfig, seed: u64) -> Result<(ParamStore, Rssm)> {
     let ps = ParamStore::new();
     let rssm = Rssm::new(cfg, ps.builder().pp("rssm"))?;

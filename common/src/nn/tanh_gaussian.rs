@@ -16,8 +16,11 @@
 //! `2 (log 2 − |u| − log(1 + e^{−2|u|}))`, whose every piece is bounded and whose gradient at
 //! `u = 0` is the exact `0` (a literal `max(x, 0)` would give a one-sided gradient there).
 
+#[cfg(any(test, feature = "oracle"))]
 use super::mlp::{Activation, Mlp};
+#[cfg(any(test, feature = "oracle"))]
 use candle_core::{Module, Result, Tensor, D};
+#[cfg(any(test, feature = "oracle"))]
 use candle_nn::VarBuilder;
 
 /// Lower bound of the log standard deviation.
@@ -42,6 +45,7 @@ pub fn validate_log_std_clamp(key: &str, [lo, hi]: [f64; 2]) -> std::result::Res
 }
 
 /// A tanh-squashed Gaussian policy `π(a | o)` over actions in `(−1, 1)^A` (see the module doc).
+#[cfg(any(test, feature = "oracle"))]
 #[derive(Clone, Debug)]
 pub struct TanhGaussianActor {
     net: Mlp,
@@ -49,6 +53,7 @@ pub struct TanhGaussianActor {
     log_std_clamp: [f64; 2],
 }
 
+#[cfg(any(test, feature = "oracle"))]
 impl TanhGaussianActor {
     /// A ReLU MLP of `layers` hidden layers of `units` from `obs_dim` inputs to `2 · act_dim`
     /// outputs (means, then log standard deviations), built under `vb`.
@@ -122,6 +127,7 @@ impl TanhGaussianActor {
 
 /// The tanh-Gaussian sample `a = tanh(μ + σ ε)` and its log-probability summed over the last
 /// dimension, for `mean`, `log_std` and `noise` `ε` of one shape `[…, A]` (see the module doc).
+#[cfg(any(test, feature = "oracle"))]
 pub fn squash(mean: &Tensor, log_std: &Tensor, noise: &Tensor) -> Result<(Tensor, Tensor)> {
     let u = (mean + log_std.exp()?.mul(noise)?)?;
     let action = u.tanh()?;
@@ -194,6 +200,7 @@ pub fn squash_rows_backward(
 }
 
 /// `log(1 − tanh² u) = 2 (log 2 − |u| − log(1 + e^{−2|u|}))`, elementwise and stable for any `u`.
+#[cfg(any(test, feature = "oracle"))]
 fn log_one_minus_tanh_sq(u: &Tensor) -> Result<Tensor> {
     let abs = u.abs()?;
     let log1p_exp = (abs.affine(-2.0, 0.0)?.exp()? + 1.0)?.log()?;

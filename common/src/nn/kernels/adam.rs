@@ -59,72 +59,18 @@ pub fn adam_update(
     m: &mut [f32],
     v: &mut [f32],
     step: AdamStep,
-) -> Result<()> {
+) -> std::result::Result<(), String> {
     if g.len() != w.len() || m.len() != w.len() || v.len() != w.len() {
-        bail!(
+        return Err(format!(
             "adam_update: {} weights, {} gradients, moments of {} and {}",
             w.len(),
             g.len(),
             m.len(),
             v.len()
-        );
+        ));
     }
     update(w, g, m, v, step);
     Ok(())
-}
-
-/// `Σ x²` of a tensor's values in `f64`, read where they are stored.
-pub fn squared_norm(t: &Tensor) -> Result<f64> {
-    read(t, |x| Ok(sum_of_squares(x)))
-}
-
-/// [`adam_update`] on the values of the parameter tensor `w` where they are stored (a `Var`'s,
-/// which every module holding it sees), with the gradient tensor `g` read where it is: no copy
-/// of either, where `Var::set` would copy the updated values in.
-pub fn adam_update_in_place(
-    w: &Tensor,
-    g: &Tensor,
-    (m, v): (&mut [f32], &mut [f32]),
-    step: AdamStep,
-) -> Result<()> {
-    let g = g.contiguous()?;
-    w.inplace_op2(
-        &g,
-        &AdamInPlace {
-            moments: std::cell::RefCell::new((m, v)),
-            step,
-        },
-    )
-}
-
-/// The in-place op of [`adam_update_in_place`]: the moments it updates beside the weights.
-struct AdamInPlace<'a> {
-    moments: std::cell::RefCell<(&'a mut [f32], &'a mut [f32])>,
-    step: AdamStep,
-}
-
-impl candle_core::InplaceOp2 for AdamInPlace<'_> {
-    fn name(&self) -> &'static str {
-        "ctxrace-adam"
-    }
-
-    fn cpu_fwd(
-        &self,
-        dst: &mut CpuStorage,
-        dst_l: &Layout,
-        g: &CpuStorage,
-        g_l: &Layout,
-    ) -> Result<()> {
-        let CpuStorage::F32(data) = dst else {
-            bail!("adam: parameters of f32 only");
-        };
-        let Some((start, end)) = dst_l.contiguous_offsets() else {
-            bail!("adam: a non-contiguous parameter");
-        };
-        let mut moments = self.moments.borrow_mut();
-        let (m, v) = &mut *moments;
-        adam_update(&mut data[start..end], cpu_slice(g, g_l)?, m, v, self.step)
-    }
 }
 
 #[cfg(test)]

@@ -172,8 +172,10 @@ vectorised! {
     }
 }
 
+#[cfg(any(test, feature = "oracle"))]
 struct StraightThrough(Unimix);
 
+#[cfg(any(test, feature = "oracle"))]
 impl CustomOp2 for StraightThrough {
     fn name(&self) -> &'static str {
         "ctxrace-straight-through"
@@ -228,6 +230,7 @@ impl CustomOp2 for StraightThrough {
 /// A straight-through one-hot sample `[N, S·C]` of the unimix categoricals with logits
 /// `[N, S, C]`, drawn by Gumbel-max from uniforms `U ∈ (0, 1)` of the same shape: forward the
 /// exact one-hot, backward the gradient of the probabilities.
+#[cfg(any(test, feature = "oracle"))]
 pub fn straight_through_sample(logits: &Tensor, uniform: &Tensor, unimix: f64) -> Result<Tensor> {
     let classes = *logits.dims().last().unwrap_or(&0);
     if logits.rank() != 3 || classes == 0 {
@@ -243,8 +246,10 @@ pub fn straight_through_sample(logits: &Tensor, uniform: &Tensor, unimix: f64) -
     logits.contiguous()?.apply_op2(&uniform.contiguous()?, op)
 }
 
+#[cfg(any(test, feature = "oracle"))]
 struct Kl(Unimix);
 
+#[cfg(any(test, feature = "oracle"))]
 impl CustomOp2 for Kl {
     fn name(&self) -> &'static str {
         "ctxrace-categorical-kl"
@@ -310,6 +315,7 @@ impl CustomOp2 for Kl {
 
 /// `KL(p_a ‖ p_b)` `[N]` of the unimix categoricals with logits `[N, S, C]`, summed over the
 /// `S` variables.
+#[cfg(any(test, feature = "oracle"))]
 pub fn categorical_kl(logits_a: &Tensor, logits_b: &Tensor, unimix: f64) -> Result<Tensor> {
     let classes = *logits_a.dims().last().unwrap_or(&0);
     if logits_a.rank() != 3 || classes == 0 || logits_a.dims() != logits_b.dims() {

@@ -117,6 +117,7 @@ impl<'a> Operand<'a> {
 
 /// `A B` (`[m, k]` times `[k, n]`) as a new row-major `[m, n]`; with `init` (`m·n` values) the
 /// product is added to it. gemm writes every value, so the buffer is not zeroed first.
+#[cfg(any(test, feature = "oracle"))]
 pub(super) fn matmul(
     m: usize,
     n: usize,

@@ -2,6 +2,7 @@
 
 use super::*;
 
+#[cfg(any(test, feature = "oracle"))]
 struct GruGates;
 
 /// The gate values of one element: `(r, c, u)` with `c = tanh(r ĉ)` and `u = σ(û − 1)`.
@@ -51,6 +52,7 @@ vectorised! {
     }
 }
 
+#[cfg(any(test, feature = "oracle"))]
 impl CustomOp2 for GruGates {
     fn name(&self) -> &'static str {
         "ctxrace-gru-gates"
@@ -108,6 +110,7 @@ impl CustomOp2 for GruGates {
 
 /// DreamerV3's GRU update `σ(u − 1) tanh(σ(r) ĉ) + (1 − σ(u − 1)) h` from gates `[N, 3S]`
 /// (`[r, ĉ, u]`, already normalised) and the state `h` `[N, S]`.
+#[cfg(any(test, feature = "oracle"))]
 pub fn gru_gates(parts: &Tensor, h: &Tensor) -> Result<Tensor> {
     parts.contiguous()?.apply_op2(&h.contiguous()?, GruGates)
 }

@@ -1,9 +1,13 @@
 //! `y = x Wᵀ (+ b)` on gemm, the gradients of `x` and `W` only where they are tracked.
 
+#[cfg(any(test, feature = "oracle"))]
 use super::gemm::{count_flops, matmul, Operand};
+#[cfg(any(test, feature = "oracle"))]
 use super::sparse_inputs::SparseColumns;
+#[cfg(any(test, feature = "oracle"))]
 use super::*;
 use std::ops::Range;
+#[cfg(any(test, feature = "oracle"))]
 use std::sync::{Mutex, PoisonError};
 
 vectorised! {
@@ -19,6 +23,7 @@ vectorised! {
 }
 
 /// `y = x Wᵀ (+ b)` (see [`linear`]), the weight argument `W` `[out, in]`.
+#[cfg(any(test, feature = "oracle"))]
 pub(super) struct Linear {
     /// Input columns that are mostly zero ([`super::sparse_inputs`]).
     sparse: Option<Range<usize>>,
@@ -27,6 +32,7 @@ pub(super) struct Linear {
     gathered: Option<Mutex<Option<SparseColumns>>>,
 }
 
+#[cfg(any(test, feature = "oracle"))]
 impl Linear {
     /// The rows `rows` of `Wᵀ` as an operand, from the weight's values `w` (`k` inputs).
     fn weight_rows<'a>(w: &'a [f32], k: usize, rows: &Range<usize>) -> Operand<'a> {
@@ -59,6 +65,7 @@ pub(crate) fn dense_parts(k: usize, sparse: &Range<usize>) -> impl Iterator<Item
         .filter(|r| !r.is_empty())
 }
 
+#[cfg(any(test, feature = "oracle"))]
 impl Linear {
     pub(super) fn fwd(
         &self,
@@ -196,6 +203,7 @@ impl Linear {
     }
 }
 
+#[cfg(any(test, feature = "oracle"))]
 impl CustomOp2 for Linear {
     fn name(&self) -> &'static str {
         "ctxrace-linear"
@@ -222,6 +230,7 @@ impl CustomOp2 for Linear {
     }
 }
 
+#[cfg(any(test, feature = "oracle"))]
 impl CustomOp3 for Linear {
     fn name(&self) -> &'static str {
         "ctxrace-linear-bias"
@@ -268,6 +277,7 @@ impl CustomOp3 for Linear {
 /// `x Wᵀ + b` for `x` `[N, in]`, `weight` `[out, in]` and an optional `bias` `[out]`; the input
 /// columns `sparse_inputs`, if given, are mostly zero and multiplied by their non-zeros
 /// ([`super::sparse_inputs`]).
+#[cfg(any(test, feature = "oracle"))]
 pub fn linear(
     x: &Tensor,
     weight: &Tensor,
@@ -278,12 +288,14 @@ pub fn linear(
 }
 
 /// The op of `x Wᵀ` for `weight` `[out, in]` whose input columns `sparse` are mostly zero.
+#[cfg(any(test, feature = "oracle"))]
 pub(super) fn product(weight: &Tensor, sparse: Option<Range<usize>>) -> Linear {
     // the non-zeros are kept from the forward pass only for a weight gradient computed here
     let gathered = (sparse.is_some() && wants_grad(weight)).then(|| Mutex::new(None));
     Linear { gathered, sparse }
 }
 
+#[cfg(any(test, feature = "oracle"))]
 fn apply(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>, op: Linear) -> Result<Tensor> {
     let x = x.contiguous()?;
     match bias {

@@ -1,13 +1,10 @@
-//! Fused CPU kernels with their own backward passes, for the layers that dominate a DreamerV3
-//! training step.
-//!
-//! candle builds these from many small tensor operations, each allocating its result and, in the
-//! backward pass, a zeroed gradient to add into; on a training step at the paper's batch that
-//! overhead took four times the matrix products. Each kernel here is one pass over rows of the
-//! input forward and one backward, on the calling thread (the learner parallelises over the
-//! batch instead, see [`super::candle_on_one_thread`]), and computes
-//! the gradient of an argument only when it is tracked ([`Tensor::track_op`]): a detached weight,
-//! as in a frozen copy of a network, costs nothing in the backward pass.
+//! Fused CPU row kernels with their own backward passes, for the layers that dominate a
+//! DreamerV3 training step: one pass over rows of the input forward and one backward, on the
+//! calling thread (the learner parallelises over the batch instead). The plain networks
+//! ([`super::plain`]) call the row functions; around each, a candle custom op (only with
+//! `cfg(test)` or the `oracle` feature) lets the tests hold it to the composed candle operations,
+//! values and gradients. The ops compute the gradient of an argument only when it is tracked
+//! ([`Tensor::track_op`]).
 //!
 //! - [`linear`]: `y = x Wᵀ (+ b)`.
 //! - [`linear_norm_act`]: a bias-free [`linear`] then [`norm_act`] as one operation (the product
@@ -26,21 +23,22 @@
 //! - [`twohot_decode`]: `symexp(Σ_k softmax(l)_k b_k)`.
 //! - [`soft_cross_entropy`]: `−Σ_k t_k log softmax(l)_k` against fixed targets `t`.
 //!
-//! - [`adam_update`], [`sum_of_squares`]: the elementwise part of an Adam step;
-//!   [`adam_update_in_place`], [`squared_norm`]: the same on tensors, without copies.
+//! - [`adam_update`], [`sum_of_squares`]: the elementwise part of an Adam step.
 //!
-//! - [`record_products`], [`replay_products`]: the gemm calls of a stretch of work, noted by
+//! - [`record_products`], [`rerun_products`]: the gemm calls of a stretch of work, noted by
 //!   shape and run again alone (the products' ceiling of `ctxrace bench learner`).
 //!
 //! One file per kernel, each checked against the composed candle operations, values and
 //! gradients, in its tests; the vectorised dispatch and the branch-free maths they share are here.
 
+#[cfg(any(test, feature = "oracle"))]
 use candle_core::{
     bail, CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Result, Shape, Storage, Tensor,
 };
 use isa::Isa;
 
 /// The contiguous `f32` values of a CPU storage under `layout`.
+#[cfg(any(test, feature = "oracle"))]
 fn cpu_slice<'a>(storage: &'a CpuStorage, layout: &Layout) -> Result<&'a [f32]> {
     let data = storage.as_slice::<f32>()?;
     match layout.contiguous_offsets() {
@@ -50,6 +48,7 @@ fn cpu_slice<'a>(storage: &'a CpuStorage, layout: &Layout) -> Result<&'a [f32]> 
 }
 
 /// Runs `f` on the contiguous `f32` values of `t`.
+#[cfg(any(test, feature = "oracle"))]
 fn read<R>(t: &Tensor, f: impl FnOnce(&[f32]) -> Result<R>) -> Result<R> {
     let t = t.contiguous()?;
     let (storage, layout) = t.storage_and_layout();
@@ -102,6 +101,7 @@ macro_rules! vectorised {
 }
 
 /// Whether the backward pass needs the gradient of `t`.
+#[cfg(any(test, feature = "oracle"))]
 fn wants_grad(t: &Tensor) -> bool {
     t.track_op()
 }
@@ -247,6 +247,7 @@ fn unimix_softmax_backward<S: Isa>(s: &[f32], dp: &[f32], keep: f32, out: &mut [
     }
 }
 
+#[cfg(any(test, feature = "oracle"))]
 fn dims2(t: &Tensor) -> Result<(usize, usize)> {
     match t.dims() {
         [n, d] => Ok((*n, *d)),
@@ -260,20 +261,30 @@ mod gemm;
 mod gru;
 pub(crate) mod isa;
 mod linear;
+#[cfg(any(test, feature = "oracle"))]
 mod linear_norm;
 mod norm_act;
 mod product_profile;
 mod sparse_inputs;
 mod twohot;
 
-pub use adam::{adam_update, adam_update_in_place, squared_norm, sum_of_squares, AdamStep};
-pub use categorical::{categorical_kl, straight_through_sample};
+pub use adam::{adam_update, sum_of_squares, AdamStep};
 pub use gemm::{matmul_flops, record_products, recorded_products, ProductShape};
+pub use norm_act::NormAct;
+pub use product_profile::rerun_products;
+
+// the candle custom ops around the row kernels: the tests' oracle (`oracle` feature)
+#[cfg(any(test, feature = "oracle"))]
+pub use categorical::{categorical_kl, straight_through_sample};
+#[cfg(any(test, feature = "oracle"))]
 pub use gru::gru_gates;
+#[cfg(any(test, feature = "oracle"))]
 pub use linear::linear;
+#[cfg(any(test, feature = "oracle"))]
 pub use linear_norm::linear_norm_act;
-pub use norm_act::{norm_act, NormAct};
-pub use product_profile::replay_products;
+#[cfg(any(test, feature = "oracle"))]
+pub use norm_act::norm_act;
+#[cfg(any(test, feature = "oracle"))]
 pub use twohot::{soft_cross_entropy, twohot_decode};
 // the row kernels, for the networks on plain buffers (`crate::nn::plain`)
 pub(crate) use categorical::{kl_rows, kl_rows_bwd, probs_rows_bwd, sample_rows, Unimix};

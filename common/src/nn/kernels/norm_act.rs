@@ -54,6 +54,7 @@ pub(crate) struct Norm<'a> {
     pub(crate) act: NormAct,
 }
 
+#[cfg(any(test, feature = "oracle"))]
 struct NormActOp {
     eps: f32,
     act: NormAct,
@@ -105,6 +106,7 @@ pub(crate) fn norm_act_rows_into(x: &[f32], norm: Norm, out: &mut [f32]) {
 
 /// `act(LayerNorm(x))` of the whole rows (of `γ.len()`) of `x`, in a new buffer (written once,
 /// never zeroed first).
+#[cfg(any(test, feature = "oracle"))]
 pub(super) fn norm_act_rows(x: &[f32], norm: Norm) -> Vec<f32> {
     let d = norm.gain.len();
     let n = x.len() / d.max(1) * d;
@@ -198,6 +200,7 @@ pub(crate) fn norm_act_rows_bwd_into(
 }
 
 /// [`norm_act_rows_bwd_into`] with `dx` in a new buffer (written once, never zeroed first).
+#[cfg(any(test, feature = "oracle"))]
 pub(super) fn norm_act_rows_bwd(
     (x, y): (&[f32], &[f32]),
     norm: Norm,
@@ -223,6 +226,7 @@ fn as_uninit(x: &mut [f32]) -> &mut [MaybeUninit<f32>] {
     unsafe { &mut *(x as *mut [f32] as *mut [MaybeUninit<f32>]) }
 }
 
+#[cfg(any(test, feature = "oracle"))]
 impl NormActOp {
     /// The normalisation with gain `g` and bias `b`.
     fn on<'a>(&self, g: &'a [f32], b: &'a [f32]) -> Norm<'a> {
@@ -235,6 +239,7 @@ impl NormActOp {
     }
 }
 
+#[cfg(any(test, feature = "oracle"))]
 impl CustomOp3 for NormActOp {
     fn name(&self) -> &'static str {
         "ctxrace-norm-act"
@@ -300,6 +305,7 @@ impl CustomOp3 for NormActOp {
 
 /// `act(γ (x − μ)/√(σ² + ε) + β)` over the last dimension of `x`, with `gain` γ and `bias` β of
 /// that size.
+#[cfg(any(test, feature = "oracle"))]
 pub fn norm_act(
     x: &Tensor,
     gain: &Tensor,

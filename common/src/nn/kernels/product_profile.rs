@@ -3,7 +3,7 @@
 //!
 //! A training step's time is its products' plus everything around them (row kernels, copies,
 //! the operands' trips through the caches, threads waiting). [`super::record_products`] notes the shape
-//! and strides of every gemm call while it is on; [`replay_products`] runs the same calls again
+//! and strides of every gemm call while it is on; [`rerun_products`] runs the same calls again
 //! on the calling thread, one after another, on operands of random values reused from call to
 //! call, and times them. Their rate is what the products reach with nothing else in the way and
 //! their operands as warm as the caches can keep them: the step's fraction of it says how much
@@ -16,7 +16,7 @@ use std::time::Instant;
 /// pseudo-random values, one buffer each for `A`, `B` and `dst` as long as the longest call
 /// needs, are filled before the clock starts; empty products are skipped (none left: 0
 /// seconds). Not counted in [`super::matmul_flops`].
-pub fn replay_products(calls: &[ProductShape]) -> f64 {
+pub fn rerun_products(calls: &[ProductShape]) -> f64 {
     let calls: Vec<_> = calls
         .iter()
         .filter(|c| c.dims.0 > 0 && c.dims.1 > 0 && c.dims.2 > 0)

@@ -76,16 +76,19 @@ impl SparseColumns {
     }
 
     /// The number of non-zeros.
+    #[cfg(any(test, feature = "oracle"))]
     pub(crate) fn nonzeros(&self) -> usize {
         self.values.len()
     }
 
     /// `y_i += Σ x_ic Wᵀ_c` for `y` `[rows, out]` and `wt` the rows of `Wᵀ` of the columns.
+    #[cfg(any(test, feature = "oracle"))]
     pub(crate) fn add_products(&self, wt: &[f32], out: usize, y: &mut [f32]) {
         self.all().add_products(wt, out, y);
     }
 
     /// `dWᵀ_c += Σ_i x_ic g_i` for `g` `[rows, out]` and `dwt` the rows of `dWᵀ` of the columns.
+    #[cfg(any(test, feature = "oracle"))]
     pub(crate) fn add_weight_grads(&self, g: &[f32], out: usize, dwt: &mut [f32]) {
         self.all().add_weight_grads(g, out, dwt);
     }

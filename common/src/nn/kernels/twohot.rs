@@ -69,10 +69,12 @@ vectorised! {
     }
 }
 
+#[cfg(any(test, feature = "oracle"))]
 struct TwohotDecode {
     bins: Vec<f32>,
 }
 
+#[cfg(any(test, feature = "oracle"))]
 impl CustomOp1 for TwohotDecode {
     fn name(&self) -> &'static str {
         "ctxrace-twohot-decode"
@@ -100,6 +102,7 @@ impl CustomOp1 for TwohotDecode {
 }
 
 /// `symexp(Σ_k softmax(l)_k b_k)` over the last dimension of `logits` `[…, K]` for bins `b`.
+#[cfg(any(test, feature = "oracle"))]
 pub fn twohot_decode(logits: &Tensor, bins: &[f32]) -> Result<Tensor> {
     if logits.dims().last() != Some(&bins.len()) {
         bail!(
@@ -113,8 +116,10 @@ pub fn twohot_decode(logits: &Tensor, bins: &[f32]) -> Result<Tensor> {
     })
 }
 
+#[cfg(any(test, feature = "oracle"))]
 struct SoftCrossEntropy;
 
+#[cfg(any(test, feature = "oracle"))]
 impl CustomOp2 for SoftCrossEntropy {
     fn name(&self) -> &'static str {
         "ctxrace-soft-cross-entropy"
@@ -173,6 +178,7 @@ impl CustomOp2 for SoftCrossEntropy {
 }
 
 /// `−Σ_k t_k log softmax(l)_k` `[N]` of logits `[N, K]` against (detached) targets `[N, K]`.
+#[cfg(any(test, feature = "oracle"))]
 pub fn soft_cross_entropy(logits: &Tensor, target: &Tensor) -> Result<Tensor> {
     logits
         .contiguous()?

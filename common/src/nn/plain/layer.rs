@@ -15,9 +15,11 @@ use crate::nn::kernels::{
 };
 use crate::nn::mlp::{MlpShape, LAYER_NORM_EPS};
 use crate::nn::weights::{Weights, WeightsError};
-use crate::nn::{Activation, Dense, LayerNorm, Mlp};
-use candle_core::backprop::GradStore;
-use candle_core::{bail, Result, Tensor};
+use crate::nn::Activation;
+#[cfg(any(test, feature = "oracle"))]
+use crate::nn::{Dense, LayerNorm, Mlp};
+#[cfg(any(test, feature = "oracle"))]
+use candle_core::{backprop::GradStore, bail, Result, Tensor};
 use std::ops::Range;
 
 /// What follows a layer's product.
@@ -178,6 +180,7 @@ fn transpose_into(m: &[f32], rows: usize, cols: usize, t: &mut [f32]) {
 }
 
 /// The values of a contiguous CPU tensor.
+#[cfg(any(test, feature = "oracle"))]
 fn values(t: &Tensor) -> Result<Vec<f32>> {
     t.flatten_all()?.to_vec1::<f32>()
 }
@@ -185,6 +188,7 @@ fn values(t: &Tensor) -> Result<Vec<f32>> {
 impl PlainLayer {
     /// The layer `dense` followed by its normalisation and activation `norm`, or else a ReLU if
     /// `relu`, or else nothing.
+    #[cfg(any(test, feature = "oracle"))]
     pub(super) fn from_parts(
         dense: &Dense,
         norm: Option<(&LayerNorm, NormAct)>,
@@ -297,11 +301,13 @@ impl PlainLayer {
     }
 
     /// A normalised block (`act(LayerNorm(x Wᵀ))`) of `dense` and `ln`.
+    #[cfg(any(test, feature = "oracle"))]
     pub fn normalised(dense: &Dense, ln: &LayerNorm, act: NormAct) -> Result<Self> {
         Self::from_parts(dense, Some((ln, act)), false)
     }
 
     /// The plain product `x Wᵀ + b` of `dense`.
+    #[cfg(any(test, feature = "oracle"))]
     pub fn linear(dense: &Dense) -> Result<Self> {
         Self::from_parts(dense, None, false)
     }
@@ -462,6 +468,7 @@ impl PlainLayer {
 
     /// The gradients `grads` as candle tensors of the parameters of `dense` and `ln` (the layer
     /// and normalisation this one copied), added into `store`.
+    #[cfg(any(test, feature = "oracle"))]
     pub fn add_grads_to(
         &self,
         grads: LayerGrads,
@@ -641,6 +648,7 @@ pub struct MlpGrads {
 
 impl PlainMlp {
     /// The weights of `mlp` as they are now.
+    #[cfg(any(test, feature = "oracle"))]
     pub fn new(mlp: &Mlp) -> Result<Self> {
         let (hidden, head, act) = mlp.parts();
         let mut layers = Vec::with_capacity(hidden.len() + 1);
@@ -857,6 +865,7 @@ impl PlainMlp {
 
     /// The gradients as candle tensors of `mlp`'s parameters (the network this one copied),
     /// added into `store`.
+    #[cfg(any(test, feature = "oracle"))]
     pub fn add_grads_to(&self, grads: MlpGrads, mlp: &Mlp, store: &mut GradStore) -> Result<()> {
         let (hidden, head, _) = mlp.parts();
         let denses = hidden
@@ -871,6 +880,7 @@ impl PlainMlp {
 }
 
 /// Adds `grad` (the values of a tensor shaped as `param`) to `param`'s gradient in `store`.
+#[cfg(any(test, feature = "oracle"))]
 pub(super) fn add_grad(store: &mut GradStore, param: &Tensor, grad: Vec<f32>) -> Result<()> {
     let grad = Tensor::from_vec(grad, param.shape(), param.device())?;
     let sum = match store.get(param) {

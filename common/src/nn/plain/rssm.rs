@@ -28,7 +28,10 @@ use super::layer::{InputGrad, LayerGrads, MlpGrads, MlpTrace, PlainLayer, PlainM
 use super::parameters::{update_each, NamedTensor, Parameters};
 use crate::nn::kernels::{gru_rows, gru_rows_bwd, probs_rows_bwd, sample_rows, NormAct, Unimix};
 use crate::nn::weights::{Weights, WeightsError};
-use crate::nn::{Rssm, RssmConfig};
+#[cfg(any(test, feature = "oracle"))]
+use crate::nn::Rssm;
+use crate::nn::RssmConfig;
+#[cfg(any(test, feature = "oracle"))]
 use candle_core::Result;
 use std::ops::Range;
 
@@ -225,6 +228,7 @@ fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
 
 impl PlainRssm {
     /// The weights of `rssm` as they are now.
+    #[cfg(any(test, feature = "oracle"))]
     pub fn new(rssm: &Rssm) -> Result<Self> {
         let [img_in, gates, prior, prior_out, post, post_out] = rssm.blocks();
         let layer = |(dense, norm)| PlainLayer::from_parts(dense, norm, false);
