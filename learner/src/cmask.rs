@@ -40,8 +40,8 @@ use crate::sac_core::{
 use crate::shards::{on_shards_with, Shard};
 use ctxrace_common::agents::{DreamerConfig, MaskConfig, MaskSpace, StepAlignment, CONTEXT_DIM};
 use ctxrace_common::nn::dreamer::normal_rows;
-use ctxrace_common::nn::initial_weights::init_dreamer;
-use ctxrace_common::nn::plain::PlainMlp;
+use ctxrace_common::nn::initial_weights;
+use ctxrace_common::nn::plain::{NamedTensor, PlainMlp};
 use ctxrace_common::SequenceBatch;
 use rand_chacha::ChaCha8Rng;
 use std::ops::Range;
@@ -276,11 +276,9 @@ impl MaskSac {
             },
             bounds: [0.0, 1.0],
         };
-        let mut core = SacCore::new(core, actor)?;
-        init_dreamer(&mut core.critics, seed, cfg, (obs_dim, 0));
-        core.targets = core.critics.clone();
+        let draw = |t: &NamedTensor| initial_weights::draw(cfg.init, t, (obs_dim, 0));
         Ok(Self {
-            core,
+            core: SacCore::new(core, actor, &draw)?,
             cfg: m.clone(),
             alignment: cfg.step_alignment,
             work: Vec::new(),

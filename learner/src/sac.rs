@@ -44,7 +44,7 @@ use crate::sac_core::{
     ActorPass, BlobNames, CoreConfig, CriticPass, LearningRates, Passes, SacCore,
 };
 use ctxrace_common::nn::kernels::matmul_flops;
-use ctxrace_common::nn::plain::{init, load_safetensors, to_safetensors, PlainMlp};
+use ctxrace_common::nn::plain::{ctxrace_draw, init, load_safetensors, to_safetensors, PlainMlp};
 use ctxrace_common::nn::{Activation, MlpShape, Weights};
 use ctxrace_common::policy::SacPolicy;
 use ctxrace_common::{SacConfig, TransitionBatch};
@@ -136,6 +136,7 @@ impl Sac {
                 bounds: [-1.0, 1.0],
             },
             &actor,
+            &ctxrace_draw,
         )?;
         let [lo, hi] = cfg.log_std_clamp;
         Ok(Self {

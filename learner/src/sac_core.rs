@@ -16,8 +16,8 @@
 use crate::adam::{Adam, AdamError};
 use crate::checkpoint;
 use ctxrace_common::nn::plain::{
-    init, polyak, to_safetensors, update_each, InputGrad, MlpGrads, MlpTrace, NamedTensor,
-    Parameters, PlainMlp,
+    init_with, polyak, to_safetensors, update_each, Draw, InputGrad, MlpGrads, MlpTrace,
+    NamedTensor, Parameters, PlainMlp,
 };
 use ctxrace_common::nn::tanh_gaussian::{squash_rows, squash_rows_backward};
 use ctxrace_common::nn::{Activation, MlpShape, Weights, WeightsError};
@@ -74,12 +74,13 @@ pub(crate) struct TwinCritics {
 
 impl TwinCritics {
     /// Critics on inputs `[o, a]` of `input` values, `layers` hidden layers of `hidden` units,
-    /// their weights drawn from `seed` ([`init`], both critics as one store).
+    /// their weights drawn from `seed` as `draw` says ([`init_with`], both critics as one store).
     pub(crate) fn new(
         input: usize,
         hidden: usize,
         layers: usize,
         seed: u64,
+        draw: &dyn Fn(&NamedTensor) -> Draw,
     ) -> Result<Self, WeightsError> {
         let shape = MlpShape {
             input,
@@ -95,7 +96,7 @@ impl TwinCritics {
                 PlainMlp::from_weights(&mut weights, "q2.", &shape)?,
             ],
         };
-        init(&mut critics, seed);
+        init_with(&mut critics, seed, draw);
         Ok(critics)
     }
 
@@ -265,10 +266,14 @@ pub(crate) struct SacCore {
 
 impl SacCore {
     /// A fresh core for `actor` (the network its actor optimiser steps): critics drawn from
-    /// `cfg.seed`, targets equal to them, `α = cfg.initial_alpha` (positive: the callers'
+    /// `cfg.seed` as `draw` says, targets equal to them, `α = cfg.initial_alpha` (positive: the callers'
     /// configurations check it, naming their key).
-    pub(crate) fn new(cfg: CoreConfig, actor: &PlainMlp) -> Result<Self, WeightsError> {
-        let critics = TwinCritics::new(cfg.input, cfg.hidden, cfg.layers, cfg.seed)?;
+    pub(crate) fn new(
+        cfg: CoreConfig,
+        actor: &PlainMlp,
+        draw: &dyn Fn(&NamedTensor) -> Draw,
+    ) -> Result<Self, WeightsError> {
+        let critics = TwinCritics::new(cfg.input, cfg.hidden, cfg.layers, cfg.seed, draw)?;
         let targets = critics.clone();
         let log_alpha = LogAlpha::new(cfg.initial_alpha);
         let adam = |nets: &dyn Parameters, lr| Adam::new(nets, lr, 1e-8, f64::INFINITY);
