@@ -1,16 +1,24 @@
 //! The training curves of a parity folder written by `deploy/paper_parity.sh`: ctxrace's and
 //! the paper's own code's training episodes at the same budget, in ctxrace's format (a run
 //! directory's `episodes.csv`, [`TrainingEpisode`]), as `<dir>/<side>/<algo>/seed<S>/episodes.csv`
-//! with side `ctxrace` or `paper`. `ctxrace report --parity DIR` draws them
-//! ([`crate::figures::write_parity`]).
+//! where a side is `paper` (the paper's code) or a ctxrace side (`ctxrace`, or a name of its
+//! own such as `ctxrace-paper-init` for a second ctxrace setting). `ctxrace report --parity DIR`
+//! draws them ([`crate::figures::write_parity`]).
 
 use anyhow::{bail, Context as _, Result};
 use ctxrace_common::results::{read_csv, TrainingEpisode};
 use ctxrace_common::run_dir::TRAINING_EPISODES;
 use std::path::Path;
 
-/// The sides of a parity folder, in drawing order.
-pub const SIDES: [&str; 2] = ["ctxrace", "paper"];
+/// The paper's code's side of a parity folder (drawn last).
+pub const PAPER_SIDE: &str = "paper";
+
+/// The sides of a parity folder in drawing order: its folders by name, the paper's last.
+fn sides(dir: &Path) -> Result<Vec<String>> {
+    let mut names = folders(dir)?;
+    names.sort_by_key(|name| name == PAPER_SIDE);
+    Ok(names)
+}
 
 /// Each seed's training episodes, by seed.
 pub type SeedCurves = Vec<(u64, Vec<TrainingEpisode>)>;
@@ -46,11 +54,8 @@ pub fn load(dir: &Path) -> Result<Vec<ParityCurves>> {
         );
     }
     let mut curves: Vec<ParityCurves> = Vec::new();
-    for side in SIDES {
-        let side_dir = dir.join(side);
-        if !side_dir.is_dir() {
-            continue;
-        }
+    for side in sides(dir)? {
+        let side_dir = dir.join(&side);
         for algo in folders(&side_dir)? {
             let mut seeds = Vec::new();
             for name in folders(&side_dir.join(&algo))? {
@@ -82,13 +87,13 @@ pub fn load(dir: &Path) -> Result<Vec<ParityCurves>> {
                 }
             };
             let entry = &mut curves[index];
-            entry.sides.push((side.to_string(), seeds));
+            entry.sides.push((side.clone(), seeds));
         }
     }
     if curves.is_empty() {
         bail!(
-            "{}: no training curve, expected {{ctxrace,paper}}/<algo>/seed<S>/episodes.csv \
-             (deploy/paper_parity.sh writes them)",
+            "{}: no training curve, expected <side>/<algo>/seed<S>/episodes.csv, side `paper` or a \
+             ctxrace setting such as `ctxrace` (deploy/paper_parity.sh writes them)",
             dir.display()
         );
     }
@@ -126,7 +131,7 @@ mod tests {
     }
 
     #[test]
-    fn both_sides_load_per_algorithm_and_draw_one_figure_each() {
+    fn every_side_loads_per_algorithm_the_papers_last_and_draws_one_figure_each() {
         let dir = tempfile::tempdir().unwrap();
         let d = dir.path();
         for seed in 0..3 {
@@ -139,6 +144,7 @@ mod tests {
                 &curve(40, 0.02 + 0.002 * seed as f64),
             );
             put(d, "paper", "cmask", &s, &curve(30, 0.01));
+            put(d, "variant", "cmask", &s, &curve(25, 0.015));
             put(d, "ctxrace", "dreamerv3", &s, &curve(20, 0.03));
         }
         // a run still starting and a folder that is not a seed are left out
@@ -148,17 +154,15 @@ mod tests {
         let names: Vec<&str> = curves.iter().map(|c| c.algo.as_str()).collect();
         assert_eq!(names, ["cmask", "dreamerv3"]);
         let cmask = &curves[0];
-        assert_eq!(cmask.sides.len(), 2);
-        assert_eq!(
-            (cmask.sides[0].0.as_str(), cmask.sides[0].1.len()),
-            ("ctxrace", 3)
-        );
-        assert_eq!(
-            (cmask.sides[1].0.as_str(), cmask.sides[1].1.len()),
-            ("paper", 3)
-        );
-        assert_eq!(cmask.sides[1].1[2].1.len(), 30);
-        assert!(cmask.sides[1].1[0].1[0].a2a);
+        let sides: Vec<(&str, usize)> = cmask
+            .sides
+            .iter()
+            .map(|(side, seeds)| (side.as_str(), seeds.len()))
+            .collect();
+        assert_eq!(sides, [("ctxrace", 3), ("variant", 3), ("paper", 3)]);
+        assert_eq!(cmask.sides[2].1[2].1.len(), 30);
+        assert!(cmask.sides[2].1[0].1[0].a2a);
+        assert_eq!(curves[1].sides.len(), 1);
 
         let out = d.join("report");
         std::fs::create_dir_all(&out).unwrap();
