@@ -21,7 +21,7 @@ use crate::grid::grid_pose;
 use crate::lidar::{Lidar, NearbyWalls};
 use crate::rival::PurePursuit;
 use crate::vehicle::{State, Vehicle, VehicleParams, DT};
-use ctxrace_common::{Context, CrashedRivals, RaceConfig};
+use ctxrace_common::{Context, CrashedRivals, RaceConfig, RaceConfigError};
 use ctxrace_tracks::Track;
 use nalgebra::Point2;
 use rand::SeedableRng;
@@ -34,7 +34,7 @@ use std::sync::Arc;
 pub enum RaceError {
     /// The race config is invalid.
     #[error("race config: {0}")]
-    Config(String),
+    Config(RaceConfigError),
     /// An action element is NaN or infinite.
     #[error("action {0:?} is not finite; policies must output numbers in [-1, 1]")]
     BadAction([f64; 2]),

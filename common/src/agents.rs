@@ -18,7 +18,9 @@
 //! | `dreamer.mask.imagination_context` | `masked` | `raw` ([`ImaginationContext`]) |
 
 use crate::batch::BatchSpec;
-use crate::nn::tanh_gaussian::{validate_log_std_clamp, LOG_STD_CLAMP};
+use crate::nn::tanh_gaussian::{validate_log_std_clamp, LogStdClampError, LOG_STD_CLAMP};
+use crate::preset::PresetError;
+use crate::validate::ValueError;
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::str::FromStr;
@@ -30,6 +32,15 @@ pub enum AgentConfigError {
     /// the key, the value and the values allowed.
     #[error("{0}")]
     OutOfRange(String),
+    /// The bounds of a policy's log standard deviation are not finite or not increasing.
+    #[error(transparent)]
+    LogStdClamp(#[from] LogStdClampError),
+    /// A float that is not finite, or a value outside its range.
+    #[error(transparent)]
+    Value(#[from] ValueError),
+    /// The table could not be read over its preset.
+    #[error(transparent)]
+    Preset(#[from] PresetError),
 }
 
 /// The outcome of checking an agent configuration.
@@ -102,16 +113,19 @@ impl fmt::Display for AlgoKind {
     }
 }
 
-impl FromStr for AlgoKind {
-    type Err = String;
+/// A name that is no algorithm's.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("unknown algorithm `{0}`; expected one of sac, dreamerv3, crssm, cmask")]
+pub struct UnknownAlgorithm(pub String);
 
-    fn from_str(s: &str) -> std::result::Result<Self, String> {
+impl FromStr for AlgoKind {
+    type Err = UnknownAlgorithm;
+
+    fn from_str(s: &str) -> std::result::Result<Self, UnknownAlgorithm> {
         AlgoKind::ALL
             .into_iter()
             .find(|a| a.name() == s.to_ascii_lowercase())
-            .ok_or_else(|| {
-                format!("unknown algorithm `{s}`; expected one of sac, dreamerv3, crssm, cmask")
-            })
+            .ok_or_else(|| UnknownAlgorithm(s.to_string()))
     }
 }
 
@@ -261,15 +275,15 @@ impl AgentConfig {
     /// Reads an `[agent]` table: keys it leaves out take the values of its `preset` (the
     /// default learner when it names none). Unknown keys and bad values are errors naming the
     /// key.
-    pub fn from_table(table: toml::Table) -> std::result::Result<Self, String> {
+    pub fn from_table(table: toml::Table) -> Result<Self> {
         let cfg = crate::preset::resolve(table, AgentPreset::config)?;
-        cfg.validate().map_err(|e| e.to_string())?;
+        cfg.validate()?;
         Ok(cfg)
     }
 
     /// Reads an `[agent]` table a checkpoint saved (`agent.toml`): as [`AgentConfig::from_table`],
     /// a table saved before `context_scale` existed reading as the scale it trained with.
-    pub fn from_saved_table(mut table: toml::Table) -> std::result::Result<Self, String> {
+    pub fn from_saved_table(mut table: toml::Table) -> Result<Self> {
         ContextScale::fill_saved_table(&mut table);
         Self::from_table(table)
     }
@@ -454,8 +468,7 @@ impl SacConfig {
             bail!("agent.sac.{key} must be a finite standard deviation >= 0 (0: none), got {v}");
         }
         check_target_every("agent.sac.target_every", self.target_every)?;
-        validate_log_std_clamp("agent.sac.log_std_clamp", self.log_std_clamp)
-            .map_err(AgentConfigError::OutOfRange)?;
+        validate_log_std_clamp("agent.sac.log_std_clamp", self.log_std_clamp)?;
         Ok(())
     }
 
@@ -610,8 +623,7 @@ impl MaskConfig {
             bail!("agent.dreamer.mask.units must be positive");
         }
         check_target_every("agent.dreamer.mask.target_every", self.target_every)?;
-        validate_log_std_clamp("agent.dreamer.mask.log_std_clamp", self.log_std_clamp)
-            .map_err(AgentConfigError::OutOfRange)?;
+        validate_log_std_clamp("agent.dreamer.mask.log_std_clamp", self.log_std_clamp)?;
         if self.reward_delay > 1 {
             bail!(
                 "agent.dreamer.mask.reward_delay must be 0 (the reward the mask's step earned) or 1 \
@@ -932,6 +944,41 @@ mod tests {
     use super::*;
 
     #[test]
+    fn a_table_that_its_preset_cannot_read_names_the_preset_or_the_key() {
+        let table = |text: &str| toml::from_str::<toml::Table>(text).unwrap();
+        let err = AgentConfig::from_table(table("preset = \"paper\"")).unwrap_err();
+        assert!(
+            matches!(err, AgentConfigError::Preset(PresetError::Unknown(_))),
+            "{err:?}"
+        );
+        assert!(
+            err.to_string().starts_with("preset: ")
+                && err
+                    .to_string()
+                    .ends_with("(use \"default\" or \"paper-code\")"),
+            "{err}"
+        );
+        let err =
+            AgentConfig::from_table(table("preset = \"paper-code\"\nalgoo = \"sac\"")).unwrap_err();
+        assert!(
+            matches!(err, AgentConfigError::Preset(PresetError::Value(_))),
+            "{err:?}"
+        );
+        assert!(err.to_string().contains("unknown field `algoo`"), "{err}");
+        let err = AgentConfig::from_table(table(
+            "preset = \"paper-code\"\nalgo = \"sac\"\n[sac]\nlog_std_clamp = [2.0, -20.0]",
+        ))
+        .unwrap_err();
+        assert_eq!(
+            err,
+            AgentConfigError::LogStdClamp(LogStdClampError {
+                key: "agent.sac.log_std_clamp".into(),
+                bounds: [2.0, -20.0]
+            })
+        );
+    }
+
+    #[test]
     fn agent_tables_parse_with_defaults_and_reject_unknown_keys() {
         let agent: AgentConfig =
             toml::from_str("algo = \"cmask\"\n[dreamer]\nhorizon = 5\n[dreamer.mask]\ntau = 0.01")
@@ -975,10 +1022,9 @@ mod tests {
         );
         let cfg = form("algo = \"cmask\"\n[dreamer.mask]\nmask_space = \"paper-code\"").unwrap();
         assert_eq!(cfg.mask.mask_space, MaskSpace::PaperCode);
-        assert!("ppo"
-            .parse::<AlgoKind>()
-            .unwrap_err()
-            .contains("expected one of"));
+        let err = "ppo".parse::<AlgoKind>().unwrap_err();
+        assert_eq!(err, UnknownAlgorithm("ppo".into()));
+        assert!(err.to_string().contains("expected one of"));
     }
 
     #[test]

@@ -62,13 +62,73 @@ pub struct SequenceBatch {
     pub has_mask: Vec<f32>,
 }
 
-/// Checks that every buffer holds `want` values; the message names the field.
-fn check_lengths(kind: &str, fields: &[(&str, usize, usize)]) -> Result<(), String> {
-    for &(name, got, want) in fields {
+/// Why a batch does not fit the agent that is to train on it: each names the batch's kind, the
+/// sizes or the field at fault, and what was expected.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum BatchError {
+    /// A transition batch that is empty or of other observation/action sizes.
+    #[error(
+        "transition batch of {batch} with obs/action sizes {obs_dim}/{act_dim}, expected a \
+         non-empty one with {want_obs}/{want_act}"
+    )]
+    TransitionShape {
+        /// Transitions held.
+        batch: usize,
+        /// Its observation size.
+        obs_dim: usize,
+        /// Its action size.
+        act_dim: usize,
+        /// The observation size expected.
+        want_obs: usize,
+        /// The action size expected.
+        want_act: usize,
+    },
+    /// A sequence batch that is empty or of other observation/action sizes.
+    #[error(
+        "sequence batch of {batch} x {length} with obs/action sizes {obs_dim}/{act_dim}, \
+         expected a non-empty one with {want_obs}/{want_act}"
+    )]
+    SequenceShape {
+        /// Sequences held.
+        batch: usize,
+        /// Steps per sequence.
+        length: usize,
+        /// Its observation size.
+        obs_dim: usize,
+        /// Its action size.
+        act_dim: usize,
+        /// The observation size expected.
+        want_obs: usize,
+        /// The action size expected.
+        want_act: usize,
+    },
+    /// A buffer of another length than the batch's sizes give.
+    #[error("{kind} batch field {field} holds {got} values, expected {want}")]
+    FieldLength {
+        /// `transition` or `sequence`.
+        kind: &'static str,
+        /// The field.
+        field: &'static str,
+        /// Values it holds.
+        got: usize,
+        /// Values the sizes give.
+        want: usize,
+    },
+}
+
+/// Checks that every buffer holds `want` values; the error names the field.
+fn check_lengths(
+    kind: &'static str,
+    fields: &[(&'static str, usize, usize)],
+) -> Result<(), BatchError> {
+    for &(field, got, want) in fields {
         if got != want {
-            return Err(format!(
-                "{kind} batch field {name} holds {got} values, expected {want}"
-            ));
+            return Err(BatchError::FieldLength {
+                kind,
+                field,
+                got,
+                want,
+            });
         }
     }
     Ok(())
@@ -89,14 +149,16 @@ impl TransitionBatch {
 
     /// Checks that the batch is non-empty, has the sizes `obs_dim`/`act_dim` and that every
     /// buffer's length matches them.
-    pub fn validate(&self, obs_dim: usize, act_dim: usize) -> Result<(), String> {
+    pub fn validate(&self, obs_dim: usize, act_dim: usize) -> Result<(), BatchError> {
         let b = self.batch;
         if b == 0 || self.obs_dim != obs_dim || self.act_dim != act_dim {
-            return Err(format!(
-                "transition batch of {b} with obs/action sizes {}/{}, expected a non-empty one \
-                 with {obs_dim}/{act_dim}",
-                self.obs_dim, self.act_dim
-            ));
+            return Err(BatchError::TransitionShape {
+                batch: b,
+                obs_dim: self.obs_dim,
+                act_dim: self.act_dim,
+                want_obs: obs_dim,
+                want_act: act_dim,
+            });
         }
         check_lengths(
             "transition",
@@ -129,14 +191,17 @@ impl SequenceBatch {
 
     /// Checks that the batch is non-empty, has the sizes `obs_dim`/`act_dim` and that every
     /// buffer's length matches them.
-    pub fn validate(&self, obs_dim: usize, act_dim: usize) -> Result<(), String> {
+    pub fn validate(&self, obs_dim: usize, act_dim: usize) -> Result<(), BatchError> {
         let n = self.batch * self.length;
         if n == 0 || self.obs_dim != obs_dim || self.act_dim != act_dim {
-            return Err(format!(
-                "sequence batch of {} x {} with obs/action sizes {}/{}, expected a non-empty one \
-                 with {obs_dim}/{act_dim}",
-                self.batch, self.length, self.obs_dim, self.act_dim
-            ));
+            return Err(BatchError::SequenceShape {
+                batch: self.batch,
+                length: self.length,
+                obs_dim: self.obs_dim,
+                act_dim: self.act_dim,
+                want_obs: obs_dim,
+                want_act: act_dim,
+            });
         }
         check_lengths(
             "sequence",
@@ -247,10 +312,12 @@ mod tests {
         assert!(t
             .validate(3, 1)
             .unwrap_err()
+            .to_string()
             .contains("next_obs holds 5 values, expected 6"));
         assert!(t
             .validate(4, 1)
             .unwrap_err()
+            .to_string()
             .contains("expected a non-empty one with 4/1"));
         let s = SequenceBatch {
             batch: 1,
@@ -266,9 +333,19 @@ mod tests {
             mask: vec![0.0; 4],
             has_mask: vec![0.0; 1],
         };
+        assert_eq!(
+            s.validate(1, 1),
+            Err(BatchError::FieldLength {
+                kind: "sequence",
+                field: "has_mask",
+                got: 1,
+                want: 2
+            })
+        );
         assert!(s
             .validate(1, 1)
             .unwrap_err()
+            .to_string()
             .contains("has_mask holds 1 values, expected 2"));
         let s = SequenceBatch {
             has_mask: vec![0.0; 2],

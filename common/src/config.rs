@@ -33,7 +33,8 @@
 //! | `rival.lift_off_line` | 0.15 m | 0 (off) |
 
 use crate::ipc::wire::MAX_OBS;
-use crate::validate::{finite_floats, in_range};
+use crate::preset::PresetError;
+use crate::validate::{finite_floats, in_range, ValueError};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
@@ -41,6 +42,78 @@ use std::collections::BTreeMap;
 pub const MAX_PHYSICS_STEPS_PER_ACTION: usize = 1000;
 /// Longest steering delay in physics steps (1 s).
 pub const MAX_STEER_DELAY: usize = 100;
+
+/// Why a race configuration is refused: each names the key, its value and how to fix it.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum RaceConfigError {
+    /// Not TOML, or a key or a value that the table does not take (with its line).
+    #[error("{0}")]
+    Toml(toml::de::Error),
+    /// The table could not be read over its preset.
+    #[error(transparent)]
+    Preset(#[from] PresetError),
+    /// A float that is not finite, or a value outside its range.
+    #[error(transparent)]
+    Value(#[from] ValueError),
+    /// A length, speed or time that must be positive.
+    #[error("{key} = {value} must be a positive number")]
+    NotPositive {
+        /// The key.
+        key: String,
+        /// Its value.
+        value: f64,
+    },
+    /// A threshold or gain that must not be negative.
+    #[error("{key} = {value} must be a number >= 0 (0 disables it)")]
+    Negative {
+        /// The key.
+        key: &'static str,
+        /// Its value.
+        value: f64,
+    },
+    /// `step_reward_floor` is not a number.
+    #[error("step_reward_floor = {0} must be a number (leave it out for none)")]
+    StepRewardFloor(f64),
+    /// More rivals than a race holds.
+    #[error("rivals = {0} must be 0 to 7")]
+    Rivals(usize),
+    /// `min_speed` is negative or not below `max_speed`.
+    #[error("min_speed = {min_speed} must be in [0, max_speed = {max_speed})")]
+    MinSpeed {
+        /// `min_speed`.
+        min_speed: f64,
+        /// `max_speed`.
+        max_speed: f64,
+    },
+    /// The rivals' gap as a lap fraction is not positive or does not fit the lap.
+    #[error(
+        "start_gap = {start_gap} must be positive and leave the {rivals} rivals within 90% of \
+         the lap"
+    )]
+    StartGap {
+        /// `start_gap`.
+        start_gap: f64,
+        /// `rivals`.
+        rivals: usize,
+    },
+    /// The starting grid does not fit on the track's lap.
+    #[error(
+        "{key}: {rivals} rivals {spacing:.1} m apart do not fit within 90% of {track}'s \
+         {length:.1} m lap; lower it or the number of rivals"
+    )]
+    Grid {
+        /// The key that sets the spacing.
+        key: String,
+        /// `rivals`.
+        rivals: usize,
+        /// The spacing (m).
+        spacing: f64,
+        /// The track.
+        track: String,
+        /// The track's lap (m).
+        length: f64,
+    },
+}
 
 /// A named starting point for a race scenario: keys a file leaves out take the preset's values.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -286,21 +359,21 @@ impl RaceConfig {
 
     /// Reads a race table: keys it leaves out take the values of its `preset` (the default
     /// scenario when it names none). Unknown keys and bad values are errors naming the key.
-    pub fn from_table(table: toml::Table) -> Result<Self, String> {
+    pub fn from_table(table: toml::Table) -> Result<Self, RaceConfigError> {
         let cfg: Self = crate::preset::resolve(table, RacePreset::config)?;
         cfg.validate()?;
         Ok(cfg)
     }
 
     /// Parses a race scenario TOML (see [`RaceConfig::from_table`]).
-    pub fn from_toml(text: &str) -> Result<Self, String> {
+    pub fn from_toml(text: &str) -> Result<Self, RaceConfigError> {
         // parsed as the struct first so that syntax and unknown keys are reported with their line
-        let direct: Self = toml::from_str(text).map_err(|e| e.to_string())?;
+        let direct: Self = toml::from_str(text).map_err(RaceConfigError::Toml)?;
         if direct.preset == RacePreset::Default {
             direct.validate()?;
             return Ok(direct);
         }
-        Self::from_table(toml::from_str(text).map_err(|e| e.to_string())?)
+        Self::from_table(toml::from_str(text).map_err(RaceConfigError::Toml)?)
     }
 
     /// Distance between consecutive cars on the grid of `track` (m along the centreline), on a
@@ -317,7 +390,7 @@ impl RaceConfig {
     }
 
     /// Checks that the grid fits on a lap of `length` m of `track`: the rivals within 90% of it.
-    pub fn validate_grid(&self, track: &str, length: f64) -> Result<(), String> {
+    pub fn validate_grid(&self, track: &str, length: f64) -> Result<(), RaceConfigError> {
         let spacing = self.grid_spacing(track, length);
         if spacing * self.rivals as f64 > 0.9 * length {
             let key = match self.start_grid {
@@ -327,17 +400,19 @@ impl RaceConfig {
                 StartGrid::Spacing => "start_spacing".to_string(),
                 StartGrid::LapFraction => "start_gap".to_string(),
             };
-            return Err(format!(
-                "{key}: {} rivals {spacing:.1} m apart do not fit within 90% of {track}'s {length:.1} m lap; \
-                 lower it or the number of rivals",
-                self.rivals
-            ));
+            return Err(RaceConfigError::Grid {
+                key,
+                rivals: self.rivals,
+                spacing,
+                track: track.to_string(),
+                length,
+            });
         }
         Ok(())
     }
 
     /// Checks ranges; the message names the key and its valid range.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), RaceConfigError> {
         finite_floats(self, &self.preset.config())?;
         let positive = [
             ("max_speed", self.max_speed),
@@ -368,7 +443,7 @@ impl RaceConfig {
             .chain(per_track)
         {
             if !(v.is_finite() && v > 0.0) {
-                return Err(format!("{k} = {v} must be a positive number"));
+                return Err(RaceConfigError::NotPositive { key: k, value: v });
             }
         }
         for (k, v) in [
@@ -378,30 +453,28 @@ impl RaceConfig {
             ("ego_launch_below", self.ego_launch_below),
         ] {
             if !(v.is_finite() && v >= 0.0) {
-                return Err(format!("{k} = {v} must be a number >= 0 (0 disables it)"));
+                return Err(RaceConfigError::Negative { key: k, value: v });
             }
         }
         if let Some(floor) = self.step_reward_floor {
             if !floor.is_finite() {
-                return Err(format!(
-                    "step_reward_floor = {floor} must be a number (leave it out for none)"
-                ));
+                return Err(RaceConfigError::StepRewardFloor(floor));
             }
         }
         if self.rivals > 7 {
-            return Err(format!("rivals = {} must be 0 to 7", self.rivals));
+            return Err(RaceConfigError::Rivals(self.rivals));
         }
         if !(self.min_speed >= 0.0 && self.min_speed < self.max_speed) {
-            return Err(format!(
-                "min_speed = {} must be in [0, max_speed = {})",
-                self.min_speed, self.max_speed
-            ));
+            return Err(RaceConfigError::MinSpeed {
+                min_speed: self.min_speed,
+                max_speed: self.max_speed,
+            });
         }
         if !(self.start_gap > 0.0 && self.start_gap * self.rivals as f64 <= 0.9) {
-            return Err(format!(
-                "start_gap = {} must be positive and leave the {} rivals within 90% of the lap",
-                self.start_gap, self.rivals
-            ));
+            return Err(RaceConfigError::StartGap {
+                start_gap: self.start_gap,
+                rivals: self.rivals,
+            });
         }
         in_range(
             "physics_steps_per_action",
@@ -426,7 +499,8 @@ impl RaceConfig {
             self.lidar.noise_sd,
             0.0..=1.0,
             "it is in metres (the paper: 0.01)",
-        )
+        )?;
+        Ok(())
     }
 }
 
@@ -616,11 +690,35 @@ mod tests {
             rivals: 9,
             ..Default::default()
         };
-        assert!(bad.validate().unwrap_err().contains("rivals = 9"));
+        let err = bad.validate().unwrap_err();
+        assert_eq!(err, RaceConfigError::Rivals(9));
+        assert!(err.to_string().contains("rivals = 9"));
         assert_eq!(RivalConfig::default().gains_for("f1_mco").lambda_theta, 0.3);
         assert_eq!(
             RivalConfig::default().gains_for("generated:3").lambda_theta,
             0.4
+        );
+    }
+
+    #[test]
+    fn a_grid_that_does_not_fit_names_the_key_that_spaces_it_the_track_and_the_lap() {
+        let mut cfg = RaceConfig {
+            rivals: 7,
+            ..RaceConfig::default()
+        };
+        cfg.start_spacing_tracks.insert("f1_esp".into(), 300.0);
+        assert!(cfg.validate_grid("f1_esp", 5000.0).is_ok());
+        let err = cfg.validate_grid("f1_esp", 500.0).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "start_spacing_tracks.f1_esp: 7 rivals 300.0 m apart do not fit within 90% of \
+             f1_esp's 500.0 m lap; lower it or the number of rivals"
+        );
+        cfg.start_spacing = 100.0;
+        let err = cfg.validate_grid("generated:1", 500.0).unwrap_err();
+        assert!(
+            matches!(&err, RaceConfigError::Grid { key, .. } if key == "start_spacing"),
+            "{err}"
         );
     }
 
@@ -676,7 +774,7 @@ mod tests {
                 "speed_pont",
             ),
         ] {
-            let err = RaceConfig::from_toml(text).unwrap_err();
+            let err = RaceConfig::from_toml(text).unwrap_err().to_string();
             assert!(err.contains(key), "{text}: {err}");
         }
     }

@@ -2,10 +2,10 @@
 //! file (`configs/*.toml`). Every table rejects unknown keys and fills missing ones with the
 //! paper's values, so a file only names what it changes.
 
-use crate::agents::{AgentConfig, AlgoKind, Warmup};
+use crate::agents::{AgentConfig, AgentConfigError, AlgoKind, Warmup};
 use crate::batch::BatchSpec;
-use crate::config::{RaceConfig, ReplayOptions};
-use crate::validate::{finite_floats, in_range};
+use crate::config::{RaceConfig, RaceConfigError, ReplayOptions};
+use crate::validate::{finite_floats, in_range, ValueError};
 use serde::{Deserialize, Serialize};
 use std::ops::Bound;
 use std::path::{Path, PathBuf};
@@ -39,13 +39,13 @@ pub enum ExperimentError {
     /// A float that is not finite (by its key path, with the default), or a value outside its
     /// range (with the range and the fix).
     #[error("{0}")]
-    Value(String),
+    Value(ValueError),
     /// A value of the `[race]` table.
     #[error("[race] {0}")]
-    Race(String),
+    Race(RaceConfigError),
     /// A value of the `[agent]` table.
     #[error("[agent] {0}")]
-    Agent(String),
+    Agent(AgentConfigError),
     /// DreamerV3's return-normalisation percentiles are out of order.
     #[error(
         "[agent] dreamer.return_low = {low} must be below dreamer.return_high = {high}; the \
@@ -382,9 +382,7 @@ impl ExperimentConfig {
         finite_floats(self, &Self::default()).map_err(ExperimentError::Value)?;
         self.race.validate().map_err(ExperimentError::Race)?;
         self.validate_agent()?;
-        self.agent
-            .validate()
-            .map_err(|e| ExperimentError::Agent(e.to_string()))?;
+        self.agent.validate().map_err(ExperimentError::Agent)?;
         let t = &self.train;
         in_range(
             "[train] train_ratio",
@@ -475,12 +473,12 @@ impl ExperimentConfig {
                 0.0..=1.0,
                 "a fraction (see DreamerConfig's defaults)",
             )
-            .map_err(ExperimentError::Agent)?;
+            .map_err(|e| ExperimentError::Agent(e.into()))?;
         }
         for (key, value) in positive {
             let above_zero = (Bound::Excluded(0.0), Bound::Unbounded);
             in_range(key, value, above_zero, "see DreamerConfig's defaults")
-                .map_err(ExperimentError::Agent)?;
+                .map_err(|e| ExperimentError::Agent(e.into()))?;
         }
         if !matches!(self.agent.algo, AlgoKind::Sac) && d.return_low >= d.return_high {
             return Err(ExperimentError::ReturnPercentiles {
@@ -489,7 +487,7 @@ impl ExperimentConfig {
             });
         }
         for (key, size, fix) in sizes {
-            in_range(key, size, 1.., fix).map_err(ExperimentError::Agent)?;
+            in_range(key, size, 1.., fix).map_err(|e| ExperimentError::Agent(e.into()))?;
         }
         for (key, rate) in rates {
             in_range(
@@ -498,7 +496,7 @@ impl ExperimentConfig {
                 (Bound::Excluded(0.0), Bound::Included(1.0)),
                 "a learning rate (the paper: 3e-5)",
             )
-            .map_err(ExperimentError::Agent)?;
+            .map_err(|e| ExperimentError::Agent(e.into()))?;
         }
         Ok(())
     }
@@ -649,6 +647,35 @@ mod tests {
                 "{text}: {err}"
             );
         }
+    }
+
+    #[test]
+    fn a_refusal_keeps_its_table_and_its_kind() {
+        let err = ExperimentConfig::from_toml("[race]\nmin_speed = 9.0", "m.toml").unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "m.toml: [race] min_speed = 9 must be in [0, max_speed = 6)"
+        );
+        let ExperimentError::In { origin, error } = err else {
+            panic!("{err:?}")
+        };
+        assert_eq!(origin, "m.toml");
+        assert!(
+            matches!(
+                *error,
+                ExperimentError::Race(RaceConfigError::MinSpeed { min_speed, .. })
+                    if min_speed == 9.0
+            ),
+            "{error:?}"
+        );
+        let err = ExperimentConfig::from_toml("[agent.dreamer]\ngamma = 2.0", "g.toml")
+            .unwrap_err()
+            .to_string();
+        assert_eq!(
+            err,
+            "g.toml: [agent] dreamer.gamma = 2 must be at least 0 and at most 1; a fraction (see \
+             DreamerConfig's defaults)"
+        );
     }
 
     #[test]

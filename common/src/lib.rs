@@ -20,10 +20,10 @@ pub use agents::{
     AgentConfig, AgentPreset, AlgoKind, ContextMode, ContextScale, DreamerConfig, MaskConfig,
     SacConfig, Sampler, Warmup,
 };
-pub use batch::{Batch, BatchSpec, SequenceBatch, TransitionBatch};
+pub use batch::{Batch, BatchError, BatchSpec, SequenceBatch, TransitionBatch};
 pub use config::{
-    ContextGains, CrashedRivals, GridLine, Integrator, LidarConfig, RaceConfig, RacePreset,
-    ReplayOptions, RivalConfig, SpeedPoint, StartGrid, WallContact,
+    ContextGains, CrashedRivals, GridLine, Integrator, LidarConfig, RaceConfig, RaceConfigError,
+    RacePreset, ReplayOptions, RivalConfig, SpeedPoint, StartGrid, WallContact,
 };
 pub use context::{Context, ContextError};
 pub use experiment::{ExperimentConfig, ExperimentError, SupervisorConfig, TrainConfig};

@@ -1,7 +1,8 @@
 //! Checks of configuration values whose messages name the key, its value and the fix: every
 //! float of a configuration finite ([`finite_floats`], a walk over its serialized form that
-//! reports the key's path, tables of per-track overrides included), and ranges ([`in_range`]).
-//! [`ConfigError`] marks an error that a restarted process would meet again.
+//! reports the key's path, tables of per-track overrides included), and ranges ([`in_range`]),
+//! both refusing with a [`ValueError`]. [`ConfigError`] marks an error that a restarted process
+//! would meet again.
 
 use serde::Serialize;
 use std::fmt::Display;
@@ -18,28 +19,60 @@ pub const CONFIG_EXIT_CODE: i32 = 78;
 #[error("{0}")]
 pub struct ConfigError(pub String);
 
+/// Why a configuration value is refused: each names the key (by its path), the value and the
+/// fix.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum ValueError {
+    /// A float that is not finite.
+    #[error(
+        "{key} = {} is not a finite number; give a finite value{}",
+        toml::Value::Float(*.value),
+        .default.as_ref().map_or(String::new(), |d| format!(" (the default is {d})"))
+    )]
+    NotFinite {
+        /// The key's path (`race.rival.gains.lambda_v`).
+        key: String,
+        /// Its value.
+        value: f64,
+        /// The value the defaults hold at that path, when they hold one.
+        default: Option<toml::Value>,
+    },
+    /// A value outside its range.
+    #[error("{key} = {value} must be {bounds}; {fix}")]
+    OutOfRange {
+        /// The key.
+        key: String,
+        /// Its value, as written.
+        value: String,
+        /// The range in words (`at least 1 and at most 3`).
+        bounds: String,
+        /// How to choose a value.
+        fix: String,
+    },
+    /// The configuration could not be written as TOML to be checked.
+    #[error("serialising: {0}")]
+    Serialise(toml::ser::Error),
+}
+
 /// Checks that every float of `config`, serialized as TOML, is finite. The error names the
 /// first other one by its key path (`race.rival.gains.lambda_v = nan`) and gives the value
 /// `defaults` holds at that path, when it holds one.
-pub fn finite_floats<T: Serialize>(config: &T, defaults: &T) -> Result<(), String> {
-    let value = toml::Value::try_from(config).map_err(|e| format!("serialising: {e}"))?;
+pub fn finite_floats<T: Serialize>(config: &T, defaults: &T) -> Result<(), ValueError> {
+    let value = toml::Value::try_from(config).map_err(ValueError::Serialise)?;
     let Some((path, bad)) = first_non_finite(&value, &mut Vec::new()) else {
         return Ok(());
     };
-    let default = toml::Value::try_from(defaults)
-        .ok()
-        .and_then(|d| {
-            path.iter().try_fold(d, |v, key| match v {
-                toml::Value::Table(mut t) => t.remove(key),
-                _ => None,
-            })
+    let default = toml::Value::try_from(defaults).ok().and_then(|d| {
+        path.iter().try_fold(d, |v, key| match v {
+            toml::Value::Table(mut t) => t.remove(key),
+            _ => None,
         })
-        .map_or(String::new(), |d| format!(" (the default is {d})"));
-    Err(format!(
-        "{} = {} is not a finite number; give a finite value{default}",
-        path.join("."),
-        toml::Value::Float(bad)
-    ))
+    });
+    Err(ValueError::NotFinite {
+        key: path.join("."),
+        value: bad,
+        default,
+    })
 }
 
 /// The key path and value of the first non-finite float under `value`.
@@ -69,7 +102,7 @@ pub fn in_range<T: PartialOrd + Display>(
     value: T,
     range: impl RangeBounds<T>,
     fix: &str,
-) -> Result<(), String> {
+) -> Result<(), ValueError> {
     if range.contains(&value) {
         return Ok(());
     }
@@ -84,10 +117,12 @@ pub fn in_range<T: PartialOrd + Display>(
         Bound::Unbounded => None,
     };
     let bounds: Vec<String> = lower.into_iter().chain(upper).collect();
-    Err(format!(
-        "{key} = {value} must be {}; {fix}",
-        bounds.join(" and ")
-    ))
+    Err(ValueError::OutOfRange {
+        key: key.to_string(),
+        value: value.to_string(),
+        bounds: bounds.join(" and "),
+        fix: fix.to_string(),
+    })
 }
 
 #[cfg(test)]
@@ -122,10 +157,12 @@ mod tests {
         assert_eq!(finite_floats(&defaults, &defaults), Ok(()));
         let err = finite_floats(&outer(f64::NAN, 0.5), &defaults).unwrap_err();
         assert_eq!(
-            err,
+            err.to_string(),
             "inner.gain = nan is not a finite number; give a finite value (the default is 1.0)"
         );
-        let err = finite_floats(&outer(1.0, f64::INFINITY), &defaults).unwrap_err();
+        let err = finite_floats(&outer(1.0, f64::INFINITY), &defaults)
+            .unwrap_err()
+            .to_string();
         assert!(err.starts_with("inner.per_track.f1_esp = inf"), "{err}");
     }
 
@@ -133,7 +170,7 @@ mod tests {
     fn ranges_name_key_value_bounds_and_fix() {
         assert_eq!(in_range("a", 1, 1..=3, "fix"), Ok(()));
         assert_eq!(
-            in_range("a", 0, 1..=3, "raise it").unwrap_err(),
+            in_range("a", 0, 1..=3, "raise it").unwrap_err().to_string(),
             "a = 0 must be at least 1 and at most 3; raise it"
         );
         let err = in_range(
@@ -142,9 +179,9 @@ mod tests {
             (Bound::Excluded(0.0), Bound::Unbounded),
             "x",
         );
-        assert_eq!(err.unwrap_err(), "lr = NaN must be above 0; x");
+        assert_eq!(err.unwrap_err().to_string(), "lr = NaN must be above 0; x");
         assert_eq!(
-            in_range("b", 9, ..9, "lower it").unwrap_err(),
+            in_range("b", 9, ..9, "lower it").unwrap_err().to_string(),
             "b = 9 must be below 9; lower it"
         );
     }

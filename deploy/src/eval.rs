@@ -222,7 +222,7 @@ pub fn run(args: EvalArgs) -> Result<()> {
     race.rivals = args
         .rivals
         .unwrap_or(if experiment.is_some() { race.rivals } else { 3 });
-    race.validate().map_err(anyhow::Error::msg)?;
+    race.validate()?;
     let track = args
         .track
         .clone()

@@ -231,14 +231,13 @@ fn resolve(
     seed: u64,
 ) -> Result<ExperimentConfig> {
     let text = toml::to_string(table)?;
-    let mut cfg =
-        ExperimentConfig::from_toml(&text, "the matrix's base").map_err(anyhow::Error::msg)?;
+    let mut cfg = ExperimentConfig::from_toml(&text, "the matrix's base")?;
     cfg.agent.algo = algo;
     cfg.track = track.to_string();
     cfg.race.rivals = rivals;
     cfg.train.seed = seed;
     cfg.agent.set_seed(seed);
-    cfg.validate().map_err(anyhow::Error::msg)?;
+    cfg.validate()?;
     Ok(cfg)
 }
 

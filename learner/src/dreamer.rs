@@ -389,7 +389,7 @@ impl Algorithm for Dreamer {
             ));
         };
         seq.validate(self.obs_dim, self.act_dim)
-            .map_err(LearnerError::Batch)?;
+            .map_err(|e| LearnerError::Batch(e.to_string()))?;
         let mut rngs = self.sequence_rngs(seq.batch);
         let mut metrics = Metrics::new();
         // the matrix-product FLOPs (the process's counter; one step at a time) and the wall

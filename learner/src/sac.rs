@@ -193,7 +193,9 @@ impl Sac {
     /// (the value used in this step), `entropy` (`−log π` averaged over the batch) and `q_mean`.
     pub fn update(&mut self, batch: &TransitionBatch) -> Result<Metrics, SacError> {
         let (b, o, a) = (batch.batch, self.obs_dim, self.act_dim);
-        batch.validate(o, a).map_err(SacError::Batch)?;
+        batch
+            .validate(o, a)
+            .map_err(|e| SacError::Batch(e.to_string()))?;
         let weight = vec![1.0 / b as f32; b];
         let noise = self.noise(self.step);
         let mut passes = BatchPasses {

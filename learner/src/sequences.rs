@@ -28,7 +28,7 @@ pub(crate) struct SeqData {
 impl SeqData {
     pub(crate) fn new(b: &SequenceBatch, obs_dim: usize, act_dim: usize) -> Result<Self> {
         b.validate(obs_dim, act_dim)
-            .map_err(candle_core::Error::Msg)?;
+            .map_err(|e| candle_core::Error::Msg(e.to_string()))?;
         let dev = &Device::Cpu;
         let (bs, t) = (b.batch, b.length);
         Ok(Self {

@@ -20,10 +20,15 @@ pub enum CheckpointChoice {
     Step(u64),
 }
 
-impl std::str::FromStr for CheckpointChoice {
-    type Err = String;
+/// A name that is no [`CheckpointChoice`].
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("'{0}' is not best, latest or step-N (e.g. step-5000)")]
+pub struct UnknownCheckpointChoice(pub String);
 
-    fn from_str(s: &str) -> std::result::Result<Self, String> {
+impl std::str::FromStr for CheckpointChoice {
+    type Err = UnknownCheckpointChoice;
+
+    fn from_str(s: &str) -> std::result::Result<Self, UnknownCheckpointChoice> {
         match s {
             "best" => Ok(Self::Best),
             "latest" => Ok(Self::Latest),
@@ -31,7 +36,7 @@ impl std::str::FromStr for CheckpointChoice {
                 .strip_prefix("step-")
                 .and_then(|n| n.parse().ok())
                 .map(Self::Step)
-                .ok_or_else(|| format!("'{s}' is not best, latest or step-N (e.g. step-5000)")),
+                .ok_or_else(|| UnknownCheckpointChoice(s.to_string())),
         }
     }
 }

@@ -6,12 +6,12 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 pub enum TrackError {
     /// A file could not be read.
-    #[error("cannot read {path}: {source}")]
+    #[error("cannot read {path}: {cause}")]
     Io {
         /// The file.
         path: PathBuf,
-        /// The cause.
-        source: std::io::Error,
+        /// The cause (in the message, not a `source`, so that a chain prints it once).
+        cause: std::io::Error,
     },
     /// A CSV cell is not a number, or a row has the wrong number of columns.
     #[error("{path}:{line}: {message}")]
@@ -59,9 +59,51 @@ pub enum TrackError {
         /// Why, and the valid range.
         message: String,
     },
+    /// The reference material beside the workspace (`../shared`) lacks a folder a check needs.
+    #[error(
+        "{} not found: this check needs the project's reference material (the folder \
+         `shared` beside the repository: the paper's maps and test vectors); put it there",
+        .dir.display()
+    )]
+    MissingReference {
+        /// The folder looked for.
+        dir: PathBuf,
+    },
+    /// The image a map yaml names could not be opened as a regular image file.
+    #[error(
+        "map {}: cannot open the image named by {} ({cause}); the yaml's 'image' must name a \
+         PNG beside it",
+        .path.display(),
+        .yaml.display()
+    )]
+    MapImage {
+        /// The image file.
+        path: PathBuf,
+        /// The yaml that names it.
+        yaml: PathBuf,
+        /// Why it could not be opened.
+        cause: ImageError,
+    },
     /// The raceline optimisation failed.
     #[error("raceline optimisation failed: {0}")]
     Optimisation(String),
+}
+
+/// Why a map's image could not be opened.
+#[derive(Debug, thiserror::Error)]
+pub enum ImageError {
+    /// The path is a symbolic link.
+    #[error("a symbolic link, which ctxrace does not follow")]
+    Link,
+    /// The path is not a regular file.
+    #[error("not a regular file (a FIFO, device or folder)")]
+    NotAFile,
+    /// The file could not be opened or read.
+    #[error("{0}")]
+    Io(std::io::Error),
+    /// The file is not an image that can be decoded.
+    #[error("{0}")]
+    Decode(image::ImageError),
 }
 
 /// Shorthand for results with [`TrackError`].

@@ -76,7 +76,7 @@ impl TrackFiles {
             }
             return Err(TrackError::Io {
                 path: as_path.to_path_buf(),
-                source: std::io::Error::new(std::io::ErrorKind::NotFound, "no such map yaml"),
+                cause: std::io::Error::new(std::io::ErrorKind::NotFound, "no such map yaml"),
             });
         }
         let mut found = list_tracks(dir);
@@ -128,16 +128,12 @@ pub const SHARED_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared"
 
 /// `SHARED_DIR/<sub>`, or an error naming the missing folder, so that a test needing the
 /// reference material fails with it instead of passing without checking anything.
-pub fn shared_reference(sub: &str) -> std::result::Result<PathBuf, String> {
+pub fn shared_reference(sub: &str) -> Result<PathBuf> {
     let dir = Path::new(SHARED_DIR).join(sub);
     if dir.exists() {
         Ok(dir)
     } else {
-        Err(format!(
-            "{} not found: this check needs the project's reference material (the folder \
-             `shared` beside the repository: the paper's maps and test vectors); put it there",
-            dir.display()
-        ))
+        Err(TrackError::MissingReference { dir })
     }
 }
 
@@ -157,9 +153,9 @@ pub fn default_tracks_dir() -> PathBuf {
 
 /// Reads a numeric CSV with at least `min_cols` columns per row.
 pub fn read_numeric_csv(path: &Path, min_cols: usize) -> Result<Vec<Vec<f64>>> {
-    let text = std::fs::read_to_string(path).map_err(|source| TrackError::Io {
+    let text = std::fs::read_to_string(path).map_err(|cause| TrackError::Io {
         path: path.to_path_buf(),
-        source,
+        cause,
     })?;
     parse_numeric_csv(&text, min_cols, path)
 }
@@ -271,6 +267,27 @@ pub fn write_raceline(raceline: &Raceline, out: &mut impl std::io::Write) -> std
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_missing_reference_folder_or_file_is_named_once() {
+        let err = shared_reference("no-such-folder").unwrap_err();
+        assert!(
+            matches!(err, TrackError::MissingReference { .. }),
+            "{err:?}"
+        );
+        let text = err.to_string();
+        assert!(
+            text.contains("no-such-folder not found") && text.ends_with("put it there"),
+            "{text}"
+        );
+        let err = TrackFiles::resolve("missing.yaml", Path::new(".")).unwrap_err();
+        // the cause is in the message, not a source that a chain (`{:#}`) would print again
+        assert!(std::error::Error::source(&err).is_none());
+        assert_eq!(
+            err.to_string(),
+            "cannot read missing.yaml: no such map yaml"
+        );
+    }
 
     #[test]
     fn parses_both_dialects_and_names_bad_cells() {

@@ -11,7 +11,7 @@ pub mod path;
 pub mod track;
 pub mod walls;
 
-pub use error::{Result, TrackError};
+pub use error::{ImageError, Result, TrackError};
 pub use generate::{generate_track, wall_polylines, GeneratorParams};
 pub use map::OccupancyMap;
 pub use mincurv::{min_curvature_raceline, velocity_profile, RacelineParams};

@@ -4,7 +4,7 @@
 //! are flipped so that row 0 is the bottom of the image: pixel `(c, r)` covers the world square
 //! `[o_x + c·res, o_x + (c+1)·res) × [o_y + r·res, o_y + (r+1)·res)`.
 
-use crate::error::{Result, TrackError};
+use crate::error::{ImageError, Result, TrackError};
 use nalgebra::Point2;
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
@@ -46,32 +46,32 @@ pub fn image_beside(image: &str) -> Option<&str> {
 
 /// Decodes the image at `path` if it is a regular file: a link is not followed and a FIFO is
 /// refused without waiting on it.
-fn open_image(path: &Path) -> std::result::Result<image::DynamicImage, String> {
+fn open_image(path: &Path) -> std::result::Result<image::DynamicImage, ImageError> {
     use std::os::unix::fs::OpenOptionsExt;
     let file = std::fs::OpenOptions::new()
         .read(true)
         .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK)
         .open(path)
         .map_err(|e| match e.raw_os_error() {
-            Some(libc::ELOOP) => "a symbolic link, which ctxrace does not follow".to_string(),
-            _ => e.to_string(),
+            Some(libc::ELOOP) => ImageError::Link,
+            _ => ImageError::Io(e),
         })?;
-    if !file.metadata().map_err(|e| e.to_string())?.is_file() {
-        return Err("not a regular file (a FIFO, device or folder)".into());
+    if !file.metadata().map_err(ImageError::Io)?.is_file() {
+        return Err(ImageError::NotAFile);
     }
     image::ImageReader::new(std::io::BufReader::new(file))
         .with_guessed_format()
-        .map_err(|e| e.to_string())?
+        .map_err(ImageError::Io)?
         .decode()
-        .map_err(|e| e.to_string())
+        .map_err(ImageError::Decode)
 }
 
 impl OccupancyMap {
     /// Loads a map yaml and the image it names (relative to the yaml's folder).
     pub fn load(yaml_path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(yaml_path).map_err(|source| TrackError::Io {
+        let text = std::fs::read_to_string(yaml_path).map_err(|cause| TrackError::Io {
             path: yaml_path.to_path_buf(),
-            source,
+            cause,
         })?;
         let bad = |message: String| TrackError::Map {
             path: yaml_path.to_path_buf(),
@@ -106,12 +106,10 @@ impl OccupancyMap {
             .unwrap_or_else(|| Path::new("."))
             .join(name);
         let img = open_image(&image_path)
-            .map_err(|e| TrackError::Map {
+            .map_err(|cause| TrackError::MapImage {
                 path: image_path.clone(),
-                message: format!(
-                    "cannot open the image named by {} ({e}); the yaml's 'image' must name a PNG beside it",
-                    yaml_path.display()
-                ),
+                yaml: yaml_path.to_path_buf(),
+                cause,
             })?
             .to_luma8();
         let (width, height) = (img.width() as usize, img.height() as usize);

@@ -98,7 +98,7 @@ use crate::error::{Result, TrackError};
 use crate::path::{Centreline, ClosedCurve, Raceline};
 use clarabel::algebra::CscMatrix;
 use clarabel::solver::{
-    DefaultSettings, DefaultSolver, IPSolver, SolverStatus,
+    DefaultSettings, DefaultSolver, IPSolver, SolverError, SolverStatus,
     SupportedConeT::{NonnegativeConeT, ZeroConeT},
 };
 use nalgebra::{DMatrix, DVector, Point2, Vector2};
@@ -357,6 +357,17 @@ fn gates(cl: &Centreline, reference: &Spline, half: f64, per_segment: usize) -> 
         .collect()
 }
 
+/// Why the QP solver gave no solution.
+#[derive(Debug, thiserror::Error)]
+enum QpError {
+    /// The solver refused the problem or its settings.
+    #[error("{0}")]
+    Setup(SolverError),
+    /// The solver stopped without a solution.
+    #[error("status {0}")]
+    Status(SolverStatus),
+}
+
 /// Solves the QP linearised at `line` (the spline through the nodes `gates[k i]` shifted by
 /// `α_i` along their normals, `k` gates per segment) for the total offsets `α`, and the solved
 /// spline (on the knots of `line`).
@@ -364,7 +375,7 @@ fn solve_qp(
     line: &Spline,
     gates: &[Gate],
     kappa_max: Option<f64>,
-) -> std::result::Result<(Vec<f64>, Spline), String> {
+) -> std::result::Result<(Vec<f64>, Spline), QpError> {
     let n = line.len();
     let per_segment = gates.len() / n;
     let node = |i: usize| &gates[per_segment * (i % n)];
@@ -449,7 +460,7 @@ fn solve_qp(
     };
     let (p, a) = (p.into_csc(3 * n, 3 * n), a.into_csc(rhs.len(), 3 * n));
     let mut solver = DefaultSolver::new(&p, &vec![0.0; 3 * n], &a, &rhs, &cones, settings)
-        .map_err(|e| e.to_string())?;
+        .map_err(QpError::Setup)?;
     solver.solve();
     match solver.solution.status {
         SolverStatus::Solved | SolverStatus::AlmostSolved => {
@@ -463,7 +474,7 @@ fn solve_qp(
             };
             Ok((x[..n].to_vec(), spline))
         }
-        status => Err(format!("status {status}")),
+        status => Err(QpError::Status(status)),
     }
 }
 

@@ -31,16 +31,35 @@ pub const LOG_STD_MAX: f64 = 2.0;
 /// The default bounds `[LOG_STD_MIN, LOG_STD_MAX]` of the log standard deviation.
 pub const LOG_STD_CLAMP: [f64; 2] = [LOG_STD_MIN, LOG_STD_MAX];
 
+/// Bounds of the log standard deviation that are not finite or not increasing, by their config
+/// key.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+#[error(
+    "{key} must be two finite bounds [lower, upper] with lower < upper, got [{}, {}] \
+     (ctxrace's default is [{LOG_STD_MIN}, {LOG_STD_MAX}], the paper's code's [-20, 2])",
+    .bounds[0],
+    .bounds[1]
+)]
+pub struct LogStdClampError {
+    /// The config key.
+    pub key: String,
+    /// The bounds `[lower, upper]` given.
+    pub bounds: [f64; 2],
+}
+
 /// Checks bounds of the log standard deviation (finite, lower below upper), naming the config
 /// key `key` in the error.
-pub fn validate_log_std_clamp(key: &str, [lo, hi]: [f64; 2]) -> std::result::Result<(), String> {
+pub fn validate_log_std_clamp(
+    key: &str,
+    [lo, hi]: [f64; 2],
+) -> std::result::Result<(), LogStdClampError> {
     if lo.is_finite() && hi.is_finite() && lo < hi {
         Ok(())
     } else {
-        Err(format!(
-            "{key} must be two finite bounds [lower, upper] with lower < upper, got [{lo}, {hi}] \
-             (ctxrace's default is [{LOG_STD_MIN}, {LOG_STD_MAX}], the paper's code's [-20, 2])"
-        ))
+        Err(LogStdClampError {
+            key: key.to_string(),
+            bounds: [lo, hi],
+        })
     }
 }
 
@@ -342,7 +361,9 @@ mod tests {
         assert_eq!(log_std.to_vec2::<f32>().unwrap(), vec![vec![2.0, -9.0]; 2]);
         assert!(validate_log_std_clamp("sac.log_std_clamp", [-20.0, 2.0]).is_ok());
         for bad in [[2.0, -20.0], [1.0, 1.0], [f64::NAN, 2.0]] {
-            let err = validate_log_std_clamp("sac.log_std_clamp", bad).unwrap_err();
+            let err = validate_log_std_clamp("sac.log_std_clamp", bad)
+                .unwrap_err()
+                .to_string();
             assert!(err.contains("sac.log_std_clamp must be"), "{err}");
         }
     }

@@ -52,6 +52,20 @@ vectorised! {
     }
 }
 
+/// Buffers of an Adam step that are not all of one length.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("adam_update: {weights} weights, {gradients} gradients, moments of {m} and {v}")]
+pub struct AdamLengthError {
+    /// Weights.
+    pub weights: usize,
+    /// Gradients.
+    pub gradients: usize,
+    /// First moments.
+    pub m: usize,
+    /// Second moments.
+    pub v: usize,
+}
+
 /// One Adam step on a parameter `w` with gradient `g` and moments `m`, `v` (all of one length).
 pub fn adam_update(
     w: &mut [f32],
@@ -59,15 +73,14 @@ pub fn adam_update(
     m: &mut [f32],
     v: &mut [f32],
     step: AdamStep,
-) -> std::result::Result<(), String> {
+) -> std::result::Result<(), AdamLengthError> {
     if g.len() != w.len() || m.len() != w.len() || v.len() != w.len() {
-        return Err(format!(
-            "adam_update: {} weights, {} gradients, moments of {} and {}",
-            w.len(),
-            g.len(),
-            m.len(),
-            v.len()
-        ));
+        return Err(AdamLengthError {
+            weights: w.len(),
+            gradients: g.len(),
+            m: m.len(),
+            v: v.len(),
+        });
     }
     update(w, g, m, v, step);
     Ok(())

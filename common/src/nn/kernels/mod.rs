@@ -268,7 +268,7 @@ mod product_profile;
 mod sparse_inputs;
 mod twohot;
 
-pub use adam::{adam_update, sum_of_squares, AdamStep};
+pub use adam::{adam_update, sum_of_squares, AdamLengthError, AdamStep};
 pub use gemm::{matmul_flops, record_products, recorded_products, ProductShape};
 pub use norm_act::NormAct;
 pub use product_profile::rerun_products;
