@@ -1,16 +1,21 @@
-"""One training step of the paper's own DreamerV3 (lilpharaoh1/context-f110 at c0fd903, torch on
-CPU) on one batch from fixed weights and fixed noise, written for ctxrace's test
+"""One training step of the paper's own DreamerV3 or cbDreamer (lilpharaoh1/context-f110 at
+c0fd903, torch on CPU, one thread) on one batch from fixed weights and fixed noise, written for
+ctxrace's test
 `learner/tests/paper_one_batch.rs` (docs/parity/one_batch.md).
 
     deploy/paper_parity.sh export DIR          (with WIDTH=16 STOCH=4 LENGTH=16 MODEL_LR AC_LR)
-    /work/venv-paper/bin/python deploy/paper_one_batch.py DIR OUT.safetensors [--buffer BUFFER]
+    /work/venv-paper/bin/python deploy/paper_one_batch.py DIR OUT.safetensors \
+        [--model dreamerv3|cmask] [--buffer BUFFER [--first-episode K]] [--mask-units U]
 
-builds the paper's agent (`Utils/dreamerv3/dreamerv3.py` `DreamerV3`, its configs.yaml at the
-widths the export wrote) with torch seed SEED, takes one batch of B sequences of T steps (the
-code's own `tools.sample_episodes` over the episodes of BUFFER, a paper run's `Buffer/` folder
-of `eps_K-N.npz`; without it, synthetic episodes), and runs the code's training step on it: the
-world model's (`models.WorldModel._train`), then behaviour learning from its posterior states
-(`models.ImagBehavior._train`). It writes one safetensors file with:
+builds the paper's agent (`Utils/dreamerv3/dreamerv3.py` `DreamerV3`, or with `--model cmask`
+cbDreamer's, `Utils/cbdreamer/dreamerv3.py`, its mask SAC `CtxMask` at U units instead of its
+hard-coded 256; its configs.yaml at the widths the export wrote) with torch seed SEED, gives it
+episodes K to K + 39 of BUFFER (a paper run's `Buffer/` folder of `eps_K-N.npz`; without it,
+synthetic episodes), and runs the agent's own `train()` on them: one batch of B sequences of T
+steps from the code's `tools.sample_episodes`, the world model's step
+(`WorldModel._train`; cbDreamer's draws the batch's masks and steps its mask SAC there), then
+behaviour learning from its posterior states (`ImagBehavior._train`). It writes one
+safetensors file with:
 
 - the agent's weights under ctxrace's names, one group per ctxrace parameter store
   (`policy/`, `heads/`, `critic/`, `slow_critic/`, then the name in that store), reordered
@@ -22,13 +27,18 @@ world model's (`models.WorldModel._train`), then behaviour learning from its pos
   and priors' uniforms), so that both sides sample the same latents and actions;
 - torch's loss terms, λ-return, return scale and gradient norms (`torch/...`), the gradient norm
   of each part (`torch/grad_norm/...`), and every gradient under ctxrace's names (`grad/...`);
+- cbDreamer's: the batch's contexts and stored masks, the masks' and the mask SAC's noise
+  (`noise/mask_normal`, `noise/sac_critic_normal`, `noise/sac_actor_normal`), the mask SAC's
+  terms (`torch/mask_...`) and its weights after the step (`after/...`); see `MaskProbe`;
 - the same terms of a second step on the same batch with the noise of ctxrace's step 1
   (`torch2/...`), after the first step's updates (Adam's moments, the slow critic, the return
   normaliser).
 
 Three weights are moved from the code's initial values so that their paths carry gradients:
 the reward head's and the critic's output layers (zero at the code's initialisation) and the
-learned initial state `W` (zero). The rest is the code's initialisation.
+learned initial state `W` (zero). cbDreamer's `log α` starts at `ln 0.2`, the `α` its first step
+uses (the code's `log α` starts at 0 while `α` is held at 0.2 until its first update). The rest
+is the code's initialisation.
 """
 import argparse
 import contextlib
@@ -634,7 +644,6 @@ def main():
 
     terms = code_step(0)
     first_noise, first_norms = dict(draws), dict(norms)
-    first_masks = probe.masks if probe else None
     after = {f"after/{k}": v for k, v in ctxrace_weights(agent, value_of).items()
              if k.startswith(("policy/mask.", "mask_"))}
     # a second step on the same batch (the code draws the same one from an unchanged replay):
@@ -646,7 +655,6 @@ def main():
     if probe:
         result.update({f"grad/{name}": g for name, g in probe.grads.items()})
         result.update(after)
-        result["torch/masks"] = first_masks
     result.update({f"torch/grad_norm/{name}": np.array([v], dtype=np.float32) for name, v in first_norms.items()})
     batch = {"obs": data["image"].reshape(BATCH, LENGTH, 108), "action": data["action"].reshape(BATCH, LENGTH, 2),
              "reward": data["reward"], "is_first": data["is_first"], "is_terminal": data["is_terminal"]}
