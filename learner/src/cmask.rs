@@ -48,8 +48,8 @@ use std::ops::Range;
 
 /// The mask SAC's transitions `(o_t, m_t, r_{t+1+δ}, o_{t+1}, terminal_{t+1})` for every `t`
 /// whose rows lie in the sequence (`δ` = `reward_delay`; [`transitions_per_sequence`]),
-/// row-major `[B·n, …]`, `m_t` the stored mask that acted at `o_t`, with `valid = 0` where `o_{t+1}` (or, delayed, `o_{t+2}`) starts a new
-/// episode or no mask chose the action at `o_t`; every terminal flag 0 with
+/// row-major `[B·n, …]`, `m_t` the stored mask that acted at `o_t`, with `valid = 0` where
+/// `o_{t+1}` (or, delayed, `o_{t+2}`) starts a new episode or no mask chose the action at `o_t`; every terminal flag 0 with
 /// `bootstrap_terminals`. Where the mask, reward and terminal flag of `o_t`'s choice are stored
 /// follows the rows' [`StepAlignment`] ([`choice_row`]); a transition whose next row starts an
 /// episode is left out in both (the paper's code, whose sequences cross episode ends, bootstraps
@@ -117,8 +117,8 @@ impl Transitions {
     }
 
     /// `[B·n]` ([`transitions_per_sequence`]): 1 where rows `t + 1 … t + max(1, row + delay)`
-    /// of the sequences continue the episode and the action of row `t + row` was chosen through a mask (`row`
-    /// from [`choice_row`]).
+    /// of the sequences continue the episode and the action of row `t + row` was chosen
+    /// through a mask (`row` from [`choice_row`]).
     fn valid(seq: &SequenceBatch, delay: usize, row: usize) -> Vec<f32> {
         let t = seq.length;
         let n = transitions_per_sequence(t, delay, row).unwrap_or(0);
