@@ -24,39 +24,57 @@
 //! before and `∂e` to the encoder; the layers' weight gradients are one product each over all
 //! the steps' rows at the end, not one thin product per step.
 
-use super::layer::{InputGrad, LayerGrads, MlpGrads, MlpTrace, PlainLayer, PlainMlp};
+use super::layer::{InputGrad, Layer, LayerGrads, Mlp, MlpGrads, MlpTrace};
 use super::parameters::{update_each, NamedTensor, Parameters};
+use super::weights::{Weights, WeightsError};
 use crate::nn::kernels::{gru_rows, gru_rows_bwd, probs_rows_bwd, sample_rows, NormAct, Unimix};
-use crate::nn::weights::{Weights, WeightsError};
-#[cfg(any(test, feature = "oracle"))]
-use crate::nn::Rssm;
-use crate::nn::RssmConfig;
-#[cfg(any(test, feature = "oracle"))]
-use candle_core::Result;
 use std::ops::Range;
 
-/// An RSSM, its weights copied out of candle.
-#[derive(Clone, Debug)]
-pub struct PlainRssm {
-    cfg: RssmConfig,
-    img_in: PlainLayer,
-    gates: PlainLayer,
-    /// The prior's hidden and output layers.
-    prior: PlainMlp,
-    post: PlainLayer,
-    post_out: PlainLayer,
-    /// The learned initial state's `w` (`[D]`), if sequences start from it.
-    initial_w: Option<Vec<f32>>,
-    /// The name of `initial_w` (empty for a model copied out of candle).
-    initial_name: String,
+/// Sizes of the RSSM.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RssmConfig {
+    /// GRU state size.
+    pub deter: usize,
+    /// Hidden layer size.
+    pub hidden: usize,
+    /// Number of categorical variables.
+    pub stoch: usize,
+    /// Classes per variable.
+    pub classes: usize,
+    /// Uniform mixture weight of the categorical probabilities.
+    pub unimix: f64,
+    /// Action size.
+    pub act_dim: usize,
+    /// Observation embedding size.
+    pub embed_dim: usize,
+    /// Context size fed to the sequence model (0 for DreamerV3, 2 for cRSSM and cMask).
+    pub context_dim: usize,
+    /// Sequences start from a learned state ([`Rssm::initial_state`]) rather than from zeros.
+    pub learned_initial: bool,
 }
 
-/// The gradients of a [`PlainRssm`]'s parameters.
+/// DreamerV3's recurrent state-space model with the cRSSM context input (see the module doc).
+#[derive(Clone, Debug)]
+pub struct Rssm {
+    pub(super) cfg: RssmConfig,
+    pub(super) img_in: Layer,
+    pub(super) gates: Layer,
+    /// The prior's hidden and output layers.
+    pub(super) prior: Mlp,
+    pub(super) post: Layer,
+    pub(super) post_out: Layer,
+    /// The learned initial state's `w` (`[D]`), if sequences start from it.
+    pub(super) initial_w: Option<Vec<f32>>,
+    /// The name of `initial_w` (empty for a model copied from the tests' candle oracle).
+    pub(super) initial_name: String,
+}
+
+/// The gradients of a [`Rssm`]'s parameters.
 #[derive(Clone, Debug)]
 pub struct RssmGrads {
     img_in: LayerGrads,
     gates: LayerGrads,
-    /// The prior's (which the world model runs as a [`PlainMlp`], [`PlainRssm::prior`]).
+    /// The prior's (which the world model runs as a [`Mlp`], [`Rssm::prior`]).
     pub prior: MlpGrads,
     post: LayerGrads,
     post_out: LayerGrads,
@@ -64,7 +82,7 @@ pub struct RssmGrads {
     initial_w: Vec<f32>,
 }
 
-impl Parameters for PlainRssm {
+impl Parameters for Rssm {
     fn tensors(&self) -> Vec<NamedTensor<'_>> {
         let mut tensors: Vec<_> = self
             .layers()
@@ -104,7 +122,7 @@ impl Parameters for PlainRssm {
 
 impl RssmGrads {
     /// The gradients of `rssm`'s tensors in the order of [`Parameters::tensors`].
-    pub fn into_tensors(self, rssm: &PlainRssm) -> Vec<Vec<f32>> {
+    pub fn into_tensors(self, rssm: &Rssm) -> Vec<Vec<f32>> {
         let mut out = Vec::new();
         let mut prior = self.prior.layers.into_iter();
         let grads = [
@@ -207,7 +225,7 @@ struct InitialTrace {
     dl: Vec<f32>,
 }
 
-/// The backward passes' buffers of a [`PlainRssm`] step, reused from step to step.
+/// The backward passes' buffers of a [`Rssm`] step, reused from step to step.
 #[derive(Debug, Default)]
 pub struct StepScratch {
     dz: Vec<f32>,
@@ -226,27 +244,8 @@ fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
     &mut v[..n]
 }
 
-impl PlainRssm {
-    /// The weights of `rssm` as they are now.
-    #[cfg(any(test, feature = "oracle"))]
-    pub fn new(rssm: &Rssm) -> Result<Self> {
-        let [img_in, gates, prior, prior_out, post, post_out] = rssm.blocks();
-        let layer = |(dense, norm)| PlainLayer::from_parts(dense, norm, false);
-        Ok(Self {
-            cfg: *rssm.config(),
-            img_in: layer(img_in)?,
-            gates: layer(gates)?,
-            prior: PlainMlp {
-                layers: vec![layer(prior)?, layer(prior_out)?],
-            },
-            post: layer(post)?,
-            post_out: layer(post_out)?,
-            initial_w: rssm.initial_weight().map(|w| w.to_vec1()).transpose()?,
-            initial_name: String::new(),
-        })
-    }
-
-    /// The model of `cfg` read from `weights` under the names [`Rssm::new`] gives its
+impl Rssm {
+    /// The model of `cfg` read from `weights` under the names the checkpoints give its
     /// parameters, after `prefix` (`"rssm."`): `img_in`, `gru`, `prior`, `post` (each `fc`
     /// and `ln`), `prior_out`, `post_out` and, with a learned initial state, `initial_state.w`.
     pub fn from_weights(
@@ -256,7 +255,7 @@ impl PlainRssm {
     ) -> std::result::Result<Self, WeightsError> {
         let z = cfg.stoch * cfg.classes;
         let mut block = |name: &str, size, act| {
-            PlainLayer::normalised_from_weights(weights, &format!("{prefix}{name}"), size, act)
+            Layer::normalised_from_weights(weights, &format!("{prefix}{name}"), size, act)
         };
         let silu = NormAct::Silu;
         let img_in = block(
@@ -273,7 +272,7 @@ impl PlainRssm {
         let prior = block("prior", (cfg.deter, cfg.hidden), silu)?;
         let post = block("post", (cfg.deter + cfg.embed_dim, cfg.hidden), silu)?;
         let mut linear = |name: &str| {
-            PlainLayer::linear_from_weights(weights, &format!("{prefix}{name}"), (cfg.hidden, z))
+            Layer::linear_from_weights(weights, &format!("{prefix}{name}"), (cfg.hidden, z))
         };
         let (prior_out, post_out) = (linear("prior_out")?, linear("post_out")?);
         let initial_name = format!("{prefix}initial_state.w");
@@ -285,7 +284,7 @@ impl PlainRssm {
             cfg,
             img_in,
             gates,
-            prior: PlainMlp {
+            prior: Mlp {
                 layers: vec![prior, prior_out],
             },
             post,
@@ -296,7 +295,7 @@ impl PlainRssm {
     }
 
     /// Its layers in the order of [`Parameters::tensors`].
-    fn layers(&self) -> [&PlainLayer; 6] {
+    fn layers(&self) -> [&Layer; 6] {
         let [prior, prior_out] = [&self.prior.layers[0], &self.prior.layers[1]];
         let (img_in, gates, post, post_out) =
             (&self.img_in, &self.gates, &self.post, &self.post_out);
@@ -304,7 +303,7 @@ impl PlainRssm {
     }
 
     /// The prior's logits from `h` as a network of two layers (hidden, output).
-    pub fn prior(&self) -> &PlainMlp {
+    pub fn prior(&self) -> &Mlp {
         &self.prior
     }
 
@@ -389,10 +388,10 @@ impl PlainRssm {
         );
     }
 
-    /// The backward pass of [`PlainRssm::sequence_forward`] on the rows `r` from `∂h'` (`dh`,
+    /// The backward pass of [`Rssm::sequence_forward`] on the rows `r` from `∂h'` (`dh`,
     /// those rows'): the products' gradients into `t`, the normalisations' added to `dnorm`
     /// (gates, input layer), and the GRU's direct `∂h` (not yet through its gates' product:
-    /// [`PlainRssm::add_previous_grads`]) in `s.dh_direct`.
+    /// [`Rssm::add_previous_grads`]) in `s.dh_direct`.
     fn sequence_backward(
         &self,
         t: &mut SequenceTrace,
@@ -429,7 +428,7 @@ impl PlainRssm {
     }
 
     /// The previous state's gradients from the rows `r` of `t` after
-    /// [`PlainRssm::sequence_backward`]: `∂h` into `s.dh_direct` (its direct part plus the
+    /// [`Rssm::sequence_backward`]: `∂h` into `s.dh_direct` (its direct part plus the
     /// gates' product's) and `∂z` into `s.dz`.
     fn add_previous_grads(&self, t: &SequenceTrace, r: Range<usize>, s: &mut StepScratch) {
         let (d, z, _) = self.widths();
@@ -498,7 +497,7 @@ impl PlainRssm {
         }
     }
 
-    /// The backward pass of [`PlainRssm::step`] from the gradients `d_next` of the next state
+    /// The backward pass of [`Rssm::step`] from the gradients `d_next` of the next state
     /// rows (`[N, D + Z + c]`, the context's ignored): the action's gradient into `d_action`
     /// (`[N, A]`) and, if given, the state's (`h` and `z`) added to `d_state`.
     pub fn step_backward(
@@ -670,7 +669,7 @@ impl PlainRssm {
     /// One observation step of one sequence (acting, batch 1): from the previous state `h`
     /// `[D]` and `z` `[Z]`, the previous action `[A]`, the context `[c]`, the observation's
     /// embedding `[E]` and the Gumbel uniforms `[Z]`, the posterior state `(h', z')` and its
-    /// logits ([`ObserveTrace::states`], one row), as [`PlainRssm::observe`] computes a step.
+    /// logits ([`ObserveTrace::states`], one row), as [`Rssm::observe`] computes a step.
     pub fn posterior_step(
         &self,
         (h, z): (&[f32], &[f32]),
@@ -689,7 +688,7 @@ impl PlainRssm {
         self.posterior_forward(trace, embed, uniform, 0..1);
     }
 
-    /// The backward pass of [`PlainRssm::observe`] from the gradients of the posterior states,
+    /// The backward pass of [`Rssm::observe`] from the gradients of the posterior states,
     /// `dh` `[T B, D]` and `dz` `[T B, Z]` (both used up: the loop adds the later steps' to the
     /// earlier ones'), and `d_logits` `[T B, Z]` of the posterior logits directly (the KL
     /// terms'): the embeddings' gradients into `d_embed` `[T B, E]`, the parameters' added to
@@ -781,7 +780,7 @@ impl PlainRssm {
     }
 }
 
-impl PlainRssm {
+impl Rssm {
     /// The initial state into `init`: zeros, or the learned `h_0 = tanh(w)` and `z_0` the
     /// one-hot mode of the prior `p(z | h_0)` (the first most likely class of each variable).
     fn initial_forward(&self, init: &mut InitialTrace) {
@@ -859,8 +858,102 @@ fn log_probs_rows_bwd(dist: Unimix, logits: &[f32], dlp: &[f32], dl: &mut [f32])
 
 impl ObserveTrace {
     /// The posterior states `(h, z)` (`[T B, D]`, `[T B, Z]`) and logits `[T B, Z]` of the last
-    /// [`PlainRssm::observe`].
+    /// [`Rssm::observe`].
     pub fn states(&self) -> (&[f32], &[f32], &[f32]) {
         (&self.sequence.h, &self.z, &self.logits)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::nn::oracle::testing::{close, normal, small_rssm, state_rows, vals};
+    use crate::nn::oracle::{standalone, RssmState};
+    use candle_core::{Device, Tensor, Var};
+
+    /// An imagination step's next state and its gradients in the state and the action are
+    /// those of the candle RSSM's sequence model, prior and sample.
+    #[test]
+    fn an_imagination_step_matches_the_candle_rssm() {
+        let cfg = small_rssm(false);
+        let (_, rssm) = standalone(cfg, 4).unwrap();
+        let (n, f) = (9, 8 + 12 + 2);
+        let state = state_rows(n, (8, 3, 4, 2), 5);
+        let action = normal(n * 2, 6);
+        let uniform: Vec<f32> = normal(n * 12, 7).iter().map(|v| 0.5 + 0.45 * v).collect();
+        let d_next = normal(n * f, 8);
+        // candle
+        let dev = &Device::Cpu;
+        let column = |lo: usize, w: usize| {
+            let t = Tensor::from_vec(state.clone(), (n, f), dev).unwrap();
+            Var::from_tensor(&t.narrow(1, lo, w).unwrap().contiguous().unwrap()).unwrap()
+        };
+        let (deter, stoch, ctx) = (column(0, 8), column(8, 12), column(20, 2));
+        let act = Var::from_vec(action.clone(), (n, 2), dev).unwrap();
+        let prev = RssmState {
+            deter: deter.as_tensor().clone(),
+            stoch: stoch.as_tensor().clone(),
+        };
+        let u = Tensor::from_vec(uniform.clone(), (n, 3, 4), dev).unwrap();
+        let frozen = rssm.frozen();
+        let next_deter = frozen
+            .deter_step(&prev, act.as_tensor(), Some(ctx.as_tensor()))
+            .unwrap();
+        let next_stoch = frozen
+            .sample(&frozen.prior_logits(&next_deter).unwrap(), &u)
+            .unwrap();
+        let next = RssmState {
+            deter: next_deter,
+            stoch: next_stoch,
+        };
+        let g = Tensor::from_vec(d_next.clone(), (n, f), dev).unwrap();
+        let loss = (next
+            .deter
+            .mul(&g.narrow(1, 0, 8).unwrap())
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            + next
+                .stoch
+                .mul(&g.narrow(1, 8, 12).unwrap())
+                .unwrap()
+                .sum_all()
+                .unwrap())
+        .unwrap();
+        let want = loss.backward().unwrap();
+        // the network
+        let plain = Rssm::from_oracle(&rssm).unwrap();
+        let mut trace = StepTrace::default();
+        let mut got_next = vec![0f32; n * f];
+        plain.step(&state, &action, &uniform, &mut trace, &mut got_next);
+        let part = |rows: &[f32], lo: usize, w: usize| -> Vec<f32> {
+            rows.chunks_exact(f)
+                .flat_map(|r| r[lo..lo + w].to_vec())
+                .collect()
+        };
+        close(&part(&got_next, 0, 8), &vals(&next.deter), "h'");
+        close(&part(&got_next, 8, 12), &vals(&next.stoch), "z'");
+        close(&part(&got_next, 20, 2), &part(&state, 20, 2), "c");
+        let mut d_action = vec![0f32; n * 2];
+        let mut d_state = vec![0f32; n * f];
+        let mut scratch = StepScratch::default();
+        plain.step_backward(
+            &mut trace,
+            &d_next,
+            &mut d_action,
+            Some(&mut d_state),
+            &mut scratch,
+        );
+        close(&d_action, &vals(want.get(act.as_tensor()).unwrap()), "∂a");
+        close(
+            &part(&d_state, 0, 8),
+            &vals(want.get(deter.as_tensor()).unwrap()),
+            "∂h",
+        );
+        close(
+            &part(&d_state, 8, 12),
+            &vals(want.get(stoch.as_tensor()).unwrap()),
+            "∂z",
+        );
     }
 }

@@ -1,4 +1,5 @@
-//! DreamerV3's recurrent state-space model, with the cRSSM context input.
+//! The oracle's DreamerV3 recurrent state-space model (candle modules), with the cRSSM context
+//! input: [`crate::nn::Rssm`] is checked against it.
 //!
 //! The state is a deterministic part `h_t` (a GRU state) and a stochastic part `z_t`: `S` one-hot
 //! categorical variables of `C` classes each.
@@ -12,44 +13,15 @@
 //! Samples use the Gumbel-max trick on noise the caller draws from its own seeded generator, and
 //! pass gradients straight through: `z = onehot + p − sg(p)` ([`kernels::straight_through_sample`]).
 
-#[cfg(any(test, feature = "oracle"))]
 use super::dense::Dense;
-#[cfg(any(test, feature = "oracle"))]
-use super::kernels::{self, NormAct};
-#[cfg(any(test, feature = "oracle"))]
 use super::norm::LayerNorm;
-#[cfg(any(test, feature = "oracle"))]
 use super::params::ParamStore;
-#[cfg(any(test, feature = "oracle"))]
+use crate::nn::kernels::{self, NormAct};
+use crate::nn::RssmConfig;
 use candle_core::{DType, Device, Result, Tensor, D};
-#[cfg(any(test, feature = "oracle"))]
 use candle_nn::VarBuilder;
 
-/// Sizes of the RSSM.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct RssmConfig {
-    /// GRU state size.
-    pub deter: usize,
-    /// Hidden layer size.
-    pub hidden: usize,
-    /// Number of categorical variables.
-    pub stoch: usize,
-    /// Classes per variable.
-    pub classes: usize,
-    /// Uniform mixture weight of the categorical probabilities.
-    pub unimix: f64,
-    /// Action size.
-    pub act_dim: usize,
-    /// Observation embedding size.
-    pub embed_dim: usize,
-    /// Context size fed to the sequence model (0 for DreamerV3, 2 for cRSSM and cMask).
-    pub context_dim: usize,
-    /// Sequences start from a learned state ([`Rssm::initial`]) rather than from zeros.
-    pub learned_initial: bool,
-}
-
 /// A batch of RSSM states.
-#[cfg(any(test, feature = "oracle"))]
 #[derive(Clone, Debug)]
 pub struct RssmState {
     /// `[B, deter]`.
@@ -58,7 +30,6 @@ pub struct RssmState {
     pub stoch: Tensor,
 }
 
-#[cfg(any(test, feature = "oracle"))]
 impl RssmState {
     /// The same state cut from the graph that computed it: gradients stop here, and the
     /// operations (and tensors) behind it can be freed.
@@ -84,7 +55,6 @@ impl RssmState {
 }
 
 /// A `Linear → LayerNorm → act` block (SiLU, or the identity before the GRU's gates).
-#[cfg(any(test, feature = "oracle"))]
 #[derive(Clone, Debug)]
 struct NormBlock {
     fc: Dense,
@@ -92,7 +62,6 @@ struct NormBlock {
     act: NormAct,
 }
 
-#[cfg(any(test, feature = "oracle"))]
 impl NormBlock {
     fn new(input: usize, out: usize, act: NormAct, vb: VarBuilder) -> Result<Self> {
         Ok(Self {
@@ -124,14 +93,12 @@ impl NormBlock {
 }
 
 /// DreamerV3's GRU cell with a LayerNorm on the gates and update bias −1.
-#[cfg(any(test, feature = "oracle"))]
 #[derive(Clone, Debug)]
 pub struct Gru {
     /// `LN(W [x, h])`, the normalised gates `[r, ĉ, u]` (parameters `fc`, `ln`).
     gates: NormBlock,
 }
 
-#[cfg(any(test, feature = "oracle"))]
 impl Gru {
     /// A cell from `input` features to a state of `size`.
     pub fn new(input: usize, size: usize, vb: VarBuilder) -> Result<Self> {
@@ -154,7 +121,6 @@ impl Gru {
 }
 
 /// The recurrent state-space model.
-#[cfg(any(test, feature = "oracle"))]
 #[derive(Clone, Debug)]
 pub struct Rssm {
     cfg: RssmConfig,
@@ -169,7 +135,6 @@ pub struct Rssm {
     initial_w: Option<Tensor>,
 }
 
-#[cfg(any(test, feature = "oracle"))]
 impl Rssm {
     /// Builds the model under `vb`.
     pub fn new(cfg: RssmConfig, vb: VarBuilder) -> Result<Self> {
@@ -249,7 +214,7 @@ impl Rssm {
 
     /// The columns of the one-hot sample `z` in [`RssmState::feat`] and
     /// [`RssmState::head_input`] (`[h, z, …]`): a layer reading either can be told they are
-    /// mostly zero ([`crate::nn::Mlp::sparse_inputs`]).
+    /// mostly zero ([`super::Mlp::sparse_inputs`]).
     pub fn stoch_columns(&self) -> std::ops::Range<usize> {
         self.cfg.deter..self.cfg.deter + self.cfg.stoch * self.cfg.classes
     }
@@ -358,7 +323,6 @@ impl Rssm {
 }
 
 /// Builds an RSSM in a fresh store initialised from `seed` (for tests and tools).
-#[cfg(any(test, feature = "oracle"))]
 pub fn standalone(cfg: RssmConfig, seed: u64) -> Result<(ParamStore, Rssm)> {
     let ps = ParamStore::new();
     let rssm = Rssm::new(cfg, ps.builder().pp("rssm"))?;
