@@ -33,7 +33,7 @@
 
 use crate::algorithm::Metrics;
 use crate::error::{LearnerError, Result};
-use crate::sac::{ActionRange, PassSum, PlainActor, SoftTarget, WeightedTransitions, Workspace};
+use crate::sac::{ActionRange, ActorNet, PassSum, SoftTarget, WeightedTransitions, Workspace};
 use crate::sac_core::{
     ActorPass, CoreConfig, CriticPass, LearningRates, Passes, SacCore, SacError,
 };
@@ -41,7 +41,7 @@ use crate::shards::{on_shards_with, Shard};
 use ctxrace_common::agents::{DreamerConfig, MaskConfig, MaskSpace, StepAlignment, CONTEXT_DIM};
 use ctxrace_common::nn::dreamer::normal_rows;
 use ctxrace_common::nn::initial_weights;
-use ctxrace_common::nn::plain::{NamedTensor, PlainMlp};
+use ctxrace_common::nn::{Mlp, NamedTensor};
 use ctxrace_common::SequenceBatch;
 use rand_chacha::ChaCha8Rng;
 use std::ops::Range;
@@ -235,7 +235,7 @@ impl Passes for MaskPasses<'_> {
 
     fn critic(
         &mut self,
-        nets: (&[PlainMlp; 2], &[PlainMlp; 2], PlainActor),
+        nets: (&[Mlp; 2], &[Mlp; 2], ActorNet),
         soft: SoftTarget,
     ) -> std::result::Result<CriticPass, SacError> {
         self.on_transitions(|w, tr, noise| w.critic_pass(nets, tr, noise, soft))
@@ -243,7 +243,7 @@ impl Passes for MaskPasses<'_> {
 
     fn actor(
         &mut self,
-        nets: (&[PlainMlp; 2], PlainActor),
+        nets: (&[Mlp; 2], ActorNet),
         with: (f32, ActionRange),
     ) -> std::result::Result<ActorPass, SacError> {
         self.on_transitions(|w, tr, noise| w.actor_pass(nets, (tr.obs, tr.weight), noise, with))
@@ -254,7 +254,7 @@ impl MaskSac {
     /// The mask SAC of `cfg` for observations of `obs_dim` and the mask actor `actor`: critics
     /// drawn from `cfg.seed + 3` (as `cfg.init` says), the targets their copy, `log α` from
     /// `init_alpha`.
-    pub(crate) fn new(cfg: &DreamerConfig, obs_dim: usize, actor: &PlainMlp) -> Result<Self> {
+    pub(crate) fn new(cfg: &DreamerConfig, obs_dim: usize, actor: &Mlp) -> Result<Self> {
         let m = &cfg.mask;
         if m.init_alpha.is_nan() || m.init_alpha <= 0.0 {
             return Err(LearnerError::Config(
@@ -300,7 +300,7 @@ impl MaskSac {
     /// without valid transitions (all random prefill) takes no step.
     pub(crate) fn step(
         &mut self,
-        actor: &mut PlainMlp,
+        actor: &mut Mlp,
         seq: &SequenceBatch,
         (step, workers): (u64, usize),
         rngs: &mut [ChaCha8Rng],
@@ -343,8 +343,8 @@ mod tests {
     use crate::sequences::SeqData;
     use crate::world_model::oracle;
     use candle_core::{Device, Result, Tensor};
-    use ctxrace_common::nn::plain::Parameters;
-    use ctxrace_common::nn::{Activation, MlpShape, TanhGaussianActor, Weights};
+    use ctxrace_common::nn::oracle::TanhGaussianActor;
+    use ctxrace_common::nn::{Activation, MlpShape, Parameters, Weights};
     use rand::{Rng, SeedableRng};
 
     /// One sequence of one-value observations and actions (actions and contexts zero): its
@@ -573,8 +573,8 @@ mod tests {
             out: Some(2 * CONTEXT_DIM),
             act: Activation::Relu,
         };
-        let mut actor = PlainMlp::from_weights(&mut Weights::initial(), "mask.", &shape).unwrap();
-        ctxrace_common::nn::plain::init(&mut actor, 5);
+        let mut actor = Mlp::from_weights(&mut Weights::initial(), "mask.", &shape).unwrap();
+        ctxrace_common::nn::parameters::init(&mut actor, 5);
         let mut sac = MaskSac::new(&cfg, o, &actor).unwrap();
         let streams = |seed: u64| -> Vec<ChaCha8Rng> {
             (0..b as u64)
@@ -618,7 +618,7 @@ mod tests {
             candle_losses(&sac, candle_nets, (&seq, &d), (&next_noise, &noise), alpha).unwrap();
         let (want_c, want_a) = (critic.backward().unwrap(), actor_loss.backward().unwrap());
         let transitions = Transitions::new(&seq, &cfg.mask, cfg.step_alignment).unwrap();
-        let view = PlainActor {
+        let view = ActorNet {
             net: &actor,
             log_std_clamp: clamp.map(|b| b as f32),
         };
