@@ -1,16 +1,21 @@
-"""One training step of the paper's own DreamerV3 (lilpharaoh1/context-f110 at c0fd903, torch on
-CPU) on one batch from fixed weights and fixed noise, written for ctxrace's test
+"""One training step of the paper's own DreamerV3 or cbDreamer (lilpharaoh1/context-f110 at
+c0fd903, torch on CPU, one thread) on one batch from fixed weights and fixed noise, written for
+ctxrace's test
 `learner/tests/paper_one_batch.rs` (docs/parity/one_batch.md).
 
     deploy/paper_parity.sh export DIR          (with WIDTH=16 STOCH=4 LENGTH=16 MODEL_LR AC_LR)
-    /work/venv-paper/bin/python deploy/paper_one_batch.py DIR OUT.safetensors [--buffer BUFFER]
+    /work/venv-paper/bin/python deploy/paper_one_batch.py DIR OUT.safetensors \
+        [--model dreamerv3|cmask] [--buffer BUFFER [--first-episode K]] [--mask-units U]
 
-builds the paper's agent (`Utils/dreamerv3/dreamerv3.py` `DreamerV3`, its configs.yaml at the
-widths the export wrote) with torch seed SEED, takes one batch of B sequences of T steps (the
-code's own `tools.sample_episodes` over the episodes of BUFFER, a paper run's `Buffer/` folder
-of `eps_K-N.npz`; without it, synthetic episodes), and runs the code's training step on it: the
-world model's (`models.WorldModel._train`), then behaviour learning from its posterior states
-(`models.ImagBehavior._train`). It writes one safetensors file with:
+builds the paper's agent (`Utils/dreamerv3/dreamerv3.py` `DreamerV3`, or with `--model cmask`
+cbDreamer's, `Utils/cbdreamer/dreamerv3.py`, its mask SAC `CtxMask` at U units instead of its
+hard-coded 256; its configs.yaml at the widths the export wrote) with torch seed SEED, gives it
+episodes K to K + 39 of BUFFER (a paper run's `Buffer/` folder of `eps_K-N.npz`; without it,
+synthetic episodes), and runs the agent's own `train()` on them: one batch of B sequences of T
+steps from the code's `tools.sample_episodes`, the world model's step
+(`WorldModel._train`; cbDreamer's draws the batch's masks and steps its mask SAC there), then
+behaviour learning from its posterior states (`ImagBehavior._train`). It writes one
+safetensors file with:
 
 - the agent's weights under ctxrace's names, one group per ctxrace parameter store
   (`policy/`, `heads/`, `critic/`, `slow_critic/`, then the name in that store), reordered
@@ -22,13 +27,18 @@ world model's (`models.WorldModel._train`), then behaviour learning from its pos
   and priors' uniforms), so that both sides sample the same latents and actions;
 - torch's loss terms, λ-return, return scale and gradient norms (`torch/...`), the gradient norm
   of each part (`torch/grad_norm/...`), and every gradient under ctxrace's names (`grad/...`);
+- cbDreamer's: the batch's contexts and stored masks, the masks' and the mask SAC's noise
+  (`noise/mask_normal`, `noise/sac_critic_normal`, `noise/sac_actor_normal`), the mask SAC's
+  terms (`torch/mask_...`) and its weights after the step (`after/...`); see `MaskProbe`;
 - the same terms of a second step on the same batch with the noise of ctxrace's step 1
   (`torch2/...`), after the first step's updates (Adam's moments, the slow critic, the return
   normaliser).
 
 Three weights are moved from the code's initial values so that their paths carry gradients:
 the reward head's and the critic's output layers (zero at the code's initialisation) and the
-learned initial state `W` (zero). The rest is the code's initialisation.
+learned initial state `W` (zero). cbDreamer's `log α` starts at `ln 0.2`, the `α` its first step
+uses (the code's `log α` starts at 0 while `α` is held at 0.2 until its first update). The rest
+is the code's initialisation.
 """
 import argparse
 import contextlib
@@ -164,27 +174,36 @@ def ziggurat_tables():
 ZIGGURAT = None
 
 
-def ctxrace_noise(seed, batch, length, z, act, horizon, step):
-    """What ctxrace's DreamerV3 step `step` draws (`Dreamer::sequence_rngs`: sequence b's stream
-    seeded with `seed ^ (b + 1) * golden`, stream number `step`), in its order: the world model's posterior
-    uniforms, per step t `Z` of each stream in turn (`[T, B, Z]`); then per imagined step the
-    actor's normals, `T * A` of each stream (its T starts), and the prior's uniforms, `T * Z` of
-    each (`[H - 1, B * T, A]` and `[H - 1, B * T, Z]`)."""
+def ctxrace_noise(seed, batch, length, z, act, horizon, step, sac_rows=0):
+    """What ctxrace's DreamerV3 or cMask step `step` draws (`Dreamer::sequence_rngs`: sequence b's
+    stream seeded with `seed ^ (b + 1) * golden`, stream number `step`), in its order: cMask's
+    masks first, `T * 2` normals of each stream (`[B * T, 2]`, `sac_rows` > 0 only); the world
+    model's posterior uniforms, per step t `Z` of each stream in turn (`[T, B, Z]`); per imagined
+    step the actor's normals, `T * A` of each stream (its T starts), and the prior's uniforms,
+    `T * Z` of each (`[H - 1, B * T, A]` and `[H - 1, B * T, Z]`); then cMask's mask SAC, the
+    critics' pass and the actor's pass, `sac_rows * 2` normals of each stream each
+    (`[B * sac_rows, 2]`). Returns a dict of these arrays."""
     global ZIGGURAT
     ZIGGURAT = ZIGGURAT or ziggurat_tables()
     streams = [Stream(seed ^ (((b + 1) * GOLDEN) & MASK64), step) for b in range(batch)]
-    model = np.stack([np.stack([s.uniforms(z) for s in streams]) for _ in range(length)])
+    each = lambda count, width: np.concatenate([s.normals(count * width) for s in streams]).reshape(-1, width)
+    out = {"mask": each(length, 2)} if sac_rows else {}
+    out["model"] = np.stack([np.stack([s.uniforms(z) for s in streams]) for _ in range(length)])
     normals, uniforms = [], []
     for _ in range(horizon - 1):
-        normals.append(np.concatenate([s.normals(length * act) for s in streams]).reshape(-1, act))
+        normals.append(each(length, act))
         uniforms.append(np.concatenate([s.uniforms(length * z) for s in streams]).reshape(-1, z))
-    return model, np.stack(normals), np.stack(uniforms)
+    out["action"], out["prior"] = np.stack(normals), np.stack(uniforms)
+    if sac_rows:
+        out["sac_critic"], out["sac_actor"] = each(sac_rows, 2), each(sac_rows, 2)
+    return out
 
 
 # ---------------------------------------------------------------- the batch
-def synthetic_episodes(rng, count=40):
+def synthetic_episodes(rng, with_mask, count=40):
     """Episodes shaped as the code stores them: 108 LiDAR-like values in [0, 1], actions in
-    [-1, 1], small rewards, the last row terminal."""
+    [-1, 1], small rewards, the last row terminal; with `with_mask` (cbDreamer's) a context per
+    episode and a mask in (0.27, 0.73) per row."""
     episodes = {}
     for k in range(count):
         n = int(rng.integers(8, 30))
@@ -195,15 +214,18 @@ def synthetic_episodes(rng, count=40):
             "reward": rng.normal(0.2, 0.2, (n, 1)),
             "is_terminal": np.eye(1, n, n - 1).reshape(n, 1),
         }
+        if with_mask:
+            episodes[f"eps_{k}"]["context"] = np.tile(rng.uniform(-0.15, 0.15, (1, 2)), (n, 1))
+            episodes[f"eps_{k}"]["mask"] = rng.uniform(0.27, 0.73, (n, 2)).astype(np.float32)
     return episodes
 
 
-def buffer_episodes(folder, count=40):
-    """The first `count` episodes of a paper run's Buffer/ (eps_K-N.npz by K)."""
+def buffer_episodes(folder, first=0, count=40):
+    """Episodes `first` to `first + count - 1` of a paper run's Buffer/ (eps_K-N.npz by K)."""
     paths = sorted(glob.glob(f"{folder}/eps_*-*.npz"),
-                   key=lambda p: int(os.path.basename(p)[4:].split("-")[0]))[:count]
+                   key=lambda p: int(os.path.basename(p)[4:].split("-")[0]))[first:first + count]
     if not paths:
-        sys.exit(f"{folder}: no eps_K-N.npz episodes (a paper run's Buffer/ folder?)")
+        sys.exit(f"{folder}: no eps_K-N.npz episodes from number {first} (a paper run's Buffer/ folder?)")
     episodes = {}
     for p in paths:
         with np.load(p) as d:
@@ -236,12 +258,13 @@ def joined(parts, axis=0):
 def ctxrace_weights(agent, of):
     """Every weight of the agent (`of(param)`: its value or its gradient, None for none) as
     ctxrace's stores name and lay them out: torch's Linear `[out, in]` is candle's; the heads'
-    first layers read the model state as `[z, h]` in the code and `[h, z]` in ctxrace (columns
-    swapped); the decoder's per-key output layers (image, action) are one layer in ctxrace
-    (its `reward` output, overwritten by the reward head's in the code's loss, has no
-    counterpart); the actor's mean and std layers are one output layer `[2A, U]`."""
+    first layers read the model state as `[z, h, c]` in the code and `[h, z, c]` in ctxrace
+    (the z and h columns swapped; `c` is cbDreamer's context); the decoder's per-key output
+    layers (image, action) are one layer in ctxrace (its `reward` output, overwritten by the
+    reward head's in the code's loss, has no counterpart); the actor's mean and std layers are
+    one output layer `[2A, U]`. cbDreamer's mask SAC: `mask_weights`."""
     cfg = agent._config
-    z = cfg.dyn_stoch * cfg.dyn_discrete
+    z, d = cfg.dyn_stoch * cfg.dyn_discrete, cfg.dyn_deter
     wm, beh = agent._wm, agent._task_behavior
     dyn = wm.dynamics
     out = {}
@@ -251,7 +274,7 @@ def ctxrace_weights(agent, of):
         for i in range(layers):
             w = of(params[f"layers.{prefix}_linear{i}.weight"])
             if i == 0 and name != "encoder" and w is not None:
-                w = joined([w[:, z:], w[:, :z]], axis=1)
+                w = joined([w[:, z:z + d], w[:, :z], w[:, z + d:]], axis=1)
             out[f"{store}/{name}.l{i}.fc.weight"] = w
             out[f"{store}/{name}.l{i}.ln.weight"] = of(params[f"layers.{prefix}_norm{i}.weight"])
             out[f"{store}/{name}.l{i}.ln.bias"] = of(params[f"layers.{prefix}_norm{i}.bias"])
@@ -287,7 +310,28 @@ def ctxrace_weights(agent, of):
             head.mean_layer)
     mlp(beh.value, "Value", "critic", "critic", cfg.critic["layers"], beh.value.mean_layer)
     mlp(beh._slow_value, "Value", "slow_critic", "critic", cfg.critic["layers"], beh._slow_value.mean_layer)
+    if hasattr(wm, "_ctx_mask"):
+        out.update(mask_weights(wm._ctx_mask, of))
     return {k: v for k, v in out.items() if v is not None}
+
+
+def mask_weights(ctx, of):
+    """cbDreamer's mask SAC (`CtxMask`) under ctxrace's names: the Gaussian policy's two ReLU
+    layers and its mean and log-std layers (one output layer `[2·2, U]`) as the policy store's
+    `mask.`; the twin critics (`linear1-3`, `linear4-6` of the code's QNetwork, on `[o, m]`) as
+    `q1.`, `q2.` of the `mask_critic` and `mask_target` stores; `log α` as `mask_alpha`."""
+    out, policy = {}, ctx.policy
+    for i, layer in enumerate((policy.linear1, policy.linear2)):
+        out[f"policy/mask.l{i}.fc.weight"], out[f"policy/mask.l{i}.fc.bias"] = of(layer.weight), of(layer.bias)
+    out["policy/mask.out.weight"] = joined([of(policy.mean_linear.weight), of(policy.log_std_linear.weight)])
+    out["policy/mask.out.bias"] = joined([of(policy.mean_linear.bias), of(policy.log_std_linear.bias)])
+    for store, net in (("mask_critic", ctx.critic), ("mask_target", ctx.critic_target)):
+        for q, first in (("q1", 1), ("q2", 4)):
+            for i, name in enumerate(("l0.fc", "l1.fc", "out")):
+                layer = getattr(net, f"linear{first + i}")
+                out[f"{store}/{q}.{name}.weight"], out[f"{store}/{q}.{name}.bias"] = of(layer.weight), of(layer.bias)
+    out["mask_alpha/log_alpha"] = of(ctx.log_alpha)
+    return out
 
 
 def value_of(p):
@@ -316,31 +360,142 @@ def write_safetensors(path, tensors):
             f.write(b)
 
 
+# ---------------------------------------------------------------- cbDreamer's mask SAC
+class MaskProbe:
+    """cbDreamer's mask SAC (`CtxMask`) run with ctxrace's noise and watched: its Gaussian
+    samples take the queued normals in place of torch's (`Normal.rsample`), in the code's order
+    of draws in one world-model step (the batch's masks, then in `_train` the critics' target
+    sample, the actor's, the temperature's, and one or two it never uses); its losses are read
+    where they are differentiated, its gradients where each optimiser steps, its masks where
+    `forward` returns them."""
+
+    def __init__(self, torch, ctx):
+        self.torch, self.ctx, self.queue, self.calls = torch, ctx, [], []
+        self.losses, self.grads, self.norms = [], {}, {}
+        code_rsample, code_sample = torch.distributions.Normal.rsample, ctx.policy.sample
+        code_forward, code_train, code_backward = ctx.forward, ctx._train, torch.Tensor.backward
+
+        def rsample(dist, sample_shape=torch.Size()):
+            if not self.queue:
+                return code_rsample(dist, sample_shape)
+            eps = self.queue.pop(0)
+            return dist.loc + dist.scale * torch.from_numpy(np.ascontiguousarray(eps)).reshape(dist.loc.shape)
+
+        def sample(state):
+            result = code_sample(state)
+            self.calls.append([r.detach().numpy().copy() for r in result])
+            return result
+
+        def forward(state, *a, **k):
+            masks = code_forward(state, *a, **k)
+            self.masks = masks.detach().numpy().copy()
+            return masks
+
+        def backward(loss, *a, **k):
+            self.losses.append(float(loss))
+            return code_backward(loss, *a, **k)
+
+        def train(data):
+            self.alpha = float(ctx.alpha)
+            torch.Tensor.backward = backward
+            try:
+                return code_train(data)
+            finally:
+                torch.Tensor.backward = code_backward
+
+        torch.distributions.Normal.rsample = rsample
+        ctx.policy.sample, ctx.forward, ctx._train = sample, forward, train
+        for opt, prefix, name in ((ctx.critic_optimizer, "mask_critic/", "mask_critic"),
+                                  (ctx.policy_optim, "policy/mask.", "mask_actor"),
+                                  (ctx.alpha_optim, "mask_alpha/", "mask_alpha")):
+            opt.step = self.keeping(opt.step, prefix, name)
+
+    def keeping(self, step, prefix, name):
+        """The optimiser's `step`, keeping its gradients' norm first, and the gradients
+        themselves (under ctxrace's names) on the first step."""
+        def keep(*a, **k):
+            grads = {n: g for n, g in mask_weights(self.ctx, grad_of).items() if n.startswith(prefix)}
+            for n, g in grads.items():
+                self.grads.setdefault(n, g)
+            self.norms[name] = float(np.sqrt(sum(float((g.astype(np.float64) ** 2).sum()) for g in grads.values())))
+            return step(*a, **k)
+        return keep
+
+    def arm(self, draws, step):
+        """Queues a step's normals: the masks', the critics' target sample's, the actor's (also
+        the temperature's: ctxrace's temperature reads the actor's `log π`), zeros for the
+        samples the code draws and never uses (one more on the steps its targets move)."""
+        unused = np.zeros_like(draws["sac_actor"])
+        self.queue = [draws["mask"], draws["sac_critic"], draws["sac_actor"], draws["sac_actor"], unused]
+        self.queue += [unused] if step % 2 == 0 else []
+        self.calls, self.losses = [], []
+
+    def terms(self):
+        """The step's mask SAC terms (names as ctxrace's metrics `mask/...`)."""
+        assert not self.queue and len(self.losses) == 3, "the code's mask SAC drew or differentiated otherwise"
+        target_entropy = float(self.ctx.target_entropy)
+        return {
+            "mask_mean": float(self.masks.mean()),
+            "mask_alpha": self.alpha,
+            "mask_q_loss": self.losses[0],
+            "mask_actor_loss": self.losses[1],
+            "mask_entropy": -float(self.calls[2][1].mean()),
+            # the code's temperature loss reads a sample drawn after the actor's step
+            "mask_entropy_after_actor_step": -float(self.calls[3][1].mean()),
+            "mask_alpha_loss": self.losses[2],
+            "mask_critic_grad_norm": self.norms["mask_critic"],
+            "mask_actor_grad_norm": self.norms["mask_actor"],
+            "mask_alpha_after": float(self.ctx.log_alpha.exp()),
+            "target_entropy": target_entropy,
+        }
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("export", help="the paper's code as `deploy/paper_parity.sh export` wrote it")
     ap.add_argument("out", help="the safetensors file to write")
+    ap.add_argument("--model", choices=("dreamerv3", "cmask"), default="dreamerv3",
+                    help="the code's DreamerV3 (Utils/dreamerv3) or cbDreamer (Utils/cbdreamer, ctxrace's cMask)")
     ap.add_argument("--buffer", help="a paper run's Buffer/ folder (default: synthetic episodes)")
+    ap.add_argument("--first-episode", type=int, default=0,
+                    help="the first of the 40 Buffer/ episodes the batch is drawn from")
+    ap.add_argument("--mask-units", type=int, default=16,
+                    help="the mask SAC's hidden units (cbDreamer; the code's CtxMask hard-codes 256)")
     ap.add_argument("--model-lr", type=float, default=3e-4)
     args = ap.parse_args()
     out_path = os.path.abspath(args.out)
     buffer = os.path.abspath(args.buffer) if args.buffer else None
+    cmask = args.model == "cmask"
     os.chdir(args.export)  # the agent reads its configs.yaml by a path relative to the export
-    sys.path.insert(0, os.path.join(args.export, "TrajectoryAidedLearning/Utils/dreamerv3"))
+    sys.path.insert(0, args.export)
+    import importlib
     import torch
-    import dreamerv3
-    import networks
-    import tools
+
+    torch.set_num_threads(1)
+    # the code's own order: its DreamerV3 package first (its folder on sys.path gives every
+    # package the bare `tools` and `networks` they import), then cbDreamer's
+    importlib.import_module("TrajectoryAidedLearning.Utils.dreamerv3.dreamerv3")
+    package = importlib.import_module(f"TrajectoryAidedLearning.Utils.{'cbdreamer' if cmask else 'dreamerv3'}.dreamerv3")
+    tools = sys.modules["tools"]
+    if cmask:
+        # CtxMask builds its networks at 256 units whatever the widths; the harness's at
+        # --mask-units (their constructors are given that width in place of the 256)
+        for net in (package.cmodels.QNetwork, package.cmodels.GaussianPolicy):
+            def init(self, *a, code_init=net.__init__, **k):
+                code_init(self, *a[:-1], args.mask_units, **k)
+            net.__init__ = init
 
     torch.manual_seed(SEED)
     np.random.seed(SEED)
     with contextlib.redirect_stdout(sys.stderr):  # the code prints its configuration
-        agent = dreamerv3.DreamerV3(108, 2, "one_batch", lr=args.model_lr)
+        agent = package.DreamerV3(108, 2, "one_batch", lr=args.model_lr)
     cfg = agent._config
     width, stoch, classes, horizon = cfg.units, cfg.dyn_stoch, cfg.dyn_discrete, cfg.imag_horizon
     z = stoch * classes
     assert (cfg.dyn_deter, cfg.dyn_hidden, cfg.encoder["mlp_units"], cfg.decoder["mlp_units"]) == (width,) * 4, \
         "the export's widths differ: run `deploy/paper_parity.sh export` with WIDTH and STOCH"
+    assert cfg.batch_length == LENGTH, "the export's sequence length differs: LENGTH=16"
+    cfg.batch_size = BATCH  # the batch train() draws
     # weights whose initial value (zero) would leave a path without gradient
     gen = torch.Generator().manual_seed(SEED + 1)
     beh = agent._task_behavior
@@ -349,11 +504,25 @@ def main():
             layer.weight.copy_(torch.empty(layer.weight.shape).uniform_(-0.2, 0.2, generator=gen))
         beh._slow_value.load_state_dict(beh.value.state_dict())
         agent._wm.dynamics.W.copy_(torch.randn(agent._wm.dynamics.W.shape, generator=gen) * 0.5)
+    probe = None
+    if cmask:
+        ctx = agent._wm._ctx_mask
+        # the code's first step uses alpha = 0.2 while log alpha starts at 0 (alpha = 1 after
+        # its first update): log alpha starts at ln 0.2 here, so that both sides' alpha is one
+        with torch.no_grad():
+            ctx.log_alpha.fill_(float(np.log(ctx.alpha)))
+        probe = MaskProbe(torch, ctx)
     weights = ctxrace_weights(agent, value_of)
+    if cmask:
+        # the code's target critics start as a copy of the critics (`load_state_dict`): the
+        # test copies them too, keeping the file small
+        for name in [n for n in weights if n.startswith("mask_target/")]:
+            assert np.array_equal(weights.pop(name), weights[name.replace("mask_target/", "mask_critic/")])
 
     rng = np.random.default_rng(SEED)
-    episodes = buffer_episodes(buffer) if buffer else synthetic_episodes(rng)
-    data = one_batch(tools, episodes)
+    episodes = buffer_episodes(buffer, args.first_episode) if buffer else synthetic_episodes(rng, cmask)
+    data = one_batch(tools, episodes)  # the batch the code's train() draws from them
+    agent.buffer_eps.update(episodes)
     draws = {}
 
     # ctxrace's noise in the code's samples: the posteriors' and the imagined priors' one-hot
@@ -392,7 +561,8 @@ def main():
         out = base.loc + base.scale * eps
         return out * (self.absmax / torch.clip(torch.abs(out), min=self.absmax)).detach()
 
-    code_obs_step = networks.RSSM.obs_step
+    rssm = type(agent._wm.dynamics)
+    code_obs_step = rssm.obs_step
 
     def obs_step(self, *a, **k):
         noise["call"] = 0
@@ -401,7 +571,16 @@ def main():
         return result
 
     tools.OneHotDist.sample, tools.ContDist.sample = onehot_sample, cont_sample
-    networks.RSSM.obs_step = obs_step
+    rssm.obs_step = obs_step
+    # behaviour learning imagines: the phase of the draws changes there
+    code_behaviour = beh._train
+
+    def behaviour(*a, **k):
+        assert noise["call"] == 2, "the code's obs_step drew other than one prior and one posterior"
+        noise.update(phase="imagine", t=0)
+        return code_behaviour(*a, **k)
+
+    beh._train = behaviour
     # each optimiser's gradients, read where it clips them: the world model's, the actor's,
     # the critic's, in this order
     parts = [
@@ -415,33 +594,32 @@ def main():
     clip = torch.nn.utils.clip_grad_norm_
 
     def clip_and_keep(params, max_norm, *a, **k):
-        if len(calls) == len(parts):  # a later step's
-            return clip(params, max_norm, *a, **k)
-        optimiser, modules, prefixes = parts[len(calls)]
+        optimiser, modules, prefixes = parts[len(calls) % len(parts)]
+        if len(calls) < len(parts):  # the first step's gradients
+            grads.update({name: g for name, g in ctxrace_weights(agent, grad_of).items()
+                          if name.startswith(prefixes)})
         calls.append(optimiser)
-        grads.update({name: g for name, g in ctxrace_weights(agent, grad_of).items()
-                      if name.startswith(prefixes)})
         for name, module in modules.items():
             sq = sum(float((p.grad.double() ** 2).sum()) for p in module.parameters() if p.grad is not None)
             norms[name] = np.sqrt(sq)
         return clip(params, max_norm, *a, **k)
 
     torch.nn.utils.clip_grad_norm_ = clip_and_keep
-    reward = lambda f, s, a: agent._wm.heads["reward"](agent._wm.dynamics.get_feat(s)).mode()
 
     def code_step(step):
-        """The code's training step (as its `train()`, on this batch) with ctxrace's noise of
-        step `step`: its loss terms, returns and gradient norms."""
-        draws["model"], draws["action"], draws["prior"] = ctxrace_noise(SEED, BATCH, LENGTH, z, 2, horizon, step)
+        """The code's training step (its agent's `train()`, which draws this batch again) with
+        ctxrace's noise of step `step`: its loss terms, returns and gradient norms."""
+        draws.update(ctxrace_noise(SEED, BATCH, LENGTH, z, 2, horizon, step, (LENGTH - 1) if cmask else 0))
+        if probe:
+            probe.arm(draws, step)
         noise.update(phase="observe", t=0)
-        post, _, metrics = agent._wm._train({k: np.array(v) for k, v in data.items()})
-        assert noise["call"] == 2, "the code's obs_step drew other than one prior and one posterior"
-        noise.update(phase="imagine", t=0)
-        metrics.update(beh._train(post, reward)[-1])
-        assert noise["t"] == horizon, "the code's imagination drew other than one action and prior a step"
+        agent.train()
+        assert noise["phase"] == "imagine" and noise["t"] == horizon, \
+            "the code's imagination drew other than one action and prior a step"
         noise["phase"] = None
+        metrics = {k: v[-1] for k, v in agent._metrics.items()}
         ema = beh.ema_vals.detach().numpy()
-        return {
+        terms = {
             "model_loss": metrics["model_loss"],
             "recon": metrics["image_loss"].mean() + metrics["action_loss"].mean(),
             "reward": metrics["reward_loss"].mean(),
@@ -455,31 +633,51 @@ def main():
             "actor_grad_norm": metrics["actor_grad_norm"],
             "critic_grad_norm": metrics["value_grad_norm"],
         }
+        if probe:
+            # the code clips (and reports) the world model's gradient together with every
+            # parameter of the module, its mask SAC's stale gradients included: the world
+            # model's own norm is that of its parts
+            terms["model_grad_norm_code"] = terms["model_grad_norm"]
+            terms["model_grad_norm"] = np.sqrt(sum(norms[k] ** 2 for k in parts[0][1]))
+            terms.update(probe.terms())
+        return terms
 
     terms = code_step(0)
-    first_noise = dict(draws)
+    first_noise, first_norms = dict(draws), dict(norms)
+    after = {f"after/{k}": v for k, v in ctxrace_weights(agent, value_of).items()
+             if k.startswith(("policy/mask.", "mask_"))}
     # a second step on the same batch (the code draws the same one from an unchanged replay):
     # Adam's moments, the slow critic and the return normaliser after one update
     second = code_step(1)
 
     result = dict(weights)
     result.update({f"grad/{name}": g for name, g in grads.items()})
-    result.update({f"torch/grad_norm/{name}": np.array([v], dtype=np.float32) for name, v in norms.items()})
+    if probe:
+        result.update({f"grad/{name}": g for name, g in probe.grads.items()})
+        result.update(after)
+    result.update({f"torch/grad_norm/{name}": np.array([v], dtype=np.float32) for name, v in first_norms.items()})
     batch = {"obs": data["image"].reshape(BATCH, LENGTH, 108), "action": data["action"].reshape(BATCH, LENGTH, 2),
              "reward": data["reward"], "is_first": data["is_first"], "is_terminal": data["is_terminal"]}
+    if cmask:
+        batch.update(context=data["context"], mask=data["mask"])
     result.update({f"batch/{k}": np.asarray(v, dtype=np.float32) for k, v in batch.items()})
     result.update({"noise/model_uniform": first_noise["model"], "noise/imag_normal": first_noise["action"],
                    "noise/imag_uniform": first_noise["prior"]})
+    if cmask:
+        result.update({"noise/mask_normal": first_noise["mask"], "noise/sac_critic_normal": first_noise["sac_critic"],
+                       "noise/sac_actor_normal": first_noise["sac_actor"]})
     result.update({f"torch/{k}": np.array([float(v)], dtype=np.float32) for k, v in terms.items()})
     result.update({f"torch2/{k}": np.array([float(v)], dtype=np.float32) for k, v in second.items()})
-    result["config"] = np.array([width, stoch, classes, BATCH, LENGTH, SEED, args.model_lr, cfg.actor["lr"],
-                                 horizon], dtype=np.float32)
+    config = [width, stoch, classes, BATCH, LENGTH, SEED, args.model_lr, cfg.actor["lr"], horizon]
+    if cmask:
+        config += [args.mask_units, cfg.ctx_mask["lr"]]
+    result["config"] = np.array(config, dtype=np.float32)
     write_safetensors(out_path, result)
     print(f"{out_path}: {len(result)} tensors, {os.path.getsize(out_path)} bytes; "
           f"{int(data['is_first'].sum())} sequence starts, {int(data['is_terminal'].sum())} terminal rows")
     for k, v in terms.items():
-        print(f"  torch {k} = {float(v):.6f} (second step {float(second[k]):.6f})")
-    for name, v in norms.items():
+        print(f"  torch {k} = {float(v):.7f} (second step {float(second[k]):.7f})")
+    for name, v in first_norms.items():
         print(f"  torch gradient norm of {name} = {v:.6f}")
 
 

@@ -23,7 +23,7 @@ fn values(n: usize, seed: u64) -> Vec<f32> {
 
 fn norm_act_passes(c: &mut Criterion) {
     // one thread, as the learner runs each shard
-    ctxrace_common::nn::candle_on_one_thread();
+    ctxrace_common::nn::oracle::candle_on_one_thread();
     let mut group = c.benchmark_group("norm_act");
     group.sample_size(30);
     for (act, width) in [(NormAct::Silu, 256), (NormAct::Identity, 768)] {

@@ -8,7 +8,8 @@
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::VarBuilder;
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use ctxrace_common::nn::{kernels::NormAct, Dense, LayerNorm};
+use ctxrace_common::nn::kernels::NormAct;
+use ctxrace_common::nn::oracle::{Dense, LayerNorm};
 use rand::{Rng, SeedableRng};
 
 const ROWS: usize = 10 * 1024;

@@ -720,7 +720,7 @@ pub enum InitialState {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum WeightInit {
-    /// Every matrix uniform in `±1/√fan_in`, biases zero (`crate::nn::plain::ctxrace_draw`).
+    /// Every matrix uniform in `±1/√fan_in`, biases zero (`crate::nn::parameters::ctxrace_draw`).
     #[default]
     Ctxrace,
     /// The paper's code (c0fd903, `Utils/dreamerv3/tools.py` `weight_init` and
@@ -728,7 +728,7 @@ pub enum WeightInit {
     /// variance `1/fan_avg`, output layers uniform of variance `outscale/fan_avg` (outscale 1
     /// for the latent logits, the decoder, the continue head and the actor, each joined part
     /// by its own fan; 0 for the reward head and the critic), the mask SAC's layers Xavier
-    /// uniform; `fan_avg = (fan_in + fan_out) / 2` (`crate::nn::plain::fan_avg_draw`).
+    /// uniform; `fan_avg = (fan_in + fan_out) / 2` (`crate::nn::parameters::fan_avg_draw`).
     PaperCode,
 }
 

@@ -13,7 +13,7 @@
 //! weights ([`Parameters::update`]), one pass per tensor.
 
 use ctxrace_common::nn::kernels::{adam_update, sum_of_squares, AdamStep};
-use ctxrace_common::nn::plain::Parameters;
+use ctxrace_common::nn::Parameters;
 use safetensors::tensor::TensorView;
 use safetensors::{Dtype, SafeTensors};
 
@@ -251,7 +251,7 @@ impl Adam {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use ctxrace_common::nn::plain::NamedTensor;
+    use ctxrace_common::nn::NamedTensor;
 
     /// A vector of weights as a network.
     struct Vector(Vec<f32>);

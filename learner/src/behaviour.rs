@@ -1,5 +1,5 @@
 //! DreamerV3's behaviour learning in imagination, differentiated by hand on plain buffers
-//! ([`ctxrace_common::nn::plain`]): the forward pass of one shard of starts, then, once the
+//! ([`ctxrace_common::nn`]): the forward pass of one shard of starts, then, once the
 //! return scale is known from every shard, its backward pass to the actor's and the critic's
 //! gradients. Two forms ([`ImaginationLoss`]); the default is the paper's code's.
 //!
@@ -40,22 +40,23 @@
 use crate::world_model::Starts;
 use ctxrace_common::agents::{DreamerConfig, ImaginationLoss};
 use ctxrace_common::nn::dreamer::{normal_rows, uniform_rows};
-use ctxrace_common::nn::plain::{
+use ctxrace_common::nn::losses::{
     soft_cross_entropy, soft_cross_entropy_backward, twohot_decode, twohot_decode_backward,
-    InputGrad, MlpGrads, MlpTrace, NonZeros, PlainMlp, PlainRssm, StepScratch, StepTrace,
 };
-use ctxrace_common::nn::TwoHot;
+use ctxrace_common::nn::{
+    InputGrad, Mlp, MlpGrads, MlpTrace, NonZeros, Rssm, StepScratch, StepTrace, TwoHot,
+};
 use rand_chacha::ChaCha8Rng;
 
 /// The networks of a behaviour step (the actor's and the critic's weights as they are at its
 /// start: the optimisers step after the backward passes).
 pub(crate) struct Nets<'a> {
-    pub(crate) rssm: &'a PlainRssm,
-    pub(crate) actor: &'a PlainMlp,
-    pub(crate) reward: &'a PlainMlp,
-    pub(crate) cont: &'a PlainMlp,
-    pub(crate) critic: &'a PlainMlp,
-    pub(crate) slow: &'a PlainMlp,
+    pub(crate) rssm: &'a Rssm,
+    pub(crate) actor: &'a Mlp,
+    pub(crate) reward: &'a Mlp,
+    pub(crate) cont: &'a Mlp,
+    pub(crate) critic: &'a Mlp,
+    pub(crate) slow: &'a Mlp,
 }
 
 /// The constants of a behaviour step.

@@ -33,7 +33,7 @@
 
 use crate::algorithm::Metrics;
 use crate::error::{LearnerError, Result};
-use crate::sac::{ActionRange, PassSum, PlainActor, SoftTarget, WeightedTransitions, Workspace};
+use crate::sac::{ActionRange, ActorNet, PassSum, SoftTarget, WeightedTransitions, Workspace};
 use crate::sac_core::{
     ActorPass, CoreConfig, CriticPass, LearningRates, Passes, SacCore, SacError,
 };
@@ -41,21 +41,21 @@ use crate::shards::{on_shards_with, Shard};
 use ctxrace_common::agents::{DreamerConfig, MaskConfig, MaskSpace, StepAlignment, CONTEXT_DIM};
 use ctxrace_common::nn::dreamer::normal_rows;
 use ctxrace_common::nn::initial_weights;
-use ctxrace_common::nn::plain::{NamedTensor, PlainMlp};
+use ctxrace_common::nn::{Mlp, NamedTensor};
 use ctxrace_common::SequenceBatch;
 use rand_chacha::ChaCha8Rng;
 use std::ops::Range;
 
-/// The mask SAC's transitions `(o_t, m_t, r_{t+1+δ}, o_{t+1}, terminal_{t+1})` for
-/// `t < T − 1 − δ` (`δ` = `reward_delay`), row-major `[B·(T−1−δ), …]`, `m_t` the stored mask
-/// that acted at `o_t`, with `valid = 0` where `o_{t+1}` (or, delayed, `o_{t+2}`) starts a new
-/// episode or no mask chose the action at `o_t`; every terminal flag 0 with
+/// The mask SAC's transitions `(o_t, m_t, r_{t+1+δ}, o_{t+1}, terminal_{t+1})` for every `t`
+/// whose rows lie in the sequence (`δ` = `reward_delay`; [`transitions_per_sequence`]),
+/// row-major `[B·n, …]`, `m_t` the stored mask that acted at `o_t`, with `valid = 0` where
+/// `o_{t+1}` (or, delayed, `o_{t+2}`) starts a new episode or no mask chose the action at `o_t`; every terminal flag 0 with
 /// `bootstrap_terminals`. Where the mask, reward and terminal flag of `o_t`'s choice are stored
 /// follows the rows' [`StepAlignment`] ([`choice_row`]); a transition whose next row starts an
 /// episode is left out in both (the paper's code, whose sequences cross episode ends, bootstraps
 /// across them).
 pub(crate) struct Transitions {
-    /// `T − 1 − δ` transitions a sequence, sequence after sequence.
+    /// `n` transitions a sequence ([`transitions_per_sequence`]), sequence after sequence.
     per_sequence: usize,
     obs: Vec<f32>,
     mask: Vec<f32>,
@@ -63,6 +63,15 @@ pub(crate) struct Transitions {
     next_obs: Vec<f32>,
     terminal: Vec<f32>,
     valid: Vec<f32>,
+}
+
+/// The number of transitions of a sequence of `length` rows: `o_t` pairs with `o_{t+1}` and
+/// with the reward `delay` rows after its choice's row `row` ([`choice_row`]), so every `t`
+/// with `t + max(1, row + delay) < length` (`T − 1 − δ` with ctxrace's rows, `T − 1` with
+/// the paper code's, whose last transition takes the reward of the sequence's last row, as the
+/// code's `data['reward'][:, 1:]` does); `None` for none.
+pub(crate) fn transitions_per_sequence(length: usize, delay: usize, row: usize) -> Option<usize> {
+    length.checked_sub((row + delay).max(1)).filter(|&n| n > 0)
 }
 
 /// The row, counted from `o_t`'s, that stores the mask, reward and terminal flag of the choice
@@ -81,10 +90,7 @@ impl Transitions {
     fn new(seq: &SequenceBatch, cfg: &MaskConfig, alignment: StepAlignment) -> Option<Self> {
         let (t, delay) = (seq.length, cfg.reward_delay);
         let row = choice_row(alignment);
-        if t < 2 + delay {
-            return None;
-        }
-        let n = t - 1 - delay;
+        let n = transitions_per_sequence(t, delay, row)?;
         // rows `start … start + n − 1` of every sequence of `x` (`width` values a row)
         let span = |x: &[f32], width: usize, start: usize| -> Vec<f32> {
             (0..seq.batch)
@@ -110,11 +116,12 @@ impl Transitions {
         })
     }
 
-    /// `[B·(T−1−delay)]`: 1 where rows `t + 1 … t + max(1, row + delay)` of the sequences
-    /// continue the episode and the action of row `t + row` was chosen through a mask (`row`
-    /// from [`choice_row`]).
+    /// `[B·n]` ([`transitions_per_sequence`]): 1 where rows `t + 1 … t + max(1, row + delay)`
+    /// of the sequences continue the episode and the action of row `t + row` was chosen
+    /// through a mask (`row` from [`choice_row`]).
     fn valid(seq: &SequenceBatch, delay: usize, row: usize) -> Vec<f32> {
-        let (t, n) = (seq.length, seq.length - 1 - delay);
+        let t = seq.length;
+        let n = transitions_per_sequence(t, delay, row).unwrap_or(0);
         let mut valid = Vec::with_capacity(seq.batch * n);
         for b in 0..seq.batch {
             for i in b * t..b * t + n {
@@ -228,7 +235,7 @@ impl Passes for MaskPasses<'_> {
 
     fn critic(
         &mut self,
-        nets: (&[PlainMlp; 2], &[PlainMlp; 2], PlainActor),
+        nets: (&[Mlp; 2], &[Mlp; 2], ActorNet),
         soft: SoftTarget,
     ) -> std::result::Result<CriticPass, SacError> {
         self.on_transitions(|w, tr, noise| w.critic_pass(nets, tr, noise, soft))
@@ -236,7 +243,7 @@ impl Passes for MaskPasses<'_> {
 
     fn actor(
         &mut self,
-        nets: (&[PlainMlp; 2], PlainActor),
+        nets: (&[Mlp; 2], ActorNet),
         with: (f32, ActionRange),
     ) -> std::result::Result<ActorPass, SacError> {
         self.on_transitions(|w, tr, noise| w.actor_pass(nets, (tr.obs, tr.weight), noise, with))
@@ -247,7 +254,7 @@ impl MaskSac {
     /// The mask SAC of `cfg` for observations of `obs_dim` and the mask actor `actor`: critics
     /// drawn from `cfg.seed + 3` (as `cfg.init` says), the targets their copy, `log α` from
     /// `init_alpha`.
-    pub(crate) fn new(cfg: &DreamerConfig, obs_dim: usize, actor: &PlainMlp) -> Result<Self> {
+    pub(crate) fn new(cfg: &DreamerConfig, obs_dim: usize, actor: &Mlp) -> Result<Self> {
         let m = &cfg.mask;
         if m.init_alpha.is_nan() || m.init_alpha <= 0.0 {
             return Err(LearnerError::Config(
@@ -293,7 +300,7 @@ impl MaskSac {
     /// without valid transitions (all random prefill) takes no step.
     pub(crate) fn step(
         &mut self,
-        actor: &mut PlainMlp,
+        actor: &mut Mlp,
         seq: &SequenceBatch,
         (step, workers): (u64, usize),
         rngs: &mut [ChaCha8Rng],
@@ -336,8 +343,8 @@ mod tests {
     use crate::sequences::SeqData;
     use crate::world_model::oracle;
     use candle_core::{Device, Result, Tensor};
-    use ctxrace_common::nn::plain::Parameters;
-    use ctxrace_common::nn::{Activation, MlpShape, TanhGaussianActor, Weights};
+    use ctxrace_common::nn::oracle::TanhGaussianActor;
+    use ctxrace_common::nn::{Activation, MlpShape, Parameters, Weights};
     use rand::{Rng, SeedableRng};
 
     /// One sequence of one-value observations and actions (actions and contexts zero): its
@@ -454,10 +461,12 @@ mod tests {
             reward_delay: 1,
             ..MaskConfig::default()
         };
+        // the late reward of the last transition is the sequence's last row's
         let tr = Transitions::new(&seq, &late, StepAlignment::PaperCode).unwrap();
-        assert_eq!(tr.mask, [0.1, 0.2, 0.3, 0.4, 0.5, 0.6]);
-        assert_eq!(tr.reward, [20.0, 30.0, 40.0]);
-        assert_eq!(tr.valid, [1.0, 1.0, 0.0]);
+        assert_eq!(tr.mask, [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8]);
+        assert_eq!(tr.reward, [20.0, 30.0, 40.0, 50.0]);
+        assert_eq!(tr.next_obs, [1.0, 2.0, 3.0, 4.0]);
+        assert_eq!(tr.valid, [1.0, 1.0, 0.0, 0.0]);
     }
 
     /// The critics' input for the actor's sample `a = tanh u` with `log π(a)` under `cfg`, and
@@ -489,10 +498,11 @@ mod tests {
         alpha: f64,
     ) -> Result<(Tensor, Tensor)> {
         let cfg = &sac.cfg;
-        let (b, per) = (d.batch, d.length - 1 - cfg.reward_delay);
+        let row = choice_row(sac.alignment);
+        let b = d.batch;
+        let per = transitions_per_sequence(d.length, cfg.reward_delay, row).unwrap();
         let n = b * per;
         let span = |x: &Tensor, start: usize| x.narrow(1, start, per)?.reshape((n, ()));
-        let row = choice_row(sac.alignment);
         let (obs, next_obs, mask) = (span(&d.obs, 0)?, span(&d.obs, 1)?, span(&d.mask, row)?);
         let reward = span(&d.reward, row + cfg.reward_delay)?.flatten_all()?;
         let terminal = span(&d.terminal, row)?.flatten_all()?;
@@ -563,8 +573,8 @@ mod tests {
             out: Some(2 * CONTEXT_DIM),
             act: Activation::Relu,
         };
-        let mut actor = PlainMlp::from_weights(&mut Weights::initial(), "mask.", &shape).unwrap();
-        ctxrace_common::nn::plain::init(&mut actor, 5);
+        let mut actor = Mlp::from_weights(&mut Weights::initial(), "mask.", &shape).unwrap();
+        ctxrace_common::nn::parameters::init(&mut actor, 5);
         let mut sac = MaskSac::new(&cfg, o, &actor).unwrap();
         let streams = |seed: u64| -> Vec<ChaCha8Rng> {
             (0..b as u64)
@@ -598,7 +608,8 @@ mod tests {
         let (_, q_target) = oracle::store_of(&sac.core.targets, twin);
         let alpha = 0.25;
         let mut draws = streams(99);
-        let per = t - 1 - cfg.mask.reward_delay;
+        let row = choice_row(cfg.step_alignment);
+        let per = transitions_per_sequence(t, cfg.mask.reward_delay, row).unwrap();
         let next_noise = normal_rows(&mut draws, per, CONTEXT_DIM);
         let noise = normal_rows(&mut draws, per, CONTEXT_DIM);
         let d = SeqData::new(&seq, o, 1).unwrap();
@@ -607,7 +618,7 @@ mod tests {
             candle_losses(&sac, candle_nets, (&seq, &d), (&next_noise, &noise), alpha).unwrap();
         let (want_c, want_a) = (critic.backward().unwrap(), actor_loss.backward().unwrap());
         let transitions = Transitions::new(&seq, &cfg.mask, cfg.step_alignment).unwrap();
-        let view = PlainActor {
+        let view = ActorNet {
             net: &actor,
             log_std_clamp: clamp.map(|b| b as f32),
         };

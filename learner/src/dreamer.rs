@@ -48,7 +48,7 @@
 //!
 //! **Speed.** The world model ([`crate::world_model`]) and behaviour learning (imagination,
 //! heads, λ-returns, actor and critic losses, [`crate::behaviour`]) are differentiated by hand on
-//! plain buffers (`ctxrace_common::nn::plain`): they compute the gradients the optimisers need
+//! plain buffers (`ctxrace_common::nn`): they compute the gradients the optimisers need
 //! and no others (as PyTorch's `requires_grad = False` on the frozen networks), with no graph
 //! bookkeeping, in buffers kept from step to step. Each step splits its batch into one shard of
 //! sequences per worker thread ([`Dreamer::set_workers`], [`crate::shards`]): the shards run the
@@ -69,11 +69,9 @@ use ctxrace_common::agents::{DreamerConfig, ImaginationContext, CONTEXT_DIM};
 use ctxrace_common::nn::dreamer::{mask_value, normal_rows, state_head, PolicyNets};
 use ctxrace_common::nn::initial_weights::init_dreamer;
 use ctxrace_common::nn::kernels::matmul_flops;
-use ctxrace_common::nn::plain::{
-    load_safetensors, polyak, to_safetensors, MlpGrads, MlpTrace, Parameters, PlainMlp,
-};
+use ctxrace_common::nn::parameters::{load_safetensors, polyak, to_safetensors};
 use ctxrace_common::nn::tanh_gaussian::squash_rows;
-use ctxrace_common::nn::{TwoHot, Weights};
+use ctxrace_common::nn::{Mlp, MlpGrads, MlpTrace, Parameters, TwoHot, Weights};
 use ctxrace_common::policy::DreamerPolicy;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -95,8 +93,8 @@ pub struct Dreamer {
     /// Encoder, RSSM, actor and (cMask) mask actor.
     policy: PolicyNets,
     world_model: WorldModel,
-    critic: PlainMlp,
-    slow_critic: PlainMlp,
+    critic: Mlp,
+    slow_critic: Mlp,
     twohot: TwoHot,
     actor_opt: Adam,
     critic_opt: Adam,
@@ -488,9 +486,9 @@ mod tests {
     use crate::world_model::oracle;
     use candle_core::{Device, Module, Tensor};
     use ctxrace_common::agents::{ContextMode, ImaginationLoss, MaskConfig, MaskSpace};
-    use ctxrace_common::nn::dreamer::{normals_per, uniforms_per, DreamerNets};
     use ctxrace_common::nn::kernels::soft_cross_entropy;
-    use ctxrace_common::nn::{Mlp, ParamStore, RssmState};
+    use ctxrace_common::nn::oracle::dreamer::{normals_per, uniforms_per};
+    use ctxrace_common::nn::oracle::{DreamerNets, Mlp as CandleMlp, ParamStore, RssmState};
     use ctxrace_common::SequenceBatch;
     use rand::Rng;
 
@@ -694,7 +692,7 @@ mod tests {
     }
 
     /// The outputs of `net` on `rows` rows `x`.
-    fn outputs(net: &PlainMlp, x: &[f32], rows: usize) -> Vec<f32> {
+    fn outputs(net: &Mlp, x: &[f32], rows: usize) -> Vec<f32> {
         let mut trace = net.trace(rows);
         net.forward(x, &mut trace, 0..rows);
         net.output(&trace, 0..rows).to_vec()
@@ -905,7 +903,7 @@ mod tests {
 
     #[test]
     fn world_model_losses_fall_on_point_mass_data() {
-        ctxrace_common::nn::candle_on_one_thread();
+        ctxrace_common::nn::oracle::candle_on_one_thread();
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         let data = collect(40, &mut rng);
         // the best constant reward prediction scores the entropy of the mean two-hot target
@@ -961,11 +959,11 @@ mod tests {
     struct Oracle {
         policy: ParamStore,
         nets: DreamerNets,
-        reward: Mlp,
-        cont: Mlp,
+        reward: CandleMlp,
+        cont: CandleMlp,
         critic_store: ParamStore,
-        critic: Mlp,
-        slow: Mlp,
+        critic: CandleMlp,
+        slow: CandleMlp,
     }
 
     impl Oracle {
@@ -1430,7 +1428,7 @@ mod tests {
     /// Trains an agent of `mode` for 300 steps on random point-mass data and returns the mean
     /// returns of its deterministic policy and of a random one over the same starts.
     fn point_mass_returns(mode: ContextMode) -> (f64, f64) {
-        ctxrace_common::nn::candle_on_one_thread();
+        ctxrace_common::nn::oracle::candle_on_one_thread();
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         let data = collect(60, &mut rng);
         let cfg = DreamerConfig {

@@ -38,14 +38,14 @@ use crate::algorithm::{Algorithm, Batch, Metrics};
 use crate::checkpoint;
 pub use crate::sac_core::SacError;
 pub(crate) use crate::sac_core::{
-    ActionRange, PassSum, PlainActor, SoftTarget, WeightedTransitions, Workspace,
+    ActionRange, ActorNet, PassSum, SoftTarget, WeightedTransitions, Workspace,
 };
 use crate::sac_core::{
     ActorPass, BlobNames, CoreConfig, CriticPass, LearningRates, Passes, SacCore,
 };
 use ctxrace_common::nn::kernels::matmul_flops;
-use ctxrace_common::nn::plain::{ctxrace_draw, init, load_safetensors, to_safetensors, PlainMlp};
-use ctxrace_common::nn::{Activation, MlpShape, Weights};
+use ctxrace_common::nn::parameters::{ctxrace_draw, init, load_safetensors, to_safetensors};
+use ctxrace_common::nn::{Activation, Mlp, MlpShape, Weights};
 use ctxrace_common::policy::SacPolicy;
 use ctxrace_common::{SacConfig, TransitionBatch};
 use rand::{Rng, SeedableRng};
@@ -70,7 +70,7 @@ pub struct Sac {
     obs_dim: usize,
     act_dim: usize,
     /// The actor's network `o ↦ [mean, log σ]`, tensors named `l0.fc.weight`, ….
-    actor: PlainMlp,
+    actor: Mlp,
     /// The actor's `log σ` bounds.
     log_std_clamp: [f32; 2],
     /// The critics, targets, temperature and optimisers.
@@ -114,7 +114,7 @@ impl Sac {
             out: Some(2 * act_dim),
             act: Activation::Relu,
         };
-        let mut actor = PlainMlp::from_weights(&mut Weights::initial(), "", &shape)?;
+        let mut actor = Mlp::from_weights(&mut Weights::initial(), "", &shape)?;
         init(&mut actor, cfg.seed);
         let core = SacCore::new(
             CoreConfig {
@@ -273,7 +273,7 @@ impl Passes for BatchPasses<'_> {
 
     fn critic(
         &mut self,
-        nets: (&[PlainMlp; 2], &[PlainMlp; 2], PlainActor),
+        nets: (&[Mlp; 2], &[Mlp; 2], ActorNet),
         soft: SoftTarget,
     ) -> Result<CriticPass, SacError> {
         let b = self.rows.weight.len();
@@ -288,7 +288,7 @@ impl Passes for BatchPasses<'_> {
 
     fn actor(
         &mut self,
-        nets: (&[PlainMlp; 2], PlainActor),
+        nets: (&[Mlp; 2], ActorNet),
         with: (f32, ActionRange),
     ) -> Result<ActorPass, SacError> {
         let noise = self.noise.normal(self.rows.weight.len());
@@ -346,8 +346,8 @@ mod tests {
     use crate::candle_sac::TwinQ;
     use candle_core::{Device, Tensor};
     use candle_nn::Init;
-    use ctxrace_common::nn::plain::Parameters;
-    use ctxrace_common::nn::{ParamStore, TanhGaussianActor};
+    use ctxrace_common::nn::oracle::{ParamStore, TanhGaussianActor};
+    use ctxrace_common::nn::Parameters;
     use std::collections::BTreeMap;
 
     /// `b` random transitions with observations in `[−1, 1]^o` and actions in `[−1, 1]^a`.
@@ -564,7 +564,7 @@ mod tests {
             rows: weighted(&batch, &weight),
             noise,
         };
-        let view = PlainActor {
+        let view = ActorNet {
             net: &sac.actor,
             log_std_clamp: sac.log_std_clamp,
         };
@@ -661,7 +661,7 @@ mod tests {
 
         fn critic(
             &mut self,
-            nets: (&[PlainMlp; 2], &[PlainMlp; 2], PlainActor),
+            nets: (&[Mlp; 2], &[Mlp; 2], ActorNet),
             soft: SoftTarget,
         ) -> Result<CriticPass, SacError> {
             let noise = self.noise.normal(self.batch.batch);
@@ -670,7 +670,7 @@ mod tests {
 
         fn actor(
             &mut self,
-            nets: (&[PlainMlp; 2], PlainActor),
+            nets: (&[Mlp; 2], ActorNet),
             with: (f32, ActionRange),
         ) -> Result<ActorPass, SacError> {
             let noise = self.noise.normal(self.batch.batch);
@@ -1084,7 +1084,7 @@ mod tests {
 
     #[test]
     fn learns_to_centre_a_point_mass() {
-        ctxrace_common::nn::candle_on_one_thread();
+        ctxrace_common::nn::oracle::candle_on_one_thread();
         // seeds 1..=5 give final |x| 0.003–0.021 (random 0.47–0.60) as well
         let (learned, random) = train_point_mass(0);
         assert!(random > 0.3, "random policy final |x| {random}");

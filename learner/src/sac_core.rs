@@ -9,18 +9,18 @@
 //! noise they draw is the caller's too ([`Passes`]): SAC's on its whole batch, the mask SAC's on
 //! shards of masked transitions in parallel. The passes ([`Workspace::critic_pass`],
 //! [`Workspace::actor_pass`]) differentiate the losses by hand on the networks' own buffers
-//! (`ctxrace_common::nn::plain`, the squashing's backward pass in
+//! (`ctxrace_common::nn`, the squashing's backward pass in
 //! `ctxrace_common::nn::tanh_gaussian`): at SAC's batch of 100 rows the matrix products are small
 //! and candle's per-operation bookkeeping was a third of a step. candle is the tests' oracle.
 
 use crate::adam::{Adam, AdamError};
 use crate::checkpoint;
-use ctxrace_common::nn::plain::{
-    init_with, polyak, to_safetensors, update_each, Draw, InputGrad, MlpGrads, MlpTrace,
-    NamedTensor, Parameters, PlainMlp,
-};
+use ctxrace_common::nn::parameters::{init_with, polyak, to_safetensors, update_each, Draw};
 use ctxrace_common::nn::tanh_gaussian::{squash_rows, squash_rows_backward};
-use ctxrace_common::nn::{Activation, MlpShape, Weights, WeightsError};
+use ctxrace_common::nn::{
+    Activation, InputGrad, Mlp, MlpGrads, MlpShape, MlpTrace, NamedTensor, Parameters, Weights,
+    WeightsError,
+};
 use std::path::Path;
 
 /// Why a SAC agent could not be built, stepped, saved or restored.
@@ -69,7 +69,7 @@ pub enum SacError {
 #[derive(Clone)]
 pub(crate) struct TwinCritics {
     /// `[Q_1, Q_2]`.
-    pub(crate) q: [PlainMlp; 2],
+    pub(crate) q: [Mlp; 2],
 }
 
 impl TwinCritics {
@@ -92,8 +92,8 @@ impl TwinCritics {
         let mut weights = Weights::initial();
         let mut critics = Self {
             q: [
-                PlainMlp::from_weights(&mut weights, "q1.", &shape)?,
-                PlainMlp::from_weights(&mut weights, "q2.", &shape)?,
+                Mlp::from_weights(&mut weights, "q1.", &shape)?,
+                Mlp::from_weights(&mut weights, "q2.", &shape)?,
             ],
         };
         init_with(&mut critics, seed, draw);
@@ -217,7 +217,7 @@ pub(crate) trait Passes {
     /// the passes' own, if any), summed.
     fn critic(
         &mut self,
-        nets: (&[PlainMlp; 2], &[PlainMlp; 2], PlainActor),
+        nets: (&[Mlp; 2], &[Mlp; 2], ActorNet),
         soft: SoftTarget,
     ) -> Result<CriticPass, Self::Error>;
 
@@ -225,7 +225,7 @@ pub(crate) trait Passes {
     /// `with`, summed.
     fn actor(
         &mut self,
-        nets: (&[PlainMlp; 2], PlainActor),
+        nets: (&[Mlp; 2], ActorNet),
         with: (f32, ActionRange),
     ) -> Result<ActorPass, Self::Error>;
 }
@@ -270,7 +270,7 @@ impl SacCore {
     /// configurations check it, naming their key).
     pub(crate) fn new(
         cfg: CoreConfig,
-        actor: &PlainMlp,
+        actor: &Mlp,
         draw: &dyn Fn(&NamedTensor) -> Draw,
     ) -> Result<Self, WeightsError> {
         let critics = TwinCritics::new(cfg.input, cfg.hidden, cfg.layers, cfg.seed, draw)?;
@@ -298,7 +298,7 @@ impl SacCore {
     /// the targets, on the transitions of `passes`.
     pub(crate) fn step<P: Passes>(
         &mut self,
-        (actor, log_std_clamp): (&mut PlainMlp, [f32; 2]),
+        (actor, log_std_clamp): (&mut Mlp, [f32; 2]),
         passes: &mut P,
         step: u64,
     ) -> Result<StepLosses, P::Error> {
@@ -310,7 +310,7 @@ impl SacCore {
             bounds: self.cfg.bounds,
             smoothing: &[],
         };
-        let view = PlainActor {
+        let view = ActorNet {
             net: actor,
             log_std_clamp,
         };
@@ -356,7 +356,7 @@ impl SacCore {
 
     /// Restores what [`SacCore::blobs`] wrote into `dir` under `names`.
     pub(crate) fn load(&mut self, dir: &Path, names: &BlobNames) -> checkpoint::Result<()> {
-        use ctxrace_common::nn::plain::load_safetensors as load;
+        use ctxrace_common::nn::parameters::load_safetensors as load;
         checkpoint::load_blob(dir, names.critic, |b| load(&mut self.critics, b))?;
         checkpoint::load_blob(dir, names.target, |b| load(&mut self.targets, b))?;
         checkpoint::load_blob(dir, names.alpha, |b| load(&mut self.log_alpha, b))?;
@@ -392,7 +392,7 @@ impl ActionRange {
         scale: 1.0,
         shift: 0.0,
     };
-    /// `[0, 1]`: cMask's mask ([`ctxrace_common::nn::dreamer::mask_sample`]).
+    /// `[0, 1]`: cMask's mask (the oracle's `mask_sample`).
     pub(crate) const UNIT: Self = Self {
         scale: 0.5,
         shift: 0.5,
@@ -416,8 +416,8 @@ pub(crate) struct SoftTarget<'a> {
 
 /// An actor's network with the bounds of its log standard deviation.
 #[derive(Clone, Copy)]
-pub(crate) struct PlainActor<'a> {
-    pub(crate) net: &'a PlainMlp,
+pub(crate) struct ActorNet<'a> {
+    pub(crate) net: &'a Mlp,
     pub(crate) log_std_clamp: [f32; 2],
 }
 
@@ -478,7 +478,7 @@ impl Workspace {
     /// the smoothing noise added and clamped to the target's bounds.
     pub(crate) fn critic_pass(
         &mut self,
-        (critics, targets, actor): (&[PlainMlp; 2], &[PlainMlp; 2], PlainActor),
+        (critics, targets, actor): (&[Mlp; 2], &[Mlp; 2], ActorNet),
         tr: &WeightedTransitions,
         noise: &[f32],
         soft: SoftTarget,
@@ -526,7 +526,7 @@ impl Workspace {
     /// through `critics`, `ã` drawn with `noise`; the observations `obs` and weights `w`.
     pub(crate) fn actor_pass(
         &mut self,
-        (critics, actor): (&[PlainMlp; 2], PlainActor),
+        (critics, actor): (&[Mlp; 2], ActorNet),
         (obs, weight): (&[f32], &[f32]),
         noise: &[f32],
         (alpha, range): (f32, ActionRange),
@@ -582,7 +582,7 @@ impl Workspace {
     /// log-probabilities (the outputs kept in the actor's trace, `tanh u` in `self.tanh`).
     fn sample(
         &mut self,
-        actor: PlainActor,
+        actor: ActorNet,
         obs: &[f32],
         noise: &[f32],
         range: ActionRange,

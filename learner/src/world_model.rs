@@ -9,11 +9,11 @@
 //! `pred + 0.5 max(1, KL(sg q ‖ p)) + 0.1 max(1, KL(q ‖ sg p))`, averaged. One Adam (after
 //! global-norm clipping) steps the encoder, the RSSM and the heads.
 //!
-//! The step is differentiated by hand on plain buffers (`ctxrace_common::nn::plain`): the
+//! The step is differentiated by hand on plain buffers (`ctxrace_common::nn`): the
 //! sequence loop of the RSSM over `T` steps of a few rows each was mostly candle's per-operation
 //! bookkeeping. Backward: the heads' and the prior's gradients of the posterior states, the KL
 //! terms' of the posterior and prior logits (`∂ max(1, KL) = 0` below the free nats), then the
-//! loop from the last step back ([`PlainRssm::observe_backward`]) to the embeddings, and the
+//! loop from the last step back ([`Rssm::observe_backward`]) to the embeddings, and the
 //! encoder. Everything runs time-major (row `t B + b`); the starts go out batch-major.
 //!
 //! `[agent.dreamer] step_alignment = "paper-code"` reads the rows as the paper's code stores
@@ -21,7 +21,7 @@
 //! action enters the sequence model before that row's posterior), the encoder reads
 //! `symlog [o_t, a_t]` and the decoder reconstructs it (its action target zeroed where an
 //! episode starts inside a sequence, as the code leaves it). `initial_state = "learned"` starts
-//! the sequences from the learned state ([`PlainRssm::initial_state`]), which the loss trains.
+//! the sequences from the learned state ([`Rssm::initial_state`]), which the loss trains.
 //!
 //! The encoder and the RSSM are the acting policy's ([`PolicyNets`]: the actors run them); the
 //! model holds the heads and trains all of them in place.
@@ -33,12 +33,15 @@ use crate::shards::{add_part, on_shards_with, weighted_mean};
 use ctxrace_common::agents::{DreamerConfig, StepAlignment};
 use ctxrace_common::nn::dreamer::{state_head, uniform_rows, PolicyNets};
 use ctxrace_common::nn::initial_weights::init_dreamer;
-use ctxrace_common::nn::plain::{
+use ctxrace_common::nn::losses::{
     categorical_kl, categorical_kl_backward, soft_cross_entropy, soft_cross_entropy_backward,
-    update_each, InputGrad, MlpGrads, MlpTrace, NamedTensor, NonZeros, ObserveTrace, Parameters,
-    PlainMlp, PlainRssm, RssmGrads,
 };
+use ctxrace_common::nn::parameters::update_each;
 use ctxrace_common::nn::{symlog_value as symlog, TwoHot, Weights};
+use ctxrace_common::nn::{
+    InputGrad, Mlp, MlpGrads, MlpTrace, NamedTensor, NonZeros, ObserveTrace, Parameters, Rssm,
+    RssmGrads,
+};
 use ctxrace_common::SequenceBatch;
 use rand_chacha::ChaCha8Rng;
 
@@ -69,9 +72,9 @@ pub(crate) fn zero_tensor<P: Parameters + ?Sized>(net: &mut P, name: &str) {
 
 /// The decoder, reward and continue heads on `[h, z, c]` (the "heads" weights).
 pub(crate) struct Heads {
-    pub(crate) decoder: PlainMlp,
-    pub(crate) reward: PlainMlp,
-    pub(crate) cont: PlainMlp,
+    pub(crate) decoder: Mlp,
+    pub(crate) reward: Mlp,
+    pub(crate) cont: Mlp,
 }
 
 impl Heads {
@@ -126,11 +129,11 @@ pub(crate) struct WorldModel {
 
 /// The networks of one step.
 struct Nets<'a> {
-    encoder: &'a PlainMlp,
-    rssm: &'a PlainRssm,
-    decoder: &'a PlainMlp,
-    reward: &'a PlainMlp,
-    cont: &'a PlainMlp,
+    encoder: &'a Mlp,
+    rssm: &'a Rssm,
+    decoder: &'a Mlp,
+    reward: &'a Mlp,
+    cont: &'a Mlp,
 }
 
 /// A shard's gradients of every parameter of the model.
@@ -582,9 +585,9 @@ pub(crate) mod oracle {
     //! The networks as candle modules holding the plain networks' weights: the tests' oracle.
     use super::*;
     use candle_core::backprop::GradStore;
-    use ctxrace_common::nn::dreamer::DreamerNets;
-    use ctxrace_common::nn::plain::to_safetensors;
-    use ctxrace_common::nn::{Activation, Mlp, ParamStore};
+    use ctxrace_common::nn::oracle::{DreamerNets, Mlp as CandleMlp, ParamStore};
+    use ctxrace_common::nn::parameters::to_safetensors;
+    use ctxrace_common::nn::Activation;
 
     /// A candle head on `[h, z, c]` of `cfg` under `vb` ([`state_head`]'s).
     pub(crate) fn head(
@@ -592,10 +595,10 @@ pub(crate) mod oracle {
         vb: candle_nn::VarBuilder,
         (units, layers): (usize, usize),
         out: usize,
-    ) -> Mlp {
+    ) -> CandleMlp {
         let (d, z) = (cfg.deter, cfg.stoch * cfg.classes);
         let input = d + z + cfg.context.context_dim();
-        Mlp::new(input, units, layers, Some(out), Activation::SiluNorm, vb)
+        CandleMlp::new(input, units, layers, Some(out), Activation::SiluNorm, vb)
             .unwrap()
             .sparse_inputs(d..d + z)
     }
@@ -627,7 +630,7 @@ pub(crate) mod oracle {
         cfg: &DreamerConfig,
         (obs_dim, act_dim): (usize, usize),
         heads: &Heads,
-    ) -> (ParamStore, [Mlp; 3]) {
+    ) -> (ParamStore, [CandleMlp; 3]) {
         store_of(heads, |vb| {
             let size = (cfg.head_units, cfg.head_layers);
             let decoded = cfg.encoder_inputs(obs_dim, act_dim);
@@ -683,8 +686,10 @@ mod tests {
     use crate::sequences::SeqData;
     use candle_core::{Device, Module, Tensor};
     use ctxrace_common::agents::{ContextMode, InitialState};
-    use ctxrace_common::nn::dreamer::{uniforms_per, DreamerNets};
-    use ctxrace_common::nn::{symlog as symlog_tensor, Mlp, ParamStore, RssmState};
+    use ctxrace_common::nn::oracle::dreamer::uniforms_per;
+    use ctxrace_common::nn::oracle::{
+        symlog as symlog_tensor, DreamerNets, Mlp as CandleMlp, ParamStore, RssmState,
+    };
     use rand::{Rng, SeedableRng};
 
     /// The world model's loss on `d` (its actions `[B, T, A]`) composed of candle operations on
@@ -693,7 +698,7 @@ mod tests {
     /// noise from `rngs`.
     fn candle_loss(
         m: &WorldModel,
-        (nets, [decoder, reward, cont]): (&DreamerNets, &[Mlp; 3]),
+        (nets, [decoder, reward, cont]): (&DreamerNets, &[CandleMlp; 3]),
         (d, actions): (&SeqData, &Tensor),
         ctx: Option<&Tensor>,
         rngs: &mut [ChaCha8Rng],
@@ -862,7 +867,7 @@ mod tests {
                 ..form.clone()
             };
             let mut policy = PolicyNets::from_weights(&cfg, 3, 2, &mut Weights::initial()).unwrap();
-            ctxrace_common::nn::plain::init(&mut policy, 4);
+            ctxrace_common::nn::parameters::init(&mut policy, 4);
             // a learned initial state away from zero, where its prior's classes do not tie
             randomise(&mut policy, |n| n == "rssm.initial_state.w", 1.0, 1);
             let mut model = WorldModel::new(&cfg, (3, 2), &mut policy).unwrap();
@@ -1028,7 +1033,7 @@ mod tests {
             let input = Tensor::from_slice(&w.input, (t_len, w.input.len() / t_len), dev).unwrap();
             let embed = nets.encoder.forward(&input).unwrap();
             let embed_rows: Vec<f32> = embed.flatten_all().unwrap().to_vec1().unwrap();
-            let plain = PlainRssm::new(&nets.rssm).unwrap();
+            let plain = Rssm::from_oracle(&nets.rssm).unwrap();
             let mut trace = ObserveTrace::default();
             let inputs = (&embed_rows[..], &w.action[..], &w.ctx[..], &w.keep[..]);
             plain.observe(1, inputs, &w.uniform, &mut trace);

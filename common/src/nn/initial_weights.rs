@@ -15,7 +15,7 @@
 //! | LayerNorm gains, the learned initial state, `log α` | as built (one, zero, `ln α₀`) |
 
 use crate::agents::{DreamerConfig, WeightInit};
-use crate::nn::plain::{ctxrace_draw, fan_avg_draw, init_with, Draw, NamedTensor, Parameters};
+use crate::nn::parameters::{ctxrace_draw, fan_avg_draw, init_with, Draw, NamedTensor, Parameters};
 
 /// Draws the networks `net` of a DreamerV3-family agent of `cfg` for observations of `obs_dim`
 /// and actions of `act_dim` from `seed`, as `cfg.init` says.

@@ -1,52 +1,36 @@
-//! The networks shared by acting and training (plain buffers, CPU, f32); candle's modules and
-//! custom ops are the tests' oracle only (`cfg(test)` or the `oracle` feature).
+//! The networks shared by acting and training, on plain row-major `f32` buffers (CPU),
+//! differentiated by hand; candle's modules are the tests' oracle only ([`oracle`]: `cfg(test)`
+//! or the `oracle` feature).
+//!
+//! - [`layer`]: a layer and an MLP ([`Layer`], [`Mlp`]), their traces and gradients.
+//! - [`rssm`]: DreamerV3's RSSM with the cRSSM context ([`Rssm`]).
+//! - [`dreamer`]: the networks that act ([`dreamer::PolicyNets`]), the heads on the model state,
+//!   the noise both the learner and the actors draw.
+//! - [`tanh_gaussian`]: SAC's squashed Gaussian on rows; [`symlog`]: symlog and the two-hot
+//!   targets; [`losses`]: the row losses (two-hot decoding, cross-entropy, categorical KL).
+//! - [`parameters`]: the trainable tensors where the networks keep them (visited by name: seeded
+//!   draws, safetensors, Polyak); [`weights`]: tensors read by name from safetensors;
+//!   [`initial_weights`]: which draw each DreamerV3 tensor takes.
+//! - [`kernels`]: the fused row kernels and gemm products the passes run on.
 
-#[cfg(any(test, feature = "oracle"))]
-pub mod dense;
 pub mod dreamer;
 pub mod initial_weights;
 pub mod kernels;
-pub mod mlp;
+pub mod layer;
+pub mod losses;
 #[cfg(any(test, feature = "oracle"))]
-pub mod norm;
-#[cfg(any(test, feature = "oracle"))]
-pub mod params;
-pub mod plain;
+pub mod oracle;
+pub mod parameters;
 pub mod rssm;
 pub mod symlog;
 pub mod tanh_gaussian;
 pub mod weights;
 
 pub use kernels::NormAct;
-pub use mlp::{Activation, MlpShape};
-pub use rssm::RssmConfig;
+pub use layer::{
+    Activation, InputGrad, Layer, LayerGrads, Mlp, MlpGrads, MlpShape, MlpTrace, NonZeros, Rows,
+};
+pub use parameters::{NamedTensor, Parameters};
+pub use rssm::{ObserveTrace, Rssm, RssmConfig, RssmGrads, StepScratch, StepTrace};
 pub use symlog::{symlog_value, TwoHot};
 pub use weights::{Weights, WeightsError};
-
-// candle's modules: the tests' oracle (`oracle` feature)
-#[cfg(any(test, feature = "oracle"))]
-pub use dense::Dense;
-#[cfg(any(test, feature = "oracle"))]
-pub use mlp::{HiddenBlock, Mlp};
-#[cfg(any(test, feature = "oracle"))]
-pub use norm::LayerNorm;
-#[cfg(any(test, feature = "oracle"))]
-pub use params::ParamStore;
-#[cfg(any(test, feature = "oracle"))]
-pub use rssm::{Gru, Rssm, RssmState};
-#[cfg(any(test, feature = "oracle"))]
-pub use symlog::symlog;
-#[cfg(any(test, feature = "oracle"))]
-pub use tanh_gaussian::TanhGaussianActor;
-
-/// Makes candle's own kernels run on the calling thread, for the tests' candle oracles (no
-/// production code runs candle: the networks, the learner's and the actors', run the plain
-/// passes on gemm without its thread pool). The learner splits a batch over the worker threads
-/// it is given instead; candle's threads spin against them on small products, and unset,
-/// candle re-derives its thread count on every product. candle reads these settings from the
-/// environment only, so this sets `RAYON_NUM_THREADS` and `CANDLE_NUM_THREADS`.
-#[cfg(any(test, feature = "oracle"))]
-pub fn candle_on_one_thread() {
-    std::env::set_var("RAYON_NUM_THREADS", "1");
-    std::env::set_var("CANDLE_NUM_THREADS", "1");
-}

@@ -1,29 +1,34 @@
-//! DreamerV3's recurrent state-space model, with the cRSSM context input.
+//! The RSSM on plain buffers: the imagination step, frozen (its backward pass gives the
+//! gradients of the state and the action, none of its weights), and the observation loop over a
+//! batch of sequences, trained (the world model's).
 //!
-//! The state is a deterministic part `h_t` (a GRU state) and a stochastic part `z_t`: `S` one-hot
-//! categorical variables of `C` classes each.
-//! - Sequence model: `h_t = GRU(h_{t−1}, f([z_{t−1}, a_{t−1}, c]))` with
-//!   `f = SiLU ∘ LayerNorm ∘ Linear`; the context `c` is cRSSM's (absent for DreamerV3).
-//! - Prior `p(z_t | h_t)` and posterior `q(z_t | h_t, e_t)` from the observation embedding `e_t`,
-//!   each one hidden layer then logits `[S, C]`, mixed with 1 % uniform (`unimix`).
-//! - GRU (DreamerV3's): `[r, ĉ, u] = LN(W [x, h])`, `h' = σ(u − 1) tanh(σ(r) ĉ) + (1 − σ(u − 1)) h`:
-//!   the −1 bias makes the cell keep its state by default.
+//! A state row is `[h, z, c]` (`D + Z + c` values: GRU state, one-hot sample, context). One step
+//! from `s_t` and the action `a_t`:
 //!
-//! Samples use the Gumbel-max trick on noise the caller draws from its own seeded generator, and
-//! pass gradients straight through: `z = onehot + p − sg(p)` ([`kernels::straight_through_sample`]).
+//! ```text
+//! u = SiLU(LN([z, a, c] W_inᵀ))                    the sequence model's input
+//! g = LN([u, h] W_gᵀ),  h' = GRU(g, h)             kernels::gru_gates
+//! l = SiLU(LN(h' W_pᵀ)) W_oᵀ + b_o                 the prior's logits
+//! z' = onehot(argmax(ln p(l) + Gumbel)),           straight through: ∂l = ∂p/∂l ∂z'
+//! ```
+//!
+//! and backward, from the gradients of `s_{t+1}`: `∂l`, then `∂h'` (its own plus the prior's),
+//! the GRU's `∂g` and `∂h`, `∂u` and `∂h` through `W_g`, and `∂z`, `∂a` through `W_in`.
+//!
+//! An observation step is the same sequence model from the previous posterior state (the initial
+//! state, and a zero action, where a sequence starts anew: zeros, or the learned `h_0 = tanh(w)`
+//! and `z_0` the mode of the prior `p(z | h_0)` with its gradient straight through `ln p`), then
+//! the posterior
+//! `l = SiLU(LN([h', e] W_qᵀ)) W_rᵀ + b_r` of the observation's embedding `e` instead of the
+//! prior. Backward, its steps from the last to the first pass `∂h` and `∂z` on to the step
+//! before and `∂e` to the encoder; the layers' weight gradients are one product each over all
+//! the steps' rows at the end, not one thin product per step.
 
-#[cfg(any(test, feature = "oracle"))]
-use super::dense::Dense;
-#[cfg(any(test, feature = "oracle"))]
-use super::kernels::{self, NormAct};
-#[cfg(any(test, feature = "oracle"))]
-use super::norm::LayerNorm;
-#[cfg(any(test, feature = "oracle"))]
-use super::params::ParamStore;
-#[cfg(any(test, feature = "oracle"))]
-use candle_core::{DType, Device, Result, Tensor, D};
-#[cfg(any(test, feature = "oracle"))]
-use candle_nn::VarBuilder;
+use super::layer::{InputGrad, Layer, LayerGrads, Mlp, MlpGrads, MlpTrace};
+use super::parameters::{update_each, NamedTensor, Parameters};
+use super::weights::{Weights, WeightsError};
+use crate::nn::kernels::{gru_rows, gru_rows_bwd, probs_rows_bwd, sample_rows, NormAct, Unimix};
+use std::ops::Range;
 
 /// Sizes of the RSSM.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -44,197 +49,274 @@ pub struct RssmConfig {
     pub embed_dim: usize,
     /// Context size fed to the sequence model (0 for DreamerV3, 2 for cRSSM and cMask).
     pub context_dim: usize,
-    /// Sequences start from a learned state ([`Rssm::initial`]) rather than from zeros.
+    /// Sequences start from a learned state ([`Rssm::initial_state`]) rather than from zeros.
     pub learned_initial: bool,
 }
 
-/// A batch of RSSM states.
-#[cfg(any(test, feature = "oracle"))]
-#[derive(Clone, Debug)]
-pub struct RssmState {
-    /// `[B, deter]`.
-    pub deter: Tensor,
-    /// `[B, stoch · classes]`, one-hot per variable (with straight-through gradients).
-    pub stoch: Tensor,
-}
-
-#[cfg(any(test, feature = "oracle"))]
-impl RssmState {
-    /// The same state cut from the graph that computed it: gradients stop here, and the
-    /// operations (and tensors) behind it can be freed.
-    pub fn detach(&self) -> Self {
-        Self {
-            deter: self.deter.detach(),
-            stoch: self.stoch.detach(),
-        }
-    }
-
-    /// The model features `[h, z]`, `[B, deter + stoch · classes]`.
-    pub fn feat(&self) -> Result<Tensor> {
-        Tensor::cat(&[&self.deter, &self.stoch], D::Minus1)
-    }
-
-    /// The heads' input `[h, z, c]` (`[h, z]` without a context), in one concatenation.
-    pub fn head_input(&self, ctx: Option<&Tensor>) -> Result<Tensor> {
-        match ctx {
-            Some(c) => Tensor::cat(&[&self.deter, &self.stoch, c], D::Minus1),
-            None => self.feat(),
-        }
-    }
-}
-
-/// A `Linear → LayerNorm → act` block (SiLU, or the identity before the GRU's gates).
-#[cfg(any(test, feature = "oracle"))]
-#[derive(Clone, Debug)]
-struct NormBlock {
-    fc: Dense,
-    ln: LayerNorm,
-    act: NormAct,
-}
-
-#[cfg(any(test, feature = "oracle"))]
-impl NormBlock {
-    fn new(input: usize, out: usize, act: NormAct, vb: VarBuilder) -> Result<Self> {
-        Ok(Self {
-            fc: Dense::new(input, out, false, vb.pp("fc"))?,
-            ln: LayerNorm::new(out, 1e-3, vb.pp("ln"))?,
-            act,
-        })
-    }
-
-    /// The same block told that its input columns `columns` are mostly zero.
-    fn sparse_inputs(self, columns: std::ops::Range<usize>) -> Self {
-        Self {
-            fc: self.fc.sparse_inputs(columns),
-            ..self
-        }
-    }
-
-    fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        self.fc.forward_norm_act(x, &self.ln, self.act)
-    }
-
-    fn frozen(&self) -> Self {
-        Self {
-            fc: self.fc.frozen(),
-            ln: self.ln.frozen(),
-            act: self.act,
-        }
-    }
-}
-
-/// DreamerV3's GRU cell with a LayerNorm on the gates and update bias −1.
-#[cfg(any(test, feature = "oracle"))]
-#[derive(Clone, Debug)]
-pub struct Gru {
-    /// `LN(W [x, h])`, the normalised gates `[r, ĉ, u]` (parameters `fc`, `ln`).
-    gates: NormBlock,
-}
-
-#[cfg(any(test, feature = "oracle"))]
-impl Gru {
-    /// A cell from `input` features to a state of `size`.
-    pub fn new(input: usize, size: usize, vb: VarBuilder) -> Result<Self> {
-        let gates = NormBlock::new(input + size, 3 * size, NormAct::Identity, vb)?;
-        Ok(Self { gates })
-    }
-
-    /// The next state.
-    pub fn forward(&self, x: &Tensor, h: &Tensor) -> Result<Tensor> {
-        let parts = self.gates.forward(&Tensor::cat(&[x, h], D::Minus1)?)?;
-        kernels::gru_gates(&parts, h)
-    }
-
-    /// The same cell on detached (shared) parameters.
-    pub fn frozen(&self) -> Self {
-        Self {
-            gates: self.gates.frozen(),
-        }
-    }
-}
-
-/// The recurrent state-space model.
-#[cfg(any(test, feature = "oracle"))]
+/// DreamerV3's recurrent state-space model with the cRSSM context input (see the module doc).
 #[derive(Clone, Debug)]
 pub struct Rssm {
-    cfg: RssmConfig,
-    img_in: NormBlock,
-    gru: Gru,
-    prior_hidden: NormBlock,
-    prior_out: Dense,
-    post_hidden: NormBlock,
-    post_out: Dense,
-    /// The learned initial state's `w` (`[D]`, `h_0 = tanh(w)`), the parameter
-    /// `initial_state.w`; `None` where sequences start from zeros.
-    initial_w: Option<Tensor>,
+    pub(super) cfg: RssmConfig,
+    pub(super) img_in: Layer,
+    pub(super) gates: Layer,
+    /// The prior's hidden and output layers.
+    pub(super) prior: Mlp,
+    pub(super) post: Layer,
+    pub(super) post_out: Layer,
+    /// The learned initial state's `w` (`[D]`), if sequences start from it.
+    pub(super) initial_w: Option<Vec<f32>>,
+    /// The name of `initial_w` (empty for a model copied from the tests' candle oracle).
+    pub(super) initial_name: String,
 }
 
-#[cfg(any(test, feature = "oracle"))]
+/// The gradients of a [`Rssm`]'s parameters.
+#[derive(Clone, Debug)]
+pub struct RssmGrads {
+    img_in: LayerGrads,
+    gates: LayerGrads,
+    /// The prior's (which the world model runs as a [`Mlp`], [`Rssm::prior`]).
+    pub prior: MlpGrads,
+    post: LayerGrads,
+    post_out: LayerGrads,
+    /// The learned initial state's `w` (`[D]`; empty without one).
+    initial_w: Vec<f32>,
+}
+
+impl Parameters for Rssm {
+    fn tensors(&self) -> Vec<NamedTensor<'_>> {
+        let mut tensors: Vec<_> = self
+            .layers()
+            .into_iter()
+            .flat_map(|l| l.tensors())
+            .collect();
+        if let Some(w) = &self.initial_w {
+            tensors.push(NamedTensor {
+                name: &self.initial_name,
+                shape: vec![w.len()],
+                values: w,
+            });
+        }
+        tensors
+    }
+
+    fn update(&mut self, f: &mut dyn FnMut(usize, &mut [f32])) {
+        let (prior, prior_out) = match self.prior.layers.as_mut_slice() {
+            [prior, prior_out] => (prior, prior_out),
+            _ => return,
+        };
+        let layers = [
+            &mut self.img_in,
+            &mut self.gates,
+            prior,
+            prior_out,
+            &mut self.post,
+            &mut self.post_out,
+        ];
+        let first: usize = layers.iter().map(|l| l.tensors().len()).sum();
+        update_each(layers.map(|l| l as &mut dyn Parameters), f);
+        if let Some(w) = &mut self.initial_w {
+            f(first, w);
+        }
+    }
+}
+
+impl RssmGrads {
+    /// The gradients of `rssm`'s tensors in the order of [`Parameters::tensors`].
+    pub fn into_tensors(self, rssm: &Rssm) -> Vec<Vec<f32>> {
+        let mut out = Vec::new();
+        let mut prior = self.prior.layers.into_iter();
+        let grads = [
+            Some(self.img_in),
+            Some(self.gates),
+            prior.next(),
+            prior.next(),
+        ]
+        .into_iter()
+        .chain([Some(self.post), Some(self.post_out)]);
+        for (g, layer) in grads.zip(rssm.layers()) {
+            match g {
+                Some(g) => g.push_tensors(layer, &mut out),
+                None => out.extend(layer.tensors().iter().map(|_| Vec::new())),
+            }
+        }
+        if rssm.initial_w.is_some() {
+            out.push(self.initial_w);
+        }
+        out
+    }
+
+    /// `self += other` (the same model's).
+    pub fn add(&mut self, other: &Self) {
+        self.img_in.add(&other.img_in);
+        self.gates.add(&other.gates);
+        self.prior.add(&other.prior);
+        self.post.add(&other.post);
+        self.post_out.add(&other.post_out);
+        for (a, b) in self.initial_w.iter_mut().zip(&other.initial_w) {
+            *a += b;
+        }
+    }
+}
+
+/// The sequence model's buffers over some rows: from `[z, a, c]` and `h` to `h'`, and back.
+#[derive(Debug, Default)]
+struct SequenceTrace {
+    /// `[z, a, c]` `[rows, Z + A + c]` and `h` `[rows, D]`, the inputs.
+    input: Vec<f32>,
+    h_prev: Vec<f32>,
+    in_product: Vec<f32>,
+    /// `u` `[rows, hidden]`.
+    in_output: Vec<f32>,
+    /// `[u, h]` `[rows, hidden + D]`.
+    gru_input: Vec<f32>,
+    gate_product: Vec<f32>,
+    /// `g` `[rows, 3 D]`.
+    gates: Vec<f32>,
+    /// `h'` `[rows, D]`.
+    h: Vec<f32>,
+    /// Backward: the two products' gradients.
+    d_in_product: Vec<f32>,
+    d_gate_product: Vec<f32>,
+}
+
+/// What one imagination step over `N` rows keeps for its backward pass.
+#[derive(Debug, Default)]
+pub struct StepTrace {
+    sequence: SequenceTrace,
+    prior_product: Vec<f32>,
+    prior_output: Vec<f32>,
+    /// The prior's logits `[N, Z]` and the sample `z'`.
+    logits: Vec<f32>,
+    z_next: Vec<f32>,
+}
+
+/// The observation loop's buffers over `T` steps of `B` sequences, time-major (step `t` is the
+/// rows `t B … (t + 1) B − 1`), kept from one training step to the next.
+#[derive(Debug, Default)]
+pub struct ObserveTrace {
+    /// The sequence model over all the steps (`h_prev` zeroed where a sequence starts).
+    sequence: SequenceTrace,
+    /// The posterior samples `z'` `[T B, Z]` and logits `[T B, Z]`.
+    z: Vec<f32>,
+    logits: Vec<f32>,
+    /// `[h', e]`.
+    post_input: Vec<f32>,
+    post_product: Vec<f32>,
+    post_output: Vec<f32>,
+    /// Backward: the posterior's products' gradients of every step, for the weights' at the end.
+    d_post_product: Vec<f32>,
+    d_logits: Vec<f32>,
+    scratch: StepScratch,
+    /// The state the sequences start from.
+    initial: InitialTrace,
+}
+
+/// The initial state of an observation loop and its backward pass.
+#[derive(Debug, Default)]
+struct InitialTrace {
+    /// `h_0` `[D]` and `z_0` `[Z]` (zeros without a learned state).
+    h: Vec<f32>,
+    z: Vec<f32>,
+    /// The prior on `h_0` (a learned state's).
+    prior: MlpTrace,
+    /// Backward: `∂h_0` and `∂z_0`, summed over the rows that start from them, and `∂l_0`.
+    dh: Vec<f32>,
+    dz: Vec<f32>,
+    dl: Vec<f32>,
+}
+
+/// The backward passes' buffers of a [`Rssm`] step, reused from step to step.
+#[derive(Debug, Default)]
+pub struct StepScratch {
+    dz: Vec<f32>,
+    dl: Vec<f32>,
+    d_hidden: Vec<f32>,
+    d_product: Vec<f32>,
+    dh: Vec<f32>,
+    d_gates: Vec<f32>,
+    dh_direct: Vec<f32>,
+    du: Vec<f32>,
+}
+
+/// `v` resized to `n` values (zeros where it grows) as a slice.
+fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
+    v.resize(n, 0.0);
+    &mut v[..n]
+}
+
 impl Rssm {
-    /// Builds the model under `vb`.
-    pub fn new(cfg: RssmConfig, vb: VarBuilder) -> Result<Self> {
-        let (z, silu) = (cfg.stoch * cfg.classes, NormAct::Silu);
+    /// The model of `cfg` read from `weights` under the names the checkpoints give its
+    /// parameters, after `prefix` (`"rssm."`): `img_in`, `gru`, `prior`, `post` (each `fc`
+    /// and `ln`), `prior_out`, `post_out` and, with a learned initial state, `initial_state.w`.
+    pub fn from_weights(
+        weights: &mut Weights,
+        prefix: &str,
+        cfg: RssmConfig,
+    ) -> std::result::Result<Self, WeightsError> {
+        let z = cfg.stoch * cfg.classes;
+        let mut block = |name: &str, size, act| {
+            Layer::normalised_from_weights(weights, &format!("{prefix}{name}"), size, act)
+        };
+        let silu = NormAct::Silu;
+        let img_in = block(
+            "img_in",
+            (z + cfg.act_dim + cfg.context_dim, cfg.hidden),
+            silu,
+        )?
+        .sparse_inputs(0..z);
+        let gates = block(
+            "gru",
+            (cfg.hidden + cfg.deter, 3 * cfg.deter),
+            NormAct::Identity,
+        )?;
+        let prior = block("prior", (cfg.deter, cfg.hidden), silu)?;
+        let post = block("post", (cfg.deter + cfg.embed_dim, cfg.hidden), silu)?;
+        let mut linear = |name: &str| {
+            Layer::linear_from_weights(weights, &format!("{prefix}{name}"), (cfg.hidden, z))
+        };
+        let (prior_out, post_out) = (linear("prior_out")?, linear("post_out")?);
+        let initial_name = format!("{prefix}initial_state.w");
+        let initial_w = match cfg.learned_initial {
+            true => Some(weights.take(&initial_name, &[cfg.deter])?),
+            false => None,
+        };
         Ok(Self {
-            img_in: NormBlock::new(
-                z + cfg.act_dim + cfg.context_dim,
-                cfg.hidden,
-                silu,
-                vb.pp("img_in"),
-            )?
-            .sparse_inputs(0..z),
-            gru: Gru::new(cfg.hidden, cfg.deter, vb.pp("gru"))?,
-            prior_hidden: NormBlock::new(cfg.deter, cfg.hidden, silu, vb.pp("prior"))?,
-            prior_out: Dense::new(cfg.hidden, z, true, vb.pp("prior_out"))?,
-            post_hidden: NormBlock::new(
-                cfg.deter + cfg.embed_dim,
-                cfg.hidden,
-                silu,
-                vb.pp("post"),
-            )?,
-            post_out: Dense::new(cfg.hidden, z, true, vb.pp("post_out"))?,
-            initial_w: match cfg.learned_initial {
-                // a vector not named `bias`: [`ParamStore::init`] leaves it at zero
-                true => Some(vb.pp("initial_state").get_with_hints(
-                    cfg.deter,
-                    "w",
-                    candle_nn::Init::Const(0.0),
-                )?),
-                false => None,
-            },
             cfg,
+            img_in,
+            gates,
+            prior: Mlp {
+                layers: vec![prior, prior_out],
+            },
+            post,
+            post_out,
+            initial_w,
+            initial_name,
         })
     }
 
-    /// The same model on detached (shared) parameters: imagination through it passes gradients
-    /// to the states and actions but trains none of its weights.
-    pub fn frozen(&self) -> Self {
-        Self {
-            cfg: self.cfg,
-            img_in: self.img_in.frozen(),
-            gru: self.gru.frozen(),
-            prior_hidden: self.prior_hidden.frozen(),
-            prior_out: self.prior_out.frozen(),
-            post_hidden: self.post_hidden.frozen(),
-            post_out: self.post_out.frozen(),
-            initial_w: self.initial_w.as_ref().map(Tensor::detach),
-        }
+    /// Its layers in the order of [`Parameters::tensors`].
+    fn layers(&self) -> [&Layer; 6] {
+        let [prior, prior_out] = [&self.prior.layers[0], &self.prior.layers[1]];
+        let (img_in, gates, post, post_out) =
+            (&self.img_in, &self.gates, &self.post, &self.post_out);
+        [img_in, gates, prior, prior_out, post, post_out]
     }
 
-    /// Its blocks, each a layer and its normalisation and activation (none for the output
-    /// layers), in order: the input layer (`f` of the sequence model), the GRU's gates, the
-    /// prior's hidden and output layers, the posterior's hidden and output layers.
-    pub(crate) fn blocks(&self) -> [(&Dense, Option<(&LayerNorm, NormAct)>); 6] {
-        fn block(b: &NormBlock) -> (&Dense, Option<(&LayerNorm, NormAct)>) {
-            (&b.fc, Some((&b.ln, b.act)))
+    /// The prior's logits from `h` as a network of two layers (hidden, output).
+    pub fn prior(&self) -> &Mlp {
+        &self.prior
+    }
+
+    /// Zeroed gradients of the parameters.
+    pub fn zero_grads(&self) -> RssmGrads {
+        RssmGrads {
+            img_in: self.img_in.zero_grads(),
+            gates: self.gates.zero_grads(),
+            prior: self.prior.zero_grads(),
+            post: self.post.zero_grads(),
+            post_out: self.post_out.zero_grads(),
+            initial_w: vec![0.0; self.initial_w.as_ref().map_or(0, Vec::len)],
         }
-        [
-            block(&self.img_in),
-            block(&self.gru.gates),
-            block(&self.prior_hidden),
-            (&self.prior_out, None),
-            block(&self.post_hidden),
-            (&self.post_out, None),
-        ]
     }
 
     /// The sizes.
@@ -242,326 +324,636 @@ impl Rssm {
         &self.cfg
     }
 
-    /// The learned initial state's `w` (`[D]`), if sequences start from it.
-    pub fn initial_weight(&self) -> Option<&Tensor> {
-        self.initial_w.as_ref()
+    /// `(D, Z, c)`: the widths of a state row's parts.
+    fn widths(&self) -> (usize, usize, usize) {
+        let c = &self.cfg;
+        (c.deter, c.stoch * c.classes, c.context_dim)
     }
 
-    /// The columns of the one-hot sample `z` in [`RssmState::feat`] and
-    /// [`RssmState::head_input`] (`[h, z, …]`): a layer reading either can be told they are
-    /// mostly zero ([`crate::nn::Mlp::sparse_inputs`]).
-    pub fn stoch_columns(&self) -> std::ops::Range<usize> {
-        self.cfg.deter..self.cfg.deter + self.cfg.stoch * self.cfg.classes
-    }
-
-    /// Size of [`RssmState::feat`].
-    pub fn feat_dim(&self) -> usize {
-        self.cfg.deter + self.cfg.stoch * self.cfg.classes
-    }
-
-    /// The state a batch of sequences starts from: zeros, or the learned state (the paper's
-    /// code, `networks.py` `RSSM.initial`): `h = tanh(w)` and `z` the mode of the prior
-    /// `p(z | h)`, `onehot(argmax) + ln p − sg(ln p)` (`ln p` of the unimix probabilities, so
-    /// that gradients reach `w` and the prior straight through the log-probabilities).
-    pub fn initial(&self, batch: usize) -> Result<RssmState> {
-        if let Some(w) = &self.initial_w {
-            let (d, z) = (self.cfg.deter, self.cfg.stoch * self.cfg.classes);
-            let deter = w.tanh()?.unsqueeze(0)?;
-            let log_p = self.probs(&self.prior_logits(&deter)?)?.log()?;
-            let classes = Tensor::arange(0u32, self.cfg.classes as u32, &Device::Cpu)?
-                .reshape((1, 1, self.cfg.classes))?;
-            let one_hot = log_p
-                .argmax_keepdim(D::Minus1)?
-                .broadcast_eq(&classes)?
-                .to_dtype(DType::F32)?;
-            let stoch = (one_hot + (&log_p - log_p.detach())?)?.reshape((1, z))?;
-            return Ok(RssmState {
-                deter: deter.broadcast_as((batch, d))?.contiguous()?,
-                stoch: stoch.broadcast_as((batch, z))?.contiguous()?,
-            });
+    /// The distribution of the latents.
+    fn unimix(&self) -> Unimix {
+        Unimix {
+            classes: self.cfg.classes,
+            unimix: self.cfg.unimix as f32,
         }
-        Ok(RssmState {
-            deter: Tensor::zeros((batch, self.cfg.deter), DType::F32, &Device::Cpu)?,
-            stoch: Tensor::zeros(
-                (batch, self.cfg.stoch * self.cfg.classes),
-                DType::F32,
-                &Device::Cpu,
-            )?,
-        })
     }
 
-    /// The sequence model: `h_t` from the previous state, action and (cRSSM) context.
-    pub fn deter_step(
-        &self,
-        prev: &RssmState,
-        action: &Tensor,
-        context: Option<&Tensor>,
-    ) -> Result<Tensor> {
-        let mut parts = vec![&prev.stoch, action];
-        if let Some(c) = context {
-            parts.push(c);
+    /// Sizes `t` for `rows` rows.
+    fn fit(&self, t: &mut SequenceTrace, rows: usize) {
+        let (d, z, c) = self.widths();
+        let (a, hidden) = (self.cfg.act_dim, self.cfg.hidden);
+        for (v, width) in [
+            (&mut t.input, z + a + c),
+            (&mut t.h_prev, d),
+            (&mut t.in_product, hidden),
+            (&mut t.in_output, hidden),
+            (&mut t.gru_input, hidden + d),
+            (&mut t.gate_product, 3 * d),
+            (&mut t.gates, 3 * d),
+            (&mut t.h, d),
+            (&mut t.d_in_product, hidden),
+            (&mut t.d_gate_product, 3 * d),
+        ] {
+            sized(v, rows * width);
         }
-        let x = self.img_in.forward(&Tensor::cat(&parts, D::Minus1)?)?;
-        self.gru.forward(&x, &prev.deter)
     }
 
-    /// Prior logits `[B, S, C]` from `h_t`.
-    pub fn prior_logits(&self, deter: &Tensor) -> Result<Tensor> {
-        self.unflat(&self.prior_out.forward(&self.prior_hidden.forward(deter)?)?)
+    /// The sequence model on the rows `r` of `t` (whose `input` and `h_prev` are set): `h'`.
+    fn sequence_forward(&self, t: &mut SequenceTrace, r: Range<usize>) {
+        let (d, hidden) = (self.cfg.deter, self.cfg.hidden);
+        let span = |w: usize| r.start * w..r.end * w;
+        let k = self.img_in.inputs();
+        self.img_in.forward(
+            &t.input[span(k)],
+            &mut t.in_product[span(hidden)],
+            &mut t.in_output[span(hidden)],
+        );
+        let parts = t.in_output[span(hidden)]
+            .chunks_exact(hidden)
+            .zip(t.h_prev[span(d)].chunks_exact(d));
+        for ((u, h), row) in parts.zip(t.gru_input[span(hidden + d)].chunks_exact_mut(hidden + d)) {
+            row[..hidden].copy_from_slice(u);
+            row[hidden..].copy_from_slice(h);
+        }
+        self.gates.forward(
+            &t.gru_input[span(hidden + d)],
+            &mut t.gate_product[span(3 * d)],
+            &mut t.gates[span(3 * d)],
+        );
+        gru_rows(
+            &t.gates[span(3 * d)],
+            &t.h_prev[span(d)],
+            &mut t.h[span(d)],
+            d,
+        );
     }
 
-    /// Posterior logits `[B, S, C]` from `h_t` and the observation embedding.
-    pub fn post_logits(&self, deter: &Tensor, embed: &Tensor) -> Result<Tensor> {
-        let x = self
-            .post_hidden
-            .forward(&Tensor::cat(&[deter, embed], D::Minus1)?)?;
-        self.unflat(&self.post_out.forward(&x)?)
-    }
-
-    fn unflat(&self, x: &Tensor) -> Result<Tensor> {
-        x.reshape((x.dim(0)?, self.cfg.stoch, self.cfg.classes))
-    }
-
-    /// Class probabilities `[B, S, C]`: softmax mixed with `unimix` uniform.
-    pub fn probs(&self, logits: &Tensor) -> Result<Tensor> {
-        let p = candle_nn::ops::softmax(logits, D::Minus1)?;
-        let u = self.cfg.unimix;
-        (p * (1.0 - u))? + u / self.cfg.classes as f64
-    }
-
-    /// A straight-through one-hot sample `[B, S·C]` from logits, with Gumbel noise
-    /// `g = −ln(−ln U)` given as uniforms `U ∈ (0, 1)` of shape `[B, S, C]`.
-    pub fn sample(&self, logits: &Tensor, uniform: &Tensor) -> Result<Tensor> {
-        kernels::straight_through_sample(logits, uniform, self.cfg.unimix)
-    }
-
-    /// One observation step: `(posterior state, posterior logits)`. The prior of `h_t` does not
-    /// feed the next step, so a sequence's priors are one batched [`Rssm::prior_logits`] after it.
-    pub fn obs_step(
+    /// The backward pass of [`Rssm::sequence_forward`] on the rows `r` from `∂h'` (`dh`,
+    /// those rows'): the products' gradients into `t`, the normalisations' added to `dnorm`
+    /// (gates, input layer), and the GRU's direct `∂h` (not yet through its gates' product:
+    /// [`Rssm::add_previous_grads`]) in `s.dh_direct`.
+    fn sequence_backward(
         &self,
-        prev: &RssmState,
-        action: &Tensor,
-        context: Option<&Tensor>,
-        embed: &Tensor,
-        uniform: &Tensor,
-    ) -> Result<(RssmState, Tensor)> {
-        let deter = self.deter_step(prev, action, context)?;
-        let post = self.post_logits(&deter, embed)?;
-        let stoch = self.sample(&post, uniform)?;
-        Ok((RssmState { deter, stoch }, post))
+        t: &mut SequenceTrace,
+        r: Range<usize>,
+        dh: &[f32],
+        (dnorm_gates, dnorm_in): (&mut [f32], &mut [f32]),
+        s: &mut StepScratch,
+    ) {
+        let (d, hidden) = (self.cfg.deter, self.cfg.hidden);
+        let (span, n) = (|w: usize| r.start * w..r.end * w, r.len());
+        gru_rows_bwd(
+            &t.gates[span(3 * d)],
+            &t.h_prev[span(d)],
+            dh,
+            sized(&mut s.d_gates, n * 3 * d),
+            sized(&mut s.dh_direct, n * d),
+            d,
+        );
+        self.gates.product_grad(
+            (&t.gate_product[span(3 * d)], &t.gates[span(3 * d)]),
+            &s.d_gates,
+            dnorm_gates,
+            &mut t.d_gate_product[span(3 * d)],
+        );
+        let du = sized(&mut s.du, n * hidden);
+        self.gates
+            .input_grad(&t.d_gate_product[span(3 * d)], 0..hidden, du, hidden, false);
+        self.img_in.product_grad(
+            (&t.in_product[span(hidden)], &t.in_output[span(hidden)]),
+            &s.du,
+            dnorm_in,
+            &mut t.d_in_product[span(hidden)],
+        );
     }
 
-    /// `KL(p_a ‖ p_b)` per batch element, summed over the variables, from logits `[B, S, C]`.
-    pub fn kl(&self, logits_a: &Tensor, logits_b: &Tensor) -> Result<Tensor> {
-        kernels::categorical_kl(logits_a, logits_b, self.cfg.unimix)
+    /// The previous state's gradients from the rows `r` of `t` after
+    /// [`Rssm::sequence_backward`]: `∂h` into `s.dh_direct` (its direct part plus the
+    /// gates' product's) and `∂z` into `s.dz`.
+    fn add_previous_grads(&self, t: &SequenceTrace, r: Range<usize>, s: &mut StepScratch) {
+        let (d, z, _) = self.widths();
+        let (hidden, n) = (self.cfg.hidden, r.len());
+        let span = |w: usize| r.start * w..r.end * w;
+        let dgp = &t.d_gate_product[span(3 * d)];
+        self.gates
+            .input_grad(dgp, hidden..hidden + d, &mut s.dh_direct, d, true);
+        let dz = sized(&mut s.dz, n * z);
+        self.img_in
+            .input_grad(&t.d_in_product[span(hidden)], 0..z, dz, z, false);
+    }
+
+    /// One step from the state rows `state` (`[N, D + Z + c]`) and `action` (`[N, A]`) with
+    /// Gumbel uniforms `uniform` (`[N, Z]`): the next state rows into `next` (the context
+    /// copied), what the backward pass needs into `trace`.
+    pub fn step(
+        &self,
+        state: &[f32],
+        action: &[f32],
+        uniform: &[f32],
+        trace: &mut StepTrace,
+        next: &mut [f32],
+    ) {
+        let (d, z, c) = self.widths();
+        let (a, hidden, f) = (self.cfg.act_dim, self.cfg.hidden, d + z + c);
+        let n = state.len() / f;
+        let seq = &mut trace.sequence;
+        self.fit(seq, n);
+        let rows = state.chunks_exact(f).zip(action.chunks_exact(a));
+        let inputs = seq
+            .input
+            .chunks_exact_mut(z + a + c)
+            .zip(seq.h_prev.chunks_exact_mut(d));
+        for ((s, act), (inp, h)) in rows.zip(inputs) {
+            inp[..z].copy_from_slice(&s[d..d + z]);
+            inp[z..z + a].copy_from_slice(act);
+            inp[z + a..].copy_from_slice(&s[d + z..]);
+            h.copy_from_slice(&s[..d]);
+        }
+        self.sequence_forward(seq, 0..n);
+        let [prior, prior_out] = [&self.prior.layers[0], &self.prior.layers[1]];
+        prior.forward(
+            &seq.h,
+            sized(&mut trace.prior_product, n * hidden),
+            sized(&mut trace.prior_output, n * hidden),
+        );
+        prior_out.forward(
+            &trace.prior_output,
+            sized(&mut trace.logits, n * z),
+            &mut [],
+        );
+        let z_next = sized(&mut trace.z_next, n * z);
+        z_next.fill(0.0);
+        sample_rows(self.unimix(), &trace.logits, uniform, z_next);
+        let rows = next.chunks_exact_mut(f).zip(state.chunks_exact(f));
+        let parts = trace
+            .sequence
+            .h
+            .chunks_exact(d)
+            .zip(trace.z_next.chunks_exact(z));
+        for ((row, s), (h, zr)) in rows.zip(parts) {
+            row[..d].copy_from_slice(h);
+            row[d..d + z].copy_from_slice(zr);
+            row[d + z..].copy_from_slice(&s[d + z..]);
+        }
+    }
+
+    /// The backward pass of [`Rssm::step`] from the gradients `d_next` of the next state
+    /// rows (`[N, D + Z + c]`, the context's ignored): the action's gradient into `d_action`
+    /// (`[N, A]`) and, if given, the state's (`h` and `z`) added to `d_state`.
+    pub fn step_backward(
+        &self,
+        trace: &mut StepTrace,
+        d_next: &[f32],
+        d_action: &mut [f32],
+        d_state: Option<&mut [f32]>,
+        s: &mut StepScratch,
+    ) {
+        let (d, z, c) = self.widths();
+        let (a, hidden, f) = (self.cfg.act_dim, self.cfg.hidden, d + z + c);
+        let n = d_next.len() / f;
+        // ∂z' and ∂h' of the next state, contiguous
+        let dz = sized(&mut s.dz, n * z);
+        let dh = sized(&mut s.dh, n * d);
+        for ((row, dzr), dhr) in d_next
+            .chunks_exact(f)
+            .zip(dz.chunks_exact_mut(z))
+            .zip(dh.chunks_exact_mut(d))
+        {
+            dhr.copy_from_slice(&row[..d]);
+            dzr.copy_from_slice(&row[d..d + z]);
+        }
+        probs_rows_bwd(self.unimix(), &trace.logits, &s.dz, sized(&mut s.dl, n * z));
+        // the prior: ∂(its hidden output), its product, then ∂h' += … W_p
+        let [prior, prior_out] = [&self.prior.layers[0], &self.prior.layers[1]];
+        let d_hidden = sized(&mut s.d_hidden, n * hidden);
+        prior_out.input_grad(&s.dl, 0..hidden, d_hidden, hidden, false);
+        prior.product_grad(
+            (&trace.prior_product, &trace.prior_output),
+            &s.d_hidden,
+            &mut [],
+            sized(&mut s.d_product, n * hidden),
+        );
+        prior.input_grad(&s.d_product, 0..d, &mut s.dh, d, true);
+        // the sequence model, then ∂a (and ∂h, ∂z) through its input
+        // the normalisations are frozen: no gradients of their parameters
+        let dh = std::mem::take(&mut s.dh);
+        self.sequence_backward(&mut trace.sequence, 0..n, &dh, (&mut [], &mut []), s);
+        s.dh = dh;
+        let seq = &trace.sequence;
+        self.img_in
+            .input_grad(&seq.d_in_product, z..z + a, d_action, a, false);
+        if let Some(d_state) = d_state {
+            self.add_previous_grads(seq, 0..n, s);
+            for ((row, dh), dz) in d_state
+                .chunks_exact_mut(f)
+                .zip(s.dh_direct.chunks_exact(d))
+                .zip(s.dz.chunks_exact(z))
+            {
+                row[..d].iter_mut().zip(dh).for_each(|(o, v)| *o += v);
+                row[d..d + z].iter_mut().zip(dz).for_each(|(o, v)| *o += v);
+            }
+        }
+    }
+
+    /// The observation loop over `T = keep.len() / B` steps of `B` sequences, every input
+    /// time-major: the embeddings `[T B, E]`, the previous actions `[T B, A]`, the contexts
+    /// `[T B, c]`, `keep` `[T B]` (0 where a sequence starts: the previous state and action are
+    /// zeroed) and the Gumbel uniforms `[T B, Z]`; from zeros. The posterior states and logits
+    /// are [`ObserveTrace::states`].
+    pub fn observe(
+        &self,
+        batch: usize,
+        (embed, action, ctx, keep): (&[f32], &[f32], &[f32], &[f32]),
+        uniform: &[f32],
+        trace: &mut ObserveTrace,
+    ) {
+        let (d, z, c) = self.widths();
+        let (a, e) = (self.cfg.act_dim, self.cfg.embed_dim);
+        let rows = keep.len();
+        let tr = trace;
+        self.fit_observe(tr, rows);
+        self.initial_forward(&mut tr.initial);
+        let k = z + a + c;
+        for t in 0..rows / batch.max(1) {
+            let r = t * batch..(t + 1) * batch;
+            // the previous state and action, the initial state and a zero action where a
+            // sequence starts
+            let seq = &mut tr.sequence;
+            let init = &tr.initial;
+            for row in r.clone() {
+                let keep_row = if t == 0 { 0.0 } else { keep[row] };
+                let prev = row.saturating_sub(batch);
+                let blend = |dst: &mut [f32], src: &[f32], start: &[f32]| {
+                    for ((o, &v), &v0) in dst.iter_mut().zip(src).zip(start) {
+                        *o = keep_row * v + (1.0 - keep_row) * v0;
+                    }
+                };
+                let (h_all, z_all) = (&seq.h, &tr.z);
+                let h_prev = &mut seq.h_prev[row * d..(row + 1) * d];
+                blend(h_prev, &h_all[prev * d..(prev + 1) * d], &init.h);
+                let input = &mut seq.input[row * k..(row + 1) * k];
+                blend(&mut input[..z], &z_all[prev * z..(prev + 1) * z], &init.z);
+                let act = &action[row * a..(row + 1) * a];
+                for (o, &v) in input[z..z + a].iter_mut().zip(act) {
+                    *o = keep_row * v;
+                }
+                input[z + a..].copy_from_slice(&ctx[row * c..(row + 1) * c]);
+            }
+            self.posterior_forward(tr, &embed[r.start * e..r.end * e], uniform, r);
+        }
+    }
+
+    /// Sizes `tr` for an observation loop over `rows` rows.
+    fn fit_observe(&self, tr: &mut ObserveTrace, rows: usize) {
+        let (d, z, _) = self.widths();
+        let (hidden, e) = (self.cfg.hidden, self.cfg.embed_dim);
+        self.fit(&mut tr.sequence, rows);
+        for (v, width) in [
+            (&mut tr.z, z),
+            (&mut tr.logits, z),
+            (&mut tr.post_input, d + e),
+            (&mut tr.post_product, hidden),
+            (&mut tr.post_output, hidden),
+        ] {
+            sized(v, rows * width);
+        }
+    }
+
+    /// The posterior step on the rows `r` of `tr`, whose sequence model's inputs are set: `h'`,
+    /// the posterior's logits of `[h', e]` (`embed`, those rows') and its samples with the
+    /// Gumbel uniforms of those rows in `uniform` (all the rows').
+    fn posterior_forward(
+        &self,
+        tr: &mut ObserveTrace,
+        embed: &[f32],
+        uniform: &[f32],
+        r: Range<usize>,
+    ) {
+        let (d, z, _) = self.widths();
+        let (hidden, e) = (self.cfg.hidden, self.cfg.embed_dim);
+        let span = |w: usize| r.start * w..r.end * w;
+        let seq = &mut tr.sequence;
+        self.sequence_forward(seq, r.clone());
+        let parts = seq.h[span(d)].chunks_exact(d).zip(embed.chunks_exact(e));
+        for ((h, er), row) in parts.zip(tr.post_input[span(d + e)].chunks_exact_mut(d + e)) {
+            row[..d].copy_from_slice(h);
+            row[d..].copy_from_slice(er);
+        }
+        self.post.forward(
+            &tr.post_input[span(d + e)],
+            &mut tr.post_product[span(hidden)],
+            &mut tr.post_output[span(hidden)],
+        );
+        self.post_out.forward(
+            &tr.post_output[span(hidden)],
+            &mut tr.logits[span(z)],
+            &mut [],
+        );
+        let z_rows = &mut tr.z[span(z)];
+        z_rows.fill(0.0);
+        sample_rows(
+            self.unimix(),
+            &tr.logits[span(z)],
+            &uniform[span(z)],
+            z_rows,
+        );
+    }
+
+    /// The state a sequence starts from, `(h_0, z_0)` (`[D]`, `[Z]`), into `trace`: zeros, or
+    /// the learned `h_0 = tanh(w)` and `z_0` the one-hot mode of the prior `p(z | h_0)`.
+    pub fn initial_state<'a>(&self, trace: &'a mut ObserveTrace) -> (&'a [f32], &'a [f32]) {
+        self.initial_forward(&mut trace.initial);
+        (&trace.initial.h, &trace.initial.z)
+    }
+
+    /// One observation step of one sequence (acting, batch 1): from the previous state `h`
+    /// `[D]` and `z` `[Z]`, the previous action `[A]`, the context `[c]`, the observation's
+    /// embedding `[E]` and the Gumbel uniforms `[Z]`, the posterior state `(h', z')` and its
+    /// logits ([`ObserveTrace::states`], one row), as [`Rssm::observe`] computes a step.
+    pub fn posterior_step(
+        &self,
+        (h, z): (&[f32], &[f32]),
+        (action, ctx, embed): (&[f32], &[f32], &[f32]),
+        uniform: &[f32],
+        trace: &mut ObserveTrace,
+    ) {
+        let (d, zw, c) = self.widths();
+        self.fit_observe(trace, 1);
+        let seq = &mut trace.sequence;
+        seq.h_prev.copy_from_slice(&h[..d]);
+        let input = &mut seq.input;
+        input[..zw].copy_from_slice(&z[..zw]);
+        input[zw..zw + action.len()].copy_from_slice(action);
+        input[zw + action.len()..].copy_from_slice(&ctx[..c]);
+        self.posterior_forward(trace, embed, uniform, 0..1);
+    }
+
+    /// The backward pass of [`Rssm::observe`] from the gradients of the posterior states,
+    /// `dh` `[T B, D]` and `dz` `[T B, Z]` (both used up: the loop adds the later steps' to the
+    /// earlier ones'), and `d_logits` `[T B, Z]` of the posterior logits directly (the KL
+    /// terms'): the embeddings' gradients into `d_embed` `[T B, E]`, the parameters' added to
+    /// `grads` (the prior's only through a learned initial state).
+    #[allow(clippy::too_many_arguments)]
+    pub fn observe_backward(
+        &self,
+        batch: usize,
+        keep: &[f32],
+        trace: &mut ObserveTrace,
+        (dh, dz): (&mut [f32], &mut [f32]),
+        d_logits: &[f32],
+        d_embed: &mut [f32],
+        grads: &mut RssmGrads,
+    ) {
+        let (d, z, _) = self.widths();
+        let (hidden, e) = (self.cfg.hidden, self.cfg.embed_dim);
+        let rows = keep.len();
+        let tr = trace;
+        sized(&mut tr.d_post_product, rows * hidden);
+        sized(&mut tr.d_logits, rows * z);
+        let s = &mut tr.scratch;
+        let learned = self.initial_w.is_some();
+        let init = &mut tr.initial;
+        sized(&mut init.dh, if learned { d } else { 0 }).fill(0.0);
+        sized(&mut init.dz, if learned { z } else { 0 }).fill(0.0);
+        for t in (0..rows / batch.max(1)).rev() {
+            let r = t * batch..(t + 1) * batch;
+            let span = |w: usize| r.start * w..r.end * w;
+            // the posterior: ∂l (straight through, and the KL terms'), then its layers
+            let dl = &mut tr.d_logits[span(z)];
+            probs_rows_bwd(self.unimix(), &tr.logits[span(z)], &dz[span(z)], dl);
+            dl.iter_mut()
+                .zip(&d_logits[span(z)])
+                .for_each(|(o, &v)| *o += v);
+            let d_out = sized(&mut s.d_hidden, batch * hidden);
+            self.post_out
+                .input_grad(&tr.d_logits[span(z)], 0..hidden, d_out, hidden, false);
+            self.post.product_grad(
+                (
+                    &tr.post_product[span(hidden)],
+                    &tr.post_output[span(hidden)],
+                ),
+                &s.d_hidden,
+                grads.post.norm_mut(),
+                &mut tr.d_post_product[span(hidden)],
+            );
+            let dpp = &tr.d_post_product[span(hidden)];
+            self.post.input_grad(dpp, 0..d, &mut dh[span(d)], d, true);
+            self.post
+                .input_grad(dpp, d..d + e, &mut d_embed[span(e)], e, false);
+            // the sequence model, then the previous state's gradients where the step read it
+            let norms = (grads.gates.norm_mut(), grads.img_in.norm_mut());
+            self.sequence_backward(&mut tr.sequence, r.clone(), &dh[span(d)], norms, s);
+            if t == 0 && !learned {
+                continue;
+            }
+            // the previous state's gradients: the previous step's, and the initial state's
+            // where the step started from it
+            self.add_previous_grads(&tr.sequence, r.clone(), s);
+            let add = |dst: &mut [f32], src: &[f32], k: f32| {
+                dst.iter_mut().zip(src).for_each(|(o, &v)| *o += k * v);
+            };
+            for i in 0..batch {
+                let (dh_i, dz_i) = (&s.dh_direct[i * d..(i + 1) * d], &s.dz[i * z..(i + 1) * z]);
+                let k = if t == 0 { 0.0 } else { keep[r.start + i] };
+                if t > 0 {
+                    let row = r.start - batch + i;
+                    add(&mut dh[row * d..(row + 1) * d], dh_i, k);
+                    add(&mut dz[row * z..(row + 1) * z], dz_i, k);
+                }
+                if learned {
+                    add(&mut init.dh, dh_i, 1.0 - k);
+                    add(&mut init.dz, dz_i, 1.0 - k);
+                }
+            }
+        }
+        self.initial_backward(init, grads);
+        // the weights' gradients, one product per layer over all the steps
+        let seq = &tr.sequence;
+        self.img_in
+            .add_weight_grads(&seq.input, &seq.d_in_product, &mut grads.img_in);
+        self.gates
+            .add_weight_grads(&seq.gru_input, &seq.d_gate_product, &mut grads.gates);
+        self.post
+            .add_weight_grads(&tr.post_input, &tr.d_post_product, &mut grads.post);
+        self.post_out
+            .add_weight_grads(&tr.post_output, &tr.d_logits, &mut grads.post_out);
     }
 }
 
-/// Builds an RSSM in a fresh store initialised from `seed` (for tests and tools).
-#[cfg(any(test, feature = "oracle"))]
-pub fn standalone(cfg: RssmConfig, seed: u64) -> Result<(ParamStore, Rssm)> {
-    let ps = ParamStore::new();
-    let rssm = Rssm::new(cfg, ps.builder().pp("rssm"))?;
-    ps.init(seed)?;
-    Ok((ps, rssm))
+impl Rssm {
+    /// The initial state into `init`: zeros, or the learned `h_0 = tanh(w)` and `z_0` the
+    /// one-hot mode of the prior `p(z | h_0)` (the first most likely class of each variable).
+    fn initial_forward(&self, init: &mut InitialTrace) {
+        let (d, z, _) = self.widths();
+        let (h0, z0) = (sized(&mut init.h, d), sized(&mut init.z, z));
+        z0.fill(0.0);
+        let Some(w) = &self.initial_w else {
+            h0.fill(0.0);
+            return;
+        };
+        h0.iter_mut().zip(w).for_each(|(h, &w)| *h = w.tanh());
+        self.prior.fit(&mut init.prior, 1);
+        self.prior.forward(&init.h[..], &mut init.prior, 0..1);
+        let logits = self.prior.output(&init.prior, 0..1);
+        let classes = self.cfg.classes;
+        for (l, onehot) in logits
+            .chunks_exact(classes)
+            .zip(init.z.chunks_exact_mut(classes))
+        {
+            let best = (1..classes).fold(0, |b, j| if l[j] > l[b] { j } else { b });
+            onehot[best] = 1.0;
+        }
+    }
+
+    /// The learned initial state's backward pass from `∂h_0` and `∂z_0` in `init`: `∂l_0` of
+    /// `ln p` (the mode's straight-through path), the prior's parameters' gradients and its
+    /// `∂h_0`, then `∂w = ∂h_0 (1 − h_0²)`; nothing without a learned state.
+    fn initial_backward(&self, init: &mut InitialTrace, grads: &mut RssmGrads) {
+        if self.initial_w.is_none() {
+            return;
+        }
+        let (d, z, _) = self.widths();
+        let logits = self.prior.output(&init.prior, 0..1);
+        log_probs_rows_bwd(self.unimix(), logits, &init.dz, sized(&mut init.dl, z));
+        let target = InputGrad::new(&mut init.dh, d, 0..d, true);
+        self.prior.backward(
+            &init.h[..],
+            &mut init.prior,
+            0..1,
+            &init.dl,
+            Some(&mut grads.prior),
+            Some(target),
+        );
+        for ((g, &dh), &h) in grads.initial_w.iter_mut().zip(&init.dh).zip(&init.h) {
+            *g += dh * (1.0 - h * h);
+        }
+    }
+}
+
+/// `∂l` from `∂ ln p` (`dlp`) for rows of logits `l` of `classes` values each, `p` the
+/// unimix probabilities `(1 − u) softmax(l) + u / C`: with `s = softmax(l)` and
+/// `g_j = ∂ln p_j s_j / p_j`, `∂l_k = (1 − u)(g_k − s_k Σ_j g_j)`.
+fn log_probs_rows_bwd(dist: Unimix, logits: &[f32], dlp: &[f32], dl: &mut [f32]) {
+    let (c, u) = (dist.classes, dist.unimix);
+    let mut s = vec![0f32; c];
+    let rows = logits
+        .chunks_exact(c)
+        .zip(dlp.chunks_exact(c))
+        .zip(dl.chunks_exact_mut(c));
+    for ((l, dlp), out) in rows {
+        let max = l.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+        s.iter_mut().zip(l).for_each(|(e, &v)| *e = (v - max).exp());
+        let total: f32 = s.iter().sum();
+        s.iter_mut().for_each(|e| *e /= total);
+        let mut sum_g = 0f32;
+        for ((o, &sj), &gj) in out.iter_mut().zip(&s).zip(dlp) {
+            *o = gj * sj / ((1.0 - u) * sj + u / c as f32);
+            sum_g += *o;
+        }
+        for (o, &sj) in out.iter_mut().zip(&s) {
+            *o = (1.0 - u) * (*o - sj * sum_g);
+        }
+    }
+}
+
+impl ObserveTrace {
+    /// The posterior states `(h, z)` (`[T B, D]`, `[T B, Z]`) and logits `[T B, Z]` of the last
+    /// [`Rssm::observe`].
+    pub fn states(&self) -> (&[f32], &[f32], &[f32]) {
+        (&self.sequence.h, &self.z, &self.logits)
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::nn::oracle::testing::{close, normal, small_rssm, state_rows, vals};
+    use crate::nn::oracle::{standalone, RssmState};
+    use candle_core::{Device, Tensor, Var};
 
-    fn cfg(context_dim: usize) -> RssmConfig {
-        RssmConfig {
-            deter: 8,
-            hidden: 8,
-            stoch: 3,
-            classes: 4,
-            unimix: 0.01,
-            act_dim: 2,
-            embed_dim: 5,
-            context_dim,
-            learned_initial: false,
-        }
-    }
-
-    /// Checkpoints name the parameters, and [`ParamStore::init`] draws them in name order: the
-    /// names and shapes are the ones every saved run has.
+    /// An imagination step's next state and its gradients in the state and the action are
+    /// those of the candle RSSM's sequence model, prior and sample.
     #[test]
-    fn parameter_names_are_those_of_saved_checkpoints() {
-        let (ps, _) = standalone(cfg(2), 0).unwrap();
-        let names: Vec<(String, Vec<usize>)> = ps
-            .named()
-            .into_iter()
-            .map(|(n, v)| (n, v.dims().to_vec()))
-            .collect();
-        let want = [
-            ("rssm.gru.fc.weight", vec![24, 16]),
-            ("rssm.gru.ln.bias", vec![24]),
-            ("rssm.gru.ln.weight", vec![24]),
-            ("rssm.img_in.fc.weight", vec![8, 16]),
-            ("rssm.img_in.ln.bias", vec![8]),
-            ("rssm.img_in.ln.weight", vec![8]),
-            ("rssm.post.fc.weight", vec![8, 13]),
-            ("rssm.post.ln.bias", vec![8]),
-            ("rssm.post.ln.weight", vec![8]),
-            ("rssm.post_out.bias", vec![12]),
-            ("rssm.post_out.weight", vec![12, 8]),
-            ("rssm.prior.fc.weight", vec![8, 8]),
-            ("rssm.prior.ln.bias", vec![8]),
-            ("rssm.prior.ln.weight", vec![8]),
-            ("rssm.prior_out.bias", vec![12]),
-            ("rssm.prior_out.weight", vec![12, 8]),
-        ];
-        let want: Vec<(String, Vec<usize>)> =
-            want.into_iter().map(|(n, d)| (n.to_string(), d)).collect();
-        assert_eq!(names, want);
-    }
-
-    fn uniform(b: usize, c: &RssmConfig, v: f32) -> Tensor {
-        Tensor::full(v, (b, c.stoch, c.classes), &Device::Cpu).unwrap()
-    }
-
-    #[test]
-    fn steps_have_the_right_shapes_and_one_hot_samples() {
-        let c = cfg(2);
-        let (_, rssm) = standalone(c, 0).unwrap();
-        let s0 = rssm.initial(4).unwrap();
-        let a = Tensor::ones((4, 2), DType::F32, &Device::Cpu).unwrap();
-        let ctx = Tensor::ones((4, 2), DType::F32, &Device::Cpu).unwrap();
-        let e = Tensor::ones((4, 5), DType::F32, &Device::Cpu).unwrap();
-        let (s1, post) = rssm
-            .obs_step(&s0, &a, Some(&ctx), &e, &uniform(4, &c, 0.5))
-            .unwrap();
-        let prior = rssm.prior_logits(&s1.deter).unwrap();
-        assert_eq!(s1.deter.dims(), &[4, 8]);
-        assert_eq!(prior.dims(), &[4, 3, 4]);
-        assert_eq!(post.dims(), &[4, 3, 4]);
-        assert_eq!(s1.feat().unwrap().dims(), &[4, 8 + 12]);
-        // forward values of a straight-through sample are exactly one-hot
-        let z: Vec<Vec<f32>> = s1.stoch.reshape((12, 4)).unwrap().to_vec2().unwrap();
-        for row in z {
-            let ones = row.iter().filter(|&&v| (v - 1.0).abs() < 1e-6).count();
-            let zeros = row.iter().filter(|&&v| v.abs() < 1e-6).count();
-            assert_eq!((ones, zeros), (1, 3), "{row:?}");
-        }
-        let deter = rssm.deter_step(&s1, &a, Some(&ctx)).unwrap();
-        let prior = rssm.prior_logits(&deter).unwrap();
-        let stoch = rssm.sample(&prior, &uniform(4, &c, 0.3)).unwrap();
-        assert_eq!(stoch.dims(), &[4, 12]);
-    }
-
-    #[test]
-    fn unimix_floors_the_probabilities_and_kl_is_zero_on_itself() {
-        let c = cfg(0);
-        let (_, rssm) = standalone(c, 1).unwrap();
-        let logits = Tensor::new(&[[[50.0f32, 0.0, 0.0, 0.0]; 3]], &Device::Cpu).unwrap();
-        let p: Vec<f32> = rssm
-            .probs(&logits)
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1()
-            .unwrap();
-        assert!(p.iter().all(|&v| v >= 0.01 / 4.0 - 1e-7));
-        assert!((p[0] - (0.99 + 0.0025)).abs() < 1e-5);
-        let kl: Vec<f32> = rssm.kl(&logits, &logits).unwrap().to_vec1().unwrap();
-        assert!(kl[0].abs() < 1e-6);
-        let other = Tensor::zeros((1, 3, 4), DType::F32, &Device::Cpu).unwrap();
-        let kl: Vec<f32> = rssm.kl(&logits, &other).unwrap().to_vec1().unwrap();
-        // KL(p ‖ uniform) = Σ_vars (ln C − H(p))
-        let h: f32 = p[..4].iter().map(|&q| -q * q.ln()).sum();
-        assert!((kl[0] - 3.0 * (4f32.ln() - h)).abs() < 1e-4, "{kl:?}");
-    }
-
-    #[test]
-    fn straight_through_samples_pass_gradients_to_the_logits() {
-        let c = cfg(0);
-        let (_, rssm) = standalone(c, 2).unwrap();
-        let logits = candle_core::Var::from_tensor(
-            &Tensor::new(&[[[0.1f32, 0.2, 0.3, 0.4]; 3]], &Device::Cpu).unwrap(),
-        )
-        .unwrap();
-        let z = rssm
-            .sample(logits.as_tensor(), &uniform(1, &c, 0.7))
-            .unwrap();
-        let weights = Tensor::new(
-            &[[
-                1.0f32, 2.0, 3.0, 4.0, 1.0, 2.0, 3.0, 4.0, 1.0, 2.0, 3.0, 4.0,
-            ]],
-            &Device::Cpu,
-        )
-        .unwrap();
-        let loss = z.mul(&weights).unwrap().sum_all().unwrap();
-        let grads = loss.backward().unwrap();
-        let g: Vec<f32> = grads
-            .get(logits.as_tensor())
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1()
-            .unwrap();
-        assert!(g.iter().any(|v| v.abs() > 1e-4), "{g:?}");
-    }
-
-    /// The learned initial state adds one parameter, `rssm.initial_state.w` `[D]`, at zero
-    /// after initialisation and drawn from no random number, so that every other parameter
-    /// starts as without it; it starts sequences at `h = tanh(w)` and the one-hot mode of the
-    /// prior. Weights saved without it (the default, every older checkpoint) still load into the
-    /// default model and are refused by a learned one.
-    #[test]
-    fn the_learned_initial_state_is_one_named_parameter_starting_at_zero() {
-        let learned = RssmConfig {
-            learned_initial: true,
-            ..cfg(2)
+    fn an_imagination_step_matches_the_candle_rssm() {
+        let cfg = small_rssm(false);
+        let (_, rssm) = standalone(cfg, 4).unwrap();
+        let (n, f) = (9, 8 + 12 + 2);
+        let state = state_rows(n, (8, 3, 4, 2), 5);
+        let action = normal(n * 2, 6);
+        let uniform: Vec<f32> = normal(n * 12, 7).iter().map(|v| 0.5 + 0.45 * v).collect();
+        let d_next = normal(n * f, 8);
+        // candle
+        let dev = &Device::Cpu;
+        let column = |lo: usize, w: usize| {
+            let t = Tensor::from_vec(state.clone(), (n, f), dev).unwrap();
+            Var::from_tensor(&t.narrow(1, lo, w).unwrap().contiguous().unwrap()).unwrap()
         };
-        let (ps, rssm) = standalone(learned, 5).unwrap();
-        let (old, zeros) = standalone(cfg(2), 5).unwrap();
-        let values = |t: &Tensor| -> Vec<f32> { t.flatten_all().unwrap().to_vec1().unwrap() };
-        let new: std::collections::HashMap<String, Vec<f32>> = ps
-            .named()
-            .into_iter()
-            .map(|(n, v)| (n, values(v.as_tensor())))
-            .collect();
-        assert_eq!(new.len(), old.named().len() + 1);
-        assert_eq!(new["rssm.initial_state.w"], vec![0.0; 8]);
-        for (name, v) in old.named() {
-            assert_eq!(new[&name], values(v.as_tensor()), "{name}");
-        }
-        let (_, var) = ps
-            .named()
-            .into_iter()
-            .find(|(n, _)| n == "rssm.initial_state.w")
+        let (deter, stoch, ctx) = (column(0, 8), column(8, 12), column(20, 2));
+        let act = Var::from_vec(action.clone(), (n, 2), dev).unwrap();
+        let prev = RssmState {
+            deter: deter.as_tensor().clone(),
+            stoch: stoch.as_tensor().clone(),
+        };
+        let u = Tensor::from_vec(uniform.clone(), (n, 3, 4), dev).unwrap();
+        let frozen = rssm.frozen();
+        let next_deter = frozen
+            .deter_step(&prev, act.as_tensor(), Some(ctx.as_tensor()))
             .unwrap();
-        var.set(&Tensor::randn(0f32, 1.0, 8, &Device::Cpu).unwrap())
+        let next_stoch = frozen
+            .sample(&frozen.prior_logits(&next_deter).unwrap(), &u)
             .unwrap();
-        let w = rssm.initial_weight().unwrap();
-        let s0 = rssm.initial(3).unwrap();
-        let h0: Vec<f32> = values(&w.tanh().unwrap());
-        let mode = values(
-            &rssm
-                .prior_logits(&w.tanh().unwrap().unsqueeze(0).unwrap())
+        let next = RssmState {
+            deter: next_deter,
+            stoch: next_stoch,
+        };
+        let g = Tensor::from_vec(d_next.clone(), (n, f), dev).unwrap();
+        let loss = (next
+            .deter
+            .mul(&g.narrow(1, 0, 8).unwrap())
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            + next
+                .stoch
+                .mul(&g.narrow(1, 8, 12).unwrap())
                 .unwrap()
-                .argmax(D::Minus1)
-                .unwrap()
-                .to_dtype(DType::F32)
-                .unwrap(),
+                .sum_all()
+                .unwrap())
+        .unwrap();
+        let want = loss.backward().unwrap();
+        // the network
+        let plain = Rssm::from_oracle(&rssm).unwrap();
+        let mut trace = StepTrace::default();
+        let mut got_next = vec![0f32; n * f];
+        plain.step(&state, &action, &uniform, &mut trace, &mut got_next);
+        let part = |rows: &[f32], lo: usize, w: usize| -> Vec<f32> {
+            rows.chunks_exact(f)
+                .flat_map(|r| r[lo..lo + w].to_vec())
+                .collect()
+        };
+        close(&part(&got_next, 0, 8), &vals(&next.deter), "h'");
+        close(&part(&got_next, 8, 12), &vals(&next.stoch), "z'");
+        close(&part(&got_next, 20, 2), &part(&state, 20, 2), "c");
+        let mut d_action = vec![0f32; n * 2];
+        let mut d_state = vec![0f32; n * f];
+        let mut scratch = StepScratch::default();
+        plain.step_backward(
+            &mut trace,
+            &d_next,
+            &mut d_action,
+            Some(&mut d_state),
+            &mut scratch,
         );
-        let z: Vec<Vec<f32>> = s0.stoch.to_vec2().unwrap();
-        for (row, h) in z.iter().zip(s0.deter.to_vec2::<f32>().unwrap()) {
-            assert_eq!(h, h0);
-            for (var, &k) in row.chunks_exact(4).zip(&mode) {
-                let one_hot: Vec<f32> = (0..4).map(|j| f32::from(j == k as usize)).collect();
-                assert_eq!(var, &one_hot[..]);
-            }
-        }
-        assert!(zeros.initial_weight().is_none());
-        let z0 = zeros.initial(2).unwrap();
-        assert!(values(&z0.deter)
-            .iter()
-            .chain(&values(&z0.stoch))
-            .all(|&v| v == 0.0));
-        let saved = old.to_bytes().unwrap();
-        assert!(old.load_bytes(&saved).is_ok());
-        assert!(ps.load_bytes(&saved).is_err());
+        close(&d_action, &vals(want.get(act.as_tensor()).unwrap()), "∂a");
+        close(
+            &part(&d_state, 0, 8),
+            &vals(want.get(deter.as_tensor()).unwrap()),
+            "∂h",
+        );
+        close(
+            &part(&d_state, 8, 12),
+            &vals(want.get(stoch.as_tensor()).unwrap()),
+            "∂z",
+        );
     }
 }

@@ -55,7 +55,7 @@ pub struct Weights {
 impl Weights {
     /// Weights that hold every tensor a network asks for at its construction value: zero, or
     /// the value given to [`Weights::take_or`] (LayerNorm gains one). A network built from
-    /// them and then given [`crate::nn::plain::init`] is a freshly initialised one.
+    /// them and then given [`crate::nn::parameters::init`] is a freshly initialised one.
     pub fn initial() -> Self {
         Self {
             tensors: BTreeMap::new(),
@@ -129,7 +129,7 @@ impl Weights {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::nn::ParamStore;
+    use crate::nn::oracle::ParamStore;
 
     /// Two layers' parameters written by the candle store the learner keeps them in.
     fn written() -> (ParamStore, Vec<u8>) {

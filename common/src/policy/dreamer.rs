@@ -7,9 +7,8 @@
 use super::{PolicyError, Result, ACT_DIM};
 use crate::agents::{DreamerConfig, StepAlignment, CONTEXT_DIM};
 use crate::nn::dreamer::{mask_value, uniform_rows, PolicyNets};
-use crate::nn::plain::{MlpTrace, ObserveTrace};
 use crate::nn::tanh_gaussian::squash_rows;
-use crate::nn::{symlog_value, Weights, WeightsError};
+use crate::nn::{symlog_value, MlpTrace, ObserveTrace, Weights, WeightsError};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -51,7 +50,7 @@ pub struct DreamerPolicy {
     obs_dim: usize,
     nets: PolicyNets,
     traces: ActingTraces,
-    /// The state episodes start from, `(h_0, z_0)` ([`crate::nn::plain::PlainRssm::initial_state`] of the
+    /// The state episodes start from, `(h_0, z_0)` ([`crate::nn::Rssm::initial_state`] of the
     /// loaded weights).
     zero: (Vec<f32>, Vec<f32>),
     /// The posterior state `(h, z)`.
@@ -116,7 +115,7 @@ impl DreamerPolicy {
     }
 
     /// cMask's mask for observation `obs` (`None` for the other agents): the mask of `tanh μ`
-    /// if `deterministic`, else of a sample ([`crate::nn::dreamer::mask_sample`]).
+    /// if `deterministic`, else of a sample (the oracle's `mask_sample`).
     fn mask(&mut self, obs: &[f32], deterministic: bool) -> Option<[f32; CONTEXT_DIM]> {
         let net = self.nets.mask.as_ref()?;
         let trace = &mut self.traces.mask;
@@ -138,7 +137,7 @@ impl DreamerPolicy {
 
     /// The action in `[−1, 1]²` for observation `obs` and raw context `[c_v, c_θ]`, and (cMask) the
     /// mask used. Deterministic: the mean action, the most likely latent and the mask of
-    /// `tanh μ` ([`crate::nn::dreamer::mask_of`]); otherwise samples.
+    /// `tanh μ` (the oracle's `mask_of`); otherwise samples.
     pub fn act(
         &mut self,
         obs: &[f32],
@@ -217,8 +216,8 @@ impl DreamerPolicy {
 mod tests {
     use super::*;
     use crate::agents::{ContextMode, ContextScale, MaskConfig, MaskSpace};
-    use crate::nn::dreamer::{mask_of, mask_sample, normals, uniforms, DreamerNets};
-    use crate::nn::{symlog, ParamStore, RssmState};
+    use crate::nn::oracle::dreamer::{mask_of, mask_sample, normals, uniforms};
+    use crate::nn::oracle::{symlog, DreamerNets, ParamStore, RssmState};
     use candle_core::{DType, Device, Module, Tensor};
 
     /// A DreamerV3 configuration small enough for a test, with the context mode `context`.
@@ -329,7 +328,7 @@ mod tests {
         }
     }
 
-    /// The candle composition the policy acted with before it ran the plain networks (the
+    /// The candle composition the policy acted with before it ran the networks (the
     /// oracle): the networks on the learner's parameters, the state and the previous action.
     struct CandleActor {
         nets: DreamerNets,
@@ -394,7 +393,7 @@ mod tests {
         }
     }
 
-    /// The policy on the plain networks acts as the candle networks it was read from did, on
+    /// The policy on the networks acts as the candle networks it was read from did, on
     /// random weights (a random learned initial state too), for each context mode and both step
     /// alignments, deterministic and sampled, step after step: actions, masks and the state.
     #[test]

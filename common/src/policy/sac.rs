@@ -4,14 +4,13 @@
 //! code), plus Gaussian exploration noise `explore_noise` (the code's `N(0, 0.1)`, then clipped
 //! to `[−1, 1]`) when configured, in training and evaluation alike.
 //!
-//! The actor runs on the plain network the learner trains ([`PlainMlp`]), read from the
+//! The actor runs on the network the learner trains ([`Mlp`]), read from the
 //! learner's weights by name ([`Weights`]).
 
 use super::{PolicyError, Result};
 use crate::agents::SacConfig;
-use crate::nn::plain::{MlpTrace, PlainMlp};
 use crate::nn::tanh_gaussian::squash_rows;
-use crate::nn::{Activation, MlpShape, Weights};
+use crate::nn::{Activation, Mlp, MlpShape, MlpTrace, Weights};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -21,7 +20,7 @@ use std::collections::VecDeque;
 pub struct SacPolicy {
     /// The actor's sizes, to read new weights with.
     shape: MlpShape,
-    actor: PlainMlp,
+    actor: Mlp,
     /// The actor's buffers for one row.
     trace: MlpTrace,
     /// Bounds of `log σ`.
@@ -38,9 +37,9 @@ pub struct SacPolicy {
 }
 
 /// The actor of `shape` from the learner's weights (safetensors bytes).
-fn read_actor(shape: &MlpShape, weights: &[u8]) -> Result<PlainMlp> {
+fn read_actor(shape: &MlpShape, weights: &[u8]) -> Result<Mlp> {
     let mut weights = Weights::from_safetensors(weights)?;
-    let actor = PlainMlp::from_weights(&mut weights, "", shape)?;
+    let actor = Mlp::from_weights(&mut weights, "", shape)?;
     weights.finish()?;
     Ok(actor)
 }
@@ -142,10 +141,10 @@ impl SacPolicy {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::nn::{ParamStore, TanhGaussianActor};
+    use crate::nn::oracle::{ParamStore, TanhGaussianActor};
     use candle_core::{Device, Tensor};
 
-    /// The plain actor acts as the candle module the learner's weights come from (the
+    /// The actor acts as the candle module the learner's weights come from (the
     /// oracle), deterministic and sampled, at batch 1.
     #[test]
     fn acts_as_the_candle_actor() {

@@ -1,7 +1,7 @@
 //! Fused CPU row kernels with their own backward passes, for the layers that dominate a
 //! DreamerV3 training step: one pass over rows of the input forward and one backward, on the
-//! calling thread (the learner parallelises over the batch instead). The plain networks
-//! ([`super::plain`]) call the row functions; around each, a candle custom op (only with
+//! calling thread (the learner parallelises over the batch instead). The networks
+//! ([`super::layer`], [`super::rssm`], [`super::losses`]) call the row functions; around each, a candle custom op (only with
 //! `cfg(test)` or the `oracle` feature) lets the tests hold it to the composed candle operations,
 //! values and gradients. The ops compute the gradient of an argument only when it is tracked
 //! ([`Tensor::track_op`]).
@@ -286,7 +286,7 @@ pub use linear_norm::linear_norm_act;
 pub use norm_act::norm_act;
 #[cfg(any(test, feature = "oracle"))]
 pub use twohot::{soft_cross_entropy, twohot_decode};
-// the row kernels, for the networks on plain buffers (`crate::nn::plain`)
+// the row kernels, for the networks (`crate::nn::layer`, `crate::nn::rssm`)
 pub(crate) use categorical::{kl_rows, kl_rows_bwd, probs_rows_bwd, sample_rows, Unimix};
 pub(crate) use gemm::{count_flops, gemm_into, Operand};
 pub(crate) use gru::{gru_rows, gru_rows_bwd};

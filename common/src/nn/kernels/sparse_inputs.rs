@@ -11,7 +11,7 @@
 //!
 //! the same sums as the dense product's without its zero terms: `C` times fewer operations on
 //! `z`. The input's gradient `g W` stays dense (it is dense). Which columns are sparse is a
-//! hint of the layer ([`crate::nn::Dense::sparse_inputs`]); any values are multiplied right, and
+//! hint of the layer ([`crate::nn::Mlp::sparse_inputs`]); any values are multiplied right, and
 //! a block denser than [`MAX_DENSITY`] goes through the dense product.
 
 use std::ops::Range;

@@ -1,51 +1,17 @@
-//! Multi-layer perceptrons: `Linear → [LayerNorm] → activation` blocks, then an optional output layer.
+//! The oracle's multi-layer perceptrons (candle modules): `Linear → [LayerNorm] → activation` blocks, then an optional output layer.
 
-#[cfg(any(test, feature = "oracle"))]
 use super::dense::Dense;
-#[cfg(any(test, feature = "oracle"))]
-use super::kernels::NormAct;
-#[cfg(any(test, feature = "oracle"))]
 use super::norm::LayerNorm;
-#[cfg(any(test, feature = "oracle"))]
+use crate::nn::kernels::NormAct;
+use crate::nn::layer::{Activation, LAYER_NORM_EPS};
 use candle_core::{Module, Result, Tensor};
-#[cfg(any(test, feature = "oracle"))]
 use candle_nn::VarBuilder;
-#[cfg(any(test, feature = "oracle"))]
 use std::ops::Range;
 
-/// Hidden-layer activation.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Activation {
-    /// `x σ(x)`, with LayerNorm before it (DreamerV3).
-    SiluNorm,
-    /// `max(x, 0)` without normalisation (the paper's SAC networks).
-    Relu,
-}
-
-/// The LayerNorms' `ε` in an [`Mlp`]'s hidden blocks.
-pub const LAYER_NORM_EPS: f64 = 1e-3;
-
-/// The sizes of an [`Mlp`]: what [`Mlp::new`] is given besides its parameters.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct MlpShape {
-    /// Input width.
-    pub input: usize,
-    /// Width of each hidden block.
-    pub units: usize,
-    /// Number of hidden blocks.
-    pub layers: usize,
-    /// Width of the output layer, if the network has one.
-    pub out: Option<usize>,
-    /// The hidden blocks' activation.
-    pub act: Activation,
-}
-
 /// A hidden block of an [`Mlp`]: a layer and, for [`Activation::SiluNorm`], its normalisation.
-#[cfg(any(test, feature = "oracle"))]
 pub type HiddenBlock = (Dense, Option<LayerNorm>);
 
 /// An MLP: `layers` hidden blocks of width `units`, then a linear head to `out` (if given).
-#[cfg(any(test, feature = "oracle"))]
 #[derive(Clone, Debug)]
 pub struct Mlp {
     hidden: Vec<HiddenBlock>,
@@ -53,7 +19,6 @@ pub struct Mlp {
     act: Activation,
 }
 
-#[cfg(any(test, feature = "oracle"))]
 impl Mlp {
     /// Builds the layers under `vb` (`l{i}.fc`, `l{i}.ln`, `out`).
     pub fn new(
@@ -116,7 +81,6 @@ impl Mlp {
     }
 }
 
-#[cfg(any(test, feature = "oracle"))]
 impl Module for Mlp {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let mut h = x.clone();
@@ -136,7 +100,7 @@ impl Module for Mlp {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::nn::ParamStore;
+    use crate::nn::oracle::ParamStore;
     use candle_core::{DType, Device};
 
     #[test]

@@ -4,7 +4,7 @@
 //! takes a fused kernel without a backward pass whenever its input is contiguous, which silently
 //! stops gradients; this one runs [`kernels::norm_act`], which has its own.
 
-use super::kernels::{self, NormAct};
+use crate::nn::kernels::{self, NormAct};
 use candle_core::{Result, Tensor};
 use candle_nn::{Init, VarBuilder};
 
@@ -55,7 +55,7 @@ impl candle_core::Module for LayerNorm {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::nn::ParamStore;
+    use crate::nn::oracle::ParamStore;
     use candle_core::{Device, Module, Var};
 
     #[test]

@@ -5,26 +5,47 @@
 //! or `y = p`. Backward, from the output's gradient `∂y`: the product's gradient `∂p` (the
 //! normalisation's backward pass, [`crate::nn::kernels`]' `norm_act`), then
 //! `∂W += ∂pᵀ x`, `∂b += Σ_rows ∂p`, and `∂x = ∂p W` for the input columns asked for. Input
-//! columns that are mostly zero (the one-hot `z` of a state, [`crate::nn::Dense::sparse_inputs`])
+//! columns that are mostly zero (the one-hot `z` of a state, [`crate::nn::kernels::sparse_inputs`])
 //! are multiplied over their non-zeros, forward and in the weight's gradient.
 
 use super::parameters::{update_each, NamedTensor, Parameters};
+use super::weights::{Weights, WeightsError};
 use crate::nn::kernels::{
     column_sums, count_flops, dense_parts, gemm_into, norm_act_rows_bwd_into, norm_act_rows_into,
     Norm, NormAct, Operand, SparseColumns, SparseRows,
 };
-use crate::nn::mlp::{MlpShape, LAYER_NORM_EPS};
-use crate::nn::weights::{Weights, WeightsError};
-use crate::nn::Activation;
-#[cfg(any(test, feature = "oracle"))]
-use crate::nn::{Dense, LayerNorm, Mlp};
-#[cfg(any(test, feature = "oracle"))]
-use candle_core::{backprop::GradStore, bail, Result, Tensor};
 use std::ops::Range;
+
+/// Hidden-layer activation.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Activation {
+    /// `x σ(x)`, with LayerNorm before it (DreamerV3).
+    SiluNorm,
+    /// `max(x, 0)` without normalisation (the paper's SAC networks).
+    Relu,
+}
+
+/// The LayerNorms' `ε` in an [`Mlp`]'s hidden blocks.
+pub const LAYER_NORM_EPS: f64 = 1e-3;
+
+/// The sizes of an [`Mlp`]: what [`Mlp::from_weights`] is given besides its parameters.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MlpShape {
+    /// Input width.
+    pub input: usize,
+    /// Width of each hidden block.
+    pub units: usize,
+    /// Number of hidden blocks.
+    pub layers: usize,
+    /// Width of the output layer, if the network has one.
+    pub out: Option<usize>,
+    /// The hidden blocks' activation.
+    pub act: Activation,
+}
 
 /// What follows a layer's product.
 #[derive(Clone, Debug)]
-enum After {
+pub(super) enum After {
     /// `y = p`.
     Nothing,
     /// `y = act(γ (p − μ)/√(σ² + ε) + β)`.
@@ -35,11 +56,11 @@ enum After {
 
 /// A normalisation's parameters, owned ([`Norm`] is their view).
 #[derive(Clone, Debug)]
-struct NormParams {
-    gain: Vec<f32>,
-    bias: Vec<f32>,
-    eps: f32,
-    act: NormAct,
+pub(super) struct NormParams {
+    pub(super) gain: Vec<f32>,
+    pub(super) bias: Vec<f32>,
+    pub(super) eps: f32,
+    pub(super) act: NormAct,
 }
 
 impl NormParams {
@@ -53,9 +74,9 @@ impl NormParams {
     }
 }
 
-/// A linear layer and what follows it, its parameters copied out of candle.
+/// A linear layer and what follows it: a normalisation and its activation, a ReLU, or nothing.
 #[derive(Clone, Debug)]
-pub struct PlainLayer {
+pub struct Layer {
     inputs: usize,
     outputs: usize,
     /// `W` `[out, in]`, for the input's gradient `∂p W`.
@@ -67,11 +88,11 @@ pub struct PlainLayer {
     /// Input columns that are mostly zero.
     sparse: Option<Range<usize>>,
     /// The names of its tensors in the order of [`Parameters::tensors`] (`W`, `b`, the
-    /// normalisation's `γ` and `β`, those it has); empty for a layer copied out of candle.
+    /// normalisation's `γ` and `β`, those it has); empty for a layer copied from the tests' candle oracle.
     names: Vec<String>,
 }
 
-/// How a layer multiplies an input ([`PlainLayer::split_inputs`]).
+/// How a layer multiplies an input ([`Layer::split_inputs`]).
 struct InputSplit<'a> {
     /// Column ranges multiplied by gemm.
     dense: Vec<Range<usize>>,
@@ -179,45 +200,9 @@ fn transpose_into(m: &[f32], rows: usize, cols: usize, t: &mut [f32]) {
     }
 }
 
-/// The values of a contiguous CPU tensor.
-#[cfg(any(test, feature = "oracle"))]
-fn values(t: &Tensor) -> Result<Vec<f32>> {
-    t.flatten_all()?.to_vec1::<f32>()
-}
-
-impl PlainLayer {
-    /// The layer `dense` followed by its normalisation and activation `norm`, or else a ReLU if
-    /// `relu`, or else nothing.
-    #[cfg(any(test, feature = "oracle"))]
-    pub(super) fn from_parts(
-        dense: &Dense,
-        norm: Option<(&LayerNorm, NormAct)>,
-        relu: bool,
-    ) -> Result<Self> {
-        let (outputs, inputs) = dense.weight().dims2()?;
-        let after = match (norm, relu) {
-            (Some((ln, act)), _) => {
-                let (gain, bias, eps) = ln.parts();
-                After::Norm(NormParams {
-                    gain: values(gain)?,
-                    bias: values(bias)?,
-                    eps: eps as f32,
-                    act,
-                })
-            }
-            (None, true) => After::Relu,
-            (None, false) => After::Nothing,
-        };
-        let bias = dense.bias().map(values).transpose()?;
-        let layer = Self::from_values(values(dense.weight())?, (outputs, inputs), bias, after);
-        Ok(Self {
-            sparse: dense.sparse_columns().cloned(),
-            ..layer
-        })
-    }
-
+impl Layer {
     /// The layer of `W` `[outputs, inputs]` (row-major) and `bias`, followed by `after`.
-    fn from_values(
+    pub(super) fn from_values(
         w: Vec<f32>,
         (outputs, inputs): (usize, usize),
         bias: Option<Vec<f32>>,
@@ -292,24 +277,12 @@ impl PlainLayer {
     }
 
     /// The same layer told that its input columns `columns` are mostly zero (a one-hot
-    /// latent), as [`Dense::sparse_inputs`]: the same results, fewer products.
+    /// latent): the same results, fewer products.
     pub(super) fn sparse_inputs(self, columns: Range<usize>) -> Self {
         Self {
             sparse: Some(columns),
             ..self
         }
-    }
-
-    /// A normalised block (`act(LayerNorm(x Wᵀ))`) of `dense` and `ln`.
-    #[cfg(any(test, feature = "oracle"))]
-    pub fn normalised(dense: &Dense, ln: &LayerNorm, act: NormAct) -> Result<Self> {
-        Self::from_parts(dense, Some((ln, act)), false)
-    }
-
-    /// The plain product `x Wᵀ + b` of `dense`.
-    #[cfg(any(test, feature = "oracle"))]
-    pub fn linear(dense: &Dense) -> Result<Self> {
-        Self::from_parts(dense, None, false)
     }
 
     /// Input width.
@@ -466,35 +439,6 @@ impl PlainLayer {
         gemm_into(dx, row_stride, accumulate, dims, Operand::rows(dp, m), w);
     }
 
-    /// The gradients `grads` as candle tensors of the parameters of `dense` and `ln` (the layer
-    /// and normalisation this one copied), added into `store`.
-    #[cfg(any(test, feature = "oracle"))]
-    pub fn add_grads_to(
-        &self,
-        grads: LayerGrads,
-        dense: &Dense,
-        ln: Option<&LayerNorm>,
-        store: &mut GradStore,
-    ) -> Result<()> {
-        let LayerGrads {
-            w,
-            sparse_wt,
-            bias,
-            mut norm,
-        } = grads;
-        add_grad(store, dense.weight(), self.whole_weight(w, sparse_wt))?;
-        if let Some(b) = dense.bias() {
-            add_grad(store, b, bias)?;
-        }
-        if let Some(ln) = ln {
-            let (gain, bias, _) = ln.parts();
-            let norm_bias = norm.split_off(self.outputs);
-            add_grad(store, gain, norm)?;
-            add_grad(store, bias, norm_bias)?;
-        }
-        Ok(())
-    }
-
     /// `∂W` `[out, in]` whole from its dense part `w` and the sparse columns' `∂Wᵀ` rows
     /// `sparse_wt`, added into its columns in tiles of 16 x 16 (a column of `∂W` is a cache line
     /// a value; a tile's sixteen lines stay in the cache while it is written).
@@ -533,7 +477,7 @@ impl PlainLayer {
     }
 }
 
-impl Parameters for PlainLayer {
+impl Parameters for Layer {
     fn tensors(&self) -> Vec<NamedTensor<'_>> {
         let (m, k) = (self.outputs, self.inputs);
         let mut values: Vec<(&[f32], Vec<usize>)> = vec![(&self.w, vec![m, k])];
@@ -585,7 +529,7 @@ pub struct LayerGrads {
 impl LayerGrads {
     /// The gradients of `layer`'s tensors in the order of [`Parameters::tensors`] (a frozen
     /// normalisation's empty), added to `out`.
-    pub fn push_tensors(self, layer: &PlainLayer, out: &mut Vec<Vec<f32>>) {
+    pub fn push_tensors(self, layer: &Layer, out: &mut Vec<Vec<f32>>) {
         let Self {
             w,
             sparse_wt,
@@ -602,7 +546,7 @@ impl LayerGrads {
         }
     }
 
-    /// `[∂γ, ∂β]` of the normalisation (empty without one), for [`PlainLayer::product_grad`].
+    /// `[∂γ, ∂β]` of the normalisation (empty without one), for [`Layer::product_grad`].
     pub fn norm_mut(&mut self) -> &mut [f32] {
         &mut self.norm
     }
@@ -621,13 +565,14 @@ impl LayerGrads {
     }
 }
 
-/// An [`Mlp`] on plain buffers: its hidden blocks, then its output layer.
+/// A multi-layer perceptron: its hidden blocks (`Linear → [LayerNorm] → activation`), then its
+/// output layer if it has one.
 #[derive(Clone, Debug)]
-pub struct PlainMlp {
-    pub(super) layers: Vec<PlainLayer>,
+pub struct Mlp {
+    pub(super) layers: Vec<Layer>,
 }
 
-/// What a [`PlainMlp`]'s forward pass keeps for its backward pass, for a fixed number of rows:
+/// What a [`Mlp`]'s forward pass keeps for its backward pass, for a fixed number of rows:
 /// each layer's product and output, and the backward pass's scratch.
 #[derive(Debug, Default)]
 pub struct MlpTrace {
@@ -640,34 +585,14 @@ pub struct MlpTrace {
     grad_product: Vec<f32>,
 }
 
-/// The gradients of a [`PlainMlp`]'s parameters.
+/// The gradients of a [`Mlp`]'s parameters.
 #[derive(Clone, Debug)]
 pub struct MlpGrads {
     pub(super) layers: Vec<LayerGrads>,
 }
 
-impl PlainMlp {
-    /// The weights of `mlp` as they are now.
-    #[cfg(any(test, feature = "oracle"))]
-    pub fn new(mlp: &Mlp) -> Result<Self> {
-        let (hidden, head, act) = mlp.parts();
-        let mut layers = Vec::with_capacity(hidden.len() + 1);
-        for (dense, ln) in hidden {
-            layers.push(match (act, ln) {
-                (Activation::SiluNorm, Some(ln)) => {
-                    PlainLayer::normalised(dense, ln, NormAct::Silu)?
-                }
-                (Activation::Relu, None) => PlainLayer::from_parts(dense, None, true)?,
-                _ => bail!("plain MLP: a hidden layer of {act:?} without its normalisation"),
-            });
-        }
-        if let Some(head) = head {
-            layers.push(PlainLayer::linear(head)?);
-        }
-        Ok(Self { layers })
-    }
-
-    /// The network of `shape` read from `weights` under the names [`Mlp::new`] gives its
+impl Mlp {
+    /// The network of `shape` read from `weights` under the names the checkpoints give its
     /// parameters, after `prefix` (`"encoder."`; empty for none): `l{i}.fc` and `l{i}.ln` for
     /// the hidden blocks, `out` for the output layer.
     pub fn from_weights(
@@ -682,25 +607,17 @@ impl PlainMlp {
             let size = (width, shape.units);
             layers.push(match shape.act {
                 Activation::SiluNorm => {
-                    PlainLayer::normalised_from_weights(weights, &block, size, NormAct::Silu)?
+                    Layer::normalised_from_weights(weights, &block, size, NormAct::Silu)?
                 }
-                Activation::Relu => PlainLayer::from_weights(
-                    weights,
-                    &format!("{block}.fc"),
-                    size,
-                    true,
-                    After::Relu,
-                )?,
+                Activation::Relu => {
+                    Layer::from_weights(weights, &format!("{block}.fc"), size, true, After::Relu)?
+                }
             });
             width = shape.units;
         }
         if let Some(out) = shape.out {
             let name = format!("{prefix}out");
-            layers.push(PlainLayer::linear_from_weights(
-                weights,
-                &name,
-                (width, out),
-            )?);
+            layers.push(Layer::linear_from_weights(weights, &name, (width, out))?);
         }
         Ok(Self { layers })
     }
@@ -859,39 +776,12 @@ impl PlainMlp {
     /// Zeroed gradients of the parameters.
     pub fn zero_grads(&self) -> MlpGrads {
         MlpGrads {
-            layers: self.layers.iter().map(PlainLayer::zero_grads).collect(),
+            layers: self.layers.iter().map(Layer::zero_grads).collect(),
         }
-    }
-
-    /// The gradients as candle tensors of `mlp`'s parameters (the network this one copied),
-    /// added into `store`.
-    #[cfg(any(test, feature = "oracle"))]
-    pub fn add_grads_to(&self, grads: MlpGrads, mlp: &Mlp, store: &mut GradStore) -> Result<()> {
-        let (hidden, head, _) = mlp.parts();
-        let denses = hidden
-            .iter()
-            .map(|(d, ln)| (d, ln.as_ref()))
-            .chain(head.map(|h| (h, None)));
-        for ((dense, ln), (layer, g)) in denses.zip(self.layers.iter().zip(grads.layers)) {
-            layer.add_grads_to(g, dense, ln, store)?;
-        }
-        Ok(())
     }
 }
 
-/// Adds `grad` (the values of a tensor shaped as `param`) to `param`'s gradient in `store`.
-#[cfg(any(test, feature = "oracle"))]
-pub(super) fn add_grad(store: &mut GradStore, param: &Tensor, grad: Vec<f32>) -> Result<()> {
-    let grad = Tensor::from_vec(grad, param.shape(), param.device())?;
-    let sum = match store.get(param) {
-        Some(g) => (g + grad)?,
-        None => grad,
-    };
-    store.insert(param, sum);
-    Ok(())
-}
-
-impl Parameters for PlainMlp {
+impl Parameters for Mlp {
     fn tensors(&self) -> Vec<NamedTensor<'_>> {
         self.layers.iter().flat_map(|l| l.tensors()).collect()
     }
@@ -903,14 +793,14 @@ impl Parameters for PlainMlp {
 
 impl MlpGrads {
     /// The gradients of `mlp`'s tensors in the order of [`Parameters::tensors`].
-    pub fn into_tensors(self, mlp: &PlainMlp) -> Vec<Vec<f32>> {
+    pub fn into_tensors(self, mlp: &Mlp) -> Vec<Vec<f32>> {
         let mut out = Vec::new();
         self.push_tensors(mlp, &mut out);
         out
     }
 
     /// [`MlpGrads::into_tensors`], added to `out`.
-    pub fn push_tensors(self, mlp: &PlainMlp, out: &mut Vec<Vec<f32>>) {
+    pub fn push_tensors(self, mlp: &Mlp, out: &mut Vec<Vec<f32>>) {
         for (g, layer) in self.layers.into_iter().zip(&mlp.layers) {
             g.push_tensors(layer, out);
         }
@@ -952,6 +842,95 @@ impl<'a> InputGrad<'a> {
             row_stride,
             columns,
             accumulate,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::nn::oracle::testing::{
+        assert_same_outputs, close, normal, small_mlp, state_rows, vals,
+    };
+    use crate::nn::oracle::{Mlp as CandleMlp, ParamStore};
+    use candle_core::{Device, Tensor, Var};
+
+    /// A network read by name from the learner's weights is the one copied out of its candle
+    /// module, for both activations and under a prefix.
+    #[test]
+    fn a_network_read_by_name_equals_the_one_copied_from_its_candle_module() {
+        for act in [Activation::SiluNorm, Activation::Relu] {
+            let store = ParamStore::new();
+            let mlp = CandleMlp::new(5, 7, 2, Some(3), act, store.builder().pp("encoder")).unwrap();
+            store.init(11).unwrap();
+            let shape = small_mlp(act);
+            let mut weights = Weights::from_safetensors(&store.to_bytes().unwrap()).unwrap();
+            let read = Mlp::from_weights(&mut weights, "encoder.", &shape).unwrap();
+            weights.finish().unwrap();
+            let copied = Mlp::from_oracle(&mlp).unwrap();
+            assert_same_outputs(&read, &copied, &format!("{act:?}"));
+        }
+    }
+
+    /// An MLP's outputs, input gradient and parameter gradients are the candle module's,
+    /// over all rows and over a range of them, with sparse inputs, LayerNorm + SiLU and ReLU.
+    #[test]
+    fn mlps_match_their_candle_oracle() {
+        let dims = (4, 4, 16, 2);
+        let (f, rows) = (4 + 64 + 2, 37);
+        for act in [Activation::SiluNorm, Activation::Relu] {
+            let ps = ParamStore::new();
+            let mlp = CandleMlp::new(f, 24, 2, Some(5), act, ps.builder().pp("m"))
+                .unwrap()
+                .sparse_inputs(4..68);
+            ps.init(3).unwrap();
+            let x = state_rows(rows, dims, 1);
+            let w = normal(rows * 5, 2);
+            let xv = Var::from_vec(x.clone(), (rows, f), &Device::Cpu).unwrap();
+            let wt = Tensor::from_vec(w.clone(), (rows, 5), &Device::Cpu).unwrap();
+            let plain = Mlp::from_oracle(&mlp).unwrap();
+            let mut trace = plain.trace(rows);
+            plain.forward(&x, &mut trace, 0..rows);
+            for span in [0..rows, 5..16] {
+                // the candle loss over the rows `span` only
+                let rows_of_x = xv.as_tensor().narrow(0, span.start, span.len()).unwrap();
+                let y = candle_core::Module::forward(&mlp, &rows_of_x).unwrap();
+                let loss = y
+                    .mul(&wt.narrow(0, span.start, span.len()).unwrap())
+                    .unwrap();
+                let want = loss.sum_all().unwrap().backward().unwrap();
+                close(plain.output(&trace, span.clone()), &vals(&y), "output");
+                let mut grads = plain.zero_grads();
+                let mut dx = vec![0f32; rows * f];
+                let xs = &x[span.start * f..span.end * f];
+                let dy = &w[span.start * 5..span.end * 5];
+                let target = InputGrad {
+                    data: &mut dx[span.start * f..],
+                    row_stride: f,
+                    columns: 0..f,
+                    accumulate: false,
+                };
+                plain.backward(
+                    xs,
+                    &mut trace,
+                    span.clone(),
+                    dy,
+                    Some(&mut grads),
+                    Some(target),
+                );
+                close(
+                    &dx,
+                    &vals(want.get(xv.as_tensor()).unwrap()),
+                    "input gradient",
+                );
+                let mut got = candle_core::backprop::GradStore::default();
+                plain.add_grads_to(grads, &mlp, &mut got).unwrap();
+                for (name, v) in ps.named() {
+                    let g =
+                        |s: &candle_core::backprop::GradStore| vals(s.get(v.as_tensor()).unwrap());
+                    close(&g(&got), &g(&want), &name);
+                }
+            }
         }
     }
 }

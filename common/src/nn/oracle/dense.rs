@@ -1,9 +1,9 @@
-//! A fully connected layer `y = x Wᵀ + b` on the fused [`linear`](super::kernels::linear)
+//! A fully connected layer `y = x Wᵀ + b` on the fused [`linear`](crate::nn::kernels::linear)
 //! kernel, with the parameter names and shapes of candle-nn's `Linear` (`weight` `[out, in]`,
 //! `bias` `[out]`).
 
-use super::kernels::{self, NormAct};
 use super::norm::LayerNorm;
+use crate::nn::kernels::{self, NormAct};
 use candle_core::{Result, Tensor};
 use candle_nn::VarBuilder;
 use std::ops::Range;
