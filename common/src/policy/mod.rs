@@ -16,14 +16,14 @@ use crate::nn::WeightsError;
 pub enum PolicyError {
     /// The agent configuration is not one a policy can be built from (its message names the key).
     #[error("the [agent] table cannot act: {0}")]
-    Config(#[from] AgentConfigError),
+    Config(AgentConfigError),
     /// The weights are not a safetensors file of `f32` tensors, or are of another architecture
     /// than the agent configuration's.
     #[error(
         "the policy weights do not fit the [agent] table: {0}; act with the agent.toml of the \
          run that wrote them"
     )]
-    Weights(#[from] WeightsError),
+    Weights(WeightsError),
     /// An observation's size differs from the one the policy was built for.
     #[error(
         "an observation of {found} values reached a policy built for {want}; the [race] \
@@ -35,6 +35,20 @@ pub enum PolicyError {
         /// Values the policy was built for.
         want: usize,
     },
+}
+
+// The causes are printed in the messages, not chained as sources, so that a `{:#}` chain (anyhow's)
+// names each once.
+impl From<AgentConfigError> for PolicyError {
+    fn from(e: AgentConfigError) -> Self {
+        Self::Config(e)
+    }
+}
+
+impl From<WeightsError> for PolicyError {
+    fn from(e: WeightsError) -> Self {
+        Self::Weights(e)
+    }
 }
 
 /// The outcome of building a policy or of one decision.
@@ -123,3 +137,25 @@ impl Policy {
 
 #[cfg(test)]
 mod old_weights;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::error::Error as _;
+
+    #[test]
+    fn a_policy_error_names_its_cause_once() {
+        let config = PolicyError::from(AgentConfigError::OutOfRange(
+            "agent.dreamer.units = 0".into(),
+        ));
+        let weights = PolicyError::from(WeightsError::Format("truncated header".into()));
+        for (e, cause) in [
+            (config, "agent.dreamer.units = 0"),
+            (weights, "truncated header"),
+        ] {
+            assert!(e.to_string().contains(cause), "{e}");
+            // no chained source: a `{:#}` chain would print the cause a second time
+            assert!(e.source().is_none(), "{e}");
+        }
+    }
+}
