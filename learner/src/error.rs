@@ -26,6 +26,22 @@ pub enum LearnerError {
     /// A checkpoint could not be written or read.
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
+    /// A training step's per-shard inputs do not cover its shards (one worker state a shard,
+    /// one noise stream a sequence): a caller's error, reported instead of a panic.
+    #[error(
+        "a training step over {batch} sequences in {shards} shards was given {states} worker \
+         states and {streams} noise streams (one state a shard, one stream a sequence)"
+    )]
+    ShardInputs {
+        /// Sequences in the batch.
+        batch: usize,
+        /// Shards the batch is split into.
+        shards: usize,
+        /// Worker states given.
+        states: usize,
+        /// Noise streams given.
+        streams: usize,
+    },
     /// A worker thread of a training step panicked.
     #[error("a training worker thread panicked")]
     WorkerPanicked,

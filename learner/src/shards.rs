@@ -32,17 +32,22 @@ pub(crate) fn on_shards_with<S: Send, T: Send>(
 ) -> Result<Vec<T>> {
     let workers = workers.clamp(1, batch.max(1));
     let per = batch.div_ceil(workers).max(1);
-    let mut shards = Vec::with_capacity(workers);
+    let count = batch.div_ceil(per);
+    if states.len() < count || rngs.len() < batch {
+        return Err(LearnerError::ShardInputs {
+            batch,
+            shards: count,
+            states: states.len(),
+            streams: rngs.len(),
+        });
+    }
+    let mut shards = Vec::with_capacity(count);
     let mut rest = rngs;
-    let mut states = states.iter_mut();
-    for (index, start) in (0..batch).step_by(per).enumerate() {
+    for ((index, start), state) in (0..batch).step_by(per).enumerate().zip(states.iter_mut()) {
         let rows = start..(start + per).min(batch);
         let (mine, others) = rest.split_at_mut(rows.len());
         rest = others;
         let weight = rows.len() as f64 / batch as f64;
-        let Some(state) = states.next() else {
-            panic!("on_shards_with: no state for shard {index} (a caller passes one per shard)");
-        };
         shards.push((
             Shard {
                 index,
@@ -101,4 +106,45 @@ pub(crate) fn weighted_mean(parts: &[(f64, Metrics)]) -> Metrics {
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    fn streams(n: u64) -> Vec<ChaCha8Rng> {
+        (0..n).map(ChaCha8Rng::seed_from_u64).collect()
+    }
+
+    #[test]
+    fn shards_cover_the_batch_in_order_and_missing_inputs_are_an_error() {
+        let mut rngs = streams(5);
+        let mut states = vec![0usize; 2];
+        let rows = on_shards_with(2, 5, &mut rngs, &mut states, |shard, rngs, state| {
+            *state = shard.rows.len();
+            Ok((shard.index, shard.rows, rngs.len(), shard.weight))
+        })
+        .unwrap();
+        assert_eq!(rows, [(0, 0..3, 3, 0.6), (1, 3..5, 2, 0.4)]);
+        assert_eq!(states, [3, 2]);
+
+        let mut one_state = vec![0usize; 1];
+        let err = on_shards_with(2, 5, &mut rngs, &mut one_state, |_, _, _| Ok(())).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                LearnerError::ShardInputs {
+                    batch: 5,
+                    shards: 2,
+                    states: 1,
+                    streams: 5
+                }
+            ),
+            "{err}"
+        );
+        let mut few = streams(3);
+        let err = on_shards_with(2, 5, &mut few, &mut states, |_, _, _| Ok(())).unwrap_err();
+        assert!(err.to_string().contains("3 noise streams"), "{err}");
+    }
 }
