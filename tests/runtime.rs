@@ -258,7 +258,7 @@ fn names_under(dir: &Path) -> Vec<String> {
 /// `/dev/shm`, not anywhere in the private root (`nodes/`, `services/` included).
 fn assert_no_leftovers(pid: u32) {
     let prefix = format!("ctxrace_{pid}-");
-    let root = ctxrace_common::ipc::shm_root().unwrap();
+    let root = ctxrace_ipc::shm_root().unwrap();
     for dir in [PathBuf::from("/dev/shm"), root] {
         let left: Vec<String> = names_under(&dir)
             .into_iter()
@@ -518,11 +518,11 @@ fn arg_after(pid: u32, flag: &str) -> String {
 
 #[test]
 fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
-    use ctxrace_common::ipc::inject::Injector;
-    use ctxrace_common::ipc::wire::{
+    use ctxrace_ipc::inject::Injector;
+    use ctxrace_ipc::wire::{
         step_stride, BatchRequest, ChunkHeader, EpisodeReport, WeightsHeader, FORMAT_VERSION,
     };
-    use ctxrace_common::ipc::RunTransport;
+    use ctxrace_ipc::RunTransport;
     let dir = tempfile::tempdir().unwrap();
     // a target far beyond the test: the run must still be training while the rejections are
     // looked for (a run to a near target ended before the replay published them), so the test

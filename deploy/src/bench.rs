@@ -5,9 +5,9 @@
 use crate::TrackArgs;
 use anyhow::Result;
 use clap::{Args, Subcommand};
-use ctxrace_actor::baseline::{Baseline, BaselineKind};
-use ctxrace_actor::RaceEnv;
-use ctxrace_common::Context;
+use ctxrace_config::Context;
+use ctxrace_sim::baseline::{Baseline, BaselineKind};
+use ctxrace_sim::RaceEnv;
 use serde::Serialize;
 use std::sync::Arc;
 use std::time::Instant;
@@ -153,7 +153,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     if !(args.seconds.is_finite() && args.seconds > 0.0) {
         anyhow::bail!("--seconds {} must be a positive number", args.seconds);
     }
-    let cfg = ctxrace_common::RaceConfig {
+    let cfg = ctxrace_config::RaceConfig {
         rivals: args.rivals,
         ..Default::default()
     };

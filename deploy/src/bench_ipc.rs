@@ -7,12 +7,12 @@
 //! broadcast to M subscribers (until the last one holds verified weights).
 
 use anyhow::{anyhow, Context as _, Result};
-use ctxrace_common::ipc::wire::{step_stride, MAX_CHUNK};
-use ctxrace_common::ipc::{
+use ctxrace_config::{Batch, BatchSpec, ReplayOptions, SequenceBatch};
+use ctxrace_ipc::wire::{step_stride, MAX_CHUNK};
+use ctxrace_ipc::{
     cleanup, run_prefix, ReplayClient, RunTransport, SenderOptions, TrajectorySender,
     TrajectoryStep, WeightsPublisher, WeightsReceiver,
 };
-use ctxrace_common::{Batch, BatchSpec, ReplayOptions, SequenceBatch};
 use ctxrace_replay::{run, ReplayArgs, ReplayBuffer, ReplayControl};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;

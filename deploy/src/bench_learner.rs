@@ -4,7 +4,7 @@
 //!
 //! **Fraction of peak.** The floating-point operations of a step are those of the linear layers'
 //! matrix products (forward and backward, `2 m n k` each), counted as they run
-//! ([`ctxrace_common::nn::kernels::matmul_flops`]), per phase for the DreamerV3 variants (world
+//! ([`ctxrace_nn::kernels::matmul_flops`]), per phase for the DreamerV3 variants (world
 //! model; imagination: the rollouts, heads and returns; actor_critic: the backward pass to the
 //! actor's and critic's gradients and their steps; cMask's mask SAC). Elementwise work is not
 //! counted, so the fraction is a lower bound of the arithmetic done. The peak is `threads` times
@@ -21,18 +21,17 @@
 //!
 //! **The products' ceiling.** One more step runs with its gemm calls recorded by shape and
 //! strides; the same calls then run again alone on one core, on operands reused from call to call
-//! ([`ctxrace_common::nn::kernels::rerun_products`]; the fastest of three reruns). Their rate
+//! ([`ctxrace_nn::kernels::rerun_products`]; the fastest of three reruns). Their rate
 //! is what this machine's gemm reaches on the step's shapes with nothing in the way, an upper
 //! bound for the step; their time spread over the step's threads, as a share of the step's, is
 //! how much of the step the products explain (the rest: the row kernels, the one-hot products,
 //! copies, cold operands, waiting threads).
 use anyhow::Result;
 use clap::Args;
-use ctxrace_common::batch::{Batch, BatchSpec};
-use ctxrace_common::policy::ACT_DIM;
-use ctxrace_common::{
-    AgentConfig, AlgoKind, ExperimentConfig, Policy, SequenceBatch, TransitionBatch,
-};
+use ctxrace_config::batch::{Batch, BatchSpec};
+use ctxrace_config::{AgentConfig, AlgoKind, ExperimentConfig, SequenceBatch, TransitionBatch};
+use ctxrace_nn::policy::ACT_DIM;
+use ctxrace_nn::Policy;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
@@ -96,7 +95,7 @@ struct LearnerReport {
 }
 
 /// One step's gemm calls run again alone on one core
-/// ([`ctxrace_common::nn::kernels::rerun_products`]).
+/// ([`ctxrace_nn::kernels::rerun_products`]).
 #[derive(Serialize)]
 struct ProductsAlone {
     calls: usize,
@@ -116,7 +115,7 @@ fn products_alone(
     batch: &Batch,
     (threads, core_peak, per_step): (usize, f64, f64),
 ) -> Result<ProductsAlone> {
-    use ctxrace_common::nn::kernels::{record_products, recorded_products, rerun_products};
+    use ctxrace_nn::kernels::{record_products, recorded_products, rerun_products};
     record_products(true);
     let stepped = algo.train_step(batch);
     record_products(false);
@@ -347,7 +346,7 @@ pub fn run(args: LearnerArgs) -> Result<()> {
         None => AgentConfig::default(),
     };
     agent.algo = args.algo;
-    let beams = ctxrace_common::LidarConfig::default().beams;
+    let beams = ctxrace_config::LidarConfig::default().beams;
     let spec = agent.batch_spec();
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let batch = random_batch(spec, beams, &mut rng);
@@ -355,7 +354,7 @@ pub fn run(args: LearnerArgs) -> Result<()> {
     let threads = args.threads.unwrap_or(agent.algo.learner_threads());
     let mut algo = ctxrace_learner::build(&agent, beams, threads)?;
     algo.train_step(&batch)?;
-    let flops_before = ctxrace_common::nn::kernels::matmul_flops();
+    let flops_before = ctxrace_nn::kernels::matmul_flops();
     let mut metrics = Default::default();
     let mut step_times = Vec::with_capacity(args.steps.max(1));
     let mut phase_times: BTreeMap<String, Vec<f64>> = BTreeMap::new();
@@ -377,7 +376,7 @@ pub fn run(args: LearnerArgs) -> Result<()> {
             .filter_map(|(k, v)| Some((k.strip_prefix(prefix)?.to_string(), v * scale)))
             .collect()
     };
-    let flops = ctxrace_common::nn::kernels::matmul_flops() - flops_before;
+    let flops = ctxrace_nn::kernels::matmul_flops() - flops_before;
     let gflop_per_step = flops as f64 / args.steps.max(1) as f64 / 1e9;
     let gflop_by_phase = by_phase("flops/", 1e-9);
     let seconds_by_phase = phase_times

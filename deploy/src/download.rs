@@ -9,7 +9,7 @@
 use crate::track_check::{check_track, print_report, CheckPlan};
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
-use ctxrace_common::RaceConfig;
+use ctxrace_config::RaceConfig;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 

@@ -3,10 +3,11 @@
 //! actor's episode driver ([`Driver`]).
 
 use anyhow::{Context as _, Result};
-use ctxrace_actor::baseline::BaselineKind;
-use ctxrace_actor::driver::{ActMode, Driver};
-use ctxrace_actor::RaceEnv;
+use ctxrace_actor::driver::Driver;
 use ctxrace_learner::trained::TrainedAgent;
+use ctxrace_sim::baseline::BaselineKind;
+use ctxrace_sim::driver::ActMode;
+use ctxrace_sim::RaceEnv;
 
 /// What drives the ego.
 #[derive(Clone, Debug)]

@@ -8,7 +8,7 @@
 //! Each worker appends its finished episodes to `episodes.part-K.csv` in the output directory,
 //! so an interrupted evaluation resumes where it stopped: a rerun skips every (context, lap)
 //! already on disk. When all are done the rows are merged into `episodes.csv`, summarised per
-//! context (`contexts.csv`, `contexts.json`, see `ctxrace_actor::evaluation`) and one episode is drawn
+//! context (`contexts.csv`, `contexts.json`, see `ctxrace_sim::evaluation`) and one episode is drawn
 //! (`episode.png`, `episode.svg`). A cMask agent's masks at every decision go to
 //! `masks.part-K.csv` beside, merged into `masks.csv.gz` ([`crate::masks`]).
 
@@ -21,19 +21,19 @@ use crate::track_check::{check_track, CheckPlan};
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use clap::Args;
-use ctxrace_actor::baseline::BaselineKind;
-use ctxrace_actor::driver::ActMode;
-use ctxrace_actor::evaluation::{
-    self, episode_seed, run_episode, ContextSummary, EvalEpisode, EvalMeta,
-};
-use ctxrace_actor::RaceEnv;
-use ctxrace_common::results;
-use ctxrace_common::run_dir::{
+use ctxrace_config::{Context, RaceConfig};
+use ctxrace_learner::trained::{CheckpointChoice, TrainedAgent};
+use ctxrace_run::results;
+use ctxrace_run::run_dir::{
     open_append, read_regular, write_atomic, EVAL_CONTEXTS_CSV, EVAL_CONTEXTS_JSON, EVAL_DIR,
     EVAL_EPISODES, EVAL_JOB, EVAL_META,
 };
-use ctxrace_common::{Context, RaceConfig};
-use ctxrace_learner::trained::{CheckpointChoice, TrainedAgent};
+use ctxrace_sim::baseline::BaselineKind;
+use ctxrace_sim::driver::ActMode;
+use ctxrace_sim::evaluation::{
+    self, episode_seed, run_episode, ContextSummary, EvalEpisode, EvalMeta,
+};
+use ctxrace_sim::RaceEnv;
 use serde::{Deserialize, Serialize};
 use std::collections::HashSet;
 use std::io::Write;

@@ -4,13 +4,13 @@
 
 use crate::masks::{load_summary, MaskSummary};
 use anyhow::{bail, Result};
-use ctxrace_actor::baseline::BaselineKind;
-use ctxrace_actor::evaluation::EvalMeta;
-use ctxrace_actor::evaluation::{summarise, ContextSummary, EvalEpisode};
-use ctxrace_common::results::{read_csv, read_json, TrainingEpisode};
-use ctxrace_common::run_dir::{
+use ctxrace_run::results::{read_csv, read_json, TrainingEpisode};
+use ctxrace_run::run_dir::{
     EVAL_CONTEXTS_CSV, EVAL_DIR, EVAL_EPISODES, EVAL_META, TRAINING_EPISODES,
 };
+use ctxrace_sim::baseline::BaselineKind;
+use ctxrace_sim::evaluation::EvalMeta;
+use ctxrace_sim::evaluation::{summarise, ContextSummary, EvalEpisode};
 use std::path::{Path, PathBuf};
 
 /// One evaluated agent or baseline, as read from disk.

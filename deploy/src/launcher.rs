@@ -18,16 +18,16 @@ use crate::lock::{die_with_parent, DirLock};
 use crate::progress::progress_bar;
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
-use ctxrace_common::ipc::wire::{named_reasons, ReplayStatus};
-use ctxrace_common::ipc::{
+use ctxrace_config::validate::CONFIG_EXIT_CODE;
+use ctxrace_config::{ExperimentConfig, SupervisorConfig};
+use ctxrace_ipc::wire::{named_reasons, ReplayStatus};
+use ctxrace_ipc::{
     claim_run, cleanup, remove_dead_nodes, run_prefix, sweep_orphaned_runs, termination_flag,
     CleanupReport, RunTransport, TelemetrySubscriber, WeightsReceiver,
 };
-use ctxrace_common::results::TrainingEpisode;
-use ctxrace_common::run_dir::{open_append, ACTOR_REPORTS, LOGS, REPLAY_REPORT, STATUS_FILE};
-use ctxrace_common::validate::CONFIG_EXIT_CODE;
-use ctxrace_common::{ExperimentConfig, SupervisorConfig};
 use ctxrace_learner::runlog::{EpisodeLog, RateMeter};
+use ctxrace_run::results::TrainingEpisode;
+use ctxrace_run::run_dir::{open_append, ACTOR_REPORTS, LOGS, REPLAY_REPORT, STATUS_FILE};
 use std::path::Path;
 use std::process::{Child, Command, ExitStatus};
 use std::sync::atomic::Ordering;
@@ -773,7 +773,7 @@ fn supervise(
             if status.success() {
                 bar.set_position(p.env_steps.min(cfg.train.env_steps));
                 bar.finish_with_message(p.message(start));
-                ctxrace_common::results::write_json(&dir.join(STATUS_FILE), &p.status())?;
+                ctxrace_run::results::write_json(&dir.join(STATUS_FILE), &p.status())?;
                 return Ok(p.lost_in_restarts);
             }
             learner.exited(status, &cfg.supervisor)?;
@@ -784,7 +784,7 @@ fn supervise(
         }
         cleaner.poll();
         if last_status.elapsed() >= Duration::from_secs(1) {
-            ctxrace_common::results::write_json(&dir.join(STATUS_FILE), &p.status())?;
+            ctxrace_run::results::write_json(&dir.join(STATUS_FILE), &p.status())?;
             last_status = Instant::now();
         }
         if tick.elapsed() >= Duration::from_millis(250) {

@@ -11,7 +11,7 @@
 //! binary starts dies with its parent ([`die_with_parent`]).
 
 use anyhow::{bail, Context as _, Result};
-use ctxrace_common::run_dir::LOCK_FILE;
+use ctxrace_run::run_dir::LOCK_FILE;
 use std::fs::File;
 use std::io::{Read, Seek, Write};
 use std::os::fd::AsRawFd;

@@ -30,8 +30,8 @@ mod vehicle_cmd;
 
 use anyhow::{Context as _, Result};
 use clap::{Args, Parser, Subcommand};
-use ctxrace_common::validate::{ConfigError, CONFIG_EXIT_CODE};
-use ctxrace_common::RaceConfig;
+use ctxrace_config::validate::{ConfigError, CONFIG_EXIT_CODE};
+use ctxrace_config::RaceConfig;
 use ctxrace_tracks::{RacelineSource, Track, TrackOptions};
 use std::path::PathBuf;
 

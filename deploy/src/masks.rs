@@ -13,10 +13,10 @@
 //! context and along the lap.
 
 use anyhow::{bail, Context as _, Result};
-use ctxrace_actor::driver::Decided;
-use ctxrace_actor::RaceEnv;
-use ctxrace_common::run_dir::write_atomic;
-use ctxrace_common::Context;
+use ctxrace_config::Context;
+use ctxrace_run::run_dir::write_atomic;
+use ctxrace_sim::driver::Decided;
+use ctxrace_sim::RaceEnv;
 use flate2::read::MultiGzDecoder;
 use flate2::write::GzEncoder;
 use serde::{Deserialize, Serialize};
@@ -116,7 +116,7 @@ pub fn part_path(out: &Path, shard: usize) -> PathBuf {
 
 /// The workers' mask files in `out`.
 fn part_files(out: &Path) -> Result<Vec<PathBuf>> {
-    Ok(ctxrace_common::results::part_files(out, PART_PREFIX)?)
+    Ok(ctxrace_run::results::part_files(out, PART_PREFIX)?)
 }
 
 /// Merges the workers' mask files of `out` into [`MASKS_FILE`], keeping the rows of the

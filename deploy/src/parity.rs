@@ -6,8 +6,8 @@
 //! draws them ([`crate::figures::write_parity`]).
 
 use anyhow::{bail, Context as _, Result};
-use ctxrace_common::results::{read_csv, TrainingEpisode};
-use ctxrace_common::run_dir::TRAINING_EPISODES;
+use ctxrace_run::results::{read_csv, TrainingEpisode};
+use ctxrace_run::run_dir::TRAINING_EPISODES;
 use std::path::Path;
 
 /// The paper's code's side of a parity folder (drawn last).

@@ -5,12 +5,12 @@ use crate::render::{check_render_path, ended_by, race_title, render_race, Frame}
 use crate::TrackArgs;
 use anyhow::{Context as _, Result};
 use clap::Args;
-use ctxrace_actor::baseline::BaselineKind;
-use ctxrace_actor::driver::ActMode;
-use ctxrace_actor::vehicle::idx;
-use ctxrace_actor::RaceEnv;
-use ctxrace_common::Context;
+use ctxrace_config::Context;
 use ctxrace_learner::trained::{CheckpointChoice, TrainedAgent};
+use ctxrace_sim::baseline::BaselineKind;
+use ctxrace_sim::driver::ActMode;
+use ctxrace_sim::vehicle::idx;
+use ctxrace_sim::RaceEnv;
 use serde::Serialize;
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -68,7 +68,7 @@ struct RaceReport<'a> {
     ego: String,
     seed: u64,
     #[serde(flatten)]
-    metrics: &'a ctxrace_actor::EpisodeMetrics,
+    metrics: &'a ctxrace_sim::EpisodeMetrics,
     ended_by: &'static str,
 }
 

@@ -7,8 +7,9 @@
 use crate::plot::{plot_err, register_font, save, Figure};
 use anyhow::{bail, Context as _, Result};
 use ctxrace_actor::driver::Driver;
-use ctxrace_actor::vehicle::{idx, State, VehicleParams};
-use ctxrace_actor::{EpisodeMetrics, RaceEnv, StepInfo};
+use ctxrace_sim::driver::Ego as _;
+use ctxrace_sim::vehicle::{idx, State, VehicleParams};
+use ctxrace_sim::{EpisodeMetrics, RaceEnv, StepInfo};
 use ctxrace_tracks::Track;
 use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
@@ -48,7 +49,7 @@ pub struct Frame {
 pub fn drive_recorded(
     driver: &mut Driver,
     env: &mut RaceEnv,
-    context: ctxrace_common::Context,
+    context: ctxrace_config::Context,
     seed: u64,
     frames: &mut Vec<Frame>,
 ) -> Result<StepInfo> {
@@ -686,9 +687,9 @@ fn changed_part(
 mod tests {
     use super::*;
     use crate::ego::EgoSpec;
-    use ctxrace_actor::baseline::BaselineKind;
-    use ctxrace_actor::driver::ActMode;
-    use ctxrace_common::{Context, RaceConfig};
+    use ctxrace_config::{Context, RaceConfig};
+    use ctxrace_sim::baseline::BaselineKind;
+    use ctxrace_sim::driver::ActMode;
     use ctxrace_tracks::TrackOptions;
     use std::sync::Arc;
 

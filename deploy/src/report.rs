@@ -76,7 +76,7 @@ pub fn run(args: ReportArgs) -> Result<()> {
     let figures = crate::figures::write_all(&groups, &args.out, &args.tracks, &cfg)?;
     let markdown = markdown(&groups, &figures, &args.out);
     let path = args.out.join("report.md");
-    ctxrace_common::run_dir::write_atomic(&path, markdown.as_bytes())
+    ctxrace_run::run_dir::write_atomic(&path, markdown.as_bytes())
         .with_context(|| format!("writing {}", path.display()))?;
     print!("{markdown}");
     Ok(())
@@ -440,10 +440,10 @@ fn markdown(groups: &[Group], figures: &[PathBuf], out: &Path) -> String {
 mod tests {
     use super::*;
     use crate::groups::split_mean;
-    use ctxrace_actor::evaluation::EvalMeta;
-    use ctxrace_actor::evaluation::{ContextSummary, EvalEpisode};
-    use ctxrace_common::results::{write_csv, write_json, TrainingEpisode};
-    use ctxrace_common::Context;
+    use ctxrace_config::Context;
+    use ctxrace_run::results::{write_csv, write_json, TrainingEpisode};
+    use ctxrace_sim::evaluation::EvalMeta;
+    use ctxrace_sim::evaluation::{ContextSummary, EvalEpisode};
 
     const TRAIN_RANGE: f64 = 0.15;
 
@@ -480,8 +480,8 @@ mod tests {
             seed: 0,
             source: format!("runs/{algo}-{seed}"),
             checkpoint: "best".into(),
-            act: ctxrace_actor::driver::ActMode::Sample,
-            preset: ctxrace_common::RacePreset::Default,
+            act: ctxrace_sim::driver::ActMode::Sample,
+            preset: ctxrace_config::RacePreset::Default,
             contexts: None,
         }
     }

@@ -4,10 +4,10 @@
 use crate::TrackArgs;
 use anyhow::Result;
 use clap::Args;
-use ctxrace_common::policy::ACT_DIM;
-use ctxrace_common::run_dir::{ACTOR_REPORTS, CONFIG_FILE, REPLAY_REPORT, REPLAY_SNAPSHOT};
-use ctxrace_common::validate::ConfigError;
-use ctxrace_common::ExperimentConfig;
+use ctxrace_config::validate::ConfigError;
+use ctxrace_config::ExperimentConfig;
+use ctxrace_nn::policy::ACT_DIM;
+use ctxrace_run::run_dir::{ACTOR_REPORTS, CONFIG_FILE, REPLAY_REPORT, REPLAY_SNAPSHOT};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -48,7 +48,7 @@ pub fn read_experiment(run_dir: &Path) -> Result<ExperimentConfig> {
 
 /// The replay's settings for a run: its sampling ratio and minimum fill follow `[train]`, its
 /// sampler `[agent]`, its snapshot lives in the run directory.
-pub fn replay_options(cfg: &ExperimentConfig, run_dir: &Path) -> ctxrace_common::ReplayOptions {
+pub fn replay_options(cfg: &ExperimentConfig, run_dir: &Path) -> ctxrace_config::ReplayOptions {
     let mut o = cfg.replay.clone();
     o.samples_per_insert = cfg.samples_per_insert();
     o.min_fill = o.min_fill.max(cfg.train.prefill as usize);
@@ -82,12 +82,12 @@ pub fn replay(args: RoleArgs) -> Result<()> {
         "batches": s.batches,
         "inserted_at_last_batch": s.inserted_at_last_batch,
         "restored_inserts": s.restored_inserts,
-        "rejected_by_reason": ctxrace_common::ipc::wire::named_reasons(&s.rejected_by_reason),
+        "rejected_by_reason": ctxrace_ipc::wire::named_reasons(&s.rejected_by_reason),
         "longest_turn_ms": s.longest_turn_us as f64 / 1e3,
         "samples_per_insert": replay_args.options.samples_per_insert,
         "min_fill": replay_args.options.min_fill,
     });
-    Ok(ctxrace_common::results::write_json(
+    Ok(ctxrace_run::results::write_json(
         &args.run_dir.join(REPLAY_REPORT),
         &report,
     )?)
@@ -125,8 +125,5 @@ pub fn actor(args: ActorArgs) -> Result<()> {
     let dir = args.role.run_dir.join(ACTOR_REPORTS);
     std::fs::create_dir_all(&dir)?;
     let name = format!("actor-{}-{}.json", args.id, args.incarnation);
-    Ok(ctxrace_common::results::write_json(
-        &dir.join(name),
-        &report,
-    )?)
+    Ok(ctxrace_run::results::write_json(&dir.join(name), &report)?)
 }

@@ -20,8 +20,8 @@
 use crate::lock::{die_with_parent, DirLock};
 use anyhow::{bail, Context as _, Result};
 use clap::{Args, ValueEnum};
-use ctxrace_actor::driver::ActMode;
-use ctxrace_common::{AlgoKind, ExperimentConfig};
+use ctxrace_config::{AlgoKind, ExperimentConfig};
+use ctxrace_sim::driver::ActMode;
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::os::unix::process::CommandExt;
@@ -194,7 +194,7 @@ impl MatrixFile {
         for &algo in &self.algos {
             let mut table = base.clone();
             if let Some(over) = self.algo.get(algo.name()) {
-                table = ctxrace_common::preset::merge_tables(table, over.clone());
+                table = ctxrace_config::preset::merge_tables(table, over.clone());
             }
             for track in &self.tracks {
                 for &rivals in &self.rivals {
@@ -211,7 +211,7 @@ impl MatrixFile {
                         let config = resolve(&table, algo, track, rivals, seed)
                             .with_context(|| format!("the run {algo} {track} {rivals}r s{seed}"))?;
                         runs.push(MatrixRun {
-                            name: ctxrace_common::run_dir::run_name(&config),
+                            name: ctxrace_run::run_dir::run_name(&config),
                             config,
                         });
                     }
@@ -339,7 +339,7 @@ pub fn run(args: SweepArgs) -> Result<()> {
 /// Whether the run in `dir` has a complete evaluation of the sweep's protocol.
 fn is_evaluated(dir: &Path, eval: &SweepEval) -> bool {
     let eval_dir = dir.join("eval");
-    let Ok(meta) = ctxrace_common::results::read_json::<ctxrace_actor::evaluation::EvalMeta>(
+    let Ok(meta) = ctxrace_run::results::read_json::<ctxrace_sim::evaluation::EvalMeta>(
         &eval_dir.join("meta.json"),
     ) else {
         return false;
@@ -354,12 +354,12 @@ fn is_evaluated(dir: &Path, eval: &SweepEval) -> bool {
 /// Trains (or resumes) and evaluates one run in `<out>/<name>`, with `cores` cores. A stop
 /// signal reaches the children too (they share the process group); this waits for them.
 fn run_one(matrix: &MatrixFile, run: &MatrixRun, out: &Path, cores: usize) -> Result<()> {
-    let stop = ctxrace_common::ipc::termination_flag()?;
+    let stop = ctxrace_ipc::termination_flag()?;
     let configs = out.join("configs");
     std::fs::create_dir_all(&configs).with_context(|| format!("creating {}", configs.display()))?;
     let config_path = configs.join(format!("{}.toml", run.name));
     let text = run.config.to_toml().map_err(anyhow::Error::msg)?;
-    ctxrace_common::run_dir::write_atomic(&config_path, text.as_bytes())
+    ctxrace_run::run_dir::write_atomic(&config_path, text.as_bytes())
         .with_context(|| format!("writing {}", config_path.display()))?;
     let dir = out.join(&run.name);
     let exe = std::env::current_exe().context("locating the ctxrace binary")?;
@@ -440,7 +440,7 @@ fn schedule(
     let total = (done_before + pending.len()) as u64;
     let bar = crate::progress::progress_bar(total, "runs");
     bar.set_position(done_before as u64);
-    let stop = ctxrace_common::ipc::termination_flag()?;
+    let stop = ctxrace_ipc::termination_flag()?;
     let start = Instant::now();
     let mut queue: std::collections::VecDeque<&MatrixRun> = pending.iter().collect();
     let mut running: Vec<(String, Child)> = Vec::new();
@@ -450,7 +450,7 @@ fn schedule(
         while running.len() < args.jobs && !stop.load(Ordering::Relaxed) {
             let Some(run) = queue.pop_front() else { break };
             let log = logs.join(format!("{}.log", run.name));
-            let file = ctxrace_common::run_dir::open_append(&log)
+            let file = ctxrace_run::run_dir::open_append(&log)
                 .with_context(|| format!("opening {}", log.display()))?;
             let mut cmd = Command::new(&exe);
             cmd.args(own_command(args, &run.name, out, cores))

@@ -43,7 +43,7 @@ impl Table {
     /// Writes the table as CSV with a header line.
     pub fn write_csv(&self, path: &Path) -> Result<()> {
         let records: Vec<&Vec<String>> = std::iter::once(&self.header).chain(&self.rows).collect();
-        Ok(ctxrace_common::results::write_csv(path, &records)?)
+        Ok(ctxrace_run::results::write_csv(path, &records)?)
     }
 }
 

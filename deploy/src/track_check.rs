@@ -7,11 +7,12 @@
 use crate::ego::EgoSpec;
 use crate::render::ended_by;
 use anyhow::Result;
-use ctxrace_actor::baseline::{Baseline, BaselineKind};
-use ctxrace_actor::driver::ActMode;
-use ctxrace_actor::vehicle::{idx, VehicleParams};
-use ctxrace_actor::RaceEnv;
-use ctxrace_common::{Context, RaceConfig};
+use ctxrace_config::{Context, RaceConfig};
+use ctxrace_sim::baseline::{Baseline, BaselineKind};
+use ctxrace_sim::driver::ActMode;
+use ctxrace_sim::driver::Ego as _;
+use ctxrace_sim::vehicle::{idx, VehicleParams};
+use ctxrace_sim::RaceEnv;
 use ctxrace_tracks::Track;
 use serde::Serialize;
 use std::sync::Arc;

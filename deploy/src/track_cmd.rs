@@ -4,7 +4,7 @@ use crate::track_check::{check_track, print_report, CheckPlan};
 use crate::TrackArgs;
 use anyhow::{Context, Result};
 use clap::Subcommand;
-use ctxrace_common::RaceConfig;
+use ctxrace_config::RaceConfig;
 use ctxrace_tracks::files::write_raceline;
 use ctxrace_tracks::Track;
 use serde::Serialize;

@@ -14,15 +14,15 @@ use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use clap::Args;
 use ctxrace_actor::collect::Collector;
-use ctxrace_actor::RaceEnv;
-use ctxrace_common::policy::ACT_DIM;
-use ctxrace_common::run_dir::{
-    run_name, CHECKPOINTS, CONFIG_FILE, METRICS_CSV, METRICS_JSONL, TRAINING_EPISODES,
-};
-use ctxrace_common::{AlgoKind, ExperimentConfig, Warmup};
+use ctxrace_config::{AlgoKind, ExperimentConfig, Warmup};
 use ctxrace_learner::inline::InlineProgress;
 use ctxrace_learner::process::is_trained;
+use ctxrace_nn::policy::ACT_DIM;
 use ctxrace_replay::ReplayBuffer;
+use ctxrace_run::run_dir::{
+    run_name, CHECKPOINTS, CONFIG_FILE, METRICS_CSV, METRICS_JSONL, TRAINING_EPISODES,
+};
+use ctxrace_sim::RaceEnv;
 use ctxrace_tracks::Track;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -152,7 +152,7 @@ fn prepare_run_dir(args: &TrainArgs, cfg: &ExperimentConfig) -> Result<(PathBuf,
     }
     let resumed = config.exists();
     let text = cfg.to_toml().map_err(anyhow::Error::msg)?;
-    ctxrace_common::run_dir::write_atomic(&config, text.as_bytes())
+    ctxrace_run::run_dir::write_atomic(&config, text.as_bytes())
         .with_context(|| format!("writing {}", config.display()))?;
     Ok((dir, lock, resumed))
 }

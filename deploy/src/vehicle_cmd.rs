@@ -2,7 +2,7 @@
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use ctxrace_actor::vehicle::{Vehicle, VehicleParams, DT};
+use ctxrace_sim::vehicle::{Vehicle, VehicleParams, DT};
 use std::io::Write;
 use std::path::PathBuf;
 

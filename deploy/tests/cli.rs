@@ -402,16 +402,16 @@ fn the_shipped_scenarios_parse_and_match_their_presets() {
     let configs = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs");
     let read = |name: &str| {
         let text = std::fs::read_to_string(configs.join(name)).unwrap();
-        ctxrace_common::RaceConfig::from_toml(&text).unwrap()
+        ctxrace_config::RaceConfig::from_toml(&text).unwrap()
     };
-    let defaults = ctxrace_common::RaceConfig {
+    let defaults = ctxrace_config::RaceConfig {
         rivals: 3,
         ..Default::default()
     };
     assert_eq!(read("race.toml"), defaults);
     assert_eq!(
         read("scenarios/paper-code.toml"),
-        ctxrace_common::RaceConfig::paper_code()
+        ctxrace_config::RaceConfig::paper_code()
     );
 }
 

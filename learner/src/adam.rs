@@ -12,8 +12,8 @@
 //! (PyTorch's `Adam` without weight decay). The update runs where the network keeps its
 //! weights ([`Parameters::update`]), one pass per tensor.
 
-use ctxrace_common::nn::kernels::{adam_update, sum_of_squares, AdamStep};
-use ctxrace_common::nn::Parameters;
+use ctxrace_nn::kernels::{adam_update, sum_of_squares, AdamStep};
+use ctxrace_nn::Parameters;
 use safetensors::tensor::TensorView;
 use safetensors::{Dtype, SafeTensors};
 
@@ -251,7 +251,7 @@ impl Adam {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use ctxrace_common::nn::NamedTensor;
+    use ctxrace_nn::NamedTensor;
 
     /// A vector of weights as a network.
     struct Vector(Vec<f32>);

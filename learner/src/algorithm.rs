@@ -3,7 +3,7 @@
 
 use crate::checkpoint::CheckpointError;
 use crate::error::Result;
-pub use ctxrace_common::batch::Batch;
+pub use ctxrace_config::batch::Batch;
 use std::collections::BTreeMap;
 use std::path::Path;
 

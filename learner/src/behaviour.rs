@@ -1,5 +1,5 @@
 //! DreamerV3's behaviour learning in imagination, differentiated by hand on plain buffers
-//! ([`ctxrace_common::nn`]): the forward pass of one shard of starts, then, once the
+//! ([`ctxrace_nn`]): the forward pass of one shard of starts, then, once the
 //! return scale is known from every shard, its backward pass to the actor's and the critic's
 //! gradients. Two forms ([`ImaginationLoss`]); the default is the paper's code's.
 //!
@@ -38,12 +38,12 @@
 //! critic's last row's, the frozen networks' weights'.
 
 use crate::world_model::Starts;
-use ctxrace_common::agents::{DreamerConfig, ImaginationLoss};
-use ctxrace_common::nn::dreamer::{normal_rows, uniform_rows};
-use ctxrace_common::nn::losses::{
+use ctxrace_config::agents::{DreamerConfig, ImaginationLoss};
+use ctxrace_nn::dreamer::{normal_rows, uniform_rows};
+use ctxrace_nn::losses::{
     soft_cross_entropy, soft_cross_entropy_backward, twohot_decode, twohot_decode_backward,
 };
-use ctxrace_common::nn::{
+use ctxrace_nn::{
     InputGrad, Mlp, MlpGrads, MlpTrace, NonZeros, Rssm, StepScratch, StepTrace, TwoHot,
 };
 use rand_chacha::ChaCha8Rng;

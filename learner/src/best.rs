@@ -15,7 +15,7 @@ use crate::checkpoint::{
     io_error, write_atomically, write_policy_files, write_toml, Result, TRACKER_FILE,
 };
 use crate::Algorithm;
-use ctxrace_common::run_dir::{BEST_DIR, CHECKPOINTS};
+use ctxrace_run::run_dir::{BEST_DIR, CHECKPOINTS};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -86,7 +86,7 @@ pub fn best_checkpoint(run_dir: &Path) -> Option<PathBuf> {
 pub fn write_best(
     run_dir: &Path,
     algo: &dyn Algorithm,
-    agent: &ctxrace_common::AgentConfig,
+    agent: &ctxrace_config::AgentConfig,
     tracker: &ReturnTracker,
 ) -> Result<PathBuf> {
     let info = BestInfo {

@@ -10,7 +10,7 @@ use crate::checkpoint::write_checkpoint;
 use crate::runlog::MetricsLog;
 use crate::{Algorithm, Metrics};
 use anyhow::Result;
-use ctxrace_common::{AgentConfig, ExperimentConfig, TrainConfig};
+use ctxrace_config::{AgentConfig, ExperimentConfig, TrainConfig};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 

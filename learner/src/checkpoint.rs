@@ -6,7 +6,7 @@
 //! fsynced, so that a crash leaves either the whole checkpoint or none of it. Reading verifies
 //! the seal: a damaged newest checkpoint is passed over, with a warning, for the one before.
 
-use ctxrace_common::run_dir::{AGENT_FILE, CHECKPOINTS, POLICY_FILE};
+use ctxrace_run::run_dir::{AGENT_FILE, CHECKPOINTS, POLICY_FILE};
 use serde::{de::DeserializeOwned, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -140,7 +140,7 @@ const MAX_MANIFEST_BYTES: u64 = 1 << 20;
 /// listed. A folder without a manifest is unfinished or damaged and fails too.
 pub fn verify(dir: &Path) -> Result<()> {
     let path = dir.join(MANIFEST_FILE);
-    let text = match ctxrace_common::run_dir::read_regular(&path, MAX_MANIFEST_BYTES) {
+    let text = match ctxrace_run::run_dir::read_regular(&path, MAX_MANIFEST_BYTES) {
         Ok(t) => String::from_utf8_lossy(&t).into_owned(),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             return Err(io_error(
@@ -203,7 +203,7 @@ pub fn verify(dir: &Path) -> Result<()> {
 fn sealed(file: &Path, bytes: u64) -> Result<Sealed> {
     use std::io::Read as _;
     let mut f =
-        ctxrace_common::run_dir::open_regular(file).map_err(|e| io_error("reading", file, e))?;
+        ctxrace_run::run_dir::open_regular(file).map_err(|e| io_error("reading", file, e))?;
     let len = f
         .metadata()
         .map_err(|e| io_error("reading", file, e))?
@@ -237,7 +237,7 @@ fn sealed(file: &Path, bytes: u64) -> Result<Sealed> {
 pub fn write_checkpoint(
     run_dir: &Path,
     algo: &dyn crate::Algorithm,
-    agent: &ctxrace_common::AgentConfig,
+    agent: &ctxrace_config::AgentConfig,
     tracker: &impl Serialize,
 ) -> Result<std::path::PathBuf> {
     let root = run_dir.join(CHECKPOINTS);
@@ -258,7 +258,7 @@ pub fn write_checkpoint(
 pub(crate) fn write_policy_files(
     dir: &Path,
     algo: &dyn crate::Algorithm,
-    agent: &ctxrace_common::AgentConfig,
+    agent: &ctxrace_config::AgentConfig,
 ) -> Result<()> {
     let policy = dir.join(POLICY_FILE);
     let weights = algo
@@ -365,7 +365,7 @@ mod tests {
             Path::new(env!("CARGO_MANIFEST_DIR")).join("../testdata/d6b5c40/cmask/checkpoint");
         verify(&dir).unwrap();
         let text = std::fs::read_to_string(dir.join(AGENT_FILE)).unwrap();
-        let agent: ctxrace_common::AgentConfig = toml::from_str(&text).unwrap();
+        let agent: ctxrace_config::AgentConfig = toml::from_str(&text).unwrap();
         let mut algo = crate::build(&agent, 108, 1).unwrap();
         algo.load(&dir).unwrap();
         assert_eq!(algo.steps(), 20);

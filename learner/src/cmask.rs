@@ -38,11 +38,11 @@ use crate::sac_core::{
     ActorPass, CoreConfig, CriticPass, LearningRates, Passes, SacCore, SacError,
 };
 use crate::shards::{on_shards_with, Shard};
-use ctxrace_common::agents::{DreamerConfig, MaskConfig, MaskSpace, StepAlignment, CONTEXT_DIM};
-use ctxrace_common::nn::dreamer::normal_rows;
-use ctxrace_common::nn::initial_weights;
-use ctxrace_common::nn::{Mlp, NamedTensor};
-use ctxrace_common::SequenceBatch;
+use ctxrace_config::agents::{DreamerConfig, MaskConfig, MaskSpace, StepAlignment, CONTEXT_DIM};
+use ctxrace_config::SequenceBatch;
+use ctxrace_nn::dreamer::normal_rows;
+use ctxrace_nn::initial_weights;
+use ctxrace_nn::{Mlp, NamedTensor};
 use rand_chacha::ChaCha8Rng;
 use std::ops::Range;
 
@@ -343,8 +343,8 @@ mod tests {
     use crate::sequences::SeqData;
     use crate::world_model::oracle;
     use candle_core::{Device, Result, Tensor};
-    use ctxrace_common::nn::oracle::TanhGaussianActor;
-    use ctxrace_common::nn::{Activation, MlpShape, Parameters, Weights};
+    use ctxrace_nn::oracle::TanhGaussianActor;
+    use ctxrace_nn::{Activation, MlpShape, Parameters, Weights};
     use rand::{Rng, SeedableRng};
 
     /// One sequence of one-value observations and actions (actions and contexts zero): its
@@ -574,7 +574,7 @@ mod tests {
             act: Activation::Relu,
         };
         let mut actor = Mlp::from_weights(&mut Weights::initial(), "mask.", &shape).unwrap();
-        ctxrace_common::nn::parameters::init(&mut actor, 5);
+        ctxrace_nn::parameters::init(&mut actor, 5);
         let mut sac = MaskSac::new(&cfg, o, &actor).unwrap();
         let streams = |seed: u64| -> Vec<ChaCha8Rng> {
             (0..b as u64)

@@ -38,7 +38,7 @@
 //!
 //! **Parameters.** The networks are plain structs trained in place, saved in four groups:
 //! "policy" ([`PolicyNets`]: `encoder`, `rssm`, `actor` and, for cMask, the mask actor `mask`:
-//! everything [`DreamerPolicy`] (in `ctxrace_common::policy`) needs, serialised whole by
+//! everything [`DreamerPolicy`] (in `ctxrace_nn::policy`) needs, serialised whole by
 //! [`Algorithm::policy_weights`]), "heads" (`decoder`, `reward`, `cont`), "critic" and its slow
 //! copy; cMask adds its critics, their targets and the temperature. Optimisers: Adam
 //! ([`crate::adam::Adam`], whose moments are saved with the weights), one each for world model
@@ -48,7 +48,7 @@
 //!
 //! **Speed.** The world model ([`crate::world_model`]) and behaviour learning (imagination,
 //! heads, λ-returns, actor and critic losses, [`crate::behaviour`]) are differentiated by hand on
-//! plain buffers (`ctxrace_common::nn`): they compute the gradients the optimisers need
+//! plain buffers (`ctxrace_nn`): they compute the gradients the optimisers need
 //! and no others (as PyTorch's `requires_grad = False` on the frozen networks), with no graph
 //! bookkeeping, in buffers kept from step to step. Each step splits its batch into one shard of
 //! sequences per worker thread ([`Dreamer::set_workers`], [`crate::shards`]): the shards run the
@@ -65,14 +65,14 @@ use crate::error::{LearnerError, Result};
 use crate::returns::ReturnNorm;
 use crate::shards::{add_part, in_parallel, on_shards_with, weighted_mean};
 use crate::world_model::{zero_tensor, Starts, WorldModel};
-use ctxrace_common::agents::{DreamerConfig, ImaginationContext, CONTEXT_DIM};
-use ctxrace_common::nn::dreamer::{mask_value, normal_rows, state_head, PolicyNets};
-use ctxrace_common::nn::initial_weights::init_dreamer;
-use ctxrace_common::nn::kernels::matmul_flops;
-use ctxrace_common::nn::parameters::{load_safetensors, polyak, to_safetensors};
-use ctxrace_common::nn::tanh_gaussian::squash_rows;
-use ctxrace_common::nn::{Mlp, MlpGrads, MlpTrace, Parameters, TwoHot, Weights};
-use ctxrace_common::policy::DreamerPolicy;
+use ctxrace_config::agents::{DreamerConfig, ImaginationContext, CONTEXT_DIM};
+use ctxrace_nn::dreamer::{mask_value, normal_rows, state_head, PolicyNets};
+use ctxrace_nn::initial_weights::init_dreamer;
+use ctxrace_nn::kernels::matmul_flops;
+use ctxrace_nn::parameters::{load_safetensors, polyak, to_safetensors};
+use ctxrace_nn::policy::DreamerPolicy;
+use ctxrace_nn::tanh_gaussian::squash_rows;
+use ctxrace_nn::{Mlp, MlpGrads, MlpTrace, Parameters, TwoHot, Weights};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -485,11 +485,11 @@ mod tests {
     use crate::algorithm::scalar;
     use crate::world_model::oracle;
     use candle_core::{Device, Module, Tensor};
-    use ctxrace_common::agents::{ContextMode, ImaginationLoss, MaskConfig, MaskSpace};
-    use ctxrace_common::nn::kernels::soft_cross_entropy;
-    use ctxrace_common::nn::oracle::dreamer::{normals_per, uniforms_per};
-    use ctxrace_common::nn::oracle::{DreamerNets, Mlp as CandleMlp, ParamStore, RssmState};
-    use ctxrace_common::SequenceBatch;
+    use ctxrace_config::agents::{ContextMode, ImaginationLoss, MaskConfig, MaskSpace};
+    use ctxrace_config::SequenceBatch;
+    use ctxrace_nn::kernels::soft_cross_entropy;
+    use ctxrace_nn::oracle::dreamer::{normals_per, uniforms_per};
+    use ctxrace_nn::oracle::{DreamerNets, Mlp as CandleMlp, ParamStore, RssmState};
     use rand::Rng;
 
     fn tiny(context: ContextMode) -> DreamerConfig {
@@ -872,11 +872,11 @@ mod tests {
     }
 
     /// The learner feeds its networks the context at the agent's scale, as the acting policy
-    /// does (`ctxrace_common::policy::dreamer`'s `acting_feeds_the_context_at_its_scale`): both
-    /// build their networks from [`ctxrace_common::AgentConfig::dreamer`].
+    /// does (`ctxrace_nn::policy::dreamer`'s `acting_feeds_the_context_at_its_scale`): both
+    /// build their networks from [`ctxrace_config::AgentConfig::dreamer`].
     #[test]
     fn training_feeds_the_context_at_the_agents_scale() {
-        use ctxrace_common::{AgentConfig, AlgoKind, ContextScale};
+        use ctxrace_config::{AgentConfig, AlgoKind, ContextScale};
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         let data = collect(2, &mut rng);
         let Batch::Sequence(seq) = sample(&data, 2, 8, &mut rng) else {
@@ -903,7 +903,7 @@ mod tests {
 
     #[test]
     fn world_model_losses_fall_on_point_mass_data() {
-        ctxrace_common::nn::oracle::candle_on_one_thread();
+        ctxrace_nn::oracle::candle_on_one_thread();
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         let data = collect(40, &mut rng);
         // the best constant reward prediction scores the entropy of the mean two-hot target
@@ -1428,7 +1428,7 @@ mod tests {
     /// Trains an agent of `mode` for 300 steps on random point-mass data and returns the mean
     /// returns of its deterministic policy and of a random one over the same starts.
     fn point_mass_returns(mode: ContextMode) -> (f64, f64) {
-        ctxrace_common::nn::oracle::candle_on_one_thread();
+        ctxrace_nn::oracle::candle_on_one_thread();
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         let data = collect(60, &mut rng);
         let cfg = DreamerConfig {

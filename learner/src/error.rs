@@ -3,7 +3,7 @@
 use crate::adam::AdamError;
 use crate::checkpoint::CheckpointError;
 use crate::sac_core::SacError;
-use ctxrace_common::nn::WeightsError;
+use ctxrace_nn::WeightsError;
 
 /// Why an agent could not be built, trained or serialised.
 #[derive(Debug, thiserror::Error)]

@@ -4,16 +4,17 @@
 //! checkpoints and the best policy, by [`crate::cadence`]) and reports its progress to the
 //! caller, which may show it.
 //!
-//! The source and the store are the traits of [`ctxrace_common::experience`]: the caller builds
+//! The source and the store are the traits of [`ctxrace_run::experience`]: the caller builds
 //! them (the actor's `Collector` on a race, the replay's `ReplayBuffer` in memory) and passes
 //! them in, so that the learner depends on the common crate only.
 
 use crate::cadence::Cadence;
 use crate::runlog::{EpisodeLog, RateMeter};
 use anyhow::{ensure, Result};
-use ctxrace_common::experience::{ExperienceSource, SampleStore};
-use ctxrace_common::policy::ACT_DIM;
-use ctxrace_common::{ExperimentConfig, Policy};
+use ctxrace_config::ExperimentConfig;
+use ctxrace_nn::policy::ACT_DIM;
+use ctxrace_nn::Policy;
+use ctxrace_run::experience::{ExperienceSource, SampleStore};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::path::{Path, PathBuf};
@@ -57,7 +58,7 @@ pub struct InlineRun {
 /// A run reproduces from `cfg`'s seed when `source` is as `cfg` asks (the actor's
 /// `Collector::for_experiment` with `[train] seed`) and `store` is new (`[replay] capacity`,
 /// one stream). A store whose steps are not the source's fails before the first step.
-pub fn run_inline<S: ExperienceSource, B: SampleStore>(
+pub fn run_inline<S: ExperienceSource<Policy = Policy>, B: SampleStore>(
     cfg: &ExperimentConfig,
     dir: &Path,
     source: &mut S,
@@ -151,13 +152,14 @@ mod tests {
     use crate::process::is_trained;
     use crate::trained::{CheckpointChoice, TrainedAgent};
     use ctxrace_actor::collect::Collector;
-    use ctxrace_actor::driver::{ActMode, Driver};
-    use ctxrace_actor::evaluation::{episode_seed, run_episode};
-    use ctxrace_actor::RaceEnv;
-    use ctxrace_common::results::{read_csv, TrainingEpisode};
-    use ctxrace_common::run_dir::{METRICS_JSONL, TRAINING_EPISODES};
-    use ctxrace_common::{AgentConfig, AlgoKind, Context, DreamerConfig, RaceConfig};
+    use ctxrace_actor::driver::Driver;
+    use ctxrace_config::{AgentConfig, AlgoKind, Context, DreamerConfig, RaceConfig};
     use ctxrace_replay::ReplayBuffer;
+    use ctxrace_run::results::{read_csv, TrainingEpisode};
+    use ctxrace_run::run_dir::{METRICS_JSONL, TRAINING_EPISODES};
+    use ctxrace_sim::driver::ActMode;
+    use ctxrace_sim::evaluation::{episode_seed, run_episode};
+    use ctxrace_sim::RaceEnv;
     use ctxrace_tracks::{Track, TrackOptions};
     use std::sync::Arc;
 

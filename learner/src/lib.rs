@@ -31,8 +31,8 @@ pub use dreamer::Dreamer;
 pub use error::{LearnerError, Result};
 pub use sac::Sac;
 
-use ctxrace_common::agents::{AgentConfig, AlgoKind};
-use ctxrace_common::policy::ACT_DIM;
+use ctxrace_config::agents::{AgentConfig, AlgoKind};
+use ctxrace_nn::policy::ACT_DIM;
 
 /// A fresh agent of `agent.algo` for LiDAR frames of `frame_dim` values (SAC stacks
 /// `agent.sac.frames` of them) and the racing actions (steering, speed). A DreamerV3 variant

@@ -9,12 +9,12 @@ use crate::best::ReturnTracker;
 use crate::cadence::Cadence;
 use crate::checkpoint::latest_checkpoint;
 use anyhow::{Context as _, Result};
-use ctxrace_common::ipc::{
+use ctxrace_config::ExperimentConfig;
+use ctxrace_ipc::{
     termination_flag, EpisodeSubscriber, ReplayClient, RunTransport, WeightsPublisher,
     DEFAULT_MAX_WEIGHTS_BYTES,
 };
-use ctxrace_common::policy::ACT_DIM;
-use ctxrace_common::ExperimentConfig;
+use ctxrace_nn::policy::ACT_DIM;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
 use std::time::Duration;

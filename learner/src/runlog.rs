@@ -7,8 +7,8 @@
 use crate::tensorboard::EventWriter;
 use crate::Metrics;
 use anyhow::{Context as _, Result};
-use ctxrace_common::results::TrainingEpisode;
-use ctxrace_common::run_dir::{open_append, METRICS_CSV, METRICS_JSONL, TRAINING_EPISODES};
+use ctxrace_run::results::TrainingEpisode;
+use ctxrace_run::run_dir::{open_append, METRICS_CSV, METRICS_JSONL, TRAINING_EPISODES};
 use std::fs::File;
 use std::io::Write;
 use std::path::Path;

@@ -1,7 +1,7 @@
 //! Soft actor-critic (Haarnoja et al. 2018) with twin critics and automatic entropy tuning, laid out
 //! like CleanRL's `sac_continuous_action.py`: the paper's model-free baseline.
 //!
-//! Networks: a tanh-Gaussian actor `π(a | o)` (see [`ctxrace_common::nn::tanh_gaussian`]), two
+//! Networks: a tanh-Gaussian actor `π(a | o)` (see [`ctxrace_nn::tanh_gaussian`]), two
 //! critics `Q_1, Q_2 (o, a)` (ReLU MLPs on `[o, a]`) and their Polyak-averaged targets `Q̄_1, Q̄_2`.
 //! One training step on transitions `(o, a, r, o', d)`, with `ã ~ π(· | o)` and `a' ~ π(· | o')`
 //! reparameterised, and `α = exp(log α)`:
@@ -23,7 +23,7 @@
 //! `target_noise` adds TD3's clipped smoothing noise to `a'` (`a' ← clip(a' + clip(σ ε, ±c),
 //! −1, 1)`, `log π(a' | o')` of the sample before the noise), `target_every = 2` updates the
 //! targets on every second step only (steps 0, 2, 4, …), `log_std_clamp` bounds the actor's
-//! `log σ`; `reward_delay` is the replay's ([`ctxrace_common::BatchSpec`]) and `explore_noise`
+//! `log σ`; `reward_delay` is the replay's ([`ctxrace_config::BatchSpec`]) and `explore_noise`
 //! and `reset_frame_stack` the acting policy's ([`SacPolicy`]).
 //!
 //! Noise is drawn from ChaCha8 seeded with the configured seed on stream `step`, so a step's noise
@@ -43,11 +43,11 @@ pub(crate) use crate::sac_core::{
 use crate::sac_core::{
     ActorPass, BlobNames, CoreConfig, CriticPass, LearningRates, Passes, SacCore,
 };
-use ctxrace_common::nn::kernels::matmul_flops;
-use ctxrace_common::nn::parameters::{ctxrace_draw, init, load_safetensors, to_safetensors};
-use ctxrace_common::nn::{Activation, Mlp, MlpShape, Weights};
-use ctxrace_common::policy::SacPolicy;
-use ctxrace_common::{SacConfig, TransitionBatch};
+use ctxrace_config::{SacConfig, TransitionBatch};
+use ctxrace_nn::kernels::matmul_flops;
+use ctxrace_nn::parameters::{ctxrace_draw, init, load_safetensors, to_safetensors};
+use ctxrace_nn::policy::SacPolicy;
+use ctxrace_nn::{Activation, Mlp, MlpShape, Weights};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -346,8 +346,8 @@ mod tests {
     use crate::candle_sac::TwinQ;
     use candle_core::{Device, Tensor};
     use candle_nn::Init;
-    use ctxrace_common::nn::oracle::{ParamStore, TanhGaussianActor};
-    use ctxrace_common::nn::Parameters;
+    use ctxrace_nn::oracle::{ParamStore, TanhGaussianActor};
+    use ctxrace_nn::Parameters;
     use std::collections::BTreeMap;
 
     /// `b` random transitions with observations in `[−1, 1]^o` and actions in `[−1, 1]^a`.
@@ -933,7 +933,7 @@ mod tests {
     /// The agent of the configuration `dir/agent.toml` (108 LiDAR values a frame).
     fn agent_of(dir: &Path) -> Box<dyn Algorithm> {
         let text = std::fs::read_to_string(dir.join("agent.toml")).unwrap();
-        let agent: ctxrace_common::AgentConfig = toml::from_str(&text).unwrap();
+        let agent: ctxrace_config::AgentConfig = toml::from_str(&text).unwrap();
         crate::build(&agent, 108, 1).unwrap()
     }
 
@@ -1084,7 +1084,7 @@ mod tests {
 
     #[test]
     fn learns_to_centre_a_point_mass() {
-        ctxrace_common::nn::oracle::candle_on_one_thread();
+        ctxrace_nn::oracle::candle_on_one_thread();
         // seeds 1..=5 give final |x| 0.003–0.021 (random 0.47–0.60) as well
         let (learned, random) = train_point_mass(0);
         assert!(random > 0.3, "random policy final |x| {random}");

@@ -9,15 +9,15 @@
 //! noise they draw is the caller's too ([`Passes`]): SAC's on its whole batch, the mask SAC's on
 //! shards of masked transitions in parallel. The passes ([`Workspace::critic_pass`],
 //! [`Workspace::actor_pass`]) differentiate the losses by hand on the networks' own buffers
-//! (`ctxrace_common::nn`, the squashing's backward pass in
-//! `ctxrace_common::nn::tanh_gaussian`): at SAC's batch of 100 rows the matrix products are small
+//! (`ctxrace_nn`, the squashing's backward pass in
+//! `ctxrace_nn::tanh_gaussian`): at SAC's batch of 100 rows the matrix products are small
 //! and candle's per-operation bookkeeping was a third of a step. candle is the tests' oracle.
 
 use crate::adam::{Adam, AdamError};
 use crate::checkpoint;
-use ctxrace_common::nn::parameters::{init_with, polyak, to_safetensors, update_each, Draw};
-use ctxrace_common::nn::tanh_gaussian::{squash_rows, squash_rows_backward};
-use ctxrace_common::nn::{
+use ctxrace_nn::parameters::{init_with, polyak, to_safetensors, update_each, Draw};
+use ctxrace_nn::tanh_gaussian::{squash_rows, squash_rows_backward};
+use ctxrace_nn::{
     Activation, InputGrad, Mlp, MlpGrads, MlpShape, MlpTrace, NamedTensor, Parameters, Weights,
     WeightsError,
 };
@@ -356,7 +356,7 @@ impl SacCore {
 
     /// Restores what [`SacCore::blobs`] wrote into `dir` under `names`.
     pub(crate) fn load(&mut self, dir: &Path, names: &BlobNames) -> checkpoint::Result<()> {
-        use ctxrace_common::nn::parameters::load_safetensors as load;
+        use ctxrace_nn::parameters::load_safetensors as load;
         checkpoint::load_blob(dir, names.critic, |b| load(&mut self.critics, b))?;
         checkpoint::load_blob(dir, names.target, |b| load(&mut self.targets, b))?;
         checkpoint::load_blob(dir, names.alpha, |b| load(&mut self.log_alpha, b))?;

@@ -2,8 +2,8 @@
 //! world model and cMask's mask SAC (the training steps read the batch's rows as they are).
 
 use candle_core::{Device, Result, Tensor};
-use ctxrace_common::agents::CONTEXT_DIM;
-use ctxrace_common::SequenceBatch;
+use ctxrace_config::agents::CONTEXT_DIM;
+use ctxrace_config::SequenceBatch;
 
 /// A sequence batch as tensors, `B` sequences of `T` steps.
 pub(crate) struct SeqData {

@@ -5,8 +5,8 @@
 use crate::best::best_checkpoint;
 use crate::checkpoint::{checkpoints, latest_checkpoint, verify};
 use anyhow::{bail, Context as _, Result};
-use ctxrace_common::run_dir::{AGENT_FILE, CONFIG_FILE, POLICY_FILE};
-use ctxrace_common::{AgentConfig, ExperimentConfig};
+use ctxrace_config::{AgentConfig, ExperimentConfig};
+use ctxrace_run::run_dir::{AGENT_FILE, CONFIG_FILE, POLICY_FILE};
 use std::path::{Path, PathBuf};
 
 /// Which checkpoint of a run directory to load.
@@ -162,7 +162,7 @@ fn pick_checkpoint(run: &Path, choice: CheckpointChoice) -> Result<PathBuf> {
 mod tests {
     use super::*;
     use crate::checkpoint::{write_atomically, STATE_FILE};
-    use ctxrace_common::run_dir::{BEST_DIR, CHECKPOINTS};
+    use ctxrace_run::run_dir::{BEST_DIR, CHECKPOINTS};
 
     /// A sealed checkpoint `name` of `run` holding an agent and a policy.
     fn checkpoint(run: &Path, name: &str) -> PathBuf {

@@ -9,7 +9,7 @@
 //! `pred + 0.5 max(1, KL(sg q ‖ p)) + 0.1 max(1, KL(q ‖ sg p))`, averaged. One Adam (after
 //! global-norm clipping) steps the encoder, the RSSM and the heads.
 //!
-//! The step is differentiated by hand on plain buffers (`ctxrace_common::nn`): the
+//! The step is differentiated by hand on plain buffers (`ctxrace_nn`): the
 //! sequence loop of the RSSM over `T` steps of a few rows each was mostly candle's per-operation
 //! bookkeeping. Backward: the heads' and the prior's gradients of the posterior states, the KL
 //! terms' of the posterior and prior logits (`∂ max(1, KL) = 0` below the free nats), then the
@@ -30,19 +30,19 @@ use crate::adam::Adam;
 use crate::algorithm::Metrics;
 use crate::error::{LearnerError, Result};
 use crate::shards::{add_part, on_shards_with, weighted_mean};
-use ctxrace_common::agents::{DreamerConfig, StepAlignment};
-use ctxrace_common::nn::dreamer::{state_head, uniform_rows, PolicyNets};
-use ctxrace_common::nn::initial_weights::init_dreamer;
-use ctxrace_common::nn::losses::{
+use ctxrace_config::agents::{DreamerConfig, StepAlignment};
+use ctxrace_config::SequenceBatch;
+use ctxrace_nn::dreamer::{state_head, uniform_rows, PolicyNets};
+use ctxrace_nn::initial_weights::init_dreamer;
+use ctxrace_nn::losses::{
     categorical_kl, categorical_kl_backward, soft_cross_entropy, soft_cross_entropy_backward,
 };
-use ctxrace_common::nn::parameters::update_each;
-use ctxrace_common::nn::{symlog_value as symlog, TwoHot, Weights};
-use ctxrace_common::nn::{
+use ctxrace_nn::parameters::update_each;
+use ctxrace_nn::{symlog_value as symlog, TwoHot, Weights};
+use ctxrace_nn::{
     InputGrad, Mlp, MlpGrads, MlpTrace, NamedTensor, NonZeros, ObserveTrace, Parameters, Rssm,
     RssmGrads,
 };
-use ctxrace_common::SequenceBatch;
 use rand_chacha::ChaCha8Rng;
 
 /// Posterior states to imagine from, `N = B·T` of them (batch-major rows: sequence `b`'s steps
@@ -585,9 +585,9 @@ pub(crate) mod oracle {
     //! The networks as candle modules holding the plain networks' weights: the tests' oracle.
     use super::*;
     use candle_core::backprop::GradStore;
-    use ctxrace_common::nn::oracle::{DreamerNets, Mlp as CandleMlp, ParamStore};
-    use ctxrace_common::nn::parameters::to_safetensors;
-    use ctxrace_common::nn::Activation;
+    use ctxrace_nn::oracle::{DreamerNets, Mlp as CandleMlp, ParamStore};
+    use ctxrace_nn::parameters::to_safetensors;
+    use ctxrace_nn::Activation;
 
     /// A candle head on `[h, z, c]` of `cfg` under `vb` ([`state_head`]'s).
     pub(crate) fn head(
@@ -685,9 +685,9 @@ mod tests {
     use super::*;
     use crate::sequences::SeqData;
     use candle_core::{Device, Module, Tensor};
-    use ctxrace_common::agents::{ContextMode, InitialState};
-    use ctxrace_common::nn::oracle::dreamer::uniforms_per;
-    use ctxrace_common::nn::oracle::{
+    use ctxrace_config::agents::{ContextMode, InitialState};
+    use ctxrace_nn::oracle::dreamer::uniforms_per;
+    use ctxrace_nn::oracle::{
         symlog as symlog_tensor, DreamerNets, Mlp as CandleMlp, ParamStore, RssmState,
     };
     use rand::{Rng, SeedableRng};
@@ -867,7 +867,7 @@ mod tests {
                 ..form.clone()
             };
             let mut policy = PolicyNets::from_weights(&cfg, 3, 2, &mut Weights::initial()).unwrap();
-            ctxrace_common::nn::parameters::init(&mut policy, 4);
+            ctxrace_nn::parameters::init(&mut policy, 4);
             // a learned initial state away from zero, where its prior's classes do not tie
             randomise(&mut policy, |n| n == "rssm.initial_state.w", 1.0, 1);
             let mut model = WorldModel::new(&cfg, (3, 2), &mut policy).unwrap();
@@ -939,7 +939,7 @@ mod tests {
     }
 
     /// The episode `o_0 −a_0→ o_1 (r_1) −a_1→ o_2 (r_2) −a_2→ o_3 (r_3, terminated)` as each form
-    /// stores it (the actors' rows, [`ctxrace_common::agents::StepAlignment`]) and what the
+    /// stores it (the actors' rows, [`ctxrace_config::agents::StepAlignment`]) and what the
     /// world model reads of it: ctxrace's four rows feed `0, a_0, a_1, a_2` to the sequence
     /// model and `symlog o_t` to the encoder, with the terminal flag on `o_3`; the paper code's
     /// three rows (`o_3` never stored) feed `0, a_1, a_2` (the row's own action, zeroed where

@@ -11,10 +11,10 @@
 //! norms and gradients.
 
 use candle_core::{Device, Tensor};
-use ctxrace_common::agents::{AgentConfig, AlgoKind, DreamerConfig, CONTEXT_DIM};
-use ctxrace_common::nn::dreamer::{normal_rows, uniform_rows};
-use ctxrace_common::SequenceBatch;
+use ctxrace_config::agents::{AgentConfig, AlgoKind, DreamerConfig, CONTEXT_DIM};
+use ctxrace_config::SequenceBatch;
 use ctxrace_learner::{Algorithm, Batch, Dreamer, Metrics};
+use ctxrace_nn::dreamer::{normal_rows, uniform_rows};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::collections::HashMap;

@@ -7,7 +7,7 @@
 #![allow(missing_docs)] // criterion's macros define undocumented functions
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use ctxrace_common::ipc::TrajectoryStep;
+use ctxrace_ipc::TrajectoryStep;
 use ctxrace_replay::{encode_snapshot, write_snapshot, LimiterCounts, ReplayBuffer};
 
 const OBS: usize = 108;

@@ -11,9 +11,9 @@
 //! (cbdreamer `cbtools.sample_episodes`): episode by episode, with numpy's `RandomState(0)`.
 
 use crate::numpy_rng::{ChoiceCdf, RandomState};
-use ctxrace_common::experience::SampleStore;
-use ctxrace_common::ipc::wire::step_stride;
-use ctxrace_common::{Batch, BatchSpec, Sampler, SequenceBatch, TransitionBatch};
+use ctxrace_config::{Batch, BatchSpec, Sampler, SequenceBatch, TransitionBatch};
+use ctxrace_ipc::wire::step_stride;
+use ctxrace_run::experience::SampleStore;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
@@ -137,7 +137,7 @@ impl ReplayBuffer {
     }
 
     /// Appends a validated chunk payload (`steps x step_stride` floats, see
-    /// [`ctxrace_common::ipc::wire`]) to `actor`'s stream; `after_gap` starts a new segment.
+    /// [`ctxrace_ipc::wire`]) to `actor`'s stream; `after_gap` starts a new segment.
     /// The caller validated the actor id and the payload.
     pub fn insert_chunk(&mut self, actor: usize, payload: &[f32], after_gap: bool) {
         let (o, a) = (self.obs_dim, self.act_dim);
@@ -680,7 +680,7 @@ pub(crate) mod tests {
         // the uniform sampler too may cross, but it leaves is_first to true starts
         let mut rng = rng();
         let u = b.sample(
-            ctxrace_common::BatchSpec::Sequence {
+            ctxrace_config::BatchSpec::Sequence {
                 batch: 50,
                 length: 6,
             },

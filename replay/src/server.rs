@@ -9,14 +9,14 @@ use crate::snapshot::{
     encode_snapshot, read_snapshot, write_snapshot, BackgroundWriter, LimiterCounts, SnapshotShape,
 };
 use anyhow::Result;
-use ctxrace_common::ipc::wire::{ReplayStatus, WireError, FORMAT_VERSION, REASONS};
-use ctxrace_common::ipc::{
+use ctxrace_config::validate::ConfigError;
+use ctxrace_config::BatchSpec;
+use ctxrace_config::ReplayOptions;
+use ctxrace_ipc::wire::{ReplayStatus, WireError, FORMAT_VERSION, REASONS};
+use ctxrace_ipc::{
     BatchRequest, BatchServer, Next, ReplayBeacon, RunTransport, StatusPublisher,
     TrajectoryReceiver, Wake,
 };
-use ctxrace_common::validate::ConfigError;
-use ctxrace_common::BatchSpec;
-use ctxrace_common::ReplayOptions;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::collections::VecDeque;

@@ -6,7 +6,7 @@
 
 use crate::buffer::{ReplayBuffer, Stream};
 use anyhow::{anyhow, bail, Context as _, Result};
-use ctxrace_common::run_dir::write_atomic;
+use ctxrace_run::run_dir::write_atomic;
 use std::fs::File;
 use std::io::{BufReader, Read};
 use std::path::{Path, PathBuf};

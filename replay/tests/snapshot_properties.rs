@@ -2,7 +2,7 @@
 //! extended, and any file that is not a snapshot, is refused with an error naming the file;
 //! never a panic, never a buffer sized from a damaged header.
 
-use ctxrace_common::ipc::TrajectoryStep;
+use ctxrace_ipc::TrajectoryStep;
 use ctxrace_replay::{read_snapshot, write_snapshot, LimiterCounts, ReplayBuffer, SnapshotShape};
 use proptest::prelude::*;
 use std::path::Path;

@@ -1,10 +1,10 @@
 //! Actors, replay and learner on threads of one process over a private iceoryx2 prefix.
 
-use ctxrace_common::ipc::{
+use ctxrace_config::{Batch, BatchSpec, ReplayOptions};
+use ctxrace_ipc::{
     cleanup, run_prefix, ReplayBeacon, ReplayClient, RunTransport, SenderOptions,
     TrajectoryReceiver, TrajectorySender, TrajectoryStep, TRAJECTORY_BUFFER,
 };
-use ctxrace_common::{Batch, BatchSpec, ReplayOptions};
 use ctxrace_replay::{read_snapshot, run, ReplayArgs, ReplayBuffer, ReplayControl, SnapshotShape};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
@@ -31,7 +31,7 @@ const ACT: usize = 2;
 const STEPS: usize = 1000;
 const EPISODE: usize = 100;
 
-fn actor(prefix: String, id: u32, poison: bool) -> ctxrace_common::ipc::SenderStats {
+fn actor(prefix: String, id: u32, poison: bool) -> ctxrace_ipc::SenderStats {
     let t = RunTransport::open(&prefix, 2, &format!("actor{id}")).unwrap();
     let opts = SenderOptions {
         handshake_timeout: Duration::from_secs(30),
@@ -332,9 +332,9 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
 
 #[test]
 fn a_chunk_rewritten_after_validation_cannot_panic_the_replay_buffer() {
-    use ctxrace_common::ipc::inject::Injector;
-    use ctxrace_common::ipc::wire::{step_stride, ChunkHeader};
-    use ctxrace_common::ipc::ReadStage;
+    use ctxrace_ipc::inject::Injector;
+    use ctxrace_ipc::wire::{step_stride, ChunkHeader};
+    use ctxrace_ipc::ReadStage;
     use ctxrace_replay::ReplayBuffer;
     use rand::SeedableRng;
     let isolated = Isolated::new("rewritten");

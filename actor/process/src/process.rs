@@ -1,0 +1,194 @@
+//! The actor process (`ctxrace actor`): runs [`Collector`] episodes against the run's replay,
+//! acting with the newest policy weights the learner broadcast (uniform random actions until
+//! the first weights and for its share of the prefill), and publishes episode metrics and a
+//! heartbeat.
+//!
+//! New weights are taken before every decision, mid-episode too (every step carries the
+//! version that chose it), and while the actor waits for the replay to take its chunks. The
+//! replay takes from the actor with the fewest steps taken first, so an actor that got ahead
+//! at the start (it filled its queue while the other was starting) waits, blocked, until the
+//! others catch up: hundreds of gradient steps. When weights were loaded only at episode
+//! boundaries, which a blocked actor does not reach, it came back from that wait with its first
+//! weights (`versions` `[0, 470, ...]` beside `[0, 10, 30, ...]`), or none.
+
+use crate::collect::Collector;
+use anyhow::{Context as _, Result};
+use ctxrace_config::ExperimentConfig;
+use ctxrace_ipc::{
+    termination_flag, Heartbeat, MetricsPublisher, RunTransport, SenderOptions, TrajectorySender,
+    WeightsReceiver,
+};
+use ctxrace_nn::policy::ACT_DIM;
+use ctxrace_nn::Policy;
+use ctxrace_sim::race::RaceEnv;
+use ctxrace_tracks::Track;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// Seconds between heartbeats.
+const HEARTBEAT_EVERY: Duration = Duration::from_secs(1);
+
+/// What an actor process needs.
+pub struct ActorOptions {
+    /// The run's iceoryx2 prefix.
+    pub prefix: String,
+    /// This actor's id, `0..actors`.
+    pub id: u32,
+    /// Actors in the run.
+    pub actors: usize,
+    /// How many times this actor was started before (restarts draw fresh episodes).
+    pub incarnation: u64,
+    /// The experiment.
+    pub experiment: ExperimentConfig,
+    /// The track.
+    pub track: Arc<Track>,
+}
+
+/// What an actor did, reported when it stops.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct ActorReport {
+    /// The actor's id.
+    pub id: u32,
+    /// Its earlier starts.
+    pub incarnation: u64,
+    /// Decisions taken.
+    pub decisions: u64,
+    /// Steps delivered to the replay.
+    pub sent_steps: u64,
+    /// Steps dropped (still waiting for the replay when the actor stopped).
+    pub dropped_steps: u64,
+    /// Weights broadcasts refused (bad version, length or checksum, or not this agent's).
+    pub weights_rejected: u64,
+    /// Policy versions loaded, in order.
+    pub versions: Vec<u64>,
+}
+
+/// Runs the actor until SIGTERM/SIGINT.
+pub fn run(opts: ActorOptions) -> Result<ActorReport> {
+    let cfg = &opts.experiment;
+    let env = RaceEnv::new(opts.track.clone(), cfg.race.clone())?;
+    let frame_dim = env.obs_dim();
+    let seed = cfg
+        .train
+        .seed
+        .wrapping_add(1 + opts.id as u64)
+        .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        .wrapping_add(opts.incarnation);
+    let mut collector = Collector::for_experiment(env, cfg, seed);
+    let transport = RunTransport::open(&opts.prefix, opts.actors, &format!("actor-{}", opts.id))?;
+    let mut weights = WeightsReceiver::new(&transport)?;
+    let telemetry = MetricsPublisher::new(&transport)?;
+    let mut sender = TrajectorySender::new(
+        &transport,
+        opts.id,
+        frame_dim,
+        ACT_DIM,
+        SenderOptions::default(),
+    )
+    .context("connecting to the replay")?;
+    let prefill = cfg.train.prefill / opts.actors.max(1) as u64;
+    let mut policy: Option<(u64, Policy)> = None;
+    let mut last_beat = Instant::now() - HEARTBEAT_EVERY;
+    let mut versions = Vec::new();
+    let mut weights_refused = 0;
+    let stop = termination_flag()?;
+    while !stop.load(Ordering::Relaxed) {
+        if last_beat.elapsed() >= HEARTBEAT_EVERY {
+            telemetry.heartbeat(Heartbeat {
+                actor_id: opts.id,
+                pid: std::process::id(),
+                env_steps: collector.decisions(),
+                policy_version: policy.as_ref().map_or(0, |(v, _)| *v),
+                dropped_steps: sender.stats().dropped_steps,
+                ..Default::default()
+            })?;
+            last_beat = Instant::now();
+        }
+        // newest weights first, also while we wait below
+        let newest = weights.latest_with(|version, bytes| {
+            match &mut policy {
+                Some((v, p)) => p.load(bytes).map(|_| *v = version),
+                None => Policy::new(&cfg.agent, frame_dim, bytes, seed)
+                    .map(|p| policy = Some((version, p))),
+            }
+            .map(|_| version)
+        })?;
+        match newest {
+            Some(Ok(version)) => versions.push(version),
+            Some(Err(e)) => {
+                weights_refused += 1;
+                tracing::warn!("actor {}: weights rejected: {e}", opts.id)
+            }
+            None => {}
+        }
+        // the replay has no room for our chunks (its rate limiter paces the actors to the
+        // learner, or it restarts): wait for it instead of stepping, so that nothing is dropped
+        if sender.backlog() > 0 {
+            match sender.deliver(Duration::from_millis(100)) {
+                // a signal can interrupt the wait
+                Err(_) if stop.load(Ordering::Relaxed) => break,
+                result => result?,
+            };
+            continue;
+        }
+        let version = policy.as_ref().map_or(0, |(v, _)| *v);
+        let acting = match &mut policy {
+            Some((_, p)) if collector.decisions() >= prefill => Some(p),
+            _ => None,
+        };
+        // the episode this decision belongs to (a new one starts at a boundary)
+        let episode = collector.episodes() - u64::from(!collector.at_episode_boundary());
+        let mut push_error = Ok(());
+        let finished = collector.step(acting, |s| {
+            if push_error.is_ok() {
+                push_error = sender.push(episode, version, s);
+            }
+        })?;
+        if let Err(e) = push_error {
+            // a signal can interrupt a send; anything else is a real failure
+            if stop.load(Ordering::Relaxed) {
+                break;
+            }
+            return Err(e);
+        }
+        if let Some(f) = finished {
+            let m = &f.metrics;
+            telemetry.episode(ctxrace_ipc::EpisodeReport {
+                actor_id: opts.id,
+                episode_id: f.episode,
+                env_steps: collector.decisions(),
+                steps: m.steps as u64,
+                context: [f.context.speed as f32, f.context.steer as f32],
+                progress: m.progress as f32,
+                overtakes: m.overtakes,
+                a2a: m.a2a as u32,
+                wall_crash: m.wall_crash as u32,
+                episode_return: m.episode_return as f32,
+                by_policy: u32::from(f.by_policy),
+                ..Default::default()
+            })?;
+        }
+    }
+    // a send interrupted by the stop signal fails; what was delivered before still counts
+    let before = sender.stats();
+    let stats = sender.close().unwrap_or_else(|e| {
+        tracing::warn!("actor {}: closing the trajectory stream: {e}", opts.id);
+        before
+    });
+    tracing::info!(
+        "actor {} stopping: {} steps sent, {} dropped",
+        opts.id,
+        stats.sent_steps,
+        stats.dropped_steps
+    );
+    Ok(ActorReport {
+        id: opts.id,
+        incarnation: opts.incarnation,
+        decisions: collector.decisions(),
+        sent_steps: stats.sent_steps,
+        dropped_steps: stats.dropped_steps,
+        weights_rejected: weights.rejected() + weights_refused,
+        versions,
+    })
+}

@@ -1,0 +1,124 @@
+//! Who drives the ego in an episode ([`Ego`]: a reference policy here, a trained agent's acting
+//! policy in the actor crate, a Python agent in the bindings), how a trained agent acts
+//! ([`ActMode`]), and the episode loop that drives it (reset, decisions, the end), showing every
+//! decision to an observer.
+
+use crate::baseline::{Baseline, BaselineKind};
+use crate::race::{RaceEnv, StepInfo};
+use anyhow::Result;
+use ctxrace_config::Context;
+use serde::{Deserialize, Serialize};
+
+/// How a trained agent picks its actions.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "kebab-case")]
+pub enum ActMode {
+    /// Samples its action (and cMask its mask) distribution, seeded per episode: the paper's
+    /// evaluation.
+    Sample,
+    /// Takes the mode of each distribution.
+    Mode,
+}
+
+/// One decision of an episode, as [`Driver::drive_observed`] shows it.
+#[derive(Clone, Copy, Debug)]
+pub struct Decided<'a> {
+    /// The ego action taken.
+    pub action: [f64; 2],
+    /// cMask's context mask that chose it.
+    pub mask: Option<[f32; 2]>,
+    /// The reward it earned.
+    pub reward: f64,
+    /// The observation after it.
+    pub obs: &'a [f32],
+}
+
+/// An ego driver with its per-episode state: it picks the ego's action from the race's
+/// observation.
+pub trait Ego {
+    /// Starts an episode of `env` (after its reset); `seed` drives its randomness (the random
+    /// baseline, a sampling agent's noise).
+    fn reset(&mut self, env: &RaceEnv, seed: u64);
+
+    /// The action for observation `obs` of `env`, and (cMask) the context mask used.
+    fn act(&mut self, env: &RaceEnv, obs: &[f32]) -> Result<([f64; 2], Option<[f32; 2]>)>;
+
+    /// Runs one episode of `env` under `context` from `seed` to its end; returns the last
+    /// step's details.
+    fn drive_episode(&mut self, env: &mut RaceEnv, context: Context, seed: u64) -> Result<StepInfo>
+    where
+        Self: Sized,
+    {
+        self.drive_observed(env, context, seed, |_, _| {})
+    }
+
+    /// Runs one episode like [`Ego::drive_episode`], showing `observe` the environment after
+    /// its reset (a [`Decided`] with no action, mask or reward) and after every decision.
+    fn drive_observed(
+        &mut self,
+        env: &mut RaceEnv,
+        context: Context,
+        seed: u64,
+        mut observe: impl FnMut(&RaceEnv, Decided),
+    ) -> Result<StepInfo>
+    where
+        Self: Sized,
+    {
+        let mut obs = env.reset(seed, context);
+        self.reset(env, seed);
+        let start = Decided {
+            action: [0.0, 0.0],
+            mask: None,
+            reward: 0.0,
+            obs: &obs,
+        };
+        observe(env, start);
+        loop {
+            let (action, mask) = self.act(env, &obs)?;
+            let step = env.step(action)?;
+            obs = step.obs;
+            let decided = Decided {
+                action,
+                mask,
+                reward: step.reward,
+                obs: &obs,
+            };
+            observe(env, decided);
+            if step.terminated || step.truncated {
+                return Ok(step.info);
+            }
+        }
+    }
+}
+
+/// A reference policy driving the ego ([`BaselineKind`]), fresh each episode.
+pub struct BaselineEgo {
+    kind: BaselineKind,
+    state: Baseline,
+}
+
+impl BaselineEgo {
+    /// The reference policy `kind` driving `env`'s ego.
+    pub fn new(kind: BaselineKind, env: &RaceEnv) -> Self {
+        Self {
+            kind,
+            state: Baseline::new(kind, env, 0),
+        }
+    }
+
+    /// Which reference policy it is.
+    pub fn kind(&self) -> BaselineKind {
+        self.kind
+    }
+}
+
+impl Ego for BaselineEgo {
+    fn reset(&mut self, env: &RaceEnv, seed: u64) {
+        self.state = Baseline::new(self.kind, env, seed);
+    }
+
+    fn act(&mut self, env: &RaceEnv, _obs: &[f32]) -> Result<([f64; 2], Option<[f32; 2]>)> {
+        Ok((self.state.act(env), None))
+    }
+}

@@ -1,0 +1,16 @@
+//! The ctxrace simulator, a library that needs no transport and no networks: the f1tenth
+//! single-track vehicle, an exact LiDAR, exact collisions, pure-pursuit rivals scaled by the
+//! context, the head-to-head [`RaceEnv`], reference egos, the paper's evaluation protocol
+//! ([`evaluation`]) and the episode loop of any ego ([`driver`]).
+
+pub mod baseline;
+pub mod collision;
+pub mod driver;
+pub mod evaluation;
+pub mod grid;
+pub mod lidar;
+pub mod race;
+pub mod rival;
+pub mod vehicle;
+
+pub use race::{EpisodeMetrics, RaceEnv, RaceError, Step, StepInfo};

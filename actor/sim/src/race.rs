@@ -1,0 +1,552 @@
+//! A head-to-head race (paper §III–IV): the ego against 0–7 rivals for one lap.
+//!
+//! All cars start in a line, ego last at centreline arc length 0 (the start/finish line), rival
+//! `i` at `i` grid spacings ahead (`start_grid`: a fixed distance, or a fraction of the lap), each
+//! on the raceline beside its place (`grid_line`; the paper's code: on the centreline). Every
+//! decision (10 physics steps of 0.01 s) the ego acts with
+//! `a ∈ [-1, 1]²` — steering `δ = −a₀ θ_max` (negative `a₀` turns left, as the paper states) and speed
+//! `v = v_min + (a₁ + 1)/2 · (v_max − v_min)` — and each rival plans with pure pursuit.
+//!
+//! Reward: see [`reward`]. The episode ends when the ego completes the lap, hits a wall, collides
+//! with a rival or (with `reverse_limit`) drives backwards (terminated), or at the time limit
+//! (truncated, or terminated with `timeout_is_terminal`). A rival that crashes stops and stays as
+//! an obstacle (with `crashed_rivals = "coast"` it brakes under a zero command instead).
+//!
+//! Metrics: PG, the largest fraction of the lap the ego completed; OT, the sum of the rank changes;
+//! A2A, whether the episode ended in an ego–rival collision. `crashed_rivals`,
+//! `overtakes_last_step` and `progress_past_line` select the paper code's forms.
+
+use crate::collision::CarBox;
+use crate::grid::grid_pose;
+use crate::lidar::{Lidar, NearbyWalls};
+use crate::rival::PurePursuit;
+use crate::vehicle::{State, Vehicle, VehicleParams, DT};
+use ctxrace_config::{Context, CrashedRivals, RaceConfig, RaceConfigError};
+use ctxrace_tracks::Track;
+use nalgebra::Point2;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+use std::sync::Arc;
+
+/// Errors of the race environment.
+#[derive(Debug, thiserror::Error)]
+pub enum RaceError {
+    /// The race config is invalid.
+    #[error("race config: {0}")]
+    Config(RaceConfigError),
+    /// An action element is NaN or infinite.
+    #[error("action {0:?} is not finite; policies must output numbers in [-1, 1]")]
+    BadAction([f64; 2]),
+    /// `step` was called before `reset` or after the episode ended.
+    #[error("step called on a finished episode; call reset first")]
+    Finished,
+}
+
+/// One car of the race and its progress along the centreline.
+#[derive(Clone, Debug)]
+pub struct Car {
+    /// The vehicle.
+    pub vehicle: Vehicle,
+    /// Whether it crashed (it then stays where it stopped).
+    pub crashed: bool,
+    /// Arc length travelled along the centreline from the start/finish line (m), unwrapped:
+    /// rivals start ahead with positive values.
+    pub travelled: f64,
+    /// The largest `travelled` reached.
+    pub furthest: f64,
+    /// Centreline arc length at the last update.
+    s: f64,
+    /// Centreline segment at the last update.
+    hint: usize,
+}
+
+/// What happened in one decision step.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct StepInfo {
+    /// Ego progress this episode so far, `[0, 1]`.
+    pub progress: f64,
+    /// Change in the ego's rank this step (+ passes, − being passed).
+    pub overtakes: i32,
+    /// The ego hit a wall.
+    pub wall_crash: bool,
+    /// The ego collided with a rival.
+    pub a2a: bool,
+    /// The ego drove backwards past `reverse_limit`.
+    pub reversed: bool,
+    /// The ego completed the lap.
+    pub lap_complete: bool,
+    /// Episode time (s).
+    pub time: f64,
+}
+
+/// The result of one decision step.
+#[derive(Clone, Debug)]
+pub struct Step {
+    /// The ego's LiDAR observation, `beams` values in `[0, 1]`.
+    pub obs: Vec<f32>,
+    /// The reward.
+    pub reward: f64,
+    /// The episode ended (lap, crash or collision).
+    pub terminated: bool,
+    /// The episode hit the time limit.
+    pub truncated: bool,
+    /// Details.
+    pub info: StepInfo,
+}
+
+/// Per-episode metrics.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct EpisodeMetrics {
+    /// PG: largest fraction of the lap completed.
+    pub progress: f64,
+    /// OT: overtakes minus times overtaken.
+    pub overtakes: i32,
+    /// A2A: the episode ended in an ego–rival collision.
+    pub a2a: bool,
+    /// The episode ended with the ego hitting a wall.
+    pub wall_crash: bool,
+    /// The episode ended with the ego driving backwards (`reverse_limit`).
+    pub reversed: bool,
+    /// Lap time when the lap was completed (s).
+    pub lap_time: Option<f64>,
+    /// Decisions taken.
+    pub steps: usize,
+    /// Sum of rewards.
+    pub episode_return: f64,
+    /// Rivals that crashed during the episode.
+    pub rivals_crashed: usize,
+}
+
+/// The ego's reward for one decision (paper §III after Jaritz et al.; `cfg` selects how the
+/// paper's code computed it): the step reward `r = v / v_max · cos φ − d_c`, with `v` the speed,
+/// `v_max` = `reward_speed`, `φ` the heading error to the centreline and `d_c` the distance to it,
+/// floored at `step_reward_floor` if set; `−1` for a crash and `+1` for the completed lap, added
+/// to `r` or, with `terminal_rewards_replace_step`, instead of it; plus the change in the ego's
+/// rank by track progress (`+1` per rival passed, `−1` per time passed).
+pub fn reward(
+    cfg: &RaceConfig,
+    speed: f64,
+    heading_error: f64,
+    lateral: f64,
+    crashed: bool,
+    lap_complete: bool,
+    overtakes: i32,
+) -> f64 {
+    let mut step = speed / cfg.reward_speed * heading_error.cos() - lateral.abs();
+    if let Some(floor) = cfg.step_reward_floor {
+        step = step.max(floor);
+    }
+    let replace = cfg.terminal_rewards_replace_step;
+    let base = if replace && lap_complete {
+        1.0
+    } else if replace && crashed {
+        -1.0
+    } else {
+        step + f64::from(u8::from(lap_complete)) - f64::from(u8::from(crashed))
+    };
+    base + f64::from(overtakes)
+}
+
+/// Most decisions the ego's launch (`ego_launch_below`) may take.
+const MAX_LAUNCH_DECISIONS: usize = 20;
+
+/// A car's centre in single precision, as the collision shapes hold it.
+fn centre_f32(v: &Vehicle) -> Point2<f32> {
+    let p = v.position();
+    Point2::new(p.x as f32, p.y as f32)
+}
+
+/// The race environment.
+pub struct RaceEnv {
+    track: Arc<Track>,
+    cfg: RaceConfig,
+    params: VehicleParams,
+    lidar: Lidar,
+    nearby: NearbyWalls,
+    cars: Vec<Car>,
+    drivers: Vec<PurePursuit>,
+    rng: ChaCha8Rng,
+    context: Context,
+    steps: usize,
+    max_steps: usize,
+    rank: usize,
+    boxes: Vec<CarBox>,
+    /// Every car's centre before the current physics step (for the `centre` wall contact).
+    centres: Vec<Point2<f32>>,
+    metrics: EpisodeMetrics,
+    finished: bool,
+}
+
+impl RaceEnv {
+    /// An environment on `track`; call [`RaceEnv::reset`] before stepping.
+    pub fn new(track: Arc<Track>, cfg: RaceConfig) -> Result<Self, RaceError> {
+        cfg.validate().map_err(RaceError::Config)?;
+        cfg.validate_grid(&track.name, track.length())
+            .map_err(RaceError::Config)?;
+        let params = VehicleParams::default();
+        let steps_per_decision = cfg.physics_steps_per_action as f64 * DT;
+        Ok(Self {
+            lidar: Lidar::new(&cfg.lidar),
+            nearby: NearbyWalls::default(),
+            max_steps: (cfg.max_time / steps_per_decision).ceil() as usize,
+            track,
+            params,
+            cars: Vec::new(),
+            drivers: Vec::new(),
+            rng: ChaCha8Rng::seed_from_u64(0),
+            context: Context::default(),
+            steps: 0,
+            rank: 0,
+            boxes: Vec::new(),
+            centres: Vec::new(),
+            metrics: EpisodeMetrics::default(),
+            finished: true,
+            cfg,
+        })
+    }
+
+    /// Starts an episode: cars on the grid, rivals driving in `context`, noise seeded by `seed`.
+    /// Returns the first observation.
+    pub fn reset(&mut self, seed: u64, context: Context) -> Vec<f32> {
+        self.rng = ChaCha8Rng::seed_from_u64(seed);
+        self.context = context;
+        let gains = self.cfg.rival.gains_for(&self.track.name);
+        let centre = &self.track.centreline.curve;
+        let spacing = self.cfg.grid_spacing(&self.track.name, self.track.length());
+        self.cars = (0..=self.cfg.rivals)
+            .map(|i| {
+                let s = i as f64 * spacing;
+                let (p, yaw) = grid_pose(&self.track, self.cfg.grid_line, s);
+                let (seg, _) = centre.locate(s);
+                Car {
+                    vehicle: Vehicle::new(self.params.clone(), p.x, p.y, yaw, self.cfg.steer_delay)
+                        .with_integrator(self.cfg.integrator),
+                    crashed: false,
+                    travelled: s,
+                    furthest: s,
+                    s,
+                    hint: seg,
+                }
+            })
+            .collect();
+        let wheelbase = self.params.wheelbase();
+        self.drivers = (0..self.cfg.rivals)
+            .map(|_| {
+                PurePursuit::rival(
+                    &self.cfg.rival,
+                    gains,
+                    context,
+                    wheelbase,
+                    self.params.s_max,
+                )
+            })
+            .collect();
+        self.steps = 0;
+        self.rank = self.ego_rank();
+        self.metrics = EpisodeMetrics::default();
+        self.finished = false;
+        self.launch();
+        self.observe()
+    }
+
+    /// With `ego_launch_below`, drives the ego straight at `ego_launch_speed` (the rivals
+    /// racing as usual) until it is that fast, as the paper's code did before its agents took
+    /// over. From the back of the grid this takes about 0.1 s and cannot reach a rival.
+    fn launch(&mut self) {
+        self.launch_decisions();
+        self.rank = self.ego_rank();
+    }
+
+    /// The launch's decisions, while the ego is slower than `ego_launch_below` (at most
+    /// [`MAX_LAUNCH_DECISIONS`], none past the time limit); returns (ego hit a wall, ego hit a
+    /// rival) as [`RaceEnv::advance`].
+    fn launch_decisions(&mut self) -> (bool, bool) {
+        let below = self.cfg.ego_launch_below;
+        // a stand-still start reaches 1 m/s in 1–2 decisions; the bound only guards odd configs
+        for _ in 0..MAX_LAUNCH_DECISIONS {
+            if below <= 0.0 || self.cars[0].vehicle.speed() >= below || self.steps >= self.max_steps
+            {
+                break;
+            }
+            let (wall_crash, a2a) = self.advance(0.0, self.cfg.ego_launch_speed);
+            if wall_crash || a2a {
+                return (wall_crash, a2a);
+            }
+        }
+        (false, false)
+    }
+
+    /// One decision of physics: the rivals plan, then every car drives `physics_steps_per_action`
+    /// steps (the ego under the command `(steer, speed)`) until the ego crashes; then every car's
+    /// progress is updated. Returns (ego hit a wall, ego hit a rival).
+    fn advance(&mut self, steer: f64, speed: f64) -> (bool, bool) {
+        let commands: Vec<(f64, f64)> = self
+            .drivers
+            .iter_mut()
+            .zip(&self.cars[1..])
+            .map(|(d, car)| {
+                if car.crashed {
+                    (0.0, 0.0)
+                } else {
+                    d.command(&self.track.raceline, &car.vehicle.state)
+                }
+            })
+            .collect();
+        let mut wall_crash = false;
+        let mut a2a = false;
+        for _ in 0..self.cfg.physics_steps_per_action {
+            self.centres.clear();
+            self.centres
+                .extend(self.cars.iter().map(|c| centre_f32(&c.vehicle)));
+            self.cars[0].vehicle.step(steer, speed);
+            let coast = self.cfg.crashed_rivals == CrashedRivals::Coast;
+            for (car, &(st, sp)) in self.cars[1..].iter_mut().zip(&commands) {
+                if coast || !car.crashed {
+                    car.vehicle.step(st, sp);
+                }
+            }
+            (wall_crash, a2a) = self.resolve_collisions();
+            if wall_crash || a2a {
+                break;
+            }
+        }
+        self.steps += 1;
+        for i in 0..self.cars.len() {
+            self.update_progress(i);
+        }
+        (wall_crash, a2a)
+    }
+
+    /// Advances one decision with the ego action `a ∈ [-1, 1]²` (clipped).
+    pub fn step(&mut self, action: [f64; 2]) -> Result<Step, RaceError> {
+        if self.finished {
+            return Err(RaceError::Finished);
+        }
+        if !action.iter().all(|a| a.is_finite()) {
+            return Err(RaceError::BadAction(action));
+        }
+        let (steer, speed) = self.action_to_command(action);
+        let (mut wall_crash, mut a2a) = self.advance(steer, speed);
+        if self.cfg.ego_relaunch && !(wall_crash || a2a) {
+            // the launch's decisions belong to this step: the agent sees none of them
+            (wall_crash, a2a) = self.launch_decisions();
+        }
+        let ego = &self.cars[0];
+        let ego_proj = self.track.project(&ego.vehicle.position(), Some(ego.hint));
+        let length = self.track.length();
+        let lap_complete = ego.travelled >= length;
+        let reversed = !(wall_crash || a2a || lap_complete)
+            && self
+                .cfg
+                .reverse_limit
+                .is_some_and(|limit| ego.travelled < ego.furthest - limit);
+        let progress = (ego.travelled / length).clamp(0.0, 1.0);
+        self.metrics.progress = self.metrics.progress.max(progress);
+        let rank = self.ego_rank();
+        let overtakes = self.rank as i32 - rank as i32;
+        self.rank = rank;
+
+        let reward = reward(
+            &self.cfg,
+            ego.vehicle.speed(),
+            ego.vehicle.yaw() - ego_proj.heading,
+            ego_proj.lateral,
+            wall_crash || a2a || reversed,
+            lap_complete,
+            overtakes,
+        );
+        let time = self.steps as f64 * self.cfg.physics_steps_per_action as f64 * DT;
+        let timed_out = self.steps >= self.max_steps;
+        let ended = wall_crash || a2a || reversed || lap_complete;
+        let terminated = ended || (timed_out && self.cfg.timeout_is_terminal);
+        let truncated = !terminated && timed_out;
+        self.finished = terminated || truncated;
+
+        let m = &mut self.metrics;
+        if !self.finished || self.cfg.overtakes_last_step {
+            m.overtakes += overtakes;
+        }
+        m.a2a |= a2a;
+        m.wall_crash |= wall_crash;
+        m.reversed |= reversed;
+        m.steps = self.steps;
+        m.episode_return += reward;
+        if lap_complete {
+            m.progress = if self.cfg.progress_past_line {
+                ego.travelled / length
+            } else {
+                1.0
+            };
+            m.lap_time = Some(time);
+        }
+        m.rivals_crashed = self.cars[1..].iter().filter(|c| c.crashed).count();
+        Ok(Step {
+            obs: self.observe(),
+            reward,
+            terminated,
+            truncated,
+            info: StepInfo {
+                progress: self.metrics.progress,
+                overtakes,
+                wall_crash,
+                a2a,
+                reversed,
+                lap_complete,
+                time,
+            },
+        })
+    }
+
+    /// Maps an ego action to the command `(steering angle, speed)`.
+    pub fn action_to_command(&self, action: [f64; 2]) -> (f64, f64) {
+        let a0 = action[0].clamp(-1.0, 1.0);
+        let a1 = action[1].clamp(-1.0, 1.0);
+        let c = &self.cfg;
+        (
+            -a0 * c.max_steer,
+            c.min_speed + (a1 + 1.0) / 2.0 * (c.max_speed - c.min_speed),
+        )
+    }
+
+    /// Maps a command `(steering angle, speed)` back to the ego action (clipped to `[-1, 1]²`).
+    pub fn command_to_action(&self, steer: f64, speed: f64) -> [f64; 2] {
+        let c = &self.cfg;
+        [
+            (-steer / c.max_steer).clamp(-1.0, 1.0),
+            (2.0 * (speed - c.min_speed) / (c.max_speed - c.min_speed) - 1.0).clamp(-1.0, 1.0),
+        ]
+    }
+
+    /// Marks crashes for this physics step; returns (ego hit a wall, ego hit a rival).
+    fn resolve_collisions(&mut self) -> (bool, bool) {
+        self.boxes.clear();
+        self.boxes.extend(
+            self.cars
+                .iter()
+                .map(|c| CarBox::new(&c.vehicle.state, &self.params)),
+        );
+        let n = self.cars.len();
+        let mut ego_wall = false;
+        let mut ego_a2a = false;
+        for i in 0..n {
+            if self.cars[i].crashed {
+                continue;
+            }
+            if self.boxes[i].hits_wall_by(self.cfg.wall_contact, self.centres[i], &self.track.walls)
+            {
+                self.crash(i);
+                ego_wall |= i == 0;
+            }
+        }
+        for i in 0..n {
+            for j in i + 1..n {
+                if (self.cars[i].crashed && self.cars[j].crashed)
+                    || !self.boxes[i].overlaps(&self.boxes[j])
+                {
+                    continue;
+                }
+                self.crash(i);
+                self.crash(j);
+                ego_a2a |= i == 0;
+            }
+        }
+        (ego_wall, ego_a2a)
+    }
+
+    fn crash(&mut self, i: usize) {
+        self.cars[i].crashed = true;
+        if i == 0 || self.cfg.crashed_rivals == CrashedRivals::Stop {
+            self.cars[i].vehicle.stop();
+        }
+    }
+
+    /// Moves car `i`'s progress to its current position.
+    fn update_progress(&mut self, i: usize) {
+        let car = &mut self.cars[i];
+        let proj = self.track.project(&car.vehicle.position(), Some(car.hint));
+        let length = self.track.length();
+        let mut ds = proj.s - car.s;
+        if ds > length / 2.0 {
+            ds -= length;
+        } else if ds < -length / 2.0 {
+            ds += length;
+        }
+        car.travelled += ds;
+        car.furthest = car.furthest.max(car.travelled);
+        car.s = proj.s;
+        car.hint = proj.segment;
+    }
+
+    /// 1-based rank of the ego by distance travelled (ties favour the ego).
+    fn ego_rank(&self) -> usize {
+        let ego = self.cars[0].travelled;
+        1 + self.cars[1..].iter().filter(|c| c.travelled > ego).count()
+    }
+
+    fn observe(&mut self) -> Vec<f32> {
+        self.boxes.clear();
+        self.boxes.extend(
+            self.cars[1..]
+                .iter()
+                .map(|c| CarBox::new(&c.vehicle.state, &self.params)),
+        );
+        let ego = &self.cars[0].vehicle;
+        let mut obs = vec![0.0f32; self.lidar.beams()];
+        self.lidar.ranges(
+            ego.position(),
+            ego.yaw(),
+            &mut self.nearby,
+            &self.track.walls,
+            &self.boxes,
+            &mut obs,
+        );
+        self.lidar.normalise(&mut obs, &mut self.rng);
+        obs
+    }
+
+    /// The cars, ego first.
+    pub fn cars(&self) -> &[Car] {
+        &self.cars
+    }
+
+    /// The ego's state.
+    pub fn ego_state(&self) -> &State {
+        &self.cars[0].vehicle.state
+    }
+
+    /// The track.
+    pub fn track(&self) -> &Arc<Track> {
+        &self.track
+    }
+
+    /// The config.
+    pub fn config(&self) -> &RaceConfig {
+        &self.cfg
+    }
+
+    /// The vehicle parameters of every car.
+    pub fn vehicle_params(&self) -> &VehicleParams {
+        &self.params
+    }
+
+    /// This episode's context.
+    pub fn context(&self) -> Context {
+        self.context
+    }
+
+    /// Metrics of the current (or just finished) episode.
+    pub fn metrics(&self) -> &EpisodeMetrics {
+        &self.metrics
+    }
+
+    /// Whether the episode has ended.
+    pub fn is_finished(&self) -> bool {
+        self.finished
+    }
+
+    /// Number of LiDAR beams in an observation.
+    pub fn obs_dim(&self) -> usize {
+        self.lidar.beams()
+    }
+}

@@ -1,0 +1,1273 @@
+//! The agents' hyper-parameters, shared by the learner (training) and the actors (acting): the
+//! algorithm name, [`SacConfig`] and [`DreamerConfig`], with the paper's values as defaults
+//! (REFERENCE §5), read from the `[agent]` table of an experiment's TOML file.
+//!
+//! Like `[race]`, the `[agent]` table starts from a preset: keys a file leaves out take its
+//! values. `preset = "default"` is ctxrace's learner; `preset = "paper-code"` is the learner as
+//! the paper's public code trained it (lilpharaoh1/context-f110, `paper` branch c0fd903, Jun
+//! 2025, `TrajectoryAidedLearning/`: cbdreamer's `dreamerv3.py` and `cbtools.py`, and
+//! `TrainAgents.py`), see [`AgentConfig::paper_code`]. The presets differ in these keys (the
+//! README has the full table with the reasons):
+//!
+//! | key | default | `paper-code` |
+//! |---|---|---|
+//! | `sampler` | `uniform` | `paper-code` |
+//! | `warmup` | `random-steps` (`[train] prefill`) | `episodes` |
+//! | `warmup_episodes` | 32 (used with `warmup = "episodes"`) | 32 |
+//! | `dreamer.init` | `ctxrace` | `paper-code` ([`WeightInit`]) |
+//! | `dreamer.mask.imagination_context` | `masked` | `raw` ([`ImaginationContext`]) |
+
+use crate::batch::BatchSpec;
+use crate::preset::PresetError;
+use crate::validate::ValueError;
+use serde::{Deserialize, Serialize};
+use std::fmt;
+use std::str::FromStr;
+
+/// Lower bound of the log standard deviation.
+pub const LOG_STD_MIN: f64 = -5.0;
+/// Upper bound of the log standard deviation.
+pub const LOG_STD_MAX: f64 = 2.0;
+
+/// The default bounds `[LOG_STD_MIN, LOG_STD_MAX]` of the log standard deviation.
+pub const LOG_STD_CLAMP: [f64; 2] = [LOG_STD_MIN, LOG_STD_MAX];
+
+/// Bounds of the log standard deviation that are not finite or not increasing, by their config
+/// key.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+#[error(
+    "{key} must be two finite bounds [lower, upper] with lower < upper, got [{}, {}] \
+     (ctxrace's default is [{LOG_STD_MIN}, {LOG_STD_MAX}], the paper's code's [-20, 2])",
+    .bounds[0],
+    .bounds[1]
+)]
+pub struct LogStdClampError {
+    /// The config key.
+    pub key: String,
+    /// The bounds `[lower, upper]` given.
+    pub bounds: [f64; 2],
+}
+
+/// Checks bounds of the log standard deviation (finite, lower below upper), naming the config
+/// key `key` in the error.
+pub fn validate_log_std_clamp(
+    key: &str,
+    [lo, hi]: [f64; 2],
+) -> std::result::Result<(), LogStdClampError> {
+    if lo.is_finite() && hi.is_finite() && lo < hi {
+        Ok(())
+    } else {
+        Err(LogStdClampError {
+            key: key.to_string(),
+            bounds: [lo, hi],
+        })
+    }
+}
+
+/// Why an agent configuration cannot be trained or acted with.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum AgentConfigError {
+    /// A key's value lies outside what the networks or the learner accept; the message names
+    /// the key, the value and the values allowed.
+    #[error("{0}")]
+    OutOfRange(String),
+    /// The bounds of a policy's log standard deviation are not finite or not increasing.
+    #[error(transparent)]
+    LogStdClamp(#[from] LogStdClampError),
+    /// A float that is not finite, or a value outside its range.
+    #[error(transparent)]
+    Value(#[from] ValueError),
+    /// The table could not be read over its preset.
+    #[error(transparent)]
+    Preset(#[from] PresetError),
+}
+
+/// The outcome of checking an agent configuration.
+type Result<T> = std::result::Result<T, AgentConfigError>;
+
+/// Returns [`AgentConfigError::OutOfRange`] with a formatted message.
+macro_rules! bail {
+    ($($message:tt)*) => {
+        return Err(AgentConfigError::OutOfRange(format!($($message)*)))
+    };
+}
+
+/// The training algorithms, by the names the command line and configs use.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AlgoKind {
+    /// Soft actor-critic on two stacked LiDAR frames (the model-free baseline).
+    Sac,
+    /// DreamerV3 without context.
+    #[default]
+    Dreamerv3,
+    /// DreamerV3 with the context in the world model, actor and critic (cRSSM).
+    Crssm,
+    /// cRSSM with the context masked by a SAC-learned mask (the paper's cMask).
+    Cmask,
+}
+
+impl AlgoKind {
+    /// Worker threads the learner uses by default: one for SAC, whose products at batch 100 of
+    /// a 2 × 100 network are too small to split (two threads took twice as long), two for the
+    /// DreamerV3 variants, which split each batch over them.
+    pub fn learner_threads(self) -> usize {
+        match self {
+            AlgoKind::Sac => 1,
+            AlgoKind::Dreamerv3 | AlgoKind::Crssm | AlgoKind::Cmask => 2,
+        }
+    }
+
+    /// Every algorithm, in the paper's order.
+    pub const ALL: [AlgoKind; 4] = [
+        AlgoKind::Sac,
+        AlgoKind::Dreamerv3,
+        AlgoKind::Crssm,
+        AlgoKind::Cmask,
+    ];
+
+    /// The name used on the command line and in configs.
+    pub fn name(self) -> &'static str {
+        match self {
+            AlgoKind::Sac => "sac",
+            AlgoKind::Dreamerv3 => "dreamerv3",
+            AlgoKind::Crssm => "crssm",
+            AlgoKind::Cmask => "cmask",
+        }
+    }
+
+    /// How the context enters the agent (`None` for SAC and DreamerV3).
+    pub fn context_mode(self) -> ContextMode {
+        match self {
+            AlgoKind::Sac | AlgoKind::Dreamerv3 => ContextMode::None,
+            AlgoKind::Crssm => ContextMode::Crssm,
+            AlgoKind::Cmask => ContextMode::Cmask,
+        }
+    }
+}
+
+impl fmt::Display for AlgoKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// A name that is no algorithm's.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("unknown algorithm `{0}`; expected one of sac, dreamerv3, crssm, cmask")]
+pub struct UnknownAlgorithm(pub String);
+
+impl FromStr for AlgoKind {
+    type Err = UnknownAlgorithm;
+
+    fn from_str(s: &str) -> std::result::Result<Self, UnknownAlgorithm> {
+        AlgoKind::ALL
+            .into_iter()
+            .find(|a| a.name() == s.to_ascii_lowercase())
+            .ok_or_else(|| UnknownAlgorithm(s.to_string()))
+    }
+}
+
+/// A named starting point for the `[agent]` table: keys a file leaves out take the preset's
+/// values.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AgentPreset {
+    /// ctxrace's learner ([`AgentConfig::default`]).
+    #[default]
+    Default,
+    /// The learner as the paper's public code trained it ([`AgentConfig::paper_code`]).
+    PaperCode,
+}
+
+impl AgentPreset {
+    /// The agent configuration of the preset.
+    pub fn config(self) -> AgentConfig {
+        match self {
+            AgentPreset::Default => AgentConfig::default(),
+            AgentPreset::PaperCode => AgentConfig::paper_code(),
+        }
+    }
+}
+
+/// How the sequences of a DreamerV3 batch are drawn from the replay.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Sampler {
+    /// Each sequence a uniformly drawn window of contiguous steps of one actor, from a
+    /// generator seeded once per run that advances from batch to batch.
+    #[default]
+    Uniform,
+    /// As the paper's code drew them (cbdreamer `cbtools.sample_episodes`, rebuilt at every
+    /// training step): a fresh numpy `RandomState(0)` per batch; each sequence starts in an
+    /// episode chosen with probability proportional to its length, at a uniform index that is
+    /// never the episode's last, and where that episode ends before `length` steps it goes on
+    /// from the start of the next chosen episode, `is_first` set at each join and at the
+    /// sequence's first step. The same buffer gives the same batch, whatever the seed.
+    PaperCode,
+}
+
+/// When training starts and what acts before it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Warmup {
+    /// `[train] prefill` steps of uniformly random actions, then training.
+    #[default]
+    RandomSteps,
+    /// The untrained policy acts from the first step, and training starts once the replay
+    /// holds `warmup_episodes` episodes, the one running included (the paper's code: its
+    /// `train` returns while `len(buffer_eps) < 2 · batch_size`, 32 episodes). Only the
+    /// single-process trainer (`train --inline`) runs it. It applies to every algorithm (the
+    /// code's SAC baseline started at 200 stored transitions instead).
+    Episodes,
+}
+
+/// How the race context `c` (each value in `[−r, r]`, `r` = `[train] context_range`) enters
+/// the networks.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ContextScale {
+    /// `c / dreamer.context_range`, in `[−1, 1]` over the training range.
+    Normalised,
+    /// `c` as it is (the paper's code: ±0.15 in training, ±0.3 in evaluation).
+    #[default]
+    Raw,
+}
+
+impl ContextScale {
+    /// What an `[agent]` table saved without `context_scale` meant: checkpoints and run
+    /// directories written before the key existed (ctxrace before 2026-12-05) trained with the
+    /// normalised context, whatever the default is now.
+    pub const SAVED_WITHOUT_KEY: Self = Self::Normalised;
+
+    /// Gives a saved `[agent]` table without `context_scale` the scale it was trained with
+    /// ([`ContextScale::SAVED_WITHOUT_KEY`]).
+    pub fn fill_saved_table(agent: &mut toml::Table) {
+        agent
+            .entry("context_scale")
+            .or_insert_with(|| "normalised".into());
+    }
+}
+
+/// Which agent to train and its hyper-parameters (the `[agent]` table).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AgentConfig {
+    /// The preset the other keys start from (see [`AgentConfig::from_table`]).
+    pub preset: AgentPreset,
+    /// The algorithm.
+    pub algo: AlgoKind,
+    /// How DreamerV3 batches are drawn from the replay (`"uniform"` or `"paper-code"`; SAC's
+    /// transitions are always uniform).
+    pub sampler: Sampler,
+    /// When training starts and what acts before (`"random-steps"` or `"episodes"`).
+    pub warmup: Warmup,
+    /// Episodes held before training starts with `warmup = "episodes"` (the paper's code: 32).
+    pub warmup_episodes: u64,
+    /// How the context enters the world model, actor, critic and (cMask) the masked context
+    /// (`"normalised"` or `"raw"`), in training and acting alike.
+    pub context_scale: ContextScale,
+    /// SAC's hyper-parameters (used when `algo = "sac"`).
+    pub sac: SacConfig,
+    /// DreamerV3's hyper-parameters (the other three algorithms); its `context` follows `algo`.
+    pub dreamer: DreamerConfig,
+}
+
+impl Default for AgentConfig {
+    fn default() -> Self {
+        Self {
+            preset: AgentPreset::Default,
+            algo: AlgoKind::default(),
+            sampler: Sampler::Uniform,
+            warmup: Warmup::RandomSteps,
+            warmup_episodes: 32,
+            context_scale: ContextScale::Raw,
+            sac: SacConfig::default(),
+            dreamer: DreamerConfig::default(),
+        }
+    }
+}
+
+impl AgentConfig {
+    /// The learner as the paper's public code trained it (the `paper` branch, c0fd903, Jun
+    /// 2025, `TrajectoryAidedLearning/`): batches drawn as cbdreamer's `sample_episodes` drew
+    /// them, training from the 32nd stored episode on with the untrained policy acting until
+    /// then (`dreamerv3.py` `train`, `TrainAgents.py`), the raw context in the networks, the
+    /// networks' initial weights drawn as its PyTorch initialisers draw them.
+    pub fn paper_code() -> Self {
+        Self {
+            preset: AgentPreset::PaperCode,
+            sampler: Sampler::PaperCode,
+            warmup: Warmup::Episodes,
+            warmup_episodes: 32,
+            context_scale: ContextScale::Raw,
+            sac: SacConfig::default().with_paper_code_sac(),
+            dreamer: DreamerConfig {
+                mask: MaskConfig::default().with_paper_code_mask(),
+                init: WeightInit::PaperCode,
+                ..DreamerConfig::default().with_paper_code_world_model()
+            },
+            ..Self::default()
+        }
+    }
+
+    /// Reads an `[agent]` table: keys it leaves out take the values of its `preset` (the
+    /// default learner when it names none). Unknown keys and bad values are errors naming the
+    /// key.
+    pub fn from_table(table: toml::Table) -> Result<Self> {
+        let cfg = crate::preset::resolve(table, AgentPreset::config)?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Reads an `[agent]` table a checkpoint saved (`agent.toml`): as [`AgentConfig::from_table`],
+    /// a table saved before `context_scale` existed reading as the scale it trained with.
+    pub fn from_saved_table(mut table: toml::Table) -> Result<Self> {
+        ContextScale::fill_saved_table(&mut table);
+        Self::from_table(table)
+    }
+
+    /// The DreamerV3 configuration with the context mode of [`AgentConfig::algo`] and the
+    /// context scale of [`AgentConfig::context_scale`].
+    pub fn dreamer(&self) -> DreamerConfig {
+        DreamerConfig {
+            context: self.algo.context_mode(),
+            context_scale: self.context_scale,
+            ..self.dreamer.clone()
+        }
+    }
+
+    /// Sets the seed of whichever algorithm is chosen.
+    pub fn set_seed(&mut self, seed: u64) {
+        self.sac.seed = seed;
+        self.dreamer.seed = seed;
+    }
+
+    /// The seed of the chosen algorithm.
+    pub fn seed(&self) -> u64 {
+        match self.algo {
+            AlgoKind::Sac => self.sac.seed,
+            _ => self.dreamer.seed,
+        }
+    }
+
+    /// The batches the chosen algorithm trains on.
+    pub fn batch_spec(&self) -> BatchSpec {
+        match self.algo {
+            AlgoKind::Sac => BatchSpec::Transition {
+                batch: self.sac.batch_size,
+                frames: self.sac.frames,
+                reward_delay: self.sac.reward_delay,
+            },
+            _ => BatchSpec::Sequence {
+                batch: self.dreamer.batch,
+                length: self.dreamer.length,
+            },
+        }
+    }
+
+    /// Whether actors store steps as the paper's code does ([`StepAlignment::PaperCode`]):
+    /// a DreamerV3 variant with `step_alignment = "paper-code"`.
+    pub fn stores_paper_code_rows(&self) -> bool {
+        self.algo != AlgoKind::Sac && self.dreamer.step_alignment == StepAlignment::PaperCode
+    }
+
+    /// Checks the chosen algorithm's configuration.
+    pub fn validate(&self) -> Result<()> {
+        if self.warmup == Warmup::Episodes && self.warmup_episodes == 0 {
+            bail!(
+                "warmup_episodes = 0 must be at least 1 with warmup = \"episodes\" (the paper's \
+                 code: 32)"
+            );
+        }
+        match self.algo {
+            AlgoKind::Sac => self.sac.validate(),
+            _ => self.dreamer().validate(),
+        }
+    }
+}
+
+/// SAC's hyperparameters; the defaults are the paper's baseline.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SacConfig {
+    /// Hidden layer width of the actor and the critics.
+    pub hidden: usize,
+    /// Number of hidden layers of the actor and the critics.
+    pub layers: usize,
+    /// Transitions per training batch (drawn by the caller).
+    pub batch_size: usize,
+    /// Actor learning rate.
+    pub actor_lr: f64,
+    /// Critic learning rate.
+    pub critic_lr: f64,
+    /// Temperature (`log α`) learning rate.
+    pub alpha_lr: f64,
+    /// Discount factor `γ`.
+    pub gamma: f64,
+    /// Polyak coefficient `τ` of the target critics.
+    pub tau: f64,
+    /// Initial temperature `α`.
+    pub initial_alpha: f64,
+    /// Target entropy `H̄`; `−|A|` when unset.
+    pub target_entropy: Option<f64>,
+    /// Seed of the initial weights and of the sampling noise.
+    pub seed: u64,
+    /// Consecutive LiDAR frames stacked into one observation (the paper's 2).
+    pub frames: usize,
+    /// Steps by which a transition's reward lags its action: 0 pairs `(o_t, a_t, o_{t+1})` with
+    /// the reward `a_t` earned; 1 with the next action's reward (and its terminal flag), as the
+    /// paper's code's windowed replay buffer does.
+    pub reward_delay: usize,
+    /// Standard deviation of TD3-style smoothing noise added to the target's next actions
+    /// (0: none, plain SAC).
+    pub target_noise: f64,
+    /// Bound of the smoothing noise: it is clipped to `±target_noise_clip`, and the noisy next
+    /// action to `[−1, 1]`.
+    pub target_noise_clip: f64,
+    /// Standard deviation of Gaussian noise the acting policy adds to its action (then clipped
+    /// to `[−1, 1]`), in training and in evaluation, sampled or deterministic alike (0: none).
+    pub explore_noise: f64,
+    /// Whether the acting policy empties its frame stack at each episode's start (else the
+    /// first observation of an episode is stacked behind the previous episode's last).
+    pub reset_frame_stack: bool,
+    /// Gradient steps per Polyak update of the target critics (1: every step; 2: on every
+    /// second step, the first included).
+    pub target_every: usize,
+    /// Bounds `[lower, upper]` of the actor's log standard deviation.
+    pub log_std_clamp: [f64; 2],
+}
+
+impl Default for SacConfig {
+    fn default() -> Self {
+        Self {
+            hidden: 100,
+            layers: 2,
+            batch_size: 100,
+            actor_lr: 3e-5,
+            critic_lr: 3e-5,
+            alpha_lr: 3e-5,
+            gamma: 0.85,
+            tau: 0.005,
+            initial_alpha: 1.0,
+            target_entropy: None,
+            seed: 0,
+            frames: 2,
+            reward_delay: 0,
+            target_noise: 0.0,
+            target_noise_clip: 0.5,
+            explore_noise: 0.0,
+            reset_frame_stack: true,
+            target_every: 1,
+            log_std_clamp: LOG_STD_CLAMP,
+        }
+    }
+}
+
+impl SacConfig {
+    /// Checks sizes and ranges, naming the offending key.
+    pub fn validate(&self) -> Result<()> {
+        if self.hidden == 0 || self.frames == 0 || self.batch_size == 0 {
+            bail!(
+                "SAC config: hidden, frames and batch_size must be positive (got {}, {}, {})",
+                self.hidden,
+                self.frames,
+                self.batch_size
+            );
+        }
+        if !(0.0..=1.0).contains(&self.gamma) || !(0.0..=1.0).contains(&self.tau) {
+            bail!(
+                "SAC config: gamma and tau must lie in [0, 1], got {} and {}",
+                self.gamma,
+                self.tau
+            );
+        }
+        let lrs = [self.actor_lr, self.critic_lr, self.alpha_lr];
+        if lrs.iter().any(|lr| !(lr.is_finite() && *lr >= 0.0))
+            || !(self.initial_alpha.is_finite() && self.initial_alpha > 0.0)
+        {
+            bail!(
+                "SAC config: learning rates must be >= 0 and initial_alpha > 0, got {lrs:?} and {}",
+                self.initial_alpha
+            );
+        }
+        if self.reward_delay > 1 {
+            bail!(
+                "agent.sac.reward_delay must be 0 (the reward of the transition's own action) or 1 \
+                 (the next action's, as the paper's code pairs them), got {}",
+                self.reward_delay
+            );
+        }
+        let noises = [
+            ("target_noise", self.target_noise),
+            ("target_noise_clip", self.target_noise_clip),
+            ("explore_noise", self.explore_noise),
+        ];
+        if let Some((key, v)) = noises.iter().find(|(_, v)| !(v.is_finite() && *v >= 0.0)) {
+            bail!("agent.sac.{key} must be a finite standard deviation >= 0 (0: none), got {v}");
+        }
+        check_target_every("agent.sac.target_every", self.target_every)?;
+        validate_log_std_clamp("agent.sac.log_std_clamp", self.log_std_clamp)?;
+        Ok(())
+    }
+
+    /// This configuration with the SAC baseline as the paper's code trained it (commit c0fd903,
+    /// `TrajectoryAidedLearning/Utils/SAC.py`, `Utils/Buffer.py`, `Planners/SACPlanners.py`):
+    /// the reward one step late, target smoothing noise `N(0, 0.5)` clipped at `±0.5`,
+    /// exploration noise `N(0, 0.1)` in training and evaluation, a frame stack never reset,
+    /// the target critics updated every second step and `log σ` clamped to `[−20, 2]`.
+    pub fn with_paper_code_sac(self) -> Self {
+        Self {
+            reward_delay: 1,
+            target_noise: 0.5,
+            target_noise_clip: 0.5,
+            explore_noise: 0.1,
+            reset_frame_stack: false,
+            target_every: 2,
+            log_std_clamp: [-20.0, 2.0],
+            ..self
+        }
+    }
+}
+
+/// Checks a `target_every` key (named `key` in the error).
+fn check_target_every(key: &str, every: usize) -> Result<()> {
+    if every == 0 {
+        bail!("{key} must be at least 1 (1: a Polyak update every step, 2: every second step)");
+    }
+    Ok(())
+}
+
+/// Size of the context `c` and of the mask `m`.
+pub const CONTEXT_DIM: usize = 2;
+
+/// How the race context enters the agent.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ContextMode {
+    /// DreamerV3: no context.
+    #[default]
+    None,
+    /// cRSSM: the normalised context.
+    Crssm,
+    /// cMask: the normalised context times a mask from a SAC actor.
+    Cmask,
+}
+
+impl ContextMode {
+    /// Size of the context input of the model (0 or [`CONTEXT_DIM`]).
+    pub fn context_dim(self) -> usize {
+        match self {
+            ContextMode::None => 0,
+            ContextMode::Crssm | ContextMode::Cmask => CONTEXT_DIM,
+        }
+    }
+}
+
+/// How cMask's mask SAC maps its actor's squashed sample `tanh u` to masks: which mask acts
+/// and is stored, where the critics are evaluated, and whose density `log π` is.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MaskSpace {
+    /// ctxrace: one space throughout. The mask `m = (1 + tanh u) / 2 ∈ (0, 1)²` acts, is
+    /// stored, and is the critics' input in all three losses; `log π` is the mask's density,
+    /// `log π(tanh u) + 2 ln 2`. The target entropy `H̄` therefore applies to `m`: the default
+    /// `−2` is `−2 + 2 ln 2 ≈ −0.614` on `tanh u` (the code's `−2` on `tanh u` is `≈ −3.386`
+    /// on `m`).
+    #[default]
+    Unit,
+    /// The paper's code (c0fd903, `Utils/cbdreamer/cbmodels.py`, `CtxMask`): the mask
+    /// `sigmoid(tanh u) ∈ (0.27, 0.73)²` acts and is stored, and the critics are fitted on the
+    /// stored masks; the actor's loss evaluates them at `tanh u ∈ (−1, 1)²`, the target at
+    /// `clamp(tanh u', 0, 1)`; `log π` is the density of `tanh u`.
+    PaperCode,
+}
+
+/// Hyper-parameters of cMask's mask SAC.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MaskConfig {
+    /// Hidden units of the mask actor and critics (ReLU).
+    pub units: usize,
+    /// Hidden layers of the mask actor and critics.
+    pub layers: usize,
+    /// Adam learning rate of actor, critics and temperature.
+    pub lr: f64,
+    /// Polyak rate of the target critics.
+    pub tau: f64,
+    /// Discount of the mask critics (the paper gives none: SAC's usual 0.99).
+    pub gamma: f64,
+    /// Target entropy `H̄` of the mask distribution (`−|m|`), of the density [`MaskSpace`] names
+    /// (with `mask_space = "unit"` the default `−2` on `m` is `≈ −0.614` on `tanh u`).
+    pub target_entropy: f64,
+    /// Initial temperature `α` (the paper gives none).
+    pub init_alpha: f64,
+    /// The masks' space ([`MaskSpace`]): `"unit"` or `"paper-code"`.
+    pub mask_space: MaskSpace,
+    /// Whether the critics' target bootstraps at a terminal step too (`y = r + γ V(o')` always,
+    /// as the paper's code does) instead of `y = r` there.
+    pub bootstrap_terminals: bool,
+    /// Steps per Polyak update of the target critics (1: every step; 2: on every second step,
+    /// the first included).
+    pub target_every: usize,
+    /// Bounds `[lower, upper]` of the mask actor's log standard deviation.
+    pub log_std_clamp: [f64; 2],
+    /// Steps by which a transition's reward lags its mask: 0 pairs `(o_t, m_t)` with the reward
+    /// `r_{t+1}` the step earned; 1 with `r_{t+2}`, as the paper's code pairs its rows.
+    pub reward_delay: usize,
+    /// The context behaviour learning imagines with ([`ImaginationContext`]): `"masked"` or
+    /// `"raw"`.
+    pub imagination_context: ImaginationContext,
+}
+
+impl Default for MaskConfig {
+    fn default() -> Self {
+        Self {
+            units: 256,
+            layers: 2,
+            lr: 3e-5,
+            tau: 0.005,
+            gamma: 0.99,
+            target_entropy: -2.0,
+            init_alpha: 1.0,
+            mask_space: MaskSpace::Unit,
+            bootstrap_terminals: false,
+            target_every: 1,
+            log_std_clamp: LOG_STD_CLAMP,
+            reward_delay: 0,
+            imagination_context: ImaginationContext::Masked,
+        }
+    }
+}
+
+/// The context cMask's imagined trajectories carry (`[agent.dreamer.mask] imagination_context`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ImaginationContext {
+    /// The masked context `m ⊙ c` of each start state, as the world model saw it and the
+    /// policy acts with.
+    #[default]
+    Masked,
+    /// The unmasked `c` (scaled as the networks read it): the paper's code (c0fd903,
+    /// `Utils/cbdreamer/dreamerv3.py` l. 239 hands behaviour learning the batch's raw
+    /// `data['context']`, `cbmodels.py` l. 594-595, 651-667), while its world model and acting
+    /// policy read the masked one.
+    Raw,
+}
+
+impl MaskConfig {
+    /// Checks the keys, naming the offending one.
+    pub fn validate(&self) -> Result<()> {
+        if self.units == 0 {
+            bail!("agent.dreamer.mask.units must be positive");
+        }
+        check_target_every("agent.dreamer.mask.target_every", self.target_every)?;
+        validate_log_std_clamp("agent.dreamer.mask.log_std_clamp", self.log_std_clamp)?;
+        if self.reward_delay > 1 {
+            bail!(
+                "agent.dreamer.mask.reward_delay must be 0 (the reward the mask's step earned) or 1 \
+                 (the next step's, as the paper's code pairs them), got {}",
+                self.reward_delay
+            );
+        }
+        if !self.target_entropy.is_finite() {
+            bail!(
+                "agent.dreamer.mask.target_entropy must be finite, got {}",
+                self.target_entropy
+            );
+        }
+        Ok(())
+    }
+
+    /// This configuration with the mask SAC as the paper's code trained it (commit c0fd903,
+    /// `TrajectoryAidedLearning/Utils/cbdreamer/cbmodels.py`, `CtxMask`): the code's mask
+    /// spaces, bootstrapping at terminals, the target critics updated every second step,
+    /// `log σ` clamped to `[−20, 2]` and the reward one step late. The code's entropy target
+    /// `−2` (on `tanh u` there) is `target_entropy`'s default, which `mask_space` applies to
+    /// `tanh u`; its other values (`units` 256, `layers` 2, `lr` 3e-5, `tau` 0.005, `gamma` 0.99)
+    /// are the defaults too.
+    pub fn with_paper_code_mask(self) -> Self {
+        Self {
+            mask_space: MaskSpace::PaperCode,
+            bootstrap_terminals: true,
+            target_every: 2,
+            log_std_clamp: [-20.0, 2.0],
+            reward_delay: 1,
+            imagination_context: ImaginationContext::Raw,
+            ..self
+        }
+    }
+}
+
+/// What behaviour learning differentiates, and over how many imagined steps: the paper's code
+/// (dreamerv3-torch, which produced its tables) or the form ctxrace used before it followed the
+/// code (DreamerV3's horizon count and danijar/dreamerv3's weights).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ImaginationLoss {
+    /// The paper's code: `H` states from the start (`H − 1` imagined steps and returns),
+    /// weights `w_0 = 1`, `w_t = w_{t−1} γ c(s_{t−1})`, and the actor's gradient through
+    /// everything the imagined states feed: the returns' rewards, continue probabilities and
+    /// values, the baseline `v(s_t)`, and the entropy term `−η H[π(·|s_t)]` (not weighted).
+    #[default]
+    PaperCode,
+    /// `H` imagined steps (`H + 1` states), `w_0 = 1 − terminal` of the start and
+    /// `w_t = w_{t−1} γ c(s_t)`; the actor's gradient through the returns' rewards and values
+    /// only (stop-gradient baseline and continue probabilities), its entropy term weighted by
+    /// `w_t` and taken on stop-gradient states.
+    Dreamerv3,
+}
+
+/// What a stored step holds and what the world model reads from it (`[agent.dreamer]
+/// step_alignment`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum StepAlignment {
+    /// DreamerV3's rows: `(o_t, a_{t−1}, r_t)`, the reset observation stored with a zero action,
+    /// the terminal flag on the last observation; the sequence model reads `a_{t−1}` before the
+    /// posterior of `o_t`, in training as in acting; the encoder reads `symlog o_t` and the
+    /// decoder reconstructs it.
+    #[default]
+    Ctxrace,
+    /// The paper's code (c0fd903, `Planners/*DreamerPlanners.py` `add_memory_entry` and
+    /// `Utils/dreamerv3/networks.py` `MultiEncoder`/`MultiDecoder`): rows `(o_t, a_t, r_{t+1})`
+    /// (the action chosen after seeing `o_t`), the last observation of an episode never
+    /// stored and the terminal flag on the row before it; training feeds the row's action `a_t`
+    /// to the sequence model before the posterior of `o_t` (zero where a sequence starts), while
+    /// acting feeds `a_{t−1}`; the encoder reads `symlog [o_t, a]` (the row's action in training,
+    /// the previous one in acting) and the decoder reconstructs `symlog [o_t, a_t]` (its action
+    /// target zeroed where an episode starts inside a sequence, as the code's in-place
+    /// `prev_action *= 1 − is_first` leaves it).
+    PaperCode,
+}
+
+/// The RSSM state a sequence starts from (`[agent.dreamer] initial_state`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum InitialState {
+    /// `h = 0`, `z = 0`.
+    #[default]
+    Zeros,
+    /// The paper's code (`initial: learned`, `networks.py` `RSSM.initial`): `h = tanh(w)` for a
+    /// learned `w` (starting at zero, the parameter `rssm.initial_state.w`), `z` the mode of the
+    /// prior `p(z | h)` (one-hot of the most likely class, its gradient straight through the
+    /// log-probabilities).
+    Learned,
+}
+
+/// How the DreamerV3 networks' initial weights are drawn (`[agent.dreamer] init`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum WeightInit {
+    /// Every matrix uniform in `±1/√fan_in`, biases zero (`ctxrace_nn::parameters::ctxrace_draw`).
+    #[default]
+    Ctxrace,
+    /// The paper's code (c0fd903, `Utils/dreamerv3/tools.py` `weight_init` and
+    /// `uniform_weight_init`, cbmodels.py `weights_init_`): hidden layers a truncated normal of
+    /// variance `1/fan_avg`, output layers uniform of variance `outscale/fan_avg` (outscale 1
+    /// for the latent logits, the decoder, the continue head and the actor, each joined part
+    /// by its own fan; 0 for the reward head and the critic), the mask SAC's layers Xavier
+    /// uniform; `fan_avg = (fan_in + fan_out) / 2` (`ctxrace_nn::parameters::fan_avg_draw`).
+    PaperCode,
+}
+
+/// DreamerV3's hyper-parameters; the defaults are the paper's (REFERENCE §5).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DreamerConfig {
+    /// Context mode: DreamerV3, cRSSM or cMask (not read from files: [`AgentConfig::algo`]
+    /// decides it).
+    #[serde(skip)]
+    pub context: ContextMode,
+    /// How the context is scaled for the networks (not read from files:
+    /// [`AgentConfig::context_scale`] decides it).
+    #[serde(skip)]
+    pub context_scale: ContextScale,
+    /// Encoder and decoder width (the embedding size too).
+    pub units: usize,
+    /// Encoder and decoder depth.
+    pub layers: usize,
+    /// GRU state size.
+    pub deter: usize,
+    /// RSSM hidden size.
+    pub hidden: usize,
+    /// Number of categorical latent variables.
+    pub stoch: usize,
+    /// Classes per latent variable.
+    pub classes: usize,
+    /// Uniform mixture of the latent distributions.
+    pub unimix: f64,
+    /// Width of the reward, continue, actor and critic heads.
+    pub head_units: usize,
+    /// Depth of the reward, continue, actor and critic heads.
+    pub head_layers: usize,
+    /// Two-hot bins of the reward and critic heads.
+    pub bins: usize,
+    /// Free nats of each KL term.
+    pub free_nats: f64,
+    /// Weight of the dynamics KL `KL(sg q ‖ p)`.
+    pub kl_dyn: f64,
+    /// Weight of the representation KL `KL(q ‖ sg p)`.
+    pub kl_rep: f64,
+    /// Weight of the prediction losses.
+    pub pred_scale: f64,
+    /// World-model learning rate.
+    pub model_lr: f64,
+    /// World-model Adam ε.
+    pub model_eps: f64,
+    /// World-model gradient-norm limit.
+    pub model_clip: f64,
+    /// Actor and critic learning rate.
+    pub ac_lr: f64,
+    /// Actor and critic Adam ε.
+    pub ac_eps: f64,
+    /// Actor and critic gradient-norm limit.
+    pub ac_clip: f64,
+    /// Imagination horizon `H`.
+    pub horizon: usize,
+    /// The imagination losses' form ([`ImaginationLoss`]): `"paper-code"` or `"dreamerv3"`.
+    pub imagination: ImaginationLoss,
+    /// Discount `γ`.
+    pub gamma: f64,
+    /// Return mixing `λ`.
+    pub lambda: f64,
+    /// Actor entropy bonus `η`.
+    pub entropy: f64,
+    /// EMA decay of the return percentiles.
+    pub return_decay: f64,
+    /// Low return percentile (fraction).
+    pub return_low: f64,
+    /// High return percentile (fraction).
+    pub return_high: f64,
+    /// Slow critic EMA rate (per step).
+    pub slow_critic_rate: f64,
+    /// Weight of the slow-critic regulariser.
+    pub slow_critic_reg: f64,
+    /// Smallest actor standard deviation.
+    pub min_std: f64,
+    /// Largest actor standard deviation.
+    pub max_std: f64,
+    /// Sequences per batch (for the replay sampler).
+    pub batch: usize,
+    /// Steps per sequence (for the replay sampler).
+    pub length: usize,
+    /// Training context range: `c` is divided by it (with `context_scale = "normalised"`).
+    pub context_range: f64,
+    /// cMask's mask SAC.
+    pub mask: MaskConfig,
+    /// What a stored step holds and what the world model reads from it ([`StepAlignment`]):
+    /// `"ctxrace"` or `"paper-code"`.
+    pub step_alignment: StepAlignment,
+    /// The RSSM state sequences start from ([`InitialState`]): `"zeros"` or `"learned"`.
+    pub initial_state: InitialState,
+    /// How the initial weights are drawn ([`WeightInit`]): `"ctxrace"` or `"paper-code"`.
+    pub init: WeightInit,
+    /// Seed of initialisation and noise.
+    pub seed: u64,
+}
+
+impl Default for DreamerConfig {
+    fn default() -> Self {
+        Self {
+            context: ContextMode::None,
+            context_scale: ContextScale::default(),
+            units: 256,
+            layers: 3,
+            deter: 256,
+            hidden: 256,
+            stoch: 16,
+            classes: 16,
+            unimix: 0.01,
+            head_units: 256,
+            head_layers: 2,
+            bins: 255,
+            free_nats: 1.0,
+            kl_dyn: 0.5,
+            kl_rep: 0.1,
+            pred_scale: 1.0,
+            model_lr: 3e-5,
+            model_eps: 1e-8,
+            model_clip: 1000.0,
+            ac_lr: 3e-5,
+            ac_eps: 1e-5,
+            ac_clip: 100.0,
+            horizon: 10,
+            imagination: ImaginationLoss::PaperCode,
+            gamma: 0.997,
+            lambda: 0.95,
+            entropy: 3e-4,
+            return_decay: 0.99,
+            return_low: 0.05,
+            return_high: 0.95,
+            slow_critic_rate: 0.02,
+            slow_critic_reg: 1.0,
+            min_std: 0.1,
+            max_std: 1.0,
+            batch: 16,
+            length: 64,
+            context_range: 0.15,
+            mask: MaskConfig::default(),
+            step_alignment: StepAlignment::Ctxrace,
+            initial_state: InitialState::Zeros,
+            init: WeightInit::Ctxrace,
+            seed: 0,
+        }
+    }
+}
+
+impl DreamerConfig {
+    /// What the raw context is divided by before it enters the networks:
+    /// [`DreamerConfig::context_range`], or 1 with [`ContextScale::Raw`].
+    pub fn context_divisor(&self) -> f64 {
+        match self.context_scale {
+            ContextScale::Normalised => self.context_range,
+            ContextScale::Raw => 1.0,
+        }
+    }
+
+    /// The world model as the paper's code (c0fd903) trains it: `step_alignment = "paper-code"`
+    /// and `initial_state = "learned"`; every other key as it was.
+    pub fn with_paper_code_world_model(self) -> Self {
+        Self {
+            step_alignment: StepAlignment::PaperCode,
+            initial_state: InitialState::Learned,
+            ..self
+        }
+    }
+
+    /// Width of the encoder's input for observations of `obs_dim` and actions of `act_dim`:
+    /// the observation, and the action too with `step_alignment = "paper-code"`.
+    pub fn encoder_inputs(&self, obs_dim: usize, act_dim: usize) -> usize {
+        match self.step_alignment {
+            StepAlignment::Ctxrace => obs_dim,
+            StepAlignment::PaperCode => obs_dim + act_dim,
+        }
+    }
+
+    /// Checks sizes and ranges, naming the offending key.
+    pub fn validate(&self) -> Result<()> {
+        let sizes = [
+            ("units", self.units),
+            ("deter", self.deter),
+            ("hidden", self.hidden),
+            ("stoch", self.stoch),
+            ("classes", self.classes),
+            ("head_units", self.head_units),
+            ("horizon", self.horizon),
+        ];
+        if let Some((name, _)) = sizes.iter().find(|(_, v)| *v == 0) {
+            bail!("DreamerV3 config: {name} must be positive");
+        }
+        if self.bins < 2 {
+            bail!("DreamerV3 config: bins must be at least 2");
+        }
+        if self.imagination == ImaginationLoss::PaperCode && self.horizon < 2 {
+            bail!(
+                "DreamerV3 config: horizon must be at least 2 with imagination = \"paper-code\" \
+                 (its H states include the start), got {}",
+                self.horizon
+            );
+        }
+        if self.context_range.is_nan() || self.context_range <= 0.0 {
+            bail!("DreamerV3 config: context_range must be positive");
+        }
+        if !(0.0 < self.min_std && self.min_std < self.max_std) {
+            bail!("DreamerV3 config: need 0 < min_std < max_std");
+        }
+        self.mask.validate()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn log_std_bounds_are_checked() {
+        assert!(validate_log_std_clamp("sac.log_std_clamp", [-20.0, 2.0]).is_ok());
+        for bad in [[2.0, -20.0], [1.0, 1.0], [f64::NAN, 2.0]] {
+            let err = validate_log_std_clamp("sac.log_std_clamp", bad)
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains("sac.log_std_clamp must be"), "{err}");
+        }
+    }
+
+    #[test]
+    fn a_table_that_its_preset_cannot_read_names_the_preset_or_the_key() {
+        let table = |text: &str| toml::from_str::<toml::Table>(text).unwrap();
+        let err = AgentConfig::from_table(table("preset = \"paper\"")).unwrap_err();
+        assert!(
+            matches!(err, AgentConfigError::Preset(PresetError::Unknown(_))),
+            "{err:?}"
+        );
+        assert!(
+            err.to_string().starts_with("preset: ")
+                && err
+                    .to_string()
+                    .ends_with("(use \"default\" or \"paper-code\")"),
+            "{err}"
+        );
+        let err =
+            AgentConfig::from_table(table("preset = \"paper-code\"\nalgoo = \"sac\"")).unwrap_err();
+        assert!(
+            matches!(err, AgentConfigError::Preset(PresetError::Value(_))),
+            "{err:?}"
+        );
+        assert!(err.to_string().contains("unknown field `algoo`"), "{err}");
+        let err = AgentConfig::from_table(table(
+            "preset = \"paper-code\"\nalgo = \"sac\"\n[sac]\nlog_std_clamp = [2.0, -20.0]",
+        ))
+        .unwrap_err();
+        assert_eq!(
+            err,
+            AgentConfigError::LogStdClamp(LogStdClampError {
+                key: "agent.sac.log_std_clamp".into(),
+                bounds: [2.0, -20.0]
+            })
+        );
+    }
+
+    #[test]
+    fn agent_tables_parse_with_defaults_and_reject_unknown_keys() {
+        let agent: AgentConfig =
+            toml::from_str("algo = \"cmask\"\n[dreamer]\nhorizon = 5\n[dreamer.mask]\ntau = 0.01")
+                .unwrap();
+        let cfg = agent.dreamer();
+        assert_eq!(
+            (cfg.context, cfg.horizon, cfg.mask.tau, cfg.gamma),
+            (ContextMode::Cmask, 5, 0.01, 0.997)
+        );
+        assert_eq!(agent.sac, SacConfig::default());
+        assert_eq!(cfg.imagination, ImaginationLoss::PaperCode);
+        let form = |text: &str| toml::from_str::<AgentConfig>(text).map(|a| a.dreamer());
+        let cfg = form("[dreamer]\nimagination = \"dreamerv3\"\nhorizon = 1").unwrap();
+        assert_eq!(cfg.imagination, ImaginationLoss::Dreamerv3);
+        assert!(cfg.validate().is_ok());
+        let err = form("[dreamer]\nhorizon = 1")
+            .unwrap()
+            .validate()
+            .unwrap_err();
+        assert!(
+            err.to_string().contains("horizon must be at least 2"),
+            "{err}"
+        );
+        for bad in [
+            "[dreamer]\nimagination = \"danijar\"",
+            "[dreamer]\nhorizn = 5",
+            "[dreamer]\ncontext = \"crssm\"",
+            "algo = \"ppo\"",
+            "algo = \"sac\"\n[sac]\nframes = 0",
+        ] {
+            let parsed = toml::from_str::<AgentConfig>(bad);
+            assert!(
+                parsed.is_err() || parsed.unwrap().validate().is_err(),
+                "{bad:?} accepted"
+            );
+        }
+        assert_eq!("CMask".parse::<AlgoKind>(), Ok(AlgoKind::Cmask));
+        assert_eq!(
+            AgentConfig::from_table(toml::Table::new()).unwrap(),
+            AgentConfig::default()
+        );
+        let cfg = form("algo = \"cmask\"\n[dreamer.mask]\nmask_space = \"paper-code\"").unwrap();
+        assert_eq!(cfg.mask.mask_space, MaskSpace::PaperCode);
+        let err = "ppo".parse::<AlgoKind>().unwrap_err();
+        assert_eq!(err, UnknownAlgorithm("ppo".into()));
+        assert!(err.to_string().contains("expected one of"));
+    }
+
+    #[test]
+    fn the_paper_code_preset_fills_what_a_file_leaves_out() {
+        let table = |text: &str| toml::from_str::<toml::Table>(text).unwrap();
+        let a = AgentConfig::from_table(table(
+            "preset = \"paper-code\"\nalgo = \"crssm\"\ncontext_scale = \"normalised\"\n\
+             [dreamer]\nhorizon = 5",
+        ))
+        .unwrap();
+        assert_eq!(
+            (a.preset, a.algo, a.sampler, a.warmup, a.warmup_episodes),
+            (
+                AgentPreset::PaperCode,
+                AlgoKind::Crssm,
+                Sampler::PaperCode,
+                Warmup::Episodes,
+                32
+            )
+        );
+        // the file's key overrides the preset's
+        assert_eq!(a.context_scale, ContextScale::Normalised);
+        assert_eq!(a.dreamer.horizon, 5);
+        let p = AgentConfig::paper_code();
+        assert_eq!(p.context_scale, ContextScale::Raw);
+        assert_eq!(p.dreamer().context_divisor(), 1.0);
+        assert_eq!(AgentConfig::default().dreamer().context_divisor(), 1.0);
+        // a resolved configuration round-trips, preset included
+        let text = toml::to_string(&a).unwrap();
+        assert_eq!(AgentConfig::from_table(table(&text)).unwrap(), a);
+        let d = AgentConfig::default();
+        assert_eq!(
+            (d.sampler, d.warmup, d.context_scale),
+            (Sampler::Uniform, Warmup::RandomSteps, ContextScale::Raw)
+        );
+    }
+
+    /// A checkpoint's `agent.toml` written before `context_scale` existed trained with the
+    /// normalised context and still acts with it; one written since keeps its own key.
+    #[test]
+    fn a_saved_table_without_context_scale_reads_as_normalised() {
+        let table = |text: &str| toml::from_str::<toml::Table>(text).unwrap();
+        let old = AgentConfig::from_saved_table(table("algo = \"cmask\"")).unwrap();
+        assert_eq!(old.context_scale, ContextScale::Normalised);
+        assert_eq!(old.dreamer().context_divisor(), 0.15);
+        let saved = toml::to_string(&AgentConfig::default()).unwrap();
+        let new = AgentConfig::from_saved_table(table(&saved)).unwrap();
+        assert_eq!(new.context_scale, ContextScale::Raw);
+        // a user's file without the key takes today's default
+        let user = AgentConfig::from_table(table("algo = \"cmask\"")).unwrap();
+        assert_eq!(user.context_scale, ContextScale::Raw);
+    }
+
+    #[test]
+    fn world_model_keys_default_to_ctxrace_and_name_themselves_when_wrong() {
+        let cfg = DreamerConfig::default();
+        assert_eq!(
+            (cfg.step_alignment, cfg.initial_state),
+            (StepAlignment::Ctxrace, InitialState::Zeros)
+        );
+        let code = cfg.clone().with_paper_code_world_model();
+        assert_eq!(
+            (code.step_alignment, code.initial_state),
+            (StepAlignment::PaperCode, InitialState::Learned)
+        );
+        assert_eq!(
+            DreamerConfig {
+                step_alignment: StepAlignment::Ctxrace,
+                initial_state: InitialState::Zeros,
+                ..code.clone()
+            },
+            cfg
+        );
+        assert_eq!(
+            (cfg.encoder_inputs(108, 2), code.encoder_inputs(108, 2)),
+            (108, 110)
+        );
+        let agent: AgentConfig = toml::from_str(
+            "[dreamer]\nstep_alignment = \"paper-code\"\ninitial_state = \"learned\"",
+        )
+        .unwrap();
+        assert_eq!(agent.dreamer(), code);
+        assert!(agent.stores_paper_code_rows());
+        let sac = AgentConfig {
+            algo: AlgoKind::Sac,
+            ..agent
+        };
+        assert!(!sac.stores_paper_code_rows());
+        for (key, bad) in [("step_alignment", "paper"), ("initial_state", "random")] {
+            let err = toml::from_str::<AgentConfig>(&format!("[dreamer]\n{key} = \"{bad}\""))
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains(key) && err.contains(bad), "{err}");
+        }
+    }
+
+    /// The paper-code methods set the code's values and only the keys they own; ctxrace's
+    /// defaults are the present behaviour.
+    #[test]
+    fn the_paper_code_methods_set_the_codes_values() {
+        let sac = SacConfig::default();
+        assert_eq!(
+            (sac.reward_delay, sac.target_noise, sac.explore_noise),
+            (0, 0.0, 0.0)
+        );
+        assert!(sac.reset_frame_stack && sac.target_every == 1);
+        let code = sac.clone().with_paper_code_sac();
+        assert_eq!(
+            (code.reward_delay, code.target_noise, code.target_noise_clip),
+            (1, 0.5, 0.5)
+        );
+        assert_eq!((code.explore_noise, code.target_every), (0.1, 2));
+        assert!(!code.reset_frame_stack);
+        assert_eq!(code.log_std_clamp, [-20.0, 2.0]);
+        assert_eq!((code.gamma, code.hidden, code.frames), (sac.gamma, 100, 2));
+        assert!(code.validate().is_ok());
+        let mask = MaskConfig::default();
+        assert_eq!(mask.mask_space, MaskSpace::Unit);
+        assert!(!mask.bootstrap_terminals);
+        let code = mask.clone().with_paper_code_mask();
+        assert_eq!(code.mask_space, MaskSpace::PaperCode);
+        assert!(code.bootstrap_terminals);
+        assert_eq!((code.target_every, code.reward_delay), (2, 1));
+        assert_eq!(
+            (code.log_std_clamp, code.target_entropy),
+            ([-20.0, 2.0], -2.0)
+        );
+        assert_eq!((code.units, code.lr, code.gamma), (256, 3e-5, 0.99));
+        assert!(code.validate().is_ok());
+    }
+
+    /// Every key of the paper-code variants rejects a bad value with an error naming it.
+    #[test]
+    fn the_paper_code_keys_reject_bad_values_by_name() {
+        for (text, key) in [
+            (
+                "algo = \"sac\"\n[sac]\nreward_delay = 2",
+                "agent.sac.reward_delay",
+            ),
+            (
+                "algo = \"sac\"\n[sac]\ntarget_noise = -0.5",
+                "agent.sac.target_noise ",
+            ),
+            (
+                "algo = \"sac\"\n[sac]\ntarget_noise_clip = nan",
+                "agent.sac.target_noise_clip",
+            ),
+            (
+                "algo = \"sac\"\n[sac]\nexplore_noise = inf",
+                "agent.sac.explore_noise",
+            ),
+            (
+                "algo = \"sac\"\n[sac]\ntarget_every = 0",
+                "agent.sac.target_every",
+            ),
+            (
+                "algo = \"sac\"\n[sac]\nlog_std_clamp = [2.0, -20.0]",
+                "agent.sac.log_std_clamp",
+            ),
+            (
+                "algo = \"cmask\"\n[dreamer.mask]\ntarget_every = 0",
+                "agent.dreamer.mask.target_every",
+            ),
+            (
+                "algo = \"cmask\"\n[dreamer.mask]\nreward_delay = 3",
+                "agent.dreamer.mask.reward_delay",
+            ),
+            (
+                "algo = \"cmask\"\n[dreamer.mask]\nlog_std_clamp = [1.0, 1.0]",
+                "agent.dreamer.mask.log_std_clamp",
+            ),
+            (
+                "algo = \"cmask\"\n[dreamer.mask]\ntarget_entropy = nan",
+                "agent.dreamer.mask.target_entropy",
+            ),
+            (
+                "algo = \"cmask\"\n[dreamer.mask]\nunits = 0",
+                "agent.dreamer.mask.units",
+            ),
+        ] {
+            let agent: AgentConfig = toml::from_str(text).unwrap();
+            let err = agent.validate().unwrap_err().to_string();
+            assert!(err.contains(key), "{text:?}: {err}");
+        }
+        for text in [
+            "[dreamer.mask]\nmask_space = \"sigmoid\"",
+            "[dreamer.mask]\nbootstrap_terminals = 1",
+            "[sac]\nreset_frame_stack = \"no\"",
+            "[sac]\nlog_std_clamp = [-20.0]",
+        ] {
+            let err = toml::from_str::<AgentConfig>(text).unwrap_err().to_string();
+            let key = text.split(['\n', ' ']).nth(1).unwrap();
+            assert!(err.contains(key), "{text:?}: {err}");
+        }
+    }
+}

@@ -1,0 +1,24 @@
+//! ctxrace's configuration: the experiment (track, race, agent, training, replay, supervisor),
+//! the race context, presets, the shapes of training batches, and the checks that refuse a bad
+//! value by its key. It knows neither the transport nor the networks: the crates that do read
+//! their sizes and bounds from here.
+
+pub mod agents;
+pub mod batch;
+pub mod config;
+pub mod context;
+pub mod experiment;
+pub mod preset;
+pub mod validate;
+
+pub use agents::{
+    AgentConfig, AgentPreset, AlgoKind, ContextMode, ContextScale, DreamerConfig, MaskConfig,
+    SacConfig, Sampler, Warmup,
+};
+pub use batch::{Batch, BatchError, BatchSpec, SequenceBatch, TransitionBatch};
+pub use config::{
+    ContextGains, CrashedRivals, GridLine, Integrator, LidarConfig, RaceConfig, RaceConfigError,
+    RacePreset, ReplayOptions, RivalConfig, SpeedPoint, StartGrid, WallContact, MAX_OBS,
+};
+pub use context::{Context, ContextError};
+pub use experiment::{ExperimentConfig, ExperimentError, SupervisorConfig, TrainConfig};

@@ -1,0 +1,422 @@
+//! Fault injection: raw senders that put any header and payload on a live run's real services,
+//! bypassing every check a well-behaved sender makes, so that tests (and tools probing a run)
+//! can show that each kind of malformed message is rejected, counted under its reason, and
+//! harms nothing else.
+//!
+//! A message can also be kept [`Held`] after it was sent and rewritten in shared memory while
+//! a receiver holds it, as a faulty or hostile process could: with the receivers' `*_observed`
+//! reads (see [`super::ReadStage`]) a test rewrites it at a chosen point of the read.
+//!
+//! The publishers live as long as the [`Injector`]: a publisher that disappears before its
+//! subscribers connected to it takes its unread messages with it. Its weights and batch
+//! publishers take the slots a restarting learner and replay would use, so inject while they
+//! run.
+
+use super::transport::{ice, RunTransport, Wake};
+use super::wire::{
+    BatchHeader, BatchRequest, ChunkHeader, EpisodeReport, WeightsHeader, MAX_CHUNK_FLOATS,
+};
+use anyhow::{anyhow, Result};
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::prelude::*;
+use std::marker::PhantomData;
+use std::ptr::NonNull;
+
+/// Largest weights blob an [`Injector`] sends.
+const MAX_WEIGHTS: usize = 4096;
+/// Largest batch an [`Injector`] sends, in floats.
+const MAX_BATCH_FLOATS: usize = 1 << 16;
+
+/// Raw publishers on every service a run's processes receive on.
+pub struct Injector {
+    chunks: Vec<Publisher<ipc::Service, [f32], ChunkHeader>>,
+    requests: Publisher<ipc::Service, BatchRequest, ()>,
+    weights: Publisher<ipc::Service, [u8], WeightsHeader>,
+    batches: Publisher<ipc::Service, [f32], BatchHeader>,
+    episodes: Publisher<ipc::Service, EpisodeReport, ()>,
+    wake_replay: Notifier<ipc::Service>,
+    wake_actors: Notifier<ipc::Service>,
+    wake_learner: Notifier<ipc::Service>,
+}
+
+impl Injector {
+    /// Publishers on the services of the run `transport` joined.
+    pub fn new(transport: &RunTransport) -> Result<Self> {
+        let chunks = (0..transport.actors())
+            .map(|id| {
+                transport
+                    .trajectory_service(id)?
+                    .publisher_builder()
+                    .initial_max_slice_len(MAX_CHUNK_FLOATS)
+                    .max_loaned_samples(1)
+                    .create()
+                    .map_err(ice("injected chunk publisher"))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self {
+            chunks,
+            requests: transport
+                .request_service()?
+                .publisher_builder()
+                .create()
+                .map_err(ice("injected request publisher"))?,
+            weights: transport
+                .weights_service()?
+                .publisher_builder()
+                .initial_max_slice_len(MAX_WEIGHTS)
+                .max_loaned_samples(1)
+                .create()
+                .map_err(ice("injected weights publisher"))?,
+            batches: transport
+                .batch_service()?
+                .publisher_builder()
+                .initial_max_slice_len(MAX_BATCH_FLOATS)
+                .max_loaned_samples(1)
+                .create()
+                .map_err(ice("injected batch publisher"))?,
+            episodes: transport
+                .metrics_service()?
+                .publisher_builder()
+                .create()
+                .map_err(ice("injected metrics publisher"))?,
+            wake_replay: transport.notifier(Wake::Replay)?,
+            wake_actors: transport.notifier(Wake::Actors)?,
+            wake_learner: transport.notifier(Wake::Learner)?,
+        })
+    }
+
+    /// Sends `header` and `payload` (at most [`MAX_CHUNK_FLOATS`] floats) on the trajectory
+    /// service of actor `stream`; returns the subscribers reached.
+    pub fn chunk(&self, stream: usize, header: ChunkHeader, payload: &[f32]) -> Result<usize> {
+        Ok(self.chunk_held(stream, header, payload)?.reached)
+    }
+
+    /// [`chunk`](Self::chunk), keeping the sent chunk to rewrite.
+    pub fn chunk_held(
+        &self,
+        stream: usize,
+        header: ChunkHeader,
+        payload: &[f32],
+    ) -> Result<Held<'_, f32, ChunkHeader>> {
+        let publisher = self
+            .chunks
+            .get(stream)
+            .ok_or_else(|| anyhow!("no trajectory service {stream}"))?;
+        send_slice(publisher, header, payload, &self.wake_replay)
+    }
+
+    /// Sends `header` and `payload` (at most 64 Ki floats) on the batch service, as the replay
+    /// answers a request; keeps the sent batch to rewrite.
+    pub fn batch_held(
+        &self,
+        header: BatchHeader,
+        payload: &[f32],
+    ) -> Result<Held<'_, f32, BatchHeader>> {
+        if payload.len() > MAX_BATCH_FLOATS {
+            return Err(anyhow!(
+                "injected batches are at most {MAX_BATCH_FLOATS} floats"
+            ));
+        }
+        send_slice(&self.batches, header, payload, &self.wake_learner)
+    }
+
+    /// Sends a batch request as it is.
+    pub fn request(&self, request: BatchRequest) -> Result<usize> {
+        let reached = self
+            .requests
+            .send_copy(request)
+            .map_err(ice("send injected request"))?;
+        let _ = self.wake_replay.notify();
+        Ok(reached)
+    }
+
+    /// Broadcasts `header` with `bytes` (at most 4 KiB) on the weights service.
+    pub fn weights(&self, header: WeightsHeader, bytes: &[u8]) -> Result<usize> {
+        Ok(self.weights_held(header, bytes)?.reached)
+    }
+
+    /// [`weights`](Self::weights), keeping the sent blob to rewrite.
+    pub fn weights_held(
+        &self,
+        header: WeightsHeader,
+        bytes: &[u8],
+    ) -> Result<Held<'_, u8, WeightsHeader>> {
+        if bytes.len() > MAX_WEIGHTS {
+            return Err(anyhow!("injected weights are at most {MAX_WEIGHTS} bytes"));
+        }
+        send_slice(&self.weights, header, bytes, &self.wake_actors)
+    }
+
+    /// Publishes episode metrics as they are.
+    pub fn episode(&self, metrics: EpisodeReport) -> Result<usize> {
+        self.episodes
+            .send_copy(metrics)
+            .map_err(ice("send injected metrics"))
+    }
+}
+
+/// A message an [`Injector`] sent, still writable in its publisher's shared memory: the
+/// receivers see every rewrite of a message they have not released yet. It lives no longer than
+/// its injector, whose publisher keeps the memory mapped.
+pub struct Held<'a, T, H> {
+    /// Subscribers the message reached.
+    pub reached: usize,
+    header: NonNull<H>,
+    payload: NonNull<T>,
+    len: usize,
+    injector: PhantomData<&'a Injector>,
+}
+
+impl<T: Copy, H: Copy> Held<'_, T, H> {
+    /// Rewrites the header.
+    pub fn set_header(&self, header: H) {
+        // SAFETY: `header` points at the header of a sample of a publisher that lives as long as
+        // the injector this borrows: the memory stays mapped, writable by this process and
+        // aligned for H, whose every bit pattern a plain wire struct accepts.
+        unsafe { std::ptr::write_volatile(self.header.as_ptr(), header) }
+    }
+
+    /// Rewrites the payload's element `index`.
+    pub fn set(&self, index: usize, value: T) -> Result<()> {
+        if index >= self.len {
+            return Err(anyhow!(
+                "element {index} of a payload of {} elements",
+                self.len
+            ));
+        }
+        // SAFETY: as in `set_header`; `index` is within the sample's `len` elements.
+        unsafe { std::ptr::write_volatile(self.payload.as_ptr().add(index), value) };
+        Ok(())
+    }
+}
+
+/// Sends one sample of `header` and `payload` and wakes whoever `wake` wakes; returns it held.
+fn send_slice<'a, T, H>(
+    publisher: &'a Publisher<ipc::Service, [T], H>,
+    header: H,
+    payload: &[T],
+    wake: &Notifier<ipc::Service>,
+) -> Result<Held<'a, T, H>>
+where
+    T: std::fmt::Debug + ZeroCopySend + Copy + 'static,
+    H: std::fmt::Debug + ZeroCopySend + Default + 'static,
+{
+    let len = payload.len();
+    let mut sample = publisher
+        .loan_slice_uninit(len)
+        .map_err(ice("loan injected sample"))?;
+    *sample.user_header_mut() = header;
+    let header = NonNull::from(sample.user_header_mut());
+    let mut sample = sample.write_from_slice(payload);
+    let payload = NonNull::from(sample.payload_mut()).cast::<T>();
+    let reached = sample.send().map_err(ice("send injected sample"))?;
+    let _ = wake.notify();
+    Ok(Held {
+        reached,
+        header,
+        payload,
+        len,
+        injector: PhantomData,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::wire::{step_stride, BatchKind, FORMAT_VERSION};
+    use crate::{
+        BatchServer, Isolated, ReadStage, ReplayClient, TrajectoryReceiver, WeightsReceiver,
+    };
+    use ctxrace_config::batch::{Batch, BatchSpec, SequenceBatch};
+    use std::time::Duration;
+
+    const OBS: usize = 3;
+    const ACT: usize = 2;
+
+    /// When a test rewrites a held message: right after it was sent (before the reader copies
+    /// it), or at one of the reader's stages.
+    #[derive(Clone, Copy, Debug, PartialEq)]
+    enum When {
+        BeforeRead,
+        At(ReadStage),
+    }
+
+    const WHEN: [When; 3] = [
+        When::BeforeRead,
+        When::At(ReadStage::Copied),
+        When::At(ReadStage::Validated),
+    ];
+
+    /// A hook that calls `rewrite` once, at `when`'s stage.
+    fn rewrite_at(when: When, mut rewrite: impl FnMut()) -> impl FnMut(ReadStage) {
+        move |stage| {
+            if when == When::At(stage) {
+                rewrite();
+            }
+        }
+    }
+
+    #[test]
+    fn chunks_rewritten_in_shared_memory_are_stored_as_validated_or_rejected() {
+        let isolated = Isolated::new("inject-chunks");
+        let t = RunTransport::open(&isolated.0, 2, "replay").unwrap();
+        let mut rx = TrajectoryReceiver::new(&t, OBS, ACT).unwrap();
+        let inject = Injector::new(&t).unwrap();
+        let stride = step_stride(OBS, ACT);
+        let steps = 4;
+        let payload: Vec<f32> = (0..steps * stride)
+            .map(|i| if i % stride < OBS { i as f32 } else { 0.0 })
+            .collect();
+        let reward = OBS + ACT;
+        // the rejected chunk between two valid ones: its sequence number must not count as
+        // missing
+        let order = [WHEN[1], WHEN[0], WHEN[2]];
+        for (sequence, when) in order.into_iter().enumerate() {
+            let header = ChunkHeader {
+                sequence: sequence as u64,
+                steps: steps as u32,
+                ..ChunkHeader::for_actor(0, OBS, ACT)
+            };
+            let held = inject.chunk_held(0, header, &payload).unwrap();
+            assert_eq!(held.reached, 1);
+            // an actor id, dimensions and a step count that would index out of bounds, and a
+            // NaN reward
+            let rewrite = || {
+                held.set_header(ChunkHeader {
+                    actor_id: 9,
+                    obs_dim: 200,
+                    steps: 64,
+                    ..header
+                });
+                held.set(reward, f32::NAN).unwrap();
+            };
+            if when == When::BeforeRead {
+                // the second rewrite must not be what made it fail: only the NaN
+                held.set(reward, f32::NAN).unwrap();
+            }
+            let mut stored = Vec::new();
+            let mut hook = rewrite_at(when, rewrite);
+            let taken = rx
+                .receive_observed(1, &mut hook, |c| {
+                    stored.push((*c.header, c.payload.to_vec()))
+                })
+                .unwrap();
+            assert_eq!(taken, 1, "{when:?}");
+            if when == When::BeforeRead {
+                assert!(stored.is_empty(), "{when:?}: {stored:?}");
+                assert_eq!(rx.rejected(), 1);
+            } else {
+                assert_eq!(stored, vec![(header, payload.clone())], "{when:?}");
+            }
+        }
+        assert_eq!(rx.rejected(), 1);
+        // the rejected chunk's sequence number is not counted as missing too
+        assert_eq!(rx.missing_chunks(), 0);
+    }
+
+    #[test]
+    fn batches_rewritten_in_shared_memory_are_returned_as_validated_or_rejected() {
+        let isolated = Isolated::new("inject-batches");
+        let t = RunTransport::open(&isolated.0, 1, "test").unwrap();
+        let mut server = BatchServer::new(&t, OBS, ACT, 1 << 12).unwrap();
+        let mut client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(5)).unwrap();
+        let inject = Injector::new(&t).unwrap();
+        let (batch, length) = (2, 3);
+        let spec = BatchSpec::Sequence { batch, length };
+        let n = batch * length;
+        let sent = SequenceBatch {
+            batch,
+            length,
+            obs_dim: OBS,
+            act_dim: ACT,
+            obs: (0..n * OBS).map(|i| i as f32).collect(),
+            action: vec![0.5; n * ACT],
+            reward: vec![1.0; n],
+            is_first: vec![0.0; n],
+            is_terminal: vec![0.0; n],
+            context: vec![0.25; n * 2],
+            mask: vec![0.0; n * 2],
+            has_mask: vec![0.0; n],
+        };
+        let payload = sent.arrays().concat();
+        let reward = n * (OBS + ACT);
+        let wait = Duration::from_millis(200);
+        for when in WHEN {
+            // the client asks (again, after a rejection), and the answer carries the request's
+            // id
+            assert_eq!(client.next_batch(spec, Duration::ZERO).unwrap(), None);
+            let (request, _) = server.receive_requests().unwrap().pop().expect("a request");
+            let header = BatchHeader {
+                format_version: FORMAT_VERSION,
+                kind: BatchKind::Sequence.code(),
+                request_id: request.request_id,
+                batch: batch as u32,
+                length: length as u32,
+                frames: 1,
+                obs_dim: OBS as u32,
+                act_dim: ACT as u32,
+                reserved: 0,
+            };
+            let held = inject.batch_held(header, &payload).unwrap();
+            assert_eq!(held.reached, 1);
+            let rewrite = || {
+                held.set_header(BatchHeader {
+                    batch: 999,
+                    obs_dim: 200,
+                    ..header
+                });
+                held.set(reward, f32::NAN).unwrap();
+            };
+            if when == When::BeforeRead {
+                held.set(reward, f32::NAN).unwrap();
+            }
+            let mut hook = rewrite_at(when, rewrite);
+            let got = client.next_batch_observed(spec, wait, &mut hook).unwrap();
+            if when == When::BeforeRead {
+                assert_eq!(got, None);
+                assert_eq!(client.rejected(), 1);
+            } else {
+                assert_eq!(got, Some(Batch::Sequence(sent.clone())), "{when:?}");
+            }
+        }
+        assert_eq!(client.rejected(), 1);
+    }
+
+    #[test]
+    fn weights_rewritten_in_shared_memory_are_loaded_as_verified_or_rejected() {
+        let isolated = Isolated::new("inject-weights");
+        let t = RunTransport::open(&isolated.0, 1, "test").unwrap();
+        let mut rx = WeightsReceiver::new(&t).unwrap();
+        let inject = Injector::new(&t).unwrap();
+        let bytes: Vec<u8> = (0..1000).map(|i| i as u8).collect();
+        for (version, when) in WHEN.into_iter().enumerate() {
+            let header = WeightsHeader {
+                format_version: FORMAT_VERSION,
+                checksum: crc32fast::hash(&bytes),
+                version: version as u64 + 1,
+                len: bytes.len() as u64,
+            };
+            let held = inject.weights_held(header, &bytes).unwrap();
+            assert_eq!(held.reached, 1);
+            let rewrite = || {
+                held.set(7, 0xff).unwrap();
+                held.set_header(WeightsHeader { len: 1, ..header });
+            };
+            if when == When::BeforeRead {
+                held.set(7, 0xff).unwrap();
+            }
+            let mut hook = rewrite_at(when, rewrite);
+            let got = rx
+                .latest_with_observed(&mut hook, |v, b| (v, b.to_vec()))
+                .unwrap();
+            if when == When::BeforeRead {
+                assert_eq!(got, None);
+                assert_eq!(rx.rejected(), 1);
+            } else {
+                assert_eq!(got, Some((header.version, bytes.clone())), "{when:?}");
+            }
+        }
+        assert_eq!(rx.rejected(), 1);
+    }
+}

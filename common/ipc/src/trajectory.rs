@@ -1,0 +1,507 @@
+//! Actor -> replay trajectories: the actor's chunking sender and the replay's validating receiver.
+
+use super::transport::{ice, wait_until, RunTransport, Wake};
+use super::wire::{
+    step_stride, validate_chunk, ChunkHeader, WireError, MAX_ACT, MAX_CHUNK, MAX_CHUNK_FLOATS,
+    MAX_OBS,
+};
+use super::{read_once, ReadStage, RejectLog};
+use anyhow::{anyhow, Result};
+use ctxrace_run::steps::TrajectoryStep;
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::port::BackpressureAction;
+use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+/// Timeouts of a [`TrajectorySender`].
+#[derive(Clone, Copy, Debug)]
+pub struct SenderOptions {
+    /// How long [`TrajectorySender::new`] waits for the replay to come up.
+    pub handshake_timeout: Duration,
+    /// How long closing waits for the replay to take the chunks still waiting, before they are
+    /// dropped and counted. While running, nothing is dropped: chunks wait in the sender's
+    /// backlog (see [`TrajectorySender::backlog`]) for as long as the replay needs.
+    pub close_timeout: Duration,
+}
+
+impl Default for SenderOptions {
+    fn default() -> Self {
+        Self {
+            handshake_timeout: Duration::from_secs(30),
+            close_timeout: Duration::from_secs(10),
+        }
+    }
+}
+
+/// What a [`TrajectorySender`] did so far.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SenderStats {
+    /// Steps delivered to the replay.
+    pub sent_steps: u64,
+    /// Steps dropped (still waiting for room when the sender closed).
+    pub dropped_steps: u64,
+    /// Chunks delivered.
+    pub sent_chunks: u64,
+    /// Chunks dropped.
+    pub dropped_chunks: u64,
+}
+
+/// Longest sleep between two send attempts (the replay's turns wake the sender sooner).
+const ATTEMPT: Duration = Duration::from_millis(10);
+
+/// A chunk waiting for room at the replay.
+struct Pending {
+    header: ChunkHeader,
+    floats: Vec<f32>,
+}
+
+/// An actor's end of the trajectory stream: collects steps into chunks of up to [`MAX_CHUNK`]
+/// and sends them when full and at each episode's end.
+///
+/// A chunk the replay has no room for (its rate limiter holds the actors to the learner's pace,
+/// or it is restarting) waits in the sender's backlog; the actor stops stepping while
+/// [`backlog`](Self::backlog) is not empty and calls [`deliver`](Self::deliver) instead, so
+/// nothing is dropped while the run goes on. Closing (or dropping) delivers the backlog within
+/// [`SenderOptions::close_timeout`], drops and counts what is left, and then waits until the
+/// replay has run a receive turn after the last send: a publisher that disappears before the
+/// replay connected to it takes its unread chunks with it.
+pub struct TrajectorySender {
+    publisher: Publisher<ipc::Service, [f32], ChunkHeader>,
+    wake: Notifier<ipc::Service>,
+    turns: Listener<ipc::Service>,
+    close_timeout: Duration,
+    /// A chunk was delivered since the replay was last seen to take a turn.
+    unconfirmed: bool,
+    header: ChunkHeader,
+    buf: Vec<f32>,
+    backlog: VecDeque<Pending>,
+    /// Buffers of delivered chunks, reused for the next ones.
+    spare: Vec<Vec<f32>>,
+    stats: SenderStats,
+}
+
+impl TrajectorySender {
+    /// Connects actor `actor_id` to the replay, waiting up to `opts.handshake_timeout` for the
+    /// replay's subscriber (a chunk sent before it connected would be lost).
+    pub fn new(
+        transport: &RunTransport,
+        actor_id: u32,
+        obs_dim: usize,
+        act_dim: usize,
+        opts: SenderOptions,
+    ) -> Result<Self> {
+        if actor_id as usize >= transport.actors() {
+            return Err(anyhow!(
+                "actor id {actor_id} is not below the run's {} actors",
+                transport.actors()
+            ));
+        }
+        if obs_dim == 0 || obs_dim > MAX_OBS || act_dim == 0 || act_dim > MAX_ACT {
+            return Err(anyhow!(
+                "obs_dim {obs_dim} must be 1 to {MAX_OBS} and act_dim {act_dim} 1 to {MAX_ACT}"
+            ));
+        }
+        let ready = transport.listener(Wake::ReplayReady)?;
+        let service = transport.trajectory_service(actor_id as usize)?;
+        let publisher = service
+            .publisher_builder()
+            .initial_max_slice_len(MAX_CHUNK_FLOATS)
+            .allocation_strategy(AllocationStrategy::Static)
+            .max_loaned_samples(1)
+            .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
+            // a full queue returns at once: the sender then sleeps until the replay's next turn
+            // instead of spinning
+            .set_backpressure_handler(|_| BackpressureAction::DiscardData)
+            .create()
+            .map_err(ice("trajectory publisher"))?;
+        let connected = wait_until(&ready, opts.handshake_timeout, || {
+            service.dynamic_config().number_of_subscribers() > 0
+        })?;
+        if !connected {
+            return Err(anyhow!(
+                "the replay did not come up within {:?} (prefix {})",
+                opts.handshake_timeout,
+                transport.prefix()
+            ));
+        }
+        Ok(Self {
+            publisher,
+            wake: transport.notifier(Wake::Replay)?,
+            turns: ready,
+            close_timeout: opts.close_timeout,
+            unconfirmed: false,
+            header: ChunkHeader::for_actor(actor_id, obs_dim, act_dim),
+            buf: Vec::with_capacity(MAX_CHUNK * step_stride(obs_dim, act_dim)),
+            backlog: VecDeque::new(),
+            spare: Vec::new(),
+            stats: SenderStats::default(),
+        })
+    }
+
+    /// Adds one step of episode `episode_id` acted by weights `policy_version`; sends the chunk
+    /// when it is full or the episode ended. Steps of another dimension are refused with an
+    /// error; values are checked by the replay.
+    pub fn push(
+        &mut self,
+        episode_id: u64,
+        policy_version: u64,
+        step: &TrajectoryStep,
+    ) -> Result<()> {
+        let (o, a) = (self.header.obs_dim as usize, self.header.act_dim as usize);
+        if step.obs.len() != o || step.action.len() != a {
+            return Err(anyhow!(
+                "step has obs {} and action {}, the sender was made for {o} and {a}",
+                step.obs.len(),
+                step.action.len()
+            ));
+        }
+        if self.header.steps > 0
+            && (self.header.episode_id != episode_id
+                || self.header.policy_version != policy_version)
+        {
+            self.flush()?;
+        }
+        if self.header.steps == 0 {
+            self.header.episode_id = episode_id;
+            self.header.policy_version = policy_version;
+        }
+        step.encode(&mut self.buf);
+        self.header.steps += 1;
+        if step.is_last || self.header.steps as usize == MAX_CHUNK {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    /// Ends the chunk collected so far, if any, and tries to send the backlog (see
+    /// [`deliver`](Self::deliver)) with one short attempt.
+    pub fn flush(&mut self) -> Result<()> {
+        if self.header.steps > 0 {
+            let capacity = self.buf.capacity();
+            let next = self
+                .spare
+                .pop()
+                .unwrap_or_else(|| Vec::with_capacity(capacity));
+            let floats = std::mem::replace(&mut self.buf, next);
+            self.backlog.push_back(Pending {
+                header: self.header,
+                floats,
+            });
+            self.header.sequence += 1;
+            self.header.steps = 0;
+        }
+        self.deliver(Duration::ZERO)?;
+        Ok(())
+    }
+
+    /// Chunks waiting for room at the replay. An actor should not step while there are any.
+    pub fn backlog(&self) -> usize {
+        self.backlog.len()
+    }
+
+    /// Sends the backlog, oldest first, waiting up to `wait` (at least one short attempt) for
+    /// the replay to make room; returns whether the backlog is empty.
+    pub fn deliver(&mut self, wait: Duration) -> Result<bool> {
+        let start = Instant::now();
+        while let Some(chunk) = self.backlog.front() {
+            let mut sample = self
+                .publisher
+                .loan_slice_uninit(chunk.floats.len())
+                .map_err(ice("loan chunk"))?;
+            *sample.user_header_mut() = chunk.header;
+            let sample = sample.write_from_slice(&chunk.floats);
+            if sample.send().map_err(ice("send chunk"))? > 0 {
+                self.stats.sent_steps += u64::from(chunk.header.steps);
+                self.stats.sent_chunks += 1;
+                self.unconfirmed = true;
+                if let Some(Pending { mut floats, .. }) = self.backlog.pop_front() {
+                    floats.clear();
+                    self.spare.push(floats);
+                }
+                // A lost wake-up only delays the replay until its next timer tick.
+                let _ = self.wake.notify();
+                continue;
+            }
+            // no room (the replay's queue of this actor is full) or no replay: wait for its next
+            // turn (not waking it: it has our chunks queued, and it turns when its learner asks)
+            let left = wait.saturating_sub(start.elapsed());
+            if left.is_zero() {
+                break;
+            }
+            self.turns
+                .timed_wait(|_| {}, left.min(ATTEMPT))
+                .map_err(ice("wait for replay turn"))?;
+        }
+        // Keep the replay's turn signals from piling up until close.
+        self.turns
+            .try_wait(|_| {})
+            .map_err(ice("drain replay turns"))?;
+        Ok(self.backlog.is_empty())
+    }
+
+    /// Counters so far.
+    pub fn stats(&self) -> SenderStats {
+        self.stats
+    }
+
+    /// Delivers what is left within the close timeout, drops and counts the rest, and waits
+    /// until the replay has certainly connected to this sender (two replay turns after the last
+    /// send); returns the counters.
+    pub fn close(mut self) -> Result<SenderStats> {
+        self.finish()?;
+        Ok(self.stats)
+    }
+
+    fn finish(&mut self) -> Result<()> {
+        self.flush()?;
+        self.deliver(self.close_timeout)?;
+        for chunk in self.backlog.drain(..) {
+            self.stats.dropped_steps += u64::from(chunk.header.steps);
+            self.stats.dropped_chunks += 1;
+        }
+        if !self.unconfirmed {
+            return Ok(());
+        }
+        self.turns
+            .try_wait(|_| {})
+            .map_err(ice("drain replay turns"))?;
+        let deadline = Instant::now() + self.close_timeout.min(Duration::from_secs(2));
+        let mut turns = 0;
+        while turns < 2 {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                break;
+            }
+            turns += self
+                .turns
+                .timed_wait(|_| {}, left)
+                .map_err(ice("wait for replay turn"))?;
+        }
+        self.unconfirmed = false;
+        Ok(())
+    }
+}
+
+impl Drop for TrajectorySender {
+    fn drop(&mut self) {
+        if let Err(e) = self.finish() {
+            tracing::warn!("closing trajectory sender: {e:#}");
+        }
+    }
+}
+
+/// A validated chunk as the replay receives it: a copy, out of shared memory.
+#[derive(Clone, Copy, Debug)]
+pub struct ChunkView<'a> {
+    /// Its header.
+    pub header: &'a ChunkHeader,
+    /// `steps x step_stride(obs_dim, act_dim)` floats.
+    pub payload: &'a [f32],
+    /// Chunks of this actor are missing right before this one (or it is the actor's first one
+    /// seen): the stream is not contiguous here.
+    pub after_gap: bool,
+}
+
+/// The replay's end of the trajectory stream: one subscriber per actor, the actor that has
+/// supplied the fewest steps served first (max-min fairness: an actor is never held back while
+/// a faster one fills the buffer, however long its chunks); validates each chunk and tracks
+/// per-actor gaps.
+pub struct TrajectoryReceiver {
+    services: Vec<PubSubFactory<ipc::Service, [f32], ChunkHeader>>,
+    subscribers: Vec<Subscriber<ipc::Service, [f32], ChunkHeader>>,
+    /// Steps taken from each actor so far.
+    taken_steps: Vec<u64>,
+    /// Actor ids, fewest steps taken first (re-sorted before each take).
+    order: Vec<usize>,
+    obs_dim: usize,
+    act_dim: usize,
+    next_sequence: Vec<Option<u64>>,
+    missing_chunks: u64,
+    /// Chunks of each actor rejected since its last valid one: the sequence numbers they took
+    /// are not missing.
+    rejected_since: Vec<u64>,
+    rejects: RejectLog,
+    /// The copy of the chunk being read, reused from chunk to chunk.
+    copy: Vec<f32>,
+}
+
+impl TrajectoryReceiver {
+    /// Subscribes to the run's trajectories of the given dimensions. Call
+    /// [`ReplayBeacon::signal`] once every replay endpoint exists.
+    pub fn new(transport: &RunTransport, obs_dim: usize, act_dim: usize) -> Result<Self> {
+        let services = (0..transport.actors())
+            .map(|id| transport.trajectory_service(id))
+            .collect::<Result<Vec<_>>>()?;
+        let subscribers = services
+            .iter()
+            .map(|s| {
+                s.subscriber_builder()
+                    .create()
+                    .map_err(ice("trajectory subscriber"))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self {
+            services,
+            subscribers,
+            taken_steps: vec![0; transport.actors()],
+            order: (0..transport.actors()).collect(),
+            obs_dim,
+            act_dim,
+            next_sequence: vec![None; transport.actors()],
+            missing_chunks: 0,
+            rejected_since: vec![0; transport.actors()],
+            rejects: RejectLog::new("trajectory chunk"),
+            copy: Vec::with_capacity(MAX_CHUNK_FLOATS),
+        })
+    }
+
+    /// Takes up to `max_chunks` waiting chunks, each from the actor with the fewest steps taken
+    /// that has one, handing each valid one to `f`; malformed ones are counted, logged and
+    /// skipped. Returns the number of chunks taken (valid or not).
+    pub fn receive(&mut self, max_chunks: usize, f: impl FnMut(ChunkView)) -> Result<usize> {
+        self.receive_observed(max_chunks, &mut |_| {}, f)
+    }
+
+    /// [`receive`](Self::receive), calling `hook` at each [`ReadStage`] of each chunk. Each
+    /// chunk is copied out of shared memory first (into a buffer reused from chunk to chunk),
+    /// then validated, and `f` sees only the copy: a chunk changed in shared memory while it is
+    /// read is at worst rejected.
+    pub fn receive_observed(
+        &mut self,
+        max_chunks: usize,
+        hook: &mut dyn FnMut(ReadStage),
+        mut f: impl FnMut(ChunkView),
+    ) -> Result<usize> {
+        let actors = self.subscribers.len();
+        let mut taken = 0;
+        while taken < max_chunks {
+            let taken_steps = &self.taken_steps;
+            self.order.sort_by_key(|&id| taken_steps[id]);
+            let mut next = None;
+            for &id in &self.order {
+                if let Some(sample) = self.subscribers[id]
+                    .receive()
+                    .map_err(ice("receive chunk"))?
+                {
+                    next = Some((id, sample));
+                    break;
+                }
+            }
+            let Some((id, sample)) = next else {
+                break;
+            };
+            taken += 1;
+            let header = read_once(sample.user_header());
+            let payload = sample.payload();
+            let copied = if payload.len() <= MAX_CHUNK_FLOATS {
+                self.copy.clear();
+                self.copy.extend_from_slice(payload);
+                Ok(())
+            } else {
+                Err(WireError::Dims(format!(
+                    "{} floats, a chunk has at most {MAX_CHUNK_FLOATS}",
+                    payload.len()
+                )))
+            };
+            hook(ReadStage::Copied);
+            let expected = &mut self.next_sequence[id];
+            let checked = copied
+                .and_then(|()| {
+                    validate_chunk(&header, &self.copy, actors, self.obs_dim, self.act_dim)
+                })
+                .and_then(|()| {
+                    if header.actor_id as usize != id {
+                        return Err(WireError::WrongStream {
+                            got: header.actor_id,
+                            stream: id as u32,
+                        });
+                    }
+                    match *expected {
+                        // 0 starts a stream: the first chunk of a restarted actor
+                        Some(next) if header.sequence != 0 && header.sequence < next => {
+                            Err(WireError::OutOfOrder {
+                                got: header.sequence,
+                                expected: next,
+                            })
+                        }
+                        _ => Ok(()),
+                    }
+                });
+            if let Err(e) = checked {
+                self.rejects.reject(&e);
+                // a chunk going back took no new sequence number
+                if !matches!(e, WireError::OutOfOrder { .. }) {
+                    self.rejected_since[id] += 1;
+                }
+                continue;
+            }
+            hook(ReadStage::Validated);
+            let after_gap = *expected != Some(header.sequence);
+            if let Some(next) = *expected {
+                // a rejected chunk took a sequence number: it is counted as rejected only
+                let gap = header.sequence.saturating_sub(next);
+                self.missing_chunks += gap.saturating_sub(self.rejected_since[id]);
+            }
+            self.rejected_since[id] = 0;
+            *expected = Some(header.sequence + 1);
+            self.taken_steps[id] += u64::from(header.steps);
+            f(ChunkView {
+                header: &header,
+                payload: &self.copy,
+                after_gap,
+            });
+        }
+        Ok(taken)
+    }
+
+    /// Senders connected, over all actors (a killed actor's counts until its node is cleaned
+    /// up).
+    pub fn senders(&self) -> usize {
+        self.services
+            .iter()
+            .map(|s| s.dynamic_config().number_of_publishers())
+            .sum()
+    }
+
+    /// Chunks rejected as malformed.
+    pub fn rejected(&self) -> u64 {
+        self.rejects.count()
+    }
+
+    /// Chunks rejected, by reason ([`super::wire::REASONS`]).
+    pub fn rejected_by_reason(&self) -> [u64; super::wire::REASONS.len()] {
+        self.rejects.by_reason()
+    }
+
+    /// Chunks missing from the actors' sequence numbers (dropped by a sender), not counting
+    /// the rejected ones.
+    pub fn missing_chunks(&self) -> u64 {
+        self.missing_chunks
+    }
+}
+
+/// The replay's beacon: tells waiting actors and learners that its subscribers exist, and
+/// closing actors that it ran another receive turn.
+pub struct ReplayBeacon {
+    notifier: Notifier<ipc::Service>,
+}
+
+impl ReplayBeacon {
+    /// A notifier on the run's `replay_ready` event; create it once every replay endpoint exists.
+    pub fn new(transport: &RunTransport) -> Result<Self> {
+        Ok(Self {
+            notifier: transport.notifier(Wake::ReplayReady)?,
+        })
+    }
+
+    /// Signals readiness (on start) or the end of a receive turn (each loop turn). Never
+    /// fails: a listener whose buffer is full (a stuck process) just misses this signal.
+    pub fn signal(&self) {
+        let _ = self.notifier.notify();
+    }
+}

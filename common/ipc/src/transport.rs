@@ -1,0 +1,725 @@
+//! One run's iceoryx2 setup: the per-run prefix, the user's private root folder, the raised
+//! service limits, the process's node, the settings of every service, the end-of-run cleanup,
+//! and the sweep of runs whose launcher died.
+
+use super::wire::{
+    BatchHeader, BatchRequest, ChunkHeader, EpisodeReport, Heartbeat, ReplayStatus, WeightsHeader,
+};
+use anyhow::{anyhow, bail, Context as _, Result};
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::event::PortFactory as EventFactory;
+use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
+use std::fmt::Debug;
+use std::os::unix::fs::{DirBuilderExt as _, MetadataExt as _, PermissionsExt as _};
+use std::path::{Path as StdPath, PathBuf};
+use std::time::{Duration, Instant};
+
+/// Chunks each actor may have queued at the replay before its sends wait.
+pub const TRAJECTORY_BUFFER: usize = 64;
+/// Nodes besides the actors that may open a service (replay, learner, launcher, tools).
+const EXTRA_NODES: usize = 8;
+
+/// Maps any iceoryx2 error (they are plain enums) to an error naming what failed.
+pub(crate) fn ice<E: Debug>(what: &'static str) -> impl FnOnce(E) -> anyhow::Error {
+    move |e| anyhow!("iceoryx2: {what}: {e:?}")
+}
+
+/// A flag that turns true on SIGTERM or SIGINT, for a process's loop to stop cleanly. (The
+/// nodes' own signal handling is off: iceoryx2 resets its flag when read, so a blocking send
+/// could swallow the request.)
+pub fn termination_flag() -> Result<std::sync::Arc<std::sync::atomic::AtomicBool>> {
+    let flag = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    for signal in [signal_hook::consts::SIGTERM, signal_hook::consts::SIGINT] {
+        signal_hook::flag::register(signal, flag.clone())
+            .map_err(|e| anyhow!("installing the handler of signal {signal}: {e}"))?;
+    }
+    Ok(flag)
+}
+
+/// The prefix of a run: `ctxrace_<run id>_`, with characters other than ASCII letters, digits,
+/// `-` and `.` in the id replaced by `-`.
+pub fn run_prefix(run_id: &str) -> String {
+    let id: String = run_id
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '.' {
+                c
+            } else {
+                '-'
+            }
+        })
+        .collect();
+    format!("ctxrace_{id}_")
+}
+
+/// Environment variable naming the folder of ctxrace's iceoryx2 management files.
+pub const SHM_ROOT_ENV: &str = "CTXRACE_SHM_ROOT";
+
+/// The folder of this user's iceoryx2 management files (`nodes/`, `services/`, the runs' owner
+/// files): `$CTXRACE_SHM_ROOT`, else `$XDG_RUNTIME_DIR/ctxrace`, else `/tmp/ctxrace-<uid>`.
+/// It is created with mode 0700 and refused when another user owns it or others may enter it: iceoryx2's default root, `/tmp/iceoryx2`, is shared by every
+/// user, and whoever creates it first decides who may use it. (The shared memory itself lives in
+/// `/dev/shm`, readable and writable by its owner only: see [`RunTransport::open`].)
+pub fn shm_root() -> Result<PathBuf> {
+    let uid = std::fs::metadata("/proc/self")
+        .map(|m| m.uid())
+        .context("reading this process's user id from /proc/self")?;
+    let root = match std::env::var_os(SHM_ROOT_ENV) {
+        Some(dir) => PathBuf::from(dir),
+        None => match std::env::var_os("XDG_RUNTIME_DIR") {
+            Some(dir) if StdPath::new(&dir).is_dir() => PathBuf::from(dir).join("ctxrace"),
+            _ => PathBuf::from(format!("/tmp/ctxrace-{uid}")),
+        },
+    };
+    match std::fs::DirBuilder::new().mode(0o700).create(&root) {
+        Err(e) if e.kind() != std::io::ErrorKind::AlreadyExists => {
+            return Err(e).with_context(|| {
+                format!(
+                    "creating the shared-memory folder {}; set {SHM_ROOT_ENV} to a folder of \
+                     yours",
+                    root.display()
+                )
+            })
+        }
+        _ => {}
+    }
+    let meta = std::fs::symlink_metadata(&root)
+        .with_context(|| format!("reading the shared-memory folder {}", root.display()))?;
+    if !meta.is_dir() || meta.uid() != uid || meta.permissions().mode() & 0o077 != 0 {
+        bail!(
+            "the shared-memory folder {} is not a private folder of user {uid} (owner {}, mode \
+             {:o}{}): another user could read or block this run; remove it, or set \
+             {SHM_ROOT_ENV} to a folder only you can enter",
+            root.display(),
+            meta.uid(),
+            meta.permissions().mode() & 0o7777,
+            if meta.is_dir() { "" } else { ", not a folder" },
+        );
+    }
+    Ok(root)
+}
+
+/// The iceoryx2 configuration of a run: its own prefix, so that two runs on one machine never
+/// see each other, the user's private root folder ([`shm_root`]), and defaults raised for
+/// `actors` actors.
+pub fn iceoryx_config(prefix: &str, actors: usize) -> Result<Config> {
+    let mut config = Config::default();
+    config.global.prefix = FileName::new(prefix.as_bytes())
+        .map_err(|e| anyhow!("invalid iceoryx2 prefix {prefix:?}: {e:?}"))?;
+    let root = format!("{}/", shm_root()?.display());
+    let root = Path::new(root.as_bytes()).map_err(|e| {
+        anyhow!("shared-memory folder {root:?} is not a valid iceoryx2 path: {e:?}")
+    })?;
+    config.global.set_root_path(&root);
+    config.global.node.cleanup_dead_nodes_on_creation = true;
+    let ps = &mut config.defaults.publish_subscribe;
+    ps.max_publishers = actors + EXTRA_NODES;
+    ps.max_subscribers = actors + EXTRA_NODES;
+    ps.max_nodes = actors + EXTRA_NODES;
+    let ev = &mut config.defaults.event;
+    ev.max_notifiers = actors + EXTRA_NODES;
+    ev.max_listeners = actors + EXTRA_NODES;
+    ev.max_nodes = actors + EXTRA_NODES;
+    Ok(config)
+}
+
+/// A process's handle on a run's transport: the configuration and one iceoryx2 node. Every
+/// endpoint of [`super`] is created from it.
+pub struct RunTransport {
+    node: Node<ipc::Service>,
+    prefix: String,
+    actors: usize,
+}
+
+impl RunTransport {
+    /// Joins the run with prefix `prefix` (see [`run_prefix`]) of `actors` actors as a node named
+    /// `role`. Signal handling is left to the process (see [`termination_flag`]). iceoryx2 0.10
+    /// creates the run's `...node.<version>.global_mgmt` segment in `/dev/shm` readable and
+    /// writable by everyone (mode 0666); the first node of the run closes it to its owner.
+    pub fn open(prefix: &str, actors: usize, role: &str) -> Result<Self> {
+        if actors == 0 {
+            return Err(anyhow!("a run needs at least one actor"));
+        }
+        let config = iceoryx_config(prefix, actors)?;
+        let name = NodeName::new(role).map_err(ice("node name"))?;
+        let node = NodeBuilder::new()
+            .config(&config)
+            .name(&name)
+            .signal_handling_mode(SignalHandlingMode::Disabled)
+            .create::<ipc::Service>()
+            .map_err(ice("create node"))?;
+        restrict_to_owner(StdPath::new(SHM_DIR), prefix)?;
+        Ok(Self {
+            node,
+            prefix: prefix.to_string(),
+            actors,
+        })
+    }
+
+    /// The run's prefix.
+    pub fn prefix(&self) -> &str {
+        &self.prefix
+    }
+
+    /// Actors in the run; actor ids are below it.
+    pub fn actors(&self) -> usize {
+        self.actors
+    }
+
+    /// The process's node.
+    pub fn node(&self) -> &Node<ipc::Service> {
+        &self.node
+    }
+
+    fn max_nodes(&self) -> usize {
+        self.actors + EXTRA_NODES
+    }
+
+    /// Actor `actor_id` -> replay: `[f32]` chunks; no overflow, so a full replay pushes back on
+    /// the actor. One service per actor, so that the replay can take from each in turn (a
+    /// subscriber scans its publishers from the first, which would favour one actor).
+    pub(crate) fn trajectory_service(
+        &self,
+        actor_id: usize,
+    ) -> Result<PubSubFactory<ipc::Service, [f32], ChunkHeader>> {
+        self.node
+            .service_builder(&service_name(&format!("trajectory/{actor_id}"))?)
+            .publish_subscribe::<[f32]>()
+            .user_header::<ChunkHeader>()
+            .max_publishers(4)
+            .max_subscribers(2)
+            .max_nodes(self.max_nodes())
+            .subscriber_max_buffer_size(TRAJECTORY_BUFFER)
+            .subscriber_max_borrowed_samples(2)
+            .history_size(0)
+            .enable_safe_overflow(false)
+            .open_or_create()
+            .map_err(ice("trajectory service"))
+    }
+
+    /// Learner -> actors: weights bytes, history 1 so late subscribers get the newest.
+    pub(crate) fn weights_service(
+        &self,
+    ) -> Result<PubSubFactory<ipc::Service, [u8], WeightsHeader>> {
+        self.node
+            .service_builder(&service_name("weights")?)
+            .publish_subscribe::<[u8]>()
+            .user_header::<WeightsHeader>()
+            .max_publishers(2)
+            .max_subscribers(self.max_nodes())
+            .max_nodes(self.max_nodes())
+            .subscriber_max_buffer_size(1)
+            // `WeightsReceiver::latest_with` copies each blob out and releases it at once; two
+            // leave room for a broadcast arriving while another is still held (with one, such a
+            // receive failed with ExceedsMaxBorrows and the actor stopped)
+            .subscriber_max_borrowed_samples(2)
+            .history_size(1)
+            .enable_safe_overflow(true)
+            .open_or_create()
+            .map_err(ice("weights service"))
+    }
+
+    /// Learner -> replay: batch requests.
+    pub(crate) fn request_service(&self) -> Result<PubSubFactory<ipc::Service, BatchRequest, ()>> {
+        self.small_service("batch_request", 16, 0)
+    }
+
+    /// Replay -> learner: batches.
+    pub(crate) fn batch_service(&self) -> Result<PubSubFactory<ipc::Service, [f32], BatchHeader>> {
+        self.node
+            .service_builder(&service_name("batch")?)
+            .publish_subscribe::<[f32]>()
+            .user_header::<BatchHeader>()
+            .max_publishers(2)
+            .max_subscribers(2)
+            .max_nodes(self.max_nodes())
+            .subscriber_max_buffer_size(4)
+            .subscriber_max_borrowed_samples(1)
+            .history_size(0)
+            .enable_safe_overflow(true)
+            .open_or_create()
+            .map_err(ice("batch service"))
+    }
+
+    /// Actors -> launcher: episode metrics.
+    pub(crate) fn metrics_service(&self) -> Result<PubSubFactory<ipc::Service, EpisodeReport, ()>> {
+        self.small_service("metrics", 1024, 0)
+    }
+
+    /// Actors -> launcher: heartbeats.
+    pub(crate) fn heartbeat_service(&self) -> Result<PubSubFactory<ipc::Service, Heartbeat, ()>> {
+        self.small_service("heartbeat", 256, 0)
+    }
+
+    /// Replay -> launcher: counters, history 1.
+    pub(crate) fn status_service(&self) -> Result<PubSubFactory<ipc::Service, ReplayStatus, ()>> {
+        self.small_service("replay_status", 1, 1)
+    }
+
+    fn small_service<T: Debug + ZeroCopySend>(
+        &self,
+        name: &'static str,
+        buffer: usize,
+        history: usize,
+    ) -> Result<PubSubFactory<ipc::Service, T, ()>> {
+        self.node
+            .service_builder(&service_name(name)?)
+            .publish_subscribe::<T>()
+            .max_publishers(self.max_nodes() + self.actors)
+            .max_subscribers(self.max_nodes())
+            .max_nodes(self.max_nodes())
+            .subscriber_max_buffer_size(buffer)
+            .history_size(history)
+            .enable_safe_overflow(true)
+            .open_or_create()
+            .map_err(ice(name))
+    }
+
+    /// An event service; `wake` names whom it wakes.
+    fn event_service(&self, wake: Wake) -> Result<EventFactory<ipc::Service>> {
+        self.node
+            .service_builder(&service_name(wake.name())?)
+            .event()
+            .max_notifiers(self.max_nodes() + self.actors)
+            .max_listeners(self.max_nodes())
+            .max_nodes(self.max_nodes())
+            .open_or_create()
+            .map_err(ice(wake.name()))
+    }
+
+    /// A notifier on one of the run's event services.
+    pub fn notifier(&self, wake: Wake) -> Result<Notifier<ipc::Service>> {
+        self.event_service(wake)?
+            .notifier_builder()
+            .create()
+            .map_err(ice("notifier"))
+    }
+
+    /// A listener on one of the run's event services, to attach to a `WaitSet`.
+    pub(crate) fn listener(&self, wake: Wake) -> Result<Listener<ipc::Service>> {
+        self.event_service(wake)?
+            .listener_builder()
+            .create()
+            .map_err(ice("listener"))
+    }
+}
+
+/// What a serving loop's turn asks for next (see [`RunTransport::serve`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Next {
+    /// Another turn at once: the last one was busy.
+    Poll,
+    /// Sleep until woken or a tick has passed.
+    Sleep,
+    /// Leave the loop.
+    Stop,
+}
+
+impl RunTransport {
+    /// Runs `turn` until it returns [`Next::Stop`] or, with `handle_signals`, SIGTERM or SIGINT
+    /// arrives; between turns it sleeps in an iceoryx2 `WaitSet` on the event `wake`, at most
+    /// `tick`. Returns whether a termination signal ended the loop.
+    pub fn serve(
+        &self,
+        wake: Wake,
+        tick: Duration,
+        handle_signals: bool,
+        mut turn: impl FnMut() -> Result<Next>,
+    ) -> Result<bool> {
+        let listener = self.listener(wake)?;
+        let signals = if handle_signals {
+            SignalHandlingMode::HandleTerminationRequests
+        } else {
+            SignalHandlingMode::Disabled
+        };
+        let waitset = WaitSetBuilder::new()
+            .signal_handling_mode(signals)
+            .create::<ipc::Service>()
+            .map_err(ice("waitset"))?;
+        let _wake_guard = waitset
+            .attach_notification(&listener)
+            .map_err(ice("attach wake"))?;
+        let _tick_guard = waitset.attach_interval(tick).map_err(ice("attach tick"))?;
+        loop {
+            let timeout = match turn()? {
+                Next::Stop => return Ok(false),
+                Next::Poll => Duration::ZERO,
+                Next::Sleep => tick,
+            };
+            let result = waitset
+                .wait_and_process_once_with_timeout(|_| CallbackProgression::Continue, timeout)
+                .map_err(ice("wait"))?;
+            if matches!(
+                result,
+                iceoryx2::waitset::WaitSetRunResult::TerminationRequest
+                    | iceoryx2::waitset::WaitSetRunResult::Interrupt
+            ) {
+                return Ok(true);
+            }
+            listener.try_wait(|_| {}).map_err(ice("drain wake"))?;
+        }
+    }
+}
+
+/// The run's event services, each named after whom it wakes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Wake {
+    /// The replay loop: a chunk or a request arrived.
+    Replay,
+    /// The learner: a batch arrived.
+    Learner,
+    /// Actors: new weights.
+    Actors,
+    /// Anyone waiting for the replay to come up: its subscribers exist.
+    ReplayReady,
+}
+
+impl Wake {
+    fn name(self) -> &'static str {
+        match self {
+            Wake::Replay => "wake_replay",
+            Wake::Learner => "wake_learner",
+            Wake::Actors => "wake_actors",
+            Wake::ReplayReady => "replay_ready",
+        }
+    }
+}
+
+fn service_name(name: &str) -> Result<ServiceName> {
+    ServiceName::new(&format!("ctxrace/{name}")).map_err(ice("service name"))
+}
+
+/// Waits until `connected()` holds, sleeping on `ready` (notified by the other side once its
+/// ports exist) between checks. The listener must exist before the first check, so that a
+/// notification sent in between is not lost.
+pub(crate) fn wait_until(
+    ready: &Listener<ipc::Service>,
+    timeout: Duration,
+    mut connected: impl FnMut() -> bool,
+) -> Result<bool> {
+    let start = Instant::now();
+    loop {
+        if connected() {
+            return Ok(true);
+        }
+        let left = timeout.saturating_sub(start.elapsed());
+        if left.is_zero() {
+            return Ok(false);
+        }
+        // Wake at least every 100 ms: a peer that started before our listener notified nobody.
+        ready
+            .timed_wait(|_| {}, left.min(Duration::from_millis(100)))
+            .map_err(ice("wait for peer"))?;
+    }
+}
+
+/// What [`cleanup`] did.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct CleanupReport {
+    /// Dead nodes whose resources were removed.
+    pub dead_nodes_removed: u64,
+    /// Dead nodes that could not be removed.
+    pub dead_nodes_failed: u64,
+    /// Nodes of the run still alive (files are only removed when there are none).
+    pub alive_nodes: u64,
+    /// Files and directories of the run removed.
+    pub files_removed: u64,
+}
+
+/// Where POSIX shared memory lives.
+const SHM_DIR: &str = "/dev/shm";
+
+/// Takes group and others' permissions off every file in `dir` whose name starts with `prefix`
+/// and that this user owns; refuses a file another user owns (it could read or corrupt the run).
+fn restrict_to_owner(dir: &StdPath, prefix: &str) -> Result<()> {
+    let uid = std::fs::metadata("/proc/self")
+        .map(|m| m.uid())
+        .context("reading this process's user id from /proc/self")?;
+    let entries = std::fs::read_dir(dir).with_context(|| format!("listing {}", dir.display()))?;
+    for entry in entries.flatten() {
+        if !entry.file_name().to_string_lossy().starts_with(prefix) {
+            continue;
+        }
+        let path = entry.path();
+        let Ok(meta) = std::fs::symlink_metadata(&path) else {
+            continue; // removed meanwhile
+        };
+        if meta.uid() != uid {
+            bail!(
+                "{} belongs to user {}, not to this user ({uid}): another user could read or                  corrupt this run's shared memory; remove it and start again",
+                path.display(),
+                meta.uid()
+            );
+        }
+        let mode = meta.permissions().mode();
+        if mode & 0o077 != 0 {
+            std::fs::set_permissions(&path, std::fs::Permissions::from_mode(mode & 0o700))
+                .with_context(|| format!("restricting {} to its owner", path.display()))?;
+        }
+    }
+    Ok(())
+}
+
+/// Removes the resources of the dead nodes of the run with `prefix` (a crashed process's
+/// ports, so that its peers stop waiting for it); counts the live nodes. It opens no node, and
+/// can be run on a thread of its own.
+pub fn remove_dead_nodes(prefix: &str) -> Result<CleanupReport> {
+    let config = iceoryx_config(prefix, 1)?;
+    let mut report = CleanupReport::default();
+    let mut alive = 0;
+    Node::<ipc::Service>::list(&config, |state| {
+        match state {
+            NodeState::Alive(_) => alive += 1,
+            NodeState::Dead(view) => match view.try_remove_stale_resources() {
+                Ok(()) => report.dead_nodes_removed += 1,
+                Err(_) => report.dead_nodes_failed += 1,
+            },
+            NodeState::Inaccessible(_) | NodeState::Undefined(_) => report.dead_nodes_failed += 1,
+        }
+        CallbackProgression::Continue
+    })
+    .map_err(ice("list nodes"))?;
+    report.alive_nodes = alive;
+    Ok(report)
+}
+
+/// Ends a run's transport: removes the resources of its dead nodes and, if none of its nodes is
+/// alive any more, every shared-memory and management file carrying its prefix.
+pub fn cleanup(prefix: &str) -> Result<CleanupReport> {
+    let mut report = remove_dead_nodes(prefix)?;
+    if report.alive_nodes == 0 {
+        for dir in [shm_root()?, PathBuf::from(SHM_DIR)] {
+            report.files_removed += remove_prefixed(&dir, prefix)?;
+        }
+    }
+    Ok(report)
+}
+
+/// Marks the run with `prefix` as owned by this process: a file in [`shm_root`] naming its pid
+/// and start time, which [`sweep_orphaned_runs`] reads after the process died. [`cleanup`]
+/// removes it with the run's other files.
+pub fn claim_run(prefix: &str) -> Result<()> {
+    let path = shm_root()?.join(format!("{prefix}{OWNER_SUFFIX}"));
+    let pid = std::process::id();
+    let text = format!("{pid} {}\n", process_start(pid).unwrap_or(0));
+    ctxrace_run::run_dir::write_atomic(&path, text.as_bytes())
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+const OWNER_SUFFIX: &str = "owner";
+
+/// A process's start time in clock ticks since boot (`/proc/<pid>/stat` field 22), which tells a
+/// pid reused by another process from the one that wrote an owner file.
+fn process_start(pid: u32) -> Option<u64> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // the command may hold spaces and parentheses: fields count from the last ')'
+    let rest = &stat[stat.rfind(')')? + 1..];
+    rest.split_whitespace().nth(19)?.parse().ok()
+}
+
+/// Removes the shared memory of every ctxrace run whose owner ([`claim_run`]) is gone, as after
+/// a killed launcher; returns the prefixes swept. Runs whose owner lives are left alone.
+pub fn sweep_orphaned_runs() -> Result<Vec<String>> {
+    let root = shm_root()?;
+    let mut swept = Vec::new();
+    let entries =
+        std::fs::read_dir(&root).with_context(|| format!("listing {}", root.display()))?;
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some(prefix) = name.strip_suffix(OWNER_SUFFIX) else {
+            continue;
+        };
+        if !prefix.starts_with("ctxrace_") {
+            continue;
+        }
+        // a pid and a start time; anything else (a link, a FIFO, a large file) marks no owner
+        let owner = ctxrace_run::run_dir::read_regular(&entry.path(), 64)
+            .map(|bytes| String::from_utf8_lossy(&bytes).into_owned())
+            .unwrap_or_default();
+        let mut fields = owner.split_whitespace().map(|f| f.parse::<u64>().ok());
+        let alive = match (fields.next().flatten(), fields.next().flatten()) {
+            (Some(pid), Some(start)) => process_start(pid as u32).is_some_and(|s| s == start),
+            _ => false,
+        };
+        if alive {
+            continue;
+        }
+        let report = cleanup(prefix)?;
+        if report.alive_nodes == 0 {
+            swept.push(prefix.to_string());
+        }
+    }
+    Ok(swept)
+}
+
+/// Removes every entry under `dir` (recursively) whose name starts with `prefix`.
+fn remove_prefixed(dir: &StdPath, prefix: &str) -> Result<u64> {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return Ok(0);
+    };
+    let mut removed = 0;
+    for entry in entries.flatten() {
+        let path = entry.path();
+        let is_dir = entry.file_type().map(|t| t.is_dir()).unwrap_or(false);
+        if entry.file_name().to_string_lossy().starts_with(prefix) {
+            let result = if is_dir {
+                std::fs::remove_dir_all(&path)
+            } else {
+                std::fs::remove_file(&path)
+            };
+            match result {
+                Ok(()) => removed += 1,
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                Err(e) => return Err(e).with_context(|| format!("removing {}", path.display())),
+            }
+        } else if is_dir {
+            removed += remove_prefixed(&path, prefix)?;
+        }
+    }
+    Ok(removed)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn prefix_is_sanitised() {
+        assert_eq!(run_prefix("exp 1/a"), "ctxrace_exp-1-a_");
+        assert!(iceoryx_config(&run_prefix("x"), 16).is_ok());
+    }
+
+    #[test]
+    fn the_root_folder_is_private() {
+        let root = shm_root().unwrap();
+        let mode = std::fs::metadata(&root).unwrap().permissions().mode();
+        assert_eq!(mode & 0o077, 0, "{} has mode {mode:o}", root.display());
+        let config = iceoryx_config(&run_prefix("x"), 1).unwrap();
+        let configured = std::str::from_utf8(config.global.root_path().as_bytes()).unwrap();
+        assert_eq!(configured, format!("{}/", root.display()));
+    }
+
+    #[test]
+    fn runs_whose_owner_died_are_swept_and_live_ones_kept() {
+        let me = std::process::id();
+        let root = shm_root().unwrap();
+        // a run owned by a process that has exited, with files in both places
+        let dead = run_prefix(&format!("test-orphan-{me}"));
+        let mut child = std::process::Command::new("true").spawn().unwrap();
+        let gone = child.id();
+        child.wait().unwrap();
+        std::fs::write(
+            root.join(format!("{dead}{OWNER_SUFFIX}")),
+            format!("{gone} 1\n"),
+        )
+        .unwrap();
+        let files = [
+            root.join(format!("{dead}x.service")),
+            PathBuf::from(format!("/dev/shm/{dead}data")),
+        ];
+        for f in &files {
+            std::fs::write(f, b"left behind").unwrap();
+        }
+        // a run this process owns
+        let live = run_prefix(&format!("test-owned-{me}"));
+        claim_run(&live).unwrap();
+        let swept = sweep_orphaned_runs().unwrap();
+        assert!(swept.contains(&dead), "{swept:?}");
+        assert!(!swept.contains(&live), "{swept:?}");
+        for f in &files {
+            assert!(!f.exists(), "{} is left", f.display());
+        }
+        assert!(root.join(format!("{live}{OWNER_SUFFIX}")).exists());
+        cleanup(&live).unwrap();
+        assert!(!root.join(format!("{live}{OWNER_SUFFIX}")).exists());
+    }
+
+    /// `(path, mode)` of everything under `dir` (recursively) whose name carries `prefix`, or
+    /// that lies in a folder whose name does.
+    fn modes_under(dir: &StdPath, prefix: &str, inside: bool) -> Vec<(PathBuf, u32)> {
+        let mut found = Vec::new();
+        for entry in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+            let path = entry.path();
+            let Ok(meta) = std::fs::symlink_metadata(&path) else {
+                continue;
+            };
+            let ours = inside || entry.file_name().to_string_lossy().contains(prefix);
+            if ours {
+                found.push((path.clone(), meta.permissions().mode() & 0o7777));
+            }
+            if meta.is_dir() {
+                found.extend(modes_under(&path, prefix, ours));
+            }
+        }
+        found
+    }
+
+    #[test]
+    fn every_file_of_a_run_is_closed_to_group_and_others() {
+        let prefix = run_prefix(&format!("test-modes-{}", std::process::id()));
+        let mut listing = Vec::new();
+        {
+            let t = RunTransport::open(&prefix, 2, "learner").unwrap();
+            let peer = RunTransport::open(&prefix, 2, "actor-0").unwrap();
+            // every service, with ports on both sides where data or connections get created
+            let weights = t.weights_service().unwrap();
+            let publisher = weights
+                .publisher_builder()
+                .initial_max_slice_len(64)
+                .create()
+                .unwrap();
+            let peer_weights = peer.weights_service().unwrap();
+            let subscriber = peer_weights.subscriber_builder().create().unwrap();
+            let sample = publisher.loan_slice_uninit(8).unwrap();
+            sample.write_from_slice(&[1u8; 8]).send().unwrap();
+            assert!(subscriber.receive().unwrap().is_some());
+            let chunks = t.trajectory_service(0).unwrap();
+            let _chunk_sub = chunks.subscriber_builder().create().unwrap();
+            let _chunk_pub = peer
+                .trajectory_service(0)
+                .unwrap()
+                .publisher_builder()
+                .initial_max_slice_len(8)
+                .create()
+                .unwrap();
+            let _requests = t.request_service().unwrap().subscriber_builder().create();
+            let _batches = t.batch_service().unwrap().subscriber_builder().create();
+            let _metrics = t.metrics_service().unwrap();
+            let _heartbeats = t.heartbeat_service().unwrap();
+            let _status = t.status_service().unwrap();
+            let _listeners: Vec<_> = [Wake::Replay, Wake::Learner, Wake::Actors, Wake::ReplayReady]
+                .into_iter()
+                .map(|w| (t.listener(w).unwrap(), peer.notifier(w).unwrap()))
+                .collect();
+            for dir in [PathBuf::from(SHM_DIR), shm_root().unwrap()] {
+                listing.extend(modes_under(&dir, &prefix, false));
+            }
+        }
+        cleanup(&prefix).unwrap();
+        let text: Vec<String> = listing
+            .iter()
+            .map(|(p, m)| format!("{m:04o} {}", p.display()))
+            .collect();
+        eprintln!("{}", text.join("\n"));
+        assert!(
+            listing.iter().any(|(p, _)| p.starts_with(SHM_DIR)),
+            "no shared memory listed: {text:?}"
+        );
+        let open: Vec<&String> = listing
+            .iter()
+            .zip(&text)
+            .filter(|((_, mode), _)| mode & 0o077 != 0)
+            .map(|(_, t)| t)
+            .collect();
+        assert!(open.is_empty(), "open to group or others: {open:#?}");
+    }
+
+    #[test]
+    fn start_times_tell_a_live_owner() {
+        let me = std::process::id();
+        assert!(process_start(me).is_some_and(|t| t > 0));
+        assert_eq!(process_start(u32::MAX), None);
+    }
+}

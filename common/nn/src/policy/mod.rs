@@ -1,0 +1,161 @@
+//! The policies the actors run at batch 1 on one thread: built from an [`AgentConfig`] and the
+//! learner's policy weights (safetensors bytes), with their recurrent state or frame stack inside.
+
+mod dreamer;
+mod sac;
+
+pub use dreamer::DreamerPolicy;
+pub use sac::SacPolicy;
+
+use crate::WeightsError;
+use ctxrace_config::agents::{AgentConfig, AgentConfigError, AlgoKind};
+
+/// Why a policy cannot be built from an agent configuration and policy weights, or cannot act
+/// on an observation.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum PolicyError {
+    /// The agent configuration is not one a policy can be built from (its message names the key).
+    #[error("the [agent] table cannot act: {0}")]
+    Config(AgentConfigError),
+    /// The weights are not a safetensors file of `f32` tensors, or are of another architecture
+    /// than the agent configuration's.
+    #[error(
+        "the policy weights do not fit the [agent] table: {0}; act with the agent.toml of the \
+         run that wrote them"
+    )]
+    Weights(WeightsError),
+    /// An observation's size differs from the one the policy was built for.
+    #[error(
+        "an observation of {found} values reached a policy built for {want}; the [race] \
+         lidar.beams must be the one the agent was trained with"
+    )]
+    Observation {
+        /// Values in the observation.
+        found: usize,
+        /// Values the policy was built for.
+        want: usize,
+    },
+}
+
+// The causes are printed in the messages, not chained as sources, so that a `{:#}` chain (anyhow's)
+// names each once.
+impl From<AgentConfigError> for PolicyError {
+    fn from(e: AgentConfigError) -> Self {
+        Self::Config(e)
+    }
+}
+
+impl From<WeightsError> for PolicyError {
+    fn from(e: WeightsError) -> Self {
+        Self::Weights(e)
+    }
+}
+
+/// The outcome of building a policy or of one decision.
+pub type Result<T> = std::result::Result<T, PolicyError>;
+
+/// Action size of the racing policies: steering and speed.
+pub const ACT_DIM: usize = 2;
+
+/// One decision of a [`Policy`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Decision {
+    /// The action in `[−1, 1]²` (steering, speed).
+    pub action: [f32; 2],
+    /// cMask's context mask `m ∈ [0, 1]²`, if the agent has one.
+    pub mask: Option<[f32; 2]>,
+}
+
+/// Any trained agent's acting side.
+pub enum Policy {
+    /// SAC on stacked frames.
+    Sac(Box<SacPolicy>),
+    /// DreamerV3, cRSSM or cMask.
+    Dreamer(Box<DreamerPolicy>),
+}
+
+impl Policy {
+    /// The policy of `agent` for LiDAR frames of `frame_dim` values with `weights`; `seed`
+    /// seeds its sampling noise.
+    pub fn new(agent: &AgentConfig, frame_dim: usize, weights: &[u8], seed: u64) -> Result<Self> {
+        Ok(match agent.algo {
+            AlgoKind::Sac => Policy::Sac(Box::new(SacPolicy::new(
+                &agent.sac, frame_dim, ACT_DIM, weights, seed,
+            )?)),
+            _ => Policy::Dreamer(Box::new(DreamerPolicy::new(
+                &agent.dreamer(),
+                frame_dim,
+                weights,
+                seed,
+            )?)),
+        })
+    }
+
+    /// Replaces the weights (same architecture).
+    pub fn load(&mut self, weights: &[u8]) -> Result<()> {
+        match self {
+            Policy::Sac(p) => p.load(weights),
+            Policy::Dreamer(p) => p.load(weights),
+        }
+    }
+
+    /// Restarts the sampling noise from `seed` (so that an episode's sampled actions depend on
+    /// its own seed only).
+    pub fn reseed(&mut self, seed: u64) {
+        match self {
+            Policy::Sac(p) => p.reseed(seed),
+            Policy::Dreamer(p) => p.reseed(seed),
+        }
+    }
+
+    /// Starts a new episode.
+    pub fn reset(&mut self) {
+        match self {
+            Policy::Sac(p) => p.reset(),
+            Policy::Dreamer(p) => p.reset(),
+        }
+    }
+
+    /// The decision for the newest observation under the episode's raw context `[c_v, c_θ]`
+    /// (SAC ignores it); the mode of the action distribution if `deterministic`.
+    pub fn act(&mut self, obs: &[f32], context: [f32; 2], deterministic: bool) -> Result<Decision> {
+        Ok(match self {
+            Policy::Sac(p) => {
+                let a = p.act(obs, deterministic)?;
+                Decision {
+                    action: [a[0], a[1]],
+                    mask: None,
+                }
+            }
+            Policy::Dreamer(p) => {
+                let (action, mask) = p.act(obs, context, deterministic)?;
+                Decision { action, mask }
+            }
+        })
+    }
+}
+
+#[cfg(test)]
+mod old_weights;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::error::Error as _;
+
+    #[test]
+    fn a_policy_error_names_its_cause_once() {
+        let config = PolicyError::from(AgentConfigError::OutOfRange(
+            "agent.dreamer.units = 0".into(),
+        ));
+        let weights = PolicyError::from(WeightsError::Format("truncated header".into()));
+        for (e, cause) in [
+            (config, "agent.dreamer.units = 0"),
+            (weights, "truncated header"),
+        ] {
+            assert!(e.to_string().contains(cause), "{e}");
+            // no chained source: a `{:#}` chain would print the cause a second time
+            assert!(e.source().is_none(), "{e}");
+        }
+    }
+}
