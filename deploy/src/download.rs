@@ -6,10 +6,11 @@
 //! the F1TENTH racetracks repository (`NAME/NAME_map.yaml`, …). The map image is the one the yaml
 //! names; the raceline is optional. A track is kept only if it then loads.
 
-use crate::track_check::{check_track, print_report, CheckPlan};
+use crate::track_cmd::print_report;
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use ctxrace_config::RaceConfig;
+use ctxrace_sim::track_check::{check_track, CheckPlan};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 

@@ -13,11 +13,10 @@
 //! `masks.part-K.csv` beside, merged into `masks.csv.gz` ([`crate::masks`]).
 
 use crate::ego::EgoSpec;
-use crate::lock::{die_with_parent, DirLock};
 use crate::masks::{self, MaskRecorder};
 use crate::render::{race_title, render_race, Frame};
+use ctxrace_run::lock::{die_with_parent, DirLock};
 
-use crate::track_check::{check_track, CheckPlan};
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use clap::Args;
@@ -33,6 +32,7 @@ use ctxrace_sim::driver::ActMode;
 use ctxrace_sim::evaluation::{
     self, episode_seed, run_episode, ContextSummary, EvalEpisode, EvalMeta,
 };
+use ctxrace_sim::track_check::{check_track, CheckPlan};
 use ctxrace_sim::RaceEnv;
 use serde::{Deserialize, Serialize};
 use std::collections::HashSet;

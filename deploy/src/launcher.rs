@@ -14,7 +14,6 @@
 //! replay and the learner are stopped together: the replay takes the actors' last chunks whatever
 //! its limiter says, so that a clean run drops no step.
 
-use crate::lock::{die_with_parent, DirLock};
 use crate::progress::progress_bar;
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
@@ -26,6 +25,7 @@ use ctxrace_ipc::{
     CleanupReport, RunTransport, TelemetrySubscriber, WeightsReceiver,
 };
 use ctxrace_learner::runlog::{EpisodeLog, RateMeter};
+use ctxrace_run::lock::{die_with_parent, DirLock};
 use ctxrace_run::results::TrainingEpisode;
 use ctxrace_run::run_dir::{open_append, ACTOR_REPORTS, LOGS, REPLAY_REPORT, STATUS_FILE};
 use std::path::Path;

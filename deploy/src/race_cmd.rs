@@ -1,7 +1,7 @@
 //! `ctxrace race`: one episode with a reference ego policy, its metrics, picture and trace.
 
 use crate::ego::EgoSpec;
-use crate::render::{check_render_path, ended_by, race_title, render_race, Frame};
+use crate::render::{check_render_path, race_title, render_race, Frame};
 use crate::TrackArgs;
 use anyhow::{Context as _, Result};
 use clap::Args;
@@ -98,7 +98,7 @@ pub fn run(args: RaceArgs) -> Result<()> {
     let mut frames = Vec::new();
     crate::render::drive_recorded(&mut policy, &mut env, args.context, args.seed, &mut frames)?;
     let m = env.metrics();
-    let ended_by = ended_by(m);
+    let ended_by = m.ended_by();
     if args.json {
         let report = RaceReport {
             track: &track.name,

@@ -9,7 +9,7 @@ use anyhow::{bail, Context as _, Result};
 use ctxrace_actor::driver::Driver;
 use ctxrace_sim::driver::Ego as _;
 use ctxrace_sim::vehicle::{idx, State, VehicleParams};
-use ctxrace_sim::{EpisodeMetrics, RaceEnv, StepInfo};
+use ctxrace_sim::{RaceEnv, StepInfo};
 use ctxrace_tracks::Track;
 use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
@@ -102,21 +102,6 @@ const RACELINE: RGBColor = RGBColor(150, 190, 150);
 /// The centreline's colour.
 const CENTRELINE: RGBColor = RGBColor(200, 200, 200);
 
-/// How the race in `m` ended, in words.
-pub fn ended_by(m: &EpisodeMetrics) -> &'static str {
-    if m.lap_time.is_some() {
-        "lap complete"
-    } else if m.a2a {
-        "collision with a rival"
-    } else if m.wall_crash {
-        "wall crash"
-    } else if m.reversed {
-        "driving backwards"
-    } else {
-        "time limit"
-    }
-}
-
 /// The title of a picture of `env`'s last episode driven by `ego` on `track`: the cars, the
 /// rivals' context and the outcome.
 pub fn race_title(track: &str, ego: &str, env: &RaceEnv) -> String {
@@ -124,7 +109,7 @@ pub fn race_title(track: &str, ego: &str, env: &RaceEnv) -> String {
     let c = env.context();
     let outcome = match m.lap_time {
         Some(t) => format!("lap complete in {t:.1} s"),
-        None => format!("{} at progress {:.2}", ended_by(m), m.progress),
+        None => format!("{} at progress {:.2}", m.ended_by(), m.progress),
     };
     format!(
         "{track} · ego {ego} vs {} rival(s) at context c_v {:+.2}, c_t {:+.2} · {outcome}",

@@ -17,10 +17,10 @@
 //! rerunning the command continues. `--emit list` prints each run's command and `--emit slurm`
 //! a Slurm array script of them, so that a cluster runs exactly what the local sweep would.
 
-use crate::lock::{die_with_parent, DirLock};
 use anyhow::{bail, Context as _, Result};
 use clap::{Args, ValueEnum};
 use ctxrace_config::{AlgoKind, ExperimentConfig};
+use ctxrace_run::lock::{die_with_parent, DirLock};
 use ctxrace_sim::driver::ActMode;
 use serde::Deserialize;
 use std::collections::BTreeMap;

@@ -7,11 +7,9 @@
 //! logging interval of the learner) and `checkpoints/step-*/` (weights, optimiser moments,
 //! counters, the acting policy and the agent's configuration).
 
-use crate::lock::DirLock;
 use crate::progress::progress_bar;
-use crate::track_check::{check_track, CheckPlan};
 use crate::TrackArgs;
-use anyhow::{bail, Context as _, Result};
+use anyhow::{bail, Result};
 use clap::Args;
 use ctxrace_actor::collect::Collector;
 use ctxrace_config::{AlgoKind, ExperimentConfig, Warmup};
@@ -19,9 +17,8 @@ use ctxrace_learner::inline::InlineProgress;
 use ctxrace_learner::process::is_trained;
 use ctxrace_nn::policy::ACT_DIM;
 use ctxrace_replay::ReplayBuffer;
-use ctxrace_run::run_dir::{
-    run_name, CHECKPOINTS, CONFIG_FILE, METRICS_CSV, METRICS_JSONL, TRAINING_EPISODES,
-};
+use ctxrace_run::run_folder::RunFolder;
+use ctxrace_sim::track_check::{check_track, CheckPlan};
 use ctxrace_sim::RaceEnv;
 use ctxrace_tracks::Track;
 use std::path::{Path, PathBuf};
@@ -117,56 +114,6 @@ fn experiment(args: &TrainArgs) -> Result<ExperimentConfig> {
     Ok(cfg)
 }
 
-/// Locks the run directory and writes the resolved experiment into it: `--run-dir` (which must
-/// not hold a run yet, unless `--resume` and it holds this one), or `runs/<`[`run_name`]`>`
-/// (with `--resume` exactly that, otherwise with `-2`, `-3`, … appended when taken). Returns the
-/// directory, its lock, and whether it resumes a run.
-fn prepare_run_dir(args: &TrainArgs, cfg: &ExperimentConfig) -> Result<(PathBuf, DirLock, bool)> {
-    let dir = match &args.run_dir {
-        Some(dir) => dir.clone(),
-        None if args.resume => PathBuf::from("runs").join(run_name(cfg)),
-        None => free_run_dir(cfg)?,
-    };
-    let lock = DirLock::acquire(&dir)?;
-    let config = dir.join(CONFIG_FILE);
-    if config.exists() {
-        if !args.resume {
-            bail!(
-                "{} already holds a run; pass another --run-dir, remove it, or continue it \
-                 with --resume",
-                dir.display()
-            );
-        }
-        let mut held = ExperimentConfig::load_saved(&config)?;
-        // the thread count changes how fast a run trains, not what it computes
-        held.train.threads = cfg.train.threads;
-        if &held != cfg {
-            bail!(
-                "{} holds another experiment than the one given (compare its {CONFIG_FILE}); \
-                 pass another --run-dir",
-                dir.display()
-            );
-        }
-    } else if args.resume {
-        tracing::info!("{} holds no run yet: starting it", dir.display());
-    }
-    let resumed = config.exists();
-    let text = cfg.to_toml().map_err(anyhow::Error::msg)?;
-    ctxrace_run::run_dir::write_atomic(&config, text.as_bytes())
-        .with_context(|| format!("writing {}", config.display()))?;
-    Ok((dir, lock, resumed))
-}
-
-/// `runs/<`[`run_name`]`>`, or the first of its `-2`, `-3`, … variants that holds no run.
-fn free_run_dir(cfg: &ExperimentConfig) -> Result<PathBuf> {
-    let base = run_name(cfg);
-    let taken = |d: &PathBuf| d.join(CONFIG_FILE).exists();
-    std::iter::once(PathBuf::from("runs").join(&base))
-        .chain((2..10_000).map(|k| PathBuf::from("runs").join(format!("{base}-{k}"))))
-        .find(|d| !taken(d))
-        .ok_or_else(|| anyhow::anyhow!("runs/{base} and -2 to -9999 are all taken; pass --run-dir"))
-}
-
 /// Refuses a map on which rivals cannot drive the training contexts (they would crash on their
 /// own in the episodes the agent learns from); other failing checks of `track check` are
 /// warnings. Checked over a 7 × 7 grid of the training contexts, from every grid place.
@@ -219,38 +166,29 @@ pub fn run(args: TrainArgs) -> Result<()> {
         check_training_track(&track, &cfg)?;
     }
     let env = RaceEnv::new(track, cfg.race.clone())?;
-    let (dir, lock, resumed) = prepare_run_dir(&args, &cfg)?;
-    if resumed && is_trained(&dir, &cfg) {
+    let run = RunFolder::prepare(&cfg, args.run_dir.as_deref(), args.resume)?;
+    if !run.resumed && args.resume {
+        tracing::info!("{} holds no run yet: starting it", run.dir.display());
+    }
+    let dir = run.dir.as_path();
+    if run.resumed && is_trained(dir, &cfg) {
         println!("{} is trained already", dir.display());
         return Ok(());
     }
     if !args.inline {
-        crate::launcher::run(&cfg, &dir, &lock, args.actors, &args.tracks)?;
-        let trained = is_trained(&dir, &cfg);
-        return finish(&args, &cfg, &dir, trained);
+        crate::launcher::run(&cfg, dir, &run.lock, args.actors, &args.tracks)?;
+        let trained = is_trained(dir, &cfg);
+        return finish(&args, &cfg, dir, trained);
     }
-    if resumed {
-        // the inline trainer keeps its replay in memory: an interrupted run starts over
-        for name in [TRAINING_EPISODES, METRICS_JSONL, METRICS_CSV, CHECKPOINTS] {
-            let path = dir.join(name);
-            let removed = if path.is_dir() {
-                std::fs::remove_dir_all(&path)
-            } else {
-                std::fs::remove_file(&path)
-            };
-            match removed {
-                Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-                    return Err(e).with_context(|| format!("removing {}", path.display()))
-                }
-                _ => {}
-            }
-        }
+    if run.resumed {
+        // the inline trainer keeps its replay in memory
+        run.start_over()?;
         eprintln!("{}: the inline run starts over", dir.display());
     }
-    train_inline(&cfg, &dir, env)?;
+    train_inline(&cfg, dir, env)?;
     // the inline run ran to its end (with warm-up by episodes its step count is not known
     // in advance)
-    finish(&args, &cfg, &dir, true)
+    finish(&args, &cfg, dir, true)
 }
 
 /// After a complete run, unless it was resumed (as sweeps do): a first look at what it learned.

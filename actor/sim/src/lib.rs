@@ -11,6 +11,7 @@ pub mod grid;
 pub mod lidar;
 pub mod race;
 pub mod rival;
+pub mod track_check;
 pub mod vehicle;
 
 pub use race::{EpisodeMetrics, RaceEnv, RaceError, Step, StepInfo};

@@ -118,6 +118,24 @@ pub struct EpisodeMetrics {
     pub rivals_crashed: usize,
 }
 
+impl EpisodeMetrics {
+    /// How the race ended, in words: lap complete, collision with a rival, wall crash, driving
+    /// backwards, or the time limit.
+    pub fn ended_by(&self) -> &'static str {
+        if self.lap_time.is_some() {
+            "lap complete"
+        } else if self.a2a {
+            "collision with a rival"
+        } else if self.wall_crash {
+            "wall crash"
+        } else if self.reversed {
+            "driving backwards"
+        } else {
+            "time limit"
+        }
+    }
+}
+
 /// The ego's reward for one decision (paper §III after Jaritz et al.; `cfg` selects how the
 /// paper's code computed it): the step reward `r = v / v_max · cos φ − d_c`, with `v` the speed,
 /// `v_max` = `reward_speed`, `φ` the heading error to the centreline and `d_c` the distance to it,

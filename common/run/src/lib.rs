@@ -1,10 +1,12 @@
-//! A ctxrace run's data: the run folder and its files (written atomically, links never
-//! followed), the result rows on disk, one env step as the actors report it, and the traits a
+//! A ctxrace run's data: the run folder (its lock, its preparation and resume rule) and its
+//! files (written atomically, links never followed), the result rows on disk, one env step as the actors report it, and the traits a
 //! single-process trainer runs on (`experience`: an experience source and a sample store).
 
 pub mod experience;
+pub mod lock;
 pub mod results;
 pub mod run_dir;
+pub mod run_folder;
 pub mod steps;
 
 pub use steps::TrajectoryStep;

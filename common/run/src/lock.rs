@@ -10,14 +10,53 @@
 //! never starts while a child still finishes a snapshot, a checkpoint or a row. Every child the
 //! binary starts dies with its parent ([`die_with_parent`]).
 
-use anyhow::{bail, Context as _, Result};
-use ctxrace_run::run_dir::LOCK_FILE;
+use crate::run_dir::LOCK_FILE;
 use std::fs::File;
 use std::io::{Read, Seek, Write};
 use std::os::fd::AsRawFd;
 use std::os::unix::process::CommandExt;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::Command;
+
+/// A directory lock that could not be taken.
+#[derive(Debug, thiserror::Error)]
+pub enum LockError {
+    /// Another process (or the processes it started) holds it.
+    #[error(
+        "{} is in use by another process ({holder}, or the processes it started, still \
+         finishing); wait for it to finish or stop it",
+        .dir.display()
+    )]
+    InUse {
+        /// The locked directory.
+        dir: PathBuf,
+        /// Who holds it, as its lock file names it (`unknown` when it names nobody).
+        holder: String,
+    },
+    /// The directory or its lock file could not be created, opened or written.
+    #[error("{what} {}", .path.display())]
+    Io {
+        /// What was being done.
+        what: &'static str,
+        /// The file or directory.
+        path: PathBuf,
+        /// The cause.
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+/// `Result` of a lock operation.
+pub type Result<T> = std::result::Result<T, LockError>;
+
+/// An I/O error while `what` on `path`.
+fn io<'a>(what: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> LockError + 'a {
+    move |source| LockError::Io {
+        what,
+        path: path.to_path_buf(),
+        source,
+    }
+}
 
 /// A held lock; dropping it releases it.
 #[derive(Debug)]
@@ -28,7 +67,7 @@ pub struct DirLock {
 impl DirLock {
     /// Locks `dir` (creating it) for this process, or fails naming the process that holds it.
     pub fn acquire(dir: &Path) -> Result<Self> {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        std::fs::create_dir_all(dir).map_err(io("creating", dir))?;
         let path = dir.join(LOCK_FILE);
         let mut file = std::fs::OpenOptions::new()
             .read(true)
@@ -36,28 +75,26 @@ impl DirLock {
             .create(true)
             .truncate(false)
             .open(&path)
-            .with_context(|| format!("opening {}", path.display()))?;
+            .map_err(io("opening", &path))?;
         // SAFETY: flock on a file descriptor this function owns; no memory is involved.
         let locked = unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } == 0;
         if !locked {
             let mut holder = String::new();
             file.read_to_string(&mut holder).ok();
-            bail!(
-                "{} is in use by another process ({}, or the processes it started, still \
-                 finishing); wait for it to finish or stop it",
-                dir.display(),
-                match holder.trim() {
-                    "" => "unknown",
-                    h => h,
-                }
-            );
+            return Err(LockError::InUse {
+                dir: dir.to_path_buf(),
+                holder: match holder.trim() {
+                    "" => "unknown".to_string(),
+                    h => h.to_string(),
+                },
+            });
         }
         let command: Vec<String> = std::env::args().collect();
-        file.set_len(0)?;
-        file.rewind()?;
-        write!(file, "pid {}: {}", std::process::id(), command.join(" "))
+        file.set_len(0)
+            .and_then(|()| file.rewind())
+            .and_then(|()| write!(file, "pid {}: {}", std::process::id(), command.join(" ")))
             .and_then(|()| file.flush())
-            .with_context(|| format!("writing {}", path.display()))?;
+            .map_err(io("writing", &path))?;
         Ok(Self { file })
     }
 
@@ -65,7 +102,11 @@ impl DirLock {
     /// program that starts children.
     pub fn try_clone(&self) -> Result<Self> {
         Ok(Self {
-            file: self.file.try_clone().context("sharing a directory lock")?,
+            file: self.file.try_clone().map_err(|source| LockError::Io {
+                what: "sharing the lock",
+                path: PathBuf::from(LOCK_FILE),
+                source,
+            })?,
         })
     }
 

@@ -1,18 +1,15 @@
-//! `ctxrace track check`: whether a map is raceable. The pure-pursuit reference ego must lap
+//! Whether a map is raceable (`ctxrace track check`, and `train`'s gate on its training contexts). The pure-pursuit reference ego must lap
 //! alone; rivals in each context of the evaluation grid must drive from each of the first grid
 //! places round to the start line with the ego standing still on it; the track must be wide
 //! enough for a car with a margin each side; the raceline's curvature must lie within the car's
 //! steering limit. Each failure says where on the track it happened.
 
-use crate::ego::EgoSpec;
-use crate::render::ended_by;
+use crate::baseline::{Baseline, BaselineKind};
+use crate::driver::{BaselineEgo, Ego as _};
+use crate::race::RaceEnv;
+use crate::vehicle::{idx, VehicleParams};
 use anyhow::Result;
 use ctxrace_config::{Context, RaceConfig};
-use ctxrace_sim::baseline::{Baseline, BaselineKind};
-use ctxrace_sim::driver::ActMode;
-use ctxrace_sim::driver::Ego as _;
-use ctxrace_sim::vehicle::{idx, VehicleParams};
-use ctxrace_sim::RaceEnv;
 use ctxrace_tracks::Track;
 use serde::Serialize;
 use std::sync::Arc;
@@ -81,23 +78,6 @@ impl CheckReport {
 
 /// The name of the rivals' check.
 const RIVALS_DRIVE: &str = "rivals drive";
-
-/// Prints `report`: each check (only the failing ones if `failures_only`) marked ok or FAIL,
-/// then the verdict.
-pub fn print_report(report: &CheckReport, failures_only: bool) {
-    for f in &report.findings {
-        if !(failures_only && f.passed) {
-            let mark = if f.passed { "ok  " } else { "FAIL" };
-            println!("{mark} {:<26} {}", f.check, f.detail);
-        }
-    }
-    let verdict = if report.raceable() {
-        "raceable"
-    } else {
-        "not raceable"
-    };
-    println!("{} is {verdict}", report.track);
-}
 
 /// Runs every check of `plan` on `track` in the race `race` describes. The cars get at least
 /// the default race's time for their lap: the checks ask whether they drive, not whether they
@@ -177,15 +157,17 @@ fn ego_laps(track: &Track, race: &RaceConfig) -> Result<Finding> {
         ..race.clone()
     };
     let mut env = RaceEnv::new(Arc::new(track.clone()), cfg)?;
-    let spec = EgoSpec::Baseline(BaselineKind::PurePursuit);
-    spec.driver(&env, ActMode::Mode)?
-        .drive_episode(&mut env, Context::default(), 0)?;
+    BaselineEgo::new(BaselineKind::PurePursuit, &env).drive_episode(
+        &mut env,
+        Context::default(),
+        0,
+    )?;
     let m = env.metrics();
     let detail = match m.lap_time {
         Some(t) => format!("lap in {t:.1} s"),
         None => {
             let s = env.ego_state();
-            format!("{} {}", ended_by(m), place(track, s[idx::X], s[idx::Y]))
+            format!("{} {}", m.ended_by(), place(track, s[idx::X], s[idx::Y]))
         }
     };
     Ok(Finding {
@@ -241,7 +223,7 @@ fn rivals_drive(track: &Track, race: &RaceConfig, plan: CheckPlan) -> Result<Vec
                 if step.terminated || step.truncated {
                     break Some(format!(
                         "did not reach the line: the race ended by {} after {:.1} s",
-                        ended_by(env.metrics()),
+                        env.metrics().ended_by(),
                         step.info.time
                     ));
                 }
