@@ -10,10 +10,9 @@
 //! already on disk. When all are done the rows are merged into `episodes.csv`, summarised per
 //! context (`contexts.csv`, `contexts.json`, see `ctxrace_sim::evaluation`) and one episode is drawn
 //! (`episode.png`, `episode.svg`). A cMask agent's masks at every decision go to
-//! `masks.part-K.csv` beside, merged into `masks.csv.gz` ([`crate::masks`]).
+//! `masks.part-K.csv` beside, merged into `masks.csv.gz` ([`ctxrace_sim::masks`]).
 
 use crate::ego::EgoSpec;
-use crate::masks::{self, MaskRecorder};
 use crate::render::{race_title, render_race, Frame};
 use ctxrace_run::lock::{die_with_parent, DirLock};
 
@@ -24,18 +23,16 @@ use ctxrace_config::{Context, RaceConfig};
 use ctxrace_learner::trained::{CheckpointChoice, TrainedAgent};
 use ctxrace_run::results;
 use ctxrace_run::run_dir::{
-    open_append, read_regular, write_atomic, EVAL_CONTEXTS_CSV, EVAL_CONTEXTS_JSON, EVAL_DIR,
-    EVAL_EPISODES, EVAL_JOB, EVAL_META,
+    EVAL_DIR, EVAL_JOB,
 };
 use ctxrace_sim::baseline::BaselineKind;
 use ctxrace_sim::driver::ActMode;
-use ctxrace_sim::evaluation::{
-    self, episode_seed, run_episode, ContextSummary, EvalEpisode, EvalMeta,
-};
+use ctxrace_sim::eval_dir;
+use ctxrace_sim::evaluation::{episode_seed, run_episode, ContextSummary, EvalMeta};
+use ctxrace_sim::masks::{self, MaskRecorder};
 use ctxrace_sim::track_check::{check_track, CheckPlan};
 use ctxrace_sim::RaceEnv;
 use serde::{Deserialize, Serialize};
-use std::collections::HashSet;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command};
@@ -60,10 +57,10 @@ pub struct EvalArgs {
     #[arg(long)]
     config: Option<PathBuf>,
     /// Grid points per context dimension.
-    #[arg(long, default_value_t = 7)]
+    #[arg(long, default_value_t = eval_dir::GRID)]
     grid: usize,
     /// Half-width of the context grid.
-    #[arg(long, default_value_t = 0.3)]
+    #[arg(long, default_value_t = eval_dir::RANGE)]
     range: f64,
     /// Race only these contexts of the grid, by index in its `c_v`-major order (the paper's
     /// code's): a list of indices and ranges (`17-48,3`), or `skip-first:K` (the paper branch,
@@ -71,7 +68,7 @@ pub struct EvalArgs {
     #[arg(long)]
     contexts: Option<String>,
     /// Episodes (laps) per context.
-    #[arg(long, default_value_t = 50)]
+    #[arg(long, default_value_t = eval_dir::LAPS)]
     laps: usize,
     /// Worker processes [default: the number of cores].
     #[arg(long)]
@@ -124,62 +121,6 @@ pub struct WorkerArgs {
     shards: usize,
 }
 
-/// The contexts of an evaluation's grid (all of them, raced or not: indices stay the grid's).
-fn contexts(meta: &EvalMeta) -> Vec<Context> {
-    Context::grid(meta.grid, meta.range)
-}
-
-/// The grid indices an evaluation races.
-fn raced(meta: &EvalMeta) -> Vec<usize> {
-    match &meta.contexts {
-        Some(chosen) => chosen.clone(),
-        None => (0..meta.grid * meta.grid).collect(),
-    }
-}
-
-/// Parses `--contexts` for a grid of `n` contexts: `skip-first:K`, or a comma-separated list
-/// of indices and inclusive ranges `a-b`. Returns the sorted, distinct indices.
-pub fn parse_contexts(spec: &str, n: usize) -> Result<Vec<usize>> {
-    let bad = |why: String| {
-        anyhow::anyhow!(
-            "--contexts {spec:?}: {why}; give indices 0 to {} of the grid (c_v major), \
-             ranges such as 17-48, or skip-first:K",
-            n - 1
-        )
-    };
-    let index = |t: &str| -> Result<usize> {
-        let i: usize = t
-            .trim()
-            .parse()
-            .map_err(|_| bad(format!("{t:?} is not an index")))?;
-        if i >= n {
-            return Err(bad(format!("{i} is outside the grid")));
-        }
-        Ok(i)
-    };
-    let mut chosen = Vec::new();
-    if let Some(k) = spec.strip_prefix("skip-first:") {
-        let k: usize = k
-            .trim()
-            .parse()
-            .map_err(|_| bad(format!("{k:?} is not a count")))?;
-        chosen.extend(k..n);
-    } else {
-        for part in spec.split(',') {
-            match part.split_once('-') {
-                Some((a, b)) => chosen.extend(index(a)?..=index(b)?),
-                None => chosen.push(index(part)?),
-            }
-        }
-    }
-    chosen.sort_unstable();
-    chosen.dedup();
-    if chosen.is_empty() {
-        return Err(bad("it selects no context".into()));
-    }
-    Ok(chosen)
-}
-
 /// The trained agent (checkpoint `choice` of a run) or reference policy named by `source`.
 fn ego_spec(source: &str, choice: CheckpointChoice) -> Result<EgoSpec> {
     match source.parse::<BaselineKind>() {
@@ -219,15 +160,17 @@ pub fn run(args: EvalArgs) -> Result<()> {
         None => crate::load_race_config(args.config.as_ref())?,
     };
     race.shipped_raceline |= args.tracks.raceline_file;
-    race.rivals = args
-        .rivals
-        .unwrap_or(if experiment.is_some() { race.rivals } else { 3 });
+    race.rivals = args.rivals.unwrap_or(if experiment.is_some() {
+        race.rivals
+    } else {
+        eval_dir::REFERENCE_RIVALS
+    });
     race.validate()?;
     let track = args
         .track
         .clone()
         .or_else(|| experiment.as_ref().map(|e| e.track.clone()))
-        .unwrap_or_else(|| "f1_esp".into());
+        .unwrap_or_else(|| eval_dir::REFERENCE_TRACK.into());
     // the protocol's rows mean little where the rivals or the reference ego crash on their own
     let check = CheckPlan {
         grid: args.grid,
@@ -241,19 +184,14 @@ pub fn run(args: EvalArgs) -> Result<()> {
     let train_range = args
         .train_range
         .or_else(|| experiment.as_ref().map(|e| e.train.context_range))
-        .unwrap_or(0.15);
+        .unwrap_or(eval_dir::TRAIN_RANGE);
     let out = match (&args.out, &spec) {
         (Some(o), _) => o.clone(),
         (None, EgoSpec::Trained(t)) => match t.checkpoint.parent().and_then(Path::parent) {
             Some(run) if t.experiment.is_some() => run.join(EVAL_DIR),
             _ => t.checkpoint.join(EVAL_DIR),
         },
-        (None, EgoSpec::Baseline(_)) => PathBuf::from(format!(
-            "eval-{}-{}-{}r",
-            spec.name(),
-            track.replace([':', '/'], "_"),
-            race.rivals
-        )),
+        (None, EgoSpec::Baseline(_)) => eval_dir::reference_dir(&spec.name(), &track, race.rivals),
     };
     let meta = EvalMeta {
         algo: spec.name(),
@@ -279,20 +217,15 @@ pub fn run(args: EvalArgs) -> Result<()> {
         contexts: args
             .contexts
             .as_deref()
-            .map(|spec| parse_contexts(spec, args.grid * args.grid))
+            .map(|spec| eval_dir::parse_contexts(spec, args.grid * args.grid))
             .transpose()?,
     };
     let lock = DirLock::acquire(&out)?;
-    prepare_out_dir(&out, &meta, args.fresh)?;
+    eval_dir::prepare(&out, &meta, args.fresh)?;
 
-    let done = finished_episodes(&out, &meta)?;
-    let chosen = raced(&meta);
-    let todo: Vec<(usize, usize)> = chosen
-        .iter()
-        .flat_map(|&c| (0..meta.laps).map(move |l| (c, l)))
-        .filter(|key| !done.contains(key))
-        .collect();
-    let total = (chosen.len() * meta.laps) as u64;
+    let todo = eval_dir::todo(&out, &meta)?;
+    let total = (meta.raced().len() * meta.laps) as u64;
+    let done = total - todo.len() as u64;
     let job = EvalJob {
         meta: meta.clone(),
         race: race.clone(),
@@ -306,91 +239,10 @@ pub fn run(args: EvalArgs) -> Result<()> {
             .clamp(1, job.todo.len());
         let job_path = out.join(EVAL_JOB);
         results::write_json(&job_path, &job)?;
-        let progress = (done.len() as u64, total);
+        let progress = (done, total);
         run_workers(&out, &meta, &job_path, workers, progress, &lock)?;
     }
     finish(&out, &meta, &race, &args.tracks, &spec)
-}
-
-/// Creates `out`, checks that earlier results belong to the same evaluation (or removes them
-/// with `fresh`) and writes `meta.json`.
-fn prepare_out_dir(out: &Path, meta: &EvalMeta, fresh: bool) -> Result<()> {
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    let meta_path = out.join(EVAL_META);
-    if fresh {
-        for entry in std::fs::read_dir(out)? {
-            let path = entry?.path();
-            let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
-            if ["episodes", "contexts", "masks"]
-                .iter()
-                .any(|prefix| name.starts_with(prefix))
-            {
-                std::fs::remove_file(&path)
-                    .with_context(|| format!("removing {}", path.display()))?;
-            }
-        }
-    } else if meta_path.exists() {
-        let old: EvalMeta = results::read_json(&meta_path)?;
-        if &old != meta {
-            bail!(
-                "{} holds results of another evaluation ({} on {}, {} rivals, grid {}, range {}, \
-                 {} laps, seed {}); pass --fresh to replace them or --out for another directory",
-                out.display(),
-                old.algo,
-                old.track,
-                old.rivals,
-                old.grid,
-                old.range,
-                old.laps,
-                old.seed
-            );
-        }
-    }
-    Ok(results::write_json(&meta_path, meta)?)
-}
-
-/// Every finished episode on disk with its context's index in the grid of `meta` (a torn
-/// last line of a killed worker is skipped).
-fn read_parts(out: &Path, meta: &EvalMeta) -> Result<Vec<(usize, EvalEpisode)>> {
-    let grid = contexts(meta);
-    let chosen = raced(meta);
-    let mut rows = Vec::new();
-    for part in results::part_files(out, "episodes.part-")? {
-        let mut reader =
-            csv::Reader::from_path(&part).with_context(|| format!("opening {}", part.display()))?;
-        for row in reader.deserialize::<EvalEpisode>() {
-            let e = match row {
-                Ok(e) => e,
-                Err(err) => {
-                    tracing::warn!("skipping a torn row of {}: {err}", part.display());
-                    continue;
-                }
-            };
-            let index = grid
-                .iter()
-                .position(|c| c.speed == e.context_speed && c.steer == e.context_steer);
-            match index {
-                Some(i) if e.lap < meta.laps && chosen.contains(&i) => rows.push((i, e)),
-                _ => bail!(
-                    "{} holds an episode outside this evaluation (context {}, {}, lap {}); \
-                     pass --fresh",
-                    part.display(),
-                    e.context_speed,
-                    e.context_steer,
-                    e.lap
-                ),
-            }
-        }
-    }
-    Ok(rows)
-}
-
-/// The `(context index, lap)` pairs already on disk.
-fn finished_episodes(out: &Path, meta: &EvalMeta) -> Result<HashSet<(usize, usize)>> {
-    Ok(read_parts(out, meta)?
-        .into_iter()
-        .map(|(c, e)| (c, e.lap))
-        .collect())
 }
 
 /// Starts the workers and waits for them, showing progress (episodes `(done, total)`) from
@@ -433,7 +285,7 @@ fn run_workers(
             }
         }
         children = running;
-        bar.set_position(read_parts(out, meta)?.len() as u64);
+        bar.set_position(eval_dir::read_parts(out, meta)?.len() as u64);
     }
     bar.finish();
     if !failed.is_empty() {
@@ -441,21 +293,6 @@ fn run_workers(
             "{} evaluation worker(s) failed ({failed:?}); rerun the same command to resume",
             failed.len()
         );
-    }
-    Ok(())
-}
-
-/// Cuts a torn last line (a worker killed mid-write) so that appending starts on a fresh line.
-fn trim_torn_line(path: &Path) -> Result<()> {
-    let bytes = match read_regular(path, u64::MAX) {
-        Ok(bytes) => bytes,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
-        Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
-    };
-    if bytes.last().is_some_and(|&b| b != b'\n') {
-        let keep = bytes.iter().rposition(|&b| b == b'\n').map_or(0, |i| i + 1);
-        write_atomic(path, &bytes[..keep])
-            .with_context(|| format!("repairing {}", path.display()))?;
     }
     Ok(())
 }
@@ -469,8 +306,8 @@ pub fn run_worker(args: WorkerArgs) -> Result<()> {
     let track = Arc::new(job.tracks.load(&job.meta.track, &job.race)?);
     let mut env = RaceEnv::new(track, job.race.clone())?;
     let mut driver = spec.driver(&env, job.meta.act)?;
-    let grid = contexts(&job.meta);
-    let mut writer = append_csv(&out.join(format!("episodes.part-{:03}.csv", args.shard)))?;
+    let grid = job.meta.grid_contexts();
+    let mut writer = eval_dir::append_csv(&eval_dir::part_path(out, args.shard))?;
     let mut masks = None;
     for &(index, lap) in job.todo.iter().skip(args.shard).step_by(args.shards) {
         let context = grid[index];
@@ -484,7 +321,7 @@ pub fn run_worker(args: WorkerArgs) -> Result<()> {
         if !rows.is_empty() {
             let masks = match masks.as_mut() {
                 Some(open) => open,
-                None => masks.insert(append_csv(&masks::part_path(out, args.shard))?),
+                None => masks.insert(eval_dir::append_csv(&masks::part_path(out, args.shard))?),
             };
             for row in rows {
                 masks.serialize(row)?;
@@ -497,17 +334,6 @@ pub fn run_worker(args: WorkerArgs) -> Result<()> {
     Ok(())
 }
 
-/// A CSV writer appending to `path` (after cutting a torn last line), with a header when the
-/// file is new or empty.
-fn append_csv(path: &Path) -> Result<csv::Writer<std::fs::File>> {
-    trim_torn_line(path)?;
-    let fresh = !path.exists() || std::fs::metadata(path)?.len() == 0;
-    let file = open_append(path).with_context(|| format!("opening {}", path.display()))?;
-    Ok(csv::WriterBuilder::new()
-        .has_headers(fresh)
-        .from_writer(file))
-}
-
 /// Merges the workers' rows, writes the per-context summaries, draws one episode and prints
 /// the in- and out-of-distribution means.
 fn finish(
@@ -517,32 +343,7 @@ fn finish(
     tracks: &TrackArgs,
     spec: &EgoSpec,
 ) -> Result<()> {
-    let mut rows = read_parts(out, meta)?;
-    rows.sort_by_key(|(c, e)| (*c, e.lap));
-    rows.dedup_by_key(|(c, e)| (*c, e.lap));
-    let expected = raced(meta).len() * meta.laps;
-    if rows.len() != expected {
-        bail!(
-            "{} holds {} of {expected} episodes; rerun the same command to finish",
-            out.display(),
-            rows.len()
-        );
-    }
-    let episodes: Vec<EvalEpisode> = rows.into_iter().map(|(_, e)| e).collect();
-    results::write_csv(&out.join(EVAL_EPISODES), &episodes)?;
-    let summary = evaluation::summarise(&episodes, meta.train_range);
-    results::write_csv(&out.join(EVAL_CONTEXTS_CSV), &summary)?;
-    results::write_json(&out.join(EVAL_CONTEXTS_JSON), &summary)?;
-    let grid = contexts(meta);
-    let chosen = raced(meta);
-    let kept = |c: Context, lap: usize| {
-        lap < meta.laps
-            && grid
-                .iter()
-                .position(|&g| g == c)
-                .is_some_and(|i| chosen.contains(&i))
-    };
-    let masks = masks::merge_parts(out, kept)?;
+    let eval_dir::Merged { summary, mask_rows } = eval_dir::merge(out, meta)?;
 
     let track = Arc::new(tracks.load(&meta.track, race)?);
     let mut env = RaceEnv::new(track.clone(), race.clone())?;
@@ -593,7 +394,7 @@ fn finish(
             100.0 * mean(|s| s.wall_crash)
         )?;
     }
-    if let Some(rows) = masks {
+    if let Some(rows) = mask_rows {
         writeln!(
             stdout,
             "  cMask's masks: {rows} decisions -> {}",
@@ -601,49 +402,4 @@ fn finish(
         )?;
     }
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn episode_seeds_are_distinct_across_the_grid() {
-        let seeds: HashSet<u64> = (0..49)
-            .flat_map(|c| (0..50).map(move |l| episode_seed(7, c, l)))
-            .collect();
-        assert_eq!(seeds.len(), 49 * 50);
-    }
-
-    #[test]
-    fn a_context_subset_parses_as_grid_indices() {
-        // the paper branch's evaluation: the last 32 of the 49
-        assert_eq!(
-            parse_contexts("skip-first:17", 49).unwrap(),
-            (17..49).collect::<Vec<_>>()
-        );
-        assert_eq!(parse_contexts("5,0-2, 2", 9).unwrap(), [0, 1, 2, 5]);
-        for (spec, why) in [
-            ("49", "outside the grid"),
-            ("3-x", "not an index"),
-            ("skip-first:49", "no context"),
-            ("skip-first:-1", "not a count"),
-            ("", "not an index"),
-        ] {
-            let err = parse_contexts(spec, 49).unwrap_err().to_string();
-            assert!(
-                err.contains("--contexts") && err.contains(why),
-                "{spec}: {err}"
-            );
-        }
-    }
-
-    #[test]
-    fn a_torn_last_line_is_cut() {
-        let dir = tempfile::tempdir().unwrap();
-        let p = dir.path().join("part.csv");
-        std::fs::write(&p, "a,b\n1,2\n3,").unwrap();
-        trim_torn_line(&p).unwrap();
-        assert_eq!(std::fs::read_to_string(&p).unwrap(), "a,b\n1,2\n");
-    }
 }

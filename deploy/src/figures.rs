@@ -3,7 +3,6 @@
 //! evaluation's episode pictures copied over.
 
 use crate::groups::{sections, Group, Metric, Run};
-use crate::masks::{ContextMasks, PROGRESS_BINS};
 use crate::paper::bootstrap_ci;
 use crate::parity::ParityCurves;
 use crate::plot::{plot_err, register_font, save_png_and_svg, Figure};
@@ -13,6 +12,7 @@ use anyhow::{Context as _, Result};
 use ctxrace_config::{Context, RaceConfig};
 use ctxrace_run::results::TrainingEpisode;
 use ctxrace_sim::evaluation::A2A_PER_LAPS;
+use ctxrace_sim::masks::{ContextMasks, PROGRESS_BINS};
 use ctxrace_sim::rival::{drive_solo_lap, SoloLap};
 use ctxrace_tracks::Track;
 use plotters::coord::Shift;

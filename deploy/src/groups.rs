@@ -2,7 +2,6 @@
 //! runs are its training seeds), with the paper's metrics and splits: each run's metric averaged
 //! over its in- or out-of-distribution contexts, and those per-run means over a group's seeds.
 
-use crate::masks::{load_summary, MaskSummary};
 use anyhow::{bail, Result};
 use ctxrace_run::results::{read_csv, read_json, TrainingEpisode};
 use ctxrace_run::run_dir::{
@@ -11,6 +10,7 @@ use ctxrace_run::run_dir::{
 use ctxrace_sim::baseline::BaselineKind;
 use ctxrace_sim::evaluation::EvalMeta;
 use ctxrace_sim::evaluation::{summarise, ContextSummary, EvalEpisode};
+use ctxrace_sim::masks::{load_summary, MaskSummary};
 use std::path::{Path, PathBuf};
 
 /// One evaluated agent or baseline, as read from disk.

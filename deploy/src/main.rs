@@ -11,7 +11,6 @@ mod figures;
 mod first_look;
 mod groups;
 mod launcher;
-mod masks;
 mod paper;
 mod parity;
 mod plot;

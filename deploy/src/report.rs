@@ -12,11 +12,11 @@
 //!   ([`crate::paper`]).
 
 use crate::groups::{group, sections, Group, Metric, Run, Split, Stat};
-use crate::masks::ContextMasks;
 use crate::table::Table;
 use crate::TrackArgs;
 use anyhow::{Context as _, Result};
 use clap::Args;
+use ctxrace_sim::masks::ContextMasks;
 use std::path::{Path, PathBuf};
 
 /// Arguments of `ctxrace report`.

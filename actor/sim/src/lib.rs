@@ -6,9 +6,11 @@
 pub mod baseline;
 pub mod collision;
 pub mod driver;
+pub mod eval_dir;
 pub mod evaluation;
 pub mod grid;
 pub mod lidar;
+pub mod masks;
 pub mod race;
 pub mod rival;
 pub mod track_check;

@@ -4,6 +4,7 @@
 
 pub mod experience;
 pub mod lock;
+pub mod path_error;
 pub mod results;
 pub mod run_dir;
 pub mod run_folder;

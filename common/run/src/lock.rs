@@ -10,6 +10,7 @@
 //! never starts while a child still finishes a snapshot, a checkpoint or a row. Every child the
 //! binary starts dies with its parent ([`die_with_parent`]).
 
+use crate::path_error::PathIoError;
 use crate::run_dir::LOCK_FILE;
 use std::fs::File;
 use std::io::{Read, Seek, Write};
@@ -34,29 +35,12 @@ pub enum LockError {
         holder: String,
     },
     /// The directory or its lock file could not be created, opened or written.
-    #[error("{what} {}", .path.display())]
-    Io {
-        /// What was being done.
-        what: &'static str,
-        /// The file or directory.
-        path: PathBuf,
-        /// The cause.
-        #[source]
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    Io(#[from] PathIoError),
 }
 
 /// `Result` of a lock operation.
 pub type Result<T> = std::result::Result<T, LockError>;
-
-/// An I/O error while `what` on `path`.
-fn io<'a>(what: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> LockError + 'a {
-    move |source| LockError::Io {
-        what,
-        path: path.to_path_buf(),
-        source,
-    }
-}
 
 /// A held lock; dropping it releases it.
 #[derive(Debug)]
@@ -67,7 +51,7 @@ pub struct DirLock {
 impl DirLock {
     /// Locks `dir` (creating it) for this process, or fails naming the process that holds it.
     pub fn acquire(dir: &Path) -> Result<Self> {
-        std::fs::create_dir_all(dir).map_err(io("creating", dir))?;
+        std::fs::create_dir_all(dir).map_err(PathIoError::at("creating", dir))?;
         let path = dir.join(LOCK_FILE);
         let mut file = std::fs::OpenOptions::new()
             .read(true)
@@ -75,7 +59,7 @@ impl DirLock {
             .create(true)
             .truncate(false)
             .open(&path)
-            .map_err(io("opening", &path))?;
+            .map_err(PathIoError::at("opening", &path))?;
         // SAFETY: flock on a file descriptor this function owns; no memory is involved.
         let locked = unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } == 0;
         if !locked {
@@ -94,7 +78,7 @@ impl DirLock {
             .and_then(|()| file.rewind())
             .and_then(|()| write!(file, "pid {}: {}", std::process::id(), command.join(" ")))
             .and_then(|()| file.flush())
-            .map_err(io("writing", &path))?;
+            .map_err(PathIoError::at("writing", &path))?;
         Ok(Self { file })
     }
 
@@ -102,11 +86,10 @@ impl DirLock {
     /// program that starts children.
     pub fn try_clone(&self) -> Result<Self> {
         Ok(Self {
-            file: self.file.try_clone().map_err(|source| LockError::Io {
-                what: "sharing the lock",
-                path: PathBuf::from(LOCK_FILE),
-                source,
-            })?,
+            file: self
+                .file
+                .try_clone()
+                .map_err(PathIoError::at("sharing the lock", Path::new(LOCK_FILE)))?,
         })
     }
 

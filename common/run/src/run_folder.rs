@@ -5,6 +5,7 @@
 //! single-process trainer and any other program that trains prepare their run through here.
 
 use crate::lock::{DirLock, LockError};
+use crate::path_error::PathIoError;
 use crate::run_dir::{
     run_name, write_atomic, CHECKPOINTS, CONFIG_FILE, METRICS_CSV, METRICS_JSONL, TRAINING_EPISODES,
 };
@@ -41,16 +42,8 @@ pub enum RunFolderError {
     #[error(transparent)]
     Experiment(#[from] ExperimentError),
     /// A file of the folder could not be written or removed.
-    #[error("{what} {}", .path.display())]
-    Io {
-        /// What was being done.
-        what: &'static str,
-        /// The file.
-        path: PathBuf,
-        /// The cause.
-        #[source]
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    Io(#[from] PathIoError),
 }
 
 /// A locked run folder holding the experiment's `config.toml`.
@@ -94,11 +87,7 @@ impl RunFolder {
             }
         }
         let text = cfg.to_toml()?;
-        write_atomic(&config, text.as_bytes()).map_err(|source| RunFolderError::Io {
-            what: "writing",
-            path: config.clone(),
-            source,
-        })?;
+        write_atomic(&config, text.as_bytes()).map_err(PathIoError::at("writing", &config))?;
         Ok(Self { dir, lock, resumed })
     }
 
@@ -113,12 +102,8 @@ impl RunFolder {
                 std::fs::remove_file(&path)
             };
             match removed {
-                Err(source) if source.kind() != std::io::ErrorKind::NotFound => {
-                    return Err(RunFolderError::Io {
-                        what: "removing",
-                        path,
-                        source,
-                    })
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                    return Err(PathIoError::at("removing", &path)(e).into())
                 }
                 _ => {}
             }

@@ -12,16 +12,61 @@
 //! `ctxrace report` reads the file back as a [`MaskSummary`]: the mean of each mask component per
 //! context and along the lap.
 
-use anyhow::{bail, Context as _, Result};
+use crate::driver::Decided;
+use crate::race::RaceEnv;
 use ctxrace_config::Context;
+use ctxrace_run::path_error::PathIoError;
+use ctxrace_run::results::ResultsError;
 use ctxrace_run::run_dir::write_atomic;
-use ctxrace_sim::driver::Decided;
-use ctxrace_sim::RaceEnv;
 use flate2::read::MultiGzDecoder;
 use flate2::write::GzEncoder;
 use serde::{Deserialize, Serialize};
 use std::io::Write;
 use std::path::{Path, PathBuf};
+
+/// A mask file that could not be read, written or trusted.
+#[derive(Debug, thiserror::Error)]
+pub enum MaskFileError {
+    /// A file could not be opened, written or removed.
+    #[error(transparent)]
+    Io(#[from] PathIoError),
+    /// A row could not be read or written as CSV.
+    #[error("{} row {row}", .path.display())]
+    Csv {
+        /// The file.
+        path: PathBuf,
+        /// The row's line (the header is line 1).
+        row: usize,
+        /// The cause.
+        #[source]
+        source: csv::Error,
+    },
+    /// A mask outside `[0, 1]` or a value that is not a number.
+    #[error(
+        "{} row {row}: a mask outside [0, 1] or a value that is not a number (masks \
+         {mask_speed}, {mask_steer}); the file is damaged: evaluate again with --fresh",
+        .path.display()
+    )]
+    Damaged {
+        /// The file.
+        path: PathBuf,
+        /// The row's line.
+        row: usize,
+        /// Its `c_v` mask.
+        mask_speed: f64,
+        /// Its `c_θ` mask.
+        mask_steer: f64,
+    },
+    /// The file holds no decision.
+    #[error("{}: no decisions", .0.display())]
+    Empty(PathBuf),
+    /// The workers' part files could not be listed.
+    #[error(transparent)]
+    Parts(#[from] ResultsError),
+}
+
+/// `Result` of reading or writing mask files.
+pub type Result<T> = std::result::Result<T, MaskFileError>;
 
 /// The merged mask file of an evaluation directory.
 pub const MASKS_FILE: &str = "masks.csv.gz";
@@ -82,7 +127,7 @@ impl MaskRecorder {
         }
     }
 
-    /// Takes one observation of [`ctxrace_actor::driver::Driver::drive_observed`].
+    /// Takes one observation of [`crate::driver::Ego::drive_observed`].
     pub fn observe(&mut self, env: &RaceEnv, decided: &Decided) {
         if let Some([speed, steer]) = decided.mask {
             let (progress, x, y) = self.pose;
@@ -130,8 +175,11 @@ pub fn merge_parts(out: &Path, keep: impl Fn(Context, usize) -> bool) -> Result<
     }
     let mut rows: Vec<MaskStep> = Vec::new();
     for part in &parts {
-        let mut reader =
-            csv::Reader::from_path(part).with_context(|| format!("opening {}", part.display()))?;
+        let mut reader = csv::Reader::from_path(part).map_err(|source| MaskFileError::Csv {
+            path: part.clone(),
+            row: 1,
+            source,
+        })?;
         for row in reader.deserialize::<MaskStep>() {
             match row {
                 Ok(r) => {
@@ -159,7 +207,7 @@ pub fn merge_parts(out: &Path, keep: impl Fn(Context, usize) -> bool) -> Result<
     rows.dedup_by(|a, b| key(a) == key(b));
     write_masks(&out.join(MASKS_FILE), &rows)?;
     for part in parts {
-        std::fs::remove_file(&part).with_context(|| format!("removing {}", part.display()))?;
+        std::fs::remove_file(&part).map_err(PathIoError::at("removing", &part))?;
     }
     Ok(Some(rows.len()))
 }
@@ -168,16 +216,19 @@ pub fn merge_parts(out: &Path, keep: impl Fn(Context, usize) -> bool) -> Result<
 pub fn write_masks(path: &Path, rows: &[MaskStep]) -> Result<()> {
     let gz = GzEncoder::new(Vec::new(), flate2::Compression::default());
     let mut writer = csv::Writer::from_writer(gz);
-    for row in rows {
-        writer.serialize(row)?;
+    for (i, row) in rows.iter().enumerate() {
+        writer.serialize(row).map_err(|source| MaskFileError::Csv {
+            path: path.to_path_buf(),
+            row: i + 2,
+            source,
+        })?;
     }
     let mut gz = writer
         .into_inner()
-        .map_err(|e| anyhow::anyhow!("{}", e.error()))
-        .with_context(|| format!("writing {}", path.display()))?;
-    gz.flush()?;
-    let bytes = gz.finish()?;
-    write_atomic(path, &bytes).with_context(|| format!("writing {}", path.display()))
+        .map_err(|e| PathIoError::at("writing", path)(e.into_error()))?;
+    gz.flush().map_err(PathIoError::at("writing", path))?;
+    let bytes = gz.finish().map_err(PathIoError::at("writing", path))?;
+    Ok(write_atomic(path, &bytes).map_err(PathIoError::at("writing", path))?)
 }
 
 /// Mean masks of one context.
@@ -239,7 +290,7 @@ pub fn load_summary(dir: &Path) -> Result<Option<MaskSummary>> {
     if !path.is_file() {
         return Ok(None);
     }
-    let file = std::fs::File::open(&path).with_context(|| format!("opening {}", path.display()))?;
+    let file = std::fs::File::open(&path).map_err(PathIoError::at("opening", &path))?;
     let mut reader = csv::Reader::from_reader(MultiGzDecoder::new(std::io::BufReader::new(file)));
     let mut summary = MaskSummary {
         range: [(f64::INFINITY, f64::NEG_INFINITY); 2],
@@ -248,19 +299,21 @@ pub fn load_summary(dir: &Path) -> Result<Option<MaskSummary>> {
     // the lap being read (rows come lap by lap): its context, lap index and points
     let mut lap: Option<(Context, usize, Vec<LapPoint>)> = None;
     for (i, row) in reader.deserialize::<MaskStep>().enumerate() {
-        let r = row.with_context(|| format!("{} row {}", path.display(), i + 2))?;
+        let r = row.map_err(|source| MaskFileError::Csv {
+            path: path.clone(),
+            row: i + 2,
+            source,
+        })?;
         let masks = [r.mask_speed, r.mask_steer];
         let numbers = [r.context_speed, r.context_steer, r.progress, r.x, r.y];
         if !numbers.iter().all(|v| v.is_finite()) || !masks.iter().all(|m| (0.0..=1.0).contains(m))
         {
-            bail!(
-                "{} row {}: a mask outside [0, 1] or a value that is not a number \
-                 (masks {}, {}); the file is damaged: evaluate again with --fresh",
-                path.display(),
-                i + 2,
-                r.mask_speed,
-                r.mask_steer
-            );
+            return Err(MaskFileError::Damaged {
+                path,
+                row: i + 2,
+                mask_speed: r.mask_speed,
+                mask_steer: r.mask_steer,
+            });
         }
         let context = Context {
             speed: r.context_speed,
@@ -298,7 +351,7 @@ pub fn load_summary(dir: &Path) -> Result<Option<MaskSummary>> {
     }
     keep_if_longest(&mut summary, lap);
     if summary.decisions == 0 {
-        bail!("{}: no decisions", path.display());
+        return Err(MaskFileError::Empty(path));
     }
     Ok(Some(summary))
 }
