@@ -6,7 +6,6 @@
 //! the F1TENTH racetracks repository (`NAME/NAME_map.yaml`, …). The map image is the one the yaml
 //! names; the raceline is optional. A track is kept only if it then loads.
 
-use crate::track_cmd::print_report;
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use ctxrace_config::RaceConfig;
@@ -151,7 +150,7 @@ pub fn run(
             &RaceConfig::default(),
             CheckPlan::default(),
         )?;
-        print_report(&report, true);
+        println!("{}", report.to_text(true));
     }
     Ok(())
 }

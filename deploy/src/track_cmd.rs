@@ -4,7 +4,6 @@ use crate::TrackArgs;
 use anyhow::{Context, Result};
 use clap::Subcommand;
 use ctxrace_config::RaceConfig;
-use ctxrace_sim::track_check::CheckReport;
 use ctxrace_sim::track_check::{check_track, CheckPlan};
 use ctxrace_tracks::files::write_raceline;
 use ctxrace_tracks::Track;
@@ -192,7 +191,7 @@ pub fn run(cmd: TrackCommand) -> Result<()> {
             if json {
                 println!("{}", serde_json::to_string_pretty(&report)?);
             } else {
-                print_report(&report, false);
+                println!("{}", report.to_text(false));
             }
             anyhow::ensure!(
                 report.raceable(),
@@ -225,21 +224,4 @@ pub fn run(cmd: TrackCommand) -> Result<()> {
         }
     }
     Ok(())
-}
-
-/// Prints `report`: each check (only the failing ones if `failures_only`) marked ok or FAIL,
-/// then the verdict.
-pub fn print_report(report: &CheckReport, failures_only: bool) {
-    for f in &report.findings {
-        if !(failures_only && f.passed) {
-            let mark = if f.passed { "ok  " } else { "FAIL" };
-            println!("{mark} {:<26} {}", f.check, f.detail);
-        }
-    }
-    let verdict = if report.raceable() {
-        "raceable"
-    } else {
-        "not raceable"
-    };
-    println!("{} is {verdict}", report.track);
 }

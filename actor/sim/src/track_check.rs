@@ -74,6 +74,24 @@ impl CheckReport {
     pub fn failures(&self) -> impl Iterator<Item = &Finding> {
         self.findings.iter().filter(|f| !f.passed)
     }
+
+    /// The report as lines of text: each check (only the failing ones if `failures_only`)
+    /// marked ok or FAIL, then the verdict.
+    pub fn to_text(&self, failures_only: bool) -> String {
+        let mut text = String::new();
+        for f in &self.findings {
+            if !(failures_only && f.passed) {
+                let mark = if f.passed { "ok  " } else { "FAIL" };
+                text += &format!("{mark} {:<26} {}\n", f.check, f.detail);
+            }
+        }
+        let verdict = if self.raceable() {
+            "raceable"
+        } else {
+            "not raceable"
+        };
+        text + &format!("{} is {verdict}", self.track)
+    }
 }
 
 /// The name of the rivals' check.
