@@ -125,6 +125,9 @@ pub struct SweepEval {
     pub act: ActMode,
     /// Seed of the evaluation episodes.
     pub seed: u64,
+    /// Race only these contexts of the grid, as `ctxrace eval --contexts` takes them (e.g.
+    /// `"17-48"`, the paper's code's test contexts) [default: all].
+    pub contexts: Option<String>,
 }
 
 impl Default for SweepEval {
@@ -136,7 +139,19 @@ impl Default for SweepEval {
             checkpoint: "best".into(),
             act: ActMode::Sample,
             seed: 0,
+            contexts: None,
         }
+    }
+}
+
+impl SweepEval {
+    /// The grid indices its `contexts` selects (none: the whole grid).
+    fn chosen(&self) -> Result<Option<Vec<usize>>> {
+        Ok(self
+            .contexts
+            .as_deref()
+            .map(|spec| ctxrace_sim::eval_dir::parse_contexts(spec, self.grid * self.grid))
+            .transpose()?)
     }
 }
 
@@ -178,6 +193,9 @@ impl MatrixFile {
             .checkpoint
             .parse::<ctxrace_learner::trained::CheckpointChoice>()
             .map_err(|e| anyhow::anyhow!("matrix {}: [eval] checkpoint: {e}", path.display()))?;
+        m.eval
+            .chosen()
+            .with_context(|| format!("matrix {}: [eval] contexts", path.display()))?;
         Ok(m)
     }
 
@@ -349,6 +367,7 @@ fn is_evaluated(dir: &Path, eval: &SweepEval) -> bool {
             == (eval.grid, eval.laps, eval.seed, eval.act)
         && meta.range == eval.range
         && meta.checkpoint == eval.checkpoint
+        && eval.chosen().is_ok_and(|chosen| chosen == meta.contexts)
 }
 
 /// Trains (or resumes) and evaluates one run in `<out>/<name>`, with `cores` cores. A stop
@@ -407,6 +426,9 @@ fn run_one(matrix: &MatrixFile, run: &MatrixRun, out: &Path, cores: usize) -> Re
         "--workers",
         &cores.to_string(),
     ]);
+    if let Some(contexts) = &e.contexts {
+        eval.args(["--contexts", contexts]);
+    }
     wait_for(eval, &format!("evaluating {}", run.name))?;
     if stop.load(Ordering::Relaxed) {
         bail!("interrupted while evaluating {}", run.name);
@@ -762,6 +784,30 @@ train_ratio = 2.0
             "{axes}seeds = [0]\n[eval]\ncheckpoint = \"top\"\n"
         ))
         .contains("checkpoint"));
+        let err = write(&format!("{axes}seeds = [0]\n[eval]\ncontexts = \"40-60\"\n"));
+        assert!(
+            err.contains("[eval] contexts") && err.contains("outside the grid"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn the_table2_matrix_evaluates_the_papers_test_contexts() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/paper/table2.toml");
+        let m = MatrixFile::load(&path).unwrap();
+        let runs = m
+            .runs(path.parent().unwrap(), None, &Only::default())
+            .unwrap();
+        // 4 algorithms x 1 and 3 rivals x 5 seeds
+        assert_eq!(runs.len(), 40);
+        assert_eq!(m.eval.chosen().unwrap(), Some((17..49).collect()));
+        assert!(runs
+            .iter()
+            .all(|r| r.config.race.preset == ctxrace_config::RacePreset::PaperCode));
+        // the same env-step budget for every algorithm
+        assert!(runs
+            .iter()
+            .all(|r| r.config.train.env_steps == runs[0].config.train.env_steps));
     }
 
     #[test]
