@@ -5,7 +5,7 @@
 //! or `y = p`. Backward, from the output's gradient `∂y`: the product's gradient `∂p` (the
 //! normalisation's backward pass, [`crate::kernels`]' `norm_act`), then
 //! `∂W += ∂pᵀ x`, `∂b += Σ_rows ∂p`, and `∂x = ∂p W` for the input columns asked for. Input
-//! columns that are mostly zero (the one-hot `z` of a state, [`crate::kernels::sparse_inputs`])
+//! columns that are mostly zero (the one-hot `z` of a state, [`crate::kernels::SparseColumns`])
 //! are multiplied over their non-zeros, forward and in the weight's gradient.
 
 use super::parameters::{update_each, NamedTensor, Parameters};

@@ -33,7 +33,8 @@ pub struct SparseColumns {
 
 impl SparseColumns {
     /// The non-zeros of `columns` of `x` (`[rows, width]`), or `None` if more than
-    /// [`MAX_DENSITY`] of them are non-zero (or the range is empty or outside the width).
+    /// `MAX_DENSITY` (an eighth) of them are non-zero (or the range is empty or outside the
+    /// width).
     pub fn gather(x: &[f32], width: usize, columns: &Range<usize>) -> Option<Self> {
         if columns.is_empty() || columns.end > width || width == 0 {
             return None;
