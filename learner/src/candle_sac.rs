@@ -3,8 +3,8 @@
 
 use candle_core::{Module, Result, Tensor, D};
 use candle_nn::VarBuilder;
-use ctxrace_nn::oracle::Mlp;
 use ctxrace_nn::Activation;
+use ctxrace_oracle::Mlp;
 
 /// Twin critics `Q_1, Q_2 (o, a)`: two ReLU MLPs `q1`, `q2` on `[o, a]`, held by candle.
 pub(crate) struct TwinQ {

@@ -343,8 +343,8 @@ mod tests {
     use crate::sequences::SeqData;
     use crate::world_model::oracle;
     use candle_core::{Device, Result, Tensor};
-    use ctxrace_nn::oracle::TanhGaussianActor;
     use ctxrace_nn::{Activation, MlpShape, Parameters, Weights};
+    use ctxrace_oracle::TanhGaussianActor;
     use rand::{Rng, SeedableRng};
 
     /// One sequence of one-value observations and actions (actions and contexts zero): its

@@ -487,9 +487,9 @@ mod tests {
     use candle_core::{Device, Module, Tensor};
     use ctxrace_config::agents::{ContextMode, ImaginationLoss, MaskConfig, MaskSpace};
     use ctxrace_config::SequenceBatch;
-    use ctxrace_nn::kernels::soft_cross_entropy;
-    use ctxrace_nn::oracle::dreamer::{normals_per, uniforms_per};
-    use ctxrace_nn::oracle::{DreamerNets, Mlp as CandleMlp, ParamStore, RssmState};
+    use ctxrace_oracle::dreamer::{normals_per, uniforms_per};
+    use ctxrace_oracle::kernels::soft_cross_entropy;
+    use ctxrace_oracle::{DreamerNets, Mlp as CandleMlp, ParamStore, RssmState, TwoHotTensors};
     use rand::Rng;
 
     fn tiny(context: ContextMode) -> DreamerConfig {
@@ -903,7 +903,7 @@ mod tests {
 
     #[test]
     fn world_model_losses_fall_on_point_mass_data() {
-        ctxrace_nn::oracle::candle_on_one_thread();
+        ctxrace_oracle::candle_on_one_thread();
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         let data = collect(40, &mut rng);
         // the best constant reward prediction scores the entropy of the mean two-hot target
@@ -1428,7 +1428,7 @@ mod tests {
     /// Trains an agent of `mode` for 300 steps on random point-mass data and returns the mean
     /// returns of its deterministic policy and of a random one over the same starts.
     fn point_mass_returns(mode: ContextMode) -> (f64, f64) {
-        ctxrace_nn::oracle::candle_on_one_thread();
+        ctxrace_oracle::candle_on_one_thread();
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         let data = collect(60, &mut rng);
         let cfg = DreamerConfig {

@@ -346,8 +346,8 @@ mod tests {
     use crate::candle_sac::TwinQ;
     use candle_core::{Device, Tensor};
     use candle_nn::Init;
-    use ctxrace_nn::oracle::{ParamStore, TanhGaussianActor};
     use ctxrace_nn::Parameters;
+    use ctxrace_oracle::{ParamStore, TanhGaussianActor};
     use std::collections::BTreeMap;
 
     /// `b` random transitions with observations in `[−1, 1]^o` and actions in `[−1, 1]^a`.
@@ -1084,7 +1084,7 @@ mod tests {
 
     #[test]
     fn learns_to_centre_a_point_mass() {
-        ctxrace_nn::oracle::candle_on_one_thread();
+        ctxrace_oracle::candle_on_one_thread();
         // seeds 1..=5 give final |x| 0.003–0.021 (random 0.47–0.60) as well
         let (learned, random) = train_point_mass(0);
         assert!(random > 0.3, "random policy final |x| {random}");

@@ -585,9 +585,9 @@ pub(crate) mod oracle {
     //! The networks as candle modules holding the plain networks' weights: the tests' oracle.
     use super::*;
     use candle_core::backprop::GradStore;
-    use ctxrace_nn::oracle::{DreamerNets, Mlp as CandleMlp, ParamStore};
     use ctxrace_nn::parameters::to_safetensors;
     use ctxrace_nn::Activation;
+    use ctxrace_oracle::{DreamerNets, Mlp as CandleMlp, ParamStore};
 
     /// A candle head on `[h, z, c]` of `cfg` under `vb` ([`state_head`]'s).
     pub(crate) fn head(
@@ -686,9 +686,10 @@ mod tests {
     use crate::sequences::SeqData;
     use candle_core::{Device, Module, Tensor};
     use ctxrace_config::agents::{ContextMode, InitialState};
-    use ctxrace_nn::oracle::dreamer::uniforms_per;
-    use ctxrace_nn::oracle::{
-        symlog as symlog_tensor, DreamerNets, Mlp as CandleMlp, ParamStore, RssmState,
+    use ctxrace_oracle::dreamer::uniforms_per;
+    use ctxrace_oracle::{
+        symlog as symlog_tensor, DreamerNets, FromOracle, Mlp as CandleMlp, ParamStore, RssmState,
+        TwoHotTensors,
     };
     use rand::{Rng, SeedableRng};
 

@@ -124,7 +124,7 @@ pub fn state_head(
 }
 
 /// The RSSM's sizes for `cfg`, observations of `obs_dim` and actions of `act_dim`.
-pub(super) fn rssm_config(cfg: &DreamerConfig, obs_dim: usize, act_dim: usize) -> RssmConfig {
+pub fn rssm_config(cfg: &DreamerConfig, obs_dim: usize, act_dim: usize) -> RssmConfig {
     let enc_in = cfg.encoder_inputs(obs_dim, act_dim);
     RssmConfig {
         deter: cfg.deter,

@@ -1,6 +1,7 @@
 //! ctxrace's networks, shared by acting and training, on plain row-major `f32` buffers (CPU),
-//! differentiated by hand, and the acting policies the actors run ([`policy`]); candle's modules are the tests' oracle only ([`oracle`]: `cfg(test)`
-//! or the `oracle` feature).
+//! differentiated by hand, and the acting policies the actors run ([`policy`]). No candle: the
+//! same networks as candle modules, which every hand-written pass is checked against, are the
+//! tests' oracle, the dev-only crate `ctxrace-oracle`.
 //!
 //! - [`layer`]: a layer and an MLP ([`Layer`], [`Mlp`]), their traces and gradients.
 //! - [`rssm`]: DreamerV3's RSSM with the cRSSM context ([`Rssm`]).
@@ -19,8 +20,6 @@ pub mod initial_weights;
 pub mod kernels;
 pub mod layer;
 pub mod losses;
-#[cfg(any(test, feature = "oracle"))]
-pub mod oracle;
 pub mod parameters;
 pub mod policy;
 pub mod rssm;

@@ -1,7 +1,8 @@
 //! The world model's and the critics' row losses, differentiated by hand: the two-hot heads'
 //! decoded values, the cross-entropy against fixed targets and the KL divergence of the unimix
 //! categoricals, each a forward function over rows and its backward pass, on the fused row
-//! kernels ([`crate::kernels`]; each checked there against candle's composed operations).
+//! kernels ([`crate::kernels`]; each checked against candle's composed operations by its candle
+//! op in the tests' oracle, `ctxrace-oracle`).
 
 use super::kernels::{
     cross_entropy_rows, cross_entropy_rows_bwd, decode_rows, decode_rows_bwd, kl_rows, kl_rows_bwd,

@@ -83,21 +83,24 @@ fn note(shape: ProductShape) {
 }
 
 /// Counts `flops` floating-point operations of the products done outside gemm.
-pub(crate) fn count_flops(flops: usize) {
+pub fn count_flops(flops: usize) {
     MATMUL_FLOPS.fetch_add(flops as u64, Ordering::Relaxed);
 }
 
 /// A matrix operand of [`gemm_into`]: its values and the strides of its rows and columns.
 #[derive(Clone, Copy)]
-pub(crate) struct Operand<'a> {
-    pub(crate) data: &'a [f32],
-    pub(crate) row_stride: usize,
-    pub(crate) col_stride: usize,
+pub struct Operand<'a> {
+    /// The values, from the first element on.
+    pub data: &'a [f32],
+    /// The distance between consecutive rows' elements.
+    pub row_stride: usize,
+    /// The distance between consecutive columns' elements.
+    pub col_stride: usize,
 }
 
 impl<'a> Operand<'a> {
     /// A row-major `[rows, cols]` matrix.
-    pub(crate) fn rows(data: &'a [f32], cols: usize) -> Self {
+    pub fn rows(data: &'a [f32], cols: usize) -> Self {
         Self {
             data,
             row_stride: cols,
@@ -106,7 +109,7 @@ impl<'a> Operand<'a> {
     }
 
     /// The transpose of a row-major `[rows, cols]` matrix.
-    pub(crate) fn transposed(data: &'a [f32], cols: usize) -> Self {
+    pub fn transposed(data: &'a [f32], cols: usize) -> Self {
         Self {
             data,
             row_stride: 1,
@@ -115,36 +118,10 @@ impl<'a> Operand<'a> {
     }
 }
 
-/// `A B` (`[m, k]` times `[k, n]`) as a new row-major `[m, n]`; with `init` (`m·n` values) the
-/// product is added to it. gemm writes every value, so the buffer is not zeroed first.
-#[cfg(any(test, feature = "oracle"))]
-pub(super) fn matmul(
-    m: usize,
-    n: usize,
-    k: usize,
-    a: Operand,
-    b: Operand,
-    init: Option<Vec<f32>>,
-) -> Vec<f32> {
-    let accumulate = init.is_some();
-    let mut dst = init.unwrap_or_else(|| Vec::with_capacity(m * n));
-    if m == 0 || n == 0 || k == 0 {
-        dst.resize(m * n, 0.0);
-        return dst;
-    }
-    // SAFETY: `dst` has room for the m×n values at row stride n, which gemm writes (reading them
-    // first only when `accumulate`, where they are initialised) before `set_len` exposes them.
-    unsafe {
-        gemm_raw(dst.as_mut_ptr(), (n, accumulate, true), (m, n, k), a, b);
-        dst.set_len(m * n);
-    }
-    dst
-}
-
 /// `dst ← A B`, or `dst += A B` with `accumulate`, for `A` `[m, k]`, `B` `[k, n]` and `dst` the
 /// `[m, n]` whose rows start `row_stride` apart in `dst` (a block of columns of a wider matrix
 /// when `row_stride > n`).
-pub(crate) fn gemm_into(
+pub fn gemm_into(
     dst: &mut [f32],
     row_stride: usize,
     accumulate: bool,

@@ -1,62 +1,34 @@
 //! Fused CPU row kernels with their own backward passes, for the layers that dominate a
 //! DreamerV3 training step: one pass over rows of the input forward and one backward, on the
 //! calling thread (the learner parallelises over the batch instead). The networks
-//! ([`super::layer`], [`super::rssm`], [`super::losses`]) call the row functions; around each, a candle custom op (only with
-//! `cfg(test)` or the `oracle` feature) lets the tests hold it to the composed candle operations,
-//! values and gradients. The ops compute the gradient of an argument only when it is tracked
-//! ([`Tensor::track_op`]).
+//! ([`super::layer`], [`super::rssm`], [`super::losses`]) call the row functions; the tests'
+//! oracle (the `ctxrace-oracle` crate, a dev-dependency only) wraps each in a candle custom op
+//! and holds it to the composed candle operations, values and gradients, which is why the row
+//! functions, their parameters and the gemm products are public.
 //!
-//! - [`linear`]: `y = x Wᵀ (+ b)`.
-//! - [`linear_norm_act`]: a bias-free [`linear`] then [`norm_act`] as one operation (the product
-//!   stays inside it, so the backward pass hands the normalisation's gradient straight to the
-//!   product's, without a graph node, a zeroed buffer and an addition in between).
-//! - [`sparse_inputs`]: the products of [`linear`] and [`linear_norm_act`] over input columns
-//!   that are mostly zero (the one-hot latent of a state), over their non-zeros only.
-//! - [`norm_act`]: `LayerNorm` then SiLU or the identity:
+//! - [`column_sums`], [`dense_parts`]: around the products `y = x Wᵀ (+ b)` ([`gemm_into`]).
+//! - [`SparseColumns`]: the products over input columns that are mostly zero (the one-hot
+//!   latent of a state), over their non-zeros only.
+//! - [`norm_act_rows_into`]: `LayerNorm` then SiLU or the identity ([`Norm`], [`NormAct`]):
 //!   `x̂ = (x − μ)/√(σ² + ε)`, `y = act(γ x̂ + β)`; backward
 //!   `dx = (dx̂ − mean(dx̂) − x̂ mean(dx̂ x̂)) / √(σ² + ε)` with `dx̂ = γ act'(·) dy`.
-//! - [`gru_gates`]: DreamerV3's GRU update from normalised gates `[r, ĉ, u]` and the state `h`:
+//! - [`gru_rows`]: DreamerV3's GRU update from normalised gates `[r, ĉ, u]` and the state `h`:
 //!   `h' = σ(u − 1) tanh(σ(r) ĉ) + (1 − σ(u − 1)) h`.
-//! - [`straight_through_sample`]: a one-hot Gumbel-max sample of the unimix categorical
-//!   `p = (1 − η) softmax(l) + η / C` whose gradient is that of `p` (`z = onehot + p − sg p`).
-//! - [`categorical_kl`]: `KL(p_a ‖ p_b)` of two unimix categoricals, summed over the variables.
-//! - [`twohot_decode`]: `symexp(Σ_k softmax(l)_k b_k)`.
-//! - [`soft_cross_entropy`]: `−Σ_k t_k log softmax(l)_k` against fixed targets `t`.
+//! - [`sample_rows`], [`probs_rows_bwd`]: a one-hot Gumbel-max sample of the unimix categorical
+//!   `p = (1 − η) softmax(l) + η / C` ([`Unimix`]) whose gradient is that of `p`
+//!   (`z = onehot + p − sg p`).
+//! - [`kl_rows`]: `KL(p_a ‖ p_b)` of two unimix categoricals, summed over the variables.
+//! - [`decode_rows`]: `symexp(Σ_k softmax(l)_k b_k)`.
+//! - [`cross_entropy_rows`]: `−Σ_k t_k log softmax(l)_k` against fixed targets `t`.
 //!
 //! - [`adam_update`], [`sum_of_squares`]: the elementwise part of an Adam step.
 //!
 //! - [`record_products`], [`rerun_products`]: the gemm calls of a stretch of work, noted by
 //!   shape and run again alone (the products' ceiling of `ctxrace bench learner`).
 //!
-//! One file per kernel, each checked against the composed candle operations, values and
-//! gradients, in its tests; the vectorised dispatch and the branch-free maths they share are here.
+//! One file per kernel; the vectorised dispatch and the branch-free maths they share are here.
 
-#[cfg(any(test, feature = "oracle"))]
-use candle_core::{
-    bail, CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Result, Shape, Storage, Tensor,
-};
 use isa::Isa;
-
-/// The contiguous `f32` values of a CPU storage under `layout`.
-#[cfg(any(test, feature = "oracle"))]
-fn cpu_slice<'a>(storage: &'a CpuStorage, layout: &Layout) -> Result<&'a [f32]> {
-    let data = storage.as_slice::<f32>()?;
-    match layout.contiguous_offsets() {
-        Some((start, end)) => Ok(&data[start..end]),
-        None => bail!("fused kernel: a non-contiguous input (call .contiguous() first)"),
-    }
-}
-
-/// Runs `f` on the contiguous `f32` values of `t`.
-#[cfg(any(test, feature = "oracle"))]
-fn read<R>(t: &Tensor, f: impl FnOnce(&[f32]) -> Result<R>) -> Result<R> {
-    let t = t.contiguous()?;
-    let (storage, layout) = t.storage_and_layout();
-    let Storage::Cpu(cpu) = &*storage else {
-        bail!("fused kernels run on the CPU only")
-    };
-    f(cpu_slice(cpu, layout)?)
-}
 
 /// Defines a function whose body is compiled three times, for AVX-512, for AVX2 with FMA and for
 /// the baseline, and runs the widest the processor has (checked at run time; AVX-512 only with the
@@ -98,12 +70,6 @@ macro_rules! vectorised {
             body::<$crate::kernels::isa::Scalar>($($arg),*)
         }
     };
-}
-
-/// Whether the backward pass needs the gradient of `t`.
-#[cfg(any(test, feature = "oracle"))]
-fn wants_grad(t: &Tensor) -> bool {
-    t.track_op()
 }
 
 /// `eˣ` to about one part in 10⁷, branch-free and on float and integer bits only, so that loops
@@ -166,7 +132,7 @@ fn one_plus_exp_neg(x: f32) -> f32 {
 }
 
 /// `1 / (1 + e⁻ˣ)`. The reciprocal is a division: on Zen 4 it runs beside the multiply-adds, and
-/// the SiLU forward pass of 512 rows of 256 (`cargo bench -p ctxrace-nn --bench norm_act`)
+/// the SiLU forward pass of 512 rows of 256 (`cargo bench -p ctxrace-oracle --bench norm_act`)
 /// took 88-94 µs with it against 108-110 µs with three Newton steps from a bit-trick guess (AVX2
 /// copies: 124-148 against 152-161 µs).
 #[inline(always)]
@@ -189,7 +155,7 @@ fn tanh(x: f32) -> f32 {
 
 /// Lanes of the sums below: independent partial sums let them vectorise (a single running sum
 /// of floats cannot be reordered by the compiler).
-const LANES: usize = 16;
+pub const LANES: usize = 16;
 
 /// `Σ_i f(a_i, b_i)` over two slices of one length, in [`LANES`] partial sums reduced by
 /// halves ([`Isa::sum`]).
@@ -247,22 +213,12 @@ fn unimix_softmax_backward<S: Isa>(s: &[f32], dp: &[f32], keep: f32, out: &mut [
     }
 }
 
-#[cfg(any(test, feature = "oracle"))]
-fn dims2(t: &Tensor) -> Result<(usize, usize)> {
-    match t.dims() {
-        [n, d] => Ok((*n, *d)),
-        other => bail!("fused kernel: expected a matrix, got shape {other:?}"),
-    }
-}
-
 mod adam;
 mod categorical;
 mod gemm;
 mod gru;
 pub(crate) mod isa;
 mod linear;
-#[cfg(any(test, feature = "oracle"))]
-mod linear_norm;
 mod norm_act;
 mod product_profile;
 mod sparse_inputs;
@@ -273,27 +229,14 @@ pub use gemm::{matmul_flops, record_products, recorded_products, ProductShape};
 pub use norm_act::NormAct;
 pub use product_profile::rerun_products;
 
-// the candle custom ops around the row kernels: the tests' oracle (`oracle` feature)
-#[cfg(any(test, feature = "oracle"))]
-pub use categorical::{categorical_kl, straight_through_sample};
-#[cfg(any(test, feature = "oracle"))]
-pub use gru::gru_gates;
-#[cfg(any(test, feature = "oracle"))]
-pub use linear::linear;
-#[cfg(any(test, feature = "oracle"))]
-pub use linear_norm::linear_norm_act;
-#[cfg(any(test, feature = "oracle"))]
-pub use norm_act::norm_act;
-#[cfg(any(test, feature = "oracle"))]
-pub use twohot::{soft_cross_entropy, twohot_decode};
-// the row kernels, for the networks (`crate::layer`, `crate::rssm`)
-pub(crate) use categorical::{kl_rows, kl_rows_bwd, probs_rows_bwd, sample_rows, Unimix};
-pub(crate) use gemm::{count_flops, gemm_into, Operand};
-pub(crate) use gru::{gru_rows, gru_rows_bwd};
-pub(crate) use linear::{column_sums, dense_parts};
-pub(crate) use norm_act::{norm_act_rows_bwd_into, norm_act_rows_into, Norm};
-pub(crate) use sparse_inputs::{SparseColumns, SparseRows};
-pub(crate) use twohot::{cross_entropy_rows, cross_entropy_rows_bwd, decode_rows, decode_rows_bwd};
+// the row kernels: for the networks (`crate::layer`, `crate::rssm`) and the oracle's candle ops
+pub use categorical::{kl_rows, kl_rows_bwd, probs_rows_bwd, sample_rows, Unimix, PAPER_CLASSES};
+pub use gemm::{count_flops, gemm_into, Operand};
+pub use gru::{gru_rows, gru_rows_bwd};
+pub use linear::{column_sums, dense_parts};
+pub use norm_act::{norm_act_rows_bwd_into, norm_act_rows_into, Norm};
+pub use sparse_inputs::{SparseColumns, SparseRows};
+pub use twohot::{cross_entropy_rows, cross_entropy_rows_bwd, decode_rows, decode_rows_bwd};
 
 #[cfg(test)]
 mod tests {
@@ -336,72 +279,5 @@ mod tests {
         assert_eq!(super::lane_max::<super::isa::Scalar>(&l), 1.5);
         let sum = super::lane_sum::<super::isa::Scalar>(&l, &l, |a, b| a * b);
         assert!((sum - 37.0 * 2.25).abs() < 1e-4);
-    }
-}
-
-/// Helpers of the kernels' tests.
-#[cfg(test)]
-mod testing {
-    use candle_core::Tensor;
-    pub(super) use candle_core::{Device, Var, D};
-
-    pub(super) fn var(shape: &[usize], seed: u64) -> Var {
-        use rand::{Rng, SeedableRng};
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-        let n: usize = shape.iter().product();
-        let v: Vec<f32> = (0..n).map(|_| rng.random_range(-2.0..2.0)).collect();
-        Var::from_tensor(&Tensor::from_vec(v, shape, &Device::Cpu).unwrap()).unwrap()
-    }
-
-    /// `[rows, 3 + 32 + 2]` with columns `3..35` two one-hot groups of 16 (values not 1).
-    pub(super) fn one_hot_input(rows: usize) -> Var {
-        let dense = vals(var(&[rows, 5], 41).as_tensor());
-        let mut x = vec![0f32; rows * 37];
-        for i in 0..rows {
-            let row = &mut x[i * 37..(i + 1) * 37];
-            row[..3].copy_from_slice(&dense[i * 5..i * 5 + 3]);
-            row[35..].copy_from_slice(&dense[i * 5 + 3..i * 5 + 5]);
-            row[3 + (i * 7) % 16] = 1.0 + i as f32 * 0.25;
-            row[19 + (i * 3) % 16] = -0.5;
-        }
-        Var::from_tensor(&Tensor::from_vec(x, (rows, 37), &Device::Cpu).unwrap()).unwrap()
-    }
-
-    pub(super) fn vals(t: &Tensor) -> Vec<f32> {
-        t.flatten_all().unwrap().to_vec1().unwrap()
-    }
-
-    /// Asserts that `fused` and `composed` agree in value and in the gradients of `vars` of the
-    /// weighted sum `Σ w · y`.
-    pub(super) fn same(fused: Tensor, composed: Tensor, vars: &[&Var], tol: f32) {
-        let (a, b) = (vals(&fused), vals(&composed));
-        assert_eq!(fused.dims(), composed.dims());
-        for (x, y) in a.iter().zip(&b) {
-            assert!((x - y).abs() <= tol * (1.0 + y.abs()), "value {x} vs {y}");
-        }
-        let w = var(fused.dims(), 99);
-        let ga = fused
-            .mul(w.as_tensor())
-            .unwrap()
-            .sum_all()
-            .unwrap()
-            .backward()
-            .unwrap();
-        let gb = composed
-            .mul(w.as_tensor())
-            .unwrap()
-            .sum_all()
-            .unwrap()
-            .backward()
-            .unwrap();
-        for v in vars {
-            let (x, y) = (vals(ga.get(v).unwrap()), vals(gb.get(v).unwrap()));
-            for (p, q) in x.iter().zip(&y) {
-                assert!(
-                    (p - q).abs() <= tol * (1.0 + q.abs()),
-                    "gradient {p} vs {q}"
-                );
-            }
-        }
     }
 }

@@ -24,7 +24,7 @@ pub(super) const MAX_DENSITY: f64 = 0.125;
 /// The non-zeros of the columns `a..b` of a row-major matrix, row by row (compressed rows), the
 /// columns counted from `a`.
 #[derive(Debug)]
-pub(crate) struct SparseColumns {
+pub struct SparseColumns {
     /// Row `i`'s non-zeros are `starts[i]..starts[i + 1]` of `columns` and `values`.
     starts: Vec<usize>,
     columns: Vec<usize>,
@@ -33,8 +33,9 @@ pub(crate) struct SparseColumns {
 
 impl SparseColumns {
     /// The non-zeros of `columns` of `x` (`[rows, width]`), or `None` if more than
-    /// [`MAX_DENSITY`] of them are non-zero (or the range is empty or outside the width).
-    pub(crate) fn gather(x: &[f32], width: usize, columns: &Range<usize>) -> Option<Self> {
+    /// `MAX_DENSITY` (an eighth) of them are non-zero (or the range is empty or outside the
+    /// width).
+    pub fn gather(x: &[f32], width: usize, columns: &Range<usize>) -> Option<Self> {
         if columns.is_empty() || columns.end > width || width == 0 {
             return None;
         }
@@ -67,7 +68,7 @@ impl SparseColumns {
     }
 
     /// No rows yet (for [`SparseColumns::append`]).
-    pub(crate) fn empty() -> Self {
+    pub fn empty() -> Self {
         Self {
             starts: vec![0],
             columns: Vec::new(),
@@ -75,26 +76,8 @@ impl SparseColumns {
         }
     }
 
-    /// The number of non-zeros.
-    #[cfg(any(test, feature = "oracle"))]
-    pub(crate) fn nonzeros(&self) -> usize {
-        self.values.len()
-    }
-
-    /// `y_i += Σ x_ic Wᵀ_c` for `y` `[rows, out]` and `wt` the rows of `Wᵀ` of the columns.
-    #[cfg(any(test, feature = "oracle"))]
-    pub(crate) fn add_products(&self, wt: &[f32], out: usize, y: &mut [f32]) {
-        self.all().add_products(wt, out, y);
-    }
-
-    /// `dWᵀ_c += Σ_i x_ic g_i` for `g` `[rows, out]` and `dwt` the rows of `dWᵀ` of the columns.
-    #[cfg(any(test, feature = "oracle"))]
-    pub(crate) fn add_weight_grads(&self, g: &[f32], out: usize, dwt: &mut [f32]) {
-        self.all().add_weight_grads(g, out, dwt);
-    }
-
     /// The rows `r`.
-    pub(crate) fn rows(&self, r: std::ops::Range<usize>) -> SparseRows<'_> {
+    pub fn rows(&self, r: std::ops::Range<usize>) -> SparseRows<'_> {
         SparseRows {
             starts: &self.starts[r.start..=r.end],
             columns: &self.columns,
@@ -103,17 +86,17 @@ impl SparseColumns {
     }
 
     /// Every row.
-    pub(crate) fn all(&self) -> SparseRows<'_> {
+    pub fn all(&self) -> SparseRows<'_> {
         self.rows(0..self.starts.len() - 1)
     }
 
     /// The number of rows.
-    pub(crate) fn row_count(&self) -> usize {
+    pub fn row_count(&self) -> usize {
         self.starts.len() - 1
     }
 
     /// `other`'s rows after these.
-    pub(crate) fn append(&mut self, other: &Self) {
+    pub fn append(&mut self, other: &Self) {
         let base = self.values.len();
         self.starts
             .extend(other.starts[1..].iter().map(|s| s + base));
@@ -124,7 +107,7 @@ impl SparseColumns {
 
 /// Some consecutive rows of a [`SparseColumns`].
 #[derive(Clone, Copy)]
-pub(crate) struct SparseRows<'a> {
+pub struct SparseRows<'a> {
     /// Row `i`'s non-zeros are `starts[i]..starts[i + 1]` of `columns` and `values`.
     starts: &'a [usize],
     columns: &'a [usize],
@@ -133,17 +116,17 @@ pub(crate) struct SparseRows<'a> {
 
 impl SparseRows<'_> {
     /// The number of non-zeros.
-    pub(crate) fn nonzeros(&self) -> usize {
+    pub fn nonzeros(&self) -> usize {
         self.starts[self.starts.len() - 1] - self.starts[0]
     }
 
     /// `y_i += Σ x_ic Wᵀ_c` for `y` `[rows, out]` and `wt` the rows of `Wᵀ` of the columns.
-    pub(crate) fn add_products(&self, wt: &[f32], out: usize, y: &mut [f32]) {
+    pub fn add_products(&self, wt: &[f32], out: usize, y: &mut [f32]) {
         add_row_products(self.starts, self.columns, self.values, wt, out, y);
     }
 
     /// `dWᵀ_c += Σ_i x_ic g_i` for `g` `[rows, out]` and `dwt` the rows of `dWᵀ` of the columns.
-    pub(crate) fn add_weight_grads(&self, g: &[f32], out: usize, dwt: &mut [f32]) {
+    pub fn add_weight_grads(&self, g: &[f32], out: usize, dwt: &mut [f32]) {
         add_column_grads(self.starts, self.columns, self.values, g, out, dwt);
     }
 }

@@ -2,10 +2,10 @@
 
 use super::dense::Dense;
 use super::norm::LayerNorm;
-use crate::kernels::NormAct;
-use crate::layer::{Activation, LAYER_NORM_EPS};
 use candle_core::{Module, Result, Tensor};
 use candle_nn::VarBuilder;
+use ctxrace_nn::kernels::NormAct;
+use ctxrace_nn::layer::{Activation, LAYER_NORM_EPS};
 use std::ops::Range;
 
 /// A hidden block of an [`Mlp`]: a layer and, for [`Activation::SiluNorm`], its normalisation.
@@ -100,7 +100,7 @@ impl Module for Mlp {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::oracle::ParamStore;
+    use crate::ParamStore;
     use candle_core::{DType, Device};
 
     #[test]

@@ -3,7 +3,8 @@
 //! process's, and no other test may run beside it.)
 
 use candle_core::{DType, Device, Tensor, Var};
-use ctxrace_nn::kernels::{linear, matmul_flops};
+use ctxrace_nn::kernels::matmul_flops;
+use ctxrace_oracle::kernels::linear;
 
 #[test]
 fn a_linear_layer_counts_its_forward_and_backward_products() {

@@ -4,9 +4,10 @@
 //! takes a fused kernel without a backward pass whenever its input is contiguous, which silently
 //! stops gradients; this one runs [`kernels::norm_act`], which has its own.
 
-use crate::kernels::{self, NormAct};
+use crate::kernels;
 use candle_core::{Result, Tensor};
 use candle_nn::{Init, VarBuilder};
+use ctxrace_nn::kernels::NormAct;
 
 /// A layer normalisation with learned gain `γ` (`weight`) and offset `β` (`bias`).
 #[derive(Clone, Debug)]
@@ -55,7 +56,7 @@ impl candle_core::Module for LayerNorm {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::oracle::ParamStore;
+    use crate::ParamStore;
     use candle_core::{Device, Module, Var};
 
     #[test]

@@ -7,8 +7,9 @@
 //! (`dx = ∂p W`, `dW = ∂pᵀ x`).
 
 use super::linear::{product, Linear};
-use super::norm_act::{norm_act_rows, norm_act_rows_bwd, Norm};
+use super::norm_act::{norm_act_rows, norm_act_rows_bwd};
 use super::*;
+use ctxrace_nn::kernels::{Norm, NormAct};
 use std::sync::{Mutex, PoisonError};
 
 struct LinearNormAct {

@@ -1,14 +1,14 @@
 //! The oracle's tanh-squashed Gaussian policy (candle modules), SAC's actor: the formulas of
-//! [`crate::tanh_gaussian`] composed of candle operations, which
-//! [`crate::tanh_gaussian::squash_rows`] and its backward pass are checked against.
+//! [`ctxrace_nn::tanh_gaussian`] composed of candle operations, which
+//! [`ctxrace_nn::tanh_gaussian::squash_rows`] and its backward pass are checked against.
 
 use super::mlp::Mlp;
-use crate::tanh_gaussian::LOG_STD_CLAMP;
-use crate::Activation;
 use candle_core::{Module, Result, Tensor, D};
 use candle_nn::VarBuilder;
+use ctxrace_nn::tanh_gaussian::LOG_STD_CLAMP;
+use ctxrace_nn::Activation;
 
-/// A tanh-squashed Gaussian policy `π(a | o)` over actions in `(−1, 1)^A` (see [`crate::tanh_gaussian`]).
+/// A tanh-squashed Gaussian policy `π(a | o)` over actions in `(−1, 1)^A` (see [`ctxrace_nn::tanh_gaussian`]).
 #[derive(Clone, Debug)]
 pub struct TanhGaussianActor {
     net: Mlp,
@@ -88,7 +88,7 @@ impl TanhGaussianActor {
 }
 
 /// The tanh-Gaussian sample `a = tanh(μ + σ ε)` and its log-probability summed over the last
-/// dimension, for `mean`, `log_std` and `noise` `ε` of one shape `[…, A]` (see [`crate::tanh_gaussian`]).
+/// dimension, for `mean`, `log_std` and `noise` `ε` of one shape `[…, A]` (see [`ctxrace_nn::tanh_gaussian`]).
 pub fn squash(mean: &Tensor, log_std: &Tensor, noise: &Tensor) -> Result<(Tensor, Tensor)> {
     let u = (mean + log_std.exp()?.mul(noise)?)?;
     let action = u.tanh()?;
@@ -110,9 +110,9 @@ fn log_one_minus_tanh_sq(u: &Tensor) -> Result<Tensor> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::oracle::ParamStore;
-    use crate::tanh_gaussian::{LOG_STD_MAX, LOG_STD_MIN};
+    use crate::ParamStore;
     use candle_core::Device;
+    use ctxrace_nn::tanh_gaussian::{LOG_STD_MAX, LOG_STD_MIN};
 
     fn t(v: &[f32], shape: (usize, usize)) -> Tensor {
         Tensor::from_slice(v, shape, &Device::Cpu).unwrap()

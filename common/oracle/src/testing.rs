@@ -1,7 +1,7 @@
 //! Rows and comparisons the tests of the networks against their candle oracle share.
 
-use crate::{Activation, Mlp, MlpShape, RssmConfig};
 use candle_core::Tensor;
+use ctxrace_nn::{Activation, Mlp, MlpShape, RssmConfig};
 use rand::{Rng, SeedableRng};
 
 /// Rows `[h, z, c]`: `h` of `d` and `c` of `c` normal values, `z` one-hot over `s` variables

@@ -4,8 +4,9 @@
 
 use candle_core::{DType, Device, Tensor, Var};
 use ctxrace_nn::kernels::{
-    linear, matmul_flops, record_products, recorded_products, rerun_products, ProductShape,
+    matmul_flops, record_products, recorded_products, rerun_products, ProductShape,
 };
+use ctxrace_oracle::kernels::linear;
 
 #[test]
 fn a_layer_records_its_three_products_and_they_replay() {

@@ -1,30 +1,41 @@
-//! The oracle's symlog and two-hot regression on candle tensors ([`crate::symlog`]).
+//! The oracle's symlog and two-hot regression on candle tensors ([`ctxrace_nn::symlog`]).
 
-use crate::{kernels, TwoHot};
+use crate::kernels;
 use candle_core::{Result, Tensor};
+use ctxrace_nn::TwoHot;
 
 /// `sign(x) ln(1 + |x|)`.
 pub fn symlog(x: &Tensor) -> Result<Tensor> {
     x.sign()?.mul(&(x.abs()? + 1.0)?.log()?)
 }
 
-impl TwoHot {
+/// [`TwoHot`]'s encoding, decoding and loss on candle tensors (in scope, they are called as
+/// [`TwoHot`]'s own methods).
+pub trait TwoHotTensors {
     /// Two-hot targets `[N, K]` for values `y` of shape `[N]` (in the original space).
-    pub fn encode(&self, y: &Tensor) -> Result<Tensor> {
+    fn encode(&self, y: &Tensor) -> Result<Tensor>;
+
+    /// Decodes logits `[…, K]` to values `[…]` in the original space.
+    fn decode(&self, logits: &Tensor) -> Result<Tensor>;
+
+    /// Cross-entropy `−Σ_k t_k log softmax(logits)_k` of logits `[N, K]` against the two-hot
+    /// targets of `y` `[N]`; returns `[N]`.
+    fn loss(&self, logits: &Tensor, y: &Tensor) -> Result<Tensor>;
+}
+
+impl TwoHotTensors for TwoHot {
+    fn encode(&self, y: &Tensor) -> Result<Tensor> {
         let values: Vec<f32> = y.to_vec1()?;
         let mut out = vec![0f32; values.len() * self.count()];
         self.add_encoded(&values, 1.0, &mut out);
         Tensor::from_vec(out, (values.len(), self.count()), y.device())
     }
 
-    /// Decodes logits `[…, K]` to values `[…]` in the original space.
-    pub fn decode(&self, logits: &Tensor) -> Result<Tensor> {
+    fn decode(&self, logits: &Tensor) -> Result<Tensor> {
         kernels::twohot_decode(logits, self.bins())
     }
 
-    /// Cross-entropy `−Σ_k t_k log softmax(logits)_k` of logits `[N, K]` against the two-hot
-    /// targets of `y` `[N]`; returns `[N]`.
-    pub fn loss(&self, logits: &Tensor, y: &Tensor) -> Result<Tensor> {
+    fn loss(&self, logits: &Tensor, y: &Tensor) -> Result<Tensor> {
         kernels::soft_cross_entropy(logits, &self.encode(&y.detach())?)
     }
 }

@@ -1,12 +1,12 @@
 //! The oracle's DreamerV3 acting networks (candle modules): [`DreamerNets`], the networks of
-//! [`crate::dreamer::PolicyNets`] as candle composes them, the mask actor's masks and
-//! samples, and the noise of [`crate::dreamer`] as candle tensors.
+//! [`ctxrace_nn::dreamer::PolicyNets`] as candle composes them, the mask actor's masks and
+//! samples, and the noise of [`ctxrace_nn::dreamer`] as candle tensors.
 
 use super::{Mlp, Rssm, TanhGaussianActor};
-use crate::dreamer::{normal_rows, rssm_config, uniform_rows};
-use crate::Activation;
 use candle_core::{Device, Module, Result, Tensor};
 use ctxrace_config::agents::{ContextMode, DreamerConfig, MaskSpace, StepAlignment, CONTEXT_DIM};
+use ctxrace_nn::dreamer::{normal_rows, rssm_config, uniform_rows};
+use ctxrace_nn::Activation;
 use rand_chacha::ChaCha8Rng;
 
 /// The networks that act as candle modules (the oracle of the tests): encoder, RSSM, actor and

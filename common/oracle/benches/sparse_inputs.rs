@@ -9,7 +9,7 @@ use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::VarBuilder;
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use ctxrace_nn::kernels::NormAct;
-use ctxrace_nn::oracle::{Dense, LayerNorm};
+use ctxrace_oracle::{Dense, LayerNorm};
 use rand::{Rng, SeedableRng};
 
 const ROWS: usize = 10 * 1024;

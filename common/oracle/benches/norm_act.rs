@@ -7,7 +7,8 @@
 
 use candle_core::{Device, Var};
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use ctxrace_nn::kernels::{norm_act, NormAct};
+use ctxrace_nn::kernels::NormAct;
+use ctxrace_oracle::kernels::norm_act;
 use rand::{Rng, SeedableRng};
 
 const ROWS: usize = 512;
@@ -23,7 +24,7 @@ fn values(n: usize, seed: u64) -> Vec<f32> {
 
 fn norm_act_passes(c: &mut Criterion) {
     // one thread, as the learner runs each shard
-    ctxrace_nn::oracle::candle_on_one_thread();
+    ctxrace_oracle::candle_on_one_thread();
     let mut group = c.benchmark_group("norm_act");
     group.sample_size(30);
     for (act, width) in [(NormAct::Silu, 256), (NormAct::Identity, 768)] {

@@ -1,21 +1,23 @@
-//! The tests' oracle: the networks of [`crate`] as candle modules, which every
-//! hand-written forward and backward pass is checked against, values and gradients (compiled
-//! only for tests: `cfg(test)`, or the `oracle` feature for the learner's tests and the
-//! benches). No production code runs candle.
+//! The tests' oracle: the networks of ctxrace-nn as candle modules, which every hand-written
+//! forward and backward pass is checked against, values and gradients, and those checks (the
+//! tests of this crate). A dev-dependency only (of the learner's tests; `publish = false`): no
+//! production code runs candle, and `cargo tree -p ctxrace -e normal` has no candle.
 //!
-//! - [`Dense`], [`LayerNorm`]: a linear layer and a normalisation on the fused kernels' candle
-//!   ops ([`crate::kernels`]), with candle-nn's parameter names.
+//! - [`kernels`]: the candle custom ops around ctxrace-nn's row kernels.
+//! - [`Dense`], [`LayerNorm`]: a linear layer and a normalisation on those ops, with candle-nn's
+//!   parameter names.
 //! - [`Mlp`], [`Rssm`] (with [`Gru`], [`RssmState`], [`standalone`]), [`TanhGaussianActor`]
 //!   (with [`squash`]), [`DreamerNets`]: the networks.
 //! - [`ParamStore`]: the named, seeded variables the modules are built in; they write the
-//!   safetensors names the networks read ([`crate::Weights`]).
-//! - [`symlog`] and `TwoHot`'s `encode`, `decode` and `loss` on tensors.
-//! - The bridge ([`bridge`]): a network copied from its candle module, and its gradients handed
-//!   back keyed by the module's tensors.
+//!   safetensors names the networks read ([`ctxrace_nn::Weights`]).
+//! - [`symlog`] and [`TwoHotTensors`]: `TwoHot`'s `encode`, `decode` and `loss` on tensors.
+//! - The bridge ([`bridge`]): a network copied from its candle module ([`FromOracle`]), and its
+//!   gradients handed back keyed by the module's tensors ([`AddGradsTo`]).
 
 pub mod bridge;
 mod dense;
 pub mod dreamer;
+pub mod kernels;
 mod mlp;
 mod norm;
 mod params;
@@ -23,15 +25,18 @@ mod rssm;
 mod symlog;
 mod tanh_gaussian;
 #[cfg(test)]
-pub(crate) mod testing;
+mod testing;
+#[cfg(test)]
+mod tests;
 
+pub use bridge::{AddGradsTo, FromOracle};
 pub use dense::Dense;
 pub use dreamer::DreamerNets;
 pub use mlp::{HiddenBlock, Mlp};
 pub use norm::LayerNorm;
 pub use params::ParamStore;
 pub use rssm::{standalone, Gru, Rssm, RssmState};
-pub use symlog::symlog;
+pub use symlog::{symlog, TwoHotTensors};
 pub use tanh_gaussian::{squash, TanhGaussianActor};
 
 /// Makes candle's own kernels run on the calling thread, for the tests' candle oracles (no

@@ -1,5 +1,5 @@
 //! The oracle's DreamerV3 recurrent state-space model (candle modules), with the cRSSM context
-//! input: [`crate::Rssm`] is checked against it.
+//! input: [`ctxrace_nn::Rssm`] is checked against it.
 //!
 //! The state is a deterministic part `h_t` (a GRU state) and a stochastic part `z_t`: `S` one-hot
 //! categorical variables of `C` classes each.
@@ -16,10 +16,11 @@
 use super::dense::Dense;
 use super::norm::LayerNorm;
 use super::params::ParamStore;
-use crate::kernels::{self, NormAct};
-use crate::RssmConfig;
+use crate::kernels;
 use candle_core::{DType, Device, Result, Tensor, D};
 use candle_nn::VarBuilder;
+use ctxrace_nn::kernels::NormAct;
+use ctxrace_nn::RssmConfig;
 
 /// A batch of RSSM states.
 #[derive(Clone, Debug)]

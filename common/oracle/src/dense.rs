@@ -3,9 +3,10 @@
 //! `bias` `[out]`).
 
 use super::norm::LayerNorm;
-use crate::kernels::{self, NormAct};
+use crate::kernels;
 use candle_core::{Result, Tensor};
 use candle_nn::VarBuilder;
+use ctxrace_nn::kernels::NormAct;
 use std::ops::Range;
 
 /// A linear layer, with or without a bias.
