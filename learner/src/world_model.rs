@@ -38,7 +38,7 @@ use ctxrace_nn::losses::{
     categorical_kl, categorical_kl_backward, soft_cross_entropy, soft_cross_entropy_backward,
 };
 use ctxrace_nn::parameters::update_each;
-use ctxrace_nn::{symlog_value as symlog, TwoHot, Weights};
+use ctxrace_nn::{sigmoid, sized, symlog_value as symlog, TwoHot, Weights};
 use ctxrace_nn::{
     InputGrad, Mlp, MlpGrads, MlpTrace, NamedTensor, NonZeros, ObserveTrace, Parameters, Rssm,
     RssmGrads,
@@ -208,17 +208,6 @@ struct ShardWork {
     d_embed: Vec<f32>,
     d_out: Vec<f32>,
     targets: Vec<f32>,
-}
-
-/// `v` resized to `n` values (zeros where it grows) as a slice.
-fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
-    v.resize(n, 0.0);
-    &mut v[..n]
-}
-
-/// `1 / (1 + e^{−x})`.
-fn sigmoid(x: f32) -> f32 {
-    1.0 / (1.0 + (-x).exp())
 }
 
 impl WorldModel {
