@@ -680,10 +680,9 @@ train_ratio = 2.0
         let names: std::collections::HashSet<_> = runs.iter().map(|r| &r.name).collect();
         assert_eq!(names.len(), runs.len(), "names are unique");
         for r in &runs {
-            let want = if r.config.agent.algo == AlgoKind::Sac {
-                2.0
-            } else {
-                1.0
+            let want = match r.config.agent.algo {
+                AlgoKind::Sac => 2.0,
+                AlgoKind::Dreamerv3 | AlgoKind::Crssm | AlgoKind::Cmask => 1.0,
             };
             assert_eq!(r.config.train.train_ratio, want, "{}", r.name);
             assert_eq!(r.config.train.env_steps, 500);
