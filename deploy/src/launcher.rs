@@ -23,7 +23,7 @@ use ctxrace_config::{ExperimentConfig, SupervisorConfig};
 use ctxrace_ipc::wire::{named_reasons, ReplayStatus};
 use ctxrace_ipc::{
     claim_run, cleanup, remove_dead_nodes, run_prefix, sweep_orphaned_runs, termination_flag,
-    CleanupReport, RunTransport, TelemetrySubscriber, WeightsReceiver,
+    CleanupReport, IpcError, RunTransport, TelemetrySubscriber, WeightsReceiver,
 };
 use ctxrace_learner::runlog::{EpisodeLog, RateMeter};
 use ctxrace_run::results::TrainingEpisode;
@@ -57,7 +57,7 @@ impl DeadNodeCleaner {
     /// A cleaner of the dead nodes of the run with `prefix`.
     fn new(prefix: &str) -> Self {
         let prefix = prefix.to_string();
-        Self::with(move || remove_dead_nodes(&prefix), CLEANUP_LIMIT)
+        Self::with(move || Ok(remove_dead_nodes(&prefix)?), CLEANUP_LIMIT)
     }
 
     /// A cleaner running `clean`, logged as overrunning after `limit`.
@@ -471,7 +471,10 @@ pub fn run(
             tracing::warn!("removed the shared memory of runs whose launcher died: {swept:?}")
         }
         Ok(_) => {}
-        Err(e) => tracing::warn!("sweeping the shared memory of dead runs: {e:#}"),
+        Err(e) => tracing::warn!(
+            "sweeping the shared memory of dead runs: {:#}",
+            anyhow::Error::from(e)
+        ),
     }
     let prefix = run_prefix(&run_id);
     claim_run(&prefix)?;
@@ -654,9 +657,10 @@ fn log_tail(path: &Path, n: usize) -> String {
     }
 }
 
-/// The value of a telemetry read, or `None` with a warning.
-fn tolerate<T>(read: Result<T>) -> Option<T> {
-    read.map_err(|e| tracing::warn!("telemetry: {e:#}")).ok()
+/// The value of a telemetry read, or `None` with a warning (the error and its causes).
+fn tolerate<T>(read: Result<T, IpcError>) -> Option<T> {
+    read.map_err(|e| tracing::warn!("telemetry: {:#}", anyhow::Error::from(e)))
+        .ok()
 }
 
 /// The supervision loop; returns when the run is complete or interrupted, with the steps

@@ -231,7 +231,7 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
             last_snapshot = Instant::now();
         }
         counters.longest_turn = counters.longest_turn.max(turn.elapsed());
-        Ok(if control.shutdown.load(Ordering::Acquire) {
+        Ok::<_, anyhow::Error>(if control.shutdown.load(Ordering::Acquire) {
             Next::Stop
         } else if taken == CHUNKS_PER_TURN {
             // busy (a full turn of chunks taken): only poll

@@ -150,7 +150,7 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport> {
             if stop.load(Ordering::Relaxed) {
                 break;
             }
-            return Err(e);
+            return Err(e.into());
         }
         if let Some(f) = finished {
             let m = &f.metrics;
