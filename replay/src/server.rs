@@ -325,7 +325,7 @@ fn restore(args: &ReplayArgs) -> Result<(ReplayBuffer, LimiterCounts)> {
         path.display()
     );
     let (buffer, counts) = read_snapshot(path, SnapshotShape::of(&fresh))
-        .map_err(|e| ConfigError(format!("{e:#}; {how}")))?;
+        .map_err(|e| ConfigError::new(format!("{e:#}; {how}")))?;
     tracing::info!(
         "replay: restored {} steps from {}",
         buffer.len(),

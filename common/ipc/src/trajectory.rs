@@ -7,6 +7,7 @@ use super::wire::{
 };
 use super::{read_once, ReadStage, RejectLog};
 use crate::error::{ice, IpcError, Result};
+use ctxrace_config::validate::Causes;
 use ctxrace_run::steps::TrajectoryStep;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
@@ -288,7 +289,7 @@ impl TrajectorySender {
 impl Drop for TrajectorySender {
     fn drop(&mut self) {
         if let Err(e) = self.finish() {
-            tracing::warn!("closing trajectory sender: {e:#}");
+            tracing::warn!("closing trajectory sender: {}", Causes(&e));
         }
     }
 }
