@@ -305,9 +305,7 @@ impl WorldModel {
             starts.push(s);
         }
         let Some(total) = total else {
-            return Err(LearnerError::Batch(
-                "world model: a batch of no sequences".into(),
-            ));
+            return Err(LearnerError::NoSequences);
         };
         let grads = total.into_tensors(&nets);
         self.work = work;
