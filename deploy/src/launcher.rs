@@ -18,7 +18,7 @@ use crate::lock::{die_with_parent, DirLock};
 use crate::progress::progress_bar;
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
-use ctxrace_config::validate::CONFIG_EXIT_CODE;
+use ctxrace_config::validate::{Causes, CONFIG_EXIT_CODE};
 use ctxrace_config::{ExperimentConfig, SupervisorConfig};
 use ctxrace_ipc::wire::{named_reasons, ReplayStatus};
 use ctxrace_ipc::{
@@ -471,10 +471,7 @@ pub fn run(
             tracing::warn!("removed the shared memory of runs whose launcher died: {swept:?}")
         }
         Ok(_) => {}
-        Err(e) => tracing::warn!(
-            "sweeping the shared memory of dead runs: {:#}",
-            anyhow::Error::from(e)
-        ),
+        Err(e) => tracing::warn!("sweeping the shared memory of dead runs: {}", Causes(&e)),
     }
     let prefix = run_prefix(&run_id);
     claim_run(&prefix)?;
@@ -531,7 +528,7 @@ pub fn run(
     drop(transport);
     match cleanup(&prefix) {
         Ok(report) => tracing::info!("shared memory of {prefix} removed: {report:?}"),
-        Err(e) => tracing::warn!("cleaning up {prefix}: {e}"),
+        Err(e) => tracing::warn!("cleaning up {prefix}: {}", Causes(&e)),
     }
     let lost = lost?;
     eprintln!("{}", step_summary(dir, lost));
@@ -659,7 +656,7 @@ fn log_tail(path: &Path, n: usize) -> String {
 
 /// The value of a telemetry read, or `None` with a warning (the error and its causes).
 fn tolerate<T>(read: Result<T, IpcError>) -> Option<T> {
-    read.map_err(|e| tracing::warn!("telemetry: {:#}", anyhow::Error::from(e)))
+    read.map_err(|e| tracing::warn!("telemetry: {}", Causes(&e)))
         .ok()
 }
 

@@ -358,7 +358,7 @@ fn run_one(matrix: &MatrixFile, run: &MatrixRun, out: &Path, cores: usize) -> Re
     let configs = out.join("configs");
     std::fs::create_dir_all(&configs).with_context(|| format!("creating {}", configs.display()))?;
     let config_path = configs.join(format!("{}.toml", run.name));
-    let text = run.config.to_toml().map_err(anyhow::Error::msg)?;
+    let text = run.config.to_toml()?;
     ctxrace_run::run_dir::write_atomic(&config_path, text.as_bytes())
         .with_context(|| format!("writing {}", config_path.display()))?;
     let dir = out.join(&run.name);

@@ -80,8 +80,7 @@ fn experiment(args: &TrainArgs) -> Result<ExperimentConfig> {
     let mut cfg = match &args.config {
         Some(path) => ExperimentConfig::load(path),
         None => ExperimentConfig::from_toml(EMBEDDED_CONFIG, "embedded configs/quick.toml"),
-    }
-    .map_err(anyhow::Error::msg)?;
+    }?;
     if let Some(algo) = args.algo {
         cfg.agent.algo = algo;
     }
@@ -113,7 +112,7 @@ fn experiment(args: &TrainArgs) -> Result<ExperimentConfig> {
         );
     }
     let actors = if args.inline { 1 } else { args.actors };
-    cfg.validate_run(actors).map_err(anyhow::Error::msg)?;
+    cfg.validate_run(actors)?;
     Ok(cfg)
 }
 
@@ -151,7 +150,7 @@ fn prepare_run_dir(args: &TrainArgs, cfg: &ExperimentConfig) -> Result<(PathBuf,
         tracing::info!("{} holds no run yet: starting it", dir.display());
     }
     let resumed = config.exists();
-    let text = cfg.to_toml().map_err(anyhow::Error::msg)?;
+    let text = cfg.to_toml()?;
     ctxrace_run::run_dir::write_atomic(&config, text.as_bytes())
         .with_context(|| format!("writing {}", config.display()))?;
     Ok((dir, lock, resumed))
