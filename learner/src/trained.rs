@@ -61,7 +61,7 @@ pub enum TrainedAgentError {
         path: PathBuf,
         /// Why (it names the key).
         #[source]
-        source: AgentConfigError,
+        source: Box<AgentConfigError>,
     },
     /// The run's experiment could not be read.
     #[error(transparent)]
@@ -173,7 +173,7 @@ impl TrainedAgent {
         let agent =
             AgentConfig::from_saved_table(table).map_err(|source| TrainedAgentError::Agent {
                 path: agent_path.clone(),
-                source,
+                source: Box::new(source),
             })?;
         let policy_path = checkpoint.join(POLICY_FILE);
         let weights = std::fs::read(&policy_path).map_err(|source| TrainedAgentError::Read {

@@ -426,7 +426,9 @@ mod tests {
             },
             handle_signals: false,
         };
-        let err = restore(&args).err().expect("a damaged snapshot is refused");
+        let Err(err) = restore(&args) else {
+            panic!("a damaged snapshot is refused");
+        };
         let chain = std::iter::successors(Some(&err as &dyn std::error::Error), |e| e.source());
         assert_eq!(chain.filter(|e| e.is::<ConfigError>()).count(), 1);
         let text = ctxrace_config::validate::Causes(&err).to_string();

@@ -5,7 +5,7 @@ use ctxrace_config::AgentConfig;
 use ctxrace_nn::policy::PolicyError;
 use ctxrace_nn::Policy;
 use ctxrace_sim::baseline::BaselineKind;
-use ctxrace_sim::driver::{ActMode, BaselineEgo, Ego};
+use ctxrace_sim::driver::{ActMode, BaselineEgo, Ego, EgoAction};
 use ctxrace_sim::RaceEnv;
 
 /// An ego driver with its per-episode state.
@@ -48,11 +48,7 @@ impl Ego for Driver {
         }
     }
 
-    fn act(
-        &mut self,
-        env: &RaceEnv,
-        obs: &[f32],
-    ) -> Result<([f64; 2], Option<[f32; 2]>), PolicyError> {
+    fn act(&mut self, env: &RaceEnv, obs: &[f32]) -> Result<EgoAction, PolicyError> {
         Ok(match self {
             Driver::Baseline(b) => {
                 let Ok(decision) = b.act(env, obs);

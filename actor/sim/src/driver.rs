@@ -33,6 +33,9 @@ pub struct Decided<'a> {
     pub obs: &'a [f32],
 }
 
+/// An ego's decision: the action and (cMask) the context mask that chose it.
+pub type EgoAction = ([f64; 2], Option<[f32; 2]>);
+
 /// Why an episode could not be driven to its end: the ego could not act (its own error type,
 /// [`Ego::Error`]), or the race refused its action.
 #[derive(Debug, thiserror::Error)]
@@ -57,11 +60,7 @@ pub trait Ego {
     fn reset(&mut self, env: &RaceEnv, seed: u64);
 
     /// The action for observation `obs` of `env`, and (cMask) the context mask used.
-    fn act(
-        &mut self,
-        env: &RaceEnv,
-        obs: &[f32],
-    ) -> Result<([f64; 2], Option<[f32; 2]>), Self::Error>;
+    fn act(&mut self, env: &RaceEnv, obs: &[f32]) -> Result<EgoAction, Self::Error>;
 
     /// Runs one episode of `env` under `context` from `seed` to its end; returns the last
     /// step's details.
@@ -144,11 +143,7 @@ impl Ego for BaselineEgo {
         self.state = Baseline::new(self.kind, env, seed);
     }
 
-    fn act(
-        &mut self,
-        env: &RaceEnv,
-        _obs: &[f32],
-    ) -> Result<([f64; 2], Option<[f32; 2]>), Self::Error> {
+    fn act(&mut self, env: &RaceEnv, _obs: &[f32]) -> Result<EgoAction, Self::Error> {
         Ok((self.state.act(env), None))
     }
 }
