@@ -338,11 +338,7 @@ fn random_batch(spec: BatchSpec, beams: usize, rng: &mut ChaCha8Rng) -> Batch {
 /// Runs `ctxrace bench learner`.
 pub fn run(args: LearnerArgs) -> Result<()> {
     let mut agent: AgentConfig = match &args.config {
-        Some(path) => {
-            ExperimentConfig::load(path)
-                .map_err(anyhow::Error::msg)?
-                .agent
-        }
+        Some(path) => ExperimentConfig::load(path)?.agent,
         None => AgentConfig::default(),
     };
     agent.algo = args.algo;

@@ -22,9 +22,7 @@ use clap::Args;
 use ctxrace_config::{Context, RaceConfig};
 use ctxrace_learner::trained::{CheckpointChoice, TrainedAgent};
 use ctxrace_run::results;
-use ctxrace_run::run_dir::{
-    EVAL_DIR, EVAL_JOB,
-};
+use ctxrace_run::run_dir::{EVAL_DIR, EVAL_JOB};
 use ctxrace_sim::baseline::BaselineKind;
 use ctxrace_sim::driver::ActMode;
 use ctxrace_sim::eval_dir;

@@ -17,12 +17,12 @@
 use crate::progress::progress_bar;
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
-use ctxrace_config::validate::CONFIG_EXIT_CODE;
+use ctxrace_config::validate::{Causes, CONFIG_EXIT_CODE};
 use ctxrace_config::{ExperimentConfig, SupervisorConfig};
 use ctxrace_ipc::wire::{named_reasons, ReplayStatus};
 use ctxrace_ipc::{
     claim_run, cleanup, remove_dead_nodes, run_prefix, sweep_orphaned_runs, termination_flag,
-    CleanupReport, RunTransport, TelemetrySubscriber, WeightsReceiver,
+    CleanupReport, IpcError, RunTransport, TelemetrySubscriber, WeightsReceiver,
 };
 use ctxrace_learner::runlog::{EpisodeLog, RateMeter};
 use ctxrace_run::lock::{die_with_parent, DirLock};
@@ -57,7 +57,7 @@ impl DeadNodeCleaner {
     /// A cleaner of the dead nodes of the run with `prefix`.
     fn new(prefix: &str) -> Self {
         let prefix = prefix.to_string();
-        Self::with(move || remove_dead_nodes(&prefix), CLEANUP_LIMIT)
+        Self::with(move || Ok(remove_dead_nodes(&prefix)?), CLEANUP_LIMIT)
     }
 
     /// A cleaner running `clean`, logged as overrunning after `limit`.
@@ -471,7 +471,7 @@ pub fn run(
             tracing::warn!("removed the shared memory of runs whose launcher died: {swept:?}")
         }
         Ok(_) => {}
-        Err(e) => tracing::warn!("sweeping the shared memory of dead runs: {e:#}"),
+        Err(e) => tracing::warn!("sweeping the shared memory of dead runs: {}", Causes(&e)),
     }
     let prefix = run_prefix(&run_id);
     claim_run(&prefix)?;
@@ -528,7 +528,7 @@ pub fn run(
     drop(transport);
     match cleanup(&prefix) {
         Ok(report) => tracing::info!("shared memory of {prefix} removed: {report:?}"),
-        Err(e) => tracing::warn!("cleaning up {prefix}: {e}"),
+        Err(e) => tracing::warn!("cleaning up {prefix}: {}", Causes(&e)),
     }
     let lost = lost?;
     eprintln!("{}", step_summary(dir, lost));
@@ -654,9 +654,10 @@ fn log_tail(path: &Path, n: usize) -> String {
     }
 }
 
-/// The value of a telemetry read, or `None` with a warning.
-fn tolerate<T>(read: Result<T>) -> Option<T> {
-    read.map_err(|e| tracing::warn!("telemetry: {e:#}")).ok()
+/// The value of a telemetry read, or `None` with a warning (the error and its causes).
+fn tolerate<T>(read: Result<T, IpcError>) -> Option<T> {
+    read.map_err(|e| tracing::warn!("telemetry: {}", Causes(&e)))
+        .ok()
 }
 
 /// The supervision loop; returns when the run is complete or interrupted, with the steps

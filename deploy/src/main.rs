@@ -178,7 +178,7 @@ fn main() {
     if let Err(e) = result {
         eprintln!("error: {e:#}");
         // a run's process that would fail the same way again tells its launcher so
-        let permanent = e.downcast_ref::<ConfigError>().is_some();
+        let permanent = e.chain().any(|cause| cause.is::<ConfigError>());
         std::process::exit(if permanent { CONFIG_EXIT_CODE } else { 1 });
     }
 }

@@ -53,9 +53,10 @@ pub fn drive_recorded(
     seed: u64,
     frames: &mut Vec<Frame>,
 ) -> Result<StepInfo> {
-    driver.drive_observed(env, context, seed, |env, d| {
+    let last = driver.drive_observed(env, context, seed, |env, d| {
         frames.push(Frame::capture(env, d.action, d.reward, d.obs))
-    })
+    })?;
+    Ok(last)
 }
 
 impl Frame {

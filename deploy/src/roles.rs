@@ -42,8 +42,7 @@ pub struct ActorArgs {
 
 /// The run's experiment (an error is a [`ConfigError`]: a restart would meet it again).
 pub fn read_experiment(run_dir: &Path) -> Result<ExperimentConfig> {
-    Ok(ExperimentConfig::load(&run_dir.join(CONFIG_FILE))
-        .map_err(|e| ConfigError(e.to_string()))?)
+    Ok(ExperimentConfig::load(&run_dir.join(CONFIG_FILE)).map_err(ConfigError::new)?)
 }
 
 /// The replay's settings for a run: its sampling ratio and minimum fill follow `[train]`, its
@@ -112,7 +111,7 @@ pub fn actor(args: ActorArgs) -> Result<()> {
     let track = args
         .tracks
         .load(&experiment.track, &experiment.race)
-        .map_err(|e| ConfigError(format!("{e:#}")))?;
+        .map_err(ConfigError::new)?;
     let track = Arc::new(track);
     let report = ctxrace_actor::process::run(ctxrace_actor::process::ActorOptions {
         prefix: args.role.prefix,

@@ -377,7 +377,7 @@ fn run_one(matrix: &MatrixFile, run: &MatrixRun, out: &Path, cores: usize) -> Re
     let configs = out.join("configs");
     std::fs::create_dir_all(&configs).with_context(|| format!("creating {}", configs.display()))?;
     let config_path = configs.join(format!("{}.toml", run.name));
-    let text = run.config.to_toml().map_err(anyhow::Error::msg)?;
+    let text = run.config.to_toml()?;
     ctxrace_run::run_dir::write_atomic(&config_path, text.as_bytes())
         .with_context(|| format!("writing {}", config_path.display()))?;
     let dir = out.join(&run.name);
@@ -702,10 +702,9 @@ train_ratio = 2.0
         let names: std::collections::HashSet<_> = runs.iter().map(|r| &r.name).collect();
         assert_eq!(names.len(), runs.len(), "names are unique");
         for r in &runs {
-            let want = if r.config.agent.algo == AlgoKind::Sac {
-                2.0
-            } else {
-                1.0
+            let want = match r.config.agent.algo {
+                AlgoKind::Sac => 2.0,
+                AlgoKind::Dreamerv3 | AlgoKind::Crssm | AlgoKind::Cmask => 1.0,
             };
             assert_eq!(r.config.train.train_ratio, want, "{}", r.name);
             assert_eq!(r.config.train.env_steps, 500);
@@ -784,7 +783,9 @@ train_ratio = 2.0
             "{axes}seeds = [0]\n[eval]\ncheckpoint = \"top\"\n"
         ))
         .contains("checkpoint"));
-        let err = write(&format!("{axes}seeds = [0]\n[eval]\ncontexts = \"40-60\"\n"));
+        let err = write(&format!(
+            "{axes}seeds = [0]\n[eval]\ncontexts = \"40-60\"\n"
+        ));
         assert!(
             err.contains("[eval] contexts") && err.contains("outside the grid"),
             "{err}"

@@ -77,8 +77,7 @@ fn experiment(args: &TrainArgs) -> Result<ExperimentConfig> {
     let mut cfg = match &args.config {
         Some(path) => ExperimentConfig::load(path),
         None => ExperimentConfig::from_toml(EMBEDDED_CONFIG, "embedded configs/quick.toml"),
-    }
-    .map_err(anyhow::Error::msg)?;
+    }?;
     if let Some(algo) = args.algo {
         cfg.agent.algo = algo;
     }
@@ -110,7 +109,7 @@ fn experiment(args: &TrainArgs) -> Result<ExperimentConfig> {
         );
     }
     let actors = if args.inline { 1 } else { args.actors };
-    cfg.validate_run(actors).map_err(anyhow::Error::msg)?;
+    cfg.validate_run(actors)?;
     Ok(cfg)
 }
 

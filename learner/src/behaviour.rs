@@ -44,7 +44,8 @@ use ctxrace_nn::losses::{
     soft_cross_entropy, soft_cross_entropy_backward, twohot_decode, twohot_decode_backward,
 };
 use ctxrace_nn::{
-    InputGrad, Mlp, MlpGrads, MlpTrace, NonZeros, Rssm, StepScratch, StepTrace, TwoHot,
+    sigmoid, sized, InputGrad, Mlp, MlpGrads, MlpTrace, NonZeros, Rssm, StepScratch, StepTrace,
+    TwoHot,
 };
 use rand_chacha::ChaCha8Rng;
 
@@ -122,12 +123,6 @@ pub(crate) struct ShardGrads {
     pub(crate) ret: f64,
 }
 
-/// `v` resized to `n` values (zeros where it grows) as a slice.
-fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
-    v.resize(n, 0.0);
-    &mut v[..n]
-}
-
 /// The mean of `x` (0 if empty).
 fn mean(x: &[f32]) -> f64 {
     x.iter().map(|&v| v as f64).sum::<f64>() / x.len().max(1) as f64
@@ -140,11 +135,6 @@ pub(crate) fn imagined_steps(cfg: &DreamerConfig) -> usize {
         ImaginationLoss::PaperCode => cfg.horizon.saturating_sub(1),
         ImaginationLoss::Dreamerv3 => cfg.horizon,
     }
-}
-
-/// `1 / (1 + e^{−x})`.
-fn sigmoid(x: f32) -> f32 {
-    1.0 / (1.0 + (-x).exp())
 }
 
 impl Imagination {

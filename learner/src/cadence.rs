@@ -6,13 +6,26 @@
 //! the last checkpoint at the end.
 
 use crate::best::{write_best, ReturnTracker};
-use crate::checkpoint::write_checkpoint;
-use crate::runlog::MetricsLog;
+use crate::checkpoint::{write_checkpoint, CheckpointError};
+use crate::runlog::{LogError, MetricsLog};
 use crate::{Algorithm, Metrics};
-use anyhow::Result;
 use ctxrace_config::{AgentConfig, ExperimentConfig, TrainConfig};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
+
+/// Why the cadence could not log or checkpoint.
+#[derive(Debug, thiserror::Error)]
+pub enum CadenceError {
+    /// A checkpoint or the best policy could not be written.
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+    /// The metrics log could not be opened or written.
+    #[error(transparent)]
+    Log(#[from] LogError),
+}
+
+/// The outcome of a cadence operation.
+type Result<T> = std::result::Result<T, CadenceError>;
 
 /// A run's logging, checkpoint and best-policy cadence.
 pub struct Cadence {

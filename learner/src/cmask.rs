@@ -218,10 +218,10 @@ impl MaskPasses<'_> {
             },
         );
         let mut parts = shards
-            .map_err(|e| SacError::Batch(format!("the mask SAC's shards: {e}")))?
+            .map_err(|e| SacError::Shards(Box::new(e)))?
             .into_iter();
         let Some(mut sum) = parts.next() else {
-            return Err(SacError::Batch("the mask SAC's batch has no shards".into()));
+            return Err(SacError::NoShards);
         };
         for part in parts {
             sum.add(&part);
@@ -257,9 +257,7 @@ impl MaskSac {
     pub(crate) fn new(cfg: &DreamerConfig, obs_dim: usize, actor: &Mlp) -> Result<Self> {
         let m = &cfg.mask;
         if m.init_alpha.is_nan() || m.init_alpha <= 0.0 {
-            return Err(LearnerError::Config(
-                "agent.dreamer.mask.init_alpha must be positive".into(),
-            ));
+            return Err(LearnerError::MaskTemperature(m.init_alpha));
         }
         let seed = cfg.seed.wrapping_add(3);
         let core = CoreConfig {

@@ -113,12 +113,12 @@ impl Dreamer {
     /// A freshly initialised agent for observations of `obs_dim` and actions of `act_dim`
     /// (reward and critic output layers start at zero, as in DreamerV3).
     pub fn new(cfg: DreamerConfig, obs_dim: usize, act_dim: usize) -> Result<Self> {
-        cfg.validate()
-            .map_err(|e| LearnerError::Config(format!("{e:#}")))?;
+        cfg.validate()?;
         if obs_dim == 0 || act_dim == 0 {
-            return Err(LearnerError::Config(format!(
-                "DreamerV3 needs observations and actions (sizes {obs_dim}, {act_dim})"
-            )));
+            return Err(LearnerError::Sizes {
+                obs: obs_dim,
+                action: act_dim,
+            });
         }
         let mut policy = PolicyNets::initial(&cfg, obs_dim, act_dim)?;
         let world_model = WorldModel::new(&cfg, (obs_dim, act_dim), &mut policy)?;
@@ -170,7 +170,7 @@ impl Dreamer {
     }
 
     /// The acting policy with the current weights, its noise seeded by `seed`.
-    pub fn policy(&self, seed: u64) -> anyhow::Result<DreamerPolicy> {
+    pub fn policy(&self, seed: u64) -> Result<DreamerPolicy> {
         let weights = to_safetensors(&self.policy)?;
         Ok(DreamerPolicy::new(&self.cfg, self.obs_dim, &weights, seed)?)
     }
@@ -280,9 +280,7 @@ impl Dreamer {
             shard_metrics.push((w, m));
         }
         let (Some(actor), Some(critic)) = (actor, critic) else {
-            return Err(LearnerError::Batch(
-                "behaviour learning: no imagined states".into(),
-            ));
+            return Err(LearnerError::NoImaginedStates);
         };
         let actor = actor.into_tensors(&self.policy.actor);
         let critic = critic.into_tensors(&self.critic);
@@ -382,12 +380,9 @@ impl Algorithm for Dreamer {
     /// posterior state, and (cMask) one mask-SAC step, all on `batch`.
     fn train_step(&mut self, batch: &Batch) -> Result<Metrics> {
         let Batch::Sequence(seq) = batch else {
-            return Err(LearnerError::Batch(
-                "DreamerV3 trains on sequence batches, not transitions".into(),
-            ));
+            return Err(LearnerError::Transitions);
         };
-        seq.validate(self.obs_dim, self.act_dim)
-            .map_err(|e| LearnerError::Batch(e.to_string()))?;
+        seq.validate(self.obs_dim, self.act_dim)?;
         let mut rngs = self.sequence_rngs(seq.batch);
         let mut metrics = Metrics::new();
         // the matrix-product FLOPs (the process's counter; one step at a time) and the wall

@@ -3,17 +3,43 @@
 use crate::adam::AdamError;
 use crate::checkpoint::CheckpointError;
 use crate::sac_core::SacError;
+use ctxrace_config::agents::AgentConfigError;
+use ctxrace_config::BatchError;
+use ctxrace_nn::policy::PolicyError;
 use ctxrace_nn::WeightsError;
 
 /// Why an agent could not be built, trained or serialised.
 #[derive(Debug, thiserror::Error)]
 pub enum LearnerError {
-    /// The agent's configuration is invalid (the message names the key).
-    #[error("agent config: {0}")]
-    Config(String),
-    /// A batch the algorithm cannot train on: what is wrong with it.
-    #[error("batch: {0}")]
-    Batch(String),
+    /// The agent's configuration is invalid (its message names the key).
+    #[error("agent config")]
+    Config(#[from] AgentConfigError),
+    /// A DreamerV3 agent without observations or actions.
+    #[error("agent config: DreamerV3 needs observations and actions (sizes {obs}, {action})")]
+    Sizes {
+        /// Observation size.
+        obs: usize,
+        /// Action size.
+        action: usize,
+    },
+    /// cMask's mask SAC with a temperature that is not positive.
+    #[error("agent config: agent.dreamer.mask.init_alpha = {0} must be positive")]
+    MaskTemperature(f64),
+    /// A batch that does not fit the agent (its sizes, or values out of range).
+    #[error("batch")]
+    Batch(#[from] BatchError),
+    /// DreamerV3 was given transitions.
+    #[error("batch: DreamerV3 trains on sequence batches, not transitions")]
+    Transitions,
+    /// A world-model step on a batch of no sequences.
+    #[error("batch: world model: a batch of no sequences")]
+    NoSequences,
+    /// A behaviour step with no imagined state to learn from.
+    #[error("batch: behaviour learning: no imagined states")]
+    NoImaginedStates,
+    /// The acting policy could not be built from the agent's weights.
+    #[error(transparent)]
+    Policy(#[from] PolicyError),
     /// A network's weights could not be built, read or written.
     #[error(transparent)]
     Weights(#[from] WeightsError),

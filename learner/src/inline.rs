@@ -8,11 +8,11 @@
 //! them (the actor's `Collector` on a race, the replay's `ReplayBuffer` in memory) and passes
 //! them in, so that the learner depends on the common crate only.
 
-use crate::cadence::Cadence;
-use crate::runlog::{EpisodeLog, RateMeter};
-use anyhow::{ensure, Result};
+use crate::cadence::{Cadence, CadenceError};
+use crate::runlog::{EpisodeLog, LogError, RateMeter};
+use crate::LearnerError;
 use ctxrace_config::ExperimentConfig;
-use ctxrace_nn::policy::ACT_DIM;
+use ctxrace_nn::policy::{PolicyError, ACT_DIM};
 use ctxrace_nn::Policy;
 use ctxrace_run::experience::{ExperienceSource, SampleStore};
 use rand::SeedableRng;
@@ -22,6 +22,42 @@ use std::time::{Duration, Instant};
 
 /// Episodes whose mean progress [`InlineProgress::recent_progress`] reports.
 const RECENT: usize = 10;
+
+/// Why a single-process run stopped on an error; `E` is its experience source's error.
+#[derive(Debug, thiserror::Error)]
+pub enum InlineError<E> {
+    /// The sample store was built for other steps than the source makes.
+    #[error(
+        "the sample store holds steps of {store_obs} observation and {store_act} action \
+         values, the experience source makes {source_obs} and {source_act}: build the store \
+         for the source's observation"
+    )]
+    StoreSizes {
+        /// The store's observation size.
+        store_obs: usize,
+        /// The store's action size.
+        store_act: usize,
+        /// The source's observation size.
+        source_obs: usize,
+        /// The source's action size.
+        source_act: usize,
+    },
+    /// The agent could not be built, or a training step failed.
+    #[error(transparent)]
+    Learner(#[from] LearnerError),
+    /// The acting policy could not be built or reloaded.
+    #[error(transparent)]
+    Policy(#[from] PolicyError),
+    /// The training episodes could not be logged.
+    #[error(transparent)]
+    Log(#[from] LogError),
+    /// The metrics, a checkpoint or the best policy could not be written.
+    #[error(transparent)]
+    Cadence(#[from] CadenceError),
+    /// The experience source could not take a decision.
+    #[error(transparent)]
+    Source(E),
+}
 
 /// Where a single-process run stands (after each decision and at its end).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -64,16 +100,17 @@ pub fn run_inline<S: ExperienceSource<Policy = Policy>, B: SampleStore>(
     source: &mut S,
     store: &mut B,
     mut on_decision: impl FnMut(&InlineProgress),
-) -> Result<InlineRun> {
+) -> Result<InlineRun, InlineError<S::Error>> {
     let t = &cfg.train;
     let frame_dim = source.obs_dim();
-    ensure!(
-        (store.obs_dim(), store.act_dim()) == (frame_dim, ACT_DIM),
-        "the sample store holds steps of {} observation and {} action values, the experience \
-         source makes {frame_dim} and {ACT_DIM}: build the store for the source's observation",
-        store.obs_dim(),
-        store.act_dim()
-    );
+    if (store.obs_dim(), store.act_dim()) != (frame_dim, ACT_DIM) {
+        return Err(InlineError::StoreSizes {
+            store_obs: store.obs_dim(),
+            store_act: store.act_dim(),
+            source_obs: frame_dim,
+            source_act: ACT_DIM,
+        });
+    }
     let workers = t.threads_for(cfg.agent.algo);
     let mut algo = crate::build(&cfg.agent, frame_dim, workers)?;
     let mut policy = Policy::new(&cfg.agent, frame_dim, &algo.policy_weights()?, t.seed)?;
@@ -101,7 +138,9 @@ pub fn run_inline<S: ExperienceSource<Policy = Policy>, B: SampleStore>(
         payload.clear();
         let by_policy = cfg.acts_by_policy(source.decisions());
         let acting = if by_policy { Some(&mut policy) } else { None };
-        let finished = source.step(acting, &mut |s| s.encode(&mut payload))?;
+        let finished = source
+            .step(acting, &mut |s| s.encode(&mut payload))
+            .map_err(InlineError::Source)?;
         store.insert_chunk(0, &payload, false);
         if let Some(f) = finished {
             let row = f.row(0, source.decisions(), algo.steps());

@@ -39,9 +39,7 @@ use ctxrace_nn::policy::ACT_DIM;
 /// splits each batch over `workers` threads ([`Dreamer::set_workers`]); SAC steps on the
 /// calling thread.
 pub fn build(agent: &AgentConfig, frame_dim: usize, workers: usize) -> Result<Box<dyn Algorithm>> {
-    agent
-        .validate()
-        .map_err(|e| LearnerError::Config(format!("{e:#}")))?;
+    agent.validate()?;
     Ok(match agent.algo {
         AlgoKind::Sac => Box::new(Sac::new(
             frame_dim * agent.sac.frames,

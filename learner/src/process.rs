@@ -6,12 +6,12 @@
 //! learner carries on where it stopped.
 
 use crate::best::ReturnTracker;
-use crate::cadence::Cadence;
-use crate::checkpoint::latest_checkpoint;
-use anyhow::{Context as _, Result};
+use crate::cadence::{Cadence, CadenceError};
+use crate::checkpoint::{latest_checkpoint, CheckpointError};
+use crate::LearnerError;
 use ctxrace_config::ExperimentConfig;
 use ctxrace_ipc::{
-    termination_flag, EpisodeSubscriber, ReplayClient, RunTransport, WeightsPublisher,
+    termination_flag, EpisodeSubscriber, IpcError, ReplayClient, RunTransport, WeightsPublisher,
     DEFAULT_MAX_WEIGHTS_BYTES,
 };
 use ctxrace_nn::policy::ACT_DIM;
@@ -23,6 +23,29 @@ use std::time::Duration;
 const HANDSHAKE: Duration = Duration::from_secs(60);
 /// How long one batch request waits before the learner checks for signals again.
 const BATCH_WAIT: Duration = Duration::from_millis(200);
+
+/// Why the learner process stopped on an error.
+#[derive(Debug, thiserror::Error)]
+pub enum ProcessError {
+    /// The agent could not be built, or a training step failed.
+    #[error(transparent)]
+    Learner(#[from] LearnerError),
+    /// The run's newest checkpoint could not be restored.
+    #[error("resuming from {}", .path.display())]
+    Resume {
+        /// The checkpoint.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: CheckpointError,
+    },
+    /// The logs, a checkpoint or the best policy could not be written.
+    #[error(transparent)]
+    Cadence(#[from] CadenceError),
+    /// The transport failed.
+    #[error(transparent)]
+    Ipc(#[from] IpcError),
+}
 
 /// What a learner process needs.
 pub struct LearnerOptions {
@@ -58,16 +81,19 @@ pub fn is_trained(dir: &Path, cfg: &ExperimentConfig) -> bool {
 }
 
 /// Trains until the run's gradient-step target or SIGTERM/SIGINT; returns the steps taken.
-pub fn run(opts: LearnerOptions) -> Result<u64> {
+pub fn run(opts: LearnerOptions) -> Result<u64, ProcessError> {
     let cfg = &opts.experiment;
     let t = &cfg.train;
     let workers = t.threads_for(cfg.agent.algo);
     let mut algo = crate::build(&cfg.agent, opts.frame_dim, workers)?;
     let mut tracker = ReturnTracker::default();
     if let Some(ckpt) = latest_checkpoint(&opts.run_dir) {
-        algo.load(&ckpt)
-            .with_context(|| format!("resuming from {}", ckpt.display()))?;
-        tracker = ReturnTracker::load(&ckpt)?;
+        let resume = |source| ProcessError::Resume {
+            path: ckpt.clone(),
+            source,
+        };
+        algo.load(&ckpt).map_err(resume)?;
+        tracker = ReturnTracker::load(&ckpt).map_err(resume)?;
         tracing::info!(
             "learner resumed from {} at step {}",
             ckpt.display(),

@@ -4,20 +4,74 @@
 //! the finished training episodes in `episodes.csv` and, with the run's rates, an event file
 //! ([`EpisodeLog`], [`RateMeter`]).
 
-use crate::tensorboard::EventWriter;
+use crate::tensorboard::{EventFileError, EventWriter};
 use crate::Metrics;
-use anyhow::{Context as _, Result};
 use ctxrace_run::results::TrainingEpisode;
 use ctxrace_run::run_dir::{open_append, METRICS_CSV, METRICS_JSONL, TRAINING_EPISODES};
 use std::fs::File;
 use std::io::Write;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
+
+/// Why a log of the run directory could not be opened or written; each names the file.
+#[derive(Debug, thiserror::Error)]
+pub enum LogError {
+    /// A log could not be opened for appending.
+    #[error("opening {}", .path.display())]
+    Open {
+        /// The log.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: std::io::Error,
+    },
+    /// A row could not be written.
+    #[error("writing {}", .path.display())]
+    Write {
+        /// The log.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: std::io::Error,
+    },
+    /// A row could not be written as JSON.
+    #[error("writing {}", .path.display())]
+    Json {
+        /// The log.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: serde_json::Error,
+    },
+    /// A row could not be written as CSV.
+    #[error("writing {}", .path.display())]
+    Csv {
+        /// The log.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: csv::Error,
+    },
+    /// The TensorBoard event file.
+    #[error(transparent)]
+    Events(#[from] EventFileError),
+}
+
+/// The outcome of a log operation.
+type Result<T> = std::result::Result<T, LogError>;
+
+/// Opens `path` for appending, naming it in the error.
+fn append(path: PathBuf) -> Result<(File, PathBuf)> {
+    match open_append(&path) {
+        Ok(file) => Ok((file, path)),
+        Err(source) => Err(LogError::Open { path, source }),
+    }
+}
 
 /// Appends training-interval rows to `metrics.jsonl`, `metrics.csv` and an event file.
 pub struct MetricsLog {
-    jsonl: File,
-    csv: File,
+    jsonl: (File, PathBuf),
+    csv: (File, PathBuf),
     columns: Option<Vec<String>>,
     events: EventWriter,
 }
@@ -25,10 +79,6 @@ pub struct MetricsLog {
 impl MetricsLog {
     /// Opens (appending) the logs in `run_dir`, with a new event file for the process `role`.
     pub fn open(run_dir: &Path, role: &str) -> Result<Self> {
-        let open = |name: &str| {
-            let path = run_dir.join(name);
-            open_append(&path).with_context(|| format!("opening {}", path.display()))
-        };
         let csv_path = run_dir.join(METRICS_CSV);
         let columns = std::fs::read_to_string(&csv_path).ok().and_then(|t| {
             t.lines()
@@ -36,8 +86,8 @@ impl MetricsLog {
                 .map(|h| h.split(',').map(String::from).collect())
         });
         Ok(Self {
-            jsonl: open(METRICS_JSONL)?,
-            csv: open("metrics.csv")?,
+            jsonl: append(run_dir.join(METRICS_JSONL))?,
+            csv: append(csv_path)?,
             columns,
             events: EventWriter::create(run_dir, role)?,
         })
@@ -45,13 +95,25 @@ impl MetricsLog {
 
     /// Appends one row.
     pub fn write(&mut self, row: &Metrics) -> Result<()> {
-        serde_json::to_writer(&mut self.jsonl, row)?;
-        self.jsonl.write_all(b"\n")?;
+        let (jsonl, jsonl_path) = &mut self.jsonl;
+        serde_json::to_writer(&mut *jsonl, row).map_err(|source| LogError::Json {
+            path: jsonl_path.clone(),
+            source,
+        })?;
+        jsonl.write_all(b"\n").map_err(|source| LogError::Write {
+            path: jsonl_path.clone(),
+            source,
+        })?;
+        let (csv, csv_path) = &mut self.csv;
+        let write_error = |source| LogError::Write {
+            path: csv_path.clone(),
+            source,
+        };
         let columns = match &self.columns {
             Some(c) => c,
             None => {
                 let c: Vec<String> = row.keys().cloned().collect();
-                writeln!(self.csv, "{}", c.join(","))?;
+                writeln!(csv, "{}", c.join(",")).map_err(write_error)?;
                 self.columns.insert(c)
             }
         };
@@ -59,11 +121,11 @@ impl MetricsLog {
             .iter()
             .map(|k| row.get(k).map_or(String::new(), |v| v.to_string()))
             .collect();
-        writeln!(self.csv, "{}", cells.join(","))?;
+        writeln!(csv, "{}", cells.join(",")).map_err(write_error)?;
         let step = row.get("grad_steps").copied().unwrap_or(0.0) as u64;
         self.events
             .scalars(step, row.iter().map(|(k, v)| (k.as_str(), *v)))?;
-        self.events.flush()
+        Ok(self.events.flush()?)
     }
 }
 
@@ -71,6 +133,7 @@ impl MetricsLog {
 /// event file (scalars `episode/*` and `rate/*`, `replay/*` at the run's env steps).
 pub struct EpisodeLog {
     writer: csv::Writer<std::fs::File>,
+    path: PathBuf,
     events: EventWriter,
 }
 
@@ -79,19 +142,28 @@ impl EpisodeLog {
     pub fn open(run_dir: &Path, role: &str) -> Result<Self> {
         let path = run_dir.join(TRAINING_EPISODES);
         let fresh = std::fs::metadata(&path).map_or(true, |m| m.len() == 0);
-        let file = open_append(&path).with_context(|| format!("opening {}", path.display()))?;
+        let (file, path) = append(path)?;
         Ok(Self {
             writer: csv::WriterBuilder::new()
                 .has_headers(fresh)
                 .from_writer(file),
+            path,
             events: EventWriter::create(run_dir, role)?,
         })
     }
 
     /// Appends one episode.
     pub fn write(&mut self, episode: &TrainingEpisode) -> Result<()> {
-        self.writer.serialize(episode)?;
-        self.writer.flush()?;
+        self.writer
+            .serialize(episode)
+            .map_err(|source| LogError::Csv {
+                path: self.path.clone(),
+                source,
+            })?;
+        self.writer.flush().map_err(|source| LogError::Write {
+            path: self.path.clone(),
+            source,
+        })?;
         let flag = |b: bool| f64::from(u8::from(b));
         self.events.scalars(
             episode.env_steps,
@@ -104,7 +176,7 @@ impl EpisodeLog {
                 ("episode/steps", episode.steps as f64),
             ],
         )?;
-        self.events.flush()
+        Ok(self.events.flush()?)
     }
 
     /// Records the run's rates and replay fill at `env_steps`.
@@ -118,7 +190,7 @@ impl EpisodeLog {
                 ("replay/fill", rates.replay_fill),
             ],
         )?;
-        self.events.flush()
+        Ok(self.events.flush()?)
     }
 }
 

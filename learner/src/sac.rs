@@ -36,6 +36,7 @@
 
 use crate::algorithm::{Algorithm, Batch, Metrics};
 use crate::checkpoint;
+use crate::error::LearnerError;
 pub use crate::sac_core::SacError;
 pub(crate) use crate::sac_core::{
     ActionRange, ActorNet, PassSum, SoftTarget, WeightedTransitions, Workspace,
@@ -99,8 +100,7 @@ impl Sac {
                 hidden: cfg.hidden,
             });
         }
-        cfg.validate()
-            .map_err(|e| SacError::Config(format!("{e:#}")))?;
+        cfg.validate()?;
         if !obs_dim.is_multiple_of(cfg.frames) {
             return Err(SacError::Frames {
                 obs: obs_dim,
@@ -163,7 +163,7 @@ impl Sac {
 
     /// The acting policy with the current actor weights, its noise seeded by `seed`; it stacks
     /// `cfg.frames` frames of `obs_dim / frames` values itself.
-    pub fn policy(&self, seed: u64) -> anyhow::Result<SacPolicy> {
+    pub fn policy(&self, seed: u64) -> Result<SacPolicy, LearnerError> {
         let frame_dim = self.obs_dim / self.cfg.frames;
         let weights = to_safetensors(&self.actor)?;
         Ok(SacPolicy::new(
@@ -193,9 +193,7 @@ impl Sac {
     /// (the value used in this step), `entropy` (`−log π` averaged over the batch) and `q_mean`.
     pub fn update(&mut self, batch: &TransitionBatch) -> Result<Metrics, SacError> {
         let (b, o, a) = (batch.batch, self.obs_dim, self.act_dim);
-        batch
-            .validate(o, a)
-            .map_err(|e| SacError::Batch(e.to_string()))?;
+        batch.validate(o, a)?;
         let weight = vec![1.0 / b as f32; b];
         let noise = self.noise(self.step);
         let mut passes = BatchPasses {

@@ -15,6 +15,9 @@
 
 use crate::adam::{Adam, AdamError};
 use crate::checkpoint;
+use crate::error::LearnerError;
+use ctxrace_config::agents::AgentConfigError;
+use ctxrace_config::BatchError;
 use ctxrace_nn::parameters::{init_with, polyak, to_safetensors, update_each, Draw};
 use ctxrace_nn::tanh_gaussian::{squash_rows, squash_rows_backward};
 use ctxrace_nn::{
@@ -48,11 +51,17 @@ pub enum SacError {
         frames: usize,
     },
     /// The configuration is invalid (the message names the key).
-    #[error("{0}")]
-    Config(String),
+    #[error(transparent)]
+    Config(#[from] AgentConfigError),
     /// A batch does not fit the agent.
-    #[error("{0}")]
-    Batch(String),
+    #[error(transparent)]
+    Batch(#[from] BatchError),
+    /// The mask SAC's batch could not be split over its workers (or a worker panicked).
+    #[error("the mask SAC's shards")]
+    Shards(#[source] Box<LearnerError>),
+    /// The mask SAC's batch has no valid transition to split.
+    #[error("the mask SAC's batch has no shards")]
+    NoShards,
     /// SAC was given sequences.
     #[error("SAC trains on transitions, not sequences")]
     Sequences,

@@ -9,11 +9,63 @@
 //! numbers of tensorflow/core/util/event.proto and framework/summary.proto), so no protobuf
 //! compiler is needed at build time.
 
-use anyhow::{bail, Context as _, Result};
 use prost::Message;
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
+
+/// Why an event file could not be written or read back; each names the file.
+#[derive(Debug, thiserror::Error)]
+pub enum EventFileError {
+    /// The file could not be created, written or read.
+    #[error("{action} {}", .path.display())]
+    Io {
+        /// What was being done (`"creating"`, `"writing"`, `"reading"`).
+        action: &'static str,
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: std::io::Error,
+    },
+    /// A record's framing is broken: what, and where.
+    #[error("{}: {what} at byte {at}", .path.display())]
+    Framing {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong (`"a record with a bad CRC"`, ...).
+        what: &'static str,
+        /// Where the record starts.
+        at: usize,
+    },
+    /// A record holds no event.
+    #[error("{}: an undecodable event at byte {at}", .path.display())]
+    Decode {
+        /// The file.
+        path: PathBuf,
+        /// Where the record starts.
+        at: usize,
+        /// prost's reason.
+        #[source]
+        source: prost::DecodeError,
+    },
+    /// The file does not start as an event file does.
+    #[error("{}: does not start with the brain.Event:2 version", .0.display())]
+    Version(PathBuf),
+}
+
+/// The outcome of an event-file operation.
+type Result<T> = std::result::Result<T, EventFileError>;
+
+/// An [`EventFileError::Io`] of `action` on `path`.
+fn io_error(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> EventFileError {
+    let path = path.to_path_buf();
+    move |source| EventFileError::Io {
+        action,
+        path,
+        source,
+    }
+}
 
 /// `tensorflow.Event`, the fields ctxrace writes.
 #[derive(Clone, PartialEq, prost::Message)]
@@ -84,8 +136,7 @@ impl EventWriter {
             std::process::id()
         ));
         // a new file, never one (or a link) already there
-        let file =
-            File::create_new(&path).with_context(|| format!("creating {}", path.display()))?;
+        let file = File::create_new(&path).map_err(io_error("creating", &path))?;
         let mut w = Self {
             file: BufWriter::new(file),
             path,
@@ -125,9 +176,7 @@ impl EventWriter {
 
     /// Pushes what was written to the file (TensorBoard reads it live).
     pub fn flush(&mut self) -> Result<()> {
-        self.file
-            .flush()
-            .with_context(|| format!("writing {}", self.path.display()))
+        self.file.flush().map_err(io_error("writing", &self.path))
     }
 
     fn record(&mut self, event: &Event) -> Result<()> {
@@ -138,7 +187,7 @@ impl EventWriter {
             .and_then(|()| w.write_all(&masked_crc(&len).to_le_bytes()))
             .and_then(|()| w.write_all(&data))
             .and_then(|()| w.write_all(&masked_crc(&data).to_le_bytes()))
-            .with_context(|| format!("writing {}", self.path.display()))
+            .map_err(io_error("writing", &self.path))
     }
 }
 
@@ -168,42 +217,45 @@ pub struct ScalarRecord {
 /// Every scalar of an event file, checking the framing and both CRCs of every record; the
 /// file must start with the `brain.Event:2` version event.
 pub fn read_scalars(path: &Path) -> Result<Vec<ScalarRecord>> {
-    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let bytes = std::fs::read(path).map_err(io_error("reading", path))?;
     let mut rest = &bytes[..];
     let mut out = Vec::new();
     let mut first = true;
     while !rest.is_empty() {
-        let bad = |what: &str| {
-            anyhow::anyhow!(
-                "{}: {what} at byte {}",
-                path.display(),
-                bytes.len() - rest.len()
-            )
+        let at = bytes.len() - rest.len();
+        let bad = |what: &'static str| EventFileError::Framing {
+            path: path.to_path_buf(),
+            what,
+            at,
         };
-        if rest.len() < 12 {
+        let Some((len_bytes, tail)) = rest.split_first_chunk::<8>() else {
             return Err(bad("a truncated record header"));
-        }
-        let (len_bytes, tail) = rest.split_at(8);
-        let len = u64::from_le_bytes(len_bytes.try_into()?) as usize;
-        let crc = u32::from_le_bytes(tail[..4].try_into()?);
-        if crc != masked_crc(len_bytes) {
+        };
+        let Some((crc, tail)) = tail.split_first_chunk::<4>() else {
+            return Err(bad("a truncated record header"));
+        };
+        if u32::from_le_bytes(*crc) != masked_crc(len_bytes) {
             return Err(bad("a length with a bad CRC"));
         }
-        let tail = &tail[4..];
-        if tail.len() < len + 4 {
+        let len = u64::from_le_bytes(*len_bytes) as usize;
+        if tail.len() < len.saturating_add(4) {
             return Err(bad("a truncated record"));
         }
         let (data, tail) = tail.split_at(len);
-        if u32::from_le_bytes(tail[..4].try_into()?) != masked_crc(data) {
+        let Some((crc, tail)) = tail.split_first_chunk::<4>() else {
+            return Err(bad("a truncated record"));
+        };
+        if u32::from_le_bytes(*crc) != masked_crc(data) {
             return Err(bad("a record with a bad CRC"));
         }
-        let event = Event::decode(data).map_err(|e| bad(&format!("an undecodable event ({e})")))?;
+        let event = Event::decode(data).map_err(|source| EventFileError::Decode {
+            path: path.to_path_buf(),
+            at,
+            source,
+        })?;
         match (first, event.what) {
             (true, Some(What::FileVersion(v))) if v == "brain.Event:2" => {}
-            (true, _) => bail!(
-                "{}: does not start with the brain.Event:2 version",
-                path.display()
-            ),
+            (true, _) => return Err(EventFileError::Version(path.to_path_buf())),
             (false, Some(What::Summary(s))) => out.extend(s.value.into_iter().filter_map(|v| {
                 let Some(Scalar::SimpleValue(value)) = v.value else {
                     return None;
@@ -217,7 +269,7 @@ pub fn read_scalars(path: &Path) -> Result<Vec<ScalarRecord>> {
             (false, _) => {}
         }
         first = false;
-        rest = &tail[4..];
+        rest = tail;
     }
     Ok(out)
 }

@@ -3,11 +3,94 @@
 //! experiment, for `eval`, `race` and the first look after training.
 
 use crate::best::best_checkpoint;
+use crate::checkpoint::CheckpointError;
 use crate::checkpoint::{checkpoints, latest_checkpoint, verify};
-use anyhow::{bail, Context as _, Result};
-use ctxrace_config::{AgentConfig, ExperimentConfig};
+use ctxrace_config::agents::AgentConfigError;
+use ctxrace_config::{AgentConfig, ExperimentConfig, ExperimentError};
 use ctxrace_run::run_dir::{AGENT_FILE, CONFIG_FILE, POLICY_FILE};
 use std::path::{Path, PathBuf};
+
+/// Why a trained agent could not be read back; each names the folder or file and, where there
+/// is one, the way out.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainedAgentError {
+    /// The path is neither a checkpoint nor a run directory with checkpoints.
+    #[error(
+        "{} is neither a checkpoint (no {POLICY_FILE}) nor a run directory with \
+         checkpoints/step-*; train one with `ctxrace train`",
+        .0.display()
+    )]
+    NotTrained(PathBuf),
+    /// The run directory has no intact checkpoint of the choice.
+    #[error("{}", missing_message(.run, .choice, .why, .alternatives))]
+    Missing {
+        /// The run directory.
+        run: PathBuf,
+        /// The checkpoint asked for.
+        choice: CheckpointChoice,
+        /// Why there is none, when known (a clause starting with a space, or empty).
+        why: &'static str,
+        /// The intact checkpoints to pass instead (`best (intact)`, `latest`, `step-N`).
+        alternatives: Vec<String>,
+    },
+    /// The checkpoint is damaged (its seal does not hold).
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+    /// A file of the checkpoint could not be read.
+    #[error("reading {}", .path.display())]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The checkpoint's agent configuration is no TOML.
+    #[error("parsing {}", .path.display())]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: toml::de::Error,
+    },
+    /// The checkpoint's agent configuration is refused.
+    #[error("{}", .path.display())]
+    Agent {
+        /// The file.
+        path: PathBuf,
+        /// Why (it names the key).
+        #[source]
+        source: Box<AgentConfigError>,
+    },
+    /// The run's experiment could not be read.
+    #[error(transparent)]
+    Experiment(#[from] ExperimentError),
+}
+
+/// [`TrainedAgentError::Missing`]'s message.
+fn missing_message(
+    run: &Path,
+    choice: &CheckpointChoice,
+    why: &str,
+    alternatives: &[String],
+) -> String {
+    match alternatives.is_empty() {
+        true => format!(
+            "{} has no {choice} checkpoint{why} and no other intact one; train it again with \
+             `ctxrace train`",
+            run.display()
+        ),
+        false => format!(
+            "{} has no {choice} checkpoint{why}; pass --checkpoint {}",
+            run.display(),
+            alternatives.join(" or ")
+        ),
+    }
+}
+
+/// The outcome of reading a trained agent.
+type Result<T> = std::result::Result<T, TrainedAgentError>;
 
 /// Which checkpoint of a run directory to load.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -73,23 +156,30 @@ impl TrainedAgent {
         } else if !checkpoints(path).is_empty() || best_checkpoint(path).is_some() {
             (pick_checkpoint(path, choice)?, Some(path.to_path_buf()))
         } else {
-            bail!(
-                "{} is neither a checkpoint (no {POLICY_FILE}) nor a run directory with \
-                 checkpoints/step-*; train one with `ctxrace train`",
-                path.display()
-            );
+            return Err(TrainedAgentError::NotTrained(path.to_path_buf()));
         };
         verify(&checkpoint)?;
         let agent_path = checkpoint.join(AGENT_FILE);
-        let text = std::fs::read_to_string(&agent_path)
-            .with_context(|| format!("reading {}", agent_path.display()))?;
+        let text =
+            std::fs::read_to_string(&agent_path).map_err(|source| TrainedAgentError::Read {
+                path: agent_path.clone(),
+                source,
+            })?;
         let table: toml::Table =
-            toml::from_str(&text).with_context(|| format!("parsing {}", agent_path.display()))?;
-        let agent = AgentConfig::from_saved_table(table)
-            .map_err(|e| anyhow::anyhow!("{}: {e}", agent_path.display()))?;
+            toml::from_str(&text).map_err(|source| TrainedAgentError::Parse {
+                path: agent_path.clone(),
+                source,
+            })?;
+        let agent =
+            AgentConfig::from_saved_table(table).map_err(|source| TrainedAgentError::Agent {
+                path: agent_path.clone(),
+                source: Box::new(source),
+            })?;
         let policy_path = checkpoint.join(POLICY_FILE);
-        let weights = std::fs::read(&policy_path)
-            .with_context(|| format!("reading {}", policy_path.display()))?;
+        let weights = std::fs::read(&policy_path).map_err(|source| TrainedAgentError::Read {
+            path: policy_path.clone(),
+            source,
+        })?;
         let experiment = match run_dir.map(|r| r.join(CONFIG_FILE)) {
             Some(p) if p.exists() => Some(ExperimentConfig::load_saved(&p)?),
             _ => None,
@@ -143,17 +233,11 @@ fn pick_checkpoint(run: &Path, choice: CheckpointChoice) -> Result<PathBuf> {
             .chain((!steps.is_empty() && choice == CheckpointChoice::Best).then(|| "latest".into()))
             .chain(steps)
             .collect();
-        match alternatives.is_empty() {
-            true => anyhow::anyhow!(
-                "{} has no {choice} checkpoint{why} and no other intact one; train it again \
-                 with `ctxrace train`",
-                run.display()
-            ),
-            false => anyhow::anyhow!(
-                "{} has no {choice} checkpoint{why}; pass --checkpoint {}",
-                run.display(),
-                alternatives.join(" or ")
-            ),
+        TrainedAgentError::Missing {
+            run: run.to_path_buf(),
+            choice,
+            why,
+            alternatives,
         }
     })
 }

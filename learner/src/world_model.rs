@@ -38,7 +38,7 @@ use ctxrace_nn::losses::{
     categorical_kl, categorical_kl_backward, soft_cross_entropy, soft_cross_entropy_backward,
 };
 use ctxrace_nn::parameters::update_each;
-use ctxrace_nn::{symlog_value as symlog, TwoHot, Weights};
+use ctxrace_nn::{sigmoid, sized, symlog_value as symlog, TwoHot, Weights};
 use ctxrace_nn::{
     InputGrad, Mlp, MlpGrads, MlpTrace, NamedTensor, NonZeros, ObserveTrace, Parameters, Rssm,
     RssmGrads,
@@ -210,17 +210,6 @@ struct ShardWork {
     targets: Vec<f32>,
 }
 
-/// `v` resized to `n` values (zeros where it grows) as a slice.
-fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
-    v.resize(n, 0.0);
-    &mut v[..n]
-}
-
-/// `1 / (1 + e^{−x})`.
-fn sigmoid(x: f32) -> f32 {
-    1.0 / (1.0 + (-x).exp())
-}
-
 impl WorldModel {
     /// Heads for observations of `obs_dim` and actions of `act_dim` ([`Heads::initial`]), and
     /// the optimiser of the policy's encoder and RSSM and the heads.
@@ -316,9 +305,7 @@ impl WorldModel {
             starts.push(s);
         }
         let Some(total) = total else {
-            return Err(LearnerError::Batch(
-                "world model: a batch of no sequences".into(),
-            ));
+            return Err(LearnerError::NoSequences);
         };
         let grads = total.into_tensors(&nets);
         self.work = work;

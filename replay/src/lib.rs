@@ -9,8 +9,8 @@ pub mod snapshot;
 
 pub use buffer::ReplayBuffer;
 pub use limiter::RateLimiter;
-pub use server::{run, ReplayArgs, ReplayControl};
+pub use server::{run, ReplayArgs, ReplayControl, ReplayError};
 pub use snapshot::{
     encode_snapshot, read_snapshot, write_encoded, write_snapshot, BackgroundWriter, LimiterCounts,
-    SnapshotShape,
+    SnapshotDamage, SnapshotError, SnapshotShape,
 };

@@ -6,20 +6,21 @@
 use crate::buffer::ReplayBuffer;
 use crate::limiter::RateLimiter;
 use crate::snapshot::{
-    encode_snapshot, read_snapshot, write_snapshot, BackgroundWriter, LimiterCounts, SnapshotShape,
+    encode_snapshot, read_snapshot, write_snapshot, BackgroundWriter, LimiterCounts, SnapshotError,
+    SnapshotShape,
 };
-use anyhow::Result;
 use ctxrace_config::validate::ConfigError;
 use ctxrace_config::BatchSpec;
 use ctxrace_config::ReplayOptions;
 use ctxrace_ipc::wire::{ReplayStatus, WireError, FORMAT_VERSION, REASONS};
 use ctxrace_ipc::{
-    BatchRequest, BatchServer, Next, ReplayBeacon, RunTransport, StatusPublisher,
+    BatchRequest, BatchServer, IpcError, Next, ReplayBeacon, RunTransport, StatusPublisher,
     TrajectoryReceiver, Wake,
 };
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::collections::VecDeque;
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
@@ -33,6 +34,32 @@ const STATUS_EVERY: Duration = Duration::from_secs(1);
 const MAX_PENDING: usize = 16;
 /// Longest the replay waits, when stopping, for the actors' senders to close.
 const DRAIN_LIMIT: Duration = Duration::from_secs(10);
+
+/// Why the replay loop stopped on an error.
+#[derive(Debug, thiserror::Error)]
+pub enum ReplayError {
+    /// The run's snapshot cannot be restored (damaged, or of another run): a restart would meet
+    /// it again, so its cause is a [`ConfigError`]; the message says how to continue.
+    #[error(
+        "the replay cannot start from its snapshot; to continue the run with an empty replay \
+         (the learner keeps its checkpoints), move the file away (mv {p} {p}.damaged) and \
+         continue the run (`ctxrace train … --resume`)",
+        p = .path.display()
+    )]
+    Restore {
+        /// The snapshot file.
+        path: PathBuf,
+        /// Why it cannot be restored (a [`SnapshotError`], marked).
+        #[source]
+        source: ConfigError,
+    },
+    /// A snapshot could not be written.
+    #[error(transparent)]
+    Snapshot(#[from] SnapshotError),
+    /// The transport failed.
+    #[error(transparent)]
+    Ipc(#[from] IpcError),
+}
 
 /// What the replay process serves.
 #[derive(Clone, Debug)]
@@ -109,7 +136,7 @@ impl Counters {
 
 /// Runs the replay until `control.shutdown` is set or (with `handle_signals`) SIGTERM/SIGINT;
 /// writes a final snapshot and returns the final counters.
-pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
+pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, ReplayError> {
     let opts = &args.options;
     let (mut buffer, counts) = restore(args)?;
     let mut limiter = RateLimiter::new(
@@ -231,7 +258,7 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus> {
             last_snapshot = Instant::now();
         }
         counters.longest_turn = counters.longest_turn.max(turn.elapsed());
-        Ok(if control.shutdown.load(Ordering::Acquire) {
+        Ok::<_, ReplayError>(if control.shutdown.load(Ordering::Acquire) {
             Next::Stop
         } else if taken == CHUNKS_PER_TURN {
             // busy (a full turn of chunks taken): only poll
@@ -300,9 +327,9 @@ fn never_served(
 }
 
 /// The replay's buffer and limiter counts: fresh, or restored from the snapshot. A snapshot
-/// that cannot be read, or whose shape is not the run's, is a [`ConfigError`] whose message says
-/// how to continue: a restarted replay would meet it again.
-fn restore(args: &ReplayArgs) -> Result<(ReplayBuffer, LimiterCounts)> {
+/// that cannot be read, or whose shape is not the run's, is a [`ReplayError::Restore`] (a
+/// [`ConfigError`]: a restarted replay would meet it again) saying how to continue.
+fn restore(args: &ReplayArgs) -> Result<(ReplayBuffer, LimiterCounts), ReplayError> {
     let fresh = ReplayBuffer::new(
         args.options.capacity,
         args.actors,
@@ -319,13 +346,11 @@ fn restore(args: &ReplayArgs) -> Result<(ReplayBuffer, LimiterCounts)> {
     if !path.exists() {
         return Ok((fresh, none));
     }
-    let how = format!(
-        "to continue the run with an empty replay (the learner keeps its checkpoints), move \
-         the file away (mv {0} {0}.damaged) and continue the run (`ctxrace train … --resume`)",
-        path.display()
-    );
-    let (buffer, counts) = read_snapshot(path, SnapshotShape::of(&fresh))
-        .map_err(|e| ConfigError(format!("{e:#}; {how}")))?;
+    let (buffer, counts) =
+        read_snapshot(path, SnapshotShape::of(&fresh)).map_err(|e| ReplayError::Restore {
+            path: path.to_path_buf(),
+            source: ConfigError::new(e),
+        })?;
     tracing::info!(
         "replay: restored {} steps from {}",
         buffer.len(),
@@ -341,7 +366,11 @@ fn limiter_counts(limiter: &RateLimiter) -> LimiterCounts {
     }
 }
 
-fn snapshot(args: &ReplayArgs, buffer: &ReplayBuffer, limiter: &RateLimiter) -> Result<()> {
+fn snapshot(
+    args: &ReplayArgs,
+    buffer: &ReplayBuffer,
+    limiter: &RateLimiter,
+) -> Result<(), SnapshotError> {
     if let Some(path) = args.options.snapshot_path.as_deref() {
         let start = Instant::now();
         write_snapshot(path, buffer, limiter_counts(limiter))?;
@@ -378,5 +407,43 @@ mod tests {
         assert!(why.contains("rate limiter's window"), "{why}");
         let why = never_served(sequences(20), &buffer, &free, MAX_PENDING).unwrap();
         assert!(why.contains("requests wait already"), "{why}");
+    }
+
+    #[test]
+    fn a_damaged_snapshot_is_a_config_error_saying_how_to_continue() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("replay.snapshot");
+        std::fs::write(&path, b"CTXRPLY\0 not a snapshot").unwrap();
+        let args = ReplayArgs {
+            prefix: String::new(),
+            actors: 1,
+            obs_dim: 3,
+            act_dim: 2,
+            options: ReplayOptions {
+                capacity: 100,
+                snapshot_path: Some(path),
+                ..ReplayOptions::default()
+            },
+            handle_signals: false,
+        };
+        let Err(err) = restore(&args) else {
+            panic!("a damaged snapshot is refused");
+        };
+        let chain = std::iter::successors(Some(&err as &dyn std::error::Error), |e| e.source());
+        assert_eq!(chain.filter(|e| e.is::<ConfigError>()).count(), 1);
+        let text = ctxrace_config::validate::Causes(&err).to_string();
+        for needle in [
+            "continue the run with an empty replay",
+            "replay.snapshot.damaged",
+            "restoring replay snapshot",
+            "shorter than a snapshot header",
+        ] {
+            assert!(text.contains(needle), "no '{needle}' in: {text}");
+        }
+        assert_eq!(
+            text.matches("restoring replay snapshot").count(),
+            1,
+            "{text}"
+        );
     }
 }

@@ -5,11 +5,100 @@
 //! that the replay loop pauses only for the copy and writes on another thread.
 
 use crate::buffer::{ReplayBuffer, Stream};
-use anyhow::{anyhow, bail, Context as _, Result};
 use ctxrace_run::run_dir::write_atomic;
 use std::fs::File;
 use std::io::{BufReader, Read};
 use std::path::{Path, PathBuf};
+
+/// Why a replay snapshot could not be written or restored; each names the file.
+#[derive(Debug, thiserror::Error)]
+pub enum SnapshotError {
+    /// The snapshot could not be written.
+    #[error("writing replay snapshot {}", .path.display())]
+    Write {
+        /// The snapshot file.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The thread writing a snapshot in the background panicked.
+    #[error("the snapshot writer thread panicked")]
+    WriterPanicked,
+    /// The snapshot could not be read back, or is of another run.
+    #[error("restoring replay snapshot {}", .path.display())]
+    Restore {
+        /// The snapshot file.
+        path: PathBuf,
+        /// What is wrong with it.
+        #[source]
+        source: SnapshotDamage,
+    },
+}
+
+/// What is wrong with a snapshot file that cannot be restored.
+#[derive(Debug, thiserror::Error)]
+pub enum SnapshotDamage {
+    /// It could not be opened or read.
+    #[error(transparent)]
+    Io(#[from] std::io::Error),
+    /// It is shorter than a header.
+    #[error("{file_len} bytes, shorter than a snapshot header: truncated or corrupt")]
+    Short {
+        /// Its length.
+        file_len: u64,
+    },
+    /// Its bytes do not match its trailing checksum.
+    #[error("checksum {computed:#010x}, file says {stored:#010x}: truncated or corrupt")]
+    Checksum {
+        /// The checksum of its bytes.
+        computed: u32,
+        /// The checksum it ends with.
+        stored: u32,
+    },
+    /// It does not start as a snapshot does.
+    #[error("not a ctxrace replay snapshot (bad magic)")]
+    Magic,
+    /// It was written in another layout.
+    #[error("snapshot version {version}, this build reads {SNAPSHOT_VERSION}")]
+    Version {
+        /// Its layout version.
+        version: u32,
+    },
+    /// It holds a buffer of another shape.
+    #[error(
+        "the snapshot holds {held}, the run has {expected}: a snapshot of another run or \
+         configuration"
+    )]
+    Shape {
+        /// The shape it holds.
+        held: SnapshotShape,
+        /// The run's.
+        expected: SnapshotShape,
+    },
+    /// A stream longer than its capacity or the file.
+    #[error("stream of {len} steps does not fit capacity {cap} or the file: truncated or corrupt")]
+    Stream {
+        /// Steps the stream says it holds.
+        len: usize,
+        /// Steps a stream holds at most.
+        cap: usize,
+    },
+    /// Bytes after the last stream.
+    #[error("{budget} bytes beyond the streams: corrupt")]
+    Trailing {
+        /// Bytes left over.
+        budget: u64,
+    },
+    /// The bytes read differ from those checked (the file changed while it was read).
+    #[error("checksum {computed:#010x}, file says {stored:#010x}: corrupt")]
+    Changed {
+        /// The checksum of the bytes read.
+        computed: u32,
+        /// The checksum it ends with.
+        stored: u32,
+    },
+}
 
 const MAGIC: &[u8; 8] = b"CTXRPLY\0";
 /// Snapshot layout version; bump on any change.
@@ -27,7 +116,11 @@ pub struct LimiterCounts {
 }
 
 /// Writes `buffer` and `counts` to `path` atomically.
-pub fn write_snapshot(path: &Path, buffer: &ReplayBuffer, counts: LimiterCounts) -> Result<()> {
+pub fn write_snapshot(
+    path: &Path,
+    buffer: &ReplayBuffer,
+    counts: LimiterCounts,
+) -> Result<(), SnapshotError> {
     write_encoded(path, encode_snapshot(buffer, counts))
 }
 
@@ -82,17 +175,19 @@ pub fn encode_snapshot(buffer: &ReplayBuffer, counts: LimiterCounts) -> Vec<u8> 
 /// Appends the CRC-32 to an [`encode_snapshot`] and writes it to `path` atomically
 /// ([`write_atomic`]: a temporary file created exclusively, fsynced, renamed over the old
 /// snapshot, the folder fsynced).
-pub fn write_encoded(path: &Path, mut bytes: Vec<u8>) -> Result<()> {
+pub fn write_encoded(path: &Path, mut bytes: Vec<u8>) -> Result<(), SnapshotError> {
     let crc = crc32fast::hash(&bytes);
     bytes.extend_from_slice(&crc.to_le_bytes());
-    write_atomic(path, &bytes)
-        .with_context(|| format!("writing replay snapshot {}", path.display()))
+    write_atomic(path, &bytes).map_err(|source| SnapshotError::Write {
+        path: path.to_path_buf(),
+        source,
+    })
 }
 
 /// Snapshots written on a thread of their own, so that the replay loop pauses only to encode.
 #[derive(Default)]
 pub struct BackgroundWriter {
-    job: Option<std::thread::JoinHandle<Result<()>>>,
+    job: Option<std::thread::JoinHandle<Result<(), SnapshotError>>>,
 }
 
 impl BackgroundWriter {
@@ -103,18 +198,16 @@ impl BackgroundWriter {
 
     /// Starts writing `bytes` ([`encode_snapshot`]) to `path` once the previous write is done;
     /// a failure of the previous write is returned here.
-    pub fn start(&mut self, path: PathBuf, bytes: Vec<u8>) -> Result<()> {
+    pub fn start(&mut self, path: PathBuf, bytes: Vec<u8>) -> Result<(), SnapshotError> {
         self.wait()?;
         self.job = Some(std::thread::spawn(move || write_encoded(&path, bytes)));
         Ok(())
     }
 
     /// Waits for the running write, if any, and returns its result.
-    pub fn wait(&mut self) -> Result<()> {
+    pub fn wait(&mut self) -> Result<(), SnapshotError> {
         match self.job.take() {
-            Some(job) => job
-                .join()
-                .map_err(|_| anyhow!("the snapshot writer thread panicked"))?,
+            Some(job) => job.join().map_err(|_| SnapshotError::WriterPanicked)?,
             None => Ok(()),
         }
     }
@@ -161,15 +254,18 @@ impl std::fmt::Display for SnapshotShape {
 pub fn read_snapshot(
     path: &Path,
     expected: SnapshotShape,
-) -> Result<(ReplayBuffer, LimiterCounts)> {
-    read(path, expected).with_context(|| format!("restoring replay snapshot {}", path.display()))
+) -> Result<(ReplayBuffer, LimiterCounts), SnapshotError> {
+    read(path, expected).map_err(|source| SnapshotError::Restore {
+        path: path.to_path_buf(),
+        source,
+    })
 }
 
 /// Checks the file's trailing CRC-32 against all bytes before it, reading it once without
 /// holding it, so that nothing is sized from a header that may be damaged.
-fn verify_checksum(path: &Path, file_len: u64) -> Result<()> {
+fn verify_checksum(path: &Path, file_len: u64) -> Result<(), SnapshotDamage> {
     if file_len < HEADER_BYTES + 4 {
-        bail!("{file_len} bytes, shorter than a snapshot header: truncated or corrupt");
+        return Err(SnapshotDamage::Short { file_len });
     }
     let mut r = BufReader::with_capacity(1 << 20, File::open(path)?);
     let mut hasher = crc32fast::Hasher::new();
@@ -185,12 +281,15 @@ fn verify_checksum(path: &Path, file_len: u64) -> Result<()> {
     r.read_exact(&mut crc)?;
     let (stored, computed) = (u32::from_le_bytes(crc), hasher.finalize());
     if stored != computed {
-        bail!("checksum {computed:#010x}, file says {stored:#010x}: truncated or corrupt");
+        return Err(SnapshotDamage::Checksum { computed, stored });
     }
     Ok(())
 }
 
-fn read(path: &Path, expected: SnapshotShape) -> Result<(ReplayBuffer, LimiterCounts)> {
+fn read(
+    path: &Path,
+    expected: SnapshotShape,
+) -> Result<(ReplayBuffer, LimiterCounts), SnapshotDamage> {
     let file = File::open(path)?;
     let file_len = file.metadata()?.len();
     verify_checksum(path, file_len)?;
@@ -201,11 +300,11 @@ fn read(path: &Path, expected: SnapshotShape) -> Result<(ReplayBuffer, LimiterCo
     let mut magic = [0u8; 8];
     r.read_exact(&mut magic)?;
     if &magic != MAGIC {
-        bail!("not a ctxrace replay snapshot (bad magic)");
+        return Err(SnapshotDamage::Magic);
     }
     let version = r.u32()?;
     if version != SNAPSHOT_VERSION {
-        bail!("snapshot version {version}, this build reads {SNAPSHOT_VERSION}");
+        return Err(SnapshotDamage::Version { version });
     }
     let (obs_dim, act_dim, actors) = (r.u32()? as u64, r.u32()? as u64, r.u32()? as u64);
     let (cap, inserted, inserts, samples) = (r.u64()?, r.u64()?, r.u64()?, r.u64()?);
@@ -216,7 +315,7 @@ fn read(path: &Path, expected: SnapshotShape) -> Result<(ReplayBuffer, LimiterCo
         act_dim: act_dim as usize,
     };
     if held != expected {
-        bail!("the snapshot holds {held}, the run has {expected}: a snapshot of another run or configuration");
+        return Err(SnapshotDamage::Shape { held, expected });
     }
     let (o, a, cap) = (held.obs_dim, held.act_dim, held.stream_capacity);
     let per_step = 4 * (o + a + 1 + 2 + 2) as u64 + 1 + 8;
@@ -227,7 +326,7 @@ fn read(path: &Path, expected: SnapshotShape) -> Result<(ReplayBuffer, LimiterCo
         let (len, segment) = (r.u64()? as usize, r.u64()?);
         let bytes = (len as u64).saturating_mul(per_step);
         if len > cap || bytes.saturating_add(STREAM_HEADER_BYTES) > budget {
-            bail!("stream of {len} steps does not fit capacity {cap} or the file: truncated or corrupt");
+            return Err(SnapshotDamage::Stream { len, cap });
         }
         budget -= bytes + STREAM_HEADER_BYTES;
         let mut s = Stream::new(cap, o, a);
@@ -248,16 +347,14 @@ fn read(path: &Path, expected: SnapshotShape) -> Result<(ReplayBuffer, LimiterCo
         streams.push(s);
     }
     if budget != 0 {
-        bail!("{budget} bytes beyond the streams: corrupt");
+        return Err(SnapshotDamage::Trailing { budget });
     }
     let computed = r.hasher.clone().finalize();
     let mut crc = [0u8; 4];
     r.inner.read_exact(&mut crc)?;
     let stored = u32::from_le_bytes(crc);
     if stored != computed {
-        return Err(anyhow!(
-            "checksum {computed:#010x}, file says {stored:#010x}: corrupt"
-        ));
+        return Err(SnapshotDamage::Changed { computed, stored });
     }
     Ok((
         ReplayBuffer {
@@ -285,19 +382,19 @@ impl<R: Read> Read for Hashing<R> {
 }
 
 impl<R: Read> Hashing<R> {
-    fn u32(&mut self) -> Result<u32> {
+    fn u32(&mut self) -> std::io::Result<u32> {
         let mut b = [0u8; 4];
         self.read_exact(&mut b)?;
         Ok(u32::from_le_bytes(b))
     }
 
-    fn u64(&mut self) -> Result<u64> {
+    fn u64(&mut self) -> std::io::Result<u64> {
         let mut b = [0u8; 8];
         self.read_exact(&mut b)?;
         Ok(u64::from_le_bytes(b))
     }
 
-    fn f32s(&mut self, n: usize) -> Result<Vec<f32>> {
+    fn f32s(&mut self, n: usize) -> std::io::Result<Vec<f32>> {
         let mut bytes = vec![0u8; n * 4];
         self.read_exact(&mut bytes)?;
         Ok(bytes
@@ -311,6 +408,12 @@ impl<R: Read> Hashing<R> {
 mod tests {
     use super::*;
     use crate::buffer::tests::payload;
+    use ctxrace_config::validate::Causes;
+
+    /// The error and its causes, as the binary prints them.
+    fn causes(e: SnapshotError) -> String {
+        Causes(&e).to_string()
+    }
 
     #[test]
     fn round_trip_and_corruption() {
@@ -349,7 +452,7 @@ mod tests {
         let mid = bytes.len() / 2;
         bytes[mid] ^= 0x40;
         std::fs::write(&path, &bytes).unwrap();
-        let err = format!("{:#}", read_snapshot(&path, shape).unwrap_err());
+        let err = causes(read_snapshot(&path, shape).unwrap_err());
         assert!(
             err.contains("replay.snap") && err.contains("corrupt"),
             "{err}"
@@ -363,7 +466,7 @@ mod tests {
         let crc = crc32fast::hash(&lying);
         lying.extend_from_slice(&crc.to_le_bytes());
         std::fs::write(&path, &lying).unwrap();
-        let err = format!("{:#}", read_snapshot(&path, shape).unwrap_err());
+        let err = causes(read_snapshot(&path, shape).unwrap_err());
         assert!(
             err.contains("replay.snap")
                 && err.contains("obs_dim 2147483647")
@@ -375,7 +478,7 @@ mod tests {
             obs_dim: 3,
             ..shape
         };
-        let err = format!("{:#}", read_snapshot(&again, other).unwrap_err());
+        let err = causes(read_snapshot(&again, other).unwrap_err());
         assert!(
             err.contains("obs_dim 2, act_dim 1") && err.contains("obs_dim 3"),
             "{err}"
@@ -385,11 +488,11 @@ mod tests {
         let mut huge = std::fs::read(&again).unwrap();
         huge[8 + 4 * 4 + 7] = 0x7f;
         std::fs::write(&path, &huge).unwrap();
-        let err = format!("{:#}", read_snapshot(&path, shape).unwrap_err());
+        let err = causes(read_snapshot(&path, shape).unwrap_err());
         assert!(err.contains("checksum") && err.contains("corrupt"), "{err}");
 
         std::fs::write(&path, &bytes[..100]).unwrap();
-        let err = format!("{:#}", read_snapshot(&path, shape).unwrap_err());
+        let err = causes(read_snapshot(&path, shape).unwrap_err());
         assert!(
             err.contains("replay.snap") && err.contains("truncated"),
             "{err}"

@@ -14,15 +14,27 @@
 //! The inline trainer (as its [`ExperienceSource`]) and the actor process both run this; only
 //! their sinks differ.
 
-use anyhow::Result;
 use ctxrace_config::{Context, ExperimentConfig};
 use ctxrace_ipc::TrajectoryStep;
+use ctxrace_nn::policy::PolicyError;
 use ctxrace_nn::Policy;
 use ctxrace_run::experience::{EndedEpisode, ExperienceSource};
 use ctxrace_run::results::TrainingEpisode;
 use ctxrace_sim::race::{EpisodeMetrics, RaceEnv};
+use ctxrace_sim::RaceError;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+
+/// Why a decision could not be taken.
+#[derive(Debug, thiserror::Error)]
+pub enum CollectError {
+    /// The policy could not act on the observation.
+    #[error(transparent)]
+    Policy(#[from] PolicyError),
+    /// The race refused the action.
+    #[error(transparent)]
+    Race(#[from] RaceError),
+}
 
 /// A finished episode.
 #[derive(Clone, Debug)]
@@ -117,7 +129,7 @@ impl Collector {
         &mut self,
         policy: Option<&mut Policy>,
         mut sink: impl FnMut(&TrajectoryStep),
-    ) -> Result<Option<Finished>> {
+    ) -> Result<Option<Finished>, CollectError> {
         let r = self.context_range;
         let mut policy = policy;
         if !self.running {
@@ -199,6 +211,7 @@ impl Collector {
 
 impl ExperienceSource for Collector {
     type Policy = Policy;
+    type Error = CollectError;
 
     fn obs_dim(&self) -> usize {
         self.env.obs_dim()
@@ -220,7 +233,7 @@ impl ExperienceSource for Collector {
         &mut self,
         policy: Option<&mut Policy>,
         sink: &mut dyn FnMut(&TrajectoryStep),
-    ) -> Result<Option<EndedEpisode>> {
+    ) -> Result<Option<EndedEpisode>, CollectError> {
         let finished = Collector::step(self, policy, sink)?;
         Ok(finished.map(|f| EndedEpisode {
             record: TrainingEpisode {

@@ -11,16 +11,17 @@
 //! boundaries, which a blocked actor does not reach, it came back from that wait with its first
 //! weights (`versions` `[0, 470, ...]` beside `[0, 10, 30, ...]`), or none.
 
-use crate::collect::Collector;
-use anyhow::{Context as _, Result};
+use crate::collect::{CollectError, Collector};
+use ctxrace_config::validate::Causes;
 use ctxrace_config::ExperimentConfig;
 use ctxrace_ipc::{
-    termination_flag, Heartbeat, MetricsPublisher, RunTransport, SenderOptions, TrajectorySender,
-    WeightsReceiver,
+    termination_flag, Heartbeat, IpcError, MetricsPublisher, RunTransport, SenderOptions,
+    TrajectorySender, WeightsReceiver,
 };
 use ctxrace_nn::policy::ACT_DIM;
 use ctxrace_nn::Policy;
 use ctxrace_sim::race::RaceEnv;
+use ctxrace_sim::RaceError;
 use ctxrace_tracks::Track;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
@@ -28,6 +29,23 @@ use std::time::{Duration, Instant};
 
 /// Seconds between heartbeats.
 const HEARTBEAT_EVERY: Duration = Duration::from_secs(1);
+
+/// Why the actor process stopped on an error.
+#[derive(Debug, thiserror::Error)]
+pub enum ActorError {
+    /// The race could not be set up from the experiment.
+    #[error(transparent)]
+    Race(#[from] RaceError),
+    /// The trajectory stream to the replay could not be opened.
+    #[error("connecting to the replay")]
+    Connect(#[source] IpcError),
+    /// The transport failed.
+    #[error(transparent)]
+    Ipc(#[from] IpcError),
+    /// A decision could not be taken.
+    #[error(transparent)]
+    Collect(#[from] CollectError),
+}
 
 /// What an actor process needs.
 pub struct ActorOptions {
@@ -65,7 +83,7 @@ pub struct ActorReport {
 }
 
 /// Runs the actor until SIGTERM/SIGINT.
-pub fn run(opts: ActorOptions) -> Result<ActorReport> {
+pub fn run(opts: ActorOptions) -> Result<ActorReport, ActorError> {
     let cfg = &opts.experiment;
     let env = RaceEnv::new(opts.track.clone(), cfg.race.clone())?;
     let frame_dim = env.obs_dim();
@@ -86,7 +104,7 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport> {
         ACT_DIM,
         SenderOptions::default(),
     )
-    .context("connecting to the replay")?;
+    .map_err(ActorError::Connect)?;
     let prefill = cfg.train.prefill / opts.actors.max(1) as u64;
     let mut policy: Option<(u64, Policy)> = None;
     let mut last_beat = Instant::now() - HEARTBEAT_EVERY;
@@ -150,7 +168,7 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport> {
             if stop.load(Ordering::Relaxed) {
                 break;
             }
-            return Err(e);
+            return Err(e.into());
         }
         if let Some(f) = finished {
             let m = &f.metrics;
@@ -173,7 +191,11 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport> {
     // a send interrupted by the stop signal fails; what was delivered before still counts
     let before = sender.stats();
     let stats = sender.close().unwrap_or_else(|e| {
-        tracing::warn!("actor {}: closing the trajectory stream: {e}", opts.id);
+        tracing::warn!(
+            "actor {}: closing the trajectory stream: {}",
+            opts.id,
+            Causes(&e)
+        );
         before
     });
     tracing::info!(

@@ -4,8 +4,7 @@
 //! decision to an observer.
 
 use crate::baseline::{Baseline, BaselineKind};
-use crate::race::{RaceEnv, StepInfo};
-use anyhow::Result;
+use crate::race::{RaceEnv, RaceError, StepInfo};
 use ctxrace_config::Context;
 use serde::{Deserialize, Serialize};
 
@@ -34,19 +33,43 @@ pub struct Decided<'a> {
     pub obs: &'a [f32],
 }
 
+/// An ego's decision: the action and (cMask) the context mask that chose it.
+pub type EgoAction = ([f64; 2], Option<[f32; 2]>);
+
+/// Why an episode could not be driven to its end: the ego could not act (its own error type,
+/// [`Ego::Error`]), or the race refused its action.
+#[derive(Debug, thiserror::Error)]
+pub enum DriveError<E> {
+    /// The ego could not pick an action.
+    #[error(transparent)]
+    Ego(E),
+    /// The race refused the action (not finite) or the step.
+    #[error(transparent)]
+    Race(#[from] RaceError),
+}
+
 /// An ego driver with its per-episode state: it picks the ego's action from the race's
 /// observation.
 pub trait Ego {
+    /// Why it could not act ([`std::convert::Infallible`] for a reference policy, the policy's
+    /// error for a trained agent).
+    type Error: std::error::Error + Send + Sync + 'static;
+
     /// Starts an episode of `env` (after its reset); `seed` drives its randomness (the random
     /// baseline, a sampling agent's noise).
     fn reset(&mut self, env: &RaceEnv, seed: u64);
 
     /// The action for observation `obs` of `env`, and (cMask) the context mask used.
-    fn act(&mut self, env: &RaceEnv, obs: &[f32]) -> Result<([f64; 2], Option<[f32; 2]>)>;
+    fn act(&mut self, env: &RaceEnv, obs: &[f32]) -> Result<EgoAction, Self::Error>;
 
     /// Runs one episode of `env` under `context` from `seed` to its end; returns the last
     /// step's details.
-    fn drive_episode(&mut self, env: &mut RaceEnv, context: Context, seed: u64) -> Result<StepInfo>
+    fn drive_episode(
+        &mut self,
+        env: &mut RaceEnv,
+        context: Context,
+        seed: u64,
+    ) -> Result<StepInfo, DriveError<Self::Error>>
     where
         Self: Sized,
     {
@@ -61,7 +84,7 @@ pub trait Ego {
         context: Context,
         seed: u64,
         mut observe: impl FnMut(&RaceEnv, Decided),
-    ) -> Result<StepInfo>
+    ) -> Result<StepInfo, DriveError<Self::Error>>
     where
         Self: Sized,
     {
@@ -75,7 +98,7 @@ pub trait Ego {
         };
         observe(env, start);
         loop {
-            let (action, mask) = self.act(env, &obs)?;
+            let (action, mask) = self.act(env, &obs).map_err(DriveError::Ego)?;
             let step = env.step(action)?;
             obs = step.obs;
             let decided = Decided {
@@ -114,11 +137,13 @@ impl BaselineEgo {
 }
 
 impl Ego for BaselineEgo {
+    type Error = std::convert::Infallible;
+
     fn reset(&mut self, env: &RaceEnv, seed: u64) {
         self.state = Baseline::new(self.kind, env, seed);
     }
 
-    fn act(&mut self, env: &RaceEnv, _obs: &[f32]) -> Result<([f64; 2], Option<[f32; 2]>)> {
+    fn act(&mut self, env: &RaceEnv, _obs: &[f32]) -> Result<EgoAction, Self::Error> {
         Ok((self.state.act(env), None))
     }
 }

@@ -15,9 +15,8 @@
 //! `contexts.json`); the file names are in `ctxrace_run::run_dir`, the readers and writers
 //! in `ctxrace_run::results`. [`run_episode`] races one episode of the grid.
 
-use crate::driver::{ActMode, Decided, Ego};
+use crate::driver::{ActMode, Decided, DriveError, Ego};
 use crate::race::{EpisodeMetrics, RaceEnv};
-use anyhow::Result;
 use ctxrace_config::Context;
 use serde::{Deserialize, Serialize};
 
@@ -208,14 +207,14 @@ impl EvalEpisode {
 
 /// Races lap `lap` of `context` from `seed` to its end with `driver`, showing `observe` every
 /// decision ([`Ego::drive_observed`]); returns its record.
-pub fn run_episode(
+pub fn run_episode<D: Ego>(
     env: &mut RaceEnv,
-    driver: &mut impl Ego,
+    driver: &mut D,
     context: Context,
     seed: u64,
     lap: usize,
     observe: impl FnMut(&RaceEnv, Decided),
-) -> Result<EvalEpisode> {
+) -> Result<EvalEpisode, DriveError<D::Error>> {
     let last = driver.drive_observed(env, context, seed, observe)?;
     Ok(EvalEpisode::new(
         context,

@@ -5,10 +5,9 @@
 //! steering limit. Each failure says where on the track it happened.
 
 use crate::baseline::{Baseline, BaselineKind};
-use crate::driver::{BaselineEgo, Ego as _};
-use crate::race::RaceEnv;
+use crate::driver::{BaselineEgo, DriveError, Ego as _};
+use crate::race::{RaceEnv, RaceError};
 use crate::vehicle::{idx, VehicleParams};
-use anyhow::Result;
 use ctxrace_config::{Context, RaceConfig};
 use ctxrace_tracks::Track;
 use serde::Serialize;
@@ -100,7 +99,11 @@ const RIVALS_DRIVE: &str = "rivals drive";
 /// Runs every check of `plan` on `track` in the race `race` describes. The cars get at least
 /// the default race's time for their lap: the checks ask whether they drive, not whether they
 /// finish within a short episode's time limit.
-pub fn check_track(track: Arc<Track>, race: &RaceConfig, plan: CheckPlan) -> Result<CheckReport> {
+pub fn check_track(
+    track: Arc<Track>,
+    race: &RaceConfig,
+    plan: CheckPlan,
+) -> Result<CheckReport, RaceError> {
     let race = &RaceConfig {
         max_time: race.max_time.max(RaceConfig::default().max_time),
         ..race.clone()
@@ -169,17 +172,18 @@ fn curvature(track: &Track, race: &RaceConfig) -> Finding {
 }
 
 /// The pure-pursuit reference ego alone on the track.
-fn ego_laps(track: &Track, race: &RaceConfig) -> Result<Finding> {
+fn ego_laps(track: &Track, race: &RaceConfig) -> Result<Finding, RaceError> {
     let cfg = RaceConfig {
         rivals: 0,
         ..race.clone()
     };
     let mut env = RaceEnv::new(Arc::new(track.clone()), cfg)?;
-    BaselineEgo::new(BaselineKind::PurePursuit, &env).drive_episode(
-        &mut env,
-        Context::default(),
-        0,
-    )?;
+    BaselineEgo::new(BaselineKind::PurePursuit, &env)
+        .drive_episode(&mut env, Context::default(), 0)
+        .map_err(|e| match e {
+            DriveError::Race(e) => e,
+            DriveError::Ego(never) => match never {},
+        })?;
     let m = env.metrics();
     let detail = match m.lap_time {
         Some(t) => format!("lap in {t:.1} s"),
@@ -198,7 +202,11 @@ fn ego_laps(track: &Track, race: &RaceConfig) -> Result<Finding> {
 /// Rivals in every context of the grid, from each grid place up to `plan.places`, the ego
 /// standing still on the start line: the rival furthest up the grid must reach the line
 /// without crashing. One finding per failing race, then a summary.
-fn rivals_drive(track: &Track, race: &RaceConfig, plan: CheckPlan) -> Result<Vec<Finding>> {
+fn rivals_drive(
+    track: &Track,
+    race: &RaceConfig,
+    plan: CheckPlan,
+) -> Result<Vec<Finding>, RaceError> {
     let mut findings = Vec::new();
     let contexts = Context::grid(plan.grid, plan.range);
     let mut failed = 0;

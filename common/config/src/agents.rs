@@ -154,7 +154,10 @@ impl fmt::Display for AlgoKind {
 
 /// A name that is no algorithm's.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
-#[error("unknown algorithm `{0}`; expected one of sac, dreamerv3, crssm, cmask")]
+#[error(
+    "unknown algorithm `{0}`; expected one of {names}",
+    names = AlgoKind::ALL.map(AlgoKind::name).join(", ")
+)]
 pub struct UnknownAlgorithm(pub String);
 
 impl FromStr for AlgoKind {
@@ -347,7 +350,7 @@ impl AgentConfig {
     pub fn seed(&self) -> u64 {
         match self.algo {
             AlgoKind::Sac => self.sac.seed,
-            _ => self.dreamer.seed,
+            AlgoKind::Dreamerv3 | AlgoKind::Crssm | AlgoKind::Cmask => self.dreamer.seed,
         }
     }
 
@@ -359,7 +362,7 @@ impl AgentConfig {
                 frames: self.sac.frames,
                 reward_delay: self.sac.reward_delay,
             },
-            _ => BatchSpec::Sequence {
+            AlgoKind::Dreamerv3 | AlgoKind::Crssm | AlgoKind::Cmask => BatchSpec::Sequence {
                 batch: self.dreamer.batch,
                 length: self.dreamer.length,
             },
@@ -369,7 +372,12 @@ impl AgentConfig {
     /// Whether actors store steps as the paper's code does ([`StepAlignment::PaperCode`]):
     /// a DreamerV3 variant with `step_alignment = "paper-code"`.
     pub fn stores_paper_code_rows(&self) -> bool {
-        self.algo != AlgoKind::Sac && self.dreamer.step_alignment == StepAlignment::PaperCode
+        match self.algo {
+            AlgoKind::Sac => false,
+            AlgoKind::Dreamerv3 | AlgoKind::Crssm | AlgoKind::Cmask => {
+                self.dreamer.step_alignment == StepAlignment::PaperCode
+            }
+        }
     }
 
     /// Checks the chosen algorithm's configuration.
@@ -382,7 +390,7 @@ impl AgentConfig {
         }
         match self.algo {
             AlgoKind::Sac => self.sac.validate(),
-            _ => self.dreamer().validate(),
+            AlgoKind::Dreamerv3 | AlgoKind::Crssm | AlgoKind::Cmask => self.dreamer().validate(),
         }
     }
 }

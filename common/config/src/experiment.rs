@@ -424,6 +424,37 @@ impl ExperimentConfig {
     /// nothing; zero-sized batches leave the learner waiting while the actors run unthrottled).
     fn validate_agent(&self) -> Result<(), ExperimentError> {
         let (s, d) = (&self.agent.sac, &self.agent.dreamer);
+        // the DreamerV3 family's keys, cMask's mask SAC's with `mask_sac`
+        let dreamer = |mask_sac: bool| {
+            let mut rates = vec![("dreamer.model_lr", d.model_lr), ("dreamer.ac_lr", d.ac_lr)];
+            let mut fractions = vec![
+                ("dreamer.gamma", d.gamma),
+                ("dreamer.lambda", d.lambda),
+                ("dreamer.unimix", d.unimix),
+                ("dreamer.return_decay", d.return_decay),
+                ("dreamer.return_low", d.return_low),
+                ("dreamer.return_high", d.return_high),
+                ("dreamer.slow_critic_rate", d.slow_critic_rate),
+            ];
+            if mask_sac {
+                rates.push(("dreamer.mask.lr", d.mask.lr));
+                fractions.extend([
+                    ("dreamer.mask.gamma", d.mask.gamma),
+                    ("dreamer.mask.tau", d.mask.tau),
+                ]);
+            }
+            let sizes = vec![
+                ("dreamer.batch", d.batch, "the paper: 16 sequences"),
+                ("dreamer.length", d.length, "the paper: 64 steps"),
+            ];
+            let positive = vec![
+                ("dreamer.model_eps", d.model_eps),
+                ("dreamer.ac_eps", d.ac_eps),
+                ("dreamer.model_clip", d.model_clip),
+                ("dreamer.ac_clip", d.ac_clip),
+            ];
+            (sizes, rates, fractions, positive)
+        };
         let (sizes, rates, fractions, positive) = match self.agent.algo {
             AlgoKind::Sac => (
                 vec![("sac.batch_size", s.batch_size, "the paper: 100")],
@@ -435,36 +466,8 @@ impl ExperimentConfig {
                 vec![],
                 vec![],
             ),
-            algo => {
-                let mut rates = vec![("dreamer.model_lr", d.model_lr), ("dreamer.ac_lr", d.ac_lr)];
-                let mut fractions = vec![
-                    ("dreamer.gamma", d.gamma),
-                    ("dreamer.lambda", d.lambda),
-                    ("dreamer.unimix", d.unimix),
-                    ("dreamer.return_decay", d.return_decay),
-                    ("dreamer.return_low", d.return_low),
-                    ("dreamer.return_high", d.return_high),
-                    ("dreamer.slow_critic_rate", d.slow_critic_rate),
-                ];
-                if algo == AlgoKind::Cmask {
-                    rates.push(("dreamer.mask.lr", d.mask.lr));
-                    fractions.extend([
-                        ("dreamer.mask.gamma", d.mask.gamma),
-                        ("dreamer.mask.tau", d.mask.tau),
-                    ]);
-                }
-                let sizes = vec![
-                    ("dreamer.batch", d.batch, "the paper: 16 sequences"),
-                    ("dreamer.length", d.length, "the paper: 64 steps"),
-                ];
-                let positive = vec![
-                    ("dreamer.model_eps", d.model_eps),
-                    ("dreamer.ac_eps", d.ac_eps),
-                    ("dreamer.model_clip", d.model_clip),
-                    ("dreamer.ac_clip", d.ac_clip),
-                ];
-                (sizes, rates, fractions, positive)
-            }
+            AlgoKind::Dreamerv3 | AlgoKind::Crssm => dreamer(false),
+            AlgoKind::Cmask => dreamer(true),
         };
         for (key, value) in fractions {
             in_range(
@@ -480,7 +483,11 @@ impl ExperimentConfig {
             in_range(key, value, above_zero, "see DreamerConfig's defaults")
                 .map_err(|e| ExperimentError::Agent(e.into()))?;
         }
-        if !matches!(self.agent.algo, AlgoKind::Sac) && d.return_low >= d.return_high {
+        let return_percentiles = match self.agent.algo {
+            AlgoKind::Sac => false,
+            AlgoKind::Dreamerv3 | AlgoKind::Crssm | AlgoKind::Cmask => true,
+        };
+        if return_percentiles && d.return_low >= d.return_high {
             return Err(ExperimentError::ReturnPercentiles {
                 low: d.return_low,
                 high: d.return_high,

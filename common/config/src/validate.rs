@@ -2,7 +2,7 @@
 //! float of a configuration finite ([`finite_floats`], a walk over its serialized form that
 //! reports the key's path, tables of per-track overrides included), and ranges ([`in_range`]),
 //! both refusing with a [`ValueError`]. [`ConfigError`] marks an error that a restarted process
-//! would meet again.
+//! would meet again; [`Causes`] prints an error with its causes, for the libraries' log lines.
 
 use serde::Serialize;
 use std::fmt::Display;
@@ -13,11 +13,38 @@ use std::ops::{Bound, RangeBounds};
 pub const CONFIG_EXIT_CODE: i32 = 78;
 
 /// An error that a restart would meet again (a bad value in the run's configuration, a damaged
-/// run file): a process failing with it exits with [`CONFIG_EXIT_CODE`], and the launcher stops
-/// the run at once with the process's reason instead of restarting it.
+/// run file): a process failing with it (anywhere in its chain of causes) exits with
+/// [`CONFIG_EXIT_CODE`], and the launcher stops the run at once with the process's reason
+/// instead of restarting it. It is its cause, marked: it shows the cause's message and chains
+/// the cause's own sources.
 #[derive(Debug, thiserror::Error)]
-#[error("{0}")]
-pub struct ConfigError(pub String);
+#[error(transparent)]
+pub struct ConfigError(Box<dyn std::error::Error + Send + Sync>);
+
+impl ConfigError {
+    /// `cause` (any error, or a message) marked as one a restart would meet again.
+    pub fn new(cause: impl Into<Box<dyn std::error::Error + Send + Sync>>) -> Self {
+        Self(cause.into())
+    }
+}
+
+/// An error with its causes (its [`std::error::Error::source`] chain), printed as the binary
+/// prints an error, `what: cause: cause`: for a library's log line, where `{error}` would print
+/// the first link only.
+#[derive(Clone, Copy, Debug)]
+pub struct Causes<'a>(pub &'a (dyn std::error::Error + 'static));
+
+impl Display for Causes<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}", self.0)?;
+        let mut cause = self.0.source();
+        while let Some(e) = cause {
+            write!(f, ": {e}")?;
+            cause = e.source();
+        }
+        Ok(())
+    }
+}
 
 /// Why a configuration value is refused: each names the key (by its path), the value and the
 /// fix.
@@ -184,5 +211,20 @@ mod tests {
             in_range("b", 9, ..9, "lower it").unwrap_err().to_string(),
             "b = 9 must be below 9; lower it"
         );
+    }
+
+    #[test]
+    fn a_config_error_shows_its_cause_and_causes_print_the_chain() {
+        #[derive(Debug, thiserror::Error)]
+        #[error("restoring {0}")]
+        struct Outer(&'static str, #[source] std::io::Error);
+        let io = std::io::Error::new(std::io::ErrorKind::NotFound, "no such file");
+        let marked = ConfigError::new(Outer("x.snapshot", io));
+        assert_eq!(marked.to_string(), "restoring x.snapshot");
+        assert_eq!(
+            Causes(&marked).to_string(),
+            "restoring x.snapshot: no such file"
+        );
+        assert_eq!(ConfigError::new("bad value").to_string(), "bad value");
     }
 }

@@ -4,12 +4,12 @@
 //! rather than request-response: the answer may come much later than the request, and the
 //! replay serves requests from one queue whatever their origin.)
 
-use super::transport::{ice, wait_until, RunTransport, Wake};
+use super::transport::{wait_until, RunTransport, Wake};
 use super::wire::{
     check_finite, validate_request, BatchHeader, BatchKind, BatchRequest, WireError, FORMAT_VERSION,
 };
 use super::{read_once, ReadStage, RejectLog};
-use anyhow::{anyhow, Result};
+use crate::error::{ice, IpcError, Result};
 use ctxrace_config::batch::{sequence_floats, transition_floats};
 use ctxrace_config::batch::{Batch, BatchSpec, SequenceBatch, TransitionBatch};
 use iceoryx2::port::listener::Listener;
@@ -59,10 +59,10 @@ impl ReplayClient {
         if !wait_until(&ready, handshake_timeout, || {
             service.dynamic_config().number_of_subscribers() > 0
         })? {
-            return Err(anyhow!(
-                "the replay did not come up within {handshake_timeout:?} (prefix {})",
-                transport.prefix()
-            ));
+            return Err(IpcError::ReplayDown {
+                timeout: handshake_timeout,
+                prefix: transport.prefix().to_string(),
+            });
         }
         Ok(Self {
             requests,
@@ -405,10 +405,10 @@ impl BatchServer {
     fn send(&self, header: BatchHeader, parts: &[&[f32]]) -> Result<usize> {
         let len: usize = parts.iter().map(|p| p.len()).sum();
         if len > self.max_floats {
-            return Err(anyhow!(
-                "batch of {len} floats exceeds the preallocated {}",
-                self.max_floats
-            ));
+            return Err(IpcError::BatchTooLarge {
+                len,
+                max: self.max_floats,
+            });
         }
         let mut sample = self
             .batches

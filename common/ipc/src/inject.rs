@@ -12,11 +12,12 @@
 //! publishers take the slots a restarting learner and replay would use, so inject while they
 //! run.
 
-use super::transport::{ice, RunTransport, Wake};
+use super::telemetry::publisher;
+use super::transport::{RunTransport, Wake};
 use super::wire::{
     BatchHeader, BatchRequest, ChunkHeader, EpisodeReport, WeightsHeader, MAX_CHUNK_FLOATS,
 };
-use anyhow::{anyhow, Result};
+use crate::error::{ice, IpcError, Result};
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::prelude::*;
@@ -56,11 +57,7 @@ impl Injector {
             .collect::<Result<Vec<_>>>()?;
         Ok(Self {
             chunks,
-            requests: transport
-                .request_service()?
-                .publisher_builder()
-                .create()
-                .map_err(ice("injected request publisher"))?,
+            requests: publisher(transport.request_service(), "injected request publisher")?,
             weights: transport
                 .weights_service()?
                 .publisher_builder()
@@ -75,11 +72,7 @@ impl Injector {
                 .max_loaned_samples(1)
                 .create()
                 .map_err(ice("injected batch publisher"))?,
-            episodes: transport
-                .metrics_service()?
-                .publisher_builder()
-                .create()
-                .map_err(ice("injected metrics publisher"))?,
+            episodes: publisher(transport.metrics_service(), "injected metrics publisher")?,
             wake_replay: transport.notifier(Wake::Replay)?,
             wake_actors: transport.notifier(Wake::Actors)?,
             wake_learner: transport.notifier(Wake::Learner)?,
@@ -99,10 +92,7 @@ impl Injector {
         header: ChunkHeader,
         payload: &[f32],
     ) -> Result<Held<'_, f32, ChunkHeader>> {
-        let publisher = self
-            .chunks
-            .get(stream)
-            .ok_or_else(|| anyhow!("no trajectory service {stream}"))?;
+        let publisher = self.chunks.get(stream).ok_or(IpcError::NoStream(stream))?;
         send_slice(publisher, header, payload, &self.wake_replay)
     }
 
@@ -114,9 +104,11 @@ impl Injector {
         payload: &[f32],
     ) -> Result<Held<'_, f32, BatchHeader>> {
         if payload.len() > MAX_BATCH_FLOATS {
-            return Err(anyhow!(
-                "injected batches are at most {MAX_BATCH_FLOATS} floats"
-            ));
+            return Err(IpcError::InjectedTooLarge {
+                what: "batches",
+                max: MAX_BATCH_FLOATS,
+                unit: "floats",
+            });
         }
         send_slice(&self.batches, header, payload, &self.wake_learner)
     }
@@ -143,7 +135,11 @@ impl Injector {
         bytes: &[u8],
     ) -> Result<Held<'_, u8, WeightsHeader>> {
         if bytes.len() > MAX_WEIGHTS {
-            return Err(anyhow!("injected weights are at most {MAX_WEIGHTS} bytes"));
+            return Err(IpcError::InjectedTooLarge {
+                what: "weights",
+                max: MAX_WEIGHTS,
+                unit: "bytes",
+            });
         }
         send_slice(&self.weights, header, bytes, &self.wake_actors)
     }
@@ -180,10 +176,10 @@ impl<T: Copy, H: Copy> Held<'_, T, H> {
     /// Rewrites the payload's element `index`.
     pub fn set(&self, index: usize, value: T) -> Result<()> {
         if index >= self.len {
-            return Err(anyhow!(
-                "element {index} of a payload of {} elements",
-                self.len
-            ));
+            return Err(IpcError::Element {
+                index,
+                len: self.len,
+            });
         }
         // SAFETY: as in `set_header`; `index` is within the sample's `len` elements.
         unsafe { std::ptr::write_volatile(self.payload.as_ptr().add(index), value) };

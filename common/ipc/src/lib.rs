@@ -18,6 +18,7 @@
 //! shared-memory files, and [`sweep_orphaned_runs`] those of runs whose launcher died.
 
 mod batches;
+mod error;
 pub mod inject;
 mod telemetry;
 mod trajectory;
@@ -28,6 +29,7 @@ pub mod wire;
 pub use batches::{BatchServer, ReplayClient};
 pub use ctxrace_config::config::DEFAULT_MAX_BATCH_FLOATS;
 pub use ctxrace_run::steps::TrajectoryStep;
+pub use error::IpcError;
 pub use telemetry::{EpisodeSubscriber, MetricsPublisher, StatusPublisher, TelemetrySubscriber};
 pub use trajectory::{
     ChunkView, ReplayBeacon, SenderOptions, SenderStats, TrajectoryReceiver, TrajectorySender,

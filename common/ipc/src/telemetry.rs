@@ -1,12 +1,31 @@
 //! Actor and replay telemetry for the launcher: episode metrics, heartbeats, replay status.
 
-use super::transport::{ice, RunTransport};
+use super::transport::RunTransport;
 use super::wire::{EpisodeReport, Heartbeat, ReplayStatus, WireError, FORMAT_VERSION};
 use super::{read_once, RejectLog};
-use anyhow::Result;
+use crate::error::{ice, Result};
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
+use std::fmt::Debug;
+
+/// A publisher of plain `T` messages on `service`, one of the run's telemetry services (or its
+/// batch requests); `what` names it in an error.
+pub(crate) fn publisher<T: Debug + ZeroCopySend>(
+    service: Result<PubSubFactory<ipc::Service, T, ()>>,
+    what: &'static str,
+) -> Result<Publisher<ipc::Service, T, ()>> {
+    service?.publisher_builder().create().map_err(ice(what))
+}
+
+/// A subscriber to plain `T` messages on `service`; `what` names it in an error.
+fn subscriber<T: Debug + ZeroCopySend>(
+    service: Result<PubSubFactory<ipc::Service, T, ()>>,
+    what: &'static str,
+) -> Result<Subscriber<ipc::Service, T, ()>> {
+    service?.subscriber_builder().create().map_err(ice(what))
+}
 
 /// An actor's metrics and heartbeat publisher.
 pub struct MetricsPublisher {
@@ -18,16 +37,8 @@ impl MetricsPublisher {
     /// Publishers on the run's metrics and heartbeat services.
     pub fn new(transport: &RunTransport) -> Result<Self> {
         Ok(Self {
-            metrics: transport
-                .metrics_service()?
-                .publisher_builder()
-                .create()
-                .map_err(ice("metrics publisher"))?,
-            heartbeat: transport
-                .heartbeat_service()?
-                .publisher_builder()
-                .create()
-                .map_err(ice("heartbeat publisher"))?,
+            metrics: publisher(transport.metrics_service(), "metrics publisher")?,
+            heartbeat: publisher(transport.heartbeat_service(), "heartbeat publisher")?,
         })
     }
 
@@ -61,11 +72,7 @@ impl StatusPublisher {
     /// A publisher on the run's status service.
     pub fn new(transport: &RunTransport) -> Result<Self> {
         Ok(Self {
-            status: transport
-                .status_service()?
-                .publisher_builder()
-                .create()
-                .map_err(ice("status publisher"))?,
+            status: publisher(transport.status_service(), "status publisher")?,
         })
     }
 
@@ -92,11 +99,7 @@ impl EpisodeSubscriber {
     /// Subscribes to the run's episode metrics.
     pub fn new(transport: &RunTransport) -> Result<Self> {
         Ok(Self {
-            metrics: transport
-                .metrics_service()?
-                .subscriber_builder()
-                .create()
-                .map_err(ice("metrics subscriber"))?,
+            metrics: subscriber(transport.metrics_service(), "metrics subscriber")?,
             actors: transport.actors(),
             rejects: RejectLog::new("episode metrics"),
         })
@@ -139,16 +142,8 @@ impl TelemetrySubscriber {
     pub fn new(transport: &RunTransport) -> Result<Self> {
         Ok(Self {
             episodes: EpisodeSubscriber::new(transport)?,
-            heartbeat: transport
-                .heartbeat_service()?
-                .subscriber_builder()
-                .create()
-                .map_err(ice("heartbeat subscriber"))?,
-            status: transport
-                .status_service()?
-                .subscriber_builder()
-                .create()
-                .map_err(ice("status subscriber"))?,
+            heartbeat: subscriber(transport.heartbeat_service(), "heartbeat subscriber")?,
+            status: subscriber(transport.status_service(), "status subscriber")?,
             actors: transport.actors(),
             rejects: RejectLog::new("telemetry"),
         })

@@ -1,12 +1,13 @@
 //! Actor -> replay trajectories: the actor's chunking sender and the replay's validating receiver.
 
-use super::transport::{ice, wait_until, RunTransport, Wake};
+use super::transport::{wait_until, RunTransport, Wake};
 use super::wire::{
     step_stride, validate_chunk, ChunkHeader, WireError, MAX_ACT, MAX_CHUNK, MAX_CHUNK_FLOATS,
     MAX_OBS,
 };
 use super::{read_once, ReadStage, RejectLog};
-use anyhow::{anyhow, Result};
+use crate::error::{ice, IpcError, Result};
+use ctxrace_config::validate::Causes;
 use ctxrace_run::steps::TrajectoryStep;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
@@ -96,15 +97,13 @@ impl TrajectorySender {
         opts: SenderOptions,
     ) -> Result<Self> {
         if actor_id as usize >= transport.actors() {
-            return Err(anyhow!(
-                "actor id {actor_id} is not below the run's {} actors",
-                transport.actors()
-            ));
+            return Err(IpcError::ActorId {
+                id: actor_id,
+                actors: transport.actors(),
+            });
         }
         if obs_dim == 0 || obs_dim > MAX_OBS || act_dim == 0 || act_dim > MAX_ACT {
-            return Err(anyhow!(
-                "obs_dim {obs_dim} must be 1 to {MAX_OBS} and act_dim {act_dim} 1 to {MAX_ACT}"
-            ));
+            return Err(IpcError::StepDims { obs_dim, act_dim });
         }
         let ready = transport.listener(Wake::ReplayReady)?;
         let service = transport.trajectory_service(actor_id as usize)?;
@@ -123,11 +122,10 @@ impl TrajectorySender {
             service.dynamic_config().number_of_subscribers() > 0
         })?;
         if !connected {
-            return Err(anyhow!(
-                "the replay did not come up within {:?} (prefix {})",
-                opts.handshake_timeout,
-                transport.prefix()
-            ));
+            return Err(IpcError::ReplayDown {
+                timeout: opts.handshake_timeout,
+                prefix: transport.prefix().to_string(),
+            });
         }
         Ok(Self {
             publisher,
@@ -154,11 +152,12 @@ impl TrajectorySender {
     ) -> Result<()> {
         let (o, a) = (self.header.obs_dim as usize, self.header.act_dim as usize);
         if step.obs.len() != o || step.action.len() != a {
-            return Err(anyhow!(
-                "step has obs {} and action {}, the sender was made for {o} and {a}",
-                step.obs.len(),
-                step.action.len()
-            ));
+            return Err(IpcError::StepSize {
+                obs: step.obs.len(),
+                action: step.action.len(),
+                want_obs: o,
+                want_action: a,
+            });
         }
         if self.header.steps > 0
             && (self.header.episode_id != episode_id
@@ -290,7 +289,7 @@ impl TrajectorySender {
 impl Drop for TrajectorySender {
     fn drop(&mut self) {
         if let Err(e) = self.finish() {
-            tracing::warn!("closing trajectory sender: {e:#}");
+            tracing::warn!("closing trajectory sender: {}", Causes(&e));
         }
     }
 }

@@ -5,7 +5,7 @@
 use super::wire::{
     BatchHeader, BatchRequest, ChunkHeader, EpisodeReport, Heartbeat, ReplayStatus, WeightsHeader,
 };
-use anyhow::{anyhow, bail, Context as _, Result};
+use crate::error::{ice, IpcError, Result};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::prelude::*;
@@ -21,11 +21,6 @@ pub const TRAJECTORY_BUFFER: usize = 64;
 /// Nodes besides the actors that may open a service (replay, learner, launcher, tools).
 const EXTRA_NODES: usize = 8;
 
-/// Maps any iceoryx2 error (they are plain enums) to an error naming what failed.
-pub(crate) fn ice<E: Debug>(what: &'static str) -> impl FnOnce(E) -> anyhow::Error {
-    move |e| anyhow!("iceoryx2: {what}: {e:?}")
-}
-
 /// A flag that turns true on SIGTERM or SIGINT, for a process's loop to stop cleanly. (The
 /// nodes' own signal handling is off: iceoryx2 resets its flag when read, so a blocking send
 /// could swallow the request.)
@@ -33,7 +28,7 @@ pub fn termination_flag() -> Result<std::sync::Arc<std::sync::atomic::AtomicBool
     let flag = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
     for signal in [signal_hook::consts::SIGTERM, signal_hook::consts::SIGINT] {
         signal_hook::flag::register(signal, flag.clone())
-            .map_err(|e| anyhow!("installing the handler of signal {signal}: {e}"))?;
+            .map_err(|source| IpcError::Signal { signal, source })?;
     }
     Ok(flag)
 }
@@ -63,9 +58,7 @@ pub const SHM_ROOT_ENV: &str = "CTXRACE_SHM_ROOT";
 /// user, and whoever creates it first decides who may use it. (The shared memory itself lives in
 /// `/dev/shm`, readable and writable by its owner only: see [`RunTransport::open`].)
 pub fn shm_root() -> Result<PathBuf> {
-    let uid = std::fs::metadata("/proc/self")
-        .map(|m| m.uid())
-        .context("reading this process's user id from /proc/self")?;
+    let uid = user_id()?;
     let root = match std::env::var_os(SHM_ROOT_ENV) {
         Some(dir) => PathBuf::from(dir),
         None => match std::env::var_os("XDG_RUNTIME_DIR") {
@@ -74,29 +67,24 @@ pub fn shm_root() -> Result<PathBuf> {
         },
     };
     match std::fs::DirBuilder::new().mode(0o700).create(&root) {
-        Err(e) if e.kind() != std::io::ErrorKind::AlreadyExists => {
-            return Err(e).with_context(|| {
-                format!(
-                    "creating the shared-memory folder {}; set {SHM_ROOT_ENV} to a folder of \
-                     yours",
-                    root.display()
-                )
-            })
+        Err(source) if source.kind() != std::io::ErrorKind::AlreadyExists => {
+            return Err(IpcError::CreateRoot { path: root, source })
         }
         _ => {}
     }
-    let meta = std::fs::symlink_metadata(&root)
-        .with_context(|| format!("reading the shared-memory folder {}", root.display()))?;
+    let meta = std::fs::symlink_metadata(&root).map_err(|source| IpcError::File {
+        action: "reading the shared-memory folder",
+        path: root.clone(),
+        source,
+    })?;
     if !meta.is_dir() || meta.uid() != uid || meta.permissions().mode() & 0o077 != 0 {
-        bail!(
-            "the shared-memory folder {} is not a private folder of user {uid} (owner {}, mode \
-             {:o}{}): another user could read or block this run; remove it, or set \
-             {SHM_ROOT_ENV} to a folder only you can enter",
-            root.display(),
-            meta.uid(),
-            meta.permissions().mode() & 0o7777,
-            if meta.is_dir() { "" } else { ", not a folder" },
-        );
+        return Err(IpcError::RootNotPrivate {
+            path: root,
+            uid,
+            owner: meta.uid(),
+            mode: meta.permissions().mode() & 0o7777,
+            is_dir: meta.is_dir(),
+        });
     }
     Ok(root)
 }
@@ -106,11 +94,14 @@ pub fn shm_root() -> Result<PathBuf> {
 /// `actors` actors.
 pub fn iceoryx_config(prefix: &str, actors: usize) -> Result<Config> {
     let mut config = Config::default();
-    config.global.prefix = FileName::new(prefix.as_bytes())
-        .map_err(|e| anyhow!("invalid iceoryx2 prefix {prefix:?}: {e:?}"))?;
+    config.global.prefix = FileName::new(prefix.as_bytes()).map_err(|source| IpcError::Prefix {
+        prefix: prefix.to_string(),
+        source,
+    })?;
     let root = format!("{}/", shm_root()?.display());
-    let root = Path::new(root.as_bytes()).map_err(|e| {
-        anyhow!("shared-memory folder {root:?} is not a valid iceoryx2 path: {e:?}")
+    let root = Path::new(root.as_bytes()).map_err(|source| IpcError::RootPath {
+        root: root.clone(),
+        source,
     })?;
     config.global.set_root_path(&root);
     config.global.node.cleanup_dead_nodes_on_creation = true;
@@ -140,7 +131,7 @@ impl RunTransport {
     /// writable by everyone (mode 0666); the first node of the run closes it to its owner.
     pub fn open(prefix: &str, actors: usize, role: &str) -> Result<Self> {
         if actors == 0 {
-            return Err(anyhow!("a run needs at least one actor"));
+            return Err(IpcError::NoActors);
         }
         let config = iceoryx_config(prefix, actors)?;
         let name = NodeName::new(role).map_err(ice("node name"))?;
@@ -320,14 +311,15 @@ pub enum Next {
 impl RunTransport {
     /// Runs `turn` until it returns [`Next::Stop`] or, with `handle_signals`, SIGTERM or SIGINT
     /// arrives; between turns it sleeps in an iceoryx2 `WaitSet` on the event `wake`, at most
-    /// `tick`. Returns whether a termination signal ended the loop.
-    pub fn serve(
+    /// `tick`. Returns whether a termination signal ended the loop; an error of `turn` ends it
+    /// too and is returned as it is (the transport's own errors as `E`).
+    pub fn serve<E: From<IpcError>>(
         &self,
         wake: Wake,
         tick: Duration,
         handle_signals: bool,
-        mut turn: impl FnMut() -> Result<Next>,
-    ) -> Result<bool> {
+        mut turn: impl FnMut() -> Result<Next, E>,
+    ) -> Result<bool, E> {
         let listener = self.listener(wake)?;
         let signals = if handle_signals {
             SignalHandlingMode::HandleTerminationRequests
@@ -431,13 +423,22 @@ pub struct CleanupReport {
 /// Where POSIX shared memory lives.
 const SHM_DIR: &str = "/dev/shm";
 
+/// This process's user id (the owner of `/proc/self`).
+fn user_id() -> Result<u32> {
+    std::fs::metadata("/proc/self")
+        .map(|m| m.uid())
+        .map_err(IpcError::UserId)
+}
+
 /// Takes group and others' permissions off every file in `dir` whose name starts with `prefix`
 /// and that this user owns; refuses a file another user owns (it could read or corrupt the run).
 fn restrict_to_owner(dir: &StdPath, prefix: &str) -> Result<()> {
-    let uid = std::fs::metadata("/proc/self")
-        .map(|m| m.uid())
-        .context("reading this process's user id from /proc/self")?;
-    let entries = std::fs::read_dir(dir).with_context(|| format!("listing {}", dir.display()))?;
+    let uid = user_id()?;
+    let entries = std::fs::read_dir(dir).map_err(|source| IpcError::File {
+        action: "listing",
+        path: dir.to_path_buf(),
+        source,
+    })?;
     for entry in entries.flatten() {
         if !entry.file_name().to_string_lossy().starts_with(prefix) {
             continue;
@@ -447,16 +448,16 @@ fn restrict_to_owner(dir: &StdPath, prefix: &str) -> Result<()> {
             continue; // removed meanwhile
         };
         if meta.uid() != uid {
-            bail!(
-                "{} belongs to user {}, not to this user ({uid}): another user could read or                  corrupt this run's shared memory; remove it and start again",
-                path.display(),
-                meta.uid()
-            );
+            return Err(IpcError::ForeignFile {
+                path,
+                owner: meta.uid(),
+                uid,
+            });
         }
         let mode = meta.permissions().mode();
         if mode & 0o077 != 0 {
             std::fs::set_permissions(&path, std::fs::Permissions::from_mode(mode & 0o700))
-                .with_context(|| format!("restricting {} to its owner", path.display()))?;
+                .map_err(|source| IpcError::Restrict { path, source })?;
         }
     }
     Ok(())
@@ -504,8 +505,11 @@ pub fn claim_run(prefix: &str) -> Result<()> {
     let path = shm_root()?.join(format!("{prefix}{OWNER_SUFFIX}"));
     let pid = std::process::id();
     let text = format!("{pid} {}\n", process_start(pid).unwrap_or(0));
-    ctxrace_run::run_dir::write_atomic(&path, text.as_bytes())
-        .with_context(|| format!("writing {}", path.display()))
+    ctxrace_run::run_dir::write_atomic(&path, text.as_bytes()).map_err(|source| IpcError::File {
+        action: "writing",
+        path,
+        source,
+    })
 }
 
 const OWNER_SUFFIX: &str = "owner";
@@ -524,8 +528,11 @@ fn process_start(pid: u32) -> Option<u64> {
 pub fn sweep_orphaned_runs() -> Result<Vec<String>> {
     let root = shm_root()?;
     let mut swept = Vec::new();
-    let entries =
-        std::fs::read_dir(&root).with_context(|| format!("listing {}", root.display()))?;
+    let entries = std::fs::read_dir(&root).map_err(|source| IpcError::File {
+        action: "listing",
+        path: root.clone(),
+        source,
+    })?;
     for entry in entries.flatten() {
         let name = entry.file_name().to_string_lossy().into_owned();
         let Some(prefix) = name.strip_suffix(OWNER_SUFFIX) else {
@@ -572,7 +579,13 @@ fn remove_prefixed(dir: &StdPath, prefix: &str) -> Result<u64> {
             match result {
                 Ok(()) => removed += 1,
                 Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-                Err(e) => return Err(e).with_context(|| format!("removing {}", path.display())),
+                Err(source) => {
+                    return Err(IpcError::File {
+                        action: "removing",
+                        path,
+                        source,
+                    })
+                }
             }
         } else if is_dir {
             removed += remove_prefixed(&path, prefix)?;

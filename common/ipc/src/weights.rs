@@ -1,9 +1,9 @@
 //! Learner -> actors weights broadcast: one publisher, history 1, checksummed.
 
-use super::transport::{ice, RunTransport, Wake};
+use super::transport::{RunTransport, Wake};
 use super::wire::{validate_weights, WeightsHeader, FORMAT_VERSION};
 use super::{read_once, ReadStage, RejectLog};
-use anyhow::{anyhow, Result};
+use crate::error::{ice, IpcError, Result};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
@@ -50,11 +50,10 @@ impl WeightsPublisher {
     /// newest version stays available to subscribers that connect later.
     pub fn publish(&self, version: u64, bytes: &[u8]) -> Result<usize> {
         if bytes.len() > self.max_bytes {
-            return Err(anyhow!(
-                "weights of {} bytes exceed the preallocated {} bytes",
-                bytes.len(),
-                self.max_bytes
-            ));
+            return Err(IpcError::WeightsTooLarge {
+                len: bytes.len(),
+                max: self.max_bytes,
+            });
         }
         let mut sample = self
             .publisher
@@ -182,17 +181,10 @@ impl WeightsReceiver {
         timeout: Duration,
         f: impl FnOnce(u64, &[u8]) -> R,
     ) -> Result<Option<R>> {
-        let mut f = Some(f);
         let deadline = std::time::Instant::now() + timeout;
         loop {
             if self.subscriber.has_samples().unwrap_or(false) {
-                let call = f
-                    .take()
-                    .ok_or_else(|| anyhow!("weights callback used twice"))?;
-                match self.latest_with(call)? {
-                    Some(r) => return Ok(Some(r)),
-                    None => return Ok(None),
-                }
+                return self.latest_with(f);
             }
             let left = deadline.saturating_duration_since(std::time::Instant::now());
             if left.is_zero() {

@@ -36,3 +36,16 @@ pub use policy::{Decision, Policy};
 pub use rssm::{ObserveTrace, Rssm, RssmConfig, RssmGrads, StepScratch, StepTrace};
 pub use symlog::{symlog_value, TwoHot};
 pub use weights::{Weights, WeightsError};
+
+/// The logistic function `σ(x) = 1 / (1 + e^{−x})`, as the acting policies and the learner's
+/// passes compute it (the fused kernels keep their own vectorisable form of `e^{−x}`).
+pub fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// `v` resized to `n` values (zeros where it grows) as a slice: a scratch buffer kept from one
+/// pass to the next, sized for this one.
+pub fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
+    v.resize(n, 0.0);
+    &mut v[..n]
+}

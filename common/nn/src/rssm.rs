@@ -28,6 +28,7 @@ use super::layer::{InputGrad, Layer, LayerGrads, Mlp, MlpGrads, MlpTrace};
 use super::parameters::{update_each, NamedTensor, Parameters};
 use super::weights::{Weights, WeightsError};
 use crate::kernels::{gru_rows, gru_rows_bwd, probs_rows_bwd, sample_rows, NormAct, Unimix};
+use crate::sized;
 use std::ops::Range;
 
 /// Sizes of the RSSM.
@@ -236,12 +237,6 @@ pub struct StepScratch {
     d_gates: Vec<f32>,
     dh_direct: Vec<f32>,
     du: Vec<f32>,
-}
-
-/// `v` resized to `n` values (zeros where it grows) as a slice.
-fn sized(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
-    v.resize(n, 0.0);
-    &mut v[..n]
 }
 
 impl Rssm {

@@ -38,6 +38,9 @@ pub trait ExperienceSource {
     /// The acting policy it runs (the networks' `Policy` in ctxrace's processes).
     type Policy;
 
+    /// Why a decision could not be taken (the policy's or the simulator's error).
+    type Error: std::error::Error + Send + Sync + 'static;
+
     /// Length of one observation frame.
     fn obs_dim(&self) -> usize;
 
@@ -57,7 +60,7 @@ pub trait ExperienceSource {
         &mut self,
         policy: Option<&mut Self::Policy>,
         sink: &mut dyn FnMut(&TrajectoryStep),
-    ) -> anyhow::Result<Option<EndedEpisode>>;
+    ) -> Result<Option<EndedEpisode>, Self::Error>;
 }
 
 /// Keeps the steps of a run's streams and draws training batches from them.

@@ -131,10 +131,11 @@ fn one_plus_exp_neg(x: f32) -> f32 {
     1.0 + exp_in_range((-x).clamp(-87.0, 80.0))
 }
 
-/// `1 / (1 + e⁻ˣ)`. The reciprocal is a division: on Zen 4 it runs beside the multiply-adds, and
-/// the SiLU forward pass of 512 rows of 256 (`cargo bench -p ctxrace-oracle --bench norm_act`)
-/// took 88-94 µs with it against 108-110 µs with three Newton steps from a bit-trick guess (AVX2
-/// copies: 124-148 against 152-161 µs).
+/// `1 / (1 + e⁻ˣ)` on [`one_plus_exp_neg`]: the kernels' own σ, vectorisable and not bit-equal
+/// to [`crate::sigmoid`] (which the policies and the learner's passes use). The reciprocal is a
+/// division: on Zen 4 it runs beside the multiply-adds, and the SiLU forward pass of 512 rows of
+/// 256 (`cargo bench -p ctxrace-oracle --bench norm_act`) took 88-94 µs with it against 108-110 µs
+/// with three Newton steps from a bit-trick guess (AVX2 copies: 124-148 against 152-161 µs).
 #[inline(always)]
 fn sigmoid(x: f32) -> f32 {
     1.0 / one_plus_exp_neg(x)

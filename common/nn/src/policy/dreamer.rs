@@ -7,7 +7,7 @@
 use super::{PolicyError, Result, ACT_DIM};
 use crate::dreamer::{mask_value, uniform_rows, PolicyNets};
 use crate::tanh_gaussian::squash_rows;
-use crate::{symlog_value, MlpTrace, ObserveTrace, Weights, WeightsError};
+use crate::{sigmoid, symlog_value, MlpTrace, ObserveTrace, Weights, WeightsError};
 use ctxrace_config::agents::{DreamerConfig, StepAlignment, CONTEXT_DIM};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -37,11 +37,6 @@ struct ActingTraces {
     head_input: Vec<f32>,
     actor: MlpTrace,
     mask: MlpTrace,
-}
-
-/// `1 / (1 + e^{−x})`.
-fn sigmoid(x: f32) -> f32 {
-    1.0 / (1.0 + (-x).exp())
 }
 
 /// The acting side of DreamerV3 at batch 1: keeps the recurrent state and the previous action.

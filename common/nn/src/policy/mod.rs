@@ -82,12 +82,9 @@ impl Policy {
             AlgoKind::Sac => Policy::Sac(Box::new(SacPolicy::new(
                 &agent.sac, frame_dim, ACT_DIM, weights, seed,
             )?)),
-            _ => Policy::Dreamer(Box::new(DreamerPolicy::new(
-                &agent.dreamer(),
-                frame_dim,
-                weights,
-                seed,
-            )?)),
+            AlgoKind::Dreamerv3 | AlgoKind::Crssm | AlgoKind::Cmask => Policy::Dreamer(Box::new(
+                DreamerPolicy::new(&agent.dreamer(), frame_dim, weights, seed)?,
+            )),
         })
     }
 
