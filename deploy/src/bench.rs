@@ -121,9 +121,13 @@ pub struct SimArgs {
     /// How long to run (s).
     #[arg(long, default_value_t = 5.0)]
     seconds: f64,
-    /// Ego policy while measuring.
+    /// Ego policy while measuring: pure-pursuit, follow-the-gap, random or still.
     #[arg(long, default_value = "pure-pursuit")]
     ego: BaselineKind,
+    /// Race config TOML (see configs/race.toml; `[rival] driver` picks the rivals' driver);
+    /// --rivals overrides its number of rivals [default: ctxrace's default scenario].
+    #[arg(long)]
+    config: Option<std::path::PathBuf>,
     /// Print JSON.
     #[arg(long)]
     json: bool,
@@ -135,6 +139,8 @@ pub struct SimArgs {
 struct SimReport {
     track: String,
     rivals: usize,
+    rival_driver: ctxrace_config::RivalDriverKind,
+    ego: String,
     seconds: f64,
     episodes: usize,
     decisions: usize,
@@ -155,8 +161,9 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     }
     let cfg = ctxrace_config::RaceConfig {
         rivals: args.rivals,
-        ..Default::default()
+        ..crate::load_race_config(args.config.as_ref())?
     };
+    let rival_driver = cfg.rival.driver;
     let physics_per_decision = cfg.physics_steps_per_action;
     let track = Arc::new(args.tracks.load(&args.track, &cfg)?);
     let mut env = RaceEnv::new(track.clone(), cfg)?;
@@ -180,6 +187,8 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     let r = SimReport {
         track: track.name.clone(),
         rivals: args.rivals,
+        rival_driver,
+        ego: args.ego.name().into(),
         seconds: secs,
         episodes,
         decisions,
@@ -190,9 +199,13 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     if args.json {
         println!("{}", serde_json::to_string_pretty(&r)?);
     } else {
+        let driver = match r.rival_driver {
+            ctxrace_config::RivalDriverKind::PurePursuit => "pure-pursuit",
+            ctxrace_config::RivalDriverKind::FollowTheGap => "follow-the-gap",
+        };
         println!(
-            "{} · {} rivals · {:.1} s: {:.0} decisions/s, {:.0} physics steps/s ({} episodes, {:.0} decisions each)",
-            r.track, r.rivals, r.seconds, r.decisions_per_s, r.physics_steps_per_s, r.episodes, r.mean_episode_decisions
+            "{} · {} {driver} rivals · ego {} · {:.1} s: {:.0} decisions/s, {:.0} physics steps/s ({} episodes, {:.0} decisions each)",
+            r.track, r.rivals, r.ego, r.seconds, r.decisions_per_s, r.physics_steps_per_s, r.episodes, r.mean_episode_decisions
         );
     }
     Ok(())

@@ -22,9 +22,7 @@ impl EgoSpec {
     /// The name reports group by: the algorithm or the baseline.
     pub fn name(&self) -> String {
         match self {
-            EgoSpec::Baseline(BaselineKind::PurePursuit) => "pure-pursuit".into(),
-            EgoSpec::Baseline(BaselineKind::Random) => "random".into(),
-            EgoSpec::Baseline(BaselineKind::Still) => "still".into(),
+            EgoSpec::Baseline(kind) => kind.name().into(),
             EgoSpec::Trained(t) => t.agent.algo.name().into(),
         }
     }

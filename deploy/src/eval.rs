@@ -40,8 +40,8 @@ use std::time::Duration;
 /// Arguments of `ctxrace eval`.
 #[derive(Args)]
 pub struct EvalArgs {
-    /// A run directory, a checkpoint directory, or a reference policy: `pure-pursuit` or
-    /// `random`.
+    /// A run directory, a checkpoint directory, or a reference policy: `pure-pursuit`,
+    /// `follow-the-gap` or `random`.
     source: String,
     /// Which checkpoint of a run directory: `best` (the peak of the smoothed training return,
     /// the paper's), `latest` or `step-N`.

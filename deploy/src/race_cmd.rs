@@ -27,7 +27,8 @@ pub struct RaceArgs {
     /// Rival context CV,CT (speed and steering coefficients).
     #[arg(long, default_value = "0,0", allow_hyphen_values = true)]
     context: Context,
-    /// Ego policy: pure-pursuit (raceline at full speed), random, or still.
+    /// Ego policy: pure-pursuit (raceline at full speed), follow-the-gap (reactive, on its own
+    /// scan, with the parameters of [rival.follow_the_gap]), random, or still.
     #[arg(long, default_value = "pure-pursuit")]
     ego: BaselineKind,
     /// Drive the ego with a trained agent instead: a checkpoint or run directory (in the run's

@@ -7,6 +7,7 @@
 use crate::plot::{plot_err, register_font, save, Figure};
 use anyhow::{bail, Context as _, Result};
 use ctxrace_actor::driver::Driver;
+use ctxrace_config::RivalDriverKind;
 use ctxrace_sim::driver::Ego as _;
 use ctxrace_sim::vehicle::{idx, State, VehicleParams};
 use ctxrace_sim::{RaceEnv, StepInfo};
@@ -112,8 +113,12 @@ pub fn race_title(track: &str, ego: &str, env: &RaceEnv) -> String {
         Some(t) => format!("lap complete in {t:.1} s"),
         None => format!("{} at progress {:.2}", m.ended_by(), m.progress),
     };
+    let driver = match env.config().rival.driver {
+        RivalDriverKind::PurePursuit => "",
+        RivalDriverKind::FollowTheGap => " follow-the-gap",
+    };
     format!(
-        "{track} · ego {ego} vs {} rival(s) at context c_v {:+.2}, c_t {:+.2} · {outcome}",
+        "{track} · ego {ego} vs {}{driver} rival(s) at context c_v {:+.2}, c_t {:+.2} · {outcome}",
         env.config().rivals,
         c.speed,
         c.steer

@@ -1,6 +1,8 @@
-//! Reference ego policies that need no training: pure pursuit at full raceline speed, uniform
-//! random actions, and standing still.
+//! Reference ego policies that need no training: pure pursuit at full raceline speed,
+//! follow-the-gap on the ego's own exact scan, uniform random actions, and standing still.
 
+use crate::collision::CarBox;
+use crate::gap::FollowTheGap;
 use crate::race::RaceEnv;
 use crate::rival::PurePursuit;
 use rand::{Rng, SeedableRng};
@@ -11,6 +13,9 @@ use rand_chacha::ChaCha8Rng;
 pub enum BaselineKind {
     /// Pure pursuit on the raceline at full speed (capped at the ego's max speed).
     PurePursuit,
+    /// Follow-the-gap on an exact scan of the ego's pose, context-free, with the parameters of
+    /// `[rival.follow_the_gap]` (speed capped at the ego's max speed).
+    FollowTheGap,
     /// Uniformly random actions in `[-1, 1]²`.
     Random,
     /// Zero speed, straight wheels.
@@ -23,12 +28,39 @@ impl std::str::FromStr for BaselineKind {
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         match s {
             "pure-pursuit" => Ok(Self::PurePursuit),
+            "follow-the-gap" => Ok(Self::FollowTheGap),
             "random" => Ok(Self::Random),
             "still" => Ok(Self::Still),
             _ => Err(format!(
-                "unknown ego policy '{s}': use pure-pursuit, random or still"
+                "unknown ego policy '{s}': use pure-pursuit, follow-the-gap, random or still"
             )),
         }
+    }
+}
+
+impl BaselineKind {
+    /// Every reference policy.
+    pub const ALL: [BaselineKind; 4] = [
+        Self::PurePursuit,
+        Self::FollowTheGap,
+        Self::Random,
+        Self::Still,
+    ];
+
+    /// The name it is parsed from (`pure-pursuit`, `follow-the-gap`, `random`, `still`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::PurePursuit => "pure-pursuit",
+            Self::FollowTheGap => "follow-the-gap",
+            Self::Random => "random",
+            Self::Still => "still",
+        }
+    }
+}
+
+impl std::fmt::Display for BaselineKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
     }
 }
 
@@ -36,6 +68,8 @@ impl std::str::FromStr for BaselineKind {
 pub enum Baseline {
     /// See [`BaselineKind::PurePursuit`].
     PurePursuit(PurePursuit),
+    /// See [`BaselineKind::FollowTheGap`].
+    FollowTheGap(Box<FollowTheGap>),
     /// See [`BaselineKind::Random`].
     Random(Box<ChaCha8Rng>),
     /// See [`BaselineKind::Still`].
@@ -56,6 +90,15 @@ impl Baseline {
                     cfg.max_steer,
                 ))
             }
+            BaselineKind::FollowTheGap => {
+                let cfg = env.config();
+                Self::FollowTheGap(Box::new(FollowTheGap::reference(
+                    &cfg.rival.follow_the_gap,
+                    cfg.max_speed,
+                    cfg.max_steer,
+                    env.vehicle_params().width,
+                )))
+            }
             BaselineKind::Random => Self::Random(Box::new(ChaCha8Rng::seed_from_u64(seed))),
             BaselineKind::Still => Self::Still,
         }
@@ -66,6 +109,15 @@ impl Baseline {
         match self {
             Self::PurePursuit(pp) => {
                 let (steer, speed) = pp.command(&env.track().raceline, env.ego_state());
+                env.command_to_action(steer, speed)
+            }
+            Self::FollowTheGap(gap) => {
+                let params = env.vehicle_params();
+                let rivals: Vec<CarBox> = env.cars()[1..]
+                    .iter()
+                    .map(|c| CarBox::new(&c.vehicle.state, params))
+                    .collect();
+                let (steer, speed) = gap.command(&env.track().walls, &rivals, env.ego_state());
                 env.command_to_action(steer, speed)
             }
             Self::Random(rng) => [rng.random_range(-1.0..=1.0), rng.random_range(-1.0..=1.0)],

@@ -1,13 +1,15 @@
 //! The ctxrace simulator, a library that needs no transport and no networks: the f1tenth
-//! single-track vehicle, an exact LiDAR, exact collisions, pure-pursuit rivals scaled by the
-//! context, the head-to-head [`RaceEnv`], reference egos, the paper's evaluation protocol
-//! ([`evaluation`]) and the episode loop of any ego ([`driver`]).
+//! single-track vehicle, an exact LiDAR, exact collisions, rivals scaled by the context (pure
+//! pursuit on the raceline, or follow-the-gap on their own scan: [`gap`]), the head-to-head
+//! [`RaceEnv`], reference egos, the paper's evaluation protocol ([`evaluation`]) and the episode
+//! loop of any ego ([`driver`]).
 
 pub mod baseline;
 pub mod collision;
 pub mod driver;
 pub mod eval_dir;
 pub mod evaluation;
+pub mod gap;
 pub mod grid;
 pub mod lidar;
 pub mod masks;

@@ -5,7 +5,9 @@
 //! on the raceline beside its place (`grid_line`; the paper's code: on the centreline). Every
 //! decision (10 physics steps of 0.01 s) the ego acts with
 //! `a ∈ [-1, 1]²` — steering `δ = −a₀ θ_max` (negative `a₀` turns left, as the paper states) and speed
-//! `v = v_min + (a₁ + 1)/2 · (v_max − v_min)` — and each rival plans with pure pursuit.
+//! `v = v_min + (a₁ + 1)/2 · (v_max − v_min)` — and each rival plans from its own state with the
+//! driver `[rival] driver` names ([`RivalDriver`]: pure pursuit, or follow-the-gap on its own
+//! scan of the walls and the other cars).
 //!
 //! Reward: see [`reward`]. The episode ends when the ego completes the lap, hits a wall, collides
 //! with a rival or (with `reverse_limit`) drives backwards (terminated), or at the time limit
@@ -19,7 +21,7 @@
 use crate::collision::CarBox;
 use crate::grid::grid_pose;
 use crate::lidar::{Lidar, NearbyWalls};
-use crate::rival::PurePursuit;
+use crate::rival::RivalDriver;
 use crate::vehicle::{State, Vehicle, VehicleParams, DT};
 use ctxrace_config::{Context, CrashedRivals, RaceConfig, RaceConfigError};
 use ctxrace_tracks::Track;
@@ -183,7 +185,9 @@ pub struct RaceEnv {
     lidar: Lidar,
     nearby: NearbyWalls,
     cars: Vec<Car>,
-    drivers: Vec<PurePursuit>,
+    drivers: Vec<RivalDriver>,
+    /// The other cars' boxes as one rival's scan sees them.
+    others: Vec<CarBox>,
     rng: ChaCha8Rng,
     context: Context,
     steps: usize,
@@ -212,6 +216,7 @@ impl RaceEnv {
             params,
             cars: Vec::new(),
             drivers: Vec::new(),
+            others: Vec::new(),
             rng: ChaCha8Rng::seed_from_u64(0),
             context: Context::default(),
             steps: 0,
@@ -248,17 +253,8 @@ impl RaceEnv {
                 }
             })
             .collect();
-        let wheelbase = self.params.wheelbase();
         self.drivers = (0..self.cfg.rivals)
-            .map(|_| {
-                PurePursuit::rival(
-                    &self.cfg.rival,
-                    gains,
-                    context,
-                    wheelbase,
-                    self.params.s_max,
-                )
-            })
+            .map(|_| RivalDriver::new(&self.cfg.rival, gains, context, &self.params))
             .collect();
         self.steps = 0;
         self.rank = self.ego_rank();
@@ -299,18 +295,29 @@ impl RaceEnv {
     /// steps (the ego under the command `(steer, speed)`) until the ego crashes; then every car's
     /// progress is updated. Returns (ego hit a wall, ego hit a rival).
     fn advance(&mut self, steer: f64, speed: f64) -> (bool, bool) {
-        let commands: Vec<(f64, f64)> = self
-            .drivers
-            .iter_mut()
-            .zip(&self.cars[1..])
-            .map(|(d, car)| {
-                if car.crashed {
-                    (0.0, 0.0)
-                } else {
-                    d.command(&self.track.raceline, &car.vehicle.state)
-                }
-            })
-            .collect();
+        if self.drivers.iter().any(RivalDriver::sees_cars) {
+            self.boxes.clear();
+            self.boxes.extend(
+                self.cars
+                    .iter()
+                    .map(|c| CarBox::new(&c.vehicle.state, &self.params)),
+            );
+        }
+        let mut commands = Vec::with_capacity(self.drivers.len());
+        for (i, (d, car)) in self.drivers.iter_mut().zip(&self.cars[1..]).enumerate() {
+            if car.crashed {
+                commands.push((0.0, 0.0));
+                continue;
+            }
+            self.others.clear();
+            if d.sees_cars() {
+                // every car but this rival (index i + 1), the ego and crashed ones included
+                let boxes = self.boxes.iter().enumerate();
+                self.others
+                    .extend(boxes.filter(|&(j, _)| j != i + 1).map(|(_, b)| *b));
+            }
+            commands.push(d.command(&self.track, &self.others, &car.vehicle.state));
+        }
         let mut wall_crash = false;
         let mut a2a = false;
         for _ in 0..self.cfg.physics_steps_per_action {

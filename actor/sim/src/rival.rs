@@ -1,4 +1,6 @@
-//! The rivals' driver: pure pursuit on the raceline, its speed and lookahead scaled by the context.
+//! The rivals' drivers ([`RivalDriver`], chosen by `[rival] driver`): pure pursuit on the
+//! raceline, its speed and lookahead scaled by the context (below), or follow-the-gap on the
+//! rival's own scan ([`crate::gap`]).
 //!
 //! Each decision the driver searches the target point `g`: the first raceline point, going
 //! forward from the car's foot point, at distance `r = d_0 + k v` from the car (`d_0 = 1` m,
@@ -32,10 +34,63 @@
 //! they have not left and run wide into the wall; the slowest speed ahead keeps all 49
 //! evaluation contexts on the track on f1_esp and f1_gbr (tested).
 
-use crate::vehicle::{idx, State};
-use ctxrace_config::{Context, ContextGains, RivalConfig, SpeedPoint};
-use ctxrace_tracks::Raceline;
+use crate::collision::CarBox;
+use crate::gap::FollowTheGap;
+use crate::vehicle::{idx, State, VehicleParams};
+use ctxrace_config::{Context, ContextGains, RivalConfig, RivalDriverKind, SpeedPoint};
+use ctxrace_tracks::{Raceline, Track};
 use nalgebra::Point2;
+
+/// A rival's driver, of the kind `[rival] driver` names; each plans from its own car's state.
+#[derive(Clone, Debug)]
+pub enum RivalDriver {
+    /// Pure pursuit on the raceline ([`PurePursuit`]).
+    PurePursuit(PurePursuit),
+    /// Follow-the-gap on the car's own scan ([`FollowTheGap`]).
+    FollowTheGap(Box<FollowTheGap>),
+}
+
+impl RivalDriver {
+    /// The configured driver for a rival in context `ctx` (gains `gains`), on a car with
+    /// parameters `params`.
+    pub fn new(
+        cfg: &RivalConfig,
+        gains: ContextGains,
+        ctx: Context,
+        params: &VehicleParams,
+    ) -> Self {
+        match cfg.driver {
+            RivalDriverKind::PurePursuit => Self::PurePursuit(PurePursuit::rival(
+                cfg,
+                gains,
+                ctx,
+                params.wheelbase(),
+                params.s_max,
+            )),
+            RivalDriverKind::FollowTheGap => Self::FollowTheGap(Box::new(FollowTheGap::rival(
+                &cfg.follow_the_gap,
+                gains,
+                ctx,
+                params.s_max,
+                params.width,
+            ))),
+        }
+    }
+
+    /// Whether it looks at the other cars (then [`RivalDriver::command`] needs their boxes).
+    pub fn sees_cars(&self) -> bool {
+        matches!(self, Self::FollowTheGap(_))
+    }
+
+    /// The command `(steering angle, speed)` for a car in state `x` on `track` among the other
+    /// cars `others` (its own box excluded; a pure-pursuit driver ignores them).
+    pub fn command(&mut self, track: &Track, others: &[CarBox], x: &State) -> (f64, f64) {
+        match self {
+            Self::PurePursuit(pp) => pp.command(&track.raceline, x),
+            Self::FollowTheGap(gap) => gap.command(&track.walls, others, x),
+        }
+    }
+}
 
 /// A pure-pursuit driver following a raceline.
 #[derive(Clone, Debug)]
@@ -270,23 +325,21 @@ pub fn drive_solo_lap(
     context: Context,
     start_s: f64,
 ) -> SoloLap {
-    use crate::collision::CarBox;
-    use crate::vehicle::{Vehicle, VehicleParams, DT};
+    use crate::vehicle::{Vehicle, DT};
     let params = VehicleParams::default();
     let centre = &track.centreline.curve;
     let (p0, yaw) = crate::grid::grid_pose(track, cfg.grid_line, start_s);
     let mut car = Vehicle::new(params.clone(), p0.x, p0.y, yaw, cfg.steer_delay)
         .with_integrator(cfg.integrator);
     let gains = cfg.rival.gains_for(&track.name);
-    let mut driver =
-        PurePursuit::rival(&cfg.rival, gains, context, params.wheelbase(), params.s_max);
+    let mut driver = RivalDriver::new(&cfg.rival, gains, context, &params);
     let length = centre.length();
     let (mut s, mut hint, mut travelled) = (centre.wrap_s(start_s), centre.locate(start_s).0, 0.0);
     let mut lap = SoloLap::default();
     let decision_time = cfg.physics_steps_per_action as f64 * DT;
     let max_decisions = (cfg.max_time.max(4.0 * length) / decision_time).ceil() as usize;
     for k in 0..max_decisions {
-        let (steer, speed) = driver.command(&track.raceline, &car.state);
+        let (steer, speed) = driver.command(track, &[], &car.state);
         for _ in 0..cfg.physics_steps_per_action {
             let p = car.position();
             car.step(steer, speed);

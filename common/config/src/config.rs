@@ -420,6 +420,7 @@ impl RaceConfig {
     /// Checks ranges; the message names the key and its valid range.
     pub fn validate(&self) -> Result<(), RaceConfigError> {
         finite_floats(self, &self.preset.config())?;
+        let gap = &self.rival.follow_the_gap;
         let positive = [
             ("max_speed", self.max_speed),
             ("max_steer", self.max_steer),
@@ -433,6 +434,12 @@ impl RaceConfig {
             ("rival.launch_speed", self.rival.launch_speed),
             ("ego_launch_speed", self.ego_launch_speed),
             ("start_spacing", self.start_spacing),
+            ("rival.follow_the_gap.max_range", gap.max_range),
+            ("rival.follow_the_gap.range_clip", gap.range_clip),
+            ("rival.follow_the_gap.steer_gain", gap.steer_gain),
+            ("rival.follow_the_gap.straight_speed", gap.straight_speed),
+            ("rival.follow_the_gap.corner_speed", gap.corner_speed),
+            ("rival.follow_the_gap.corner_steer", gap.corner_steer),
         ];
         let optional = [
             ("reverse_limit", self.reverse_limit),
@@ -457,6 +464,10 @@ impl RaceConfig {
             ("rival.launch_below", self.rival.launch_below),
             ("rival.lift_off_line", self.rival.lift_off_line),
             ("ego_launch_below", self.ego_launch_below),
+            ("rival.follow_the_gap.bubble_radius", gap.bubble_radius),
+            ("rival.follow_the_gap.free_range", gap.free_range),
+            ("rival.follow_the_gap.brake_decel", gap.brake_decel),
+            ("rival.follow_the_gap.stop_margin", gap.stop_margin),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(RaceConfigError::Negative { key: k, value: v });
@@ -500,6 +511,42 @@ impl RaceConfig {
             1..=MAX_OBS,
             "the wire format carries at most that many (the paper: 108)",
         )?;
+        in_range(
+            "rival.follow_the_gap.beams",
+            gap.beams,
+            2..=4096,
+            "the driver's scan needs beams to find a gap in (the ego's: 108)",
+        )?;
+        in_range(
+            "rival.follow_the_gap.fov_deg",
+            gap.fov_deg,
+            1.0..=360.0,
+            "it is the scan's field of view in degrees, centred on the heading (the ego's: 180)",
+        )?;
+        in_range(
+            "rival.follow_the_gap.smoothing",
+            gap.smoothing,
+            1..=gap.beams,
+            "it is a window in beams; 1 smooths nothing",
+        )?;
+        if gap.range_clip <= gap.free_range {
+            return Err(ValueError::OutOfRange {
+                key: "rival.follow_the_gap.free_range".into(),
+                value: gap.free_range.to_string(),
+                bounds: format!("below range_clip = {}", gap.range_clip),
+                fix: "no beam could be free otherwise".into(),
+            }
+            .into());
+        }
+        if gap.corner_speed > gap.straight_speed {
+            return Err(ValueError::OutOfRange {
+                key: "rival.follow_the_gap.corner_speed".into(),
+                value: gap.corner_speed.to_string(),
+                bounds: format!("at most straight_speed = {}", gap.straight_speed),
+                fix: "the driver slows down in turns".into(),
+            }
+            .into());
+        }
         in_range(
             "lidar.noise_sd",
             self.lidar.noise_sd,
@@ -550,10 +597,125 @@ pub enum SpeedPoint {
     SlowestAhead,
 }
 
-/// The rivals' pure-pursuit driver and how the context scales it.
+/// Which driver plans each rival's commands.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RivalDriverKind {
+    /// Pure pursuit on the raceline (the paper's rivals; the keys of `[rival]` other than
+    /// `follow_the_gap`).
+    #[default]
+    PurePursuit,
+    /// Follow-the-gap on the rival's own LiDAR scan, reactive and raceline-free (the keys of
+    /// `[rival.follow_the_gap]`).
+    FollowTheGap,
+}
+
+/// Where a follow-the-gap driver aims inside the largest gap.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum GapAim {
+    /// The gap's middle beam (Sezer & Gokasan's gap centre).
+    Middle,
+    /// The gap's farthest point: the middle of its longest run of beams at the gap's largest
+    /// range (F1TENTH's "best point").
+    #[default]
+    Farthest,
+}
+
+/// Follow-the-gap (Sezer & Gokasan 2012, in the form the F1TENTH course teaches), planning from
+/// an exact LiDAR scan of the car's own pose (no noise, reaching `max_range`) that sees the walls
+/// and every other car.
+///
+/// Each decision, with beam `k` at angle `α_k` from the heading (left positive) and range `r_k`:
+///
+/// 1. **Preprocess**: `r̂_k = min(r_k, range_clip)`, then a centred moving average over
+///    `smoothing` beams (1: none; the window is cut at the ends of the scan).
+/// 2. **Safety bubble**: with `r* = r̂_{k*}` the closest smoothed range, every beam that crosses
+///    the line through that point, square to its beam, within `bubble_radius` `R` of it,
+///    `|α_k − α_{k*}| ≤ atan(R / r*)`, is set to 0.
+/// 3. **Largest gap**: the longest run of consecutive beams with `r̂_k > free_range`; of equally
+///    long runs, the one whose middle is nearest the heading. No free beam: the best point is
+///    the farthest beam.
+/// 4. **Best point** `α_t`: the gap's middle or its farthest point ([`GapAim`]).
+/// 5. **Steering**: `δ = clamp(steer_gain · α_t / (1 + λ_θ c_θ), ±δ_max)`. Pure pursuit steers
+///    `δ ≈ 2 L α / L_d` for small angles, so scaling its lookahead `L_d` by `1 + λ_θ c_θ`, as
+///    the context does to the pure-pursuit rival, is dividing this gain by it.
+/// 6. **Speed** from the context-free steering `δ_0 = clamp(steer_gain · α_t, ±δ_max)`:
+///    `v = v_s − (v_s − v_c) · min(|δ_0| / δ_c, 1)` (`straight_speed` `v_s`, `corner_speed`
+///    `v_c`, `corner_steer` `δ_c`), capped by the braking distance on the way to the best point,
+///    `v ≤ √(2 a_b · max(0, d − stop_margin))` (`brake_decel` `a_b`, 0 disables; `d` the
+///    distance along the best point's direction to the nearest scan point within half the car's
+///    width of that line, unclipped, `max_range` when none), and then times `1 + λ_v c_v`.
+///
+/// With the defaults a car alone laps f1_esp, f1_gbr, f1_mco, f1_aut, Monza, Oschersleben,
+/// Spielberg and generated tracks without touching a wall at the zero context, and a rival laps
+/// both paper maps from each grid place in all 49 evaluation contexts (f1_mco: 146 of 147).
+/// The short `range_clip` matters: at 3.5 or 5 m, aiming at points farther round the corners,
+/// the car cut the inside of f1_esp's first right-hander into the wall.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FollowTheGapConfig {
+    /// Beams of the driver's scan, spread evenly over `fov_deg`, ends included.
+    pub beams: usize,
+    /// Field of view of the scan (degrees), centred on the heading.
+    pub fov_deg: f64,
+    /// Reach of the scan (m): the braking distance is measured up to it.
+    pub max_range: f64,
+    /// Ranges are capped at this before the gap is planned (m): farther free space counts the
+    /// same, so the best point is never far round a corner.
+    pub range_clip: f64,
+    /// Width of the centred moving average over the clipped ranges (beams; 1: no smoothing).
+    pub smoothing: usize,
+    /// Radius `R` of the safety bubble around the closest point (m).
+    pub bubble_radius: f64,
+    /// A beam is free when its clipped, smoothed range is above this (m).
+    pub free_range: f64,
+    /// The best point in the largest gap.
+    pub aim: GapAim,
+    /// Steering per radian of the best point's angle.
+    pub steer_gain: f64,
+    /// Speed with straight wheels (m/s), before the context.
+    pub straight_speed: f64,
+    /// Speed at `corner_steer` and beyond (m/s), before the context.
+    pub corner_speed: f64,
+    /// Steering angle (rad) from which `corner_speed` is driven.
+    pub corner_steer: f64,
+    /// Deceleration planned to stop before what lies on the way (m/s²): lower anticipates
+    /// corners earlier; 0 disables the cap.
+    pub brake_decel: f64,
+    /// Distance kept to what lies on the way when braking (m).
+    pub stop_margin: f64,
+}
+
+impl Default for FollowTheGapConfig {
+    fn default() -> Self {
+        Self {
+            beams: 108,
+            fov_deg: 180.0,
+            max_range: 10.0,
+            range_clip: 2.5,
+            smoothing: 5,
+            bubble_radius: 1.0,
+            free_range: 1.0,
+            aim: GapAim::Farthest,
+            steer_gain: 1.0,
+            straight_speed: 5.0,
+            corner_speed: 2.5,
+            corner_steer: 0.3,
+            brake_decel: 2.0,
+            stop_margin: 0.5,
+        }
+    }
+}
+
+/// The rivals' driver and how the context scales it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct RivalConfig {
+    /// Which driver plans the rivals' commands: `pure-pursuit` (the default, the paper's) or
+    /// `follow-the-gap` (reactive, from each rival's own scan; it reads `follow_the_gap` and the
+    /// context gains, not the pure-pursuit keys).
+    pub driver: RivalDriverKind,
     /// Fraction of the raceline speed driven (`slow_down`: 0.85 in the code that produced the
     /// paper's tables, c0fd903 and the development line before it; 0.8 in the release; its text
     /// says "reduced by 70%", i.e. 0.3, which its code never used).
@@ -587,6 +749,9 @@ pub struct RivalConfig {
     pub gains: ContextGains,
     /// Context gains per track name (paper code: λ_θ = 0.4 on f1_esp and f1_gbr, 0.3 on f1_mco).
     pub tracks: BTreeMap<String, ContextGains>,
+    /// The follow-the-gap driver's parameters (`driver = "follow-the-gap"`, and the
+    /// `follow-the-gap` reference ego).
+    pub follow_the_gap: FollowTheGapConfig,
 }
 
 impl Default for RivalConfig {
@@ -596,6 +761,7 @@ impl Default for RivalConfig {
             lambda_theta,
         };
         Self {
+            driver: RivalDriverKind::default(),
             speed_factor: 0.85,
             max_speed: 6.0,
             lookahead: 1.0,
@@ -612,6 +778,7 @@ impl Default for RivalConfig {
                 ("f1_gbr".to_string(), paper(0.4)),
                 ("f1_mco".to_string(), paper(0.3)),
             ]),
+            follow_the_gap: FollowTheGapConfig::default(),
         }
     }
 }
@@ -704,6 +871,52 @@ mod tests {
             RivalConfig::default().gains_for("generated:3").lambda_theta,
             0.4
         );
+    }
+
+    #[test]
+    fn the_rival_driver_is_a_key_with_its_parameters_validated_by_name() {
+        assert_eq!(
+            RaceConfig::default().rival.driver,
+            RivalDriverKind::PurePursuit
+        );
+        let c = RaceConfig::from_toml(
+            "[rival]\ndriver = \"follow-the-gap\"\n[rival.follow_the_gap]\nbubble_radius = 0.8\n",
+        )
+        .unwrap();
+        assert_eq!(c.rival.driver, RivalDriverKind::FollowTheGap);
+        assert_eq!(c.rival.follow_the_gap.bubble_radius, 0.8);
+        assert_eq!(c.rival.follow_the_gap.range_clip, 2.5);
+        // serialised with the other keys, and read back
+        let text = toml::to_string(&c).unwrap();
+        assert!(text.contains("driver = \"follow-the-gap\""), "{text}");
+        assert!(text.contains("[rival.follow_the_gap]"), "{text}");
+        assert_eq!(RaceConfig::from_toml(&text).unwrap(), c);
+        for preset in ["", "preset = \"paper-code\"\n"] {
+            let err =
+                RaceConfig::from_toml(&format!("{preset}[rival]\ndriver = \"wall-hugger\"\n"))
+                    .unwrap_err()
+                    .to_string();
+            for part in ["driver", "wall-hugger", "pure-pursuit", "follow-the-gap"] {
+                assert!(err.contains(part), "{preset}: {err}");
+            }
+        }
+        for (text, key) in [
+            ("bubble_radius = -0.1", "rival.follow_the_gap.bubble_radius"),
+            ("range_clip = 0.0", "rival.follow_the_gap.range_clip"),
+            ("beams = 1", "rival.follow_the_gap.beams"),
+            ("smoothing = 0", "rival.follow_the_gap.smoothing"),
+            ("fov_deg = 400.0", "rival.follow_the_gap.fov_deg"),
+            ("free_range = 3.0", "rival.follow_the_gap.free_range"),
+            ("corner_speed = 9.0", "rival.follow_the_gap.corner_speed"),
+            ("steer_gain = nan", "rival.follow_the_gap.steer_gain"),
+            ("aim = \"nearest\"", "aim"),
+            ("bubble = 1.0", "bubble"),
+        ] {
+            let err = RaceConfig::from_toml(&format!("[rival.follow_the_gap]\n{text}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains(key), "{text}: {err}");
+        }
     }
 
     #[test]

@@ -873,6 +873,26 @@ mod tests {
     }
 
     #[test]
+    fn an_unknown_rival_driver_is_refused_naming_the_key_and_the_drivers() {
+        for preset in ["", "preset = \"paper-code\"\n"] {
+            refused(
+                &format!("[race]\n{preset}[race.rival]\ndriver = \"wall-hugger\""),
+                1,
+                &["driver", "wall-hugger", "pure-pursuit", "follow-the-gap"],
+            );
+        }
+        refused(
+            "[race.rival.follow_the_gap]\nbubble_radius = -1.0",
+            1,
+            &["rival.follow_the_gap.bubble_radius = -1"],
+        );
+        let cfg =
+            ExperimentConfig::from_toml("[race.rival]\ndriver = \"follow-the-gap\"", "ftg.toml")
+                .unwrap();
+        assert_eq!(cfg.race.rival.driver, crate::RivalDriverKind::FollowTheGap);
+    }
+
+    #[test]
     fn beams_beyond_the_wire_format_and_endless_physics_steps_are_refused() {
         refused(
             "[race.lidar]\nbeams = 300",
