@@ -32,11 +32,10 @@
 //! temperature loss on a fresh sample after the actor's step.
 
 use crate::algorithm::Metrics;
+use crate::error::SacError;
 use crate::error::{LearnerError, Result};
 use crate::sac::{ActionRange, ActorNet, PassSum, SoftTarget, WeightedTransitions, Workspace};
-use crate::sac_core::{
-    ActorPass, CoreConfig, CriticPass, LearningRates, Passes, SacCore, SacError,
-};
+use crate::sac_core::{ActorPass, CoreConfig, CriticPass, LearningRates, Passes, SacCore};
 use crate::shards::{on_shards_with, Shard};
 use ctxrace_config::agents::{DreamerConfig, MaskConfig, MaskSpace, StepAlignment, CONTEXT_DIM};
 use ctxrace_config::SequenceBatch;

@@ -2,7 +2,6 @@
 
 use crate::adam::AdamError;
 use crate::checkpoint::CheckpointError;
-use crate::sac_core::SacError;
 use ctxrace_config::agents::AgentConfigError;
 use ctxrace_config::BatchError;
 use ctxrace_nn::policy::PolicyError;
@@ -75,3 +74,50 @@ pub enum LearnerError {
 
 /// The outcome of a learner operation.
 pub type Result<T> = std::result::Result<T, LearnerError>;
+
+/// Why a SAC agent could not be built, stepped, saved or restored.
+#[derive(Debug, thiserror::Error)]
+pub enum SacError {
+    /// A network size is zero.
+    #[error(
+        "SAC needs positive sizes, got observation {obs}, action {action}, hidden {hidden} \
+         (agent.sac.hidden must be positive)"
+    )]
+    Sizes {
+        /// Observation size.
+        obs: usize,
+        /// Action size.
+        action: usize,
+        /// Hidden units.
+        hidden: usize,
+    },
+    /// The observation is not a whole number of stacked frames.
+    #[error("SAC observation size {obs} is not a multiple of agent.sac.frames = {frames}")]
+    Frames {
+        /// Observation size.
+        obs: usize,
+        /// Frames stacked.
+        frames: usize,
+    },
+    /// The configuration is invalid (the message names the key).
+    #[error(transparent)]
+    Config(#[from] AgentConfigError),
+    /// A batch does not fit the agent.
+    #[error(transparent)]
+    Batch(#[from] BatchError),
+    /// The mask SAC's batch could not be split over its workers (or a worker panicked).
+    #[error("the mask SAC's shards")]
+    Shards(#[source] Box<LearnerError>),
+    /// The mask SAC's batch has no valid transition to split.
+    #[error("the mask SAC's batch has no shards")]
+    NoShards,
+    /// SAC was given sequences.
+    #[error("SAC trains on transitions, not sequences")]
+    Sequences,
+    /// An optimiser's step or state.
+    #[error(transparent)]
+    Optimiser(#[from] AdamError),
+    /// Weights that do not fit the networks.
+    #[error(transparent)]
+    Weights(#[from] WeightsError),
+}

@@ -37,7 +37,7 @@
 use crate::algorithm::{Algorithm, Batch, Metrics};
 use crate::checkpoint;
 use crate::error::LearnerError;
-pub use crate::sac_core::SacError;
+pub use crate::error::SacError;
 pub(crate) use crate::sac_core::{
     ActionRange, ActorNet, PassSum, SoftTarget, WeightedTransitions, Workspace,
 };

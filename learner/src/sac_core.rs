@@ -13,11 +13,9 @@
 //! `ctxrace_nn::tanh_gaussian`): at SAC's batch of 100 rows the matrix products are small
 //! and candle's per-operation bookkeeping was a third of a step. candle is the tests' oracle.
 
-use crate::adam::{Adam, AdamError};
+use crate::adam::Adam;
 use crate::checkpoint;
-use crate::error::LearnerError;
-use ctxrace_config::agents::AgentConfigError;
-use ctxrace_config::BatchError;
+use crate::error::SacError;
 use ctxrace_nn::parameters::{init_with, polyak, to_safetensors, update_each, Draw};
 use ctxrace_nn::tanh_gaussian::{squash_rows, squash_rows_backward};
 use ctxrace_nn::{
@@ -25,53 +23,6 @@ use ctxrace_nn::{
     WeightsError,
 };
 use std::path::Path;
-
-/// Why a SAC agent could not be built, stepped, saved or restored.
-#[derive(Debug, thiserror::Error)]
-pub enum SacError {
-    /// A network size is zero.
-    #[error(
-        "SAC needs positive sizes, got observation {obs}, action {action}, hidden {hidden} \
-         (agent.sac.hidden must be positive)"
-    )]
-    Sizes {
-        /// Observation size.
-        obs: usize,
-        /// Action size.
-        action: usize,
-        /// Hidden units.
-        hidden: usize,
-    },
-    /// The observation is not a whole number of stacked frames.
-    #[error("SAC observation size {obs} is not a multiple of agent.sac.frames = {frames}")]
-    Frames {
-        /// Observation size.
-        obs: usize,
-        /// Frames stacked.
-        frames: usize,
-    },
-    /// The configuration is invalid (the message names the key).
-    #[error(transparent)]
-    Config(#[from] AgentConfigError),
-    /// A batch does not fit the agent.
-    #[error(transparent)]
-    Batch(#[from] BatchError),
-    /// The mask SAC's batch could not be split over its workers (or a worker panicked).
-    #[error("the mask SAC's shards")]
-    Shards(#[source] Box<LearnerError>),
-    /// The mask SAC's batch has no valid transition to split.
-    #[error("the mask SAC's batch has no shards")]
-    NoShards,
-    /// SAC was given sequences.
-    #[error("SAC trains on transitions, not sequences")]
-    Sequences,
-    /// An optimiser's step or state.
-    #[error(transparent)]
-    Optimiser(#[from] AdamError),
-    /// Weights that do not fit the networks.
-    #[error(transparent)]
-    Weights(#[from] WeightsError),
-}
 
 /// Twin critics `Q_1, Q_2 (o, a)`: two ReLU MLPs `q1`, `q2` on `[o, a]` (SAC's, and the mask
 /// SAC's with the mask as the action), their tensors named `q1.l0.fc.weight`, ….

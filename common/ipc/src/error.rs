@@ -2,11 +2,13 @@
 //! Causes are chained as sources, not printed in the messages: a `{:#}` chain (the binary's)
 //! names each once.
 
-use crate::transport::SHM_ROOT_ENV;
 use crate::wire::{MAX_ACT, MAX_OBS};
 use iceoryx2::prelude::SemanticStringError;
 use std::path::PathBuf;
 use std::time::Duration;
+
+/// Environment variable naming the folder of ctxrace's iceoryx2 management files.
+pub const SHM_ROOT_ENV: &str = "CTXRACE_SHM_ROOT";
 
 /// Why a run's transport could not be set up, or a message could not be sent or received.
 #[derive(Debug, thiserror::Error)]

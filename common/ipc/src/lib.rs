@@ -30,13 +30,14 @@ pub use batches::{BatchServer, ReplayClient};
 pub use ctxrace_config::config::DEFAULT_MAX_BATCH_FLOATS;
 pub use ctxrace_run::steps::TrajectoryStep;
 pub use error::IpcError;
+pub use error::SHM_ROOT_ENV;
 pub use telemetry::{EpisodeSubscriber, MetricsPublisher, StatusPublisher, TelemetrySubscriber};
 pub use trajectory::{
     ChunkView, ReplayBeacon, SenderOptions, SenderStats, TrajectoryReceiver, TrajectorySender,
 };
 pub use transport::{
     claim_run, cleanup, iceoryx_config, remove_dead_nodes, run_prefix, shm_root,
-    sweep_orphaned_runs, termination_flag, CleanupReport, Next, RunTransport, Wake, SHM_ROOT_ENV,
+    sweep_orphaned_runs, termination_flag, CleanupReport, Next, RunTransport, Wake,
     TRAJECTORY_BUFFER,
 };
 pub use weights::{WeightsPublisher, WeightsReceiver, DEFAULT_MAX_WEIGHTS_BYTES};

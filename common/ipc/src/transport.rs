@@ -5,6 +5,7 @@
 use super::wire::{
     BatchHeader, BatchRequest, ChunkHeader, EpisodeReport, Heartbeat, ReplayStatus, WeightsHeader,
 };
+use crate::error::SHM_ROOT_ENV;
 use crate::error::{ice, IpcError, Result};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
@@ -48,9 +49,6 @@ pub fn run_prefix(run_id: &str) -> String {
         .collect();
     format!("ctxrace_{id}_")
 }
-
-/// Environment variable naming the folder of ctxrace's iceoryx2 management files.
-pub const SHM_ROOT_ENV: &str = "CTXRACE_SHM_ROOT";
 
 /// The folder of this user's iceoryx2 management files (`nodes/`, `services/`, the runs' owner
 /// files): `$CTXRACE_SHM_ROOT`, else `$XDG_RUNTIME_DIR/ctxrace`, else `/tmp/ctxrace-<uid>`.
