@@ -129,11 +129,6 @@ impl BaselineEgo {
             state: Baseline::new(kind, env, 0),
         }
     }
-
-    /// Which reference policy it is.
-    pub fn kind(&self) -> BaselineKind {
-        self.kind
-    }
 }
 
 impl Ego for BaselineEgo {
