@@ -19,14 +19,15 @@ use ctxrace_run::lock::{die_with_parent, DirLock};
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use clap::Args;
-use ctxrace_config::{Context, RaceConfig};
+use clap::ValueEnum;
+use ctxrace_config::{Context, ContextMode, RaceConfig};
 use ctxrace_learner::trained::{CheckpointChoice, TrainedAgent};
 use ctxrace_run::results;
 use ctxrace_run::run_dir::{EVAL_DIR, EVAL_JOB};
 use ctxrace_sim::baseline::BaselineKind;
 use ctxrace_sim::driver::ActMode;
 use ctxrace_sim::eval_dir;
-use ctxrace_sim::evaluation::{episode_seed, run_episode, ContextSummary, EvalMeta};
+use ctxrace_sim::evaluation::{episode_seed, run_episode, ContextSummary, EvalMeta, ToldContext};
 use ctxrace_sim::masks::{self, MaskRecorder};
 use ctxrace_sim::track_check::{check_track, CheckPlan};
 use ctxrace_sim::RaceEnv;
@@ -88,6 +89,15 @@ pub struct EvalArgs {
     /// run's; 0.15 for a reference policy].
     #[arg(long)]
     train_range: Option<f64>,
+    /// What a cRSSM or cMask agent is told about the rivals' context (the context ablation):
+    /// the `true` one (the protocol), `zeros`, or an `other` raced context drawn per episode;
+    /// the rivals always drive by the true one.
+    #[arg(long, value_enum, default_value_t = ToldContext::True)]
+    told_context: ToldContext,
+    /// Fix a cMask agent's mask at `M_V,M_THETA` (each in [0, 1], e.g. `1,0`) instead of
+    /// letting its mask network choose (the context ablation).
+    #[arg(long, value_parser = parse_mask)]
+    mask: Option<Mask>,
     /// Discard earlier results in the output directory instead of resuming.
     #[arg(long)]
     fresh: bool,
@@ -119,6 +129,26 @@ pub struct WorkerArgs {
     shards: usize,
 }
 
+/// A fixed cMask mask `[m_v, m_θ]`.
+#[derive(Clone, Copy, Debug)]
+struct Mask([f32; 2]);
+
+/// Parses `--mask M_V,M_THETA`.
+fn parse_mask(text: &str) -> std::result::Result<Mask, String> {
+    let values: Vec<&str> = text.split(',').collect();
+    let parsed: Vec<f32> = values
+        .iter()
+        .filter_map(|v| v.trim().parse::<f32>().ok())
+        .filter(|v| (0.0..=1.0).contains(v))
+        .collect();
+    match parsed[..] {
+        [v, t] if values.len() == 2 => Ok(Mask([v, t])),
+        _ => Err(format!(
+            "'{text}' is not two mask values in [0, 1] separated by a comma, e.g. 1,0"
+        )),
+    }
+}
+
 /// The trained agent (checkpoint `choice` of a run) or reference policy named by `source`.
 fn ego_spec(source: &str, choice: CheckpointChoice) -> Result<EgoSpec> {
     match source.parse::<BaselineKind>() {
@@ -128,6 +158,31 @@ fn ego_spec(source: &str, choice: CheckpointChoice) -> Result<EgoSpec> {
             choice,
         )?))),
     }
+}
+
+/// Refuses a context ablation the ego cannot take: a told context for an agent that reads
+/// none, a fixed mask for an agent without one.
+fn check_ablation(spec: &EgoSpec, told: ToldContext, mask: Option<Mask>) -> Result<()> {
+    let mode = match spec {
+        EgoSpec::Trained(t) => t.agent.algo.context_mode(),
+        EgoSpec::Baseline(_) => ContextMode::None,
+    };
+    if !told.is_true() && mode == ContextMode::None {
+        bail!(
+            "--told-context {}: {} reads no context; the context ablation is for cRSSM and cMask \
+             agents",
+            told.to_possible_value()
+                .map_or("?".into(), |v| v.get_name().to_string()),
+            spec.name()
+        );
+    }
+    if mask.is_some() && mode != ContextMode::Cmask {
+        bail!(
+            "--mask: {} has no context mask; only a cMask agent's mask can be fixed",
+            spec.name()
+        );
+    }
+    Ok(())
 }
 
 /// Runs the protocol.
@@ -142,6 +197,7 @@ pub fn run(args: EvalArgs) -> Result<()> {
         );
     }
     let spec = ego_spec(&args.source, args.checkpoint)?;
+    check_ablation(&spec, args.told_context, args.mask)?;
     let (experiment, train_seed) = match &spec {
         EgoSpec::Trained(t) => (t.experiment.clone(), t.agent.seed()),
         EgoSpec::Baseline(_) => (None, 0),
@@ -217,6 +273,8 @@ pub fn run(args: EvalArgs) -> Result<()> {
             .as_deref()
             .map(|spec| eval_dir::parse_contexts(spec, args.grid * args.grid))
             .transpose()?,
+        told: args.told_context,
+        mask: args.mask.map(|m| m.0),
     };
     let lock = DirLock::acquire(&out)?;
     eval_dir::prepare(&out, &meta, args.fresh)?;
@@ -304,12 +362,15 @@ pub fn run_worker(args: WorkerArgs) -> Result<()> {
     let track = Arc::new(job.tracks.load(&job.meta.track, &job.race)?);
     let mut env = RaceEnv::new(track, job.race.clone())?;
     let mut driver = spec.driver(&env, job.meta.act)?;
+    driver.fix_mask(job.meta.mask)?;
     let grid = job.meta.grid_contexts();
+    let raced = job.meta.raced();
     let mut writer = eval_dir::append_csv(&eval_dir::part_path(out, args.shard))?;
     let mut masks = None;
     for &(index, lap) in job.todo.iter().skip(args.shard).step_by(args.shards) {
         let context = grid[index];
         let seed = episode_seed(job.meta.seed, index, lap);
+        driver.tell(job.meta.told.told(&grid, &raced, index, seed));
         let mut recorder = MaskRecorder::new(context, lap);
         let episode = run_episode(&mut env, &mut driver, context, seed, lap, |env, d| {
             recorder.observe(env, &d)
@@ -346,6 +407,7 @@ fn finish(
     let track = Arc::new(tracks.load(&meta.track, race)?);
     let mut env = RaceEnv::new(track.clone(), race.clone())?;
     let mut driver = spec.driver(&env, meta.act)?;
+    driver.fix_mask(meta.mask)?;
     let mut frames = Vec::new();
     let centre = Context::default();
     run_episode(
@@ -400,4 +462,19 @@ fn finish(
         )?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_mask_is_two_values_in_the_unit_interval() {
+        assert_eq!(parse_mask("1,0").unwrap().0, [1.0, 0.0]);
+        assert_eq!(parse_mask(" 0.5 , 1").unwrap().0, [0.5, 1.0]);
+        for bad in ["1", "1,0,1", "1.5,0", "a,b", "-0.1,0", "NaN,0", ""] {
+            let err = parse_mask(bad).unwrap_err();
+            assert!(err.contains("e.g. 1,0"), "{bad}: {err}");
+        }
+    }
 }

@@ -483,6 +483,8 @@ mod tests {
             act: ctxrace_sim::driver::ActMode::Sample,
             preset: ctxrace_config::RacePreset::Default,
             contexts: None,
+            told: Default::default(),
+            mask: None,
         }
     }
 

@@ -19,9 +19,10 @@
 
 use anyhow::{bail, Context as _, Result};
 use clap::{Args, ValueEnum};
-use ctxrace_config::{AlgoKind, ExperimentConfig};
+use ctxrace_config::{AlgoKind, ContextMode, ExperimentConfig};
 use ctxrace_run::lock::{die_with_parent, DirLock};
 use ctxrace_sim::driver::ActMode;
+use ctxrace_sim::evaluation::ToldContext;
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::os::unix::process::CommandExt;
@@ -92,6 +93,39 @@ pub struct MatrixFile {
     /// How the runs are evaluated.
     #[serde(default)]
     pub eval: SweepEval,
+    /// The context ablation after each context-aware run's evaluation (none by default).
+    #[serde(default)]
+    pub ablation: Option<SweepAblation>,
+}
+
+/// The context ablation of a sweep (H6 of docs/table2/README.md): every cRSSM and cMask run
+/// evaluated again under `[eval]`'s protocol with `laps` laps a context, told each context of
+/// `told`, and every cMask run with its mask fixed at each of `masks`; each in
+/// `<run>/ablation/<condition>`.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SweepAblation {
+    /// Laps per context (the main evaluation's first laps share their episode seeds).
+    pub laps: usize,
+    /// What cRSSM and cMask are told instead of the context: `zeros`, `other`.
+    #[serde(default)]
+    pub told: Vec<ToldContext>,
+    /// The masks cMask is fixed at, `[m_v, m_θ]` in [0, 1].
+    #[serde(default)]
+    pub masks: Vec<[f32; 2]>,
+}
+
+/// One evaluation of a run: the protocol's, or one condition of the context ablation.
+#[derive(Clone, Debug, PartialEq)]
+struct EvalPass {
+    /// Its output folder.
+    dir: PathBuf,
+    /// Laps per context.
+    laps: usize,
+    /// What the agent is told.
+    told: ToldContext,
+    /// cMask's fixed mask.
+    mask: Option<[f32; 2]>,
 }
 
 /// How a sweep trains its runs.
@@ -196,7 +230,77 @@ impl MatrixFile {
         m.eval
             .chosen()
             .with_context(|| format!("matrix {}: [eval] contexts", path.display()))?;
+        if let Some(a) = &m.ablation {
+            if a.laps == 0 || a.laps > m.eval.laps {
+                bail!(
+                    "matrix {}: [ablation] laps = {} must lie in 1..={} ([eval] laps: its \
+                     baseline is the main evaluation's first laps)",
+                    path.display(),
+                    a.laps,
+                    m.eval.laps
+                );
+            }
+            if a.told.contains(&ToldContext::True) {
+                bail!(
+                    "matrix {}: [ablation] told lists \"true\", the main evaluation; use \
+                     \"zeros\" or \"other\"",
+                    path.display()
+                );
+            }
+            if let Some(m) = a
+                .masks
+                .iter()
+                .find(|m| !m.iter().all(|v| (0.0..=1.0).contains(v)))
+            {
+                bail!(
+                    "matrix {}: [ablation] masks holds {m:?}; each value must lie in [0, 1]",
+                    path.display()
+                );
+            }
+        }
         Ok(m)
+    }
+
+    /// The evaluations of `run` (its folder `dir`): the protocol's in `dir/eval`, then for a
+    /// context-aware agent each condition of the ablation in `dir/ablation/<condition>`.
+    fn passes(&self, run: &MatrixRun, dir: &Path) -> Vec<EvalPass> {
+        let mut passes = vec![EvalPass {
+            dir: dir.join("eval"),
+            laps: self.eval.laps,
+            told: ToldContext::True,
+            mask: None,
+        }];
+        let mode = run.config.agent.algo.context_mode();
+        if let (Some(a), true) = (&self.ablation, mode != ContextMode::None) {
+            let condition = |name: String| dir.join("ablation").join(name);
+            for &told in &a.told {
+                let name = told.to_possible_value().map(|v| v.get_name().to_string());
+                passes.push(EvalPass {
+                    dir: condition(name.unwrap_or_default()),
+                    laps: a.laps,
+                    told,
+                    mask: None,
+                });
+            }
+            if mode == ContextMode::Cmask {
+                for &[v, t] in &a.masks {
+                    passes.push(EvalPass {
+                        dir: condition(format!("mask-{v}-{t}")),
+                        laps: a.laps,
+                        told: ToldContext::True,
+                        mask: Some([v, t]),
+                    });
+                }
+            }
+        }
+        passes
+    }
+
+    /// Whether every evaluation of `run` (in `dir`) is complete.
+    fn is_evaluated(&self, run: &MatrixRun, dir: &Path) -> bool {
+        self.passes(run, dir)
+            .iter()
+            .all(|pass| is_evaluated(pass, &self.eval))
     }
 
     /// Every run, algorithm-major (`algos` × `tracks` × `rivals` × the first `seeds` seeds),
@@ -341,22 +445,22 @@ pub fn run(args: SweepArgs) -> Result<()> {
         return Ok(());
     }
     let _lock = DirLock::acquire(&out)?;
-    runs.retain(|r| !is_evaluated(&out.join(&r.name), &matrix.eval));
+    runs.retain(|r| !matrix.is_evaluated(r, &out.join(&r.name)));
     let done_before = matrix.runs(dir, args.seeds, &only)?.len() - runs.len();
     schedule(&args, &runs, done_before, &out, cores)?;
     let all = matrix.runs(dir, args.seeds, &only)?;
     if all
         .iter()
-        .all(|r| is_evaluated(&out.join(&r.name), &matrix.eval))
+        .all(|r| matrix.is_evaluated(r, &out.join(&r.name)))
     {
         write_report(&out, &all)?;
     }
     Ok(())
 }
 
-/// Whether the run in `dir` has a complete evaluation of the sweep's protocol.
-fn is_evaluated(dir: &Path, eval: &SweepEval) -> bool {
-    let eval_dir = dir.join("eval");
+/// Whether `pass` of the sweep's protocol `eval` is complete.
+fn is_evaluated(pass: &EvalPass, eval: &SweepEval) -> bool {
+    let eval_dir = &pass.dir;
     let Ok(meta) = ctxrace_run::results::read_json::<ctxrace_sim::evaluation::EvalMeta>(
         &eval_dir.join("meta.json"),
     ) else {
@@ -364,7 +468,8 @@ fn is_evaluated(dir: &Path, eval: &SweepEval) -> bool {
     };
     eval_dir.join("contexts.csv").is_file()
         && (meta.grid, meta.laps, meta.seed, meta.act)
-            == (eval.grid, eval.laps, eval.seed, eval.act)
+            == (eval.grid, pass.laps, eval.seed, eval.act)
+        && (meta.told, meta.mask) == (pass.told, pass.mask)
         && meta.range == eval.range
         && meta.checkpoint == eval.checkpoint
         && eval.chosen().is_ok_and(|chosen| chosen == meta.contexts)
@@ -405,33 +510,45 @@ fn run_one(matrix: &MatrixFile, run: &MatrixRun, out: &Path, cores: usize) -> Re
         bail!("interrupted while training {}", run.name);
     }
     let e = &matrix.eval;
-    let act = match e.act {
-        ActMode::Sample => "sample",
-        ActMode::Mode => "mode",
-    };
-    let mut eval = Command::new(&exe);
-    eval.arg("eval").arg(&dir).args([
-        "--grid",
-        &e.grid.to_string(),
-        "--range",
-        &e.range.to_string(),
-        "--laps",
-        &e.laps.to_string(),
-        "--seed",
-        &e.seed.to_string(),
-        "--checkpoint",
-        &e.checkpoint,
-        "--act",
-        act,
-        "--workers",
-        &cores.to_string(),
-    ]);
-    if let Some(contexts) = &e.contexts {
-        eval.args(["--contexts", contexts]);
-    }
-    wait_for(eval, &format!("evaluating {}", run.name))?;
-    if stop.load(Ordering::Relaxed) {
-        bail!("interrupted while evaluating {}", run.name);
+    let name = |v: Option<clap::builder::PossibleValue>| v.map(|v| v.get_name().to_string());
+    for pass in matrix.passes(run, &dir) {
+        if is_evaluated(&pass, e) {
+            continue;
+        }
+        let mut eval = Command::new(&exe);
+        eval.arg("eval").arg(&dir).arg("--out").arg(&pass.dir);
+        eval.args([
+            "--grid",
+            &e.grid.to_string(),
+            "--range",
+            &e.range.to_string(),
+        ]);
+        eval.args([
+            "--laps",
+            &pass.laps.to_string(),
+            "--seed",
+            &e.seed.to_string(),
+        ]);
+        eval.args([
+            "--checkpoint",
+            &e.checkpoint,
+            "--workers",
+            &cores.to_string(),
+        ]);
+        eval.arg("--act").args(name(e.act.to_possible_value()));
+        eval.arg("--told-context")
+            .args(name(pass.told.to_possible_value()));
+        if let Some([v, t]) = pass.mask {
+            eval.args(["--mask", &format!("{v},{t}")]);
+        }
+        if let Some(contexts) = &e.contexts {
+            eval.args(["--contexts", contexts]);
+        }
+        let what = format!("evaluating {} ({})", run.name, pass.dir.display());
+        wait_for(eval, &what)?;
+        if stop.load(Ordering::Relaxed) {
+            bail!("interrupted while {what}");
+        }
     }
     Ok(())
 }
@@ -722,6 +839,66 @@ train_ratio = 2.0
             .parse::<Only>()
             .unwrap_err()
             .contains("no axis"));
+    }
+
+    #[test]
+    fn the_ablation_evaluates_context_aware_runs_again_under_each_condition() {
+        let dir = tempfile::tempdir().unwrap();
+        let m = matrix(dir.path());
+        let text = std::fs::read_to_string(dir.path().join("m.toml")).unwrap();
+        let with = |extra: &str| {
+            std::fs::write(dir.path().join("a.toml"), format!("{text}{extra}")).unwrap();
+            MatrixFile::load(&dir.path().join("a.toml"))
+        };
+        let a = with(
+            "[ablation]\nlaps = 20\ntold = [\"zeros\", \"other\"]\nmasks = [[1, 0], [0.5, 1]]\n",
+        )
+        .unwrap();
+        let runs = a.runs(dir.path(), Some(1), &Only::default()).unwrap();
+        let run_dir = Path::new("out/r");
+        let sac = runs
+            .iter()
+            .find(|r| r.config.agent.algo == AlgoKind::Sac)
+            .unwrap();
+        let cmask = runs
+            .iter()
+            .find(|r| r.config.agent.algo == AlgoKind::Cmask)
+            .unwrap();
+        assert_eq!(a.passes(sac, run_dir), m.passes(sac, run_dir));
+        let passes = a.passes(cmask, run_dir);
+        let dirs: Vec<_> = passes.iter().map(|p| p.dir.to_str().unwrap()).collect();
+        assert_eq!(
+            dirs,
+            [
+                "out/r/eval",
+                "out/r/ablation/zeros",
+                "out/r/ablation/other",
+                "out/r/ablation/mask-1-0",
+                "out/r/ablation/mask-0.5-1"
+            ]
+        );
+        assert_eq!((passes[0].laps, passes[1].laps), (50, 20));
+        assert_eq!(passes[2].told, ToldContext::Other);
+        assert_eq!(passes[4].mask, Some([0.5, 1.0]));
+        for (extra, says) in [
+            ("[ablation]\nlaps = 0\n", "laps = 0 must lie in 1..=50"),
+            ("[ablation]\nlaps = 60\n", "laps = 60 must lie in 1..=50"),
+            (
+                "[ablation]\nlaps = 5\ntold = [\"true\"]\n",
+                "use \"zeros\" or \"other\"",
+            ),
+            (
+                "[ablation]\nlaps = 5\nmasks = [[2, 0]]\n",
+                "must lie in [0, 1]",
+            ),
+            (
+                "[ablation]\nlaps = 5\ntold = [\"none\"]\n",
+                "unknown variant",
+            ),
+        ] {
+            let err = format!("{:#}", with(extra).unwrap_err());
+            assert!(err.contains(says), "{extra}: {err}");
+        }
     }
 
     #[test]

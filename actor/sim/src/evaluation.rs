@@ -18,6 +18,8 @@
 use crate::driver::{ActMode, Decided, DriveError, Ego};
 use crate::race::{EpisodeMetrics, RaceEnv};
 use ctxrace_config::Context;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 /// Laps per context that A2A counts are scaled to (the paper's protocol).
@@ -61,6 +63,62 @@ pub struct EvalMeta {
     /// Indices (in the grid's `c_v`-major order) of the contexts raced; none: the whole grid.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub contexts: Option<Vec<usize>>,
+    /// What a trained agent was told about the rivals' context (the context ablation; the
+    /// protocol tells the truth).
+    #[serde(default, skip_serializing_if = "ToldContext::is_true")]
+    pub told: ToldContext,
+    /// cMask's mask, fixed instead of chosen (the context ablation).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mask: Option<[f32; 2]>,
+}
+
+/// What a trained agent is told about the rivals' context in an evaluation: the truth (the
+/// paper's protocol), or, to measure what the context is worth, zeros or another episode's.
+/// The rivals always drive by the true context.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "kebab-case")]
+pub enum ToldContext {
+    /// The episode's own context.
+    #[default]
+    True,
+    /// `c = (0, 0)`, the centre of the training range.
+    Zeros,
+    /// Another raced context, drawn uniformly from the others, seeded by the episode
+    /// ([`ToldContext::told`]).
+    Other,
+}
+
+impl ToldContext {
+    /// Whether the agent is told the truth.
+    pub fn is_true(&self) -> bool {
+        *self == ToldContext::True
+    }
+
+    /// The context the agent is told in the episode of grid context `index` reset from `seed`,
+    /// when `raced` (grid indices, into `grid`) are the contexts of the evaluation; `None`: the
+    /// truth. `Other` with a single raced context tells that one.
+    pub fn told(
+        self,
+        grid: &[Context],
+        raced: &[usize],
+        index: usize,
+        seed: u64,
+    ) -> Option<Context> {
+        match self {
+            ToldContext::True => None,
+            ToldContext::Zeros => Some(Context::default()),
+            ToldContext::Other => {
+                let others: Vec<usize> = raced.iter().copied().filter(|&i| i != index).collect();
+                if others.is_empty() {
+                    return Some(grid[index]);
+                }
+                // a stream of its own, apart from the ego's noise seeded by the same episode
+                let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x7E11_C0A7_E47C_0DE5);
+                Some(grid[others[rng.random_range(0..others.len())]])
+            }
+        }
+    }
 }
 
 fn newest_checkpoint() -> String {
@@ -244,6 +302,32 @@ mod tests {
             steps: 10,
             episode_return: 2.0,
         }
+    }
+
+    #[test]
+    fn told_context_is_another_raced_one_spread_over_them() {
+        let grid = Context::grid(7, 0.3);
+        let raced: Vec<usize> = (17..=48).collect();
+        assert_eq!(ToldContext::True.told(&grid, &raced, 20, 5), None);
+        assert_eq!(
+            ToldContext::Zeros.told(&grid, &raced, 20, 5),
+            Some(Context::default())
+        );
+        let mut seen = std::collections::BTreeSet::new();
+        for lap in 0..2000 {
+            let seed = episode_seed(0, 20, lap);
+            let told = ToldContext::Other.told(&grid, &raced, 20, seed).unwrap();
+            let k = grid.iter().position(|c| *c == told).unwrap();
+            assert!(k != 20 && raced.contains(&k), "told grid context {k}");
+            assert_eq!(ToldContext::Other.told(&grid, &raced, 20, seed), Some(told));
+            seen.insert(k);
+        }
+        assert_eq!(
+            seen.len(),
+            raced.len() - 1,
+            "every other raced context is drawn"
+        );
+        assert_eq!(ToldContext::Other.told(&grid, &[3], 3, 9), Some(grid[3]));
     }
 
     #[test]

@@ -54,6 +54,8 @@ pub struct DreamerPolicy {
     /// Equal Gumbel noise (the sample is the most likely class), `[Z]`.
     uniform_mode: Vec<f32>,
     rng: ChaCha8Rng,
+    /// cMask's mask when fixed instead of chosen ([`DreamerPolicy::fix_mask`]).
+    fixed_mask: Option<[f32; CONTEXT_DIM]>,
 }
 
 impl DreamerPolicy {
@@ -72,6 +74,7 @@ impl DreamerPolicy {
             prev_action: [0.0; ACT_DIM],
             uniform_mode: vec![0.5; cfg.stoch * cfg.classes],
             rng: ChaCha8Rng::seed_from_u64(seed),
+            fixed_mask: None,
         };
         policy.start_from_loaded();
         policy.reset();
@@ -114,6 +117,16 @@ impl DreamerPolicy {
         (&self.state.0, &self.state.1)
     }
 
+    /// Fixes cMask's mask at `mask` (`None`: chosen again); an error for an agent without a
+    /// mask network.
+    pub fn fix_mask(&mut self, mask: Option<[f32; CONTEXT_DIM]>) -> Result<()> {
+        if mask.is_some() && self.nets.mask.is_none() {
+            return Err(PolicyError::NoMask);
+        }
+        self.fixed_mask = mask;
+        Ok(())
+    }
+
     /// cMask's mask for observation `obs` (`None` for the other agents): the mask of `tanh μ`
     /// if `deterministic`, else of a sample (the oracle's `mask_sample`).
     fn mask(&mut self, obs: &[f32], deterministic: bool) -> Option<[f32; CONTEXT_DIM]> {
@@ -150,7 +163,10 @@ impl DreamerPolicy {
                 want: self.obs_dim,
             });
         }
-        let mask = self.mask(obs, deterministic);
+        // a fixed mask replaces the chosen one after its noise is drawn
+        let mask = self
+            .mask(obs, deterministic)
+            .map(|chosen| self.fixed_mask.unwrap_or(chosen));
         // the model's context: the raw one scaled (and masked), or none
         let scale = (1.0 / self.cfg.context_divisor()) as f32;
         let ctx: [f32; CONTEXT_DIM] =

@@ -35,6 +35,9 @@ pub enum PolicyError {
         /// Values the policy was built for.
         want: usize,
     },
+    /// A mask was fixed for an agent that has none (only cMask masks its context).
+    #[error("only a cMask agent has a context mask to fix")]
+    NoMask,
 }
 
 // The causes are printed in the messages, not chained as sources, so that a `{:#}` chain (anyhow's)
@@ -110,6 +113,16 @@ impl Policy {
         match self {
             Policy::Sac(p) => p.reset(),
             Policy::Dreamer(p) => p.reset(),
+        }
+    }
+
+    /// Fixes cMask's mask at `mask` instead of choosing it (`None`: chosen again); the mask
+    /// network still runs, so a sampling policy's noise stays that of the unfixed one.
+    pub fn fix_mask(&mut self, mask: Option<[f32; 2]>) -> Result<()> {
+        match self {
+            Policy::Dreamer(p) => p.fix_mask(mask),
+            Policy::Sac(_) if mask.is_none() => Ok(()),
+            Policy::Sac(_) => Err(PolicyError::NoMask),
         }
     }
 

@@ -65,6 +65,47 @@ fn acting_feeds_the_context_at_its_scale() {
     }
 }
 
+/// A fixed mask is the one cMask acts with, the noise streams untouched: masked to (0, 0) it acts
+/// exactly as told the zero context, and an agent without a mask refuses one.
+#[test]
+fn a_fixed_mask_replaces_the_chosen_one() {
+    let cfg = tiny(ContextMode::Cmask);
+    let store = ParamStore::new();
+    DreamerNets::new(&cfg, 3, ACT_DIM, store.builder()).unwrap();
+    let weights = store.to_bytes().unwrap();
+    let run = |mask: Option<[f32; 2]>, context: [f32; 2]| {
+        let mut policy = DreamerPolicy::new(&cfg, 3, &weights, 7).unwrap();
+        policy.fix_mask(mask).unwrap();
+        (0..20)
+            .map(|k| {
+                let obs = [0.5, 0.2, (k as f32 * 0.37).sin()];
+                policy.act(&obs, context, false).unwrap()
+            })
+            .collect::<Vec<_>>()
+    };
+    let masked = run(Some([0.0, 0.0]), [0.2, -0.1]);
+    let zero = run(None, [0.0, 0.0]);
+    assert!(masked.iter().all(|(_, m)| *m == Some([0.0, 0.0])));
+    let actions = |d: &[([f32; 2], Option<[f32; 2]>)]| d.iter().map(|x| x.0).collect::<Vec<_>>();
+    assert_eq!(actions(&masked), actions(&zero));
+    let told = run(None, [0.2, -0.1]);
+    assert_ne!(
+        actions(&told),
+        actions(&zero),
+        "the context changes nothing"
+    );
+    let half = run(Some([1.0, 0.5]), [0.2, -0.1]);
+    assert!(half.iter().all(|(_, m)| *m == Some([1.0, 0.5])));
+
+    let crssm = tiny(ContextMode::Crssm);
+    let store = ParamStore::new();
+    DreamerNets::new(&crssm, 3, ACT_DIM, store.builder()).unwrap();
+    let mut policy = DreamerPolicy::new(&crssm, 3, &store.to_bytes().unwrap(), 0).unwrap();
+    assert!(policy.fix_mask(None).is_ok());
+    let err = policy.fix_mask(Some([1.0, 1.0])).unwrap_err();
+    assert!(err.to_string().contains("only a cMask agent"), "{err}");
+}
+
 /// The acting masks of each [`MaskSpace`]: `(1 + tanh u)/2` over `(0, 1)`, the paper's code's
 /// `sigmoid(tanh u)` inside `(σ(−1), σ(1)) ≈ (0.269, 0.731)`; the deterministic mask is the
 /// space's map of `tanh μ`.
