@@ -258,7 +258,7 @@ pub fn run(args: EvalArgs) -> Result<()> {
         laps: args.laps,
         seed: args.seed,
         source: match &spec {
-            EgoSpec::Trained(t) => t.checkpoint.display().to_string(),
+            EgoSpec::Trained(t) => portable_source(&t.checkpoint, t.experiment.is_some()),
             EgoSpec::Baseline(_) => spec.name(),
         },
         checkpoint: match &spec {
@@ -464,9 +464,34 @@ fn finish(
     Ok(())
 }
 
+/// The checkpoint as `meta.json` records it, free of the machine that ran it: a run's
+/// checkpoint as `<run>/checkpoints/<name>`, a checkpoint folder given alone by its name.
+fn portable_source(checkpoint: &Path, in_run: bool) -> String {
+    let keep = if in_run { 3 } else { 1 };
+    let parts: Vec<_> = checkpoint
+        .components()
+        .filter_map(|c| match c {
+            std::path::Component::Normal(p) => Some(p.to_string_lossy()),
+            _ => None,
+        })
+        .collect();
+    parts[parts.len().saturating_sub(keep)..].join("/")
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_recorded_source_names_no_machine_folder() {
+        let run = Path::new("/home/me/runs/cmask-f1_esp-1r-s7/checkpoints/best");
+        assert_eq!(
+            portable_source(run, true),
+            "cmask-f1_esp-1r-s7/checkpoints/best"
+        );
+        assert_eq!(portable_source(Path::new("/tmp/x/ckpt/"), false), "ckpt");
+        assert_eq!(portable_source(Path::new("best"), true), "best");
+    }
 
     #[test]
     fn a_mask_is_two_values_in_the_unit_interval() {
