@@ -311,7 +311,12 @@ impl MaskSac {
         metrics.insert("mask/alpha".into(), self.core.alpha());
         if valid_count == 0.0 {
             // the losses over no transitions are zero; nothing is stepped
-            for key in ["mask/q_loss", "mask/actor_loss", "mask/entropy"] {
+            for key in [
+                "mask/q_loss",
+                "mask/actor_loss",
+                "mask/entropy",
+                "mask/q_spread",
+            ] {
                 metrics.insert(key.into(), 0.0);
             }
             return Ok(());
@@ -328,9 +333,69 @@ impl MaskSac {
         metrics.insert("mask/q_loss".into(), losses.critic_loss);
         metrics.insert("mask/actor_loss".into(), losses.actor_loss);
         metrics.insert("mask/entropy".into(), -losses.log_prob);
+        metrics.insert("mask/q_spread".into(), self.q_spread(&transitions));
         Ok(())
     }
+
+    /// How much the mask matters to the critics after the step: over the first
+    /// [`SPREAD_OBSERVATIONS`] valid transitions' observations `o`, the mean of
+    /// `max_m Q(o, m) − min_m Q(o, m)`, `Q = min(Q_1, Q_2)`, on the 3 × 3 grid of masks at
+    /// `tanh u ∈ {−1, 0, 1}` per dimension (the mask's range's corners, edge midpoints and
+    /// centre). The actor maximises `Q(o, m) + α H(π(· | o))`: a spread small against the
+    /// entropy term (`mask/alpha` × `mask/entropy`) leaves the mask where the entropy puts it,
+    /// at the range's centre.
+    fn q_spread(&self, tr: &Transitions) -> f64 {
+        let n = tr.valid.len();
+        let obs_dim = tr.obs.len() / n.max(1);
+        let observations: Vec<&[f32]> = (0..n)
+            .filter(|&i| tr.valid[i] > 0.0)
+            .take(SPREAD_OBSERVATIONS)
+            .map(|i| &tr.obs[i * obs_dim..(i + 1) * obs_dim])
+            .collect();
+        if observations.is_empty() {
+            return 0.0;
+        }
+        let range = self.core.cfg.range;
+        let grid: Vec<[f32; 2]> = [-1.0, 0.0, 1.0]
+            .iter()
+            .flat_map(|&v| [-1.0, 0.0, 1.0].map(|t| [range.at(v), range.at(t)]))
+            .collect();
+        let width = obs_dim + CONTEXT_DIM;
+        let mut input = Vec::with_capacity(observations.len() * grid.len() * width);
+        for o in &observations {
+            for m in &grid {
+                input.extend_from_slice(o);
+                input.extend_from_slice(m);
+            }
+        }
+        let rows = observations.len() * grid.len();
+        let q: Vec<Vec<f32>> = self
+            .core
+            .critics
+            .q
+            .iter()
+            .map(|critic| {
+                let mut trace = critic.trace(rows);
+                critic.forward(input.as_slice(), &mut trace, 0..rows);
+                critic.output(&trace, 0..rows).to_vec()
+            })
+            .collect();
+        let spread: f64 = (0..observations.len())
+            .map(|k| {
+                let cells = k * grid.len()..(k + 1) * grid.len();
+                let q_min = cells.map(|r| q[0][r].min(q[1][r]));
+                let (lo, hi) = q_min.fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), v| {
+                    (lo.min(v), hi.max(v))
+                });
+                f64::from(hi - lo)
+            })
+            .sum();
+        spread / observations.len() as f64
+    }
 }
+
+/// The observations [`MaskSac::q_spread`] averages over (of a batch's valid transitions).
+const SPREAD_OBSERVATIONS: usize = 64;
 
 #[cfg(test)]
 mod tests {
@@ -535,11 +600,13 @@ mod tests {
         the_step_differentiates_the_candle_composition_of(small.with_paper_code_mask());
     }
 
-    fn the_step_differentiates_the_candle_composition_of(mask: MaskConfig) {
-        let (b, t, o) = (4, 6, 3);
-        let mut rng = ChaCha8Rng::seed_from_u64(8);
+    /// A batch of `b` sequences of `t` rows of `o` random observation values: a second
+    /// episode starts inside sequence 1, sequence 2 ends in a terminal, and the random prefill
+    /// of sequence 3 chose no masks.
+    fn random_batch(b: usize, t: usize, o: usize, seed: u64) -> SequenceBatch {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut u = |lo: f32, hi: f32| rng.random_range(lo..hi);
-        let seq = SequenceBatch {
+        SequenceBatch {
             batch: b,
             length: t,
             obs_dim: o,
@@ -547,18 +614,21 @@ mod tests {
             obs: (0..b * t * o).map(|_| u(-1.0, 1.0)).collect(),
             action: vec![0.0; b * t],
             reward: (0..b * t).map(|_| u(-1.0, 1.0)).collect(),
-            // a second episode starts inside sequence 1; sequence 2 ends in a terminal
             is_first: (0..b * t)
                 .map(|k| f32::from(k % t == 0 || k == t + 3))
                 .collect(),
             is_terminal: (0..b * t).map(|k| f32::from(k == 2 * t + 4)).collect(),
             context: vec![0.3; b * t * 2],
             mask: (0..b * t * 2).map(|_| u(0.0, 1.0)).collect(),
-            // the random prefill of sequence 3 chose no masks
             has_mask: (0..b * t)
                 .map(|k| f32::from(k % t != 0 && k / t != 3))
                 .collect(),
-        };
+        }
+    }
+
+    /// A mask SAC of `mask` with 16-unit networks for observations of `o` values, its
+    /// configuration and its mask actor.
+    fn small_sac(mask: MaskConfig, o: usize) -> (DreamerConfig, Mlp, MaskSac) {
         let cfg = DreamerConfig {
             mask,
             ..DreamerConfig::default()
@@ -572,7 +642,55 @@ mod tests {
         };
         let mut actor = Mlp::from_weights(&mut Weights::initial(), "mask.", &shape).unwrap();
         ctxrace_nn::parameters::init(&mut actor, 5);
-        let mut sac = MaskSac::new(&cfg, o, &actor).unwrap();
+        let sac = MaskSac::new(&cfg, o, &actor).unwrap();
+        (cfg, actor, sac)
+    }
+
+    /// `mask/q_spread` is the range of the candle twin's minimum over the 3 × 3 grid of masks,
+    /// averaged over the valid transitions' observations, in both mask spaces.
+    #[test]
+    fn the_q_spread_is_the_critics_range_over_the_mask_grid() {
+        let small = MaskConfig {
+            units: 16,
+            ..MaskConfig::default()
+        };
+        for (mask, values) in [
+            (small.clone(), [0.0, 0.5, 1.0]),
+            (small.with_paper_code_mask(), [-1.0, 0.0, 1.0]),
+        ] {
+            let o = 3;
+            let seq = random_batch(4, 6, o, 3);
+            let (cfg, _, sac) = small_sac(mask, o);
+            let tr = Transitions::new(&seq, &cfg.mask, cfg.step_alignment).unwrap();
+            let twin = |vb: candle_nn::VarBuilder| TwinQ::new(o + CONTEXT_DIM, 16, 2, vb).unwrap();
+            let (_store, q) = oracle::store_of(&sac.core.critics, twin);
+            let grid: Vec<f32> = values
+                .iter()
+                .flat_map(|&v| values.map(|t| [v, t]))
+                .flatten()
+                .collect();
+            let masks = Tensor::from_slice(&grid, (9, CONTEXT_DIM), &Device::Cpu).unwrap();
+            let mut spreads = Vec::new();
+            for i in (0..tr.valid.len()).filter(|&i| tr.valid[i] > 0.0) {
+                let o_i = &tr.obs[i * o..(i + 1) * o];
+                let rows: Vec<f32> = (0..9).flat_map(|_| o_i.iter().copied()).collect();
+                let obs = Tensor::from_slice(&rows, (9, o), &Device::Cpu).unwrap();
+                let q_min: Vec<f32> = q.min(&obs, &masks).unwrap().to_vec1().unwrap();
+                let hi = q_min.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+                let lo = q_min.iter().copied().fold(f32::INFINITY, f32::min);
+                spreads.push(f64::from(hi - lo));
+            }
+            let want = spreads.iter().sum::<f64>() / spreads.len() as f64;
+            let got = sac.q_spread(&tr);
+            assert!(want > 0.0);
+            assert!((got - want).abs() <= 1e-6 * want, "{got} != {want}");
+        }
+    }
+
+    fn the_step_differentiates_the_candle_composition_of(mask: MaskConfig) {
+        let (b, t, o) = (4, 6, 3);
+        let seq = random_batch(b, t, o, 8);
+        let (cfg, mut actor, mut sac) = small_sac(mask, o);
         let streams = |seed: u64| -> Vec<ChaCha8Rng> {
             (0..b as u64)
                 .map(|i| {

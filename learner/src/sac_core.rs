@@ -357,6 +357,11 @@ impl ActionRange {
         scale: 0.5,
         shift: 0.5,
     };
+
+    /// The action at `tanh(u) = t`: `scale · t + shift`.
+    pub(crate) fn at(self, t: f32) -> f32 {
+        self.scale * t + self.shift
+    }
 }
 
 /// What the soft target `y` is made of: the temperature, the discount, the next actions' range,
