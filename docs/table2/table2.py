@@ -9,12 +9,12 @@ library, nothing else), as docs/table2/README.md plans it.
 anyone needs to recompute the tables into `<R>r/<algo>/seed<S>/`: `config.toml`,
 `episodes.csv` (the training episodes), `eval/{meta.json, contexts.csv, episodes.csv}`, each
 context ablation `ablation/<condition>/{meta.json, contexts.csv, episodes.csv}` and, for cMask,
-`eval/mask_episodes.csv`: one row per evaluation episode with its decisions' mask sums and their
+`mask_training.csv` (the mask SAC's logged metrics) and `eval/mask_episodes.csv`: one row per evaluation episode with its decisions' mask sums and their
 10 x 10 histogram (from `masks.csv.gz`, too large to commit). `meta.json`'s `source` (the
 checkpoint's absolute path on the machine that evaluated) is kept relative to the run folder.
 
 `analyse` writes `table2.csv`, `table3.csv`, `hypotheses.csv`, `context_ablation.csv`,
-`masks.csv` and `results.md` beside this file. Every interval is a 95% percentile bootstrap over
+`masks.csv`, `mask_training.csv` and `results.md` beside this file. Every interval is a 95% percentile bootstrap over
 the training seeds (10,000 resamples, fixed seed), with Welch's / Student's t interval beside it.
 """
 
@@ -235,6 +235,20 @@ def mask_episodes(masks_gz, out):
                         " ".join(map(str, e[5]))])
 
 
+def mask_training(metrics_csv, out):
+    """The mask SAC's logged training metrics (env steps, gradient steps, the temperature α, the
+    entropy of the mask's distribution, the mean mask, the critic loss and, from binaries that
+    log it, the critics' range over the mask grid `mask/q_spread`) of a cMask run."""
+    keys = ["env_steps", "grad_steps", "mask/alpha", "mask/entropy", "mask/mean", "mask/q_loss",
+            "mask/q_spread"]
+    rows = read_csv(metrics_csv)
+    with open(out, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow([k.replace("mask/", "") for k in keys])
+        for r in rows:
+            w.writerow([r.get(k, "") for k in keys])
+
+
 def collect(runs):
     for run_dir in sorted(Path(runs).iterdir()):
         m = RUN_NAME.match(run_dir.name)
@@ -248,6 +262,8 @@ def collect(runs):
         dest.mkdir(parents=True, exist_ok=True)
         for name in ["config.toml", "episodes.csv"]:
             shutil.copyfile(run_dir / name, dest / name)
+        if algo == "cmask":
+            mask_training(run_dir / "metrics.csv", dest / "mask_training.csv")
         copy_eval(run_dir / "eval", dest / "eval", run_dir)
         if (run_dir / "eval" / "masks.csv.gz").is_file():
             mask_episodes(run_dir / "eval" / "masks.csv.gz", dest / "eval" / "mask_episodes.csv")
@@ -570,6 +586,28 @@ def masks(runs, rng):
     return rows, cells
 
 
+def mask_training_rows(runs):
+    """Per cMask run, the last 10% of its training's logged mask-SAC metrics: mean α, entropy,
+    mask and, where logged, Q spread over the mask grid, the spread in units of α (the actor's
+    trade: a mask worth less than about α nats of entropy stays where the entropy puts it)."""
+    rows = []
+    for (rivals, algo), rs in sorted(runs.items()):
+        path_of = [(r, r["dir"] / "mask_training.csv") for r in rs] if algo == "cmask" else []
+        for r, path in path_of:
+            if not path.is_file():
+                continue
+            logged = read_csv(path)
+            end = max(float(x["env_steps"]) for x in logged)
+            last = [x for x in logged if float(x["env_steps"]) > 0.9 * end]
+            row = {"rivals": rivals, "seed": r["seed"]}
+            for k in ["alpha", "entropy", "mean", "q_spread"]:
+                xs = [float(x[k]) for x in last if x.get(k)]
+                row[k] = mean(xs) if xs else float("nan")
+            row["q_spread_over_alpha"] = row["q_spread"] / row["alpha"]
+            rows.append(row)
+    return rows
+
+
 def write_csv(name, rows):
     if not rows:
         return
@@ -584,7 +622,7 @@ def write_csv(name, rows):
                         if k != "dir"})
 
 
-def markdown(t2, t3, cells, abl_cells, mask_rows, mask_cells):
+def markdown(t2, t3, cells, abl_cells, mask_rows, mask_cells, trained):
     out = ["# Results (written by `python3 docs/table2/table2.py analyse`)", ""]
     out += ["## Table II (contexts 17-48; seed means, 95% bootstrap interval over seeds; paper beside)", "",
             "| rivals | algo | seeds | training PG | PG in | PG out | OT in | OT out | A2A in | A2A out |",
@@ -660,6 +698,13 @@ def markdown(t2, t3, cells, abl_cells, mask_rows, mask_cells):
         for c in mask_cells:
             out.append(f"- {c['rivals']} rival(s), {c['statistic']} excess {fmt(c['excess'], 4)} "
                        f"[{fmt(c['boot_lo'], 4)}, {fmt(c['boot_hi'], 4)}] over {c['seeds']} seeds: {c['verdict']}")
+    if trained:
+        out += ["", "## cMask's mask SAC at the end of training (last 10% of env steps)", "",
+                "| rivals | seed | α | entropy (nats) | mean mask | Q spread over the mask grid | spread / α |",
+                "|--:|--:|--:|--:|--:|--:|--:|"]
+        for r in trained:
+            out.append(f"| {r['rivals']} | {r['seed']} | {fmt(r['alpha'])} | {fmt(r['entropy'])} | "
+                       f"{fmt(r['mean'])} | {fmt(r['q_spread'], 4)} | {fmt(r['q_spread_over_alpha'], 4)} |")
     return "\n".join(out) + "\n"
 
 
@@ -672,13 +717,16 @@ def analyse():
     cells = hypotheses(runs, rng)
     abl_rows, abl_cells = ablation(runs, rng)
     mask_rows, mask_cells = masks(runs, rng)
+    trained = mask_training_rows(runs)
     write_csv("table2.csv", t2)
     write_csv("table3.csv", t3)
     write_csv("hypotheses.csv", cells)
     write_csv("context_ablation.csv", abl_rows)
     write_csv("context_ablation_cells.csv", abl_cells)
     write_csv("masks.csv", mask_rows + mask_cells)
-    (HERE / "results.md").write_text(markdown(t2, t3, cells, abl_cells, mask_rows, mask_cells))
+    write_csv("mask_training.csv", trained)
+    (HERE / "results.md").write_text(
+        markdown(t2, t3, cells, abl_cells, mask_rows, mask_cells, trained))
     print((HERE / "results.md").read_text())
 
 
