@@ -109,6 +109,9 @@ pub struct EvalArgs {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 struct EvalJob {
     meta: EvalMeta,
+    /// What the workers load: the resolved checkpoint directory as this machine reaches it, or
+    /// the baseline's name (`meta.source` is the portable name the records keep).
+    ego: String,
     race: RaceConfig,
     tracks: TrackArgs,
     /// `(context index, lap)` pairs left to run, in order.
@@ -284,6 +287,10 @@ pub fn run(args: EvalArgs) -> Result<()> {
     let done = total - todo.len() as u64;
     let job = EvalJob {
         meta: meta.clone(),
+        ego: match &spec {
+            EgoSpec::Trained(t) => t.checkpoint.display().to_string(),
+            EgoSpec::Baseline(_) => spec.name(),
+        },
         race: race.clone(),
         tracks: args.tracks.clone(),
         todo,
@@ -357,8 +364,7 @@ fn run_workers(
 pub fn run_worker(args: WorkerArgs) -> Result<()> {
     let job: EvalJob = results::read_json(&args.job)?;
     let out = args.job.parent().unwrap_or(Path::new("."));
-    // `source` names the resolved checkpoint directory (or the baseline)
-    let spec = ego_spec(&job.meta.source, CheckpointChoice::Latest)?;
+    let spec = ego_spec(&job.ego, CheckpointChoice::Latest)?;
     let track = Arc::new(job.tracks.load(&job.meta.track, &job.race)?);
     let mut env = RaceEnv::new(track, job.race.clone())?;
     let mut driver = spec.driver(&env, job.meta.act)?;
