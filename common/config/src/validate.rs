@@ -81,6 +81,28 @@ pub enum ValueError {
     Serialise(toml::ser::Error),
 }
 
+/// The longest line of a TOML error shown (a value it quotes is cut there).
+const TOML_LINE_CHARS: usize = 200;
+
+/// A TOML parse error as a message that does not echo the file: where (line and column) and
+/// what, without the quoted source line, each line cut at [`TOML_LINE_CHARS`] characters (a
+/// value the message quotes included).
+pub fn toml_message(error: &toml::de::Error) -> String {
+    error
+        .to_string()
+        .lines()
+        .filter(|l| {
+            let gutter = l.trim_start().trim_start_matches(|c: char| c.is_ascii_digit());
+            !gutter.trim_start().starts_with('|')
+        })
+        .map(|l| match l.char_indices().nth(TOML_LINE_CHARS) {
+            Some((at, _)) => format!("{}...", &l[..at]),
+            None => l.to_string(),
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
 /// Checks that every float of `config`, serialized as TOML, is finite. The error names the
 /// first other one by its key path (`race.rival.gains.lambda_v = nan`) and gives the value
 /// `defaults` holds at that path, when it holds one.
@@ -191,6 +213,23 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.starts_with("inner.per_track.f1_esp = inf"), "{err}");
+    }
+
+    #[test]
+    fn toml_errors_say_where_and_what_without_the_source() {
+        let long = format!("a = \"{}", "x".repeat(5000));
+        let err = toml::from_str::<toml::Table>(&long).unwrap_err();
+        let msg = toml_message(&err);
+        assert!(msg.contains("line 1"), "{msg}");
+        assert!(!msg.contains(&"x".repeat(300)), "{msg}");
+        #[derive(Debug, serde::Deserialize)]
+        #[allow(dead_code)]
+        struct N {
+            n: usize,
+        }
+        let text = format!("n = \"{}\"", "y".repeat(5000));
+        let msg = toml_message(&toml::from_str::<N>(&text).unwrap_err());
+        assert!(msg.contains("invalid type") && msg.len() < 600, "{msg}");
     }
 
     #[test]
