@@ -499,10 +499,7 @@ fn a_damaged_replay_snapshot_stops_the_run_at_once_saying_how_to_continue() {
     // checked before any process started: no log, no TensorBoard file
     assert!(!run.join("logs").exists(), "a process started");
     let names = names_under(&run);
-    assert!(
-        !names.iter().any(|n| n.contains("tfevents")),
-        "{names:?}"
-    );
+    assert!(!names.iter().any(|n| n.contains("tfevents")), "{names:?}");
     assert!(
         started.elapsed() < Duration::from_secs(20),
         "{:?}",

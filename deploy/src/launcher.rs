@@ -929,7 +929,10 @@ mod tests {
                 ..RestartCosts::default()
             },
         );
-        assert!(!clean.contains("neither") && !clean.contains("TWICE"), "{clean}");
+        assert!(
+            !clean.contains("neither") && !clean.contains("TWICE"),
+            "{clean}"
+        );
     }
 
     #[test]
@@ -941,7 +944,10 @@ mod tests {
         // actor 0 killed outright (no report), actor 1 exited after writing its report
         p.actor_died(0, false);
         p.actor_died(1, true);
-        assert_eq!((p.killed_actor_steps, p.actor_beat_steps.clone()), (300, vec![0, 0]));
+        assert_eq!(
+            (p.killed_actor_steps, p.actor_beat_steps.clone()),
+            (300, vec![0, 0])
+        );
         // the learner broadcast step 450 and died; its newest checkpoint is at 400
         p.grad_steps = 450;
         p.learner_died(400);

@@ -1092,7 +1092,7 @@ train_ratio = 2.0
             format!("mkdir -p {}", at("out/slurm")),
             format!("{} --out {}", at("rel/m.toml"), at("out")),
             format!("--tracks-dir {}", at("tracks")),
-            format!("--run \"${{RUNS[$SLURM_ARRAY_TASK_ID]}}\""),
+            "--run \"${RUNS[$SLURM_ARRAY_TASK_ID]}\"".to_string(),
             "--seeds 1 --tracks-dir".to_string(),
             "--report\nCTXRACE_REPORT".to_string(),
             format!("#SBATCH --array=0-{}", runs.len() - 1),

@@ -6,8 +6,8 @@
 use crate::buffer::ReplayBuffer;
 use crate::limiter::RateLimiter;
 use crate::snapshot::{
-    check_snapshot, encode_snapshot, read_snapshot, write_snapshot, BackgroundWriter, LimiterCounts, SnapshotError,
-    SnapshotShape,
+    check_snapshot, encode_snapshot, read_snapshot, write_snapshot, BackgroundWriter,
+    LimiterCounts, SnapshotError, SnapshotShape,
 };
 use ctxrace_config::validate::ConfigError;
 use ctxrace_config::BatchSpec;

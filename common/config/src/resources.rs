@@ -155,7 +155,12 @@ pub fn check_bounds(cfg: &ExperimentConfig) -> Result<(), ValueError> {
         ("[agent] dreamer.bins", d.bins),
     ];
     for (key, width) in widths {
-        in_range(key, width, 1..=MAX_WIDTH, "the paper's widest layer has 512")?;
+        in_range(
+            key,
+            width,
+            1..=MAX_WIDTH,
+            "the paper's widest layer has 512",
+        )?;
     }
     let depths = [
         ("[agent] sac.layers", s.layers),
@@ -343,13 +348,28 @@ mod tests {
     #[test]
     fn sizes_and_counts_beyond_their_bounds_are_refused_by_key() {
         for (toml, says) in [
-            ("[train]\ntrain_ratio = 1e9\n", "[train] train_ratio = 1000000000 must be"),
-            ("[race]\nmax_time = 1e300\n", "[race] max_time"),
-            ("[agent]\nalgo = \"cmask\"\n[agent.dreamer]\nhorizon = 100000000\n", "horizon"),
-            ("[agent]\nalgo = \"cmask\"\n[agent.dreamer]\nunits = 1000000\n", "dreamer.units"),
+            (
+                "[train]\ntrain_ratio = 1e9\n",
+                "[train] train_ratio = 1000000000 must be",
+            ),
+            ("[race]\nmax_time = 1e300\n", "[race] max_time = 1e300 must"),
+            (
+                "[agent]\nalgo = \"cmask\"\n[agent.dreamer]\nhorizon = 100000000\n",
+                "horizon",
+            ),
+            (
+                "[agent]\nalgo = \"cmask\"\n[agent.dreamer]\nunits = 1000000\n",
+                "dreamer.units",
+            ),
             ("[train]\nenv_steps = 100000000000\n", "[train] env_steps"),
-            ("[replay]\nsnapshot_path = \"/tmp/other/replay.snapshot\"\n", "inside the run"),
-            ("[replay]\nsnapshot_path = \"../other/replay.snapshot\"\n", "relative, without .."),
+            (
+                "[replay]\nsnapshot_path = \"/tmp/other/replay.snapshot\"\n",
+                "inside the run",
+            ),
+            (
+                "[replay]\nsnapshot_path = \"../other/replay.snapshot\"\n",
+                "relative, without ..",
+            ),
         ] {
             let err = cfg(toml).unwrap_err();
             assert!(err.contains(says), "{toml}: {err}");
@@ -366,8 +386,9 @@ mod tests {
         };
         let paper = cfg("[agent]\nalgo = \"cmask\"\n").unwrap();
         check_machine(&paper, 2, &small).unwrap();
-        let big = cfg("[agent]\nalgo = \"cmask\"\n[agent.dreamer]\nhorizon = 1000\nunits = 16384\n")
-            .unwrap();
+        let big =
+            cfg("[agent]\nalgo = \"cmask\"\n[agent.dreamer]\nhorizon = 1000\nunits = 16384\n")
+                .unwrap();
         let err = check_machine(&big, 2, &small).unwrap_err().to_string();
         assert!(
             err.contains("the run needs at least") && err.contains("8.0 GiB"),
@@ -375,7 +396,10 @@ mod tests {
         );
         let threads = cfg("[train]\nthreads = 100000\n").unwrap();
         let err = check_machine(&threads, 1, &small).unwrap_err().to_string();
-        assert!(err.contains("threads = 100000 is more than the 2 cores"), "{err}");
+        assert!(
+            err.contains("threads = 100000 is more than the 2 cores"),
+            "{err}"
+        );
         assert!(Machine::this().memory > 0 && Machine::this().cores > 0);
     }
 
@@ -386,7 +410,10 @@ mod tests {
         let line = format!("track = \"{}\"\n", "x".repeat(2 << 20));
         std::fs::write(&big, &line).unwrap();
         let err = read_config_text(&big).unwrap_err().to_string();
-        assert!(err.contains("more than the 1048576") && !err.contains("xxxx"), "{err}");
+        assert!(
+            err.contains("more than the 1048576") && !err.contains("xxxx"),
+            "{err}"
+        );
         let binary = dir.path().join("bin.toml");
         std::fs::write(&binary, [0xff, 0xfe, b'a']).unwrap();
         let err = read_config_text(&binary).unwrap_err().to_string();

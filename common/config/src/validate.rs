@@ -142,7 +142,7 @@ fn first_non_finite(value: &toml::Value, path: &mut Vec<String>) -> Option<(Vec<
 
 /// Checks that `key = value` lies in `range`; the error names the key, the value, the range and
 /// `fix` (NaN lies in no range).
-pub fn in_range<T: PartialOrd + Display>(
+pub fn in_range<T: PartialOrd + Display + std::fmt::LowerExp>(
     key: &str,
     value: T,
     range: impl RangeBounds<T>,
@@ -164,7 +164,11 @@ pub fn in_range<T: PartialOrd + Display>(
     let bounds: Vec<String> = lower.into_iter().chain(upper).collect();
     Err(ValueError::OutOfRange {
         key: key.to_string(),
-        value: value.to_string(),
+        // a huge number in scientific notation (1e300, not 301 digits)
+        value: match value.to_string() {
+            long if long.len() > 20 => format!("{value:e}"),
+            short => short,
+        },
         bounds: bounds.join(" and "),
         fix: fix.to_string(),
     })
