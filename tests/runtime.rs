@@ -421,6 +421,11 @@ fn killed_processes_are_restarted_and_training_goes_on() {
     unsafe { libc::kill(pid as i32, libc::SIGTERM) };
     let stderr = finish(child, 2 * minute);
     assert!(stderr.contains("sent no sign of life"), "{stderr}");
+    // the killed actors wrote no report: the closing summary counts their steps all the same
+    assert!(
+        stderr.contains("by killed actors to their last heartbeat"),
+        "{stderr}"
+    );
     for role in ["actor 1", "learner", "replay"] {
         assert!(
             stderr.contains(&format!("{role} exited")),
@@ -489,17 +494,57 @@ fn a_damaged_replay_snapshot_stops_the_run_at_once_saying_how_to_continue() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{stderr}");
     for needle in [
-        "replay stopped on an error that a restart would meet again",
+        "the replay cannot start from its snapshot",
         "restoring replay snapshot",
         "continue the run with an empty replay",
         "replay.snapshot.damaged",
     ] {
         assert!(stderr.contains(needle), "no '{needle}' in: {stderr}");
     }
-    let log = std::fs::read_to_string(run.join("logs/replay.log")).unwrap();
-    assert_eq!(log.matches("restoring replay snapshot").count(), 1, "{log}");
+    // checked before any process started: no log, no TensorBoard file
+    assert!(!run.join("logs").exists(), "a process started");
+    let names = names_under(&run);
+    assert!(!names.iter().any(|n| n.contains("tfevents")), "{names:?}");
     assert!(
         started.elapsed() < Duration::from_secs(20),
+        "{:?}",
+        started.elapsed()
+    );
+}
+
+#[test]
+fn a_process_that_keeps_crashing_stops_the_run_after_max_restarts() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("exp.toml");
+    let supervisor = "[supervisor]\nmax_restarts = 2\nrestart_window_secs = 600\n";
+    std::fs::write(&cfg, config(2000) + supervisor).unwrap();
+    let run = dir.path().join("run");
+    let started = Instant::now();
+    let out = Command::new(env!("CARGO_BIN_EXE_ctxrace"))
+        .arg("train")
+        .arg(&cfg)
+        .args(["--actors", "1", "--run-dir"])
+        .arg(&run)
+        .env("RUST_LOG", "warn")
+        // an injected crash that every restart meets again
+        .env("CTXRACE_TEST_CRASH_ROLE", "learner")
+        .stdout(Stdio::null())
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    for needle in [
+        "learner exited",
+        "its 3rd failure in 600 s (at most 2 restarts are allowed, [supervisor] max_restarts)",
+        "crashing at start, as CTXRACE_TEST_CRASH_ROLE asks",
+    ] {
+        assert!(stderr.contains(needle), "no '{needle}' in: {stderr}");
+    }
+    let log = std::fs::read_to_string(run.join("logs/learner.log")).unwrap();
+    assert_eq!(log.matches("crashing at start").count(), 3, "{log}");
+    // back-off of 1 s, then 2 s
+    assert!(
+        started.elapsed() < Duration::from_secs(60),
         "{:?}",
         started.elapsed()
     );

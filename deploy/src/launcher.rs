@@ -331,6 +331,25 @@ struct Progress {
     inserted_at_crash: Option<u64>,
     /// Steps replays stored and lost in a crash (not in the snapshot they restarted from).
     lost_in_restarts: u64,
+    /// Each actor's env steps at its newest heartbeat (of its current start).
+    actor_beat_steps: Vec<u64>,
+    /// Env steps sent by actor starts that died without writing their report, counted to
+    /// their last heartbeat (the closing summary's "sent" reads the reports).
+    killed_actor_steps: u64,
+    /// Gradient steps taken twice: those a learner had taken past its newest checkpoint when
+    /// it died, which its restart, resuming from that checkpoint, takes again.
+    repeated_grad_steps: u64,
+}
+
+/// What restarts cost a run, for its closing summary.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct RestartCosts {
+    /// Steps stored by a replay and lost in its crash.
+    lost: u64,
+    /// Steps sent by killed actors (to their last heartbeat), which wrote no report.
+    killed_actor_steps: u64,
+    /// Gradient steps a restarted learner took again.
+    repeated_grad_steps: u64,
 }
 
 impl Progress {
@@ -353,6 +372,33 @@ impl Progress {
         }
         // a restart that crashed before its first status restored what the first one held
         self.inserted_at_crash.get_or_insert(self.replay.inserted);
+    }
+
+    /// Notes that actor `id` died; `reported` says whether its start wrote its report (else its
+    /// steps to its last heartbeat are counted as sent by a killed actor).
+    fn actor_died(&mut self, id: usize, reported: bool) {
+        if let Some(steps) = self.actor_beat_steps.get_mut(id) {
+            if !reported {
+                self.killed_actor_steps += *steps;
+            }
+            *steps = 0;
+        }
+    }
+
+    /// Notes that the learner died; its restart resumes from the checkpoint at `resume_step`,
+    /// so the gradient steps it had taken past that are taken again.
+    fn learner_died(&mut self, resume_step: u64) {
+        self.repeated_grad_steps += self.grad_steps.saturating_sub(resume_step);
+        self.grad_steps = self.grad_steps.min(resume_step);
+    }
+
+    /// What restarts have cost the run so far.
+    fn restart_costs(&self) -> RestartCosts {
+        RestartCosts {
+            lost: self.lost_in_restarts,
+            killed_actor_steps: self.killed_actor_steps,
+            repeated_grad_steps: self.repeated_grad_steps,
+        }
     }
 
     /// Each actor's policy age: gradient steps between the learner's newest broadcast and the
@@ -419,6 +465,8 @@ impl Progress {
                 "lost_in_restarts": self.lost_in_restarts,
                 "longest_turn_ms": r.longest_turn_us as f64 / 1e3,
             },
+            "killed_actor_steps": self.killed_actor_steps,
+            "repeated_grad_steps": self.repeated_grad_steps,
             "launcher_rejected": {
                 "telemetry": self.telemetry_rejected,
                 "weights": self.weights_rejected,
@@ -507,7 +555,7 @@ pub fn run(
         .collect::<Result<_>>()?;
 
     let transport = RunTransport::open(&prefix, actors, "launcher")?;
-    let lost = supervise(
+    let costs = supervise(
         cfg,
         dir,
         &transport,
@@ -530,14 +578,15 @@ pub fn run(
         Ok(report) => tracing::info!("shared memory of {prefix} removed: {report:?}"),
         Err(e) => tracing::warn!("cleaning up {prefix}: {}", Causes(&e)),
     }
-    let lost = lost?;
-    eprintln!("{}", step_summary(dir, lost));
+    let costs = costs?;
+    eprintln!("{}", step_summary(dir, costs));
     Ok(())
 }
 
-/// One line on where the run's steps went: sent by each actor (every start of it), stored by
-/// the replay, rejected, lost in replay crashes (`lost` steps), dropped.
-fn step_summary(dir: &Path, lost: u64) -> String {
+/// One line on where the run's steps went: sent by each actor (every start of it, a killed one
+/// counted to its last heartbeat), stored by the replay, rejected, lost in replay crashes,
+/// dropped; and the gradient steps restarted learners took twice.
+fn step_summary(dir: &Path, costs: RestartCosts) -> String {
     let read = |path: &Path| -> Option<serde_json::Value> {
         serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
     };
@@ -551,10 +600,15 @@ fn step_summary(dir: &Path, lost: u64) -> String {
         }
     }
     let shares: Vec<String> = sent.values().map(u64::to_string).collect();
+    let lost = costs.lost;
+    let total = sent.values().sum::<u64>() + costs.killed_actor_steps;
     let mut line = format!(
-        "steps: {} sent by the actors ({})",
-        sent.values().sum::<u64>(),
-        shares.join(" / ")
+        "steps: {total} sent by the actors ({}{})",
+        shares.join(" / "),
+        match costs.killed_actor_steps {
+            0 => String::new(),
+            k => format!(", and {k} by killed actors to their last heartbeat"),
+        }
     );
     if let Some(replay) = read(&dir.join(REPLAY_REPORT)) {
         let stored = replay["inserted"].as_u64().unwrap_or(0);
@@ -568,7 +622,7 @@ fn step_summary(dir: &Path, lost: u64) -> String {
                 "; {lost} LOST in replay restarts (stored, not in the snapshot it restarted from)"
             );
         }
-        let unaccounted = sent.values().sum::<u64>().saturating_sub(stored + lost);
+        let unaccounted = total.saturating_sub(stored + lost);
         if unaccounted > 0 {
             line += &format!(
                 "; {unaccounted} sent neither stored nor counted lost (in rejected chunks, or \
@@ -583,6 +637,13 @@ fn step_summary(dir: &Path, lost: u64) -> String {
         );
     } else {
         line += "; none dropped";
+    }
+    if costs.repeated_grad_steps > 0 {
+        line += &format!(
+            "; {} gradient steps TAKEN TWICE (a learner restarted from its checkpoint after \
+             taking them)",
+            costs.repeated_grad_steps
+        );
     }
     line
 }
@@ -660,8 +721,8 @@ fn tolerate<T>(read: Result<T, IpcError>) -> Option<T> {
         .ok()
 }
 
-/// The supervision loop; returns when the run is complete or interrupted, with the steps
-/// lost in replay restarts.
+/// The supervision loop; returns when the run is complete or interrupted, with what restarts
+/// cost it.
 fn supervise(
     cfg: &ExperimentConfig,
     dir: &Path,
@@ -669,7 +730,7 @@ fn supervise(
     replay: &mut Supervised,
     learner: &mut Supervised,
     actors: &mut [Supervised],
-) -> Result<u64> {
+) -> Result<RestartCosts> {
     let mut telemetry = TelemetrySubscriber::new(transport)?;
     let mut weights = WeightsReceiver::new(transport)?;
     let mut episodes = EpisodeLog::open(dir, "launcher")?;
@@ -679,6 +740,7 @@ fn supervise(
     let mut p = Progress {
         actor_versions: vec![0; actors.len()],
         actor_steps: vec![0; actors.len()],
+        actor_beat_steps: vec![0; actors.len()],
         ..Progress::default()
     };
     let mut tick = Instant::now();
@@ -689,7 +751,7 @@ fn supervise(
         std::thread::sleep(Duration::from_millis(100));
         if stop.load(Ordering::Relaxed) {
             bar.abandon_with_message("interrupted: stopping (checkpoint, snapshot)");
-            return Ok(p.lost_in_restarts);
+            return Ok(p.restart_costs());
         }
         // (re)start what is due
         for proc in std::iter::once(&mut *replay)
@@ -713,6 +775,9 @@ fn supervise(
         for hb in tolerate(telemetry.heartbeats()).unwrap_or_default() {
             if let Some(v) = p.actor_versions.get_mut(hb.actor_id as usize) {
                 *v = hb.policy_version;
+            }
+            if let Some(steps) = p.actor_beat_steps.get_mut(hb.actor_id as usize) {
+                *steps = hb.env_steps;
             }
             if let Some(a) = actors.get_mut(hb.actor_id as usize) {
                 a.last_sign = Some(Instant::now());
@@ -755,9 +820,12 @@ fn supervise(
             proc.kill_if_silent(silence);
         }
         let mut crashed = false;
-        for proc in actors.iter_mut() {
+        for (id, proc) in actors.iter_mut().enumerate() {
             if let Some(status) = proc.reap()? {
                 if !proc.retired {
+                    let incarnation = proc.earlier_starts + proc.starts - 1;
+                    let report = format!("actor-{id}-{incarnation}.json");
+                    p.actor_died(id, dir.join(ACTOR_REPORTS).join(report).exists());
                     proc.exited(status, &cfg.supervisor)?;
                     crashed = true;
                 }
@@ -775,8 +843,9 @@ fn supervise(
                 bar.set_position(p.env_steps.min(cfg.train.env_steps));
                 bar.finish_with_message(p.message(start));
                 ctxrace_run::results::write_json(&dir.join(STATUS_FILE), &p.status())?;
-                return Ok(p.lost_in_restarts);
+                return Ok(p.restart_costs());
             }
+            p.learner_died(ctxrace_learner::process::resume_step(dir));
             learner.exited(status, &cfg.supervisor)?;
             crashed = true;
         }
@@ -842,7 +911,7 @@ mod tests {
         }
         let replay = serde_json::json!({ "inserted": 600, "rejected": 1, "longest_turn_ms": 1.0 });
         std::fs::write(dir.path().join(REPLAY_REPORT), replay.to_string()).unwrap();
-        let line = step_summary(dir.path(), p.lost_in_restarts);
+        let line = step_summary(dir.path(), p.restart_costs());
         assert!(
             line.contains("600 stored by the replay, 1 rejected"),
             "{line}"
@@ -853,8 +922,49 @@ mod tests {
             "{line}"
         );
         assert!(line.contains("none dropped"), "{line}");
-        let clean = step_summary(dir.path(), 600);
-        assert!(!clean.contains("neither"), "{clean}");
+        let clean = step_summary(
+            dir.path(),
+            RestartCosts {
+                lost: 600,
+                ..RestartCosts::default()
+            },
+        );
+        assert!(
+            !clean.contains("neither") && !clean.contains("TWICE"),
+            "{clean}"
+        );
+    }
+
+    #[test]
+    fn steps_of_killed_actors_and_repeated_gradient_steps_are_counted() {
+        let mut p = Progress {
+            actor_beat_steps: vec![300, 200],
+            ..Progress::default()
+        };
+        // actor 0 killed outright (no report), actor 1 exited after writing its report
+        p.actor_died(0, false);
+        p.actor_died(1, true);
+        assert_eq!(
+            (p.killed_actor_steps, p.actor_beat_steps.clone()),
+            (300, vec![0, 0])
+        );
+        // the learner broadcast step 450 and died; its newest checkpoint is at 400
+        p.grad_steps = 450;
+        p.learner_died(400);
+        // it died again before broadcasting: nothing more is counted
+        p.learner_died(400);
+        assert_eq!((p.repeated_grad_steps, p.grad_steps), (50, 400));
+        let dir = tempfile::tempdir().unwrap();
+        let actors = dir.path().join(ACTOR_REPORTS);
+        std::fs::create_dir(&actors).unwrap();
+        let report = serde_json::json!({ "id": 1, "sent_steps": 700, "dropped_steps": 0 });
+        std::fs::write(actors.join("actor-1-0.json"), report.to_string()).unwrap();
+        let line = step_summary(dir.path(), p.restart_costs());
+        assert!(
+            line.contains("1000 sent by the actors (700, and 300 by killed actors"),
+            "{line}"
+        );
+        assert!(line.contains("50 gradient steps TAKEN TWICE"), "{line}");
     }
 
     /// A cleanup that hangs (as on a truncated management segment) holds up no poll: the

@@ -19,6 +19,7 @@ mod race_cmd;
 mod render;
 mod report;
 mod roles;
+mod slurm;
 mod sweep;
 mod table;
 mod track_cmd;
@@ -130,7 +131,7 @@ pub fn load_race_config(path: Option<&PathBuf>) -> Result<RaceConfig> {
         return Ok(RaceConfig::default());
     };
     let text =
-        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        ctxrace_config::resources::read_config_text(path).context("reading the race config")?;
     RaceConfig::from_toml(&text).map_err(|e| anyhow::anyhow!("race config {}: {e}", path.display()))
 }
 

@@ -4,6 +4,7 @@
 //! (DejaVu Sans, see `assets/DejaVuSans-LICENSE.txt`), registered once per process.
 
 use anyhow::{anyhow, bail, Context as _, Result};
+use ctxrace_run::run_dir::write_atomic_with;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::FontStyle;
@@ -37,17 +38,25 @@ pub trait Figure {
         DB::ErrorType: 'static;
 }
 
-/// Draws `figure` into a PNG or SVG file chosen by the extension of `path`.
+/// Draws `figure` into a PNG or SVG file chosen by the extension of `path`, written atomically
+/// without following a link there ([`write_atomic_with`]).
 pub fn save(figure: &impl Figure, path: &Path) -> Result<()> {
     let size = figure.size();
-    match path.extension().and_then(|e| e.to_str()) {
-        Some("png") => present(figure, BitMapBackend::new(path, size), path),
-        Some("svg") => present(figure, SVGBackend::new(path, size), path),
+    let svg = match path.extension().and_then(|e| e.to_str()) {
+        Some("png") => false,
+        Some("svg") => true,
         _ => bail!(
             "cannot draw to {}: the file name must end in .png or .svg",
             path.display()
         ),
-    }
+    };
+    write_atomic_with(path, |tmp, _| {
+        if svg {
+            present(figure, SVGBackend::new(tmp, size), path)
+        } else {
+            present(figure, BitMapBackend::new(tmp, size), path)
+        }
+    })
 }
 
 /// Draws `figure` on `backend` and finishes the file at `path`.

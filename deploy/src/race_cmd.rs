@@ -145,8 +145,14 @@ pub fn run(args: RaceArgs) -> Result<()> {
     Ok(())
 }
 
+/// Writes the trace CSV to `path`, atomically and without following a link there.
 fn write_trace(path: &Path, frames: &[Frame]) -> Result<()> {
-    let mut w = std::io::BufWriter::new(std::fs::File::create(path)?);
+    ctxrace_run::run_dir::write_atomic_with(path, |_, file| trace_csv(file, frames))
+}
+
+/// The trace of `frames` as CSV into `file`: a row per step, the cars' states and the scan.
+fn trace_csv(file: &mut std::fs::File, frames: &[Frame]) -> Result<()> {
+    let mut w = std::io::BufWriter::new(file);
     let cars = frames.first().map_or(0, |f| f.cars.len());
     let beams = frames.first().map_or(0, |f| f.scan.len());
     let mut header = vec![

@@ -570,6 +570,11 @@ fn animation_moments(frames: &[Frame]) -> Vec<usize> {
 /// Writes `whole`'s race as a looping GIF: one picture per [`animation_moments`], each
 /// stored as the rectangle that changed since the previous one.
 fn write_gif(path: &Path, whole: &RaceScene) -> Result<()> {
+    ctxrace_run::run_dir::write_atomic_with(path, |_, file| gif_into(file, path, whole))
+}
+
+/// Encodes `whole`'s race as a GIF into `file` (`path` names it in errors).
+fn gif_into(file: &mut std::fs::File, path: &Path, whole: &RaceScene) -> Result<()> {
     let (w, h) = whole.size();
     let too_big = || {
         format!(
@@ -582,8 +587,6 @@ fn write_gif(path: &Path, whole: &RaceScene) -> Result<()> {
         u16::try_from(h).with_context(too_big)?,
     );
     let palette = Palette::new();
-    let file =
-        std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
     let mut encoder = gif::Encoder::new(std::io::BufWriter::new(file), w16, h16, &palette.table())
         .with_context(|| format!("writing {}", path.display()))?;
     encoder.set_repeat(gif::Repeat::Infinite)?;

@@ -40,35 +40,67 @@ pub struct ActorArgs {
     tracks: TrackArgs,
 }
 
+/// A test hook: a role (`replay`, `learner`, `actor`) named in this variable exits with status 1
+/// as it starts, a crash that the launcher restarts, again and again (the runtime test of
+/// `[supervisor] max_restarts`).
+pub const CRASH_ROLE_ENV: &str = "CTXRACE_TEST_CRASH_ROLE";
+
+/// Exits with status 1 if [`CRASH_ROLE_ENV`] names `role`.
+fn crash_if_asked(role: &str) {
+    if std::env::var(CRASH_ROLE_ENV).is_ok_and(|r| r == role) {
+        eprintln!("{role}: crashing at start, as {CRASH_ROLE_ENV} asks");
+        std::process::exit(1);
+    }
+}
+
 /// The run's experiment (an error is a [`ConfigError`]: a restart would meet it again).
 pub fn read_experiment(run_dir: &Path) -> Result<ExperimentConfig> {
     Ok(ExperimentConfig::load(&run_dir.join(CONFIG_FILE)).map_err(ConfigError::new)?)
 }
 
 /// The replay's settings for a run: its sampling ratio and minimum fill follow `[train]`, its
-/// sampler `[agent]`, its snapshot lives in the run directory.
+/// sampler `[agent]`, its snapshot lives in the run directory (`[replay] snapshot_path`, checked
+/// to stay inside it, names it there).
 pub fn replay_options(cfg: &ExperimentConfig, run_dir: &Path) -> ctxrace_config::ReplayOptions {
     let mut o = cfg.replay.clone();
     o.samples_per_insert = cfg.samples_per_insert();
     o.min_fill = o.min_fill.max(cfg.train.prefill as usize);
     o.seed = cfg.train.seed;
     o.sampler = cfg.agent.sampler;
-    o.snapshot_path
-        .get_or_insert_with(|| run_dir.join(REPLAY_SNAPSHOT));
+    let name = o.snapshot_path.take();
+    o.snapshot_path = Some(run_dir.join(name.as_deref().unwrap_or(Path::new(REPLAY_SNAPSHOT))));
     o
+}
+
+/// The replay process's arguments for a run of `actors` actors on the prefix `prefix`.
+fn replay_args(
+    cfg: &ExperimentConfig,
+    run_dir: &Path,
+    prefix: String,
+    actors: usize,
+) -> ctxrace_replay::ReplayArgs {
+    ctxrace_replay::ReplayArgs {
+        prefix,
+        actors,
+        obs_dim: cfg.race.lidar.beams,
+        act_dim: ACT_DIM,
+        options: replay_options(cfg, run_dir),
+        handle_signals: true,
+    }
+}
+
+/// Checks, before any process of the run in `run_dir` starts, that its replay could restore
+/// its snapshot (when it has one), so that a damaged one stops the launch at once.
+pub fn check_replay_snapshot(cfg: &ExperimentConfig, run_dir: &Path, actors: usize) -> Result<()> {
+    let args = replay_args(cfg, run_dir, String::new(), actors);
+    Ok(ctxrace_replay::check_restorable(&args)?)
 }
 
 /// Runs `ctxrace replay`.
 pub fn replay(args: RoleArgs) -> Result<()> {
+    crash_if_asked("replay");
     let cfg = read_experiment(&args.run_dir)?;
-    let replay_args = ctxrace_replay::ReplayArgs {
-        prefix: args.prefix,
-        actors: args.actors,
-        obs_dim: cfg.race.lidar.beams,
-        act_dim: ACT_DIM,
-        options: replay_options(&cfg, &args.run_dir),
-        handle_signals: true,
-    };
+    let replay_args = replay_args(&cfg, &args.run_dir, args.prefix, args.actors);
     let s = ctxrace_replay::run(&replay_args, &Default::default())?;
     tracing::info!("replay stopped: {s:?}");
     let report = serde_json::json!({
@@ -94,6 +126,7 @@ pub fn replay(args: RoleArgs) -> Result<()> {
 
 /// Runs `ctxrace learner`.
 pub fn learner(args: RoleArgs) -> Result<()> {
+    crash_if_asked("learner");
     let experiment = read_experiment(&args.run_dir)?;
     ctxrace_learner::process::run(ctxrace_learner::process::LearnerOptions {
         prefix: args.prefix,
@@ -107,6 +140,7 @@ pub fn learner(args: RoleArgs) -> Result<()> {
 
 /// Runs `ctxrace actor`.
 pub fn actor(args: ActorArgs) -> Result<()> {
+    crash_if_asked("actor");
     let experiment = read_experiment(&args.role.run_dir)?;
     let track = args
         .tracks

@@ -15,10 +15,14 @@
 //! `<out>/logs/<name>.log`), the cores shared out between them, and writes the report to
 //! `<out>/report/` once every run is in. Ctrl-C stops the runs cleanly (checkpoint, snapshot);
 //! rerunning the command continues. `--emit list` prints each run's command and `--emit slurm`
-//! a Slurm array script of them, so that a cluster runs exactly what the local sweep would.
+//! a script that submits them as a Slurm array job and the report after it (see
+//! [`crate::slurm`]), so that a cluster runs exactly what the local sweep would; `--report`
+//! writes the report alone.
 
 use anyhow::{bail, Context as _, Result};
 use clap::{Args, ValueEnum};
+use ctxrace_config::resources::read_config_text;
+use ctxrace_config::validate::toml_message;
 use ctxrace_config::{AlgoKind, ContextMode, ExperimentConfig};
 use ctxrace_run::lock::{die_with_parent, DirLock};
 use ctxrace_sim::driver::ActMode;
@@ -59,6 +63,16 @@ pub struct SweepArgs {
     /// Cores one run may use [default: the machine's divided by --jobs].
     #[arg(long)]
     cores: Option<usize>,
+    /// Folder searched for track names, passed to every run [default: $CTXRACE_TRACKS_DIR,
+    /// else ../shared/tracks if it exists, else .; pinned as an absolute path when emitted].
+    #[arg(long, env = "CTXRACE_TRACKS_DIR")]
+    tracks_dir: Option<PathBuf>,
+    /// Only write the report over the runs (every one must be evaluated; what a Slurm sweep's
+    /// report job runs).
+    #[arg(long)]
+    report: bool,
+    #[command(flatten)]
+    slurm: crate::slurm::SlurmArgs,
 }
 
 /// What `--emit` writes.
@@ -201,10 +215,10 @@ pub struct MatrixRun {
 impl MatrixFile {
     /// Reads a matrix file; errors name the file and the key.
     pub fn load(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("reading matrix {}", path.display()))?;
-        let m: Self =
-            toml::from_str(&text).with_context(|| format!("parsing matrix {}", path.display()))?;
+        let text = read_config_text(path).context("reading the matrix")?;
+        let m: Self = toml::from_str(&text).map_err(|e| {
+            anyhow::anyhow!("parsing matrix {}: {}", path.display(), toml_message(&e))
+        })?;
         for (axis, empty) in [
             ("algos", m.algos.is_empty()),
             ("tracks", m.tracks.is_empty()),
@@ -307,10 +321,10 @@ impl MatrixFile {
     /// keeping those that `only` admits. `dir` is the matrix file's folder (for `base`).
     pub fn runs(&self, dir: &Path, seeds: Option<usize>, only: &Only) -> Result<Vec<MatrixRun>> {
         let base_path = dir.join(&self.base);
-        let base_text = std::fs::read_to_string(&base_path)
-            .with_context(|| format!("reading the matrix's base {}", base_path.display()))?;
-        let base: toml::Table = toml::from_str(&base_text)
-            .with_context(|| format!("parsing {}", base_path.display()))?;
+        let base_text = read_config_text(&base_path).context("reading the matrix's base")?;
+        let base: toml::Table = toml::from_str(&base_text).map_err(|e| {
+            anyhow::anyhow!("parsing {}: {}", base_path.display(), toml_message(&e))
+        })?;
         let seeds = &self.seeds[..seeds.unwrap_or(self.seeds.len()).min(self.seeds.len())];
         let mut runs = Vec::new();
         for &algo in &self.algos {
@@ -437,7 +451,25 @@ pub fn run(args: SweepArgs) -> Result<()> {
                     .join(", ")
             );
         };
-        return run_one(&matrix, run, &out, cores);
+        return run_one(&matrix, run, &out, cores, args.tracks_dir.as_deref());
+    }
+    if args.report {
+        let missing: Vec<&str> = runs
+            .iter()
+            .filter(|r| !matrix.is_evaluated(r, &out.join(&r.name)))
+            .map(|r| r.name.as_str())
+            .collect();
+        if !missing.is_empty() {
+            bail!(
+                "--report: {} of {} runs are not evaluated yet in {}: {}; run the sweep (or \
+                 its array tasks) to the end first",
+                missing.len(),
+                runs.len(),
+                out.display(),
+                missing.join(", ")
+            );
+        }
+        return write_report(&out, &runs, args.tracks_dir.as_deref());
     }
     if let Some(emit) = args.emit {
         let text = emit_commands(emit, &args, &runs, &out, cores)?;
@@ -453,7 +485,7 @@ pub fn run(args: SweepArgs) -> Result<()> {
         .iter()
         .all(|r| matrix.is_evaluated(r, &out.join(&r.name)))
     {
-        write_report(&out, &all)?;
+        write_report(&out, &all, args.tracks_dir.as_deref())?;
     }
     Ok(())
 }
@@ -477,7 +509,13 @@ fn is_evaluated(pass: &EvalPass, eval: &SweepEval) -> bool {
 
 /// Trains (or resumes) and evaluates one run in `<out>/<name>`, with `cores` cores. A stop
 /// signal reaches the children too (they share the process group); this waits for them.
-fn run_one(matrix: &MatrixFile, run: &MatrixRun, out: &Path, cores: usize) -> Result<()> {
+fn run_one(
+    matrix: &MatrixFile,
+    run: &MatrixRun,
+    out: &Path,
+    cores: usize,
+    tracks_dir: Option<&Path>,
+) -> Result<()> {
     let stop = ctxrace_ipc::termination_flag()?;
     let configs = out.join("configs");
     std::fs::create_dir_all(&configs).with_context(|| format!("creating {}", configs.display()))?;
@@ -505,6 +543,7 @@ fn run_one(matrix: &MatrixFile, run: &MatrixRun, out: &Path, cores: usize) -> Re
     } else {
         train.args(["--actors", &a.to_string()]);
     }
+    pass_tracks_dir(&mut train, tracks_dir);
     wait_for(train, &format!("training {}", run.name))?;
     if stop.load(Ordering::Relaxed) {
         bail!("interrupted while training {}", run.name);
@@ -544,6 +583,7 @@ fn run_one(matrix: &MatrixFile, run: &MatrixRun, out: &Path, cores: usize) -> Re
         if let Some(contexts) = &e.contexts {
             eval.args(["--contexts", contexts]);
         }
+        pass_tracks_dir(&mut eval, tracks_dir);
         let what = format!("evaluating {} ({})", run.name, pass.dir.display());
         wait_for(eval, &what)?;
         if stop.load(Ordering::Relaxed) {
@@ -551,6 +591,13 @@ fn run_one(matrix: &MatrixFile, run: &MatrixRun, out: &Path, cores: usize) -> Re
         }
     }
     Ok(())
+}
+
+/// Gives `cmd` (a `ctxrace` command) the sweep's tracks folder, if it names one.
+fn pass_tracks_dir(cmd: &mut Command, tracks_dir: Option<&Path>) {
+    if let Some(d) = tracks_dir {
+        cmd.arg("--tracks-dir").arg(d);
+    }
 }
 
 /// Runs `cmd` to its end (it dies with this process); an error names `what` when it fails.
@@ -668,6 +715,14 @@ fn hms(secs: f64) -> String {
 /// The arguments of the `ctxrace` command that runs `name` of this sweep alone (`--run NAME`
 /// last).
 fn own_command(args: &SweepArgs, name: &str, out: &Path, cores: usize) -> Vec<String> {
+    let mut v = sweep_words(args, out, cores);
+    v.extend(["--run".into(), name.to_string()]);
+    v
+}
+
+/// The arguments every `ctxrace sweep` command of this sweep starts with: the matrix, the
+/// output folder, the cores, the seeds and the tracks folder.
+fn sweep_words(args: &SweepArgs, out: &Path, cores: usize) -> Vec<String> {
     let mut v = vec![
         "sweep".to_string(),
         args.matrix.display().to_string(),
@@ -679,11 +734,28 @@ fn own_command(args: &SweepArgs, name: &str, out: &Path, cores: usize) -> Vec<St
     if let Some(k) = args.seeds {
         v.extend(["--seeds".into(), k.to_string()]);
     }
-    v.extend(["--run".into(), name.to_string()]);
+    if let Some(d) = &args.tracks_dir {
+        v.extend(["--tracks-dir".into(), d.display().to_string()]);
+    }
     v
 }
 
-/// The `--emit` text: one command per run, or a Slurm array script running them.
+/// `p` made absolute, refused when it is not UTF-8 (an emitted script could not name it).
+fn absolute_utf8(p: &Path, what: &str) -> Result<PathBuf> {
+    let abs =
+        std::path::absolute(p).with_context(|| format!("resolving the {what} {}", p.display()))?;
+    if abs.to_str().is_none() {
+        bail!(
+            "the {what} {} is not valid UTF-8, which an emitted command cannot name; rename \
+             it or choose another",
+            abs.display()
+        );
+    }
+    Ok(abs)
+}
+
+/// The `--emit` text: one command per run, or a script submitting them to Slurm. Every path in
+/// it (binary, matrix, output, tracks folder) is absolute, so that it runs from any folder.
 fn emit_commands(
     emit: Emit,
     args: &SweepArgs,
@@ -691,11 +763,15 @@ fn emit_commands(
     out: &Path,
     cores: usize,
 ) -> Result<String> {
-    let absolute =
-        |p: &Path| std::path::absolute(p).with_context(|| format!("resolving {}", p.display()));
     let exe = std::env::current_exe().context("locating the ctxrace binary")?;
+    let exe = absolute_utf8(&exe, "ctxrace binary")?;
+    // the tracks folder this sweep sees now, whatever folder or environment runs the commands
+    let tracks = args
+        .tracks_dir
+        .clone()
+        .unwrap_or_else(ctxrace_tracks::files::default_tracks_dir);
     let sweep = SweepArgs {
-        matrix: absolute(&args.matrix)?,
+        matrix: absolute_utf8(&args.matrix, "matrix")?,
         seeds: args.seeds,
         jobs: 1,
         only: None,
@@ -703,70 +779,72 @@ fn emit_commands(
         emit: None,
         run: None,
         cores: Some(cores),
+        tracks_dir: Some(absolute_utf8(&tracks, "tracks folder")?),
+        report: false,
+        slurm: Default::default(),
     };
-    let out = absolute(out)?;
-    // every word quoted but the run's name, which the caller passes quoted or as a variable
-    let command = |name: &str| {
-        let mut words: Vec<String> = std::iter::once(exe.display().to_string())
-            .chain(own_command(&sweep, name, &out, cores))
+    let out = absolute_utf8(out, "output folder")?;
+    let quoted = |words: Vec<String>| {
+        std::iter::once(exe.display().to_string())
+            .chain(words)
             .map(|a| shell_quote(&a))
-            .collect();
-        if let Some(last) = words.last_mut() {
-            *last = name.to_string();
-        }
-        words.join(" ")
+            .collect::<Vec<_>>()
+            .join(" ")
     };
+    let prefix = quoted(sweep_words(&sweep, &out, cores)) + " --run";
     Ok(match emit {
         Emit::List => runs
             .iter()
-            .map(|r| command(&shell_quote(&r.name)) + "\n")
+            .map(|r| format!("{prefix} {}\n", shell_quote(&r.name)))
             .collect(),
         Emit::Slurm => {
-            let names: Vec<String> = runs.iter().map(|r| shell_quote(&r.name)).collect();
-            let stem = sweep
-                .matrix
-                .file_stem()
-                .and_then(|s| s.to_str())
-                .unwrap_or("sweep");
-            format!(
-                "#!/usr/bin/env bash\n\
-                 # ctxrace sweep {matrix}: {n} runs, one array task each. Submit with\n\
-                 # `sbatch <this file>`; a task resumes its run when resubmitted. When all are\n\
-                 # done, `ctxrace sweep {matrix} --out {out}` writes the report.\n\
-                 #SBATCH --job-name=ctxrace-{stem}\n\
-                 #SBATCH --array=0-{last}\n\
-                 #SBATCH --cpus-per-task={cores}\n\
-                 #SBATCH --output={logs}/%a.out\n\
-                 set -euo pipefail\n\
-                 mkdir -p {logs}\n\
-                 RUNS=({names})\n\
-                 exec {cmd}\n",
-                matrix = shell_quote(&sweep.matrix.display().to_string()),
-                n = runs.len(),
-                out = shell_quote(&out.display().to_string()),
-                last = runs.len().saturating_sub(1),
-                logs = shell_quote(&out.join("slurm").display().to_string()),
-                names = names.join(" "),
-                cmd = command("\"${RUNS[$SLURM_ARRAY_TASK_ID]}\""),
-            )
+            if let Some(c) = out.to_str().and_then(|o| o.chars().find(|c| !is_plain(*c))) {
+                bail!(
+                    "--out {}: Slurm's #SBATCH --output line cannot quote {c:?}; choose an \
+                     output folder of letters, digits and -_./:=,+@",
+                    out.display()
+                );
+            }
+            let mut report = sweep_words(&sweep, &out, cores);
+            report.push("--report".into());
+            let names: Vec<String> = runs.iter().map(|r| r.name.clone()).collect();
+            crate::slurm::script(
+                &args.slurm,
+                &crate::slurm::SlurmSweep {
+                    stem: sweep
+                        .matrix
+                        .file_stem()
+                        .and_then(|s| s.to_str())
+                        .unwrap_or("sweep"),
+                    matrix: &sweep.matrix,
+                    out: &out,
+                    runs: &names,
+                    cores,
+                    run_command: &prefix,
+                    report_command: &quoted(report),
+                },
+            )?
         }
     })
 }
 
+/// Whether `c` needs no shell quoting.
+fn is_plain(c: char) -> bool {
+    c.is_ascii_alphanumeric() || "-_./:=,+@%".contains(c)
+}
+
 /// `s` quoted for a POSIX shell where it needs to be.
-fn shell_quote(s: &str) -> String {
-    if !s.is_empty()
-        && s.chars()
-            .all(|c| c.is_ascii_alphanumeric() || "-_./:=,+@%".contains(c))
-    {
+pub fn shell_quote(s: &str) -> String {
+    if !s.is_empty() && s.chars().all(is_plain) {
         s.to_string()
     } else {
         format!("'{}'", s.replace('\'', "'\\''"))
     }
 }
 
-/// Writes `<out>/report/` over every run's evaluation.
-fn write_report(out: &Path, runs: &[MatrixRun]) -> Result<()> {
+/// Writes `<out>/report/` over every run's evaluation (its figures read the tracks in
+/// `tracks_dir`, when given).
+fn write_report(out: &Path, runs: &[MatrixRun], tracks_dir: Option<&Path>) -> Result<()> {
     let exe = std::env::current_exe().context("locating the ctxrace binary")?;
     let mut report = Command::new(exe);
     report.arg("report");
@@ -777,6 +855,7 @@ fn write_report(out: &Path, runs: &[MatrixRun]) -> Result<()> {
         .arg("--out")
         .arg(out.join("report"))
         .stdout(Stdio::null());
+    pass_tracks_dir(&mut report, tracks_dir);
     wait_for(report, "writing the report")?;
     println!(
         "{} runs evaluated; report in {}",
@@ -986,6 +1065,44 @@ train_ratio = 2.0
         assert!(runs
             .iter()
             .all(|r| r.config.train.env_steps == runs[0].config.train.env_steps));
+    }
+
+    #[test]
+    fn the_emitted_slurm_script_names_every_path_absolutely() {
+        let dir = tempfile::tempdir().unwrap();
+        let m = matrix(dir.path());
+        let runs = m.runs(dir.path(), Some(1), &Only::default()).unwrap();
+        let args = SweepArgs {
+            matrix: PathBuf::from("rel/m.toml"),
+            seeds: Some(1),
+            jobs: 1,
+            only: None,
+            out: None,
+            emit: Some(Emit::Slurm),
+            run: None,
+            cores: Some(2),
+            tracks_dir: Some("tracks".into()),
+            report: false,
+            slurm: Default::default(),
+        };
+        let script = emit_commands(Emit::Slurm, &args, &runs, Path::new("out"), 2).unwrap();
+        let cwd = std::env::current_dir().unwrap();
+        let at = |p: &str| cwd.join(p).display().to_string();
+        for needle in [
+            format!("mkdir -p {}", at("out/slurm")),
+            format!("{} --out {}", at("rel/m.toml"), at("out")),
+            format!("--tracks-dir {}", at("tracks")),
+            "--run \"${RUNS[$SLURM_ARRAY_TASK_ID]}\"".to_string(),
+            "--seeds 1 --tracks-dir".to_string(),
+            "--report\nCTXRACE_REPORT".to_string(),
+            format!("#SBATCH --array=0-{}", runs.len() - 1),
+        ] {
+            assert!(script.contains(&needle), "{needle} missing from\n{script}");
+        }
+        let err = emit_commands(Emit::Slurm, &args, &runs, Path::new("my out"), 2)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("cannot quote ' '"), "{err}");
     }
 
     #[test]

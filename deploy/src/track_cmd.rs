@@ -208,12 +208,12 @@ pub fn run(cmd: TrackCommand) -> Result<()> {
         } => crate::download::run(&names, from.as_deref(), into.as_deref(), &tracks)?,
         TrackCommand::Raceline { track, out, tracks } => {
             let t = tracks.load(&track, &RaceConfig::default())?;
-            let file = std::fs::File::create(&out)
-                .with_context(|| format!("creating {}", out.display()))?;
-            let mut w = std::io::BufWriter::new(file);
-            write_raceline(&t.raceline, &mut w)
-                .and_then(|_| std::io::Write::flush(&mut w))
-                .with_context(|| format!("writing {}", out.display()))?;
+            // atomically, without following a link at `out`
+            ctxrace_run::run_dir::write_atomic_with(&out, |_, file| {
+                let mut w = std::io::BufWriter::new(file);
+                write_raceline(&t.raceline, &mut w).and_then(|_| std::io::Write::flush(&mut w))
+            })
+            .with_context(|| format!("writing {}", out.display()))?;
             println!(
                 "wrote {} ({} points, {:.2} m, lap {:.2} s)",
                 out.display(),

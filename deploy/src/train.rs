@@ -12,6 +12,7 @@ use crate::TrackArgs;
 use anyhow::{bail, Result};
 use clap::Args;
 use ctxrace_actor::collect::Collector;
+use ctxrace_config::resources::{check_machine, Machine};
 use ctxrace_config::{AlgoKind, ExperimentConfig, Warmup};
 use ctxrace_learner::inline::InlineProgress;
 use ctxrace_learner::process::is_trained;
@@ -157,7 +158,24 @@ fn check_training_track(track: &Arc<Track>, cfg: &ExperimentConfig) -> Result<()
 
 /// Runs `ctxrace train`.
 pub fn run(args: TrainArgs) -> Result<()> {
+    // paths the run's processes and files name: refused before anything is read or made
+    let paths = [
+        ("the config", args.config.as_deref()),
+        ("--run-dir", args.run_dir.as_deref()),
+        ("--tracks-dir", args.tracks.tracks_dir.as_deref()),
+    ];
+    for (what, path) in paths {
+        if let Some(p) = path.filter(|p| p.to_str().is_none()) {
+            bail!(
+                "{what} {} is not valid UTF-8: a run names its folder and config in its files, \
+                 logs and process command lines; rename it or choose another",
+                p.display()
+            );
+        }
+    }
     let cfg = experiment(&args)?;
+    let actors = if args.inline { 1 } else { args.actors };
+    check_machine(&cfg, actors, &Machine::this())?;
     // everything a process of the run needs is resolved here, before the run directory is
     // touched: an error it would meet at every restart stops the launch at once
     let track = Arc::new(args.tracks.load(&cfg.track, &cfg.race)?);
@@ -175,6 +193,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         return Ok(());
     }
     if !args.inline {
+        crate::roles::check_replay_snapshot(&cfg, dir, args.actors)?;
         crate::launcher::run(&cfg, dir, &run.lock, args.actors, &args.tracks)?;
         let trained = is_trained(dir, &cfg);
         return finish(&args, &cfg, dir, trained);

@@ -69,6 +69,12 @@ pub fn target_steps(cfg: &ExperimentConfig) -> u64 {
 /// Whether the run in `dir` has taken all its gradient steps (its newest checkpoint is the
 /// learner's last).
 pub fn is_trained(dir: &Path, cfg: &ExperimentConfig) -> bool {
+    resume_step(dir) >= target_steps(cfg)
+}
+
+/// The gradient step of the newest intact checkpoint of the run in `dir`, where a (re)started
+/// learner resumes (0 without one).
+pub fn resume_step(dir: &Path) -> u64 {
     latest_checkpoint(dir)
         .and_then(|c| {
             c.file_name()?
@@ -77,7 +83,7 @@ pub fn is_trained(dir: &Path, cfg: &ExperimentConfig) -> bool {
                 .parse::<u64>()
                 .ok()
         })
-        .is_some_and(|step| step >= target_steps(cfg))
+        .unwrap_or(0)
 }
 
 /// Trains until the run's gradient-step target or SIGTERM/SIGINT; returns the steps taken.

@@ -82,10 +82,15 @@ pub struct ReplayBuffer {
     pub(crate) inserted: u64,
 }
 
+/// Steps each of `actors` streams holds when a buffer of `capacity` steps is shared out.
+pub fn stream_capacity(capacity: usize, actors: usize) -> usize {
+    (capacity / actors.max(1)).max(1)
+}
+
 impl ReplayBuffer {
     /// A buffer of `capacity` steps split equally between `actors` streams.
     pub fn new(capacity: usize, actors: usize, obs_dim: usize, act_dim: usize) -> Self {
-        let per = (capacity / actors.max(1)).max(1);
+        let per = stream_capacity(capacity, actors);
         Self {
             obs_dim,
             act_dim,

@@ -9,7 +9,7 @@ pub mod snapshot;
 
 pub use buffer::ReplayBuffer;
 pub use limiter::RateLimiter;
-pub use server::{run, ReplayArgs, ReplayControl, ReplayError};
+pub use server::{check_restorable, run, ReplayArgs, ReplayControl, ReplayError};
 pub use snapshot::{
     encode_snapshot, read_snapshot, write_encoded, write_snapshot, BackgroundWriter, LimiterCounts,
     SnapshotDamage, SnapshotError, SnapshotShape,

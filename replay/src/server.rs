@@ -6,8 +6,8 @@
 use crate::buffer::ReplayBuffer;
 use crate::limiter::RateLimiter;
 use crate::snapshot::{
-    encode_snapshot, read_snapshot, write_snapshot, BackgroundWriter, LimiterCounts, SnapshotError,
-    SnapshotShape,
+    check_snapshot, encode_snapshot, read_snapshot, write_snapshot, BackgroundWriter,
+    LimiterCounts, SnapshotError, SnapshotShape,
 };
 use ctxrace_config::validate::ConfigError;
 use ctxrace_config::BatchSpec;
@@ -324,6 +324,24 @@ fn never_served(
     } else {
         None
     }
+}
+
+/// Checks, before any process starts, that the replay of `args` could restore its snapshot (if
+/// it has one): a damaged snapshot, or one of another shape, is the [`ReplayError::Restore`]
+/// the replay would stop on, saying how to continue.
+pub fn check_restorable(args: &ReplayArgs) -> Result<(), ReplayError> {
+    let Some(path) = args.options.snapshot_path.as_deref() else {
+        return Ok(());
+    };
+    if !path.exists() {
+        return Ok(());
+    }
+    let o = &args.options;
+    let shape = SnapshotShape::of_new(o.capacity, args.actors, args.obs_dim, args.act_dim);
+    check_snapshot(path, shape).map_err(|e| ReplayError::Restore {
+        path: path.to_path_buf(),
+        source: ConfigError::new(e),
+    })
 }
 
 /// The replay's buffer and limiter counts: fresh, or restored from the snapshot. A snapshot

@@ -236,6 +236,16 @@ impl SnapshotShape {
             act_dim: buffer.act_dim,
         }
     }
+
+    /// The shape [`ReplayBuffer::new`] gives a buffer of these sizes, without making it.
+    pub fn of_new(capacity: usize, actors: usize, obs_dim: usize, act_dim: usize) -> Self {
+        Self {
+            actors: actors.max(1),
+            stream_capacity: crate::buffer::stream_capacity(capacity, actors),
+            obs_dim,
+            act_dim,
+        }
+    }
 }
 
 impl std::fmt::Display for SnapshotShape {
@@ -286,10 +296,34 @@ fn verify_checksum(path: &Path, file_len: u64) -> Result<(), SnapshotDamage> {
     Ok(())
 }
 
-fn read(
+/// Checks that the snapshot at `path` would restore into a buffer of shape `expected`: its
+/// checksum, magic, version and shape, without reading its steps into memory (what a launcher
+/// checks before it starts any process).
+pub fn check_snapshot(path: &Path, expected: SnapshotShape) -> Result<(), SnapshotError> {
+    open_checked(path, expected)
+        .map(drop)
+        .map_err(|source| SnapshotError::Restore {
+            path: path.to_path_buf(),
+            source,
+        })
+}
+
+/// The header of a snapshot whose checksum holds and whose shape is `expected`.
+struct Header {
+    /// The file's length.
+    file_len: u64,
+    /// Steps the buffer had inserted.
+    inserted: u64,
+    /// The rate limiter's counts.
+    counts: LimiterCounts,
+}
+
+/// Opens the snapshot at `path`, verifies its checksum and reads its header, which must be of
+/// the shape `expected`; returns the reader positioned at the first stream.
+fn open_checked(
     path: &Path,
     expected: SnapshotShape,
-) -> Result<(ReplayBuffer, LimiterCounts), SnapshotDamage> {
+) -> Result<(Hashing<BufReader<File>>, Header), SnapshotDamage> {
     let file = File::open(path)?;
     let file_len = file.metadata()?.len();
     verify_checksum(path, file_len)?;
@@ -317,7 +351,24 @@ fn read(
     if held != expected {
         return Err(SnapshotDamage::Shape { held, expected });
     }
-    let (o, a, cap) = (held.obs_dim, held.act_dim, held.stream_capacity);
+    let counts = LimiterCounts { inserts, samples };
+    Ok((
+        r,
+        Header {
+            file_len,
+            inserted,
+            counts,
+        },
+    ))
+}
+
+fn read(
+    path: &Path,
+    expected: SnapshotShape,
+) -> Result<(ReplayBuffer, LimiterCounts), SnapshotDamage> {
+    let (mut r, h) = open_checked(path, expected)?;
+    let (file_len, inserted, actors) = (h.file_len, h.inserted, expected.actors as u64);
+    let (o, a, cap) = (expected.obs_dim, expected.act_dim, expected.stream_capacity);
     let per_step = 4 * (o + a + 1 + 2 + 2) as u64 + 1 + 8;
     // every stream's steps must fit in what is left of the file before they are allocated
     let mut budget = file_len.saturating_sub(HEADER_BYTES + 4);
@@ -363,7 +414,7 @@ fn read(
             streams,
             inserted,
         },
-        LimiterCounts { inserts, samples },
+        h.counts,
     ))
 }
 

@@ -53,7 +53,7 @@ pub const MAX_STEER_DELAY: usize = 100;
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum RaceConfigError {
     /// Not TOML, or a key or a value that the table does not take (with its line).
-    #[error("{0}")]
+    #[error("{}", crate::validate::toml_message(.0))]
     Toml(toml::de::Error),
     /// The table could not be read over its preset.
     #[error(transparent)]

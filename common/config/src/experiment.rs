@@ -8,20 +8,15 @@ use crate::config::{RaceConfig, RaceConfigError, ReplayOptions};
 use crate::validate::{finite_floats, in_range, ValueError};
 use serde::{Deserialize, Serialize};
 use std::ops::Bound;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// Why an experiment configuration is refused. Each message names the key (by its table), its
 /// value and how to fix it; [`ExperimentError::In`] adds the file it came from.
 #[derive(Debug, thiserror::Error)]
 pub enum ExperimentError {
-    /// The file could not be read.
-    #[error("reading experiment config {}: {cause}", path.display())]
-    Read {
-        /// The file.
-        path: PathBuf,
-        /// Why.
-        cause: std::io::Error,
-    },
+    /// The file could not be read, is too large or is not text (its content is not shown).
+    #[error("experiment config: {0}")]
+    Read(crate::resources::ResourceError),
     /// A refusal of the configuration read from `origin` (a file's path, or what the text is).
     #[error("{origin}: {error}")]
     In {
@@ -31,7 +26,7 @@ pub enum ExperimentError {
         error: Box<ExperimentError>,
     },
     /// Not TOML, or a key or a value that a table does not take (with its line).
-    #[error("{0}")]
+    #[error("{}", crate::validate::toml_message(.0))]
     Toml(toml::de::Error),
     /// The configuration could not be written as TOML.
     #[error("serialising the experiment config: {0}")]
@@ -295,10 +290,7 @@ impl ExperimentConfig {
 
     /// Reads and checks a TOML file.
     pub fn load(path: &Path) -> Result<Self, ExperimentError> {
-        let text = std::fs::read_to_string(path).map_err(|cause| ExperimentError::Read {
-            path: path.to_path_buf(),
-            cause,
-        })?;
+        let text = crate::resources::read_config_text(path).map_err(ExperimentError::Read)?;
         Self::from_toml(&text, &path.display().to_string())
     }
 
@@ -307,10 +299,7 @@ impl ExperimentConfig {
     /// as the scale that run trained with ([`crate::ContextScale::SAVED_WITHOUT_KEY`]).
     pub fn load_saved(path: &Path) -> Result<Self, ExperimentError> {
         let origin = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|cause| ExperimentError::Read {
-            path: path.to_path_buf(),
-            cause,
-        })?;
+        let text = crate::resources::read_config_text(path).map_err(ExperimentError::Read)?;
         let mut table: toml::Table =
             toml::from_str(&text).map_err(|e| ExperimentError::Toml(e).within(&origin))?;
         let agent = table
@@ -383,14 +372,8 @@ impl ExperimentConfig {
         self.race.validate().map_err(ExperimentError::Race)?;
         self.validate_agent()?;
         self.agent.validate().map_err(ExperimentError::Agent)?;
+        crate::resources::check_bounds(self).map_err(ExperimentError::Value)?;
         let t = &self.train;
-        in_range(
-            "[train] train_ratio",
-            t.train_ratio,
-            (Bound::Excluded(0.0), Bound::Unbounded),
-            "it is the gradient steps per env step (the paper: 1)",
-        )
-        .map_err(ExperimentError::Value)?;
         if self.agent.warmup == Warmup::RandomSteps && t.env_steps <= t.prefill {
             return Err(ExperimentError::NothingAfterPrefill {
                 env_steps: t.env_steps,

@@ -9,6 +9,7 @@ pub mod config;
 pub mod context;
 pub mod experiment;
 pub mod preset;
+pub mod resources;
 pub mod validate;
 
 pub use agents::{

@@ -81,6 +81,24 @@ pub enum ValueError {
     Serialise(toml::ser::Error),
 }
 
+/// The longest line of a TOML error shown (a value it quotes is cut there).
+const TOML_LINE_CHARS: usize = 200;
+
+/// A TOML parse error as a message that does not echo the file: where (line and column), the
+/// line quoted (it names the key) and what, each line cut at [`TOML_LINE_CHARS`] characters,
+/// so that a long line or a long value the message quotes is not shown whole.
+pub fn toml_message(error: &toml::de::Error) -> String {
+    error
+        .to_string()
+        .lines()
+        .map(|l| match l.char_indices().nth(TOML_LINE_CHARS) {
+            Some((at, _)) => format!("{}...", &l[..at]),
+            None => l.to_string(),
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
 /// Checks that every float of `config`, serialized as TOML, is finite. The error names the
 /// first other one by its key path (`race.rival.gains.lambda_v = nan`) and gives the value
 /// `defaults` holds at that path, when it holds one.
@@ -124,7 +142,7 @@ fn first_non_finite(value: &toml::Value, path: &mut Vec<String>) -> Option<(Vec<
 
 /// Checks that `key = value` lies in `range`; the error names the key, the value, the range and
 /// `fix` (NaN lies in no range).
-pub fn in_range<T: PartialOrd + Display>(
+pub fn in_range<T: PartialOrd + Display + std::fmt::LowerExp>(
     key: &str,
     value: T,
     range: impl RangeBounds<T>,
@@ -146,7 +164,11 @@ pub fn in_range<T: PartialOrd + Display>(
     let bounds: Vec<String> = lower.into_iter().chain(upper).collect();
     Err(ValueError::OutOfRange {
         key: key.to_string(),
-        value: value.to_string(),
+        // a huge number in scientific notation (1e300, not 301 digits)
+        value: match value.to_string() {
+            long if long.len() > 20 => format!("{value:e}"),
+            short => short,
+        },
         bounds: bounds.join(" and "),
         fix: fix.to_string(),
     })
@@ -191,6 +213,23 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.starts_with("inner.per_track.f1_esp = inf"), "{err}");
+    }
+
+    #[test]
+    fn toml_errors_say_where_and_what_cutting_long_lines() {
+        let long = format!("a = \"{}", "x".repeat(5000));
+        let err = toml::from_str::<toml::Table>(&long).unwrap_err();
+        let msg = toml_message(&err);
+        assert!(msg.contains("line 1"), "{msg}");
+        assert!(!msg.contains(&"x".repeat(300)), "{msg}");
+        #[derive(Debug, serde::Deserialize)]
+        #[allow(dead_code)]
+        struct N {
+            n: usize,
+        }
+        let text = format!("n = \"{}\"", "y".repeat(5000));
+        let msg = toml_message(&toml::from_str::<N>(&text).unwrap_err());
+        assert!(msg.contains("invalid type") && msg.len() < 1000, "{msg}");
     }
 
     #[test]

@@ -73,7 +73,10 @@ impl DirLock {
                 },
             });
         }
-        let command: Vec<String> = std::env::args().collect();
+        // args_os: a path that is not UTF-8 on the command line is named lossily, not a panic
+        let command: Vec<String> = std::env::args_os()
+            .map(|a| a.to_string_lossy().into_owned())
+            .collect();
         file.set_len(0)
             .and_then(|()| file.rewind())
             .and_then(|()| write!(file, "pid {}: {}", std::process::id(), command.join(" ")))
@@ -180,7 +183,21 @@ mod tests {
         assert!(err.contains("processes it started"), "{err}");
         child.kill().unwrap();
         child.wait().unwrap();
-        DirLock::acquire(dir.path()).unwrap();
+        acquire_soon(dir.path());
+    }
+
+    /// Acquires the lock of `dir`, which must come free within seconds: a child that another
+    /// test forked while this lock's file was open holds a copy of it until it executes its
+    /// program (its descriptors close on exec), later on a loaded machine.
+    fn acquire_soon(dir: &Path) -> DirLock {
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+        loop {
+            match DirLock::acquire(dir) {
+                Ok(lock) => return lock,
+                Err(e) if std::time::Instant::now() > deadline => panic!("{e}"),
+                Err(_) => std::thread::sleep(std::time::Duration::from_millis(20)),
+            }
+        }
     }
 
     /// The folder [`intermediate_parent`] locks, set by the test that starts it.
@@ -235,6 +252,6 @@ mod tests {
             unsafe { libc::kill(child as libc::pid_t, libc::SIGKILL) };
         }
         assert!(dead, "the child outlived its killed parent");
-        DirLock::acquire(dir.path()).unwrap();
+        acquire_soon(dir.path());
     }
 }

@@ -89,18 +89,37 @@ use std::path::Path;
 /// renamed over `path` (which replaces a link planted there instead of writing through it), and
 /// the folder flushed. A reader sees the old file or the new one, never half of one.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    write_atomic_with(path, |_, file| file.write_all(bytes))
+}
+
+/// Writes `path` atomically and without following links as [`write_atomic`] does, through
+/// `write`, for what streams its output (a CSV, an animation, a picture a library draws to a
+/// path): `write` fills the temporary file, given as its path (which ends in `path`'s
+/// extension) and open; it is renamed over `path` only once `write` succeeded, else removed,
+/// leaving `path` as it was.
+pub fn write_atomic_with<E: From<std::io::Error>>(
+    path: &Path,
+    write: impl FnOnce(&Path, &mut File) -> Result<(), E>,
+) -> Result<(), E> {
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
     };
+    let suffix = path
+        .extension()
+        .map(|e| format!(".{}", e.to_string_lossy()))
+        .unwrap_or_default();
     let mut tmp = tempfile::Builder::new()
         .prefix(".tmp-")
+        .suffix(&suffix)
         .permissions(std::fs::Permissions::from_mode(0o666))
         .tempfile_in(dir)?;
-    tmp.write_all(bytes)?;
+    let tmp_path = tmp.path().to_path_buf();
+    write(&tmp_path, tmp.as_file_mut())?;
     tmp.as_file().sync_all()?;
     tmp.persist(path).map_err(|e| e.error)?;
-    File::open(dir)?.sync_all()
+    File::open(dir)?.sync_all()?;
+    Ok(())
 }
 
 /// Opens `path` for appending, creating it, but only as a regular file: a link planted at
