@@ -282,6 +282,14 @@ impl RaceVector {
         }
         let (range, dim) = (self.context_range, self.obs_dim);
         let slots = &mut self.slots;
+        if slots.len() == 1 || self.pool.current_num_threads() == 1 {
+            // on the caller's thread: a hop to one worker costs more than a lone race's step
+            let lanes = slots.iter_mut().zip(actions).zip(obs.chunks_mut(dim));
+            for (((slot, &action), obs), out) in lanes.zip(out.iter_mut()) {
+                *out = slot.advance(action, range, obs)?;
+            }
+            return Ok(());
+        }
         self.pool.install(|| {
             slots
                 .par_iter_mut()

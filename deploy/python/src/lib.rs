@@ -57,7 +57,7 @@ pub enum BindError {
         spec: String,
         /// Why.
         #[source]
-        source: TrackError,
+        source: Box<TrackError>,
     },
     /// A context is out of range.
     #[error(transparent)]
@@ -160,7 +160,7 @@ fn load_track(spec: &str, tracks_dir: Option<PathBuf>, race: &RaceConfig) -> Res
     }
     let track = Arc::new(Track::load(spec, &opts).map_err(|source| BindError::Track {
         spec: spec.to_string(),
-        source,
+        source: Box::new(source),
     })?);
     let mut cache = cache.lock().unwrap_or_else(|p| p.into_inner());
     Ok(cache.entry(key).or_insert(track).clone())
@@ -168,7 +168,7 @@ fn load_track(spec: &str, tracks_dir: Option<PathBuf>, race: &RaceConfig) -> Res
 
 /// Decodes native-endian `f64` bytes.
 fn f64s(what: &'static str, bytes: &[u8]) -> Result<Vec<f64>> {
-    if bytes.len() % 8 != 0 {
+    if !bytes.len().is_multiple_of(8) {
         return Err(BindError::Bytes {
             what,
             bytes: bytes.len(),
@@ -183,7 +183,7 @@ fn f64s(what: &'static str, bytes: &[u8]) -> Result<Vec<f64>> {
 
 /// Pairs of values (actions, contexts) from native-endian `f64` bytes.
 fn pairs(what: &'static str, bytes: &[u8]) -> Result<Vec<[f64; 2]>> {
-    if bytes.len() % 16 != 0 {
+    if !bytes.len().is_multiple_of(16) {
         return Err(BindError::Bytes {
             what,
             bytes: bytes.len(),
