@@ -188,6 +188,7 @@ fn remove(path: &Path) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use ctxrace_run::checkpoint::MAX_MANIFEST_BYTES;
 
     /// A cMask checkpoint written by the binary of commit d6b5c40 (the last before the networks
     /// were rewritten over a named-parameter store; `testdata/d6b5c40/README.md`) loads into a

@@ -52,7 +52,7 @@ pub fn io_error(what: &str, path: &Path, e: impl std::fmt::Display) -> Checkpoin
 
 /// A manifest larger than this is damaged (a real one lists a dozen files in a few hundred
 /// bytes).
-const MAX_MANIFEST_BYTES: u64 = 1 << 20;
+pub const MAX_MANIFEST_BYTES: u64 = 1 << 20;
 
 /// Checks the seal of a checkpoint folder: its manifest lists plain file names of that folder,
 /// and every file it lists is a regular file with the size (checked before reading) and CRC-32
