@@ -34,7 +34,7 @@ def rollout(env, actions, seed, options=None):
 
 def test_import_registers_a_race_that_passes_check_env():
     env = gymnasium.make("ctxrace/Race-v0", track=TRACK, rivals=2)
-    check_env(env.unwrapped, skip_render_check=True)
+    check_env(env.unwrapped)
     obs, info = env.reset(seed=3)
     assert obs.shape == (108,) and obs.dtype == np.float32
     assert set(info) == {"context", "progress", "overtakes", "a2a", "wall_crash"}
