@@ -118,7 +118,8 @@ class Races:
 def info_of(table: np.ndarray) -> dict:
     """The info arrays of an outcome table: context, progress, overtakes, a2a, wall_crash."""
     return {
-        "context": table[:, [_COLUMNS["context_speed"], _COLUMNS["context_steer"]]].copy(),
+        # the two adjacent columns as a slice (fancy indexing costs more per step)
+        "context": table[:, _COLUMNS["context_speed"] : _COLUMNS["context_steer"] + 1].copy(),
         "progress": table[:, _COLUMNS["progress"]].copy(),
         "overtakes": table[:, _COLUMNS["overtakes"]].astype(np.int64),
         "a2a": table[:, _COLUMNS["a2a"]] != 0,
