@@ -1,10 +1,10 @@
 //! Who drives the ego in `race`, `eval`, `track check` and the first look: a reference policy
-//! or a trained agent loaded from a checkpoint (`ctxrace_learner::trained`), turned into the
+//! or a trained agent loaded from a checkpoint (`ctxrace_run::trained`), turned into the
 //! actor's episode driver ([`Driver`]).
 
 use anyhow::{Context as _, Result};
 use ctxrace_actor::driver::Driver;
-use ctxrace_learner::trained::TrainedAgent;
+use ctxrace_run::trained::TrainedAgent;
 use ctxrace_sim::baseline::BaselineKind;
 use ctxrace_sim::driver::ActMode;
 use ctxrace_sim::RaceEnv;

@@ -10,9 +10,9 @@ use crate::render::{race_title, render_race, Frame};
 use crate::TrackArgs;
 use anyhow::Result;
 use ctxrace_config::{Context, ExperimentConfig};
-use ctxrace_learner::trained::{CheckpointChoice, TrainedAgent};
 use ctxrace_run::results::{read_csv, TrainingEpisode};
 use ctxrace_run::run_dir::TRAINING_EPISODES;
+use ctxrace_run::trained::{CheckpointChoice, TrainedAgent};
 use ctxrace_sim::baseline::BaselineKind;
 use ctxrace_sim::driver::ActMode;
 use ctxrace_sim::driver::Ego as _;
@@ -93,7 +93,7 @@ pub fn show(cfg: &ExperimentConfig, dir: &Path, tracks: &TrackArgs) -> Result<()
     let curve = learning_curve(cfg, dir)?;
     let track = Arc::new(tracks.load(&cfg.track, &cfg.race)?);
     let mut env = RaceEnv::new(track.clone(), cfg.race.clone())?;
-    let choice = if ctxrace_learner::best::best_checkpoint(dir).is_some() {
+    let choice = if ctxrace_run::checkpoint::best_checkpoint(dir).is_some() {
         CheckpointChoice::Best
     } else {
         CheckpointChoice::Latest

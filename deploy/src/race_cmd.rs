@@ -6,7 +6,7 @@ use crate::TrackArgs;
 use anyhow::{Context as _, Result};
 use clap::Args;
 use ctxrace_config::Context;
-use ctxrace_learner::trained::{CheckpointChoice, TrainedAgent};
+use ctxrace_run::trained::{CheckpointChoice, TrainedAgent};
 use ctxrace_sim::baseline::BaselineKind;
 use ctxrace_sim::driver::ActMode;
 use ctxrace_sim::vehicle::idx;
@@ -175,11 +175,13 @@ fn trace_csv(file: &mut std::fs::File, frames: &[Frame]) -> Result<()> {
     header.extend((0..beams).map(|b| format!("scan{b}")));
     writeln!(w, "{}", header.join(","))?;
     for (k, f) in frames.iter().enumerate() {
+        // actions in full (the shortest text that reads back as the same number), so that
+        // replaying them (in Python's env, say) drives the same race
         let mut row = vec![
             k.to_string(),
             format!("{:.2}", f.time),
-            format!("{:.6}", f.action[0]),
-            format!("{:.6}", f.action[1]),
+            f.action[0].to_string(),
+            f.action[1].to_string(),
             format!("{:.6}", f.reward),
         ];
         for c in &f.cars {

@@ -239,7 +239,7 @@ impl MatrixFile {
         }
         m.eval
             .checkpoint
-            .parse::<ctxrace_learner::trained::CheckpointChoice>()
+            .parse::<ctxrace_run::trained::CheckpointChoice>()
             .map_err(|e| anyhow::anyhow!("matrix {}: [eval] checkpoint: {e}", path.display()))?;
         m.eval
             .chosen()

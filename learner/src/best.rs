@@ -15,14 +15,13 @@ use crate::checkpoint::{
     io_error, write_atomically, write_policy_files, write_toml, Result, TRACKER_FILE,
 };
 use crate::Algorithm;
+use ctxrace_run::checkpoint::BEST_FILE;
 use ctxrace_run::run_dir::{BEST_DIR, CHECKPOINTS};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 /// Weight of the newest return in the smoothed return (the paper code's `ewma` default).
 pub const SMOOTHING: f64 = 0.2;
-/// File in the best checkpoint saying when it was taken ([`BestInfo`]).
-pub const BEST_FILE: &str = "best.toml";
 
 /// The exponentially smoothed training return and its peak so far.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -74,12 +73,6 @@ pub struct BestInfo {
     pub episodes: u64,
     /// The smoothed return that made it the best.
     pub smoothed_return: f64,
-}
-
-/// The best checkpoint of a run directory, if it has one.
-pub fn best_checkpoint(run_dir: &Path) -> Option<PathBuf> {
-    let dir = run_dir.join(CHECKPOINTS).join(BEST_DIR);
-    dir.join(BEST_FILE).is_file().then_some(dir)
 }
 
 /// Saves `algo`'s acting policy as the run's best checkpoint (replacing the last one).

@@ -4,45 +4,21 @@
 //! A checkpoint is written into a temporary folder, sealed (every file's size and CRC-32 listed
 //! in [`MANIFEST_FILE`], every file and the folder fsynced), renamed into place and the rename
 //! fsynced, so that a crash leaves either the whole checkpoint or none of it. Reading verifies
-//! the seal: a damaged newest checkpoint is passed over, with a warning, for the one before.
+//! the seal (`ctxrace_run::checkpoint`, re-exported here): a damaged newest checkpoint is passed
+//! over, with a warning, for the one before.
 
+use ctxrace_run::checkpoint::Sealed;
+pub use ctxrace_run::checkpoint::{
+    checkpoints, io_error, latest_checkpoint, verify, CheckpointError, Result, MANIFEST_FILE,
+    STATE_FILE,
+};
 use ctxrace_run::run_dir::{AGENT_FILE, CHECKPOINTS, POLICY_FILE};
 use serde::{de::DeserializeOwned, Serialize};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-/// Why a checkpoint could not be written, read or trusted.
-#[derive(Debug, thiserror::Error)]
-pub enum CheckpointError {
-    /// A file or folder of the checkpoint: what was being done to it, where, and what went
-    /// wrong.
-    #[error("{what} {}: {reason}", path.display())]
-    File {
-        /// What was being done (`"reading"`, `"checking"`, ...).
-        what: String,
-        /// The file or folder.
-        path: PathBuf,
-        /// What went wrong.
-        reason: String,
-    },
-}
-
-/// The outcome of a checkpoint operation.
-pub type Result<T> = std::result::Result<T, CheckpointError>;
-
-/// Name of the counters file in a checkpoint directory.
-pub const STATE_FILE: &str = "state.toml";
 /// File in every regular checkpoint with the state of the learner's smoothed training return
 /// (written as [`write_checkpoint`] is given it).
 pub const TRACKER_FILE: &str = "returns.toml";
-
-/// An error naming the file (or folder) and what was being done to it.
-pub(crate) fn io_error(what: &str, path: &Path, e: impl std::fmt::Display) -> CheckpointError {
-    CheckpointError::File {
-        what: what.to_string(),
-        path: path.to_path_buf(),
-        reason: e.to_string(),
-    }
-}
 
 /// Writes `value` as TOML to `path`, naming the file in its error.
 pub(crate) fn write_toml(path: &Path, value: &impl Serialize) -> Result<()> {
@@ -81,16 +57,6 @@ pub fn load_state<T: DeserializeOwned>(dir: &Path) -> Result<T> {
 
 /// Checkpoints kept in a run directory (older ones are removed).
 const KEEP: usize = 3;
-/// File in every checkpoint listing its other files with their sizes and CRC-32s.
-pub const MANIFEST_FILE: &str = "manifest.toml";
-
-/// One sealed file: its size and CRC-32.
-#[derive(Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-struct Sealed {
-    bytes: u64,
-    crc32: u32,
-}
-
 /// Lists every file of `dir` in its manifest and flushes the files, the manifest and the
 /// folder to disk.
 fn seal(dir: &Path) -> Result<()> {
@@ -129,104 +95,6 @@ fn sync(path: &Path) -> Result<()> {
     std::fs::File::open(path)
         .and_then(|f| f.sync_all())
         .map_err(|e| io_error("syncing", path, e))
-}
-
-/// A manifest larger than this is damaged (a real one lists a dozen files in a few hundred
-/// bytes).
-const MAX_MANIFEST_BYTES: u64 = 1 << 20;
-
-/// Checks the seal of a checkpoint folder: its manifest lists plain file names of that folder,
-/// and every file it lists is a regular file with the size (checked before reading) and CRC-32
-/// listed. A folder without a manifest is unfinished or damaged and fails too.
-pub fn verify(dir: &Path) -> Result<()> {
-    let path = dir.join(MANIFEST_FILE);
-    let text = match ctxrace_run::run_dir::read_regular(&path, MAX_MANIFEST_BYTES) {
-        Ok(t) => String::from_utf8_lossy(&t).into_owned(),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            return Err(io_error(
-                "checking",
-                dir,
-                format!(
-                    "no {MANIFEST_FILE}, so its files cannot be verified: an unfinished or \
-                     damaged checkpoint (or one written before checkpoints were sealed); \
-                     choose another checkpoint or train again"
-                ),
-            ))
-        }
-        Err(e) => return Err(io_error("reading", &path, e)),
-    };
-    let manifest: std::collections::BTreeMap<String, Sealed> =
-        toml::from_str(&text).map_err(|e| io_error("parsing", &path, e))?;
-    // every file of the folder is listed (subfolders, such as an evaluation's, are not files)
-    let entries = std::fs::read_dir(dir).map_err(|e| io_error("listing", dir, e))?;
-    for entry in entries {
-        let entry = entry.map_err(|e| io_error("listing", dir, e))?;
-        let name = entry.file_name().to_string_lossy().into_owned();
-        let is_dir = entry.file_type().is_ok_and(|t| t.is_dir());
-        if !is_dir && name != MANIFEST_FILE && !manifest.contains_key(&name) {
-            return Err(io_error(
-                "checking",
-                &entry.path(),
-                "a file its manifest does not list: damaged (or added after the checkpoint \
-                 was sealed; remove it)",
-            ));
-        }
-    }
-    for (name, want) in manifest {
-        let plain = Path::new(&name).file_name() == Some(std::ffi::OsStr::new(&name));
-        if !plain || name == MANIFEST_FILE {
-            return Err(io_error(
-                "checking",
-                &path,
-                format!("it lists '{name}', not a file of the checkpoint's folder: damaged"),
-            ));
-        }
-        let file = dir.join(&name);
-        let got = sealed(&file, want.bytes)?;
-        let why = if got.bytes != want.bytes {
-            format!("{} bytes, the manifest says {}", got.bytes, want.bytes)
-        } else {
-            format!(
-                "CRC-32 {:#010x}, the manifest says {:#010x}",
-                got.crc32, want.crc32
-            )
-        };
-        if got != want {
-            return Err(io_error("checking", &file, format!("{why}: damaged")));
-        }
-    }
-    Ok(())
-}
-
-/// The size and CRC-32 of the regular file `file`; its CRC-32 only when it has `bytes` bytes
-/// (0 otherwise, unused), so that a file of another size is never read.
-fn sealed(file: &Path, bytes: u64) -> Result<Sealed> {
-    use std::io::Read as _;
-    let mut f =
-        ctxrace_run::run_dir::open_regular(file).map_err(|e| io_error("reading", file, e))?;
-    let len = f
-        .metadata()
-        .map_err(|e| io_error("reading", file, e))?
-        .len();
-    if len != bytes {
-        return Ok(Sealed {
-            bytes: len,
-            crc32: 0,
-        });
-    }
-    let mut hasher = crc32fast::Hasher::new();
-    let mut buf = vec![0u8; 1 << 20];
-    loop {
-        let n = f.read(&mut buf).map_err(|e| io_error("reading", file, e))?;
-        if n == 0 {
-            break;
-        }
-        hasher.update(&buf[..n]);
-    }
-    Ok(Sealed {
-        bytes: len,
-        crc32: hasher.finalize(),
-    })
 }
 
 /// Saves `algo` as `<run>/checkpoints/step-<steps>/`, with the policy weights and the agent's
@@ -317,43 +185,10 @@ fn remove(path: &Path) -> Result<()> {
     removed.map_err(|e| io_error("removing", path, e))
 }
 
-/// The complete checkpoints of a run directory, oldest first.
-pub fn checkpoints(run_dir: &Path) -> Vec<std::path::PathBuf> {
-    let Ok(entries) = std::fs::read_dir(run_dir.join(CHECKPOINTS)) else {
-        return Vec::new();
-    };
-    let mut dirs: Vec<_> = entries
-        .filter_map(|e| e.ok())
-        .map(|e| e.path())
-        .filter(|p| {
-            p.file_name()
-                .and_then(|n| n.to_str())
-                .is_some_and(|n| n.starts_with("step-"))
-                && p.join(STATE_FILE).exists()
-        })
-        .collect();
-    dirs.sort();
-    dirs
-}
-
-/// The newest checkpoint of a run directory whose seal holds; damaged newer ones are passed
-/// over with a warning.
-pub fn latest_checkpoint(run_dir: &Path) -> Option<std::path::PathBuf> {
-    checkpoints(run_dir)
-        .into_iter()
-        .rev()
-        .find(|c| match verify(c) {
-            Ok(()) => true,
-            Err(e) => {
-                tracing::warn!("passing over a damaged checkpoint: {e}");
-                false
-            }
-        })
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use ctxrace_run::checkpoint::MAX_MANIFEST_BYTES;
 
     /// A cMask checkpoint written by the binary of commit d6b5c40 (the last before the networks
     /// were rewritten over a named-parameter store; `testdata/d6b5c40/README.md`) loads into a
@@ -541,5 +376,62 @@ mod tests {
                 let _ = load_state::<toml::Table>(dir.path());
             }
         }
+    }
+}
+
+/// A trained agent read back (`ctxrace_run::trained`) from checkpoints this module wrote.
+#[cfg(test)]
+mod trained_tests {
+    use super::{write_atomically, STATE_FILE};
+    use ctxrace_config::AgentConfig;
+    use ctxrace_run::checkpoint::BEST_FILE;
+    use ctxrace_run::run_dir::{AGENT_FILE, BEST_DIR, CHECKPOINTS, POLICY_FILE};
+    use ctxrace_run::trained::{CheckpointChoice, TrainedAgent};
+    use std::path::{Path, PathBuf};
+
+    /// A sealed checkpoint `name` of `run` holding an agent and a policy.
+    fn checkpoint(run: &Path, name: &str) -> PathBuf {
+        let agent = toml::to_string(&AgentConfig::default()).unwrap();
+        write_atomically(&run.join(CHECKPOINTS).join(name), |d| {
+            std::fs::write(d.join(STATE_FILE), "step = 1").unwrap();
+            std::fs::write(d.join(BEST_FILE), "").unwrap();
+            std::fs::write(d.join(AGENT_FILE), &agent).unwrap();
+            std::fs::write(d.join(POLICY_FILE), name).unwrap();
+            Ok(())
+        })
+        .unwrap()
+    }
+
+    #[test]
+    fn an_intact_best_is_loaded_and_named_when_every_step_is_damaged() {
+        let run = tempfile::tempdir().unwrap();
+        for name in ["step-0000000001", "step-0000000002"] {
+            let dir = checkpoint(run.path(), name);
+            std::fs::write(dir.join(POLICY_FILE), "damaged").unwrap();
+        }
+        let best = checkpoint(run.path(), BEST_DIR);
+        let agent = TrainedAgent::load(run.path(), CheckpointChoice::Best).unwrap();
+        assert_eq!(agent.checkpoint, best);
+        assert_eq!(agent.weights, BEST_DIR.as_bytes());
+        let err = TrainedAgent::load(run.path(), CheckpointChoice::Latest)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("no latest checkpoint intact")
+                && err.contains("every step-* checkpoint is damaged")
+                && err.contains("pass --checkpoint best (intact)"),
+            "{err}"
+        );
+        // with the best damaged too, nothing is offered
+        std::fs::write(best.join(POLICY_FILE), "damaged").unwrap();
+        let err = format!(
+            "{:#}",
+            TrainedAgent::load(run.path(), CheckpointChoice::Best).unwrap_err()
+        );
+        assert!(err.contains("damaged"), "{err}");
+        let err = TrainedAgent::load(run.path(), CheckpointChoice::Latest)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("no other intact one"), "{err}");
     }
 }

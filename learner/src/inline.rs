@@ -189,13 +189,13 @@ pub fn run_inline<S: ExperienceSource<Policy = Policy>, B: SampleStore>(
 mod tests {
     use super::*;
     use crate::process::is_trained;
-    use crate::trained::{CheckpointChoice, TrainedAgent};
     use ctxrace_actor::collect::Collector;
     use ctxrace_actor::driver::Driver;
     use ctxrace_config::{AgentConfig, AlgoKind, Context, DreamerConfig, RaceConfig};
     use ctxrace_replay::ReplayBuffer;
     use ctxrace_run::results::{read_csv, TrainingEpisode};
     use ctxrace_run::run_dir::{METRICS_JSONL, TRAINING_EPISODES};
+    use ctxrace_run::trained::{CheckpointChoice, TrainedAgent};
     use ctxrace_sim::driver::ActMode;
     use ctxrace_sim::evaluation::{episode_seed, run_episode};
     use ctxrace_sim::RaceEnv;

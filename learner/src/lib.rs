@@ -23,7 +23,6 @@ mod sac_core;
 mod sequences;
 pub mod shards;
 pub mod tensorboard;
-pub mod trained;
 pub mod world_model;
 
 pub use algorithm::{Algorithm, Batch, Metrics};

@@ -1,8 +1,8 @@
 //! The ctxrace simulator, a library that needs no transport and no networks: the f1tenth
 //! single-track vehicle, an exact LiDAR, exact collisions, rivals scaled by the context (pure
 //! pursuit on the raceline, or follow-the-gap on their own scan: [`gap`]), the head-to-head
-//! [`RaceEnv`], reference egos, the paper's evaluation protocol ([`evaluation`]) and the episode
-//! loop of any ego ([`driver`]).
+//! [`RaceEnv`], many of them stepped together on worker threads ([`vector`]), reference egos,
+//! the paper's evaluation protocol ([`evaluation`]) and the episode loop of any ego ([`driver`]).
 
 pub mod baseline;
 pub mod collision;
@@ -16,6 +16,7 @@ pub mod masks;
 pub mod race;
 pub mod rival;
 pub mod track_check;
+pub mod vector;
 pub mod vehicle;
 
 pub use race::{EpisodeMetrics, RaceEnv, RaceError, Step, StepInfo};

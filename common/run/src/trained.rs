@@ -2,12 +2,10 @@
 //! given step), verified, with its agent configuration, its policy weights and the run's
 //! experiment, for `eval`, `race` and the first look after training.
 
-use crate::best::best_checkpoint;
-use crate::checkpoint::CheckpointError;
-use crate::checkpoint::{checkpoints, latest_checkpoint, verify};
+use crate::checkpoint::{best_checkpoint, checkpoints, latest_checkpoint, verify, CheckpointError};
+use crate::run_dir::{AGENT_FILE, CONFIG_FILE, POLICY_FILE};
 use ctxrace_config::agents::AgentConfigError;
 use ctxrace_config::{AgentConfig, ExperimentConfig, ExperimentError};
-use ctxrace_run::run_dir::{AGENT_FILE, CONFIG_FILE, POLICY_FILE};
 use std::path::{Path, PathBuf};
 
 /// Why a trained agent could not be read back; each names the folder or file and, where there
@@ -240,57 +238,4 @@ fn pick_checkpoint(run: &Path, choice: CheckpointChoice) -> Result<PathBuf> {
             alternatives,
         }
     })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::checkpoint::{write_atomically, STATE_FILE};
-    use ctxrace_run::run_dir::{BEST_DIR, CHECKPOINTS};
-
-    /// A sealed checkpoint `name` of `run` holding an agent and a policy.
-    fn checkpoint(run: &Path, name: &str) -> PathBuf {
-        let agent = toml::to_string(&AgentConfig::default()).unwrap();
-        write_atomically(&run.join(CHECKPOINTS).join(name), |d| {
-            std::fs::write(d.join(STATE_FILE), "step = 1").unwrap();
-            std::fs::write(d.join(crate::best::BEST_FILE), "").unwrap();
-            std::fs::write(d.join(AGENT_FILE), &agent).unwrap();
-            std::fs::write(d.join(POLICY_FILE), name).unwrap();
-            Ok(())
-        })
-        .unwrap()
-    }
-
-    #[test]
-    fn an_intact_best_is_loaded_and_named_when_every_step_is_damaged() {
-        let run = tempfile::tempdir().unwrap();
-        for name in ["step-0000000001", "step-0000000002"] {
-            let dir = checkpoint(run.path(), name);
-            std::fs::write(dir.join(POLICY_FILE), "damaged").unwrap();
-        }
-        let best = checkpoint(run.path(), BEST_DIR);
-        let agent = TrainedAgent::load(run.path(), CheckpointChoice::Best).unwrap();
-        assert_eq!(agent.checkpoint, best);
-        assert_eq!(agent.weights, BEST_DIR.as_bytes());
-        let err = TrainedAgent::load(run.path(), CheckpointChoice::Latest)
-            .unwrap_err()
-            .to_string();
-        assert!(
-            err.contains("no latest checkpoint intact")
-                && err.contains("every step-* checkpoint is damaged")
-                && err.contains("pass --checkpoint best (intact)"),
-            "{err}"
-        );
-        // with the best damaged too, nothing is offered
-        std::fs::write(best.join(POLICY_FILE), "damaged").unwrap();
-        let err = format!(
-            "{:#}",
-            TrainedAgent::load(run.path(), CheckpointChoice::Best).unwrap_err()
-        );
-        assert!(err.contains("damaged"), "{err}");
-        let err = TrainedAgent::load(run.path(), CheckpointChoice::Latest)
-            .unwrap_err()
-            .to_string();
-        assert!(err.contains("no other intact one"), "{err}");
-    }
 }

@@ -1,0 +1,70 @@
+"""Env steps/s of `ctxrace.make_vec` with random actions at num_envs 1, 16 and 64 against 1 and
+3 rivals, on 1 thread and on every core, side by side with the Rust-only stepping of one core
+(`ctxrace bench sim --ego random`) in the same run.
+
+    python deploy/python/bench.py [--track f1_esp] [--seconds 3] [--tracks-dir DIR] [--bin PATH]
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+
+import ctxrace
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def python_rate(track, num_envs, rivals, threads, seconds, tracks_dir):
+    """Env steps/s of a vector env stepped with uniform random actions for `seconds`."""
+    env = ctxrace.make_vec(track, num_envs, rivals=rivals, threads=threads, tracks_dir=tracks_dir)
+    env.reset(seed=0)
+    actions = np.random.default_rng(0).uniform(-1, 1, size=(64, num_envs, 2))
+    steps, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        for a in actions:
+            env.step(a)
+        steps += len(actions)
+    rate = steps * num_envs / (time.perf_counter() - start)
+    env.close()
+    return rate
+
+
+def rust_rate(binary, track, rivals, seconds, tracks_dir):
+    """Decisions/s of `ctxrace bench sim` with the random ego (one core)."""
+    out = subprocess.run(
+        [binary, "bench", "sim", track, "--rivals", str(rivals), "--ego", "random",
+         "--seconds", str(seconds), "--json", "--tracks-dir", str(tracks_dir)],
+        check=True, capture_output=True, text=True,
+    ).stdout
+    return json.loads(out)["decisions_per_s"]
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--track", default="f1_esp")
+    p.add_argument("--seconds", type=float, default=3.0)
+    p.add_argument("--tracks-dir", default=os.environ.get(
+        "CTXRACE_TRACKS_DIR", str(ROOT.parent / "shared" / "tracks")))
+    p.add_argument("--bin", default=os.environ.get(
+        "CTXRACE_BIN", str(ROOT / "target" / "release" / "ctxrace")))
+    args = p.parse_args()
+    cores = os.cpu_count()
+    print(f"{args.track}, random actions, {args.seconds:g} s per cell, {cores} cores")
+    print(f"{'rivals':>6} {'envs':>5} {'1 thread':>10} {'of Rust':>8} "
+          f"{f'{cores} threads':>11} {'per core':>9} {'Rust 1 core':>12}")
+    for rivals in (1, 3):
+        rust = rust_rate(args.bin, args.track, rivals, args.seconds, args.tracks_dir)
+        for num_envs in (1, 16, 64):
+            one = python_rate(args.track, num_envs, rivals, 1, args.seconds, args.tracks_dir)
+            every = python_rate(args.track, num_envs, rivals, 0, args.seconds, args.tracks_dir)
+            print(f"{rivals:>6} {num_envs:>5} {one:>10.0f} {one / rust:>8.2f} "
+                  f"{every:>11.0f} {every / cores / rust:>9.2f} {rust:>12.0f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,23 @@
+"""ctxrace from Python: contextual head-to-head F1TENTH races on ctxrace's Rust simulator as
+Gymnasium envs (``gymnasium.make("ctxrace/Race-v0", ...)``, `make_vec`), and the paper's
+evaluation protocol for any policy (`evaluate`); trained agents' policies (`load_policy`)."""
+
+import gymnasium
+
+from ctxrace._env import RaceEnv, RaceVectorEnv, make_vec
+from ctxrace._evaluate import REFERENCE_POLICIES, Evaluation, evaluate
+from ctxrace._policy import TrainedPolicy, load_policy
+
+__all__ = [
+    "RaceEnv",
+    "RaceVectorEnv",
+    "make_vec",
+    "evaluate",
+    "Evaluation",
+    "REFERENCE_POLICIES",
+    "load_policy",
+    "TrainedPolicy",
+]
+
+if "ctxrace/Race-v0" not in gymnasium.registry:
+    gymnasium.register(id="ctxrace/Race-v0", entry_point="ctxrace._env:RaceEnv")

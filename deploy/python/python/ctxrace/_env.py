@@ -1,0 +1,302 @@
+"""The race as Gymnasium envs: one race (`RaceEnv`, registered as ``ctxrace/Race-v0``) and many
+stepped together on Rust worker threads (`RaceVectorEnv`, from `make_vec`)."""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import Any, Optional
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+from gymnasium.error import ClosedEnvironmentError, ResetNeeded
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from ctxrace import _ctxrace
+
+#: The columns of the outcome table the extension hands back, one row per env.
+_COLUMNS = {name: i for i, name in enumerate(_ctxrace.OUTCOME_COLUMNS)}
+
+#: Largest magnitude of a context element the simulator takes.
+CONTEXT_LIMIT = 0.9
+
+
+def race_keys_json(rivals: int, race_keys: dict) -> str:
+    """The race keys as the extension reads them: a JSON object, ``None`` values left out."""
+    keys = {k: v for k, v in race_keys.items() if v is not None}
+    keys["rivals"] = rivals
+    try:
+        return json.dumps(keys)
+    except TypeError as e:
+        raise TypeError(
+            f"race keys must be numbers, strings, booleans or dicts of them, as the TOML configs "
+            f"take them: {e}"
+        ) from None
+
+
+def _path(path: Optional[os.PathLike]) -> Optional[str]:
+    """A path as the extension takes it."""
+    return None if path is None else os.fspath(path)
+
+
+def pairs_bytes(what: str, values: Any, n: int) -> bytes:
+    """`values` checked as an ``(n, 2)`` array of finite floats, as float64 bytes."""
+    a = np.asarray(values)
+    if a.dtype.kind != "f":
+        raise TypeError(
+            f"{what} must be floating-point (float32 or float64), not dtype {a.dtype}"
+        )
+    if a.shape != (n, 2):
+        raise ValueError(f"{what} must have shape ({n}, 2), not {a.shape}")
+    if not np.isfinite(a).all():
+        bad = int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])
+        raise ValueError(f"{what} of env {bad} is {a[bad].tolist()}: not finite")
+    return np.ascontiguousarray(a, dtype=np.float64).tobytes()
+
+
+def contexts_bytes(contexts: Any, n: int) -> bytes:
+    """Per-env contexts checked (shape ``(n, 2)``, each value in ±CONTEXT_LIMIT) as bytes."""
+    data = pairs_bytes("context", contexts, n)
+    c = np.frombuffer(data, dtype=np.float64)
+    if np.abs(c).max() > CONTEXT_LIMIT:
+        raise ValueError(
+            f"context values must lie in [-{CONTEXT_LIMIT}, {CONTEXT_LIMIT}] (the paper trains on "
+            f"±0.15 and evaluates on ±0.3), got {c.reshape(n, 2).tolist()}"
+        )
+    return data
+
+
+class Races:
+    """The extension's `RaceVector` with its outputs decoded into numpy arrays."""
+
+    def __init__(
+        self,
+        track: str,
+        num_envs: int,
+        rivals: int,
+        tracks_dir: Optional[os.PathLike],
+        config: Optional[os.PathLike],
+        context_range: float,
+        threads: int,
+        race_keys: dict,
+    ):
+        if not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, not {num_envs!r}")
+        self.inner = _ctxrace.RaceVector(
+            str(track),
+            num_envs,
+            race_keys_json(rivals, race_keys),
+            _path(config),
+            _path(tracks_dir),
+            float(context_range),
+            threads,
+        )
+        self.num_envs = num_envs
+        self.obs_dim = self.inner.obs_dim
+        #: The race scenario, every key resolved.
+        self.race_config = json.loads(self.inner.race_config)
+
+    def decode(self, obs: bytes, table: bytes):
+        """(observations, outcome table) as arrays of one row per env."""
+        return (
+            np.frombuffer(obs, dtype=np.float32).reshape(self.num_envs, self.obs_dim).copy(),
+            np.frombuffer(table, dtype=np.float64).reshape(self.num_envs, len(_COLUMNS)),
+        )
+
+    def reset(self, seed: int, contexts: Any = None):
+        """Starts every env's next episode (see `RaceVectorEnv.reset`)."""
+        c = None if contexts is None else contexts_bytes(contexts, self.num_envs)
+        return self.decode(*self.inner.reset(seed, c))
+
+    def step(self, actions: Any):
+        """Steps every env (see `RaceVectorEnv.step`)."""
+        return self.decode(*self.inner.step(pairs_bytes("actions", actions, self.num_envs)))
+
+
+def info_of(table: np.ndarray) -> dict:
+    """The info arrays of an outcome table: context, progress, overtakes, a2a, wall_crash."""
+    return {
+        # the two adjacent columns as a slice (fancy indexing costs more per step)
+        "context": table[:, _COLUMNS["context_speed"] : _COLUMNS["context_steer"] + 1].copy(),
+        "progress": table[:, _COLUMNS["progress"]].copy(),
+        "overtakes": table[:, _COLUMNS["overtakes"]].astype(np.int64),
+        "a2a": table[:, _COLUMNS["a2a"]] != 0,
+        "wall_crash": table[:, _COLUMNS["wall_crash"]] != 0,
+    }
+
+
+def _seed_of(seed: Optional[int], rng: np.random.Generator) -> int:
+    """The simulator's reset seed: `seed`, else one drawn from the env's generator."""
+    if seed is None:
+        return int(rng.integers(2**63))
+    if not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise TypeError(f"seed must be a non-negative int or None, not {seed!r}")
+    return int(seed)
+
+
+class RaceVectorEnv(VectorEnv):
+    """`num_envs` head-to-head races of one track and scenario, stepped together in Rust on
+    worker threads with the GIL released.
+
+    Observations: the ego's LiDAR, ``(num_envs, beams)`` float32 in [0, 1]. Actions:
+    ``(num_envs, 2)`` floats in [-1, 1] (steering, speed). Autoreset as Gymnasium's
+    ``AutoresetMode.NEXT_STEP``: the step after an env's episode ended resets it (reward 0,
+    its action ignored). Each episode's context is drawn from ``±context_range`` unless
+    ``reset(options={"context": (num_envs, 2) array})`` pins it (for that env's later episodes
+    too, until a reset without one). ``reset(seed=S)`` starts env ``i`` from the simulator's
+    reset seed ``S + i``, as ``ctxrace race --seed S + i`` does. Info arrays: ``context``,
+    ``progress``, ``overtakes`` (this step's rank change), ``a2a``, ``wall_crash``.
+    """
+
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}
+
+    def __init__(
+        self,
+        track: str,
+        num_envs: int,
+        rivals: int = 1,
+        seed: Optional[int] = None,
+        tracks_dir: Optional[os.PathLike] = None,
+        config: Optional[os.PathLike] = None,
+        context_range: float = 0.15,
+        threads: int = 0,
+        **race_keys: Any,
+    ):
+        self._races = Races(
+            track, num_envs, rivals, tracks_dir, config, context_range, threads, race_keys
+        )
+        self.num_envs = num_envs
+        self.race_config = self._races.race_config
+        self.single_observation_space = spaces.Box(
+            0.0, 1.0, (self._races.obs_dim,), np.float32
+        )
+        self.single_action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.observation_space = batch_space(self.single_observation_space, num_envs)
+        self.action_space = batch_space(self.single_action_space, num_envs)
+        self._first_seed = seed
+        if seed is not None:
+            self.action_space.seed(seed)
+
+    @property
+    def threads(self) -> int:
+        """Worker threads stepping the envs."""
+        return self._live().inner.threads
+
+    def _live(self) -> Races:
+        """The races, unless the env was closed."""
+        if self.closed:
+            raise ClosedEnvironmentError("the env is closed; make a new one")
+        return self._races
+
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
+        """Starts every env's next episode; ``options={"context": (num_envs, 2)}`` pins contexts."""
+        races = self._live()
+        if seed is None and self._first_seed is not None:
+            seed, self._first_seed = self._first_seed, None
+        super().reset(seed=seed)
+        contexts = (options or {}).get("context")
+        obs, table = races.reset(_seed_of(seed, self.np_random), contexts)
+        return obs, info_of(table)
+
+    def step(self, actions):
+        """Steps every env with its action; returns (obs, reward, terminated, truncated, info)."""
+        obs, table = self._live().step(actions)
+        return (
+            obs,
+            table[:, _COLUMNS["reward"]].copy(),
+            table[:, _COLUMNS["terminated"]] != 0,
+            table[:, _COLUMNS["truncated"]] != 0,
+            info_of(table),
+        )
+
+    def close_extras(self, **kwargs: Any):
+        """Frees the races."""
+        self._races = None
+
+
+class RaceEnv(gymnasium.Env):
+    """One head-to-head race (``gymnasium.make("ctxrace/Race-v0", track=..., rivals=...)``):
+    the spaces, contexts and seeds of `RaceVectorEnv` for a single env; ``reset(options={"context":
+    (c_v, c_θ)})`` pins the context; ``step`` after the episode ended raises ``ResetNeeded``."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(
+        self,
+        track: str = "generated:0",
+        rivals: int = 1,
+        tracks_dir: Optional[os.PathLike] = None,
+        config: Optional[os.PathLike] = None,
+        context_range: float = 0.15,
+        render_mode: Optional[str] = None,
+        **race_keys: Any,
+    ):
+        if render_mode is not None:
+            raise ValueError(f"render_mode {render_mode!r}: ctxrace/Race-v0 renders nothing yet")
+        self._races = Races(track, 1, rivals, tracks_dir, config, context_range, 1, race_keys)
+        self.race_config = self._races.race_config
+        self.observation_space = spaces.Box(0.0, 1.0, (self._races.obs_dim,), np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.render_mode = render_mode
+        self._ended = True
+
+    def _live(self) -> Races:
+        """The race, unless the env was closed."""
+        if self._races is None:
+            raise ClosedEnvironmentError("the env is closed; make a new one")
+        return self._races
+
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
+        """Starts an episode; ``options={"context": (c_v, c_θ)}`` pins the context."""
+        races = self._live()
+        super().reset(seed=seed)
+        context = (options or {}).get("context")
+        if context is not None:
+            context = np.asarray(context).reshape(1, -1)
+        obs, table = races.reset(_seed_of(seed, self.np_random), context)
+        self._ended = False
+        return obs[0], _single(info_of(table))
+
+    def step(self, action):
+        """One decision: returns (obs, reward, terminated, truncated, info)."""
+        races = self._live()
+        if self._ended:
+            raise ResetNeeded("the episode has ended (or never started): call reset")
+        a = np.asarray(action)
+        obs, table = races.step(a.reshape(1, -1) if a.ndim == 1 else a)
+        row = table[0]
+        terminated = bool(row[_COLUMNS["terminated"]])
+        truncated = bool(row[_COLUMNS["truncated"]])
+        self._ended = terminated or truncated
+        return obs[0], float(row[_COLUMNS["reward"]]), terminated, truncated, _single(
+            info_of(table)
+        )
+
+    def close(self):
+        """Frees the race."""
+        self._races = None
+
+
+def _single(info: dict) -> dict:
+    """The first env's entries of vector info arrays."""
+    out = {k: v[0] for k, v in info.items()}
+    out["context"] = info["context"][0]
+    return out
+
+
+def make_vec(
+    track: str,
+    num_envs: int,
+    rivals: int = 1,
+    seed: Optional[int] = None,
+    tracks_dir: Optional[os.PathLike] = None,
+    **kwargs: Any,
+) -> RaceVectorEnv:
+    """`num_envs` races on `track` (a name in `tracks_dir` / ``$CTXRACE_TRACKS_DIR`` / the
+    per-user folder, a map yaml, or ``generated:SEED``) against `rivals` rivals, as a Gymnasium
+    vector env; `seed` seeds its first reset. Further keywords: ``config`` (a race config TOML),
+    ``context_range`` (0.15), ``threads`` (0: one per core) and race keys as the TOML configs
+    name them (``preset="paper-code"``, ``rival={"driver": "follow-the-gap"}``, ...)."""
+    return RaceVectorEnv(track, num_envs, rivals, seed, tracks_dir, **kwargs)

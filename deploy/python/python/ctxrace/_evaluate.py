@@ -1,0 +1,118 @@
+"""The paper's evaluation protocol for any policy: `evaluate`."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from typing import Any, Callable, Optional, Union
+
+import numpy as np
+
+from ctxrace import _ctxrace
+from ctxrace._env import _path, pairs_bytes, race_keys_json
+from ctxrace._policy import TrainedPolicy
+
+#: The reference policies the simulator drives itself.
+REFERENCE_POLICIES = ("pure-pursuit", "follow-the-gap", "random", "still")
+
+#: A batch policy: (observations (k, beams) float32, contexts (k, 2) float64) -> actions (k, 2).
+Policy = Callable[[np.ndarray, np.ndarray], Any]
+
+
+@dataclass
+class Evaluation:
+    """An evaluation's records: `contexts`, one row per context as ``ctxrace eval`` writes
+    ``contexts.json`` (context_speed, context_steer, in_distribution, laps, progress = PG,
+    overtakes = OT, a2a = A2A per 50 laps, wall_crash, lap_complete, episode_return), and
+    `episodes`, one row per episode as its ``episodes.csv``."""
+
+    contexts: list
+    episodes: list
+
+    def means(self, in_distribution: bool) -> dict:
+        """Mean PG, OT, A2A and wall-crash fraction over the contexts in (or out of) the
+        training distribution, as ``ctxrace eval`` prints them."""
+        rows = [r for r in self.contexts if r["in_distribution"] == in_distribution]
+        keys = ("progress", "overtakes", "a2a", "wall_crash")
+        if not rows:
+            return {"contexts": 0, **{k: float("nan") for k in keys}}
+        return {"contexts": len(rows), **{k: float(np.mean([r[k] for r in rows])) for k in keys}}
+
+
+def evaluate(
+    policy: Union[str, Policy],
+    track: str = "f1_esp",
+    rivals: int = 3,
+    grid: int = 7,
+    range: float = 0.3,
+    laps: int = 50,
+    seed: int = 0,
+    train_range: float = 0.15,
+    tracks_dir: Optional[os.PathLike] = None,
+    config: Optional[os.PathLike] = None,
+    batch: int = 64,
+    threads: int = 0,
+    deterministic: bool = False,
+    **race_keys: Any,
+) -> Evaluation:
+    """Races every context of the ``grid × grid`` grid over ``±range``, `laps` episodes each,
+    from the seeds ``ctxrace eval`` uses, and returns its rows (`Evaluation`).
+
+    `policy` is a reference policy's name (``pure-pursuit``, ``follow-the-gap``, ``random``,
+    ``still``: driven in Rust, the rows equal ``ctxrace eval POLICY``'s) or a callable
+    ``policy(obs, context) -> actions`` called on `batch` episodes at a time: ``obs`` the
+    racing episodes' LiDAR ``(k, beams)``, ``context`` their contexts ``(k, 2)``, returning
+    ``(k, 2)`` actions (a stateless policy: the batch's episodes change as they end); or a
+    `TrainedPolicy` (`load_policy`), each episode starting afresh with its noise seeded by the
+    episode as ``ctxrace eval`` seeds it, sampling unless `deterministic` (``--act mode``).
+    `train_range` splits the contexts in and out of distribution; `config`, `tracks_dir` and
+    race keys as for `make_vec`.
+    """
+    common = dict(
+        track=str(track),
+        race_keys=race_keys_json(rivals, race_keys),
+        config=_path(config),
+        tracks_dir=_path(tracks_dir),
+        grid=grid,
+        range=float(range),
+        laps=laps,
+        seed=seed,
+    )
+    if isinstance(policy, str):
+        if policy not in REFERENCE_POLICIES:
+            raise ValueError(
+                f"unknown reference policy {policy!r}: use one of {', '.join(REFERENCE_POLICIES)} "
+                "or pass a callable policy(obs, context) -> actions"
+            )
+        text = _ctxrace.evaluate_reference(
+            policy, **common, train_range=float(train_range), threads=threads
+        )
+    elif callable(policy):
+        run = _ctxrace.Evaluation(**common, batch=batch, threads=threads)
+        text = _drive(policy, run, train_range, deterministic)
+    else:
+        raise TypeError(
+            f"policy must be a reference policy's name or a callable, not {type(policy).__name__}"
+        )
+    records = json.loads(text)
+    return Evaluation(contexts=records["contexts"], episodes=records["episodes"])
+
+
+def _drive(policy: Policy, run: Any, train_range: float, deterministic: bool) -> str:
+    """Steps the protocol `run` with `policy` until every episode has ended."""
+    dim = run.obs_dim
+    while run.racing_now > 0:
+        k = run.racing_now
+        obs, contexts = run.observe()
+        obs = np.frombuffer(obs, dtype=np.float32).reshape(k, dim).copy()
+        contexts = np.frombuffer(contexts, dtype=np.float64).reshape(k, 2).copy()
+        if isinstance(policy, TrainedPolicy):
+            started = run.started()
+            if started:
+                policy.reset([lane for lane, _ in started], [seed for _, seed in started])
+            actions = policy.act(obs, contexts, deterministic, rows=run.lanes())
+        else:
+            actions = policy(obs, contexts)
+        run.act(pairs_bytes("actions", actions, k))
+    return run.result(float(train_range))

@@ -1,0 +1,74 @@
+"""Trained agents from Python: `load_policy`."""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import Any, Optional, Sequence
+
+import numpy as np
+
+from ctxrace import _ctxrace
+from ctxrace._env import pairs_bytes
+
+
+class TrainedPolicy:
+    """A trained agent's acting policy over a batch: row ``i`` of a batch is one episode, with
+    its own recurrent state and sampling noise, acting as an actor process acts."""
+
+    def __init__(self, inner: Any):
+        self._inner = inner
+        #: The algorithm: sac, dreamerv3, crssm or cmask.
+        self.algo = inner.algo
+        #: The checkpoint folder read.
+        self.checkpoint = inner.checkpoint
+        #: Values in one observation (LiDAR beams).
+        self.obs_dim = inner.obs_dim
+        #: The run's race scenario (the default scenario's when the run is unknown).
+        self.race_config = json.loads(inner.race_config)
+        #: The run's training context range (None when the run is unknown).
+        self.context_range = inner.context_range
+
+    def reset(self, rows: Optional[Sequence[int]] = None, seeds: Optional[Sequence[int]] = None):
+        """Starts new episodes in batch `rows` (all when None), restarting their sampling noise
+        from `seeds` (one per row) when given: ``ctxrace race --seed S`` resets with ``[S]``."""
+        self._inner.reset(
+            None if rows is None else [int(r) for r in rows],
+            None if seeds is None else [int(s) for s in seeds],
+        )
+
+    def act(self, obs: Any, context: Any, deterministic: bool = False,
+            rows: Optional[Sequence[int]] = None) -> np.ndarray:
+        """Actions for observations ``(k, obs_dim)`` (or one ``(obs_dim,)``) under the episodes'
+        contexts ``(k, 2)`` (or one pair): sampled, or the mode if `deterministic`; `rows` names
+        the batch rows acting (``0..k`` when None). Returns ``(k, 2)`` (or ``(2,)``) float64."""
+        o = np.asarray(obs)
+        if o.dtype.kind != "f":
+            raise TypeError(f"obs must be floating-point, not dtype {o.dtype}")
+        single = o.ndim == 1
+        o = o.reshape(1, -1) if single else o
+        if o.ndim != 2 or o.shape[1] != self.obs_dim:
+            raise ValueError(f"obs must have shape (k, {self.obs_dim}), not {np.shape(obs)}")
+        if not np.isfinite(o).all():
+            raise ValueError("obs holds NaN or inf")
+        k = len(o)
+        c = np.asarray(context)
+        c = c.reshape(1, -1) if single else c
+        actions = self._inner.act(
+            np.ascontiguousarray(o, dtype=np.float32).tobytes(),
+            pairs_bytes("context", c, k),
+            bool(deterministic),
+            None if rows is None else [int(r) for r in rows],
+        )
+        a = np.frombuffer(actions, dtype=np.float64).reshape(k, 2).copy()
+        return a[0] if single else a
+
+    def __call__(self, obs: Any, context: Any) -> np.ndarray:
+        """Sampled actions for a batch (`act`)."""
+        return self.act(obs, context)
+
+
+def load_policy(path: os.PathLike, checkpoint: str = "best") -> TrainedPolicy:
+    """The acting policy of a checkpoint folder, or of a run folder's checkpoint `checkpoint`
+    (``best``, ``latest``, ``step-N``), read and verified as ``ctxrace eval`` reads it."""
+    return TrainedPolicy(_ctxrace.Policy(os.fspath(path), checkpoint))

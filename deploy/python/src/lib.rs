@@ -1,0 +1,223 @@
+//! The extension module `ctxrace._ctxrace` of the `ctxrace` Python package: races stepped in
+//! Rust for the package's Gymnasium envs ([`vector::PyRaceVector`]) and the paper's evaluation
+//! protocol ([`evaluate`]), and trained agents' acting policies ([`policy`]). It links the
+//! simulator library (`ctxrace-sim`, its tracks and configuration), the run's files
+//! (`ctxrace-run`) and the networks (`ctxrace-nn`), never the transport. Arrays cross as native-endian bytes that
+//! the Python side views with numpy; errors become Python exceptions naming what to fix.
+
+mod evaluate;
+mod policy;
+mod vector;
+
+use ctxrace_config::validate::Causes;
+use ctxrace_config::{ContextError, RaceConfig, RaceConfigError};
+use ctxrace_nn::policy::PolicyError;
+use ctxrace_run::trained::TrainedAgentError;
+use ctxrace_sim::vector::VectorError;
+use ctxrace_tracks::{RacelineSource, Track, TrackError, TrackOptions};
+use pyo3::exceptions::{PyRuntimeError, PyValueError};
+use pyo3::prelude::*;
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex, OnceLock};
+
+/// Why a call from Python was refused.
+#[derive(Debug, thiserror::Error)]
+pub enum BindError {
+    /// A race config file could not be read.
+    #[error("reading race config {}", .path.display())]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: std::io::Error,
+    },
+    /// A race config file is no TOML.
+    #[error("race config {}", .path.display())]
+    Toml {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: toml::de::Error,
+    },
+    /// The race keyword arguments are no TOML table.
+    #[error(
+        "race keys (give numbers, strings, booleans and dicts of them, as the TOML configs do)"
+    )]
+    Keys(#[source] Box<dyn std::error::Error + Send + Sync>),
+    /// The race configuration is refused.
+    #[error(transparent)]
+    Race(#[from] RaceConfigError),
+    /// The track could not be loaded.
+    #[error("loading track '{spec}'")]
+    Track {
+        /// The track as given.
+        spec: String,
+        /// Why.
+        #[source]
+        source: Box<TrackError>,
+    },
+    /// A context is out of range.
+    #[error(transparent)]
+    Context(#[from] ContextError),
+    /// The vector of races refused the call.
+    #[error(transparent)]
+    Vector(#[from] VectorError),
+    /// An array's bytes do not hold whole values.
+    #[error("{what} holds {bytes} bytes, no whole number of {size}-byte values")]
+    Bytes {
+        /// Which argument.
+        what: &'static str,
+        /// Its length in bytes.
+        bytes: usize,
+        /// The size of one value.
+        size: usize,
+    },
+    /// A trained agent could not be read back.
+    #[error(transparent)]
+    Trained(Box<TrainedAgentError>),
+    /// A trained agent's policy refused its weights or an observation.
+    #[error(transparent)]
+    Policy(#[from] PolicyError),
+    /// An argument out of its range (a reference policy's name, the grid's size).
+    #[error("{0}")]
+    Argument(String),
+}
+
+impl From<BindError> for PyErr {
+    fn from(e: BindError) -> PyErr {
+        let message = Causes(&e).to_string();
+        match e {
+            BindError::Vector(VectorError::NotReset) => PyRuntimeError::new_err(message),
+            _ => PyValueError::new_err(message),
+        }
+    }
+}
+
+/// The outcome of a call from Python.
+type Result<T> = std::result::Result<T, BindError>;
+
+/// The race of a TOML config file (none: an empty table) with `keys_json` (a JSON object of
+/// race keys, tables as objects) laid over it, each key replacing the file's, tables merged key
+/// by key; keys neither gives take the values of the preset they name.
+fn race_config(config: Option<PathBuf>, keys_json: &str) -> Result<RaceConfig> {
+    let mut table = match config {
+        Some(path) => {
+            let text = std::fs::read_to_string(&path).map_err(|source| BindError::Read {
+                path: path.clone(),
+                source,
+            })?;
+            toml::from_str(&text).map_err(|source| BindError::Toml { path, source })?
+        }
+        None => toml::Table::new(),
+    };
+    let json: serde_json::Value =
+        serde_json::from_str(keys_json).map_err(|e| BindError::Keys(e.into()))?;
+    let keys = match toml::Value::try_from(json).map_err(|e| BindError::Keys(e.into()))? {
+        toml::Value::Table(keys) => keys,
+        other => return Err(BindError::Keys(format!("{other} is no table").into())),
+    };
+    merge(&mut table, keys);
+    Ok(RaceConfig::from_table(table)?)
+}
+
+/// Lays `over` onto `base`: tables merge key by key, other values replace.
+fn merge(base: &mut toml::Table, over: toml::Table) {
+    for (key, value) in over {
+        match (base.get_mut(&key), value) {
+            (Some(toml::Value::Table(b)), toml::Value::Table(o)) => merge(b, o),
+            (_, value) => {
+                base.insert(key, value);
+            }
+        }
+    }
+}
+
+/// Tracks loaded so far, by what identifies them (the raceline's optimisation takes a while).
+static TRACKS: OnceLock<Mutex<HashMap<String, Arc<Track>>>> = OnceLock::new();
+
+/// Loads `spec` (a name in `tracks_dir`, else `$CTXRACE_TRACKS_DIR`, else `../shared/tracks`,
+/// then in the per-user folder; a map yaml; `generated:SEED`) with `race`'s raceline choice,
+/// once per process.
+fn load_track(spec: &str, tracks_dir: Option<PathBuf>, race: &RaceConfig) -> Result<Arc<Track>> {
+    let mut opts = TrackOptions::default();
+    if let Some(dir) = tracks_dir {
+        opts.tracks_dir = dir;
+    }
+    if race.shipped_raceline {
+        opts.raceline_source = RacelineSource::File;
+    }
+    let key = format!(
+        "{spec}\0{}\0{}",
+        opts.tracks_dir.display(),
+        race.shipped_raceline
+    );
+    let cache = TRACKS.get_or_init(Mutex::default);
+    if let Some(track) = cache.lock().unwrap_or_else(|p| p.into_inner()).get(&key) {
+        return Ok(track.clone());
+    }
+    let track = Arc::new(Track::load(spec, &opts).map_err(|source| BindError::Track {
+        spec: spec.to_string(),
+        source: Box::new(source),
+    })?);
+    let mut cache = cache.lock().unwrap_or_else(|p| p.into_inner());
+    Ok(cache.entry(key).or_insert(track).clone())
+}
+
+/// Decodes native-endian `f64` bytes.
+fn f64s(what: &'static str, bytes: &[u8]) -> Result<Vec<f64>> {
+    if !bytes.len().is_multiple_of(8) {
+        return Err(BindError::Bytes {
+            what,
+            bytes: bytes.len(),
+            size: 8,
+        });
+    }
+    Ok(bytes
+        .chunks_exact(8)
+        .map(|b| f64::from_ne_bytes(b.try_into().expect("8 bytes")))
+        .collect())
+}
+
+/// Pairs of values (actions, contexts) from native-endian `f64` bytes.
+fn pairs(what: &'static str, bytes: &[u8]) -> Result<Vec<[f64; 2]>> {
+    if !bytes.len().is_multiple_of(16) {
+        return Err(BindError::Bytes {
+            what,
+            bytes: bytes.len(),
+            size: 16,
+        });
+    }
+    Ok(f64s(what, bytes)?
+        .chunks_exact(2)
+        .map(|p| [p[0], p[1]])
+        .collect())
+}
+
+/// Native-endian bytes of `values`, as a Python `bytes`.
+fn bytes_of<'py, T: Copy, const N: usize>(
+    py: Python<'py>,
+    values: &[T],
+    to_bytes: fn(T) -> [u8; N],
+) -> Bound<'py, pyo3::types::PyBytes> {
+    pyo3::types::PyBytes::new_with(py, values.len() * N, |buf| {
+        for (b, &v) in buf.chunks_exact_mut(N).zip(values) {
+            b.copy_from_slice(&to_bytes(v));
+        }
+        Ok(())
+    })
+    .expect("filling bytes cannot fail")
+}
+
+/// The extension module.
+#[pymodule]
+fn _ctxrace(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<vector::PyRaceVector>()?;
+    m.add_class::<evaluate::PyEvaluation>()?;
+    m.add_class::<policy::PyPolicy>()?;
+    m.add_function(wrap_pyfunction!(evaluate::evaluate_reference, m)?)?;
+    m.add("OUTCOME_COLUMNS", vector::OUTCOME_COLUMNS.to_vec())?;
+    Ok(())
+}

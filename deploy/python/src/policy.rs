@@ -1,0 +1,178 @@
+//! A trained agent's acting policy for Python: read from a run folder or a checkpoint as
+//! `ctxrace eval` reads it ([`TrainedAgent`]), one acting [`Policy`] per row of a batch (each
+//! with its own recurrent state and noise, as one actor process drives one), acting with the
+//! GIL released.
+
+use crate::{bytes_of, pairs, BindError, Result};
+use ctxrace_nn::policy::PolicyError;
+use ctxrace_nn::Policy;
+use ctxrace_run::trained::{CheckpointChoice, TrainedAgent, UnknownCheckpointChoice};
+use pyo3::prelude::*;
+use pyo3::types::PyBytes;
+use rayon::prelude::*;
+use std::path::PathBuf;
+
+/// A trained agent's acting policy over batches of episodes.
+#[pyclass(name = "Policy", module = "ctxrace._ctxrace")]
+pub struct PyPolicy {
+    agent: TrainedAgent,
+    /// Values in one observation.
+    obs_dim: usize,
+    /// One policy per batch row, made as rows are first used.
+    rows: Vec<Policy>,
+    /// The run's race scenario as JSON (the default scenario's when the run is unknown).
+    race: String,
+}
+
+impl PyPolicy {
+    /// Makes policies up to `n` rows, row `i` seeded by `i` until reset with a seed.
+    fn grow(&mut self, n: usize) -> Result<()> {
+        while self.rows.len() < n {
+            let seed = self.rows.len() as u64;
+            let policy = Policy::new(&self.agent.agent, self.obs_dim, &self.agent.weights, seed)?;
+            self.rows.push(policy);
+        }
+        Ok(())
+    }
+}
+
+#[pymethods]
+impl PyPolicy {
+    /// The policy of the checkpoint `path`, or of the checkpoint `checkpoint` (`best`,
+    /// `latest`, `step-N`) of the run folder `path`.
+    #[new]
+    #[pyo3(signature = (path, checkpoint="best"))]
+    fn new(path: PathBuf, checkpoint: &str) -> PyResult<Self> {
+        let choice: CheckpointChoice = checkpoint
+            .parse()
+            .map_err(|e: UnknownCheckpointChoice| BindError::Argument(e.to_string()))?;
+        let agent =
+            TrainedAgent::load(&path, choice).map_err(|e| BindError::Trained(Box::new(e)))?;
+        let race = agent
+            .experiment
+            .as_ref()
+            .map(|e| e.race.clone())
+            .unwrap_or_default();
+        let mut p = Self {
+            obs_dim: race.lidar.beams,
+            race: serde_json::to_string(&race).expect("a race config serialises"),
+            rows: Vec::new(),
+            agent,
+        };
+        // a checkpoint that does not fit its race is refused now, not at the first action
+        p.grow(1)?;
+        Ok(p)
+    }
+
+    /// The algorithm (`sac`, `dreamerv3`, `crssm`, `cmask`).
+    #[getter]
+    fn algo(&self) -> &'static str {
+        self.agent.agent.algo.name()
+    }
+
+    /// The checkpoint folder read.
+    #[getter]
+    fn checkpoint(&self) -> PathBuf {
+        self.agent.checkpoint.clone()
+    }
+
+    /// Values in one observation.
+    #[getter]
+    fn obs_dim(&self) -> usize {
+        self.obs_dim
+    }
+
+    /// The run's race scenario as JSON (the default scenario's when the run is unknown).
+    #[getter]
+    fn race_config(&self) -> &str {
+        &self.race
+    }
+
+    /// The run's training context range, when the run is known.
+    #[getter]
+    fn context_range(&self) -> Option<f64> {
+        self.agent
+            .experiment
+            .as_ref()
+            .map(|e| e.train.context_range)
+    }
+
+    /// Starts new episodes in `rows` (every row made so far when `None`), restarting their noise
+    /// from `seeds` (one per row) when given, as an evaluation reseeds each episode.
+    #[pyo3(signature = (rows=None, seeds=None))]
+    fn reset(&mut self, rows: Option<Vec<usize>>, seeds: Option<Vec<u64>>) -> PyResult<()> {
+        let rows = rows.unwrap_or_else(|| (0..self.rows.len()).collect());
+        if seeds.as_ref().is_some_and(|s| s.len() != rows.len()) {
+            return Err(BindError::Argument("give one seed per row reset".into()).into());
+        }
+        self.grow(rows.iter().max().map_or(0, |&m| m + 1))?;
+        for (k, &row) in rows.iter().enumerate() {
+            self.rows[row].reset();
+            if let Some(seeds) = &seeds {
+                self.rows[row].reseed(seeds[k]);
+            }
+        }
+        Ok(())
+    }
+
+    /// Acts on `obs` (`f32`, one observation per row) under `contexts` (`f64` pairs) for the
+    /// batch rows `rows` (`0..k` when `None`), sampling unless `deterministic`, with the GIL
+    /// released; returns the actions as `f64` pairs (bytes).
+    #[pyo3(signature = (obs, contexts, deterministic=false, rows=None))]
+    fn act<'py>(
+        &mut self,
+        py: Python<'py>,
+        obs: &[u8],
+        contexts: &[u8],
+        deterministic: bool,
+        rows: Option<Vec<usize>>,
+    ) -> PyResult<Bound<'py, PyBytes>> {
+        let contexts = pairs("contexts", contexts)?;
+        let k = contexts.len();
+        if obs.len() != k * self.obs_dim * 4 {
+            return Err(BindError::Argument(format!(
+                "obs holds {} bytes where {k} observations of {} float32 need {}",
+                obs.len(),
+                self.obs_dim,
+                k * self.obs_dim * 4
+            ))
+            .into());
+        }
+        let obs: Vec<f32> = obs
+            .chunks_exact(4)
+            .map(|b| f32::from_ne_bytes(b.try_into().expect("4 bytes")))
+            .collect();
+        let rows = rows.unwrap_or_else(|| (0..k).collect());
+        let mut seen = vec![false; rows.iter().max().map_or(0, |&m| m + 1)];
+        if rows.len() != k || rows.iter().any(|&r| std::mem::replace(&mut seen[r], true)) {
+            return Err(BindError::Argument(format!(
+                "rows must name {k} distinct batch rows, one per observation"
+            ))
+            .into());
+        }
+        self.grow(seen.len())?;
+        let dim = self.obs_dim;
+        let mut by_row: Vec<Option<&mut Policy>> = self.rows.iter_mut().map(Some).collect();
+        let mut work: Vec<(&mut Policy, &[f32], [f32; 2])> = Vec::with_capacity(k);
+        for (i, &row) in rows.iter().enumerate() {
+            let policy = by_row[row].take().expect("distinct rows");
+            let c = contexts[i];
+            work.push((
+                policy,
+                &obs[i * dim..(i + 1) * dim],
+                [c[0] as f32, c[1] as f32],
+            ));
+        }
+        let actions: Vec<f64> = py
+            .detach(|| {
+                work.into_par_iter()
+                    .map(|(policy, obs, context)| policy.act(obs, context, deterministic))
+                    .collect::<std::result::Result<Vec<_>, PolicyError>>()
+            })
+            .map_err(BindError::from)?
+            .into_iter()
+            .flat_map(|d| d.action.map(f64::from))
+            .collect();
+        Ok(bytes_of(py, &actions, f64::to_ne_bytes))
+    }
+}

@@ -1,0 +1,161 @@
+//! `RaceVector` for Python: the simulator's [`RaceVector`] with the buffers it writes into,
+//! stepped with the GIL released; each call hands back the observations and a table of
+//! outcomes as bytes.
+
+use crate::{bytes_of, load_track, pairs, race_config, BindError, Result};
+use ctxrace_config::Context;
+use ctxrace_sim::vector::{EnvOutcome, RaceVector};
+use pyo3::prelude::*;
+use pyo3::types::PyBytes;
+use std::path::PathBuf;
+
+/// The columns of the outcome table, one `f64` each per env (flags as 0 or 1).
+pub const OUTCOME_COLUMNS: [&str; 9] = [
+    "reward",
+    "terminated",
+    "truncated",
+    "context_speed",
+    "context_steer",
+    "progress",
+    "overtakes",
+    "a2a",
+    "wall_crash",
+];
+
+/// One env's outcome as a row of the table ([`OUTCOME_COLUMNS`]).
+fn row(o: &EnvOutcome) -> [f64; 9] {
+    [
+        o.reward,
+        f64::from(u8::from(o.terminated)),
+        f64::from(u8::from(o.truncated)),
+        o.context.speed,
+        o.context.steer,
+        o.progress,
+        f64::from(o.overtakes),
+        f64::from(u8::from(o.a2a)),
+        f64::from(u8::from(o.wall_crash)),
+    ]
+}
+
+/// `num_envs` races of one track and scenario, stepped on worker threads (the package's
+/// `ctxrace.make` and `ctxrace.make_vec` wrap it).
+#[pyclass(name = "RaceVector", module = "ctxrace._ctxrace")]
+pub struct PyRaceVector {
+    inner: RaceVector,
+    obs: Vec<f32>,
+    outcomes: Vec<EnvOutcome>,
+    /// The race scenario as JSON.
+    race: String,
+    /// The track's name.
+    track: String,
+}
+
+impl PyRaceVector {
+    /// The observations and the outcome table as bytes.
+    fn arrays<'py>(&self, py: Python<'py>) -> (Bound<'py, PyBytes>, Bound<'py, PyBytes>) {
+        let table: Vec<f64> = self.outcomes.iter().flat_map(row).collect();
+        (
+            bytes_of(py, &self.obs, f32::to_ne_bytes),
+            bytes_of(py, &table, f64::to_ne_bytes),
+        )
+    }
+}
+
+#[pymethods]
+impl PyRaceVector {
+    /// `num_envs` races on `track` of the race config file `config` (none: the default
+    /// scenario) with the race keys `race_keys` (a JSON object) laid over it; contexts drawn
+    /// from `±context_range`; `threads` worker threads (0: one per core).
+    #[new]
+    #[pyo3(signature = (track, num_envs, race_keys="{}", config=None, tracks_dir=None, context_range=0.15, threads=0))]
+    fn new(
+        track: &str,
+        num_envs: usize,
+        race_keys: &str,
+        config: Option<PathBuf>,
+        tracks_dir: Option<PathBuf>,
+        context_range: f64,
+        threads: usize,
+    ) -> PyResult<Self> {
+        let cfg = race_config(config, race_keys)?;
+        let track = load_track(track, tracks_dir, &cfg)?;
+        let inner = RaceVector::new(track.clone(), &cfg, num_envs, context_range, threads)
+            .map_err(BindError::from)?;
+        Ok(Self {
+            obs: vec![0.0; num_envs * inner.obs_dim()],
+            outcomes: vec![EnvOutcome::default(); num_envs],
+            race: serde_json::to_string(&cfg).expect("a race config serialises"),
+            track: track.name.clone(),
+            inner,
+        })
+    }
+
+    /// Number of envs.
+    #[getter]
+    fn num_envs(&self) -> usize {
+        self.inner.len()
+    }
+
+    /// Values in one env's observation (LiDAR beams).
+    #[getter]
+    fn obs_dim(&self) -> usize {
+        self.inner.obs_dim()
+    }
+
+    /// Worker threads stepping the envs.
+    #[getter]
+    fn threads(&self) -> usize {
+        self.inner.threads()
+    }
+
+    /// The race scenario, every key resolved, as JSON.
+    #[getter]
+    fn race_config(&self) -> &str {
+        &self.race
+    }
+
+    /// The track's name.
+    #[getter]
+    fn track(&self) -> &str {
+        &self.track
+    }
+
+    /// Starts every env's next episode from `seed` (env `i`: reset seed `seed + i`);
+    /// `contexts` (native-endian `f64` pairs, one per env) pins each env's context, none draws
+    /// them. Returns (observations, outcome table) as bytes.
+    #[pyo3(signature = (seed, contexts=None))]
+    fn reset<'py>(
+        &mut self,
+        py: Python<'py>,
+        seed: u64,
+        contexts: Option<&[u8]>,
+    ) -> PyResult<(Bound<'py, PyBytes>, Bound<'py, PyBytes>)> {
+        let contexts = contexts
+            .map(|bytes| {
+                pairs("contexts", bytes)?
+                    .into_iter()
+                    .map(|[speed, steer]| Ok(Context::new(speed, steer)?))
+                    .collect::<Result<Vec<_>>>()
+            })
+            .transpose()?;
+        let (inner, obs, out) = (&mut self.inner, &mut self.obs, &mut self.outcomes);
+        py.detach(|| inner.reset(seed, contexts.as_deref(), obs, out))
+            .map_err(BindError::from)?;
+        Ok(self.arrays(py))
+    }
+
+    /// Steps every env with its action (native-endian `f64` pairs, one per env), with the GIL
+    /// released; an env whose episode ended resets instead. Returns (observations, outcome
+    /// table) as bytes.
+    fn step<'py>(
+        &mut self,
+        py: Python<'py>,
+        actions: &[u8],
+    ) -> PyResult<(Bound<'py, PyBytes>, Bound<'py, PyBytes>)> {
+        let actions = pairs("actions", actions)?;
+        let (inner, obs, out) = (&mut self.inner, &mut self.obs, &mut self.outcomes);
+        py.detach(|| inner.step(&actions, obs, out))
+            .map_err(BindError::from)?;
+        Ok(self.arrays(py))
+    }
+}

@@ -1,0 +1,250 @@
+"""The Gymnasium envs: spaces, reset/step/autoreset, contexts, seeds, threads, race keys,
+tracks, and every bad input raising a Python exception."""
+
+import csv
+import subprocess
+import threading
+
+import gymnasium
+import numpy as np
+import pytest
+from gymnasium.error import ClosedEnvironmentError, ResetNeeded
+from gymnasium.utils.env_checker import check_env
+
+import ctxrace
+
+TRACK = "generated:0"
+
+
+def random_actions(env, steps, seed=0):
+    """`steps` batches of uniform random actions for `env`."""
+    rng = np.random.default_rng(seed)
+    return rng.uniform(-1, 1, size=(steps, env.num_envs, 2))
+
+
+def rollout(env, actions, seed, options=None):
+    """Every step's (obs, reward, terminated, info) under `actions` from `reset(seed)`."""
+    obs, info = env.reset(seed=seed, options=options)
+    out = [(obs, np.zeros(env.num_envs), np.zeros(env.num_envs, bool), info)]
+    for a in actions:
+        obs, reward, terminated, _, info = env.step(a)
+        out.append((obs, reward, terminated, info))
+    return out
+
+
+def test_import_registers_a_race_that_passes_check_env():
+    env = gymnasium.make("ctxrace/Race-v0", track=TRACK, rivals=2)
+    check_env(env.unwrapped)
+    obs, info = env.reset(seed=3)
+    assert obs.shape == (108,) and obs.dtype == np.float32
+    assert set(info) == {"context", "progress", "overtakes", "a2a", "wall_crash"}
+    env.close()
+
+
+def test_vector_spaces_and_arrays():
+    env = ctxrace.make_vec(TRACK, 4, rivals=2, seed=1)
+    assert env.single_observation_space.shape == (108,)
+    assert env.action_space.shape == (4, 2)
+    obs, info = env.reset()
+    assert obs.shape == (4, 108) and obs.dtype == np.float32
+    assert obs in env.observation_space
+    assert info["context"].shape == (4, 2)
+    obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    assert reward.shape == (4,) and reward.dtype == np.float64
+    assert terminated.dtype == bool and truncated.dtype == bool
+    for key in ("progress", "overtakes", "a2a", "wall_crash"):
+        assert info[key].shape == (4,)
+    assert env.race_config["rivals"] == 2
+    env.close()
+
+
+def test_ended_episodes_reset_on_the_next_step_with_a_fresh_context():
+    env = ctxrace.make_vec(TRACK, 8, seed=2)
+    env.reset()
+    full_left = np.tile([-1.0, 1.0], (8, 1))
+    for _ in range(200):
+        _, _, terminated, truncated, info = env.step(full_left)
+        if terminated.any():
+            break
+    assert terminated.any(), "full lock at full speed meets a wall"
+    ended = terminated | truncated
+    before = info["context"].copy()
+    obs, reward, terminated, truncated, info = env.step(full_left)
+    assert (reward[ended] == 0).all() and not terminated[ended].any()
+    assert (info["progress"][ended] == 0).all()
+    assert (info["context"][ended] != before[ended]).all()
+    assert (np.abs(info["context"]) <= 0.15).all()
+    env.close()
+
+
+def test_contexts_pinned_at_reset_stay_for_later_episodes():
+    env = ctxrace.make_vec(TRACK, 3, seed=0)
+    pinned = np.array([[0.3, -0.3], [0.0, 0.2], [-0.25, 0.1]])
+    _, info = env.reset(options={"context": pinned})
+    np.testing.assert_array_equal(info["context"], pinned)
+    for _ in range(150):
+        _, _, _, _, info = env.step(np.tile([-1.0, 1.0], (3, 1)))
+    np.testing.assert_array_equal(info["context"], pinned)
+    _, info = env.reset(seed=5)
+    assert (np.abs(info["context"]) <= 0.15).all(), "a reset without contexts draws again"
+    narrow = ctxrace.make_vec(TRACK, 16, context_range=0.05)
+    _, info = narrow.reset(seed=1)
+    assert (np.abs(info["context"]) <= 0.05).all() and len(np.unique(info["context"])) > 16
+
+
+def test_same_seed_and_actions_give_the_same_races_on_any_threads():
+    actions = random_actions(ctxrace.make_vec(TRACK, 5), 120)
+    runs = [
+        rollout(ctxrace.make_vec(TRACK, 5, rivals=1, threads=t), actions, seed=9)
+        for t in (1, 2, 2)
+    ]
+    for other in runs[1:]:
+        for (o1, r1, t1, i1), (o2, r2, t2, i2) in zip(runs[0], other):
+            np.testing.assert_array_equal(o1, o2)
+            np.testing.assert_array_equal(r1, r2)
+            np.testing.assert_array_equal(i1["context"], i2["context"])
+    other_seed = rollout(ctxrace.make_vec(TRACK, 5), actions[:1], seed=10)
+    assert not np.array_equal(other_seed[0][0], runs[0][0][0])
+
+
+def test_env_i_of_a_vector_is_the_lone_race_seeded_seed_plus_i():
+    vec = ctxrace.make_vec(TRACK, 3)
+    lone = ctxrace.RaceEnv(TRACK)
+    contexts = np.array([[0.1, 0.1], [0.2, -0.1], [-0.3, 0.0]])
+    vobs, _ = vec.reset(seed=20, options={"context": contexts})
+    lobs, _ = lone.reset(seed=22, options={"context": contexts[2]})
+    np.testing.assert_array_equal(vobs[2], lobs)
+    for a in random_actions(vec, 40):
+        vobs, vr, vt, _, _ = vec.step(a)
+        lobs, lr, lt, _, _ = lone.step(a[2])
+        np.testing.assert_array_equal(vobs[2], lobs)
+        assert (vr[2], vt[2]) == (lr, lt)
+        if lt:
+            break
+
+
+def test_python_threads_step_their_own_envs_at_once():
+    actions = random_actions(ctxrace.make_vec(TRACK, 4), 60)
+    alone = rollout(ctxrace.make_vec(TRACK, 4, threads=1), actions, seed=4)[-1][0]
+    results = {}
+
+    def run(k):
+        results[k] = rollout(ctxrace.make_vec(TRACK, 4, threads=1), actions, seed=4)[-1][0]
+
+    workers = [threading.Thread(target=run, args=(k,)) for k in range(3)]
+    for w in workers:
+        w.start()
+    for w in workers:
+        w.join()
+    for k in range(3):
+        np.testing.assert_array_equal(results[k], alone)
+
+
+def test_race_keys_presets_and_config_files(tmp_path):
+    env = ctxrace.make_vec(TRACK, 1, preset="paper-code", rival={"driver": "follow-the-gap"})
+    assert env.race_config["min_speed"] == 1.0
+    assert env.race_config["rival"]["driver"] == "follow-the-gap"
+    config = tmp_path / "race.toml"
+    config.write_text('max_time = 30.0\n[lidar]\nbeams = 54\n')
+    env = ctxrace.make_vec(TRACK, 2, config=config, max_speed=5)
+    assert env.single_observation_space.shape == (54,)
+    assert env.race_config["max_time"] == 30.0 and env.race_config["max_speed"] == 5.0
+    with pytest.raises(ValueError, match="no_such_key"):
+        ctxrace.make_vec(TRACK, 1, no_such_key=1)
+    with pytest.raises(ValueError, match="rivals"):
+        ctxrace.make_vec(TRACK, 1, rivals=12)
+
+
+def test_tracks_by_name_yaml_path_and_generated(tracks_dir):
+    by_name = ctxrace.make_vec("f1_esp", 1, tracks_dir=tracks_dir)
+    by_path = ctxrace.make_vec(str(tracks_dir / "f1_esp.yaml"), 1)
+    a, _ = by_name.reset(seed=0)
+    b, _ = by_path.reset(seed=0)
+    np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="unknown track 'no_such_track'"):
+        ctxrace.make_vec("no_such_track", 1, tracks_dir=tracks_dir)
+    with pytest.raises(ValueError, match="generated"):
+        ctxrace.make_vec("generated:x", 1)
+
+
+def test_bad_actions_raise_and_step_nothing():
+    env = ctxrace.make_vec(TRACK, 2, seed=0)
+    obs, _ = env.reset()
+    with pytest.raises(ValueError, match=r"shape \(2, 2\)"):
+        env.step(np.zeros((3, 2)))
+    with pytest.raises(ValueError, match=r"shape \(2, 2\)"):
+        env.step(np.zeros(4))
+    with pytest.raises(TypeError, match="floating-point"):
+        env.step(np.zeros((2, 2), dtype=np.int64))
+    with pytest.raises(TypeError, match="floating-point"):
+        env.step([["a", "b"], ["c", "d"]])
+    with pytest.raises(ValueError, match="env 1 .* not finite"):
+        env.step(np.array([[0.0, 0.0], [np.nan, 0.0]]))
+    with pytest.raises(ValueError, match="not finite"):
+        env.step(np.array([[np.inf, 0.0], [0.0, 0.0]]))
+    again, _ = env.reset(seed=None)
+    env.step(np.zeros((2, 2), dtype=np.float32))
+
+
+def test_bad_contexts_seeds_and_sizes_raise():
+    env = ctxrace.make_vec(TRACK, 2)
+    with pytest.raises(ValueError, match=r"\[-0.9, 0.9\]"):
+        env.reset(seed=0, options={"context": [[0.0, 0.0], [1.5, 0.0]]})
+    with pytest.raises(ValueError, match=r"shape \(2, 2\)"):
+        env.reset(seed=0, options={"context": [0.1, 0.1]})
+    with pytest.raises(ValueError, match="not finite"):
+        env.reset(seed=0, options={"context": [[0.0, np.nan], [0.0, 0.0]]})
+    with pytest.raises(gymnasium.error.Error, match="Seed"):
+        env.reset(seed=-1)
+    with pytest.raises(ValueError, match="num_envs"):
+        ctxrace.make_vec(TRACK, 0)
+    with pytest.raises(ValueError, match="context_range"):
+        ctxrace.make_vec(TRACK, 1, context_range=2.0)
+    with pytest.raises(RuntimeError, match="call reset first"):
+        ctxrace.make_vec(TRACK, 1).step(np.zeros((1, 2)))
+
+
+def test_closed_and_ended_envs_raise():
+    env = ctxrace.make_vec(TRACK, 1, seed=0)
+    env.reset()
+    env.close()
+    with pytest.raises(ClosedEnvironmentError):
+        env.step(np.zeros((1, 2)))
+    with pytest.raises(ClosedEnvironmentError):
+        env.reset()
+    lone = ctxrace.RaceEnv(TRACK)
+    with pytest.raises(ResetNeeded):
+        lone.step(np.zeros(2))
+    lone.reset(seed=1)
+    terminated = False
+    while not terminated:
+        _, _, terminated, truncated, _ = lone.step(np.array([-1.0, 1.0]))
+        terminated |= truncated
+    with pytest.raises(ResetNeeded):
+        lone.step(np.zeros(2))
+    lone.close()
+    with pytest.raises(ClosedEnvironmentError):
+        lone.reset()
+
+
+def test_replaying_the_command_lines_trace_drives_the_same_race(tmp_path, tracks_dir, ctxrace_bin):
+    trace = tmp_path / "trace.csv"
+    for ego in ("random", "pure-pursuit"):
+        subprocess.run(
+            [ctxrace_bin, "race", "f1_esp", "--rivals", "1", "--context", "0.2,-0.1",
+             "--ego", ego, "--seed", "7", "--trace", trace, "--tracks-dir", tracks_dir],
+            check=True, capture_output=True,
+        )
+        with open(trace) as f:
+            rows = list(csv.DictReader(f))
+        env = ctxrace.RaceEnv("f1_esp", rivals=1, tracks_dir=tracks_dir)
+        obs, _ = env.reset(seed=7, options={"context": (0.2, -0.1)})
+        scan = lambda row: np.array([float(row[f"scan{b}"]) for b in range(108)])
+        np.testing.assert_allclose(obs, scan(rows[0]), atol=6e-6)
+        for row in rows[1:]:
+            action = np.array([float(row["action_steer"]), float(row["action_speed"])])
+            obs, reward, terminated, truncated, _ = env.step(action)
+            np.testing.assert_allclose(obs, scan(row), atol=6e-6)
+            assert abs(reward - float(row["reward"])) < 6e-7
+        assert terminated or truncated, f"{ego}: the trace ends with the episode"
+        assert len(rows) > (100 if ego == "pure-pursuit" else 2)

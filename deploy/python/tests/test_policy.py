@@ -1,0 +1,75 @@
+"""`ctxrace.load_policy`: a trained agent acts from Python as the command line's does, in a race
+and in the evaluation protocol; bad paths and inputs raise."""
+
+import csv
+import json
+import subprocess
+
+import numpy as np
+import pytest
+
+import ctxrace
+from conftest import ROOT
+
+#: A sealed cMask checkpoint of small networks (testdata/d6b5c40/README.md).
+CHECKPOINT = ROOT / "testdata" / "d6b5c40" / "cmask" / "checkpoint"
+
+
+@pytest.mark.parametrize("act", ["mode", "sample"])
+def test_a_trained_agent_drives_the_race_the_command_line_drives(tmp_path, ctxrace_bin, act):
+    trace = tmp_path / "trace.csv"
+    subprocess.run(
+        [ctxrace_bin, "race", "generated:0", "--policy", CHECKPOINT, "--act", act,
+         "--context", "0.1,-0.2", "--seed", "3", "--trace", trace],
+        check=True, capture_output=True,
+    )
+    with open(trace) as f:
+        rows = list(csv.DictReader(f))
+    policy = ctxrace.load_policy(CHECKPOINT)
+    assert policy.algo == "cmask" and policy.obs_dim == 108
+    env = ctxrace.RaceEnv("generated:0")
+    context = np.array([0.1, -0.2])
+    obs, _ = env.reset(seed=3, options={"context": context})
+    policy.reset(seeds=[3])
+    for row in rows[1:]:
+        action = policy.act(obs, context, deterministic=act == "mode")
+        assert action.tolist() == [float(row["action_steer"]), float(row["action_speed"])]
+        obs, _, terminated, truncated, _ = env.step(action)
+    assert terminated or truncated
+
+
+def test_a_trained_agent_evaluates_as_the_command_line_evaluates(tmp_path, ctxrace_bin):
+    out = tmp_path / "eval"
+    subprocess.run(
+        [ctxrace_bin, "eval", CHECKPOINT, "--track", "generated:0", "--rivals", "1",
+         "--grid", "2", "--laps", "2", "--workers", "1", "--out", out],
+        check=True, capture_output=True,
+    )
+    cli = json.loads((out / "contexts.json").read_text())
+    mine = ctxrace.evaluate(ctxrace.load_policy(CHECKPOINT), "generated:0", rivals=1, grid=2,
+                            laps=2, batch=3)
+    assert mine.contexts == cli
+
+
+def test_batches_rows_and_bad_inputs():
+    policy = ctxrace.load_policy(CHECKPOINT)
+    obs = np.random.default_rng(0).uniform(0, 1, size=(4, 108)).astype(np.float32)
+    contexts = np.zeros((4, 2))
+    policy.reset(rows=range(4), seeds=range(4))
+    batch = policy.act(obs, contexts, deterministic=True)
+    assert batch.shape == (4, 2) and (np.abs(batch) <= 1).all()
+    policy.reset(rows=[2], seeds=[2])
+    alone = policy.act(obs[2], contexts[2], deterministic=True, rows=[2])
+    np.testing.assert_array_equal(alone, batch[2])
+    with pytest.raises(ValueError, match=r"shape \(k, 108\)"):
+        policy.act(obs[:, :50], contexts)
+    with pytest.raises(TypeError, match="floating-point"):
+        policy.act(obs.astype(np.int32), contexts)
+    with pytest.raises(ValueError, match="NaN"):
+        policy.act(np.full((1, 108), np.nan), contexts[:1])
+    with pytest.raises(ValueError, match="distinct"):
+        policy.act(obs[:2], contexts[:2], rows=[1, 1])
+    with pytest.raises(ValueError, match="neither a checkpoint"):
+        ctxrace.load_policy(ROOT / "configs")
+    with pytest.raises(ValueError, match="not best, latest or step-N"):
+        ctxrace.load_policy(CHECKPOINT, checkpoint="newest")
