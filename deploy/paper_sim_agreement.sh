@@ -91,9 +91,12 @@ ctxrace_side() {
     shift 2
     local ego
     for ego in $(egos_or_all "$@"); do
-        "$bin" eval "$ego" --config "$config" --track f1_esp --rivals "${RIVALS:-1}" \
-            --contexts 17-48 --laps "${CTXRACE_LAPS:-50}" --seed "${SEED:-0}" --fresh \
+        nice "$bin" eval "$ego" --config "$config" --track f1_esp --rivals "${RIVALS:-1}" \
+            --workers 1 --contexts 17-48 --laps "${CTXRACE_LAPS:-50}" --seed "${SEED:-0}" --fresh \
             --out "$raw/ctxrace-$variant/$ego"
+        # the records: meta.json, contexts.csv, episodes.csv (the rest is the worker's or a figure)
+        rm -f "$raw/ctxrace-$variant/$ego"/{job.json,contexts.json,episode.png,episode.svg} \
+            "$raw/ctxrace-$variant/$ego"/episodes.part-*.csv
     done
 }
 
