@@ -29,6 +29,8 @@
 #   SIM_VENV      the Python environment made by `setup`, outside the repo [/work/venv-sim]
 #   RAW           raw records [docs/table2/sim_agreement]
 #   PAPER_LAPS    laps per context in the paper's simulator [20]
+#   PAPER_TAG     `paper` writes RAW/paper_<ego>.<tag>.csv instead (a further run; `table` and
+#                 `compare` take each context from the run with the most laps of it)
 #   CTXRACE_LAPS  laps per context in ctxrace [50]
 #   RIVALS        [1]; SEED: the random ego's seed [0]; CTXRACE_BIN [target/release/ctxrace]
 #
@@ -37,9 +39,10 @@
 # configs/scenarios/paper-code-table-era.toml (the race the reduced Table II was trained and
 # evaluated in: the preset as it was before the fixes, pinned).
 #
-# Measured on the project's 2-core machine beside a training run and builds (2026-12-06):
-# `setup` about 1 min; `paper` (20 laps a context) pure-pursuit 13 min, still and random
-# a few minutes each (see sim_agreement.md); `ctxrace` under a minute per variant.
+# Measured on the project's 2-core machine at nice 10 beside a training run and other builds
+# (load 9-10, 2026-12-06): `setup` about 1 min; `paper` at 20 laps a context pure-pursuit
+# 64 min, random 15 min, still about 12 s a lap (2 h for all 640: docs/table2/sim_agreement.md
+# says what ran); `ctxrace` 10-30 s per ego and variant.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 venv=${SIM_VENV:-/work/venv-sim}
@@ -75,14 +78,15 @@ export_paper() {
 paper() {
     export_paper
     mkdir -p "$raw"
-    local ego start
+    local ego start out
     for ego in $(egos_or_all "$@"); do
         start=$(date +%s)
+        out=$raw/paper_$ego${PAPER_TAG:+.$PAPER_TAG}.csv
         rm -rf "$work/Data/Vehicles/sim_agreement"
-        nice -n 10 "$venv/bin/python" deploy/paper_sim_agreement.py "$work" "$ego" \
-            "$raw/paper_$ego.csv" --laps "${PAPER_LAPS:-20}" --rivals "${RIVALS:-1}" \
+        nice -n 10 "$venv/bin/python" deploy/paper_sim_agreement.py "$work" "$ego" "$out" \
+            --laps "${PAPER_LAPS:-20}" --rivals "${RIVALS:-1}" \
             --seed "${SEED:-0}" >"$work/sim_agreement_$ego.log"
-        echo "paper $ego: $raw/paper_$ego.csv ($(($(date +%s) - start)) s)"
+        echo "paper $ego: $out ($(($(date +%s) - start)) s)"
     done
 }
 
