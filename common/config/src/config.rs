@@ -203,7 +203,7 @@ pub enum GridLine {
     Raceline,
     /// On the centreline, facing along it (near the paper's code on f1_esp and f1_gbr, whose
     /// start is the centreline; f1_esp's centreline runs 0.05 m left of the x axis from 4.6 m
-    /// to 17.1 m, where the first two rivals stand).
+    /// to 17.1 m, where the rivals stand (5.5, 11 and 16.5 m)).
     Centreline,
     /// On the map's x axis, facing +x, each car at its grid distance from the origin: the paper's
     /// code (c0fd903 `TestSimulation.calc_offsets` and `reset_simulation`), meaningful only on
