@@ -144,6 +144,15 @@ impl OccupancyMap {
             .then_some((c as usize, r as usize))
     }
 
+    /// Whether the pixel holding the world point `p` is occupied; outside the image counts as
+    /// occupied (f1tenth_gym's `check_location`, which the paper's gym ran on each car's centre).
+    pub fn occupied_at(&self, p: &Point2<f64>) -> bool {
+        match self.pixel_of(p) {
+            Some((c, r)) => self.occupied[r * self.width + c],
+            None => true,
+        }
+    }
+
     /// World position of the centre of pixel `(c, r)`, in half-pixel units `(2c+1, 2r+1)/2`.
     pub fn half_pixel_to_world(&self, hx: i64, hy: i64) -> Point2<f64> {
         Point2::new(

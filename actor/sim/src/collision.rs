@@ -3,12 +3,13 @@
 //! Two cars collide when their rectangles overlap with positive depth: by the separating axis theorem
 //! two rectangles are apart exactly when one of the four edge normals separates them, so touching
 //! (separation 0) is not a collision. A car hits a wall when any wall segment touches or crosses its
-//! rectangle ([`WallContact::Footprint`]), or, as in the paper's code, when its centre crosses a
-//! wall during the physics step ([`WallContact::Centre`]).
+//! rectangle ([`WallContact::Footprint`]), when its centre crosses a wall during the physics step
+//! ([`WallContact::Centre`]), or, as in the paper's code, when its centre lies in an occupied
+//! pixel of the map ([`WallContact::CentrePixel`]).
 
 use crate::vehicle::{idx, State, VehicleParams};
 use ctxrace_config::WallContact;
-use ctxrace_tracks::Walls;
+use ctxrace_tracks::{Track, Walls};
 use nalgebra::{Isometry2, Point2, Vector2};
 use parry2d::query::sat::cuboid_cuboid_find_local_separating_normal_oneway;
 use parry2d::shape::Cuboid;
@@ -71,12 +72,21 @@ impl CarBox {
         walls.touches_box(&self.pose, self.shape.half_extents)
     }
 
-    /// Whether a car that was centred at `from` one physics step ago and is now this rectangle
-    /// hit a wall under `rule`.
-    pub fn hits_wall_by(&self, rule: WallContact, from: Point2<f32>, walls: &Walls) -> bool {
-        match rule {
-            WallContact::Footprint => self.hits_wall(walls),
-            WallContact::Centre => walls.crosses_path(from, self.centre()),
+    /// Whether a car that was centred at `from` one physics step ago and is now this rectangle,
+    /// centred at `now` (its state's position, unrounded), hit a wall of `track` under `rule`.
+    pub fn hits_wall_by(
+        &self,
+        rule: WallContact,
+        from: Point2<f32>,
+        now: &Point2<f64>,
+        track: &Track,
+    ) -> bool {
+        match (rule, &track.map) {
+            (WallContact::Footprint, _) => self.hits_wall(&track.walls),
+            (WallContact::CentrePixel, Some(map)) => map.occupied_at(now),
+            (WallContact::Centre | WallContact::CentrePixel, _) => {
+                track.walls.crosses_path(from, self.centre())
+            }
         }
     }
 }

@@ -2,7 +2,7 @@
 //!
 //! All cars start in a line, ego last at centreline arc length 0 (the start/finish line), rival
 //! `i` at `i` grid spacings ahead (`start_grid`: a fixed distance, or a fraction of the lap), each
-//! on the raceline beside its place (`grid_line`; the paper's code: on the centreline). Every
+//! on the raceline beside its place (`grid_line`; the paper's code: on the map's x axis). Every
 //! decision (10 physics steps of 0.01 s) the ego acts with
 //! `a ∈ [-1, 1]²` — steering `δ = −a₀ θ_max` (negative `a₀` turns left, as the paper states) and speed
 //! `v = v_min + (a₁ + 1)/2 · (v_max − v_min)` — and each rival plans from its own state with the
@@ -12,7 +12,9 @@
 //! Reward: see [`reward`]. The episode ends when the ego completes the lap, hits a wall, collides
 //! with a rival or (with `reverse_limit`) drives backwards (terminated), or at the time limit
 //! (truncated, or terminated with `timeout_is_terminal`). A rival that crashes stops and stays as
-//! an obstacle (with `crashed_rivals = "coast"` it brakes under a zero command instead).
+//! an obstacle (with `crashed_rivals = "coast"` it brakes under a zero command instead); with
+//! `rival_contacts = "decision-end"` only a rival's contacts at a decision's last physics step
+//! crash it.
 //!
 //! Metrics: PG, the largest fraction of the lap the ego completed; OT, the sum of the rank changes;
 //! A2A, whether the episode ended in an ego–rival collision. `crashed_rivals`,
@@ -23,7 +25,7 @@ use crate::grid::grid_pose;
 use crate::lidar::{Lidar, NearbyWalls};
 use crate::rival::RivalDriver;
 use crate::vehicle::{State, Vehicle, VehicleParams, DT};
-use ctxrace_config::{Context, CrashedRivals, RaceConfig, RaceConfigError};
+use ctxrace_config::{Context, CrashedRivals, RaceConfig, RaceConfigError, RivalContacts};
 use ctxrace_tracks::Track;
 use nalgebra::Point2;
 use rand::SeedableRng;
@@ -320,7 +322,9 @@ impl RaceEnv {
         }
         let mut wall_crash = false;
         let mut a2a = false;
-        for _ in 0..self.cfg.physics_steps_per_action {
+        let steps = self.cfg.physics_steps_per_action;
+        let rivals_every_step = self.cfg.rival_contacts == RivalContacts::PerStep;
+        for k in 0..steps {
             self.centres.clear();
             self.centres
                 .extend(self.cars.iter().map(|c| centre_f32(&c.vehicle)));
@@ -331,7 +335,7 @@ impl RaceEnv {
                     car.vehicle.step(st, sp);
                 }
             }
-            (wall_crash, a2a) = self.resolve_collisions();
+            (wall_crash, a2a) = self.resolve_collisions(rivals_every_step || k + 1 == steps);
             if wall_crash || a2a {
                 break;
             }
@@ -443,8 +447,10 @@ impl RaceEnv {
         ]
     }
 
-    /// Marks crashes for this physics step; returns (ego hit a wall, ego hit a rival).
-    fn resolve_collisions(&mut self) -> (bool, bool) {
+    /// Marks crashes for this physics step; returns (ego hit a wall, ego hit a rival). The
+    /// ego's contacts are always tested, the rivals' own (with a wall, or with each other) only
+    /// when `rivals` is set.
+    fn resolve_collisions(&mut self, rivals: bool) -> (bool, bool) {
         self.boxes.clear();
         self.boxes.extend(
             self.cars
@@ -454,17 +460,19 @@ impl RaceEnv {
         let n = self.cars.len();
         let mut ego_wall = false;
         let mut ego_a2a = false;
-        for i in 0..n {
+        let tested = if rivals { n } else { 1 };
+        for i in 0..tested {
             if self.cars[i].crashed {
                 continue;
             }
-            if self.boxes[i].hits_wall_by(self.cfg.wall_contact, self.centres[i], &self.track.walls)
+            let now = self.cars[i].vehicle.position();
+            if self.boxes[i].hits_wall_by(self.cfg.wall_contact, self.centres[i], &now, &self.track)
             {
                 self.crash(i);
                 ego_wall |= i == 0;
             }
         }
-        for i in 0..n {
+        for i in 0..tested {
             for j in i + 1..n {
                 if (self.cars[i].crashed && self.cars[j].crashed)
                     || !self.boxes[i].overlaps(&self.boxes[j])

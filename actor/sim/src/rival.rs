@@ -37,7 +37,9 @@
 use crate::collision::CarBox;
 use crate::gap::FollowTheGap;
 use crate::vehicle::{idx, State, VehicleParams};
-use ctxrace_config::{Context, ContextGains, RivalConfig, RivalDriverKind, SpeedPoint};
+use ctxrace_config::{
+    Context, ContextGains, RivalConfig, RivalContacts, RivalDriverKind, SpeedPoint,
+};
 use ctxrace_tracks::{Raceline, Track};
 use nalgebra::Point2;
 
@@ -52,7 +54,8 @@ pub enum RivalDriver {
 
 impl RivalDriver {
     /// The configured driver for a rival in context `ctx` (gains `gains`), on a car with
-    /// parameters `params`.
+    /// parameters `params`: its steering law's wheelbase and its steering limit are `cfg`'s
+    /// `wheelbase` and `max_steer` where set, else the car's.
     pub fn new(
         cfg: &RivalConfig,
         gains: ContextGains,
@@ -64,14 +67,14 @@ impl RivalDriver {
                 cfg,
                 gains,
                 ctx,
-                params.wheelbase(),
-                params.s_max,
+                cfg.wheelbase.unwrap_or_else(|| params.wheelbase()),
+                cfg.max_steer.unwrap_or(params.s_max),
             )),
             RivalDriverKind::FollowTheGap => Self::FollowTheGap(Box::new(FollowTheGap::rival(
                 &cfg.follow_the_gap,
                 gains,
                 ctx,
-                params.s_max,
+                cfg.max_steer.unwrap_or(params.s_max),
                 params.width,
             ))),
         }
@@ -315,9 +318,10 @@ pub struct SoloSample {
     pub speed: f64,
 }
 
-/// Drives one rival alone for a lap from centreline arc length `start_s` in `context`, exactly as
-/// in a race (10 Hz planning, 100 Hz physics, the configured steering delay), checking the walls
-/// at every physics step. For the drivability check of the evaluation contexts and the rival
+/// Drives one rival alone for a lap from grid distance `start_s` in `context`, exactly as in a
+/// race (10 Hz planning, 100 Hz physics, the configured steering delay), checking the walls as
+/// a race checks a rival's: at every physics step, or with `rival_contacts = "decision-end"` at
+/// each decision's last. For the drivability check of the evaluation contexts and the rival
 /// speed-profile and race-line figures.
 pub fn drive_solo_lap(
     track: &ctxrace_tracks::Track,
@@ -338,13 +342,23 @@ pub fn drive_solo_lap(
     let mut lap = SoloLap::default();
     let decision_time = cfg.physics_steps_per_action as f64 * DT;
     let max_decisions = (cfg.max_time.max(4.0 * length) / decision_time).ceil() as usize;
+    let steps = cfg.physics_steps_per_action;
+    let every_step = cfg.rival_contacts == RivalContacts::PerStep;
     for k in 0..max_decisions {
         let (steer, speed) = driver.command(track, &[], &car.state);
-        for _ in 0..cfg.physics_steps_per_action {
+        for j in 0..steps {
             let p = car.position();
             car.step(steer, speed);
             let from = nalgebra::Point2::new(p.x as f32, p.y as f32);
-            if CarBox::new(&car.state, &params).hits_wall_by(cfg.wall_contact, from, &track.walls) {
+            let now = car.position();
+            if (every_step || j + 1 == steps)
+                && CarBox::new(&car.state, &params).hits_wall_by(
+                    cfg.wall_contact,
+                    from,
+                    &now,
+                    track,
+                )
+            {
                 lap.wall_hit_at = Some(centre.project_near(&car.position(), hint).s);
                 lap.time = (k + 1) as f64 * decision_time;
                 return lap;

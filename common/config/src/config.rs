@@ -18,12 +18,13 @@
 //! | `reverse_limit` | none | 1 m |
 //! | `timeout_is_terminal` | false (truncation) | true |
 //! | `shipped_raceline` | false (computed) | true |
-//! | `wall_contact` | `footprint` | `centre` |
+//! | `wall_contact` | `footprint` | `centre-pixel` |
+//! | `rival_contacts` | `per-step` | `decision-end` |
 //! | `integrator` | `rk4` | `euler` |
 //! | `ego_launch_below` | 0 (off) | 1 m/s (at `ego_launch_speed` 7 m/s) |
 //! | `ego_relaunch` | false | true |
 //! | `crashed_rivals` | `stop` | `coast` |
-//! | `grid_line` | `raceline` | `centreline` |
+//! | `grid_line` | `raceline` | `x-axis` |
 //! | `overtakes_last_step` | true | false |
 //! | `progress_past_line` | false | true |
 //! | `rival.steer_lookahead` | none (the target's distance) | 1.5 m |
@@ -31,6 +32,13 @@
 //! | `rival.speed_point` | `slowest-ahead` | `nearest` |
 //! | `rival.launch_below` | 0 (off) | 1 m/s (at `launch_speed` 4 m/s) |
 //! | `rival.lift_off_line` | 0.15 m | 0 (off) |
+//! | `rival.wheelbase` | none (the car's, 0.3302 m) | 0.329 m |
+//! | `rival.max_steer` | none (the car's limit, 0.4189) | 0.4 |
+//!
+//! Until 2026-12-06 the `paper-code` preset had `wall_contact = "centre"`, `rival_contacts =
+//! "per-step"`, `grid_line = "centreline"` and the car's wheelbase and steering limit for the
+//! rivals (configs/scenarios/paper-code-table-era.toml; docs/table2/sim_agreement.md has what
+//! the comparison with the paper's simulator found).
 
 use crate::preset::PresetError;
 use crate::validate::{finite_floats, in_range, ValueError};
@@ -149,9 +157,16 @@ pub enum WallContact {
     /// Its rectangle touches a wall (exact, as REFERENCE §2 asks).
     #[default]
     Footprint,
-    /// Its centre crosses a wall: the paper's code, whose gym had the footprint (TTC) check
-    /// switched off and ended a car only when its centre reached an occupied map pixel.
+    /// Its centre crosses a traced wall during the physics step (the paper's code in spirit,
+    /// against the walls traced from the map image).
     Centre,
+    /// Its centre lies in an occupied pixel of the track's map image, or outside the image,
+    /// after the physics step: the paper's code exactly, whose gym had the footprint (TTC)
+    /// check switched off and ended a car only when the distance transform at its centre's
+    /// pixel was 0 (f110_env `check_location`). The traced walls run up to half a pixel
+    /// (Douglas–Peucker) from the pixel edges, so `centre` and this differ near the walls.
+    /// Tracks without a map image (generated ones) test `centre`.
+    CentrePixel,
 }
 
 /// How the vehicle model is integrated over a physics step.
@@ -186,9 +201,30 @@ pub enum GridLine {
     /// the line it follows instead of joining it from the side while it accelerates.
     #[default]
     Raceline,
-    /// On the centreline, facing along it (the paper's code: the map's x axis from the
-    /// origin, which is the centreline of f1_esp's and f1_gbr's start).
+    /// On the centreline, facing along it (near the paper's code on f1_esp and f1_gbr, whose
+    /// start is the centreline; f1_esp's centreline runs 0.05 m left of the x axis from 4.6 m
+    /// to 17.1 m, where the rivals stand (5.5, 11 and 16.5 m)).
     Centreline,
+    /// On the map's x axis, facing +x, each car at its grid distance from the origin: the paper's
+    /// code (c0fd903 `TestSimulation.calc_offsets` and `reset_simulation`), meaningful only on
+    /// maps that start at the origin facing +x (f1_esp, f1_gbr).
+    XAxis,
+}
+
+/// When a rival's own contacts (with a wall, or with another rival) crash it. Contacts of the
+/// ego, with a wall or a rival, end the episode at the physics step where they happen either way.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RivalContacts {
+    /// At any physics step.
+    #[default]
+    PerStep,
+    /// Only a contact at the end of the decision (its last physics step): the paper's code,
+    /// whose loop read a rival's collision flag once per decision from the last step's
+    /// observation (c0fd903 `build_observation`), while its gym rebuilt the flags at every
+    /// step, so a rival that grazed a wall pixel, or another rival, between two decisions drove
+    /// on.
+    DecisionEnd,
 }
 
 /// What a rival that crashed does for the rest of the episode.
@@ -252,6 +288,8 @@ pub struct RaceConfig {
     pub shipped_raceline: bool,
     /// When a car has hit a wall.
     pub wall_contact: WallContact,
+    /// When a rival's own contacts crash it (the ego's end the episode at once either way).
+    pub rival_contacts: RivalContacts,
     /// How the vehicle model is integrated.
     pub integrator: Integrator,
     /// While the ego is slower than this (m/s) at the start of an episode, it drives straight at
@@ -308,6 +346,7 @@ impl Default for RaceConfig {
             timeout_is_terminal: false,
             shipped_raceline: false,
             wall_contact: WallContact::Footprint,
+            rival_contacts: RivalContacts::PerStep,
             integrator: Integrator::Rk4,
             ego_launch_below: 0.0,
             ego_launch_speed: 7.0,
@@ -342,12 +381,13 @@ impl RaceConfig {
             reverse_limit: Some(1.0),
             timeout_is_terminal: true,
             shipped_raceline: true,
-            wall_contact: WallContact::Centre,
+            wall_contact: WallContact::CentrePixel,
+            rival_contacts: RivalContacts::DecisionEnd,
             integrator: Integrator::Euler,
             ego_launch_below: 1.0,
             ego_relaunch: true,
             crashed_rivals: CrashedRivals::Coast,
-            grid_line: GridLine::Centreline,
+            grid_line: GridLine::XAxis,
             overtakes_last_step: false,
             progress_past_line: true,
             rival: RivalConfig {
@@ -357,6 +397,8 @@ impl RaceConfig {
                 launch_below: 1.0,
                 launch_speed: 4.0,
                 lift_off_line: 0.0,
+                wheelbase: Some(0.329),
+                max_steer: Some(0.4),
                 ..RivalConfig::default()
             },
             ..Self::default()
@@ -444,6 +486,8 @@ impl RaceConfig {
         let optional = [
             ("reverse_limit", self.reverse_limit),
             ("rival.steer_lookahead", self.rival.steer_lookahead),
+            ("rival.wheelbase", self.rival.wheelbase),
+            ("rival.max_steer", self.rival.max_steer),
         ];
         let per_track = self
             .start_spacing_tracks
@@ -546,6 +590,14 @@ impl RaceConfig {
                 fix: "the driver slows down in turns".into(),
             }
             .into());
+        }
+        if let Some(steer) = self.rival.max_steer {
+            in_range(
+                "rival.max_steer",
+                steer,
+                ..=std::f64::consts::FRAC_PI_2,
+                "it is a steering angle in radians (the car's limit: 0.4189; the paper's code: 0.4)",
+            )?;
         }
         in_range(
             "lidar.noise_sd",
@@ -745,6 +797,13 @@ pub struct RivalConfig {
     /// more than this far off the line (m) lifts to the line's speed until it is back; 0
     /// disables it (the paper's code).
     pub lift_off_line: f64,
+    /// Wheelbase `L` of the pure-pursuit steering law (m); none: the car's `l_f + l_r`
+    /// (0.3302). The paper's code: 0.329, `l_f + l_r` of its planners' config_file.yaml (0.158
+    /// + 0.171), not its gym's car.
+    pub wheelbase: Option<f64>,
+    /// Largest steering angle the rivals' drivers command (rad); none: the car's limit
+    /// (0.4189). The paper's code: 0.4, its planners' `max_steer`.
+    pub max_steer: Option<f64>,
     /// Context gains used on tracks without an entry in `tracks`.
     pub gains: ContextGains,
     /// Context gains per track name (paper code: λ_θ = 0.4 on f1_esp and f1_gbr, 0.3 on f1_mco).
@@ -772,6 +831,8 @@ impl Default for RivalConfig {
             launch_below: 0.0,
             launch_speed: 4.0,
             lift_off_line: 0.15,
+            wheelbase: None,
+            max_steer: None,
             gains: paper(0.4),
             tracks: BTreeMap::from([
                 ("f1_esp".to_string(), paper(0.4)),
@@ -954,7 +1015,13 @@ mod tests {
         assert_eq!(c.reward_speed, 8.0);
         assert!(c.timeout_is_terminal && c.shipped_raceline);
         assert_eq!(c.crashed_rivals, CrashedRivals::Coast);
-        assert_eq!(c.grid_line, GridLine::Centreline);
+        assert_eq!(c.grid_line, GridLine::XAxis);
+        assert_eq!(c.wall_contact, WallContact::CentrePixel);
+        assert_eq!(c.rival_contacts, RivalContacts::DecisionEnd);
+        assert_eq!(
+            (c.rival.wheelbase, c.rival.max_steer),
+            (Some(0.329), Some(0.4))
+        );
         assert!(c.ego_relaunch);
         assert!(!c.overtakes_last_step && c.progress_past_line && c.max_steer == 0.4);
         // a resolved config round-trips, preset included
@@ -966,6 +1033,8 @@ mod tests {
         assert_eq!(d.rival.speed_factor, 0.85);
         assert_eq!(d.start_grid, StartGrid::Spacing);
         assert_eq!(d.grid_line, GridLine::Raceline);
+        assert_eq!(d.rival_contacts, RivalContacts::PerStep);
+        assert_eq!((d.rival.wheelbase, d.rival.max_steer), (None, None));
         assert_eq!(d.grid_spacing("f1_gbr", 500.0), 4.0);
         assert_eq!(d.grid_spacing("generated:1", 500.0), 5.5);
         assert_eq!(c.grid_spacing("f1_esp", 500.0), 5.5);
@@ -987,6 +1056,15 @@ mod tests {
             ("start_grid = \"x-axis\"", "start_grid"),
             ("crashed_rivals = \"remove\"", "crashed_rivals"),
             ("grid_line = \"outside\"", "grid_line"),
+            ("rival_contacts = \"never\"", "rival_contacts"),
+            ("wall_contact = \"pixel\"", "wall_contact"),
+            ("[rival]\nwheelbase = 0.0", "rival.wheelbase"),
+            (
+                "preset = \"paper-code\"\n[rival]\nwheelbase = -0.3",
+                "rival.wheelbase",
+            ),
+            ("[rival]\nmax_steer = -0.4", "rival.max_steer"),
+            ("[rival]\nmax_steer = 2.0", "rival.max_steer"),
             ("overtakes_last_step = 1", "overtakes_last_step"),
             (
                 "preset = \"paper-code\"\n[rival]\nspeed_pont = \"target\"",

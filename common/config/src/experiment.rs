@@ -701,6 +701,35 @@ mod tests {
             let cfg = ExperimentConfig::load(&dir.join(name)).unwrap();
             assert_eq!(cfg.track, track, "{name}");
         }
+        // the reduced Table II races the paper-code preset as it was when its runs started
+        // (docs/table2/README.md, amendment 4), pinned in its base and in a scenario file
+        let table = ExperimentConfig::load(&dir.join("paper/table2-base.toml")).unwrap();
+        let era = std::fs::read_to_string(dir.join("scenarios/paper-code-table-era.toml")).unwrap();
+        let era = RaceConfig::from_toml(&era).unwrap();
+        assert_eq!(table.race, era);
+        assert_eq!(
+            (era.grid_line, era.wall_contact, era.rival_contacts),
+            (
+                crate::GridLine::Centreline,
+                crate::WallContact::Centre,
+                crate::RivalContacts::PerStep
+            )
+        );
+        assert_eq!(
+            (era.rival.wheelbase, era.rival.max_steer),
+            (Some(0.3302), Some(0.4189))
+        );
+        let now = RaceConfig::paper_code();
+        assert_eq!(
+            RaceConfig {
+                grid_line: now.grid_line,
+                wall_contact: now.wall_contact,
+                rival_contacts: now.rival_contacts,
+                rival: now.rival.clone(),
+                ..era
+            },
+            now
+        );
     }
 
     #[test]

@@ -19,8 +19,8 @@ pub use agents::{
 pub use batch::{Batch, BatchError, BatchSpec, SequenceBatch, TransitionBatch};
 pub use config::{
     ContextGains, CrashedRivals, FollowTheGapConfig, GapAim, GridLine, Integrator, LidarConfig,
-    RaceConfig, RaceConfigError, RacePreset, ReplayOptions, RivalConfig, RivalDriverKind,
-    SpeedPoint, StartGrid, WallContact, MAX_OBS,
+    RaceConfig, RaceConfigError, RacePreset, ReplayOptions, RivalConfig, RivalContacts,
+    RivalDriverKind, SpeedPoint, StartGrid, WallContact, MAX_OBS,
 };
 pub use context::{Context, ContextError};
 pub use experiment::{ExperimentConfig, ExperimentError, SupervisorConfig, TrainConfig};

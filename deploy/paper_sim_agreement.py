@@ -1,0 +1,230 @@
+"""Races a reference ego in the paper's own simulator (lilpharaoh1/context-f110 at c0fd903), run
+from an unmodified export of that commit (deploy/paper_sim_agreement.sh paper), and writes one
+row per lap.
+
+What is the paper's: its F110Env (f110_gym copy), its TestSimulation.run_testing_evaluation and
+run_testing (the 7 x 7 grid, `if ma_idx < 17: continue`, reset_simulation's grid, run_step,
+build_observation's crash, progress, lap and overtaking logic, the A2A count), its PurePursuit
+rivals (ma_info per context), its StdTrack and reward, its config_file.yaml and run-file keys.
+What is the harness's, nothing else:
+  - a run file config/<name>.yaml written into the export (the keys of the paper's
+    dreamerv3_multiagent_classic_esp.yaml, one run with RIVALS rivals, the ego at the back);
+  - the ego driver (`Ego`), put in place of the trained agent through the module's
+    `select_agent` binding: it does what the paper's testers do before acting (below
+    v_min_plan = 1 m/s it commands [0, 7]), then drives ctxrace's reference ego of the same
+    name: `pure-pursuit` is the paper's own PurePursuit planner at full raceline speed
+    (slow_down 1, no context) with ctxrace's ego wheelbase (the car's lf + lr = 0.3302) and the
+    ego's steering range 0.4; `random` draws actions uniform in [-1, 1]^2 (its own seeded
+    numpy stream per context and lap); `still` the action (0, -1); actions map to commands as
+    the paper's FastTransform and ctxrace's paper-code race do (steer 0.4 a0, speed
+    1 + 2.5 (a1 + 1));
+  - torch, cv2 and the learning planners' modules replaced by empty stand-ins before the import
+    (TestSimulation imports them; nothing of them runs for these egos), so that the simulator
+    needs neither;
+  - the recording: each decision's observations (through a wrapper of run_step) and, when
+    the code calls the ego's lap_complete at the end of a lap, one row, written at once (an
+    interrupted run keeps the laps it finished): context index, c_v,
+    c_theta, lap, progress, overtakes (the code's eps_overtakes: the sum of the observations'
+    `overtaking` the ego acted on), a2a (`colision_a2a` of the last observation, what the code
+    counts), crash, lap_done, time, decisions.
+
+Usage: python paper_sim_agreement.py PAPER_DIR EGO OUT_CSV [--laps N] [--rivals R] [--seed S]
+"""
+import argparse
+import csv
+import os
+import sys
+import types
+
+import numpy as np
+
+EGO_WHEELBASE = 0.15875 + 0.17145  # ctxrace's ego pure pursuit: the car's lf + lr
+MAX_STEER = 0.4  # the ego's steering range (config_file.yaml max_steer)
+MIN_SPEED, MAX_SPEED = 1.0, 6.0  # the ego's speed range (FastTransform, run max_speed)
+LAUNCH_BELOW, LAUNCH_SPEED = 1.0, 7.0  # the testers' v_min_plan override
+
+
+def stub_modules():
+    """Empty stand-ins for what TestSimulation imports but these egos never use."""
+    torch = types.ModuleType("torch")
+    torch.use_deterministic_algorithms = lambda *a, **k: None
+    torch.manual_seed = lambda *a, **k: None
+    sys.modules["torch"] = torch
+    sys.modules["cv2"] = types.ModuleType("cv2")
+    for mod, names in {
+        "TD3Planners": ["TD3Trainer", "TD3Tester"],
+        "SACPlanners": ["SACTrainer", "SACTester"],
+        "DreamerV2Planners": ["DreamerV2Trainer", "DreamerV2Tester"],
+        "DreamerV3Planners": ["DreamerV3Trainer", "DreamerV3Tester"],
+        "cDreamerPlanners": ["cDreamerTrainer", "cDreamerTester"],
+        "cbDreamerPlanners": ["cbDreamerTrainer", "cbDreamerTester"],
+        "cobDreamerPlanners": ["cobDreamerTrainer", "cobDreamerTester"],
+        "cfDreamerPlanners": ["cfDreamerTrainer", "cfDreamerTester"],
+    }.items():
+        m = types.ModuleType("TrajectoryAidedLearning.Planners." + mod)
+        for n in names:
+            setattr(m, n, None)
+        sys.modules[m.__name__] = m
+
+
+RUN_FILE = """test_name: "sim_agreement"
+architecture: "Harness"
+window_in: 2
+window_out: 1
+map_mode: "Std"
+start_n: 0
+n: 1
+set_n: 1
+random_seed: 10000
+noise_std: 0.0
+start_train_steps: 0
+n_train_steps: 0
+n_test_laps: {laps}
+map_name: "f1_esp"
+reward: "Cth"
+max_speed: 6
+lr: 0.00003
+gamma: 0.85
+ma_info: [0.15, 0.15, 0.3, 0.3]
+runs:
+  - adversaries: {adversaries}
+    num_agents: {agents}
+    target_position: {agents}
+"""
+
+
+FIELDS = ["context_speed", "context_steer", "lap", "progress", "overtakes", "a2a", "crash",
+          "lap_done", "time", "decisions"]
+
+
+class Recorder:
+    """The rows of the laps raced (each written to `out` as it ends), and the state of the lap
+    being raced."""
+
+    def __init__(self, out):
+        self.out = csv.DictWriter(out, fieldnames=FIELDS)
+        self.out.writeheader()
+        self.file = out
+        self.rows = []
+        self.last = None
+        self.context = None
+        self.lap = 0
+        self.overtakes = 0.0
+        self.decisions = 0
+
+
+class Ego:
+    """The harness's ego driver: the code's tester interface (plan, lap_complete)."""
+
+    def __init__(self, kind, run, conf, rec, seed):
+        self.kind, self.rec, self.seed, self.laps = kind, rec, seed, run.n_test_laps
+        self.rng = None
+        self.pp = None
+        if kind == "pure-pursuit":
+            from TrajectoryAidedLearning.Planners.PurePursuit import PurePursuit
+
+            self.pp = PurePursuit(run, conf, init=False, ma_info=[0.0, 0.0])
+            self.pp.slow_down = 1.0
+            self.pp.wheelbase = EGO_WHEELBASE
+            self.pp.max_steer = MAX_STEER
+
+    def command(self, action):
+        a0, a1 = np.clip(action, -1.0, 1.0)
+        return np.array([-a0 * MAX_STEER, MIN_SPEED + (a1 + 1.0) / 2.0 * (MAX_SPEED - MIN_SPEED)])
+
+    def plan(self, obs, context=None):
+        rec = self.rec
+        if rec.decisions == 0:
+            rec.context = [float(c) for c in context]
+            self.rng = np.random.default_rng([self.seed, len(rec.rows)])
+        rec.decisions += 1
+        rec.overtakes += obs["overtaking"]
+        if obs["state"][3] < LAUNCH_BELOW:
+            return np.array([0.0, LAUNCH_SPEED]), None
+        if self.kind == "pure-pursuit":
+            steer, speed = self.pp.plan(obs)
+            steer = float(np.clip(steer, -MAX_STEER, MAX_STEER))
+            return np.array([steer, float(np.clip(speed, MIN_SPEED, MAX_SPEED))]), None
+        if self.kind == "random":
+            return self.command(self.rng.uniform(-1.0, 1.0, size=2)), None
+        return self.command([0.0, -1.0]), None
+
+    def lap_complete(self):
+        rec = self.rec
+        ego = rec.last[0]
+        rec.rows.append(
+            row := {
+                "context_speed": rec.context[0],
+                "context_steer": rec.context[1],
+                "lap": rec.lap,
+                "progress": float(ego["progress"]),
+                "overtakes": float(rec.overtakes),
+                "a2a": int(bool(ego["colision_a2a"])),
+                "crash": int(bool(ego["colision_done"])),
+                "lap_done": int(bool(ego["lap_done"])),
+                "time": float(ego["current_laptime"]),
+                "decisions": rec.decisions,
+            }
+        )
+        rec.out.writerow(row)
+        rec.file.flush()
+        rec.lap = 0 if rec.lap + 1 == self.laps else rec.lap + 1
+        rec.overtakes = 0.0
+        rec.decisions = 0
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("paper_dir")
+    ap.add_argument("ego", choices=["pure-pursuit", "random", "still"])
+    ap.add_argument("out_csv")
+    ap.add_argument("--laps", type=int, default=20)
+    ap.add_argument("--rivals", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    out_csv = os.path.abspath(args.out_csv)
+    os.chdir(args.paper_dir)
+    sys.path.insert(0, os.getcwd())
+    stub_modules()
+    with open("config/sim_agreement.yaml", "w") as f:
+        f.write(
+            RUN_FILE.format(
+                laps=args.laps,
+                adversaries=str(["PP"] * args.rivals),
+                agents=args.rivals + 1,
+            )
+        )
+    os.makedirs("Data/Vehicles/sim_agreement", exist_ok=True)
+    import TrajectoryAidedLearning.TestSimulation as ts
+
+    rec = Recorder(open(out_csv, "w", newline=""))
+    paper_select_agent = ts.select_agent
+
+    def select_agent(run, conf, architecture, train=True, init=False, ma_info=[0.0, 0.0]):
+        if architecture == "Harness":
+            os.makedirs(f"Data/Vehicles/{run.path}{run.run_name}", exist_ok=True)
+            return Ego(args.ego, run, conf, rec, args.seed)
+        return paper_select_agent(run, conf, architecture, train, init, ma_info)
+
+    ts.select_agent = select_agent
+    sim = ts.TestSimulation("sim_agreement")
+    paper_run_step = sim.run_step
+
+    def run_step(actions):
+        rec.last = paper_run_step(actions)
+        return rec.last
+
+    sim.run_step = run_step
+    paper_reset = sim.reset_simulation
+
+    def reset_simulation():
+        rec.last = paper_reset()
+        return rec.last
+
+    sim.reset_simulation = reset_simulation
+    sim.run_testing_evaluation()
+    rec.file.close()
+
+
+if __name__ == "__main__":
+    main()
