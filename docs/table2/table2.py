@@ -580,7 +580,8 @@ def masks(runs, rng):
             if len(xs) < 2:
                 continue
             lo, hi = boot_mean(xs, rng)
-            v = "holds" if lo > 0 else "no dependence" if -margin <= lo and hi <= margin else "undecided"
+            # an excess wholly inside the margin is no dependence, even where it lies above 0
+            v = "no dependence" if -margin <= lo and hi <= margin else "holds" if lo > 0 else "undecided"
             cells.append({"rivals": rivals, "statistic": k, "seeds": len(xs), "excess": mean(xs),
                           "boot_lo": lo, "boot_hi": hi, "margin": margin, "verdict": v})
     return rows, cells
