@@ -5,7 +5,8 @@ ctxrace's test
 
     deploy/paper_parity.sh export DIR          (with WIDTH=16 STOCH=4 LENGTH=16 MODEL_LR AC_LR)
     /work/venv-paper/bin/python deploy/paper_one_batch.py DIR OUT.safetensors \
-        [--model dreamerv3|cmask] [--buffer BUFFER [--first-episode K]] [--mask-units U]
+        [--model dreamerv3|cmask] [--buffer BUFFER [--first-episode K]] [--mask-units U] \
+        [--head-scale S]
 
 builds the paper's agent (`Utils/dreamerv3/dreamerv3.py` `DreamerV3`, or with `--model cmask`
 cbDreamer's, `Utils/cbdreamer/dreamerv3.py`, its mask SAC `CtxMask` at U units instead of its
@@ -35,10 +36,11 @@ safetensors file with:
   normaliser).
 
 Three weights are moved from the code's initial values so that their paths carry gradients:
-the reward head's and the critic's output layers (zero at the code's initialisation) and the
-learned initial state `W` (zero). cbDreamer's `log α` starts at `ln 0.2`, the `α` its first step
-uses (the code's `log α` starts at 0 while `α` is held at 0.2 until its first update). The rest
-is the code's initialisation.
+the reward head's and the critic's output layers (zero at the code's initialisation; uniform in
+±`--head-scale`) and the learned initial state `W` (zero). cbDreamer's `log α` starts at
+`ln 0.2`, the `α` its first step uses (the code's `log α` starts at 0 while `α` is held at 0.2
+until its first update). The rest is the code's initialisation. cbDreamer's mask SAC trains only on the transitions whose next
+row continues the episode, as ctxrace's (`drop_episode_ends`).
 """
 import argparse
 import contextlib
@@ -421,12 +423,15 @@ class MaskProbe:
             return step(*a, **k)
         return keep
 
-    def arm(self, draws, step):
+    def arm(self, draws, step, keep):
         """Queues a step's normals: the masks', the critics' target sample's, the actor's (also
         the temperature's: ctxrace's temperature reads the actor's `log π`), zeros for the
-        samples the code draws and never uses (one more on the steps its targets move)."""
-        unused = np.zeros_like(draws["sac_actor"])
-        self.queue = [draws["mask"], draws["sac_critic"], draws["sac_actor"], draws["sac_actor"], unused]
+        samples the code draws and never uses (one more on the steps its targets move); the
+        mask SAC's only for the transitions `keep` (`[B * (T - 1)]`, see `drop_episode_ends`),
+        ctxrace drawing one a transition, kept or not."""
+        critic, actor = draws["sac_critic"][keep], draws["sac_actor"][keep]
+        unused = np.zeros_like(actor)
+        self.queue = [draws["mask"], critic, actor, actor, unused]
         self.queue += [unused] if step % 2 == 0 else []
         self.calls, self.losses = [], []
 
@@ -450,6 +455,29 @@ class MaskProbe:
         }
 
 
+def drop_episode_ends(ctx_mask):
+    """Edits the code's `CtxMask._train` (in this process only) to train on the transitions
+    `(t, t + 1)` whose row `t + 1` continues the episode, as ctxrace's mask SAC does
+    (docs/parity/one_batch.md, row 21): the code's own takes every pair of a sequence, also
+    across an episode end. Its source gets two lines after its slices of the batch: the
+    transitions whose next row is not an episode's first kept, in the states, next states,
+    rewards and masks; every mean after them is then over the kept ones, as ctxrace's (a batch
+    without restarts inside its sequences keeps them all, the code's step unchanged)."""
+    import inspect
+    import textwrap
+
+    lines = textwrap.dedent(inspect.getsource(ctx_mask._train)).splitlines()
+    at = next(i for i, line in enumerate(lines) if line.lstrip().startswith("next_contexts ="))
+    indent = lines[at][:len(lines[at]) - len(lines[at].lstrip())]
+    lines[at + 1:at + 1] = [
+        indent + "keep = data['is_first'].reshape(b, t)[:, 1:].reshape(-1) == 0",
+        indent + "states, next_states, rewards, masks = states[keep], next_states[keep], rewards[keep], masks[keep]",
+    ]
+    namespace = {}
+    exec("\n".join(lines), vars(sys.modules[ctx_mask.__module__]), namespace)
+    ctx_mask._train = namespace["_train"]
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("export", help="the paper's code as `deploy/paper_parity.sh export` wrote it")
@@ -462,6 +490,10 @@ def main():
     ap.add_argument("--mask-units", type=int, default=16,
                     help="the mask SAC's hidden units (cbDreamer; the code's CtxMask hard-codes 256)")
     ap.add_argument("--model-lr", type=float, default=3e-4)
+    ap.add_argument("--head-scale", type=float, default=0.2,
+                    help="the reward head's and critic's output weights are drawn uniform in "
+                         "±this (zero at the code's initialisation); larger spreads the imagined "
+                         "rewards and values, and with them the λ-returns the return normaliser scales")
     args = ap.parse_args()
     out_path = os.path.abspath(args.out)
     buffer = os.path.abspath(args.buffer) if args.buffer else None
@@ -484,6 +516,7 @@ def main():
             def init(self, *a, code_init=net.__init__, **k):
                 code_init(self, *a[:-1], args.mask_units, **k)
             net.__init__ = init
+        drop_episode_ends(package.cmodels.CtxMask)
 
     torch.manual_seed(SEED)
     np.random.seed(SEED)
@@ -501,7 +534,8 @@ def main():
     beh = agent._task_behavior
     with torch.no_grad():
         for layer in (agent._wm.heads["reward"].mean_layer, beh.value.mean_layer):
-            layer.weight.copy_(torch.empty(layer.weight.shape).uniform_(-0.2, 0.2, generator=gen))
+            layer.weight.copy_(torch.empty(layer.weight.shape).uniform_(-args.head_scale, args.head_scale,
+                                                                         generator=gen))
         beh._slow_value.load_state_dict(beh.value.state_dict())
         agent._wm.dynamics.W.copy_(torch.randn(agent._wm.dynamics.W.shape, generator=gen) * 0.5)
     probe = None
@@ -522,6 +556,7 @@ def main():
     rng = np.random.default_rng(SEED)
     episodes = buffer_episodes(buffer, args.first_episode) if buffer else synthetic_episodes(rng, cmask)
     data = one_batch(tools, episodes)  # the batch the code's train() draws from them
+    keep = data["is_first"][:, 1:].reshape(-1) == 0  # the mask SAC's transitions (drop_episode_ends)
     agent.buffer_eps.update(episodes)
     draws = {}
 
@@ -611,7 +646,7 @@ def main():
         ctxrace's noise of step `step`: its loss terms, returns and gradient norms."""
         draws.update(ctxrace_noise(SEED, BATCH, LENGTH, z, 2, horizon, step, (LENGTH - 1) if cmask else 0))
         if probe:
-            probe.arm(draws, step)
+            probe.arm(draws, step, keep)
         noise.update(phase="observe", t=0)
         agent.train()
         assert noise["phase"] == "imagine" and noise["t"] == horizon, \
@@ -674,7 +709,8 @@ def main():
     result["config"] = np.array(config, dtype=np.float32)
     write_safetensors(out_path, result)
     print(f"{out_path}: {len(result)} tensors, {os.path.getsize(out_path)} bytes; "
-          f"{int(data['is_first'].sum())} sequence starts, {int(data['is_terminal'].sum())} terminal rows")
+          f"{int(data['is_first'].sum())} sequence starts, {int(data['is_terminal'].sum())} terminal rows"
+          + (f", {int(keep.sum())} of {keep.size} mask-SAC transitions continue their episode" if cmask else ""))
     for k, v in terms.items():
         print(f"  torch {k} = {float(v):.7f} (second step {float(second[k]):.7f})")
     for name, v in first_norms.items():
