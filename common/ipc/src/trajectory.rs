@@ -1,6 +1,6 @@
 //! Actor -> replay trajectories: the actor's chunking sender and the replay's validating receiver.
 
-use super::transport::{wait_until, RunTransport, Wake};
+use super::transport::{timed_wait, wait_until, RunTransport, Wake};
 use super::wire::{
     check_sequence, step_stride, validate_chunk, ChunkHeader, WireError, MAX_ACT, MAX_CHUNK,
     MAX_CHUNK_FLOATS, MAX_OBS,
@@ -232,9 +232,7 @@ impl TrajectorySender {
             if left.is_zero() {
                 break;
             }
-            self.turns
-                .timed_wait(|_| {}, left.min(ATTEMPT))
-                .map_err(ice("wait for replay turn"))?;
+            timed_wait(&self.turns, left.min(ATTEMPT), "wait for replay turn")?;
         }
         // Keep the replay's turn signals from piling up until close.
         self.turns
@@ -276,10 +274,7 @@ impl TrajectorySender {
             if left.is_zero() {
                 break;
             }
-            turns += self
-                .turns
-                .timed_wait(|_| {}, left)
-                .map_err(ice("wait for replay turn"))?;
+            turns += timed_wait(&self.turns, left, "wait for replay turn")?;
         }
         self.unconfirmed = false;
         Ok(())

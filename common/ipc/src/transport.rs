@@ -7,7 +7,7 @@ use super::wire::{
 };
 use crate::error::SHM_ROOT_ENV;
 use crate::error::{ice, IpcError, Result};
-use iceoryx2::port::listener::Listener;
+use iceoryx2::port::listener::{Listener, ListenerWaitError};
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::event::PortFactory as EventFactory;
@@ -15,6 +15,8 @@ use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFac
 use std::fmt::Debug;
 use std::os::unix::fs::{DirBuilderExt as _, MetadataExt as _, PermissionsExt as _};
 use std::path::{Path as StdPath, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
 /// Chunks each actor may have queued at the replay before its sends wait.
@@ -24,14 +26,42 @@ const EXTRA_NODES: usize = 8;
 
 /// A flag that turns true on SIGTERM or SIGINT, for a process's loop to stop cleanly. (The
 /// nodes' own signal handling is off: iceoryx2 resets its flag when read, so a blocking send
-/// could swallow the request.)
-pub fn termination_flag() -> Result<std::sync::Arc<std::sync::atomic::AtomicBool>> {
-    let flag = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+/// could swallow the request.) The first flag a process makes is also what this crate's waits
+/// consult when a signal interrupts them ([`termination_requested`]).
+pub fn termination_flag() -> Result<Arc<AtomicBool>> {
+    let flag = Arc::new(AtomicBool::new(false));
     for signal in [signal_hook::consts::SIGTERM, signal_hook::consts::SIGINT] {
         signal_hook::flag::register(signal, flag.clone())
             .map_err(|source| IpcError::Signal { signal, source })?;
     }
+    let _ = PROCESS_TERMINATION.set(flag.clone());
     Ok(flag)
+}
+
+/// The process's first [`termination_flag`].
+static PROCESS_TERMINATION: OnceLock<Arc<AtomicBool>> = OnceLock::new();
+
+/// Whether SIGTERM or SIGINT reached this process since its first [`termination_flag`] (false
+/// when it made none: a termination signal then ends it by default).
+pub(crate) fn termination_requested() -> bool {
+    PROCESS_TERMINATION
+        .get()
+        .is_some_and(|flag| flag.load(Ordering::Relaxed))
+}
+
+/// `listener.timed_wait` up to `timeout`, returning the events seen. A wait interrupted by a
+/// signal (EINTR: SIGCONT after SIGSTOP, or any handled signal) is not an error unless a
+/// termination signal arrived ([`termination_requested`]): it counts as a wait that saw
+/// nothing, and the caller's loop goes on. `what` names the wait in the error.
+pub(crate) fn timed_wait(
+    listener: &Listener<ipc::Service>,
+    timeout: Duration,
+    what: &'static str,
+) -> Result<u64> {
+    match listener.timed_wait(|_| {}, timeout) {
+        Err(ListenerWaitError::InterruptSignal) if !termination_requested() => Ok(0),
+        result => result.map_err(ice(what)),
+    }
 }
 
 /// The prefix of a run: `ctxrace_<run id>_`, with characters other than ASCII letters, digits,
@@ -341,11 +371,10 @@ impl RunTransport {
             let result = waitset
                 .wait_and_process_once_with_timeout(|_| CallbackProgression::Continue, timeout)
                 .map_err(ice("wait"))?;
-            if matches!(
-                result,
-                iceoryx2::waitset::WaitSetRunResult::TerminationRequest
-                    | iceoryx2::waitset::WaitSetRunResult::Interrupt
-            ) {
+            // An interrupted wait (SIGCONT after SIGSTOP, or EINTR) is no termination: with
+            // `handle_signals`, a SIGTERM or SIGINT that interrupted it is reported by the next
+            // wait as a termination request.
+            if result == iceoryx2::waitset::WaitSetRunResult::TerminationRequest {
                 return Ok(true);
             }
             listener.try_wait(|_| {}).map_err(ice("drain wake"))?;
@@ -399,9 +428,7 @@ pub(crate) fn wait_until(
             return Ok(false);
         }
         // Wake at least every 100 ms: a peer that started before our listener notified nobody.
-        ready
-            .timed_wait(|_| {}, left.min(Duration::from_millis(100)))
-            .map_err(ice("wait for peer"))?;
+        timed_wait(ready, left.min(Duration::from_millis(100)), "wait for peer")?;
     }
 }
 

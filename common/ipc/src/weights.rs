@@ -1,6 +1,6 @@
 //! Learner -> actors weights broadcast: one publisher, history 1, checksummed.
 
-use super::transport::{RunTransport, Wake};
+use super::transport::{timed_wait, RunTransport, Wake};
 use super::wire::{validate_weights, weights_hasher, WeightsHeader, FORMAT_VERSION};
 use super::{read_once, ReadStage, RejectLog};
 use crate::error::{ice, IpcError, Result};
@@ -190,9 +190,7 @@ impl WeightsReceiver {
             if left.is_zero() {
                 return Ok(None);
             }
-            self.wake
-                .timed_wait(|_| {}, left)
-                .map_err(ice("wait for weights"))?;
+            timed_wait(&self.wake, left, "wait for weights")?;
         }
     }
 
