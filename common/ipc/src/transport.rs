@@ -156,7 +156,10 @@ impl RunTransport {
     /// Joins the run with prefix `prefix` (see [`run_prefix`]) of `actors` actors as a node named
     /// `role`. Signal handling is left to the process (see [`termination_flag`]). iceoryx2 0.10
     /// creates the run's `...node.<version>.global_mgmt` segment in `/dev/shm` readable and
-    /// writable by everyone (mode 0666); the first node of the run closes it to its owner.
+    /// writable by everyone (mode 0666: `enable_global_access` in its
+    /// `GlobalManagementSegment`, not configurable): every node closes it to its owner once
+    /// created, and so do [`remove_dead_nodes`] and [`cleanup`] (a node that died or hung
+    /// before closing it, after recreating it, leaves it open only until then).
     pub fn open(prefix: &str, actors: usize, role: &str) -> Result<Self> {
         if actors == 0 {
             return Err(IpcError::NoActors);
@@ -443,6 +446,9 @@ pub struct CleanupReport {
     pub alive_nodes: u64,
     /// Files and directories of the run removed.
     pub files_removed: u64,
+    /// Shared-memory files of the run that others could read or write (iceoryx2 0.10 makes its
+    /// `global_mgmt` segment mode 0666 whenever it creates it), closed to their owner.
+    pub files_restricted: u64,
 }
 
 /// Where POSIX shared memory lives.
@@ -457,7 +463,9 @@ fn user_id() -> Result<u32> {
 
 /// Takes group and others' permissions off every file in `dir` whose name starts with `prefix`
 /// and that this user owns; refuses a file another user owns (it could read or corrupt the run).
-fn restrict_to_owner(dir: &StdPath, prefix: &str) -> Result<()> {
+/// Returns how many files it closed.
+fn restrict_to_owner(dir: &StdPath, prefix: &str) -> Result<u64> {
+    let mut restricted = 0;
     let uid = user_id()?;
     let entries = std::fs::read_dir(dir).map_err(|source| IpcError::File {
         action: "listing",
@@ -483,9 +491,10 @@ fn restrict_to_owner(dir: &StdPath, prefix: &str) -> Result<()> {
         if mode & 0o077 != 0 {
             std::fs::set_permissions(&path, std::fs::Permissions::from_mode(mode & 0o700))
                 .map_err(|source| IpcError::Restrict { path, source })?;
+            restricted += 1;
         }
     }
-    Ok(())
+    Ok(restricted)
 }
 
 /// Removes the resources of the dead nodes of the run with `prefix` (a crashed process's
@@ -508,6 +517,8 @@ pub fn remove_dead_nodes(prefix: &str) -> Result<CleanupReport> {
     })
     .map_err(ice("list nodes"))?;
     report.alive_nodes = alive;
+    // a node created since the last check may have made `global_mgmt` again, world-writable
+    report.files_restricted = restrict_to_owner(StdPath::new(SHM_DIR), prefix)?;
     Ok(report)
 }
 
@@ -637,6 +648,35 @@ mod tests {
         let config = iceoryx_config(&run_prefix("x"), 1).unwrap();
         let configured = std::str::from_utf8(config.global.root_path().as_bytes()).unwrap();
         assert_eq!(configured, format!("{}/", root.display()));
+    }
+
+    /// iceoryx2 makes `global_mgmt` mode 0666 whenever it creates it: a node's open closes it,
+    /// and if it is opened again (recreated by a node that died or hung before closing it), the
+    /// supervisor's dead-node cleanup and the end-of-run cleanup close it again.
+    #[test]
+    fn global_mgmt_is_never_left_world_writable() {
+        let isolated = crate::Isolated::new("global-mgmt");
+        let prefix = isolated.0.clone();
+        let t = RunTransport::open(&prefix, 1, "test").unwrap();
+        let mgmt = std::fs::read_dir(SHM_DIR)
+            .unwrap()
+            .flatten()
+            .map(|e| e.path())
+            .find(|p| {
+                let name = p.file_name().unwrap().to_string_lossy();
+                name.starts_with(&prefix) && name.ends_with("global_mgmt")
+            })
+            .expect("the run's global_mgmt segment in /dev/shm");
+        let mode = |p: &StdPath| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode(&mgmt), 0o600, "{} after open", mgmt.display());
+        for clean in [remove_dead_nodes, cleanup] {
+            std::fs::set_permissions(&mgmt, std::fs::Permissions::from_mode(0o666)).unwrap();
+            let report = clean(&prefix).unwrap();
+            assert_eq!(report.alive_nodes, 1);
+            assert_eq!(report.files_restricted, 1, "{report:?}");
+            assert_eq!(mode(&mgmt), 0o600, "{} after {report:?}", mgmt.display());
+        }
+        drop(t);
     }
 
     #[test]
