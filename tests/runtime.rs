@@ -797,3 +797,49 @@ fn a_replay_crash_counts_the_steps_it_lost() {
         "{inserted} + {lost} > {sent}: {stderr}"
     );
 }
+
+/// SIGSTOP then SIGCONT (a debugger, a job scheduler, Ctrl-Z and `fg`) is no termination (issue
+/// 47): it makes a blocked wait fail with EINTR, which iceoryx2 reports as an interrupt, and an
+/// actor took it for one and exited, the replay for a termination request. An actor and the
+/// replay stopped and continued again and again keep running, and the run ends cleanly.
+#[test]
+fn stopped_and_continued_processes_keep_running() {
+    let dir = tempfile::tempdir().unwrap();
+    let (child, run) = launch(dir.path(), 50_000_000, 1);
+    let minute = Duration::from_secs(60);
+    let actor = wait_for(&run, "the actor", minute, || find_pid(&run, "actor", &[]));
+    let replay = wait_for(&run, "the replay", minute, || find_pid(&run, "replay", &[]));
+    wait_for(&run, "500 steps stored", 3 * minute, || {
+        status(&run)?["replay"]["inserted"]
+            .as_u64()
+            .filter(|&n| n >= 500)
+    });
+    let pause = Duration::from_millis(100);
+    for _ in 0..20 {
+        for signal in [libc::SIGSTOP, libc::SIGCONT] {
+            for pid in [actor, replay] {
+                // SAFETY: kill(2) takes no pointers; a pid that is gone only makes it fail.
+                unsafe { libc::kill(pid as i32, signal) };
+            }
+            std::thread::sleep(pause);
+        }
+    }
+    std::thread::sleep(Duration::from_secs(1));
+    for (role, pid) in [("actor", actor), ("replay", replay)] {
+        assert_eq!(
+            find_pid(&run, role, &[]),
+            Some(pid),
+            "the {role} was replaced\n{}",
+            logs(&run)
+        );
+        assert_eq!(find_pid(&run, role, &[pid]), None, "a second {role}");
+    }
+    // SAFETY: kill(2) on the launcher's pid, which this test still owns (not reaped).
+    unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
+    let stderr = finish(child, 2 * minute);
+    let logs = logs(&run);
+    assert!(
+        !stderr.contains("InterruptSignal") && !logs.contains("InterruptSignal"),
+        "{stderr}\n{logs}"
+    );
+}

@@ -4,7 +4,7 @@
 //! rather than request-response: the answer may come much later than the request, and the
 //! replay serves requests from one queue whatever their origin.)
 
-use super::transport::{wait_until, RunTransport, Wake};
+use super::transport::{timed_wait, wait_until, RunTransport, Wake};
 use super::wire::{
     check_finite, validate_request, BatchHeader, BatchKind, BatchRequest, WireError, FORMAT_VERSION,
 };
@@ -147,9 +147,7 @@ impl ReplayClient {
             if left.is_zero() {
                 return Ok(None);
             }
-            self.woken
-                .timed_wait(|_| {}, left)
-                .map_err(ice("wait for batch"))?;
+            timed_wait(&self.woken, left, "wait for batch")?;
         }
     }
 

@@ -311,6 +311,38 @@ mod tests {
         assert_eq!(rx.missing_chunks(), 0);
     }
 
+    /// Issue 47's first poisoned value: a chunk whose sequence is rewritten to 2^63 in shared
+    /// memory is rejected as a jump, and the actor's stream goes on from where it was.
+    #[test]
+    fn a_sequence_jump_is_rejected_and_does_not_stop_the_stream() {
+        let isolated = Isolated::new("inject-sequence");
+        let t = RunTransport::open(&isolated.0, 1, "replay").unwrap();
+        let mut rx = TrajectoryReceiver::new(&t, OBS, ACT).unwrap();
+        let inject = Injector::new(&t).unwrap();
+        let payload = vec![0.0; step_stride(OBS, ACT)];
+        let header = |sequence| ChunkHeader {
+            sequence,
+            steps: 1,
+            ..ChunkHeader::for_actor(0, OBS, ACT)
+        };
+        let mut stored = Vec::new();
+        for sequence in 0..6 {
+            let held = inject.chunk_held(0, header(sequence), &payload).unwrap();
+            if sequence == 2 {
+                held.set_header(header(1 << 63));
+            }
+            assert_eq!(
+                rx.receive(1, |c| stored.push(c.header.sequence)).unwrap(),
+                1
+            );
+        }
+        // the poisoned chunk took sequence 2: the stream is contiguous after it
+        assert_eq!(stored, vec![0, 1, 3, 4, 5]);
+        let by = crate::wire::named_reasons(&rx.rejected_by_reason());
+        assert_eq!(by, [("sequence_jump", 1)].into_iter().collect());
+        assert_eq!(rx.missing_chunks(), 0);
+    }
+
     #[test]
     fn batches_rewritten_in_shared_memory_are_returned_as_validated_or_rejected() {
         let isolated = Isolated::new("inject-batches");
@@ -389,7 +421,7 @@ mod tests {
         for (version, when) in WHEN.into_iter().enumerate() {
             let header = WeightsHeader {
                 format_version: FORMAT_VERSION,
-                checksum: crc32fast::hash(&bytes),
+                checksum: crate::wire::weights_checksum(version as u64 + 1, &bytes),
                 version: version as u64 + 1,
                 len: bytes.len() as u64,
             };
@@ -414,5 +446,33 @@ mod tests {
             }
         }
         assert_eq!(rx.rejected(), 1);
+    }
+
+    /// Issue 47's second poisoned value: weights whose header version is rewritten to 2^64-1
+    /// in shared memory fail the checksum, and the actor keeps loading newer weights.
+    #[test]
+    fn an_absurd_weights_version_is_rejected_and_newer_weights_still_load() {
+        let isolated = Isolated::new("inject-version");
+        let t = RunTransport::open(&isolated.0, 1, "test").unwrap();
+        let mut rx = WeightsReceiver::new(&t).unwrap();
+        let inject = Injector::new(&t).unwrap();
+        let bytes = vec![5u8; 100];
+        let header = |version| WeightsHeader {
+            format_version: FORMAT_VERSION,
+            checksum: crate::wire::weights_checksum(version, &bytes),
+            version,
+            len: bytes.len() as u64,
+        };
+        let held = inject.weights_held(header(1), &bytes).unwrap();
+        held.set_header(WeightsHeader {
+            version: u64::MAX,
+            ..header(1)
+        });
+        assert_eq!(rx.latest_with(|v, _| v).unwrap(), None);
+        assert_eq!(rx.rejected(), 1);
+        for version in 2..4 {
+            assert_eq!(inject.weights(header(version), &bytes).unwrap(), 1);
+            assert_eq!(rx.latest_with(|v, _| v).unwrap(), Some(version));
+        }
     }
 }

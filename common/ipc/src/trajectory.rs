@@ -1,9 +1,9 @@
 //! Actor -> replay trajectories: the actor's chunking sender and the replay's validating receiver.
 
-use super::transport::{wait_until, RunTransport, Wake};
+use super::transport::{timed_wait, wait_until, RunTransport, Wake};
 use super::wire::{
-    step_stride, validate_chunk, ChunkHeader, WireError, MAX_ACT, MAX_CHUNK, MAX_CHUNK_FLOATS,
-    MAX_OBS,
+    check_sequence, step_stride, validate_chunk, ChunkHeader, WireError, MAX_ACT, MAX_CHUNK,
+    MAX_CHUNK_FLOATS, MAX_OBS,
 };
 use super::{read_once, ReadStage, RejectLog};
 use crate::error::{ice, IpcError, Result};
@@ -232,9 +232,7 @@ impl TrajectorySender {
             if left.is_zero() {
                 break;
             }
-            self.turns
-                .timed_wait(|_| {}, left.min(ATTEMPT))
-                .map_err(ice("wait for replay turn"))?;
+            timed_wait(&self.turns, left.min(ATTEMPT), "wait for replay turn")?;
         }
         // Keep the replay's turn signals from piling up until close.
         self.turns
@@ -276,10 +274,7 @@ impl TrajectorySender {
             if left.is_zero() {
                 break;
             }
-            turns += self
-                .turns
-                .timed_wait(|_| {}, left)
-                .map_err(ice("wait for replay turn"))?;
+            turns += timed_wait(&self.turns, left, "wait for replay turn")?;
         }
         self.unconfirmed = false;
         Ok(())
@@ -420,20 +415,12 @@ impl TrajectoryReceiver {
                             stream: id as u32,
                         });
                     }
-                    match *expected {
-                        // 0 starts a stream: the first chunk of a restarted actor
-                        Some(next) if header.sequence != 0 && header.sequence < next => {
-                            Err(WireError::OutOfOrder {
-                                got: header.sequence,
-                                expected: next,
-                            })
-                        }
-                        _ => Ok(()),
-                    }
+                    check_sequence(header.sequence, *expected)
                 });
             if let Err(e) = checked {
                 self.rejects.reject(&e);
-                // a chunk going back took no new sequence number
+                // a chunk going back took no new sequence number; one jumping ahead did (its
+                // own was overwritten), like any other malformed chunk
                 if !matches!(e, WireError::OutOfOrder { .. }) {
                     self.rejected_since[id] += 1;
                 }
@@ -447,7 +434,7 @@ impl TrajectoryReceiver {
                 self.missing_chunks += gap.saturating_sub(self.rejected_since[id]);
             }
             self.rejected_since[id] = 0;
-            *expected = Some(header.sequence + 1);
+            *expected = Some(header.sequence.saturating_add(1));
             self.taken_steps[id] += u64::from(header.steps);
             f(ChunkView {
                 header: &header,

@@ -7,7 +7,7 @@ use super::wire::{
 };
 use crate::error::SHM_ROOT_ENV;
 use crate::error::{ice, IpcError, Result};
-use iceoryx2::port::listener::Listener;
+use iceoryx2::port::listener::{Listener, ListenerWaitError};
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::event::PortFactory as EventFactory;
@@ -15,6 +15,8 @@ use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFac
 use std::fmt::Debug;
 use std::os::unix::fs::{DirBuilderExt as _, MetadataExt as _, PermissionsExt as _};
 use std::path::{Path as StdPath, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
 /// Chunks each actor may have queued at the replay before its sends wait.
@@ -24,14 +26,42 @@ const EXTRA_NODES: usize = 8;
 
 /// A flag that turns true on SIGTERM or SIGINT, for a process's loop to stop cleanly. (The
 /// nodes' own signal handling is off: iceoryx2 resets its flag when read, so a blocking send
-/// could swallow the request.)
-pub fn termination_flag() -> Result<std::sync::Arc<std::sync::atomic::AtomicBool>> {
-    let flag = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+/// could swallow the request.) The first flag a process makes is also what this crate's waits
+/// consult when a signal interrupts them ([`termination_requested`]).
+pub fn termination_flag() -> Result<Arc<AtomicBool>> {
+    let flag = Arc::new(AtomicBool::new(false));
     for signal in [signal_hook::consts::SIGTERM, signal_hook::consts::SIGINT] {
         signal_hook::flag::register(signal, flag.clone())
             .map_err(|source| IpcError::Signal { signal, source })?;
     }
+    let _ = PROCESS_TERMINATION.set(flag.clone());
     Ok(flag)
+}
+
+/// The process's first [`termination_flag`].
+static PROCESS_TERMINATION: OnceLock<Arc<AtomicBool>> = OnceLock::new();
+
+/// Whether SIGTERM or SIGINT reached this process since its first [`termination_flag`] (false
+/// when it made none: a termination signal then ends it by default).
+pub(crate) fn termination_requested() -> bool {
+    PROCESS_TERMINATION
+        .get()
+        .is_some_and(|flag| flag.load(Ordering::Relaxed))
+}
+
+/// `listener.timed_wait` up to `timeout`, returning the events seen. A wait interrupted by a
+/// signal (EINTR: SIGCONT after SIGSTOP, or any handled signal) is not an error unless a
+/// termination signal arrived ([`termination_requested`]): it counts as a wait that saw
+/// nothing, and the caller's loop goes on. `what` names the wait in the error.
+pub(crate) fn timed_wait(
+    listener: &Listener<ipc::Service>,
+    timeout: Duration,
+    what: &'static str,
+) -> Result<u64> {
+    match listener.timed_wait(|_| {}, timeout) {
+        Err(ListenerWaitError::InterruptSignal) if !termination_requested() => Ok(0),
+        result => result.map_err(ice(what)),
+    }
 }
 
 /// The prefix of a run: `ctxrace_<run id>_`, with characters other than ASCII letters, digits,
@@ -126,7 +156,10 @@ impl RunTransport {
     /// Joins the run with prefix `prefix` (see [`run_prefix`]) of `actors` actors as a node named
     /// `role`. Signal handling is left to the process (see [`termination_flag`]). iceoryx2 0.10
     /// creates the run's `...node.<version>.global_mgmt` segment in `/dev/shm` readable and
-    /// writable by everyone (mode 0666); the first node of the run closes it to its owner.
+    /// writable by everyone (mode 0666: `enable_global_access` in its
+    /// `GlobalManagementSegment`, not configurable): every node closes it to its owner once
+    /// created, and so do [`remove_dead_nodes`] and [`cleanup`] (a node that died or hung
+    /// before closing it, after recreating it, leaves it open only until then).
     pub fn open(prefix: &str, actors: usize, role: &str) -> Result<Self> {
         if actors == 0 {
             return Err(IpcError::NoActors);
@@ -341,11 +374,10 @@ impl RunTransport {
             let result = waitset
                 .wait_and_process_once_with_timeout(|_| CallbackProgression::Continue, timeout)
                 .map_err(ice("wait"))?;
-            if matches!(
-                result,
-                iceoryx2::waitset::WaitSetRunResult::TerminationRequest
-                    | iceoryx2::waitset::WaitSetRunResult::Interrupt
-            ) {
+            // An interrupted wait (SIGCONT after SIGSTOP, or EINTR) is no termination: with
+            // `handle_signals`, a SIGTERM or SIGINT that interrupted it is reported by the next
+            // wait as a termination request.
+            if result == iceoryx2::waitset::WaitSetRunResult::TerminationRequest {
                 return Ok(true);
             }
             listener.try_wait(|_| {}).map_err(ice("drain wake"))?;
@@ -399,9 +431,7 @@ pub(crate) fn wait_until(
             return Ok(false);
         }
         // Wake at least every 100 ms: a peer that started before our listener notified nobody.
-        ready
-            .timed_wait(|_| {}, left.min(Duration::from_millis(100)))
-            .map_err(ice("wait for peer"))?;
+        timed_wait(ready, left.min(Duration::from_millis(100)), "wait for peer")?;
     }
 }
 
@@ -416,6 +446,9 @@ pub struct CleanupReport {
     pub alive_nodes: u64,
     /// Files and directories of the run removed.
     pub files_removed: u64,
+    /// Shared-memory files of the run that others could read or write (iceoryx2 0.10 makes its
+    /// `global_mgmt` segment mode 0666 whenever it creates it), closed to their owner.
+    pub files_restricted: u64,
 }
 
 /// Where POSIX shared memory lives.
@@ -430,7 +463,9 @@ fn user_id() -> Result<u32> {
 
 /// Takes group and others' permissions off every file in `dir` whose name starts with `prefix`
 /// and that this user owns; refuses a file another user owns (it could read or corrupt the run).
-fn restrict_to_owner(dir: &StdPath, prefix: &str) -> Result<()> {
+/// Returns how many files it closed.
+fn restrict_to_owner(dir: &StdPath, prefix: &str) -> Result<u64> {
+    let mut restricted = 0;
     let uid = user_id()?;
     let entries = std::fs::read_dir(dir).map_err(|source| IpcError::File {
         action: "listing",
@@ -456,9 +491,10 @@ fn restrict_to_owner(dir: &StdPath, prefix: &str) -> Result<()> {
         if mode & 0o077 != 0 {
             std::fs::set_permissions(&path, std::fs::Permissions::from_mode(mode & 0o700))
                 .map_err(|source| IpcError::Restrict { path, source })?;
+            restricted += 1;
         }
     }
-    Ok(())
+    Ok(restricted)
 }
 
 /// Removes the resources of the dead nodes of the run with `prefix` (a crashed process's
@@ -481,6 +517,8 @@ pub fn remove_dead_nodes(prefix: &str) -> Result<CleanupReport> {
     })
     .map_err(ice("list nodes"))?;
     report.alive_nodes = alive;
+    // a node created since the last check may have made `global_mgmt` again, world-writable
+    report.files_restricted = restrict_to_owner(StdPath::new(SHM_DIR), prefix)?;
     Ok(report)
 }
 
@@ -610,6 +648,35 @@ mod tests {
         let config = iceoryx_config(&run_prefix("x"), 1).unwrap();
         let configured = std::str::from_utf8(config.global.root_path().as_bytes()).unwrap();
         assert_eq!(configured, format!("{}/", root.display()));
+    }
+
+    /// iceoryx2 makes `global_mgmt` mode 0666 whenever it creates it: a node's open closes it,
+    /// and if it is opened again (recreated by a node that died or hung before closing it), the
+    /// supervisor's dead-node cleanup and the end-of-run cleanup close it again.
+    #[test]
+    fn global_mgmt_is_never_left_world_writable() {
+        let isolated = crate::Isolated::new("global-mgmt");
+        let prefix = isolated.0.clone();
+        let t = RunTransport::open(&prefix, 1, "test").unwrap();
+        let mgmt = std::fs::read_dir(SHM_DIR)
+            .unwrap()
+            .flatten()
+            .map(|e| e.path())
+            .find(|p| {
+                let name = p.file_name().unwrap().to_string_lossy();
+                name.starts_with(&prefix) && name.ends_with("global_mgmt")
+            })
+            .expect("the run's global_mgmt segment in /dev/shm");
+        let mode = |p: &StdPath| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode(&mgmt), 0o600, "{} after open", mgmt.display());
+        for clean in [remove_dead_nodes, cleanup] {
+            std::fs::set_permissions(&mgmt, std::fs::Permissions::from_mode(0o666)).unwrap();
+            let report = clean(&prefix).unwrap();
+            assert_eq!(report.alive_nodes, 1);
+            assert_eq!(report.files_restricted, 1, "{report:?}");
+            assert_eq!(mode(&mgmt), 0o600, "{} after {report:?}", mgmt.display());
+        }
+        drop(t);
     }
 
     #[test]

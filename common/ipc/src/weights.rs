@@ -1,7 +1,7 @@
 //! Learner -> actors weights broadcast: one publisher, history 1, checksummed.
 
-use super::transport::{RunTransport, Wake};
-use super::wire::{validate_weights, WeightsHeader, FORMAT_VERSION};
+use super::transport::{timed_wait, RunTransport, Wake};
+use super::wire::{validate_weights, weights_hasher, WeightsHeader, FORMAT_VERSION};
 use super::{read_once, ReadStage, RejectLog};
 use crate::error::{ice, IpcError, Result};
 use iceoryx2::port::listener::Listener;
@@ -60,7 +60,7 @@ impl WeightsPublisher {
             .loan_slice_uninit(bytes.len())
             .map_err(ice("loan weights"))?;
         // Copy and checksum block by block: the block is still in cache for the hash.
-        let mut hasher = crc32fast::Hasher::new();
+        let mut hasher = weights_hasher(version, bytes.len() as u64);
         for (dst, src) in sample
             .payload_mut()
             .chunks_mut(HASH_BLOCK)
@@ -190,9 +190,7 @@ impl WeightsReceiver {
             if left.is_zero() {
                 return Ok(None);
             }
-            self.wake
-                .timed_wait(|_| {}, left)
-                .map_err(ice("wait for weights"))?;
+            timed_wait(&self.wake, left, "wait for weights")?;
         }
     }
 

@@ -9,13 +9,15 @@
 //! Version history: 1, the first; 2, trajectory steps and sequence batches carry cMask's acting
 //! context mask, episode metrics whether the policy drove the whole episode; 3, one trajectory
 //! service per actor (a chunk on another actor's is rejected), the replay's status reports its
-//! longest loop turn and the count it restored.
+//! longest loop turn and the count it restored; 4, a weights checksum covers the header's
+//! version and length too, and chunks jumping ahead of their stream are rejected
+//! (`sequence_jump`).
 
 use ctxrace_config::batch::{sequence_floats, transition_floats};
 use iceoryx2::prelude::ZeroCopySend;
 
 /// Version of every wire layout in this module; bump it on any change.
-pub const FORMAT_VERSION: u32 = 3;
+pub const FORMAT_VERSION: u32 = 4;
 /// Largest observation (one LiDAR frame) a step may carry: the configuration's bound.
 pub use ctxrace_config::MAX_OBS;
 /// Largest action a step may carry.
@@ -25,6 +27,11 @@ pub const MAX_CHUNK: usize = 64;
 pub use ctxrace_run::steps::{step_stride, STEP_EXTRA};
 /// Flags of a step: is_first, is_terminal, is_last, has_mask.
 const STEP_FLAGS: usize = 4;
+/// How far ahead of its stream's next expected sequence number a chunk may be: a sender drops
+/// chunks only when it closes, and a chunk the replay rejected takes one number, so a real
+/// stream never jumps this far; a sequence beyond it is rejected (`sequence_jump`) instead of
+/// moving the stream there and making every later chunk `out_of_order`.
+pub const SEQUENCE_WINDOW: u64 = 1 << 16;
 /// Length of the `[f32]` slice a trajectory publisher preallocates.
 pub const MAX_CHUNK_FLOATS: usize = MAX_CHUNK * (MAX_OBS + MAX_ACT + STEP_EXTRA);
 
@@ -74,7 +81,7 @@ impl ChunkHeader {
 pub struct WeightsHeader {
     /// [`FORMAT_VERSION`].
     pub format_version: u32,
-    /// CRC-32 of the payload bytes.
+    /// CRC-32 of the version, the length and the payload ([`weights_checksum`]).
     pub checksum: u32,
     /// Policy version, increasing.
     pub version: u64,
@@ -303,6 +310,19 @@ pub enum WireError {
         /// The next one expected.
         expected: u64,
     },
+    /// A chunk whose sequence number is further ahead of its actor's stream than
+    /// [`SEQUENCE_WINDOW`]: a value no sender writes.
+    #[error(
+        "chunk sequence {got} jumps ahead: actor's stream expects {expected} to {} (a window of \
+         {SEQUENCE_WINDOW})",
+        expected.saturating_add(SEQUENCE_WINDOW - 1)
+    )]
+    SequenceJump {
+        /// The sequence number received.
+        got: u64,
+        /// The next one expected.
+        expected: u64,
+    },
     /// A batch request larger than the rate limiter could ever serve.
     #[error("a request for {steps} steps exceeds the rate limiter's window")]
     Unservable {
@@ -313,7 +333,7 @@ pub enum WireError {
 
 /// The reasons a message is rejected for, in the order of the counters that
 /// [`WireError::reason`] indexes ([`ReplayStatus::rejected_by_reason`]).
-pub const REASONS: [&str; 9] = [
+pub const REASONS: [&str; 10] = [
     "version",
     "unknown_actor",
     "wrong_stream",
@@ -323,6 +343,7 @@ pub const REASONS: [&str; 9] = [
     "checksum",
     "kind",
     "unservable",
+    "sequence_jump",
 ];
 
 /// The nonzero counters of a by-reason array ([`REASONS`]), by name.
@@ -350,6 +371,7 @@ impl WireError {
             WireError::Checksum { .. } => 6,
             WireError::Kind(_) => 7,
             WireError::Unservable { .. } => 8,
+            WireError::SequenceJump { .. } => 9,
         }
     }
 }
@@ -418,7 +440,43 @@ pub fn check_finite(values: &[f32]) -> Result<(), WireError> {
     })
 }
 
-/// Checks a weights broadcast: version, length and checksum.
+/// Where a chunk of sequence number `got` stands in a stream that expects `expected` next
+/// (`None`: no chunk of it seen yet): 0 always starts the stream again (a restarted actor's
+/// first chunk); otherwise it must not go back, nor jump further ahead than
+/// [`SEQUENCE_WINDOW`].
+pub fn check_sequence(got: u64, expected: Option<u64>) -> Result<(), WireError> {
+    match expected {
+        Some(_) if got == 0 => Ok(()),
+        Some(next) if got < next => Err(WireError::OutOfOrder {
+            got,
+            expected: next,
+        }),
+        Some(next) if got - next >= SEQUENCE_WINDOW => Err(WireError::SequenceJump {
+            got,
+            expected: next,
+        }),
+        _ => Ok(()),
+    }
+}
+
+/// The CRC-32 a [`WeightsHeader`] carries, as a hasher to feed the payload to: it starts with
+/// the header's `version` and `len` (little-endian), so a header rewritten in shared memory
+/// fails the checksum like a payload does.
+pub fn weights_hasher(version: u64, len: u64) -> crc32fast::Hasher {
+    let mut hasher = crc32fast::Hasher::new();
+    hasher.update(&version.to_le_bytes());
+    hasher.update(&len.to_le_bytes());
+    hasher
+}
+
+/// The checksum of weights `payload` published as `version` ([`weights_hasher`]).
+pub fn weights_checksum(version: u64, payload: &[u8]) -> u32 {
+    let mut hasher = weights_hasher(version, payload.len() as u64);
+    hasher.update(payload);
+    hasher.finalize()
+}
+
+/// Checks a weights broadcast: version, length and checksum (over version, length and payload).
 pub fn validate_weights(header: &WeightsHeader, payload: &[u8]) -> Result<(), WireError> {
     if header.format_version != FORMAT_VERSION {
         return Err(WireError::Version {
@@ -432,7 +490,7 @@ pub fn validate_weights(header: &WeightsHeader, payload: &[u8]) -> Result<(), Wi
             payload.len()
         )));
     }
-    let got = crc32fast::hash(payload);
+    let got = weights_checksum(header.version, payload);
     if got != header.checksum {
         return Err(WireError::Checksum {
             got,
@@ -544,11 +602,31 @@ mod tests {
     }
 
     #[test]
+    fn sequences_within_the_window_are_taken_and_jumps_rejected() {
+        assert_eq!(check_sequence(1 << 63, None), Ok(()));
+        assert_eq!(check_sequence(5, Some(5)), Ok(()));
+        assert_eq!(check_sequence(0, Some(5)), Ok(()));
+        assert_eq!(check_sequence(5 + SEQUENCE_WINDOW - 1, Some(5)), Ok(()));
+        let jump = check_sequence(5 + SEQUENCE_WINDOW, Some(5)).unwrap_err();
+        assert_eq!(REASONS[jump.reason()], "sequence_jump");
+        for got in [1 << 63, u64::MAX] {
+            assert!(matches!(
+                check_sequence(got, Some(7)),
+                Err(WireError::SequenceJump { .. })
+            ));
+        }
+        assert!(matches!(
+            check_sequence(4, Some(5)),
+            Err(WireError::OutOfOrder { .. })
+        ));
+    }
+
+    #[test]
     fn weights_and_request_validation() {
         let bytes = b"some weights".to_vec();
         let h = WeightsHeader {
             format_version: FORMAT_VERSION,
-            checksum: crc32fast::hash(&bytes),
+            checksum: weights_checksum(3, &bytes),
             version: 3,
             len: bytes.len() as u64,
         };
@@ -560,6 +638,15 @@ mod tests {
             Err(WireError::Checksum { .. })
         ));
         assert!(validate_weights(&h, &bytes[1..]).is_err());
+        // the header is covered too: a version rewritten to the largest one is refused
+        let absurd = WeightsHeader {
+            version: u64::MAX,
+            ..h
+        };
+        assert!(matches!(
+            validate_weights(&absurd, &bytes),
+            Err(WireError::Checksum { .. })
+        ));
         let r = BatchRequest {
             format_version: FORMAT_VERSION,
             kind: 0,
