@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Integration test of `ctxrace sweep --emit slurm` on a real (one-node) Slurm cluster: starts one
 # on this machine (deploy/slurm-one-node.sh, as root), emits the script of a tiny matrix (two SAC
-# runs of a few thousand steps on a generated track), submits it from another folder with
+# runs of 24,000 env steps on a generated track), submits it from another folder with
 # --export=NONE, kills one array task once its run has a checkpoint, checks that the report job
 # waits for the array, submits the script again and checks that the killed run resumed (its
 # replay restored from the snapshot), that the finished one was not trained again, and that
@@ -56,7 +56,7 @@ algo = "sac"
 hidden = 32
 batch_size = 32
 [train]
-env_steps = 4000
+env_steps = 24000
 prefill = 400
 train_ratio = 0.25
 policy_every = 10
@@ -107,8 +107,11 @@ pids=$(scontrol listpids "$task0" | awk 'NR > 1 && $1 ~ /^[0-9]+$/ { print $1 }'
 [[ -n $pids ]] || fail "no process of task ${array}_0 (job $task0) found"
 # shellcheck disable=SC2086 # one pid per word
 kill -9 $pids 2>/dev/null || true
-echo "slurm_test: killed task ${array}_0 (kill -9 of its $(wc -w <<<"$pids") processes) past" \
-    "$(basename "$(ls -d "$run0"/checkpoints/step-* | sort -V | tail -1)")"
+newest=$(basename "$(ls -d "$run0"/checkpoints/step-* | sort -V | tail -1)")
+# the run's last checkpoint is step 5900 ((24000 - 400) x 0.25): the kill must come before it
+((10#${newest#step-} < 5900)) || fail "task ${array}_0 finished training before the kill" \
+    "($newest); raise env_steps in this script's base.toml"
+echo "slurm_test: killed task ${array}_0 (kill -9 of its $(wc -w <<<"$pids") processes) past $newest"
 wait_until "gone $array" 300
 [[ -f $run1/eval/contexts.csv ]] || fail "task 1 did not evaluate its run"
 [[ ! -f $run0/eval/contexts.csv ]] || fail "the killed task's run was evaluated"
