@@ -19,6 +19,7 @@ mod race_cmd;
 mod render;
 mod report;
 mod roles;
+mod shell;
 mod slurm;
 mod sweep;
 mod table;

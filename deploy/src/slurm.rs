@@ -115,12 +115,12 @@ impl SlurmArgs {
 pub fn script(opts: &SlurmArgs, sweep: &SlurmSweep) -> Result<String> {
     opts.check()?;
     let logs = sweep.out.join("slurm");
-    let logs_q = crate::sweep::shell_quote(&logs.display().to_string());
+    let logs_q = crate::shell::shell_quote(&logs.display().to_string());
     let throttle = opts.throttle.map(|n| format!("%{n}")).unwrap_or_default();
     let names: Vec<String> = sweep
         .runs
         .iter()
-        .map(|r| crate::sweep::shell_quote(r))
+        .map(|r| crate::shell::shell_quote(r))
         .collect();
     Ok(format!(
         r#"#!/usr/bin/env bash

@@ -19,6 +19,7 @@
 //! [`crate::slurm`]), so that a cluster runs exactly what the local sweep would; `--report`
 //! writes the report alone.
 
+use crate::shell::{is_plain, shell_quote};
 use anyhow::{bail, Context as _, Result};
 use clap::{Args, ValueEnum};
 use ctxrace_config::resources::read_config_text;
@@ -828,20 +829,6 @@ fn emit_commands(
     })
 }
 
-/// Whether `c` needs no shell quoting.
-fn is_plain(c: char) -> bool {
-    c.is_ascii_alphanumeric() || "-_./:=,+@%".contains(c)
-}
-
-/// `s` quoted for a POSIX shell where it needs to be.
-pub fn shell_quote(s: &str) -> String {
-    if !s.is_empty() && s.chars().all(is_plain) {
-        s.to_string()
-    } else {
-        format!("'{}'", s.replace('\'', "'\\''"))
-    }
-}
-
 /// Writes `<out>/report/` over every run's evaluation (its figures read the tracks in
 /// `tracks_dir`, when given).
 fn write_report(out: &Path, runs: &[MatrixRun], tracks_dir: Option<&Path>) -> Result<()> {
@@ -1103,12 +1090,5 @@ train_ratio = 2.0
             .unwrap_err()
             .to_string();
         assert!(err.contains("cannot quote ' '"), "{err}");
-    }
-
-    #[test]
-    fn shell_quoting_keeps_plain_words_and_quotes_the_rest() {
-        assert_eq!(shell_quote("runs/a-1r-s0"), "runs/a-1r-s0");
-        assert_eq!(shell_quote("my runs"), "'my runs'");
-        assert_eq!(shell_quote("it's"), "'it'\\''s'");
     }
 }
