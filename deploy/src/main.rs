@@ -132,7 +132,7 @@ pub fn load_race_config(path: Option<&PathBuf>) -> Result<RaceConfig> {
         return Ok(RaceConfig::default());
     };
     let text =
-        ctxrace_config::resources::read_config_text(path).context("reading the race config")?;
+        ctxrace_config::config_file::read_config_text(path).context("reading the race config")?;
     RaceConfig::from_toml(&text).map_err(|e| anyhow::anyhow!("race config {}: {e}", path.display()))
 }
 

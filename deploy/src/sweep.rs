@@ -22,7 +22,7 @@
 use crate::shell::{is_plain, shell_quote};
 use anyhow::{bail, Context as _, Result};
 use clap::{Args, ValueEnum};
-use ctxrace_config::resources::read_config_text;
+use ctxrace_config::config_file::read_config_text;
 use ctxrace_config::validate::toml_message;
 use ctxrace_config::{AlgoKind, ContextMode, ExperimentConfig};
 use ctxrace_run::lock::{die_with_parent, DirLock};

@@ -8,7 +8,20 @@ use crate::config::{RaceConfig, RaceConfigError, ReplayOptions};
 use crate::validate::{finite_floats, in_range, ValueError};
 use serde::{Deserialize, Serialize};
 use std::ops::Bound;
-use std::path::Path;
+use std::path::{Component, Path};
+
+/// The most gradient steps per env step (`[train] train_ratio`; the paper's: 1, its SAC: 2).
+pub const MAX_TRAIN_RATIO: f64 = 1000.0;
+/// The longest episode (`[race] max_time`, s; the paper's: 240).
+pub const MAX_EPISODE_SECS: f64 = 3600.0;
+/// The widest layer of any network (units, hidden sizes; the paper's widest: 512).
+pub const MAX_WIDTH: usize = 16384;
+/// The deepest MLP (layers).
+pub const MAX_LAYERS: usize = 64;
+/// The longest imagination horizon (`[agent] dreamer.horizon`; the paper's: 15).
+pub const MAX_HORIZON: usize = 1000;
+/// The most env steps of a run (`[train] env_steps`; the paper's: 100 000).
+pub const MAX_ENV_STEPS: u64 = 10_000_000_000;
 
 /// Why an experiment configuration is refused. Each message names the key (by its table), its
 /// value and how to fix it; [`ExperimentError::In`] adds the file it came from.
@@ -16,7 +29,7 @@ use std::path::Path;
 pub enum ExperimentError {
     /// The file could not be read, is too large or is not text (its content is not shown).
     #[error("experiment config: {0}")]
-    Read(crate::resources::ResourceError),
+    Read(crate::config_file::ConfigFileError),
     /// A refusal of the configuration read from `origin` (a file's path, or what the text is).
     #[error("{origin}: {error}")]
     In {
@@ -290,7 +303,7 @@ impl ExperimentConfig {
 
     /// Reads and checks a TOML file.
     pub fn load(path: &Path) -> Result<Self, ExperimentError> {
-        let text = crate::resources::read_config_text(path).map_err(ExperimentError::Read)?;
+        let text = crate::config_file::read_config_text(path).map_err(ExperimentError::Read)?;
         Self::from_toml(&text, &path.display().to_string())
     }
 
@@ -299,7 +312,7 @@ impl ExperimentConfig {
     /// as the scale that run trained with ([`crate::ContextScale::SAVED_WITHOUT_KEY`]).
     pub fn load_saved(path: &Path) -> Result<Self, ExperimentError> {
         let origin = path.display().to_string();
-        let text = crate::resources::read_config_text(path).map_err(ExperimentError::Read)?;
+        let text = crate::config_file::read_config_text(path).map_err(ExperimentError::Read)?;
         let mut table: toml::Table =
             toml::from_str(&text).map_err(|e| ExperimentError::Toml(e).within(&origin))?;
         let agent = table
@@ -372,7 +385,7 @@ impl ExperimentConfig {
         self.race.validate().map_err(ExperimentError::Race)?;
         self.validate_agent()?;
         self.agent.validate().map_err(ExperimentError::Agent)?;
-        crate::resources::check_bounds(self).map_err(ExperimentError::Value)?;
+        self.check_bounds().map_err(ExperimentError::Value)?;
         let t = &self.train;
         if self.agent.warmup == Warmup::RandomSteps && t.env_steps <= t.prefill {
             return Err(ExperimentError::NothingAfterPrefill {
@@ -567,6 +580,82 @@ impl ExperimentConfig {
                 steps: spec.steps(),
                 needed,
             });
+        }
+        Ok(())
+    }
+}
+
+impl ExperimentConfig {
+    /// Checks that every size and count lies within its sane bound, and that `[replay]
+    /// snapshot_path` stays inside the run folder; the error names the key, its value and the fix.
+    fn check_bounds(&self) -> Result<(), ValueError> {
+        let t = &self.train;
+        in_range(
+            "[train] train_ratio",
+            t.train_ratio,
+            (Bound::Excluded(0.0), Bound::Included(MAX_TRAIN_RATIO)),
+            "it is the gradient steps per env step (the paper: 1)",
+        )?;
+        in_range(
+            "[train] env_steps",
+            t.env_steps,
+            ..=MAX_ENV_STEPS,
+            "the paper trains 100000",
+        )?;
+        in_range(
+            "[race] max_time",
+            self.race.max_time,
+            (Bound::Excluded(0.0), Bound::Included(MAX_EPISODE_SECS)),
+            "the seconds an episode lasts at most (the paper: 240)",
+        )?;
+        let (s, d) = (&self.agent.sac, &self.agent.dreamer);
+        let widths = [
+            ("[agent] sac.hidden", s.hidden),
+            ("[agent] dreamer.units", d.units),
+            ("[agent] dreamer.deter", d.deter),
+            ("[agent] dreamer.hidden", d.hidden),
+            ("[agent] dreamer.head_units", d.head_units),
+            ("[agent] dreamer.mask.units", d.mask.units),
+            ("[agent] dreamer.stoch", d.stoch),
+            ("[agent] dreamer.classes", d.classes),
+            ("[agent] dreamer.bins", d.bins),
+        ];
+        for (key, width) in widths {
+            in_range(
+                key,
+                width,
+                1..=MAX_WIDTH,
+                "the paper's widest layer has 512",
+            )?;
+        }
+        let depths = [
+            ("[agent] sac.layers", s.layers),
+            ("[agent] dreamer.layers", d.layers),
+            ("[agent] dreamer.head_layers", d.head_layers),
+            ("[agent] dreamer.mask.layers", d.mask.layers),
+        ];
+        for (key, layers) in depths {
+            in_range(key, layers, ..=MAX_LAYERS, "the paper's MLPs have 2 to 5")?;
+        }
+        in_range(
+            "[agent] dreamer.horizon",
+            d.horizon,
+            1..=MAX_HORIZON,
+            "the imagined steps per start (the paper: 15)",
+        )?;
+        if let Some(path) = &self.replay.snapshot_path {
+            let inside = path.components().all(|c| matches!(c, Component::Normal(_)));
+            if !inside || path.as_os_str().is_empty() {
+                return Err(ValueError::OutOfRange {
+                    key: "[replay] snapshot_path".into(),
+                    value: format!("{path:?}"),
+                    bounds: "a file inside the run folder (relative, without ..)".into(),
+                    fix:
+                        "name it relative to the run folder, e.g. \"replay.snapshot\", or leave it \
+                          out"
+                        .into(),
+                });
+            }
         }
         Ok(())
     }
@@ -938,5 +1027,39 @@ mod tests {
         let ok = "[train]\nenv_steps = 3000\nprefill = 2500";
         let cfg = ExperimentConfig::from_toml(ok, "ok.toml").unwrap();
         assert_eq!(cfg.gradient_steps(), 500);
+    }
+
+    #[test]
+    fn sizes_and_counts_beyond_their_bounds_are_refused_by_key() {
+        let cfg = |toml: &str| ExperimentConfig::from_toml(toml, "test").map_err(|e| e.to_string());
+        for (toml, says) in [
+            (
+                "[train]\ntrain_ratio = 1e9\n",
+                "[train] train_ratio = 1000000000 must be",
+            ),
+            ("[race]\nmax_time = 1e300\n", "[race] max_time = 1e300 must"),
+            (
+                "[agent]\nalgo = \"cmask\"\n[agent.dreamer]\nhorizon = 100000000\n",
+                "horizon",
+            ),
+            (
+                "[agent]\nalgo = \"cmask\"\n[agent.dreamer]\nunits = 1000000\n",
+                "dreamer.units",
+            ),
+            ("[train]\nenv_steps = 100000000000\n", "[train] env_steps"),
+            (
+                "[replay]\nsnapshot_path = \"/tmp/other/replay.snapshot\"\n",
+                "inside the run",
+            ),
+            (
+                "[replay]\nsnapshot_path = \"../other/replay.snapshot\"\n",
+                "relative, without ..",
+            ),
+        ] {
+            let err = cfg(toml).unwrap_err();
+            assert!(err.contains(says), "{toml}: {err}");
+        }
+        cfg("[replay]\nsnapshot_path = \"snapshots/replay.snapshot\"\n").unwrap();
+        cfg("").unwrap();
     }
 }

@@ -6,6 +6,7 @@
 pub mod agents;
 pub mod batch;
 pub mod config;
+pub mod config_file;
 pub mod context;
 pub mod experiment;
 pub mod preset;
