@@ -337,10 +337,11 @@ fn random_batch(spec: BatchSpec, beams: usize, rng: &mut ChaCha8Rng) -> Batch {
 
 /// Runs `ctxrace bench learner`.
 pub fn run(args: LearnerArgs) -> Result<()> {
-    let mut agent: AgentConfig = match &args.config {
-        Some(path) => ExperimentConfig::load(path)?.agent,
-        None => AgentConfig::default(),
+    let experiment = match &args.config {
+        Some(path) => ExperimentConfig::load(path)?,
+        None => ExperimentConfig::default(),
     };
+    let mut agent: AgentConfig = experiment.agent;
     agent.algo = args.algo;
     let beams = ctxrace_config::LidarConfig::default().beams;
     let spec = agent.batch_spec();
@@ -349,6 +350,8 @@ pub fn run(args: LearnerArgs) -> Result<()> {
 
     let threads = args.threads.unwrap_or(agent.algo.learner_threads());
     let mut algo = ctxrace_learner::build(&agent, beams, threads)?;
+    // the diagnostics on the steps a run logs, as in a run
+    algo.set_diagnostics_every(experiment.train.log_every);
     algo.train_step(&batch)?;
     let flops_before = ctxrace_nn::kernels::matmul_flops();
     let mut metrics = Default::default();

@@ -22,6 +22,13 @@ pub trait Algorithm {
     fn load(&mut self, dir: &Path) -> std::result::Result<(), CheckpointError>;
     /// Training steps taken.
     fn steps(&self) -> u64;
+    /// Computes the step's costly diagnostics (cMask's `mask/q_spread`) only on the steps whose
+    /// count after the step is a multiple of `every`: the steps whose metrics are logged
+    /// (`[train] log_every`). By default, and for an algorithm without such diagnostics, every
+    /// step reports every metric.
+    fn set_diagnostics_every(&mut self, every: u64) {
+        let _ = every;
+    }
 }
 
 /// The value of a one-element candle tensor (the tests' oracle), for [`Metrics`].

@@ -291,7 +291,8 @@ impl MaskSac {
 
     /// One SAC step (critics, actor, temperature, targets) on the transitions of the batch `seq`
     /// and the masks stored with them, the learner's step `step` (the targets move when it is a
-    /// multiple of `target_every`). The critic and actor losses are means over the valid
+    /// multiple of `target_every`; `mask/q_spread` only when `diagnose`, on a logged step). The
+    /// critic and actor losses are means over the valid
     /// transitions; each of the `workers` shards of sequences sums its part (divided by the
     /// batch's count) and differentiates it in parallel, and the gradients are summed. A batch
     /// without valid transitions (all random prefill) takes no step.
@@ -299,7 +300,7 @@ impl MaskSac {
         &mut self,
         actor: &mut Mlp,
         seq: &SequenceBatch,
-        (step, workers): (u64, usize),
+        (step, workers, diagnose): (u64, usize, bool),
         rngs: &mut [ChaCha8Rng],
         metrics: &mut Metrics,
     ) -> Result<()> {
@@ -311,12 +312,9 @@ impl MaskSac {
         metrics.insert("mask/alpha".into(), self.core.alpha());
         if valid_count == 0.0 {
             // the losses over no transitions are zero; nothing is stepped
-            for key in [
-                "mask/q_loss",
-                "mask/actor_loss",
-                "mask/entropy",
-                "mask/q_spread",
-            ] {
+            let keys = ["mask/q_loss", "mask/actor_loss", "mask/entropy"];
+            let spread = diagnose.then_some("mask/q_spread");
+            for key in keys.into_iter().chain(spread) {
                 metrics.insert(key.into(), 0.0);
             }
             return Ok(());
@@ -333,7 +331,9 @@ impl MaskSac {
         metrics.insert("mask/q_loss".into(), losses.critic_loss);
         metrics.insert("mask/actor_loss".into(), losses.actor_loss);
         metrics.insert("mask/entropy".into(), -losses.log_prob);
-        metrics.insert("mask/q_spread".into(), self.q_spread(&transitions));
+        if diagnose {
+            metrics.insert("mask/q_spread".into(), self.q_spread(&transitions));
+        }
         Ok(())
     }
 
@@ -705,7 +705,7 @@ mod tests {
             sac.step(
                 &mut actor,
                 &seq,
-                (k, 2),
+                (k, 2, true),
                 &mut streams(k),
                 &mut Metrics::new(),
             )

@@ -103,6 +103,8 @@ pub struct Dreamer {
     step: u64,
     /// Worker threads a batch is split over.
     workers: usize,
+    /// The steps that compute the costly diagnostics ([`Algorithm::set_diagnostics_every`]).
+    diagnostics_every: u64,
     /// Each shard's imagination, its buffers kept from one step to the next.
     imaginations: Vec<Imagination>,
     /// The mask actor's buffers for the batch's masks.
@@ -153,6 +155,7 @@ impl Dreamer {
             mask_sac,
             step: 0,
             workers: 1,
+            diagnostics_every: 1,
             imaginations: Vec::new(),
             mask_trace: MlpTrace::default(),
         })
@@ -415,10 +418,11 @@ impl Algorithm for Dreamer {
         {
             let mean = masks.iter().map(|&m| f64::from(m)).sum::<f64>() / masks.len() as f64;
             metrics.insert("mask/mean".into(), mean);
+            let logged = (self.step + 1).is_multiple_of(self.diagnostics_every);
             sac.step(
                 actor,
                 seq,
-                (self.step, self.workers),
+                (self.step, self.workers, logged),
                 &mut rngs,
                 &mut metrics,
             )?;
@@ -471,6 +475,10 @@ impl Algorithm for Dreamer {
 
     fn steps(&self) -> u64 {
         self.step
+    }
+
+    fn set_diagnostics_every(&mut self, every: u64) {
+        self.diagnostics_every = every.max(1);
     }
 }
 
@@ -650,7 +658,7 @@ mod tests {
                 agent.mask_sac.as_mut().unwrap(),
                 agent.policy.mask.as_mut().unwrap(),
             );
-            sac.step(actor, &seq, (agent.step, 1), &mut rngs, &mut m)
+            sac.step(actor, &seq, (agent.step, 1, true), &mut rngs, &mut m)
                 .unwrap();
             agent.step += 1;
         }
@@ -1207,6 +1215,20 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// cMask's costly diagnostic, the mask critics' spread, is computed on the logged steps only.
+    #[test]
+    fn the_mask_q_spread_is_computed_on_the_logged_steps_only() {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let data = collect(6, &mut rng);
+        let batch = sample(&data, 4, 16, &mut rng);
+        let mut agent = Dreamer::new(tiny(ContextMode::Cmask), 2, 2).unwrap();
+        agent.set_diagnostics_every(2);
+        let first = agent.train_step(&batch).unwrap();
+        let second = agent.train_step(&batch).unwrap();
+        assert!(first.contains_key("mask/q_loss") && !first.contains_key("mask/q_spread"));
+        assert!(second["mask/q_spread"] > 0.0, "{second:?}");
     }
 
     #[test]

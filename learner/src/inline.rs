@@ -113,6 +113,7 @@ pub fn run_inline<S: ExperienceSource<Policy = Policy>, B: SampleStore>(
     }
     let workers = t.threads_for(cfg.agent.algo);
     let mut algo = crate::build(&cfg.agent, frame_dim, workers)?;
+    algo.set_diagnostics_every(t.log_every);
     let mut policy = Policy::new(&cfg.agent, frame_dim, &algo.policy_weights()?, t.seed)?;
     let mut rng = ChaCha8Rng::seed_from_u64(t.seed ^ 0x7265_706c_6179);
     let spec = cfg.agent.batch_spec();

@@ -92,6 +92,7 @@ pub fn run(opts: LearnerOptions) -> Result<u64, ProcessError> {
     let t = &cfg.train;
     let workers = t.threads_for(cfg.agent.algo);
     let mut algo = crate::build(&cfg.agent, opts.frame_dim, workers)?;
+    algo.set_diagnostics_every(t.log_every);
     let mut tracker = ReturnTracker::default();
     if let Some(ckpt) = latest_checkpoint(&opts.run_dir) {
         let resume = |source| ProcessError::Resume {
