@@ -1,7 +1,7 @@
 //! Many races stepped together ([`RaceVector`]): `n` environments of one track and scenario,
 //! stepped on worker threads, their observations and outcomes written into buffers the caller
 //! owns. An env whose episode ended resets itself on the next step, ignoring that step's action
-//! (Gymnasium's next-step autoreset).
+//! (Gymnasium's next-step autoreset), or, with [`Autoreset::SameStep`], in the step that ended it.
 //!
 //! **Seeds and contexts.** [`RaceVector::reset`] with `seed` starts env `i`'s episode from the
 //! reset seed `seed + i` (what `ctxrace race --seed` passes to [`RaceEnv::reset`]); a stream of
@@ -60,6 +60,19 @@ pub enum VectorError {
     Threads(#[from] rayon::ThreadPoolBuildError),
 }
 
+/// When an env whose episode ended starts its next one: Gymnasium's autoreset modes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Autoreset {
+    /// On the next step, which returns the new episode's first observation with reward 0 and
+    /// ignores its action (Gymnasium's `NEXT_STEP`).
+    #[default]
+    NextStep,
+    /// In the step that ended it: the step returns the new episode's first observation, and
+    /// the ended episode's last one is kept apart ([`RaceVector::final_obs`]; Gymnasium's
+    /// `SAME_STEP`, which Stable-Baselines3's vector envs follow).
+    SameStep,
+}
+
 /// What one env reports after a reset or a step: Gymnasium's reward and flags, and its info.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct EnvOutcome {
@@ -69,7 +82,9 @@ pub struct EnvOutcome {
     pub terminated: bool,
     /// The episode hit the time limit.
     pub truncated: bool,
-    /// The context of the env's current episode (the new one after a reset).
+    /// The context of the env's episode: after a reset the new one's, after a step the stepped
+    /// one's (under [`Autoreset::SameStep`] the ended episode's; [`RaceVector::contexts`] tells
+    /// the one that started).
     pub context: Context,
     /// PG of the episode so far.
     pub progress: f64,
@@ -109,24 +124,33 @@ impl Slot {
         }
     }
 
-    /// Steps the env with `action`, or resets it if its episode ended.
+    /// Steps the env with `action`, or resets it if its episode ended. Under
+    /// [`Autoreset::SameStep`] a step that ends the episode writes its observation into
+    /// `final_obs` and starts the next episode at once, its first observation into `obs`.
     fn advance(
         &mut self,
         action: [f64; 2],
-        range: f64,
+        (range, autoreset): (f64, Autoreset),
         obs: &mut [f32],
+        final_obs: &mut [f32],
     ) -> Result<EnvOutcome, RaceError> {
         if self.ended {
             return Ok(self.start(None, range, obs));
         }
         let step = self.env.step(action)?;
-        obs.copy_from_slice(&step.obs);
         self.ended = step.terminated || step.truncated;
+        let context = self.env.context();
+        if self.ended && autoreset == Autoreset::SameStep {
+            final_obs.copy_from_slice(&step.obs);
+            self.start(None, range, obs);
+        } else {
+            obs.copy_from_slice(&step.obs);
+        }
         Ok(EnvOutcome {
             reward: step.reward,
             terminated: step.terminated,
             truncated: step.truncated,
-            context: self.env.context(),
+            context,
             progress: step.info.progress,
             overtakes: step.info.overtakes,
             a2a: step.info.a2a,
@@ -139,7 +163,10 @@ impl Slot {
 pub struct RaceVector {
     slots: Vec<Slot>,
     context_range: f64,
+    autoreset: Autoreset,
     obs_dim: usize,
+    /// The ended episodes' last observations under [`Autoreset::SameStep`].
+    final_obs: Vec<f32>,
     pool: rayon::ThreadPool,
     started: bool,
 }
@@ -175,12 +202,36 @@ impl RaceVector {
             .num_threads(threads)
             .build()?;
         Ok(Self {
+            final_obs: vec![0.0; envs * obs_dim],
             slots,
             context_range,
+            autoreset: Autoreset::NextStep,
             obs_dim,
             pool,
             started: false,
         })
+    }
+
+    /// The vector with the autoreset mode `autoreset` (default: [`Autoreset::NextStep`]).
+    pub fn with_autoreset(mut self, autoreset: Autoreset) -> Self {
+        self.autoreset = autoreset;
+        self
+    }
+
+    /// The autoreset mode.
+    pub fn autoreset(&self) -> Autoreset {
+        self.autoreset
+    }
+
+    /// Under [`Autoreset::SameStep`], the last observations of the episodes that ended at the
+    /// last step (`len × obs_dim`; the rows of envs that did not end are stale).
+    pub fn final_obs(&self) -> &[f32] {
+        &self.final_obs
+    }
+
+    /// Each env's current episode's context.
+    pub fn contexts(&self) -> impl Iterator<Item = Context> + '_ {
+        self.slots.iter().map(|s| s.env.context())
     }
 
     /// Number of envs.
@@ -256,7 +307,7 @@ impl RaceVector {
     }
 
     /// Steps every env with its action (`actions[i]`), on the worker threads; an env whose
-    /// episode ended at the previous step is reset instead. Observations go to `obs`
+    /// episode ended at the previous step is reset instead (see [`Autoreset`]). Observations go to `obs`
     /// (`len × obs_dim`), the rest to `out`. Refuses, stepping nothing, a non-finite action
     /// or a call before [`RaceVector::reset`].
     pub fn step(
@@ -280,13 +331,14 @@ impl RaceVector {
                 action: actions[env],
             });
         }
-        let (range, dim) = (self.context_range, self.obs_dim);
-        let slots = &mut self.slots;
+        let (mode, dim) = ((self.context_range, self.autoreset), self.obs_dim);
+        let (slots, finals) = (&mut self.slots, &mut self.final_obs);
         if slots.len() == 1 || self.pool.current_num_threads() == 1 {
             // on the caller's thread: a hop to one worker costs more than a lone race's step
             let lanes = slots.iter_mut().zip(actions).zip(obs.chunks_mut(dim));
-            for (((slot, &action), obs), out) in lanes.zip(out.iter_mut()) {
-                *out = slot.advance(action, range, obs)?;
+            let lanes = lanes.zip(finals.chunks_mut(dim)).zip(out.iter_mut());
+            for ((((slot, &action), obs), final_obs), out) in lanes {
+                *out = slot.advance(action, mode, obs, final_obs)?;
             }
             return Ok(());
         }
@@ -295,9 +347,10 @@ impl RaceVector {
                 .par_iter_mut()
                 .zip(actions.par_iter())
                 .zip(obs.par_chunks_mut(dim))
+                .zip(finals.par_chunks_mut(dim))
                 .zip(out.par_iter_mut())
-                .try_for_each(|(((slot, &action), obs), out)| {
-                    *out = slot.advance(action, range, obs)?;
+                .try_for_each(|((((slot, &action), obs), final_obs), out)| {
+                    *out = slot.advance(action, mode, obs, final_obs)?;
                     Ok::<_, RaceError>(())
                 })
         })?;

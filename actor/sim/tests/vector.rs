@@ -1,8 +1,9 @@
 //! `RaceVector`: each env races as a lone `RaceEnv` reset with the same seed, whatever the
-//! number of threads; ended episodes reset on the next step; bad calls step nothing.
+//! number of threads; ended episodes reset on the next step, or in the same step when asked; bad
+//! calls step nothing.
 
 use ctxrace_config::{Context, RaceConfig};
-use ctxrace_sim::vector::{EnvOutcome, RaceVector, VectorError};
+use ctxrace_sim::vector::{Autoreset, EnvOutcome, RaceVector, VectorError};
 use ctxrace_sim::RaceEnv;
 use ctxrace_tracks::{Track, TrackOptions};
 use std::sync::Arc;
@@ -88,6 +89,39 @@ fn threads_change_nothing_and_ended_episodes_reset_on_the_next_step() {
         next.context, out_one[ended].context,
         "a fresh context is drawn"
     );
+}
+
+/// Same-step autoreset is next-step autoreset without the reset step: the ended episode's last
+/// observation goes to `final_obs`, the step returns the next episode's first, and the races go
+/// on as they would have.
+#[test]
+fn same_step_autoreset_is_next_step_without_the_reset_step() {
+    let (cfg, track) = (RaceConfig::default(), generated());
+    let mut next = RaceVector::new(track.clone(), &cfg, 1, 0.15, 1).unwrap();
+    let mut same = RaceVector::new(track, &cfg, 1, 0.15, 1)
+        .unwrap()
+        .with_autoreset(Autoreset::SameStep);
+    let dim = next.obs_dim();
+    let (mut obs_next, mut out_next) = (vec![0.0; dim], vec![EnvOutcome::default()]);
+    let (mut obs_same, mut out_same) = (vec![0.0; dim], vec![EnvOutcome::default()]);
+    next.reset(5, None, &mut obs_next, &mut out_next).unwrap();
+    same.reset(5, None, &mut obs_same, &mut out_same).unwrap();
+    let action = [[-0.2, 0.8]];
+    let mut ended = 0;
+    for _ in 0..200 {
+        next.step(&action, &mut obs_next, &mut out_next).unwrap();
+        same.step(&action, &mut obs_same, &mut out_same).unwrap();
+        assert_eq!(out_same, out_next);
+        if out_next[0].terminated || out_next[0].truncated {
+            ended += 1;
+            assert_eq!(same.final_obs(), obs_next.as_slice());
+            // the step next-step autoreset spends on the reset
+            next.step(&action, &mut obs_next, &mut out_next).unwrap();
+            assert_eq!(same.contexts().next(), Some(out_next[0].context));
+        }
+        assert_eq!(obs_same, obs_next);
+    }
+    assert!(ended >= 2, "{ended} episodes ended");
 }
 
 #[test]

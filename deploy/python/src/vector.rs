@@ -4,7 +4,7 @@
 
 use crate::{bytes_of, load_track, pairs, race_config, BindError, Result};
 use ctxrace_config::Context;
-use ctxrace_sim::vector::{EnvOutcome, RaceVector};
+use ctxrace_sim::vector::{Autoreset, EnvOutcome, RaceVector};
 use pyo3::prelude::*;
 use pyo3::types::PyBytes;
 use std::path::PathBuf;
@@ -65,9 +65,11 @@ impl PyRaceVector {
 impl PyRaceVector {
     /// `num_envs` races on `track` of the race config file `config` (none: the default
     /// scenario) with the race keys `race_keys` (a JSON object) laid over it; contexts drawn
-    /// from `±context_range`; `threads` worker threads (0: one per core).
+    /// from `±context_range`; `threads` worker threads (0: one per core); an ended episode's
+    /// env resets in the step that ended it when `same_step`, else on the next step.
     #[new]
-    #[pyo3(signature = (track, num_envs, race_keys="{}", config=None, tracks_dir=None, context_range=0.15, threads=0))]
+    #[pyo3(signature = (track, num_envs, race_keys="{}", config=None, tracks_dir=None, context_range=0.15, threads=0, same_step=false))]
+    #[allow(clippy::too_many_arguments)] // Python's keyword arguments
     fn new(
         track: &str,
         num_envs: usize,
@@ -76,11 +78,17 @@ impl PyRaceVector {
         tracks_dir: Option<PathBuf>,
         context_range: f64,
         threads: usize,
+        same_step: bool,
     ) -> PyResult<Self> {
         let cfg = race_config(config, race_keys)?;
         let track = load_track(track, tracks_dir, &cfg)?;
+        let autoreset = match same_step {
+            true => Autoreset::SameStep,
+            false => Autoreset::NextStep,
+        };
         let inner = RaceVector::new(track.clone(), &cfg, num_envs, context_range, threads)
-            .map_err(BindError::from)?;
+            .map_err(BindError::from)?
+            .with_autoreset(autoreset);
         Ok(Self {
             obs: vec![0.0; num_envs * inner.obs_dim()],
             outcomes: vec![EnvOutcome::default(); num_envs],
@@ -118,6 +126,18 @@ impl PyRaceVector {
     #[getter]
     fn track(&self) -> &str {
         &self.track
+    }
+
+    /// Under same-step autoreset, the last observations of the episodes that ended at the last
+    /// step (native-endian `f32`, one row per env; other rows are stale), as bytes.
+    fn final_obs<'py>(&self, py: Python<'py>) -> Bound<'py, PyBytes> {
+        bytes_of(py, self.inner.final_obs(), f32::to_ne_bytes)
+    }
+
+    /// Each env's current episode's context (native-endian `f64` pairs), as bytes.
+    fn contexts<'py>(&self, py: Python<'py>) -> Bound<'py, PyBytes> {
+        let pairs: Vec<f64> = self.inner.contexts().flat_map(|c| [c.speed, c.steer]).collect();
+        bytes_of(py, &pairs, f64::to_ne_bytes)
     }
 
     /// Starts every env's next episode from `seed` (env `i`: reset seed `seed + i`);

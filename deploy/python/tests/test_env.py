@@ -77,6 +77,46 @@ def test_ended_episodes_reset_on_the_next_step_with_a_fresh_context():
     env.close()
 
 
+def test_same_step_autoreset_is_next_step_without_the_reset_step():
+    """Gymnasium's SAME_STEP: the ending step returns the next episode's first observation and
+    reset info, the ended one's last observation and step info under final_obs / final_info;
+    the races are those of NEXT_STEP with its reset steps left out."""
+    same_mode = gymnasium.vector.AutoresetMode.SAME_STEP
+    same = ctxrace.make_vec(TRACK, 3, seed=4, autoreset_mode=same_mode)
+    next_ = ctxrace.make_vec(TRACK, 3, seed=4)
+    assert same.metadata["autoreset_mode"] == same_mode
+    obs_s, _ = same.reset()
+    obs_n, _ = next_.reset()
+    action = np.tile([-0.3, 0.9], (3, 1))
+    ends = 0
+    for _ in range(150):
+        obs_s, reward_s, term_s, trunc_s, info_s = same.step(action)
+        obs_n, reward_n, term_n, trunc_n, info_n = next_.step(action)
+        np.testing.assert_array_equal(reward_s, reward_n)
+        np.testing.assert_array_equal(term_s | trunc_s, term_n | trunc_n)
+        ended = term_n | trunc_n
+        if ended.any():
+            ends += 1
+            assert (info_s["_final_obs"] == ended).all() and (info_s["_final_info"] == ended).all()
+            np.testing.assert_array_equal(info_s["final_obs"][ended], obs_n[ended])
+            np.testing.assert_array_equal(
+                info_s["final_info"]["progress"][ended], info_n["progress"][ended]
+            )
+            assert (info_s["progress"][ended] == 0).all()
+            # the step NEXT_STEP spends on the reset (the other envs go one step further there,
+            # so the comparison ends here)
+            obs_n, _, _, _, info_n = next_.step(action)
+            np.testing.assert_array_equal(obs_s[ended], obs_n[ended])
+            np.testing.assert_array_equal(info_s["context"][ended], info_n["context"][ended])
+            break
+        np.testing.assert_array_equal(obs_s, obs_n)
+    assert ends == 1, "full speed at a steady lock meets a wall within 150 steps"
+    with pytest.raises(ValueError, match="NEXT_STEP or AutoresetMode.SAME_STEP"):
+        ctxrace.make_vec(TRACK, 2, autoreset_mode="sometimes")
+    same.close()
+    next_.close()
+
+
 def test_contexts_pinned_at_reset_stay_for_later_episodes():
     env = ctxrace.make_vec(TRACK, 3, seed=0)
     pinned = np.array([[0.3, -0.3], [0.0, 0.2], [-0.25, 0.1]])

@@ -81,6 +81,7 @@ class Races:
         context_range: float,
         threads: int,
         race_keys: dict,
+        same_step: bool = False,
     ):
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, not {num_envs!r}")
@@ -92,6 +93,7 @@ class Races:
             _path(tracks_dir),
             float(context_range),
             threads,
+            same_step,
         )
         self.num_envs = num_envs
         self.obs_dim = self.inner.obs_dim
@@ -113,6 +115,16 @@ class Races:
     def step(self, actions: Any):
         """Steps every env (see `RaceVectorEnv.step`)."""
         return self.decode(*self.inner.step(pairs_bytes("actions", actions, self.num_envs)))
+
+    def final_obs(self) -> np.ndarray:
+        """Under same-step autoreset, the last observations of the episodes that ended at the
+        last step (one row per env; the other rows are stale)."""
+        data = np.frombuffer(self.inner.final_obs(), dtype=np.float32)
+        return data.reshape(self.num_envs, self.obs_dim).copy()
+
+    def contexts(self) -> np.ndarray:
+        """Each env's current episode's context, ``(num_envs, 2)``."""
+        return np.frombuffer(self.inner.contexts(), dtype=np.float64).reshape(self.num_envs, 2)
 
 
 def info_of(table: np.ndarray) -> dict:
@@ -142,8 +154,12 @@ class RaceVectorEnv(VectorEnv):
 
     Observations: the ego's LiDAR, ``(num_envs, beams)`` float32 in [0, 1]. Actions:
     ``(num_envs, 2)`` floats in [-1, 1] (steering, speed). Autoreset as Gymnasium's
-    ``AutoresetMode.NEXT_STEP``: the step after an env's episode ended resets it (reward 0,
-    its action ignored). Each episode's context is drawn from ``±context_range`` unless
+    ``AutoresetMode.NEXT_STEP`` (default): the step after an env's episode ended resets it
+    (reward 0, its action ignored); or, with ``autoreset_mode=AutoresetMode.SAME_STEP`` (as
+    Stable-Baselines3's vector envs work), in the step that ended it: that step returns the new
+    episode's first observation and reset info, the ended episode's last observation in
+    ``info["final_obs"]`` and its step info in ``info["final_info"]`` (masks ``_final_obs``,
+    ``_final_info``). Each episode's context is drawn from ``±context_range`` unless
     ``reset(options={"context": (num_envs, 2) array})`` pins it (for that env's later episodes
     too, until a reset without one). ``reset(seed=S)`` starts env ``i`` from the simulator's
     reset seed ``S + i``, as ``ctxrace race --seed S + i`` does. Info arrays: ``context``,
@@ -162,10 +178,27 @@ class RaceVectorEnv(VectorEnv):
         config: Optional[os.PathLike] = None,
         context_range: float = 0.15,
         threads: int = 0,
+        autoreset_mode: AutoresetMode = AutoresetMode.NEXT_STEP,
         **race_keys: Any,
     ):
+        modes = (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP)
+        if autoreset_mode not in modes:
+            raise ValueError(
+                f"autoreset_mode {autoreset_mode!r}: ctxrace's vector env takes "
+                "AutoresetMode.NEXT_STEP or AutoresetMode.SAME_STEP"
+            )
+        self._same_step = autoreset_mode == AutoresetMode.SAME_STEP
+        self.metadata = {**self.metadata, "autoreset_mode": autoreset_mode}
         self._races = Races(
-            track, num_envs, rivals, tracks_dir, config, context_range, threads, race_keys
+            track,
+            num_envs,
+            rivals,
+            tracks_dir,
+            config,
+            context_range,
+            threads,
+            race_keys,
+            self._same_step,
         )
         self.num_envs = num_envs
         self.race_config = self._races.race_config
@@ -202,18 +235,34 @@ class RaceVectorEnv(VectorEnv):
 
     def step(self, actions):
         """Steps every env with its action; returns (obs, reward, terminated, truncated, info)."""
-        obs, table = self._live().step(actions)
-        return (
-            obs,
-            table[:, _COLUMNS["reward"]].copy(),
-            table[:, _COLUMNS["terminated"]] != 0,
-            table[:, _COLUMNS["truncated"]] != 0,
-            info_of(table),
-        )
+        races = self._live()
+        obs, table = races.step(actions)
+        terminated = table[:, _COLUMNS["terminated"]] != 0
+        truncated = table[:, _COLUMNS["truncated"]] != 0
+        info = info_of(table)
+        ended = terminated | truncated
+        if self._same_step and ended.any():
+            info = _restarted(races, info, ended)
+        return obs, table[:, _COLUMNS["reward"]].copy(), terminated, truncated, info
 
     def close_extras(self, **kwargs: Any):
         """Frees the races."""
         self._races = None
+
+
+def _restarted(races: Races, info: dict, ended: np.ndarray) -> dict:
+    """Gymnasium's same-step info after the envs `ended` started new episodes: their new
+    episodes' reset info (context, zero progress) at the top level, the ended step's info under
+    ``final_info`` and the ended episodes' last observations under ``final_obs``."""
+    final_obs = np.zeros((races.num_envs, races.obs_dim), dtype=np.float32)
+    final_obs[ended] = races.final_obs()[ended]
+    final_info = {key: value.copy() for key, value in info.items()}
+    final_info.update({f"_{key}": ended for key in info})
+    info["context"][ended] = races.contexts()[ended]
+    for key in ("progress", "overtakes", "a2a", "wall_crash"):
+        info[key][ended] = 0
+    info.update(final_obs=final_obs, _final_obs=ended, final_info=final_info, _final_info=ended)
+    return info
 
 
 class RaceEnv(gymnasium.Env):
@@ -297,6 +346,7 @@ def make_vec(
     """`num_envs` races on `track` (a name in `tracks_dir` / ``$CTXRACE_TRACKS_DIR`` / the
     per-user folder, a map yaml, or ``generated:SEED``) against `rivals` rivals, as a Gymnasium
     vector env; `seed` seeds its first reset. Further keywords: ``config`` (a race config TOML),
-    ``context_range`` (0.15), ``threads`` (0: one per core) and race keys as the TOML configs
+    ``context_range`` (0.15), ``threads`` (0: one per core), ``autoreset_mode``
+    (``AutoresetMode.NEXT_STEP``, or ``SAME_STEP`` as Stable-Baselines3 expects) and race keys as the TOML configs
     name them (``preset="paper-code"``, ``rival={"driver": "follow-the-gap"}``, ...)."""
     return RaceVectorEnv(track, num_envs, rivals, seed, tracks_dir, **kwargs)
