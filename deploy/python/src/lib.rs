@@ -84,6 +84,9 @@ pub enum BindError {
     /// An argument out of its range (a reference policy's name, the grid's size).
     #[error("{0}")]
     Argument(String),
+    /// The race could not be drawn.
+    #[error("drawing the race")]
+    Render(#[source] Box<dyn std::error::Error + Send + Sync>),
 }
 
 impl From<BindError> for PyErr {
