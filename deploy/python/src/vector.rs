@@ -89,9 +89,9 @@ impl PyRaceVector {
 #[pymethods]
 impl PyRaceVector {
     /// `num_envs` races on `track` of the race config file `config` (none: the default
-    /// scenario) with the race keys `race_keys` (a JSON object) laid over it; contexts drawn
-    /// from `±context_range`; `threads` worker threads (0: one per core); recording each env's
-    /// episode for [`PyRaceVector::render`] if `record`.
+    /// scenario) with the race keys `race_keys` (a JSON object, or a list of them laid in
+    /// order) laid over it; contexts drawn from `±context_range`; `threads` worker threads (0:
+    /// one per core); recording each env's episode for [`PyRaceVector::render`] if `record`.
     #[new]
     #[pyo3(signature = (track, num_envs, race_keys="{}", config=None, tracks_dir=None, context_range=0.15, threads=0, record=false))]
     #[allow(clippy::too_many_arguments)]

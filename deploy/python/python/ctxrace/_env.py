@@ -26,12 +26,15 @@ CONTEXT_LIMIT = 0.9
 RENDER_WIDTH = 1000
 
 
-def race_keys_json(rivals: int, race_keys: dict) -> str:
-    """The race keys as the extension reads them: a JSON object, ``None`` values left out."""
+def race_keys_json(rivals: Optional[int], race_keys: dict, base: Optional[dict] = None) -> str:
+    """The race keys as the extension reads them: a JSON object (``None`` values left out,
+    ``rivals`` set unless None), or, laid over a whole race `base` (a trained run's), the list
+    of the two."""
     keys = {k: v for k, v in race_keys.items() if v is not None}
-    keys["rivals"] = rivals
+    if rivals is not None:
+        keys["rivals"] = rivals
     try:
-        return json.dumps(keys)
+        return json.dumps(keys if base is None else [base, keys])
     except TypeError as e:
         raise TypeError(
             f"race keys must be numbers, strings, booleans or dicts of them, as the TOML configs "
