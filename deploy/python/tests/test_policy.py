@@ -80,11 +80,11 @@ def tiny_run(tmp_path_factory, ctxrace_bin):
     """A cMask run of 300 decisions (testdata/tiny-cmask.toml: generated:0, one rival, 20-s
     races) trained on contexts within ±0.1, so that its race differs from `evaluate`'s
     defaults (f1_esp, 3 rivals, ±0.15)."""
-    dir = tmp_path_factory.mktemp("tiny")
-    cfg = dir / "tiny.toml"
+    folder = tmp_path_factory.mktemp("tiny")
+    cfg = folder / "tiny.toml"
     text = (ROOT / "testdata" / "tiny-cmask.toml").read_text()
     cfg.write_text(text.replace("[train]\n", "[train]\ncontext_range = 0.1\n"))
-    run = dir / "run"
+    run = folder / "run"
     subprocess.run([ctxrace_bin, "train", cfg, "--inline", "--run-dir", run],
                    check=True, capture_output=True)
     return run
