@@ -13,7 +13,7 @@
 //! `masks.part-K.csv` beside, merged into `masks.csv.gz` ([`ctxrace_sim::masks`]).
 
 use crate::ego::EgoSpec;
-use crate::render::{race_title, render_race, Frame};
+use ctxrace_render::race::{race_title, render_race, Frame};
 use ctxrace_run::lock::{die_with_parent, DirLock};
 
 use crate::TrackArgs;

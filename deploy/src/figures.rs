@@ -5,11 +5,11 @@
 use crate::groups::{sections, Group, Metric, Run};
 use crate::paper::bootstrap_ci;
 use crate::parity::ParityCurves;
-use crate::plot::{plot_err, register_font, save_png_and_svg, Figure};
-use crate::render::{bounds, draw_track, track_picture_size, TrackChart};
 use crate::TrackArgs;
 use anyhow::{Context as _, Result};
 use ctxrace_config::{Context, RaceConfig};
+use ctxrace_render::figure::{plot_err, register_font, save_png_and_svg, Figure};
+use ctxrace_render::race::{bounds, draw_track, track_picture_size, TrackChart};
 use ctxrace_run::results::TrainingEpisode;
 use ctxrace_sim::evaluation::A2A_PER_LAPS;
 use ctxrace_sim::masks::{ContextMasks, PROGRESS_BINS};

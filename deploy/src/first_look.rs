@@ -5,11 +5,11 @@
 
 use crate::ego::EgoSpec;
 use crate::figures::{binned_curve, Band, CurveSeries, TrainingCurves, CURVE_PANELS};
-use crate::plot::{register_font, save};
-use crate::render::{race_title, render_race, Frame};
 use crate::TrackArgs;
 use anyhow::Result;
 use ctxrace_config::{Context, ExperimentConfig};
+use ctxrace_render::figure::{register_font, save};
+use ctxrace_render::race::{drive_recorded, race_title, render_race, Frame};
 use ctxrace_run::results::{read_csv, TrainingEpisode};
 use ctxrace_run::run_dir::TRAINING_EPISODES;
 use ctxrace_run::trained::{CheckpointChoice, TrainedAgent};
@@ -148,7 +148,7 @@ pub fn show(cfg: &ExperimentConfig, dir: &Path, tracks: &TrackArgs) -> Result<()
     }
     let mut driver = agent.driver(&env, ActMode::Sample)?;
     let mut frames: Vec<Frame> = Vec::new();
-    crate::render::drive_recorded(&mut driver, &mut env, Context::default(), 0, &mut frames)?;
+    drive_recorded(&mut driver, &mut env, Context::default(), 0, &mut frames)?;
     let title = race_title(&cfg.track, &agent.name(), &env);
     let picture = dir.join("race.png");
     let animation = dir.join("race.gif");

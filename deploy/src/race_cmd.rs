@@ -1,11 +1,11 @@
 //! `ctxrace race`: one episode with a reference ego policy, its metrics, picture and trace.
 
 use crate::ego::EgoSpec;
-use crate::render::{check_render_path, race_title, render_race, Frame};
 use crate::TrackArgs;
 use anyhow::{Context as _, Result};
 use clap::Args;
 use ctxrace_config::Context;
+use ctxrace_render::race::{check_render_path, drive_recorded, race_title, render_race, Frame};
 use ctxrace_run::trained::{CheckpointChoice, TrainedAgent};
 use ctxrace_sim::baseline::BaselineKind;
 use ctxrace_sim::driver::ActMode;
@@ -97,7 +97,7 @@ pub fn run(args: RaceArgs) -> Result<()> {
     let mut env = RaceEnv::new(track.clone(), cfg)?;
     let mut policy = spec.driver(&env, args.act)?;
     let mut frames = Vec::new();
-    crate::render::drive_recorded(&mut policy, &mut env, args.context, args.seed, &mut frames)?;
+    drive_recorded(&mut policy, &mut env, args.context, args.seed, &mut frames)?;
     let m = env.metrics();
     let ended_by = m.ended_by();
     if args.json {

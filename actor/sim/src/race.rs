@@ -578,6 +578,11 @@ impl RaceEnv {
         self.finished
     }
 
+    /// Race time between two decisions (s): `physics_steps_per_action` physics steps.
+    pub fn decision_period(&self) -> f64 {
+        self.cfg.physics_steps_per_action as f64 * DT
+    }
+
     /// Number of LiDAR beams in an observation.
     pub fn obs_dim(&self) -> usize {
         self.lidar.beams()

@@ -84,6 +84,9 @@ pub enum BindError {
     /// An argument out of its range (a reference policy's name, the grid's size).
     #[error("{0}")]
     Argument(String),
+    /// The race could not be drawn.
+    #[error("drawing the race")]
+    Render(#[source] Box<dyn std::error::Error + Send + Sync>),
 }
 
 impl From<BindError> for PyErr {
@@ -99,9 +102,10 @@ impl From<BindError> for PyErr {
 /// The outcome of a call from Python.
 type Result<T> = std::result::Result<T, BindError>;
 
-/// The race of a TOML config file (none: an empty table) with `keys_json` (a JSON object of
-/// race keys, tables as objects) laid over it, each key replacing the file's, tables merged key
-/// by key; keys neither gives take the values of the preset they name.
+/// The race of a TOML config file (none: an empty table) with `keys_json` laid over it: a JSON
+/// object of race keys (tables as objects, `null` as a key not given), or a list of them laid
+/// in order (a trained run's race, then the caller's keys); each key replaces the one below,
+/// tables merged key by key; keys none gives take the values of the preset they name.
 fn race_config(config: Option<PathBuf>, keys_json: &str) -> Result<RaceConfig> {
     let mut table = match config {
         Some(path) => {
@@ -115,12 +119,37 @@ fn race_config(config: Option<PathBuf>, keys_json: &str) -> Result<RaceConfig> {
     };
     let json: serde_json::Value =
         serde_json::from_str(keys_json).map_err(|e| BindError::Keys(e.into()))?;
-    let keys = match toml::Value::try_from(json).map_err(|e| BindError::Keys(e.into()))? {
-        toml::Value::Table(keys) => keys,
-        other => return Err(BindError::Keys(format!("{other} is no table").into())),
+    let layers = match json {
+        serde_json::Value::Array(layers) => layers,
+        one => vec![one],
     };
-    merge(&mut table, keys);
+    for layer in layers {
+        merge(&mut table, keys_table(layer)?);
+    }
     Ok(RaceConfig::from_table(table)?)
+}
+
+/// A JSON object of race keys as a TOML table, its `null`s (keys not given) left out.
+fn keys_table(json: serde_json::Value) -> Result<toml::Table> {
+    match toml::Value::try_from(without_nulls(json)).map_err(|e| BindError::Keys(e.into()))? {
+        toml::Value::Table(keys) => Ok(keys),
+        other => Err(BindError::Keys(format!("{other} is no table").into())),
+    }
+}
+
+/// `json` without the object entries whose value is `null`, at every depth.
+fn without_nulls(json: serde_json::Value) -> serde_json::Value {
+    use serde_json::Value;
+    match json {
+        Value::Object(map) => Value::Object(
+            map.into_iter()
+                .filter(|(_, v)| !v.is_null())
+                .map(|(k, v)| (k, without_nulls(v)))
+                .collect(),
+        ),
+        Value::Array(items) => Value::Array(items.into_iter().map(without_nulls).collect()),
+        other => other,
+    }
 }
 
 /// Lays `over` onto `base`: tables merge key by key, other values replace.

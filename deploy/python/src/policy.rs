@@ -88,6 +88,12 @@ impl PyPolicy {
         &self.race
     }
 
+    /// The run's track, when the run is known.
+    #[getter]
+    fn track(&self) -> Option<String> {
+        self.agent.experiment.as_ref().map(|e| e.track.clone())
+    }
+
     /// The run's training context range, when the run is known.
     #[getter]
     fn context_range(&self) -> Option<f64> {

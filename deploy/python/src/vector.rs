@@ -1,9 +1,11 @@
 //! `RaceVector` for Python: the simulator's [`RaceVector`] with the buffers it writes into,
 //! stepped with the GIL released; each call hands back the observations and a table of
-//! outcomes as bytes.
+//! outcomes as bytes. Made to record, it keeps every env's episode so far and draws it as
+//! `ctxrace race --render race.gif` draws a moment ([`moment_rgb`]).
 
 use crate::{bytes_of, load_track, pairs, race_config, BindError, Result};
 use ctxrace_config::Context;
+use ctxrace_render::race::{moment_rgb, race_title, Frame};
 use ctxrace_sim::vector::{Autoreset, EnvOutcome, RaceVector};
 use pyo3::prelude::*;
 use pyo3::types::PyBytes;
@@ -48,9 +50,32 @@ pub struct PyRaceVector {
     race: String,
     /// The track's name.
     track: String,
+    /// Each env's episode so far, frame by frame, when made to record (else empty).
+    frames: Vec<Vec<Frame>>,
 }
 
 impl PyRaceVector {
+    /// Records each env's state after a reset or a step (`actions` taken, none after a reset),
+    /// when made to record; an env whose episode (re)started begins a new record.
+    fn record(&mut self, actions: Option<&[[f64; 2]]>) {
+        if self.frames.is_empty() {
+            return;
+        }
+        let dim = self.inner.obs_dim();
+        for (i, (env, frames)) in self.inner.envs().zip(&mut self.frames).enumerate() {
+            let started = env.metrics().steps == 0;
+            if started {
+                frames.clear();
+            }
+            let action = match actions {
+                Some(a) if !started => a[i],
+                _ => [0.0; 2],
+            };
+            let obs = &self.obs[i * dim..(i + 1) * dim];
+            frames.push(Frame::capture(env, action, self.outcomes[i].reward, obs));
+        }
+    }
+
     /// The observations and the outcome table as bytes.
     fn arrays<'py>(&self, py: Python<'py>) -> (Bound<'py, PyBytes>, Bound<'py, PyBytes>) {
         let table: Vec<f64> = self.outcomes.iter().flat_map(row).collect();
@@ -64,11 +89,13 @@ impl PyRaceVector {
 #[pymethods]
 impl PyRaceVector {
     /// `num_envs` races on `track` of the race config file `config` (none: the default
-    /// scenario) with the race keys `race_keys` (a JSON object) laid over it; contexts drawn
-    /// from `±context_range`; `threads` worker threads (0: one per core); an ended episode's
-    /// env resets in the step that ended it when `same_step`, else on the next step.
+    /// scenario) with the race keys `race_keys` (a JSON object, or a list of them laid in
+    /// order) laid over it; contexts drawn from `±context_range`; `threads` worker threads (0:
+    /// one per core); an ended episode's env resets in the step that ended it when
+    /// `same_step`, else on the next step; recording each env's episode for
+    /// [`PyRaceVector::render`] if `record`.
     #[new]
-    #[pyo3(signature = (track, num_envs, race_keys="{}", config=None, tracks_dir=None, context_range=0.15, threads=0, same_step=false))]
+    #[pyo3(signature = (track, num_envs, race_keys="{}", config=None, tracks_dir=None, context_range=0.15, threads=0, same_step=false, record=false))]
     #[allow(clippy::too_many_arguments)] // Python's keyword arguments
     fn new(
         track: &str,
@@ -79,6 +106,7 @@ impl PyRaceVector {
         context_range: f64,
         threads: usize,
         same_step: bool,
+        record: bool,
     ) -> PyResult<Self> {
         let cfg = race_config(config, race_keys)?;
         let track = load_track(track, tracks_dir, &cfg)?;
@@ -94,6 +122,11 @@ impl PyRaceVector {
             outcomes: vec![EnvOutcome::default(); num_envs],
             race: serde_json::to_string(&cfg).expect("a race config serialises"),
             track: track.name.clone(),
+            frames: if record {
+                vec![Vec::new(); num_envs]
+            } else {
+                Vec::new()
+            },
             inner,
         })
     }
@@ -140,6 +173,44 @@ impl PyRaceVector {
         bytes_of(py, &pairs, f64::to_ne_bytes)
     }
 
+    /// Race time between two decisions (s).
+    #[getter]
+    fn decision_period(&self) -> f64 {
+        self.inner
+            .envs()
+            .next()
+            .map_or(0.0, |env| env.decision_period())
+    }
+
+    /// Env `env`'s episode so far as a picture `width` pixels wide (a moment of `ctxrace race
+    /// --render race.gif`): (RGB bytes row by row, height, width). Needs a vector made to
+    /// record, reset since.
+    fn render<'py>(
+        &self,
+        py: Python<'py>,
+        env: usize,
+        width: u32,
+    ) -> PyResult<(Bound<'py, PyBytes>, u32, u32)> {
+        let Some(frames) = self.frames.get(env) else {
+            return Err(BindError::Argument(if self.frames.is_empty() {
+                "this vector records nothing to draw: make it with record=True".into()
+            } else {
+                format!("env {env} is no env of {}", self.frames.len())
+            })
+            .into());
+        };
+        let race = self.inner.envs().nth(env).expect("one record per env");
+        let title = race_title(&self.track, "agent", race);
+        let picture = py
+            .detach(|| moment_rgb(race.track(), frames, &title, width))
+            .map_err(|e| BindError::Render(e.into()))?;
+        Ok((
+            PyBytes::new(py, &picture.rgb),
+            picture.height,
+            picture.width,
+        ))
+    }
+
     /// Starts every env's next episode from `seed` (env `i`: reset seed `seed + i`);
     /// `contexts` (native-endian `f64` pairs, one per env) pins each env's context, none draws
     /// them. Returns (observations, outcome table) as bytes.
@@ -161,6 +232,7 @@ impl PyRaceVector {
         let (inner, obs, out) = (&mut self.inner, &mut self.obs, &mut self.outcomes);
         py.detach(|| inner.reset(seed, contexts.as_deref(), obs, out))
             .map_err(BindError::from)?;
+        self.record(None);
         Ok(self.arrays(py))
     }
 
@@ -176,6 +248,7 @@ impl PyRaceVector {
         let (inner, obs, out) = (&mut self.inner, &mut self.obs, &mut self.outcomes);
         py.detach(|| inner.step(&actions, obs, out))
             .map_err(BindError::from)?;
+        self.record(Some(&actions));
         Ok(self.arrays(py))
     }
 }

@@ -73,3 +73,49 @@ def test_batches_rows_and_bad_inputs():
         ctxrace.load_policy(ROOT / "configs")
     with pytest.raises(ValueError, match="not best, latest or step-N"):
         ctxrace.load_policy(CHECKPOINT, checkpoint="newest")
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory, ctxrace_bin):
+    """A cMask run of 300 decisions (testdata/tiny-cmask.toml: generated:0, one rival, 20-s
+    races) trained on contexts within ±0.1, so that its race differs from `evaluate`'s
+    defaults (f1_esp, 3 rivals, ±0.15)."""
+    folder = tmp_path_factory.mktemp("tiny")
+    cfg = folder / "tiny.toml"
+    text = (ROOT / "testdata" / "tiny-cmask.toml").read_text()
+    cfg.write_text(text.replace("[train]\n", "[train]\ncontext_range = 0.1\n"))
+    run = folder / "run"
+    subprocess.run([ctxrace_bin, "train", cfg, "--inline", "--run-dir", run],
+                   check=True, capture_output=True)
+    return run
+
+
+def eval_cli(ctxrace_bin, out, source, *args):
+    """`ctxrace eval SOURCE ARGS` on one worker into `out`: its contexts.json rows."""
+    subprocess.run([ctxrace_bin, "eval", source, *args, "--workers", "1", "--out", out],
+                   check=True, capture_output=True)
+    return json.loads((out / "contexts.json").read_text())
+
+
+def test_a_trained_run_evaluates_on_its_own_race_unless_told_otherwise(tmp_path, ctxrace_bin,
+                                                                       tiny_run):
+    policy = ctxrace.load_policy(tiny_run)
+    assert policy.track == "generated:0" and policy.context_range == 0.1
+    assert policy.race_config["rivals"] == 1 and policy.race_config["max_time"] == 20.0
+    # the run's track, rival, race and training range, as `ctxrace eval RUN` takes them
+    mine = ctxrace.evaluate(policy, grid=5, laps=1, batch=4)
+    assert mine.contexts == eval_cli(ctxrace_bin, tmp_path / "own", tiny_run, "--grid", "5",
+                                     "--laps", "1")
+    # within ±0.1 only the centre of the ±0.3 grid of 5 (±0.15 would add 8 more)
+    assert sum(r["in_distribution"] for r in mine.contexts) == 1
+    # arguments given win
+    told = ctxrace.evaluate(policy, "generated:1", rivals=2, train_range=0.3, grid=2, laps=1)
+    assert told.contexts == eval_cli(ctxrace_bin, tmp_path / "told", tiny_run, "--track",
+                                     "generated:1", "--rivals", "2", "--train-range", "0.3",
+                                     "--grid", "2", "--laps", "1")
+    # race keys are laid over the run's race: 0.3-s races of 0.1-s decisions
+    short = ctxrace.evaluate(policy, grid=2, laps=1, max_time=0.3)
+    assert all(e["steps"] <= 3 for e in short.episodes)
+    assert max(e["steps"] for e in mine.episodes) > 3
+    # a checkpoint alone knows no run: the function's defaults
+    assert ctxrace.load_policy(CHECKPOINT).track is None

@@ -22,13 +22,19 @@ _COLUMNS = {name: i for i, name in enumerate(_ctxrace.OUTCOME_COLUMNS)}
 #: Largest magnitude of a context element the simulator takes.
 CONTEXT_LIMIT = 0.9
 
+#: Width in pixels of a rendered frame (an animation's of ``ctxrace race --render race.gif``).
+RENDER_WIDTH = 1000
 
-def race_keys_json(rivals: int, race_keys: dict) -> str:
-    """The race keys as the extension reads them: a JSON object, ``None`` values left out."""
+
+def race_keys_json(rivals: Optional[int], race_keys: dict, base: Optional[dict] = None) -> str:
+    """The race keys as the extension reads them: a JSON object (``None`` values left out,
+    ``rivals`` set unless None), or, laid over a whole race `base` (a trained run's), the list
+    of the two."""
     keys = {k: v for k, v in race_keys.items() if v is not None}
-    keys["rivals"] = rivals
+    if rivals is not None:
+        keys["rivals"] = rivals
     try:
-        return json.dumps(keys)
+        return json.dumps(keys if base is None else [base, keys])
     except TypeError as e:
         raise TypeError(
             f"race keys must be numbers, strings, booleans or dicts of them, as the TOML configs "
@@ -68,8 +74,14 @@ def contexts_bytes(contexts: Any, n: int) -> bytes:
     return data
 
 
+def render_metadata(render_fps: float) -> dict:
+    """An env's render keys of ``metadata``: ``rgb_array`` at `render_fps` frames a second."""
+    return {"render_modes": ["rgb_array"], "render_fps": render_fps}
+
+
 class Races:
-    """The extension's `RaceVector` with its outputs decoded into numpy arrays."""
+    """The extension's `RaceVector` with its outputs decoded into numpy arrays, recording each
+    env's race to draw it when `render_mode` is ``rgb_array``."""
 
     def __init__(
         self,
@@ -81,10 +93,17 @@ class Races:
         context_range: float,
         threads: int,
         race_keys: dict,
-        same_step: bool = False,
+        same_step: bool,
+        render_mode: Optional[str],
     ):
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, not {num_envs!r}")
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(
+                f"render_mode {render_mode!r}: ctxrace renders 'rgb_array' (the race as an "
+                f"(height, width, 3) uint8 array) or nothing (None)"
+            )
+        self.render_mode = render_mode
         self.inner = _ctxrace.RaceVector(
             str(track),
             num_envs,
@@ -94,11 +113,15 @@ class Races:
             float(context_range),
             threads,
             same_step,
+            render_mode is not None,
         )
         self.num_envs = num_envs
         self.obs_dim = self.inner.obs_dim
         #: The race scenario, every key resolved.
         self.race_config = json.loads(self.inner.race_config)
+        #: The render keys of an env's ``metadata``: a frame per decision.
+        self.metadata = render_metadata(1.0 / self.inner.decision_period)
+        self._started = False
 
     def decode(self, obs: bytes, table: bytes):
         """(observations, outcome table) as arrays of one row per env."""
@@ -110,7 +133,9 @@ class Races:
     def reset(self, seed: int, contexts: Any = None):
         """Starts every env's next episode (see `RaceVectorEnv.reset`)."""
         c = None if contexts is None else contexts_bytes(contexts, self.num_envs)
-        return self.decode(*self.inner.reset(seed, c))
+        out = self.decode(*self.inner.reset(seed, c))
+        self._started = True
+        return out
 
     def step(self, actions: Any):
         """Steps every env (see `RaceVectorEnv.step`)."""
@@ -125,6 +150,18 @@ class Races:
     def contexts(self) -> np.ndarray:
         """Each env's current episode's context, ``(num_envs, 2)``."""
         return np.frombuffer(self.inner.contexts(), dtype=np.float64).reshape(self.num_envs, 2)
+    def render(self) -> Optional[list]:
+        """Every env's race so far as ``(height, RENDER_WIDTH, 3)`` uint8 pictures, the
+        moments of ``ctxrace race --render race.gif``; None without a render mode."""
+        if self.render_mode is None:
+            return None
+        if not self._started:
+            raise ResetNeeded("nothing to draw before the first reset: call reset")
+        pictures = []
+        for env in range(self.num_envs):
+            rgb, height, width = self.inner.render(env, RENDER_WIDTH)
+            pictures.append(np.frombuffer(rgb, dtype=np.uint8).reshape(height, width, 3).copy())
+        return pictures
 
 
 def info_of(table: np.ndarray) -> dict:
@@ -164,9 +201,12 @@ class RaceVectorEnv(VectorEnv):
     too, until a reset without one). ``reset(seed=S)`` starts env ``i`` from the simulator's
     reset seed ``S + i``, as ``ctxrace race --seed S + i`` does. Info arrays: ``context``,
     ``progress``, ``overtakes`` (this step's rank change), ``a2a``, ``wall_crash``.
+    ``render_mode="rgb_array"``: ``render()`` draws every env's race as `RaceEnv.render` does.
     """
 
-    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}
+    #: Frames a second at the default scenario's decision period; an env's own ``metadata``
+    #: has its scenario's.
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, **render_metadata(10)}
 
     def __init__(
         self,
@@ -179,6 +219,7 @@ class RaceVectorEnv(VectorEnv):
         context_range: float = 0.15,
         threads: int = 0,
         autoreset_mode: AutoresetMode = AutoresetMode.NEXT_STEP,
+        render_mode: Optional[str] = None,
         **race_keys: Any,
     ):
         modes = (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP)
@@ -199,7 +240,10 @@ class RaceVectorEnv(VectorEnv):
             threads,
             race_keys,
             self._same_step,
+            render_mode,
         )
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata, **self._races.metadata}
         self.num_envs = num_envs
         self.race_config = self._races.race_config
         self.single_observation_space = spaces.Box(
@@ -245,6 +289,12 @@ class RaceVectorEnv(VectorEnv):
             info = _restarted(races, info, ended)
         return obs, table[:, _COLUMNS["reward"]].copy(), terminated, truncated, info
 
+    def render(self) -> Optional[tuple]:
+        """Every env's race so far (``render_mode="rgb_array"``; None without a mode): a tuple
+        of ``(height, 1000, 3)`` uint8 arrays, env by env, drawn as `RaceEnv.render` draws."""
+        pictures = self._live().render()
+        return None if pictures is None else tuple(pictures)
+
     def close_extras(self, **kwargs: Any):
         """Frees the races."""
         self._races = None
@@ -270,7 +320,9 @@ class RaceEnv(gymnasium.Env):
     the spaces, contexts and seeds of `RaceVectorEnv` for a single env; ``reset(options={"context":
     (c_v, c_θ)})`` pins the context; ``step`` after the episode ended raises ``ResetNeeded``."""
 
-    metadata = {"render_modes": []}
+    #: Frames a second at the default scenario's decision period (0.1 s); an env's own
+    #: ``metadata`` has its scenario's.
+    metadata = render_metadata(10)
 
     def __init__(
         self,
@@ -282,13 +334,14 @@ class RaceEnv(gymnasium.Env):
         render_mode: Optional[str] = None,
         **race_keys: Any,
     ):
-        if render_mode is not None:
-            raise ValueError(f"render_mode {render_mode!r}: ctxrace/Race-v0 renders nothing yet")
-        self._races = Races(track, 1, rivals, tracks_dir, config, context_range, 1, race_keys)
+        self._races = Races(
+            track, 1, rivals, tracks_dir, config, context_range, 1, race_keys, False, render_mode
+        )
         self.race_config = self._races.race_config
         self.observation_space = spaces.Box(0.0, 1.0, (self._races.obs_dim,), np.float32)
         self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.render_mode = render_mode
+        self.metadata = self._races.metadata
         self._ended = True
 
     def _live(self) -> Races:
@@ -322,6 +375,14 @@ class RaceEnv(gymnasium.Env):
         return obs[0], float(row[_COLUMNS["reward"]]), terminated, truncated, _single(
             info_of(table)
         )
+
+    def render(self) -> Optional[np.ndarray]:
+        """The race so far as ``ctxrace race --render race.gif`` draws its moments, an
+        ``(height, 1000, 3)`` uint8 array (``render_mode="rgb_array"``; None without a mode):
+        the track, each car filled at its place trailing its last 3 s of path coloured by
+        speed, the title with the context, the progress and the race time."""
+        pictures = self._live().render()
+        return None if pictures is None else pictures[0]
 
     def close(self):
         """Frees the race."""

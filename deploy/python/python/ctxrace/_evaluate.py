@@ -16,6 +16,9 @@ from ctxrace._policy import TrainedPolicy
 #: The reference policies the simulator drives itself.
 REFERENCE_POLICIES = ("pure-pursuit", "follow-the-gap", "random", "still")
 
+#: Where `evaluate` races a policy whose run is unknown: ``ctxrace eval``'s defaults.
+DEFAULT_TRACK, DEFAULT_RIVALS, DEFAULT_TRAIN_RANGE = "f1_esp", 3, 0.15
+
 #: A batch policy: (observations (k, beams) float32, contexts (k, 2) float64) -> actions (k, 2).
 Policy = Callable[[np.ndarray, np.ndarray], Any]
 
@@ -42,13 +45,13 @@ class Evaluation:
 
 def evaluate(
     policy: Union[str, Policy],
-    track: str = "f1_esp",
-    rivals: int = 3,
+    track: Optional[str] = None,
+    rivals: Optional[int] = None,
     grid: int = 7,
     range: float = 0.3,
     laps: int = 50,
     seed: int = 0,
-    train_range: float = 0.15,
+    train_range: Optional[float] = None,
     tracks_dir: Optional[os.PathLike] = None,
     config: Optional[os.PathLike] = None,
     batch: int = 64,
@@ -68,10 +71,26 @@ def evaluate(
     episode as ``ctxrace eval`` seeds it, sampling unless `deterministic` (``--act mode``).
     `train_range` splits the contexts in and out of distribution; `config`, `tracks_dir` and
     race keys as for `make_vec`.
+
+    A `TrainedPolicy` whose run is known races where ``ctxrace eval RUN`` races it: on the
+    run's track against its rivals in its race scenario, split by its training context range;
+    otherwise `track`, `rivals` and `train_range` default to ``f1_esp``, 3 and 0.15. Arguments
+    given win: `track`, `rivals` and `train_range` replace the run's, race keys are laid over
+    its race key by key, and a `config` file replaces its race.
     """
+    trained = policy if isinstance(policy, TrainedPolicy) and policy.track is not None else None
+    if trained is not None:
+        track = trained.track if track is None else track
+        rivals = trained.race_config["rivals"] if rivals is None else rivals
+        train_range = trained.context_range if train_range is None else train_range
+    train_range = DEFAULT_TRAIN_RANGE if train_range is None else train_range
     common = dict(
-        track=str(track),
-        race_keys=race_keys_json(rivals, race_keys),
+        track=str(DEFAULT_TRACK if track is None else track),
+        race_keys=race_keys_json(
+            DEFAULT_RIVALS if rivals is None else rivals,
+            race_keys,
+            trained.race_config if trained is not None and config is None else None,
+        ),
         config=_path(config),
         tracks_dir=_path(tracks_dir),
         grid=grid,

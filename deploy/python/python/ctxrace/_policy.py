@@ -28,6 +28,8 @@ class TrainedPolicy:
         self.race_config = json.loads(inner.race_config)
         #: The run's training context range (None when the run is unknown).
         self.context_range = inner.context_range
+        #: The run's track (None when the run is unknown).
+        self.track = inner.track
 
     def reset(self, rows: Optional[Sequence[int]] = None, seeds: Optional[Sequence[int]] = None):
         """Starts new episodes in batch `rows` (all when None), restarting their sampling noise

@@ -2,13 +2,12 @@
 //! (viridis: dark blue slow, yellow fast) and the cars' footprints (ego red, rivals blue, a
 //! crashed car filled), under a title naming the track, the egos, the context and the outcome
 //! and above a legend. As a `.gif`, the same race as an animation: the cars move, each trailing
-//! its last seconds of path.
+//! its last seconds of path; one moment of it as an RGB picture ([`moment_rgb`]).
 
-use crate::plot::{plot_err, register_font, save, Figure};
+use crate::figure::{plot_err, register_font, save, Figure};
 use anyhow::{bail, Context as _, Result};
-use ctxrace_actor::driver::Driver;
 use ctxrace_config::RivalDriverKind;
-use ctxrace_sim::driver::Ego as _;
+use ctxrace_sim::driver::{DriveError, Ego};
 use ctxrace_sim::vehicle::{idx, State, VehicleParams};
 use ctxrace_sim::{RaceEnv, StepInfo};
 use ctxrace_tracks::Track;
@@ -45,19 +44,18 @@ pub struct Frame {
     pub cars: Vec<CarSnapshot>,
 }
 
-/// Runs one episode of `env` under `context` from `seed` with `driver`, recording a frame
-/// after the reset and after every decision into `frames`; returns the last step's details.
-pub fn drive_recorded(
-    driver: &mut Driver,
+/// Runs one episode of `env` under `context` from `seed` with `ego`, recording a frame after
+/// the reset and after every decision into `frames`; returns the last step's details.
+pub fn drive_recorded<E: Ego>(
+    ego: &mut E,
     env: &mut RaceEnv,
     context: ctxrace_config::Context,
     seed: u64,
     frames: &mut Vec<Frame>,
-) -> Result<StepInfo> {
-    let last = driver.drive_observed(env, context, seed, |env, d| {
+) -> std::result::Result<StepInfo, DriveError<E::Error>> {
+    ego.drive_observed(env, context, seed, |env, d| {
         frames.push(Frame::capture(env, d.action, d.reward, d.obs))
-    })?;
-    Ok(last)
+    })
 }
 
 impl Frame {
@@ -104,13 +102,14 @@ const RACELINE: RGBColor = RGBColor(150, 190, 150);
 /// The centreline's colour.
 const CENTRELINE: RGBColor = RGBColor(200, 200, 200);
 
-/// The title of a picture of `env`'s last episode driven by `ego` on `track`: the cars, the
-/// rivals' context and the outcome.
+/// The title of a picture of `env`'s episode (the last one, or the one under way) driven by
+/// `ego` on `track`: the cars, the rivals' context and the outcome (or the progress so far).
 pub fn race_title(track: &str, ego: &str, env: &RaceEnv) -> String {
     let m = env.metrics();
     let c = env.context();
     let outcome = match m.lap_time {
         Some(t) => format!("lap complete in {t:.1} s"),
+        None if !env.is_finished() => format!("racing, progress {:.2}", m.progress),
         None => format!("{} at progress {:.2}", m.ended_by(), m.progress),
     };
     let driver = match env.config().rival.driver {
@@ -156,6 +155,37 @@ pub fn check_render_path(path: &Path) -> Result<()> {
     }
 }
 
+/// Width in pixels of [`moment_rgb`]'s picture when none is asked for: an animation's.
+pub const MOMENT_WIDTH_PX: u32 = GIF_WIDTH_PX;
+
+/// An RGB picture: `height` rows of `width` pixels, three bytes each (red, green, blue).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct RgbPicture {
+    /// Pixels per row.
+    pub width: u32,
+    /// Rows.
+    pub height: u32,
+    /// The pixels, row by row from the top.
+    pub rgb: Vec<u8>,
+}
+
+/// The race at its last frame as an animation draws it, `width` pixels wide (at least 100):
+/// each car filled and ringed at its place, trailing its last seconds of path coloured by
+/// speed (the colour bar's top is the fastest of `frames`), the title with the moment's time.
+pub fn moment_rgb(track: &Track, frames: &[Frame], title: &str, width: u32) -> Result<RgbPicture> {
+    if frames.is_empty() {
+        bail!("cannot draw the race: it has no frames (reset it first)");
+    }
+    if width < 100 {
+        bail!("cannot draw the race {width} pixels wide: give at least 100");
+    }
+    let scene = RaceScene::new(track, frames, title, width).at(frames.len() - 1);
+    let (width, height) = scene.size();
+    let mut rgb = vec![0u8; width as usize * height as usize * 3];
+    scene.draw_rgb(&mut rgb)?;
+    Ok(RgbPicture { width, height, rgb })
+}
+
 /// A race picture: the whole race as a still, or (with `upto` and a trail) one moment of it.
 #[derive(Clone)]
 struct RaceScene<'a> {
@@ -198,6 +228,22 @@ impl<'a> RaceScene<'a> {
     /// A band's height in this picture's pixels.
     fn band(&self, px: u32) -> u32 {
         (f64::from(px) * self.scale()).round() as u32
+    }
+
+    /// The moment `upto` of the race as an animation shows it, trailing [`TRAIL_S`] of path.
+    fn at(&self, upto: usize) -> Self {
+        Self {
+            upto,
+            trail_s: Some(TRAIL_S),
+            ..self.clone()
+        }
+    }
+
+    /// Draws the picture into `rgb`, [`Figure::size`]'s pixels of three bytes.
+    fn draw_rgb(&self, rgb: &mut [u8]) -> Result<()> {
+        let root = BitMapBackend::with_buffer(rgb, self.size()).into_drawing_area();
+        self.draw(&root)?;
+        root.present().map_err(plot_err)
     }
 
     /// The title, with the moment's time in an animation.
@@ -594,16 +640,7 @@ fn gif_into(file: &mut std::fs::File, path: &Path, whole: &RaceScene) -> Result<
     let mut rgb = vec![0u8; w as usize * h as usize * 3];
     let mut previous: Option<Vec<u8>> = None;
     for (k, &upto) in moments.iter().enumerate() {
-        let scene = RaceScene {
-            upto,
-            trail_s: Some(TRAIL_S),
-            ..whole.clone()
-        };
-        {
-            let root = BitMapBackend::with_buffer(&mut rgb, (w, h)).into_drawing_area();
-            scene.draw(&root)?;
-            root.present().map_err(plot_err)?;
-        }
+        whole.at(upto).draw_rgb(&mut rgb)?;
         let picture = palette.indices(&rgb);
         // shown until the next moment: the race plays in real time
         let seconds = match moments.get(k + 1) {
@@ -680,10 +717,9 @@ fn changed_part(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ego::EgoSpec;
     use ctxrace_config::{Context, RaceConfig};
     use ctxrace_sim::baseline::BaselineKind;
-    use ctxrace_sim::driver::ActMode;
+    use ctxrace_sim::driver::BaselineEgo;
     use ctxrace_tracks::TrackOptions;
     use std::sync::Arc;
 
@@ -696,11 +732,10 @@ mod tests {
             ..RaceConfig::default()
         };
         let mut env = RaceEnv::new(track.clone(), cfg).unwrap();
-        let spec = EgoSpec::Baseline(BaselineKind::PurePursuit);
-        let mut driver = spec.driver(&env, ActMode::Mode).unwrap();
+        let mut ego = BaselineEgo::new(BaselineKind::PurePursuit, &env);
         let mut frames = Vec::new();
-        drive_recorded(&mut driver, &mut env, context, 0, &mut frames).unwrap();
-        let title = race_title(&track.name, &spec.name(), &env);
+        drive_recorded(&mut ego, &mut env, context, 0, &mut frames).unwrap();
+        let title = race_title(&track.name, BaselineKind::PurePursuit.name(), &env);
         (track, frames, title)
     }
 
@@ -774,16 +809,7 @@ mod tests {
             }
             stored += usize::from(frame.width) * usize::from(frame.height);
             delay += u32::from(frame.delay);
-            let moment = RaceScene {
-                upto,
-                trail_s: Some(TRAIL_S),
-                ..scene.clone()
-            };
-            {
-                let root = BitMapBackend::with_buffer(&mut rgb, (w, h)).into_drawing_area();
-                moment.draw(&root).unwrap();
-                root.present().unwrap();
-            }
+            scene.at(upto).draw_rgb(&mut rgb).unwrap();
             assert!(canvas == palette.indices(&rgb), "frame {shown} differs");
             shown += 1;
         }
@@ -797,6 +823,60 @@ mod tests {
             stored < whole + (shown - 1) * whole / 4,
             "{stored} pixels stored for {shown} pictures of {whole}"
         );
+    }
+
+    /// Where the pixels of exactly `colour` lie on average in `picture`, and how many there are.
+    fn centroid(picture: &RgbPicture, colour: RGBColor) -> ((f64, f64), usize) {
+        let RGBColor(r, g, b) = colour;
+        let (mut sx, mut sy, mut n) = (0.0, 0.0, 0);
+        for (i, p) in picture.rgb.chunks_exact(3).enumerate() {
+            if p == [r, g, b] {
+                sx += (i % picture.width as usize) as f64;
+                sy += (i / picture.width as usize) as f64;
+                n += 1;
+            }
+        }
+        ((sx / n as f64, sy / n as f64), n)
+    }
+
+    #[test]
+    fn a_moment_is_the_animation_frame_of_the_race_so_far_and_follows_the_cars() {
+        let (track, frames, title) = race(Context::default());
+        let early = moment_rgb(&track, &frames[..5], &title, 400).unwrap();
+        let later = moment_rgb(&track, &frames[..60], &title, 400).unwrap();
+        let scene = RaceScene::new(&track, &frames[..60], &title, 400);
+        assert_eq!((later.width, later.height), scene.size());
+        assert_eq!(later.rgb.len(), (later.width * later.height * 3) as usize);
+        let mut rgb = vec![0u8; later.rgb.len()];
+        scene.at(59).draw_rgb(&mut rgb).unwrap();
+        assert!(
+            rgb == later.rgb,
+            "the moment differs from the animation's frame"
+        );
+        // the ego (red, filled and ringed) has moved along the track
+        let ((x0, y0), n0) = centroid(&early, EGO);
+        let ((x1, y1), n1) = centroid(&later, EGO);
+        assert!(n0 > 20 && n1 > 20, "{n0} and {n1} ego pixels");
+        let moved = ((x1 - x0).powi(2) + (y1 - y0).powi(2)).sqrt();
+        assert!(
+            moved > 5.0,
+            "the ego moved {moved:.1} pixels in 55 decisions"
+        );
+        let mid_race = race_title(&track.name, "agent", &{
+            let mut env = RaceEnv::new(track.clone(), RaceConfig::default()).unwrap();
+            env.reset(0, Context::default());
+            env
+        });
+        assert!(mid_race.contains("racing, progress 0.00"), "{mid_race}");
+    }
+
+    #[test]
+    fn a_moment_needs_a_frame_and_a_hundred_pixels() {
+        let (track, frames, title) = race(Context::default());
+        let err = moment_rgb(&track, &[], &title, 400).unwrap_err();
+        assert!(err.to_string().contains("no frames"), "{err}");
+        let err = moment_rgb(&track, &frames, &title, 99).unwrap_err();
+        assert!(err.to_string().contains("at least 100"), "{err}");
     }
 
     #[test]
