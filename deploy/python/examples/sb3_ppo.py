@@ -1,4 +1,4 @@
-"""Stable-Baselines3's PPO trained on ctxrace's vector env, then evaluated with the paper's protocol.
+"""Stable-Baselines3's PPO trained on ctxrace's vector env, evaluated with the paper's protocol.
 
     pip install ./deploy/python stable-baselines3
     python deploy/python/examples/sb3_ppo.py --track generated:0 --steps 1000000 --out sb3-run
@@ -107,21 +107,34 @@ class Curve(BaseCallback):
         ret, progress, laps = (np.mean(column) for column in zip(*self.ended))
         seconds = time.monotonic() - self.start
         self.writer.writerow(
-            [self.num_timesteps, f"{seconds:.1f}", len(self.ended), f"{ret:.3f}", f"{progress:.3f}", f"{laps:.3f}"]
+            [
+                self.num_timesteps,
+                f"{seconds:.1f}",
+                len(self.ended),
+                f"{ret:.3f}",
+                f"{progress:.3f}",
+                f"{laps:.3f}",
+            ]
         )
         self.file.flush()
-        print(f"{self.num_timesteps:>9} steps {seconds:7.0f} s  return {ret:7.2f}  PG {progress:.3f}  laps {laps:.2f}")
+        print(
+            f"{self.num_timesteps:>9} steps {seconds:7.0f} s  return {ret:7.2f}  PG {progress:.3f}  laps {laps:.2f}"
+        )
         self.ended.clear()
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--track", default="generated:0", help="a track name, map yaml or generated:SEED")
+    p.add_argument(
+        "--track", default="generated:0", help="a track name, map yaml or generated:SEED"
+    )
     p.add_argument("--rivals", type=int, default=1)
     p.add_argument("--envs", type=int, default=16)
     p.add_argument("--steps", type=int, default=1_000_000, help="env steps of training")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--eval-grid", type=int, default=7, help="contexts per axis of the evaluation grid")
+    p.add_argument(
+        "--eval-grid", type=int, default=7, help="contexts per axis of the evaluation grid"
+    )
     p.add_argument("--eval-laps", type=int, default=10, help="episodes per context")
     p.add_argument("--tracks-dir", default=None)
     p.add_argument("--out", type=Path, default=Path("sb3-run"))
