@@ -118,7 +118,8 @@ class Curve(BaseCallback):
         )
         self.file.flush()
         print(
-            f"{self.num_timesteps:>9} steps {seconds:7.0f} s  return {ret:7.2f}  PG {progress:.3f}  laps {laps:.2f}"
+            f"{self.num_timesteps:>9} steps {seconds:7.0f} s  return {ret:7.2f}  "
+            f"PG {progress:.3f}  laps {laps:.2f}"
         )
         self.ended.clear()
 

@@ -409,5 +409,6 @@ def make_vec(
     vector env; `seed` seeds its first reset. Further keywords: ``config`` (a race config TOML),
     ``context_range`` (0.15), ``threads`` (0: one per core), ``autoreset_mode``
     (``AutoresetMode.NEXT_STEP``, or ``SAME_STEP`` as Stable-Baselines3 expects), ``render_mode``
-    and race keys as the TOML configs name them (``preset="paper-code"``, ``rival={"driver": "follow-the-gap"}``, ...)."""
+    and race keys as the TOML configs name them (``preset="paper-code"``,
+    ``rival={"driver": "follow-the-gap"}``, ...)."""
     return RaceVectorEnv(track, num_envs, rivals, seed, tracks_dir, **kwargs)
