@@ -169,7 +169,11 @@ impl PyRaceVector {
 
     /// Each env's current episode's context (native-endian `f64` pairs), as bytes.
     fn contexts<'py>(&self, py: Python<'py>) -> Bound<'py, PyBytes> {
-        let pairs: Vec<f64> = self.inner.contexts().flat_map(|c| [c.speed, c.steer]).collect();
+        let pairs: Vec<f64> = self
+            .inner
+            .contexts()
+            .flat_map(|c| [c.speed, c.steer])
+            .collect();
         bytes_of(py, &pairs, f64::to_ne_bytes)
     }
 
