@@ -843,3 +843,61 @@ fn stopped_and_continued_processes_keep_running() {
         "{stderr}\n{logs}"
     );
 }
+
+/// Segments truncated under a live run: the launcher dies of the SIGBUS saying what happened
+/// (it died without a word), and the next `train` sweeps the dead run's files at once and
+/// trains (it hung for minutes inside iceoryx2, waiting on a truncated segment).
+#[test]
+fn truncated_segments_end_the_run_loudly_and_the_next_run_sweeps_them() {
+    use std::os::unix::process::ExitStatusExt as _;
+    let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let (child, run) = launch(a.path(), 1_000_000, 1);
+    let launcher = child.id();
+    wait_for(&run, "the actor", Duration::from_secs(60), || {
+        find_pid(&run, "actor", &[])
+    });
+    std::thread::sleep(Duration::from_secs(2));
+    let prefix = format!("ctxrace_{launcher}-");
+    let mut truncated = 0;
+    for name in names_under(Path::new("/dev/shm")) {
+        if name.starts_with(&prefix) && name.ends_with(".dynamic") {
+            let file = std::fs::OpenOptions::new()
+                .write(true)
+                .open(Path::new("/dev/shm").join(&name));
+            truncated += usize::from(file.and_then(|f| f.set_len(0)).is_ok());
+        }
+    }
+    assert!(truncated > 0, "no segment of the run found");
+    let waiter = std::thread::spawn(move || child.wait_with_output().unwrap());
+    let start = Instant::now();
+    while !waiter.is_finished() {
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "the launcher runs on over its truncated segments\n{}",
+            logs(&run)
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let out = waiter.join().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    if out.status.signal() == Some(libc::SIGBUS) {
+        assert!(
+            stderr.contains("shared memory was truncated or removed under the launcher"),
+            "{stderr}"
+        );
+    }
+    // the next run, elsewhere: it sweeps what the dead run left and trains to the end
+    let (next, next_run) = launch(b.path(), 1500, 1);
+    let stderr = finish(next, Duration::from_secs(240));
+    check_clean_run(&next_run, 1);
+    let leftovers = names_under(&ctxrace_ipc::shm_root().unwrap())
+        .into_iter()
+        .chain(names_under(Path::new("/dev/shm")))
+        .any(|n| n.starts_with(&prefix));
+    assert!(
+        !leftovers || stderr.contains("removed the shared memory of runs whose launcher died"),
+        "{stderr}"
+    );
+    assert_no_leftovers(launcher);
+}

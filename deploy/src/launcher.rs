@@ -496,6 +496,38 @@ fn track_flags(tracks: &TrackArgs) -> Vec<String> {
     v
 }
 
+/// What the launcher says when a shared-memory segment it reads is truncated under it.
+const BUS_ERROR_MESSAGE: &[u8] = b"\nctxrace train: the run's shared memory was truncated or \
+    removed under the launcher (SIGBUS); the run stops here, its processes with it (they stop \
+    when the launcher dies). The next `ctxrace train` removes the run's files; resume this run \
+    with --resume.\n";
+
+/// Writes [`BUS_ERROR_MESSAGE`] to stderr and dies of the signal, as without a handler.
+extern "C" fn on_bus_error(_: libc::c_int) {
+    // SAFETY: write, signal and raise are async-signal-safe; the message is a static buffer.
+    unsafe {
+        libc::write(
+            2,
+            BUS_ERROR_MESSAGE.as_ptr().cast(),
+            BUS_ERROR_MESSAGE.len(),
+        );
+        libc::signal(libc::SIGBUS, libc::SIG_DFL);
+        libc::raise(libc::SIGBUS);
+    }
+}
+
+/// Makes a SIGBUS (a segment truncated under the launcher, which iceoryx2 maps) say what
+/// happened before the launcher dies of it, instead of dying without a word.
+fn explain_bus_errors() {
+    // SAFETY: installs a handler that only calls async-signal-safe functions.
+    unsafe {
+        libc::signal(
+            libc::SIGBUS,
+            on_bus_error as *const () as libc::sighandler_t,
+        );
+    }
+}
+
 /// Runs a training run with `actors` actor processes in `dir` (which holds `config.toml`).
 pub fn run(
     cfg: &ExperimentConfig,
@@ -504,6 +536,7 @@ pub fn run(
     actors: usize,
     tracks: &TrackArgs,
 ) -> Result<()> {
+    explain_bus_errors();
     if actors == 0 {
         bail!("--actors must be at least 1");
     }
@@ -515,10 +548,20 @@ pub fn run(
             .map_or(0, |d| d.as_millis())
     );
     match sweep_orphaned_runs() {
-        Ok(swept) if !swept.is_empty() => {
-            tracing::warn!("removed the shared memory of runs whose launcher died: {swept:?}")
+        Ok(sweep) => {
+            if !sweep.swept.is_empty() {
+                tracing::warn!(
+                    "removed the shared memory of runs whose launcher died: {:?}",
+                    sweep.swept
+                )
+            }
+            for (prefix, pids) in &sweep.kept {
+                tracing::warn!(
+                    "the launcher of run {prefix} died but its processes {pids:?} live on; \
+                     its shared memory stays until they end (kill them to free it)"
+                )
+            }
         }
-        Ok(_) => {}
         Err(e) => tracing::warn!("sweeping the shared memory of dead runs: {}", Causes(&e)),
     }
     let prefix = run_prefix(&run_id);

@@ -37,7 +37,7 @@ pub use trajectory::{
 };
 pub use transport::{
     claim_run, cleanup, iceoryx_config, remove_dead_nodes, run_prefix, shm_root,
-    sweep_orphaned_runs, termination_flag, CleanupReport, Next, RunTransport, Wake,
+    sweep_orphaned_runs, termination_flag, CleanupReport, Next, RunTransport, Sweep, Wake,
     TRAJECTORY_BUFFER,
 };
 pub use weights::{WeightsPublisher, WeightsReceiver, DEFAULT_MAX_WEIGHTS_BYTES};

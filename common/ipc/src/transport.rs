@@ -559,11 +559,47 @@ fn process_start(pid: u32) -> Option<u64> {
     rest.split_whitespace().nth(19)?.parse().ok()
 }
 
+/// The processes other than this one started for the run with `prefix` (its replay, learner
+/// and actors, which carry the prefix among their arguments), from `/proc/<pid>/cmdline`.
+fn processes_of(prefix: &str) -> Vec<u32> {
+    use std::io::Read as _;
+    let me = std::process::id();
+    let Ok(entries) = std::fs::read_dir("/proc") else {
+        return Vec::new();
+    };
+    let pids = entries
+        .flatten()
+        .filter_map(|e| e.file_name().to_str()?.parse::<u32>().ok());
+    pids.filter(|&pid| pid != me)
+        .filter(|pid| {
+            let mut cmdline = Vec::new();
+            let read = std::fs::File::open(format!("/proc/{pid}/cmdline"))
+                .and_then(|f| f.take(1 << 16).read_to_end(&mut cmdline));
+            read.is_ok()
+                && cmdline
+                    .split(|&b| b == 0)
+                    .any(|arg| arg == prefix.as_bytes())
+        })
+        .collect()
+}
+
+/// What [`sweep_orphaned_runs`] did.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Sweep {
+    /// The prefixes of the runs whose files were removed.
+    pub swept: Vec<String>,
+    /// The orphaned runs left alone because processes of theirs still live (prefix, pids).
+    pub kept: Vec<(String, Vec<u32>)>,
+}
+
 /// Removes the shared memory of every ctxrace run whose owner ([`claim_run`]) is gone, as after
-/// a killed launcher; returns the prefixes swept. Runs whose owner lives are left alone.
-pub fn sweep_orphaned_runs() -> Result<Vec<String>> {
+/// a killed launcher, and no process of which lives: its files are removed as files, without
+/// opening them through iceoryx2, so that segments truncated or corrupted under a dead run can
+/// neither stall the sweep (iceoryx2 waits on a segment it cannot read) nor crash it. Runs
+/// whose owner lives are left alone, and so are orphaned runs whose processes still live.
+pub fn sweep_orphaned_runs() -> Result<Sweep> {
     let root = shm_root()?;
-    let mut swept = Vec::new();
+    let mut sweep = Sweep::default();
     let entries = std::fs::read_dir(&root).map_err(|source| IpcError::File {
         action: "listing",
         path: root.clone(),
@@ -589,12 +625,17 @@ pub fn sweep_orphaned_runs() -> Result<Vec<String>> {
         if alive {
             continue;
         }
-        let report = cleanup(prefix)?;
-        if report.alive_nodes == 0 {
-            swept.push(prefix.to_string());
+        let users = processes_of(prefix);
+        if !users.is_empty() {
+            sweep.kept.push((prefix.to_string(), users));
+            continue;
         }
+        for dir in [root.clone(), PathBuf::from(SHM_DIR)] {
+            remove_prefixed(&dir, prefix)?;
+        }
+        sweep.swept.push(prefix.to_string());
     }
-    Ok(swept)
+    Ok(sweep)
 }
 
 /// Removes every entry under `dir` (recursively) whose name starts with `prefix`.
@@ -700,18 +741,49 @@ mod tests {
         for f in &files {
             std::fs::write(f, b"left behind").unwrap();
         }
+        // a segment truncated under the dead run: removed as a file, never opened
+        let truncated = PathBuf::from(format!("/dev/shm/{dead}y.dynamic"));
+        std::fs::write(&truncated, b"").unwrap();
         // a run this process owns
         let live = run_prefix(&format!("test-owned-{me}"));
         claim_run(&live).unwrap();
-        let swept = sweep_orphaned_runs().unwrap();
-        assert!(swept.contains(&dead), "{swept:?}");
-        assert!(!swept.contains(&live), "{swept:?}");
-        for f in &files {
+        let sweep = sweep_orphaned_runs().unwrap();
+        assert!(sweep.swept.contains(&dead), "{sweep:?}");
+        assert!(!sweep.swept.contains(&live), "{sweep:?}");
+        for f in files.iter().chain([&truncated]) {
             assert!(!f.exists(), "{} is left", f.display());
         }
         assert!(root.join(format!("{live}{OWNER_SUFFIX}")).exists());
         cleanup(&live).unwrap();
         assert!(!root.join(format!("{live}{OWNER_SUFFIX}")).exists());
+    }
+
+    /// An orphaned run (its owner gone) one of whose processes lives is left alone, with its pid.
+    #[test]
+    fn orphaned_runs_whose_processes_live_are_kept() {
+        let me = std::process::id();
+        let root = shm_root().unwrap();
+        let prefix = run_prefix(&format!("test-orphan-busy-{me}"));
+        let owner = root.join(format!("{prefix}{OWNER_SUFFIX}"));
+        let mut gone = std::process::Command::new("true").spawn().unwrap();
+        gone.wait().unwrap();
+        std::fs::write(&owner, format!("{} 1\n", gone.id())).unwrap();
+        // a process of the run: the prefix among its arguments, as the run's roles carry it
+        let mut process = std::process::Command::new("sh")
+            .args(["-c", "sleep 30", &prefix])
+            .spawn()
+            .unwrap();
+        let sweep = sweep_orphaned_runs().unwrap();
+        process.kill().unwrap();
+        process.wait().unwrap();
+        assert!(!sweep.swept.contains(&prefix), "{sweep:?}");
+        assert!(
+            sweep.kept.contains(&(prefix.clone(), vec![process.id()])),
+            "{sweep:?}"
+        );
+        assert!(owner.exists());
+        assert_eq!(sweep_orphaned_runs().unwrap().kept, vec![]);
+        assert!(!owner.exists());
     }
 
     /// `(path, mode)` of everything under `dir` (recursively) whose name carries `prefix`, or
