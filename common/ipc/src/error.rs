@@ -81,6 +81,17 @@ pub enum IpcError {
         /// This process's user.
         uid: u32,
     },
+    /// A segment of the run is empty (truncated under it): iceoryx2 0.10 would wait on it
+    /// forever (its open retries a zero-size mapping without a timeout).
+    #[error(
+        "{} is empty: a segment of the run was truncated under it, and the run cannot go on; \
+         stop it (the next `ctxrace train` removes its files) and continue with --resume",
+        .path.display()
+    )]
+    TruncatedSegment {
+        /// The segment.
+        path: PathBuf,
+    },
     /// A file or folder of the transport could not be read, listed, written or removed.
     #[error("{action} {}", .path.display())]
     File {

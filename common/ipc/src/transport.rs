@@ -166,6 +166,7 @@ impl RunTransport {
         }
         let config = iceoryx_config(prefix, actors)?;
         let name = NodeName::new(role).map_err(ice("node name"))?;
+        check_segments(StdPath::new(SHM_DIR), prefix, TRUNCATION_GRACE)?;
         let node = NodeBuilder::new()
             .config(&config)
             .name(&name)
@@ -453,6 +454,56 @@ pub struct CleanupReport {
 
 /// Where POSIX shared memory lives.
 const SHM_DIR: &str = "/dev/shm";
+
+/// How long an empty segment may stay empty before it counts as truncated: iceoryx2 sizes a
+/// segment right after creating it, so a segment another process is creating is empty only for
+/// an instant.
+const TRUNCATION_GRACE: Duration = Duration::from_secs(2);
+
+/// Refuses to join a run one of whose segments in `dir` (its name starting with `prefix`) is
+/// empty for longer than `grace`: iceoryx2 0.10 would wait on it forever, a process restarted
+/// into a run whose `global_mgmt` had been truncated hung for the rest of the run. An empty
+/// `global_mgmt` (a node counter for unique ids, which also carry the pid and creation time) is
+/// removed instead, for the node to make a fresh one; any other empty segment is an error.
+fn check_segments(dir: &StdPath, prefix: &str, grace: Duration) -> Result<()> {
+    let empty = || -> Vec<PathBuf> {
+        let Ok(entries) = std::fs::read_dir(dir) else {
+            return Vec::new();
+        };
+        entries
+            .flatten()
+            .filter(|e| e.file_name().to_string_lossy().starts_with(prefix))
+            .filter(|e| e.metadata().is_ok_and(|m| m.is_file() && m.len() == 0))
+            .map(|e| e.path())
+            .collect()
+    };
+    let start = Instant::now();
+    let mut truncated = empty();
+    while !truncated.is_empty() && start.elapsed() < grace {
+        std::thread::sleep(Duration::from_millis(50));
+        truncated.retain(|p| std::fs::metadata(p).is_ok_and(|m| m.len() == 0));
+    }
+    for path in truncated {
+        if !path.to_string_lossy().ends_with("global_mgmt") {
+            return Err(IpcError::TruncatedSegment { path });
+        }
+        tracing::warn!(
+            "{} is empty (truncated): removed for a fresh one",
+            path.display()
+        );
+        match std::fs::remove_file(&path) {
+            Err(source) if source.kind() != std::io::ErrorKind::NotFound => {
+                return Err(IpcError::File {
+                    action: "removing",
+                    path,
+                    source,
+                })
+            }
+            _ => {}
+        }
+    }
+    Ok(())
+}
 
 /// This process's user id (the owner of `/proc/self`).
 fn user_id() -> Result<u32> {
@@ -756,6 +807,42 @@ mod tests {
         assert!(root.join(format!("{live}{OWNER_SUFFIX}")).exists());
         cleanup(&live).unwrap();
         assert!(!root.join(format!("{live}{OWNER_SUFFIX}")).exists());
+    }
+
+    /// An empty `global_mgmt` is replaced and a node joins; any other empty segment of the run
+    /// is refused by name (iceoryx2 would wait on either forever); a segment that fills within
+    /// the grace is taken.
+    #[test]
+    fn truncated_segments_are_replaced_or_refused_never_waited_on() {
+        let me = std::process::id();
+        let prefix = run_prefix(&format!("test-truncated-{me}"));
+        let mgmt = PathBuf::from(format!(
+            "{SHM_DIR}/{prefix}9204dd183d1c4d8e1ff592a30766ffa6765aa8b5_node.0_10_0.global_mgmt"
+        ));
+        std::fs::write(&mgmt, b"").unwrap();
+        let started = Instant::now();
+        let node = RunTransport::open(&prefix, 1, "test").unwrap();
+        assert!(started.elapsed() < Duration::from_secs(10));
+        assert!(std::fs::metadata(&mgmt).unwrap().len() > 0, "a fresh one");
+        drop(node);
+        let dynamic = PathBuf::from(format!("{SHM_DIR}/{prefix}x.dynamic"));
+        std::fs::write(&dynamic, b"").unwrap();
+        let err = check_segments(StdPath::new(SHM_DIR), &prefix, Duration::ZERO).unwrap_err();
+        assert!(
+            err.to_string().contains("x.dynamic is empty") && err.to_string().contains("--resume"),
+            "{err}"
+        );
+        let filler = {
+            let dynamic = dynamic.clone();
+            std::thread::spawn(move || {
+                std::thread::sleep(Duration::from_millis(200));
+                std::fs::write(dynamic, b"sized").unwrap();
+            })
+        };
+        check_segments(StdPath::new(SHM_DIR), &prefix, Duration::from_secs(5)).unwrap();
+        filler.join().unwrap();
+        std::fs::remove_file(&dynamic).unwrap();
+        cleanup(&prefix).unwrap();
     }
 
     /// An orphaned run (its owner gone) one of whose processes lives is left alone, with its pid.
