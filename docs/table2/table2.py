@@ -623,8 +623,23 @@ def write_csv(name, rows):
                         if k != "dir"})
 
 
-def markdown(t2, t3, cells, abl_cells, mask_rows, mask_cells, trained):
+def run_rows(runs):
+    """One markdown row per run: its training PG (last 10% of env steps) and split values."""
+    rows = []
+    for (rivals, algo), rs in sorted(runs.items(), key=lambda kv: (kv[0][0], ALGOS.index(kv[0][1]))):
+        for r in sorted(rs, key=lambda r: r["seed"]):
+            rows.append(f"| {rivals} | {NAMES[algo]} | {r['seed']} | {fmt(r['train_pg'])} | "
+                        f"{fmt(r['pg_in'])} | {fmt(r['pg_out'])} | {r['ot_in']:+.2f} / {r['ot_out']:+.2f} | "
+                        f"{fmt(r['a2a_in'], 1)} / {fmt(r['a2a_out'], 1)} |")
+    return rows
+
+
+def markdown(runs, t2, t3, cells, abl_cells, mask_rows, mask_cells, trained):
     out = ["# Results (written by `python3 docs/table2/table2.py analyse`)", ""]
+    out += ["## Runs (each evaluated on contexts 17-48; in = the 8 within ±0.15)", "",
+            "| rivals | algo | seed | training PG, last 10% | PG in | PG out | OT in / out | A2A in / out (per 50 laps) |",
+            "|--:|---|--:|--:|--:|--:|---|---|"]
+    out += run_rows(runs) + [""]
     out += ["## Table II (contexts 17-48; seed means, 95% bootstrap interval over seeds; paper beside)", "",
             "| rivals | algo | seeds | training PG | PG in | PG out | OT in | OT out | A2A in | A2A out |",
             "|---|---|--:|--:|---|---|---|---|---|---|"]
@@ -727,7 +742,7 @@ def analyse():
     write_csv("masks.csv", mask_rows + mask_cells)
     write_csv("mask_training.csv", trained)
     (HERE / "results.md").write_text(
-        markdown(t2, t3, cells, abl_cells, mask_rows, mask_cells, trained))
+        markdown(runs, t2, t3, cells, abl_cells, mask_rows, mask_cells, trained))
     print((HERE / "results.md").read_text())
 
 
