@@ -67,7 +67,7 @@ def stub_modules():
         sys.modules[m.__name__] = m
 
 
-RUN_FILE = """test_name: "sim_agreement"
+RUN_FILE = """test_name: "{name}"
 architecture: "Harness"
 window_in: 2
 window_out: 1
@@ -102,6 +102,7 @@ class Recorder:
     being raced."""
 
     def __init__(self, out):
+        """Rows go to the open CSV file `out`, its header written now."""
         self.out = csv.DictWriter(out, fieldnames=FIELDS)
         self.out.writeheader()
         self.file = out
@@ -117,6 +118,7 @@ class Ego:
     """The harness's ego driver: the code's tester interface (plan, lap_complete)."""
 
     def __init__(self, kind, run, conf, rec, seed):
+        """The ego `kind` of the run `run`, recording into `rec`; `seed` seeds `random`."""
         self.kind, self.rec, self.seed, self.laps = kind, rec, seed, run.n_test_laps
         self.rng = None
         self.pp = None
@@ -129,10 +131,12 @@ class Ego:
             self.pp.max_steer = MAX_STEER
 
     def command(self, action):
+        """The command [steer, speed] of an action in [-1, 1]^2."""
         a0, a1 = np.clip(action, -1.0, 1.0)
         return np.array([-a0 * MAX_STEER, MIN_SPEED + (a1 + 1.0) / 2.0 * (MAX_SPEED - MIN_SPEED)])
 
     def plan(self, obs, context=None):
+        """The ego's command for the observation `obs` (the testers' interface)."""
         rec = self.rec
         if rec.decisions == 0:
             rec.context = [float(c) for c in context]
@@ -150,6 +154,7 @@ class Ego:
         return self.command([0.0, -1.0]), None
 
     def lap_complete(self):
+        """Writes the lap's row and starts the next lap's state."""
         rec = self.rec
         ego = rec.last[0]
         rec.rows.append(
@@ -173,7 +178,60 @@ class Ego:
         rec.decisions = 0
 
 
+def paper_simulation(paper_dir, ego, rivals, laps, seed, out, name="sim_agreement"):
+    """The paper's TestSimulation of the harness's run file config/<name>.yaml (written into the
+    export `paper_dir`, which becomes the working directory, as the code expects): one run on
+    f1_esp against `rivals` PurePursuit rivals, `laps` laps per context, with the harness's
+    `ego` in place of the agent and each lap written to the open file `out`. Returns (sim, rec);
+    sim.run_testing_evaluation() races it."""
+    os.chdir(paper_dir)
+    sys.path.insert(0, os.getcwd())
+    stub_modules()
+    with open(f"config/{name}.yaml", "w") as f:
+        f.write(
+            RUN_FILE.format(
+                name=name,
+                laps=laps,
+                adversaries=str(["PP"] * rivals),
+                agents=rivals + 1,
+            )
+        )
+    os.makedirs(f"Data/Vehicles/{name}", exist_ok=True)
+    import TrajectoryAidedLearning.TestSimulation as ts
+
+    rec = Recorder(out)
+    paper_select_agent = ts.select_agent
+
+    def select_agent(run, conf, architecture, train=True, init=False, ma_info=[0.0, 0.0]):
+        """The code's select_agent, with the harness's ego for the architecture `Harness`."""
+        if architecture == "Harness":
+            os.makedirs(f"Data/Vehicles/{run.path}{run.run_name}", exist_ok=True)
+            return Ego(ego, run, conf, rec, seed)
+        return paper_select_agent(run, conf, architecture, train, init, ma_info)
+
+    ts.select_agent = select_agent
+    sim = ts.TestSimulation(name)
+    paper_run_step = sim.run_step
+
+    def run_step(actions):
+        """The code's run_step, its observations kept for the lap's row."""
+        rec.last = paper_run_step(actions)
+        return rec.last
+
+    sim.run_step = run_step
+    paper_reset = sim.reset_simulation
+
+    def reset_simulation():
+        """The code's reset_simulation, its observations kept for the lap's row."""
+        rec.last = paper_reset()
+        return rec.last
+
+    sim.reset_simulation = reset_simulation
+    return sim, rec
+
+
 def main():
+    """Races the ego in the paper's simulator over the test contexts; one CSV row per lap."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("paper_dir")
     ap.add_argument("ego", choices=["pure-pursuit", "random", "still"])
@@ -182,48 +240,10 @@ def main():
     ap.add_argument("--rivals", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
-    out_csv = os.path.abspath(args.out_csv)
-    os.chdir(args.paper_dir)
-    sys.path.insert(0, os.getcwd())
-    stub_modules()
-    with open("config/sim_agreement.yaml", "w") as f:
-        f.write(
-            RUN_FILE.format(
-                laps=args.laps,
-                adversaries=str(["PP"] * args.rivals),
-                agents=args.rivals + 1,
-            )
-        )
-    os.makedirs("Data/Vehicles/sim_agreement", exist_ok=True)
-    import TrajectoryAidedLearning.TestSimulation as ts
-
-    rec = Recorder(open(out_csv, "w", newline=""))
-    paper_select_agent = ts.select_agent
-
-    def select_agent(run, conf, architecture, train=True, init=False, ma_info=[0.0, 0.0]):
-        if architecture == "Harness":
-            os.makedirs(f"Data/Vehicles/{run.path}{run.run_name}", exist_ok=True)
-            return Ego(args.ego, run, conf, rec, args.seed)
-        return paper_select_agent(run, conf, architecture, train, init, ma_info)
-
-    ts.select_agent = select_agent
-    sim = ts.TestSimulation("sim_agreement")
-    paper_run_step = sim.run_step
-
-    def run_step(actions):
-        rec.last = paper_run_step(actions)
-        return rec.last
-
-    sim.run_step = run_step
-    paper_reset = sim.reset_simulation
-
-    def reset_simulation():
-        rec.last = paper_reset()
-        return rec.last
-
-    sim.reset_simulation = reset_simulation
+    out = open(os.path.abspath(args.out_csv), "w", newline="")
+    sim, _ = paper_simulation(args.paper_dir, args.ego, args.rivals, args.laps, args.seed, out)
     sim.run_testing_evaluation()
-    rec.file.close()
+    out.close()
 
 
 if __name__ == "__main__":

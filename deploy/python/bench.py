@@ -2,7 +2,15 @@
 3 rivals, on 1 thread and on every core, side by side with the Rust-only stepping of one core
 (`ctxrace bench sim --ego random`) in the same run.
 
+With --paper-python and --paper-work, also the paper's simulator (lilpharaoh1/context-f110 at
+c0fd903, its f1tenth_gym copy) racing the same race with random ego actions, measured by
+deploy/paper_sim_rate.py in the paper's own Python environment (deploy/paper_sim_agreement.sh
+setup; --paper-work: its export of the commit, PAPER_WORK) between the other measurements of
+each rivals count. It is one env on one core (the paper's simulator is not vectorised), so each
+num_envs row shows the same value; "1 thr/paper" is ctxrace's 1-thread column over it.
+
     python deploy/python/bench.py [--track f1_esp] [--seconds 3] [--tracks-dir DIR] [--bin PATH]
+        [--paper-python /work/venv-sim/bin/python --paper-work /work/sim-paper]
 """
 
 import argparse
@@ -44,7 +52,21 @@ def rust_rate(binary, track, rivals, seconds, tracks_dir):
     return json.loads(out)["decisions_per_s"]
 
 
+def paper_rate(python, work, rivals, seconds):
+    """Decisions/s (env steps/s, one env) of the paper's simulator with the random ego, from
+    deploy/paper_sim_rate.py run by the paper environment's `python` in the export `work`."""
+    proc = subprocess.run(
+        [python, str(ROOT / "deploy" / "paper_sim_rate.py"), str(Path(work).resolve()),
+         "--rivals", str(rivals), "--seconds", str(seconds)],
+        capture_output=True, text=True,
+    )
+    if proc.returncode != 0:
+        raise SystemExit(f"paper_sim_rate.py failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.splitlines()[-1])["decisions_per_s"]
+
+
 def main():
+    """Measures every cell and prints the table, one row as soon as it is measured."""
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--track", default="f1_esp")
     p.add_argument("--seconds", type=float, default=3.0)
@@ -52,18 +74,27 @@ def main():
         "CTXRACE_TRACKS_DIR", str(ROOT.parent / "shared" / "tracks")))
     p.add_argument("--bin", default=os.environ.get(
         "CTXRACE_BIN", str(ROOT / "target" / "release" / "ctxrace")))
+    p.add_argument("--paper-python", help="Python of the paper simulator's environment")
+    p.add_argument("--paper-work", help="export of the paper's code at c0fd903 (PAPER_WORK)")
     args = p.parse_args()
+    paper = args.paper_python is not None
+    if paper != (args.paper_work is not None):
+        p.error("--paper-python and --paper-work go together")
     cores = os.cpu_count()
     print(f"{args.track}, random actions, {args.seconds:g} s per cell, {cores} cores")
     print(f"{'rivals':>6} {'envs':>5} {'1 thread':>10} {'of Rust':>8} "
-          f"{f'{cores} threads':>11} {'per core':>9} {'Rust 1 core':>12}")
+          f"{f'{cores} threads':>11} {'per core':>9} {'Rust 1 core':>12}"
+          + (f" {'paper':>7} {'1 thr/paper':>12}" if paper else ""), flush=True)
     for rivals in (1, 3):
         rust = rust_rate(args.bin, args.track, rivals, args.seconds, args.tracks_dir)
+        if paper:
+            slow = paper_rate(args.paper_python, args.paper_work, rivals, args.seconds)
         for num_envs in (1, 16, 64):
             one = python_rate(args.track, num_envs, rivals, 1, args.seconds, args.tracks_dir)
             every = python_rate(args.track, num_envs, rivals, 0, args.seconds, args.tracks_dir)
             print(f"{rivals:>6} {num_envs:>5} {one:>10.0f} {one / rust:>8.2f} "
-                  f"{every:>11.0f} {every / cores / rust:>9.2f} {rust:>12.0f}")
+                  f"{every:>11.0f} {every / cores / rust:>9.2f} {rust:>12.0f}"
+                  + (f" {slow:>7.0f} {one / slow:>12.0f}" if paper else ""), flush=True)
 
 
 if __name__ == "__main__":
