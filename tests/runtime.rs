@@ -630,7 +630,9 @@ fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
             &step,
         ),
     ];
+    // each sealed with its checksum, so that each fails the one check it was made for
     for (stream, header, payload) in chunks {
+        let header = header.sealed(payload);
         let reached = inject.chunk(stream, header, payload).unwrap();
         assert_eq!(
             reached,

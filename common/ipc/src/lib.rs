@@ -18,6 +18,7 @@
 //! shared-memory files, and [`sweep_orphaned_runs`] those of runs whose launcher died.
 
 mod batches;
+pub mod bounds;
 mod error;
 pub mod inject;
 mod telemetry;
@@ -27,6 +28,7 @@ mod weights;
 pub mod wire;
 
 pub use batches::{BatchServer, ReplayClient};
+pub use bounds::RunBounds;
 pub use ctxrace_config::config::DEFAULT_MAX_BATCH_FLOATS;
 pub use ctxrace_run::steps::TrajectoryStep;
 pub use error::IpcError;
