@@ -134,6 +134,15 @@ pub fn run(opts: LearnerOptions) -> Result<u64, ProcessError> {
         }
     }
     weights.publish(algo.steps(), &algo.policy_weights()?)?;
+    let refused = ctxrace_ipc::wire::named_reasons(&replay.refused_by_reason());
+    if replay.resent() > 0 || !refused.is_empty() || replay.rejected() > 0 {
+        tracing::warn!(
+            "batch requests: {} sent again unanswered, refused by the replay {refused:?}, {} \
+             answers rejected",
+            replay.resent(),
+            replay.rejected()
+        );
+    }
     let last = cadence.finish(algo.as_ref())?;
     tracing::info!(
         "learner stopping at step {}: {}",

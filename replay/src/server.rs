@@ -198,15 +198,24 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, R
         // Closing actors wait for a turn after their last send (see TrajectorySender).
         beacon.signal();
         for (request, spec) in server.receive_requests()? {
+            // a learner sends a request again when its answer is long in coming: one waiting
+            // already is not queued twice
+            if pending.iter().any(|(r, _)| *r == request) {
+                continue;
+            }
             match never_served(spec, &buffer, &limiter, pending.len()) {
                 None => pending.push_back((request, spec)),
                 Some(why) => {
                     counters.unservable += 1;
                     tracing::warn!(
-                        "rejected batch request {} for {spec:?} ({} so far): {why}",
+                        "refused batch request {} for {spec:?} ({} so far): {why}",
                         request.request_id,
                         counters.unservable
                     );
+                    let unservable = WireError::Unservable {
+                        steps: spec.steps() as u64,
+                    };
+                    server.refuse(request.request_id, unservable.reason())?;
                 }
             }
         }

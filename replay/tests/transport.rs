@@ -306,6 +306,9 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
         .next_batch(too_big, Duration::from_millis(500))
         .unwrap()
         .is_none());
+    // the replay's reason reached the learner
+    let refused = ctxrace_ipc::wire::named_reasons(&client.refused_by_reason());
+    assert_eq!(refused, [("unservable", 1)].into_iter().collect());
     let spec = BatchSpec::Transition {
         batch: 50,
         frames: 1,
@@ -320,6 +323,11 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
         batches += 1;
         assert!(batches < 100, "the limiter let too much through");
     }
+    // the limiter holds the last request: the client sends it again after RESEND_AFTER, and
+    // the replay does not queue it twice
+    let waited = ctxrace_ipc::RESEND_AFTER + Duration::from_millis(500);
+    assert!(client.next_batch(spec, waited).unwrap().is_none());
+    assert_eq!(client.resent(), 1);
     // the replay drains its senders when stopping: close ours first
     drop(tx);
     control.shutdown.store(true, Ordering::Release);

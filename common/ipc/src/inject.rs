@@ -431,8 +431,9 @@ mod tests {
                 frames: 1,
                 obs_dim: OBS as u32,
                 act_dim: ACT as u32,
-                reserved: 0,
-            };
+                ..Default::default()
+            }
+            .sealed(&[&payload]);
             let held = inject.batch_held(header, &payload).unwrap();
             assert_eq!(held.reached, 1);
             let rewrite = || {
@@ -456,6 +457,38 @@ mod tests {
             }
         }
         assert_eq!(client.rejected(), 1);
+    }
+
+    /// A request the replay cannot read is answered with a refusal naming why; the learner
+    /// counts it by that reason and asks again only after [`crate::RESEND_AFTER`].
+    #[test]
+    fn a_refused_request_reaches_the_learner_with_its_reason() {
+        let isolated = Isolated::new("inject-refusal");
+        let t = RunTransport::open(&isolated.0, 1, "test").unwrap();
+        let mut server = BatchServer::new(&t, OBS, ACT, 1 << 12).unwrap();
+        let mut client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(5)).unwrap();
+        let inject = Injector::new(&t).unwrap();
+        let spec = BatchSpec::Sequence {
+            batch: 2,
+            length: 3,
+        };
+        assert_eq!(client.next_batch(spec, Duration::ZERO).unwrap(), None);
+        let (request, _) = server.receive_requests().unwrap().pop().expect("a request");
+        // the request as a flipped bit leaves it: an unknown kind
+        inject.request(BatchRequest { kind: 7, ..request }).unwrap();
+        assert!(server.receive_requests().unwrap().is_empty());
+        assert_eq!(server.rejected(), 1);
+        let wait = Duration::from_millis(300);
+        assert_eq!(client.next_batch(spec, wait).unwrap(), None);
+        let refused = crate::wire::named_reasons(&client.refused_by_reason());
+        assert_eq!(refused, [("kind", 1)].into_iter().collect());
+        // no new request within RESEND_AFTER of the refusal, one after it
+        assert!(server.receive_requests().unwrap().is_empty());
+        std::thread::sleep(crate::RESEND_AFTER);
+        assert_eq!(client.next_batch(spec, Duration::ZERO).unwrap(), None);
+        let again = server.receive_requests().unwrap();
+        assert_eq!(again.len(), 1);
+        assert!(again[0].0.request_id > request.request_id);
     }
 
     #[test]

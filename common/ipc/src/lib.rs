@@ -27,7 +27,7 @@ mod transport;
 mod weights;
 pub mod wire;
 
-pub use batches::{BatchServer, ReplayClient};
+pub use batches::{BatchServer, ReplayClient, RESEND_AFTER};
 pub use bounds::RunBounds;
 pub use ctxrace_config::config::DEFAULT_MAX_BATCH_FLOATS;
 pub use ctxrace_run::steps::TrajectoryStep;
@@ -83,10 +83,16 @@ impl RejectLog {
     }
 
     pub(crate) fn reject(&mut self, error: &WireError) {
-        self.by_reason[error.reason()] += 1;
+        self.note(error.reason(), error);
+    }
+
+    /// Counts a rejection under the reason of index `reason` ([`wire::REASONS`]), `why` saying
+    /// what it was.
+    pub(crate) fn note(&mut self, reason: usize, why: &dyn std::fmt::Display) {
+        self.by_reason[reason] += 1;
         let count = self.count();
         if count <= 10 || count.is_multiple_of(1000) {
-            tracing::warn!("rejected {} ({count} so far): {error}", self.what);
+            tracing::warn!("rejected {} ({count} so far): {why}", self.what);
         }
     }
 

@@ -12,7 +12,8 @@
 //! longest loop turn and the count it restored; 4, a weights checksum covers the header's
 //! version and length too, and chunks jumping ahead of their stream are rejected
 //! (`sequence_jump`); 5, a chunk carries a checksum over its header and payload, telemetry is
-//! checked against the run's bounds and history (`backwards`, `implausible`).
+//! checked against the run's bounds and history (`backwards`, `implausible`), a batch answer
+//! carries a checksum, and the replay answers a request it refuses with the reason.
 
 use ctxrace_config::batch::{sequence_floats, transition_floats};
 use iceoryx2::prelude::ZeroCopySend;
@@ -153,7 +154,7 @@ pub struct BatchRequest {
 /// Header of a batch answer; the `[f32]` payload holds the batch's arrays back to back in
 /// the order of the fields of [`ctxrace_config::SequenceBatch`] or [`ctxrace_config::TransitionBatch`].
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("ctxrace_BatchHeader_v1")]
+#[type_name("ctxrace_BatchHeader_v2")]
 #[repr(C)]
 pub struct BatchHeader {
     /// [`FORMAT_VERSION`].
@@ -172,8 +173,46 @@ pub struct BatchHeader {
     pub obs_dim: u32,
     /// Action size.
     pub act_dim: u32,
+    /// 0 for a batch; for a refusal (an empty payload), 1 + the index in [`REASONS`] of why.
+    pub refused: u32,
+    /// CRC-32 of the other header fields and the payload ([`batch_checksum`]).
+    pub checksum: u32,
     /// Explicit padding.
     pub reserved: u32,
+}
+
+impl BatchHeader {
+    /// This header with its checksum set for the payload `parts` laid back to back
+    /// ([`batch_checksum`]).
+    pub fn sealed(self, parts: &[&[f32]]) -> Self {
+        Self {
+            checksum: batch_checksum(&self, parts),
+            ..self
+        }
+    }
+
+    /// Why the replay refused the request, if this answers one with a refusal.
+    pub fn refusal(&self) -> Option<&'static str> {
+        let code = self.refused.checked_sub(1)? as usize;
+        Some(REASONS.get(code).copied().unwrap_or("unknown"))
+    }
+}
+
+/// The CRC-32 a [`BatchHeader`] carries: over every other header field (little-endian) and
+/// the payload `parts` laid back to back.
+pub fn batch_checksum(header: &BatchHeader, parts: &[&[f32]]) -> u32 {
+    let h = header;
+    let mut hasher = crc32fast::Hasher::new();
+    hasher.update(&h.format_version.to_le_bytes());
+    hasher.update(&h.kind.to_le_bytes());
+    hasher.update(&h.request_id.to_le_bytes());
+    for word in [h.batch, h.length, h.frames, h.obs_dim, h.act_dim, h.refused] {
+        hasher.update(&word.to_le_bytes());
+    }
+    for part in parts {
+        hasher.update(float_bytes(part));
+    }
+    hasher.finalize()
 }
 
 /// An actor's report of one finished training episode for the launcher's logs: the simulator's
@@ -721,6 +760,28 @@ mod tests {
             validate_weights(&absurd, &bytes),
             Err(WireError::Checksum { .. })
         ));
+        // a batch answer's checksum covers its header, its refusal code and every float
+        let answer = BatchHeader {
+            format_version: FORMAT_VERSION,
+            request_id: 4,
+            batch: 1,
+            ..Default::default()
+        };
+        let (obs, reward) = ([0.25f32, 0.5], [1.0f32]);
+        let sealed = answer.sealed(&[&obs, &reward]);
+        assert_eq!(batch_checksum(&sealed, &[&obs, &reward]), sealed.checksum);
+        let flipped = [f32::from_bits(0.25f32.to_bits() ^ 1), 0.5];
+        assert_ne!(
+            batch_checksum(&sealed, &[&flipped, &reward]),
+            sealed.checksum
+        );
+        let refusal = BatchHeader {
+            refused: 1 + 8,
+            ..sealed
+        };
+        assert_ne!(batch_checksum(&refusal, &[&obs, &reward]), sealed.checksum);
+        assert_eq!(refusal.refusal(), Some("unservable"));
+        assert_eq!(sealed.refusal(), None);
         let r = BatchRequest {
             format_version: FORMAT_VERSION,
             kind: 0,
