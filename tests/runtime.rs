@@ -151,6 +151,17 @@ fn check_clean_run(run: &Path, actors: usize) {
     );
     assert_eq!(replay["rejected"].as_u64().unwrap(), 0);
     let status = json(&run.join("status.json"));
+    // every real message fits the run's bounds and its sender's history
+    assert_eq!(
+        status["launcher_rejected"]["telemetry"].as_u64(),
+        Some(0),
+        "{status}"
+    );
+    assert_eq!(
+        status["launcher_rejected"]["weights"].as_u64(),
+        Some(0),
+        "{status}"
+    );
     let last_step = status["grad_steps"].as_u64().unwrap();
     // nothing was dropped on the way, and the replay took from every actor in turn: each sent
     // a fair share and, reaching many episode boundaries, loaded strictly increasing versions
@@ -465,6 +476,14 @@ fn killed_processes_are_restarted_and_training_goes_on() {
     let restored = replay["restored_inserts"].as_u64().unwrap();
     let inserted = replay["inserted"].as_u64().unwrap();
     assert!(restored > 0 && restored < inserted, "{replay}");
+    // the restarted processes' telemetry was checked against their own starts: none of it
+    // was taken for implausible
+    let status = json(&run.join("status.json"));
+    assert_eq!(
+        status["launcher_rejected"]["telemetry"].as_u64(),
+        Some(0),
+        "{status}"
+    );
     assert_no_leftovers(pid);
     // a restarted actor reported under a later incarnation
     assert!(actor_reports(&run)

@@ -757,7 +757,7 @@ fn supervise(
     learner: &mut Supervised,
     actors: &mut [Supervised],
 ) -> Result<RestartCosts> {
-    let mut telemetry = TelemetrySubscriber::new(transport, RunBounds::of(cfg))?;
+    let mut telemetry = TelemetrySubscriber::new(transport, RunBounds::of(cfg, actors.len()))?;
     let mut weights = WeightsReceiver::new(transport, cfg.gradient_steps())?;
     let mut episodes = EpisodeLog::open(dir, "launcher")?;
     let mut meter = RateMeter::default();

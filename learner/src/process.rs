@@ -110,7 +110,7 @@ pub fn run(opts: LearnerOptions) -> Result<u64, ProcessError> {
     let weights = WeightsPublisher::new(&transport, DEFAULT_MAX_WEIGHTS_BYTES)?;
     weights.publish(algo.steps(), &algo.policy_weights()?)?;
     let mut replay = ReplayClient::new(&transport, opts.frame_dim, ACT_DIM, HANDSHAKE)?;
-    let mut episodes = EpisodeSubscriber::new(&transport, RunBounds::of(cfg))?;
+    let mut episodes = EpisodeSubscriber::new(&transport, RunBounds::of(cfg, opts.actors))?;
     let first = algo.steps();
     let mut cadence = Cadence::open(&opts.run_dir, cfg, "learner", tracker)?.with_rate_since(first);
     let spec = cfg.agent.batch_spec();

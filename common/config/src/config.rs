@@ -52,6 +52,11 @@ pub const MAX_OBS: usize = 256;
 /// Default largest batch payload in floats (64 MiB), `[replay] max_batch_floats`.
 pub const DEFAULT_MAX_BATCH_FLOATS: usize = 16 << 20;
 
+/// Steps each of `actors` streams holds when a replay of `capacity` steps is shared out.
+pub fn stream_capacity(capacity: usize, actors: usize) -> usize {
+    (capacity / actors.max(1)).max(1)
+}
+
 /// The simulator's physics time step in seconds.
 pub const PHYSICS_DT: f64 = 0.01;
 /// Most physics steps (0.01 s) per agent decision: 10 s of blind driving.

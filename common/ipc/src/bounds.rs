@@ -2,6 +2,7 @@
 //! changes any state: what a message claims is taken only if the run could have produced it.
 
 use super::wire::WireError;
+use ctxrace_config::config::stream_capacity;
 use ctxrace_config::ExperimentConfig;
 use std::time::{Duration, Instant};
 
@@ -30,20 +31,21 @@ pub struct RunBounds {
     pub max_episode_steps: u64,
     /// Contexts are drawn within `±context_range`.
     pub context_range: f32,
-    /// The replay's capacity in steps.
+    /// The replay's capacity in steps: its actors' streams together.
     pub replay_capacity: u64,
     /// Rivals in each race: an episode's overtakes are at most this many a decision.
     pub rivals: u32,
 }
 
 impl RunBounds {
-    /// The bounds of the run of `cfg`.
-    pub fn of(cfg: &ExperimentConfig) -> Self {
+    /// The bounds of the run of `cfg` with `actors` actors.
+    pub fn of(cfg: &ExperimentConfig, actors: usize) -> Self {
+        let stream = stream_capacity(cfg.replay.capacity, actors);
         Self {
             max_policy_version: cfg.gradient_steps(),
             max_episode_steps: cfg.race.max_decisions() as u64,
             context_range: cfg.train.context_range as f32,
-            replay_capacity: cfg.replay.capacity as u64,
+            replay_capacity: (stream * actors.max(1)) as u64,
             rivals: cfg.race.rivals as u32,
         }
     }
@@ -108,6 +110,16 @@ impl Counter {
             )));
         }
         Ok(())
+    }
+
+    /// [`check`](Self::check)s `got` and takes it, or notes its rejection.
+    pub(crate) fn take(&mut self, got: u64, advance: u64, now: Instant) -> Result<(), WireError> {
+        let checked = self.check(got, advance, now);
+        match &checked {
+            Ok(()) => self.accept(got, now),
+            Err(e) => self.rejected(e),
+        }
+        checked
     }
 
     /// The last accepted value.

@@ -353,14 +353,7 @@ impl TelemetrySubscriber {
         for m in self.episodes.episodes()? {
             let checked = match &mut self.starts[m.actor_id as usize] {
                 None => Err(not_started(m.actor_id)),
-                Some(start) => {
-                    let checked = start.episodes.check(m.env_steps, m.steps, now);
-                    match &checked {
-                        Ok(()) => start.episodes.accept(m.env_steps, now),
-                        Err(e) => start.episodes.rejected(e),
-                    }
-                    checked
-                }
+                Some(start) => start.episodes.take(m.env_steps, m.steps, now),
             };
             match checked {
                 Ok(()) => out.push(m),
@@ -411,12 +404,7 @@ impl TelemetrySubscriber {
                         self.bounds.max_policy_version,
                     )
                 };
-                let checked = fields.and_then(|()| start.beats.check(b.env_steps, 0, now));
-                match &checked {
-                    Ok(()) => start.beats.accept(b.env_steps, now),
-                    Err(e) => start.beats.rejected(e),
-                }
-                checked
+                fields.and_then(|()| start.beats.take(b.env_steps, 0, now))
             });
             match checked {
                 Ok(()) => out.push(b),
