@@ -486,6 +486,19 @@ mod tests {
         rivals: 1,
     };
 
+    /// The launcher's telemetry and an injector on a run of `actors` actors of the test's own
+    /// prefix `name` (dropped in this order, the prefix's cleanup last).
+    fn launcher_view(
+        name: &str,
+        actors: usize,
+    ) -> (TelemetrySubscriber, Injector, RunTransport, Isolated) {
+        let isolated = Isolated::new(name);
+        let t = RunTransport::open(&isolated.0, actors, "launcher").unwrap();
+        let telemetry = TelemetrySubscriber::new(&t, BOUNDS).unwrap();
+        let inject = Injector::new(&t).unwrap();
+        (telemetry, inject, t, isolated)
+    }
+
     fn reasons(t: &TelemetrySubscriber) -> BTreeMap<&'static str, u64> {
         named_reasons(&t.rejected_by_reason())
     }
@@ -495,10 +508,7 @@ mod tests {
     /// becomes a record; the actor's real reports before and after are taken.
     #[test]
     fn implausible_episode_reports_are_rejected_and_the_real_ones_taken() {
-        let isolated = Isolated::new("telemetry-episodes");
-        let t = RunTransport::open(&isolated.0, 2, "launcher").unwrap();
-        let mut telemetry = TelemetrySubscriber::new(&t, BOUNDS).unwrap();
-        let inject = Injector::new(&t).unwrap();
+        let (mut telemetry, inject, _t, _isolated) = launcher_view("telemetry-episodes", 2);
         let real = |env_steps, steps| EpisodeReport {
             format_version: FORMAT_VERSION,
             actor_id: 0,
@@ -575,10 +585,7 @@ mod tests {
     /// actor's history again.
     #[test]
     fn implausible_heartbeats_are_rejected() {
-        let isolated = Isolated::new("telemetry-heartbeats");
-        let t = RunTransport::open(&isolated.0, 1, "launcher").unwrap();
-        let mut telemetry = TelemetrySubscriber::new(&t, BOUNDS).unwrap();
-        let inject = Injector::new(&t).unwrap();
+        let (mut telemetry, inject, _t, _isolated) = launcher_view("telemetry-heartbeats", 1);
         telemetry.actor_started(0, 4242);
         let real = |env_steps, policy_version| Heartbeat {
             format_version: FORMAT_VERSION,
@@ -639,10 +646,7 @@ mod tests {
     /// before had stored.
     #[test]
     fn implausible_replay_statuses_are_rejected() {
-        let isolated = Isolated::new("telemetry-status");
-        let t = RunTransport::open(&isolated.0, 2, "launcher").unwrap();
-        let mut telemetry = TelemetrySubscriber::new(&t, BOUNDS).unwrap();
-        let inject = Injector::new(&t).unwrap();
+        let (mut telemetry, inject, _t, _isolated) = launcher_view("telemetry-status", 2);
         let real = |inserted| ReplayStatus {
             format_version: FORMAT_VERSION,
             inserted,
