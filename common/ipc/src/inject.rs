@@ -390,20 +390,20 @@ mod tests {
         assert_eq!(rx.missing_chunks(), 0);
     }
 
-    /// Both ends of the batch services and an injector on a run of the test's own prefix `name`
-    /// (dropped in this order, the prefix's cleanup last).
-    fn batch_ends(name: &str) -> (BatchServer, ReplayClient, Injector, RunTransport, Isolated) {
+    /// Both ends of the batch services and an injector on a run of the test's own prefix `name`,
+    /// the prefix first: bound in this order, it is dropped (and cleaned up) last.
+    fn batch_ends(name: &str) -> (Isolated, RunTransport, BatchServer, ReplayClient, Injector) {
         let isolated = Isolated::new(name);
         let t = RunTransport::open(&isolated.0, 1, "test").unwrap();
         let server = BatchServer::new(&t, OBS, ACT, 1 << 12).unwrap();
         let client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(5)).unwrap();
         let inject = Injector::new(&t).unwrap();
-        (server, client, inject, t, isolated)
+        (isolated, t, server, client, inject)
     }
 
     #[test]
     fn batches_rewritten_in_shared_memory_are_returned_as_validated_or_rejected() {
-        let (mut server, mut client, inject, _t, _isolated) = batch_ends("inject-batches");
+        let (_isolated, _t, mut server, mut client, inject) = batch_ends("inject-batches");
         let (batch, length) = (2, 3);
         let spec = BatchSpec::Sequence { batch, length };
         let n = batch * length;
@@ -470,7 +470,7 @@ mod tests {
     /// counts it by that reason and asks again only after [`crate::RESEND_AFTER`].
     #[test]
     fn a_refused_request_reaches_the_learner_with_its_reason() {
-        let (mut server, mut client, inject, _t, _isolated) = batch_ends("inject-refusal");
+        let (_isolated, _t, mut server, mut client, inject) = batch_ends("inject-refusal");
         let spec = BatchSpec::Sequence {
             batch: 2,
             length: 3,

@@ -487,16 +487,17 @@ mod tests {
     };
 
     /// The launcher's telemetry and an injector on a run of `actors` actors of the test's own
-    /// prefix `name` (dropped in this order, the prefix's cleanup last).
+    /// prefix `name`, the prefix first: bound in this order, it is dropped (and cleaned up)
+    /// last.
     fn launcher_view(
         name: &str,
         actors: usize,
-    ) -> (TelemetrySubscriber, Injector, RunTransport, Isolated) {
+    ) -> (Isolated, RunTransport, TelemetrySubscriber, Injector) {
         let isolated = Isolated::new(name);
         let t = RunTransport::open(&isolated.0, actors, "launcher").unwrap();
         let telemetry = TelemetrySubscriber::new(&t, BOUNDS).unwrap();
         let inject = Injector::new(&t).unwrap();
-        (telemetry, inject, t, isolated)
+        (isolated, t, telemetry, inject)
     }
 
     fn reasons(t: &TelemetrySubscriber) -> BTreeMap<&'static str, u64> {
@@ -508,7 +509,7 @@ mod tests {
     /// becomes a record; the actor's real reports before and after are taken.
     #[test]
     fn implausible_episode_reports_are_rejected_and_the_real_ones_taken() {
-        let (mut telemetry, inject, _t, _isolated) = launcher_view("telemetry-episodes", 2);
+        let (_isolated, _t, mut telemetry, inject) = launcher_view("telemetry-episodes", 2);
         let real = |env_steps, steps| EpisodeReport {
             format_version: FORMAT_VERSION,
             actor_id: 0,
@@ -585,7 +586,7 @@ mod tests {
     /// actor's history again.
     #[test]
     fn implausible_heartbeats_are_rejected() {
-        let (mut telemetry, inject, _t, _isolated) = launcher_view("telemetry-heartbeats", 1);
+        let (_isolated, _t, mut telemetry, inject) = launcher_view("telemetry-heartbeats", 1);
         telemetry.actor_started(0, 4242);
         let real = |env_steps, policy_version| Heartbeat {
             format_version: FORMAT_VERSION,
@@ -646,7 +647,7 @@ mod tests {
     /// before had stored.
     #[test]
     fn implausible_replay_statuses_are_rejected() {
-        let (mut telemetry, inject, _t, _isolated) = launcher_view("telemetry-status", 2);
+        let (_isolated, _t, mut telemetry, inject) = launcher_view("telemetry-status", 2);
         let real = |inserted| ReplayStatus {
             format_version: FORMAT_VERSION,
             inserted,
