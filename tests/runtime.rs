@@ -151,6 +151,17 @@ fn check_clean_run(run: &Path, actors: usize) {
     );
     assert_eq!(replay["rejected"].as_u64().unwrap(), 0);
     let status = json(&run.join("status.json"));
+    // every real message fits the run's bounds and its sender's history
+    assert_eq!(
+        status["launcher_rejected"]["telemetry"].as_u64(),
+        Some(0),
+        "{status}"
+    );
+    assert_eq!(
+        status["launcher_rejected"]["weights"].as_u64(),
+        Some(0),
+        "{status}"
+    );
     let last_step = status["grad_steps"].as_u64().unwrap();
     // nothing was dropped on the way, and the replay took from every actor in turn: each sent
     // a fair share and, reaching many episode boundaries, loaded strictly increasing versions
@@ -465,6 +476,14 @@ fn killed_processes_are_restarted_and_training_goes_on() {
     let restored = replay["restored_inserts"].as_u64().unwrap();
     let inserted = replay["inserted"].as_u64().unwrap();
     assert!(restored > 0 && restored < inserted, "{replay}");
+    // the restarted processes' telemetry was checked against their own starts: none of it
+    // was taken for implausible
+    let status = json(&run.join("status.json"));
+    assert_eq!(
+        status["launcher_rejected"]["telemetry"].as_u64(),
+        Some(0),
+        "{status}"
+    );
     assert_no_leftovers(pid);
     // a restarted actor reported under a later incarnation
     assert!(actor_reports(&run)
@@ -557,7 +576,8 @@ fn arg_after(pid: u32, flag: &str) -> String {
 fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
     use ctxrace_ipc::inject::Injector;
     use ctxrace_ipc::wire::{
-        step_stride, BatchRequest, ChunkHeader, EpisodeReport, WeightsHeader, FORMAT_VERSION,
+        step_stride, BatchRequest, ChunkHeader, EpisodeReport, Heartbeat, ReplayStatus,
+        WeightsHeader, FORMAT_VERSION,
     };
     use ctxrace_ipc::RunTransport;
     let dir = tempfile::tempdir().unwrap();
@@ -630,7 +650,9 @@ fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
             &step,
         ),
     ];
+    // each sealed with its checksum, so that each fails the one check it was made for
     for (stream, header, payload) in chunks {
+        let header = header.sealed(payload);
         let reached = inject.chunk(stream, header, payload).unwrap();
         assert_eq!(
             reached,
@@ -666,6 +688,66 @@ fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
     };
     // the launcher and the learner (which tracks the best policy) read episode metrics
     assert_eq!(inject.episode(telemetry).unwrap(), 2, "episode metrics");
+    // issue 47's falsified records: values that pass as numbers but no process of the run can
+    // have sent (episode env steps 9.2e18 and 2^64-1, PG 2.97e34; a heartbeat driving version
+    // 2^64-1, one from another process; a replay status with 4.3e9 dropped chunks and 2^64-1
+    // inserts): each is refused as implausible, and no record takes it
+    let actor = find_pid(&run, "actor", &[]).unwrap();
+    let actor_id: u32 = arg_after(actor, "--id").parse().unwrap();
+    let episode = EpisodeReport {
+        format_version: FORMAT_VERSION,
+        actor_id,
+        env_steps: 100,
+        steps: 100,
+        progress: 0.5,
+        ..Default::default()
+    };
+    for m in [
+        EpisodeReport {
+            env_steps: 9_200_000_000_000_000_000,
+            ..episode
+        },
+        EpisodeReport {
+            env_steps: u64::MAX,
+            ..episode
+        },
+        EpisodeReport {
+            progress: 2.97e34,
+            ..episode
+        },
+    ] {
+        assert_eq!(inject.episode(m).unwrap(), 2, "{m:?}");
+    }
+    let beat = Heartbeat {
+        format_version: FORMAT_VERSION,
+        actor_id,
+        pid: actor,
+        policy_version: u64::MAX,
+        ..Default::default()
+    };
+    inject.heartbeat(beat).unwrap();
+    inject
+        .heartbeat(Heartbeat {
+            pid: 1,
+            policy_version: 0,
+            env_steps: u64::MAX,
+            ..beat
+        })
+        .unwrap();
+    for forged in [
+        ReplayStatus {
+            format_version: FORMAT_VERSION,
+            dropped_chunks: 4_300_000_000,
+            ..Default::default()
+        },
+        ReplayStatus {
+            format_version: FORMAT_VERSION,
+            inserted: u64::MAX,
+            ..Default::default()
+        },
+    ] {
+        inject.status(forged).unwrap();
+    }
     // weights with a bad checksum; sent again until the launcher has seen one (its queue holds
     // only the newest broadcast, and the learner broadcasts every 10 steps)
     let bytes = b"not the weights of any policy";
@@ -694,7 +776,7 @@ fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
         let by = &s["replay"]["rejected_by_reason"];
         let all = by["dims"].as_u64()? >= 1
             && by["unservable"].as_u64()? == 1
-            && s["launcher_rejected"]["telemetry"].as_u64()? >= 1
+            && s["launcher_rejected"]["telemetry_by_reason"]["implausible"].as_u64()? >= 5
             && s["launcher_rejected"]["weights"].as_u64()? >= 1;
         all.then(|| s["grad_steps"].as_u64()).flatten()
     });
@@ -740,6 +822,32 @@ fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
         logs(&run)
     );
     assert_eq!(replay["rejected"].as_u64().unwrap(), 8, "{replay}");
+    // no record took a forged value: episode rows within the steps stored and a lap's progress,
+    // status.json's counters the replay's and the learner's own
+    let inserted = replay["inserted"].as_u64().unwrap();
+    let rows = std::fs::read_to_string(run.join("episodes.csv")).unwrap();
+    let mut lines = rows.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let column = |name| header.iter().position(|&h| h == name).unwrap();
+    let (steps_at, progress_at) = (column("env_steps"), column("progress"));
+    let mut checked = 0;
+    for line in lines {
+        let row: Vec<&str> = line.split(',').collect();
+        let env_steps: u64 = row[steps_at].parse().unwrap();
+        let progress: f64 = row[progress_at].parse().unwrap();
+        assert!(env_steps <= inserted, "{line} (of {inserted} stored)");
+        assert!((0.0..=1.5).contains(&progress), "{line}");
+        checked += 1;
+    }
+    assert!(checked > 0);
+    let end = json(&run.join("status.json"));
+    assert!(end["env_steps"].as_u64().unwrap() <= inserted, "{end}");
+    assert_eq!(end["replay"]["dropped_chunks"].as_u64(), Some(0), "{end}");
+    assert_eq!(end["killed_actor_steps"].as_u64(), Some(0), "{end}");
+    let newest = end["grad_steps"].as_u64().unwrap();
+    for actor in end["actors"].as_array().unwrap() {
+        assert!(actor["policy_version"].as_u64().unwrap() <= newest, "{end}");
+    }
     for (name, r) in &reports {
         assert_eq!(r["dropped_steps"].as_u64().unwrap(), 0, "{name}: {r}");
     }

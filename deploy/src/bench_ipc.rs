@@ -184,6 +184,8 @@ fn iceoryx_figures(
             snapshot_path: None,
             ..Default::default()
         },
+        // the bench's actors send no weights version
+        max_policy_version: 0,
         handle_signals: false,
     };
     let control = Arc::new(ReplayControl::default());
@@ -299,7 +301,7 @@ fn iceoryx_broadcast(opts: &IpcBenchOptions, prefix: &str) -> Result<(f64, f64, 
             thread::spawn(move || {
                 let run = || -> Result<()> {
                     let t = RunTransport::open(&p, n, &format!("actor{i}"))?;
-                    let mut rx = WeightsReceiver::new(&t)?;
+                    let mut rx = WeightsReceiver::new(&t, rounds as u64)?;
                     b.wait();
                     let mut got = 0;
                     while got < rounds {

@@ -19,10 +19,10 @@ use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use ctxrace_config::validate::{Causes, CONFIG_EXIT_CODE};
 use ctxrace_config::{ExperimentConfig, SupervisorConfig};
-use ctxrace_ipc::wire::{named_reasons, ReplayStatus};
+use ctxrace_ipc::wire::{named_reasons, ReplayStatus, REASONS};
 use ctxrace_ipc::{
     claim_run, cleanup, remove_dead_nodes, run_prefix, sweep_orphaned_runs, termination_flag,
-    CleanupReport, IpcError, RunTransport, TelemetrySubscriber, WeightsReceiver,
+    CleanupReport, IpcError, RunBounds, RunTransport, TelemetrySubscriber, WeightsReceiver,
 };
 use ctxrace_learner::runlog::{EpisodeLog, RateMeter};
 use ctxrace_run::lock::{die_with_parent, DirLock};
@@ -174,6 +174,26 @@ impl Supervised {
         }
     }
 
+    /// Starts the process if it is down, not retired and its restart is due; returns whether
+    /// it started.
+    fn start_if_due(&mut self) -> Result<bool> {
+        let due = self.child.is_none()
+            && !self.retired
+            && self.restart_at.is_some_and(|t| Instant::now() >= t);
+        if due {
+            if self.starts > 0 {
+                tracing::warn!("restarting {} (start {})", self.name, self.starts + 1);
+            }
+            self.start()?;
+        }
+        Ok(due)
+    }
+
+    /// The process id of its running start (0 when it is down).
+    fn pid(&self) -> u32 {
+        self.child.as_ref().map_or(0, Child::id)
+    }
+
     /// Starts the process (again); actors are told how often they ran before.
     fn start(&mut self) -> Result<()> {
         let exe = std::env::current_exe().context("locating the ctxrace binary")?;
@@ -312,6 +332,9 @@ impl Supervised {
 struct Progress {
     env_steps: u64,
     grad_steps: u64,
+    /// The newest weights version verified so far (a restarted learner's broadcasts start
+    /// lower): no actor can report driving a newer one.
+    newest_version: u64,
     episodes: u64,
     /// Each actor's env steps at its newest reported episode: their sum is an episode row's
     /// env steps while the replay's count lags behind (it reports once a second, and the first
@@ -323,8 +346,10 @@ struct Progress {
     actor_versions: Vec<u64>,
     /// The replay's newest status.
     replay: ReplayStatus,
-    /// Malformed telemetry and weights the launcher itself refused.
+    /// Malformed or implausible telemetry and weights the launcher itself refused.
     telemetry_rejected: u64,
+    /// `telemetry_rejected` by reason ([`ctxrace_ipc::wire::REASONS`]).
+    telemetry_rejected_by_reason: [u64; REASONS.len()],
     weights_rejected: u64,
     /// Steps the replay had stored when it last crashed, until its restart reports what its
     /// snapshot restored.
@@ -469,6 +494,7 @@ impl Progress {
             "repeated_grad_steps": self.repeated_grad_steps,
             "launcher_rejected": {
                 "telemetry": self.telemetry_rejected,
+                "telemetry_by_reason": named_reasons(&self.telemetry_rejected_by_reason),
                 "weights": self.weights_rejected,
             },
         })
@@ -774,8 +800,8 @@ fn supervise(
     learner: &mut Supervised,
     actors: &mut [Supervised],
 ) -> Result<RestartCosts> {
-    let mut telemetry = TelemetrySubscriber::new(transport)?;
-    let mut weights = WeightsReceiver::new(transport)?;
+    let mut telemetry = TelemetrySubscriber::new(transport, RunBounds::of(cfg, actors.len()))?;
+    let mut weights = WeightsReceiver::new(transport, cfg.gradient_steps())?;
     let mut episodes = EpisodeLog::open(dir, "launcher")?;
     let mut meter = RateMeter::default();
     let bar = progress_bar(cfg.train.env_steps, "env steps");
@@ -796,26 +822,26 @@ fn supervise(
             bar.abandon_with_message("interrupted: stopping (checkpoint, snapshot)");
             return Ok(p.restart_costs());
         }
-        // (re)start what is due
-        for proc in std::iter::once(&mut *replay)
-            .chain(std::iter::once(&mut *learner))
-            .chain(actors.iter_mut())
-        {
-            if proc.child.is_none()
-                && !proc.retired
-                && proc.restart_at.is_some_and(|t| Instant::now() >= t)
-            {
-                if proc.starts > 0 {
-                    tracing::warn!("restarting {} (start {})", proc.name, proc.starts + 1);
-                }
-                proc.start()?;
+        // (re)start what is due; the telemetry of a start is checked against its own history
+        if replay.start_if_due()? {
+            telemetry.replay_started();
+        }
+        learner.start_if_due()?;
+        for (id, actor) in actors.iter_mut().enumerate() {
+            if actor.start_if_due()? {
+                telemetry.actor_started(id, actor.pid());
             }
         }
-        // telemetry is best effort: a dying peer must not take the launcher down
-        if let Some(version) = tolerate(weights.latest_with(|v, _| v)).flatten() {
-            p.grad_steps = version;
-        }
-        for hb in tolerate(telemetry.heartbeats()).unwrap_or_default() {
+        // telemetry is best effort: a dying peer must not take the launcher down; the weights
+        // are read after the heartbeats, whose policy versions must not be ahead of them
+        let beats = telemetry.heartbeats(|| {
+            if let Some(version) = tolerate(weights.latest_with(|v, _| v)).flatten() {
+                p.grad_steps = version;
+                p.newest_version = p.newest_version.max(version);
+            }
+            p.newest_version
+        });
+        for hb in tolerate(beats).unwrap_or_default() {
             if let Some(v) = p.actor_versions.get_mut(hb.actor_id as usize) {
                 *v = hb.policy_version;
             }
@@ -831,6 +857,7 @@ fn supervise(
             p.replay_status(s);
         }
         p.telemetry_rejected = telemetry.rejected();
+        p.telemetry_rejected_by_reason = telemetry.rejected_by_reason();
         p.weights_rejected = weights.rejected();
         for e in tolerate(telemetry.episodes()).unwrap_or_default() {
             p.episodes += 1;

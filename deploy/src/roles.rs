@@ -85,6 +85,7 @@ fn replay_args(
         obs_dim: cfg.race.lidar.beams,
         act_dim: ACT_DIM,
         options: replay_options(cfg, run_dir),
+        max_policy_version: cfg.gradient_steps(),
         handle_signals: true,
     }
 }

@@ -11,8 +11,8 @@ use crate::checkpoint::{latest_checkpoint, CheckpointError};
 use crate::LearnerError;
 use ctxrace_config::ExperimentConfig;
 use ctxrace_ipc::{
-    termination_flag, EpisodeSubscriber, IpcError, ReplayClient, RunTransport, WeightsPublisher,
-    DEFAULT_MAX_WEIGHTS_BYTES,
+    termination_flag, EpisodeSubscriber, IpcError, ReplayClient, RunBounds, RunTransport,
+    WeightsPublisher, DEFAULT_MAX_WEIGHTS_BYTES,
 };
 use ctxrace_nn::policy::ACT_DIM;
 use std::path::{Path, PathBuf};
@@ -111,7 +111,7 @@ pub fn run(opts: LearnerOptions) -> Result<u64, ProcessError> {
     let weights = WeightsPublisher::new(&transport, DEFAULT_MAX_WEIGHTS_BYTES)?;
     weights.publish(algo.steps(), &algo.policy_weights()?)?;
     let mut replay = ReplayClient::new(&transport, opts.frame_dim, ACT_DIM, HANDSHAKE)?;
-    let mut episodes = EpisodeSubscriber::new(&transport)?;
+    let mut episodes = EpisodeSubscriber::new(&transport, RunBounds::of(cfg, opts.actors))?;
     let first = algo.steps();
     let mut cadence = Cadence::open(&opts.run_dir, cfg, "learner", tracker)?.with_rate_since(first);
     let spec = cfg.agent.batch_spec();
@@ -135,6 +135,15 @@ pub fn run(opts: LearnerOptions) -> Result<u64, ProcessError> {
         }
     }
     weights.publish(algo.steps(), &algo.policy_weights()?)?;
+    let refused = ctxrace_ipc::wire::named_reasons(&replay.refused_by_reason());
+    if replay.resent() > 0 || !refused.is_empty() || replay.rejected() > 0 {
+        tracing::warn!(
+            "batch requests: {} sent again unanswered, refused by the replay {refused:?}, {} \
+             answers rejected",
+            replay.resent(),
+            replay.rejected()
+        );
+    }
     let last = cadence.finish(algo.as_ref())?;
     tracing::info!(
         "learner stopping at step {}: {}",

@@ -82,10 +82,7 @@ pub struct ReplayBuffer {
     pub(crate) inserted: u64,
 }
 
-/// Steps each of `actors` streams holds when a buffer of `capacity` steps is shared out.
-pub fn stream_capacity(capacity: usize, actors: usize) -> usize {
-    (capacity / actors.max(1)).max(1)
-}
+pub use ctxrace_config::config::stream_capacity;
 
 impl ReplayBuffer {
     /// A buffer of `capacity` steps split equally between `actors` streams.

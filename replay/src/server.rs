@@ -12,7 +12,7 @@ use crate::snapshot::{
 use ctxrace_config::validate::ConfigError;
 use ctxrace_config::BatchSpec;
 use ctxrace_config::ReplayOptions;
-use ctxrace_ipc::wire::{ReplayStatus, WireError, FORMAT_VERSION, REASONS};
+use ctxrace_ipc::wire::{ReplayStatus, WireError, FORMAT_VERSION, MAX_PENDING_REQUESTS, REASONS};
 use ctxrace_ipc::{
     BatchRequest, BatchServer, IpcError, Next, ReplayBeacon, RunTransport, StatusPublisher,
     TrajectoryReceiver, Wake,
@@ -30,8 +30,6 @@ const CHUNKS_PER_TURN: usize = 256;
 const TICK: Duration = Duration::from_millis(100);
 /// Seconds between status messages.
 const STATUS_EVERY: Duration = Duration::from_secs(1);
-/// Most batch requests waiting in the queue; more are rejected.
-const MAX_PENDING: usize = 16;
 /// Longest the replay waits, when stopping, for the actors' senders to close.
 const DRAIN_LIMIT: Duration = Duration::from_secs(10);
 
@@ -74,6 +72,8 @@ pub struct ReplayArgs {
     pub act_dim: usize,
     /// Buffer, limiter and snapshot settings.
     pub options: ReplayOptions,
+    /// The newest weights version a chunk may name: the learner's gradient-step target.
+    pub max_policy_version: u64,
     /// Stop on SIGTERM/SIGINT (a process); false when run on a thread.
     pub handle_signals: bool,
 }
@@ -148,7 +148,12 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, R
     let mut rng = ChaCha8Rng::seed_from_u64(opts.seed ^ counts.samples);
 
     let transport = RunTransport::open(&args.prefix, args.actors, "replay")?;
-    let mut chunks = TrajectoryReceiver::new(&transport, args.obs_dim, args.act_dim)?;
+    let mut chunks = TrajectoryReceiver::new(
+        &transport,
+        args.obs_dim,
+        args.act_dim,
+        args.max_policy_version,
+    )?;
     let mut server = BatchServer::new(
         &transport,
         args.obs_dim,
@@ -193,15 +198,24 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, R
         // Closing actors wait for a turn after their last send (see TrajectorySender).
         beacon.signal();
         for (request, spec) in server.receive_requests()? {
+            // a learner sends a request again when its answer is long in coming: one waiting
+            // already is not queued twice
+            if pending.iter().any(|(r, _)| *r == request) {
+                continue;
+            }
             match never_served(spec, &buffer, &limiter, pending.len()) {
                 None => pending.push_back((request, spec)),
                 Some(why) => {
                     counters.unservable += 1;
                     tracing::warn!(
-                        "rejected batch request {} for {spec:?} ({} so far): {why}",
+                        "refused batch request {} for {spec:?} ({} so far): {why}",
                         request.request_id,
                         counters.unservable
                     );
+                    let unservable = WireError::Unservable {
+                        steps: spec.steps() as u64,
+                    };
+                    server.refuse(request.request_id, unservable.reason())?;
                 }
             }
         }
@@ -317,9 +331,9 @@ fn never_served(
              [replay] capacity or lower the sequence length",
             buffer.longest_window()
         ))
-    } else if pending >= MAX_PENDING {
+    } else if pending >= MAX_PENDING_REQUESTS {
         Some(format!(
-            "{MAX_PENDING} requests wait already (a learner has one outstanding)"
+            "{MAX_PENDING_REQUESTS} requests wait already (a learner has one outstanding)"
         ))
     } else {
         None
@@ -423,7 +437,7 @@ mod tests {
         let tight = RateLimiter::new(1.0, 0, 10.0);
         let why = never_served(sequences(20), &buffer, &tight, 0).unwrap();
         assert!(why.contains("rate limiter's window"), "{why}");
-        let why = never_served(sequences(20), &buffer, &free, MAX_PENDING).unwrap();
+        let why = never_served(sequences(20), &buffer, &free, MAX_PENDING_REQUESTS).unwrap();
         assert!(why.contains("requests wait already"), "{why}");
     }
 
@@ -442,6 +456,7 @@ mod tests {
                 snapshot_path: Some(path),
                 ..ReplayOptions::default()
             },
+            max_policy_version: 0,
             handle_signals: false,
         };
         let Err(err) = restore(&args) else {

@@ -103,6 +103,7 @@ fn two_actors_fill_the_replay_and_the_learner_gets_batches() {
             snapshot_path: Some(snap.clone()),
             ..Default::default()
         },
+        max_policy_version: 0,
         handle_signals: false,
     };
     // Actors start first: their handshake must wait for the replay.
@@ -213,7 +214,7 @@ fn a_stuck_replay_does_not_freeze_the_actor() {
     {
         let t = RunTransport::open(&prefix, 1, "replay").unwrap();
         // A replay that comes up and then never reads.
-        let _stuck = TrajectoryReceiver::new(&t, OBS, ACT).unwrap();
+        let _stuck = TrajectoryReceiver::new(&t, OBS, ACT, 0).unwrap();
         ReplayBeacon::new(&t).unwrap().signal();
         let a = RunTransport::open(&prefix, 1, "actor0").unwrap();
         let opts = SenderOptions {
@@ -270,6 +271,7 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
             snapshot_every_secs: 0,
             ..Default::default()
         },
+        max_policy_version: 0,
         handle_signals: false,
     };
     let control = Arc::new(ReplayControl::default());
@@ -304,6 +306,9 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
         .next_batch(too_big, Duration::from_millis(500))
         .unwrap()
         .is_none());
+    // the replay's reason reached the learner
+    let refused = ctxrace_ipc::wire::named_reasons(&client.refused_by_reason());
+    assert_eq!(refused, [("unservable", 1)].into_iter().collect());
     let spec = BatchSpec::Transition {
         batch: 50,
         frames: 1,
@@ -318,6 +323,11 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
         batches += 1;
         assert!(batches < 100, "the limiter let too much through");
     }
+    // the limiter holds the last request: the client sends it again after RESEND_AFTER, and
+    // the replay does not queue it twice
+    let waited = ctxrace_ipc::RESEND_AFTER + Duration::from_millis(500);
+    assert!(client.next_batch(spec, waited).unwrap().is_none());
+    assert_eq!(client.resent(), 1);
     // the replay drains its senders when stopping: close ours first
     drop(tx);
     control.shutdown.store(true, Ordering::Release);
@@ -339,7 +349,7 @@ fn a_chunk_rewritten_after_validation_cannot_panic_the_replay_buffer() {
     use rand::SeedableRng;
     let isolated = Isolated::new("rewritten");
     let t = RunTransport::open(&isolated.0, 2, "replay").unwrap();
-    let mut rx = TrajectoryReceiver::new(&t, OBS, ACT).unwrap();
+    let mut rx = TrajectoryReceiver::new(&t, OBS, ACT, 0).unwrap();
     let inject = Injector::new(&t).unwrap();
     let mut buffer = ReplayBuffer::new(100, 2, OBS, ACT);
     let stride = step_stride(OBS, ACT);
@@ -359,7 +369,8 @@ fn a_chunk_rewritten_after_validation_cannot_panic_the_replay_buffer() {
             sequence: sequence as u64,
             steps: steps as u32,
             ..ChunkHeader::for_actor(0, OBS, ACT)
-        };
+        }
+        .sealed(&payload);
         let held = inject.chunk_held(0, header, &payload).unwrap();
         // an actor id past the buffer's streams, dimensions and a step count past the payload,
         // and a NaN reward, written into shared memory once the reader has copied or

@@ -209,11 +209,10 @@ impl RaceEnv {
         cfg.validate_grid(&track.name, track.length())
             .map_err(RaceError::Config)?;
         let params = VehicleParams::default();
-        let steps_per_decision = cfg.physics_steps_per_action as f64 * DT;
         Ok(Self {
             lidar: Lidar::new(&cfg.lidar),
             nearby: NearbyWalls::default(),
-            max_steps: (cfg.max_time / steps_per_decision).ceil() as usize,
+            max_steps: cfg.max_decisions(),
             track,
             params,
             cars: Vec::new(),

@@ -226,7 +226,7 @@ pub struct Vehicle {
 }
 
 /// Physics time step (s).
-pub const DT: f64 = 0.01;
+pub const DT: f64 = ctxrace_config::config::PHYSICS_DT;
 
 impl Vehicle {
     /// A car at rest at `(x, y)` facing `yaw`, whose steering commands take effect `delay` steps late

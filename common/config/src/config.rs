@@ -52,6 +52,13 @@ pub const MAX_OBS: usize = 256;
 /// Default largest batch payload in floats (64 MiB), `[replay] max_batch_floats`.
 pub const DEFAULT_MAX_BATCH_FLOATS: usize = 16 << 20;
 
+/// Steps each of `actors` streams holds when a replay of `capacity` steps is shared out.
+pub fn stream_capacity(capacity: usize, actors: usize) -> usize {
+    (capacity / actors.max(1)).max(1)
+}
+
+/// The simulator's physics time step in seconds.
+pub const PHYSICS_DT: f64 = 0.01;
 /// Most physics steps (0.01 s) per agent decision: 10 s of blind driving.
 pub const MAX_PHYSICS_STEPS_PER_ACTION: usize = 1000;
 /// Longest steering delay in physics steps (1 s).
@@ -364,6 +371,11 @@ impl Default for RaceConfig {
 }
 
 impl RaceConfig {
+    /// Most decisions in one episode: `max_time` over a decision's period.
+    pub fn max_decisions(&self) -> usize {
+        (self.max_time / (self.physics_steps_per_action as f64 * PHYSICS_DT)).ceil() as usize
+    }
+
     /// The race as the paper's public code (lilpharaoh1/context-f110) ran it when it produced
     /// the tables (the `paper` branch, c0fd903, Jun 2025, `TrajectoryAidedLearning/`): its reward
     /// (RewardSignals.py `CrossTrackHeadReward`), ego speed map and launch, backwards-driving

@@ -6,7 +6,8 @@
 
 use super::transport::{timed_wait, wait_until, RunTransport, Wake};
 use super::wire::{
-    check_finite, validate_request, BatchHeader, BatchKind, BatchRequest, WireError, FORMAT_VERSION,
+    batch_checksum, check_finite, validate_request, BatchHeader, BatchKind, BatchRequest,
+    WireError, FORMAT_VERSION, REASONS,
 };
 use super::{read_once, ReadStage, RejectLog};
 use crate::error::{ice, IpcError, Result};
@@ -20,6 +21,27 @@ use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
 use std::time::{Duration, Instant};
 
+/// How long a request stays unanswered before the client sends it again (under the same id:
+/// the replay drops a duplicate of a request it holds), and how long it waits after a refusal
+/// before asking again. The replay may hold a request for its rate limiter much longer; a
+/// request lost on the way, or rejected as malformed, is sent again after this.
+pub const RESEND_AFTER: Duration = Duration::from_secs(2);
+
+/// A request sent and not answered yet.
+#[derive(Clone, Copy, Debug)]
+struct Outstanding {
+    id: u64,
+    spec: BatchSpec,
+    sent: Instant,
+}
+
+/// What the replay answered.
+enum Answer {
+    Batch(Box<Batch>),
+    /// A refusal, with the index of its reason in [`REASONS`].
+    Refused(usize),
+}
+
 /// The learner's replay client.
 pub struct ReplayClient {
     requests: Publisher<ipc::Service, BatchRequest, ()>,
@@ -31,9 +53,13 @@ pub struct ReplayClient {
     woken: Listener<ipc::Service>,
     obs_dim: usize,
     act_dim: usize,
-    outstanding: Option<(u64, BatchSpec)>,
+    outstanding: Option<Outstanding>,
+    /// No new request for this spec before this instant, after a refusal.
+    hold: Option<(BatchSpec, Instant)>,
     next_id: u64,
+    resent: u64,
     rejects: RejectLog,
+    refusals: RejectLog,
 }
 
 impl ReplayClient {
@@ -74,14 +100,19 @@ impl ReplayClient {
             obs_dim,
             act_dim,
             outstanding: None,
+            hold: None,
             next_id: 0,
+            resent: 0,
             rejects: RejectLog::new("batch"),
+            refusals: RejectLog::new("batch request (the replay refused it)"),
         })
     }
 
     /// The next batch of `spec`, waiting up to `timeout`; `None` on timeout (the request stays
-    /// outstanding and a later call with the same spec waits for its answer). The replay holds
-    /// requests back until its rate limiter allows sampling.
+    /// outstanding and a later call with the same spec waits for its answer, sending it again
+    /// once it is [`RESEND_AFTER`] old). The replay holds requests back until its rate limiter
+    /// allows sampling; a request it refuses is counted by the reason it sends back
+    /// ([`refused_by_reason`](Self::refused_by_reason)) and asked again after [`RESEND_AFTER`].
     ///
     /// A replay that went away (its node cleaned up) loses the outstanding request: it is sent
     /// again once a replay is back, and `None` is returned while none is there.
@@ -112,49 +143,82 @@ impl ReplayClient {
         if std::mem::take(&mut self.replay_lost) {
             self.outstanding = None;
         }
-        let mut id = match self.outstanding {
-            Some((id, s)) if s == spec => id,
-            _ => match self.request(spec)? {
-                Some(id) => id,
-                None => return Ok(None),
-            },
-        };
         let deadline = Instant::now() + timeout;
         loop {
+            self.ensure_request(spec)?;
             while let Some(sample) = self.batches.receive().map_err(ice("receive batch"))? {
                 let header = read_once(sample.user_header());
-                if header.request_id != id {
+                if self.outstanding.is_none_or(|o| o.id != header.request_id) {
                     continue;
                 }
                 self.outstanding = None;
                 let copy = decode(&header, sample.payload(), spec, self.obs_dim, self.act_dim);
                 hook(ReadStage::Copied);
-                match copy.and_then(|batch| check_finite_batch(&batch).map(|()| batch)) {
-                    Ok(batch) => {
+                match copy {
+                    Ok(Answer::Batch(batch)) => {
                         hook(ReadStage::Validated);
-                        return Ok(Some(batch));
+                        return Ok(Some(*batch));
                     }
-                    Err(e) => {
-                        self.rejects.reject(&e);
-                        match self.request(spec)? {
-                            Some(new) => id = new,
-                            None => return Ok(None),
-                        }
+                    Ok(Answer::Refused(reason)) => {
+                        let why = REASONS[reason];
+                        self.refusals
+                            .note(reason, &format!("request {}: {why}", header.request_id));
+                        self.hold = Some((spec, Instant::now() + RESEND_AFTER));
                     }
+                    // asked again at once
+                    Err(e) => self.rejects.reject(&e),
                 }
+                self.ensure_request(spec)?;
             }
-            let left = deadline.saturating_duration_since(Instant::now());
-            if left.is_zero() {
+            let now = Instant::now();
+            let mut wake = deadline;
+            if let Some(o) = self.outstanding {
+                wake = wake.min(o.sent + RESEND_AFTER);
+            } else if let Some((_, t)) = self.hold {
+                wake = wake.min(t);
+            }
+            if now >= deadline {
                 return Ok(None);
             }
-            timed_wait(&self.woken, left, "wait for batch")?;
+            timed_wait(
+                &self.woken,
+                wake.saturating_duration_since(now),
+                "wait for batch",
+            )?;
         }
     }
 
-    /// Sends a request; `None` if no replay received it.
-    fn request(&mut self, spec: BatchSpec) -> Result<Option<u64>> {
-        let id = self.next_id;
-        self.next_id += 1;
+    /// Makes sure a request for `spec` is on its way: the outstanding one, sent again once it
+    /// is [`RESEND_AFTER`] old, or a new one (not within [`RESEND_AFTER`] of a refusal of
+    /// `spec`).
+    fn ensure_request(&mut self, spec: BatchSpec) -> Result<()> {
+        let now = Instant::now();
+        match self.outstanding {
+            Some(o) if o.spec == spec => {
+                if now.saturating_duration_since(o.sent) >= RESEND_AFTER {
+                    self.resent += 1;
+                    if self.resent <= 10 || self.resent.is_multiple_of(1000) {
+                        tracing::info!(
+                            "batch request {} unanswered for {RESEND_AFTER:?}: sent again ({} so far)",
+                            o.id,
+                            self.resent
+                        );
+                    }
+                    self.send(o.id, spec)?;
+                }
+            }
+            _ if self.hold.is_some_and(|(s, t)| s == spec && now < t) => {}
+            _ => {
+                let id = self.next_id;
+                self.next_id += 1;
+                self.send(id, spec)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Sends request `id` for `spec`; it is outstanding if a replay received it.
+    fn send(&mut self, id: u64, spec: BatchSpec) -> Result<()> {
         let (kind, batch, length, frames) = match spec {
             BatchSpec::Sequence { batch, length } => (BatchKind::Sequence, batch, length, 1),
             BatchSpec::Transition {
@@ -172,41 +236,86 @@ impl ReplayClient {
             frames: u32::try_from(frames)?,
             reserved: 0,
         };
-        if self
+        let reached = self
             .requests
             .send_copy(request)
-            .map_err(ice("send request"))?
-            == 0
-        {
-            self.outstanding = None;
-            return Ok(None);
-        }
+            .map_err(ice("send request"))?;
+        self.outstanding = (reached > 0).then(|| Outstanding {
+            id,
+            spec,
+            sent: Instant::now(),
+        });
         let _ = self.wake_replay.notify();
-        self.outstanding = Some((id, spec));
-        Ok(Some(id))
+        Ok(())
     }
 
     /// Batches rejected as malformed.
     pub fn rejected(&self) -> u64 {
         self.rejects.count()
     }
+
+    /// Requests the replay refused, by the reason it sent back ([`REASONS`]).
+    pub fn refused_by_reason(&self) -> [u64; REASONS.len()] {
+        self.refusals.by_reason()
+    }
+
+    /// Requests sent again after [`RESEND_AFTER`] without an answer.
+    pub fn resent(&self) -> u64 {
+        self.resent
+    }
 }
 
-/// Copies the payload `p` of an answer with header `h` (a copy) into a batch of `spec`,
-/// checking the header and the sizes; the values are checked on the copy afterwards
-/// ([`check_finite_batch`]).
+/// Reads the answer with header `h` (a copy) and payload `p` (in shared memory): a refusal and
+/// its reason, or a batch of `spec` copied out of `p`, whose checksum and values are checked on
+/// the copy.
 fn decode(
     h: &BatchHeader,
     p: &[f32],
     spec: BatchSpec,
     obs_dim: usize,
     act_dim: usize,
-) -> Result<Batch, WireError> {
+) -> Result<Answer, WireError> {
     if h.format_version != FORMAT_VERSION {
         return Err(WireError::Version {
             got: h.format_version,
         });
     }
+    let checksum = |parts: &[&[f32]]| match batch_checksum(h, parts) {
+        got if got == h.checksum => Ok(()),
+        got => Err(WireError::Checksum {
+            got,
+            expected: h.checksum,
+        }),
+    };
+    if h.refused != 0 {
+        checksum(&[])?;
+        return match (h.refused as usize - 1, p.len()) {
+            (reason, 0) if reason < REASONS.len() => Ok(Answer::Refused(reason)),
+            _ => Err(WireError::Dims(format!(
+                "a refusal with code {} and {} floats",
+                h.refused,
+                p.len()
+            ))),
+        };
+    }
+    let batch = copy_batch(h, p, spec, obs_dim, act_dim)?;
+    match &batch {
+        Batch::Sequence(b) => checksum(&b.arrays())?,
+        Batch::Transition(b) => checksum(&b.arrays())?,
+    }
+    check_batch_values(&batch)?;
+    Ok(Answer::Batch(Box::new(batch)))
+}
+
+/// Copies the payload `p` of an answer with header `h` into a batch of `spec`, checking the
+/// header's kind and sizes.
+fn copy_batch(
+    h: &BatchHeader,
+    p: &[f32],
+    spec: BatchSpec,
+    obs_dim: usize,
+    act_dim: usize,
+) -> Result<Batch, WireError> {
     if h.obs_dim as usize != obs_dim || h.act_dim as usize != act_dim {
         return Err(WireError::Dims(format!(
             "batch has obs_dim {} act_dim {}, learner expects {obs_dim} and {act_dim}",
@@ -269,27 +378,38 @@ fn decode(
     }
 }
 
-/// Checks that every value of a batch is finite (the error's index counts from the start of
-/// the payload).
-fn check_finite_batch(batch: &Batch) -> Result<(), WireError> {
-    let check = |arrays: &[&[f32]]| {
-        let mut offset = 0;
-        for array in arrays {
-            check_finite(array).map_err(|e| match e {
-                WireError::Value { index, value } => WireError::Value {
-                    index: offset + index,
-                    value,
-                },
-                other => other,
-            })?;
-            offset += array.len();
-        }
-        Ok(())
+/// Checks the values of a batch: every one finite, flags 0 or 1, cMask's masks in `[0, 1]`
+/// (the error's index counts from the start of the payload).
+fn check_batch_values(batch: &Batch) -> Result<(), WireError> {
+    let (arrays, flags, unit) = match batch {
+        // obs, action, reward, is_first, is_terminal, context, mask, has_mask
+        Batch::Sequence(b) => (b.arrays().to_vec(), vec![3, 4, 7], vec![6]),
+        // obs, action, reward, next_obs, terminal, context
+        Batch::Transition(b) => (b.arrays().to_vec(), vec![4], vec![]),
     };
-    match batch {
-        Batch::Sequence(b) => check(&b.arrays()),
-        Batch::Transition(b) => check(&b.arrays()),
+    let mut offset = 0;
+    for (k, array) in arrays.iter().enumerate() {
+        let at = |index: usize| WireError::Value {
+            index: offset + index,
+            value: array[index],
+        };
+        check_finite(array).map_err(|e| match e {
+            WireError::Value { index, .. } => at(index),
+            other => other,
+        })?;
+        let bad = if flags.contains(&k) {
+            array.iter().position(|&v| v != 0.0 && v != 1.0)
+        } else if unit.contains(&k) {
+            array.iter().position(|v| !(0.0..=1.0).contains(v))
+        } else {
+            None
+        };
+        if let Some(index) = bad {
+            return Err(at(index));
+        }
+        offset += array.len();
     }
+    Ok(())
 }
 
 /// The replay's end: takes requests and sends batches.
@@ -336,7 +456,8 @@ impl BatchServer {
         })
     }
 
-    /// Takes the waiting requests; malformed ones are counted, logged and skipped.
+    /// Takes the waiting requests; malformed ones are counted, logged and answered with a
+    /// refusal saying why ([`refuse`](Self::refuse)).
     pub fn receive_requests(&mut self) -> Result<Vec<(BatchRequest, BatchSpec)>> {
         let mut out = Vec::new();
         while let Some(sample) = self.requests.receive().map_err(ice("receive request"))? {
@@ -357,10 +478,25 @@ impl BatchServer {
                         reward_delay: r.length as usize - 1,
                     },
                 )),
-                Err(e) => self.rejects.reject(&e),
+                Err(e) => {
+                    self.rejects.reject(&e);
+                    self.refuse(r.request_id, e.reason())?;
+                }
             }
         }
         Ok(out)
+    }
+
+    /// Answers request `request_id` with a refusal for the reason of index `reason`
+    /// ([`super::wire::REASONS`]), so that its learner counts it and asks again later.
+    pub fn refuse(&self, request_id: u64, reason: usize) -> Result<usize> {
+        let header = BatchHeader {
+            format_version: FORMAT_VERSION,
+            request_id,
+            refused: reason as u32 + 1,
+            ..BatchHeader::default()
+        };
+        self.send(header, &[])
     }
 
     /// Sends a sequence batch answering `request_id`.
@@ -374,7 +510,7 @@ impl BatchServer {
             frames: 1,
             obs_dim: u32::try_from(b.obs_dim)?,
             act_dim: u32::try_from(b.act_dim)?,
-            reserved: 0,
+            ..BatchHeader::default()
         };
         self.send(header, &b.arrays())
     }
@@ -395,7 +531,7 @@ impl BatchServer {
             frames: u32::try_from(frames)?,
             obs_dim: u32::try_from(b.obs_dim / frames.max(1))?,
             act_dim: u32::try_from(b.act_dim)?,
-            reserved: 0,
+            ..BatchHeader::default()
         };
         self.send(header, &b.arrays())
     }
@@ -412,7 +548,7 @@ impl BatchServer {
             .batches
             .loan_slice_uninit(len)
             .map_err(ice("loan batch"))?;
-        *sample.user_header_mut() = header;
+        *sample.user_header_mut() = header.sealed(parts);
         let mut offset = 0;
         let slots = sample.payload_mut();
         for part in parts {

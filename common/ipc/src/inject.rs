@@ -15,7 +15,8 @@
 use super::telemetry::publisher;
 use super::transport::{RunTransport, Wake};
 use super::wire::{
-    BatchHeader, BatchRequest, ChunkHeader, EpisodeReport, WeightsHeader, MAX_CHUNK_FLOATS,
+    BatchHeader, BatchRequest, ChunkHeader, EpisodeReport, Heartbeat, ReplayStatus, WeightsHeader,
+    MAX_CHUNK_FLOATS,
 };
 use crate::error::{ice, IpcError, Result};
 use iceoryx2::port::notifier::Notifier;
@@ -36,6 +37,8 @@ pub struct Injector {
     weights: Publisher<ipc::Service, [u8], WeightsHeader>,
     batches: Publisher<ipc::Service, [f32], BatchHeader>,
     episodes: Publisher<ipc::Service, EpisodeReport, ()>,
+    heartbeats: Publisher<ipc::Service, Heartbeat, ()>,
+    status: Publisher<ipc::Service, ReplayStatus, ()>,
     wake_replay: Notifier<ipc::Service>,
     wake_actors: Notifier<ipc::Service>,
     wake_learner: Notifier<ipc::Service>,
@@ -73,6 +76,11 @@ impl Injector {
                 .create()
                 .map_err(ice("injected batch publisher"))?,
             episodes: publisher(transport.metrics_service(), "injected metrics publisher")?,
+            heartbeats: publisher(
+                transport.heartbeat_service(),
+                "injected heartbeat publisher",
+            )?,
+            status: publisher(transport.status_service(), "injected status publisher")?,
             wake_replay: transport.notifier(Wake::Replay)?,
             wake_actors: transport.notifier(Wake::Actors)?,
             wake_learner: transport.notifier(Wake::Learner)?,
@@ -149,6 +157,20 @@ impl Injector {
         self.episodes
             .send_copy(metrics)
             .map_err(ice("send injected metrics"))
+    }
+
+    /// Publishes a heartbeat as it is.
+    pub fn heartbeat(&self, beat: Heartbeat) -> Result<usize> {
+        self.heartbeats
+            .send_copy(beat)
+            .map_err(ice("send injected heartbeat"))
+    }
+
+    /// Publishes a replay status as it is.
+    pub fn status(&self, status: ReplayStatus) -> Result<usize> {
+        self.status
+            .send_copy(status)
+            .map_err(ice("send injected status"))
     }
 }
 
@@ -257,7 +279,7 @@ mod tests {
     fn chunks_rewritten_in_shared_memory_are_stored_as_validated_or_rejected() {
         let isolated = Isolated::new("inject-chunks");
         let t = RunTransport::open(&isolated.0, 2, "replay").unwrap();
-        let mut rx = TrajectoryReceiver::new(&t, OBS, ACT).unwrap();
+        let mut rx = TrajectoryReceiver::new(&t, OBS, ACT, 10).unwrap();
         let inject = Injector::new(&t).unwrap();
         let stride = step_stride(OBS, ACT);
         let steps = 4;
@@ -273,7 +295,8 @@ mod tests {
                 sequence: sequence as u64,
                 steps: steps as u32,
                 ..ChunkHeader::for_actor(0, OBS, ACT)
-            };
+            }
+            .sealed(&payload);
             let held = inject.chunk_held(0, header, &payload).unwrap();
             assert_eq!(held.reached, 1);
             // an actor id, dimensions and a step count that would index out of bounds, and a
@@ -312,44 +335,75 @@ mod tests {
     }
 
     /// Issue 47's first poisoned value: a chunk whose sequence is rewritten to 2^63 in shared
-    /// memory is rejected as a jump, and the actor's stream goes on from where it was.
+    /// memory fails its checksum; written with a matching checksum (a hostile sender) it is
+    /// rejected as a jump; either way the actor's stream goes on from where it was. A chunk
+    /// naming weights beyond the run's target, an episode going back or jumping ahead of its
+    /// sequence is rejected too.
     #[test]
     fn a_sequence_jump_is_rejected_and_does_not_stop_the_stream() {
         let isolated = Isolated::new("inject-sequence");
         let t = RunTransport::open(&isolated.0, 1, "replay").unwrap();
-        let mut rx = TrajectoryReceiver::new(&t, OBS, ACT).unwrap();
+        let mut rx = TrajectoryReceiver::new(&t, OBS, ACT, 10).unwrap();
         let inject = Injector::new(&t).unwrap();
         let payload = vec![0.0; step_stride(OBS, ACT)];
-        let header = |sequence| ChunkHeader {
+        let header = |sequence, episode_id, policy_version| ChunkHeader {
             sequence,
+            episode_id,
+            policy_version,
             steps: 1,
             ..ChunkHeader::for_actor(0, OBS, ACT)
         };
         let mut stored = Vec::new();
-        for sequence in 0..6 {
-            let held = inject.chunk_held(0, header(sequence), &payload).unwrap();
-            if sequence == 2 {
-                held.set_header(header(1 << 63));
+        for sequence in 0..10 {
+            let episode = sequence / 2;
+            let good = header(sequence, episode, sequence).sealed(&payload);
+            let held = inject.chunk_held(0, good, &payload).unwrap();
+            let forged = match sequence {
+                2 => Some(ChunkHeader {
+                    sequence: 1 << 63,
+                    ..good
+                }),
+                3 => Some(header(1 << 63, episode, sequence).sealed(&payload)),
+                5 => Some(header(sequence, episode, 11).sealed(&payload)),
+                6 => Some(header(sequence, 0, sequence).sealed(&payload)),
+                7 => Some(header(sequence, 1 << 40, sequence).sealed(&payload)),
+                _ => None,
+            };
+            if let Some(forged) = forged {
+                held.set_header(forged);
             }
             assert_eq!(
                 rx.receive(1, |c| stored.push(c.header.sequence)).unwrap(),
                 1
             );
         }
-        // the poisoned chunk took sequence 2: the stream is contiguous after it
-        assert_eq!(stored, vec![0, 1, 3, 4, 5]);
+        // each poisoned chunk took its sequence number: the stream is contiguous after them
+        assert_eq!(stored, vec![0, 1, 4, 8, 9]);
         let by = crate::wire::named_reasons(&rx.rejected_by_reason());
-        assert_eq!(by, [("sequence_jump", 1)].into_iter().collect());
+        let want = [
+            ("checksum", 1),
+            ("sequence_jump", 1),
+            ("implausible", 2),
+            ("backwards", 1),
+        ];
+        assert_eq!(by, want.into_iter().collect());
         assert_eq!(rx.missing_chunks(), 0);
+    }
+
+    /// Both ends of the batch services and an injector on a run of the test's own prefix `name`,
+    /// the prefix first: bound in this order, it is dropped (and cleaned up) last.
+    fn batch_ends(name: &str) -> (Isolated, RunTransport, BatchServer, ReplayClient, Injector) {
+        let isolated = Isolated::new(name);
+        let t = RunTransport::open(&isolated.0, 1, "test").unwrap();
+        let server = BatchServer::new(&t, OBS, ACT, 1 << 12).unwrap();
+        let client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(5)).unwrap();
+        let inject = Injector::new(&t).unwrap();
+        (isolated, t, server, client, inject)
     }
 
     #[test]
     fn batches_rewritten_in_shared_memory_are_returned_as_validated_or_rejected() {
-        let isolated = Isolated::new("inject-batches");
-        let t = RunTransport::open(&isolated.0, 1, "test").unwrap();
-        let mut server = BatchServer::new(&t, OBS, ACT, 1 << 12).unwrap();
-        let mut client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(5)).unwrap();
-        let inject = Injector::new(&t).unwrap();
+        let (_isolated, _t, mut server, mut client, inject) = batch_ends("inject-batches");
         let (batch, length) = (2, 3);
         let spec = BatchSpec::Sequence { batch, length };
         let n = batch * length;
@@ -384,8 +438,9 @@ mod tests {
                 frames: 1,
                 obs_dim: OBS as u32,
                 act_dim: ACT as u32,
-                reserved: 0,
-            };
+                ..Default::default()
+            }
+            .sealed(&[&payload]);
             let held = inject.batch_held(header, &payload).unwrap();
             assert_eq!(held.reached, 1);
             let rewrite = || {
@@ -411,11 +466,39 @@ mod tests {
         assert_eq!(client.rejected(), 1);
     }
 
+    /// A request the replay cannot read is answered with a refusal naming why; the learner
+    /// counts it by that reason and asks again only after [`crate::RESEND_AFTER`].
+    #[test]
+    fn a_refused_request_reaches_the_learner_with_its_reason() {
+        let (_isolated, _t, mut server, mut client, inject) = batch_ends("inject-refusal");
+        let spec = BatchSpec::Sequence {
+            batch: 2,
+            length: 3,
+        };
+        assert_eq!(client.next_batch(spec, Duration::ZERO).unwrap(), None);
+        let (request, _) = server.receive_requests().unwrap().pop().expect("a request");
+        // the request as a flipped bit leaves it: an unknown kind
+        inject.request(BatchRequest { kind: 7, ..request }).unwrap();
+        assert!(server.receive_requests().unwrap().is_empty());
+        assert_eq!(server.rejected(), 1);
+        let wait = Duration::from_millis(300);
+        assert_eq!(client.next_batch(spec, wait).unwrap(), None);
+        let refused = crate::wire::named_reasons(&client.refused_by_reason());
+        assert_eq!(refused, [("kind", 1)].into_iter().collect());
+        // no new request within RESEND_AFTER of the refusal, one after it
+        assert!(server.receive_requests().unwrap().is_empty());
+        std::thread::sleep(crate::RESEND_AFTER);
+        assert_eq!(client.next_batch(spec, Duration::ZERO).unwrap(), None);
+        let again = server.receive_requests().unwrap();
+        assert_eq!(again.len(), 1);
+        assert!(again[0].0.request_id > request.request_id);
+    }
+
     #[test]
     fn weights_rewritten_in_shared_memory_are_loaded_as_verified_or_rejected() {
         let isolated = Isolated::new("inject-weights");
         let t = RunTransport::open(&isolated.0, 1, "test").unwrap();
-        let mut rx = WeightsReceiver::new(&t).unwrap();
+        let mut rx = WeightsReceiver::new(&t, 10).unwrap();
         let inject = Injector::new(&t).unwrap();
         let bytes: Vec<u8> = (0..1000).map(|i| i as u8).collect();
         for (version, when) in WHEN.into_iter().enumerate() {
@@ -449,12 +532,13 @@ mod tests {
     }
 
     /// Issue 47's second poisoned value: weights whose header version is rewritten to 2^64-1
-    /// in shared memory fail the checksum, and the actor keeps loading newer weights.
+    /// in shared memory fail the checksum; sent with a matching checksum, the version is
+    /// beyond the run's gradient steps; and the actor keeps loading newer weights.
     #[test]
     fn an_absurd_weights_version_is_rejected_and_newer_weights_still_load() {
         let isolated = Isolated::new("inject-version");
         let t = RunTransport::open(&isolated.0, 1, "test").unwrap();
-        let mut rx = WeightsReceiver::new(&t).unwrap();
+        let mut rx = WeightsReceiver::new(&t, 10).unwrap();
         let inject = Injector::new(&t).unwrap();
         let bytes = vec![5u8; 100];
         let header = |version| WeightsHeader {
@@ -470,6 +554,13 @@ mod tests {
         });
         assert_eq!(rx.latest_with(|v, _| v).unwrap(), None);
         assert_eq!(rx.rejected(), 1);
+        assert_eq!(inject.weights(header(u64::MAX), &bytes).unwrap(), 1);
+        assert_eq!(rx.latest_with(|v, _| v).unwrap(), None);
+        let by = crate::wire::named_reasons(&rx.rejected_by_reason());
+        assert_eq!(
+            by,
+            [("checksum", 1), ("implausible", 1)].into_iter().collect()
+        );
         for version in 2..4 {
             assert_eq!(inject.weights(header(version), &bytes).unwrap(), 1);
             assert_eq!(rx.latest_with(|v, _| v).unwrap(), Some(version));

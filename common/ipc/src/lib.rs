@@ -18,6 +18,7 @@
 //! shared-memory files, and [`sweep_orphaned_runs`] those of runs whose launcher died.
 
 mod batches;
+pub mod bounds;
 mod error;
 pub mod inject;
 mod telemetry;
@@ -26,7 +27,8 @@ mod transport;
 mod weights;
 pub mod wire;
 
-pub use batches::{BatchServer, ReplayClient};
+pub use batches::{BatchServer, ReplayClient, RESEND_AFTER};
+pub use bounds::RunBounds;
 pub use ctxrace_config::config::DEFAULT_MAX_BATCH_FLOATS;
 pub use ctxrace_run::steps::TrajectoryStep;
 pub use error::IpcError;
@@ -81,10 +83,16 @@ impl RejectLog {
     }
 
     pub(crate) fn reject(&mut self, error: &WireError) {
-        self.by_reason[error.reason()] += 1;
+        self.note(error.reason(), error);
+    }
+
+    /// Counts a rejection under the reason of index `reason` ([`wire::REASONS`]), `why` saying
+    /// what it was.
+    pub(crate) fn note(&mut self, reason: usize, why: &dyn std::fmt::Display) {
+        self.by_reason[reason] += 1;
         let count = self.count();
         if count <= 10 || count.is_multiple_of(1000) {
-            tracing::warn!("rejected {} ({count} so far): {error}", self.what);
+            tracing::warn!("rejected {} ({count} so far): {why}", self.what);
         }
     }
 

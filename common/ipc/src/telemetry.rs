@@ -1,7 +1,14 @@
 //! Actor and replay telemetry for the launcher: episode metrics, heartbeats, replay status.
 
+use super::bounds::{
+    check_range, check_version, Counter, RunBounds, MAX_ACTOR_STEPS_PER_SEC, MAX_PROGRESS,
+    MAX_STEP_REWARD, REBASE_AFTER,
+};
 use super::transport::RunTransport;
-use super::wire::{EpisodeReport, Heartbeat, ReplayStatus, WireError, FORMAT_VERSION};
+use super::wire::{
+    check_finite, EpisodeReport, Heartbeat, ReplayStatus, WireError, FORMAT_VERSION,
+    MAX_PENDING_REQUESTS, REASONS,
+};
 use super::{read_once, RejectLog};
 use crate::error::{ice, Result};
 use iceoryx2::port::publisher::Publisher;
@@ -9,6 +16,7 @@ use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
 use std::fmt::Debug;
+use std::time::Instant;
 
 /// A publisher of plain `T` messages on `service`, one of the run's telemetry services (or its
 /// batch requests); `what` names it in an error.
@@ -88,32 +96,33 @@ impl StatusPublisher {
 }
 
 /// A subscriber to the actors' finished episodes (the launcher logs them, the learner smooths
-/// their returns).
+/// their returns), each field checked against the run's bounds.
 pub struct EpisodeSubscriber {
     metrics: Subscriber<ipc::Service, EpisodeReport, ()>,
     actors: usize,
+    bounds: RunBounds,
     rejects: RejectLog,
 }
 
 impl EpisodeSubscriber {
-    /// Subscribes to the run's episode metrics.
-    pub fn new(transport: &RunTransport) -> Result<Self> {
+    /// Subscribes to the run's episode metrics, to be checked against `bounds`.
+    pub fn new(transport: &RunTransport, bounds: RunBounds) -> Result<Self> {
         Ok(Self {
             metrics: subscriber(transport.metrics_service(), "metrics subscriber")?,
             actors: transport.actors(),
+            bounds,
             rejects: RejectLog::new("episode metrics"),
         })
     }
 
-    /// Episode metrics received since the last call; malformed ones are counted and skipped.
+    /// Episode metrics received since the last call; malformed and implausible ones are
+    /// counted and skipped.
     pub fn episodes(&mut self) -> Result<Vec<EpisodeReport>> {
         let mut out = Vec::new();
         while let Some(s) = self.metrics.receive().map_err(ice("receive metrics"))? {
             let m = read_once(s.payload());
-            let values = [m.context[0], m.context[1], m.progress, m.episode_return];
             match check(m.format_version, m.actor_id, self.actors)
-                .and_then(|()| super::wire::check_finite(&values))
-                .and_then(|()| check_flags(&[m.a2a, m.wall_crash, m.by_policy]))
+                .and_then(|()| check_episode(&m, &self.bounds))
             {
                 Ok(()) => out.push(m),
                 Err(e) => self.rejects.reject(&e),
@@ -122,44 +131,282 @@ impl EpisodeSubscriber {
         Ok(out)
     }
 
-    /// Messages rejected as malformed.
+    /// Messages rejected as malformed or implausible.
     pub fn rejected(&self) -> u64 {
         self.rejects.count()
     }
 }
 
-/// The launcher's view: episode metrics, heartbeats and replay status, validated.
+/// Checks an episode report's fields against the run's bounds: finite values, 0/1 flags, steps
+/// within an episode's, env steps at least the episode's, the context within the training
+/// range, progress within a lap, overtakes and return within what its steps can hold.
+fn check_episode(m: &EpisodeReport, bounds: &RunBounds) -> Result<(), WireError> {
+    check_finite(&[m.context[0], m.context[1], m.progress, m.episode_return])?;
+    check_flags(&[m.a2a, m.wall_crash, m.by_policy])?;
+    if m.steps == 0 || m.steps > bounds.max_episode_steps || m.env_steps < m.steps {
+        return Err(WireError::Implausible(format!(
+            "an episode of {} steps at env step {} (an episode has 1 to {} steps)",
+            m.steps, m.env_steps, bounds.max_episode_steps
+        )));
+    }
+    // the context is drawn in f64 and sent in f32: allow its rounding
+    let range = bounds.context_range * (1.0 + f32::EPSILON);
+    for (what, c) in [("context c_v", m.context[0]), ("context c_θ", m.context[1])] {
+        check_range(what, c, -range, range)?;
+    }
+    check_range("progress", m.progress, 0.0, MAX_PROGRESS)?;
+    let steps = m.steps as f32;
+    let most_overtakes = bounds.rivals as f32 * steps;
+    check_range(
+        "overtakes",
+        m.overtakes as f32,
+        -most_overtakes,
+        most_overtakes,
+    )?;
+    let most_return = MAX_STEP_REWARD * steps;
+    check_range("return", m.episode_return, -most_return, most_return)
+}
+
+/// One actor start as the launcher knows it: its process and its counters' history.
+struct ActorStart {
+    pid: u32,
+    beats: Counter,
+    episodes: Counter,
+}
+
+/// The replay start's counters' history.
+struct ReplayHistory {
+    /// Statuses rejected in a row: after [`REBASE_AFTER`] the history starts again (a forged
+    /// status that got through must not make every later one fail).
+    strikes: u32,
+    /// The count its snapshot restored, from its first status.
+    restored: Option<u64>,
+    /// The most it can have restored: what the replay before it had stored.
+    max_restored: Option<u64>,
+    inserted: Counter,
+    sampled: Counter,
+    batches: Counter,
+    dropped: Counter,
+    rejected: Counter,
+}
+
+impl ReplayHistory {
+    /// A replay of `actors` actors started now, after one that had stored `max_restored`.
+    fn new(actors: usize, max_restored: Option<u64>) -> Self {
+        let steps = actors as f64 * MAX_ACTOR_STEPS_PER_SEC;
+        Self {
+            strikes: 0,
+            restored: None,
+            max_restored,
+            inserted: Counter::new("inserted", steps),
+            sampled: Counter::new("sampled", f64::INFINITY),
+            batches: Counter::new("batches", f64::INFINITY),
+            // a missing chunk held at least one step an actor took
+            dropped: Counter::new("dropped_chunks", steps),
+            rejected: Counter::new("rejected", f64::INFINITY),
+        }
+    }
+
+    /// Checks a status against the run's bounds and this history and takes it; if it fails,
+    /// only counts a strike (the [`REBASE_AFTER`]th starts the history again).
+    fn take(
+        &mut self,
+        s: &ReplayStatus,
+        bounds: &RunBounds,
+        actors: usize,
+    ) -> Result<(), WireError> {
+        let taken = self.check_and_take(s, bounds);
+        match &taken {
+            Ok(()) => self.strikes = 0,
+            Err(WireError::Version { .. }) => {}
+            Err(_) => {
+                self.strikes += 1;
+                if self.strikes >= REBASE_AFTER {
+                    *self = Self::new(actors, self.max_restored);
+                }
+            }
+        }
+        taken
+    }
+
+    fn check_and_take(&mut self, s: &ReplayStatus, bounds: &RunBounds) -> Result<(), WireError> {
+        let implausible = |what: String| Err(WireError::Implausible(what));
+        if s.format_version != FORMAT_VERSION {
+            return Err(WireError::Version {
+                got: s.format_version,
+            });
+        }
+        if s.capacity != bounds.replay_capacity || s.fill > s.capacity || s.fill > s.inserted {
+            return implausible(format!(
+                "replay holds {} of {} steps after {} inserted; the run's replay holds {}",
+                s.fill, s.capacity, s.inserted, bounds.replay_capacity
+            ));
+        }
+        if s.rejected
+            != s.rejected_by_reason
+                .iter()
+                .fold(0u64, |a, &n| a.saturating_add(n))
+        {
+            return implausible(format!("{} rejected, not the sum by reason", s.rejected));
+        }
+        if s.pending_requests > MAX_PENDING_REQUESTS as u64
+            || s.inserted_at_last_batch > s.inserted
+            || s.batches > s.sampled
+        {
+            return implausible(format!(
+                "{} requests pending, {} batches of {} steps, {} inserted at the last of {}",
+                s.pending_requests, s.batches, s.sampled, s.inserted_at_last_batch, s.inserted
+            ));
+        }
+        match (self.restored, self.max_restored) {
+            (Some(r), _) if r != s.restored_inserts => {
+                return implausible(format!(
+                    "restored {} after restoring {r}",
+                    s.restored_inserts
+                ))
+            }
+            (None, Some(most)) if s.restored_inserts > most => {
+                return implausible(format!(
+                    "restored {}, more than the {most} stored before",
+                    s.restored_inserts
+                ))
+            }
+            _ => {}
+        }
+        if self.restored.is_none() {
+            self.inserted.set_base(s.restored_inserts);
+        }
+        let now = Instant::now();
+        let mut counters = [
+            (&mut self.inserted, s.inserted),
+            (&mut self.sampled, s.sampled),
+            (&mut self.batches, s.batches),
+            (&mut self.dropped, s.dropped_chunks),
+            (&mut self.rejected, s.rejected),
+        ];
+        for (counter, value) in counters.iter_mut() {
+            if let Err(e) = counter.check(*value, 0, now) {
+                counter.rejected(&e);
+                return Err(e);
+            }
+        }
+        for (counter, value) in counters {
+            counter.accept(value, now);
+        }
+        self.restored = Some(s.restored_inserts);
+        Ok(())
+    }
+}
+
+/// The launcher's view: episode metrics, heartbeats and replay status, each checked against the
+/// run's bounds and against the history of the process start that sent it (see
+/// [`actor_started`](Self::actor_started) and [`replay_started`](Self::replay_started)).
 pub struct TelemetrySubscriber {
     episodes: EpisodeSubscriber,
     heartbeat: Subscriber<ipc::Service, Heartbeat, ()>,
     status: Subscriber<ipc::Service, ReplayStatus, ()>,
-    actors: usize,
+    bounds: RunBounds,
+    starts: Vec<Option<ActorStart>>,
+    replay: ReplayHistory,
     rejects: RejectLog,
 }
 
 impl TelemetrySubscriber {
-    /// Subscribes to the run's telemetry.
-    pub fn new(transport: &RunTransport) -> Result<Self> {
+    /// Subscribes to the run's telemetry, to be checked against `bounds`.
+    pub fn new(transport: &RunTransport, bounds: RunBounds) -> Result<Self> {
         Ok(Self {
-            episodes: EpisodeSubscriber::new(transport)?,
+            episodes: EpisodeSubscriber::new(transport, bounds)?,
             heartbeat: subscriber(transport.heartbeat_service(), "heartbeat subscriber")?,
             status: subscriber(transport.status_service(), "status subscriber")?,
-            actors: transport.actors(),
+            bounds,
+            starts: (0..transport.actors()).map(|_| None).collect(),
+            replay: ReplayHistory::new(transport.actors(), None),
             rejects: RejectLog::new("telemetry"),
         })
     }
 
-    /// Episode metrics received since the last call; malformed ones are counted and skipped.
-    pub fn episodes(&mut self) -> Result<Vec<EpisodeReport>> {
-        self.episodes.episodes()
+    /// Notes that actor `id` was (re)started now as process `pid`: its counters start again,
+    /// and only heartbeats of `pid` are taken from it.
+    pub fn actor_started(&mut self, id: usize, pid: u32) {
+        if let Some(start) = self.starts.get_mut(id) {
+            *start = Some(ActorStart {
+                pid,
+                beats: Counter::new("heartbeat env_steps", MAX_ACTOR_STEPS_PER_SEC),
+                episodes: Counter::new("episode env_steps", MAX_ACTOR_STEPS_PER_SEC),
+            });
+        }
     }
 
-    /// Heartbeats received since the last call.
-    pub fn heartbeats(&mut self) -> Result<Vec<Heartbeat>> {
+    /// Notes that the replay was (re)started now: its counters start again, from at most what
+    /// the one before had stored.
+    pub fn replay_started(&mut self) {
+        let before = self.replay.inserted.last().or(self.replay.max_restored);
+        self.replay = ReplayHistory::new(self.starts.len(), before);
+    }
+
+    /// Episode metrics received since the last call; malformed ones, ones of an actor not
+    /// started, and ones whose env steps go back or grow faster than an actor steps are counted
+    /// and skipped.
+    pub fn episodes(&mut self) -> Result<Vec<EpisodeReport>> {
+        let now = Instant::now();
         let mut out = Vec::new();
+        for m in self.episodes.episodes()? {
+            let checked = match &mut self.starts[m.actor_id as usize] {
+                None => Err(not_started(m.actor_id)),
+                Some(start) => start.episodes.take(m.env_steps, m.steps, now),
+            };
+            match checked {
+                Ok(()) => out.push(m),
+                Err(e) => self.rejects.reject(&e),
+            }
+        }
+        Ok(out)
+    }
+
+    /// Heartbeats received since the last call, checked once all are read against
+    /// `newest_version()`, the newest weights version the caller has verified (read after the
+    /// heartbeats, so that no actor can have loaded a newer one before beating): of the
+    /// actor's current process, env steps not going back nor growing faster than an actor
+    /// steps, dropped steps among them, a policy version the learner has broadcast.
+    pub fn heartbeats(&mut self, newest_version: impl FnOnce() -> u64) -> Result<Vec<Heartbeat>> {
+        let mut beats = Vec::new();
         while let Some(s) = self.heartbeat.receive().map_err(ice("receive heartbeat"))? {
-            let b = read_once(s.payload());
-            match check(b.format_version, b.actor_id, self.actors) {
+            beats.push(read_once(s.payload()));
+        }
+        let newest = newest_version();
+        let now = Instant::now();
+        let actors = self.starts.len();
+        let mut out = Vec::new();
+        for b in beats {
+            let checked = check(b.format_version, b.actor_id, actors).and_then(|()| {
+                let start = self.starts[b.actor_id as usize]
+                    .as_mut()
+                    .ok_or_else(|| not_started(b.actor_id))?;
+                let fields = if b.pid != start.pid {
+                    Err(WireError::Implausible(format!(
+                        "heartbeat of pid {} from actor {}, whose process is {}",
+                        b.pid, b.actor_id, start.pid
+                    )))
+                } else if b.dropped_steps > b.env_steps {
+                    Err(WireError::Implausible(format!(
+                        "{} steps dropped of {} taken",
+                        b.dropped_steps, b.env_steps
+                    )))
+                } else if b.policy_version > newest {
+                    Err(WireError::Implausible(format!(
+                        "policy version {} is ahead of the learner's newest {newest}",
+                        b.policy_version
+                    )))
+                } else {
+                    check_version(
+                        "policy version",
+                        b.policy_version,
+                        self.bounds.max_policy_version,
+                    )
+                };
+                fields.and_then(|()| start.beats.take(b.env_steps, 0, now))
+            });
+            match checked {
                 Ok(()) => out.push(b),
                 Err(e) => self.rejects.reject(&e),
             }
@@ -167,26 +414,36 @@ impl TelemetrySubscriber {
         Ok(out)
     }
 
-    /// The newest replay status received since the last call.
+    /// The newest replay status received since the last call that fits the run's bounds and
+    /// the replay start's history (counters not going back, inserts not faster than the actors
+    /// step, fill within the capacity, rejections adding up).
     pub fn replay_status(&mut self) -> Result<Option<ReplayStatus>> {
         let mut newest = None;
         while let Some(s) = self.status.receive().map_err(ice("receive status"))? {
             let st = read_once(s.payload());
-            if st.format_version == FORMAT_VERSION {
-                newest = Some(st);
-            } else {
-                self.rejects.reject(&WireError::Version {
-                    got: st.format_version,
-                });
+            match self.replay.take(&st, &self.bounds, self.starts.len()) {
+                Ok(()) => newest = Some(st),
+                Err(e) => self.rejects.reject(&e),
             }
         }
         Ok(newest)
     }
 
-    /// Messages rejected as malformed.
+    /// Messages rejected as malformed or implausible.
     pub fn rejected(&self) -> u64 {
         self.rejects.count() + self.episodes.rejected()
     }
+
+    /// Messages rejected, by reason ([`super::wire::REASONS`]).
+    pub fn rejected_by_reason(&self) -> [u64; REASONS.len()] {
+        let (a, b) = (self.rejects.by_reason(), self.episodes.rejects.by_reason());
+        std::array::from_fn(|i| a[i] + b[i])
+    }
+}
+
+/// A message of an actor whose start the launcher has not noted.
+fn not_started(actor_id: u32) -> WireError {
+    WireError::Implausible(format!("no start of actor {actor_id} is known"))
 }
 
 /// Checks that every flag is 0 or 1.
@@ -211,4 +468,247 @@ fn check(version: u32, actor_id: u32, actors: usize) -> Result<(), WireError> {
         });
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::inject::Injector;
+    use crate::wire::named_reasons;
+    use crate::Isolated;
+    use std::collections::BTreeMap;
+
+    const BOUNDS: RunBounds = RunBounds {
+        max_policy_version: 1000,
+        max_episode_steps: 2400,
+        context_range: 0.15,
+        replay_capacity: 5000,
+        rivals: 1,
+    };
+
+    /// The launcher's telemetry and an injector on a run of `actors` actors of the test's own
+    /// prefix `name`, the prefix first: bound in this order, it is dropped (and cleaned up)
+    /// last.
+    fn launcher_view(
+        name: &str,
+        actors: usize,
+    ) -> (Isolated, RunTransport, TelemetrySubscriber, Injector) {
+        let isolated = Isolated::new(name);
+        let t = RunTransport::open(&isolated.0, actors, "launcher").unwrap();
+        let telemetry = TelemetrySubscriber::new(&t, BOUNDS).unwrap();
+        let inject = Injector::new(&t).unwrap();
+        (isolated, t, telemetry, inject)
+    }
+
+    fn reasons(t: &TelemetrySubscriber) -> BTreeMap<&'static str, u64> {
+        named_reasons(&t.rejected_by_reason())
+    }
+
+    /// Issue 47's falsified records: episode reports claiming env steps 9.2e17 or 2^64-1, PG
+    /// 2.97e34 and other values no actor produces are rejected by reason, and none of them
+    /// becomes a record; the actor's real reports before and after are taken.
+    #[test]
+    fn implausible_episode_reports_are_rejected_and_the_real_ones_taken() {
+        let (_isolated, _t, mut telemetry, inject) = launcher_view("telemetry-episodes", 2);
+        let real = |env_steps, steps| EpisodeReport {
+            format_version: FORMAT_VERSION,
+            actor_id: 0,
+            episode_id: 0,
+            env_steps,
+            steps,
+            context: [0.15, -0.1],
+            progress: 0.4,
+            overtakes: 1,
+            episode_return: 12.5,
+            ..Default::default()
+        };
+        inject.episode(real(100, 100)).unwrap();
+        // before its start is known
+        assert_eq!(telemetry.episodes().unwrap(), vec![]);
+        telemetry.actor_started(0, 4242);
+        let hostile = [
+            real(9_200_000_000_000_000_000, 100),
+            real(u64::MAX, 100),
+            EpisodeReport {
+                progress: 2.97e34,
+                ..real(200, 100)
+            },
+            real(200, 0),
+            real(200, 2401),
+            EpisodeReport {
+                context: [0.5, 0.0],
+                ..real(200, 100)
+            },
+            EpisodeReport {
+                overtakes: 101,
+                ..real(200, 100)
+            },
+            EpisodeReport {
+                episode_return: 1e30,
+                ..real(200, 100)
+            },
+            EpisodeReport {
+                progress: f32::NAN,
+                ..real(200, 100)
+            },
+            EpisodeReport {
+                actor_id: 7,
+                ..real(200, 100)
+            },
+        ];
+        inject.episode(real(100, 100)).unwrap();
+        for m in hostile {
+            inject.episode(m).unwrap();
+        }
+        // env steps going back, then the actor's next real episode
+        inject.episode(real(150, 100)).unwrap();
+        inject.episode(real(300, 200)).unwrap();
+        let got: Vec<u64> = telemetry
+            .episodes()
+            .unwrap()
+            .iter()
+            .map(|m| m.env_steps)
+            .collect();
+        assert_eq!(got, vec![100, 300]);
+        let want = [
+            ("implausible", 9),
+            ("value", 1),
+            ("unknown_actor", 1),
+            ("backwards", 1),
+        ];
+        assert_eq!(reasons(&telemetry), want.into_iter().collect());
+        assert_eq!(telemetry.rejected(), 12);
+    }
+
+    /// Heartbeats of another process than the actor's, with a policy version ahead of the
+    /// learner's newest (2^64-1 among them), more steps than an actor takes in the time, or more
+    /// dropped than taken are rejected; the real ones are taken, and a restart starts the
+    /// actor's history again.
+    #[test]
+    fn implausible_heartbeats_are_rejected() {
+        let (_isolated, _t, mut telemetry, inject) = launcher_view("telemetry-heartbeats", 1);
+        telemetry.actor_started(0, 4242);
+        let real = |env_steps, policy_version| Heartbeat {
+            format_version: FORMAT_VERSION,
+            actor_id: 0,
+            pid: 4242,
+            env_steps,
+            policy_version,
+            ..Default::default()
+        };
+        let beats = [
+            real(500, 20),
+            Heartbeat {
+                pid: 1,
+                ..real(600, 20)
+            },
+            real(600, u64::MAX),
+            real(600, 31),
+            real(u64::MAX, 20),
+            real(9_200_000_000_000_000_000, 20),
+            Heartbeat {
+                dropped_steps: 700,
+                ..real(600, 20)
+            },
+            real(400, 20),
+            real(700, 30),
+        ];
+        for b in beats {
+            inject.heartbeat(b).unwrap();
+        }
+        let mut asked = 0;
+        let got: Vec<(u64, u64)> = telemetry
+            .heartbeats(|| {
+                asked += 1;
+                30
+            })
+            .unwrap()
+            .iter()
+            .map(|b| (b.env_steps, b.policy_version))
+            .collect();
+        assert_eq!(got, vec![(500, 20), (700, 30)]);
+        assert_eq!(asked, 1);
+        let want = [("implausible", 6), ("backwards", 1)];
+        assert_eq!(reasons(&telemetry), want.into_iter().collect());
+        // a restarted actor counts from 0 again, as a new process
+        telemetry.actor_started(0, 4343);
+        inject
+            .heartbeat(Heartbeat {
+                pid: 4343,
+                ..real(10, 30)
+            })
+            .unwrap();
+        assert_eq!(telemetry.heartbeats(|| 30).unwrap().len(), 1);
+    }
+
+    /// Replay statuses with 4.3e9 dropped chunks, inserts going back or faster than the actors
+    /// step, another capacity or rejections that do not add up are rejected; the replay's real
+    /// statuses before and after are taken. A restarted replay restores at most what the one
+    /// before had stored.
+    #[test]
+    fn implausible_replay_statuses_are_rejected() {
+        let (_isolated, _t, mut telemetry, inject) = launcher_view("telemetry-status", 2);
+        let real = |inserted| ReplayStatus {
+            format_version: FORMAT_VERSION,
+            inserted,
+            fill: inserted.min(5000),
+            capacity: 5000,
+            sampled: inserted,
+            batches: inserted / 10,
+            ..Default::default()
+        };
+        let mut by_reason = [0; REASONS.len()];
+        by_reason[3] = 1;
+        let statuses = [
+            real(1000),
+            ReplayStatus {
+                dropped_chunks: 4_300_000_000,
+                ..real(1100)
+            },
+            real(900),
+            real(u64::MAX),
+            ReplayStatus {
+                capacity: 1 << 40,
+                ..real(1100)
+            },
+            ReplayStatus {
+                rejected: 7,
+                rejected_by_reason: by_reason,
+                ..real(1100)
+            },
+            ReplayStatus {
+                fill: 5001,
+                ..real(6000)
+            },
+            real(1200),
+        ];
+        let mut taken = Vec::new();
+        for s in statuses {
+            inject.status(s).unwrap();
+            if let Some(s) = telemetry.replay_status().unwrap() {
+                taken.push(s.inserted);
+            }
+        }
+        assert_eq!(taken, vec![1000, 1200]);
+        let want = [("implausible", 5), ("backwards", 1)];
+        assert_eq!(reasons(&telemetry), want.into_iter().collect());
+        telemetry.replay_started();
+        inject
+            .status(ReplayStatus {
+                restored_inserts: 5000,
+                ..real(5000)
+            })
+            .unwrap();
+        assert_eq!(telemetry.replay_status().unwrap(), None);
+        inject
+            .status(ReplayStatus {
+                restored_inserts: 1100,
+                ..real(1150)
+            })
+            .unwrap();
+        assert_eq!(
+            telemetry.replay_status().unwrap().map(|s| s.inserted),
+            Some(1150)
+        );
+    }
 }

@@ -1,5 +1,6 @@
 //! Actor -> replay trajectories: the actor's chunking sender and the replay's validating receiver.
 
+use super::bounds::check_version;
 use super::transport::{timed_wait, wait_until, RunTransport, Wake};
 use super::wire::{
     check_sequence, step_stride, validate_chunk, ChunkHeader, WireError, MAX_ACT, MAX_CHUNK,
@@ -188,7 +189,7 @@ impl TrajectorySender {
                 .unwrap_or_else(|| Vec::with_capacity(capacity));
             let floats = std::mem::replace(&mut self.buf, next);
             self.backlog.push_back(Pending {
-                header: self.header,
+                header: self.header.sealed(&floats),
                 floats,
             });
             self.header.sequence += 1;
@@ -315,6 +316,10 @@ pub struct TrajectoryReceiver {
     obs_dim: usize,
     act_dim: usize,
     next_sequence: Vec<Option<u64>>,
+    /// The sequence, episode and policy version of each actor's last valid chunk.
+    last_chunk: Vec<Option<(u64, u64, u64)>>,
+    /// No chunk names weights newer than this: the learner's gradient-step target.
+    max_policy_version: u64,
     missing_chunks: u64,
     /// Chunks of each actor rejected since its last valid one: the sequence numbers they took
     /// are not missing.
@@ -325,9 +330,14 @@ pub struct TrajectoryReceiver {
 }
 
 impl TrajectoryReceiver {
-    /// Subscribes to the run's trajectories of the given dimensions. Call
-    /// [`ReplayBeacon::signal`] once every replay endpoint exists.
-    pub fn new(transport: &RunTransport, obs_dim: usize, act_dim: usize) -> Result<Self> {
+    /// Subscribes to the run's trajectories of the given dimensions, acted by weights of at most
+    /// `max_policy_version`. Call [`ReplayBeacon::signal`] once every replay endpoint exists.
+    pub fn new(
+        transport: &RunTransport,
+        obs_dim: usize,
+        act_dim: usize,
+        max_policy_version: u64,
+    ) -> Result<Self> {
         let services = (0..transport.actors())
             .map(|id| transport.trajectory_service(id))
             .collect::<Result<Vec<_>>>()?;
@@ -347,6 +357,8 @@ impl TrajectoryReceiver {
             obs_dim,
             act_dim,
             next_sequence: vec![None; transport.actors()],
+            last_chunk: vec![None; transport.actors()],
+            max_policy_version,
             missing_chunks: 0,
             rejected_since: vec![0; transport.actors()],
             rejects: RejectLog::new("trajectory chunk"),
@@ -416,6 +428,10 @@ impl TrajectoryReceiver {
                         });
                     }
                     check_sequence(header.sequence, *expected)
+                })
+                .and_then(|()| {
+                    let last = self.last_chunk[id].filter(|_| header.sequence > 0);
+                    check_stream(&header, last, self.max_policy_version)
                 });
             if let Err(e) = checked {
                 self.rejects.reject(&e);
@@ -435,6 +451,7 @@ impl TrajectoryReceiver {
             }
             self.rejected_since[id] = 0;
             *expected = Some(header.sequence.saturating_add(1));
+            self.last_chunk[id] = Some((header.sequence, header.episode_id, header.policy_version));
             self.taken_steps[id] += u64::from(header.steps);
             f(ChunkView {
                 header: &header,
@@ -469,6 +486,38 @@ impl TrajectoryReceiver {
     pub fn missing_chunks(&self) -> u64 {
         self.missing_chunks
     }
+}
+
+/// Checks a chunk's episode and policy version against its stream: `last` is the sequence,
+/// episode and policy version of the stream's last valid chunk (`None` at its start). A chunk
+/// holds steps of one episode and ends at the episode's end at the latest, and an actor loads
+/// only newer weights: so episodes and versions never go back, the episode advances by at most
+/// one a sequence number (it is at most the sequence number itself), and no version lies beyond
+/// the learner's target `max_policy_version`.
+fn check_stream(
+    header: &ChunkHeader,
+    last: Option<(u64, u64, u64)>,
+    max_policy_version: u64,
+) -> Result<(), WireError> {
+    let h = header;
+    check_version("policy version", h.policy_version, max_policy_version)?;
+    let (sequence, episode, version) = last.unwrap_or((0, 0, 0));
+    for (what, got, last) in [
+        ("chunk episode", h.episode_id, episode),
+        ("chunk policy version", h.policy_version, version),
+    ] {
+        if got < last {
+            return Err(WireError::Backwards { what, got, last });
+        }
+    }
+    if h.episode_id - episode > h.sequence - sequence {
+        return Err(WireError::Implausible(format!(
+            "episode {} at sequence {}: a stream ends at most one episode a chunk (it was at \
+             episode {episode} at sequence {sequence})",
+            h.episode_id, h.sequence
+        )));
+    }
+    Ok(())
 }
 
 /// The replay's beacon: tells waiting actors and learners that its subscribers exist, and

@@ -1,5 +1,6 @@
 //! Learner -> actors weights broadcast: one publisher, history 1, checksummed.
 
+use super::bounds::check_version;
 use super::transport::{timed_wait, RunTransport, Wake};
 use super::wire::{validate_weights, weights_hasher, WeightsHeader, FORMAT_VERSION};
 use super::{read_once, ReadStage, RejectLog};
@@ -106,6 +107,8 @@ pub struct WeightsReceiver {
     subscriber: Subscriber<ipc::Service, [u8], WeightsHeader>,
     wake: Listener<ipc::Service>,
     current: Option<u64>,
+    /// No version beyond it is taken: the learner's gradient-step target.
+    max_version: u64,
     rejects: RejectLog,
     /// The copy of the blob being read.
     copy: Vec<u8>,
@@ -114,8 +117,9 @@ pub struct WeightsReceiver {
 }
 
 impl WeightsReceiver {
-    /// Subscribes to the run's weights.
-    pub fn new(transport: &RunTransport) -> Result<Self> {
+    /// Subscribes to the run's weights, taking versions up to `max_version` (the learner's
+    /// gradient-step target, [`crate::RunBounds::max_policy_version`]).
+    pub fn new(transport: &RunTransport, max_version: u64) -> Result<Self> {
         let wake = transport.listener(Wake::Actors)?;
         let subscriber = transport
             .weights_service()?
@@ -126,6 +130,7 @@ impl WeightsReceiver {
             subscriber,
             wake,
             current: None,
+            max_version,
             rejects: RejectLog::new("weights"),
             copy: Vec::new(),
             held: Vec::new(),
@@ -133,8 +138,8 @@ impl WeightsReceiver {
     }
 
     /// Calls `f(version, bytes)` on the newest verified weights newer than the last ones handed
-    /// out; `None` if there are none. Blobs failing the checksum are counted, logged and
-    /// skipped.
+    /// out; `None` if there are none. Blobs failing the checksum, or of a version beyond the
+    /// run's, are counted, logged and skipped.
     pub fn latest_with<R>(&mut self, f: impl FnOnce(u64, &[u8]) -> R) -> Result<Option<R>> {
         self.latest_with_observed(&mut |_| {}, f)
     }
@@ -154,7 +159,9 @@ impl WeightsReceiver {
             self.copy.clear();
             self.copy.extend_from_slice(sample.payload());
             hook(ReadStage::Copied);
-            if let Err(e) = validate_weights(&header, &self.copy) {
+            let checked = validate_weights(&header, &self.copy)
+                .and_then(|()| check_version("weights version", header.version, self.max_version));
+            if let Err(e) = checked {
                 self.rejects.reject(&e);
                 continue;
             }
@@ -199,9 +206,14 @@ impl WeightsReceiver {
         self.current
     }
 
-    /// Blobs rejected (bad version, length or checksum).
+    /// Blobs rejected (bad version, length or checksum, or a version beyond the run's).
     pub fn rejected(&self) -> u64 {
         self.rejects.count()
+    }
+
+    /// Blobs rejected, by reason ([`super::wire::REASONS`]).
+    pub fn rejected_by_reason(&self) -> [u64; super::wire::REASONS.len()] {
+        self.rejects.by_reason()
     }
 }
 
@@ -221,13 +233,13 @@ mod tests {
             .iter()
             .map(|role| RunTransport::open(&prefix, 2, role).unwrap())
             .collect();
-        let mut launcher = WeightsReceiver::new(&nodes[0]).unwrap();
+        let mut launcher = WeightsReceiver::new(&nodes[0], 1000).unwrap();
         let publisher = WeightsPublisher::new(&nodes[1], 1 << 16).unwrap();
         let blob = vec![3u8; 5000];
         publisher.publish(0, &blob).unwrap();
         let mut actors: Vec<WeightsReceiver> = nodes[2..]
             .iter()
-            .map(|t| WeightsReceiver::new(t).unwrap())
+            .map(|t| WeightsReceiver::new(t, 1000).unwrap())
             .collect();
         for version in (0..100).step_by(10) {
             publisher.update_connections().unwrap();
@@ -261,7 +273,7 @@ mod tests {
             publisher.publish(2, &v2).unwrap();
             assert!(publisher.publish(3, &vec![0; 2 << 20]).is_err());
 
-            let mut late = WeightsReceiver::new(&t).unwrap();
+            let mut late = WeightsReceiver::new(&t, 1000).unwrap();
             publisher.update_connections().unwrap();
             assert_eq!(late.latest().unwrap(), Some((2, v2.clone())));
             assert_eq!(late.latest().unwrap(), None);

@@ -11,13 +11,15 @@
 //! service per actor (a chunk on another actor's is rejected), the replay's status reports its
 //! longest loop turn and the count it restored; 4, a weights checksum covers the header's
 //! version and length too, and chunks jumping ahead of their stream are rejected
-//! (`sequence_jump`).
+//! (`sequence_jump`); 5, a chunk carries a checksum over its header and payload, telemetry is
+//! checked against the run's bounds and history (`backwards`, `implausible`), a batch answer
+//! carries a checksum, and the replay answers a request it refuses with the reason.
 
 use ctxrace_config::batch::{sequence_floats, transition_floats};
 use iceoryx2::prelude::ZeroCopySend;
 
 /// Version of every wire layout in this module; bump it on any change.
-pub const FORMAT_VERSION: u32 = 4;
+pub const FORMAT_VERSION: u32 = 5;
 /// Largest observation (one LiDAR frame) a step may carry: the configuration's bound.
 pub use ctxrace_config::MAX_OBS;
 /// Largest action a step may carry.
@@ -32,6 +34,8 @@ const STEP_FLAGS: usize = 4;
 /// stream never jumps this far; a sequence beyond it is rejected (`sequence_jump`) instead of
 /// moving the stream there and making every later chunk `out_of_order`.
 pub const SEQUENCE_WINDOW: u64 = 1 << 16;
+/// Most batch requests waiting at the replay; more are refused.
+pub const MAX_PENDING_REQUESTS: usize = 16;
 /// Length of the `[f32]` slice a trajectory publisher preallocates.
 pub const MAX_CHUNK_FLOATS: usize = MAX_CHUNK * (MAX_OBS + MAX_ACT + STEP_EXTRA);
 
@@ -56,8 +60,8 @@ pub struct ChunkHeader {
     pub act_dim: u32,
     /// Steps in the chunk, 1 to [`MAX_CHUNK`].
     pub steps: u32,
-    /// Explicit padding.
-    pub reserved: u32,
+    /// CRC-32 of the other header fields and the payload ([`chunk_checksum`]).
+    pub checksum: u32,
 }
 
 impl ChunkHeader {
@@ -70,6 +74,14 @@ impl ChunkHeader {
             obs_dim: obs_dim as u32,
             act_dim: act_dim as u32,
             ..Self::default()
+        }
+    }
+
+    /// This header with its checksum set for `payload` ([`chunk_checksum`]).
+    pub fn sealed(self, payload: &[f32]) -> Self {
+        Self {
+            checksum: chunk_checksum(&self, payload),
+            ..self
         }
     }
 }
@@ -142,7 +154,7 @@ pub struct BatchRequest {
 /// Header of a batch answer; the `[f32]` payload holds the batch's arrays back to back in
 /// the order of the fields of [`ctxrace_config::SequenceBatch`] or [`ctxrace_config::TransitionBatch`].
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("ctxrace_BatchHeader_v1")]
+#[type_name("ctxrace_BatchHeader_v2")]
 #[repr(C)]
 pub struct BatchHeader {
     /// [`FORMAT_VERSION`].
@@ -161,8 +173,46 @@ pub struct BatchHeader {
     pub obs_dim: u32,
     /// Action size.
     pub act_dim: u32,
+    /// 0 for a batch; for a refusal (an empty payload), 1 + the index in [`REASONS`] of why.
+    pub refused: u32,
+    /// CRC-32 of the other header fields and the payload ([`batch_checksum`]).
+    pub checksum: u32,
     /// Explicit padding.
     pub reserved: u32,
+}
+
+impl BatchHeader {
+    /// This header with its checksum set for the payload `parts` laid back to back
+    /// ([`batch_checksum`]).
+    pub fn sealed(self, parts: &[&[f32]]) -> Self {
+        Self {
+            checksum: batch_checksum(&self, parts),
+            ..self
+        }
+    }
+
+    /// Why the replay refused the request, if this answers one with a refusal.
+    pub fn refusal(&self) -> Option<&'static str> {
+        let code = self.refused.checked_sub(1)? as usize;
+        Some(REASONS.get(code).copied().unwrap_or("unknown"))
+    }
+}
+
+/// The CRC-32 a [`BatchHeader`] carries: over every other header field (little-endian) and
+/// the payload `parts` laid back to back.
+pub fn batch_checksum(header: &BatchHeader, parts: &[&[f32]]) -> u32 {
+    let h = header;
+    let mut hasher = crc32fast::Hasher::new();
+    hasher.update(&h.format_version.to_le_bytes());
+    hasher.update(&h.kind.to_le_bytes());
+    hasher.update(&h.request_id.to_le_bytes());
+    for word in [h.batch, h.length, h.frames, h.obs_dim, h.act_dim, h.refused] {
+        hasher.update(&word.to_le_bytes());
+    }
+    for part in parts {
+        hasher.update(float_bytes(part));
+    }
+    hasher.finalize()
 }
 
 /// An actor's report of one finished training episode for the launcher's logs: the simulator's
@@ -220,7 +270,7 @@ pub struct Heartbeat {
 
 /// The replay process's counters, published about once a second.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("ctxrace_ReplayStatus_v2")]
+#[type_name("ctxrace_ReplayStatus_v3")]
 #[repr(C)]
 pub struct ReplayStatus {
     /// [`FORMAT_VERSION`].
@@ -329,11 +379,25 @@ pub enum WireError {
         /// Steps asked for.
         steps: u64,
     },
+    /// A counter of a process that went back within the process's start.
+    #[error("{what} {got} goes back: it was {last}")]
+    Backwards {
+        /// The counter.
+        what: &'static str,
+        /// The value received.
+        got: u64,
+        /// The last value accepted.
+        last: u64,
+    },
+    /// A value no process of the run can have sent: beyond the run's bounds (a counter growing
+    /// faster than possible, a value out of its physical range, a version ahead of the learner).
+    #[error("implausible: {0}")]
+    Implausible(String),
 }
 
 /// The reasons a message is rejected for, in the order of the counters that
 /// [`WireError::reason`] indexes ([`ReplayStatus::rejected_by_reason`]).
-pub const REASONS: [&str; 10] = [
+pub const REASONS: [&str; 12] = [
     "version",
     "unknown_actor",
     "wrong_stream",
@@ -344,6 +408,8 @@ pub const REASONS: [&str; 10] = [
     "kind",
     "unservable",
     "sequence_jump",
+    "backwards",
+    "implausible",
 ];
 
 /// The nonzero counters of a by-reason array ([`REASONS`]), by name.
@@ -372,12 +438,40 @@ impl WireError {
             WireError::Kind(_) => 7,
             WireError::Unservable { .. } => 8,
             WireError::SequenceJump { .. } => 9,
+            WireError::Backwards { .. } => 10,
+            WireError::Implausible(_) => 11,
         }
     }
 }
 
-/// Checks a trajectory chunk against the run's actor count and dimensions: version, actor id,
-/// dims, payload length, finite values, 0/1 flags and masks in `[0, 1]`.
+/// The bytes of `values` (native order: every process of a run runs on one machine).
+pub(crate) fn float_bytes(values: &[f32]) -> &[u8] {
+    // SAFETY: an f32 has no padding and every bit pattern is a valid u8; u8 needs no alignment;
+    // the slice covers exactly the floats' memory, borrowed as long as `values`.
+    unsafe {
+        std::slice::from_raw_parts(values.as_ptr().cast::<u8>(), std::mem::size_of_val(values))
+    }
+}
+
+/// The CRC-32 a [`ChunkHeader`] carries: over every other header field (little-endian) and the
+/// payload, so that a header or payload changed in shared memory fails it.
+pub fn chunk_checksum(header: &ChunkHeader, payload: &[f32]) -> u32 {
+    let mut hasher = crc32fast::Hasher::new();
+    for word in [header.format_version, header.actor_id] {
+        hasher.update(&word.to_le_bytes());
+    }
+    for word in [header.episode_id, header.sequence, header.policy_version] {
+        hasher.update(&word.to_le_bytes());
+    }
+    for word in [header.obs_dim, header.act_dim, header.steps] {
+        hasher.update(&word.to_le_bytes());
+    }
+    hasher.update(float_bytes(payload));
+    hasher.finalize()
+}
+
+/// Checks a trajectory chunk against the run's actor count and dimensions: version, checksum,
+/// actor id, dims, payload length, finite values, 0/1 flags and masks in `[0, 1]`.
 pub fn validate_chunk(
     header: &ChunkHeader,
     payload: &[f32],
@@ -388,6 +482,13 @@ pub fn validate_chunk(
     if header.format_version != FORMAT_VERSION {
         return Err(WireError::Version {
             got: header.format_version,
+        });
+    }
+    let got = chunk_checksum(header, payload);
+    if got != header.checksum {
+        return Err(WireError::Checksum {
+            got,
+            expected: header.checksum,
         });
     }
     if header.actor_id as usize >= actors {
@@ -555,50 +656,62 @@ mod tests {
         for s in 0..4 {
             p[s * stride + 6..s * stride + 10].fill(0.0);
         }
-        assert_eq!(validate_chunk(&h, &p, 2, 3, 2), Ok(()));
+        assert_eq!(validate_chunk(&h.sealed(&p), &p, 2, 3, 2), Ok(()));
         let bad = ChunkHeader {
             format_version: 99,
             ..h
         };
         assert!(matches!(
-            validate_chunk(&bad, &p, 2, 3, 2),
+            validate_chunk(&bad.sealed(&p), &p, 2, 3, 2),
             Err(WireError::Version { got: 99 })
         ));
         assert!(matches!(
-            validate_chunk(&h, &p, 1, 3, 2),
+            validate_chunk(&h.sealed(&p), &p, 1, 3, 2),
             Err(WireError::UnknownActor { .. })
         ));
         assert!(matches!(
-            validate_chunk(&h, &p, 2, 4, 2),
+            validate_chunk(&h.sealed(&p), &p, 2, 4, 2),
             Err(WireError::Dims(_))
         ));
         assert!(matches!(
-            validate_chunk(&h, &p[1..], 2, 3, 2),
+            validate_chunk(&h.sealed(&p[1..]), &p[1..], 2, 3, 2),
             Err(WireError::Dims(_))
         ));
         let mut nan = p.clone();
         nan[2] = f32::NAN;
         assert!(matches!(
-            validate_chunk(&h, &nan, 2, 3, 2),
+            validate_chunk(&h.sealed(&nan), &nan, 2, 3, 2),
             Err(WireError::Value { index: 2, .. })
         ));
         let mut inf = p.clone();
         inf[stride] = f32::INFINITY;
-        assert!(validate_chunk(&h, &inf, 2, 3, 2).is_err());
+        assert!(validate_chunk(&h.sealed(&inf), &inf, 2, 3, 2).is_err());
         let mut flag = p.clone();
         flag[6] = 0.5;
         assert!(matches!(
-            validate_chunk(&h, &flag, 2, 3, 2),
+            validate_chunk(&h.sealed(&flag), &flag, 2, 3, 2),
             Err(WireError::Value { index: 6, .. })
         ));
         let mut mask = p.clone();
         mask[stride + 13] = 1.5;
         assert!(matches!(
-            validate_chunk(&h, &mask, 2, 3, 2),
+            validate_chunk(&h.sealed(&mask), &mask, 2, 3, 2),
             Err(WireError::Value { index, .. }) if index == stride + 13
         ));
         let empty = ChunkHeader { steps: 0, ..h };
-        assert!(validate_chunk(&empty, &[], 2, 3, 2).is_err());
+        assert!(validate_chunk(&empty.sealed(&[]), &[], 2, 3, 2).is_err());
+        // a header or a payload changed after sealing fails the checksum
+        let sealed = h.sealed(&p);
+        let moved = ChunkHeader {
+            sequence: 1 << 63,
+            ..sealed
+        };
+        let mut flipped = p.clone();
+        flipped[0] = f32::from_bits(flipped[0].to_bits() ^ 1);
+        for (header, payload) in [(moved, &p), (sealed, &flipped)] {
+            let e = validate_chunk(&header, payload, 2, 3, 2).unwrap_err();
+            assert_eq!(REASONS[e.reason()], "checksum", "{e}");
+        }
     }
 
     #[test]
@@ -647,6 +760,28 @@ mod tests {
             validate_weights(&absurd, &bytes),
             Err(WireError::Checksum { .. })
         ));
+        // a batch answer's checksum covers its header, its refusal code and every float
+        let answer = BatchHeader {
+            format_version: FORMAT_VERSION,
+            request_id: 4,
+            batch: 1,
+            ..Default::default()
+        };
+        let (obs, reward) = ([0.25f32, 0.5], [1.0f32]);
+        let sealed = answer.sealed(&[&obs, &reward]);
+        assert_eq!(batch_checksum(&sealed, &[&obs, &reward]), sealed.checksum);
+        let flipped = [f32::from_bits(0.25f32.to_bits() ^ 1), 0.5];
+        assert_ne!(
+            batch_checksum(&sealed, &[&flipped, &reward]),
+            sealed.checksum
+        );
+        let refusal = BatchHeader {
+            refused: 1 + 8,
+            ..sealed
+        };
+        assert_ne!(batch_checksum(&refusal, &[&obs, &reward]), sealed.checksum);
+        assert_eq!(refusal.refusal(), Some("unservable"));
+        assert_eq!(sealed.refusal(), None);
         let r = BatchRequest {
             format_version: FORMAT_VERSION,
             kind: 0,
