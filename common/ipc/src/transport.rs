@@ -848,6 +848,7 @@ mod tests {
     /// An orphaned run (its owner gone) one of whose processes lives is left alone, with its pid.
     #[test]
     fn orphaned_runs_whose_processes_live_are_kept() {
+        use std::os::unix::process::CommandExt as _;
         let me = std::process::id();
         let root = shm_root().unwrap();
         let prefix = run_prefix(&format!("test-orphan-busy-{me}"));
@@ -856,10 +857,18 @@ mod tests {
         gone.wait().unwrap();
         std::fs::write(&owner, format!("{} 1\n", gone.id())).unwrap();
         // a process of the run: the prefix among its arguments, as the run's roles carry it
-        let mut process = std::process::Command::new("sh")
-            .args(["-c", "sleep 30", &prefix])
+        let mut process = std::process::Command::new("sleep")
+            .arg0(&prefix)
+            .arg("30")
             .spawn()
             .unwrap();
+        // its arguments readable (for an instant after exec, /proc shows none)
+        let cmdline = format!("/proc/{}/cmdline", process.id());
+        let started = Instant::now();
+        while std::fs::read(&cmdline).is_ok_and(|c| c.is_empty()) {
+            assert!(started.elapsed() < Duration::from_secs(5));
+            std::thread::sleep(Duration::from_millis(5));
+        }
         let sweep = sweep_orphaned_runs().unwrap();
         process.kill().unwrap();
         process.wait().unwrap();
