@@ -110,17 +110,19 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport, ActorError> {
     let mut last_beat = Instant::now() - HEARTBEAT_EVERY;
     let mut versions = Vec::new();
     let mut weights_refused = 0;
+    let mut telemetry_failed = 0u64;
     let stop = termination_flag()?;
     while !stop.load(Ordering::Relaxed) {
         if last_beat.elapsed() >= HEARTBEAT_EVERY {
-            telemetry.heartbeat(Heartbeat {
+            let beat = telemetry.heartbeat(Heartbeat {
                 actor_id: opts.id,
                 pid: std::process::id(),
                 env_steps: collector.decisions(),
                 policy_version: policy.as_ref().map_or(0, |(v, _)| *v),
                 dropped_steps: sender.stats().dropped_steps,
                 ..Default::default()
-            })?;
+            });
+            advisory(beat, "heartbeat", opts.id, &mut telemetry_failed);
             last_beat = Instant::now();
         }
         // newest weights first, also while we wait below
@@ -172,7 +174,7 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport, ActorError> {
         }
         if let Some(f) = finished {
             let m = &f.metrics;
-            telemetry.episode(ctxrace_ipc::EpisodeReport {
+            let report = telemetry.episode(ctxrace_ipc::EpisodeReport {
                 actor_id: opts.id,
                 episode_id: f.episode,
                 env_steps: collector.decisions(),
@@ -185,7 +187,8 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport, ActorError> {
                 episode_return: m.episode_return as f32,
                 by_policy: u32::from(f.by_policy),
                 ..Default::default()
-            })?;
+            });
+            advisory(report, "episode report", opts.id, &mut telemetry_failed);
         }
     }
     // a send interrupted by the stop signal fails; what was delivered before still counts
@@ -213,4 +216,43 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport, ActorError> {
         weights_rejected: weights.rejected() + weights_refused,
         versions,
     })
+}
+
+/// Telemetry is advisory: a heartbeat or an episode report that cannot be sent (iceoryx2 could
+/// not loan a sample: `LoanError(OutOfMemory)` when its segment was written over) is logged,
+/// the first and every 100th, and the actor races on. An actor whose heartbeats keep failing
+/// falls silent, and the launcher restarts it after the heartbeat timeout, with fresh ports.
+fn advisory(sent: Result<(), ctxrace_ipc::IpcError>, what: &str, actor: u32, failed: &mut u64) {
+    if let Err(e) = sent {
+        *failed += 1;
+        if *failed % 100 == 1 {
+            tracing::warn!(
+                "actor {actor}: sending a {what}: {} ({} telemetry messages not sent so far)",
+                Causes(&e),
+                failed
+            );
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A telemetry message that cannot be sent is counted, not returned: the actor races on.
+    #[test]
+    fn telemetry_that_cannot_be_sent_is_counted_not_fatal() {
+        let mut failed = 0;
+        advisory(Ok(()), "heartbeat", 0, &mut failed);
+        assert_eq!(failed, 0);
+        for _ in 0..3 {
+            advisory(
+                Err(ctxrace_ipc::IpcError::NoActors),
+                "heartbeat",
+                0,
+                &mut failed,
+            );
+        }
+        assert_eq!(failed, 3);
+    }
 }
