@@ -1009,3 +1009,92 @@ fn truncated_segments_end_the_run_loudly_and_the_next_run_sweeps_them() {
     );
     assert_no_leftovers(launcher);
 }
+
+/// The fuzz probe of issue 47 over the real transport: seeded bit flips, 16 a write, into every
+/// data segment of a live run for 10 s (payloads, and iceoryx2's allocator state, which lives
+/// there too and crashes a publisher whose next loan reads it). The run ends by itself, every
+/// process that died was restarted, and no record takes a value the run could not have made.
+/// Passed 3 runs of 4 here (136,944-138,144 bits, 9 exits, all restarted, 19-20 s); in one the
+/// run stalled after the learner's restart and the launcher had not finished in 400 s: a hang
+/// still to be found, so the test is run on demand (`-- --ignored bit_flips`), not by CI.
+#[test]
+#[ignore = "a run stalls now and then after restarts under bit flips (issue 47, to be found)"]
+fn bit_flips_in_live_segments_leave_the_run_to_end_with_plausible_records() {
+    use rand::{Rng, SeedableRng};
+    use std::io::{Read as _, Seek as _, SeekFrom, Write as _};
+    let dir = tempfile::tempdir().unwrap();
+    let env_steps = 30_000;
+    let restarts = "[supervisor]\nmax_restarts = 1000\n";
+    let (child, run) = launch_with(dir.path(), env_steps, 2, restarts);
+    let launcher = child.id();
+    wait_for(&run, "the actors", Duration::from_secs(60), || {
+        find_pid(&run, "actor", &[])
+    });
+    let prefix = format!("ctxrace_{launcher}-");
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(47);
+    let (start, mut flips) = (Instant::now(), 0u64);
+    while start.elapsed() < Duration::from_secs(10) {
+        let segments: Vec<PathBuf> = names_under(Path::new("/dev/shm"))
+            .into_iter()
+            .filter(|n| n.starts_with(&prefix) && n.ends_with(".data"))
+            .map(|n| Path::new("/dev/shm").join(n))
+            .collect();
+        let Some(path) = segments.get(rng.random_range(0..segments.len().max(1))) else {
+            std::thread::sleep(Duration::from_millis(20));
+            continue;
+        };
+        // a segment may vanish with its process: the flips that fail are not counted
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .open(path);
+        if let Ok(mut file) = file {
+            let len = file.metadata().map_or(0, |m| m.len());
+            for _ in 0..16 {
+                if len == 0 {
+                    break;
+                }
+                let at = rng.random_range(0..len);
+                let mut byte = [0u8];
+                let flipped = file.seek(SeekFrom::Start(at)).is_ok()
+                    && file.read_exact(&mut byte).is_ok()
+                    && file.seek(SeekFrom::Start(at)).is_ok()
+                    && file
+                        .write_all(&[byte[0] ^ (1 << rng.random_range(0..8))])
+                        .is_ok();
+                flips += u64::from(flipped);
+            }
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    assert!(flips > 1000, "only {flips} bits flipped");
+    let stderr = finish(child, Duration::from_secs(400));
+    let exits = stderr.matches(" exited (").count();
+    let restarted = stderr.matches("restarting").count();
+    eprintln!("{flips} bits flipped; {exits} process exits, {restarted} restart lines");
+    // the records: env steps within what two actors could send, PG within its range
+    let episodes = std::fs::read_to_string(run.join("episodes.csv")).unwrap();
+    let mut rows = episodes.lines();
+    let header: Vec<&str> = rows.next().unwrap().split(',').collect();
+    let column = |name: &str| header.iter().position(|h| *h == name).unwrap();
+    let (steps_at, progress_at) = (column("env_steps"), column("progress"));
+    for row in rows {
+        let fields: Vec<&str> = row.split(',').collect();
+        let steps: f64 = fields[steps_at].parse().unwrap();
+        let progress: f64 = fields[progress_at].parse().unwrap();
+        assert!(steps <= 2.0 * env_steps as f64, "{row}");
+        assert!((0.0..=1.5).contains(&progress), "{row}");
+    }
+    let status = json(&run.join("status.json"));
+    let grad_steps = status["grad_steps"].as_u64().unwrap();
+    assert!(grad_steps <= env_steps, "{status}");
+    assert!(
+        status["max_policy_lag"].as_u64().unwrap() <= grad_steps,
+        "{status}"
+    );
+    assert!(
+        status["env_steps"].as_u64().unwrap() <= 2 * env_steps,
+        "{status}"
+    );
+    assert_no_leftovers(launcher);
+}
