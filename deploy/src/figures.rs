@@ -8,6 +8,7 @@ use crate::parity::ParityCurves;
 use crate::TrackArgs;
 use anyhow::{Context as _, Result};
 use ctxrace_config::{Context, RaceConfig};
+use ctxrace_render::figure::Result as DrawResult;
 use ctxrace_render::figure::{plot_err, register_font, save_png_and_svg, Figure};
 use ctxrace_render::race::{bounds, draw_track, track_picture_size, TrackChart};
 use ctxrace_run::results::TrainingEpisode;
@@ -181,7 +182,7 @@ impl Figure for Heatmap<'_> {
         (1300, 620)
     }
 
-    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<()>
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> DrawResult<()>
     where
         DB::ErrorType: 'static,
     {
@@ -221,7 +222,7 @@ fn heatmap_panel<DB: DrawingBackend>(
     decimals: usize,
     top: f64,
     train_range: f64,
-) -> Result<()>
+) -> DrawResult<()>
 where
     DB::ErrorType: 'static,
 {
@@ -323,7 +324,7 @@ impl Figure for MaskHeatmap<'_> {
         (1300, 620)
     }
 
-    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<()>
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> DrawResult<()>
     where
         DB::ErrorType: 'static,
     {
@@ -413,7 +414,7 @@ impl Figure for MaskAlongLap<'_> {
         (1400, 560)
     }
 
-    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<()>
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> DrawResult<()>
     where
         DB::ErrorType: 'static,
     {
@@ -504,7 +505,7 @@ impl Figure for MaskOnTrack<'_> {
         (w, 2 * h + 60)
     }
 
-    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<()>
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> DrawResult<()>
     where
         DB::ErrorType: 'static,
     {
@@ -678,7 +679,7 @@ impl Figure for TrainingCurves<'_> {
         (700 * self.panels.len() as u32, 560)
     }
 
-    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<()>
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> DrawResult<()>
     where
         DB::ErrorType: 'static,
     {
@@ -887,7 +888,7 @@ impl Figure for SpeedProfiles {
         (1400, 500)
     }
 
-    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<()>
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> DrawResult<()>
     where
         DB::ErrorType: 'static,
     {
@@ -940,7 +941,7 @@ impl Figure for RaceLines<'_> {
         (w, h + 40)
     }
 
-    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<()>
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> DrawResult<()>
     where
         DB::ErrorType: 'static,
     {
@@ -978,7 +979,7 @@ impl Figure for RaceLines<'_> {
 fn legend<'a, DB: DrawingBackend + 'a>(
     chart: &mut TrackChart<'a, DB>,
     position: SeriesLabelPosition,
-) -> Result<()>
+) -> DrawResult<()>
 where
     DB::ErrorType: 'static,
 {

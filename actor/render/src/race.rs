@@ -4,8 +4,7 @@
 //! and above a legend. As a `.gif`, the same race as an animation: the cars move, each trailing
 //! its last seconds of path; one moment of it as an RGB picture ([`moment_rgb`]).
 
-use crate::figure::{plot_err, register_font, save, Figure};
-use anyhow::{bail, Context as _, Result};
+use crate::figure::{plot_err, register_font, save, Figure, RenderError, Result};
 use ctxrace_config::RivalDriverKind;
 use ctxrace_sim::driver::{DriveError, Ego};
 use ctxrace_sim::vehicle::{idx, State, VehicleParams};
@@ -129,7 +128,10 @@ pub fn race_title(track: &str, ego: &str, env: &RaceEnv) -> String {
 pub fn render_race(path: &Path, track: &Track, frames: &[Frame], title: &str) -> Result<()> {
     check_render_path(path)?;
     if frames.is_empty() {
-        bail!("cannot draw {}: the race has no frames", path.display());
+        return Err(RenderError::Refused(format!(
+            "cannot draw {}: the race has no frames",
+            path.display()
+        )));
     }
     if is_animation(path) {
         write_gif(path, &RaceScene::new(track, frames, title, GIF_WIDTH_PX))
@@ -147,11 +149,11 @@ fn is_animation(path: &Path) -> bool {
 pub fn check_render_path(path: &Path) -> Result<()> {
     match path.extension().and_then(|e| e.to_str()) {
         Some("png" | "svg" | "gif") => Ok(()),
-        _ => bail!(
+        _ => Err(RenderError::Refused(format!(
             "cannot draw to {}: the file name must end in .png or .svg (a still) or .gif (an \
              animation)",
             path.display()
-        ),
+        ))),
     }
 }
 
@@ -174,10 +176,14 @@ pub struct RgbPicture {
 /// speed (the colour bar's top is the fastest of `frames`), the title with the moment's time.
 pub fn moment_rgb(track: &Track, frames: &[Frame], title: &str, width: u32) -> Result<RgbPicture> {
     if frames.is_empty() {
-        bail!("cannot draw the race: it has no frames (reset it first)");
+        return Err(RenderError::Refused(
+            "cannot draw the race: it has no frames (reset it first)".into(),
+        ));
     }
     if width < 100 {
-        bail!("cannot draw the race {width} pixels wide: give at least 100");
+        return Err(RenderError::Refused(format!(
+            "cannot draw the race {width} pixels wide: give at least 100"
+        )));
     }
     let scene = RaceScene::new(track, frames, title, width).at(frames.len() - 1);
     let (width, height) = scene.size();
@@ -622,20 +628,22 @@ fn write_gif(path: &Path, whole: &RaceScene) -> Result<()> {
 /// Encodes `whole`'s race as a GIF into `file` (`path` names it in errors).
 fn gif_into(file: &mut std::fs::File, path: &Path, whole: &RaceScene) -> Result<()> {
     let (w, h) = whole.size();
-    let too_big = || {
-        format!(
+    let too_big = |_| {
+        RenderError::Refused(format!(
             "{} would be {w} x {h} pixels, over GIF's 65535",
             path.display()
-        )
+        ))
     };
     let (w16, h16) = (
-        u16::try_from(w).with_context(too_big)?,
-        u16::try_from(h).with_context(too_big)?,
+        u16::try_from(w).map_err(too_big)?,
+        u16::try_from(h).map_err(too_big)?,
     );
     let palette = Palette::new();
     let mut encoder = gif::Encoder::new(std::io::BufWriter::new(file), w16, h16, &palette.table())
-        .with_context(|| format!("writing {}", path.display()))?;
-    encoder.set_repeat(gif::Repeat::Infinite)?;
+        .map_err(|e| RenderError::write(path, e))?;
+    encoder
+        .set_repeat(gif::Repeat::Infinite)
+        .map_err(|e| RenderError::write(path, e))?;
     let moments = animation_moments(whole.frames);
     let mut rgb = vec![0u8; w as usize * h as usize * 3];
     let mut previous: Option<Vec<u8>> = None;
@@ -651,7 +659,7 @@ fn gif_into(file: &mut std::fs::File, path: &Path, whole: &RaceScene) -> Result<
         frame.delay = centiseconds(seconds);
         encoder
             .write_frame(&frame)
-            .with_context(|| format!("writing {}", path.display()))?;
+            .map_err(|e| RenderError::write(path, e))?;
         previous = Some(picture);
     }
     Ok(())
