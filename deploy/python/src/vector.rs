@@ -195,7 +195,7 @@ impl PyRaceVector {
         env: usize,
         width: u32,
     ) -> PyResult<(Bound<'py, PyBytes>, u32, u32)> {
-        let Some(frames) = self.frames.get(env) else {
+        let (Some(frames), Some(race)) = (self.frames.get(env), self.inner.envs().nth(env)) else {
             return Err(BindError::Argument(if self.frames.is_empty() {
                 "this vector records nothing to draw: make it with record=True".into()
             } else {
@@ -203,7 +203,6 @@ impl PyRaceVector {
             })
             .into());
         };
-        let race = self.inner.envs().nth(env).expect("one record per env");
         let title = race_title(&self.track, "agent", race);
         let picture = py
             .detach(|| moment_rgb(race.track(), frames, &title, width))
