@@ -4,7 +4,7 @@
 //! rather than request-response: the answer may come much later than the request, and the
 //! replay serves requests from one queue whatever their origin.)
 
-use super::transport::{timed_wait, wait_until, RunTransport, Wake};
+use super::transport::{termination_requested, timed_wait, wait_until, RunTransport, Wake};
 use super::wire::{
     batch_checksum, check_finite, validate_request, BatchHeader, BatchKind, BatchRequest,
     WireError, FORMAT_VERSION, REASONS,
@@ -177,7 +177,7 @@ impl ReplayClient {
             } else if let Some((_, t)) = self.hold {
                 wake = wake.min(t);
             }
-            if now >= deadline {
+            if now >= deadline || termination_requested() {
                 return Ok(None);
             }
             timed_wait(

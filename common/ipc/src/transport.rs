@@ -50,16 +50,18 @@ pub(crate) fn termination_requested() -> bool {
 }
 
 /// `listener.timed_wait` up to `timeout`, returning the events seen. A wait interrupted by a
-/// signal (EINTR: SIGCONT after SIGSTOP, or any handled signal) is not an error unless a
-/// termination signal arrived ([`termination_requested`]): it counts as a wait that saw
-/// nothing, and the caller's loop goes on. `what` names the wait in the error.
+/// signal (EINTR: SIGCONT after SIGSTOP, SIGTERM, any handled signal) is no error: it counts as
+/// a wait that saw nothing, and the caller's loop goes on to its own deadline, or stops early
+/// where it consults [`termination_requested`] (a learner waiting for a batch must still write
+/// its last checkpoint, an actor closing must still deliver or count its chunks). `what` names
+/// the wait in the error.
 pub(crate) fn timed_wait(
     listener: &Listener<ipc::Service>,
     timeout: Duration,
     what: &'static str,
 ) -> Result<u64> {
     match listener.timed_wait(|_| {}, timeout) {
-        Err(ListenerWaitError::InterruptSignal) if !termination_requested() => Ok(0),
+        Err(ListenerWaitError::InterruptSignal) => Ok(0),
         result => result.map_err(ice(what)),
     }
 }

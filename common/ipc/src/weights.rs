@@ -1,7 +1,7 @@
 //! Learner -> actors weights broadcast: one publisher, history 1, checksummed.
 
 use super::bounds::check_version;
-use super::transport::{timed_wait, RunTransport, Wake};
+use super::transport::{termination_requested, timed_wait, RunTransport, Wake};
 use super::wire::{validate_weights, weights_hasher, WeightsHeader, FORMAT_VERSION};
 use super::{read_once, ReadStage, RejectLog};
 use crate::error::{ice, IpcError, Result};
@@ -194,7 +194,7 @@ impl WeightsReceiver {
                 return self.latest_with(f);
             }
             let left = deadline.saturating_duration_since(std::time::Instant::now());
-            if left.is_zero() {
+            if left.is_zero() || termination_requested() {
                 return Ok(None);
             }
             timed_wait(&self.wake, left, "wait for weights")?;
