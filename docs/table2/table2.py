@@ -184,7 +184,8 @@ def verdict(lo, hi, direction, margin):
 
 
 def sign_of(verdict_text):
-    return verdict_text.split(",")[0]
+    """The verdict's kind: "holds, below the margin" and "holds (better)" are both "holds"."""
+    return verdict_text.split(",")[0].split(" (")[0]
 
 
 # ---------------------------------------------------------------- collect
