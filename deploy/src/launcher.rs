@@ -27,7 +27,9 @@ use ctxrace_ipc::{
 use ctxrace_learner::runlog::{EpisodeLog, RateMeter};
 use ctxrace_run::lock::{die_with_parent, DirLock};
 use ctxrace_run::results::TrainingEpisode;
-use ctxrace_run::run_dir::{open_append, ACTOR_REPORTS, LOGS, REPLAY_REPORT, STATUS_FILE};
+use ctxrace_run::run_dir::{
+    open_append, ACTOR_REPORTS, LEARNER_STATUS, LOGS, REPLAY_REPORT, STATUS_FILE,
+};
 use std::path::Path;
 use std::process::{Child, Command, ExitStatus};
 use std::sync::atomic::Ordering;
@@ -458,8 +460,9 @@ impl Progress {
     }
 
     /// The live status file's contents: counters, each actor's policy version and its age in
-    /// gradient steps, rejections by reason, the replay's longest stall.
-    fn status(&self) -> serde_json::Value {
+    /// gradient steps, rejections by reason, the replay's longest stall, and `learner`, the
+    /// learner's own transport counters ([`learner_status`]).
+    fn status(&self, learner: serde_json::Value) -> serde_json::Value {
         let r = &self.replay;
         let actors: Vec<serde_json::Value> = self
             .actor_versions
@@ -492,6 +495,7 @@ impl Progress {
             },
             "killed_actor_steps": self.killed_actor_steps,
             "repeated_grad_steps": self.repeated_grad_steps,
+            "learner": learner,
             "launcher_rejected": {
                 "telemetry": self.telemetry_rejected,
                 "telemetry_by_reason": named_reasons(&self.telemetry_rejected_by_reason),
@@ -790,6 +794,18 @@ fn tolerate<T>(read: Result<T, IpcError>) -> Option<T> {
         .ok()
 }
 
+/// The learner's status file of its current start ([`LEARNER_STATUS`]): null before its first,
+/// an `error` naming the file where it cannot be read as JSON.
+fn learner_status(dir: &Path) -> serde_json::Value {
+    let path = dir.join(LEARNER_STATUS);
+    match ctxrace_run::run_dir::read_regular(&path, 1 << 20) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => serde_json::Value::Null,
+        Err(e) => serde_json::json!({ "error": format!("{}: {e}", path.display()) }),
+        Ok(text) => serde_json::from_slice(&text)
+            .unwrap_or_else(|e| serde_json::json!({ "error": format!("{}: {e}", path.display()) })),
+    }
+}
+
 /// The supervision loop; returns when the run is complete or interrupted, with what restarts
 /// cost it.
 fn supervise(
@@ -912,7 +928,10 @@ fn supervise(
             if status.success() {
                 bar.set_position(p.env_steps.min(cfg.train.env_steps));
                 bar.finish_with_message(p.message(start));
-                ctxrace_run::results::write_json(&dir.join(STATUS_FILE), &p.status())?;
+                ctxrace_run::results::write_json(
+                    &dir.join(STATUS_FILE),
+                    &p.status(learner_status(dir)),
+                )?;
                 return Ok(p.restart_costs());
             }
             p.learner_died(ctxrace_learner::process::resume_step(dir));
@@ -924,7 +943,10 @@ fn supervise(
         }
         cleaner.poll();
         if last_status.elapsed() >= Duration::from_secs(1) {
-            ctxrace_run::results::write_json(&dir.join(STATUS_FILE), &p.status())?;
+            ctxrace_run::results::write_json(
+                &dir.join(STATUS_FILE),
+                &p.status(learner_status(dir)),
+            )?;
             last_status = Instant::now();
         }
         if tick.elapsed() >= Duration::from_millis(250) {

@@ -10,19 +10,24 @@ use crate::cadence::{Cadence, CadenceError};
 use crate::checkpoint::{latest_checkpoint, CheckpointError};
 use crate::LearnerError;
 use ctxrace_config::ExperimentConfig;
+use ctxrace_ipc::wire::named_reasons;
 use ctxrace_ipc::{
     termination_flag, EpisodeSubscriber, IpcError, ReplayClient, RunBounds, RunTransport,
     WeightsPublisher, DEFAULT_MAX_WEIGHTS_BYTES,
 };
 use ctxrace_nn::policy::ACT_DIM;
+use ctxrace_run::results::{write_json, ResultsError};
+use ctxrace_run::run_dir::LEARNER_STATUS;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 /// How long the learner waits for the replay to come up.
 const HANDSHAKE: Duration = Duration::from_secs(60);
 /// How long one batch request waits before the learner checks for signals again.
 const BATCH_WAIT: Duration = Duration::from_millis(200);
+/// How often the learner rewrites its status file ([`LEARNER_STATUS`]).
+const STATUS_EVERY: Duration = Duration::from_secs(1);
 
 /// Why the learner process stopped on an error.
 #[derive(Debug, thiserror::Error)]
@@ -45,6 +50,32 @@ pub enum ProcessError {
     /// The transport failed.
     #[error(transparent)]
     Ipc(#[from] IpcError),
+    /// The status file could not be written.
+    #[error(transparent)]
+    Status(#[from] ResultsError),
+}
+
+/// Writes the transport counters of this learner start, which began at gradient step
+/// `started_at` ([`LEARNER_STATUS`]): batches trained on, requests sent again unanswered,
+/// refused by the replay and answers rejected (by reason), episode reports rejected.
+fn write_status(
+    run_dir: &Path,
+    started_at: u64,
+    grad_steps: u64,
+    batches: u64,
+    replay: &ReplayClient,
+    episodes: &EpisodeSubscriber,
+) -> Result<(), ResultsError> {
+    let status = serde_json::json!({
+        "started_at_grad_step": started_at,
+        "grad_steps": grad_steps,
+        "batches": batches,
+        "batch_requests_resent": replay.resent(),
+        "refused_by_replay": named_reasons(&replay.refused_by_reason()),
+        "answers_rejected": named_reasons(&replay.rejected_by_reason()),
+        "episode_reports_rejected": named_reasons(&episodes.rejected_by_reason()),
+    });
+    write_json(&run_dir.join(LEARNER_STATUS), &status)
 }
 
 /// What a learner process needs.
@@ -117,7 +148,20 @@ pub fn run(opts: LearnerOptions) -> Result<u64, ProcessError> {
     let spec = cfg.agent.batch_spec();
     let target = target_steps(cfg);
     let stop = termination_flag()?;
+    let mut batches = 0u64;
+    let mut last_status = Instant::now();
     while algo.steps() < target && !stop.load(Ordering::Relaxed) {
+        if last_status.elapsed() >= STATUS_EVERY {
+            write_status(
+                &opts.run_dir,
+                first,
+                algo.steps(),
+                batches,
+                &replay,
+                &episodes,
+            )?;
+            last_status = Instant::now();
+        }
         // late or restarted actors get the newest weights only when the publisher acts
         weights.update_connections()?;
         let policy_returns = episodes
@@ -129,13 +173,22 @@ pub fn run(opts: LearnerOptions) -> Result<u64, ProcessError> {
         let Some(batch) = replay.next_batch(spec, BATCH_WAIT)? else {
             continue;
         };
+        batches += 1;
         let metrics = algo.train_step(&batch)?;
         if cadence.after_step(algo.as_ref(), metrics, None)? {
             weights.publish(algo.steps(), &algo.policy_weights()?)?;
         }
     }
     weights.publish(algo.steps(), &algo.policy_weights()?)?;
-    let refused = ctxrace_ipc::wire::named_reasons(&replay.refused_by_reason());
+    write_status(
+        &opts.run_dir,
+        first,
+        algo.steps(),
+        batches,
+        &replay,
+        &episodes,
+    )?;
+    let refused = named_reasons(&replay.refused_by_reason());
     if replay.resent() > 0 || !refused.is_empty() || replay.rejected() > 0 {
         tracing::warn!(
             "batch requests: {} sent again unanswered, refused by the replay {refused:?}, {} \

@@ -4,12 +4,13 @@
 //! rather than request-response: the answer may come much later than the request, and the
 //! replay serves requests from one queue whatever their origin.)
 
+use super::shared::{check_readable, copy_slice, read_once};
 use super::transport::{termination_requested, timed_wait, wait_until, RunTransport, Wake};
 use super::wire::{
     batch_checksum, check_finite, validate_request, BatchHeader, BatchKind, BatchRequest,
     WireError, FORMAT_VERSION, REASONS,
 };
-use super::{read_once, ReadStage, RejectLog};
+use super::{ReadStage, RejectLog};
 use crate::error::{ice, IpcError, Result};
 use ctxrace_config::batch::{sequence_floats, transition_floats};
 use ctxrace_config::batch::{Batch, BatchSpec, SequenceBatch, TransitionBatch};
@@ -147,7 +148,16 @@ impl ReplayClient {
         loop {
             self.ensure_request(spec)?;
             while let Some(sample) = self.batches.receive().map_err(ice("receive batch"))? {
-                let header = read_once(sample.user_header());
+                // an unreadable answer is rejected; its request is sent again in time
+                let header = match check_readable(sample.header())
+                    .and_then(|()| read_once(sample.user_header()))
+                {
+                    Ok(header) => header,
+                    Err(e) => {
+                        self.rejects.reject(&e);
+                        continue;
+                    }
+                };
                 if self.outstanding.is_none_or(|o| o.id != header.request_id) {
                     continue;
                 }
@@ -254,6 +264,11 @@ impl ReplayClient {
         self.rejects.count()
     }
 
+    /// Answers rejected, by reason ([`REASONS`]).
+    pub fn rejected_by_reason(&self) -> [u64; REASONS.len()] {
+        self.rejects.by_reason()
+    }
+
     /// Requests the replay refused, by the reason it sent back ([`REASONS`]).
     pub fn refused_by_reason(&self) -> [u64; REASONS.len()] {
         self.refusals.by_reason()
@@ -326,7 +341,8 @@ fn copy_batch(
     let mut take = |n: usize| {
         let (a, b) = rest.split_at(n);
         rest = b;
-        a.to_vec()
+        let mut copy = Vec::new();
+        copy_slice(a, &mut copy).map(|()| copy)
     };
     let bad = || WireError::Dims(format!("batch payload of {} floats for {spec:?}", p.len()));
     match spec {
@@ -344,14 +360,14 @@ fn copy_batch(
                 length,
                 obs_dim,
                 act_dim,
-                obs: take(n * obs_dim),
-                action: take(n * act_dim),
-                reward: take(n),
-                is_first: take(n),
-                is_terminal: take(n),
-                context: take(n * 2),
-                mask: take(n * 2),
-                has_mask: take(n),
+                obs: take(n * obs_dim)?,
+                action: take(n * act_dim)?,
+                reward: take(n)?,
+                is_first: take(n)?,
+                is_terminal: take(n)?,
+                context: take(n * 2)?,
+                mask: take(n * 2)?,
+                has_mask: take(n)?,
             }))
         }
         BatchSpec::Transition { batch, frames, .. } => {
@@ -367,12 +383,12 @@ fn copy_batch(
                 batch,
                 obs_dim: o,
                 act_dim,
-                obs: take(batch * o),
-                action: take(batch * act_dim),
-                reward: take(batch),
-                next_obs: take(batch * o),
-                terminal: take(batch),
-                context: take(batch * 2),
+                obs: take(batch * o)?,
+                action: take(batch * act_dim)?,
+                reward: take(batch)?,
+                next_obs: take(batch * o)?,
+                terminal: take(batch)?,
+                context: take(batch * 2)?,
             }))
         }
     }
@@ -461,7 +477,14 @@ impl BatchServer {
     pub fn receive_requests(&mut self) -> Result<Vec<(BatchRequest, BatchSpec)>> {
         let mut out = Vec::new();
         while let Some(sample) = self.requests.receive().map_err(ice("receive request"))? {
-            let r = read_once(sample.payload());
+            let r = match read_once(sample.payload()) {
+                Ok(r) => r,
+                Err(e) => {
+                    // no request id to refuse: its learner sends it again in time
+                    self.rejects.reject(&e);
+                    continue;
+                }
+            };
             match validate_request(&r, self.obs_dim, self.act_dim, self.max_floats) {
                 Ok(BatchKind::Sequence) => out.push((
                     r,

@@ -21,6 +21,7 @@ mod batches;
 pub mod bounds;
 mod error;
 pub mod inject;
+mod shared;
 mod telemetry;
 mod trajectory;
 mod transport;
@@ -56,12 +57,6 @@ pub enum ReadStage {
     Validated,
 }
 
-/// Reads a value out of shared memory exactly once (a volatile read), so that the compiler
-/// cannot read the shared memory again in place of the copy: another process may change it.
-pub(crate) fn read_once<T: Copy>(shared: &T) -> T {
-    // SAFETY: a reference is valid for reads and aligned; `T: Copy` has no drop to run twice.
-    unsafe { std::ptr::read_volatile(shared) }
-}
 pub use wire::{
     BatchHeader, BatchRequest, ChunkHeader, EpisodeReport, Heartbeat, ReplayStatus, WeightsHeader,
     WireError,

@@ -4,12 +4,13 @@ use super::bounds::{
     check_range, check_version, Counter, RunBounds, MAX_ACTOR_STEPS_PER_SEC, MAX_PROGRESS,
     MAX_STEP_REWARD, REBASE_AFTER,
 };
+use super::shared::read_once;
 use super::transport::RunTransport;
 use super::wire::{
     check_finite, EpisodeReport, Heartbeat, ReplayStatus, WireError, FORMAT_VERSION,
     MAX_PENDING_REQUESTS, REASONS,
 };
-use super::{read_once, RejectLog};
+use super::RejectLog;
 use crate::error::{ice, Result};
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
@@ -120,11 +121,13 @@ impl EpisodeSubscriber {
     pub fn episodes(&mut self) -> Result<Vec<EpisodeReport>> {
         let mut out = Vec::new();
         while let Some(s) = self.metrics.receive().map_err(ice("receive metrics"))? {
-            let m = read_once(s.payload());
-            match check(m.format_version, m.actor_id, self.actors)
-                .and_then(|()| check_episode(&m, &self.bounds))
-            {
-                Ok(()) => out.push(m),
+            let read = read_once(s.payload());
+            match read.and_then(|m| {
+                check(m.format_version, m.actor_id, self.actors)
+                    .and_then(|()| check_episode(&m, &self.bounds))
+                    .map(|()| m)
+            }) {
+                Ok(m) => out.push(m),
                 Err(e) => self.rejects.reject(&e),
             }
         }
@@ -134,6 +137,11 @@ impl EpisodeSubscriber {
     /// Messages rejected as malformed or implausible.
     pub fn rejected(&self) -> u64 {
         self.rejects.count()
+    }
+
+    /// Messages rejected, by reason ([`REASONS`]).
+    pub fn rejected_by_reason(&self) -> [u64; REASONS.len()] {
+        self.rejects.by_reason()
     }
 }
 
@@ -371,7 +379,10 @@ impl TelemetrySubscriber {
     pub fn heartbeats(&mut self, newest_version: impl FnOnce() -> u64) -> Result<Vec<Heartbeat>> {
         let mut beats = Vec::new();
         while let Some(s) = self.heartbeat.receive().map_err(ice("receive heartbeat"))? {
-            beats.push(read_once(s.payload()));
+            match read_once(s.payload()) {
+                Ok(beat) => beats.push(beat),
+                Err(e) => self.rejects.reject(&e),
+            }
         }
         let newest = newest_version();
         let now = Instant::now();
@@ -420,9 +431,13 @@ impl TelemetrySubscriber {
     pub fn replay_status(&mut self) -> Result<Option<ReplayStatus>> {
         let mut newest = None;
         while let Some(s) = self.status.receive().map_err(ice("receive status"))? {
-            let st = read_once(s.payload());
-            match self.replay.take(&st, &self.bounds, self.starts.len()) {
-                Ok(()) => newest = Some(st),
+            let read = read_once(s.payload());
+            match read.and_then(|st| {
+                self.replay
+                    .take(&st, &self.bounds, self.starts.len())
+                    .map(|()| st)
+            }) {
+                Ok(st) => newest = Some(st),
                 Err(e) => self.rejects.reject(&e),
             }
         }

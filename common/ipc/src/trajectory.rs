@@ -1,12 +1,13 @@
 //! Actor -> replay trajectories: the actor's chunking sender and the replay's validating receiver.
 
 use super::bounds::check_version;
+use super::shared::{check_readable, copy_slice, read_once};
 use super::transport::{timed_wait, wait_until, RunTransport, Wake};
 use super::wire::{
     check_sequence, step_stride, validate_chunk, ChunkHeader, WireError, MAX_ACT, MAX_CHUNK,
     MAX_CHUNK_FLOATS, MAX_OBS,
 };
-use super::{read_once, ReadStage, RejectLog};
+use super::{ReadStage, RejectLog};
 use crate::error::{ice, IpcError, Result};
 use ctxrace_config::validate::Causes;
 use ctxrace_run::steps::TrajectoryStep;
@@ -402,24 +403,30 @@ impl TrajectoryReceiver {
                 break;
             };
             taken += 1;
-            let header = read_once(sample.user_header());
-            let payload = sample.payload();
-            let copied = if payload.len() <= MAX_CHUNK_FLOATS {
-                self.copy.clear();
-                self.copy.extend_from_slice(payload);
-                Ok(())
-            } else {
-                Err(WireError::Dims(format!(
-                    "{} floats, a chunk has at most {MAX_CHUNK_FLOATS}",
-                    payload.len()
-                )))
-            };
+            let read = check_readable(sample.header())
+                .and_then(|()| read_once(sample.user_header()))
+                .and_then(|header| {
+                    let payload = sample.payload();
+                    if payload.len() > MAX_CHUNK_FLOATS {
+                        return Err(WireError::Dims(format!(
+                            "{} floats, a chunk has at most {MAX_CHUNK_FLOATS}",
+                            payload.len()
+                        )));
+                    }
+                    copy_slice(payload, &mut self.copy).map(|()| header)
+                });
             hook(ReadStage::Copied);
+            let header = match read {
+                Ok(header) => header,
+                Err(e) => {
+                    // it took a sequence number, like any other malformed chunk
+                    self.rejects.reject(&e);
+                    self.rejected_since[id] += 1;
+                    continue;
+                }
+            };
             let expected = &mut self.next_sequence[id];
-            let checked = copied
-                .and_then(|()| {
-                    validate_chunk(&header, &self.copy, actors, self.obs_dim, self.act_dim)
-                })
+            let checked = validate_chunk(&header, &self.copy, actors, self.obs_dim, self.act_dim)
                 .and_then(|()| {
                     if header.actor_id as usize != id {
                         return Err(WireError::WrongStream {

@@ -1,9 +1,10 @@
 //! Learner -> actors weights broadcast: one publisher, history 1, checksummed.
 
 use super::bounds::check_version;
+use super::shared::{check_readable, copy_slice, read_once};
 use super::transport::{termination_requested, timed_wait, RunTransport, Wake};
-use super::wire::{validate_weights, weights_hasher, WeightsHeader, FORMAT_VERSION};
-use super::{read_once, ReadStage, RejectLog};
+use super::wire::{validate_weights, weights_hasher, WeightsHeader, WireError, FORMAT_VERSION};
+use super::{ReadStage, RejectLog};
 use crate::error::{ice, IpcError, Result};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
@@ -13,7 +14,8 @@ use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::*;
 use std::time::Duration;
 
-/// Default largest weights blob (64 MiB).
+/// Largest weights blob (64 MiB): a publisher allocates at most this, and receivers reject a
+/// sample claiming more before copying it (its length is read from shared memory).
 pub const DEFAULT_MAX_WEIGHTS_BYTES: usize = 64 << 20;
 /// Weights slots a publisher preallocates: the history, the buffers and one loan share them,
 /// since receivers copy out at once.
@@ -29,8 +31,10 @@ pub struct WeightsPublisher {
 }
 
 impl WeightsPublisher {
-    /// A publisher of blobs up to `max_bytes`, preallocated once ([`WEIGHTS_SLOTS`] slots).
+    /// A publisher of blobs up to `max_bytes` (at most [`DEFAULT_MAX_WEIGHTS_BYTES`]),
+    /// preallocated once ([`WEIGHTS_SLOTS`] slots).
     pub fn new(transport: &RunTransport, max_bytes: usize) -> Result<Self> {
+        let max_bytes = max_bytes.min(DEFAULT_MAX_WEIGHTS_BYTES);
         let publisher = transport
             .weights_service()?
             .publisher_builder()
@@ -155,16 +159,32 @@ impl WeightsReceiver {
     ) -> Result<Option<R>> {
         let mut newest = None;
         while let Some(sample) = self.subscriber.receive().map_err(ice("receive weights"))? {
-            let header = read_once(sample.user_header());
-            self.copy.clear();
-            self.copy.extend_from_slice(sample.payload());
+            let copied = check_readable(sample.header())
+                .and_then(|()| read_once(sample.user_header()))
+                .and_then(|header| {
+                    let len = sample.payload().len();
+                    if len > DEFAULT_MAX_WEIGHTS_BYTES {
+                        return Err(WireError::Dims(format!(
+                            "{len} bytes of weights, at most {DEFAULT_MAX_WEIGHTS_BYTES} are sent"
+                        )));
+                    }
+                    copy_slice(sample.payload(), &mut self.copy).map(|()| header)
+                });
             hook(ReadStage::Copied);
-            let checked = validate_weights(&header, &self.copy)
-                .and_then(|()| check_version("weights version", header.version, self.max_version));
-            if let Err(e) = checked {
-                self.rejects.reject(&e);
-                continue;
-            }
+            let checked = copied.and_then(|header| {
+                validate_weights(&header, &self.copy)
+                    .and_then(|()| {
+                        check_version("weights version", header.version, self.max_version)
+                    })
+                    .map(|()| header)
+            });
+            let header = match checked {
+                Ok(header) => header,
+                Err(e) => {
+                    self.rejects.reject(&e);
+                    continue;
+                }
+            };
             hook(ReadStage::Validated);
             if self.current.max(newest).is_none_or(|v| header.version > v) {
                 std::mem::swap(&mut self.copy, &mut self.held);

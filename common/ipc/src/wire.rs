@@ -393,11 +393,15 @@ pub enum WireError {
     /// faster than possible, a value out of its physical range, a version ahead of the learner).
     #[error("implausible: {0}")]
     Implausible(String),
+    /// A sample whose memory this process cannot read: its publisher's corrupted allocator
+    /// placed it outside the segment (see the `shared` module).
+    #[error("unreadable sample: {0}")]
+    Unreadable(String),
 }
 
 /// The reasons a message is rejected for, in the order of the counters that
 /// [`WireError::reason`] indexes ([`ReplayStatus::rejected_by_reason`]).
-pub const REASONS: [&str; 12] = [
+pub const REASONS: [&str; 13] = [
     "version",
     "unknown_actor",
     "wrong_stream",
@@ -410,6 +414,7 @@ pub const REASONS: [&str; 12] = [
     "sequence_jump",
     "backwards",
     "implausible",
+    "unreadable",
 ];
 
 /// The nonzero counters of a by-reason array ([`REASONS`]), by name.
@@ -440,6 +445,7 @@ impl WireError {
             WireError::SequenceJump { .. } => 9,
             WireError::Backwards { .. } => 10,
             WireError::Implausible(_) => 11,
+            WireError::Unreadable(_) => 12,
         }
     }
 }

@@ -6,6 +6,7 @@
 //!   config.toml            CONFIG_FILE: the experiment as trained (eval and report reuse it)
 //!   .lock                  LOCK_FILE: held by the process writing the directory
 //!   status.json            STATUS_FILE: the launcher's live counters
+//!   learner-status.json    LEARNER_STATUS: the learner's transport counters, each second
 //!   replay-status.json     REPLAY_REPORT: the replay's final counters
 //!   replay.snapshot        REPLAY_SNAPSHOT: the replay buffer, for restarts
 //!   actors/actor-<id>-<n>.json   ACTOR_REPORTS: each actor incarnation's final counters
@@ -43,6 +44,9 @@ pub const CONFIG_FILE: &str = "config.toml";
 pub const LOCK_FILE: &str = ".lock";
 /// The launcher's live status.
 pub const STATUS_FILE: &str = "status.json";
+/// The learner's transport counters of its current start, rewritten each second (the launcher
+/// copies them into [`STATUS_FILE`]).
+pub const LEARNER_STATUS: &str = "learner-status.json";
 /// The replay's final counters.
 pub const REPLAY_REPORT: &str = "replay-status.json";
 /// The replay buffer's snapshot.
