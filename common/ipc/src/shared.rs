@@ -97,16 +97,32 @@ pub(crate) fn check_readable<T: ?Sized>(shared: &T) -> Result<(), WireError> {
 /// Replaces `out` with a copy of `shared`, failing where its memory is not readable. The caller
 /// bounds `shared.len()` first: a corrupted sample header can claim any length.
 pub(crate) fn copy_slice<T: Copy>(shared: &[T], out: &mut Vec<T>) -> Result<(), WireError> {
+    copy_slice_with(shared, out, shared.len().max(1), |_| {})
+}
+
+/// [`copy_slice`] in blocks of `block` values, handing each block of the copy to `each` as soon
+/// as it is copied, while it is still in cache (a checksum computed while copying).
+pub(crate) fn copy_slice_with<T: Copy>(
+    shared: &[T],
+    out: &mut Vec<T>,
+    block: usize,
+    mut each: impl FnMut(&[T]),
+) -> Result<(), WireError> {
     out.clear();
     out.reserve(shared.len());
-    // SAFETY: `out` has room for `shared.len()` values, written before the length is set.
-    unsafe {
-        copy_bytes(
-            shared.as_ptr().cast(),
-            out.as_mut_ptr().cast(),
-            size_of_val(shared),
-        )?;
-        out.set_len(shared.len());
+    for part in shared.chunks(block.max(1)) {
+        let start = out.len();
+        // SAFETY: `out` has room for `shared.len()` values; `part` is written past its length
+        // before the length covers it.
+        unsafe {
+            copy_bytes(
+                part.as_ptr().cast(),
+                out.as_mut_ptr().add(start).cast(),
+                size_of_val(part),
+            )?;
+            out.set_len(start + part.len());
+        }
+        each(&out[start..]);
     }
     Ok(())
 }
@@ -121,6 +137,9 @@ mod tests {
         let mut out = vec![1.0; 3];
         copy_slice(&values, &mut out).unwrap();
         assert_eq!(out, values);
+        let mut blocks = Vec::new();
+        copy_slice_with(&values, &mut out, 4096, |b| blocks.push(b.len())).unwrap();
+        assert_eq!((out, blocks), (values.clone(), vec![4096, 4096, 1808]));
         assert_eq!(read_once(&values[17]).unwrap(), 8.5);
         check_readable(&values[..]).unwrap();
     }

@@ -1,9 +1,9 @@
 //! Learner -> actors weights broadcast: one publisher, history 1, checksummed.
 
 use super::bounds::check_version;
-use super::shared::{check_readable, copy_slice, read_once};
+use super::shared::{check_readable, copy_slice_with, read_once};
 use super::transport::{termination_requested, timed_wait, RunTransport, Wake};
-use super::wire::{validate_weights, weights_hasher, WeightsHeader, WireError, FORMAT_VERSION};
+use super::wire::{check_weights, weights_hasher, WeightsHeader, WireError, FORMAT_VERSION};
 use super::{ReadStage, RejectLog};
 use crate::error::{ice, IpcError, Result};
 use iceoryx2::port::listener::Listener;
@@ -20,7 +20,7 @@ pub const DEFAULT_MAX_WEIGHTS_BYTES: usize = 64 << 20;
 /// Weights slots a publisher preallocates: the history, the buffers and one loan share them,
 /// since receivers copy out at once.
 const WEIGHTS_SLOTS: usize = 4;
-/// Bytes copied and hashed at a time when publishing.
+/// Bytes copied and hashed at a time, when publishing and when receiving.
 const HASH_BLOCK: usize = 64 << 10;
 
 /// The learner's weights broadcaster.
@@ -168,11 +168,16 @@ impl WeightsReceiver {
                             "{len} bytes of weights, at most {DEFAULT_MAX_WEIGHTS_BYTES} are sent"
                         )));
                     }
-                    copy_slice(sample.payload(), &mut self.copy).map(|()| header)
+                    // the checksum of each block while it is still in cache
+                    let mut hasher = weights_hasher(header.version, len as u64);
+                    copy_slice_with(sample.payload(), &mut self.copy, HASH_BLOCK, |block| {
+                        hasher.update(block)
+                    })
+                    .map(|()| (header, hasher.finalize()))
                 });
             hook(ReadStage::Copied);
-            let checked = copied.and_then(|header| {
-                validate_weights(&header, &self.copy)
+            let checked = copied.and_then(|(header, checksum)| {
+                check_weights(&header, self.copy.len(), checksum)
                     .and_then(|()| {
                         check_version("weights version", header.version, self.max_version)
                     })

@@ -585,19 +585,27 @@ pub fn weights_checksum(version: u64, payload: &[u8]) -> u32 {
 
 /// Checks a weights broadcast: version, length and checksum (over version, length and payload).
 pub fn validate_weights(header: &WeightsHeader, payload: &[u8]) -> Result<(), WireError> {
+    check_weights(
+        header,
+        payload.len(),
+        weights_checksum(header.version, payload),
+    )
+}
+
+/// [`validate_weights`] of a payload of `len` bytes whose checksum, `got`, was computed while
+/// it was copied ([`weights_hasher`] over `header.version` and `len`).
+pub fn check_weights(header: &WeightsHeader, len: usize, got: u32) -> Result<(), WireError> {
     if header.format_version != FORMAT_VERSION {
         return Err(WireError::Version {
             got: header.format_version,
         });
     }
-    if header.len != payload.len() as u64 {
+    if header.len != len as u64 {
         return Err(WireError::Dims(format!(
-            "header says {} bytes, payload has {}",
-            header.len,
-            payload.len()
+            "header says {} bytes, payload has {len}",
+            header.len
         )));
     }
-    let got = weights_checksum(header.version, payload);
     if got != header.checksum {
         return Err(WireError::Checksum {
             got,
