@@ -379,7 +379,7 @@ fn killed_processes_are_restarted_and_training_goes_on() {
     // a target beyond the test (a fast machine collected 36 000 steps before the kills were
     // done): the run is stopped with SIGTERM once the restarted processes have trained on
     let env_steps = 50_000_000;
-    let supervisor = "[supervisor]\nheartbeat_timeout_secs = 5\n";
+    let supervisor = "[supervisor]\nheartbeat_timeout_secs = 5\nstall_timeout_secs = 5\n";
     // the learner logs where it resumed
     let log = "warn,ctxrace_learner::process=info";
     let (child, run) = launch_logged(dir.path(), env_steps, 3, supervisor, log);
@@ -410,7 +410,8 @@ fn killed_processes_are_restarted_and_training_goes_on() {
         minute,
         || find_pid(&run, "actor", &actors),
     ));
-    // then wait for the first checkpoint and kill an actor, the learner and the replay in turn
+    // then wait for the first checkpoint and kill an actor, hang the learner (stopped: it sends
+    // no heartbeat, but the launcher sees it take no gradient step) and kill the replay in turn
     wait_for(&run, "a checkpoint", 3 * minute, || {
         run.join("checkpoints").read_dir().ok()?.next().map(|_| ())
     });
@@ -419,7 +420,8 @@ fn killed_processes_are_restarted_and_training_goes_on() {
         find_pid(&run, "actor", &actors)
     });
     let learner = wait_for(&run, "learner", minute, || find_pid(&run, "learner", &[]));
-    kill9(learner);
+    // SAFETY: kill(2) takes no pointers; a pid that is gone only makes it fail.
+    unsafe { libc::kill(learner as i32, libc::SIGSTOP) };
     wait_for(&run, "the learner's restart", minute, || {
         find_pid(&run, "learner", &[learner])
     });
@@ -443,6 +445,10 @@ fn killed_processes_are_restarted_and_training_goes_on() {
     unsafe { libc::kill(pid as i32, libc::SIGTERM) };
     let stderr = finish(child, 2 * minute);
     assert!(stderr.contains("sent no sign of life"), "{stderr}");
+    assert!(
+        stderr.contains("learner took no gradient step in"),
+        "{stderr}"
+    );
     // the killed actors wrote no report: the closing summary counts their steps all the same
     assert!(
         stderr.contains("by killed actors to their last heartbeat"),

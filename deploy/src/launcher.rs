@@ -134,6 +134,26 @@ impl DeadNodeCleaner {
     }
 }
 
+/// How long a condition that must not last has held (an actor's policy lagging, a learner
+/// taking no gradient step).
+#[derive(Debug, Default)]
+struct Overdue {
+    since: Option<Instant>,
+}
+
+impl Overdue {
+    /// Notes whether the condition `holds` at `now`; once it has held for longer than
+    /// `timeout` without a break, returns for how long.
+    fn check(&mut self, holds: bool, now: Instant, timeout: Duration) -> Option<Duration> {
+        if !holds {
+            self.since = None;
+            return None;
+        }
+        let held = now.saturating_duration_since(*self.since.get_or_insert(now));
+        (held > timeout).then_some(held)
+    }
+}
+
 /// One supervised child process.
 struct Supervised {
     name: String,
@@ -152,6 +172,9 @@ struct Supervised {
     started_at: Instant,
     /// When its last sign of life (heartbeat, status) arrived, since its start.
     last_sign: Option<Instant>,
+    /// Since when it has made no progress (an actor's policy lagging, the learner taking no
+    /// gradient step), within its current start.
+    stalled: Overdue,
     /// When it failed, within the restart window.
     failures: std::collections::VecDeque<Instant>,
     /// The run directory's lock, which the process holds too while it runs.
@@ -172,6 +195,7 @@ impl Supervised {
             retired: false,
             started_at: Instant::now(),
             last_sign: None,
+            stalled: Overdue::default(),
             failures: std::collections::VecDeque::new(),
         }
     }
@@ -225,6 +249,7 @@ impl Supervised {
         self.restart_at = None;
         self.started_at = Instant::now();
         self.last_sign = None;
+        self.stalled = Overdue::default();
         Ok(())
     }
 
@@ -281,18 +306,26 @@ impl Supervised {
     /// Kills the process if its last sign of life (or its start, if none came) is older than
     /// the heartbeat timeout; it is then reaped as a crash.
     fn kill_if_silent(&mut self, timeout: Duration) {
-        let Some(child) = &mut self.child else { return };
         let quiet = self.last_sign.unwrap_or(self.started_at).elapsed();
-        if !self.retired && quiet > timeout {
-            tracing::warn!(
-                "{} sent no sign of life for {:.0} s: killing it as hung",
-                self.name,
+        if quiet > timeout {
+            self.kill(&format!(
+                "sent no sign of life for {:.0} s: killing it as hung",
                 quiet.as_secs_f64()
-            );
-            // reaped at once, so that the next look does not find it again
-            let _ = child.kill();
-            let _ = child.wait();
+            ));
         }
+    }
+
+    /// Kills the running process (not a retired one), saying `why`; it is then reaped as a
+    /// crash and restarted.
+    fn kill(&mut self, why: &str) {
+        let Some(child) = &mut self.child else { return };
+        if self.retired {
+            return;
+        }
+        tracing::warn!("{} {why}", self.name);
+        // reaped at once, so that the next look does not find it again
+        let _ = child.kill();
+        let _ = child.wait();
     }
 
     /// Reaps the process if it exited; returns its status.
@@ -831,6 +864,7 @@ fn supervise(
     let mut tick = Instant::now();
     let mut last_status = Instant::now();
     let mut cleaner = DeadNodeCleaner::new(transport.prefix());
+    let mut last_grad_steps = p.grad_steps;
     let stop = termination_flag()?;
     loop {
         std::thread::sleep(Duration::from_millis(100));
@@ -905,6 +939,36 @@ fn supervise(
         for proc in std::iter::once(&mut *replay).chain(actors.iter_mut()) {
             proc.kill_if_silent(silence);
         }
+        // progress, not just heartbeats: weights reach every actor, the learner trains
+        let stall = Duration::from_secs(cfg.supervisor.stall_timeout_secs);
+        let now = Instant::now();
+        let lags: Vec<u64> = p.policy_lags().collect();
+        for (actor, lag) in actors.iter_mut().zip(lags) {
+            let lagging = actor.child.is_some() && lag > cfg.supervisor.max_policy_lag;
+            if let Some(held) = actor.stalled.check(lagging, now, stall) {
+                actor.kill(&format!(
+                    "has driven a policy {lag} gradient steps behind the learner's newest for \
+                     {:.0} s ([supervisor] max_policy_lag = {}): the weights stopped reaching \
+                     it; killing it",
+                    held.as_secs_f64(),
+                    cfg.supervisor.max_policy_lag
+                ));
+            }
+        }
+        let replay_serves = replay.child.is_some()
+            && replay.last_sign.is_some_and(|t| t.elapsed() < silence)
+            && p.replay.inserted >= cfg.train.prefill;
+        let idle = learner.child.is_some() && replay_serves && p.grad_steps == last_grad_steps;
+        if let Some(held) = learner.stalled.check(idle, now, stall) {
+            learner.kill(&format!(
+                "took no gradient step in {:.0} s while the replay held {} steps (its own \
+                 counters: {}): killing it",
+                held.as_secs_f64(),
+                p.replay.inserted,
+                learner_status(dir)
+            ));
+        }
+        last_grad_steps = p.grad_steps;
         let mut crashed = false;
         for (id, proc) in actors.iter_mut().enumerate() {
             if let Some(status) = proc.reap()? {
@@ -963,6 +1027,21 @@ fn supervise(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_condition_is_overdue_only_after_holding_past_its_timeout_without_a_break() {
+        let t0 = Instant::now();
+        let (s, timeout) = (Duration::from_secs(1), Duration::from_secs(5));
+        let mut overdue = Overdue::default();
+        assert_eq!(overdue.check(true, t0, timeout), None);
+        assert_eq!(overdue.check(true, t0 + 5 * s, timeout), None);
+        assert_eq!(overdue.check(true, t0 + 6 * s, timeout), Some(6 * s));
+        // a break starts it over
+        assert_eq!(overdue.check(false, t0 + 7 * s, timeout), None);
+        assert_eq!(overdue.check(true, t0 + 8 * s, timeout), None);
+        assert_eq!(overdue.check(true, t0 + 13 * s, timeout), None);
+        assert_eq!(overdue.check(true, t0 + 14 * s, timeout), Some(6 * s));
+    }
     use std::sync::atomic::AtomicU64;
     use std::sync::Arc;
 

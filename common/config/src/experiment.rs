@@ -95,15 +95,18 @@ pub enum ExperimentError {
     ZeroInterval,
     /// The supervisor could not tell a hung process from a live one.
     #[error(
-        "[supervisor] restart_window_secs = {restart_window_secs} must be positive and \
-         heartbeat_timeout_secs = {heartbeat_timeout_secs} at least 5 (heartbeats come every \
-         second)"
+        "[supervisor] restart_window_secs = {restart_window_secs} must be positive, and \
+         heartbeat_timeout_secs = {heartbeat_timeout_secs} and stall_timeout_secs = \
+         {stall_timeout_secs} at least 5 (heartbeats and weights come every second or more \
+         often)"
     )]
     Supervisor {
         /// `[supervisor] restart_window_secs`.
         restart_window_secs: u64,
         /// `[supervisor] heartbeat_timeout_secs`.
         heartbeat_timeout_secs: u64,
+        /// `[supervisor] stall_timeout_secs`.
+        stall_timeout_secs: u64,
     },
     /// Each actor's share of the replay holds less than one sampled window.
     #[error(
@@ -248,6 +251,14 @@ pub struct SupervisorConfig {
     /// An actor whose heartbeat, or the replay whose status, has not been heard for this long
     /// (s) is taken as hung: it is killed and restarted like a crashed one.
     pub heartbeat_timeout_secs: u64,
+    /// Most gradient steps an actor's policy may lag behind the learner's newest broadcast
+    /// for `stall_timeout_secs` before the actor is restarted (weights stopped reaching it).
+    pub max_policy_lag: u64,
+    /// How long (s) an actor may lag more than `max_policy_lag`, or the learner go without a
+    /// gradient step while the replay holds its prefill, before it is killed and restarted
+    /// like a crashed process (a learner that keeps stalling stops the run after
+    /// `max_restarts`).
+    pub stall_timeout_secs: u64,
 }
 
 impl Default for SupervisorConfig {
@@ -256,6 +267,8 @@ impl Default for SupervisorConfig {
             max_restarts: 5,
             restart_window_secs: 600,
             heartbeat_timeout_secs: 60,
+            max_policy_lag: 1000,
+            stall_timeout_secs: 300,
         }
     }
 }
@@ -406,10 +419,11 @@ impl ExperimentConfig {
             return Err(ExperimentError::ZeroInterval);
         }
         let s = &self.supervisor;
-        if s.restart_window_secs == 0 || s.heartbeat_timeout_secs < 5 {
+        if s.restart_window_secs == 0 || s.heartbeat_timeout_secs < 5 || s.stall_timeout_secs < 5 {
             return Err(ExperimentError::Supervisor {
                 restart_window_secs: s.restart_window_secs,
                 heartbeat_timeout_secs: s.heartbeat_timeout_secs,
+                stall_timeout_secs: s.stall_timeout_secs,
             });
         }
         self.validate_gains()?;
