@@ -390,6 +390,37 @@ mod tests {
         assert_eq!(rx.missing_chunks(), 0);
     }
 
+    /// A well-formed chunk with a matching checksum placed ahead of its stream, within the
+    /// sequence window (a hostile sender): it is taken, the real chunks after it go back and
+    /// are rejected, and after [`crate::bounds::REBASE_AFTER`] of them the stream's position
+    /// starts again from the next real chunk: the stream is held up for three chunks, not
+    /// until the real sequence catches up with the forged one.
+    #[test]
+    fn a_forged_chunk_ahead_of_its_stream_holds_it_up_for_three_chunks_only() {
+        let isolated = Isolated::new("inject-ahead");
+        let t = RunTransport::open(&isolated.0, 1, "replay").unwrap();
+        let mut rx = TrajectoryReceiver::new(&t, OBS, ACT, 100).unwrap();
+        let inject = Injector::new(&t).unwrap();
+        let payload = vec![0.0; step_stride(OBS, ACT)];
+        let chunk = |sequence| {
+            ChunkHeader {
+                sequence,
+                steps: 1,
+                ..ChunkHeader::for_actor(0, OBS, ACT)
+            }
+            .sealed(&payload)
+        };
+        let mut stored = Vec::new();
+        for sequence in 0..12 {
+            let sent = if sequence == 5 { 50_000 } else { sequence };
+            inject.chunk(0, chunk(sent), &payload).unwrap();
+            rx.receive(1, |c| stored.push(c.header.sequence)).unwrap();
+        }
+        assert_eq!(stored, vec![0, 1, 2, 3, 4, 50_000, 9, 10, 11]);
+        let by = crate::wire::named_reasons(&rx.rejected_by_reason());
+        assert_eq!(by, [("out_of_order", 3)].into_iter().collect());
+    }
+
     /// Both ends of the batch services and an injector on a run of the test's own prefix `name`,
     /// the prefix first: bound in this order, it is dropped (and cleaned up) last.
     fn batch_ends(name: &str) -> (Isolated, RunTransport, BatchServer, ReplayClient, Injector) {

@@ -1,6 +1,6 @@
 //! Actor -> replay trajectories: the actor's chunking sender and the replay's validating receiver.
 
-use super::bounds::check_version;
+use super::bounds::{check_version, REBASE_AFTER};
 use super::shared::{check_readable, copy_slice, read_once};
 use super::transport::{timed_wait, wait_until, RunTransport, Wake};
 use super::wire::{
@@ -325,6 +325,11 @@ pub struct TrajectoryReceiver {
     /// Chunks of each actor rejected since its last valid one: the sequence numbers they took
     /// are not missing.
     rejected_since: Vec<u64>,
+    /// Well-formed chunks of each actor rejected in a row for their place in the stream (going
+    /// back, jumping ahead): after [`REBASE_AFTER`] the stream's position is forgotten and its
+    /// next well-formed chunk sets it, so a forged chunk that passed every check (sequence
+    /// 0 is a restart; a position far ahead) holds a stream up for a few chunks, never for good.
+    misplaced: Vec<u32>,
     rejects: RejectLog,
     /// The copy of the chunk being read, reused from chunk to chunk.
     copy: Vec<f32>,
@@ -362,6 +367,7 @@ impl TrajectoryReceiver {
             max_policy_version,
             missing_chunks: 0,
             rejected_since: vec![0; transport.actors()],
+            misplaced: vec![0; transport.actors()],
             rejects: RejectLog::new("trajectory chunk"),
             copy: Vec::with_capacity(MAX_CHUNK_FLOATS),
         })
@@ -426,7 +432,7 @@ impl TrajectoryReceiver {
                 }
             };
             let expected = &mut self.next_sequence[id];
-            let checked = validate_chunk(&header, &self.copy, actors, self.obs_dim, self.act_dim)
+            let formed = validate_chunk(&header, &self.copy, actors, self.obs_dim, self.act_dim)
                 .and_then(|()| {
                     if header.actor_id as usize != id {
                         return Err(WireError::WrongStream {
@@ -434,14 +440,31 @@ impl TrajectoryReceiver {
                             stream: id as u32,
                         });
                     }
-                    check_sequence(header.sequence, *expected)
-                })
+                    check_version(
+                        "policy version",
+                        header.policy_version,
+                        self.max_policy_version,
+                    )
+                });
+            let placed = formed.is_ok();
+            let checked = formed
+                .and_then(|()| check_sequence(header.sequence, *expected))
                 .and_then(|()| {
                     let last = self.last_chunk[id].filter(|_| header.sequence > 0);
-                    check_stream(&header, last, self.max_policy_version)
+                    check_stream(&header, last)
                 });
             if let Err(e) = checked {
                 self.rejects.reject(&e);
+                if placed {
+                    self.misplaced[id] += 1;
+                    if self.misplaced[id] >= REBASE_AFTER {
+                        tracing::warn!(
+                            "actor {id}'s stream: {REBASE_AFTER} well-formed chunks in a row out \
+                             of place (the last: {e}); its position starts again from the next"
+                        );
+                        (*expected, self.last_chunk[id], self.misplaced[id]) = (None, None, 0);
+                    }
+                }
                 // a chunk going back took no new sequence number; one jumping ahead did (its
                 // own was overwritten), like any other malformed chunk
                 if !matches!(e, WireError::OutOfOrder { .. }) {
@@ -457,6 +480,7 @@ impl TrajectoryReceiver {
                 self.missing_chunks += gap.saturating_sub(self.rejected_since[id]);
             }
             self.rejected_since[id] = 0;
+            self.misplaced[id] = 0;
             *expected = Some(header.sequence.saturating_add(1));
             self.last_chunk[id] = Some((header.sequence, header.episode_id, header.policy_version));
             self.taken_steps[id] += u64::from(header.steps);
@@ -499,15 +523,9 @@ impl TrajectoryReceiver {
 /// episode and policy version of the stream's last valid chunk (`None` at its start). A chunk
 /// holds steps of one episode and ends at the episode's end at the latest, and an actor loads
 /// only newer weights: so episodes and versions never go back, the episode advances by at most
-/// one a sequence number (it is at most the sequence number itself), and no version lies beyond
-/// the learner's target `max_policy_version`.
-fn check_stream(
-    header: &ChunkHeader,
-    last: Option<(u64, u64, u64)>,
-    max_policy_version: u64,
-) -> Result<(), WireError> {
+/// one a sequence number (it is at most the sequence number itself).
+fn check_stream(header: &ChunkHeader, last: Option<(u64, u64, u64)>) -> Result<(), WireError> {
     let h = header;
-    check_version("policy version", h.policy_version, max_policy_version)?;
     let (sequence, episode, version) = last.unwrap_or((0, 0, 0));
     for (what, got, last) in [
         ("chunk episode", h.episode_id, episode),
