@@ -99,7 +99,12 @@ fn finish(child: Child, limit: Duration) -> String {
 }
 
 fn json(path: &Path) -> Value {
-    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+    let text = std::fs::read_to_string(path);
+    let text = text.unwrap_or_else(|e| {
+        let run = path.parent().unwrap();
+        panic!("{}: {e}\n{}", path.display(), logs(run))
+    });
+    serde_json::from_str(&text).unwrap()
 }
 
 /// The actor reports of a run, by file name.
@@ -163,6 +168,15 @@ fn check_clean_run(run: &Path, actors: usize) {
         "{status}"
     );
     let last_step = status["grad_steps"].as_u64().unwrap();
+    // the replay's last count of each actor's stored steps: together, all it inserted
+    let streams = json(&run.join("replay-streams.json"));
+    let stored: u64 = streams["stored_by_actor"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|n| n.as_u64().unwrap())
+        .sum();
+    assert_eq!(stored, replay["inserted"].as_u64().unwrap(), "{streams}");
     // the learner's own counters: every gradient step took one batch, none was rejected
     let learner = &status["learner"];
     assert_eq!(learner["grad_steps"].as_u64(), Some(last_step), "{status}");

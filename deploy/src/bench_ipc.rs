@@ -187,6 +187,7 @@ fn iceoryx_figures(
         // the bench's actors send no weights version
         max_policy_version: 0,
         handle_signals: false,
+        streams_path: None,
     };
     let control = Arc::new(ReplayControl::default());
     let replay = {

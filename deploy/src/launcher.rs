@@ -23,12 +23,13 @@ use ctxrace_ipc::wire::{named_reasons, ReplayStatus, REASONS};
 use ctxrace_ipc::{
     claim_run, cleanup, remove_dead_nodes, run_prefix, sweep_orphaned_runs, termination_flag,
     CleanupReport, IpcError, RunBounds, RunTransport, TelemetrySubscriber, WeightsReceiver,
+    TRAJECTORY_BUFFER,
 };
 use ctxrace_learner::runlog::{EpisodeLog, RateMeter};
 use ctxrace_run::lock::{die_with_parent, DirLock};
 use ctxrace_run::results::TrainingEpisode;
 use ctxrace_run::run_dir::{
-    open_append, ACTOR_REPORTS, LEARNER_STATUS, LOGS, REPLAY_REPORT, STATUS_FILE,
+    open_append, ACTOR_REPORTS, LEARNER_STATUS, LOGS, REPLAY_REPORT, REPLAY_STREAMS, STATUS_FILE,
 };
 use std::path::Path;
 use std::process::{Child, Command, ExitStatus};
@@ -151,6 +152,46 @@ impl Overdue {
         }
         let held = now.saturating_duration_since(*self.since.get_or_insert(now));
         (held > timeout).then_some(held)
+    }
+}
+
+/// Most env steps an actor can take past what the replay stored of it without any of them
+/// being stored: its chunks waiting in the replay's queue ([`TRAJECTORY_BUFFER`]), one in its
+/// backlog and one being filled, one step a decision. Beyond it, the actor stepped on while
+/// its chunks were taken and not stored (rejected) or lost.
+const UNSTORED_SLACK: u64 = ((TRAJECTORY_BUFFER + 2) * ctxrace_ipc::wire::MAX_CHUNK) as u64;
+
+/// Whether an actor's steps reach the replay: the replay's count of its stored steps, and the
+/// actor's env steps (its heartbeat's) when that count last grew.
+#[derive(Debug, Default)]
+struct StreamWatch {
+    stored: u64,
+    beat_at_store: u64,
+    starved: Overdue,
+}
+
+impl StreamWatch {
+    /// Takes the replay's newest count of the actor's stored steps and the actor's newest env
+    /// steps at `now`; once the actor has been more than [`UNSTORED_SLACK`] steps past the
+    /// last growth of its stored count for longer than `timeout`, returns for how long.
+    fn check(
+        &mut self,
+        stored: u64,
+        beat: u64,
+        now: Instant,
+        timeout: Duration,
+    ) -> Option<Duration> {
+        if stored != self.stored {
+            (self.stored, self.beat_at_store) = (stored, beat);
+        }
+        let starved = beat > self.beat_at_store + UNSTORED_SLACK;
+        self.starved.check(starved, now, timeout)
+    }
+
+    /// A new start of the actor: its env steps count from 0 again.
+    fn actor_started(&mut self) {
+        self.beat_at_store = 0;
+        self.starved = Overdue::default();
     }
 }
 
@@ -494,8 +535,9 @@ impl Progress {
 
     /// The live status file's contents: counters, each actor's policy version and its age in
     /// gradient steps, rejections by reason, the replay's longest stall, and `learner`, the
-    /// learner's own transport counters ([`learner_status`]).
-    fn status(&self, learner: serde_json::Value) -> serde_json::Value {
+    /// learner's own transport counters ([`learner_status`]); each actor's steps the replay
+    /// stored, from `stored_by_actor` ([`replay_streams`]).
+    fn status(&self, learner: serde_json::Value, stored_by_actor: &[u64]) -> serde_json::Value {
         let r = &self.replay;
         let actors: Vec<serde_json::Value> = self
             .actor_versions
@@ -503,7 +545,12 @@ impl Progress {
             .zip(self.policy_lags())
             .enumerate()
             .map(|(id, (version, lag))| {
-                serde_json::json!({ "id": id, "policy_version": version, "policy_lag": lag })
+                serde_json::json!({
+                    "id": id,
+                    "policy_version": version,
+                    "policy_lag": lag,
+                    "stored_steps": stored_by_actor.get(id),
+                })
             })
             .collect();
         serde_json::json!({
@@ -827,6 +874,24 @@ fn tolerate<T>(read: Result<T, IpcError>) -> Option<T> {
         .ok()
 }
 
+/// The steps the replay's current start stored of each actor ([`REPLAY_STREAMS`]); empty where
+/// the file is missing or unreadable (the check waits for the next one).
+fn replay_streams(dir: &Path) -> Vec<u64> {
+    let read = ctxrace_run::run_dir::read_regular(&dir.join(REPLAY_STREAMS), 1 << 20);
+    let parsed = read
+        .ok()
+        .and_then(|text| serde_json::from_slice::<serde_json::Value>(&text).ok());
+    parsed
+        .and_then(|v| {
+            v["stored_by_actor"]
+                .as_array()?
+                .iter()
+                .map(serde_json::Value::as_u64)
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
 /// The learner's status file of its current start ([`LEARNER_STATUS`]): null before its first,
 /// an `error` naming the file where it cannot be read as JSON.
 fn learner_status(dir: &Path) -> serde_json::Value {
@@ -865,6 +930,9 @@ fn supervise(
     let mut last_status = Instant::now();
     let mut cleaner = DeadNodeCleaner::new(transport.prefix());
     let mut last_grad_steps = p.grad_steps;
+    let mut streams: Vec<StreamWatch> = actors.iter().map(|_| StreamWatch::default()).collect();
+    let mut stored_by_actor = Vec::new();
+    let mut last_streams = Instant::now();
     let stop = termination_flag()?;
     loop {
         std::thread::sleep(Duration::from_millis(100));
@@ -880,6 +948,7 @@ fn supervise(
         for (id, actor) in actors.iter_mut().enumerate() {
             if actor.start_if_due()? {
                 telemetry.actor_started(id, actor.pid());
+                streams[id].actor_started();
             }
         }
         // telemetry is best effort: a dying peer must not take the launcher down; the weights
@@ -955,6 +1024,27 @@ fn supervise(
                 ));
             }
         }
+        if last_streams.elapsed() >= Duration::from_secs(1) {
+            // a replay's file from before its restart counts its old start: none until it writes
+            stored_by_actor = replay.last_sign.map_or(Vec::new(), |_| replay_streams(dir));
+            last_streams = Instant::now();
+        }
+        for ((actor, watch), (&stored, &beat)) in actors
+            .iter_mut()
+            .zip(&mut streams)
+            .zip(stored_by_actor.iter().zip(&p.actor_beat_steps))
+        {
+            if actor.child.is_none() {
+                continue;
+            }
+            if let Some(held) = watch.check(stored, beat, now, stall) {
+                actor.kill(&format!(
+                    "took env steps up to {beat} while none of its steps reached the replay for \
+                     {:.0} s (the replay holds {stored} of them): killing it",
+                    held.as_secs_f64()
+                ));
+            }
+        }
         let replay_serves = replay.child.is_some()
             && replay.last_sign.is_some_and(|t| t.elapsed() < silence)
             && p.replay.inserted >= cfg.train.prefill;
@@ -994,7 +1084,7 @@ fn supervise(
                 bar.finish_with_message(p.message(start));
                 ctxrace_run::results::write_json(
                     &dir.join(STATUS_FILE),
-                    &p.status(learner_status(dir)),
+                    &p.status(learner_status(dir), &stored_by_actor),
                 )?;
                 return Ok(p.restart_costs());
             }
@@ -1009,7 +1099,7 @@ fn supervise(
         if last_status.elapsed() >= Duration::from_secs(1) {
             ctxrace_run::results::write_json(
                 &dir.join(STATUS_FILE),
-                &p.status(learner_status(dir)),
+                &p.status(learner_status(dir), &stored_by_actor),
             )?;
             last_status = Instant::now();
         }
@@ -1051,6 +1141,37 @@ mod tests {
             restored_inserts,
             ..ReplayStatus::default()
         }
+    }
+
+    #[test]
+    fn an_actor_is_starved_only_when_it_steps_far_past_its_stored_steps_for_long() {
+        let t0 = Instant::now();
+        let (s, timeout) = (Duration::from_secs(1), Duration::from_secs(5));
+        let mut watch = StreamWatch::default();
+        // stored grows with the actor's steps: never starved
+        for k in 0..20u64 {
+            assert_eq!(
+                watch.check(64 * k, 64 * k + 500, t0 + Duration::from_secs(k), timeout),
+                None
+            );
+        }
+        // held up by the replay's rate limiter: it stops within the slack, and waits
+        let at = 64 * 19;
+        for k in 20..40u64 {
+            let beat = (64 * k + 500).min(at + UNSTORED_SLACK);
+            assert_eq!(
+                watch.check(at, beat, t0 + Duration::from_secs(k), timeout),
+                None
+            );
+        }
+        // stepping on while nothing it sends is stored: starved once past the timeout
+        let far = at + 500 + UNSTORED_SLACK + 1;
+        assert_eq!(watch.check(at, far, t0 + 40 * s, timeout), None);
+        assert_eq!(watch.check(at, far + 64, t0 + 46 * s, timeout), Some(6 * s));
+        // a restart counts its steps from 0 again
+        watch.actor_started();
+        assert_eq!(watch.check(at, 100, t0 + 47 * s, timeout), None);
+        assert_eq!(watch.check(at, 200, t0 + 60 * s, timeout), None);
     }
 
     #[test]

@@ -7,7 +7,9 @@ use clap::Args;
 use ctxrace_config::validate::ConfigError;
 use ctxrace_config::ExperimentConfig;
 use ctxrace_nn::policy::ACT_DIM;
-use ctxrace_run::run_dir::{ACTOR_REPORTS, CONFIG_FILE, REPLAY_REPORT, REPLAY_SNAPSHOT};
+use ctxrace_run::run_dir::{
+    ACTOR_REPORTS, CONFIG_FILE, REPLAY_REPORT, REPLAY_SNAPSHOT, REPLAY_STREAMS,
+};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -87,6 +89,7 @@ fn replay_args(
         options: replay_options(cfg, run_dir),
         max_policy_version: cfg.gradient_steps(),
         handle_signals: true,
+        streams_path: Some(run_dir.join(REPLAY_STREAMS)),
     }
 }
 

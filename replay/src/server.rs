@@ -76,6 +76,10 @@ pub struct ReplayArgs {
     pub max_policy_version: u64,
     /// Stop on SIGTERM/SIGINT (a process); false when run on a thread.
     pub handle_signals: bool,
+    /// Where to write the steps stored of each actor each second
+    /// ([`ctxrace_run::run_dir::REPLAY_STREAMS`], for the launcher's liveness check); none on
+    /// a thread.
+    pub streams_path: Option<std::path::PathBuf>,
 }
 
 /// Shared with whoever runs the loop on a thread: a stop flag and live counters.
@@ -251,6 +255,7 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, R
         if last_status.elapsed() >= STATUS_EVERY {
             let s = counters.status(&buffer, &limiter, &chunks, &server, pending.len());
             status.publish(s)?;
+            write_streams(args, &chunks);
             last_status = Instant::now();
         }
         if opts.snapshot_every_secs > 0
@@ -302,9 +307,21 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, R
     }
     let last = counters.status(&buffer, &limiter, &chunks, &server, pending.len());
     status.publish(last)?;
+    write_streams(args, &chunks);
     writer.wait()?;
     snapshot(args, &buffer, &limiter)?;
     Ok(last)
+}
+
+/// Writes the steps this start stored of each actor to `args.streams_path`, if any; advisory,
+/// like the status: a failed write costs the launcher one look.
+fn write_streams(args: &ReplayArgs, chunks: &TrajectoryReceiver) {
+    if let Some(path) = &args.streams_path {
+        let streams = std::collections::BTreeMap::from([("stored_by_actor", chunks.taken_steps())]);
+        if let Err(e) = ctxrace_run::results::write_json(path, &streams) {
+            tracing::warn!("replay: writing {}: {e}", path.display());
+        }
+    }
 }
 
 /// Why a request for `spec` would block the queue forever, or why it finds no room in it
@@ -458,6 +475,7 @@ mod tests {
             },
             max_policy_version: 0,
             handle_signals: false,
+            streams_path: None,
         };
         let Err(err) = restore(&args) else {
             panic!("a damaged snapshot is refused");

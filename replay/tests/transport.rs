@@ -105,6 +105,7 @@ fn two_actors_fill_the_replay_and_the_learner_gets_batches() {
         },
         max_policy_version: 0,
         handle_signals: false,
+        streams_path: None,
     };
     // Actors start first: their handshake must wait for the replay.
     let actors: Vec<_> = (0..2)
@@ -273,6 +274,7 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
         },
         max_policy_version: 0,
         handle_signals: false,
+        streams_path: None,
     };
     let control = Arc::new(ReplayControl::default());
     let replay = {

@@ -507,6 +507,11 @@ impl TrajectoryReceiver {
         self.rejects.count()
     }
 
+    /// Steps taken from each actor's valid chunks, by actor id.
+    pub fn taken_steps(&self) -> &[u64] {
+        &self.taken_steps
+    }
+
     /// Chunks rejected, by reason ([`super::wire::REASONS`]).
     pub fn rejected_by_reason(&self) -> [u64; super::wire::REASONS.len()] {
         self.rejects.by_reason()
