@@ -536,8 +536,8 @@ impl Progress {
     /// The live status file's contents: counters, each actor's policy version and its age in
     /// gradient steps, rejections by reason, the replay's longest stall, and `learner`, the
     /// learner's own transport counters ([`learner_status`]); each actor's steps the replay
-    /// stored, from `stored_by_actor` ([`replay_streams`]).
-    fn status(&self, learner: serde_json::Value, stored_by_actor: &[u64]) -> serde_json::Value {
+    /// stored and the chunks it rejected, from `streams` ([`replay_streams`]).
+    fn status(&self, learner: serde_json::Value, streams: &ReplayStreams) -> serde_json::Value {
         let r = &self.replay;
         let actors: Vec<serde_json::Value> = self
             .actor_versions
@@ -549,7 +549,8 @@ impl Progress {
                     "id": id,
                     "policy_version": version,
                     "policy_lag": lag,
-                    "stored_steps": stored_by_actor.get(id),
+                    "stored_steps": streams.stored.get(id),
+                    "rejected_chunks": streams.rejected.get(id),
                 })
             })
             .collect();
@@ -770,6 +771,18 @@ fn step_summary(dir: &Path, costs: RestartCosts) -> String {
             replay["rejected"],
             replay["longest_turn_ms"].as_f64().unwrap_or(0.0)
         );
+        // what the replay itself took of each actor: its count, not the actors' claims
+        let streams = replay_streams(dir);
+        let join = |v: &[u64]| v.iter().map(u64::to_string).collect::<Vec<_>>().join(" / ");
+        if !streams.stored.is_empty() {
+            line += &format!(" ({} of each actor", join(&streams.stored));
+            if streams.rejected.iter().any(|&n| n > 0) {
+                line += &format!(", chunks rejected {}", join(&streams.rejected));
+            }
+            // a restarted replay counts from its restart
+            let restarted = replay["restored_inserts"].as_u64().unwrap_or(0) > 0;
+            line += if restarted { ", its last start)" } else { ")" };
+        }
         if lost > 0 {
             line += &format!(
                 "; {lost} LOST in replay restarts (stored, not in the snapshot it restarted from)"
@@ -874,22 +887,32 @@ fn tolerate<T>(read: Result<T, IpcError>) -> Option<T> {
         .ok()
 }
 
-/// The steps the replay's current start stored of each actor ([`REPLAY_STREAMS`]); empty where
-/// the file is missing or unreadable (the check waits for the next one).
-fn replay_streams(dir: &Path) -> Vec<u64> {
+/// What the replay's current start took of each actor ([`REPLAY_STREAMS`]).
+#[derive(Debug, Default)]
+struct ReplayStreams {
+    /// Steps stored, by actor id.
+    stored: Vec<u64>,
+    /// Chunks rejected, by actor id.
+    rejected: Vec<u64>,
+}
+
+/// Reads [`REPLAY_STREAMS`]; empty where the file is missing or unreadable (the checks wait for
+/// the next one).
+fn replay_streams(dir: &Path) -> ReplayStreams {
     let read = ctxrace_run::run_dir::read_regular(&dir.join(REPLAY_STREAMS), 1 << 20);
     let parsed = read
         .ok()
         .and_then(|text| serde_json::from_slice::<serde_json::Value>(&text).ok());
-    parsed
-        .and_then(|v| {
-            v["stored_by_actor"]
-                .as_array()?
-                .iter()
-                .map(serde_json::Value::as_u64)
-                .collect()
-        })
-        .unwrap_or_default()
+    let counts = |key: &str| -> Vec<u64> {
+        let values = parsed.as_ref().and_then(|v| v[key].as_array());
+        values
+            .and_then(|a| a.iter().map(serde_json::Value::as_u64).collect())
+            .unwrap_or_default()
+    };
+    ReplayStreams {
+        stored: counts("stored_by_actor"),
+        rejected: counts("rejected_by_actor"),
+    }
 }
 
 /// The learner's status file of its current start ([`LEARNER_STATUS`]): null before its first,
@@ -931,7 +954,7 @@ fn supervise(
     let mut cleaner = DeadNodeCleaner::new(transport.prefix());
     let mut last_grad_steps = p.grad_steps;
     let mut streams: Vec<StreamWatch> = actors.iter().map(|_| StreamWatch::default()).collect();
-    let mut stored_by_actor = Vec::new();
+    let mut replay_took = ReplayStreams::default();
     let mut last_streams = Instant::now();
     let stop = termination_flag()?;
     loop {
@@ -1026,13 +1049,15 @@ fn supervise(
         }
         if last_streams.elapsed() >= Duration::from_secs(1) {
             // a replay's file from before its restart counts its old start: none until it writes
-            stored_by_actor = replay.last_sign.map_or(Vec::new(), |_| replay_streams(dir));
+            replay_took = replay
+                .last_sign
+                .map_or(ReplayStreams::default(), |_| replay_streams(dir));
             last_streams = Instant::now();
         }
         for ((actor, watch), (&stored, &beat)) in actors
             .iter_mut()
             .zip(&mut streams)
-            .zip(stored_by_actor.iter().zip(&p.actor_beat_steps))
+            .zip(replay_took.stored.iter().zip(&p.actor_beat_steps))
         {
             if actor.child.is_none() {
                 continue;
@@ -1084,7 +1109,7 @@ fn supervise(
                 bar.finish_with_message(p.message(start));
                 ctxrace_run::results::write_json(
                     &dir.join(STATUS_FILE),
-                    &p.status(learner_status(dir), &stored_by_actor),
+                    &p.status(learner_status(dir), &replay_took),
                 )?;
                 return Ok(p.restart_costs());
             }
@@ -1099,7 +1124,7 @@ fn supervise(
         if last_status.elapsed() >= Duration::from_secs(1) {
             ctxrace_run::results::write_json(
                 &dir.join(STATUS_FILE),
-                &p.status(learner_status(dir), &stored_by_actor),
+                &p.status(learner_status(dir), &replay_took),
             )?;
             last_status = Instant::now();
         }

@@ -313,11 +313,15 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, R
     Ok(last)
 }
 
-/// Writes the steps this start stored of each actor to `args.streams_path`, if any; advisory,
-/// like the status: a failed write costs the launcher one look.
+/// Writes the steps this start stored of each actor, and the chunks it rejected of each, to
+/// `args.streams_path`, if any; advisory, like the status: a failed write costs the launcher
+/// one look.
 fn write_streams(args: &ReplayArgs, chunks: &TrajectoryReceiver) {
     if let Some(path) = &args.streams_path {
-        let streams = std::collections::BTreeMap::from([("stored_by_actor", chunks.taken_steps())]);
+        let streams = std::collections::BTreeMap::from([
+            ("stored_by_actor", chunks.taken_steps()),
+            ("rejected_by_actor", chunks.rejected_by_actor()),
+        ]);
         if let Err(e) = ctxrace_run::results::write_json(path, &streams) {
             tracing::warn!("replay: writing {}: {e}", path.display());
         }

@@ -330,6 +330,8 @@ pub struct TrajectoryReceiver {
     /// next well-formed chunk sets it, so a forged chunk that passed every check (sequence
     /// 0 is a restart; a position far ahead) holds a stream up for a few chunks, never for good.
     misplaced: Vec<u32>,
+    /// Chunks rejected, by the actor whose stream carried them.
+    rejected_by_actor: Vec<u64>,
     rejects: RejectLog,
     /// The copy of the chunk being read, reused from chunk to chunk.
     copy: Vec<f32>,
@@ -368,6 +370,7 @@ impl TrajectoryReceiver {
             missing_chunks: 0,
             rejected_since: vec![0; transport.actors()],
             misplaced: vec![0; transport.actors()],
+            rejected_by_actor: vec![0; transport.actors()],
             rejects: RejectLog::new("trajectory chunk"),
             copy: Vec::with_capacity(MAX_CHUNK_FLOATS),
         })
@@ -427,6 +430,7 @@ impl TrajectoryReceiver {
                 Err(e) => {
                     // it took a sequence number, like any other malformed chunk
                     self.rejects.reject(&e);
+                    self.rejected_by_actor[id] += 1;
                     self.rejected_since[id] += 1;
                     continue;
                 }
@@ -455,6 +459,7 @@ impl TrajectoryReceiver {
                 });
             if let Err(e) = checked {
                 self.rejects.reject(&e);
+                self.rejected_by_actor[id] += 1;
                 if placed {
                     self.misplaced[id] += 1;
                     if self.misplaced[id] >= REBASE_AFTER {
@@ -510,6 +515,11 @@ impl TrajectoryReceiver {
     /// Steps taken from each actor's valid chunks, by actor id.
     pub fn taken_steps(&self) -> &[u64] {
         &self.taken_steps
+    }
+
+    /// Chunks rejected, by the actor id of the stream that carried them.
+    pub fn rejected_by_actor(&self) -> &[u64] {
+        &self.rejected_by_actor
     }
 
     /// Chunks rejected, by reason ([`super::wire::REASONS`]).
