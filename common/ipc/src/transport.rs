@@ -19,8 +19,11 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
-/// Chunks each actor may have queued at the replay before its sends wait.
-pub const TRAJECTORY_BUFFER: usize = 64;
+/// Chunks each actor may have queued at the replay before its sends wait: 16 chunks of at most
+/// 64 steps, so that an actor the replay's rate limiter holds up has at most about a thousand
+/// steps of older policies in flight (64 before: four times as many, for no throughput: `bench
+/// ipc` and the soak store as many steps a second with 16).
+pub const TRAJECTORY_BUFFER: usize = 16;
 /// Nodes besides the actors that may open a service (replay, learner, launcher, tools).
 const EXTRA_NODES: usize = 8;
 
