@@ -98,6 +98,24 @@ fn finish(child: Child, limit: Duration) -> String {
     stderr
 }
 
+/// The training episodes of `run` (`episodes.csv`): each row's env steps and progress, and the
+/// row itself for a failure's message.
+fn episode_rows(run: &Path) -> Vec<(f64, f64, String)> {
+    let text = std::fs::read_to_string(run.join("episodes.csv")).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let column = |name: &str| header.iter().position(|h| *h == name).unwrap();
+    let (steps_at, progress_at) = (column("env_steps"), column("progress"));
+    lines
+        .map(|line| {
+            let fields: Vec<&str> = line.split(',').collect();
+            let steps = fields[steps_at].parse().unwrap();
+            let progress = fields[progress_at].parse().unwrap();
+            (steps, progress, line.to_string())
+        })
+        .collect()
+}
+
 fn json(path: &Path) -> Value {
     let text = std::fs::read_to_string(path);
     let text = text.unwrap_or_else(|e| {
@@ -856,21 +874,15 @@ fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
     // no record took a forged value: episode rows within the steps stored and a lap's progress,
     // status.json's counters the replay's and the learner's own
     let inserted = replay["inserted"].as_u64().unwrap();
-    let rows = std::fs::read_to_string(run.join("episodes.csv")).unwrap();
-    let mut lines = rows.lines();
-    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
-    let column = |name| header.iter().position(|&h| h == name).unwrap();
-    let (steps_at, progress_at) = (column("env_steps"), column("progress"));
-    let mut checked = 0;
-    for line in lines {
-        let row: Vec<&str> = line.split(',').collect();
-        let env_steps: u64 = row[steps_at].parse().unwrap();
-        let progress: f64 = row[progress_at].parse().unwrap();
-        assert!(env_steps <= inserted, "{line} (of {inserted} stored)");
-        assert!((0.0..=1.5).contains(&progress), "{line}");
-        checked += 1;
+    let rows = episode_rows(&run);
+    for (env_steps, progress, line) in &rows {
+        assert!(
+            *env_steps <= inserted as f64,
+            "{line} (of {inserted} stored)"
+        );
+        assert!((0.0..=1.5).contains(progress), "{line}");
     }
-    assert!(checked > 0);
+    assert!(!rows.is_empty());
     let end = json(&run.join("status.json"));
     assert!(end["env_steps"].as_u64().unwrap() <= inserted, "{end}");
     assert_eq!(end["replay"]["dropped_chunks"].as_u64(), Some(0), "{end}");
@@ -1105,20 +1117,12 @@ fn bit_flips_in_live_segments_leave_the_run_to_end_with_plausible_records() {
     let exits = stderr.matches(" exited (").count();
     let restarted = stderr.matches("restarting").count();
     // the records: env steps within what two actors could send, PG within its range
-    let episodes = std::fs::read_to_string(run.join("episodes.csv")).unwrap();
-    let mut rows = episodes.lines();
-    let header: Vec<&str> = rows.next().unwrap().split(',').collect();
-    let column = |name: &str| header.iter().position(|h| *h == name).unwrap();
-    let (steps_at, progress_at) = (column("env_steps"), column("progress"));
-    let mut checked = 0;
-    for row in rows {
-        let fields: Vec<&str> = row.split(',').collect();
-        let steps: f64 = fields[steps_at].parse().unwrap();
-        let progress: f64 = fields[progress_at].parse().unwrap();
-        assert!(steps <= 2.0 * env_steps as f64, "{row}");
-        assert!((0.0..=1.5).contains(&progress), "{row}");
-        checked += 1;
+    let rows = episode_rows(&run);
+    for (steps, progress, row) in &rows {
+        assert!(*steps <= 2.0 * env_steps as f64, "{row}");
+        assert!((0.0..=1.5).contains(progress), "{row}");
     }
+    let checked = rows.len();
     let status = json(&run.join("status.json"));
     eprintln!(
         "{flips} bits flipped in {:.1} s; {exits} process exits, {restarted} restart lines; \
