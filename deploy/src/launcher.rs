@@ -27,7 +27,7 @@ use ctxrace_ipc::{
 };
 use ctxrace_learner::runlog::{EpisodeLog, RateMeter};
 use ctxrace_run::lock::{die_with_parent, DirLock};
-use ctxrace_run::results::TrainingEpisode;
+use ctxrace_run::results::{read_json, TrainingEpisode};
 use ctxrace_run::run_dir::{
     open_append, ACTOR_REPORTS, LEARNER_STATUS, LOGS, REPLAY_REPORT, REPLAY_STREAMS, STATUS_FILE,
 };
@@ -888,43 +888,30 @@ fn tolerate<T>(read: Result<T, IpcError>) -> Option<T> {
 }
 
 /// What the replay's current start took of each actor ([`REPLAY_STREAMS`]).
-#[derive(Debug, Default)]
+#[derive(Debug, Default, serde::Deserialize)]
 struct ReplayStreams {
     /// Steps stored, by actor id.
+    #[serde(rename = "stored_by_actor")]
     stored: Vec<u64>,
     /// Chunks rejected, by actor id.
+    #[serde(rename = "rejected_by_actor")]
     rejected: Vec<u64>,
 }
 
 /// Reads [`REPLAY_STREAMS`]; empty where the file is missing or unreadable (the checks wait for
 /// the next one).
 fn replay_streams(dir: &Path) -> ReplayStreams {
-    let read = ctxrace_run::run_dir::read_regular(&dir.join(REPLAY_STREAMS), 1 << 20);
-    let parsed = read
-        .ok()
-        .and_then(|text| serde_json::from_slice::<serde_json::Value>(&text).ok());
-    let counts = |key: &str| -> Vec<u64> {
-        let values = parsed.as_ref().and_then(|v| v[key].as_array());
-        values
-            .and_then(|a| a.iter().map(serde_json::Value::as_u64).collect())
-            .unwrap_or_default()
-    };
-    ReplayStreams {
-        stored: counts("stored_by_actor"),
-        rejected: counts("rejected_by_actor"),
-    }
+    read_json(&dir.join(REPLAY_STREAMS)).unwrap_or_default()
 }
 
 /// The learner's status file of its current start ([`LEARNER_STATUS`]): null before its first,
-/// an `error` naming the file where it cannot be read as JSON.
+/// an `error` naming the file and the cause where it cannot be read as JSON.
 fn learner_status(dir: &Path) -> serde_json::Value {
     let path = dir.join(LEARNER_STATUS);
-    match ctxrace_run::run_dir::read_regular(&path, 1 << 20) {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => serde_json::Value::Null,
-        Err(e) => serde_json::json!({ "error": format!("{}: {e}", path.display()) }),
-        Ok(text) => serde_json::from_slice(&text)
-            .unwrap_or_else(|e| serde_json::json!({ "error": format!("{}: {e}", path.display()) })),
+    if !path.exists() {
+        return serde_json::Value::Null;
     }
+    read_json(&path).unwrap_or_else(|e| serde_json::json!({ "error": Causes(&e).to_string() }))
 }
 
 /// The supervision loop; returns when the run is complete or interrupted, with what restarts
