@@ -88,10 +88,16 @@ pub(crate) fn read_once<T: Copy>(shared: &T) -> Result<T, WireError> {
 /// Fails where the memory of `shared` is not readable: for a sample's iceoryx2 header, which
 /// must be read before its payload slice can even be measured.
 pub(crate) fn check_readable<T: ?Sized>(shared: &T) -> Result<(), WireError> {
+    // read once a sample, on the stack: a header is a few dozen bytes
+    let mut scratch = [0u8; 256];
+    let start: *const u8 = (shared as *const T).cast();
     let len = size_of_val(shared);
-    let mut scratch = vec![0u8; len];
-    // SAFETY: `scratch` is writable for `len` bytes and separate from `shared`.
-    unsafe { copy_bytes((shared as *const T).cast(), scratch.as_mut_ptr(), len) }
+    for at in (0..len).step_by(scratch.len()) {
+        let n = (len - at).min(scratch.len());
+        // SAFETY: `scratch` is writable for `n` bytes and separate from `shared`.
+        unsafe { copy_bytes(start.wrapping_add(at), scratch.as_mut_ptr(), n)? };
+    }
+    Ok(())
 }
 
 /// Replaces `out` with a copy of `shared`, failing where its memory is not readable. The caller
