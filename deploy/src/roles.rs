@@ -47,12 +47,16 @@ pub struct ActorArgs {
 /// `[supervisor] max_restarts`).
 pub const CRASH_ROLE_ENV: &str = "CTXRACE_TEST_CRASH_ROLE";
 
-/// Exits with status 1 if [`CRASH_ROLE_ENV`] names `role`.
-fn crash_if_asked(role: &str) {
+/// What every role does first: crash if the tests ask it to, then make the process's
+/// termination flag, so that a SIGTERM while it starts up (restoring a snapshot, loading a
+/// checkpoint) stops it cleanly once it is up instead of killing it without its report.
+fn start_role(role: &str) -> Result<()> {
     if std::env::var(CRASH_ROLE_ENV).is_ok_and(|r| r == role) {
         eprintln!("{role}: crashing at start, as {CRASH_ROLE_ENV} asks");
         std::process::exit(1);
     }
+    ctxrace_ipc::termination_flag()?;
+    Ok(())
 }
 
 /// The run's experiment (an error is a [`ConfigError`]: a restart would meet it again).
@@ -102,7 +106,7 @@ pub fn check_replay_snapshot(cfg: &ExperimentConfig, run_dir: &Path, actors: usi
 
 /// Runs `ctxrace replay`.
 pub fn replay(args: RoleArgs) -> Result<()> {
-    crash_if_asked("replay");
+    start_role("replay")?;
     let cfg = read_experiment(&args.run_dir)?;
     let replay_args = replay_args(&cfg, &args.run_dir, args.prefix, args.actors);
     let s = ctxrace_replay::run(&replay_args, &Default::default())?;
@@ -130,7 +134,7 @@ pub fn replay(args: RoleArgs) -> Result<()> {
 
 /// Runs `ctxrace learner`.
 pub fn learner(args: RoleArgs) -> Result<()> {
-    crash_if_asked("learner");
+    start_role("learner")?;
     let experiment = read_experiment(&args.run_dir)?;
     ctxrace_learner::process::run(ctxrace_learner::process::LearnerOptions {
         prefix: args.prefix,
@@ -144,7 +148,7 @@ pub fn learner(args: RoleArgs) -> Result<()> {
 
 /// Runs `ctxrace actor`.
 pub fn actor(args: ActorArgs) -> Result<()> {
-    crash_if_asked("actor");
+    start_role("actor")?;
     let experiment = read_experiment(&args.role.run_dir)?;
     let track = args
         .tracks

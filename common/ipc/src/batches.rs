@@ -83,14 +83,9 @@ impl ReplayClient {
             .publisher_builder()
             .create()
             .map_err(ice("request publisher"))?;
-        if !wait_until(&ready, handshake_timeout, || {
+        wait_until(&ready, handshake_timeout, transport.prefix(), || {
             service.dynamic_config().number_of_subscribers() > 0
-        })? {
-            return Err(IpcError::ReplayDown {
-                timeout: handshake_timeout,
-                prefix: transport.prefix().to_string(),
-            });
-        }
+        })?;
         Ok(Self {
             requests,
             request_service: service,

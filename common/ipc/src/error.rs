@@ -141,6 +141,12 @@ pub enum IpcError {
         /// The run's prefix.
         prefix: String,
     },
+    /// SIGTERM or SIGINT came while waiting for a peer: the process stops before it is up.
+    #[error("stopped by a termination request while waiting for the replay (prefix {prefix})")]
+    Terminated {
+        /// The run's prefix.
+        prefix: String,
+    },
     /// An actor id outside the run.
     #[error("actor id {id} is not below the run's {actors} actors")]
     ActorId {

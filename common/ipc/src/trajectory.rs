@@ -120,15 +120,9 @@ impl TrajectorySender {
             .set_backpressure_handler(|_| BackpressureAction::DiscardData)
             .create()
             .map_err(ice("trajectory publisher"))?;
-        let connected = wait_until(&ready, opts.handshake_timeout, || {
+        wait_until(&ready, opts.handshake_timeout, transport.prefix(), || {
             service.dynamic_config().number_of_subscribers() > 0
         })?;
-        if !connected {
-            return Err(IpcError::ReplayDown {
-                timeout: opts.handshake_timeout,
-                prefix: transport.prefix().to_string(),
-            });
-        }
         Ok(Self {
             publisher,
             wake: transport.notifier(Wake::Replay)?,

@@ -27,11 +27,16 @@ pub const TRAJECTORY_BUFFER: usize = 16;
 /// Nodes besides the actors that may open a service (replay, learner, launcher, tools).
 const EXTRA_NODES: usize = 8;
 
-/// A flag that turns true on SIGTERM or SIGINT, for a process's loop to stop cleanly. (The
+/// The process's flag that turns true on SIGTERM or SIGINT, for its loop to stop cleanly. (The
 /// nodes' own signal handling is off: iceoryx2 resets its flag when read, so a blocking send
-/// could swallow the request.) The first flag a process makes is also what this crate's waits
-/// consult when a signal interrupts them ([`termination_requested`]).
+/// could swallow the request.) Made once, at the first call: a process that calls it first thing
+/// keeps a termination that arrives while it starts up (restoring a snapshot, loading a
+/// checkpoint) for its loop, instead of dying of it without its last report. It is also what this
+/// crate's waits consult when a signal interrupts them ([`termination_requested`]).
 pub fn termination_flag() -> Result<Arc<AtomicBool>> {
+    if let Some(flag) = PROCESS_TERMINATION.get() {
+        return Ok(flag.clone());
+    }
     let flag = Arc::new(AtomicBool::new(false));
     for signal in [signal_hook::consts::SIGTERM, signal_hook::consts::SIGINT] {
         signal_hook::flag::register(signal, flag.clone())
@@ -41,7 +46,7 @@ pub fn termination_flag() -> Result<Arc<AtomicBool>> {
     Ok(flag)
 }
 
-/// The process's first [`termination_flag`].
+/// The process's [`termination_flag`].
 static PROCESS_TERMINATION: OnceLock<Arc<AtomicBool>> = OnceLock::new();
 
 /// Whether SIGTERM or SIGINT reached this process since its first [`termination_flag`] (false
@@ -373,6 +378,8 @@ impl RunTransport {
         let _tick_guard = waitset.attach_interval(tick).map_err(ice("attach tick"))?;
         loop {
             let timeout = match turn()? {
+                // a termination that came before the waitset's own handling (while starting up)
+                _ if handle_signals && termination_requested() => return Ok(true),
                 Next::Stop => return Ok(false),
                 Next::Poll => Duration::ZERO,
                 Next::Sleep => tick,
@@ -420,21 +427,32 @@ fn service_name(name: &str) -> Result<ServiceName> {
 }
 
 /// Waits until `connected()` holds, sleeping on `ready` (notified by the other side once its
-/// ports exist) between checks. The listener must exist before the first check, so that a
-/// notification sent in between is not lost.
+/// ports exist) between checks; [`IpcError::ReplayDown`] after `timeout`, and
+/// [`IpcError::Terminated`] once a termination is requested, in the run of `prefix`. The
+/// listener must exist before the first check, so that a notification sent in between is not
+/// lost.
 pub(crate) fn wait_until(
     ready: &Listener<ipc::Service>,
     timeout: Duration,
+    prefix: &str,
     mut connected: impl FnMut() -> bool,
-) -> Result<bool> {
+) -> Result<()> {
     let start = Instant::now();
     loop {
         if connected() {
-            return Ok(true);
+            return Ok(());
+        }
+        if termination_requested() {
+            return Err(IpcError::Terminated {
+                prefix: prefix.to_string(),
+            });
         }
         let left = timeout.saturating_sub(start.elapsed());
         if left.is_zero() {
-            return Ok(false);
+            return Err(IpcError::ReplayDown {
+                timeout,
+                prefix: prefix.to_string(),
+            });
         }
         // Wake at least every 100 ms: a peer that started before our listener notified nobody.
         timed_wait(ready, left.min(Duration::from_millis(100)), "wait for peer")?;
