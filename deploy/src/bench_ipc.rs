@@ -186,6 +186,7 @@ fn iceoryx_figures(
         },
         // the bench's actors send no weights version
         max_policy_version: 0,
+        env_steps: u64::MAX,
         handle_signals: false,
         streams_path: None,
     };

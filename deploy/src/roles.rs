@@ -92,6 +92,7 @@ fn replay_args(
         act_dim: ACT_DIM,
         options: replay_options(cfg, run_dir),
         max_policy_version: cfg.gradient_steps(),
+        env_steps: cfg.train.env_steps,
         handle_signals: true,
         streams_path: Some(run_dir.join(REPLAY_STREAMS)),
     }

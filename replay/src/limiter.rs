@@ -4,7 +4,8 @@
 //! With `d = inserts · spi − samples`, sampling `n` needs `inserts ≥ min_fill` and
 //! `d − n ≥ spi · min_fill − error_buffer`; inserting `n` (once past `min_fill`) needs
 //! `d + n · spi ≤ spi · min_fill + error_buffer`. A too fast learner waits for inserts, too fast
-//! actors wait for samples. With `spi = 0` only `min_fill` holds.
+//! actors wait for samples. With `spi = 0` only `min_fill` holds. Once closed (the run's
+//! env-step budget is stored: no insert will come again) sampling waits for nothing.
 
 /// Counts inserts and samples and says whether more of either may happen now.
 #[derive(Clone, Debug, PartialEq)]
@@ -15,6 +16,7 @@ pub struct RateLimiter {
     max_diff: f64,
     inserts: u64,
     samples: u64,
+    closed: bool,
 }
 
 impl RateLimiter {
@@ -35,6 +37,7 @@ impl RateLimiter {
             max_diff: offset + buffer,
             inserts: 0,
             samples: 0,
+            closed: false,
         }
     }
 
@@ -50,8 +53,20 @@ impl RateLimiter {
 
     /// Whether `n` steps may be sampled now.
     pub fn can_sample(&self, n: u64) -> bool {
-        self.inserts >= self.min_fill
-            && (self.spi == 0.0 || self.diff() - n as f64 >= self.min_diff)
+        self.closed
+            || (self.inserts >= self.min_fill
+                && (self.spi == 0.0 || self.diff() - n as f64 >= self.min_diff))
+    }
+
+    /// Notes that no insert will come again (the run's env-step budget is stored): from now on
+    /// sampling waits neither for `min_fill` nor for the ratio.
+    pub fn close(&mut self) {
+        self.closed = true;
+    }
+
+    /// Whether [`close`](Self::close) was called.
+    pub fn is_closed(&self) -> bool {
+        self.closed
     }
 
     /// Whether `n` steps could ever be sampled at once: a larger request than the ratio's window
@@ -101,6 +116,21 @@ mod tests {
         r.inserted(1);
         assert!(r.can_sample(1_000_000));
         assert!(r.can_insert(1_000_000));
+    }
+
+    #[test]
+    fn a_closed_limiter_lets_sampling_finish() {
+        let mut r = RateLimiter::new(4.0, 10, 5.0);
+        r.inserted(10);
+        r.sampled(20);
+        assert!(!r.can_sample(4));
+        r.close();
+        assert!(r.is_closed() && r.can_sample(4) && r.can_sample(1_000));
+        // even below min_fill: the data is final
+        let mut early = RateLimiter::new(4.0, 10, 5.0);
+        early.inserted(3);
+        early.close();
+        assert!(early.can_sample(8));
     }
 
     #[test]

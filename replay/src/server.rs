@@ -13,8 +13,9 @@ use ctxrace_config::validate::ConfigError;
 use ctxrace_config::BatchSpec;
 use ctxrace_config::ReplayOptions;
 use ctxrace_ipc::wire::{ReplayStatus, WireError, FORMAT_VERSION, MAX_PENDING_REQUESTS, REASONS};
+use ctxrace_run::results::ReplayStreams;
 use ctxrace_ipc::{
-    BatchRequest, BatchServer, IpcError, Next, ReplayBeacon, RunTransport, StatusPublisher,
+    BatchRequest, BatchServer, ChunkView, IpcError, Next, ReplayBeacon, RunTransport, StatusPublisher,
     TrajectoryReceiver, Wake,
 };
 use rand::SeedableRng;
@@ -74,6 +75,9 @@ pub struct ReplayArgs {
     pub options: ReplayOptions,
     /// The newest weights version a chunk may name: the learner's gradient-step target.
     pub max_policy_version: u64,
+    /// The run's env-step budget (`[train] env_steps`): the replay stores at most this many
+    /// steps in all (restored ones included) and counts what arrives past it as surplus.
+    pub env_steps: u64,
     /// Stop on SIGTERM/SIGINT (a process); false when run on a thread.
     pub handle_signals: bool,
     /// Where to write the steps stored of each actor each second
@@ -108,6 +112,27 @@ struct Counters {
 }
 
 impl Counters {
+    /// Refuses `request` for `spec`, which can never be served (`why`), telling the learner so.
+    fn refuse(
+        &mut self,
+        server: &BatchServer,
+        request: BatchRequest,
+        spec: BatchSpec,
+        why: &str,
+    ) -> Result<(), IpcError> {
+        self.unservable += 1;
+        tracing::warn!(
+            "refused batch request {} for {spec:?} ({} so far): {why}",
+            request.request_id,
+            self.unservable
+        );
+        let unservable = WireError::Unservable {
+            steps: spec.steps() as u64,
+        };
+        server.refuse(request.request_id, unservable.reason())?;
+        Ok(())
+    }
+
     /// The status to publish.
     fn status(
         &self,
@@ -138,6 +163,57 @@ impl Counters {
     }
 }
 
+/// The run's env-step budget: the replay stores at most `limit` steps in all; what arrives
+/// after is counted, by actor, and not stored. Once the budget is stored the rate limiter is
+/// closed: no more inserts will come, so the learner takes its last gradient steps on the final
+/// data instead of waiting for steps that never arrive.
+struct Budget {
+    limit: u64,
+    /// Steps that arrived past the budget, by actor.
+    surplus: Vec<u64>,
+}
+
+impl Budget {
+    fn new(limit: u64, actors: usize) -> Self {
+        Self {
+            limit,
+            surplus: vec![0; actors],
+        }
+    }
+
+    /// Whether the whole budget is stored.
+    fn spent(&self, limiter: &RateLimiter) -> bool {
+        limiter.inserts() >= self.limit
+    }
+
+    /// Closes `limiter` if the budget is stored (a restored snapshot may hold all of it).
+    fn close_if_spent(&self, limiter: &mut RateLimiter) {
+        if self.spent(limiter) && !limiter.is_closed() {
+            limiter.close();
+            tracing::info!(
+                "replay: the run's {} env steps are stored; later steps are counted as surplus",
+                self.limit
+            );
+        }
+    }
+
+    /// Stores the steps of chunk `c` that fit in the budget; counts the rest as surplus.
+    fn store(&mut self, c: ChunkView<'_>, buffer: &mut ReplayBuffer, limiter: &mut RateLimiter) {
+        let actor = c.header.actor_id as usize;
+        let steps = u64::from(c.header.steps);
+        let room = self.limit.saturating_sub(limiter.inserts()).min(steps);
+        if room > 0 {
+            let stride = c.payload.len() / c.header.steps.max(1) as usize;
+            buffer.insert_chunk(actor, &c.payload[..room as usize * stride], c.after_gap);
+            limiter.inserted(room);
+        }
+        if let Some(surplus) = self.surplus.get_mut(actor) {
+            *surplus += steps - room;
+        }
+        self.close_if_spent(limiter);
+    }
+}
+
 /// Runs the replay until `control.shutdown` is set or (with `handle_signals`) SIGTERM/SIGINT;
 /// writes a final snapshot and returns the final counters.
 pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, ReplayError> {
@@ -149,6 +225,8 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, R
         opts.error_buffer_steps,
     );
     limiter.restore(counts.inserts, counts.samples);
+    let mut budget = Budget::new(args.env_steps, args.actors);
+    budget.close_if_spent(&mut limiter);
     let mut rng = ChaCha8Rng::seed_from_u64(opts.seed ^ counts.samples);
 
     let transport = RunTransport::open(&args.prefix, args.actors, "replay")?;
@@ -182,17 +260,15 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, R
         ..Counters::default()
     };
     let mut last_status = Instant::now();
+    let mut announced_spent = false;
     let mut last_snapshot = Instant::now();
     let mut writer = BackgroundWriter::default();
     let signalled = transport.serve(Wake::Replay, TICK, args.handle_signals, || {
         let turn = Instant::now();
         // The limiter is asked before every chunk: too fast actors wait in backpressure.
         let mut taken = 0;
-        while taken < CHUNKS_PER_TURN && limiter.can_insert(1) {
-            let got = chunks.receive(1, |c| {
-                buffer.insert_chunk(c.header.actor_id as usize, c.payload, c.after_gap);
-                limiter.inserted(u64::from(c.header.steps));
-            })?;
+        while taken < CHUNKS_PER_TURN && (budget.spent(&limiter) || limiter.can_insert(1)) {
+            let got = chunks.receive(1, |c| budget.store(c, &mut buffer, &mut limiter))?;
             if got == 0 {
                 break;
             }
@@ -209,18 +285,7 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, R
             }
             match never_served(spec, &buffer, &limiter, pending.len()) {
                 None => pending.push_back((request, spec)),
-                Some(why) => {
-                    counters.unservable += 1;
-                    tracing::warn!(
-                        "refused batch request {} for {spec:?} ({} so far): {why}",
-                        request.request_id,
-                        counters.unservable
-                    );
-                    let unservable = WireError::Unservable {
-                        steps: spec.steps() as u64,
-                    };
-                    server.refuse(request.request_id, unservable.reason())?;
-                }
+                Some(why) => counters.refuse(&server, request, spec, &why)?,
             }
         }
         while let Some(&(request, spec)) = pending.front() {
@@ -248,15 +313,24 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, R
                     counters.inserted_at_last_batch = limiter.inserts();
                     pending.pop_front();
                 }
+                // Not enough contiguous data, and none will come: refuse it.
+                None if limiter.is_closed() => {
+                    let why = "the run's env steps are all stored and hold no such batch";
+                    counters.refuse(&server, request, spec, why)?;
+                    pending.pop_front();
+                }
                 // Not enough contiguous data yet: keep the request for a later turn.
                 None => break,
             }
         }
-        if last_status.elapsed() >= STATUS_EVERY {
+        // the launcher stops the actors once the budget is stored: it hears so at once
+        let spent = budget.spent(&limiter);
+        if last_status.elapsed() >= STATUS_EVERY || spent != announced_spent {
             let s = counters.status(&buffer, &limiter, &chunks, &server, pending.len());
             status.publish(s)?;
-            write_streams(args, &chunks);
+            write_streams(args, &chunks, &budget, &limiter);
             last_status = Instant::now();
+            announced_spent = spent;
         }
         if opts.snapshot_every_secs > 0
             && last_snapshot.elapsed() >= Duration::from_secs(opts.snapshot_every_secs)
@@ -289,13 +363,13 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, R
     if signalled {
         tracing::info!("replay: termination requested");
     }
-    // the actors' last chunks are stored whatever the limiter says, until every sender has
-    // closed (a killed actor's sender lingers: at most DRAIN_LIMIT): nothing sent is lost
+    // the actors' last chunks are stored whatever the limiter says (up to the budget, the rest
+    // counted as surplus), until every sender has closed (a killed actor's sender lingers: at
+    // most DRAIN_LIMIT): nothing sent is lost uncounted
     let deadline = Instant::now() + DRAIN_LIMIT;
     loop {
         let got = chunks.receive(CHUNKS_PER_TURN, |c| {
-            buffer.insert_chunk(c.header.actor_id as usize, c.payload, c.after_gap);
-            limiter.inserted(u64::from(c.header.steps));
+            budget.store(c, &mut buffer, &mut limiter)
         })?;
         beacon.signal();
         if got == 0 {
@@ -307,21 +381,32 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, R
     }
     let last = counters.status(&buffer, &limiter, &chunks, &server, pending.len());
     status.publish(last)?;
-    write_streams(args, &chunks);
+    write_streams(args, &chunks, &budget, &limiter);
     writer.wait()?;
     snapshot(args, &buffer, &limiter)?;
     Ok(last)
 }
 
-/// Writes the steps this start stored of each actor, and the chunks it rejected of each, to
+/// Writes the steps this start stored of each actor, those past the budget, and the chunks it
+/// rejected of each, with the steps stored in all (restored ones included) and the budget, to
 /// `args.streams_path`, if any; advisory, like the status: a failed write costs the launcher
 /// one look.
-fn write_streams(args: &ReplayArgs, chunks: &TrajectoryReceiver) {
+fn write_streams(
+    args: &ReplayArgs,
+    chunks: &TrajectoryReceiver,
+    budget: &Budget,
+    limiter: &RateLimiter,
+) {
     if let Some(path) = &args.streams_path {
-        let streams = std::collections::BTreeMap::from([
-            ("stored_by_actor", chunks.taken_steps()),
-            ("rejected_by_actor", chunks.rejected_by_actor()),
-        ]);
+        let streams = ReplayStreams {
+            stored_by_actor: (chunks.taken_steps().iter().zip(&budget.surplus))
+                .map(|(taken, surplus)| taken.saturating_sub(*surplus))
+                .collect(),
+            surplus_by_actor: budget.surplus.clone(),
+            rejected_by_actor: chunks.rejected_by_actor().to_vec(),
+            inserted: limiter.inserts(),
+            env_steps: budget.limit,
+        };
         if let Err(e) = ctxrace_run::results::write_json(path, &streams) {
             tracing::warn!("replay: writing {}: {e}", path.display());
         }
@@ -478,6 +563,7 @@ mod tests {
                 ..ReplayOptions::default()
             },
             max_policy_version: 0,
+            env_steps: u64::MAX,
             handle_signals: false,
             streams_path: None,
         };

@@ -104,6 +104,7 @@ fn two_actors_fill_the_replay_and_the_learner_gets_batches() {
             ..Default::default()
         },
         max_policy_version: 0,
+        env_steps: u64::MAX,
         handle_signals: false,
         streams_path: None,
     };
@@ -273,6 +274,7 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
             ..Default::default()
         },
         max_policy_version: 0,
+        env_steps: u64::MAX,
         handle_signals: false,
         streams_path: None,
     };
@@ -340,6 +342,84 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
     assert_eq!(status.sampled, 250);
     assert_eq!(status.pending_requests, 1);
     assert_eq!(status.rejected, 1);
+}
+
+/// The replay stores the run's env-step budget and no more: the steps past it are counted as
+/// surplus, by actor, and the learner then takes its batches without waiting for inserts.
+#[test]
+fn the_replay_stores_the_budget_counts_the_surplus_and_lets_the_learner_finish() {
+    let isolated = Isolated::new("budget");
+    let prefix = isolated.0.clone();
+    let dir = tempfile::tempdir().unwrap();
+    let streams_path = dir.path().join("replay-streams.json");
+    let args = ReplayArgs {
+        prefix: prefix.clone(),
+        actors: 1,
+        obs_dim: OBS,
+        act_dim: ACT,
+        options: ReplayOptions {
+            capacity: 10_000,
+            min_fill: 200,
+            samples_per_insert: 0.5,
+            error_buffer_steps: 100.0,
+            snapshot_every_secs: 0,
+            ..Default::default()
+        },
+        max_policy_version: 0,
+        // not a chunk boundary: the chunk across it is stored in part
+        env_steps: 437,
+        handle_signals: false,
+        streams_path: Some(streams_path.clone()),
+    };
+    let control = Arc::new(ReplayControl::default());
+    let replay = {
+        let (a, c) = (args.clone(), control.clone());
+        thread::spawn(move || run(&a, &c))
+    };
+    let t = RunTransport::open(&prefix, 1, "actor0").unwrap();
+    let mut tx = TrajectorySender::new(&t, 0, OBS, ACT, SenderOptions::default()).unwrap();
+    for k in 0..600u64 {
+        let step = TrajectoryStep {
+            obs: &[0.0, k as f32, 0.0],
+            action: &[0.0, 0.0],
+            reward: 0.0,
+            is_first: k.is_multiple_of(100),
+            is_terminal: false,
+            is_last: k % 100 == 99,
+            context: [0.0, 0.0],
+            mask: None,
+        };
+        tx.push(k / 100, 0, &step).unwrap();
+    }
+    // every step is taken: those past the budget too, so that the actor is not held up
+    assert_eq!(tx.close().unwrap().sent_steps, 600);
+    let mut client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(10)).unwrap();
+    let spec = BatchSpec::Transition {
+        batch: 50,
+        frames: 1,
+        reward_delay: 0,
+    };
+    // the ratio alone would allow 0.5·437 − 0.5·100 samples, 3 batches: once the budget is
+    // stored no insert will come, so the learner is not held to it
+    for _ in 0..8 {
+        let batch = client.next_batch(spec, Duration::from_secs(10)).unwrap();
+        let Some(Batch::Transition(b)) = batch else {
+            panic!("no batch after the budget was stored");
+        };
+        // nothing past the budget was stored
+        assert!(b.obs.chunks(OBS).all(|f| f[1] < 437.0), "{:?}", b.obs);
+    }
+    control.shutdown.store(true, Ordering::Release);
+    let status = replay.join().unwrap().unwrap();
+    assert_eq!((status.inserted, status.fill), (437, 437));
+    assert_eq!(status.sampled, 8 * 50);
+    let streams: ctxrace_run::results::ReplayStreams =
+        ctxrace_run::results::read_json(&streams_path).unwrap();
+    assert!(streams.budget_stored(), "{streams:?}");
+    assert_eq!(
+        (streams.stored_by_actor, streams.surplus_by_actor),
+        (vec![437], vec![163])
+    );
 }
 
 #[test]

@@ -40,6 +40,30 @@ pub struct TrainingEpisode {
     pub steps: usize,
 }
 
+/// What the replay's current start took of each actor and of the budget
+/// ([`crate::run_dir::REPLAY_STREAMS`]), written by the replay each second: its own counts,
+/// not what any message claims.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ReplayStreams {
+    /// Steps stored, by actor id.
+    pub stored_by_actor: Vec<u64>,
+    /// Steps that arrived after the run's env-step budget was stored, not stored, by actor id.
+    pub surplus_by_actor: Vec<u64>,
+    /// Chunks rejected, by actor id.
+    pub rejected_by_actor: Vec<u64>,
+    /// Steps stored in all, those restored from a snapshot included.
+    pub inserted: u64,
+    /// The run's env-step budget: the replay stores no more.
+    pub env_steps: u64,
+}
+
+impl ReplayStreams {
+    /// Whether the replay has stored the whole budget: no more steps are needed.
+    pub fn budget_stored(&self) -> bool {
+        self.env_steps > 0 && self.inserted >= self.env_steps
+    }
+}
+
 /// Why a result file could not be read or written; each names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum ResultsError {

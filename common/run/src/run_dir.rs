@@ -8,7 +8,7 @@
 //!   status.json            STATUS_FILE: the launcher's live counters
 //!   learner-status.json    LEARNER_STATUS: the learner's transport counters, each second
 //!   replay-status.json     REPLAY_REPORT: the replay's final counters
-//!   replay-streams.json    REPLAY_STREAMS: the steps stored and chunks rejected of each actor
+//!   replay-streams.json    REPLAY_STREAMS: the steps stored, surplus and rejected of each actor
 //!   replay.snapshot        REPLAY_SNAPSHOT: the replay buffer, for restarts
 //!   actors/actor-<id>-<n>.json   ACTOR_REPORTS: each actor incarnation's final counters
 //!   logs/<role>.log        LOGS: each process's log
@@ -48,9 +48,9 @@ pub const STATUS_FILE: &str = "status.json";
 /// The learner's transport counters of its current start, rewritten each second (the launcher
 /// copies them into [`STATUS_FILE`]).
 pub const LEARNER_STATUS: &str = "learner-status.json";
-/// The steps the replay's current start stored of each actor (`stored_by_actor`) and the chunks
-/// it rejected of each (`rejected_by_actor`), rewritten each second: the launcher restarts an
-/// actor that steps while none of its steps arrive.
+/// What the replay's current start took of each actor, and of the run's env-step budget
+/// ([`crate::results::ReplayStreams`]), rewritten each second: the launcher restarts an actor
+/// that steps while none of its steps arrive, and stops the actors once the budget is stored.
 pub const REPLAY_STREAMS: &str = "replay-streams.json";
 /// The replay's final counters.
 pub const REPLAY_REPORT: &str = "replay-status.json";
