@@ -116,6 +116,12 @@ fn episode_rows(run: &Path) -> Vec<(f64, f64, String)> {
         .collect()
 }
 
+/// The sum of a JSON array of counts.
+fn sum_of(counts: &Value) -> u64 {
+    let counts = counts.as_array().unwrap_or_else(|| panic!("not an array: {counts}"));
+    counts.iter().map(|n| n.as_u64().unwrap()).sum()
+}
+
 fn json(path: &Path) -> Value {
     let text = std::fs::read_to_string(path);
     let text = text.unwrap_or_else(|e| {
@@ -167,8 +173,11 @@ fn check_clean_run(run: &Path, actors: usize) {
         .iter()
         .map(|(_, r)| r["sent_steps"].as_u64().unwrap())
         .sum();
+    // the replay stored the run's budget, no more, and counted what came after
+    let streams = json(&run.join("replay-streams.json"));
+    assert_eq!(replay["inserted"], streams["env_steps"], "{streams}");
     assert_eq!(
-        replay["inserted"].as_u64().unwrap(),
+        replay["inserted"].as_u64().unwrap() + sum_of(&streams["surplus_by_actor"]),
         sent,
         "{replay} vs {reports:?}"
     );
@@ -187,14 +196,11 @@ fn check_clean_run(run: &Path, actors: usize) {
     );
     let last_step = status["grad_steps"].as_u64().unwrap();
     // the replay's last count of each actor's stored steps: together, all it inserted
-    let streams = json(&run.join("replay-streams.json"));
-    let stored: u64 = streams["stored_by_actor"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|n| n.as_u64().unwrap())
-        .sum();
-    assert_eq!(stored, replay["inserted"].as_u64().unwrap(), "{streams}");
+    assert_eq!(
+        sum_of(&streams["stored_by_actor"]),
+        replay["inserted"].as_u64().unwrap(),
+        "{streams}"
+    );
     // the learner's own counters: every gradient step took one batch, none was rejected
     let learner = &status["learner"];
     assert_eq!(learner["grad_steps"].as_u64(), Some(last_step), "{status}");
@@ -250,14 +256,17 @@ fn check_clean_run(run: &Path, actors: usize) {
         assert_eq!(lag, last_step.saturating_sub(version), "{status}");
     }
     assert_eq!(replay["dropped_chunks"].as_u64().unwrap(), 0, "{replay}");
-    // Reverb's ratio: samples per insert beyond the minimum fill, while the learner trained
-    let inserted = replay["inserted_at_last_batch"].as_f64().unwrap();
+    // the train ratio: each env step stored past the prefill bought `train_ratio` gradient
+    // steps, each sampling spi / train_ratio steps (the learner finishes on the final data)
+    let config: toml::Table =
+        toml::from_str(&std::fs::read_to_string(run.join("config.toml")).unwrap()).unwrap();
+    let prefill = config["train"]["prefill"].as_integer().unwrap() as f64;
+    let inserted = replay["inserted"].as_f64().unwrap();
     let sampled = replay["sampled"].as_f64().unwrap();
-    let min_fill = replay["min_fill"].as_f64().unwrap();
     let spi = replay["samples_per_insert"].as_f64().unwrap();
-    let ratio = sampled / (inserted - min_fill);
+    let ratio = sampled / (inserted - prefill);
     assert!(
-        (ratio / spi - 1.0).abs() < 0.1,
+        (ratio / spi - 1.0).abs() < 0.01,
         "ratio {ratio} vs {spi}: {replay}"
     );
     assert!(run.join("checkpoints").read_dir().unwrap().count() >= 1);
@@ -864,8 +873,9 @@ fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
         .iter()
         .map(|(_, r)| r["sent_steps"].as_u64().unwrap())
         .sum();
+    let streams = json(&run.join("replay-streams.json"));
     assert_eq!(
-        replay["inserted"].as_u64().unwrap(),
+        replay["inserted"].as_u64().unwrap() + sum_of(&streams["surplus_by_actor"]),
         sent,
         "{replay}\n{reports:?}\n{}",
         logs(&run)

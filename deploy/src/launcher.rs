@@ -9,10 +9,14 @@
 //! Each child's tracing output goes to `<run>/logs/<role>.log` (level info unless `RUST_LOG`
 //! says otherwise).
 //!
-//! The run ends when the learner has taken its gradient steps (it exits by itself; the replay's
-//! rate limiter has held the actors to about `env_steps` steps by then). Then the actors, the
-//! replay and the learner are stopped together: the replay takes the actors' last chunks whatever
-//! its limiter says, so that a clean run drops no step.
+//! The replay stores `[train] env_steps` steps and no more (its rate limiter holds the actors to
+//! the learner's pace meanwhile); once it has, the launcher stops the actors (what they send
+//! meanwhile is taken and counted as surplus). The run ends when the learner has taken its
+//! gradient steps (it exits by itself; it can be up to `[replay] error_buffer_steps` ahead of the
+//! actors, and a replay restart loses the steps after its snapshot: then fewer are stored). Then
+//! the actors, the replay and the learner are stopped together: the replay takes the actors' last
+//! chunks whatever its limiter says (past the budget as surplus), so that a clean run drops no
+//! step.
 
 use crate::progress::progress_bar;
 use crate::TrackArgs;
@@ -27,7 +31,7 @@ use ctxrace_ipc::{
 };
 use ctxrace_learner::runlog::{EpisodeLog, RateMeter};
 use ctxrace_run::lock::{die_with_parent, DirLock};
-use ctxrace_run::results::{read_json, TrainingEpisode};
+use ctxrace_run::results::{read_json, ReplayStreams, TrainingEpisode};
 use ctxrace_run::run_dir::{
     open_append, ACTOR_REPORTS, LEARNER_STATUS, LOGS, REPLAY_REPORT, REPLAY_STREAMS, STATUS_FILE,
 };
@@ -390,6 +394,12 @@ impl Supervised {
         self.restart_at = Some(Instant::now() + backoff);
     }
 
+    /// Lets a stopped process start again, at once.
+    fn resume(&mut self) {
+        self.retired = false;
+        self.restart_at = Some(Instant::now());
+    }
+
     /// Asks the process to stop (SIGTERM) and keeps it down.
     fn stop(&mut self) {
         self.retired = true;
@@ -440,6 +450,9 @@ struct Progress {
     /// Gradient steps taken twice: those a learner had taken past its newest checkpoint when
     /// it died, which its restart, resuming from that checkpoint, takes again.
     repeated_grad_steps: u64,
+    /// The actors were stopped because the replay holds the run's budget: their policies age
+    /// without lagging.
+    collected: bool,
 }
 
 /// What restarts cost a run, for its closing summary.
@@ -502,6 +515,14 @@ impl Progress {
         }
     }
 
+    /// The largest policy lag of an actor still collecting (0 once they are stopped).
+    fn max_policy_lag(&self) -> u64 {
+        match self.collected {
+            true => 0,
+            false => self.policy_lags().max().unwrap_or(0),
+        }
+    }
+
     /// Each actor's policy age: gradient steps between the learner's newest broadcast and the
     /// version the actor last reported driving with.
     fn policy_lags(&self) -> impl Iterator<Item = u64> + '_ {
@@ -517,7 +538,7 @@ impl Progress {
         } else {
             self.recent_progress.iter().sum::<f64>() / self.recent_progress.len() as f64
         };
-        let lag = self.policy_lags().max().unwrap_or(0);
+        let lag = self.max_policy_lag();
         let rejected = self.replay.rejected + self.telemetry_rejected + self.weights_rejected;
         format!(
             "| {} grad ({:.1}/s) | {} episodes, progress {mean:.3} | replay {:.0}% | lag {lag}{}",
@@ -549,8 +570,9 @@ impl Progress {
                     "id": id,
                     "policy_version": version,
                     "policy_lag": lag,
-                    "stored_steps": streams.stored.get(id),
-                    "rejected_chunks": streams.rejected.get(id),
+                    "stored_steps": streams.stored_by_actor.get(id),
+                    "surplus_steps": streams.surplus_by_actor.get(id),
+                    "rejected_chunks": streams.rejected_by_actor.get(id),
                 })
             })
             .collect();
@@ -560,7 +582,8 @@ impl Progress {
             "episodes": self.episodes,
             "actor_versions": self.actor_versions,
             "actors": actors,
-            "max_policy_lag": self.policy_lags().max().unwrap_or(0),
+            "max_policy_lag": self.max_policy_lag(),
+            "actors_stopped_at_budget": self.collected,
             "replay": {
                 "inserted": r.inserted,
                 "sampled": r.sampled,
@@ -571,6 +594,8 @@ impl Progress {
                 "rejected": r.rejected,
                 "rejected_by_reason": named_reasons(&r.rejected_by_reason),
                 "restored_inserts": r.restored_inserts,
+                "budget_stored": streams.budget_stored(),
+                "surplus": streams.surplus_by_actor.iter().sum::<u64>(),
                 "lost_in_restarts": self.lost_in_restarts,
                 "longest_turn_ms": r.longest_turn_us as f64 / 1e3,
             },
@@ -737,9 +762,10 @@ pub fn run(
     Ok(())
 }
 
-/// One line on where the run's steps went: sent by each actor (every start of it, a killed one
-/// counted to its last heartbeat), stored by the replay, rejected, lost in replay crashes,
-/// dropped; and the gradient steps restarted learners took twice.
+/// One line on where the run's steps went, from the replay's own counts first: stored (of
+/// each actor), past the budget, rejected, lost in replay crashes; then what the actors report
+/// sending (every start of each, a killed one counted to its last heartbeat), what of that is
+/// not accounted for, and dropped; and the gradient steps restarted learners took twice.
 fn step_summary(dir: &Path, costs: RestartCosts) -> String {
     let read = |path: &Path| -> Option<serde_json::Value> {
         serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
@@ -756,42 +782,65 @@ fn step_summary(dir: &Path, costs: RestartCosts) -> String {
     let shares: Vec<String> = sent.values().map(u64::to_string).collect();
     let lost = costs.lost;
     let total = sent.values().sum::<u64>() + costs.killed_actor_steps;
-    let mut line = format!(
-        "steps: {total} sent by the actors ({}{})",
+    let join = |v: &[u64]| v.iter().map(u64::to_string).collect::<Vec<_>>().join(" / ");
+    let mut line = String::from("steps: ");
+    let mut taken = None;
+    if let Some(replay) = read(&dir.join(REPLAY_REPORT)) {
+        let stored = replay["inserted"].as_u64().unwrap_or(0);
+        line += &format!("{stored} stored by the replay");
+        // what the replay itself took of each actor: its count, not the actors' claims
+        let streams = replay_streams(dir);
+        let surplus = streams.surplus_by_actor.iter().sum::<u64>();
+        if !streams.stored_by_actor.is_empty() {
+            line += &format!(" ({} of each actor", join(&streams.stored_by_actor));
+            // a restarted replay counts from its restart
+            let restarted = replay["restored_inserts"].as_u64().unwrap_or(0) > 0;
+            line += if restarted { ", its last start)" } else { ")" };
+        }
+        if stored < streams.env_steps {
+            line += &format!(
+                ", {} short of the run's budget of {} (the learner took its gradient steps first)",
+                streams.env_steps - stored,
+                streams.env_steps
+            );
+        }
+        if surplus > 0 {
+            line += &format!(
+                ", {surplus} past the run's budget of {} (taken, not stored: {} of each actor)",
+                streams.env_steps,
+                join(&streams.surplus_by_actor)
+            );
+        }
+        line += &format!(
+            ", {} rejected{}, longest replay stall {:.1} ms",
+            replay["rejected"],
+            if streams.rejected_by_actor.iter().any(|&n| n > 0) {
+                format!(" (chunks of each actor {})", join(&streams.rejected_by_actor))
+            } else {
+                String::new()
+            },
+            replay["longest_turn_ms"].as_f64().unwrap_or(0.0)
+        );
+        if lost > 0 {
+            line += &format!(
+                "; {lost} LOST in replay restarts (stored, not in the snapshot it restarted from)"
+            );
+        }
+        taken = Some(stored + surplus + lost);
+    }
+    line += &format!(
+        "; the actors report {total} sent ({}{})",
         shares.join(" / "),
         match costs.killed_actor_steps {
             0 => String::new(),
             k => format!(", and {k} by killed actors to their last heartbeat"),
         }
     );
-    if let Some(replay) = read(&dir.join(REPLAY_REPORT)) {
-        let stored = replay["inserted"].as_u64().unwrap_or(0);
-        line += &format!(
-            ", {stored} stored by the replay, {} rejected, longest replay stall {:.1} ms",
-            replay["rejected"],
-            replay["longest_turn_ms"].as_f64().unwrap_or(0.0)
-        );
-        // what the replay itself took of each actor: its count, not the actors' claims
-        let streams = replay_streams(dir);
-        let join = |v: &[u64]| v.iter().map(u64::to_string).collect::<Vec<_>>().join(" / ");
-        if !streams.stored.is_empty() {
-            line += &format!(" ({} of each actor", join(&streams.stored));
-            if streams.rejected.iter().any(|&n| n > 0) {
-                line += &format!(", chunks rejected {}", join(&streams.rejected));
-            }
-            // a restarted replay counts from its restart
-            let restarted = replay["restored_inserts"].as_u64().unwrap_or(0) > 0;
-            line += if restarted { ", its last start)" } else { ")" };
-        }
-        if lost > 0 {
-            line += &format!(
-                "; {lost} LOST in replay restarts (stored, not in the snapshot it restarted from)"
-            );
-        }
-        let unaccounted = total.saturating_sub(stored + lost);
+    if let Some(taken) = taken {
+        let unaccounted = total.saturating_sub(taken);
         if unaccounted > 0 {
             line += &format!(
-                "; {unaccounted} sent neither stored nor counted lost (in rejected chunks, or \
+                "; {unaccounted} sent neither stored nor counted (in rejected chunks, or \
                  waiting at a replay that crashed)"
             );
         }
@@ -885,17 +934,6 @@ fn log_tail(path: &Path, n: usize) -> String {
 fn tolerate<T>(read: Result<T, IpcError>) -> Option<T> {
     read.map_err(|e| tracing::warn!("telemetry: {}", Causes(&e)))
         .ok()
-}
-
-/// What the replay's current start took of each actor ([`REPLAY_STREAMS`]).
-#[derive(Debug, Default, serde::Deserialize)]
-struct ReplayStreams {
-    /// Steps stored, by actor id.
-    #[serde(rename = "stored_by_actor")]
-    stored: Vec<u64>,
-    /// Chunks rejected, by actor id.
-    #[serde(rename = "rejected_by_actor")]
-    rejected: Vec<u64>,
 }
 
 /// Reads [`REPLAY_STREAMS`]; empty where the file is missing or unreadable (the checks wait for
@@ -1034,17 +1072,40 @@ fn supervise(
                 ));
             }
         }
-        if last_streams.elapsed() >= Duration::from_secs(1) {
+        // read each second, and at every look while the actors still collect: the replay writes
+        // it at once when the budget is stored, and every step they take after is surplus
+        if last_streams.elapsed() >= Duration::from_secs(1) || !p.collected {
             // a replay's file from before its restart counts its old start: none until it writes
             replay_took = replay
                 .last_sign
                 .map_or(ReplayStreams::default(), |_| replay_streams(dir));
             last_streams = Instant::now();
+            // the replay holds the run's env-step budget: the actors are done, and stop (what
+            // they send meanwhile is counted as surplus); should a restarted replay hold less
+            // (its snapshot was older), they start again
+            let stored = replay_took.budget_stored();
+            if stored && !p.collected {
+                tracing::info!(
+                    "the replay stored the run's {} env steps: stopping the actors",
+                    replay_took.env_steps
+                );
+                actors.iter_mut().for_each(Supervised::stop);
+                p.collected = true;
+            } else if p.collected && !stored && replay.last_sign.is_some() {
+                tracing::warn!(
+                    "the restarted replay holds {} of the run's {} env steps: starting the \
+                     actors again",
+                    replay_took.inserted,
+                    replay_took.env_steps
+                );
+                actors.iter_mut().for_each(Supervised::resume);
+                p.collected = false;
+            }
         }
         for ((actor, watch), (&stored, &beat)) in actors
             .iter_mut()
             .zip(&mut streams)
-            .zip(replay_took.stored.iter().zip(&p.actor_beat_steps))
+            .zip(replay_took.stored_by_actor.iter().zip(&p.actor_beat_steps))
         {
             if actor.child.is_none() {
                 continue;
@@ -1222,7 +1283,7 @@ mod tests {
         );
         assert!(line.contains("550 LOST in replay restarts"), "{line}");
         assert!(
-            line.contains("50 sent neither stored nor counted lost"),
+            line.contains("50 sent neither stored nor counted"),
             "{line}"
         );
         assert!(line.contains("none dropped"), "{line}");
@@ -1265,10 +1326,43 @@ mod tests {
         std::fs::write(actors.join("actor-1-0.json"), report.to_string()).unwrap();
         let line = step_summary(dir.path(), p.restart_costs());
         assert!(
-            line.contains("1000 sent by the actors (700, and 300 by killed actors"),
+            line.contains("the actors report 1000 sent (700, and 300 by killed actors"),
             "{line}"
         );
         assert!(line.contains("50 gradient steps TAKEN TWICE"), "{line}");
+    }
+
+    #[test]
+    fn the_summary_counts_steps_past_the_budget_from_the_replays_own_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let actors = dir.path().join(ACTOR_REPORTS);
+        std::fs::create_dir(&actors).unwrap();
+        for (id, sent) in [(0, 1700), (1, 1500)] {
+            let report = serde_json::json!({ "id": id, "sent_steps": sent, "dropped_steps": 0 });
+            std::fs::write(
+                actors.join(format!("actor-{id}-0.json")),
+                report.to_string(),
+            )
+            .unwrap();
+        }
+        let replay = serde_json::json!({ "inserted": 3000, "rejected": 0, "longest_turn_ms": 1.0 });
+        std::fs::write(dir.path().join(REPLAY_REPORT), replay.to_string()).unwrap();
+        let streams = ReplayStreams {
+            stored_by_actor: vec![1600, 1400],
+            surplus_by_actor: vec![100, 60],
+            rejected_by_actor: vec![0, 0],
+            inserted: 3000,
+            env_steps: 3000,
+        };
+        ctxrace_run::results::write_json(&dir.path().join(REPLAY_STREAMS), &streams).unwrap();
+        let line = step_summary(dir.path(), RestartCosts::default());
+        assert!(
+            line.starts_with("steps: 3000 stored by the replay (1600 / 1400 of each actor), 160 past the run's budget of 3000"),
+            "{line}"
+        );
+        // 3200 sent, 3160 taken: 40 unaccounted for
+        assert!(line.contains("the actors report 3200 sent (1700 / 1500)"), "{line}");
+        assert!(line.contains("; 40 sent neither stored nor counted"), "{line}");
     }
 
     /// A cleanup that hangs (as on a truncated management segment) holds up no poll: the
