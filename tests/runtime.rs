@@ -118,7 +118,9 @@ fn episode_rows(run: &Path) -> Vec<(f64, f64, String)> {
 
 /// The sum of a JSON array of counts.
 fn sum_of(counts: &Value) -> u64 {
-    let counts = counts.as_array().unwrap_or_else(|| panic!("not an array: {counts}"));
+    let counts = counts
+        .as_array()
+        .unwrap_or_else(|| panic!("not an array: {counts}"));
     counts.iter().map(|n| n.as_u64().unwrap()).sum()
 }
 

@@ -815,7 +815,10 @@ fn step_summary(dir: &Path, costs: RestartCosts) -> String {
             ", {} rejected{}, longest replay stall {:.1} ms",
             replay["rejected"],
             if streams.rejected_by_actor.iter().any(|&n| n > 0) {
-                format!(" (chunks of each actor {})", join(&streams.rejected_by_actor))
+                format!(
+                    " (chunks of each actor {})",
+                    join(&streams.rejected_by_actor)
+                )
             } else {
                 String::new()
             },
@@ -1361,8 +1364,14 @@ mod tests {
             "{line}"
         );
         // 3200 sent, 3160 taken: 40 unaccounted for
-        assert!(line.contains("the actors report 3200 sent (1700 / 1500)"), "{line}");
-        assert!(line.contains("; 40 sent neither stored nor counted"), "{line}");
+        assert!(
+            line.contains("the actors report 3200 sent (1700 / 1500)"),
+            "{line}"
+        );
+        assert!(
+            line.contains("; 40 sent neither stored nor counted"),
+            "{line}"
+        );
     }
 
     /// A cleanup that hangs (as on a truncated management segment) holds up no poll: the

@@ -13,11 +13,11 @@ use ctxrace_config::validate::ConfigError;
 use ctxrace_config::BatchSpec;
 use ctxrace_config::ReplayOptions;
 use ctxrace_ipc::wire::{ReplayStatus, WireError, FORMAT_VERSION, MAX_PENDING_REQUESTS, REASONS};
-use ctxrace_run::results::ReplayStreams;
 use ctxrace_ipc::{
-    BatchRequest, BatchServer, ChunkView, IpcError, Next, ReplayBeacon, RunTransport, StatusPublisher,
-    TrajectoryReceiver, Wake,
+    BatchRequest, BatchServer, ChunkView, IpcError, Next, ReplayBeacon, RunTransport,
+    StatusPublisher, TrajectoryReceiver, Wake,
 };
+use ctxrace_run::results::ReplayStreams;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::collections::VecDeque;
