@@ -10,13 +10,12 @@
 //! says otherwise).
 //!
 //! The replay stores `[train] env_steps` steps and no more (its rate limiter holds the actors to
-//! the learner's pace meanwhile); once it has, the launcher stops the actors (what they send
-//! meanwhile is taken and counted as surplus). The run ends when the learner has taken its
-//! gradient steps (it exits by itself; it can be up to `[replay] error_buffer_steps` ahead of the
-//! actors, and a replay restart loses the steps after its snapshot: then fewer are stored). Then
-//! the actors, the replay and the learner are stopped together: the replay takes the actors' last
-//! chunks whatever its limiter says (past the budget as surplus), so that a clean run drops no
-//! step.
+//! the learner's pace meanwhile; once the budget is stored they wait, idle). The run ends when
+//! the learner has taken its gradient steps (it exits by itself; it can be up to `[replay]
+//! error_buffer_steps` ahead of the actors, and a replay restart loses the steps after its
+//! snapshot: then fewer are stored). Then the actors, the replay and the learner are stopped
+//! together: the replay takes the actors' last chunks whatever its limiter says (past the budget
+//! as surplus), so that a clean run drops no step.
 
 use crate::progress::progress_bar;
 use crate::TrackArgs;
@@ -394,12 +393,6 @@ impl Supervised {
         self.restart_at = Some(Instant::now() + backoff);
     }
 
-    /// Lets a stopped process start again, at once.
-    fn resume(&mut self) {
-        self.retired = false;
-        self.restart_at = Some(Instant::now());
-    }
-
     /// Asks the process to stop (SIGTERM) and keeps it down.
     fn stop(&mut self) {
         self.retired = true;
@@ -450,9 +443,6 @@ struct Progress {
     /// Gradient steps taken twice: those a learner had taken past its newest checkpoint when
     /// it died, which its restart, resuming from that checkpoint, takes again.
     repeated_grad_steps: u64,
-    /// The actors were stopped because the replay holds the run's budget: their policies age
-    /// without lagging.
-    collected: bool,
 }
 
 /// What restarts cost a run, for its closing summary.
@@ -515,14 +505,6 @@ impl Progress {
         }
     }
 
-    /// The largest policy lag of an actor still collecting (0 once they are stopped).
-    fn max_policy_lag(&self) -> u64 {
-        match self.collected {
-            true => 0,
-            false => self.policy_lags().max().unwrap_or(0),
-        }
-    }
-
     /// Each actor's policy age: gradient steps between the learner's newest broadcast and the
     /// version the actor last reported driving with.
     fn policy_lags(&self) -> impl Iterator<Item = u64> + '_ {
@@ -538,7 +520,7 @@ impl Progress {
         } else {
             self.recent_progress.iter().sum::<f64>() / self.recent_progress.len() as f64
         };
-        let lag = self.max_policy_lag();
+        let lag = self.policy_lags().max().unwrap_or(0);
         let rejected = self.replay.rejected + self.telemetry_rejected + self.weights_rejected;
         format!(
             "| {} grad ({:.1}/s) | {} episodes, progress {mean:.3} | replay {:.0}% | lag {lag}{}",
@@ -582,8 +564,7 @@ impl Progress {
             "episodes": self.episodes,
             "actor_versions": self.actor_versions,
             "actors": actors,
-            "max_policy_lag": self.max_policy_lag(),
-            "actors_stopped_at_budget": self.collected,
+            "max_policy_lag": self.policy_lags().max().unwrap_or(0),
             "replay": {
                 "inserted": r.inserted,
                 "sampled": r.sampled,
@@ -1075,35 +1056,12 @@ fn supervise(
                 ));
             }
         }
-        // read each second, and at every look while the actors still collect: the replay writes
-        // it at once when the budget is stored, and every step they take after is surplus
-        if last_streams.elapsed() >= Duration::from_secs(1) || !p.collected {
+        if last_streams.elapsed() >= Duration::from_secs(1) {
             // a replay's file from before its restart counts its old start: none until it writes
             replay_took = replay
                 .last_sign
                 .map_or(ReplayStreams::default(), |_| replay_streams(dir));
             last_streams = Instant::now();
-            // the replay holds the run's env-step budget: the actors are done, and stop (what
-            // they send meanwhile is counted as surplus); should a restarted replay hold less
-            // (its snapshot was older), they start again
-            let stored = replay_took.budget_stored();
-            if stored && !p.collected {
-                tracing::info!(
-                    "the replay stored the run's {} env steps: stopping the actors",
-                    replay_took.env_steps
-                );
-                actors.iter_mut().for_each(Supervised::stop);
-                p.collected = true;
-            } else if p.collected && !stored && replay.last_sign.is_some() {
-                tracing::warn!(
-                    "the restarted replay holds {} of the run's {} env steps: starting the \
-                     actors again",
-                    replay_took.inserted,
-                    replay_took.env_steps
-                );
-                actors.iter_mut().for_each(Supervised::resume);
-                p.collected = false;
-            }
         }
         for ((actor, watch), (&stored, &beat)) in actors
             .iter_mut()

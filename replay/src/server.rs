@@ -163,10 +163,11 @@ impl Counters {
     }
 }
 
-/// The run's env-step budget: the replay stores at most `limit` steps in all; what arrives
-/// after is counted, by actor, and not stored. Once the budget is stored the rate limiter is
-/// closed: no more inserts will come, so the learner takes its last gradient steps on the final
-/// data instead of waiting for steps that never arrive.
+/// The run's env-step budget: the replay stores at most `limit` steps in all. Once it has, it
+/// takes no chunk until it stops (the actors wait, idle), then takes what they queued and counts
+/// it, by actor, without storing it. The rate limiter is closed then: no more inserts will come,
+/// so the learner takes its last gradient steps on the final data instead of waiting for steps
+/// that never arrive.
 struct Budget {
     limit: u64,
     /// Steps that arrived past the budget, by actor.
@@ -191,7 +192,8 @@ impl Budget {
         if self.spent(limiter) && !limiter.is_closed() {
             limiter.close();
             tracing::info!(
-                "replay: the run's {} env steps are stored; later steps are counted as surplus",
+                "replay: the run's {} env steps are stored; no chunk is taken until the replay \
+                 stops, and what the actors queued is then counted as surplus",
                 self.limit
             );
         }
@@ -260,14 +262,15 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, R
         ..Counters::default()
     };
     let mut last_status = Instant::now();
-    let mut announced_spent = false;
     let mut last_snapshot = Instant::now();
     let mut writer = BackgroundWriter::default();
     let signalled = transport.serve(Wake::Replay, TICK, args.handle_signals, || {
         let turn = Instant::now();
         // The limiter is asked before every chunk: too fast actors wait in backpressure.
         let mut taken = 0;
-        while taken < CHUNKS_PER_TURN && (budget.spent(&limiter) || limiter.can_insert(1)) {
+        // Once the budget is stored, no chunk is taken until the replay stops: the actors wait,
+        // idle, and what they queued meanwhile is taken then (and counted as surplus).
+        while taken < CHUNKS_PER_TURN && !budget.spent(&limiter) && limiter.can_insert(1) {
             let got = chunks.receive(1, |c| budget.store(c, &mut buffer, &mut limiter))?;
             if got == 0 {
                 break;
@@ -323,14 +326,11 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, R
                 None => break,
             }
         }
-        // the launcher stops the actors once the budget is stored: it hears so at once
-        let spent = budget.spent(&limiter);
-        if last_status.elapsed() >= STATUS_EVERY || spent != announced_spent {
+        if last_status.elapsed() >= STATUS_EVERY {
             let s = counters.status(&buffer, &limiter, &chunks, &server, pending.len());
             status.publish(s)?;
             write_streams(args, &chunks, &budget, &limiter);
             last_status = Instant::now();
-            announced_spent = spent;
         }
         if opts.snapshot_every_secs > 0
             && last_snapshot.elapsed() >= Duration::from_secs(opts.snapshot_every_secs)

@@ -344,8 +344,9 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
     assert_eq!(status.rejected, 1);
 }
 
-/// The replay stores the run's env-step budget and no more: the steps past it are counted as
-/// surplus, by actor, and the learner then takes its batches without waiting for inserts.
+/// The replay stores the run's env-step budget and no more: the steps past it wait at the actor
+/// until the replay stops, which takes them and counts them as surplus, by actor; meanwhile the
+/// learner takes its batches without waiting for inserts.
 #[test]
 fn the_replay_stores_the_budget_counts_the_surplus_and_lets_the_learner_finish() {
     let isolated = Isolated::new("budget");
@@ -378,7 +379,8 @@ fn the_replay_stores_the_budget_counts_the_surplus_and_lets_the_learner_finish()
     };
     let t = RunTransport::open(&prefix, 1, "actor0").unwrap();
     let mut tx = TrajectorySender::new(&t, 0, OBS, ACT, SenderOptions::default()).unwrap();
-    for k in 0..600u64 {
+    // more than the replay's queue holds: the rest waits in the actor's backlog
+    for k in 0..2000u64 {
         let step = TrajectoryStep {
             obs: &[0.0, k as f32, 0.0],
             action: &[0.0, 0.0],
@@ -391,8 +393,6 @@ fn the_replay_stores_the_budget_counts_the_surplus_and_lets_the_learner_finish()
         };
         tx.push(k / 100, 0, &step).unwrap();
     }
-    // every step is taken: those past the budget too, so that the actor is not held up
-    assert_eq!(tx.close().unwrap().sent_steps, 600);
     let mut client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(10)).unwrap();
     let spec = BatchSpec::Transition {
         batch: 50,
@@ -409,7 +409,13 @@ fn the_replay_stores_the_budget_counts_the_surplus_and_lets_the_learner_finish()
         // nothing past the budget was stored
         assert!(b.obs.chunks(OBS).all(|f| f[1] < 437.0), "{:?}", b.obs);
     }
+    // the replay took nothing more while it ran: the actor's steps past the budget wait in its
+    // queue and backlog
+    let held = tx.stats();
+    assert!(held.sent_steps < 2000 && tx.backlog() > 0, "{held:?}");
+    // stopping, the replay takes all of them (not stored) while the actor closes
     control.shutdown.store(true, Ordering::Release);
+    assert_eq!(tx.close().unwrap().sent_steps, 2000);
     let status = replay.join().unwrap().unwrap();
     assert_eq!((status.inserted, status.fill), (437, 437));
     assert_eq!(status.sampled, 8 * 50);
@@ -418,7 +424,7 @@ fn the_replay_stores_the_budget_counts_the_surplus_and_lets_the_learner_finish()
     assert!(streams.budget_stored(), "{streams:?}");
     assert_eq!(
         (streams.stored_by_actor, streams.surplus_by_actor),
-        (vec![437], vec![163])
+        (vec![437], vec![1563])
     );
 }
 
