@@ -240,9 +240,13 @@ fn check_clean_run(run: &Path, actors: usize) {
         // is a share of the run, not a step count: a fast learner takes many steps while an
         // actor waits for a core. Two fifths still catches both of those (87% and 52%) and
         // leaves room for a loaded machine, where a healthy run's first version came at 250 of
-        // 900 steps (with two runs and the other runtime tests sharing 2 busy cores).
+        // 900 steps (with two runs and the other runtime tests sharing 2 busy cores). The last
+        // version may come after a jump: once the replay holds the budget the learner takes its
+        // remaining steps on the final data, unpaced (a small run's in a fraction of a second),
+        // and the waiting actors load only what is newest when they look.
         let bound = last_step * 2 / 5;
-        let gap = versions.windows(2).map(|w| w[1] - w[0]).max().unwrap_or(0);
+        let paced = &versions[..versions.len() - 1];
+        let gap = paced.windows(2).map(|w| w[1] - w[0]).max().unwrap_or(0);
         assert!(
             versions[0] <= bound && gap <= bound,
             "{name} lagged (more than {bound} of {last_step} steps): {versions:?}"
