@@ -1132,10 +1132,12 @@ fn bit_flips_in_live_segments_leave_the_run_to_end_with_plausible_records() {
     let stderr = finish(child, Duration::from_secs(400));
     let exits = stderr.matches(" exited (").count();
     let restarted = stderr.matches("restarting").count();
-    // the records: env steps within what two actors could send, PG within its range
+    // the records: env steps within the run's budget (the actors' own counts ran past twice it
+    // once, 60,009 at gradient step 700: steps in rejected chunks are not held back, and a
+    // corrupted report may claim a plausible count), PG within its range
     let rows = episode_rows(&run);
     for (steps, progress, row) in &rows {
-        assert!(*steps <= 2.0 * env_steps as f64, "{row}");
+        assert!(*steps <= env_steps as f64, "{row}");
         assert!((0.0..=1.5).contains(progress), "{row}");
     }
     let checked = rows.len();

@@ -505,6 +505,16 @@ impl Progress {
         }
     }
 
+    /// An episode row's env steps: the replay's count, or the actors' own while that lags (it
+    /// comes once a second), never past `budget`, which the replay never stores more than: the
+    /// actors' counts take in steps of rejected chunks (which do not hold an actor back), and a
+    /// corrupted report may claim any plausible count.
+    fn row_env_steps(&self, budget: u64) -> u64 {
+        self.env_steps
+            .max(self.actor_steps.iter().sum())
+            .min(budget)
+    }
+
     /// Each actor's policy age: gradient steps between the learner's newest broadcast and the
     /// version the actor last reported driving with.
     fn policy_lags(&self) -> impl Iterator<Item = u64> + '_ {
@@ -1020,7 +1030,7 @@ fn supervise(
                 p.recent_progress.remove(0);
             }
             episodes.write(&TrainingEpisode {
-                env_steps: p.env_steps.max(p.actor_steps.iter().sum()),
+                env_steps: p.row_env_steps(cfg.train.env_steps),
                 grad_steps: p.grad_steps,
                 actor: e.actor_id,
                 episode: e.episode_id,
@@ -1259,6 +1269,22 @@ mod tests {
             !clean.contains("neither") && !clean.contains("TWICE"),
             "{clean}"
         );
+    }
+
+    #[test]
+    fn an_episode_rows_env_steps_never_pass_the_budget() {
+        let mut p = Progress {
+            actor_steps: vec![700, 500],
+            ..Progress::default()
+        };
+        // the replay's count lags: the actors' own
+        p.replay_status(status(1000, 0));
+        assert_eq!(p.row_env_steps(3000), 1200);
+        // the replay's when it is ahead, never past the budget
+        p.replay_status(status(2000, 0));
+        assert_eq!(p.row_env_steps(3000), 2000);
+        p.actor_steps = vec![30_000, 30_009];
+        assert_eq!(p.row_env_steps(3000), 3000);
     }
 
     #[test]
