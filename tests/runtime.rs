@@ -238,18 +238,21 @@ fn check_clean_run(run: &Path, actors: usize) {
         // that got ahead at the start used to wait, blocked and loading nothing, for a good part
         // of the run (`[]`, `[0]`, `[130, 140]` of 150 steps; `[0, 470, ...]` of 900). The bound
         // is a share of the run, not a step count: a fast learner takes many steps while an
-        // actor waits for a core. Two fifths still catches both of those (87% and 52%) and
-        // leaves room for a loaded machine, where a healthy run's first version came at 250 of
-        // 900 steps (with two runs and the other runtime tests sharing 2 busy cores). The last
-        // version may come after a jump: once the replay holds the budget the learner takes its
-        // remaining steps on the final data, unpaced (a small run's in a fraction of a second),
-        // and the waiting actors load only what is newest when they look.
-        let bound = last_step * 2 / 5;
+        // actor waits for a core. Two fifths of the run between versions still catches the gap
+        // (52%); the first version may come later, as an actor's start (its track, its raceline)
+        // can take that long on a loaded machine, where a healthy run's first version came at
+        // 250 and at 450 of 900 steps (two runs and the other runtime tests sharing 2 busy
+        // cores, the other actor supplying the replay): three fifths still catches the 87%. The
+        // last version may come after a jump: once the replay holds the budget the learner takes
+        // its remaining steps on the final data, unpaced (a small run's in a fraction of a
+        // second), and the waiting actors load only what is newest when they look.
+        let (gap_bound, first_bound) = (last_step * 2 / 5, last_step * 3 / 5);
         let paced = &versions[..versions.len() - 1];
         let gap = paced.windows(2).map(|w| w[1] - w[0]).max().unwrap_or(0);
         assert!(
-            versions[0] <= bound && gap <= bound,
-            "{name} lagged (more than {bound} of {last_step} steps): {versions:?}"
+            versions[0] <= first_bound && gap <= gap_bound,
+            "{name} lagged (first version past {first_bound}, or a gap past {gap_bound}, of \
+             {last_step} steps): {versions:?}"
         );
     }
     // the launcher's status names each actor's policy version and its age in gradient steps
