@@ -240,12 +240,13 @@ fn check_clean_run(run: &Path, actors: usize) {
         // is a share of the run, not a step count: a fast learner takes many steps while an
         // actor waits for a core. Two fifths of the run between versions still catches the gap
         // (52%); the first version may come later, as an actor's start (its track, its raceline)
-        // can take that long on a loaded machine, where a healthy run's first version came at
-        // 250 and at 450 of 900 steps (two runs and the other runtime tests sharing 2 busy
-        // cores, the other actor supplying the replay): three fifths still catches the 87%. The
-        // last version may come after a jump: once the replay holds the budget the learner takes
-        // its remaining steps on the final data, unpaced (a small run's in a fraction of a
-        // second), and the waiting actors load only what is newest when they look.
+        // presumably can take that long on a loaded machine, where a healthy run's first
+        // version came at 250 and at 450 of 900 steps (two runs and the other runtime tests
+        // sharing 2 busy cores, the other actor supplying the replay): three fifths still
+        // catches the 87%. The last version may come after a jump: once the replay holds the
+        // budget the learner takes its remaining steps on the final data, unpaced (a small
+        // run's in a fraction of a second), and the waiting actors load only what is newest
+        // when they look.
         let (gap_bound, first_bound) = (last_step * 2 / 5, last_step * 3 / 5);
         let paced = &versions[..versions.len() - 1];
         let gap = paced.windows(2).map(|w| w[1] - w[0]).max().unwrap_or(0);
