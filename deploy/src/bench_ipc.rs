@@ -210,6 +210,7 @@ fn iceoryx_figures(
         // the bench's actors send no weights version
         max_policy_version: 0,
         env_steps: u64::MAX,
+        sampled_at_least: 0,
         handle_signals: false,
         streams_path: None,
     };

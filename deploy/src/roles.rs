@@ -93,6 +93,8 @@ fn replay_args(
         options: replay_options(cfg, run_dir),
         max_policy_version: cfg.gradient_steps(),
         env_steps: cfg.train.env_steps,
+        sampled_at_least: ctxrace_learner::process::resume_step(run_dir)
+            * cfg.agent.batch_spec().steps() as u64,
         handle_signals: true,
         streams_path: Some(run_dir.join(REPLAY_STREAMS)),
     }

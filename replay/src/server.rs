@@ -78,6 +78,11 @@ pub struct ReplayArgs {
     /// The run's env-step budget (`[train] env_steps`): the replay stores at most this many
     /// steps in all (restored ones included) and counts what arrives past it as surplus.
     pub env_steps: u64,
+    /// Steps the learner has certainly sampled: its newest checkpoint's gradient steps times
+    /// the steps of a batch. A restored snapshot older than that checkpoint counts at least
+    /// these, so that the rate limiter holds the resumed learner to the inserts it had (with
+    /// the snapshot's count, it finished a resumed run 4,107 steps short of its 24,000).
+    pub sampled_at_least: u64,
     /// Stop on SIGTERM/SIGINT (a process); false when run on a thread.
     pub handle_signals: bool,
     /// Where to write the steps stored of each actor each second
@@ -226,7 +231,10 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, R
         opts.min_fill as u64,
         opts.error_buffer_steps,
     );
-    limiter.restore(counts.inserts, counts.samples);
+    limiter.restore(
+        counts.inserts,
+        restored_samples(&counts, args.sampled_at_least),
+    );
     let mut budget = Budget::new(args.env_steps, args.actors);
     budget.close_if_spent(&mut limiter);
     let mut rng = ChaCha8Rng::seed_from_u64(opts.seed ^ counts.samples);
@@ -497,6 +505,15 @@ fn restore(args: &ReplayArgs) -> Result<(ReplayBuffer, LimiterCounts), ReplayErr
     Ok((buffer, counts))
 }
 
+/// The samples a restored limiter counts: the snapshot's, or `sampled_at_least` where the
+/// learner's checkpoint is newer; a fresh buffer (nothing restored) starts the ratio over.
+fn restored_samples(counts: &LimiterCounts, sampled_at_least: u64) -> u64 {
+    match counts.inserts {
+        0 => counts.samples,
+        _ => counts.samples.max(sampled_at_least),
+    }
+}
+
 fn limiter_counts(limiter: &RateLimiter) -> LimiterCounts {
     LimiterCounts {
         inserts: limiter.inserts(),
@@ -525,6 +542,17 @@ fn snapshot(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_restored_limiter_counts_at_least_the_learners_checkpointed_samples() {
+        let counts = |inserts, samples| LimiterCounts { inserts, samples };
+        // the snapshot is older than the checkpoint: the checkpoint's count
+        assert_eq!(restored_samples(&counts(11_204, 70_000), 97_280), 97_280);
+        // the snapshot is newer: its own
+        assert_eq!(restored_samples(&counts(11_204, 99_000), 97_280), 99_000);
+        // nothing restored: the ratio starts over
+        assert_eq!(restored_samples(&counts(0, 0), 97_280), 0);
+    }
 
     #[test]
     fn requests_that_could_never_be_served_or_find_the_queue_full_are_refused_with_the_reason() {
@@ -564,6 +592,7 @@ mod tests {
             },
             max_policy_version: 0,
             env_steps: u64::MAX,
+            sampled_at_least: 0,
             handle_signals: false,
             streams_path: None,
         };

@@ -105,6 +105,7 @@ fn two_actors_fill_the_replay_and_the_learner_gets_batches() {
         },
         max_policy_version: 0,
         env_steps: u64::MAX,
+        sampled_at_least: 0,
         handle_signals: false,
         streams_path: None,
     };
@@ -275,6 +276,7 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
         },
         max_policy_version: 0,
         env_steps: u64::MAX,
+        sampled_at_least: 0,
         handle_signals: false,
         streams_path: None,
     };
@@ -369,6 +371,7 @@ fn the_replay_stores_the_budget_counts_the_surplus_and_lets_the_learner_finish()
         max_policy_version: 0,
         // not a chunk boundary: the chunk across it is stored in part
         env_steps: 437,
+        sampled_at_least: 0,
         handle_signals: false,
         streams_path: Some(streams_path.clone()),
     };
