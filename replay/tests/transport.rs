@@ -84,6 +84,51 @@ fn actor(prefix: String, id: u32, poison: bool) -> ctxrace_ipc::SenderStats {
     tx.close().unwrap()
 }
 
+/// The replay of one actor: 0.5 sampled steps per inserted step after 200 inserts, 100 inserts
+/// of slack either way, a budget of `env_steps`.
+fn one_actor_at_half_a_sample_per_insert(
+    prefix: &str,
+    env_steps: u64,
+    streams_path: Option<std::path::PathBuf>,
+) -> ReplayArgs {
+    ReplayArgs {
+        prefix: prefix.to_string(),
+        actors: 1,
+        obs_dim: OBS,
+        act_dim: ACT,
+        options: ReplayOptions {
+            capacity: 10_000,
+            min_fill: 200,
+            samples_per_insert: 0.5,
+            error_buffer_steps: 100.0,
+            snapshot_every_secs: 0,
+            ..Default::default()
+        },
+        max_policy_version: 0,
+        env_steps,
+        sampled_at_least: 0,
+        handle_signals: false,
+        streams_path,
+    }
+}
+
+/// Pushes `steps` steps in episodes of 100, step `k` observing `[0, k, 0]`.
+fn push_episodes(tx: &mut TrajectorySender, steps: u64) {
+    for k in 0..steps {
+        let step = TrajectoryStep {
+            obs: &[0.0, k as f32, 0.0],
+            action: &[0.0, 0.0],
+            reward: 0.0,
+            is_first: k.is_multiple_of(100),
+            is_terminal: false,
+            is_last: k % 100 == 99,
+            context: [0.0, 0.0],
+            mask: None,
+        };
+        tx.push(k / 100, 0, &step).unwrap();
+    }
+}
+
 #[test]
 fn two_actors_fill_the_replay_and_the_learner_gets_batches() {
     let isolated = Isolated::new("transport");
@@ -260,26 +305,7 @@ fn a_stuck_replay_does_not_freeze_the_actor() {
 fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
     let isolated = Isolated::new("ratio");
     let prefix = isolated.0.clone();
-    // 0.5 sampled steps per inserted step after 200 inserts, 100 inserts of slack either way.
-    let args = ReplayArgs {
-        prefix: prefix.clone(),
-        actors: 1,
-        obs_dim: OBS,
-        act_dim: ACT,
-        options: ReplayOptions {
-            capacity: 10_000,
-            min_fill: 200,
-            samples_per_insert: 0.5,
-            error_buffer_steps: 100.0,
-            snapshot_every_secs: 0,
-            ..Default::default()
-        },
-        max_policy_version: 0,
-        env_steps: u64::MAX,
-        sampled_at_least: 0,
-        handle_signals: false,
-        streams_path: None,
-    };
+    let args = one_actor_at_half_a_sample_per_insert(&prefix, u64::MAX, None);
     let control = Arc::new(ReplayControl::default());
     let replay = {
         let (a, c) = (args.clone(), control.clone());
@@ -287,19 +313,7 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
     };
     let t = RunTransport::open(&prefix, 1, "actor0").unwrap();
     let mut tx = TrajectorySender::new(&t, 0, OBS, ACT, SenderOptions::default()).unwrap();
-    for k in 0..600u64 {
-        let step = TrajectoryStep {
-            obs: &[0.0, k as f32, 0.0],
-            action: &[0.0, 0.0],
-            reward: 0.0,
-            is_first: k.is_multiple_of(100),
-            is_terminal: false,
-            is_last: k % 100 == 99,
-            context: [0.0, 0.0],
-            mask: None,
-        };
-        tx.push(k / 100, 0, &step).unwrap();
-    }
+    push_episodes(&mut tx, 600);
     let mut client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(10)).unwrap();
     // the ratio's window is 2 · 0.5 · 100 = 100 samples: a request for 101 can never be
     // served; it is rejected and counted instead of blocking the queue
@@ -355,26 +369,8 @@ fn the_replay_stores_the_budget_counts_the_surplus_and_lets_the_learner_finish()
     let prefix = isolated.0.clone();
     let dir = tempfile::tempdir().unwrap();
     let streams_path = dir.path().join("replay-streams.json");
-    let args = ReplayArgs {
-        prefix: prefix.clone(),
-        actors: 1,
-        obs_dim: OBS,
-        act_dim: ACT,
-        options: ReplayOptions {
-            capacity: 10_000,
-            min_fill: 200,
-            samples_per_insert: 0.5,
-            error_buffer_steps: 100.0,
-            snapshot_every_secs: 0,
-            ..Default::default()
-        },
-        max_policy_version: 0,
-        // not a chunk boundary: the chunk across it is stored in part
-        env_steps: 437,
-        sampled_at_least: 0,
-        handle_signals: false,
-        streams_path: Some(streams_path.clone()),
-    };
+    // not a chunk boundary: the chunk across it is stored in part
+    let args = one_actor_at_half_a_sample_per_insert(&prefix, 437, Some(streams_path.clone()));
     let control = Arc::new(ReplayControl::default());
     let replay = {
         let (a, c) = (args.clone(), control.clone());
@@ -383,19 +379,7 @@ fn the_replay_stores_the_budget_counts_the_surplus_and_lets_the_learner_finish()
     let t = RunTransport::open(&prefix, 1, "actor0").unwrap();
     let mut tx = TrajectorySender::new(&t, 0, OBS, ACT, SenderOptions::default()).unwrap();
     // more than the replay's queue holds: the rest waits in the actor's backlog
-    for k in 0..2000u64 {
-        let step = TrajectoryStep {
-            obs: &[0.0, k as f32, 0.0],
-            action: &[0.0, 0.0],
-            reward: 0.0,
-            is_first: k.is_multiple_of(100),
-            is_terminal: false,
-            is_last: k % 100 == 99,
-            context: [0.0, 0.0],
-            mask: None,
-        };
-        tx.push(k / 100, 0, &step).unwrap();
-    }
+    push_episodes(&mut tx, 2000);
     let mut client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(10)).unwrap();
     let spec = BatchSpec::Transition {
         batch: 50,
