@@ -379,17 +379,9 @@ fn status(run: &Path) -> Option<Value> {
 
 /// The step of the learner's last checkpoint in `run` (0 without one).
 fn last_checkpoint(run: &Path) -> u64 {
-    std::fs::read_dir(run.join("checkpoints"))
-        .into_iter()
-        .flatten()
-        .filter_map(|e| {
-            e.ok()?
-                .file_name()
-                .to_str()?
-                .strip_prefix("step-")?
-                .parse()
-                .ok()
-        })
+    ctxrace_run::checkpoint::checkpoints(run)
+        .iter()
+        .filter_map(|c| ctxrace_run::checkpoint::checkpoint_step(c))
         .max()
         .unwrap_or(0)
 }

@@ -10,7 +10,7 @@
 //!
 //! The sweep skips what is done and resumes what was interrupted: training with `train
 //! --resume` (the learner from its newest checkpoint, the replay from its snapshot; an inline
-//! run starts over), evaluation from its partial files. It runs at most `--jobs` runs at once,
+//! run from its resume point, exactly), evaluation from its partial files. It runs at most `--jobs` runs at once,
 //! each a child `ctxrace sweep MATRIX --run NAME` in its own process group (its output in
 //! `<out>/logs/<name>.log`), the cores shared out between them, and writes the report to
 //! `<out>/report/` once every run is in. Ctrl-C stops the runs cleanly (checkpoint, snapshot);
@@ -147,8 +147,8 @@ struct EvalPass {
 #[derive(Clone, Debug, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SweepTrain {
-    /// Actor processes per run; 0 trains inline (one process, restarted from the beginning if
-    /// interrupted).
+    /// Actor processes per run; 0 trains inline (one process, continued exactly from its
+    /// resume point if interrupted).
     pub actors: usize,
 }
 
@@ -1036,7 +1036,7 @@ train_ratio = 2.0
     }
 
     #[test]
-    fn the_table2_matrix_evaluates_the_papers_test_contexts() {
+    fn the_table2_matrix_evaluates_the_papers_protocol() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/paper/table2.toml");
         let m = MatrixFile::load(&path).unwrap();
         let runs = m
@@ -1044,7 +1044,9 @@ train_ratio = 2.0
             .unwrap();
         // 4 algorithms x 1 and 3 rivals x 5 seeds
         assert_eq!(runs.len(), 40);
-        assert_eq!(m.eval.chosen().unwrap(), Some((17..49).collect()));
+        // all 49 contexts of the 7 x 7 grid, 50 laps each, as the paper's text and means
+        assert_eq!(m.eval.chosen().unwrap(), None);
+        assert_eq!((m.eval.grid, m.eval.laps), (7, 50));
         assert!(runs
             .iter()
             .all(|r| r.config.race.preset == ctxrace_config::RacePreset::PaperCode));

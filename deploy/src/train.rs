@@ -58,8 +58,8 @@ pub struct TrainArgs {
     #[arg(long)]
     run_dir: Option<PathBuf>,
     /// Continue the run in the run directory if it holds this experiment (the learner from its
-    /// newest checkpoint, the replay from its snapshot; an --inline run starts over); start it
-    /// if the directory holds no run.
+    /// newest checkpoint, the replay from its snapshot; an --inline run from its resume point,
+    /// exactly); start it if the directory holds no run.
     #[arg(long)]
     resume: bool,
     /// Learner worker threads [default: the config's, else the algorithm's].
@@ -199,9 +199,21 @@ pub fn run(args: TrainArgs) -> Result<()> {
         return finish(&args, &cfg, dir, trained);
     }
     if run.resumed {
-        // the inline trainer keeps its replay in memory
-        run.start_over()?;
-        eprintln!("{}: the inline run starts over", dir.display());
+        match ctxrace_learner::resume::find(dir) {
+            Ok(Some(point)) => eprintln!(
+                "{}: the inline run continues from its resume point at {} env steps",
+                dir.display(),
+                point.state.source.decisions
+            ),
+            found => {
+                let why = match found {
+                    Err(e) => format!("its resume point is unusable ({e})"),
+                    _ => "it has no resume point".to_string(),
+                };
+                run.start_over()?;
+                eprintln!("{}: the inline run starts over: {why}", dir.display());
+            }
+        }
     }
     train_inline(&cfg, dir, env)?;
     // the inline run ran to its end (with warm-up by episodes its step count is not known
@@ -225,7 +237,7 @@ fn train_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()> 
     let mut collector = Collector::for_experiment(env, cfg, cfg.train.seed);
     let mut buffer = ReplayBuffer::new(cfg.replay.capacity, 1, frame_dim, ACT_DIM);
     let run = ctxrace_learner::inline::run_inline(cfg, dir, &mut collector, &mut buffer, |p| {
-        bar.inc(1);
+        bar.set_position(p.decisions);
         if p.decisions.is_multiple_of(50) {
             bar.set_message(status(p));
         }

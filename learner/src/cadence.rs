@@ -66,6 +66,11 @@ impl Cadence {
         self
     }
 
+    /// The smoothed return behind the best checkpoint.
+    pub fn tracker(&self) -> &ReturnTracker {
+        &self.tracker
+    }
+
     /// Moves the smoothed return by the returns of the policy's finished episodes (every one
     /// moves it); saves `algo`'s policy as the run's best if it reached a new peak.
     pub fn observe_returns(

@@ -9,10 +9,10 @@
 
 use ctxrace_run::checkpoint::Sealed;
 pub use ctxrace_run::checkpoint::{
-    checkpoints, io_error, latest_checkpoint, verify, CheckpointError, Result, MANIFEST_FILE,
-    STATE_FILE,
+    checkpoint_dir, checkpoint_step, checkpoints, io_error, latest_checkpoint, verify,
+    CheckpointError, Result, MANIFEST_FILE, STATE_FILE,
 };
-use ctxrace_run::run_dir::{AGENT_FILE, CHECKPOINTS, POLICY_FILE};
+use ctxrace_run::run_dir::{remove_path, replace_dir, AGENT_FILE, POLICY_FILE};
 use serde::{de::DeserializeOwned, Serialize};
 use std::path::Path;
 
@@ -108,8 +108,7 @@ pub fn write_checkpoint(
     agent: &ctxrace_config::AgentConfig,
     tracker: &impl Serialize,
 ) -> Result<std::path::PathBuf> {
-    let root = run_dir.join(CHECKPOINTS);
-    let final_dir = write_atomically(&root.join(format!("step-{:010}", algo.steps())), |tmp| {
+    let final_dir = write_atomically(&checkpoint_dir(run_dir, algo.steps()), |tmp| {
         algo.save(tmp)?;
         write_policy_files(tmp, algo, agent)?;
         write_toml(&tmp.join(TRACKER_FILE), tracker)
@@ -136,8 +135,9 @@ pub(crate) fn write_policy_files(
     write_toml(&dir.join(AGENT_FILE), agent)
 }
 
-/// Fills a fresh temporary folder beside `final_dir` with `fill` and renames it into place,
-/// replacing an earlier `final_dir`; returns `final_dir`. The temporary folder is created
+/// Fills a fresh temporary folder beside `final_dir` with `fill` and puts it in place
+/// ([`replace_dir`]: an earlier `final_dir` is exchanged for it in one step, so that a crash
+/// leaves one of the two whole); returns `final_dir`. The temporary folder is created
 /// exclusively under a fresh name, so nothing planted beside `final_dir` is written through.
 pub(crate) fn write_atomically(
     final_dir: &Path,
@@ -157,7 +157,8 @@ pub(crate) fn write_atomically(
     let entries = std::fs::read_dir(parent).map_err(|e| io_error("listing", parent, e))?;
     for entry in entries.filter_map(|e| e.ok()) {
         if entry.file_name().to_string_lossy().starts_with(&prefix) {
-            remove(&entry.path())?;
+            let path = entry.path();
+            remove_path(&path).map_err(|e| io_error("removing", &path, e))?;
         }
     }
     let tmp = tempfile::Builder::new()
@@ -167,22 +168,11 @@ pub(crate) fn write_atomically(
         .map_err(|e| io_error("creating a temporary folder in", parent, e))?;
     fill(tmp.path())?;
     seal(tmp.path())?;
-    if final_dir.symlink_metadata().is_ok() {
-        remove(final_dir)?;
-    }
-    std::fs::rename(tmp.path(), final_dir).map_err(|e| io_error("renaming", tmp.path(), e))?;
-    let _ = tmp.keep();
+    // the old folder (if any) goes where the temporary was, and is removed from there
+    let tmp = tmp.keep();
+    replace_dir(&tmp, final_dir).map_err(|e| io_error("putting in place", final_dir, e))?;
     sync(parent)?;
     Ok(final_dir.to_path_buf())
-}
-
-/// Removes a folder with its files, or a file or link (never what a link points to).
-fn remove(path: &Path) -> Result<()> {
-    let removed = match path.symlink_metadata() {
-        Ok(m) if m.is_dir() => std::fs::remove_dir_all(path),
-        _ => std::fs::remove_file(path),
-    };
-    removed.map_err(|e| io_error("removing", path, e))
 }
 
 #[cfg(test)]
@@ -228,8 +218,7 @@ mod tests {
     #[test]
     fn a_damaged_newest_checkpoint_falls_back_to_the_one_before() {
         let run = tempfile::tempdir().unwrap();
-        let root = run.path().join(CHECKPOINTS);
-        let step = |n: u64| root.join(format!("step-{n:010}"));
+        let step = |n: u64| checkpoint_dir(run.path(), n);
         for n in [1u64, 2] {
             write_atomically(&step(n), |d| {
                 std::fs::write(d.join(STATE_FILE), format!("step = {n}")).unwrap();
@@ -263,7 +252,7 @@ mod tests {
     /// An empty sealed checkpoint in a temporary run, its manifest replaced by `manifest`.
     fn with_manifest(manifest: &str) -> (tempfile::TempDir, std::path::PathBuf) {
         let run = tempfile::tempdir().unwrap();
-        let dir = run.path().join(CHECKPOINTS).join("step-0000000001");
+        let dir = checkpoint_dir(run.path(), 1);
         write_atomically(&dir, |_| Ok(())).unwrap();
         std::fs::write(dir.join(MANIFEST_FILE), manifest).unwrap();
         (run, dir)
@@ -310,7 +299,7 @@ mod tests {
     fn a_link_planted_at_the_temporary_folder_is_not_followed() {
         let run = tempfile::tempdir().unwrap();
         let elsewhere = tempfile::tempdir().unwrap();
-        let root = run.path().join(CHECKPOINTS);
+        let root = run.path().join(ctxrace_run::run_dir::CHECKPOINTS);
         std::fs::create_dir_all(&root).unwrap();
         let planted = root.join(".tmp-step-0000000001");
         std::os::unix::fs::symlink(elsewhere.path(), &planted).unwrap();
@@ -342,7 +331,7 @@ mod tests {
                 policy in prop::collection::vec(any::<u8>(), 1..200),
             ) {
                 let run = tempfile::tempdir().unwrap();
-                let dir = run.path().join(CHECKPOINTS).join("step-0000000001");
+                let dir = checkpoint_dir(run.path(), 1);
                 write_atomically(&dir, |d| {
                     std::fs::write(d.join(STATE_FILE), "step = 1").unwrap();
                     std::fs::write(d.join(POLICY_FILE), &policy).unwrap();

@@ -8,7 +8,9 @@
 //! them (the actor's `Collector` on a race, the replay's `ReplayBuffer` in memory) and passes
 //! them in, so that the learner depends on the common crate only.
 
+use crate::best::ReturnTracker;
 use crate::cadence::{Cadence, CadenceError};
+use crate::resume::{self, LoopState};
 use crate::runlog::{EpisodeLog, LogError, RateMeter};
 use crate::LearnerError;
 use ctxrace_config::ExperimentConfig;
@@ -114,16 +116,33 @@ pub fn run_inline<S: ExperienceSource<Policy = Policy>, B: SampleStore>(
     let workers = t.threads_for(cfg.agent.algo);
     let mut algo = crate::build(&cfg.agent, frame_dim, workers)?;
     algo.set_diagnostics_every(t.log_every);
-    let mut policy = Policy::new(&cfg.agent, frame_dim, &algo.policy_weights()?, t.seed)?;
+    let mut acting_weights = algo.policy_weights()?;
+    let mut policy = Policy::new(&cfg.agent, frame_dim, &acting_weights, t.seed)?;
     let mut rng = ChaCha8Rng::seed_from_u64(t.seed ^ 0x7265_706c_6179);
+    let (mut stale_policy, mut recent) = (false, Vec::<f64>::new());
+    let mut trained_after = None;
+    let mut tracker = ReturnTracker::default();
+    // a resume point puts everything back where it was taken, the logs before they are opened
+    if let Some(point) = resume::find(dir).map_err(CadenceError::from)? {
+        point
+            .restore(dir, algo.as_mut(), store)
+            .map_err(CadenceError::from)?;
+        source.restore(&point.state.source);
+        rng.set_word_pos(point.state.sampler_rng_words);
+        policy.load(&point.acting_weights)?;
+        policy.carry(&point.state.policy);
+        acting_weights = point.acting_weights;
+        (stale_policy, recent) = (point.state.stale_policy, point.state.recent);
+        trained_after = point.state.trained_after;
+        tracker = point.tracker;
+    }
     let spec = cfg.agent.batch_spec();
     let mut episodes = EpisodeLog::open(dir, "inline")?;
-    let mut cadence = Cadence::open(dir, cfg, "inline-learner", Default::default())?;
+    let mut cadence = Cadence::open(dir, cfg, "inline-learner", tracker)?;
     let mut meter = RateMeter::default();
     let start = Instant::now();
-    let (mut stale_policy, mut recent) = (false, Vec::<f64>::new());
+    let mut last_point = Instant::now();
     let mut payload = Vec::new();
-    let mut trained_after = None;
     let progress = |source: &S, grad_steps: u64, recent: &[f64]| InlineProgress {
         decisions: source.decisions(),
         grad_steps,
@@ -167,9 +186,32 @@ pub fn run_inline<S: ExperienceSource<Policy = Policy>, B: SampleStore>(
                 stale_policy |= cadence.after_step(algo.as_ref(), metrics, env_steps)?;
             }
             if stale_policy && source.at_episode_boundary() {
-                policy.load(&algo.policy_weights()?)?;
+                acting_weights = algo.policy_weights()?;
+                policy.load(&acting_weights)?;
                 stale_policy = false;
             }
+        }
+        let due = last_point.elapsed().as_secs() >= t.resume_every_secs;
+        if let Some(position) = source.position().filter(|_| due) {
+            let state = LoopState {
+                source: position,
+                sampler_rng_words: rng.get_word_pos(),
+                policy: policy.carried(),
+                stale_policy,
+                trained_after,
+                recent: recent.clone(),
+            };
+            let tracker = cadence.tracker();
+            resume::write(
+                dir,
+                &state,
+                algo.as_ref(),
+                &acting_weights,
+                &*store,
+                tracker,
+            )
+            .map_err(CadenceError::from)?;
+            last_point = Instant::now();
         }
         if source.decisions().is_multiple_of(50) {
             let held = (store.len() as u64, store.capacity() as u64);
@@ -180,6 +222,7 @@ pub fn run_inline<S: ExperienceSource<Policy = Policy>, B: SampleStore>(
         on_decision(&progress(source, algo.steps(), &recent));
     }
     let checkpoint = cadence.finish(algo.as_ref())?;
+    resume::remove(dir).map_err(CadenceError::from)?;
     Ok(InlineRun {
         progress: progress(source, algo.steps(), &recent),
         checkpoint,

@@ -1,6 +1,7 @@
 //! ctxrace's training algorithms behind one [`Algorithm`] trait, the learner process
-//! ([`process`]) and the single-process trainer ([`inline`]), which share one cadence of logs,
-//! checkpoints and best policy ([`cadence`]).
+//! ([`process`]) and the single-process trainer ([`inline`], which continues exactly from its
+//! [`resume`] points), which share one cadence of logs, checkpoints and best policy
+//! ([`cadence`]).
 
 pub mod adam;
 pub mod algorithm;
@@ -15,6 +16,7 @@ pub mod dreamer;
 pub mod error;
 pub mod inline;
 pub mod process;
+pub mod resume;
 pub mod returns;
 pub mod runlog;
 pub mod sac;

@@ -7,7 +7,7 @@
 
 use crate::best::ReturnTracker;
 use crate::cadence::{Cadence, CadenceError};
-use crate::checkpoint::{latest_checkpoint, CheckpointError};
+use crate::checkpoint::{checkpoint_step, latest_checkpoint, CheckpointError};
 use crate::LearnerError;
 use ctxrace_config::ExperimentConfig;
 use ctxrace_ipc::wire::named_reasons;
@@ -107,13 +107,7 @@ pub fn is_trained(dir: &Path, cfg: &ExperimentConfig) -> bool {
 /// learner resumes (0 without one).
 pub fn resume_step(dir: &Path) -> u64 {
     latest_checkpoint(dir)
-        .and_then(|c| {
-            c.file_name()?
-                .to_str()?
-                .strip_prefix("step-")?
-                .parse::<u64>()
-                .ok()
-        })
+        .and_then(|c| checkpoint_step(&c))
         .unwrap_or(0)
 }
 

@@ -11,11 +11,13 @@
 //! (cbdreamer `cbtools.sample_episodes`): episode by episode, with numpy's `RandomState(0)`.
 
 use crate::numpy_rng::{ChoiceCdf, RandomState};
+use crate::snapshot::{read_snapshot, write_snapshot, LimiterCounts, SnapshotShape};
 use ctxrace_config::{Batch, BatchSpec, Sampler, SequenceBatch, TransitionBatch};
 use ctxrace_ipc::wire::step_stride;
-use ctxrace_run::experience::SampleStore;
+use ctxrace_run::experience::{SampleStore, StoreError};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
+use std::path::Path;
 
 /// Step flag: first step of an episode.
 pub const FIRST: u8 = 1;
@@ -448,6 +450,21 @@ impl SampleStore for ReplayBuffer {
 
     fn sample(&self, spec: BatchSpec, sampler: Sampler, rng: &mut ChaCha8Rng) -> Option<Batch> {
         ReplayBuffer::sample(self, spec, sampler, rng)
+    }
+
+    /// A replay snapshot ([`crate::snapshot`]); its limiter counts are the steps inserted.
+    fn save(&self, path: &Path) -> Result<(), StoreError> {
+        let counts = LimiterCounts {
+            inserts: self.inserted,
+            samples: 0,
+        };
+        Ok(write_snapshot(path, self, counts)?)
+    }
+
+    fn restore(&mut self, path: &Path) -> Result<(), StoreError> {
+        let (buffer, _) = read_snapshot(path, SnapshotShape::of(self))?;
+        *self = buffer;
+        Ok(())
     }
 }
 

@@ -18,7 +18,7 @@ use ctxrace_config::{Context, ExperimentConfig};
 use ctxrace_ipc::TrajectoryStep;
 use ctxrace_nn::policy::PolicyError;
 use ctxrace_nn::Policy;
-use ctxrace_run::experience::{EndedEpisode, ExperienceSource};
+use ctxrace_run::experience::{EndedEpisode, ExperienceSource, SourcePosition};
 use ctxrace_run::results::TrainingEpisode;
 use ctxrace_sim::race::{EpisodeMetrics, RaceEnv};
 use ctxrace_sim::RaceError;
@@ -252,6 +252,21 @@ impl ExperienceSource for Collector {
             },
             by_policy: f.by_policy,
         }))
+    }
+
+    fn position(&self) -> Option<SourcePosition> {
+        Collector::at_episode_boundary(self).then(|| SourcePosition {
+            decisions: self.decisions,
+            episodes: self.episode,
+            rng_words: self.rng.get_word_pos(),
+        })
+    }
+
+    fn restore(&mut self, at: &SourcePosition) {
+        self.decisions = at.decisions;
+        self.episode = at.episodes;
+        self.rng.set_word_pos(at.rng_words);
+        self.running = false;
     }
 }
 

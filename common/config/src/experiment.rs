@@ -191,6 +191,10 @@ pub struct TrainConfig {
     pub checkpoint_every: u64,
     /// Gradient steps between training-metric rows in `metrics.jsonl`.
     pub log_every: u64,
+    /// Seconds between the resume points of a single-process run (`train --inline`), each
+    /// written at the first episode boundary after (0: at every boundary); `--resume` continues
+    /// from the newest exactly as if the run had not stopped.
+    pub resume_every_secs: u64,
     /// Worker threads of the learner: DreamerV3 and its variants split each batch over them;
     /// SAC always trains on one (the actors always act on one) [default:
     /// [`AlgoKind::learner_threads`]].
@@ -215,6 +219,7 @@ impl Default for TrainConfig {
             policy_every: 10,
             checkpoint_every: 5_000,
             log_every: 100,
+            resume_every_secs: 60,
             threads: None,
         }
     }

@@ -147,6 +147,22 @@ fn sealed(file: &Path, bytes: u64) -> Result<Sealed> {
     })
 }
 
+/// The folder of the checkpoint at gradient step `steps` in `run_dir`:
+/// `checkpoints/step-<steps, 10 digits>` (zero-padded, so that names sort as steps do).
+pub fn checkpoint_dir(run_dir: &Path, steps: u64) -> PathBuf {
+    run_dir.join(CHECKPOINTS).join(format!("step-{steps:010}"))
+}
+
+/// The gradient step of a checkpoint folder that [`checkpoint_dir`] named (`None` for any
+/// other path, `best` included).
+pub fn checkpoint_step(dir: &Path) -> Option<u64> {
+    dir.file_name()?
+        .to_str()?
+        .strip_prefix("step-")?
+        .parse()
+        .ok()
+}
+
 /// The complete checkpoints of a run directory, oldest first.
 pub fn checkpoints(run_dir: &Path) -> Vec<std::path::PathBuf> {
     let Ok(entries) = std::fs::read_dir(run_dir.join(CHECKPOINTS)) else {
@@ -155,12 +171,7 @@ pub fn checkpoints(run_dir: &Path) -> Vec<std::path::PathBuf> {
     let mut dirs: Vec<_> = entries
         .filter_map(|e| e.ok())
         .map(|e| e.path())
-        .filter(|p| {
-            p.file_name()
-                .and_then(|n| n.to_str())
-                .is_some_and(|n| n.starts_with("step-"))
-                && p.join(STATE_FILE).exists()
-        })
+        .filter(|p| checkpoint_step(p).is_some() && p.join(STATE_FILE).exists())
         .collect();
     dirs.sort();
     dirs

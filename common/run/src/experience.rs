@@ -8,6 +8,7 @@ use crate::results::TrainingEpisode;
 use crate::steps::TrajectoryStep;
 use ctxrace_config::{Batch, BatchSpec, Sampler};
 use rand_chacha::ChaCha8Rng;
+use std::path::Path;
 
 /// A training episode as its source reports it when it ends.
 #[derive(Clone, Debug, PartialEq)]
@@ -31,6 +32,21 @@ impl EndedEpisode {
         }
     }
 }
+
+/// Where an experience source stands between two episodes: all it needs to go on exactly as it
+/// would have (its counters and the position of its random stream), for a resumed run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SourcePosition {
+    /// Decisions taken.
+    pub decisions: u64,
+    /// Episodes started.
+    pub episodes: u64,
+    /// Words its random stream has given (ChaCha's word position).
+    pub rng_words: u128,
+}
+
+/// Why a store's contents could not be saved or restored (its own error, boxed).
+pub type StoreError = Box<dyn std::error::Error + Send + Sync>;
 
 /// Runs training episodes one decision at a time and reports every step in the replay's
 /// convention ([`TrajectoryStep`]).
@@ -61,6 +77,13 @@ pub trait ExperienceSource {
         policy: Option<&mut Self::Policy>,
         sink: &mut dyn FnMut(&TrajectoryStep),
     ) -> Result<Option<EndedEpisode>, Self::Error>;
+
+    /// Where it stands, at an episode boundary only (`None` within an episode).
+    fn position(&self) -> Option<SourcePosition>;
+
+    /// Continues from `at`, a [`ExperienceSource::position`] of a source built as this one
+    /// was: its next step starts the episode that source's next step would have started.
+    fn restore(&mut self, at: &SourcePosition);
 }
 
 /// Keeps the steps of a run's streams and draws training batches from them.
@@ -89,4 +112,12 @@ pub trait SampleStore {
     /// One batch of `spec`: sequences drawn by `sampler`, transitions uniformly; `None` if the
     /// store cannot serve it yet.
     fn sample(&self, spec: BatchSpec, sampler: Sampler, rng: &mut ChaCha8Rng) -> Option<Batch>;
+
+    /// Writes everything it holds to `path`, so that [`SampleStore::restore`] gives a store
+    /// that draws the same batches.
+    fn save(&self, path: &Path) -> Result<(), StoreError>;
+
+    /// Replaces its contents by what [`SampleStore::save`] wrote to `path` from a store of the
+    /// same shape; a damaged file or another shape is an error naming the file.
+    fn restore(&mut self, path: &Path) -> Result<(), StoreError>;
 }

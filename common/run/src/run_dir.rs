@@ -18,6 +18,7 @@
 //!   checkpoints/step-<N>/  CHECKPOINTS: policy.safetensors (POLICY_FILE), agent.toml
 //!                          (AGENT_FILE), the optimisers and the counters
 //!   checkpoints/best/      BEST_DIR: the policy of the best training return
+//!   resume/                RESUME_DIR: a single-process run's newest resume point
 //!   eval/                  EVAL_DIR: meta.json (EVAL_META), job.json (EVAL_JOB), episodes.csv
 //!                          (EVAL_EPISODES), contexts.csv and contexts.json (EVAL_CONTEXTS_*)
 //! ```
@@ -74,6 +75,8 @@ pub const POLICY_FILE: &str = "policy.safetensors";
 pub const AGENT_FILE: &str = "agent.toml";
 /// The best checkpoint's folder, inside [`CHECKPOINTS`].
 pub const BEST_DIR: &str = "best";
+/// Folder of a single-process run's resume point (the learner's `resume` module).
+pub const RESUME_DIR: &str = "resume";
 /// The default evaluation folder of a run.
 pub const EVAL_DIR: &str = "eval";
 /// What an evaluation evaluated, and how.
@@ -129,6 +132,51 @@ pub fn write_atomic_with<E: From<std::io::Error>>(
     tmp.persist(path).map_err(|e| e.error)?;
     File::open(dir)?.sync_all()?;
     Ok(())
+}
+
+/// Puts the folder `new` in place of `target` in one step: where `target` exists the two are
+/// exchanged (Linux's `renameat2(RENAME_EXCHANGE)`, so that a crash at any moment leaves either
+/// the old folder or the new one at `target`, never neither or a half-removed one) and the old
+/// contents, now at `new`, are removed; elsewhere `new` is renamed to `target`. A file system
+/// that cannot exchange gets the old folder removed first.
+pub fn replace_dir(new: &Path, target: &Path) -> std::io::Result<()> {
+    use std::os::unix::ffi::OsStrExt;
+    if target.symlink_metadata().is_err() {
+        return std::fs::rename(new, target);
+    }
+    let c = |p: &Path| {
+        std::ffi::CString::new(p.as_os_str().as_bytes())
+            .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidInput, e))
+    };
+    let (from, to) = (c(new)?, c(target)?);
+    // SAFETY: both paths are NUL-terminated strings that live across the call; AT_FDCWD makes
+    // them relative to the working directory, as `std::fs::rename`'s are.
+    let done = unsafe {
+        libc::renameat2(
+            libc::AT_FDCWD,
+            from.as_ptr(),
+            libc::AT_FDCWD,
+            to.as_ptr(),
+            libc::RENAME_EXCHANGE,
+        )
+    };
+    if done != 0 {
+        let e = std::io::Error::last_os_error();
+        if !matches!(e.raw_os_error(), Some(libc::EINVAL | libc::ENOSYS)) {
+            return Err(e);
+        }
+        remove_path(target)?;
+        return std::fs::rename(new, target);
+    }
+    remove_path(new)
+}
+
+/// Removes the folder or file at `path` (a link itself, never what it points to).
+pub fn remove_path(path: &Path) -> std::io::Result<()> {
+    match path.symlink_metadata() {
+        Ok(m) if m.is_dir() => std::fs::remove_dir_all(path),
+        _ => std::fs::remove_file(path),
+    }
 }
 
 /// Opens `path` for appending, creating it, but only as a regular file: a link planted at

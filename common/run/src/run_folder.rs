@@ -7,7 +7,8 @@
 use crate::lock::{DirLock, LockError};
 use crate::path_error::PathIoError;
 use crate::run_dir::{
-    run_name, write_atomic, CHECKPOINTS, CONFIG_FILE, METRICS_CSV, METRICS_JSONL, TRAINING_EPISODES,
+    run_name, write_atomic, CHECKPOINTS, CONFIG_FILE, METRICS_CSV, METRICS_JSONL, RESUME_DIR,
+    TRAINING_EPISODES,
 };
 use ctxrace_config::{ExperimentConfig, ExperimentError};
 use std::path::{Path, PathBuf};
@@ -91,10 +92,16 @@ impl RunFolder {
         Ok(Self { dir, lock, resumed })
     }
 
-    /// Removes what a single-process run wrote (training episodes, metrics, checkpoints): its
-    /// replay lived in memory, so an interrupted one starts over.
+    /// Removes what a single-process run wrote (training episodes, metrics, checkpoints, its
+    /// resume point): an interrupted one without a usable resume point starts over.
     pub fn start_over(&self) -> Result<(), RunFolderError> {
-        for name in [TRAINING_EPISODES, METRICS_JSONL, METRICS_CSV, CHECKPOINTS] {
+        for name in [
+            TRAINING_EPISODES,
+            METRICS_JSONL,
+            METRICS_CSV,
+            CHECKPOINTS,
+            RESUME_DIR,
+        ] {
             let path = self.dir.join(name);
             let removed = if path.is_dir() {
                 std::fs::remove_dir_all(&path)

@@ -2,7 +2,9 @@
 //! given step), verified, with its agent configuration, its policy weights and the run's
 //! experiment, for `eval`, `race` and the first look after training.
 
-use crate::checkpoint::{best_checkpoint, checkpoints, latest_checkpoint, verify, CheckpointError};
+use crate::checkpoint::{
+    best_checkpoint, checkpoint_step, checkpoints, latest_checkpoint, verify, CheckpointError,
+};
 use crate::run_dir::{AGENT_FILE, CONFIG_FILE, POLICY_FILE};
 use ctxrace_config::agents::AgentConfigError;
 use ctxrace_config::{AgentConfig, ExperimentConfig, ExperimentError};
@@ -199,20 +201,14 @@ fn pick_checkpoint(run: &Path, choice: CheckpointChoice) -> Result<PathBuf> {
         CheckpointChoice::Latest => latest_checkpoint(run),
         CheckpointChoice::Step(n) => checkpoints(run)
             .into_iter()
-            .find(|c| c.file_name() == Some(std::ffi::OsStr::new(&format!("step-{n:010}")))),
+            .find(|c| checkpoint_step(c) == Some(n)),
     };
     found.ok_or_else(|| {
         let steps: Vec<String> = checkpoints(run)
             .iter()
             .filter(|c| verify(c).is_ok())
-            .filter_map(|c| {
-                c.file_name()?
-                    .to_str()?
-                    .strip_prefix("step-")?
-                    .parse::<u64>()
-                    .ok()
-            })
-            .map(|n| format!("step-{n}"))
+            .filter_map(|c| checkpoint_step(c))
+            .map(|n| CheckpointChoice::Step(n).to_string())
             .collect();
         let best_intact = best_checkpoint(run).is_some_and(|b| verify(&b).is_ok());
         let why = match choice {

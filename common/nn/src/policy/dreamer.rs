@@ -106,6 +106,16 @@ impl DreamerPolicy {
         self.rng = ChaCha8Rng::seed_from_u64(seed);
     }
 
+    /// Words its sampling noise's stream has given.
+    pub fn rng_words(&self) -> u128 {
+        self.rng.get_word_pos()
+    }
+
+    /// Moves its sampling noise's stream to word `words` (from [`DreamerPolicy::rng_words`]).
+    pub fn set_rng_words(&mut self, words: u128) {
+        self.rng.set_word_pos(words);
+    }
+
     /// Starts a new episode: the initial state and a zero previous action.
     pub fn reset(&mut self) {
         self.state = self.zero.clone();

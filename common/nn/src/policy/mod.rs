@@ -69,6 +69,17 @@ pub struct Decision {
     pub mask: Option<[f32; 2]>,
 }
 
+/// What a policy carries from one episode into the next besides its weights: the position of
+/// its sampling noise and, for SAC without `reset_frame_stack`, its frame stack (oldest first).
+/// Taken at an episode boundary, it lets a resumed run act as the uninterrupted one would.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct CarriedState {
+    /// Words the sampling noise's stream has given (ChaCha's word position).
+    pub rng_words: u128,
+    /// SAC's frames kept for the next episode's stack (empty for Dreamer agents).
+    pub frames: Vec<Vec<f32>>,
+}
+
 /// Any trained agent's acting side.
 pub enum Policy {
     /// SAC on stacked frames.
@@ -105,6 +116,25 @@ impl Policy {
         match self {
             Policy::Sac(p) => p.reseed(seed),
             Policy::Dreamer(p) => p.reseed(seed),
+        }
+    }
+
+    /// What it carries into the next episode (see [`CarriedState`]).
+    pub fn carried(&self) -> CarriedState {
+        match self {
+            Policy::Sac(p) => p.carried(),
+            Policy::Dreamer(p) => CarriedState {
+                rng_words: p.rng_words(),
+                frames: Vec::new(),
+            },
+        }
+    }
+
+    /// Takes up `state`, what a policy built as this one carried ([`Policy::carried`]).
+    pub fn carry(&mut self, state: &CarriedState) {
+        match self {
+            Policy::Sac(p) => p.carry(state),
+            Policy::Dreamer(p) => p.set_rng_words(state.rng_words),
         }
     }
 

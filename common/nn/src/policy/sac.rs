@@ -90,6 +90,20 @@ impl SacPolicy {
         self.rng = ChaCha8Rng::seed_from_u64(seed);
     }
 
+    /// Its noise's position and the frames it keeps ([`super::CarriedState`]).
+    pub fn carried(&self) -> super::CarriedState {
+        super::CarriedState {
+            rng_words: self.rng.get_word_pos(),
+            frames: self.stack.iter().cloned().collect(),
+        }
+    }
+
+    /// Takes up what a policy of the same architecture carried ([`SacPolicy::carried`]).
+    pub fn carry(&mut self, state: &super::CarriedState) {
+        self.rng.set_word_pos(state.rng_words);
+        self.stack = state.frames.iter().cloned().collect();
+    }
+
     /// Starts a new episode: empties the frame stack (unless `reset_frame_stack` is off).
     pub fn reset(&mut self) {
         if self.reset_frame_stack {
