@@ -2,16 +2,22 @@
 """The reduced Table II / III of issue 45, from the committed records alone (Python's standard
 library, nothing else), as docs/table2/README.md plans it.
 
-    python3 docs/table2/table2.py collect runs/table2   # each finished run's records -> here
-    python3 docs/table2/table2.py analyse               # tables, verdicts, ablation, masks
+    python3 docs/table2/table2.py collect runs/table2 [ARM [RUN]]   # finished runs -> here
+    python3 docs/table2/table2.py analyse                     # tables, verdicts, ablation, masks
 
 `collect` copies, for every run of the sweep folder whose evaluation is complete, the records
-anyone needs to recompute the tables into `<R>r/<algo>/seed<S>/`: `config.toml`,
+anyone needs to recompute the tables into `<R>r/<arm>/seed<S>/` (the arm is the algorithm's
+name unless ARM names it, e.g. `cmask-paper-mask`; RUN: only that run): `config.toml`,
 `episodes.csv` (the training episodes), `eval/{meta.json, contexts.csv, episodes.csv}`, each
 context ablation `ablation/<condition>/{meta.json, contexts.csv, episodes.csv}` and, for cMask,
 `mask_training.csv` (the mask SAC's logged metrics) and `eval/mask_episodes.csv`: one row per evaluation episode with its decisions' mask sums and their
 10 x 10 histogram (from `masks.csv.gz`, too large to commit). `meta.json`'s `source` (the
 checkpoint's absolute path on the machine that evaluated) is kept relative to the run folder.
+It keeps the run's policies, so that a later evaluation or ablation needs no retraining:
+`checkpoints/best/` as the run wrote it and the last checkpoint's policy, agent and counters
+(`checkpoints/step-N/`, its manifest rewritten for those files), so the record folder is a run
+folder `ctxrace eval` reads. Where the record folder held an earlier run of the same name, whether
+the new `episodes.csv` reproduces it byte for byte goes to `reproduction.csv`.
 
 `analyse` writes `table2.csv`, `table3.csv`, `hypotheses.csv`, `context_ablation.csv`,
 `masks.csv`, `mask_training.csv` and `results.md` beside this file. Every interval is a 95% percentile bootstrap over
@@ -26,11 +32,22 @@ import random
 import re
 import shutil
 import sys
+import zlib
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ALGOS = ["sac", "dreamerv3", "crssm", "cmask"]
-NAMES = {"sac": "SAC", "dreamerv3": "DreamerV3", "crssm": "cRSSM", "cmask": "cMask"}
+# the arms (record folders `<R>r/<arm>/`) and the algorithm each trains: the four algorithms,
+# and cMask with the mask SAC as the paper's code trained it, from alpha 1 and from 0.05
+ARMS = {"sac": "sac", "dreamerv3": "dreamerv3", "crssm": "crssm", "cmask": "cmask",
+        "cmask-paper-mask": "cmask", "cmask-paper-mask-alpha0.05": "cmask"}
+NAMES = {"sac": "SAC", "dreamerv3": "DreamerV3", "crssm": "cRSSM", "cmask": "cMask",
+         "cmask-paper-mask": "cMask (code's mask)",
+         "cmask-paper-mask-alpha0.05": "cMask (code's mask, alpha0 0.05)"}
+# the evaluation grid (c_v-major index k = 7 i_v + i_theta) and the context sets judged on it:
+# all 49 (the paper's protocol, primary) and 17-48 (the set the code's test loop raced)
+GRID, GRID_RANGE = 7, 0.3
+CONTEXT_SETS = {"49": range(0, 49), "17-48": range(17, 49)}
 RUN_NAME = re.compile(r"^(sac|dreamerv3|crssm|cmask)-(.+)-(\d+)r-s(\d+)$")
 BOOTSTRAP = 10_000
 BINS = 10
@@ -49,6 +66,17 @@ METRICS = ["pg_in", "pg_out", "ot_in", "ot_out", "a2a_in", "a2a_out"]
 # the context ablation's conditions (README, H6): directory name -> what the agent was told
 CONDITIONS = ["zeros", "other", "mask-1-1", "mask-0-0", "mask-1-0", "mask-0-1"]
 BASELINE_LAPS = 20
+
+
+def grid_index(cv, ct):
+    """The grid index k = 7 i_v + i_theta of the context (c_v, c_theta)."""
+    step = lambda c: round((c + GRID_RANGE) / (2 * GRID_RANGE) * (GRID - 1))
+    return GRID * step(cv) + step(ct)
+
+
+def in_set(cset):
+    """Whether a context (c_v, c_theta) belongs to the context set `cset`."""
+    return lambda cv, ct: grid_index(cv, ct) in CONTEXT_SETS[cset]
 
 
 # ---------------------------------------------------------------- statistics
@@ -168,18 +196,17 @@ def student_mean(xs):
 
 
 def verdict(lo, hi, direction, margin):
-    """The README's verdict of one cell: the interval [lo, hi] of a difference whose predicted
-    sign is `direction` (+1 or -1), judged against +-`margin`."""
-    if direction * lo > 0 or direction * hi > 0:
-        if (direction > 0 and lo > 0) or (direction < 0 and hi < 0):
-            within = -margin <= lo and hi <= margin
-            return "holds, below the margin" if within else "holds"
-        if (direction > 0 and hi < 0) or (direction < 0 and lo > 0):
-            return "contradicted"
+    """The README's verdict of one cell (section 2): the interval [lo, hi] of a difference whose
+    predicted sign is `direction` (+1 or -1) holds where it excludes 0 in that direction ("holds,
+    below the margin" where it also lies within +-`margin`), is contradicted where it excludes 0
+    in the opposite direction (inside the margin too), equal where it lies within +-`margin` and
+    contains 0, and undecided otherwise."""
+    if direction * lo > 0 and direction * hi > 0:
+        return "holds, below the margin" if -margin <= lo and hi <= margin else "holds"
+    if direction * lo < 0 and direction * hi < 0:
+        return "contradicted"
     if -margin <= lo and hi <= margin:
         return "equal"
-    if (direction > 0 and hi < 0) or (direction < 0 and lo > 0):
-        return "contradicted"
     return "undecided"
 
 
@@ -250,19 +277,57 @@ def mask_training(metrics_csv, out):
             w.writerow([r.get(k, "") for k in keys])
 
 
-def collect(runs):
+def keep_policies(run_dir, dest):
+    """The run's best policy and its last checkpoint's policy, agent and counters (no optimiser
+    state), sealed as ctxrace seals a checkpoint (`manifest.toml`: each file's bytes and CRC-32)."""
+    src, out = run_dir / "checkpoints", dest / "checkpoints"
+    if out.exists():
+        shutil.rmtree(out)
+    shutil.copytree(src / "best", out / "best")
+    steps = sorted(p for p in src.iterdir() if p.name.startswith("step-"))
+    last = steps[-1]
+    (out / last.name).mkdir(parents=True)
+    lines = []
+    for name in ["agent.toml", "policy.safetensors", "state.toml"]:
+        data = (last / name).read_bytes()
+        (out / last.name / name).write_bytes(data)
+        lines.append(f'[\"{name}\"]\nbytes = {len(data)}\ncrc32 = {zlib.crc32(data)}\n')
+    (out / last.name / "manifest.toml").write_text("\n".join(lines))
+
+
+def note_reproduction(dest, run_dir, arm, rivals, seed):
+    """Whether the run's training episodes equal those of the record it replaces."""
+    old, new = dest / "episodes.csv", run_dir / "episodes.csv"
+    if not old.is_file():
+        return
+    same = old.read_bytes() == new.read_bytes()
+    path = HERE / "reproduction.csv"
+    rows = read_csv(path) if path.is_file() else []
+    rows = [r for r in rows if (r["rivals"], r["arm"], r["seed"]) != (str(rivals), arm, str(seed))]
+    rows.append({"rivals": rivals, "arm": arm, "seed": seed,
+                 "episodes_csv": "identical" if same else "differs"})
+    rows.sort(key=lambda r: (int(r["rivals"]), r["arm"], int(r["seed"])))
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["rivals", "arm", "seed", "episodes_csv"])
+        w.writeheader()
+        w.writerows(rows)
+
+
+def collect(runs, arm=None, only=None):
     for run_dir in sorted(Path(runs).iterdir()):
         m = RUN_NAME.match(run_dir.name)
-        if not m:
+        if not m or (only and run_dir.name != only):
             continue
         algo, _track, rivals, seed = m.group(1), m.group(2), int(m.group(3)), int(m.group(4))
         if not (run_dir / "eval" / "contexts.csv").is_file():
             print(f"{run_dir.name}: evaluation not complete, skipped")
             continue
-        dest = HERE / f"{rivals}r" / algo / f"seed{seed}"
+        dest = HERE / f"{rivals}r" / (arm or algo) / f"seed{seed}"
         dest.mkdir(parents=True, exist_ok=True)
+        note_reproduction(dest, run_dir, arm or algo, rivals, seed)
         for name in ["config.toml", "episodes.csv"]:
             shutil.copyfile(run_dir / name, dest / name)
+        keep_policies(run_dir, dest)
         if algo == "cmask":
             mask_training(run_dir / "metrics.csv", dest / "mask_training.csv")
         copy_eval(run_dir / "eval", dest / "eval", run_dir)
@@ -294,13 +359,16 @@ def split_values(contexts):
     return out
 
 
-def summarise_episodes(episodes, train_range, laps=None):
-    """Per-context means (A2A per 50 laps) of evaluation episodes, optionally of laps < `laps`."""
+def summarise_episodes(episodes, train_range, laps=None, keep=lambda cv, ct: True):
+    """Per-context means (A2A per 50 laps) of evaluation episodes, optionally of laps < `laps`,
+    of the contexts `keep` admits."""
     per = {}
     for e in episodes:
         if laps is not None and int(e["lap"]) >= laps:
             continue
         key = (float(e["context_speed"]), float(e["context_steer"]))
+        if not keep(*key):
+            continue
         per.setdefault(key, []).append(e)
     rows = []
     for (cv, ct), eps in per.items():
@@ -320,19 +388,27 @@ def training_pg(episodes_csv, env_steps):
     return mean(last) if last else float("nan")
 
 
-def load_runs():
+def load_runs(cset):
+    """Every collected run whose evaluation raced the whole context set `cset`, its values over
+    that set's contexts: {(rivals, arm): [run]}."""
     runs = {}
+    keep = in_set(cset)
     for rivals in [1, 3]:
-        for algo in ALGOS:
+        for algo in ARMS:
             for seed_dir in sorted((HERE / f"{rivals}r" / algo).glob("seed*")):
                 meta = json.loads((seed_dir / "eval" / "meta.json").read_text())
                 config = (seed_dir / "config.toml").read_text()
                 steps = float(re.search(r"^env_steps\s*=\s*(\S+)", config, re.M).group(1))
-                run = split_values(read_csv(seed_dir / "eval" / "contexts.csv"))
+                contexts = [c for c in read_csv(seed_dir / "eval" / "contexts.csv")
+                            if keep(float(c["context_speed"]), float(c["context_steer"]))]
+                if len(contexts) != len(CONTEXT_SETS[cset]):
+                    continue
+                run = split_values(contexts)
                 run["train_pg"] = training_pg(seed_dir / "episodes.csv", steps)
                 run["seed"] = int(seed_dir.name[4:])
                 run["dir"] = seed_dir
                 run["train_range"] = meta["train_range"]
+                run["keep"] = keep
                 runs.setdefault((rivals, algo), []).append(run)
     return runs
 
@@ -343,7 +419,7 @@ def fmt(x, digits=3):
 
 def table2(runs, rng):
     rows = []
-    for (rivals, algo), rs in sorted(runs.items(), key=lambda kv: (kv[0][0], ALGOS.index(kv[0][1]))):
+    for (rivals, algo), rs in sorted(runs.items(), key=lambda kv: (kv[0][0], list(ARMS).index(kv[0][1]))):
         row = {"rivals": rivals, "algo": algo, "seeds": len(rs)}
         for k in METRICS + ["train_pg"]:
             xs = [r[k] for r in rs]
@@ -351,7 +427,7 @@ def table2(runs, rng):
             row[f"{k}_sd"] = sd(xs)
             lo, hi = boot_mean(xs, rng) if len(xs) > 1 else (float("nan"), float("nan"))
             row[f"{k}_lo"], row[f"{k}_hi"] = lo, hi
-        for k, v in zip(METRICS, PAPER[(rivals, algo)]):
+        for k, v in zip(METRICS, PAPER[(rivals, ARMS[algo])]):
             row[f"paper_{k}"] = v
         rows.append(row)
     return rows
@@ -363,8 +439,8 @@ def relative(out_value, in_value):
 
 def table3(runs, rng):
     rows = []
-    for (rivals, algo), rs in sorted(runs.items(), key=lambda kv: (kv[0][0], ALGOS.index(kv[0][1]))):
-        p = PAPER[(rivals, algo)]
+    for (rivals, algo), rs in sorted(runs.items(), key=lambda kv: (kv[0][0], list(ARMS).index(kv[0][1]))):
+        p = PAPER[(rivals, ARMS[algo])]
         per_seed = [relative(r["pg_out"], r["pg_in"]) for r in rs]
         d_a2a = [r["a2a_out"] - r["a2a_in"] for r in rs]
         lo, hi = boot_mean(per_seed, rng) if len(rs) > 1 else (float("nan"),) * 2
@@ -412,34 +488,36 @@ def cell(cells, rng, hyp, label, rivals, split, a, b, direction, margin, kind="o
                   "welch_lo": wlo, "welch_hi": whi, "verdict": v, "weak": weak})
 
 
-def hypotheses(runs, rng):
+def hypotheses(runs, rng, cm="cmask"):
+    """The cells of H1-H5 and H8, with the arm `cm` as cMask; for another arm than `cmask`, only
+    the cells that compare it."""
     cells = []
     get = lambda rivals, algo, key: [r[key] for r in runs.get((rivals, algo), [])]
     ratio = lambda rivals, algo: [(r["pg_out"] - r["pg_in"]) / r["pg_in"] for r in runs.get((rivals, algo), [])]
     d_a2a = lambda rivals, algo: [r["a2a_out"] - r["a2a_in"] for r in runs.get((rivals, algo), [])]
     for rivals in [1, 3]:
         for split in ["in", "out"]:
-            for algo in ["dreamerv3", "crssm", "cmask"]:
+            for algo in ["dreamerv3", "crssm", cm]:
                 cell(cells, rng, "H1", f"{NAMES[algo]} - SAC", rivals, split,
                      get(rivals, "sac", f"pg_{split}"), get(rivals, algo, f"pg_{split}"), +1, 0.05)
-        for algo in ["crssm", "cmask"]:
+        for algo in ["crssm", cm]:
             cell(cells, rng, "H2", f"r({NAMES[algo]}) - r(DreamerV3)", rivals, "out vs in",
                  ratio(rivals, "dreamerv3"), ratio(rivals, algo), +1, 0.10)
             cell(cells, rng, "H2b", f"dA2A({NAMES[algo]}) - dA2A(DreamerV3)", rivals, "out - in",
                  d_a2a(rivals, "dreamerv3"), d_a2a(rivals, algo), -1, 5.0)
         for split in ["in", "out"]:
-            for algo in ["crssm", "cmask"]:
+            for algo in ["crssm", cm]:
                 cell(cells, rng, "H3", f"A2A(DreamerV3) - A2A({NAMES[algo]})", rivals, split,
                      get(rivals, algo, f"a2a_{split}"), get(rivals, "dreamerv3", f"a2a_{split}"), +1, 5.0)
-        cell(cells, rng, "H4", "PG(cMask) - PG(cRSSM), non-inferiority", rivals, "out",
-             get(rivals, "crssm", "pg_out"), get(rivals, "cmask", "pg_out"), +1, 0.05, "noninferior")
-        cell(cells, rng, "H4b", "PG(cMask) - PG(cRSSM)", rivals, "in",
-             get(rivals, "crssm", "pg_in"), get(rivals, "cmask", "pg_in"), +1, 0.05)
+        cell(cells, rng, "H4", f"PG({NAMES[cm]}) - PG(cRSSM), non-inferiority", rivals, "out",
+             get(rivals, "crssm", "pg_out"), get(rivals, cm, "pg_out"), +1, 0.05, "noninferior")
+        cell(cells, rng, "H4b", f"PG({NAMES[cm]}) - PG(cRSSM)", rivals, "in",
+             get(rivals, "crssm", "pg_in"), get(rivals, cm, "pg_in"), +1, 0.05)
         for split, k in [("in", 0), ("out", 1)]:
-            dreamers = ["dreamerv3", "crssm", "cmask"]
+            dreamers = ["dreamerv3", "crssm", cm]
             for i, x in enumerate(dreamers):
                 for y in dreamers[i + 1:]:
-                    d = PAPER[(rivals, y)][k] - PAPER[(rivals, x)][k]
+                    d = PAPER[(rivals, ARMS[y])][k] - PAPER[(rivals, ARMS[x])][k]
                     hi_algo, lo_algo = (y, x) if d > 0 else (x, y)
                     if abs(d) >= 0.05:
                         cell(cells, rng, "H5", f"{NAMES[hi_algo]} > {NAMES[lo_algo]}", rivals, split,
@@ -448,9 +526,11 @@ def hypotheses(runs, rng):
                         cell(cells, rng, "H5", f"{NAMES[y]} = {NAMES[x]}", rivals, split,
                              get(rivals, x, f"pg_{split}"), get(rivals, y, f"pg_{split}"), 0, 0.05, "equal")
         for split in ["in", "out"]:
-            for algo in ["crssm", "cmask"]:
+            for algo in ["crssm", cm]:
                 cell(cells, rng, "H8", f"OT(DreamerV3) - OT({NAMES[algo]})", rivals, split,
                      get(rivals, algo, f"ot_{split}"), get(rivals, "dreamerv3", f"ot_{split}"), +1, 0.05)
+    if cm != "cmask":
+        cells = [c for c in cells if NAMES[cm] in c["comparison"]]
     return cells
 
 
@@ -465,17 +545,19 @@ def ablation(runs, rng):
     """H6: per seed, condition minus the main evaluation's laps 0-19, per split."""
     rows, cells = [], []
     for (rivals, algo), rs in sorted(runs.items()):
-        if algo not in ("crssm", "cmask"):
+        if ARMS[algo] not in ("crssm", "cmask"):
             continue
         for r in rs:
             main_eps = read_csv(r["dir"] / "eval" / "episodes.csv")
-            true = split_values(summarise_episodes(main_eps, r["train_range"], BASELINE_LAPS))
+            true = split_values(summarise_episodes(main_eps, r["train_range"], BASELINE_LAPS,
+                                                   r["keep"]))
             rows.append({"algo": algo, "rivals": rivals, "seed": r["seed"], "condition": "true",
                          **true})
             for cond in CONDITIONS:
                 path = r["dir"] / "ablation" / cond / "episodes.csv"
                 if path.is_file():
-                    v = split_values(summarise_episodes(read_csv(path), r["train_range"]))
+                    v = split_values(summarise_episodes(read_csv(path), r["train_range"],
+                                                        keep=r["keep"]))
                     rows.append({"algo": algo, "rivals": rivals, "seed": r["seed"],
                                  "condition": cond, **v})
     for (rivals, algo) in sorted({(r["rivals"], r["algo"]) for r in rows}):
@@ -503,12 +585,14 @@ def ablation(runs, rng):
     return rows, cells
 
 
-def mask_stats(hist_rows, rng, shuffles=200):
+def mask_stats(hist_rows, rng, shuffles=200, keep=lambda cv, ct: True):
     """H7 of one cMask agent: per component the SD across contexts of the per-context mean mask,
     and the plug-in mutual information (bits) between the binned mask and the context, each
     with its episode-shuffled baseline (mean over `shuffles` shufflings of the context labels)."""
     eps = []
     for r in hist_rows:
+        if not keep(float(r["context_speed"]), float(r["context_steer"])):
+            continue
         eps.append(((float(r["context_speed"]), float(r["context_steer"])), int(r["decisions"]),
                     float(r["sum_speed"]), float(r["sum_steer"]), list(map(int, r["hist"].split()))))
     labels = [e[0] for e in eps]
@@ -559,22 +643,22 @@ def mask_stats(hist_rows, rng, shuffles=200):
 def masks(runs, rng):
     rows = []
     for (rivals, algo), rs in sorted(runs.items()):
-        if algo != "cmask":
+        if ARMS[algo] != "cmask":
             continue
         for r in rs:
             path = r["dir"] / "eval" / "mask_episodes.csv"
             if not path.is_file():
                 continue
-            observed, shuffled, means = mask_stats(read_csv(path), rng)
-            row = {"rivals": rivals, "seed": r["seed"], **means}
+            observed, shuffled, means = mask_stats(read_csv(path), rng, keep=r["keep"])
+            row = {"rivals": rivals, "arm": algo, "seed": r["seed"], **means}
             for k in observed:
                 row[k] = observed[k]
                 row[f"{k}_shuffled"] = shuffled[k]
                 row[f"{k}_excess"] = observed[k] - shuffled[k]
             rows.append(row)
     cells = []
-    for rivals in [1, 3]:
-        mine = [r for r in rows if r["rivals"] == rivals]
+    for rivals, arm in sorted({(r["rivals"], r["arm"]) for r in rows}):
+        mine = [r for r in rows if (r["rivals"], r["arm"]) == (rivals, arm)]
         for k, margin in [("sd_speed", 0.02), ("sd_steer", 0.02), ("mi_speed", 0.01),
                           ("mi_steer", 0.01), ("mi_joint", 0.01)]:
             xs = [r[f"{k}_excess"] for r in mine]
@@ -583,7 +667,7 @@ def masks(runs, rng):
             lo, hi = boot_mean(xs, rng)
             # an excess wholly inside the margin is no dependence, even where it lies above 0
             v = "no dependence" if -margin <= lo and hi <= margin else "holds" if lo > 0 else "undecided"
-            cells.append({"rivals": rivals, "statistic": k, "seeds": len(xs), "excess": mean(xs),
+            cells.append({"rivals": rivals, "arm": arm, "statistic": k, "seeds": len(xs), "excess": mean(xs),
                           "boot_lo": lo, "boot_hi": hi, "margin": margin, "verdict": v})
     return rows, cells
 
@@ -594,14 +678,14 @@ def mask_training_rows(runs):
     trade: a mask worth less than about α nats of entropy stays where the entropy puts it)."""
     rows = []
     for (rivals, algo), rs in sorted(runs.items()):
-        path_of = [(r, r["dir"] / "mask_training.csv") for r in rs] if algo == "cmask" else []
+        path_of = [(r, r["dir"] / "mask_training.csv") for r in rs] if ARMS[algo] == "cmask" else []
         for r, path in path_of:
             if not path.is_file():
                 continue
             logged = read_csv(path)
             end = max(float(x["env_steps"]) for x in logged)
             last = [x for x in logged if float(x["env_steps"]) > 0.9 * end]
-            row = {"rivals": rivals, "seed": r["seed"]}
+            row = {"rivals": rivals, "arm": algo, "seed": r["seed"]}
             for k in ["alpha", "entropy", "mean", "q_spread"]:
                 xs = [float(x[k]) for x in last if x.get(k)]
                 row[k] = mean(xs) if xs else float("nan")
@@ -627,7 +711,7 @@ def write_csv(name, rows):
 def run_rows(runs):
     """One markdown row per run: its training PG (last 10% of env steps) and split values."""
     rows = []
-    for (rivals, algo), rs in sorted(runs.items(), key=lambda kv: (kv[0][0], ALGOS.index(kv[0][1]))):
+    for (rivals, algo), rs in sorted(runs.items(), key=lambda kv: (kv[0][0], list(ARMS).index(kv[0][1]))):
         for r in sorted(rs, key=lambda r: r["seed"]):
             rows.append(f"| {rivals} | {NAMES[algo]} | {r['seed']} | {fmt(r['train_pg'])} | "
                         f"{fmt(r['pg_in'])} | {fmt(r['pg_out'])} | {r['ot_in']:+.2f} / {r['ot_out']:+.2f} | "
@@ -635,13 +719,19 @@ def run_rows(runs):
     return rows
 
 
-def markdown(runs, t2, t3, cells, abl_cells, mask_rows, mask_cells, trained):
-    out = ["# Results (written by `python3 docs/table2/table2.py analyse`)", ""]
-    out += ["## Runs (each evaluated on contexts 17-48; in = the 8 within ±0.15)", "",
+def markdown(cset, runs, t2, t3, cells, abl_cells, mask_rows, mask_cells):
+    """The results on the context set `cset`, one section."""
+    n_in = sum(1 for k in CONTEXT_SETS[cset]
+               if all(abs(-GRID_RANGE + 2 * GRID_RANGE * i / (GRID - 1)) <= 0.15 + 1e-9
+                      for i in divmod(k, GRID)))
+    title = ("all 49 contexts: the paper's protocol" if cset == "49"
+             else f"contexts {cset}: the set the paper's code's test loop raced")
+    out = [f"# On {title}", ""]
+    out += [f"## Runs (contexts {cset}; in = the {n_in} within ±0.15)", "",
             "| rivals | algo | seed | training PG, last 10% | PG in | PG out | OT in / out | A2A in / out (per 50 laps) |",
             "|--:|---|--:|--:|--:|--:|---|---|"]
     out += run_rows(runs) + [""]
-    out += ["## Table II (contexts 17-48; seed means, 95% bootstrap interval over seeds; paper beside)", "",
+    out += [f"## Table II (contexts {cset}; seed means, 95% bootstrap interval over seeds; paper beside)", "",
             "| rivals | algo | seeds | training PG | PG in | PG out | OT in | OT out | A2A in | A2A out |",
             "|---|---|--:|--:|---|---|---|---|---|---|"]
     for r in t2:
@@ -706,50 +796,67 @@ def markdown(runs, t2, t3, cells, abl_cells, mask_rows, mask_cells, trained):
                        f"[{fmt(c['t_lo'])}, {fmt(c['t_hi'])}] | {c['verdict']} |")
     if mask_rows:
         out += ["", "## cMask's masks (H7): observed, shuffled baseline, per agent", "",
-                "| rivals | seed | mean m_v | mean m_θ | SD m_v across contexts (shuffled) | SD m_θ (shuffled) | MI m_v bits (shuffled) | MI m_θ (shuffled) | MI joint (shuffled) |",
-                "|--:|--:|--:|--:|---|---|---|---|---|"]
+                "| rivals | arm | seed | mean m_v | mean m_θ | SD m_v across contexts (shuffled) | SD m_θ (shuffled) | MI m_v bits (shuffled) | MI m_θ (shuffled) | MI joint (shuffled) |",
+                "|--:|---|--:|--:|--:|---|---|---|---|---|"]
         for r in mask_rows:
-            out.append(f"| {r['rivals']} | {r['seed']} | {fmt(r['mean_speed'])} | {fmt(r['mean_steer'])} | "
+            out.append(f"| {r['rivals']} | {NAMES[r['arm']]} | {r['seed']} | {fmt(r['mean_speed'])} | {fmt(r['mean_steer'])} | "
                        + " | ".join(f"{fmt(r[k], 4)} ({fmt(r[k + '_shuffled'], 4)})"
                                     for k in ["sd_speed", "sd_steer", "mi_speed", "mi_steer", "mi_joint"]) + " |")
         for c in mask_cells:
-            out.append(f"- {c['rivals']} rival(s), {c['statistic']} excess {fmt(c['excess'], 4)} "
+            out.append(f"- {NAMES[c['arm']]}, {c['rivals']} rival(s), {c['statistic']} excess {fmt(c['excess'], 4)} "
                        f"[{fmt(c['boot_lo'], 4)}, {fmt(c['boot_hi'], 4)}] over {c['seeds']} seeds: {c['verdict']}")
+    return "\n".join(out) + "\n"
+
+
+def training_markdown(trained):
+    """The mask SACs' state at the end of training, whatever the context set."""
+    out = []
     if trained:
-        out += ["", "## cMask's mask SAC at the end of training (last 10% of env steps)", "",
-                "| rivals | seed | α | entropy (nats) | mean mask | Q spread over the mask grid | spread / α |",
-                "|--:|--:|--:|--:|--:|--:|--:|"]
+        out += ["# cMask's mask SAC at the end of training (last 10% of env steps)", "",
+                "| rivals | arm | seed | α | entropy (nats) | mean mask | Q spread over the mask grid | spread / α |",
+                "|--:|---|--:|--:|--:|--:|--:|--:|"]
         for r in trained:
-            out.append(f"| {r['rivals']} | {r['seed']} | {fmt(r['alpha'])} | {fmt(r['entropy'])} | "
+            out.append(f"| {r['rivals']} | {NAMES[r['arm']]} | {r['seed']} | {fmt(r['alpha'])} | {fmt(r['entropy'])} | "
                        f"{fmt(r['mean'])} | {fmt(r['q_spread'], 4)} | {fmt(r['q_spread_over_alpha'], 4)} |")
     return "\n".join(out) + "\n"
 
 
 def analyse():
-    rng = random.Random(45)
-    runs = load_runs()
-    if not runs:
-        sys.exit(f"no runs under {HERE}/<R>r/<algo>/seed<S>/: run `collect` first")
-    t2, t3 = table2(runs, rng), table3(runs, rng)
-    cells = hypotheses(runs, rng)
-    abl_rows, abl_cells = ablation(runs, rng)
-    mask_rows, mask_cells = masks(runs, rng)
-    trained = mask_training_rows(runs)
-    write_csv("table2.csv", t2)
-    write_csv("table3.csv", t3)
-    write_csv("hypotheses.csv", cells)
-    write_csv("context_ablation.csv", abl_rows)
-    write_csv("context_ablation_cells.csv", abl_cells)
-    write_csv("masks.csv", mask_rows + mask_cells)
+    files = {name: [] for name in ["table2", "table3", "hypotheses", "context_ablation",
+                                   "context_ablation_cells", "masks"]}
+    md = ["# Results (written by `python3 docs/table2/table2.py analyse`)", ""]
+    for cset in CONTEXT_SETS:
+        runs = load_runs(cset)
+        if not runs:
+            continue
+        # each set's resamples from the same seed: its intervals do not move with the other's runs
+        rng = random.Random(45)
+        t2, t3 = table2(runs, rng), table3(runs, rng)
+        cells = hypotheses(runs, rng)
+        for arm in ARMS:
+            if arm.startswith("cmask-") and any(a == arm for _, a in runs):
+                cells += hypotheses(runs, rng, arm)
+        abl_rows, abl_cells = ablation(runs, rng)
+        mask_rows, mask_cells = masks(runs, rng)
+        for name, rows in [("table2", t2), ("table3", t3), ("hypotheses", cells),
+                           ("context_ablation", abl_rows), ("context_ablation_cells", abl_cells),
+                           ("masks", mask_rows + mask_cells)]:
+            files[name] += [{"contexts": cset, **r} for r in rows]
+        md.append(markdown(cset, runs, t2, t3, cells, abl_cells, mask_rows, mask_cells))
+    if not any(files.values()):
+        sys.exit(f"no runs under {HERE}/<R>r/<arm>/seed<S>/: run `collect` first")
+    trained = mask_training_rows(load_runs("17-48"))
+    md.append(training_markdown(trained))
+    for name, rows in files.items():
+        write_csv(f"{name}.csv", rows)
     write_csv("mask_training.csv", trained)
-    (HERE / "results.md").write_text(
-        markdown(runs, t2, t3, cells, abl_cells, mask_rows, mask_cells, trained))
+    (HERE / "results.md").write_text("\n".join(md))
     print((HERE / "results.md").read_text())
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 3 and sys.argv[1] == "collect":
-        collect(sys.argv[2])
+    if 3 <= len(sys.argv) <= 5 and sys.argv[1] == "collect":
+        collect(*sys.argv[2:])
     elif len(sys.argv) == 2 and sys.argv[1] == "analyse":
         analyse()
     else:
