@@ -109,6 +109,12 @@ fn experiment(args: &TrainArgs) -> Result<ExperimentConfig> {
              actor processes"
         );
     }
+    if !args.inline && !cfg.train.keep_best_at.is_empty() {
+        bail!(
+            "[train] keep_best_at is kept by the single-process trainer only (it knows each env \
+             step): pass --inline, or leave keep_best_at out for a run of actor processes"
+        );
+    }
     let actors = if args.inline { 1 } else { args.actors };
     cfg.validate_run(actors)?;
     Ok(cfg)

@@ -1,6 +1,7 @@
 //! `ctxrace train --inline --resume` continues a run killed (`kill -9`) at a random step exactly:
-//! the resumed run's `episodes.csv` and every checkpoint file, the best policy's included, equal
-//! the uninterrupted run's byte for byte. The replay is small enough to wrap, and each run is
+//! the resumed run's `episodes.csv`, cMask's `training_masks.csv` and every checkpoint file (the
+//! best policy's and its copies kept at `keep_best_at` included) equal the uninterrupted run's
+//! byte for byte. The replay is small enough to wrap, and each run is
 //! killed twice, so that a resumed run is resumed again.
 
 use std::collections::BTreeMap;
@@ -38,6 +39,7 @@ checkpoint_every = 20
 log_every = 2
 threads = 1
 resume_every_secs = 0
+keep_best_at = [1500, 2500]
 [replay]
 capacity = 1200
 "#;
@@ -61,13 +63,15 @@ fn train(config: &Path, run: &Path, algo: &str, resume: bool) -> Command {
     cmd
 }
 
-/// Every file of the run's checkpoints, by path below `checkpoints/`, and `episodes.csv`.
+/// Every file of the run's checkpoints, by path below `checkpoints/`, `episodes.csv` and (cMask)
+/// `training_masks.csv`.
 fn records(run: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
     let mut out = BTreeMap::new();
-    out.insert(
-        PathBuf::from("episodes.csv"),
-        std::fs::read(run.join("episodes.csv")).unwrap(),
-    );
+    for log in ["episodes.csv", "training_masks.csv"] {
+        if let Ok(bytes) = std::fs::read(run.join(log)) {
+            out.insert(PathBuf::from(log), bytes);
+        }
+    }
     let root = run.join("checkpoints");
     for dir in std::fs::read_dir(&root).unwrap() {
         let dir = dir.unwrap().path();
@@ -128,6 +132,20 @@ fn a_run_killed_at_random_steps_and_resumed_writes_the_uninterrupted_runs_files(
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         let episodes = rows(&whole);
         assert!(episodes > 20, "{algo}: {episodes} episodes");
+        let kept = records(&whole);
+        for step in [1500, 2500] {
+            let manifest = PathBuf::from(format!("best-at-{step}/manifest.toml"));
+            assert!(
+                kept.contains_key(&manifest),
+                "{algo}: no best policy kept at {step}"
+            );
+        }
+        let masks = kept.contains_key(Path::new("training_masks.csv"));
+        assert_eq!(
+            masks,
+            algo == "cmask",
+            "{algo}: training_masks.csv only for cMask"
+        );
         // two kill points in the run's episodes, the second after the first
         let mix = |x: u64| {
             x.wrapping_mul(6364136223846793005)

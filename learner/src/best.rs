@@ -12,10 +12,10 @@
 //! checkpoint, so a restarted learner carries on with it.
 
 use crate::checkpoint::{
-    io_error, write_atomically, write_policy_files, write_toml, Result, TRACKER_FILE,
+    io_error, write_atomically, write_policy_files, write_toml, Result, MANIFEST_FILE, TRACKER_FILE,
 };
 use crate::Algorithm;
-use ctxrace_run::checkpoint::BEST_FILE;
+use ctxrace_run::checkpoint::{best_at_dir, best_checkpoint, BEST_FILE};
 use ctxrace_run::run_dir::{BEST_DIR, CHECKPOINTS};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -73,6 +73,27 @@ pub struct BestInfo {
     pub episodes: u64,
     /// The smoothed return that made it the best.
     pub smoothed_return: f64,
+}
+
+/// Copies the run's best checkpoint as it is now to `checkpoints/best-at-<env_steps>`
+/// ([`best_at_dir`]), sealed anew; `None` (with a warning) while the run has no best policy yet.
+pub fn keep_best_at(run_dir: &Path, env_steps: u64) -> Result<Option<PathBuf>> {
+    let Some(best) = best_checkpoint(run_dir) else {
+        tracing::warn!("{env_steps} env steps: no best policy to keep yet");
+        return Ok(None);
+    };
+    let kept = write_atomically(&best_at_dir(run_dir, env_steps), |tmp| {
+        let entries = std::fs::read_dir(&best).map_err(|e| io_error("listing", &best, e))?;
+        for entry in entries {
+            let from = entry.map_err(|e| io_error("listing", &best, e))?.path();
+            let Some(name) = from.file_name().filter(|n| *n != MANIFEST_FILE) else {
+                continue;
+            };
+            std::fs::copy(&from, tmp.join(name)).map_err(|e| io_error("copying", &from, e))?;
+        }
+        Ok(())
+    })?;
+    Ok(Some(kept))
 }
 
 /// Saves `algo`'s acting policy as the run's best checkpoint (replacing the last one).

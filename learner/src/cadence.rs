@@ -5,7 +5,7 @@
 //! checkpoint every `checkpoint_every` and the policy's publication due every `policy_every`;
 //! the last checkpoint at the end.
 
-use crate::best::{write_best, ReturnTracker};
+use crate::best::{keep_best_at, write_best, ReturnTracker};
 use crate::checkpoint::{write_checkpoint, CheckpointError};
 use crate::runlog::{LogError, MetricsLog};
 use crate::{Algorithm, Metrics};
@@ -84,6 +84,15 @@ impl Cadence {
         }
         if new_best {
             write_best(&self.run_dir, algo, &self.agent, &self.tracker)?;
+        }
+        Ok(())
+    }
+
+    /// Keeps a copy of the best policy if the run has taken one of `[train] keep_best_at`'s
+    /// env-step counts (called after each decision with the run's count).
+    pub fn env_steps_taken(&self, env_steps: u64) -> Result<()> {
+        if self.train.keep_best_at.contains(&env_steps) {
+            keep_best_at(&self.run_dir, env_steps)?;
         }
         Ok(())
     }

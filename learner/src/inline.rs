@@ -17,6 +17,7 @@ use ctxrace_config::ExperimentConfig;
 use ctxrace_nn::policy::{PolicyError, ACT_DIM};
 use ctxrace_nn::Policy;
 use ctxrace_run::experience::{ExperienceSource, SampleStore};
+use ctxrace_run::results::TrainingMask;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::path::{Path, PathBuf};
@@ -165,6 +166,18 @@ pub fn run_inline<S: ExperienceSource<Policy = Policy>, B: SampleStore>(
         if let Some(f) = finished {
             let row = f.row(0, source.decisions(), algo.steps());
             episodes.write(&row)?;
+            if let Some((mean, decisions)) = f.mean_mask {
+                episodes.write_mask(&TrainingMask {
+                    env_steps: row.env_steps,
+                    grad_steps: row.grad_steps,
+                    episode: row.episode,
+                    context_speed: row.context_speed,
+                    context_steer: row.context_steer,
+                    mask_speed: mean[0],
+                    mask_steer: mean[1],
+                    decisions,
+                })?;
+            }
             recent.push(row.progress);
             if recent.len() > RECENT {
                 recent.remove(0);
@@ -172,6 +185,7 @@ pub fn run_inline<S: ExperienceSource<Policy = Policy>, B: SampleStore>(
             let policy_return = f.by_policy.then_some(f.record.episode_return);
             cadence.observe_returns(algo.as_ref(), policy_return)?;
         }
+        cadence.env_steps_taken(source.decisions())?;
         if trained_after.is_none() {
             trained_after = cfg.warmup_end(source.decisions(), source.episodes());
         }

@@ -29,7 +29,9 @@ use crate::checkpoint::{
 use crate::Algorithm;
 use ctxrace_nn::policy::CarriedState;
 use ctxrace_run::experience::{SampleStore, SourcePosition};
-use ctxrace_run::run_dir::{METRICS_CSV, METRICS_JSONL, RESUME_DIR, TRAINING_EPISODES};
+use ctxrace_run::run_dir::{
+    METRICS_CSV, METRICS_JSONL, RESUME_DIR, TRAINING_EPISODES, TRAINING_MASKS,
+};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -41,7 +43,12 @@ const ACTING_FILE: &str = "acting.safetensors";
 /// The sample store in a resume point.
 const STORE_FILE: &str = "replay.snapshot";
 /// The logs a resumed run cuts back to their length at the point.
-const LOGS: [&str; 3] = [TRAINING_EPISODES, METRICS_JSONL, METRICS_CSV];
+const LOGS: [&str; 4] = [
+    TRAINING_EPISODES,
+    TRAINING_MASKS,
+    METRICS_JSONL,
+    METRICS_CSV,
+];
 
 /// The loop's state at an episode boundary, besides the algorithm, the store and the tracker.
 #[derive(Clone, Debug, PartialEq)]

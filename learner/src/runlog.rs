@@ -6,8 +6,10 @@
 
 use crate::tensorboard::{EventFileError, EventWriter};
 use crate::Metrics;
-use ctxrace_run::results::TrainingEpisode;
-use ctxrace_run::run_dir::{open_append, METRICS_CSV, METRICS_JSONL, TRAINING_EPISODES};
+use ctxrace_run::results::{TrainingEpisode, TrainingMask};
+use ctxrace_run::run_dir::{
+    open_append, METRICS_CSV, METRICS_JSONL, TRAINING_EPISODES, TRAINING_MASKS,
+};
 use std::fs::File;
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -129,18 +131,16 @@ impl MetricsLog {
     }
 }
 
-/// Appends training episodes to `episodes.csv` and, with the run's rates, to a TensorBoard
-/// event file (scalars `episode/*` and `rate/*`, `replay/*` at the run's env steps).
-pub struct EpisodeLog {
+/// A CSV file appended to row by row (its header written only into an empty file), each row
+/// flushed.
+struct CsvAppender {
     writer: csv::Writer<std::fs::File>,
     path: PathBuf,
-    events: EventWriter,
 }
 
-impl EpisodeLog {
-    /// Opens (appending) `<run_dir>/episodes.csv`, with a new event file for `role`.
-    pub fn open(run_dir: &Path, role: &str) -> Result<Self> {
-        let path = run_dir.join(TRAINING_EPISODES);
+impl CsvAppender {
+    /// Opens (appending) the CSV file at `path`.
+    fn open(path: PathBuf) -> Result<Self> {
         let fresh = std::fs::metadata(&path).map_or(true, |m| m.len() == 0);
         let (file, path) = append(path)?;
         Ok(Self {
@@ -148,22 +148,58 @@ impl EpisodeLog {
                 .has_headers(fresh)
                 .from_writer(file),
             path,
+        })
+    }
+
+    /// Appends one row and flushes it.
+    fn write(&mut self, row: &impl serde::Serialize) -> Result<()> {
+        self.writer.serialize(row).map_err(|source| LogError::Csv {
+            path: self.path.clone(),
+            source,
+        })?;
+        self.writer.flush().map_err(|source| LogError::Write {
+            path: self.path.clone(),
+            source,
+        })
+    }
+}
+
+/// Appends training episodes to `episodes.csv` (cMask's mean masks to `training_masks.csv`)
+/// and, with the run's rates, to a TensorBoard event file (scalars `episode/*` and `rate/*`,
+/// `replay/*` at the run's env steps).
+pub struct EpisodeLog {
+    episodes: CsvAppender,
+    /// `training_masks.csv`, opened at the first masked episode.
+    masks: Option<CsvAppender>,
+    run_dir: PathBuf,
+    events: EventWriter,
+}
+
+impl EpisodeLog {
+    /// Opens (appending) `<run_dir>/episodes.csv`, with a new event file for `role`.
+    pub fn open(run_dir: &Path, role: &str) -> Result<Self> {
+        Ok(Self {
+            episodes: CsvAppender::open(run_dir.join(TRAINING_EPISODES))?,
+            masks: None,
+            run_dir: run_dir.to_path_buf(),
             events: EventWriter::create(run_dir, role)?,
         })
     }
 
+    /// Appends one episode's mean context mask to `training_masks.csv`.
+    pub fn write_mask(&mut self, mask: &TrainingMask) -> Result<()> {
+        let masks = match &mut self.masks {
+            Some(m) => m,
+            None => self
+                .masks
+                .insert(CsvAppender::open(self.run_dir.join(TRAINING_MASKS))?),
+        };
+        masks.write(mask)
+    }
+
     /// Appends one episode.
     pub fn write(&mut self, episode: &TrainingEpisode) -> Result<()> {
-        self.writer
-            .serialize(episode)
-            .map_err(|source| LogError::Csv {
-                path: self.path.clone(),
-                source,
-            })?;
-        self.writer.flush().map_err(|source| LogError::Write {
-            path: self.path.clone(),
-            source,
-        })?;
+        self.episodes.write(episode)?;
         let flag = |b: bool| f64::from(u8::from(b));
         self.events.scalars(
             episode.env_steps,

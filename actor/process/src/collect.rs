@@ -47,6 +47,8 @@ pub struct Finished {
     pub metrics: EpisodeMetrics,
     /// The policy chose every action of the episode (no random prefill action).
     pub by_policy: bool,
+    /// The mean of the context masks the policy chose, and their count (`None`: no mask).
+    pub mean_mask: Option<([f64; 2], u64)>,
 }
 
 /// Runs episodes one decision at a time.
@@ -65,6 +67,8 @@ pub struct Collector {
     paper_code_rows: bool,
     /// The next decision is the running episode's first.
     first_decision: bool,
+    /// Sums of the running episode's context masks, and their count.
+    mask_sums: ([f64; 2], u64),
 }
 
 impl Collector {
@@ -83,6 +87,7 @@ impl Collector {
             random_actions: 0,
             paper_code_rows: false,
             first_decision: false,
+            mask_sums: ([0.0; 2], 0),
         }
     }
 
@@ -146,6 +151,7 @@ impl Collector {
             self.episode += 1;
             self.random_actions = 0;
             self.first_decision = true;
+            self.mask_sums = ([0.0; 2], 0);
             if !self.paper_code_rows {
                 sink(&TrajectoryStep {
                     obs: &self.obs,
@@ -177,6 +183,12 @@ impl Collector {
                 )
             }
         };
+        if let Some(m) = mask {
+            let (sums, n) = &mut self.mask_sums;
+            sums[0] += f64::from(m[0]);
+            sums[1] += f64::from(m[1]);
+            *n += 1;
+        }
         let step = self.env.step(action.map(f64::from))?;
         self.decisions += 1;
         let last = step.terminated || step.truncated;
@@ -205,6 +217,10 @@ impl Collector {
             context: self.context,
             metrics: self.env.metrics().clone(),
             by_policy: self.random_actions == 0,
+            mean_mask: match self.mask_sums {
+                (_, 0) => None,
+                (sums, n) => Some((sums.map(|s| s / n as f64), n)),
+            },
         }))
     }
 }
@@ -251,6 +267,7 @@ impl ExperienceSource for Collector {
                 steps: f.metrics.steps,
             },
             by_policy: f.by_policy,
+            mean_mask: f.mean_mask,
         }))
     }
 

@@ -90,6 +90,17 @@ pub enum ExperimentError {
     /// The training contexts' half-width is out of range.
     #[error("[train] context_range = {0} must lie in [0, 0.9]")]
     ContextRange(f64),
+    /// A `keep_best_at` step the run never reaches.
+    #[error(
+        "[train] keep_best_at = {step} lies outside the run's env steps 1..={env_steps}: keep \
+         the best policy at steps the run takes"
+    )]
+    KeepBestAt {
+        /// The step.
+        step: u64,
+        /// `[train] env_steps`.
+        env_steps: u64,
+    },
     /// A zero publication or logging interval, or zero threads.
     #[error("[train] policy_every, log_every and threads must be positive")]
     ZeroInterval,
@@ -195,6 +206,10 @@ pub struct TrainConfig {
     /// written at the first episode boundary after (0: at every boundary); `--resume` continues
     /// from the newest exactly as if the run had not stopped.
     pub resume_every_secs: u64,
+    /// Environment steps at which a single-process run keeps a copy of its best policy so far
+    /// (`checkpoints/best-at-<N>`, evaluated with `--checkpoint best-at-<N>`), e.g. `[25000,
+    /// 50000, 75000]`: how the policy `ctxrace eval` takes by default developed.
+    pub keep_best_at: Vec<u64>,
     /// Worker threads of the learner: DreamerV3 and its variants split each batch over them;
     /// SAC always trains on one (the actors always act on one) [default:
     /// [`AlgoKind::learner_threads`]].
@@ -220,6 +235,7 @@ impl Default for TrainConfig {
             checkpoint_every: 5_000,
             log_every: 100,
             resume_every_secs: 60,
+            keep_best_at: Vec::new(),
             threads: None,
         }
     }
@@ -422,6 +438,12 @@ impl ExperimentConfig {
         }
         if t.policy_every == 0 || t.log_every == 0 || t.threads == Some(0) {
             return Err(ExperimentError::ZeroInterval);
+        }
+        if let Some(&step) = t.keep_best_at.iter().find(|&&s| s == 0 || s > t.env_steps) {
+            return Err(ExperimentError::KeepBestAt {
+                step,
+                env_steps: t.env_steps,
+            });
         }
         let s = &self.supervisor;
         if s.restart_window_secs == 0 || s.heartbeat_timeout_secs < 5 || s.stall_timeout_secs < 5 {
@@ -704,6 +726,27 @@ mod tests {
         std::fs::write(&path, ExperimentConfig::default().to_toml().unwrap()).unwrap();
         let now = ExperimentConfig::load_saved(&path).unwrap();
         assert_eq!(now, ExperimentConfig::default());
+    }
+
+    #[test]
+    fn keep_best_at_takes_only_steps_the_run_takes() {
+        let cfg = |keep: &str| {
+            ExperimentConfig::from_toml(
+                &format!("[train]\nenv_steps = 5000\nkeep_best_at = {keep}\n"),
+                "k.toml",
+            )
+        };
+        assert_eq!(
+            cfg("[1, 2500, 5000]").unwrap().train.keep_best_at,
+            [1, 2500, 5000]
+        );
+        for bad in ["[0]", "[2500, 5001]"] {
+            let err = cfg(bad).unwrap_err().to_string();
+            assert!(
+                err.contains("keep_best_at") && err.contains("1..=5000"),
+                "{bad}: {err}"
+            );
+        }
     }
 
     #[test]

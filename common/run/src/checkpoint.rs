@@ -195,6 +195,14 @@ pub fn latest_checkpoint(run_dir: &Path) -> Option<std::path::PathBuf> {
 /// File in the run's best checkpoint saying when it was taken (the learner's `BestInfo`).
 pub const BEST_FILE: &str = "best.toml";
 
+/// The folder that keeps the run's best policy as it was when the run had taken `env_steps`
+/// environment steps (`[train] keep_best_at`): `checkpoints/best-at-<env_steps>`.
+pub fn best_at_dir(run_dir: &Path, env_steps: u64) -> PathBuf {
+    run_dir
+        .join(CHECKPOINTS)
+        .join(format!("{BEST_DIR}-at-{env_steps}"))
+}
+
 /// The best checkpoint of a run directory, if it has one.
 pub fn best_checkpoint(run_dir: &Path) -> Option<PathBuf> {
     let dir = run_dir.join(CHECKPOINTS).join(BEST_DIR);

@@ -18,6 +18,9 @@ pub struct EndedEpisode {
     pub record: TrainingEpisode,
     /// The policy chose every action of the episode (no random prefill action).
     pub by_policy: bool,
+    /// cMask's mean context mask `[m_v, m_θ]` over the decisions its policy masked, and their
+    /// count (`None` where no decision was masked).
+    pub mean_mask: Option<([f64; 2], u64)>,
 }
 
 impl EndedEpisode {

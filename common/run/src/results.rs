@@ -40,6 +40,28 @@ pub struct TrainingEpisode {
     pub steps: usize,
 }
 
+/// cMask's context mask over one training episode: the mean of the masks its policy chose
+/// (`training_masks.csv`, a row per episode the policy drove, beside its `episodes.csv` row).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrainingMask {
+    /// Environment steps taken by the run when the episode ended.
+    pub env_steps: u64,
+    /// Gradient steps taken by the learner when the episode ended.
+    pub grad_steps: u64,
+    /// Episode index within its actor (as in `episodes.csv`).
+    pub episode: u64,
+    /// Rival speed context `c_v`.
+    pub context_speed: f64,
+    /// Rival steering context `c_θ`.
+    pub context_steer: f64,
+    /// Mean mask of `c_v` over the episode's decisions.
+    pub mask_speed: f64,
+    /// Mean mask of `c_θ` over the episode's decisions.
+    pub mask_steer: f64,
+    /// Decisions whose mask the means average.
+    pub decisions: u64,
+}
+
 /// What the replay's current start took of each actor and of the budget
 /// ([`crate::run_dir::REPLAY_STREAMS`]), written by the replay each second: its own counts,
 /// not what any message claims.

@@ -13,6 +13,7 @@
 //!   actors/actor-<id>-<n>.json   ACTOR_REPORTS: each actor incarnation's final counters
 //!   logs/<role>.log        LOGS: each process's log
 //!   episodes.csv           TRAINING_EPISODES: one row per finished training episode
+//!   training_masks.csv     TRAINING_MASKS: cMask's mean mask per training episode (inline)
 //!   metrics.csv, metrics.jsonl   METRICS_CSV, METRICS_JSONL: the learner's metrics
 //!   events.out.tfevents.*  TensorBoard event files
 //!   checkpoints/step-<N>/  CHECKPOINTS: policy.safetensors (POLICY_FILE), agent.toml
@@ -63,6 +64,9 @@ pub const ACTOR_REPORTS: &str = "actors";
 pub const LOGS: &str = "logs";
 /// The training episodes (training curves).
 pub const TRAINING_EPISODES: &str = "episodes.csv";
+/// cMask's mean context mask of each training episode of a single-process run
+/// ([`crate::results::TrainingMask`]), beside its `episodes.csv` row.
+pub const TRAINING_MASKS: &str = "training_masks.csv";
 /// The learner's metrics as CSV.
 pub const METRICS_CSV: &str = "metrics.csv";
 /// The learner's metrics as JSON lines.

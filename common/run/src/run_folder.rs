@@ -8,7 +8,7 @@ use crate::lock::{DirLock, LockError};
 use crate::path_error::PathIoError;
 use crate::run_dir::{
     run_name, write_atomic, CHECKPOINTS, CONFIG_FILE, METRICS_CSV, METRICS_JSONL, RESUME_DIR,
-    TRAINING_EPISODES,
+    TRAINING_EPISODES, TRAINING_MASKS,
 };
 use ctxrace_config::{ExperimentConfig, ExperimentError};
 use std::path::{Path, PathBuf};
@@ -97,6 +97,7 @@ impl RunFolder {
     pub fn start_over(&self) -> Result<(), RunFolderError> {
         for name in [
             TRAINING_EPISODES,
+            TRAINING_MASKS,
             METRICS_JSONL,
             METRICS_CSV,
             CHECKPOINTS,

@@ -3,7 +3,8 @@
 //! experiment, for `eval`, `race` and the first look after training.
 
 use crate::checkpoint::{
-    best_checkpoint, checkpoint_step, checkpoints, latest_checkpoint, verify, CheckpointError,
+    best_at_dir, best_checkpoint, checkpoint_step, checkpoints, latest_checkpoint, verify,
+    CheckpointError,
 };
 use crate::run_dir::{AGENT_FILE, CONFIG_FILE, POLICY_FILE};
 use ctxrace_config::agents::AgentConfigError;
@@ -101,11 +102,13 @@ pub enum CheckpointChoice {
     Latest,
     /// The checkpoint after this many gradient steps.
     Step(u64),
+    /// The best policy as it was after this many environment steps (`[train] keep_best_at`).
+    BestAt(u64),
 }
 
 /// A name that is no [`CheckpointChoice`].
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
-#[error("'{0}' is not best, latest or step-N (e.g. step-5000)")]
+#[error("'{0}' is not best, latest, step-N (e.g. step-5000) or best-at-N (e.g. best-at-25000)")]
 pub struct UnknownCheckpointChoice(pub String);
 
 impl std::str::FromStr for CheckpointChoice {
@@ -115,10 +118,9 @@ impl std::str::FromStr for CheckpointChoice {
         match s {
             "best" => Ok(Self::Best),
             "latest" => Ok(Self::Latest),
-            _ => s
-                .strip_prefix("step-")
-                .and_then(|n| n.parse().ok())
-                .map(Self::Step)
+            _ => None
+                .or_else(|| s.strip_prefix("step-")?.parse().ok().map(Self::Step))
+                .or_else(|| s.strip_prefix("best-at-")?.parse().ok().map(Self::BestAt))
                 .ok_or_else(|| UnknownCheckpointChoice(s.to_string())),
         }
     }
@@ -130,6 +132,7 @@ impl std::fmt::Display for CheckpointChoice {
             Self::Best => write!(f, "best"),
             Self::Latest => write!(f, "latest"),
             Self::Step(n) => write!(f, "step-{n}"),
+            Self::BestAt(n) => write!(f, "best-at-{n}"),
         }
     }
 }
@@ -202,6 +205,7 @@ fn pick_checkpoint(run: &Path, choice: CheckpointChoice) -> Result<PathBuf> {
         CheckpointChoice::Step(n) => checkpoints(run)
             .into_iter()
             .find(|c| checkpoint_step(c) == Some(n)),
+        CheckpointChoice::BestAt(n) => Some(best_at_dir(run, n)).filter(|d| d.is_dir()),
     };
     found.ok_or_else(|| {
         let steps: Vec<String> = checkpoints(run)
@@ -215,6 +219,10 @@ fn pick_checkpoint(run: &Path, choice: CheckpointChoice) -> Result<PathBuf> {
             CheckpointChoice::Best => {
                 " (the learner saves it when the policy drove a training episode; runs trained \
                  before ctxrace kept it have none)"
+            }
+            CheckpointChoice::BestAt(_) => {
+                " (kept only at the env steps of the run's [train] keep_best_at, once the \
+                 policy had driven a training episode)"
             }
             CheckpointChoice::Latest if !checkpoints(run).is_empty() => {
                 " intact (every step-* checkpoint is damaged; the warnings above say how)"
@@ -234,4 +242,25 @@ fn pick_checkpoint(run: &Path, choice: CheckpointChoice) -> Result<PathBuf> {
             alternatives,
         }
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn checkpoint_choices_read_back_as_they_print() {
+        for choice in [
+            CheckpointChoice::Best,
+            CheckpointChoice::Latest,
+            CheckpointChoice::Step(5000),
+            CheckpointChoice::BestAt(25_000),
+        ] {
+            assert_eq!(choice.to_string().parse::<CheckpointChoice>(), Ok(choice));
+        }
+        for bad in ["step-", "best-at-x", "best-at--1", "last"] {
+            let err = bad.parse::<CheckpointChoice>().unwrap_err().to_string();
+            assert!(err.contains(bad) && err.contains("best-at-N"), "{err}");
+        }
+    }
 }
