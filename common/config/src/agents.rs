@@ -6,8 +6,8 @@
 //! values. `preset = "default"` is ctxrace's learner; `preset = "paper-code"` is the learner as
 //! the paper's public code trained it (lilpharaoh1/context-f110, `paper` branch c0fd903, Jun
 //! 2025, `TrajectoryAidedLearning/`: cbdreamer's `dreamerv3.py` and `cbtools.py`, and
-//! `TrainAgents.py`), see [`AgentConfig::paper_code`]. The presets differ in these keys (the
-//! README has the full table with the reasons):
+//! `TrainAgents.py`), see [`AgentConfig::paper_code`]. The presets differ in these keys
+//! (docs/guides/agents.md has the full table with the reasons):
 //!
 //! | key | default | `paper-code` |
 //! |---|---|---|

@@ -6,7 +6,8 @@
 //! or with `preset = "paper-code"` the race exactly as the paper's public code ran it
 //! ([`RaceConfig::paper_code`]). A TOML file only names what it changes.
 //!
-//! The two presets differ in these keys (the README has the full table with the reasons):
+//! The two presets differ in these keys (docs/guides/race.md has the full table with the
+//! reasons):
 //!
 //! | key | default | `paper-code` |
 //! |---|---|---|
