@@ -45,7 +45,8 @@ pub struct EvalArgs {
     /// `follow-the-gap` or `random`.
     source: String,
     /// Which checkpoint of a run directory: `best` (the peak of the smoothed training return,
-    /// the paper's), `latest` or `step-N`.
+    /// the paper's), `latest`, `step-N` or `best-at-N` (the best policy after N env steps, kept
+    /// by `[train] keep_best_at`).
     #[arg(long, default_value = "best")]
     checkpoint: CheckpointChoice,
     /// How a trained agent acts: `sample` its distributions (the paper's) or take their `mode`.

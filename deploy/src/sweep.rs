@@ -3,8 +3,9 @@
 //! protocol, and one report over all of them.
 //!
 //! A matrix file (`configs/paper/matrix.toml`) names a base experiment config, the values of
-//! each axis (`algos`, `tracks`, `rivals`, `seeds`) and per-algorithm tables laid over the base
-//! (`[algo.sac]`: the paper code's update ratios). Run `<algo>-<track>-<rivals>r-s<seed>` lives in
+//! each axis (`algos`, `tracks`, `rivals`, `seeds`), a table laid over the base for every run
+//! (`[experiment]`) and per-algorithm tables laid over that (`[algo.sac]`: the paper code's
+//! update ratios). Run `<algo>-<track>-<rivals>r-s<seed>` lives in
 //! `<out>/<name>/`, its resolved experiment in `<out>/configs/<name>.toml`; it is done when its
 //! evaluation is complete.
 //!
@@ -99,6 +100,9 @@ pub struct MatrixFile {
     pub rivals: Vec<usize>,
     /// The training seeds.
     pub seeds: Vec<u64>,
+    /// An experiment-config fragment laid over the base for every run (before `algo`'s).
+    #[serde(default)]
+    pub experiment: toml::Table,
     /// Per algorithm (by name), an experiment-config fragment laid over the base.
     #[serde(default)]
     pub algo: BTreeMap<String, toml::Table>,
@@ -328,6 +332,7 @@ impl MatrixFile {
         })?;
         let seeds = &self.seeds[..seeds.unwrap_or(self.seeds.len()).min(self.seeds.len())];
         let mut runs = Vec::new();
+        let base = ctxrace_config::preset::merge_tables(base, self.experiment.clone());
         for &algo in &self.algos {
             let mut table = base.clone();
             if let Some(over) = self.algo.get(algo.name()) {
@@ -1054,6 +1059,62 @@ train_ratio = 2.0
         assert!(runs
             .iter()
             .all(|r| r.config.train.env_steps == runs[0].config.train.env_steps));
+    }
+
+    /// The runs of a shipped matrix file of configs/paper.
+    fn paper_matrix(name: &str) -> (MatrixFile, Vec<MatrixRun>) {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../configs/paper")
+            .join(name);
+        let m = MatrixFile::load(&path).unwrap();
+        let runs = m
+            .runs(path.parent().unwrap(), None, &Only::default())
+            .unwrap();
+        (m, runs)
+    }
+
+    #[test]
+    fn the_protocol_matrices_lay_their_arms_over_the_tables_experiment() {
+        use ctxrace_config::agents::{ImaginationContext, MaskSpace};
+        let (_, table) = paper_matrix("table2.toml");
+        let table_cmask = &table
+            .iter()
+            .find(|r| r.config.agent.algo == AlgoKind::Cmask)
+            .unwrap()
+            .config;
+        let (_, more) = paper_matrix("table2-more-seeds.toml");
+        assert_eq!(more.len(), 15);
+        assert!(more.iter().all(|r| r.config.race.rivals == 1
+            && r.config.train.seed >= 10_050
+            && r.config.train.env_steps == table_cmask.train.env_steps));
+        for (file, runs, alpha) in [
+            ("table2-paper-mask.toml", 20, 1.0),
+            ("table2-paper-mask-alpha0.05.toml", 5, 0.05),
+        ] {
+            let (_, arm) = paper_matrix(file);
+            assert_eq!(arm.len(), runs, "{file}");
+            let base = &table_cmask.race;
+            for r in &arm {
+                let mask = &r.config.agent.dreamer.mask;
+                assert_eq!(mask.mask_space, MaskSpace::PaperCode, "{file}");
+                assert_eq!(mask.imagination_context, ImaginationContext::Raw);
+                assert_eq!((mask.lr, mask.init_alpha), (3e-5, alpha));
+                // the rest of the experiment is the table's
+                assert_eq!(r.config.train.env_steps, table_cmask.train.env_steps);
+                assert_eq!(r.config.race.preset, base.preset);
+            }
+        }
+        // the long runs: the table's experiment at the code's schedule, the code's mask for cMask
+        let (_, long) = paper_matrix("long.toml");
+        assert_eq!(long.len(), 6);
+        for r in &long {
+            let t = &r.config.train;
+            assert_eq!((t.env_steps, t.train_ratio), (100_000, 1.0));
+            assert_eq!(t.keep_best_at, [25_000, 50_000, 75_000]);
+            assert_eq!(r.config.race.rival, table_cmask.race.rival);
+            let code_mask = r.config.agent.dreamer.mask.mask_space == MaskSpace::PaperCode;
+            assert_eq!(code_mask, r.config.agent.algo == AlgoKind::Cmask);
+        }
     }
 
     #[test]

@@ -2,22 +2,25 @@
 """The reduced Table II / III of issue 45, from the committed records alone (Python's standard
 library, nothing else), as docs/table2/README.md plans it.
 
-    python3 docs/table2/table2.py collect runs/table2 [ARM [RUN]]   # finished runs -> here
+    python3 docs/table2/table2.py collect runs/table2 [ARM [RUN]] [--into DIR]   # runs -> here
     python3 docs/table2/table2.py analyse                     # tables, verdicts, ablation, masks
 
 `collect` copies, for every run of the sweep folder whose evaluation is complete, the records
 anyone needs to recompute the tables into `<R>r/<arm>/seed<S>/` (the arm is the algorithm's
-name unless ARM names it, e.g. `cmask-paper-mask`; RUN: only that run): `config.toml`,
+name unless ARM names it, e.g. `cmask-paper-mask`; RUN: only that run; DIR instead of this
+folder, e.g. docs/long): `config.toml`, `training_masks.csv` where the run wrote one,
 `episodes.csv` (the training episodes), `eval/{meta.json, contexts.csv, episodes.csv}`, each
 context ablation `ablation/<condition>/{meta.json, contexts.csv, episodes.csv}` and, for cMask,
 `mask_training.csv` (the mask SAC's logged metrics) and `eval/mask_episodes.csv`: one row per evaluation episode with its decisions' mask sums and their
 10 x 10 histogram (from `masks.csv.gz`, too large to commit). `meta.json`'s `source` (the
 checkpoint's absolute path on the machine that evaluated) is kept relative to the run folder.
 It keeps the run's policies, so that a later evaluation or ablation needs no retraining:
-`checkpoints/best/` as the run wrote it and the last checkpoint's policy, agent and counters
+`checkpoints/best/` (and each `best-at-N/`) as the run wrote it, the last checkpoint's policy,
+agent and counters
 (`checkpoints/step-N/`, its manifest rewritten for those files), so the record folder is a run
 folder `ctxrace eval` reads. Where the record folder held an earlier run of the same name, whether
-the new `episodes.csv` reproduces it byte for byte goes to `reproduction.csv`.
+the new `episodes.csv` reproduces it byte for byte goes to `reproduction.csv`. Evaluations of the
+kept best policies (`eval-at-N/`, with their masks' episodes) are copied as `eval/` is.
 
 `analyse` writes `table2.csv`, `table3.csv`, `hypotheses.csv`, `context_ablation.csv`,
 `masks.csv`, `mask_training.csv` and `results.md` beside this file. Every interval is a 95% percentile bootstrap over
@@ -283,7 +286,8 @@ def keep_policies(run_dir, dest):
     src, out = run_dir / "checkpoints", dest / "checkpoints"
     if out.exists():
         shutil.rmtree(out)
-    shutil.copytree(src / "best", out / "best")
+    for best in sorted(src.glob("best*")):
+        shutil.copytree(best, out / best.name)
     steps = sorted(p for p in src.iterdir() if p.name.startswith("step-"))
     last = steps[-1]
     (out / last.name).mkdir(parents=True)
@@ -295,13 +299,14 @@ def keep_policies(run_dir, dest):
     (out / last.name / "manifest.toml").write_text("\n".join(lines))
 
 
-def note_reproduction(dest, run_dir, arm, rivals, seed):
-    """Whether the run's training episodes equal those of the record it replaces."""
+def note_reproduction(dest, run_dir, arm, rivals, seed, into):
+    """Whether the run's training episodes equal those of the record it replaces (in the
+    records' `reproduction.csv`)."""
     old, new = dest / "episodes.csv", run_dir / "episodes.csv"
     if not old.is_file():
         return
     same = old.read_bytes() == new.read_bytes()
-    path = HERE / "reproduction.csv"
+    path = Path(into) / "reproduction.csv"
     rows = read_csv(path) if path.is_file() else []
     rows = [r for r in rows if (r["rivals"], r["arm"], r["seed"]) != (str(rivals), arm, str(seed))]
     rows.append({"rivals": rivals, "arm": arm, "seed": seed,
@@ -313,7 +318,7 @@ def note_reproduction(dest, run_dir, arm, rivals, seed):
         w.writerows(rows)
 
 
-def collect(runs, arm=None, only=None):
+def collect(runs, arm=None, only=None, into=HERE):
     for run_dir in sorted(Path(runs).iterdir()):
         m = RUN_NAME.match(run_dir.name)
         if not m or (only and run_dir.name != only):
@@ -322,12 +327,18 @@ def collect(runs, arm=None, only=None):
         if not (run_dir / "eval" / "contexts.csv").is_file():
             print(f"{run_dir.name}: evaluation not complete, skipped")
             continue
-        dest = HERE / f"{rivals}r" / (arm or algo) / f"seed{seed}"
+        dest = Path(into) / f"{rivals}r" / (arm or algo) / f"seed{seed}"
         dest.mkdir(parents=True, exist_ok=True)
-        note_reproduction(dest, run_dir, arm or algo, rivals, seed)
-        for name in ["config.toml", "episodes.csv"]:
-            shutil.copyfile(run_dir / name, dest / name)
+        note_reproduction(dest, run_dir, arm or algo, rivals, seed, into)
+        for name in ["config.toml", "episodes.csv", "training_masks.csv"]:
+            if (run_dir / name).is_file():
+                shutil.copyfile(run_dir / name, dest / name)
         keep_policies(run_dir, dest)
+        for kept in sorted(run_dir.glob("eval-at-*")):
+            if (kept / "contexts.csv").is_file():
+                copy_eval(kept, dest / kept.name, run_dir)
+                if (kept / "masks.csv.gz").is_file():
+                    mask_episodes(kept / "masks.csv.gz", dest / kept.name / "mask_episodes.csv")
         if algo == "cmask":
             mask_training(run_dir / "metrics.csv", dest / "mask_training.csv")
         copy_eval(run_dir / "eval", dest / "eval", run_dir)
@@ -337,7 +348,7 @@ def collect(runs, arm=None, only=None):
             src = run_dir / "ablation" / cond
             if (src / "contexts.csv").is_file():
                 copy_eval(src, dest / "ablation" / cond, run_dir)
-        print(f"{run_dir.name} -> {dest.relative_to(HERE)}")
+        print(f"{run_dir.name} -> {dest}")
 
 
 # ---------------------------------------------------------------- analyse
@@ -855,9 +866,13 @@ def analyse():
 
 
 if __name__ == "__main__":
-    if 3 <= len(sys.argv) <= 5 and sys.argv[1] == "collect":
-        collect(*sys.argv[2:])
-    elif len(sys.argv) == 2 and sys.argv[1] == "analyse":
+    args = sys.argv[1:]
+    into = HERE
+    if len(args) >= 2 and args[-2] == "--into":
+        into, args = Path(args[-1]), args[:-2]
+    if 2 <= len(args) <= 4 and args[0] == "collect":
+        collect(*args[1:], into=into)
+    elif args == ["analyse"]:
         analyse()
     else:
         sys.exit(__doc__)
