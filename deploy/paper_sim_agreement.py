@@ -3,12 +3,15 @@ from an unmodified export of that commit (deploy/paper_sim_agreement.sh paper), 
 row per lap.
 
 What is the paper's: its F110Env (f110_gym copy), its TestSimulation.run_testing_evaluation and
-run_testing (the 7 x 7 grid, `if ma_idx < 17: continue`, reset_simulation's grid, run_step,
+run_testing (the 7 x 7 grid, reset_simulation's grid, run_step,
 build_observation's crash, progress, lap and overtaking logic, the A2A count), its PurePursuit
 rivals (ma_info per context), its StdTrack and reward, its config_file.yaml and run-file keys.
 What is the harness's, nothing else:
   - a run file config/<name>.yaml written into the export (the keys of the paper's
     dreamerv3_multiagent_classic_esp.yaml, one run with RIVALS rivals, the ego at the back);
+  - the contexts raced (`--contexts`, ctxrace's syntax; the code's own 17-48 by default): the
+    module's `enumerate` yields run_testing's grid as these contexts with their grid indices,
+    each an int that its `if ma_idx < 17: continue` keeps (`context_loop`);
   - the ego driver (`Ego`), put in place of the trained agent through the module's
     `select_agent` binding: it does what the paper's testers do before acting (below
     v_min_plan = 1 m/s it commands [0, 7]), then drives ctxrace's reference ego of the same
@@ -16,21 +19,28 @@ What is the harness's, nothing else:
     (slow_down 1, no context) with ctxrace's ego wheelbase (the car's lf + lr = 0.3302) and the
     ego's steering range 0.4; `random` draws actions uniform in [-1, 1]^2 (its own seeded
     numpy stream per context and lap); `still` the action (0, -1); actions map to commands as
-    the paper's FastTransform and ctxrace's paper-code race do (steer 0.4 a0, speed
+    the paper's FastTransform and ctxrace's paper-code race do (steer -0.4 a0: a positive a0
+    turns right; speed
     1 + 2.5 (a1 + 1));
   - torch, cv2 and the learning planners' modules replaced by empty stand-ins before the import
     (TestSimulation imports them; nothing of them runs for these egos), so that the simulator
     needs neither;
   - the recording: each decision's observations (through a wrapper of run_step) and, when
     the code calls the ego's lap_complete at the end of a lap, one row, written at once (an
-    interrupted run keeps the laps it finished): context index, c_v,
-    c_theta, lap, progress, overtakes (the code's eps_overtakes: the sum of the observations'
-    `overtaking` the ego acted on), a2a (`colision_a2a` of the last observation, what the code
-    counts), crash, lap_done, time, decisions.
+    interrupted run keeps the laps it finished): c_v, c_theta, lap, progress, overtakes (the
+    code's eps_overtakes: the sum of the observations' `overtaking` the ego acted on), a2a
+    (`colision_a2a` of the last observation, what the code counts), crash, lap_done, time,
+    decisions; and, of the last observation, the ego's `position` (place), how many rivals
+    have `colision_done` (rivals_crashed) and the lap's overtakes as
+    DataTools/ReviewTesting/redo_overtakes.py recounts them (redo_overtakes): num_agents - 1 -
+    the index of the agent in position 1 (its `places[0]`, from the same final progress), so
+    0 whenever the rival that started furthest ahead leads.
 
 Usage: python paper_sim_agreement.py PAPER_DIR EGO OUT_CSV [--laps N] [--rivals R] [--seed S]
+                                     [--contexts SPEC]
 """
 import argparse
+import builtins
 import csv
 import os
 import sys
@@ -93,8 +103,42 @@ runs:
 """
 
 
+def parse_contexts(spec, n=49):
+    """The grid indices of a selection in ctxrace's `--contexts` syntax: `skip-first:K`, or a
+    comma-separated list of indices and inclusive ranges `a-b`; sorted and distinct."""
+    if spec.startswith("skip-first:"):
+        chosen = set(range(int(spec.split(":", 1)[1]), n))
+    else:
+        chosen = set()
+        for part in spec.split(","):
+            a, _, b = part.partition("-")
+            chosen.update(range(int(a), int(b or a) + 1))
+    if not chosen or not all(0 <= k < n for k in chosen):
+        raise ValueError(f"--contexts {spec!r}: give indices 0 to {n - 1} of the grid")
+    return sorted(chosen)
+
+
+class GridIndex(int):
+    """A grid index that the code's `if ma_idx < 17: continue` keeps."""
+
+    def __lt__(self, other):
+        return False
+
+
+def context_loop(contexts):
+    """TestSimulation's `enumerate`: run_testing's grid (the one 2-D array the module
+    enumerates) as its `contexts` with their grid indices, anything else as the builtin's."""
+
+    def enumerate_(xs, start=0):
+        if isinstance(xs, np.ndarray) and xs.ndim == 2:
+            return ((GridIndex(k), xs[k]) for k in contexts)
+        return builtins.enumerate(xs, start)
+
+    return enumerate_
+
+
 FIELDS = ["context_speed", "context_steer", "lap", "progress", "overtakes", "a2a", "crash",
-          "lap_done", "time", "decisions"]
+          "lap_done", "time", "decisions", "place", "rivals_crashed", "redo_overtakes"]
 
 
 class Recorder:
@@ -169,6 +213,10 @@ class Ego:
                 "lap_done": int(bool(ego["lap_done"])),
                 "time": float(ego["current_laptime"]),
                 "decisions": rec.decisions,
+                "place": int(ego["position"]),
+                "rivals_crashed": sum(bool(o["colision_done"]) for o in rec.last[1:]),
+                "redo_overtakes": len(rec.last) - 1
+                - next(i for i, o in enumerate(rec.last) if o["position"] == 1),
             }
         )
         rec.out.writerow(row)
@@ -178,12 +226,13 @@ class Ego:
         rec.decisions = 0
 
 
-def paper_simulation(paper_dir, ego, rivals, laps, seed, out, name="sim_agreement"):
+def paper_simulation(paper_dir, ego, rivals, laps, seed, out, name="sim_agreement",
+                     contexts=range(17, 49)):
     """The paper's TestSimulation of the harness's run file config/<name>.yaml (written into the
     export `paper_dir`, which becomes the working directory, as the code expects): one run on
-    f1_esp against `rivals` PurePursuit rivals, `laps` laps per context, with the harness's
-    `ego` in place of the agent and each lap written to the open file `out`. Returns (sim, rec);
-    sim.run_testing_evaluation() races it."""
+    f1_esp against `rivals` PurePursuit rivals, `laps` laps on each of the grid's `contexts`,
+    with the harness's `ego` in place of the agent and each lap written to the open file `out`.
+    Returns (sim, rec); sim.run_testing_evaluation() races it."""
     os.chdir(paper_dir)
     sys.path.insert(0, os.getcwd())
     stub_modules()
@@ -210,6 +259,7 @@ def paper_simulation(paper_dir, ego, rivals, laps, seed, out, name="sim_agreemen
         return paper_select_agent(run, conf, architecture, train, init, ma_info)
 
     ts.select_agent = select_agent
+    ts.enumerate = context_loop(list(contexts))
     sim = ts.TestSimulation(name)
     paper_run_step = sim.run_step
 
@@ -231,7 +281,7 @@ def paper_simulation(paper_dir, ego, rivals, laps, seed, out, name="sim_agreemen
 
 
 def main():
-    """Races the ego in the paper's simulator over the test contexts; one CSV row per lap."""
+    """Races the ego in the paper's simulator over the chosen contexts; one CSV row per lap."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("paper_dir")
     ap.add_argument("ego", choices=["pure-pursuit", "random", "still"])
@@ -239,9 +289,11 @@ def main():
     ap.add_argument("--laps", type=int, default=20)
     ap.add_argument("--rivals", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--contexts", default="17-48", type=parse_contexts)
     args = ap.parse_args()
     out = open(os.path.abspath(args.out_csv), "w", newline="")
-    sim, _ = paper_simulation(args.paper_dir, args.ego, args.rivals, args.laps, args.seed, out)
+    sim, _ = paper_simulation(args.paper_dir, args.ego, args.rivals, args.laps, args.seed, out,
+                              contexts=args.contexts)
     sim.run_testing_evaluation()
     out.close()
 

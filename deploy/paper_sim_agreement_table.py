@@ -1,17 +1,21 @@
 """The agreement of ctxrace's simulator with the paper's (deploy/paper_sim_agreement.sh): per-context
 rows from the raw records, and the per-ego summary with bootstrap intervals. Standard library only.
 
-  table RAW_DIR VARIANT OUT_CSV     sim_agreement.csv: one row per simulator, ego and context
-                                    (simulator,ego,context_speed,context_steer,laps,progress,
-                                    overtakes,a2a; a2a per 50 laps) from RAW_DIR/paper_<ego>.csv
-                                    (and RAW_DIR/paper_<ego>.<name>.csv, further runs: each
-                                    context from the run with the most laps of it) and
-                                    RAW_DIR/ctxrace-<VARIANT>/<ego>/episodes.csv
-  compare RAW_DIR VARIANT [VARIANT..]  a markdown summary per ego, in and out of distribution
-                                    (both |c| <= 0.15), each side's value with its 95% interval
-                                    and the difference paper - ctxrace with its interval, then
-                                    the contexts whose per-context difference excludes 0 (PG
-                                    differences under PG_NOTED of deterministic laps left out)
+  table RAW_DIR VARIANT OUT_CSV     sim_agreement.csv: one row per simulator, ego, rival count
+                                    and context (simulator,ego,rivals,context_speed,
+                                    context_steer,laps,progress,overtakes,a2a; a2a per 50 laps)
+                                    from the records of each rival count R in DIR (RAW_DIR for
+                                    1, RAW_DIR/<R>r otherwise): DIR/paper_<ego>.csv (and
+                                    DIR/paper_<ego>.<name>.csv, further runs: each context from
+                                    the run with the most laps of it) and
+                                    DIR/ctxrace-<VARIANT>/<ego>/episodes.csv
+  compare DIR VARIANT [VARIANT..]   a markdown summary per ego with records in DIR, in and out
+                                    of distribution (both |c| <= 0.15), each side's value with
+                                    its 95% interval and the difference paper - ctxrace with its
+                                    interval, then the contexts whose per-context difference
+                                    excludes 0 (PG differences under PG_NOTED of deterministic
+                                    laps left out), then the paper's OT beside its
+                                    redo_overtakes.py recount where the records hold it
 
 A split's value is the mean over its contexts of each context's mean over its laps (A2A: per 50
 laps), as the protocol's. Intervals: percentile bootstrap, laps resampled with replacement within
@@ -21,6 +25,7 @@ interval is its value.
 import csv
 import os
 import random
+import re
 import sys
 
 EGOS = ["pure-pursuit", "random", "still"]
@@ -36,10 +41,19 @@ def key(cv, ct):
     return (round(float(cv), 2), round(float(ct), 2))
 
 
+def rival_dirs(raw):
+    """(rivals, directory) of each rival count's records: RAW for 1, RAW/<R>r for R."""
+    found = [(1, raw)]
+    for name in sorted(os.listdir(raw)):
+        if re.fullmatch(r"[0-9]+r", name) and os.path.isdir(os.path.join(raw, name)):
+            found.append((int(name[:-1]), os.path.join(raw, name)))
+    return found
+
+
 def load_paper(raw, ego):
-    """Per context: the laps' (progress, overtakes, a2a) of the paper's simulator, from
-    RAW/paper_<ego>.csv and any further runs RAW/paper_<ego>.<name>.csv: each context's laps
-    from the run that raced it most."""
+    """Per context: the laps' (progress, overtakes, a2a, redo_overtakes or None) of the paper's
+    simulator, from RAW/paper_<ego>.csv and any further runs RAW/paper_<ego>.<name>.csv: each
+    context's laps from the run that raced it most."""
     best = {}
     for name in sorted(os.listdir(raw)):
         if not (name == f"paper_{ego}.csv" or name.startswith(f"paper_{ego}.")):
@@ -47,8 +61,10 @@ def load_paper(raw, ego):
         laps = {}
         with open(os.path.join(raw, name)) as f:
             for r in csv.DictReader(f):
+                redo = r.get("redo_overtakes")
                 laps.setdefault(key(r["context_speed"], r["context_steer"]), []).append(
-                    (float(r["progress"]), float(r["overtakes"]), 50.0 * int(r["a2a"]))
+                    (float(r["progress"]), float(r["overtakes"]), 50.0 * int(r["a2a"]),
+                     None if redo is None else float(redo))
                 )
         for c, ls in laps.items():
             if len(ls) > len(best.get(c, [])):
@@ -97,18 +113,24 @@ def interval(xs):
     return xs[int(0.025 * len(xs))], xs[min(len(xs) - 1, int(0.975 * len(xs)))]
 
 
+def paper_egos(raw):
+    """The egos with records of the paper's simulator in RAW."""
+    return [e for e in EGOS if os.path.exists(os.path.join(raw, f"paper_{e}.csv"))]
+
+
 def table(raw, variant, out_csv):
     with open(out_csv, "w", newline="") as f:
         w = csv.writer(f, lineterminator="\n")
-        w.writerow(["simulator", "ego", "context_speed", "context_steer", "laps", "progress",
-                    "overtakes", "a2a"])
+        w.writerow(["simulator", "ego", "rivals", "context_speed", "context_steer", "laps",
+                    "progress", "overtakes", "a2a"])
         for sim in ["ctxrace", "paper"]:
-            for ego in EGOS:
-                laps = load_paper(raw, ego) if sim == "paper" else load_ctxrace(raw, variant, ego)
-                for c in sorted(laps):
-                    ls = laps[c]
-                    w.writerow([sim, ego, c[0], c[1], len(ls)]
-                               + [f"{mean([lap[m] for lap in ls]):.6g}" for m in range(3)])
+            for rivals, d in rival_dirs(raw):
+                for ego in paper_egos(d):
+                    laps = load_paper(d, ego) if sim == "paper" else load_ctxrace(d, variant, ego)
+                    for c in sorted(laps):
+                        ls = laps[c]
+                        w.writerow([sim, ego, rivals, c[0], c[1], len(ls)]
+                                   + [f"{mean([lap[m] for lap in ls]):.6g}" for m in range(3)])
 
 
 def fmt(v, lo, hi):
@@ -121,8 +143,11 @@ def compare(raw, variants):
         f"ctxrace {v} | paper - ctxrace {v}" for v in variants) + " |")
     print("|---|---|---|---|" + "---|---|" * len(variants))
     per_context = []
-    for ego in EGOS:
+    recounted = []
+    for ego in paper_egos(raw):
         paper = load_paper(raw, ego)
+        if all(lap[3] is not None for ls in paper.values() for lap in ls):
+            recounted.append((ego, paper))
         sides = [load_ctxrace(raw, v, ego) for v in variants]
         for split, pick in [("in", True), ("out", False)]:
             ctxs = sorted(c for c in paper if within(c) == pick)
@@ -161,6 +186,20 @@ def compare(raw, variants):
     for ego, v, c, name, p, x, lo, hi in per_context:
         print(f"| {ego} | {v} | {c[0]} | {c[1]} | {name} | {p:.4f} | {x:.4f} | "
               f"[{lo:.4f}, {hi:.4f}] |")
+    if recounted:
+        print()
+        print("The paper's OT as its test loop counts it (TestSimulation.run_testing) and as "
+              "DataTools/ReviewTesting/redo_overtakes.py recounts it:")
+        print()
+        print("| ego | split | OT, test loop | OT, redo_overtakes.py |")
+        print("|---|---|---|---|")
+    for ego, paper in recounted:
+        for split, pick in [("in", True), ("out", False)]:
+            ctxs = sorted(c for c in paper if within(c) == pick)
+            boot = [resample(paper, ctxs, rng) for _ in range(RESAMPLES)]
+            cells = [fmt(split_value(paper, ctxs, m),
+                         *interval([split_value(b, ctxs, m) for b in boot])) for m in (1, 3)]
+            print(f"| {ego} | {split} ({len(ctxs)}) | " + " | ".join(cells) + " |")
 
 
 def main():
