@@ -27,7 +27,7 @@ use ctxrace_run::trained::{CheckpointChoice, TrainedAgent};
 use ctxrace_sim::baseline::BaselineKind;
 use ctxrace_sim::driver::ActMode;
 use ctxrace_sim::eval_dir;
-use ctxrace_sim::evaluation::{episode_seed, run_episode, ContextSummary, EvalMeta, ToldContext};
+use ctxrace_sim::evaluation::{episode_seed, run_episode, EvalMeta, SplitMeans, ToldContext};
 use ctxrace_sim::masks::{self, MaskRecorder};
 use ctxrace_sim::track_check::{check_track, CheckPlan};
 use ctxrace_sim::RaceEnv;
@@ -442,23 +442,17 @@ fn finish(
         out.display()
     )?;
     for (label, inside) in [("in-distribution", true), ("out-of-distribution", false)] {
-        let part: Vec<_> = summary
-            .iter()
-            .filter(|s| s.in_distribution == inside)
-            .collect();
-        if part.is_empty() {
+        let Some(m) = SplitMeans::split(&summary, inside) else {
             continue;
-        }
-        let n = part.len() as f64;
-        let mean = |f: fn(&ContextSummary) -> f64| part.iter().map(|s| f(s)).sum::<f64>() / n;
+        };
         writeln!(
             stdout,
             "  {label:>20} ({:2} contexts): PG {:.3}  OT {:+.3}  A2A {:.2}/50  wall {:.1}%",
-            part.len(),
-            mean(|s| s.progress),
-            mean(|s| s.overtakes),
-            mean(|s| s.a2a),
-            100.0 * mean(|s| s.wall_crash)
+            m.contexts,
+            m.progress,
+            m.overtakes,
+            m.a2a,
+            100.0 * m.wall_crash
         )?;
     }
     if let Some(rows) = mask_rows {

@@ -9,7 +9,7 @@ use ctxrace_run::run_dir::{
 };
 use ctxrace_sim::baseline::BaselineKind;
 use ctxrace_sim::evaluation::EvalMeta;
-use ctxrace_sim::evaluation::{summarise, ContextSummary, EvalEpisode};
+use ctxrace_sim::evaluation::{summarise, ContextSummary, EvalEpisode, SplitMeans};
 use ctxrace_sim::masks::{load_summary, MaskSummary};
 use std::path::{Path, PathBuf};
 
@@ -181,13 +181,13 @@ impl Split {
 
 /// Mean of `metric` over the contexts of `run` in `split`; `None` when it has no such context.
 pub fn split_mean(run: &Run, split: Split, metric: Metric) -> Option<f64> {
-    let values: Vec<f64> = run
-        .contexts
-        .iter()
-        .filter(|c| split.contains(c, run.meta.train_range))
-        .map(|c| metric.of(c))
-        .collect();
-    (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64)
+    let inside = |c: &&ContextSummary| split.contains(c, run.meta.train_range);
+    let means = SplitMeans::of(run.contexts.iter().filter(inside))?;
+    Some(match metric {
+        Metric::Progress => means.progress,
+        Metric::Overtakes => means.overtakes,
+        Metric::A2a => means.a2a,
+    })
 }
 
 /// Mean and sample standard deviation of values from several seeds.

@@ -29,7 +29,7 @@ use anyhow::{Context as _, Result};
 use clap::{Args, Parser, Subcommand};
 use ctxrace_config::validate::{ConfigError, CONFIG_EXIT_CODE};
 use ctxrace_config::RaceConfig;
-use ctxrace_tracks::{RacelineSource, Track, TrackOptions};
+use ctxrace_tracks::{Track, TrackOptions};
 use std::path::PathBuf;
 
 /// Context-aware model-based RL for head-to-head autonomous racing (F1TENTH / Roboracer).
@@ -97,13 +97,10 @@ impl TrackArgs {
     /// The track options these flags describe, with the shipped raceline if `shipped_raceline`
     /// (a race config's choice) or `--raceline-file`.
     pub fn options(&self, shipped_raceline: bool) -> TrackOptions {
-        let mut o = TrackOptions::default();
-        if let Some(d) = &self.tracks_dir {
-            o.tracks_dir = d.clone();
-        }
-        if self.raceline_file || shipped_raceline {
-            o.raceline_source = RacelineSource::File;
-        }
+        let mut o = TrackOptions::for_race(
+            self.tracks_dir.clone(),
+            self.raceline_file || shipped_raceline,
+        );
         if let Some(v) = self.v_max {
             o.raceline.v_max = v;
         }

@@ -50,6 +50,22 @@ impl Default for TrackOptions {
     }
 }
 
+impl TrackOptions {
+    /// The options a race loads its track with: names looked up in `tracks_dir` (without one,
+    /// the default folders), and the rivals' raceline the one shipped with the map where
+    /// `shipped_raceline` (a race config's choice), else the computed one.
+    pub fn for_race(tracks_dir: Option<PathBuf>, shipped_raceline: bool) -> Self {
+        let mut o = Self::default();
+        if let Some(dir) = tracks_dir {
+            o.tracks_dir = dir;
+        }
+        if shipped_raceline {
+            o.raceline_source = RacelineSource::File;
+        }
+        o
+    }
+}
+
 /// A track ready to race on.
 #[derive(Clone, Debug)]
 pub struct Track {

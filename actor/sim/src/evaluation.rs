@@ -156,6 +156,10 @@ pub struct EvalEpisode {
     pub steps: usize,
     /// Sum of rewards.
     pub episode_return: f64,
+    /// The car in the lead at the end ([`EpisodeMetrics::leader`]; 0 the ego); empty in records
+    /// written before it was kept.
+    #[serde(default)]
+    pub leader: Option<usize>,
 }
 
 /// The episodes of one context, aggregated.
@@ -181,6 +185,44 @@ pub struct ContextSummary {
     pub lap_complete: f64,
     /// Mean episode return.
     pub episode_return: f64,
+}
+
+/// The means over the contexts of one split of an evaluation (in or out of the training
+/// distribution): the split values `ctxrace eval` prints, `ctxrace report` tabulates and Python's
+/// `Evaluation.means` returns.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SplitMeans {
+    /// Contexts averaged.
+    pub contexts: usize,
+    /// Mean PG.
+    pub progress: f64,
+    /// Mean OT per episode.
+    pub overtakes: f64,
+    /// Mean A2A per [`A2A_PER_LAPS`] laps.
+    pub a2a: f64,
+    /// Mean fraction of episodes ending at a wall.
+    pub wall_crash: f64,
+}
+
+impl SplitMeans {
+    /// The means of `rows` (each context counts once, whatever its laps); `None` without rows.
+    pub fn of<'a>(rows: impl IntoIterator<Item = &'a ContextSummary>) -> Option<Self> {
+        let rows: Vec<&ContextSummary> = rows.into_iter().collect();
+        let n = rows.len() as f64;
+        let mean = |f: fn(&ContextSummary) -> f64| rows.iter().map(|r| f(r)).sum::<f64>() / n;
+        (!rows.is_empty()).then(|| Self {
+            contexts: rows.len(),
+            progress: mean(|r| r.progress),
+            overtakes: mean(|r| r.overtakes),
+            a2a: mean(|r| r.a2a),
+            wall_crash: mean(|r| r.wall_crash),
+        })
+    }
+
+    /// The means of the rows of `summary` in (`inside`) or out of the training distribution.
+    pub fn split(summary: &[ContextSummary], inside: bool) -> Option<Self> {
+        Self::of(summary.iter().filter(|s| s.in_distribution == inside))
+    }
 }
 
 /// Aggregates episodes per context, in the order contexts first appear.
@@ -259,6 +301,7 @@ impl EvalEpisode {
             lap_time: metrics.lap_time,
             steps: metrics.steps,
             episode_return: metrics.episode_return,
+            leader: Some(metrics.leader),
         }
     }
 }
@@ -301,6 +344,7 @@ mod tests {
             lap_time: None,
             steps: 10,
             episode_return: 2.0,
+            leader: Some(0),
         }
     }
 

@@ -7,7 +7,8 @@ use crate::{bytes_of, load_track, pairs, race_config, BindError, Result};
 use ctxrace_config::{Context, RaceConfig};
 use ctxrace_sim::baseline::BaselineKind;
 use ctxrace_sim::driver::BaselineEgo;
-use ctxrace_sim::evaluation::{episode_seed, run_episode, summarise, EvalEpisode};
+use ctxrace_sim::eval_dir::{GRID, LAPS, RANGE, TRAIN_RANGE};
+use ctxrace_sim::evaluation::{episode_seed, run_episode, summarise, EvalEpisode, SplitMeans};
 use ctxrace_sim::vector::VectorError;
 use ctxrace_sim::RaceEnv;
 use ctxrace_tracks::Track;
@@ -77,20 +78,26 @@ impl Protocol {
         RaceEnv::new(self.track.clone(), self.race.clone()).expect("checked in Protocol::new")
     }
 
-    /// The episodes in `(context, lap)` order and their per-context summary as JSON.
+    /// The episodes in `(context, lap)` order, their per-context summary and its split means
+    /// (`null` for a split without contexts) as JSON.
     fn result(&self, mut episodes: Vec<(usize, EvalEpisode)>, train_range: f64) -> String {
         episodes.sort_by_key(|(i, e)| (*i, e.lap));
         let episodes: Vec<EvalEpisode> = episodes.into_iter().map(|(_, e)| e).collect();
         let contexts = summarise(&episodes, train_range);
-        serde_json::json!({ "episodes": episodes, "contexts": contexts }).to_string()
+        let means = serde_json::json!({
+            "in": SplitMeans::split(&contexts, true),
+            "out": SplitMeans::split(&contexts, false),
+        });
+        serde_json::json!({ "episodes": episodes, "contexts": contexts, "means": means })
+            .to_string()
     }
 }
 
 /// Evaluates the reference policy `policy` (`pure-pursuit`, `follow-the-gap`, `random`,
 /// `still`) as `ctxrace eval POLICY` does, on worker threads with the GIL released; returns
-/// `{"episodes": [...], "contexts": [...]}` as JSON.
+/// `{"episodes": [...], "contexts": [...], "means": {"in": ..., "out": ...}}` as JSON.
 #[pyfunction]
-#[pyo3(signature = (policy, track, race_keys="{}", config=None, tracks_dir=None, grid=7, range=0.3, laps=50, seed=0, train_range=0.15, threads=0))]
+#[pyo3(signature = (policy, track, race_keys="{}", config=None, tracks_dir=None, grid=GRID, range=RANGE, laps=LAPS, seed=0, train_range=TRAIN_RANGE, threads=0))]
 #[allow(clippy::too_many_arguments)]
 pub fn evaluate_reference(
     py: Python<'_>,
@@ -187,7 +194,7 @@ impl PyEvaluation {
     /// `±range`, `laps` each from `seed`, `batch` episodes at a time, stepped on `threads`
     /// worker threads (0: one per core).
     #[new]
-    #[pyo3(signature = (track, race_keys="{}", config=None, tracks_dir=None, grid=7, range=0.3, laps=50, seed=0, batch=64, threads=0))]
+    #[pyo3(signature = (track, race_keys="{}", config=None, tracks_dir=None, grid=GRID, range=RANGE, laps=LAPS, seed=0, batch=64, threads=0))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         track: &str,
@@ -327,7 +334,7 @@ impl PyEvaluation {
         Ok(())
     }
 
-    /// `{"episodes": [...], "contexts": [...]}` as JSON, contexts in or out of distribution by
+    /// `{"episodes": [...], "contexts": [...], "means": {"in": ..., "out": ...}}` as JSON. contexts in or out of distribution by
     /// `train_range`; an error while episodes remain.
     fn result(&self, train_range: f64) -> PyResult<String> {
         if self.racing_now() > 0 {

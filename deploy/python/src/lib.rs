@@ -9,12 +9,14 @@ mod evaluate;
 mod policy;
 mod vector;
 
+use ctxrace_config::config_file::{read_config_text, ConfigFileError};
+use ctxrace_config::preset::merge_tables;
 use ctxrace_config::validate::Causes;
 use ctxrace_config::{ContextError, RaceConfig, RaceConfigError};
 use ctxrace_nn::policy::PolicyError;
 use ctxrace_run::trained::TrainedAgentError;
 use ctxrace_sim::vector::VectorError;
-use ctxrace_tracks::{RacelineSource, Track, TrackError, TrackOptions};
+use ctxrace_tracks::{Track, TrackError, TrackOptions};
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use std::collections::HashMap;
@@ -24,15 +26,9 @@ use std::sync::{Arc, Mutex, OnceLock};
 /// Why a call from Python was refused.
 #[derive(Debug, thiserror::Error)]
 pub enum BindError {
-    /// A race config file could not be read.
-    #[error("reading race config {}", .path.display())]
-    Read {
-        /// The file.
-        path: PathBuf,
-        /// Why.
-        #[source]
-        source: std::io::Error,
-    },
+    /// A race config file could not be read (a folder, too large, not text).
+    #[error("race config")]
+    Read(#[from] ConfigFileError),
     /// A race config file is no TOML.
     #[error("race config {}", .path.display())]
     Toml {
@@ -109,10 +105,7 @@ type Result<T> = std::result::Result<T, BindError>;
 fn race_config(config: Option<PathBuf>, keys_json: &str) -> Result<RaceConfig> {
     let mut table = match config {
         Some(path) => {
-            let text = std::fs::read_to_string(&path).map_err(|source| BindError::Read {
-                path: path.clone(),
-                source,
-            })?;
+            let text = read_config_text(&path)?;
             toml::from_str(&text).map_err(|source| BindError::Toml { path, source })?
         }
         None => toml::Table::new(),
@@ -124,7 +117,7 @@ fn race_config(config: Option<PathBuf>, keys_json: &str) -> Result<RaceConfig> {
         one => vec![one],
     };
     for layer in layers {
-        merge(&mut table, keys_table(layer)?);
+        table = merge_tables(table, keys_table(layer)?);
     }
     Ok(RaceConfig::from_table(table)?)
 }
@@ -152,18 +145,6 @@ fn without_nulls(json: serde_json::Value) -> serde_json::Value {
     }
 }
 
-/// Lays `over` onto `base`: tables merge key by key, other values replace.
-fn merge(base: &mut toml::Table, over: toml::Table) {
-    for (key, value) in over {
-        match (base.get_mut(&key), value) {
-            (Some(toml::Value::Table(b)), toml::Value::Table(o)) => merge(b, o),
-            (_, value) => {
-                base.insert(key, value);
-            }
-        }
-    }
-}
-
 /// Tracks loaded so far, by what identifies them (the raceline's optimisation takes a while).
 static TRACKS: OnceLock<Mutex<HashMap<String, Arc<Track>>>> = OnceLock::new();
 
@@ -171,13 +152,7 @@ static TRACKS: OnceLock<Mutex<HashMap<String, Arc<Track>>>> = OnceLock::new();
 /// then in the per-user folder; a map yaml; `generated:SEED`) with `race`'s raceline choice,
 /// once per process.
 fn load_track(spec: &str, tracks_dir: Option<PathBuf>, race: &RaceConfig) -> Result<Arc<Track>> {
-    let mut opts = TrackOptions::default();
-    if let Some(dir) = tracks_dir {
-        opts.tracks_dir = dir;
-    }
-    if race.shipped_raceline {
-        opts.raceline_source = RacelineSource::File;
-    }
+    let opts = TrackOptions::for_race(tracks_dir, race.shipped_raceline);
     let key = format!(
         "{spec}\0{}\0{}",
         opts.tracks_dir.display(),
@@ -248,5 +223,18 @@ fn _ctxrace(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<policy::PyPolicy>()?;
     m.add_function(wrap_pyfunction!(evaluate::evaluate_reference, m)?)?;
     m.add("OUTCOME_COLUMNS", vector::OUTCOME_COLUMNS.to_vec())?;
+    // the evaluation protocol's defaults, decided once (ctxrace_sim::eval_dir) for ctxrace eval
+    // and Python
+    use ctxrace_sim::eval_dir;
+    m.add("EVAL_GRID", eval_dir::GRID)?;
+    m.add("EVAL_RANGE", eval_dir::RANGE)?;
+    m.add("EVAL_LAPS", eval_dir::LAPS)?;
+    m.add("EVAL_TRAIN_RANGE", eval_dir::TRAIN_RANGE)?;
+    m.add("EVAL_TRACK", eval_dir::REFERENCE_TRACK)?;
+    m.add("EVAL_RIVALS", eval_dir::REFERENCE_RIVALS)?;
+    m.add(
+        "TRAIN_CONTEXT_RANGE",
+        ctxrace_config::TrainConfig::default().context_range,
+    )?;
     Ok(())
 }

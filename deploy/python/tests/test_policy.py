@@ -71,7 +71,7 @@ def test_batches_rows_and_bad_inputs():
         policy.act(obs[:2], contexts[:2], rows=[1, 1])
     with pytest.raises(ValueError, match="neither a checkpoint"):
         ctxrace.load_policy(ROOT / "configs")
-    with pytest.raises(ValueError, match="not best, latest or step-N"):
+    with pytest.raises(ValueError, match="not best, latest, step-N"):
         ctxrace.load_policy(CHECKPOINT, checkpoint="newest")
 
 

@@ -216,7 +216,7 @@ class RaceVectorEnv(VectorEnv):
         seed: Optional[int] = None,
         tracks_dir: Optional[os.PathLike] = None,
         config: Optional[os.PathLike] = None,
-        context_range: float = 0.15,
+        context_range: float = _ctxrace.TRAIN_CONTEXT_RANGE,
         threads: int = 0,
         autoreset_mode: AutoresetMode = AutoresetMode.NEXT_STEP,
         render_mode: Optional[str] = None,
@@ -330,7 +330,7 @@ class RaceEnv(gymnasium.Env):
         rivals: int = 1,
         tracks_dir: Optional[os.PathLike] = None,
         config: Optional[os.PathLike] = None,
-        context_range: float = 0.15,
+        context_range: float = _ctxrace.TRAIN_CONTEXT_RANGE,
         render_mode: Optional[str] = None,
         **race_keys: Any,
     ):

@@ -16,8 +16,13 @@ from ctxrace._policy import TrainedPolicy
 #: The reference policies the simulator drives itself.
 REFERENCE_POLICIES = ("pure-pursuit", "follow-the-gap", "random", "still")
 
-#: Where `evaluate` races a policy whose run is unknown: ``ctxrace eval``'s defaults.
-DEFAULT_TRACK, DEFAULT_RIVALS, DEFAULT_TRAIN_RANGE = "f1_esp", 3, 0.15
+#: Where `evaluate` races a policy whose run is unknown: ``ctxrace eval``'s defaults (decided in
+#: the simulator library, read from the extension).
+DEFAULT_TRACK, DEFAULT_RIVALS, DEFAULT_TRAIN_RANGE = (
+    _ctxrace.EVAL_TRACK,
+    _ctxrace.EVAL_RIVALS,
+    _ctxrace.EVAL_TRAIN_RANGE,
+)
 
 #: A batch policy: (observations (k, beams) float32, contexts (k, 2) float64) -> actions (k, 2).
 Policy = Callable[[np.ndarray, np.ndarray], Any]
@@ -32,24 +37,27 @@ class Evaluation:
 
     contexts: list
     episodes: list
+    #: The split means computed in Rust as ``ctxrace eval`` computes them: ``{"in": ..., "out":
+    #: ...}``, each ``None`` where the split has no context.
+    split_means: dict
 
     def means(self, in_distribution: bool) -> dict:
         """Mean PG, OT, A2A and wall-crash fraction over the contexts in (or out of) the
-        training distribution, as ``ctxrace eval`` prints them."""
-        rows = [r for r in self.contexts if r["in_distribution"] == in_distribution]
-        keys = ("progress", "overtakes", "a2a", "wall_crash")
-        if not rows:
+        training distribution, as ``ctxrace eval`` prints them (NaN where there are none)."""
+        means = self.split_means["in" if in_distribution else "out"]
+        if means is None:
+            keys = ("progress", "overtakes", "a2a", "wall_crash")
             return {"contexts": 0, **{k: float("nan") for k in keys}}
-        return {"contexts": len(rows), **{k: float(np.mean([r[k] for r in rows])) for k in keys}}
+        return dict(means)
 
 
 def evaluate(
     policy: Union[str, Policy],
     track: Optional[str] = None,
     rivals: Optional[int] = None,
-    grid: int = 7,
-    range: float = 0.3,
-    laps: int = 50,
+    grid: int = _ctxrace.EVAL_GRID,
+    range: float = _ctxrace.EVAL_RANGE,
+    laps: int = _ctxrace.EVAL_LAPS,
     seed: int = 0,
     train_range: Optional[float] = None,
     tracks_dir: Optional[os.PathLike] = None,
@@ -115,7 +123,9 @@ def evaluate(
             f"policy must be a reference policy's name or a callable, not {type(policy).__name__}"
         )
     records = json.loads(text)
-    return Evaluation(contexts=records["contexts"], episodes=records["episodes"])
+    return Evaluation(
+        contexts=records["contexts"], episodes=records["episodes"], split_means=records["means"]
+    )
 
 
 def _drive(policy: Policy, run: Any, train_range: float, deterministic: bool) -> str:
