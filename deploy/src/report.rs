@@ -734,6 +734,7 @@ mod tests {
             lap_time: None,
             steps: 1,
             episode_return: 0.0,
+            leader: Some(1),
         };
         let eps = [episode(0.0, 0.4), episode(0.0, 0.6), episode(0.3, 0.1)];
         write_csv(&eval.join("episodes.csv"), &eps).unwrap();

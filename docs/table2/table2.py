@@ -370,6 +370,27 @@ def split_values(contexts):
     return out
 
 
+def recounted_overtakes(episodes_csv, rivals, train_range, keep):
+    """OT as the paper's repository recounts it (DataTools/ReviewTesting/redo_overtakes.py at
+    c0fd903): per lap, cars - leader - 1, the leader being the car furthest along at the end (0
+    the ego); per split, the mean over its contexts of each context's mean. NaN for records
+    written before ctxrace kept the leader (`leader` empty)."""
+    per = {}
+    for e in read_csv(episodes_csv):
+        cv, ct = float(e["context_speed"]), float(e["context_steer"])
+        if not keep(cv, ct):
+            continue
+        if not e.get("leader"):
+            return {"ot_redo_in": float("nan"), "ot_redo_out": float("nan")}
+        per.setdefault((cv, ct), []).append(rivals - int(e["leader"]))
+    out = {}
+    for split, inside in [("in", True), ("out", False)]:
+        means = [mean(v) for (cv, ct), v in per.items()
+                 if (abs(cv) <= train_range + 1e-9 and abs(ct) <= train_range + 1e-9) == inside]
+        out[f"ot_redo_{split}"] = mean(means) if means else float("nan")
+    return out
+
+
 def summarise_episodes(episodes, train_range, laps=None, keep=lambda cv, ct: True):
     """Per-context means (A2A per 50 laps) of evaluation episodes, optionally of laps < `laps`,
     of the contexts `keep` admits."""
@@ -415,6 +436,8 @@ def load_runs(cset):
                 if len(contexts) != len(CONTEXT_SETS[cset]):
                     continue
                 run = split_values(contexts)
+                run.update(recounted_overtakes(seed_dir / "eval" / "episodes.csv", rivals,
+                                               meta["train_range"], keep))
                 run["train_pg"] = training_pg(seed_dir / "episodes.csv", steps)
                 run["seed"] = int(seed_dir.name[4:])
                 run["dir"] = seed_dir
@@ -432,11 +455,14 @@ def table2(runs, rng):
     rows = []
     for (rivals, algo), rs in sorted(runs.items(), key=lambda kv: (kv[0][0], list(ARMS).index(kv[0][1]))):
         row = {"rivals": rivals, "algo": algo, "seeds": len(rs)}
-        for k in METRICS + ["train_pg"]:
+        # the recounted OT resamples from its own seed: the other intervals stay as they were
+        recount_rng = random.Random(56)
+        for k in METRICS + ["train_pg", "ot_redo_in", "ot_redo_out"]:
             xs = [r[k] for r in rs]
             row[k] = mean(xs)
             row[f"{k}_sd"] = sd(xs)
-            lo, hi = boot_mean(xs, rng) if len(xs) > 1 else (float("nan"), float("nan"))
+            draw = recount_rng if k.startswith("ot_redo") else rng
+            lo, hi = boot_mean(xs, draw) if len(xs) > 1 else (float("nan"), float("nan"))
             row[f"{k}_lo"], row[f"{k}_hi"] = lo, hi
         for k, v in zip(METRICS, PAPER[(rivals, ARMS[algo])]):
             row[f"paper_{k}"] = v
@@ -752,6 +778,15 @@ def markdown(cset, runs, t2, t3, cells, abl_cells, mask_rows, mask_cells):
             return f"{fmt(r[k], d)}{ci} ({fmt(p, d) if p is not None else '–'})"
         out.append(f"| {r['rivals']} | {NAMES[r['algo']]} | {r['seeds']} | {fmt(r['train_pg'])} | "
                    + " | ".join(c(k, 1 if k.startswith("a2a") else 3) for k in METRICS) + " |")
+    recounted = [r for r in t2 if not math.isnan(r["ot_redo_in"])]
+    if recounted:
+        out += ["", "OT as the paper's repository recounts a lap (`redo_overtakes.py`: cars - leader - 1; "
+                "groups whose every run kept the leader; paper's OT beside):", "",
+                "| rivals | algo | seeds | OT recount in | OT recount out |", "|---|---|--:|---|---|"]
+        for r in recounted:
+            cells = [f"{fmt(r[k])} [{fmt(r[k + '_lo'])}, {fmt(r[k + '_hi'])}] ({fmt(r.get(p))})"
+                     for k, p in [("ot_redo_in", "paper_ot_in"), ("ot_redo_out", "paper_ot_out")]]
+            out.append(f"| {r['rivals']} | {NAMES[r['algo']]} | {r['seeds']} | " + " | ".join(cells) + " |")
     out += ["", "## Table III (relative change in to out, %; paper recomputed from its Table II beside)", "",
             "| rivals | algo | seeds | ΔPG % (of seed means) | ΔPG % per seed [95% CI] | ΔA2A % | ΔA2A (per 50 laps) | paper ΔPG % | paper ΔA2A % |",
             "|---|---|--:|--:|---|--:|--:|--:|--:|"]

@@ -120,6 +120,11 @@ pub struct EpisodeMetrics {
     pub episode_return: f64,
     /// Rivals that crashed during the episode.
     pub rivals_crashed: usize,
+    /// The car furthest along the track (by its unwrapped arc length from the start line) when
+    /// the episode ended, ties to the lower index: 0 the ego, `k` the `k`-th rival from the back
+    /// of the grid. The paper's repository recounts a lap's overtakes from it
+    /// (`DataTools/ReviewTesting/redo_overtakes.py` at c0fd903: `cars − leader − 1`).
+    pub leader: usize,
 }
 
 impl EpisodeMetrics {
@@ -409,6 +414,13 @@ impl RaceEnv {
             m.lap_time = Some(time);
         }
         m.rivals_crashed = self.cars[1..].iter().filter(|c| c.crashed).count();
+        m.leader = (1..self.cars.len()).fold(0, |lead, k| {
+            if self.cars[k].travelled > self.cars[lead].travelled {
+                k
+            } else {
+                lead
+            }
+        });
         Ok(Step {
             obs: self.observe(),
             reward,
