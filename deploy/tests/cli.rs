@@ -719,7 +719,7 @@ fn inline_training_then_evaluation_report_and_race_with_the_policy() {
     );
     let o = eval(&["--checkpoint", "newest"]);
     assert!(
-        !o.status.success() && stderr(&o).contains("not best, latest or step-N"),
+        !o.status.success() && stderr(&o).contains("not best, latest, step-N"),
         "{}",
         stderr(&o)
     );

@@ -238,7 +238,8 @@ fn first_point_at_distance(
         ((s_foot - curve.s_at_vertex(seg)) / len).clamp(0.0, 1.0)
     };
     let mut walked = 0.0;
-    let limit = 2.0 * radius + 2.0;
+    // never more than a lap and a half: a wider circle meets the line nowhere further on
+    let limit = (2.0 * radius + 2.0).min(1.5 * curve.length());
     let mut i = seg;
     while walked < limit {
         let a = pts[i];

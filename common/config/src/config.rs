@@ -64,6 +64,10 @@ pub const PHYSICS_DT: f64 = 0.01;
 pub const MAX_PHYSICS_STEPS_PER_ACTION: usize = 1000;
 /// Longest steering delay in physics steps (1 s).
 pub const MAX_STEER_DELAY: usize = 100;
+/// The fastest speed a race config may give a car (m/s): 5 times F1TENTH's 20 m/s top speed.
+pub const MAX_PLAUSIBLE_SPEED: f64 = 100.0;
+/// The longest distance a race config may give a lookahead, a scan or a grid gap (m).
+pub const MAX_LOOKAHEAD: f64 = 200.0;
 
 /// Why a race configuration is refused: each names the key, its value and how to fix it.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
@@ -556,6 +560,103 @@ impl RaceConfig {
             1..=MAX_PHYSICS_STEPS_PER_ACTION,
             "each is 0.01 s of simulation (the paper: 10)",
         )?;
+        // physical plausibility: a value no car or sensor has is a typo, and some (a lookahead of
+        // 1e308 m) would keep the geometry searching for a point until the end of time
+        let physical = [
+            (
+                "max_speed",
+                self.max_speed,
+                MAX_PLAUSIBLE_SPEED,
+                "m/s (the paper: 6)",
+            ),
+            (
+                "rival.max_speed",
+                self.rival.max_speed,
+                MAX_PLAUSIBLE_SPEED,
+                "m/s (the paper's 6)",
+            ),
+            (
+                "rival.launch_speed",
+                self.rival.launch_speed,
+                MAX_PLAUSIBLE_SPEED,
+                "m/s",
+            ),
+            (
+                "ego_launch_speed",
+                self.ego_launch_speed,
+                MAX_PLAUSIBLE_SPEED,
+                "m/s",
+            ),
+            (
+                "rival.follow_the_gap.straight_speed",
+                gap.straight_speed,
+                MAX_PLAUSIBLE_SPEED,
+                "m/s",
+            ),
+            (
+                "rival.lookahead",
+                self.rival.lookahead,
+                MAX_LOOKAHEAD,
+                "m (the paper: 1)",
+            ),
+            (
+                "rival.lookahead_gain",
+                self.rival.lookahead_gain,
+                10.0,
+                "s: m per m/s (the paper: 0.1)",
+            ),
+            (
+                "rival.speed_factor",
+                self.rival.speed_factor,
+                10.0,
+                "of the raceline's speed (the code's 0.85)",
+            ),
+            (
+                "lidar.max_range",
+                self.lidar.max_range,
+                MAX_LOOKAHEAD,
+                "m (the paper: 10)",
+            ),
+            (
+                "rival.follow_the_gap.max_range",
+                gap.max_range,
+                MAX_LOOKAHEAD,
+                "m",
+            ),
+            (
+                "start_spacing",
+                self.start_spacing,
+                MAX_LOOKAHEAD,
+                "m between grid places (the code's 5.5)",
+            ),
+        ];
+        let optional_physical = [
+            (
+                "rival.steer_lookahead",
+                self.rival.steer_lookahead,
+                MAX_LOOKAHEAD,
+                "m",
+            ),
+            (
+                "rival.wheelbase",
+                self.rival.wheelbase,
+                10.0,
+                "m (the car's 0.33)",
+            ),
+        ];
+        let physical = physical.into_iter().chain(
+            optional_physical
+                .into_iter()
+                .filter_map(|(k, v, max, why)| v.map(|v| (k, v, max, why))),
+        );
+        for (key, value, max, unit) in physical {
+            in_range(
+                key,
+                value,
+                ..=max,
+                &format!("{unit}; no race goes beyond {max}"),
+            )?;
+        }
         in_range(
             "steer_delay",
             self.steer_delay,
@@ -1059,6 +1160,13 @@ mod tests {
                 "reverse_limit",
             ),
             ("[rival]\nsteer_lookahead = 0.0", "rival.steer_lookahead"),
+            // beyond any car or map: 1e308 m of lookahead once hung the track check
+            ("[rival]\nlookahead = 1e308", "rival.lookahead"),
+            ("[rival]\nlookahead_gain = 1e308", "rival.lookahead_gain"),
+            ("[rival]\nsteer_lookahead = 1e6", "rival.steer_lookahead"),
+            ("max_speed = 1e308", "max_speed"),
+            ("[rival]\nmax_speed = 500.0", "rival.max_speed"),
+            ("[lidar]\nmax_range = 1e308", "lidar.max_range"),
             ("[rival]\nlaunch_below = -1.0", "rival.launch_below"),
             ("[rival]\nspeed_point = \"middle\"", "speed_point"),
             ("start_spacing = 0.0", "start_spacing"),

@@ -22,6 +22,9 @@ pub const MAX_LAYERS: usize = 64;
 pub const MAX_HORIZON: usize = 1000;
 /// The most env steps of a run (`[train] env_steps`; the paper's: 100 000).
 pub const MAX_ENV_STEPS: u64 = 10_000_000_000;
+/// The largest value of a positive agent knob (an epsilon, a clip, a loss weight, an initial
+/// temperature): far above any the paper or its code uses.
+pub const MAX_POSITIVE_KNOB: f64 = 1e6;
 
 /// Why an experiment configuration is refused. Each message names the key (by its table), its
 /// value and how to fix it; [`ExperimentError::In`] adds the file it came from.
@@ -484,12 +487,15 @@ impl ExperimentConfig {
                 ("dreamer.batch", d.batch, "the paper: 16 sequences"),
                 ("dreamer.length", d.length, "the paper: 64 steps"),
             ];
-            let positive = vec![
+            let mut positive = vec![
                 ("dreamer.model_eps", d.model_eps),
                 ("dreamer.ac_eps", d.ac_eps),
                 ("dreamer.model_clip", d.model_clip),
                 ("dreamer.ac_clip", d.ac_clip),
             ];
+            if mask_sac {
+                positive.push(("dreamer.mask.init_alpha", d.mask.init_alpha));
+            }
             (sizes, rates, fractions, positive)
         };
         let (sizes, rates, fractions, positive) = match self.agent.algo {
@@ -516,9 +522,20 @@ impl ExperimentConfig {
             .map_err(|e| ExperimentError::Agent(e.into()))?;
         }
         for (key, value) in positive {
-            let above_zero = (Bound::Excluded(0.0), Bound::Unbounded);
+            let above_zero = (Bound::Excluded(0.0), Bound::Included(MAX_POSITIVE_KNOB));
             in_range(key, value, above_zero, "see DreamerConfig's defaults")
                 .map_err(|e| ExperimentError::Agent(e.into()))?;
+        }
+        if self.agent.algo != AlgoKind::Sac {
+            for (key, value) in [("dreamer.kl_dyn", d.kl_dyn), ("dreamer.kl_rep", d.kl_rep)] {
+                in_range(
+                    key,
+                    value,
+                    0.0..=MAX_POSITIVE_KNOB,
+                    "a KL loss weight (the paper: 0.5 and 0.1)",
+                )
+                .map_err(|e| ExperimentError::Agent(e.into()))?;
+            }
         }
         let return_percentiles = match self.agent.algo {
             AlgoKind::Sac => false,
@@ -747,6 +764,27 @@ mod tests {
                 "{bad}: {err}"
             );
         }
+    }
+
+    /// Values that once passed the checks and then crash-looped the learner are refused before
+    /// anything starts, naming the key.
+    #[test]
+    fn temperatures_and_loss_weights_no_experiment_means_are_refused() {
+        for (table, key, bad) in [
+            ("[agent.dreamer.mask]", "init_alpha", "-1.0"),
+            ("[agent.dreamer.mask]", "init_alpha", "0.0"),
+            ("[agent.dreamer.mask]", "init_alpha", "1e308"),
+            ("[agent.dreamer]", "kl_dyn", "-1.0"),
+            ("[agent.dreamer]", "kl_rep", "1e308"),
+        ] {
+            let text = format!("[agent]\nalgo = \"cmask\"\n{table}\n{key} = {bad}\n");
+            let err = ExperimentConfig::from_toml(&text, "t.toml")
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains(key), "{key} = {bad}: {err}");
+        }
+        let fine = "[agent]\nalgo = \"cmask\"\n[agent.dreamer.mask]\ninit_alpha = 0.05\n";
+        assert!(ExperimentConfig::from_toml(fine, "t.toml").is_ok());
     }
 
     #[test]
