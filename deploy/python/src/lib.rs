@@ -223,6 +223,7 @@ fn _ctxrace(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<policy::PyPolicy>()?;
     m.add_function(wrap_pyfunction!(evaluate::evaluate_reference, m)?)?;
     m.add("OUTCOME_COLUMNS", vector::OUTCOME_COLUMNS.to_vec())?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     // the evaluation protocol's defaults, decided once (ctxrace_sim::eval_dir) for ctxrace eval
     // and Python
     use ctxrace_sim::eval_dir;

@@ -242,6 +242,32 @@ def test_bad_contexts_seeds_and_sizes_raise():
         ctxrace.make_vec(TRACK, 1, context_range=2.0)
     with pytest.raises(RuntimeError, match="call reset first"):
         ctxrace.make_vec(TRACK, 1).step(np.zeros((1, 2)))
+    # every count names its argument; numpy integers are integers
+    for kwargs, error, name in [
+        (dict(num_envs=2.5), TypeError, "num_envs"),
+        (dict(num_envs=True), TypeError, "num_envs"),
+        (dict(num_envs=1, threads=-3), ValueError, "threads"),
+        (dict(num_envs=1, rivals=-1), ValueError, "rivals"),
+        (dict(num_envs=1, rivals="2"), TypeError, "rivals"),
+    ]:
+        with pytest.raises(error, match=name):
+            ctxrace.make_vec(TRACK, **kwargs)
+    assert ctxrace.make_vec(TRACK, np.int64(3), threads=np.int32(1)).num_envs == 3
+
+
+def test_envs_pickle_as_the_arguments_they_were_made_with():
+    import pickle
+
+    vec = ctxrace.make_vec(TRACK, 2, rivals=2, seed=5, max_time=9.0)
+    again = pickle.loads(pickle.dumps(vec))
+    assert type(again) is ctxrace.RaceVectorEnv and again.num_envs == 2
+    assert again.race_config == vec.race_config and again.race_config["max_time"] == 9.0
+    actions = random_actions(vec, 20)
+    for a, b in zip(rollout(vec, actions, seed=5), rollout(again, actions, seed=5)):
+        np.testing.assert_array_equal(a[0], b[0])
+    lone = pickle.loads(pickle.dumps(ctxrace.RaceEnv(TRACK, rivals=2)))
+    assert lone.race_config["rivals"] == 2
+    assert isinstance(ctxrace.__version__, str) and ctxrace.__version__.count(".") == 2
 
 
 def test_closed_and_ended_envs_raise():

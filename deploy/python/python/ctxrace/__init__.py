@@ -4,11 +4,13 @@ evaluation protocol for any policy (`evaluate`); trained agents' policies (`load
 
 import gymnasium
 
+from ctxrace._ctxrace import __version__
 from ctxrace._env import RaceEnv, RaceVectorEnv, make_vec
 from ctxrace._evaluate import REFERENCE_POLICIES, Evaluation, evaluate
 from ctxrace._policy import TrainedPolicy, load_policy
 
 __all__ = [
+    "__version__",
     "RaceEnv",
     "RaceVectorEnv",
     "make_vec",

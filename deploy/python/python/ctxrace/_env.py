@@ -3,7 +3,9 @@ stepped together on Rust worker threads (`RaceVectorEnv`, from `make_vec`)."""
 
 from __future__ import annotations
 
+import functools
 import json
+import operator
 import os
 from typing import Any, Optional
 
@@ -26,13 +28,32 @@ CONTEXT_LIMIT = 0.9
 RENDER_WIDTH = 1000
 
 
+def count(name: str, value: Any, least: int) -> int:
+    """`value` as a Python int of at least `least` (numpy integers included), or an error that
+    names the argument `name`."""
+    if isinstance(value, bool):
+        raise TypeError(f"{name} must be an integer, not {value!r}")
+    try:
+        n = operator.index(value)
+    except TypeError:
+        raise TypeError(f"{name} must be an integer, not {value!r}") from None
+    if n < least:
+        raise ValueError(f"{name} must be at least {least}, not {n}")
+    return n
+
+
+def made_with(cls: type, args: tuple, kwargs: dict) -> tuple:
+    """The `__reduce__` value that makes a fresh ``cls(*args, **kwargs)`` when unpickled."""
+    return (functools.partial(cls, **kwargs), args)
+
+
 def race_keys_json(rivals: Optional[int], race_keys: dict, base: Optional[dict] = None) -> str:
     """The race keys as the extension reads them: a JSON object (``None`` values left out,
     ``rivals`` set unless None), or, laid over a whole race `base` (a trained run's), the list
     of the two."""
     keys = {k: v for k, v in race_keys.items() if v is not None}
     if rivals is not None:
-        keys["rivals"] = rivals
+        keys["rivals"] = count("rivals", rivals, 0)
     try:
         return json.dumps(keys if base is None else [base, keys])
     except TypeError as e:
@@ -96,8 +117,8 @@ class Races:
         same_step: bool,
         render_mode: Optional[str],
     ):
-        if not isinstance(num_envs, int) or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive integer, not {num_envs!r}")
+        num_envs = count("num_envs", num_envs, 1)
+        threads = count("threads", threads, 0)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(
                 f"render_mode {render_mode!r}: ctxrace renders 'rgb_array' (the race as an "
@@ -244,6 +265,7 @@ class RaceVectorEnv(VectorEnv):
         )
         self.render_mode = render_mode
         self.metadata = {**self.metadata, **self._races.metadata}
+        num_envs = self._races.num_envs
         self.num_envs = num_envs
         self.race_config = self._races.race_config
         self.single_observation_space = spaces.Box(
@@ -255,6 +277,25 @@ class RaceVectorEnv(VectorEnv):
         self._first_seed = seed
         if seed is not None:
             self.action_space.seed(seed)
+        self._made_with = (
+            (track, num_envs),
+            dict(
+                rivals=rivals,
+                seed=seed,
+                tracks_dir=tracks_dir,
+                config=config,
+                context_range=context_range,
+                threads=threads,
+                autoreset_mode=autoreset_mode,
+                render_mode=render_mode,
+                **race_keys,
+            ),
+        )
+
+    def __reduce__(self):
+        """Pickles as the arguments it was made with: unpickled, it is a fresh env to reset (the
+        races' state stays in this process)."""
+        return made_with(type(self), *self._made_with)
 
     @property
     def threads(self) -> int:
@@ -343,6 +384,22 @@ class RaceEnv(gymnasium.Env):
         self.render_mode = render_mode
         self.metadata = self._races.metadata
         self._ended = True
+        self._made_with = (
+            (track,),
+            dict(
+                rivals=rivals,
+                tracks_dir=tracks_dir,
+                config=config,
+                context_range=context_range,
+                render_mode=render_mode,
+                **race_keys,
+            ),
+        )
+
+    def __reduce__(self):
+        """Pickles as the arguments it was made with: unpickled, it is a fresh env to reset (the
+        race's state stays in this process)."""
+        return made_with(type(self), *self._made_with)
 
     def _live(self) -> Races:
         """The race, unless the env was closed."""
