@@ -41,6 +41,20 @@ def test_import_registers_a_race_that_passes_check_env():
     env.close()
 
 
+def test_gymnasium_make_vec_builds_the_rust_vector_env():
+    for mode in (None, "vector_entry_point"):
+        envs = gymnasium.make_vec(
+            "ctxrace/Race-v0", num_envs=4, vectorization_mode=mode, track=TRACK, rivals=2
+        )
+        assert isinstance(envs, ctxrace.RaceVectorEnv), mode
+        assert envs.num_envs == 4 and envs.race_config["rivals"] == 2
+        obs, _ = envs.reset(seed=0)
+        assert obs.shape == (4, 108)
+    # Gymnasium's own vectorisation of the single env still works
+    sync = gymnasium.make_vec("ctxrace/Race-v0", num_envs=2, vectorization_mode="sync")
+    assert sync.num_envs == 2 and not isinstance(sync, ctxrace.RaceVectorEnv)
+
+
 def test_vector_spaces_and_arrays():
     env = ctxrace.make_vec(TRACK, 4, rivals=2, seed=1)
     assert env.single_observation_space.shape == (108,)

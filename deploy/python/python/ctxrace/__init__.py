@@ -1,5 +1,6 @@
 """ctxrace from Python: contextual head-to-head F1TENTH races on ctxrace's Rust simulator as
-Gymnasium envs (``gymnasium.make("ctxrace/Race-v0", ...)``, `make_vec`), and the paper's
+Gymnasium envs (``gymnasium.make("ctxrace/Race-v0", ...)``, ``gymnasium.make_vec(
+"ctxrace/Race-v0", num_envs=N, ...)`` or `make_vec`), and the paper's
 evaluation protocol for any policy (`evaluate`); trained agents' policies (`load_policy`)."""
 
 import gymnasium
@@ -22,4 +23,10 @@ __all__ = [
 ]
 
 if "ctxrace/Race-v0" not in gymnasium.registry:
-    gymnasium.register(id="ctxrace/Race-v0", entry_point="ctxrace._env:RaceEnv")
+    # gymnasium.make_vec("ctxrace/Race-v0", num_envs=N, ...) builds ctxrace's own vector env,
+    # stepped in Rust, by default (vectorization_mode="vector_entry_point")
+    gymnasium.register(
+        id="ctxrace/Race-v0",
+        entry_point="ctxrace._env:RaceEnv",
+        vector_entry_point="ctxrace._env:RaceVectorEnv",
+    )

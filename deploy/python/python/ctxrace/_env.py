@@ -231,8 +231,8 @@ class RaceVectorEnv(VectorEnv):
 
     def __init__(
         self,
-        track: str,
-        num_envs: int,
+        track: str = "generated:0",
+        num_envs: int = 1,
         rivals: int = 1,
         seed: Optional[int] = None,
         tracks_dir: Optional[os.PathLike] = None,
