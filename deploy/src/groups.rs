@@ -3,6 +3,7 @@
 //! over its in- or out-of-distribution contexts, and those per-run means over a group's seeds.
 
 use anyhow::{bail, Result};
+use ctxrace_config::AlgoKind;
 use ctxrace_run::results::{read_csv, read_json, TrainingEpisode};
 use ctxrace_run::run_dir::{
     EVAL_CONTEXTS_CSV, EVAL_DIR, EVAL_EPISODES, EVAL_META, TRAINING_EPISODES,
@@ -235,9 +236,6 @@ pub struct Group {
     pub runs: Vec<Run>,
 }
 
-/// Agents in the paper's order; other agents follow alphabetically, then the baselines.
-const AGENT_ORDER: [&str; 4] = ["sac", "dreamerv3", "crssm", "cmask"];
-
 impl Group {
     /// A baseline (`random`, `pure-pursuit`, `still`): a reference row that never competes.
     pub fn is_baseline(&self) -> bool {
@@ -264,12 +262,9 @@ impl Group {
 
     /// The algorithm's name as in the paper, baselines marked.
     pub fn display_name(&self) -> String {
-        let name = match self.algo.as_str() {
-            "sac" => "SAC",
-            "dreamerv3" => "DreamerV3",
-            "crssm" => "cRSSM",
-            "cmask" => "cMask",
-            other => other,
+        let name = match self.algo.parse::<AlgoKind>() {
+            Ok(algo) => algo.display_name(),
+            Err(_) => self.algo.as_str(),
         };
         if self.is_baseline() {
             format!("{name} (baseline)")
@@ -284,15 +279,18 @@ impl Group {
         format!("{}, {} rival{s}", self.track, self.rivals)
     }
 
-    /// Sort key: track, rivals, then the algorithm order.
+    /// Sort key: track, rivals, then the algorithms in the paper's order ([`AlgoKind::ALL`]),
+    /// other agents alphabetically, then the baselines.
     pub fn order(&self) -> (String, usize, usize, String) {
+        let others = AlgoKind::ALL.len();
         let rank = if self.is_baseline() {
-            AGENT_ORDER.len() + 1
+            others + 1
         } else {
-            AGENT_ORDER
-                .iter()
-                .position(|a| *a == self.algo)
-                .unwrap_or(AGENT_ORDER.len())
+            self.algo
+                .parse::<AlgoKind>()
+                .ok()
+                .and_then(|a| AlgoKind::ALL.iter().position(|&b| b == a))
+                .unwrap_or(others)
         };
         (self.track.clone(), self.rivals, rank, self.algo.clone())
     }

@@ -136,6 +136,16 @@ impl AlgoKind {
         }
     }
 
+    /// The name the paper prints (SAC, DreamerV3, cRSSM, cMask).
+    pub fn display_name(self) -> &'static str {
+        match self {
+            AlgoKind::Sac => "SAC",
+            AlgoKind::Dreamerv3 => "DreamerV3",
+            AlgoKind::Crssm => "cRSSM",
+            AlgoKind::Cmask => "cMask",
+        }
+    }
+
     /// How the context enters the agent (`None` for SAC and DreamerV3).
     pub fn context_mode(self) -> ContextMode {
         match self {
