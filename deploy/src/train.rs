@@ -39,6 +39,9 @@ pub struct TrainArgs {
     /// Actor processes (without --inline).
     #[arg(long, default_value_t = 2)]
     actors: usize,
+    /// Run more actor processes than 4 a core (refused otherwise: they mostly wait).
+    #[arg(long)]
+    oversubscribe: bool,
     /// Algorithm: sac, dreamerv3, crssm or cmask [default: the config's].
     #[arg(long)]
     algo: Option<AlgoKind>,
@@ -181,7 +184,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
     }
     let cfg = experiment(&args)?;
     let actors = if args.inline { 1 } else { args.actors };
-    check_machine(&cfg, actors, &Machine::this())?;
+    check_machine(&cfg, actors, &Machine::this(), args.oversubscribe)?;
     // everything a process of the run needs is resolved here, before the run directory is
     // touched: an error it would meet at every restart stops the launch at once
     let track = Arc::new(args.tracks.load(&cfg.track, &cfg.race)?);

@@ -22,6 +22,19 @@ pub enum ResourceError {
         /// The machine's memory (bytes).
         memory: u64,
     },
+    /// Many more actor processes than the machine has cores.
+    #[error(
+        "{actors} actor processes on {cores} cores: more than {MAX_ACTORS_PER_CORE} a core, they \
+         would mostly wait for each other and the learner; give at most {} (--actors), or pass \
+         --oversubscribe to run them anyway",
+        MAX_ACTORS_PER_CORE * .cores
+    )]
+    Actors {
+        /// The actors asked for.
+        actors: usize,
+        /// The machine's cores.
+        cores: usize,
+    },
     /// More learner threads than the machine has cores.
     #[error(
         "[train] threads = {threads} is more than the {cores} cores of this machine; give at \
@@ -161,13 +174,24 @@ impl Machine {
     }
 }
 
+/// Actor processes a core may run without `oversubscribe`.
+pub const MAX_ACTORS_PER_CORE: usize = 4;
+
 /// Checks that a run of `cfg` with `actors` actors fits `machine`: its memory estimate within
-/// the machine's memory, and learner threads set in the config within its cores.
+/// the machine's memory, learner threads set in the config within its cores, and at most
+/// [`MAX_ACTORS_PER_CORE`] actors a core unless `oversubscribe`.
 pub fn check_machine(
     cfg: &ExperimentConfig,
     actors: usize,
     machine: &Machine,
+    oversubscribe: bool,
 ) -> Result<(), ResourceError> {
+    if !oversubscribe && actors > MAX_ACTORS_PER_CORE * machine.cores {
+        return Err(ResourceError::Actors {
+            actors,
+            cores: machine.cores,
+        });
+    }
     if let Some(threads) = cfg.train.threads.filter(|&t| t > machine.cores) {
         return Err(ResourceError::Threads {
             threads,
@@ -199,21 +223,35 @@ mod tests {
             cores: 2,
         };
         let paper = cfg("[agent]\nalgo = \"cmask\"\n").unwrap();
-        check_machine(&paper, 2, &small).unwrap();
+        check_machine(&paper, 2, &small, false).unwrap();
         let big =
             cfg("[agent]\nalgo = \"cmask\"\n[agent.dreamer]\nhorizon = 1000\nunits = 16384\n")
                 .unwrap();
-        let err = check_machine(&big, 2, &small).unwrap_err().to_string();
+        let err = check_machine(&big, 2, &small, false)
+            .unwrap_err()
+            .to_string();
         assert!(
             err.contains("the run needs at least") && err.contains("8.0 GiB"),
             "{err}"
         );
         let threads = cfg("[train]\nthreads = 100000\n").unwrap();
-        let err = check_machine(&threads, 1, &small).unwrap_err().to_string();
+        let err = check_machine(&threads, 1, &small, false)
+            .unwrap_err()
+            .to_string();
         assert!(
             err.contains("threads = 100000 is more than the 2 cores"),
             "{err}"
         );
+        // 64 actors on 2 cores: refused unless asked for
+        let err = check_machine(&paper, 64, &small, false)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("64 actor processes on 2 cores") && err.contains("--oversubscribe"),
+            "{err}"
+        );
+        check_machine(&paper, 8, &small, false).unwrap();
+        check_machine(&paper, 64, &small, true).unwrap();
         assert!(Machine::this().memory > 0 && Machine::this().cores > 0);
     }
 }
