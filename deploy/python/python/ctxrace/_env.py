@@ -42,9 +42,25 @@ def count(name: str, value: Any, least: int) -> int:
     return n
 
 
-def made_with(cls: type, args: tuple, kwargs: dict) -> tuple:
-    """The `__reduce__` value that makes a fresh ``cls(*args, **kwargs)`` when unpickled."""
-    return (functools.partial(cls, **kwargs), args)
+class PicklesAsMade:
+    """An env that pickles as the arguments it was made with: unpickled, it is a fresh env to
+    reset (the race's state stays in its process). Its ``__init__`` starts with
+    ``self.remember(locals(), positional)``."""
+
+    def remember(self, arguments: dict, positional: tuple) -> None:
+        """Keeps ``__init__``'s `arguments` (its ``locals()`` before anything else): the
+        `positional` names' values, the others (race keys spread out) as keywords."""
+        keywords = {
+            k: v
+            for k, v in arguments.items()
+            if k not in ("self", "race_keys", "__class__") and k not in positional
+        }
+        keywords.update(arguments.get("race_keys", {}))
+        self._made_with = (tuple(arguments[k] for k in positional), keywords)
+
+    def __reduce__(self):
+        args, keywords = self._made_with
+        return (functools.partial(type(self), **keywords), args)
 
 
 def race_keys_json(rivals: Optional[int], race_keys: dict, base: Optional[dict] = None) -> str:
@@ -206,7 +222,7 @@ def _seed_of(seed: Optional[int], rng: np.random.Generator) -> int:
     return int(seed)
 
 
-class RaceVectorEnv(VectorEnv):
+class RaceVectorEnv(PicklesAsMade, VectorEnv):
     """`num_envs` head-to-head races of one track and scenario, stepped together in Rust on
     worker threads with the GIL released.
 
@@ -243,6 +259,7 @@ class RaceVectorEnv(VectorEnv):
         render_mode: Optional[str] = None,
         **race_keys: Any,
     ):
+        self.remember(locals(), ("track", "num_envs"))
         modes = (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP)
         if autoreset_mode not in modes:
             raise ValueError(
@@ -277,25 +294,6 @@ class RaceVectorEnv(VectorEnv):
         self._first_seed = seed
         if seed is not None:
             self.action_space.seed(seed)
-        self._made_with = (
-            (track, num_envs),
-            dict(
-                rivals=rivals,
-                seed=seed,
-                tracks_dir=tracks_dir,
-                config=config,
-                context_range=context_range,
-                threads=threads,
-                autoreset_mode=autoreset_mode,
-                render_mode=render_mode,
-                **race_keys,
-            ),
-        )
-
-    def __reduce__(self):
-        """Pickles as the arguments it was made with: unpickled, it is a fresh env to reset (the
-        races' state stays in this process)."""
-        return made_with(type(self), *self._made_with)
 
     @property
     def threads(self) -> int:
@@ -356,7 +354,7 @@ def _restarted(races: Races, info: dict, ended: np.ndarray) -> dict:
     return info
 
 
-class RaceEnv(gymnasium.Env):
+class RaceEnv(PicklesAsMade, gymnasium.Env):
     """One head-to-head race (``gymnasium.make("ctxrace/Race-v0", track=..., rivals=...)``):
     the spaces, contexts and seeds of `RaceVectorEnv` for a single env; ``reset(options={"context":
     (c_v, c_θ)})`` pins the context; ``step`` after the episode ended raises ``ResetNeeded``."""
@@ -375,6 +373,7 @@ class RaceEnv(gymnasium.Env):
         render_mode: Optional[str] = None,
         **race_keys: Any,
     ):
+        self.remember(locals(), ("track",))
         self._races = Races(
             track, 1, rivals, tracks_dir, config, context_range, 1, race_keys, False, render_mode
         )
@@ -384,22 +383,6 @@ class RaceEnv(gymnasium.Env):
         self.render_mode = render_mode
         self.metadata = self._races.metadata
         self._ended = True
-        self._made_with = (
-            (track,),
-            dict(
-                rivals=rivals,
-                tracks_dir=tracks_dir,
-                config=config,
-                context_range=context_range,
-                render_mode=render_mode,
-                **race_keys,
-            ),
-        )
-
-    def __reduce__(self):
-        """Pickles as the arguments it was made with: unpickled, it is a fresh env to reset (the
-        race's state stays in this process)."""
-        return made_with(type(self), *self._made_with)
 
     def _live(self) -> Races:
         """The race, unless the env was closed."""
