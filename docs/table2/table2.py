@@ -731,13 +731,14 @@ def mask_training_rows(runs):
     return rows
 
 
-def write_csv(name, rows):
+def write_csv(name, rows, folder=HERE):
+    """`rows` (dicts; the union of their keys as columns, floats to 6 digits) as `folder`/`name`."""
     if not rows:
         return
     keys = list(rows[0].keys())
     for r in rows[1:]:
         keys += [k for k in r if k not in keys]
-    with open(HERE / name, "w", newline="") as f:
+    with open(folder / name, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=keys)
         w.writeheader()
         for r in rows:
