@@ -19,6 +19,10 @@ use std::collections::VecDeque;
 use std::path::PathBuf;
 use std::sync::Arc;
 
+/// Episodes each worker thread races between two checks of Python's signals (Ctrl-C): a few
+/// tenths of a second of racing.
+const SIGNAL_CHECK_EPISODES_PER_THREAD: usize = 4;
+
 /// The grid and the episodes of one evaluation.
 struct Protocol {
     track: Arc<Track>,
@@ -117,26 +121,33 @@ pub fn evaluate_reference(
     let p = Protocol::new(
         track, race_keys, config, tracks_dir, grid, range, laps, seed, threads,
     )?;
-    let episodes = py.detach(|| {
-        p.pool.install(|| {
-            p.todo
-                .par_iter()
-                .map_init(
-                    || {
-                        let env = p.env();
-                        let ego = BaselineEgo::new(kind, &env);
-                        (env, ego)
-                    },
-                    |(env, ego), &(index, lap)| {
-                        let seed = episode_seed(p.seed, index, lap);
-                        let e = run_episode(env, ego, p.grid[index], seed, lap, |_, _| {})
-                            .expect("a reference policy's actions are finite");
-                        (index, e)
-                    },
-                )
-                .collect::<Vec<_>>()
-        })
-    });
+    // a chunk of episodes at a time with the GIL released, Python's signals checked between
+    // chunks, so that Ctrl-C stops an evaluation within a chunk (each episode's own seed makes
+    // the chunking change nothing)
+    let chunk = SIGNAL_CHECK_EPISODES_PER_THREAD * p.pool.current_num_threads();
+    let mut episodes = Vec::with_capacity(p.todo.len());
+    for part in p.todo.chunks(chunk) {
+        episodes.extend(py.detach(|| {
+            p.pool.install(|| {
+                part.par_iter()
+                    .map_init(
+                        || {
+                            let env = p.env();
+                            let ego = BaselineEgo::new(kind, &env);
+                            (env, ego)
+                        },
+                        |(env, ego), &(index, lap)| {
+                            let seed = episode_seed(p.seed, index, lap);
+                            let e = run_episode(env, ego, p.grid[index], seed, lap, |_, _| {})
+                                .expect("a reference policy's actions are finite");
+                            (index, e)
+                        },
+                    )
+                    .collect::<Vec<_>>()
+            })
+        }));
+        py.check_signals()?;
+    }
     Ok(p.result(episodes, train_range))
 }
 

@@ -61,3 +61,19 @@ def test_bad_evaluations_raise():
     with pytest.raises(ValueError, match="not finite"):
         ctxrace.evaluate(lambda o, c: np.full((len(o), 2), np.nan), track="generated:0",
                          grid=1, laps=1)
+
+
+def test_ctrl_c_stops_a_reference_evaluation_soon():
+    """An interrupt (Ctrl-C) during a long reference evaluation raises KeyboardInterrupt within
+    a chunk of episodes, not when the whole grid is done."""
+    import _thread
+    import threading
+    import time
+
+    timer = threading.Timer(0.5, _thread.interrupt_main)
+    start = time.monotonic()
+    timer.start()
+    with pytest.raises(KeyboardInterrupt):
+        ctxrace.evaluate("pure-pursuit", "generated:0", rivals=1, grid=7, laps=200, threads=1)
+    timer.cancel()
+    assert time.monotonic() - start < 10.0
