@@ -598,4 +598,86 @@ impl RaceEnv {
     pub fn obs_dim(&self) -> usize {
         self.lidar.beams()
     }
+
+    /// Values of [`RaceEnv::state_into`]: [`EGO_STATE`] and [`RIVAL_STATE`] per rival.
+    pub fn state_dim(&self) -> usize {
+        EGO_STATE + RIVAL_STATE * self.cfg.rivals
+    }
+
+    /// The race's state as f1tenth_gym returns it beside the scan, into `out`
+    /// ([`RaceEnv::state_dim`] values): the ego's pose `x, y` (m, the map's frame) and yaw
+    /// `ψ` (rad, wrapped to (−π, π]), its speed `v` (m/s) and yaw rate `ψ̇` (rad/s); then each
+    /// rival's position relative to the ego in the ego's frame (`Δx` ahead, `Δy` to its left,
+    /// m), its heading relative to the ego's (wrapped) and its speed. Every value lies within
+    /// [`RaceEnv::state_bounds`].
+    pub fn state_into(&self, out: &mut [f32]) {
+        use crate::vehicle::idx;
+        let ego = &self.cars[0].vehicle.state;
+        let (yaw, (sin, cos)) = (ego[idx::YAW], ego[idx::YAW].sin_cos());
+        out[..EGO_STATE].copy_from_slice(&[
+            ego[idx::X] as f32,
+            ego[idx::Y] as f32,
+            wrap_angle(yaw) as f32,
+            ego[idx::V] as f32,
+            ego[idx::YAW_RATE] as f32,
+        ]);
+        for (rival, o) in self.cars[1..]
+            .iter()
+            .zip(out[EGO_STATE..].chunks_exact_mut(RIVAL_STATE))
+        {
+            let r = &rival.vehicle.state;
+            let (dx, dy) = (r[idx::X] - ego[idx::X], r[idx::Y] - ego[idx::Y]);
+            o.copy_from_slice(&[
+                (cos * dx + sin * dy) as f32,
+                (-sin * dx + cos * dy) as f32,
+                wrap_angle(r[idx::YAW] - yaw) as f32,
+                r[idx::V] as f32,
+            ]);
+        }
+    }
+
+    /// Bounds `(low, high)` of each value of [`RaceEnv::state_into`]: positions within
+    /// [`STATE_MARGIN`] of the farthest centreline coordinate (twice that for the rivals'
+    /// offsets), angles within ±π, speeds within the plausible speed of a race config and yaw
+    /// rates within [`MAX_YAW_RATE`].
+    pub fn state_bounds(&self) -> (Vec<f32>, Vec<f32>) {
+        let farthest = self.track.centreline.curve.points().iter();
+        let reach = farthest.fold(0.0f64, |m, p| m.max(p.x.abs()).max(p.y.abs())) + STATE_MARGIN;
+        let (pi, v) = (
+            std::f32::consts::PI,
+            ctxrace_config::config::MAX_PLAUSIBLE_SPEED as f32,
+        );
+        let ego = [reach as f32, reach as f32, pi, v, MAX_YAW_RATE];
+        let rival = [2.0 * reach as f32, 2.0 * reach as f32, pi, v];
+        let high: Vec<f32> = ego
+            .into_iter()
+            .chain((0..self.cfg.rivals).flat_map(|_| rival))
+            .collect();
+        (high.iter().map(|h| -h).collect(), high)
+    }
 }
+
+/// How far beyond the centreline's farthest coordinate [`RaceEnv::state_bounds`] admits a car
+/// (m): the walls are a few metres from it.
+pub const STATE_MARGIN: f64 = 100.0;
+
+/// The largest yaw rate [`RaceEnv::state_bounds`] admits (rad/s): a car spinning at 50 turns a
+/// second.
+pub const MAX_YAW_RATE: f32 = 100.0 * std::f32::consts::PI;
+
+/// `a` wrapped to (−π, π].
+fn wrap_angle(a: f64) -> f64 {
+    use std::f64::consts::{PI, TAU};
+    let w = (a + PI).rem_euclid(TAU) - PI;
+    if w == -PI {
+        PI
+    } else {
+        w
+    }
+}
+
+/// Values of the ego's part of [`RaceEnv::state_into`]: x, y, yaw, speed, yaw rate.
+pub const EGO_STATE: usize = 5;
+/// Values of each rival's part of [`RaceEnv::state_into`]: Δx, Δy (the ego's frame), Δyaw,
+/// speed.
+pub const RIVAL_STATE: usize = 4;

@@ -105,6 +105,9 @@ struct Slot {
     pinned: Option<Context>,
     /// Its episode ended: the next step resets it.
     ended: bool,
+    /// Under [`Autoreset::SameStep`], the state ([`RaceEnv::state_into`]) its last ended episode
+    /// ended in.
+    final_state: Vec<f32>,
 }
 
 impl Slot {
@@ -142,6 +145,8 @@ impl Slot {
         let context = self.env.context();
         if self.ended && autoreset == Autoreset::SameStep {
             final_obs.copy_from_slice(&step.obs);
+            self.final_state.resize(self.env.state_dim(), 0.0);
+            self.env.state_into(&mut self.final_state);
             self.start(None, range, obs);
         } else {
             obs.copy_from_slice(&step.obs);
@@ -194,6 +199,7 @@ impl RaceVector {
                     stream: ChaCha8Rng::seed_from_u64(0),
                     pinned: None,
                     ended: true,
+                    final_state: Vec::new(),
                 })
             })
             .collect::<Result<Vec<_>, RaceError>>()?;
@@ -271,6 +277,34 @@ impl RaceVector {
                 envs: self.len(),
             }),
         }
+    }
+
+    /// Values of one env's state ([`RaceEnv::state_dim`]).
+    pub fn state_dim(&self) -> usize {
+        self.slots.first().map_or(0, |s| s.env.state_dim())
+    }
+
+    /// Bounds of one env's state ([`RaceEnv::state_bounds`]).
+    pub fn state_bounds(&self) -> (Vec<f32>, Vec<f32>) {
+        self.slots
+            .first()
+            .map_or((Vec::new(), Vec::new()), |s| s.env.state_bounds())
+    }
+
+    /// Every env's current state ([`RaceEnv::state_into`]) into `out` (`len × state_dim`), or,
+    /// with `ended`, under [`Autoreset::SameStep`] the state the episode that ended at the last
+    /// step ended in (the rows of the other envs are stale).
+    pub fn states_into(&self, ended: bool, out: &mut [f32]) -> Result<(), VectorError> {
+        let dim = self.state_dim();
+        self.check("states", out.len(), dim)?;
+        for (slot, row) in self.slots.iter().zip(out.chunks_exact_mut(dim.max(1))) {
+            if !ended {
+                slot.env.state_into(row);
+            } else if slot.final_state.len() == dim {
+                row.copy_from_slice(&slot.final_state);
+            }
+        }
+        Ok(())
     }
 
     /// Starts a new episode in every env (see the module's seeds and contexts), writing the

@@ -313,3 +313,33 @@ fn paper_code_pure_pursuit_ego_meets_the_rival_where_the_papers_simulator_does()
     let (p, yaw) = ctxrace_sim::grid::grid_pose(&track, ctxrace_config::GridLine::XAxis, 5.5);
     assert_eq!((p.x, p.y, yaw), (5.5, 0.0, 0.0));
 }
+
+#[test]
+fn the_state_gives_the_egos_pose_and_the_rivals_relative_to_it() {
+    let cfg = RaceConfig {
+        rivals: 2,
+        ..Default::default()
+    };
+    let mut env = RaceEnv::new(generated(), cfg).unwrap();
+    env.reset(3, Context::default());
+    assert_eq!(env.state_dim(), 5 + 4 * 2);
+    let mut state = vec![f32::NAN; env.state_dim()];
+    env.state_into(&mut state);
+    assert!(state.iter().all(|v| v.is_finite()), "{state:?}");
+    // the rivals stand ahead of the ego on the grid, one grid gap apart, facing about its way
+    let (ahead_1, ahead_2) = (state[5], state[9]);
+    assert!(0.0 < ahead_1 && ahead_1 < ahead_2, "{state:?}");
+    for heading in [state[7], state[11]] {
+        assert!(heading.abs() <= std::f32::consts::PI, "{state:?}");
+    }
+    let gap = (state[5].powi(2) + state[6].powi(2)).sqrt();
+    assert!((3.0..8.0).contains(&gap), "first rival {gap} m away");
+    let (low, high) = env.state_bounds();
+    assert_eq!((low.len(), high.len()), (state.len(), state.len()));
+    for ((v, lo), hi) in state.iter().zip(&low).zip(&high) {
+        assert!(
+            lo <= v && v <= hi && *lo == -*hi,
+            "{v} outside [{lo}, {hi}]"
+        );
+    }
+}

@@ -167,6 +167,31 @@ impl PyRaceVector {
         bytes_of(py, self.inner.final_obs(), f32::to_ne_bytes)
     }
 
+    /// Values in one env's state (`RaceEnv::state_into`: the ego's pose, speed and yaw rate, each
+    /// rival's pose relative to the ego and its speed).
+    #[getter]
+    fn state_dim(&self) -> usize {
+        self.inner.state_dim()
+    }
+
+    /// Bounds `(low, high)` of each value of one env's state.
+    #[getter]
+    fn state_bounds(&self) -> (Vec<f32>, Vec<f32>) {
+        self.inner.state_bounds()
+    }
+
+    /// Every env's current state (native-endian `f32`, one row per env), or with `ended`, under
+    /// same-step autoreset, the state the episodes that ended at the last step ended in (other
+    /// rows stale), as bytes.
+    #[pyo3(signature = (ended=false))]
+    fn states<'py>(&self, py: Python<'py>, ended: bool) -> PyResult<Bound<'py, PyBytes>> {
+        let mut out = vec![0.0f32; self.inner.len() * self.inner.state_dim()];
+        self.inner
+            .states_into(ended, &mut out)
+            .map_err(BindError::from)?;
+        Ok(bytes_of(py, &out, f32::to_ne_bytes))
+    }
+
     /// Each env's current episode's context (native-endian `f64` pairs), as bytes.
     fn contexts<'py>(&self, py: Python<'py>) -> Bound<'py, PyBytes> {
         let pairs: Vec<f64> = self

@@ -9,6 +9,7 @@ import gymnasium
 import numpy as np
 import pytest
 from gymnasium.error import ClosedEnvironmentError, ResetNeeded
+from gymnasium.vector import AutoresetMode
 from gymnasium.utils.env_checker import check_env
 
 import ctxrace
@@ -53,6 +54,50 @@ def test_gymnasium_make_vec_builds_the_rust_vector_env():
     # Gymnasium's own vectorisation of the single env still works
     sync = gymnasium.make_vec("ctxrace/Race-v0", num_envs=2, vectorization_mode="sync")
     assert sync.num_envs == 2 and not isinstance(sync, ctxrace.RaceVectorEnv)
+
+
+def test_observation_modes_add_the_context_and_the_state():
+    for mode in ("scan+context", "dict"):
+        check_env(gymnasium.make("ctxrace/Race-v0", track=TRACK, rivals=2, obs_mode=mode).unwrapped)
+    actions = random_actions(ctxrace.make_vec(TRACK, 3), 60)
+    runs = {
+        mode: rollout(ctxrace.make_vec(TRACK, 3, rivals=2, obs_mode=mode), actions, seed=4)
+        for mode in ("scan", "scan+context", "dict")
+    }
+    for (scan, _, _, info), (both, *_), (d, *_) in zip(*runs.values()):
+        # the same race in every mode: the scan, then the episode's context, then the state
+        np.testing.assert_array_equal(both[:, :108], scan)
+        np.testing.assert_array_equal(both[:, 108:], info["context"].astype(np.float32))
+        np.testing.assert_array_equal(d["scan"], scan)
+        np.testing.assert_array_equal(d["context"], info["context"].astype(np.float32))
+        assert d["state"].shape == (3, 5 + 4 * 2) and np.isfinite(d["state"]).all()
+        # the rivals start ahead of the ego on the grid, and headings are wrapped
+        assert (np.abs(d["state"][:, [7, 11]]) <= np.pi).all()
+    first_state = runs["dict"][0][0]["state"]
+    assert (first_state[:, 5] > 0).all() and (first_state[:, 3] >= 0).all()
+    with pytest.raises(ValueError, match="obs_mode"):
+        ctxrace.make_vec(TRACK, 1, obs_mode="pixels")
+
+
+def test_same_step_autoreset_keeps_the_final_state_of_dict_observations():
+    envs = ctxrace.make_vec(
+        TRACK, 4, obs_mode="dict", autoreset_mode=AutoresetMode.SAME_STEP, max_time=1.0
+    )
+    envs.reset(seed=1)
+    for a in random_actions(envs, 40):
+        obs, _, terminated, truncated, info = envs.step(a)
+        ended = terminated | truncated
+        if ended.any():
+            final = info["final_obs"]
+            assert set(final) == {"scan", "context", "state"}
+            np.testing.assert_array_equal(
+                final["context"][ended], info["final_info"]["context"][ended].astype(np.float32)
+            )
+            # the ended episodes' states, not the new ones' (which start on the grid)
+            assert np.isfinite(final["state"][ended]).all()
+            assert (final["state"][ended, :2] != obs["state"][ended, :2]).any()
+            return
+    pytest.fail("no episode ended in 40 steps of 1 s races")
 
 
 def test_vector_spaces_and_arrays():

@@ -6,7 +6,7 @@ evaluation protocol for any policy (`evaluate`); trained agents' policies (`load
 import gymnasium
 
 from ctxrace._ctxrace import __version__
-from ctxrace._env import RaceEnv, RaceVectorEnv, make_vec
+from ctxrace._env import OBS_MODES, RaceEnv, RaceVectorEnv, make_vec
 from ctxrace._evaluate import REFERENCE_POLICIES, Evaluation, evaluate
 from ctxrace._policy import TrainedPolicy, load_policy
 
@@ -15,6 +15,7 @@ __all__ = [
     "RaceEnv",
     "RaceVectorEnv",
     "make_vec",
+    "OBS_MODES",
     "evaluate",
     "Evaluation",
     "REFERENCE_POLICIES",

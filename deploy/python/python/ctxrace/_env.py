@@ -132,7 +132,13 @@ class Races:
         race_keys: dict,
         same_step: bool,
         render_mode: Optional[str],
+        obs_mode: str = "scan",
     ):
+        if obs_mode not in OBS_MODES:
+            raise ValueError(
+                f"obs_mode {obs_mode!r}: use one of {', '.join(map(repr, OBS_MODES))}"
+            )
+        self.obs_mode = obs_mode
         num_envs = count("num_envs", num_envs, 1)
         threads = count("threads", threads, 0)
         if render_mode not in (None, "rgb_array"):
@@ -159,13 +165,29 @@ class Races:
         #: The render keys of an env's ``metadata``: a frame per decision.
         self.metadata = render_metadata(1.0 / self.inner.decision_period)
         self._started = False
+        #: One env's observation space in `obs_mode`.
+        self.single_observation_space = observation_space(
+            obs_mode, self.obs_dim, self.inner.state_bounds
+        )
 
     def decode(self, obs: bytes, table: bytes):
-        """(observations, outcome table) as arrays of one row per env."""
-        return (
-            np.frombuffer(obs, dtype=np.float32).reshape(self.num_envs, self.obs_dim).copy(),
-            np.frombuffer(table, dtype=np.float64).reshape(self.num_envs, len(_COLUMNS)),
-        )
+        """(observations in `obs_mode`, outcome table) of one row per env."""
+        scan = np.frombuffer(obs, dtype=np.float32).reshape(self.num_envs, self.obs_dim).copy()
+        table = np.frombuffer(table, dtype=np.float64).reshape(self.num_envs, len(_COLUMNS))
+        contexts = None if self.obs_mode == "scan" else self.contexts()
+        return self.observation(scan, contexts, ended=False), table
+
+    def observation(self, scan: np.ndarray, contexts: Optional[np.ndarray], ended: bool):
+        """The observations of `obs_mode` from the scans and contexts (one row per env), with
+        the current states or (`ended`) those the episodes that ended at the last step ended in."""
+        if self.obs_mode == "scan":
+            return scan
+        context = contexts.astype(np.float32)
+        if self.obs_mode == "scan+context":
+            return np.concatenate([scan, context], axis=1)
+        state = np.frombuffer(self.inner.states(ended), dtype=np.float32)
+        state = state.reshape(self.num_envs, self.inner.state_dim).copy()
+        return {"scan": scan, "context": context, "state": state}
 
     def reset(self, seed: int, contexts: Any = None):
         """Starts every env's next episode (see `RaceVectorEnv.reset`)."""
@@ -178,11 +200,13 @@ class Races:
         """Steps every env (see `RaceVectorEnv.step`)."""
         return self.decode(*self.inner.step(pairs_bytes("actions", actions, self.num_envs)))
 
-    def final_obs(self) -> np.ndarray:
-        """Under same-step autoreset, the last observations of the episodes that ended at the
-        last step (one row per env; the other rows are stale)."""
+    def final_obs(self, contexts: np.ndarray):
+        """Under same-step autoreset, the last observations (in `obs_mode`) of the episodes that
+        ended at the last step, whose contexts were `contexts` (one row per env; the other rows
+        are stale)."""
         data = np.frombuffer(self.inner.final_obs(), dtype=np.float32)
-        return data.reshape(self.num_envs, self.obs_dim).copy()
+        scan = data.reshape(self.num_envs, self.obs_dim).copy()
+        return self.observation(scan, contexts, ended=True)
 
     def contexts(self) -> np.ndarray:
         """Each env's current episode's context, ``(num_envs, 2)``."""
@@ -199,6 +223,48 @@ class Races:
             rgb, height, width = self.inner.render(env, RENDER_WIDTH)
             pictures.append(np.frombuffer(rgb, dtype=np.uint8).reshape(height, width, 3).copy())
         return pictures
+
+
+#: The observations an env can give (``obs_mode``): the LiDAR scan; the scan and the episode's
+#: context ``(c_v, c_θ)`` in one array; or a Dict of the scan, the context and the race's state
+#: (the ego's pose x, y, yaw, its speed and yaw rate; each rival's position and heading relative
+#: to the ego in its frame, and its speed), as f1tenth_gym returns it beside the scan.
+OBS_MODES = ("scan", "scan+context", "dict")
+
+#: The largest context value a race takes (the evaluation grid's edge is 0.3).
+_CONTEXT_BOUND = 0.9
+
+
+def observation_space(mode: str, beams: int, state_bounds: tuple) -> spaces.Space:
+    """One env's observation space in `mode` (see `OBS_MODES`); the state's bounds `(low,
+    high)` are the simulator's."""
+    scan = spaces.Box(0.0, 1.0, (beams,), np.float32)
+    context = spaces.Box(-_CONTEXT_BOUND, _CONTEXT_BOUND, (2,), np.float32)
+    if mode == "scan":
+        return scan
+    if mode == "scan+context":
+        low = np.concatenate([scan.low, context.low]).astype(np.float32)
+        high = np.concatenate([scan.high, context.high]).astype(np.float32)
+        return spaces.Box(low, high, dtype=np.float32)
+    low, high = (np.asarray(b, dtype=np.float32) for b in state_bounds)
+    state = spaces.Box(low, high, dtype=np.float32)
+    return spaces.Dict({"scan": scan, "context": context, "state": state})
+
+
+def rows(obs, ended: np.ndarray):
+    """The rows `ended` of observations (an array or a dict of arrays), the others zero."""
+    if isinstance(obs, dict):
+        return {k: rows(v, ended) for k, v in obs.items()}
+    out = np.zeros_like(obs)
+    out[ended] = obs[ended]
+    return out
+
+
+def first(obs):
+    """The first env's observation (an array or a dict of arrays)."""
+    if isinstance(obs, dict):
+        return {k: v[0] for k, v in obs.items()}
+    return obs[0]
 
 
 def info_of(table: np.ndarray) -> dict:
@@ -257,6 +323,7 @@ class RaceVectorEnv(PicklesAsMade, VectorEnv):
         threads: int = 0,
         autoreset_mode: AutoresetMode = AutoresetMode.NEXT_STEP,
         render_mode: Optional[str] = None,
+        obs_mode: str = "scan",
         **race_keys: Any,
     ):
         self.remember(locals(), ("track", "num_envs"))
@@ -279,15 +346,14 @@ class RaceVectorEnv(PicklesAsMade, VectorEnv):
             race_keys,
             self._same_step,
             render_mode,
+            obs_mode,
         )
         self.render_mode = render_mode
         self.metadata = {**self.metadata, **self._races.metadata}
         num_envs = self._races.num_envs
         self.num_envs = num_envs
         self.race_config = self._races.race_config
-        self.single_observation_space = spaces.Box(
-            0.0, 1.0, (self._races.obs_dim,), np.float32
-        )
+        self.single_observation_space = self._races.single_observation_space
         self.single_action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
@@ -343,8 +409,7 @@ def _restarted(races: Races, info: dict, ended: np.ndarray) -> dict:
     """Gymnasium's same-step info after the envs `ended` started new episodes: their new
     episodes' reset info (context, zero progress) at the top level, the ended step's info under
     ``final_info`` and the ended episodes' last observations under ``final_obs``."""
-    final_obs = np.zeros((races.num_envs, races.obs_dim), dtype=np.float32)
-    final_obs[ended] = races.final_obs()[ended]
+    final_obs = rows(races.final_obs(info["context"]), ended)
     final_info = {key: value.copy() for key, value in info.items()}
     final_info.update({f"_{key}": ended for key in info})
     info["context"][ended] = races.contexts()[ended]
@@ -371,14 +436,25 @@ class RaceEnv(PicklesAsMade, gymnasium.Env):
         config: Optional[os.PathLike] = None,
         context_range: float = _ctxrace.TRAIN_CONTEXT_RANGE,
         render_mode: Optional[str] = None,
+        obs_mode: str = "scan",
         **race_keys: Any,
     ):
         self.remember(locals(), ("track",))
         self._races = Races(
-            track, 1, rivals, tracks_dir, config, context_range, 1, race_keys, False, render_mode
+            track,
+            1,
+            rivals,
+            tracks_dir,
+            config,
+            context_range,
+            1,
+            race_keys,
+            False,
+            render_mode,
+            obs_mode,
         )
         self.race_config = self._races.race_config
-        self.observation_space = spaces.Box(0.0, 1.0, (self._races.obs_dim,), np.float32)
+        self.observation_space = self._races.single_observation_space
         self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.render_mode = render_mode
         self.metadata = self._races.metadata
@@ -399,7 +475,7 @@ class RaceEnv(PicklesAsMade, gymnasium.Env):
             context = np.asarray(context).reshape(1, -1)
         obs, table = races.reset(_seed_of(seed, self.np_random), context)
         self._ended = False
-        return obs[0], _single(info_of(table))
+        return first(obs), _single(info_of(table))
 
     def step(self, action):
         """One decision: returns (obs, reward, terminated, truncated, info)."""
@@ -412,7 +488,7 @@ class RaceEnv(PicklesAsMade, gymnasium.Env):
         terminated = bool(row[_COLUMNS["terminated"]])
         truncated = bool(row[_COLUMNS["truncated"]])
         self._ended = terminated or truncated
-        return obs[0], float(row[_COLUMNS["reward"]]), terminated, truncated, _single(
+        return first(obs), float(row[_COLUMNS["reward"]]), terminated, truncated, _single(
             info_of(table)
         )
 
