@@ -104,6 +104,14 @@ pub enum ImageError {
     /// The file is not an image that can be decoded.
     #[error("{0}")]
     Decode(image::ImageError),
+    /// The image is larger than a map may be.
+    #[error(
+        "larger than a map may be (at most {} pixels a side and {} MiB decoded; the paper's \
+         maps have at most 2,000 pixels a side): is it the right image?",
+        crate::map::MAX_MAP_SIDE,
+        crate::map::MAX_MAP_BYTES >> 20
+    )]
+    TooLarge,
 }
 
 /// Shorthand for results with [`TrackError`].

@@ -59,12 +59,25 @@ fn open_image(path: &Path) -> std::result::Result<image::DynamicImage, ImageErro
     if !file.metadata().map_err(ImageError::Io)?.is_file() {
         return Err(ImageError::NotAFile);
     }
-    image::ImageReader::new(std::io::BufReader::new(file))
+    let mut limits = image::Limits::default();
+    limits.max_image_width = Some(MAX_MAP_SIDE);
+    limits.max_image_height = Some(MAX_MAP_SIDE);
+    limits.max_alloc = Some(MAX_MAP_BYTES);
+    let mut reader = image::ImageReader::new(std::io::BufReader::new(file))
         .with_guessed_format()
-        .map_err(ImageError::Io)?
-        .decode()
-        .map_err(ImageError::Decode)
+        .map_err(ImageError::Io)?;
+    reader.limits(limits);
+    reader.decode().map_err(|e| match e {
+        image::ImageError::Limits(_) => ImageError::TooLarge,
+        e => ImageError::Decode(e),
+    })
 }
+
+/// The most pixels a map image may have on a side (the paper's maps have at most 2,000).
+pub const MAX_MAP_SIDE: u32 = 10_000;
+/// The most memory a map image may take decoded (bytes): a 20,000-pixel-square PNG of a few
+/// hundred KB would otherwise take gigabytes before the race starts.
+pub const MAX_MAP_BYTES: u64 = 256 << 20;
 
 impl OccupancyMap {
     /// Loads a map yaml and the image it names (relative to the yaml's folder).
@@ -219,5 +232,19 @@ mod tests {
         let err = load_error(dir.path(), "link.png");
         assert!(err.contains("symbolic link"), "{err}");
         assert_eq!(image_beside(" map.png "), Some("map.png"));
+    }
+
+    /// A tiny PNG can declare a huge image: refused from its header, before it is decoded.
+    #[test]
+    fn an_image_larger_than_a_map_may_be_is_refused_before_decoding() {
+        let dir = tempfile::tempdir().unwrap();
+        image::GrayImage::new(MAX_MAP_SIDE + 1, 1)
+            .save(dir.path().join("wide.png"))
+            .unwrap();
+        let err = load_error(dir.path(), "wide.png");
+        assert!(
+            err.contains("wide.png") && err.contains("larger than a map may be"),
+            "{err}"
+        );
     }
 }
