@@ -314,6 +314,21 @@ def test_bad_contexts_seeds_and_sizes_raise():
     assert ctxrace.make_vec(TRACK, np.int64(3), threads=np.int32(1)).num_envs == 3
 
 
+def test_vector_get_attr_and_call_give_a_value_per_env():
+    envs = ctxrace.make_vec(TRACK, 3, rivals=2, render_mode="rgb_array")
+    envs.reset(seed=0, options={"context": [[0.1, 0.0], [0.0, 0.2], [-0.1, -0.1]]})
+    np.testing.assert_array_equal(np.array(envs.get_attr("context")), [[0.1, 0.0], [0.0, 0.2], [-0.1, -0.1]])
+    assert envs.get_attr("race_config") == (envs.race_config,) * 3
+    assert envs.get_attr("observation_space") == (envs.single_observation_space,) * 3
+    assert envs.call("render_mode") == ("rgb_array",) * 3
+    frames = envs.call("render")
+    assert len(frames) == 3 and frames[0].ndim == 3
+    with pytest.raises(AttributeError, match="get_attr"):
+        envs.call("step", np.zeros((3, 2)))
+    with pytest.raises(AttributeError):
+        envs.get_attr("no_such_attribute")
+
+
 def test_envs_pickle_as_the_arguments_they_were_made_with():
     import pickle
 

@@ -400,6 +400,35 @@ class RaceVectorEnv(PicklesAsMade, VectorEnv):
         pictures = self._live().render()
         return None if pictures is None else tuple(pictures)
 
+    def get_attr(self, name: str) -> tuple:
+        """Each env's attribute `name`, a tuple of one value per env as Gymnasium's
+        ``SyncVectorEnv.get_attr`` gives it: ``context`` per env; ``observation_space`` and
+        ``action_space`` a single env's; any other attribute of this env (``race_config``,
+        ``render_mode``, ``metadata``, ...) shared by every env."""
+        races = self._live()
+        if name == "context":
+            return tuple(races.contexts())
+        single = {
+            "observation_space": self.single_observation_space,
+            "action_space": self.single_action_space,
+        }
+        value = single[name] if name in single else getattr(self, name)
+        return (value,) * self.num_envs
+
+    def call(self, name: str, *args: Any, **kwargs: Any) -> tuple:
+        """Gymnasium's ``SyncVectorEnv.call``, a tuple of one result per env: ``render`` draws
+        each env's race; an attribute that is no method is `get_attr`'s. The races step
+        together in Rust, so no other method can be called env by env."""
+        if name == "render":
+            return self.render() or (None,) * self.num_envs
+        values = self.get_attr(name)
+        if callable(values[0]):
+            raise AttributeError(
+                f"{name!r}: ctxrace's vector env steps its races together in Rust and calls "
+                "only 'render' env by env; read attributes with get_attr"
+            )
+        return values
+
     def close_extras(self, **kwargs: Any):
         """Frees the races."""
         self._races = None
