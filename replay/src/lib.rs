@@ -6,6 +6,7 @@ pub mod limiter;
 pub mod numpy_rng;
 pub mod server;
 pub mod snapshot;
+mod store;
 
 pub use buffer::ReplayBuffer;
 pub use limiter::RateLimiter;
