@@ -106,12 +106,15 @@ pub enum ImageError {
     Decode(image::ImageError),
     /// The image is larger than a map may be.
     #[error(
-        "larger than a map may be (at most {} pixels a side and {} MiB decoded; the paper's \
-         maps have at most 2,000 pixels a side): is it the right image?",
-        crate::map::MAX_MAP_SIDE,
-        crate::map::MAX_MAP_BYTES >> 20
+        "larger than a map may be (at most {max_side} pixels a side and {max_mib} MiB decoded; \
+         the paper's maps have at most 2,000 pixels a side): is it the right image?"
     )]
-    TooLarge,
+    TooLarge {
+        /// The most pixels a side may have.
+        max_side: u32,
+        /// The most memory the decoded image may take (MiB).
+        max_mib: u64,
+    },
 }
 
 /// Shorthand for results with [`TrackError`].

@@ -68,7 +68,10 @@ fn open_image(path: &Path) -> std::result::Result<image::DynamicImage, ImageErro
         .map_err(ImageError::Io)?;
     reader.limits(limits);
     reader.decode().map_err(|e| match e {
-        image::ImageError::Limits(_) => ImageError::TooLarge,
+        image::ImageError::Limits(_) => ImageError::TooLarge {
+            max_side: MAX_MAP_SIDE,
+            max_mib: MAX_MAP_BYTES >> 20,
+        },
         e => ImageError::Decode(e),
     })
 }
