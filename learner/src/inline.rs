@@ -205,8 +205,9 @@ pub fn run_inline<S: ExperienceSource<Policy = Policy>, B: SampleStore>(
                 stale_policy = false;
             }
         }
-        let due = last_point.elapsed().as_secs() >= t.resume_every_secs;
-        if let Some(position) = source.position().filter(|_| due) {
+        // at an episode boundary only: the clock is read once an episode, not every decision
+        let due = |since: Instant| since.elapsed().as_secs() >= t.resume_every_secs;
+        if let Some(position) = source.position().filter(|_| due(last_point)) {
             let state = LoopState {
                 source: position,
                 sampler_rng_words: rng.get_word_pos(),
