@@ -12,6 +12,7 @@ Records: `<R>r/<arm>/seed<S>/` as `deploy/campaign.sh docs/long` collects them
 
 import math
 import random
+import re
 import sys
 from pathlib import Path
 
@@ -36,7 +37,7 @@ def runs():
 def evaluations(folder):
     """The run's evaluations by env steps: eval-at-<N>/ and, at the run's end, eval/."""
     config = (folder / "config.toml").read_text()
-    end = int(float(table2.re.search(r"^env_steps\s*=\s*(\S+)", config, table2.re.M).group(1)))
+    end = int(float(re.search(r"^env_steps\s*=\s*(\S+)", config, re.M).group(1)))
     found = {int(p.name.split("-")[-1]): p for p in folder.glob("eval-at-*")}
     if (folder / "eval" / "contexts.csv").is_file():
         found[end] = folder / "eval"
@@ -103,13 +104,14 @@ def first_below(rows, key, bound):
     return min(hit) if hit else None
 
 
-def svg(path, series, key, title):
-    """A line per seed of `key` against gradient steps, as a small SVG (no plotting library)."""
+def svg(series, key, title):
+    """A line per seed of `key` against gradient steps: an SVG group and its size, or None
+    without a point."""
     w, h, pad = 480, 240, 40
     points = [(r["grad_steps"], r[key]) for s in series.values() for r in s
               if not math.isnan(r[key]) and not math.isnan(r["grad_steps"])]
     if not points:
-        return ""
+        return None
     x0, x1 = 0, max(x for x, _ in points) or 1
     y0, y1 = min(0.0, min(y for _, y in points)), max(y for _, y in points) or 1
     sx = lambda x: pad + (x - x0) / (x1 - x0) * (w - 2 * pad)
@@ -187,7 +189,7 @@ def analyse():
                   f"{table2.fmt(r['pg_in'])} | {table2.fmt(r['pg_out'])} | "
                   f"{table2.fmt(r['a2a_in'], 1)} | {table2.fmt(r['a2a_out'], 1)} |")
     (HERE / "results.md").write_text("\n".join(md) + "\n")
-    panels = [svg(None, series, k, t) for k, t in
+    panels = [svg(series, k, t) for k, t in
               [("alpha", "alpha"), ("entropy", "mask entropy (nats)"),
                ("mi_speed_excess", "MI(m_v; context) excess, bits"),
                ("mi_steer_excess", "MI(m_theta; context) excess, bits")]]

@@ -233,6 +233,7 @@ fn _ctxrace(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("EVAL_TRAIN_RANGE", eval_dir::TRAIN_RANGE)?;
     m.add("EVAL_TRACK", eval_dir::REFERENCE_TRACK)?;
     m.add("EVAL_RIVALS", eval_dir::REFERENCE_RIVALS)?;
+    m.add("CONTEXT_LIMIT", ctxrace_config::context::CONTEXT_LIMIT)?;
     m.add(
         "TRAIN_CONTEXT_RANGE",
         ctxrace_config::TrainConfig::default().context_range,

@@ -21,8 +21,8 @@ from ctxrace import _ctxrace
 #: The columns of the outcome table the extension hands back, one row per env.
 _COLUMNS = {name: i for i, name in enumerate(_ctxrace.OUTCOME_COLUMNS)}
 
-#: Largest magnitude of a context element the simulator takes.
-CONTEXT_LIMIT = 0.9
+#: Largest magnitude of a context element the simulator takes (its own constant).
+CONTEXT_LIMIT = _ctxrace.CONTEXT_LIMIT
 
 #: Width in pixels of a rendered frame (an animation's of ``ctxrace race --render race.gif``).
 RENDER_WIDTH = 1000
@@ -231,15 +231,12 @@ class Races:
 #: to the ego in its frame, and its speed), as f1tenth_gym returns it beside the scan.
 OBS_MODES = ("scan", "scan+context", "dict")
 
-#: The largest context value a race takes (the evaluation grid's edge is 0.3).
-_CONTEXT_BOUND = 0.9
-
 
 def observation_space(mode: str, beams: int, state_bounds: tuple) -> spaces.Space:
     """One env's observation space in `mode` (see `OBS_MODES`); the state's bounds `(low,
     high)` are the simulator's."""
     scan = spaces.Box(0.0, 1.0, (beams,), np.float32)
-    context = spaces.Box(-_CONTEXT_BOUND, _CONTEXT_BOUND, (2,), np.float32)
+    context = spaces.Box(-CONTEXT_LIMIT, CONTEXT_LIMIT, (2,), np.float32)
     if mode == "scan":
         return scan
     if mode == "scan+context":
