@@ -20,6 +20,7 @@ use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use clap::Args;
 use clap::ValueEnum;
+use ctxrace_config::config_file::read_config_table;
 use ctxrace_config::{Context, ContextMode, RaceConfig};
 use ctxrace_run::results;
 use ctxrace_run::run_dir::{EVAL_DIR, EVAL_JOB};
@@ -29,6 +30,7 @@ use ctxrace_sim::driver::ActMode;
 use ctxrace_sim::eval_dir;
 use ctxrace_sim::evaluation::{episode_seed, run_episode, EvalMeta, SplitMeans, ToldContext};
 use ctxrace_sim::masks::{self, MaskRecorder};
+use ctxrace_sim::scenario::{EvalScenario, ScenarioChoice};
 use ctxrace_sim::track_check::{check_track, CheckPlan};
 use ctxrace_sim::RaceEnv;
 use serde::{Deserialize, Serialize};
@@ -52,8 +54,9 @@ pub struct EvalArgs {
     /// How a trained agent acts: `sample` its distributions (the paper's) or take their `mode`.
     #[arg(long, value_enum, default_value_t = ActMode::Sample)]
     act: ActMode,
-    /// Race scenario TOML for a reference policy (e.g. configs/scenarios/paper-code.toml)
-    /// [default: the run's for a trained agent, ctxrace's default scenario otherwise].
+    /// Race scenario TOML (e.g. configs/scenarios/paper-code.toml) in place of a trained
+    /// agent's run's race (its rivals stay, unless --rivals) or, for a reference policy, of the
+    /// default scenario [default: the run's race; the default scenario].
     #[arg(long)]
     config: Option<PathBuf>,
     /// Grid points per context dimension.
@@ -206,29 +209,25 @@ pub fn run(args: EvalArgs) -> Result<()> {
         EgoSpec::Trained(t) => (t.experiment.clone(), t.agent.seed()),
         EgoSpec::Baseline(_) => (None, 0),
     };
-    if let (Some(_), Some(path)) = (&experiment, &args.config) {
-        bail!(
-            "--config {} applies to reference policies; a trained agent races in its run's \
-             scenario (its config.toml)",
-            path.display()
-        );
+    let mut race_keys = toml::Table::new();
+    if args.tracks.raceline_file {
+        race_keys.insert("shipped_raceline".into(), true.into());
     }
-    let mut race = match &experiment {
-        Some(e) => e.race.clone(),
-        None => crate::load_race_config(args.config.as_ref())?,
+    let choice = ScenarioChoice {
+        track: args.track.clone(),
+        rivals: args.rivals,
+        train_range: args.train_range,
+        race: args.config.as_deref().map(read_config_table).transpose()?,
+        race_keys,
     };
-    race.shipped_raceline |= args.tracks.raceline_file;
-    race.rivals = args.rivals.unwrap_or(if experiment.is_some() {
-        race.rivals
-    } else {
-        eval_dir::REFERENCE_RIVALS
-    });
-    race.validate()?;
-    let track = args
-        .track
-        .clone()
-        .or_else(|| experiment.as_ref().map(|e| e.track.clone()))
-        .unwrap_or_else(|| eval_dir::REFERENCE_TRACK.into());
+    let EvalScenario {
+        track,
+        race,
+        train_range,
+    } = EvalScenario::resolve(experiment.as_ref(), choice).with_context(|| match &args.config {
+        Some(path) => format!("the race of --config {}", path.display()),
+        None => "the run's race".into(),
+    })?;
     // the protocol's rows mean little where the rivals or the reference ego crash on their own
     let check = CheckPlan {
         grid: args.grid,
@@ -239,10 +238,6 @@ pub fn run(args: EvalArgs) -> Result<()> {
     for f in report.failures() {
         eprintln!("warning: {track}: {}: {}", f.check, f.detail);
     }
-    let train_range = args
-        .train_range
-        .or_else(|| experiment.as_ref().map(|e| e.train.context_range))
-        .unwrap_or(eval_dir::TRAIN_RANGE);
     let out = match (&args.out, &spec) {
         (Some(o), _) => o.clone(),
         (None, EgoSpec::Trained(t)) => match t.checkpoint.parent().and_then(Path::parent) {

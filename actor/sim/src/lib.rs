@@ -15,6 +15,7 @@ pub mod lidar;
 pub mod masks;
 pub mod race;
 pub mod rival;
+pub mod scenario;
 pub mod track_check;
 pub mod vector;
 pub mod vehicle;

@@ -36,6 +36,14 @@ pub enum ConfigFileError {
         /// The file.
         path: PathBuf,
     },
+    /// The file is not a TOML table (the message has the line).
+    #[error("{}: {}", .path.display(), crate::validate::toml_message(.cause))]
+    Toml {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        cause: toml::de::Error,
+    },
 }
 
 /// Reads a config file as text: a regular file of at most [`MAX_CONFIG_BYTES`] (checked before
@@ -70,6 +78,15 @@ pub fn read_config_text(path: &Path) -> Result<String, ConfigFileError> {
     })
 }
 
+/// Reads a config file ([`read_config_text`]) as a TOML table, for laying tables over one
+/// another before they are read as a configuration.
+pub fn read_config_table(path: &Path) -> Result<toml::Table, ConfigFileError> {
+    toml::from_str(&read_config_text(path)?).map_err(|cause| ConfigFileError::Toml {
+        path: path.to_path_buf(),
+        cause,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -93,5 +110,12 @@ mod tests {
         assert!(err.contains("folder"), "{err}");
         std::fs::write(&big, "track = \"f1_esp\"\n").unwrap();
         assert_eq!(read_config_text(&big).unwrap(), "track = \"f1_esp\"\n");
+        assert_eq!(
+            read_config_table(&big).unwrap()["track"].as_str(),
+            Some("f1_esp")
+        );
+        std::fs::write(&big, "track = \n").unwrap();
+        let err = read_config_table(&big).unwrap_err().to_string();
+        assert!(err.contains("big.toml") && err.contains("line 1"), "{err}");
     }
 }

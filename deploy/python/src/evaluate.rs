@@ -3,12 +3,15 @@
 //! eval` records it. A reference policy drives in Rust ([`evaluate_reference`]); a Python
 //! policy drives a batch of episodes at a time through [`PyEvaluation`].
 
-use crate::{bytes_of, load_track, pairs, race_config, BindError, Result};
+use crate::policy::PyPolicy;
+use crate::{bytes_of, keys_table, load_track, pairs, BindError, Result};
+use ctxrace_config::config_file::read_config_table;
 use ctxrace_config::{Context, RaceConfig};
 use ctxrace_sim::baseline::BaselineKind;
 use ctxrace_sim::driver::BaselineEgo;
-use ctxrace_sim::eval_dir::{GRID, LAPS, RANGE, TRAIN_RANGE};
+use ctxrace_sim::eval_dir::{GRID, LAPS, RANGE};
 use ctxrace_sim::evaluation::{episode_seed, run_episode, summarise, EvalEpisode, SplitMeans};
+use ctxrace_sim::scenario::{EvalScenario, ScenarioChoice};
 use ctxrace_sim::vector::VectorError;
 use ctxrace_sim::RaceEnv;
 use ctxrace_tracks::Track;
@@ -27,6 +30,8 @@ const SIGNAL_CHECK_EPISODES_PER_THREAD: usize = 4;
 struct Protocol {
     track: Arc<Track>,
     race: RaceConfig,
+    /// Half-width of the training contexts, which splits the grid in and out of distribution.
+    train_range: f64,
     grid: Vec<Context>,
     seed: u64,
     /// `(context index, lap)` of every episode, in order.
@@ -35,14 +40,11 @@ struct Protocol {
 }
 
 impl Protocol {
-    /// Reads the race and the track and lays out the `grid × grid` contexts over `±range`,
-    /// `laps` each.
-    #[allow(clippy::too_many_arguments)]
+    /// Resolves where the policy races (`ScenarioChoice`'s rules, over `run`'s scenario when
+    /// it is a trained agent's), reads the track and lays out the `grid × grid` contexts over
+    /// `±range`, `laps` each.
     fn new(
-        track: &str,
-        race_keys: &str,
-        config: Option<PathBuf>,
-        tracks_dir: Option<PathBuf>,
+        scenario: ScenarioArgs,
         grid: usize,
         range: f64,
         laps: usize,
@@ -54,8 +56,12 @@ impl Protocol {
                 "grid {grid} and laps {laps} must be positive (the paper's: 7 and 50)"
             )));
         }
-        let race = race_config(config, race_keys)?;
-        let track = load_track(track, tracks_dir, &race)?;
+        let EvalScenario {
+            track,
+            race,
+            train_range,
+        } = scenario.resolve()?;
+        let track = load_track(&track, scenario.tracks_dir, &race)?;
         // the environment checks the race against the track once, here
         RaceEnv::new(track.clone(), race.clone()).map_err(VectorError::from)?;
         Context::new(range, range)?;
@@ -70,6 +76,7 @@ impl Protocol {
         Ok(Self {
             track,
             race,
+            train_range,
             grid,
             seed,
             todo,
@@ -84,10 +91,10 @@ impl Protocol {
 
     /// The episodes in `(context, lap)` order, their per-context summary and its split means
     /// (`null` for a split without contexts) as JSON.
-    fn result(&self, mut episodes: Vec<(usize, EvalEpisode)>, train_range: f64) -> String {
+    fn result(&self, mut episodes: Vec<(usize, EvalEpisode)>) -> String {
         episodes.sort_by_key(|(i, e)| (*i, e.lap));
         let episodes: Vec<EvalEpisode> = episodes.into_iter().map(|(_, e)| e).collect();
-        let contexts = summarise(&episodes, train_range);
+        let contexts = summarise(&episodes, self.train_range);
         let means = serde_json::json!({
             "in": SplitMeans::split(&contexts, true),
             "out": SplitMeans::split(&contexts, false),
@@ -97,16 +104,47 @@ impl Protocol {
     }
 }
 
+/// Where an evaluation races, as Python gave it: each `None` (and each key not given) is
+/// decided by [`EvalScenario::resolve`] over the trained agent `run`'s scenario.
+struct ScenarioArgs {
+    track: Option<String>,
+    rivals: Option<usize>,
+    train_range: Option<f64>,
+    /// Race keys, a JSON object.
+    race_keys: String,
+    /// A race config file in place of the run's race.
+    config: Option<PathBuf>,
+    tracks_dir: Option<PathBuf>,
+    /// The trained agent's run (its recorded experiment), when it is known.
+    run: Option<ctxrace_config::ExperimentConfig>,
+}
+
+impl ScenarioArgs {
+    /// The scenario the arguments choose.
+    fn resolve(&self) -> Result<EvalScenario> {
+        let choice = ScenarioChoice {
+            track: self.track.clone(),
+            rivals: self.rivals,
+            train_range: self.train_range,
+            race: self.config.as_deref().map(read_config_table).transpose()?,
+            race_keys: keys_table(&self.race_keys)?,
+        };
+        Ok(EvalScenario::resolve(self.run.as_ref(), choice)?)
+    }
+}
+
 /// Evaluates the reference policy `policy` (`pure-pursuit`, `follow-the-gap`, `random`,
 /// `still`) as `ctxrace eval POLICY` does, on worker threads with the GIL released; returns
 /// `{"episodes": [...], "contexts": [...], "means": {"in": ..., "out": ...}}` as JSON.
 #[pyfunction]
-#[pyo3(signature = (policy, track, race_keys="{}", config=None, tracks_dir=None, grid=GRID, range=RANGE, laps=LAPS, seed=0, train_range=TRAIN_RANGE, threads=0))]
+#[pyo3(signature = (policy, track=None, rivals=None, train_range=None, race_keys="{}", config=None, tracks_dir=None, grid=GRID, range=RANGE, laps=LAPS, seed=0, threads=0))]
 #[allow(clippy::too_many_arguments)]
 pub fn evaluate_reference(
     py: Python<'_>,
     policy: &str,
-    track: &str,
+    track: Option<String>,
+    rivals: Option<usize>,
+    train_range: Option<f64>,
     race_keys: &str,
     config: Option<PathBuf>,
     tracks_dir: Option<PathBuf>,
@@ -114,13 +152,19 @@ pub fn evaluate_reference(
     range: f64,
     laps: usize,
     seed: u64,
-    train_range: f64,
     threads: usize,
 ) -> PyResult<String> {
     let kind: BaselineKind = policy.parse().map_err(BindError::Argument)?;
-    let p = Protocol::new(
-        track, race_keys, config, tracks_dir, grid, range, laps, seed, threads,
-    )?;
+    let scenario = ScenarioArgs {
+        track,
+        rivals,
+        train_range,
+        race_keys: race_keys.into(),
+        config,
+        tracks_dir,
+        run: None,
+    };
+    let p = Protocol::new(scenario, grid, range, laps, seed, threads)?;
     // a chunk of episodes at a time with the GIL released, Python's signals checked between
     // chunks, so that Ctrl-C stops an evaluation within a chunk (each episode's own seed makes
     // the chunking change nothing)
@@ -148,7 +192,7 @@ pub fn evaluate_reference(
         }));
         py.check_signals()?;
     }
-    Ok(p.result(episodes, train_range))
+    Ok(p.result(episodes))
 }
 
 /// An episode of the grid being raced.
@@ -201,17 +245,20 @@ impl PyEvaluation {
 
 #[pymethods]
 impl PyEvaluation {
-    /// The protocol on `track` (race as for `RaceVector`) over the `grid × grid` contexts of
-    /// `±range`, `laps` each from `seed`, `batch` episodes at a time, stepped on `threads`
-    /// worker threads (0: one per core).
+    /// The protocol over the `grid × grid` contexts of `±range`, `laps` each from `seed`,
+    /// `batch` episodes at a time, stepped on `threads` worker threads (0: one per core), where
+    /// the arguments and the trained agent `run` (if any) say ([`EvalScenario::resolve`]).
     #[new]
-    #[pyo3(signature = (track, race_keys="{}", config=None, tracks_dir=None, grid=GRID, range=RANGE, laps=LAPS, seed=0, batch=64, threads=0))]
+    #[pyo3(signature = (track=None, rivals=None, train_range=None, race_keys="{}", config=None, tracks_dir=None, run=None, grid=GRID, range=RANGE, laps=LAPS, seed=0, batch=64, threads=0))]
     #[allow(clippy::too_many_arguments)]
     fn new(
-        track: &str,
+        track: Option<String>,
+        rivals: Option<usize>,
+        train_range: Option<f64>,
         race_keys: &str,
         config: Option<PathBuf>,
         tracks_dir: Option<PathBuf>,
+        run: Option<PyRef<'_, PyPolicy>>,
         grid: usize,
         range: f64,
         laps: usize,
@@ -219,9 +266,16 @@ impl PyEvaluation {
         batch: usize,
         threads: usize,
     ) -> PyResult<Self> {
-        let protocol = Protocol::new(
-            track, race_keys, config, tracks_dir, grid, range, laps, seed, threads,
-        )?;
+        let scenario = ScenarioArgs {
+            track,
+            rivals,
+            train_range,
+            race_keys: race_keys.into(),
+            config,
+            tracks_dir,
+            run: run.and_then(|r| r.experiment().cloned()),
+        };
+        let protocol = Protocol::new(scenario, grid, range, laps, seed, threads)?;
         let lanes = (0..batch.clamp(1, protocol.todo.len().max(1)))
             .map(|_| Lane {
                 env: protocol.env(),
@@ -345,14 +399,15 @@ impl PyEvaluation {
         Ok(())
     }
 
-    /// `{"episodes": [...], "contexts": [...], "means": {"in": ..., "out": ...}}` as JSON. contexts in or out of distribution by
-    /// `train_range`; an error while episodes remain.
-    fn result(&self, train_range: f64) -> PyResult<String> {
+    /// `{"episodes": [...], "contexts": [...], "means": {"in": ..., "out": ...}}` as JSON,
+    /// contexts in or out of distribution by the scenario's training range; an error while
+    /// episodes remain.
+    fn result(&self) -> PyResult<String> {
         if self.racing_now() > 0 {
             return Err(pyo3::exceptions::PyRuntimeError::new_err(
                 "episodes are still racing: call act until racing_now is 0",
             ));
         }
-        Ok(self.protocol.result(self.done.clone(), train_range))
+        Ok(self.protocol.result(self.done.clone()))
     }
 }

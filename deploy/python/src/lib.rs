@@ -9,7 +9,7 @@ mod evaluate;
 mod policy;
 mod vector;
 
-use ctxrace_config::config_file::{read_config_text, ConfigFileError};
+use ctxrace_config::config_file::{read_config_table, ConfigFileError};
 use ctxrace_config::preset::merge_tables;
 use ctxrace_config::validate::Causes;
 use ctxrace_config::{ContextError, RaceConfig, RaceConfigError};
@@ -29,15 +29,6 @@ pub enum BindError {
     /// A race config file could not be read (a folder, too large, not text).
     #[error("race config")]
     Read(#[from] ConfigFileError),
-    /// A race config file is no TOML.
-    #[error("race config {}", .path.display())]
-    Toml {
-        /// The file.
-        path: PathBuf,
-        /// Why.
-        #[source]
-        source: toml::de::Error,
-    },
     /// The race keyword arguments are no TOML table.
     #[error(
         "race keys (give numbers, strings, booleans and dicts of them, as the TOML configs do)"
@@ -99,31 +90,24 @@ impl From<BindError> for PyErr {
 type Result<T> = std::result::Result<T, BindError>;
 
 /// The race of a TOML config file (none: an empty table) with `keys_json` laid over it: a JSON
-/// object of race keys (tables as objects, `null` as a key not given), or a list of them laid
-/// in order (a trained run's race, then the caller's keys); each key replaces the one below,
-/// tables merged key by key; keys none gives take the values of the preset they name.
+/// object of race keys (tables as objects, `null` as a key not given); each key replaces the
+/// file's, tables merged key by key; keys neither gives take the values of the preset named.
 fn race_config(config: Option<PathBuf>, keys_json: &str) -> Result<RaceConfig> {
-    let mut table = match config {
-        Some(path) => {
-            let text = read_config_text(&path)?;
-            toml::from_str(&text).map_err(|source| BindError::Toml { path, source })?
-        }
-        None => toml::Table::new(),
-    };
-    let json: serde_json::Value =
-        serde_json::from_str(keys_json).map_err(|e| BindError::Keys(e.into()))?;
-    let layers = match json {
-        serde_json::Value::Array(layers) => layers,
-        one => vec![one],
-    };
-    for layer in layers {
-        table = merge_tables(table, keys_table(layer)?);
-    }
-    Ok(RaceConfig::from_table(table)?)
+    let table = config
+        .as_deref()
+        .map(read_config_table)
+        .transpose()?
+        .unwrap_or_default();
+    Ok(RaceConfig::from_table(merge_tables(
+        table,
+        keys_table(keys_json)?,
+    ))?)
 }
 
-/// A JSON object of race keys as a TOML table, its `null`s (keys not given) left out.
-fn keys_table(json: serde_json::Value) -> Result<toml::Table> {
+/// A JSON object of race keys (`null`s: keys not given, left out) as a TOML table.
+fn keys_table(keys_json: &str) -> Result<toml::Table> {
+    let json: serde_json::Value =
+        serde_json::from_str(keys_json).map_err(|e| BindError::Keys(e.into()))?;
     match toml::Value::try_from(without_nulls(json)).map_err(|e| BindError::Keys(e.into()))? {
         toml::Value::Table(keys) => Ok(keys),
         other => Err(BindError::Keys(format!("{other} is no table").into())),

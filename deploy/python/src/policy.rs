@@ -25,6 +25,11 @@ pub struct PyPolicy {
 }
 
 impl PyPolicy {
+    /// The experiment of the agent's run, when the run is known.
+    pub(crate) fn experiment(&self) -> Option<&ctxrace_config::ExperimentConfig> {
+        self.agent.experiment.as_ref()
+    }
+
     /// Makes policies up to `n` rows, row `i` seeded by `i` until reset with a seed.
     fn grow(&mut self, n: usize) -> Result<()> {
         while self.rows.len() < n {

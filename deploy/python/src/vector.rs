@@ -89,8 +89,7 @@ impl PyRaceVector {
 #[pymethods]
 impl PyRaceVector {
     /// `num_envs` races on `track` of the race config file `config` (none: the default
-    /// scenario) with the race keys `race_keys` (a JSON object, or a list of them laid in
-    /// order) laid over it; contexts drawn from `±context_range`; `threads` worker threads (0:
+    /// scenario) with the race keys `race_keys` (a JSON object) laid over it; contexts drawn from `±context_range`; `threads` worker threads (0:
     /// one per core); an ended episode's env resets in the step that ended it when
     /// `same_step`, else on the next step; recording each env's episode for
     /// [`PyRaceVector::render`] if `record`.

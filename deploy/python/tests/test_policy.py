@@ -117,5 +117,12 @@ def test_a_trained_run_evaluates_on_its_own_race_unless_told_otherwise(tmp_path,
     short = ctxrace.evaluate(policy, grid=2, laps=1, max_time=0.3)
     assert all(e["steps"] <= 3 for e in short.episodes)
     assert max(e["steps"] for e in mine.episodes) > 3
+    # a race file replaces the run's race but not its rivals, in Python as in `ctxrace eval`
+    race = tmp_path / "race.toml"
+    race.write_text("max_time = 0.5\nrivals = 3\n")
+    filed = ctxrace.evaluate(policy, config=race, grid=2, laps=1)
+    assert filed.contexts == eval_cli(ctxrace_bin, tmp_path / "filed", tiny_run, "--config",
+                                      str(race), "--grid", "2", "--laps", "1")
+    assert all(e["steps"] <= 5 for e in filed.episodes)
     # a checkpoint alone knows no run: the function's defaults
     assert ctxrace.load_policy(CHECKPOINT).track is None

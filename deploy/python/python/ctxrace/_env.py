@@ -63,15 +63,14 @@ class PicklesAsMade:
         return (functools.partial(type(self), **keywords), args)
 
 
-def race_keys_json(rivals: Optional[int], race_keys: dict, base: Optional[dict] = None) -> str:
+def race_keys_json(rivals: Optional[int], race_keys: dict) -> str:
     """The race keys as the extension reads them: a JSON object (``None`` values left out,
-    ``rivals`` set unless None), or, laid over a whole race `base` (a trained run's), the list
-    of the two."""
+    ``rivals`` set unless None)."""
     keys = {k: v for k, v in race_keys.items() if v is not None}
     if rivals is not None:
         keys["rivals"] = count("rivals", rivals, 0)
     try:
-        return json.dumps(keys if base is None else [base, keys])
+        return json.dumps(keys)
     except TypeError as e:
         raise TypeError(
             f"race keys must be numbers, strings, booleans or dicts of them, as the TOML configs "

@@ -10,19 +10,11 @@ from typing import Any, Callable, Optional, Union
 import numpy as np
 
 from ctxrace import _ctxrace
-from ctxrace._env import _path, pairs_bytes, race_keys_json
+from ctxrace._env import _path, count, pairs_bytes, race_keys_json
 from ctxrace._policy import TrainedPolicy
 
 #: The reference policies the simulator drives itself.
 REFERENCE_POLICIES = ("pure-pursuit", "follow-the-gap", "random", "still")
-
-#: Where `evaluate` races a policy whose run is unknown: ``ctxrace eval``'s defaults (decided in
-#: the simulator library, read from the extension).
-DEFAULT_TRACK, DEFAULT_RIVALS, DEFAULT_TRAIN_RANGE = (
-    _ctxrace.EVAL_TRACK,
-    _ctxrace.EVAL_RIVALS,
-    _ctxrace.EVAL_TRAIN_RANGE,
-)
 
 #: A batch policy: (observations (k, beams) float32, contexts (k, 2) float64) -> actions (k, 2).
 Policy = Callable[[np.ndarray, np.ndarray], Any]
@@ -80,25 +72,19 @@ def evaluate(
     `train_range` splits the contexts in and out of distribution; `config`, `tracks_dir` and
     race keys as for `make_vec`.
 
-    A `TrainedPolicy` whose run is known races where ``ctxrace eval RUN`` races it: on the
-    run's track against its rivals in its race scenario, split by its training context range;
-    otherwise `track`, `rivals` and `train_range` default to ``f1_esp``, 3 and 0.15. Arguments
-    given win: `track`, `rivals` and `train_range` replace the run's, race keys are laid over
-    its race key by key, and a `config` file replaces its race.
+    Where it races is decided as ``ctxrace eval`` decides it (``ctxrace_sim::scenario`` in
+    Rust): a `TrainedPolicy` whose run is known on the run's track against its rivals in its
+    race scenario, split by its training context range; otherwise `track`, `rivals` and
+    `train_range` default to ``f1_esp``, 3 and 0.15. Arguments given win: `track`, `rivals` and
+    `train_range` replace the run's, race keys are laid over its race key by key, and a
+    `config` file replaces its race (not its rivals).
     """
-    trained = policy if isinstance(policy, TrainedPolicy) and policy.track is not None else None
-    if trained is not None:
-        track = trained.track if track is None else track
-        rivals = trained.race_config["rivals"] if rivals is None else rivals
-        train_range = trained.context_range if train_range is None else train_range
-    train_range = DEFAULT_TRAIN_RANGE if train_range is None else train_range
+    trained = policy if isinstance(policy, TrainedPolicy) else None
     common = dict(
-        track=str(DEFAULT_TRACK if track is None else track),
-        race_keys=race_keys_json(
-            DEFAULT_RIVALS if rivals is None else rivals,
-            race_keys,
-            trained.race_config if trained is not None and config is None else None,
-        ),
+        track=None if track is None else str(track),
+        rivals=None if rivals is None else count("rivals", rivals, 0),
+        train_range=None if train_range is None else float(train_range),
+        race_keys=race_keys_json(None, race_keys),
         config=_path(config),
         tracks_dir=_path(tracks_dir),
         grid=grid,
@@ -112,12 +98,12 @@ def evaluate(
                 f"unknown reference policy {policy!r}: use one of {', '.join(REFERENCE_POLICIES)} "
                 "or pass a callable policy(obs, context) -> actions"
             )
-        text = _ctxrace.evaluate_reference(
-            policy, **common, train_range=float(train_range), threads=threads
+        text = _ctxrace.evaluate_reference(policy, **common, threads=threads)
+    elif callable(policy) or trained is not None:
+        run = _ctxrace.Evaluation(
+            **common, run=None if trained is None else trained._inner, batch=batch, threads=threads
         )
-    elif callable(policy):
-        run = _ctxrace.Evaluation(**common, batch=batch, threads=threads)
-        text = _drive(policy, run, train_range, deterministic)
+        text = _drive(policy, run, deterministic)
     else:
         raise TypeError(
             f"policy must be a reference policy's name or a callable, not {type(policy).__name__}"
@@ -128,7 +114,7 @@ def evaluate(
     )
 
 
-def _drive(policy: Policy, run: Any, train_range: float, deterministic: bool) -> str:
+def _drive(policy: Policy, run: Any, deterministic: bool) -> str:
     """Steps the protocol `run` with `policy` until every episode has ended."""
     dim = run.obs_dim
     while run.racing_now > 0:
@@ -144,4 +130,4 @@ def _drive(policy: Policy, run: Any, train_range: float, deterministic: bool) ->
         else:
             actions = policy(obs, contexts)
         run.act(pairs_bytes("actions", actions, k))
-    return run.result(float(train_range))
+    return run.result()
