@@ -209,14 +209,11 @@ fn _ctxrace(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("OUTCOME_COLUMNS", vector::OUTCOME_COLUMNS.to_vec())?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     // the evaluation protocol's defaults, decided once (ctxrace_sim::eval_dir) for ctxrace eval
-    // and Python
+    // and Python (where it races: ctxrace_sim::scenario, behind Evaluation)
     use ctxrace_sim::eval_dir;
     m.add("EVAL_GRID", eval_dir::GRID)?;
     m.add("EVAL_RANGE", eval_dir::RANGE)?;
     m.add("EVAL_LAPS", eval_dir::LAPS)?;
-    m.add("EVAL_TRAIN_RANGE", eval_dir::TRAIN_RANGE)?;
-    m.add("EVAL_TRACK", eval_dir::REFERENCE_TRACK)?;
-    m.add("EVAL_RIVALS", eval_dir::REFERENCE_RIVALS)?;
     m.add("CONTEXT_LIMIT", ctxrace_config::context::CONTEXT_LIMIT)?;
     m.add(
         "TRAIN_CONTEXT_RANGE",
