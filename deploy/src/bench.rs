@@ -210,13 +210,9 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     if args.json {
         println!("{}", serde_json::to_string_pretty(&r)?);
     } else {
-        let driver = match r.rival_driver {
-            ctxrace_config::RivalDriverKind::PurePursuit => "pure-pursuit",
-            ctxrace_config::RivalDriverKind::FollowTheGap => "follow-the-gap",
-        };
         println!(
-            "{} · {} {driver} rivals · ego {} · {:.1} s: {:.0} decisions/s, {:.0} physics steps/s ({} episodes, {:.0} decisions each)",
-            r.track, r.rivals, r.ego, r.seconds, r.decisions_per_s, r.physics_steps_per_s, r.episodes, r.mean_episode_decisions
+            "{} · {} {} rivals · ego {} · {:.1} s: {:.0} decisions/s, {:.0} physics steps/s ({} episodes, {:.0} decisions each)",
+            r.track, r.rivals, r.rival_driver, r.ego, r.seconds, r.decisions_per_s, r.physics_steps_per_s, r.episodes, r.mean_episode_decisions
         );
     }
     Ok(())

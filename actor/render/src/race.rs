@@ -111,9 +111,10 @@ pub fn race_title(track: &str, ego: &str, env: &RaceEnv) -> String {
         None if !env.is_finished() => format!("racing, progress {:.2}", m.progress),
         None => format!("{} at progress {:.2}", m.ended_by(), m.progress),
     };
+    // the paper's driver goes unnamed
     let driver = match env.config().rival.driver {
-        RivalDriverKind::PurePursuit => "",
-        RivalDriverKind::FollowTheGap => " follow-the-gap",
+        d if d == RivalDriverKind::default() => String::new(),
+        d => format!(" {d}"),
     };
     format!(
         "{track} · ego {ego} vs {}{driver} rival(s) at context c_v {:+.2}, c_t {:+.2} · {outcome}",

@@ -26,15 +26,13 @@ impl std::str::FromStr for BaselineKind {
     type Err = String;
 
     fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "pure-pursuit" => Ok(Self::PurePursuit),
-            "follow-the-gap" => Ok(Self::FollowTheGap),
-            "random" => Ok(Self::Random),
-            "still" => Ok(Self::Still),
-            _ => Err(format!(
-                "unknown ego policy '{s}': use pure-pursuit, follow-the-gap, random or still"
-            )),
-        }
+        Self::ALL
+            .into_iter()
+            .find(|k| k.name() == s)
+            .ok_or_else(|| {
+                let names: Vec<&str> = Self::ALL.iter().map(|k| k.name()).collect();
+                format!("unknown ego policy '{s}': use {}", names.join(", "))
+            })
     }
 }
 

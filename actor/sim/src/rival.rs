@@ -80,9 +80,17 @@ impl RivalDriver {
         }
     }
 
+    /// Which driver it is.
+    pub fn kind(&self) -> RivalDriverKind {
+        match self {
+            Self::PurePursuit(_) => RivalDriverKind::PurePursuit,
+            Self::FollowTheGap(_) => RivalDriverKind::FollowTheGap,
+        }
+    }
+
     /// Whether it looks at the other cars (then [`RivalDriver::command`] needs their boxes).
     pub fn sees_cars(&self) -> bool {
-        matches!(self, Self::FollowTheGap(_))
+        self.kind().sees_cars()
     }
 
     /// The command `(steering angle, speed)` for a car in state `x` on `track` among the other

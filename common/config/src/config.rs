@@ -776,6 +776,33 @@ pub enum RivalDriverKind {
     FollowTheGap,
 }
 
+impl RivalDriverKind {
+    /// Every driver.
+    pub const ALL: [Self; 2] = [Self::PurePursuit, Self::FollowTheGap];
+
+    /// Its name in configs (`driver = "..."`), on the command line and in titles.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::PurePursuit => "pure-pursuit",
+            Self::FollowTheGap => "follow-the-gap",
+        }
+    }
+
+    /// Whether it looks at the other cars: then its rival's command needs their boxes.
+    pub fn sees_cars(self) -> bool {
+        match self {
+            Self::PurePursuit => false,
+            Self::FollowTheGap => true,
+        }
+    }
+}
+
+impl std::fmt::Display for RivalDriverKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// Where a follow-the-gap driver aims inside the largest gap.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -1022,6 +1049,15 @@ impl Default for ReplayOptions {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_rival_drivers_name_is_the_one_configs_use() {
+        for kind in RivalDriverKind::ALL {
+            let value = toml::Value::try_from(kind).unwrap();
+            assert_eq!(value.as_str(), Some(kind.name()));
+            assert_eq!(kind.to_string(), kind.name());
+        }
+    }
 
     #[test]
     fn toml_overrides_and_rejects_unknown_keys() {

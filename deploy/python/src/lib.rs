@@ -207,6 +207,8 @@ fn _ctxrace(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<policy::PyPolicy>()?;
     m.add_function(wrap_pyfunction!(evaluate::evaluate_reference, m)?)?;
     m.add("OUTCOME_COLUMNS", vector::OUTCOME_COLUMNS.to_vec())?;
+    let references = ctxrace_sim::baseline::BaselineKind::ALL.map(|k| k.name());
+    m.add("REFERENCE_POLICIES", references.to_vec())?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     // the evaluation protocol's defaults, decided once (ctxrace_sim::eval_dir) for ctxrace eval
     // and Python (where it races: ctxrace_sim::scenario, behind Evaluation)

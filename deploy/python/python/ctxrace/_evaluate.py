@@ -13,8 +13,8 @@ from ctxrace import _ctxrace
 from ctxrace._env import _path, count, pairs_bytes, race_keys_json
 from ctxrace._policy import TrainedPolicy
 
-#: The reference policies the simulator drives itself.
-REFERENCE_POLICIES = ("pure-pursuit", "follow-the-gap", "random", "still")
+#: The reference policies the simulator drives itself (named in Rust, ``BaselineKind``).
+REFERENCE_POLICIES = tuple(_ctxrace.REFERENCE_POLICIES)
 
 #: A batch policy: (observations (k, beams) float32, contexts (k, 2) float64) -> actions (k, 2).
 Policy = Callable[[np.ndarray, np.ndarray], Any]
