@@ -957,10 +957,11 @@ fn supervise(
     actors: &mut [Supervised],
 ) -> Result<RestartCosts> {
     let mut telemetry = TelemetrySubscriber::new(transport, RunBounds::of(cfg, actors.len()))?;
-    let mut weights = WeightsReceiver::new(transport, cfg.gradient_steps())?;
+    let plan = cfg.plan();
+    let mut weights = WeightsReceiver::new(transport, plan.gradient_steps)?;
     let mut episodes = EpisodeLog::open(dir, "launcher")?;
     let mut meter = RateMeter::default();
-    let bar = progress_bar(cfg.train.env_steps, "env steps");
+    let bar = progress_bar(plan.env_steps, "env steps");
     let start = Instant::now();
     let mut p = Progress {
         actor_versions: vec![0; actors.len()],
@@ -1030,7 +1031,7 @@ fn supervise(
                 p.recent_progress.remove(0);
             }
             episodes.write(&TrainingEpisode {
-                env_steps: p.row_env_steps(cfg.train.env_steps),
+                env_steps: p.row_env_steps(plan.env_steps),
                 grad_steps: p.grad_steps,
                 actor: e.actor_id,
                 episode: e.episode_id,
@@ -1091,7 +1092,7 @@ fn supervise(
         }
         let replay_serves = replay.child.is_some()
             && replay.last_sign.is_some_and(|t| t.elapsed() < silence)
-            && p.replay.inserted >= cfg.train.prefill;
+            && p.replay.inserted >= plan.replay.min_fill as u64;
         let idle = learner.child.is_some() && replay_serves && p.grad_steps == last_grad_steps;
         if let Some(held) = learner.stalled.check(idle, now, stall) {
             learner.kill(&format!(
@@ -1124,7 +1125,7 @@ fn supervise(
         }
         if let Some(status) = learner.reap()? {
             if status.success() {
-                bar.set_position(p.env_steps.min(cfg.train.env_steps));
+                bar.set_position(p.env_steps.min(plan.env_steps));
                 bar.finish_with_message(p.message(start));
                 ctxrace_run::results::write_json(
                     &dir.join(STATUS_FILE),
@@ -1148,7 +1149,7 @@ fn supervise(
             last_status = Instant::now();
         }
         if tick.elapsed() >= Duration::from_millis(250) {
-            bar.set_position(p.env_steps.min(cfg.train.env_steps));
+            bar.set_position(p.env_steps.min(plan.env_steps));
             bar.set_message(p.message(start));
             tick = Instant::now();
             if let Some(rates) = meter.read(p.env_steps, p.grad_steps, (p.fill, p.capacity)) {

@@ -64,15 +64,11 @@ pub fn read_experiment(run_dir: &Path) -> Result<ExperimentConfig> {
     Ok(ExperimentConfig::load(&run_dir.join(CONFIG_FILE)).map_err(ConfigError::new)?)
 }
 
-/// The replay's settings for a run: its sampling ratio and minimum fill follow `[train]`, its
-/// sampler `[agent]`, its snapshot lives in the run directory (`[replay] snapshot_path`, checked
-/// to stay inside it, names it there).
+/// The replay's settings for a run: the run plan's ([`ctxrace_config::RunPlan::replay`]), its
+/// snapshot in the run directory (`[replay] snapshot_path`, checked to stay inside it, names
+/// it there).
 pub fn replay_options(cfg: &ExperimentConfig, run_dir: &Path) -> ctxrace_config::ReplayOptions {
-    let mut o = cfg.replay.clone();
-    o.samples_per_insert = cfg.samples_per_insert();
-    o.min_fill = o.min_fill.max(cfg.train.prefill as usize);
-    o.seed = cfg.train.seed;
-    o.sampler = cfg.agent.sampler;
+    let mut o = cfg.plan().replay;
     let name = o.snapshot_path.take();
     o.snapshot_path = Some(run_dir.join(name.as_deref().unwrap_or(Path::new(REPLAY_SNAPSHOT))));
     o
@@ -91,8 +87,8 @@ fn replay_args(
         obs_dim: cfg.race.lidar.beams,
         act_dim: ACT_DIM,
         options: replay_options(cfg, run_dir),
-        max_policy_version: cfg.gradient_steps(),
-        env_steps: cfg.train.env_steps,
+        max_policy_version: cfg.plan().gradient_steps,
+        env_steps: cfg.plan().env_steps,
         sampled_at_least: ctxrace_learner::process::resume_step(run_dir)
             * cfg.agent.batch_spec().steps() as u64,
         handle_signals: true,

@@ -241,10 +241,11 @@ fn finish(args: &TrainArgs, cfg: &ExperimentConfig, dir: &Path, trained: bool) -
 /// Runs the single-process trainer ([`ctxrace_learner::inline`]) on `env`'s collector and an
 /// in-memory replay buffer with a progress bar, and says what it did.
 fn train_inline(cfg: &ExperimentConfig, dir: &Path, env: RaceEnv) -> Result<()> {
-    let bar = progress_bar(cfg.train.env_steps, "env steps");
+    let plan = cfg.plan();
+    let bar = progress_bar(plan.env_steps, "env steps");
     let frame_dim = env.obs_dim();
     let mut collector = Collector::for_experiment(env, cfg, cfg.train.seed);
-    let mut buffer = ReplayBuffer::new(cfg.replay.capacity, 1, frame_dim, ACT_DIM);
+    let mut buffer = ReplayBuffer::new(plan.replay.capacity, 1, frame_dim, ACT_DIM);
     let run = ctxrace_learner::inline::run_inline(cfg, dir, &mut collector, &mut buffer, |p| {
         bar.set_position(p.decisions);
         if p.decisions.is_multiple_of(50) {

@@ -90,7 +90,7 @@ pub struct InlineRun {
 /// kept in `store` (its stream 0). After the warm-up (`prefill` random steps, or with
 /// `[agent] warmup = "episodes"` `warmup_episodes` episodes of the untrained policy) it keeps
 /// the gradient steps at `train_ratio` per env step (with random steps as many in all as
-/// [`crate::process::target_steps`]), drawing batches with `[agent] sampler`, reloads the
+/// the run plan's [`ctxrace_config::RunPlan::gradient_steps`]), drawing batches with `[agent] sampler`, reloads the
 /// acting policy at the first episode boundary after every `policy_every` gradient steps, logs
 /// and checkpoints. `on_decision` sees the progress after every decision.
 ///
@@ -105,6 +105,7 @@ pub fn run_inline<S: ExperienceSource<Policy = Policy>, B: SampleStore>(
     mut on_decision: impl FnMut(&InlineProgress),
 ) -> Result<InlineRun, InlineError<S::Error>> {
     let t = &cfg.train;
+    let plan = cfg.plan();
     let frame_dim = source.obs_dim();
     if (store.obs_dim(), store.act_dim()) != (frame_dim, ACT_DIM) {
         return Err(InlineError::StoreSizes {
@@ -155,7 +156,7 @@ pub fn run_inline<S: ExperienceSource<Policy = Policy>, B: SampleStore>(
         },
         elapsed: start.elapsed(),
     };
-    while source.decisions() < t.env_steps {
+    while source.decisions() < plan.env_steps {
         payload.clear();
         let by_policy = cfg.acts_by_policy(source.decisions());
         let acting = if by_policy { Some(&mut policy) } else { None };
@@ -190,9 +191,9 @@ pub fn run_inline<S: ExperienceSource<Policy = Policy>, B: SampleStore>(
             trained_after = cfg.warmup_end(source.decisions(), source.episodes());
         }
         if let Some(after) = trained_after {
-            let due = ((source.decisions() - after) as f64 * t.train_ratio).round() as u64;
+            let due = plan.gradient_steps_due(source.decisions(), after);
             while algo.steps() < due {
-                let Some(batch) = store.sample(spec, cfg.agent.sampler, &mut rng) else {
+                let Some(batch) = store.sample(spec, plan.replay.sampler, &mut rng) else {
                     break;
                 };
                 let metrics = algo.train_step(&batch)?;
@@ -277,7 +278,7 @@ mod tests {
         let race = env(&cfg);
         let frame_dim = race.obs_dim();
         let mut collector = Collector::for_experiment(race, &cfg, cfg.train.seed);
-        let mut buffer = ReplayBuffer::new(cfg.replay.capacity, 1, frame_dim, ACT_DIM);
+        let mut buffer = ReplayBuffer::new(cfg.plan().replay.capacity, 1, frame_dim, ACT_DIM);
         let mut seen = 0;
         let run = run_inline(&cfg, dir.path(), &mut collector, &mut buffer, |p| {
             seen += 1;

@@ -92,15 +92,10 @@ pub struct LearnerOptions {
     pub frame_dim: usize,
 }
 
-/// Gradient steps a run takes in all: `train_ratio` per env step after the prefill.
-pub fn target_steps(cfg: &ExperimentConfig) -> u64 {
-    cfg.gradient_steps()
-}
-
 /// Whether the run in `dir` has taken all its gradient steps (its newest checkpoint is the
 /// learner's last).
 pub fn is_trained(dir: &Path, cfg: &ExperimentConfig) -> bool {
-    resume_step(dir) >= target_steps(cfg)
+    resume_step(dir) >= cfg.plan().gradient_steps
 }
 
 /// The gradient step of the newest intact checkpoint of the run in `dir`, where a (re)started
@@ -140,7 +135,7 @@ pub fn run(opts: LearnerOptions) -> Result<u64, ProcessError> {
     let first = algo.steps();
     let mut cadence = Cadence::open(&opts.run_dir, cfg, "learner", tracker)?.with_rate_since(first);
     let spec = cfg.agent.batch_spec();
-    let target = target_steps(cfg);
+    let target = cfg.plan().gradient_steps;
     let stop = termination_flag()?;
     let mut batches = 0u64;
     let mut last_status = Instant::now();

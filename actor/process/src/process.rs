@@ -95,7 +95,7 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport, ActorError> {
         .wrapping_add(opts.incarnation);
     let mut collector = Collector::for_experiment(env, cfg, seed);
     let transport = RunTransport::open(&opts.prefix, opts.actors, &format!("actor-{}", opts.id))?;
-    let mut weights = WeightsReceiver::new(&transport, cfg.gradient_steps())?;
+    let mut weights = WeightsReceiver::new(&transport, cfg.plan().gradient_steps)?;
     let telemetry = MetricsPublisher::new(&transport)?;
     let mut sender = TrajectorySender::new(
         &transport,

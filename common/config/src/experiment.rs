@@ -5,6 +5,7 @@
 use crate::agents::{AgentConfig, AgentConfigError, AlgoKind, Warmup};
 use crate::batch::BatchSpec;
 use crate::config::{RaceConfig, RaceConfigError, ReplayOptions};
+use crate::plan::RunPlan;
 use crate::validate::{finite_floats, in_range, ValueError};
 use serde::{Deserialize, Serialize};
 use std::ops::Bound;
@@ -121,6 +122,19 @@ pub enum ExperimentError {
         heartbeat_timeout_secs: u64,
         /// `[supervisor] stall_timeout_secs`.
         stall_timeout_secs: u64,
+    },
+    /// A `[replay]` key that the run derives from another table ([`RunPlan`]) was set.
+    #[error(
+        "[replay] {key} = {value} is set by the run from {from}; remove it from [replay] (set \
+         {from} instead)"
+    )]
+    ReplayKeyDerived {
+        /// The key.
+        key: &'static str,
+        /// Its value.
+        value: f64,
+        /// Where the run takes it from.
+        from: &'static str,
     },
     /// Each actor's share of the replay holds less than one sampled window.
     #[error(
@@ -368,22 +382,9 @@ impl ExperimentConfig {
         toml::to_string(self).map_err(ExperimentError::Serialise)
     }
 
-    /// Gradient steps per env step as the replay's samples per inserted step: each gradient
-    /// step samples a whole batch (`B·T` steps of a sequence batch, `B` transitions).
-    pub fn samples_per_insert(&self) -> f64 {
-        self.train.train_ratio * self.agent.batch_spec().steps() as f64
-    }
-
-    /// Gradient steps the run takes in all: `train_ratio` per env step after the prefill. With
-    /// `[agent] warmup = "episodes"` the steps before training are not known in advance: then
-    /// the most it can take, `train_ratio` per env step.
-    pub fn gradient_steps(&self) -> u64 {
-        let t = &self.train;
-        let before = match self.agent.warmup {
-            Warmup::RandomSteps => t.prefill,
-            Warmup::Episodes => 0,
-        };
-        (t.env_steps.saturating_sub(before) as f64 * t.train_ratio).round() as u64
+    /// What the run is held to: its budget, gradient-step target and replay ([`RunPlan`]).
+    pub fn plan(&self) -> RunPlan {
+        RunPlan::of(self)
     }
 
     /// Whether the agent's policy chooses the action after `decisions` decisions (not the
@@ -430,7 +431,7 @@ impl ExperimentConfig {
                 prefill: t.prefill,
             });
         }
-        if self.gradient_steps() == 0 {
+        if self.plan().gradient_steps == 0 {
             return Err(ExperimentError::NoGradientStep {
                 train_ratio: t.train_ratio,
                 after_prefill: t.env_steps.saturating_sub(t.prefill),
@@ -600,13 +601,26 @@ impl ExperimentConfig {
     /// window holds one.
     fn validate_replay(&self, actors: usize) -> Result<(), ExperimentError> {
         let r = &self.replay;
+        let defaults = ReplayOptions::default();
+        let derived = [
+            (
+                "samples_per_insert",
+                r.samples_per_insert,
+                defaults.samples_per_insert,
+                "[train] train_ratio",
+            ),
+            ("seed", r.seed as f64, defaults.seed as f64, "[train] seed"),
+        ];
+        if let Some(&(key, value, _, from)) = derived.iter().find(|(_, v, d, _)| v != d) {
+            return Err(ExperimentError::ReplayKeyDerived { key, value, from });
+        }
         let spec = self.agent.batch_spec();
         let window = match spec {
             BatchSpec::Sequence { length, .. } => length,
             BatchSpec::Transition { reward_delay, .. } => 2 + reward_delay,
         };
         let floats = spec.floats(self.race.lidar.beams, 2);
-        let ring = r.capacity / actors.max(1);
+        let ring = self.plan().stream_capacity(actors);
         if ring < window {
             return Err(ExperimentError::ReplayRing {
                 capacity: r.capacity,
@@ -864,7 +878,7 @@ mod tests {
         assert!(!cfg.acts_by_policy(2499) && cfg.acts_by_policy(2500));
         assert_eq!(cfg.warmup_end(2500, 40), None);
         assert_eq!(cfg.warmup_end(2501, 1), Some(2500));
-        assert_eq!(cfg.gradient_steps(), 97_500);
+        assert_eq!(cfg.plan().gradient_steps, 97_500);
         cfg.agent = AgentConfig::paper_code();
         assert!(cfg.acts_by_policy(0));
         // 31 episodes, however many steps: still warming up; the 32nd's first step ends it
@@ -876,7 +890,7 @@ mod tests {
         // the prefill no longer counts: env_steps may be below it
         cfg.train.env_steps = 1000;
         assert!(cfg.validate().is_ok());
-        assert_eq!(cfg.gradient_steps(), 1000);
+        assert_eq!(cfg.plan().gradient_steps, 1000);
     }
 
     #[test]
@@ -1124,9 +1138,19 @@ mod tests {
             1,
             &["train_ratio = 0.0001", "no gradient step"],
         );
+        refused(
+            "[replay]\nseed = 3",
+            1,
+            &["[replay] seed = 3", "remove it", "[train] seed"],
+        );
+        refused(
+            "[replay]\nsamples_per_insert = 16",
+            1,
+            &["samples_per_insert = 16", "[train] train_ratio"],
+        );
         let ok = "[train]\nenv_steps = 3000\nprefill = 2500";
         let cfg = ExperimentConfig::from_toml(ok, "ok.toml").unwrap();
-        assert_eq!(cfg.gradient_steps(), 500);
+        assert_eq!(cfg.plan().gradient_steps, 500);
     }
 
     #[test]

@@ -1,5 +1,5 @@
 //! ctxrace's configuration: the experiment (track, race, agent, training, replay, supervisor),
-//! the race context, presets, the shapes of training batches, and the checks that refuse a bad
+//! what its run is held to (its plan), the race context, presets, the shapes of training batches, and the checks that refuse a bad
 //! value by its key. It knows neither the transport nor the networks: the crates that do read
 //! their sizes and bounds from here.
 
@@ -9,6 +9,7 @@ pub mod config;
 pub mod config_file;
 pub mod context;
 pub mod experiment;
+pub mod plan;
 pub mod preset;
 pub mod resources;
 pub mod validate;
@@ -25,3 +26,4 @@ pub use config::{
 };
 pub use context::{Context, ContextError};
 pub use experiment::{ExperimentConfig, ExperimentError, SupervisorConfig, TrainConfig};
+pub use plan::RunPlan;

@@ -2,7 +2,6 @@
 //! changes any state: what a message claims is taken only if the run could have produced it.
 
 use super::wire::WireError;
-use ctxrace_config::config::stream_capacity;
 use ctxrace_config::ExperimentConfig;
 use std::time::{Duration, Instant};
 
@@ -40,12 +39,12 @@ pub struct RunBounds {
 impl RunBounds {
     /// The bounds of the run of `cfg` with `actors` actors.
     pub fn of(cfg: &ExperimentConfig, actors: usize) -> Self {
-        let stream = stream_capacity(cfg.replay.capacity, actors);
+        let plan = cfg.plan();
         Self {
-            max_policy_version: cfg.gradient_steps(),
-            max_episode_steps: cfg.race.max_decisions() as u64,
+            max_policy_version: plan.gradient_steps,
+            max_episode_steps: plan.max_episode_steps,
             context_range: cfg.train.context_range as f32,
-            replay_capacity: (stream * actors.max(1)) as u64,
+            replay_capacity: plan.replay_capacity(actors),
             rivals: cfg.race.rivals as u32,
         }
     }
