@@ -72,8 +72,6 @@ pub enum TrackCommand {
         /// $XDG_DATA_HOME/ctxrace/tracks, else ~/.local/share/ctxrace/tracks].
         #[arg(long)]
         into: Option<PathBuf>,
-        #[command(flatten)]
-        tracks: TrackArgs,
     },
 }
 
@@ -200,12 +198,9 @@ pub fn run(cmd: TrackCommand) -> Result<()> {
                 report.findings.iter().filter(|f| !f.passed).count()
             );
         }
-        TrackCommand::Download {
-            names,
-            from,
-            into,
-            tracks,
-        } => crate::download::run(&names, from.as_deref(), into.as_deref(), &tracks)?,
+        TrackCommand::Download { names, from, into } => {
+            crate::download::run(&names, from.as_deref(), into.as_deref())?
+        }
         TrackCommand::Raceline { track, out, tracks } => {
             let t = tracks.load(&track, &RaceConfig::default())?;
             // atomically, without following a link at `out`

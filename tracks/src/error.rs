@@ -51,6 +51,22 @@ pub enum TrackError {
         /// Comma-separated names that exist.
         found: String,
     },
+    /// A track name names several tracks in one folder and its subfolders.
+    #[error("track '{name}' is ambiguous: {} each hold one; pass the map yaml's path instead", .candidates.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", "))]
+    AmbiguousTrack {
+        /// The name asked for.
+        name: String,
+        /// The map yamls of that name.
+        candidates: Vec<PathBuf>,
+    },
+    /// A track's file could not be downloaded.
+    #[error("downloading {url}: {message}")]
+    Download {
+        /// The file's address.
+        url: String,
+        /// Why, and what to do.
+        message: String,
+    },
     /// A parameter is outside its valid range.
     #[error("invalid {what}: {message}")]
     Invalid {

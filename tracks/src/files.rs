@@ -63,8 +63,9 @@ impl TrackFiles {
         }
     }
 
-    /// Resolves a track name in `dir` (and its immediate subfolders), then in
-    /// [`user_tracks_dir`], or a path to a map yaml.
+    /// Resolves a track name in `dir` (and its immediate subfolders), else in
+    /// [`user_tracks_dir`], or a path to a map yaml. A name that several tracks of the same
+    /// folder bear is an error listing them.
     pub fn resolve(spec: &str, dir: &Path) -> Result<Self> {
         let as_path = Path::new(spec);
         if as_path
@@ -79,14 +80,24 @@ impl TrackFiles {
                 cause: std::io::Error::new(std::io::ErrorKind::NotFound, "no such map yaml"),
             });
         }
-        let mut found = list_tracks(dir);
-        if let Some(user) = user_tracks_dir().filter(|u| u != dir) {
-            found.extend(list_tracks(&user));
-        }
-        found
+        let found = known_tracks(dir);
+        let named: Vec<&TrackFiles> = found.iter().filter(|t| t.name == spec).collect();
+        // the tracks folder before the per-user one; within one folder a name is unique
+        let first_root = named.first().map(|t| track_root(t, dir));
+        let same_root: Vec<&TrackFiles> = named
             .iter()
-            .find(|t| t.name == spec)
-            .cloned()
+            .copied()
+            .filter(|t| Some(track_root(t, dir)) == first_root)
+            .collect();
+        if same_root.len() > 1 {
+            return Err(TrackError::AmbiguousTrack {
+                name: spec.to_string(),
+                candidates: same_root.iter().map(|t| t.yaml.clone()).collect(),
+            });
+        }
+        same_root
+            .first()
+            .map(|&t| t.clone())
             .ok_or_else(|| TrackError::UnknownTrack {
                 name: spec.to_string(),
                 dir: dir.to_path_buf(),
@@ -101,6 +112,22 @@ impl TrackFiles {
                 },
             })
     }
+}
+
+/// Every track a name may resolve to from the tracks folder `dir`: those of `dir` and its
+/// immediate subfolders, then those of the per-user folder ([`user_tracks_dir`]), each part
+/// sorted by name.
+pub fn known_tracks(dir: &Path) -> Vec<TrackFiles> {
+    let mut found = list_tracks(dir);
+    if let Some(user) = user_tracks_dir().filter(|u| u != dir) {
+        found.extend(list_tracks(&user));
+    }
+    found
+}
+
+/// Whether `track` was found in the tracks folder `dir` (else in the per-user one).
+fn track_root(track: &TrackFiles, dir: &Path) -> bool {
+    track.yaml.starts_with(dir)
 }
 
 /// Every track (map yaml with a centreline beside it) in `dir` and its immediate subfolders,
@@ -330,6 +357,31 @@ mod tests {
         assert!(
             err.contains("unknown track 'b'") && err.contains("tracks found: a"),
             "{err}"
+        );
+    }
+
+    #[test]
+    fn a_name_two_tracks_of_one_folder_bear_is_refused_listing_both() {
+        let dir = tempfile::tempdir().unwrap();
+        let track = |sub: &Path| {
+            std::fs::create_dir_all(sub).unwrap();
+            std::fs::write(sub.join("a.yaml"), "").unwrap();
+            std::fs::write(sub.join("a_centerline.csv"), "").unwrap();
+        };
+        track(dir.path());
+        assert_eq!(
+            TrackFiles::resolve("a", dir.path()).unwrap().yaml,
+            dir.path().join("a.yaml")
+        );
+        track(&dir.path().join("extra"));
+        let err = TrackFiles::resolve("a", dir.path()).unwrap_err();
+        assert!(
+            matches!(&err, TrackError::AmbiguousTrack { candidates, .. } if candidates.len() == 2)
+        );
+        let text = err.to_string();
+        assert!(
+            text.contains("ambiguous") && text.contains("extra/a.yaml"),
+            "{text}"
         );
     }
 }

@@ -1,7 +1,10 @@
 //! Track geometry for ctxrace: the paper's maps and the F1TENTH racetracks dialect, walls from the
 //! map image, the centreline as a closed arc-length curve, the min-curvature raceline with its speed
-//! profile, and a procedural track generator.
+//! profile, a procedural track generator, and (feature `download`) fetching tracks from their
+//! public repositories.
 
+#[cfg(feature = "download")]
+pub mod download;
 pub mod error;
 pub mod files;
 pub mod generate;

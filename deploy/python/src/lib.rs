@@ -7,6 +7,7 @@
 
 mod evaluate;
 mod policy;
+mod tracks;
 mod vector;
 
 use ctxrace_config::config_file::{read_config_table, ConfigFileError};
@@ -206,6 +207,8 @@ fn _ctxrace(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<evaluate::PyEvaluation>()?;
     m.add_class::<policy::PyPolicy>()?;
     m.add_function(wrap_pyfunction!(evaluate::evaluate_reference, m)?)?;
+    m.add_function(wrap_pyfunction!(tracks::list_tracks, m)?)?;
+    m.add_function(wrap_pyfunction!(tracks::download_track, m)?)?;
     m.add("OUTCOME_COLUMNS", vector::OUTCOME_COLUMNS.to_vec())?;
     let references = ctxrace_sim::baseline::BaselineKind::ALL.map(|k| k.name());
     m.add("REFERENCE_POLICIES", references.to_vec())?;

@@ -1,10 +1,12 @@
 """ctxrace from Python: contextual head-to-head F1TENTH races on ctxrace's Rust simulator as
 Gymnasium envs (``gymnasium.make("ctxrace/Race-v0", ...)``, ``gymnasium.make_vec(
 "ctxrace/Race-v0", num_envs=N, ...)`` or `make_vec`), and the paper's
-evaluation protocol for any policy (`evaluate`); trained agents' policies (`load_policy`)."""
+evaluation protocol for any policy (`evaluate`); trained agents' policies (`load_policy`);
+tracks (`ctxrace.tracks.list`, `ctxrace.tracks.download`)."""
 
 import gymnasium
 
+from ctxrace import tracks
 from ctxrace._ctxrace import __version__
 from ctxrace._env import OBS_MODES, RaceEnv, RaceVectorEnv, make_vec
 from ctxrace._evaluate import REFERENCE_POLICIES, Evaluation, evaluate
@@ -21,6 +23,7 @@ __all__ = [
     "REFERENCE_POLICIES",
     "load_policy",
     "TrainedPolicy",
+    "tracks",
 ]
 
 if "ctxrace/Race-v0" not in gymnasium.registry:
