@@ -19,6 +19,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use std::io::{BufReader, BufWriter, Read, Write};
 use std::os::unix::net::{UnixListener, UnixStream};
+use std::path::Path;
 use std::sync::atomic::Ordering;
 use std::sync::{mpsc, Arc, Barrier, Mutex};
 use std::thread;
@@ -186,6 +187,17 @@ fn percentile(mut v: Vec<f64>, q: f64) -> f64 {
 /// Steps the bench's replay buffers hold (the ring wraps past it).
 const BENCH_CAPACITY: usize = 1 << 18;
 
+/// Steps both transports' replay buffers hold: [`BENCH_CAPACITY`], or two batches' worth per
+/// actor if more.
+fn bench_capacity(opts: &IpcBenchOptions) -> usize {
+    BENCH_CAPACITY.max(opts.batch * opts.length * opts.actors * 2)
+}
+
+/// The weights blob both transports broadcast.
+fn weights_blob(bytes: usize) -> Vec<u8> {
+    (0..bytes).map(|i| (i * 31) as u8).collect()
+}
+
 /// The iceoryx2 figures: steps and batches on `prefix`, broadcasts to the subscribers on
 /// `weights_prefix` and to a single one on `one_prefix`.
 fn iceoryx_figures(
@@ -201,7 +213,7 @@ fn iceoryx_figures(
         obs_dim: opts.obs_dim,
         act_dim: 2,
         options: ReplayOptions {
-            capacity: BENCH_CAPACITY.max(opts.batch * opts.length * opts.actors * 2),
+            capacity: bench_capacity(opts),
             min_fill: 0,
             snapshot_every_secs: 0,
             snapshot_path: None,
@@ -355,7 +367,7 @@ fn iceoryx_broadcast(opts: &IpcBenchOptions, prefix: &str) -> Result<(f64, f64, 
         })
         .collect();
     barrier.wait();
-    let weights: Vec<u8> = (0..opts.weights_bytes).map(|i| (i * 31) as u8).collect();
+    let weights = weights_blob(opts.weights_bytes);
     let (mut lat, mut send) = (Vec::new(), Vec::new());
     for version in 1..=opts.broadcasts as u64 {
         let sent = base.elapsed().as_secs_f64() * 1e3;
@@ -413,6 +425,22 @@ struct UdsBatch {
     has_mask: Vec<f32>,
 }
 
+/// A sampled batch's fields, moved into the baseline's frame.
+impl From<SequenceBatch> for UdsBatch {
+    fn from(s: SequenceBatch) -> Self {
+        Self {
+            obs: s.obs,
+            action: s.action,
+            reward: s.reward,
+            is_first: s.is_first,
+            is_terminal: s.is_terminal,
+            context: s.context,
+            mask: s.mask,
+            has_mask: s.has_mask,
+        }
+    }
+}
+
 fn send_frame<W: Write, T: Serialize>(w: &mut W, value: &T) -> Result<()> {
     let bytes = bincode::serialize(value)?;
     w.write_all(&(bytes.len() as u64).to_le_bytes())?;
@@ -432,75 +460,45 @@ fn recv_frame<R: Read, T: for<'de> Deserialize<'de>>(r: &mut R) -> Result<Option
     Ok(Some(bincode::deserialize(&bytes)?))
 }
 
+/// The baseline's figures: the same steps, batches and broadcasts over Unix domain sockets
+/// (in a temporary directory) with bincode.
 fn uds_figures(opts: &IpcBenchOptions) -> Result<TransportFigures> {
     let dir = tempfile::tempdir()?;
-    let (o, a) = (opts.obs_dim, 2);
-    let total = opts.actors * opts.steps_per_actor;
     let buffer = Arc::new(Mutex::new(ReplayBuffer::new(
-        BENCH_CAPACITY.max(opts.batch * opts.length * opts.actors * 2),
+        bench_capacity(opts),
         opts.actors,
-        o,
-        a,
+        opts.obs_dim,
+        2,
     )));
+    let steps_per_sec = uds_steps(opts, &dir.path().join("steps.sock"), &buffer)?;
+    let lat = uds_batches(opts, &dir.path().join("batch.sock"), &buffer)?;
+    let (blat, bsend) = uds_broadcast(opts, &dir.path().join("weights.sock"))?;
+    Ok(TransportFigures {
+        steps_per_sec,
+        batch_ms_p50: percentile(lat.clone(), 0.5),
+        batch_ms_p90: percentile(lat, 0.9),
+        broadcast_ms_p50: percentile(blat.clone(), 0.5),
+        broadcast_ms_p90: percentile(blat, 0.9),
+        broadcast_send_ms_p50: percentile(bsend, 0.5),
+        ..Default::default()
+    })
+}
 
-    // Steps: one connection per actor, one replay thread per connection.
-    let path = dir.path().join("steps.sock");
-    let listener = UnixListener::bind(&path)?;
-    let server = {
-        let (buffer, n) = (buffer.clone(), opts.actors);
-        thread::spawn(move || -> Result<()> {
-            let readers: Vec<_> = (0..n)
-                .map(|_| {
-                    let (stream, _) = listener.accept()?;
-                    let buffer = buffer.clone();
-                    Ok(thread::spawn(move || -> Result<()> {
-                        let mut r = BufReader::with_capacity(1 << 20, stream);
-                        let mut first = true;
-                        while let Some(c) = recv_frame::<_, UdsChunk>(&mut r)? {
-                            let lock = buffer.lock();
-                            let mut b = lock.map_err(|_| anyhow!("poisoned"))?;
-                            b.insert_chunk(c.actor as usize, &c.payload, first);
-                            first = false;
-                        }
-                        Ok(())
-                    }))
-                })
-                .collect::<Result<_>>()?;
-            for r in readers {
-                r.join().map_err(|_| anyhow!("reader panicked"))??;
-            }
-            Ok(())
-        })
-    };
+/// Env steps per second from the actors into `buffer` over the socket at `path`: one
+/// connection per actor, one replay thread per connection.
+fn uds_steps(
+    opts: &IpcBenchOptions,
+    path: &Path,
+    buffer: &Arc<Mutex<ReplayBuffer>>,
+) -> Result<f64> {
+    let total = opts.actors * opts.steps_per_actor;
+    let listener = UnixListener::bind(path)?;
+    let server = uds_step_server(listener, buffer.clone(), opts.actors);
     let barrier = Arc::new(Barrier::new(opts.actors + 1));
     let actors: Vec<_> = (0..opts.actors)
         .map(|id| {
-            let (opts, path, b) = (opts.clone(), path.clone(), barrier.clone());
-            thread::spawn(move || -> Result<()> {
-                let mut w = BufWriter::new(UnixStream::connect(&path)?);
-                let stride = step_stride(opts.obs_dim, 2);
-                let mut obs = vec![0.0; opts.obs_dim];
-                let mut chunk = Vec::with_capacity(MAX_CHUNK * stride);
-                let mut steps = 0u32;
-                b.wait();
-                for k in 0..opts.steps_per_actor {
-                    let (_, first, last) = synthetic(&opts, id, k, &mut obs);
-                    synthetic_step(&obs, first, last).encode(&mut chunk);
-                    steps += 1;
-                    if last || steps as usize == MAX_CHUNK {
-                        let c = UdsChunk {
-                            actor: id as u32,
-                            steps,
-                            payload: std::mem::take(&mut chunk),
-                        };
-                        send_frame(&mut w, &c)?;
-                        chunk.reserve(MAX_CHUNK * stride);
-                        steps = 0;
-                    }
-                }
-                w.flush()?;
-                Ok(())
-            })
+            let (opts, path, b) = (opts.clone(), path.to_path_buf(), barrier.clone());
+            thread::spawn(move || uds_actor(&opts, id, &path, &b))
         })
         .collect();
     barrier.wait();
@@ -514,50 +512,91 @@ fn uds_figures(opts: &IpcBenchOptions) -> Result<TransportFigures> {
     if inserted != total as u64 {
         return Err(anyhow!("socket replay inserted {inserted} of {total}"));
     }
+    Ok(steps_per_sec)
+}
 
-    // Batches: request, sample, serialise, answer.
-    let path = dir.path().join("batch.sock");
-    let listener = UnixListener::bind(&path)?;
-    let (batch, length) = (opts.batch, opts.length);
-    let server = {
-        let buffer = buffer.clone();
-        thread::spawn(move || -> Result<()> {
-            let (stream, _) = listener.accept()?;
-            let mut r = BufReader::new(stream.try_clone()?);
-            let mut w = BufWriter::new(stream);
-            let mut rng = ChaCha8Rng::seed_from_u64(0);
-            while let Some((b, t)) = recv_frame::<_, (u32, u32)>(&mut r)? {
-                let s: SequenceBatch = buffer
-                    .lock()
-                    .map_err(|_| anyhow!("poisoned"))?
-                    .sample_sequences(b as usize, t as usize, &mut rng)
-                    .ok_or_else(|| anyhow!("no sequences"))?;
-                let out = UdsBatch {
-                    obs: s.obs,
-                    action: s.action,
-                    reward: s.reward,
-                    is_first: s.is_first,
-                    is_terminal: s.is_terminal,
-                    context: s.context,
-                    mask: s.mask,
-                    has_mask: s.has_mask,
-                };
-                send_frame(&mut w, &out)?;
-                w.flush()?;
-            }
-            Ok(())
-        })
-    };
-    let stream = UnixStream::connect(&path)?;
+/// The baseline's replay side of the steps: accepts `actors` connections on `listener` and
+/// reads each on a thread of its own until all have closed.
+fn uds_step_server(
+    listener: UnixListener,
+    buffer: Arc<Mutex<ReplayBuffer>>,
+    actors: usize,
+) -> thread::JoinHandle<Result<()>> {
+    thread::spawn(move || -> Result<()> {
+        let readers: Vec<_> = (0..actors)
+            .map(|_| {
+                let (stream, _) = listener.accept()?;
+                let buffer = buffer.clone();
+                Ok(thread::spawn(move || uds_insert_chunks(stream, &buffer)))
+            })
+            .collect::<Result<_>>()?;
+        for r in readers {
+            r.join().map_err(|_| anyhow!("reader panicked"))??;
+        }
+        Ok(())
+    })
+}
+
+/// Inserts the chunks an actor sends on `stream` into `buffer` until it closes the stream.
+fn uds_insert_chunks(stream: UnixStream, buffer: &Mutex<ReplayBuffer>) -> Result<()> {
+    let mut r = BufReader::with_capacity(1 << 20, stream);
+    let mut first = true;
+    while let Some(c) = recv_frame::<_, UdsChunk>(&mut r)? {
+        let lock = buffer.lock();
+        let mut b = lock.map_err(|_| anyhow!("poisoned"))?;
+        b.insert_chunk(c.actor as usize, &c.payload, first);
+        first = false;
+    }
+    Ok(())
+}
+
+/// Actor `id` of the baseline: once `barrier` opens, sends its synthetic steps to the socket at
+/// `path` in chunks as the transport's, one bincode frame each.
+fn uds_actor(opts: &IpcBenchOptions, id: usize, path: &Path, barrier: &Barrier) -> Result<()> {
+    let mut w = BufWriter::new(UnixStream::connect(path)?);
+    let stride = step_stride(opts.obs_dim, 2);
+    let mut obs = vec![0.0; opts.obs_dim];
+    let mut chunk = Vec::with_capacity(MAX_CHUNK * stride);
+    let mut steps = 0u32;
+    barrier.wait();
+    for k in 0..opts.steps_per_actor {
+        let (_, first, last) = synthetic(opts, id, k, &mut obs);
+        synthetic_step(&obs, first, last).encode(&mut chunk);
+        steps += 1;
+        if last || steps as usize == MAX_CHUNK {
+            let c = UdsChunk {
+                actor: id as u32,
+                steps,
+                payload: std::mem::take(&mut chunk),
+            };
+            send_frame(&mut w, &c)?;
+            chunk.reserve(MAX_CHUNK * stride);
+            steps = 0;
+        }
+    }
+    w.flush()?;
+    Ok(())
+}
+
+/// Request-to-batch latencies (ms) of the baseline's sequence batches from `buffer`, over the
+/// socket at `path`: request, sample, serialise, answer.
+fn uds_batches(
+    opts: &IpcBenchOptions,
+    path: &Path,
+    buffer: &Arc<Mutex<ReplayBuffer>>,
+) -> Result<Vec<f64>> {
+    let listener = UnixListener::bind(path)?;
+    let server = uds_batch_server(listener, buffer.clone());
+    let stream = UnixStream::connect(path)?;
     let mut r = BufReader::new(stream.try_clone()?);
     let mut w = BufWriter::new(stream);
     let mut lat = Vec::new();
     for _ in 0..opts.batches {
         let start = Instant::now();
-        send_frame(&mut w, &(batch as u32, length as u32))?;
+        send_frame(&mut w, &(opts.batch as u32, opts.length as u32))?;
         w.flush()?;
         let b: UdsBatch = recv_frame(&mut r)?.ok_or_else(|| anyhow!("batch server closed"))?;
-        if b.obs.len() != batch * length * o {
+        if b.obs.len() != opts.batch * opts.length * opts.obs_dim {
             return Err(anyhow!("bad batch"));
         }
         lat.push(start.elapsed().as_secs_f64() * 1e3);
@@ -565,27 +604,44 @@ fn uds_figures(opts: &IpcBenchOptions) -> Result<TransportFigures> {
     drop(w);
     drop(r);
     server.join().map_err(|_| anyhow!("server panicked"))??;
+    Ok(lat)
+}
 
-    // Broadcast: the learner writes to each subscriber's socket in turn.
-    let path = dir.path().join("weights.sock");
-    let listener = UnixListener::bind(&path)?;
+/// The baseline's batch server: answers each `(B, T)` request of the one connection on
+/// `listener` with sequences sampled from `buffer`, until the learner closes it.
+fn uds_batch_server(
+    listener: UnixListener,
+    buffer: Arc<Mutex<ReplayBuffer>>,
+) -> thread::JoinHandle<Result<()>> {
+    thread::spawn(move || -> Result<()> {
+        let (stream, _) = listener.accept()?;
+        let mut r = BufReader::new(stream.try_clone()?);
+        let mut w = BufWriter::new(stream);
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        while let Some((b, t)) = recv_frame::<_, (u32, u32)>(&mut r)? {
+            let s: SequenceBatch = buffer
+                .lock()
+                .map_err(|_| anyhow!("poisoned"))?
+                .sample_sequences(b as usize, t as usize, &mut rng)
+                .ok_or_else(|| anyhow!("no sequences"))?;
+            send_frame(&mut w, &UdsBatch::from(s))?;
+            w.flush()?;
+        }
+        Ok(())
+    })
+}
+
+/// Broadcast latencies to the last subscriber and send times (ms) of the baseline, over the
+/// socket at `path`: the learner writes to each subscriber's connection in turn.
+fn uds_broadcast(opts: &IpcBenchOptions, path: &Path) -> Result<(Vec<f64>, Vec<f64>)> {
+    let listener = UnixListener::bind(path)?;
     let base = Instant::now();
     let (done_tx, done_rx) = mpsc::channel::<Result<(u64, f64)>>();
     let subs: Vec<_> = (0..opts.subscribers)
         .map(|_| {
-            let (path, done) = (path.clone(), done_tx.clone());
+            let (path, done) = (path.to_path_buf(), done_tx.clone());
             thread::spawn(move || {
-                let run = || -> Result<()> {
-                    let mut r = BufReader::with_capacity(1 << 20, UnixStream::connect(&path)?);
-                    while let Some(wts) = recv_frame::<_, UdsWeights>(&mut r)? {
-                        if crc32fast::hash(&wts.bytes) != wts.checksum {
-                            return Err(anyhow!("checksum mismatch"));
-                        }
-                        let _ = done.send(Ok((wts.version, base.elapsed().as_secs_f64() * 1e3)));
-                    }
-                    Ok(())
-                };
-                if let Err(e) = run() {
+                if let Err(e) = uds_subscriber(&path, base, &done) {
                     let _ = done.send(Err(e));
                 }
             })
@@ -594,7 +650,7 @@ fn uds_figures(opts: &IpcBenchOptions) -> Result<TransportFigures> {
     let mut conns: Vec<_> = (0..opts.subscribers)
         .map(|_| Ok(BufWriter::with_capacity(1 << 20, listener.accept()?.0)))
         .collect::<Result<_>>()?;
-    let bytes: Vec<u8> = (0..opts.weights_bytes).map(|i| (i * 31) as u8).collect();
+    let bytes = weights_blob(opts.weights_bytes);
     let (mut blat, mut bsend) = (Vec::new(), Vec::new());
     for version in 1..=opts.broadcasts as u64 {
         let sent = base.elapsed().as_secs_f64() * 1e3;
@@ -624,15 +680,24 @@ fn uds_figures(opts: &IpcBenchOptions) -> Result<TransportFigures> {
     for s in subs {
         s.join().map_err(|_| anyhow!("subscriber panicked"))?;
     }
-    Ok(TransportFigures {
-        steps_per_sec,
-        batch_ms_p50: percentile(lat.clone(), 0.5),
-        batch_ms_p90: percentile(lat, 0.9),
-        broadcast_ms_p50: percentile(blat.clone(), 0.5),
-        broadcast_ms_p90: percentile(blat, 0.9),
-        broadcast_send_ms_p50: percentile(bsend, 0.5),
-        ..Default::default()
-    })
+    Ok((blat, bsend))
+}
+
+/// A subscriber of the baseline: checks each weights blob that arrives on the socket at `path`
+/// and reports its version and arrival (ms after `base`) on `done`, until the learner closes.
+fn uds_subscriber(
+    path: &Path,
+    base: Instant,
+    done: &mpsc::Sender<Result<(u64, f64)>>,
+) -> Result<()> {
+    let mut r = BufReader::with_capacity(1 << 20, UnixStream::connect(path)?);
+    while let Some(wts) = recv_frame::<_, UdsWeights>(&mut r)? {
+        if crc32fast::hash(&wts.bytes) != wts.checksum {
+            return Err(anyhow!("checksum mismatch"));
+        }
+        let _ = done.send(Ok((wts.version, base.elapsed().as_secs_f64() * 1e3)));
+    }
+    Ok(())
 }
 
 #[cfg(test)]

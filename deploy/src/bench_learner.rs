@@ -353,55 +353,17 @@ pub fn run(args: LearnerArgs) -> Result<()> {
     // the diagnostics on the steps a run logs, as in a run
     algo.set_diagnostics_every(experiment.train.log_every);
     algo.train_step(&batch)?;
-    let flops_before = ctxrace_nn::kernels::matmul_flops();
-    let mut metrics = Default::default();
-    let mut step_times = Vec::with_capacity(args.steps.max(1));
-    let mut phase_times: BTreeMap<String, Vec<f64>> = BTreeMap::new();
-    for _ in 0..args.steps.max(1) {
-        let t = Instant::now();
-        metrics = algo.train_step(&batch)?;
-        step_times.push(t.elapsed().as_secs_f64());
-        for (k, v) in &metrics {
-            if let Some(phase) = k.strip_prefix("seconds/") {
-                phase_times.entry(phase.to_string()).or_default().push(*v);
-            }
-        }
-    }
-    let per_step = step_times.iter().sum::<f64>() / step_times.len() as f64;
-    step_times.sort_by(f64::total_cmp);
-    let by_phase = |prefix: &str, scale: f64| -> Vec<(String, f64)> {
-        metrics
-            .iter()
-            .filter_map(|(k, v)| Some((k.strip_prefix(prefix)?.to_string(), v * scale)))
-            .collect()
-    };
-    let flops = ctxrace_nn::kernels::matmul_flops() - flops_before;
-    let gflop_per_step = flops as f64 / args.steps.max(1) as f64 / 1e9;
-    let gflop_by_phase = by_phase("flops/", 1e-9);
-    let seconds_by_phase = phase_times
-        .into_iter()
-        .map(|(phase, mut times)| {
-            times.sort_by(f64::total_cmp);
-            (phase, times[times.len() / 2])
-        })
-        .collect();
+    let steps = timed_steps(algo.as_mut(), &batch, args.steps)?;
     let (peak, peak_from) = peak_gflops(threads);
-    let gflops = gflop_per_step / per_step;
+    let gflops = steps.gflop_per_step / steps.per_step;
     let alone = products_alone(
         algo.as_mut(),
         &batch,
-        (threads, peak / threads as f64, per_step),
+        (threads, peak / threads as f64, steps.per_step),
     )?;
 
     let mut policy = Policy::new(&agent, beams, &algo.policy_weights()?, 0)?;
-    let obs: Vec<f32> = (0..beams).map(|_| rng.random_range(0.0..1.0)).collect();
-    let mut times = Vec::with_capacity(args.act_steps);
-    for _ in 0..args.act_steps.max(1) {
-        let t = Instant::now();
-        policy.act(&obs, [0.1, -0.1], false)?;
-        times.push(t.elapsed().as_secs_f64() * 1e3);
-    }
-    times.sort_by(f64::total_cmp);
+    let times = act_ms(&mut policy, beams, &mut rng, args.act_steps)?;
     let pct = |q: f64| times[((times.len() - 1) as f64 * q).round() as usize];
     let report = LearnerReport {
         algo: agent.algo.to_string(),
@@ -412,16 +374,16 @@ pub fn run(args: LearnerArgs) -> Result<()> {
             }
         },
         threads,
-        seconds_per_step: per_step,
-        seconds_min: step_times[0],
-        seconds_median: step_times[step_times.len() / 2],
-        steps_per_second: 1.0 / per_step,
+        seconds_per_step: steps.per_step,
+        seconds_min: steps.seconds[0],
+        seconds_median: steps.seconds[steps.seconds.len() / 2],
+        steps_per_second: 1.0 / steps.per_step,
         act_ms_mean: times.iter().sum::<f64>() / times.len() as f64,
         act_ms_p50: pct(0.5),
         act_ms_p90: pct(0.9),
-        gflop_per_step,
-        gflop_by_phase,
-        seconds_by_phase,
+        gflop_per_step: steps.gflop_per_step,
+        gflop_by_phase: steps.gflop_by_phase,
+        seconds_by_phase: steps.seconds_by_phase,
         gflops,
         peak_gflops: peak,
         peak_from,
@@ -431,63 +393,150 @@ pub fn run(args: LearnerArgs) -> Result<()> {
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
-        println!(
-            "{} ({}, {} threads): {:.2} ms per gradient step ({:.2} steps/s; fastest {:.2} ms, \
-             median {:.2} ms); acting at batch 1: mean {:.3} ms, p50 {:.3} ms, p90 {:.3} ms",
-            report.algo,
-            report.batch,
-            report.threads,
-            report.seconds_per_step * 1e3,
-            report.steps_per_second,
-            report.seconds_min * 1e3,
-            report.seconds_median * 1e3,
-            report.act_ms_mean,
-            report.act_ms_p50,
-            report.act_ms_p90
-        );
-        let phases: Vec<String> = report
-            .gflop_by_phase
-            .iter()
-            .map(|(phase, g)| format!("{phase} {g:.2}"))
-            .collect();
-        println!(
-            "  matrix products: {:.2} GFLOP per step ({}), {:.1} GFLOP/s = {:.1}% of the peak \
-             {:.1} GFLOP/s ({})",
-            report.gflop_per_step,
-            phases.join(", "),
-            report.gflops,
-            100.0 * report.fraction_of_peak,
-            report.peak_gflops,
-            report.peak_from
-        );
-        let alone = &report.products_alone;
-        println!(
-            "  the same products alone ({} gemm calls, {:.2} GFLOP, replayed on one core): \
-             {:.1} ms, {:.1} GFLOP/s = {:.1}% of a core's peak; over {} threads they would take \
-             {:.1}% of the step",
-            alone.calls,
-            alone.gflop,
-            alone.seconds * 1e3,
-            alone.gflops,
-            100.0 * alone.fraction_of_core_peak,
-            report.threads,
-            100.0 * alone.share_of_step
-        );
-        let gflop_of = |phase: &str| {
-            let found = report.gflop_by_phase.iter().find(|(p, _)| p == phase);
-            found.map_or(0.0, |(_, g)| *g)
-        };
-        let phases: Vec<String> = report
-            .seconds_by_phase
-            .iter()
-            .map(|(phase, s)| {
-                let rate = gflop_of(phase) / s.max(1e-12);
-                format!("{phase} {:.1} ms ({rate:.1} GFLOP/s)", s * 1e3)
-            })
-            .collect();
-        if !phases.is_empty() {
-            println!("  median by phase: {}", phases.join(", "));
-        }
+        print_report(&report);
     }
     Ok(())
+}
+
+/// The figures of the timed gradient steps.
+struct TimedSteps {
+    /// Seconds of each step, fastest first.
+    seconds: Vec<f64>,
+    /// Their mean.
+    per_step: f64,
+    /// Matrix-product GFLOP of a step: their mean in all, the last step's by phase.
+    gflop_per_step: f64,
+    gflop_by_phase: Vec<(String, f64)>,
+    /// Median seconds of each phase.
+    seconds_by_phase: Vec<(String, f64)>,
+}
+
+/// Times `steps` gradient steps (at least one) of `algo` on `batch`, counting their matrix
+/// products' flops and, from their metrics, each phase's seconds.
+fn timed_steps(
+    algo: &mut dyn ctxrace_learner::Algorithm,
+    batch: &Batch,
+    steps: usize,
+) -> Result<TimedSteps> {
+    let flops_before = ctxrace_nn::kernels::matmul_flops();
+    let mut metrics = ctxrace_learner::Metrics::default();
+    let mut seconds = Vec::with_capacity(steps.max(1));
+    let mut phase_times: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+    for _ in 0..steps.max(1) {
+        let t = Instant::now();
+        metrics = algo.train_step(batch)?;
+        seconds.push(t.elapsed().as_secs_f64());
+        for (k, v) in &metrics {
+            if let Some(phase) = k.strip_prefix("seconds/") {
+                phase_times.entry(phase.to_string()).or_default().push(*v);
+            }
+        }
+    }
+    let per_step = seconds.iter().sum::<f64>() / seconds.len() as f64;
+    seconds.sort_by(f64::total_cmp);
+    let flops = ctxrace_nn::kernels::matmul_flops() - flops_before;
+    let gflop_by_phase = metrics
+        .iter()
+        .filter_map(|(k, v)| Some((k.strip_prefix("flops/")?.to_string(), v * 1e-9)))
+        .collect();
+    let seconds_by_phase = phase_times
+        .into_iter()
+        .map(|(phase, mut times)| {
+            times.sort_by(f64::total_cmp);
+            (phase, times[times.len() / 2])
+        })
+        .collect();
+    Ok(TimedSteps {
+        seconds,
+        per_step,
+        gflop_per_step: flops as f64 / steps.max(1) as f64 / 1e9,
+        gflop_by_phase,
+        seconds_by_phase,
+    })
+}
+
+/// Milliseconds of `steps` acts (at least one) of `policy` at batch 1 on one random
+/// observation of `beams` beams, fastest first.
+fn act_ms(
+    policy: &mut Policy,
+    beams: usize,
+    rng: &mut ChaCha8Rng,
+    steps: usize,
+) -> Result<Vec<f64>> {
+    let obs: Vec<f32> = (0..beams).map(|_| rng.random_range(0.0..1.0)).collect();
+    let mut times = Vec::with_capacity(steps);
+    for _ in 0..steps.max(1) {
+        let t = Instant::now();
+        policy.act(&obs, [0.1, -0.1], false)?;
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    times.sort_by(f64::total_cmp);
+    Ok(times)
+}
+
+/// Prints `report` as text: the step and acting times, the matrix products' rate against the
+/// peak and alone, and each phase's median.
+fn print_report(report: &LearnerReport) {
+    println!(
+        "{} ({}, {} threads): {:.2} ms per gradient step ({:.2} steps/s; fastest {:.2} ms, \
+         median {:.2} ms); acting at batch 1: mean {:.3} ms, p50 {:.3} ms, p90 {:.3} ms",
+        report.algo,
+        report.batch,
+        report.threads,
+        report.seconds_per_step * 1e3,
+        report.steps_per_second,
+        report.seconds_min * 1e3,
+        report.seconds_median * 1e3,
+        report.act_ms_mean,
+        report.act_ms_p50,
+        report.act_ms_p90
+    );
+    let phases: Vec<String> = report
+        .gflop_by_phase
+        .iter()
+        .map(|(phase, g)| format!("{phase} {g:.2}"))
+        .collect();
+    println!(
+        "  matrix products: {:.2} GFLOP per step ({}), {:.1} GFLOP/s = {:.1}% of the peak \
+         {:.1} GFLOP/s ({})",
+        report.gflop_per_step,
+        phases.join(", "),
+        report.gflops,
+        100.0 * report.fraction_of_peak,
+        report.peak_gflops,
+        report.peak_from
+    );
+    let alone = &report.products_alone;
+    println!(
+        "  the same products alone ({} gemm calls, {:.2} GFLOP, replayed on one core): \
+         {:.1} ms, {:.1} GFLOP/s = {:.1}% of a core's peak; over {} threads they would take \
+         {:.1}% of the step",
+        alone.calls,
+        alone.gflop,
+        alone.seconds * 1e3,
+        alone.gflops,
+        100.0 * alone.fraction_of_core_peak,
+        report.threads,
+        100.0 * alone.share_of_step
+    );
+    let phases = phase_medians(report);
+    if !phases.is_empty() {
+        println!("  median by phase: {}", phases.join(", "));
+    }
+}
+
+/// Each phase's median time with its matrix products' rate, as `print_report` words them.
+fn phase_medians(report: &LearnerReport) -> Vec<String> {
+    let gflop_of = |phase: &str| {
+        let found = report.gflop_by_phase.iter().find(|(p, _)| p == phase);
+        found.map_or(0.0, |(_, g)| *g)
+    };
+    report
+        .seconds_by_phase
+        .iter()
+        .map(|(phase, s)| {
+            let rate = gflop_of(phase) / s.max(1e-12);
+            format!("{phase} {:.1} ms ({rate:.1} GFLOP/s)", s * 1e3)
+        })
+        .collect()
 }

@@ -194,87 +194,17 @@ fn check_ablation(spec: &EgoSpec, told: ToldContext, mask: Option<Mask>) -> Resu
 
 /// Runs the protocol.
 pub fn run(args: EvalArgs) -> Result<()> {
-    if args.grid == 0 || args.laps == 0 {
-        bail!("--grid and --laps must be positive");
-    }
-    if !(args.range.is_finite() && (0.0..=0.9).contains(&args.range)) {
-        bail!(
-            "--range {} must lie in [0, 0.9] (contexts are limited to ±0.9)",
-            args.range
-        );
-    }
+    check_grid(&args)?;
     let spec = ego_spec(&args.source, args.checkpoint)?;
     check_ablation(&spec, args.told_context, args.mask)?;
-    let (experiment, train_seed) = match &spec {
-        EgoSpec::Trained(t) => (t.experiment.clone(), t.agent.seed()),
-        EgoSpec::Baseline(_) => (None, 0),
-    };
-    let mut race_keys = toml::Table::new();
-    if args.tracks.raceline_file {
-        race_keys.insert("shipped_raceline".into(), true.into());
-    }
-    let choice = ScenarioChoice {
-        track: args.track.clone(),
-        rivals: args.rivals,
-        train_range: args.train_range,
-        race: args.config.as_deref().map(read_config_table).transpose()?,
-        race_keys,
-    };
     let EvalScenario {
         track,
         race,
         train_range,
-    } = EvalScenario::resolve(experiment.as_ref(), choice).with_context(|| match &args.config {
-        Some(path) => format!("the race of --config {}", path.display()),
-        None => "the run's race".into(),
-    })?;
-    // the protocol's rows mean little where the rivals or the reference ego crash on their own
-    let check = CheckPlan {
-        grid: args.grid,
-        range: args.range,
-        places: race.rivals,
-    };
-    let report = check_track(Arc::new(args.tracks.load(&track, &race)?), &race, check)?;
-    for f in report.failures() {
-        eprintln!("warning: {track}: {}: {}", f.check, f.detail);
-    }
-    let out = match (&args.out, &spec) {
-        (Some(o), _) => o.clone(),
-        (None, EgoSpec::Trained(t)) => match t.checkpoint.parent().and_then(Path::parent) {
-            Some(run) if t.experiment.is_some() => run.join(EVAL_DIR),
-            _ => t.checkpoint.join(EVAL_DIR),
-        },
-        (None, EgoSpec::Baseline(_)) => eval_dir::reference_dir(&spec.name(), &track, race.rivals),
-    };
-    let meta = EvalMeta {
-        algo: spec.name(),
-        track,
-        rivals: race.rivals,
-        train_seed,
-        train_range,
-        grid: args.grid,
-        range: args.range,
-        laps: args.laps,
-        seed: args.seed,
-        source: match &spec {
-            EgoSpec::Trained(t) => portable_source(&t.checkpoint, t.experiment.is_some()),
-            EgoSpec::Baseline(_) => spec.name(),
-        },
-        checkpoint: match &spec {
-            EgoSpec::Trained(t) if t.experiment.is_some() => args.checkpoint.to_string(),
-            EgoSpec::Trained(_) => "given".into(),
-            EgoSpec::Baseline(_) => "-".into(),
-        },
-        act: args.act,
-        preset: race.preset,
-        contexts: args
-            .contexts
-            .as_deref()
-            .map(|spec| eval_dir::parse_contexts(spec, args.grid * args.grid))
-            .transpose()?,
-        told: args.told_context,
-        mask: args.mask.map(|m| m.0),
-    };
+    } = scenario(&args, &spec)?;
+    warn_of_track(&args, &track, &race)?;
+    let out = out_dir(&args, &spec, &track, &race);
+    let meta = eval_meta(&args, &spec, track, &race, train_range)?;
     let lock = DirLock::acquire(&out)?;
     eval_dir::prepare(&out, &meta, args.fresh)?;
 
@@ -302,6 +232,114 @@ pub fn run(args: EvalArgs) -> Result<()> {
         run_workers(&out, &meta, &job_path, workers, progress, &lock)?;
     }
     finish(&out, &meta, &race, &args.tracks, &spec)
+}
+
+/// Refuses an empty grid or lap count and a grid range beyond the contexts' ±0.9.
+fn check_grid(args: &EvalArgs) -> Result<()> {
+    if args.grid == 0 || args.laps == 0 {
+        bail!("--grid and --laps must be positive");
+    }
+    if !(args.range.is_finite() && (0.0..=0.9).contains(&args.range)) {
+        bail!(
+            "--range {} must lie in [0, 0.9] (contexts are limited to ±0.9)",
+            args.range
+        );
+    }
+    Ok(())
+}
+
+/// The track, race and training range the evaluation races: the trained agent's run's, or
+/// the default scenario's, as `--config`, `--track`, `--rivals` and `--train-range` change them.
+fn scenario(args: &EvalArgs, spec: &EgoSpec) -> Result<EvalScenario> {
+    let experiment = match spec {
+        EgoSpec::Trained(t) => t.experiment.as_ref(),
+        EgoSpec::Baseline(_) => None,
+    };
+    let mut race_keys = toml::Table::new();
+    if args.tracks.raceline_file {
+        race_keys.insert("shipped_raceline".into(), true.into());
+    }
+    let choice = ScenarioChoice {
+        track: args.track.clone(),
+        rivals: args.rivals,
+        train_range: args.train_range,
+        race: args.config.as_deref().map(read_config_table).transpose()?,
+        race_keys,
+    };
+    EvalScenario::resolve(experiment, choice).with_context(|| match &args.config {
+        Some(path) => format!("the race of --config {}", path.display()),
+        None => "the run's race".into(),
+    })
+}
+
+/// Checks the track over the grid and warns of each failure: the protocol's rows mean little
+/// where the rivals or the reference ego crash on their own.
+fn warn_of_track(args: &EvalArgs, track: &str, race: &RaceConfig) -> Result<()> {
+    let check = CheckPlan {
+        grid: args.grid,
+        range: args.range,
+        places: race.rivals,
+    };
+    let report = check_track(Arc::new(args.tracks.load(track, race)?), race, check)?;
+    for f in report.failures() {
+        eprintln!("warning: {track}: {}: {}", f.check, f.detail);
+    }
+    Ok(())
+}
+
+/// The output directory: `--out`, else the run's `eval` (a checkpoint given alone: its own),
+/// else a reference policy's folder named by its policy, track and rivals.
+fn out_dir(args: &EvalArgs, spec: &EgoSpec, track: &str, race: &RaceConfig) -> PathBuf {
+    match (&args.out, spec) {
+        (Some(o), _) => o.clone(),
+        (None, EgoSpec::Trained(t)) => match t.checkpoint.parent().and_then(Path::parent) {
+            Some(run) if t.experiment.is_some() => run.join(EVAL_DIR),
+            _ => t.checkpoint.join(EVAL_DIR),
+        },
+        (None, EgoSpec::Baseline(_)) => eval_dir::reference_dir(&spec.name(), track, race.rivals),
+    }
+}
+
+/// The evaluation's `meta.json`: what is raced, by which ego and how.
+fn eval_meta(
+    args: &EvalArgs,
+    spec: &EgoSpec,
+    track: String,
+    race: &RaceConfig,
+    train_range: f64,
+) -> Result<EvalMeta> {
+    Ok(EvalMeta {
+        algo: spec.name(),
+        track,
+        rivals: race.rivals,
+        train_seed: match spec {
+            EgoSpec::Trained(t) => t.agent.seed(),
+            EgoSpec::Baseline(_) => 0,
+        },
+        train_range,
+        grid: args.grid,
+        range: args.range,
+        laps: args.laps,
+        seed: args.seed,
+        source: match spec {
+            EgoSpec::Trained(t) => portable_source(&t.checkpoint, t.experiment.is_some()),
+            EgoSpec::Baseline(_) => spec.name(),
+        },
+        checkpoint: match spec {
+            EgoSpec::Trained(t) if t.experiment.is_some() => args.checkpoint.to_string(),
+            EgoSpec::Trained(_) => "given".into(),
+            EgoSpec::Baseline(_) => "-".into(),
+        },
+        act: args.act,
+        preset: race.preset,
+        contexts: args
+            .contexts
+            .as_deref()
+            .map(|spec| eval_dir::parse_contexts(spec, args.grid * args.grid))
+            .transpose()?,
+        told: args.told_context,
+        mask: args.mask.map(|m| m.0),
+    })
 }
 
 /// Starts the workers and waits for them, showing progress (episodes `(done, total)`) from
