@@ -398,10 +398,10 @@ impl AgentConfig {
                  code: 32)"
             );
         }
-        match self.algo {
-            AlgoKind::Sac => self.sac.validate(),
-            AlgoKind::Dreamerv3 | AlgoKind::Crssm | AlgoKind::Cmask => self.dreamer().validate(),
-        }
+        // both families' keys, whichever algorithm runs: a key is bounded whether or not
+        // this run reads it
+        self.sac.validate()?;
+        self.dreamer().validate()
     }
 }
 

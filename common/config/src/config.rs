@@ -42,9 +42,10 @@
 //! the comparison with the paper's simulator found).
 
 use crate::preset::PresetError;
-use crate::validate::{finite_floats, in_range, ValueError};
+use crate::validate::{bounded_floats, finite_floats, in_range, ValueError};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
+use std::ops::Bound;
 
 /// Largest observation (one LiDAR frame, in beams) a run may have: the frame the transport's
 /// trajectory chunks are sized for.
@@ -57,6 +58,9 @@ pub const DEFAULT_MAX_BATCH_FLOATS: usize = 16 << 20;
 pub fn stream_capacity(capacity: usize, actors: usize) -> usize {
     (capacity / actors.max(1)).max(1)
 }
+
+/// The longest episode (`[race] max_time`, s; the paper's: 240).
+pub const MAX_EPISODE_SECS: f64 = 3600.0;
 
 /// The simulator's physics time step in seconds.
 pub const PHYSICS_DT: f64 = 0.01;
@@ -476,7 +480,8 @@ impl RaceConfig {
         Ok(())
     }
 
-    /// Checks ranges; the message names the key and its valid range.
+    /// Checks ranges, every float finite and within ±[`crate::validate::MAX_FLOAT`]; the
+    /// message names the key and its valid range.
     pub fn validate(&self) -> Result<(), RaceConfigError> {
         finite_floats(self, &self.preset.config())?;
         let gap = &self.rival.follow_the_gap;
@@ -719,7 +724,14 @@ impl RaceConfig {
             0.0..=1.0,
             "it is in metres (the paper: 0.01)",
         )?;
-        Ok(())
+        in_range(
+            "max_time",
+            self.max_time,
+            (Bound::Excluded(0.0), Bound::Included(MAX_EPISODE_SECS)),
+            "the seconds an episode lasts at most (the paper: 240)",
+        )?;
+        // last: the keys' own checks above say more about a value they bound
+        Ok(bounded_floats(self, &self.preset.config())?)
     }
 }
 

@@ -6,15 +6,13 @@ use crate::agents::{AgentConfig, AgentConfigError, AlgoKind, Warmup};
 use crate::batch::BatchSpec;
 use crate::config::{RaceConfig, RaceConfigError, ReplayOptions};
 use crate::plan::RunPlan;
-use crate::validate::{finite_floats, in_range, ValueError};
+use crate::validate::{bounded_floats, finite_floats, in_range, ValueError};
 use serde::{Deserialize, Serialize};
 use std::ops::Bound;
 use std::path::{Component, Path};
 
 /// The most gradient steps per env step (`[train] train_ratio`; the paper's: 1, its SAC: 2).
 pub const MAX_TRAIN_RATIO: f64 = 1000.0;
-/// The longest episode (`[race] max_time`, s; the paper's: 240).
-pub const MAX_EPISODE_SECS: f64 = 3600.0;
 /// The widest layer of any network (units, hidden sizes; the paper's widest: 512).
 pub const MAX_WIDTH: usize = 16384;
 /// The deepest MLP (layers).
@@ -416,8 +414,8 @@ impl ExperimentConfig {
     }
 
     /// Checks every table for a run of `actors` actors (each fills its own share of the
-    /// replay): every float finite, ranges where they matter; the message names the key, its
-    /// value and the fix.
+    /// replay): every float finite and within ±[`crate::validate::MAX_FLOAT`], ranges where
+    /// they matter; the message names the key, its value and the fix.
     pub fn validate_run(&self, actors: usize) -> Result<(), ExperimentError> {
         finite_floats(self, &Self::default()).map_err(ExperimentError::Value)?;
         self.race.validate().map_err(ExperimentError::Race)?;
@@ -458,7 +456,9 @@ impl ExperimentConfig {
             });
         }
         self.validate_gains()?;
-        self.validate_replay(actors)
+        self.validate_replay(actors)?;
+        // last: the keys' own checks above say more about a value they bound
+        bounded_floats(self, &Self::default()).map_err(ExperimentError::Value)
     }
 
     /// Checks the chosen algorithm's batch sizes and learning rates (a zero rate trains
@@ -673,12 +673,6 @@ impl ExperimentConfig {
             t.env_steps,
             ..=MAX_ENV_STEPS,
             "the paper trains 100000",
-        )?;
-        in_range(
-            "[race] max_time",
-            self.race.max_time,
-            (Bound::Excluded(0.0), Bound::Included(MAX_EPISODE_SECS)),
-            "the seconds an episode lasts at most (the paper: 240)",
         )?;
         let (s, d) = (&self.agent.sac, &self.agent.dreamer);
         let widths = [

@@ -1,6 +1,7 @@
 //! Checks of configuration values whose messages name the key, its value and the fix: every
-//! float of a configuration finite ([`finite_floats`], a walk over its serialized form that
-//! reports the key's path, tables of per-track overrides included), and ranges ([`in_range`]),
+//! float of a configuration finite ([`finite_floats`]) and within ±[`MAX_FLOAT`]
+//! ([`bounded_floats`]), walks over its serialized form that report the key's path, tables of
+//! per-track overrides included, and ranges ([`in_range`]),
 //! both refusing with a [`ValueError`]. [`ConfigError`] marks an error that a restarted process
 //! would meet again; [`Causes`] prints an error with its causes, for the libraries' log lines.
 
@@ -46,6 +47,12 @@ impl Display for Causes<'_> {
     }
 }
 
+/// The largest magnitude of any float of a configuration: no speed, range, time, gain,
+/// learning rate or temperature an experiment means comes near it (the largest ctxrace's
+/// configs hold are a few thousand), while a value beyond it overflows what it scales. Each
+/// key's own range, where it has one, is narrower.
+pub const MAX_FLOAT: f64 = 1e6;
+
 /// Why a configuration value is refused: each names the key (by its path), the value and the
 /// fix.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
@@ -58,6 +65,20 @@ pub enum ValueError {
     )]
     NotFinite {
         /// The key's path (`race.rival.gains.lambda_v`).
+        key: String,
+        /// Its value.
+        value: f64,
+        /// The value the defaults hold at that path, when they hold one.
+        default: Option<toml::Value>,
+    },
+    /// A float beyond ±[`MAX_FLOAT`].
+    #[error(
+        "{key} = {value:e} is beyond ±{MAX_FLOAT:e}, which no experiment means; give a value of \
+         the key's scale{}",
+        .default.as_ref().map_or(String::new(), |d| format!(" (the default is {d})"))
+    )]
+    Implausible {
+        /// The key's path.
         key: String,
         /// Its value.
         value: f64,
@@ -101,11 +122,45 @@ pub fn toml_message(error: &toml::de::Error) -> String {
 
 /// Checks that every float of `config`, serialized as TOML, is finite. The error names the
 /// first other one by its key path (`race.rival.gains.lambda_v = nan`) and gives the value
-/// `defaults` holds at that path, when it holds one.
+/// `defaults` holds at that path, when it holds one. Run before the keys' own checks, which a
+/// NaN would slip through.
 pub fn finite_floats<T: Serialize>(config: &T, defaults: &T) -> Result<(), ValueError> {
+    match first_float(config, defaults, |x| !x.is_finite())? {
+        None => Ok(()),
+        Some((key, value, default)) => Err(ValueError::NotFinite {
+            key,
+            value,
+            default,
+        }),
+    }
+}
+
+/// Checks that every float of `config`, serialized as TOML, lies within ±[`MAX_FLOAT`], as
+/// [`finite_floats`] names the first other one. Run after the keys' own checks, whose messages
+/// say more.
+pub fn bounded_floats<T: Serialize>(config: &T, defaults: &T) -> Result<(), ValueError> {
+    match first_float(config, defaults, |x| x.abs() > MAX_FLOAT)? {
+        None => Ok(()),
+        Some((key, value, default)) => Err(ValueError::Implausible {
+            key,
+            value,
+            default,
+        }),
+    }
+}
+
+/// A float's key path, its value and the value `defaults` holds there, when it holds one.
+type FoundFloat = (String, f64, Option<toml::Value>);
+
+/// The first float of `config`, serialized as TOML, that is `bad`.
+fn first_float<T: Serialize>(
+    config: &T,
+    defaults: &T,
+    bad: impl Fn(f64) -> bool + Copy,
+) -> Result<Option<FoundFloat>, ValueError> {
     let value = toml::Value::try_from(config).map_err(ValueError::Serialise)?;
-    let Some((path, bad)) = first_non_finite(&value, &mut Vec::new()) else {
-        return Ok(());
+    let Some((path, found)) = find_float(&value, &mut Vec::new(), bad) else {
+        return Ok(None);
     };
     let default = toml::Value::try_from(defaults).ok().and_then(|d| {
         path.iter().try_fold(d, |v, key| match v {
@@ -113,26 +168,26 @@ pub fn finite_floats<T: Serialize>(config: &T, defaults: &T) -> Result<(), Value
             _ => None,
         })
     });
-    Err(ValueError::NotFinite {
-        key: path.join("."),
-        value: bad,
-        default,
-    })
+    Ok(Some((path.join("."), found, default)))
 }
 
-/// The key path and value of the first non-finite float under `value`.
-fn first_non_finite(value: &toml::Value, path: &mut Vec<String>) -> Option<(Vec<String>, f64)> {
+/// The key path and value of the first float under `value` that is `bad`.
+fn find_float(
+    value: &toml::Value,
+    path: &mut Vec<String>,
+    bad: impl Fn(f64) -> bool + Copy,
+) -> Option<(Vec<String>, f64)> {
     match value {
-        toml::Value::Float(x) if !x.is_finite() => Some((path.clone(), *x)),
+        toml::Value::Float(x) if bad(*x) => Some((path.clone(), *x)),
         toml::Value::Table(table) => table.iter().find_map(|(key, v)| {
             path.push(key.clone());
-            let found = first_non_finite(v, path);
+            let found = find_float(v, path, bad);
             path.pop();
             found
         }),
         toml::Value::Array(items) => items.iter().enumerate().find_map(|(i, v)| {
             path.push(i.to_string());
-            let found = first_non_finite(v, path);
+            let found = find_float(v, path, bad);
             path.pop();
             found
         }),
@@ -201,7 +256,7 @@ mod tests {
     }
 
     #[test]
-    fn the_first_non_finite_float_is_named_by_its_key_path_with_its_default() {
+    fn the_first_implausible_float_is_named_by_its_key_path_with_its_default() {
         let defaults = outer(1.0, 0.5);
         assert_eq!(finite_floats(&defaults, &defaults), Ok(()));
         let err = finite_floats(&outer(f64::NAN, 0.5), &defaults).unwrap_err();
@@ -213,6 +268,15 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.starts_with("inner.per_track.f1_esp = inf"), "{err}");
+        // finite, but beyond what any key means
+        assert_eq!(finite_floats(&outer(9.2e18, 0.5), &defaults), Ok(()));
+        let err = bounded_floats(&outer(9.2e18, 0.5), &defaults).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "inner.gain = 9.2e18 is beyond ±1e6, which no experiment means; give a value of the \
+             key's scale (the default is 1.0)"
+        );
+        assert_eq!(bounded_floats(&outer(-MAX_FLOAT, 0.5), &defaults), Ok(()));
     }
 
     #[test]
