@@ -605,6 +605,7 @@ fn a_process_that_keeps_crashing_stops_the_run_after_max_restarts() {
     // an injected crash that every restart meets again
     let stderr = train_to_failure(&cfg, &run, Some("learner"));
     for needle in [
+        "stopped by the error below; steps:",
         "learner exited",
         "its 3rd failure in 600 s (at most 2 restarts are allowed, [supervisor] max_restarts)",
         "crashing at start, as CTXRACE_TEST_CRASH_ROLE asks",
@@ -855,8 +856,13 @@ fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
     drop(inject);
     drop(transport);
     // every message was counted under its reason, and the run stopped cleanly with the
-    // real actors' data intact
+    // real actors' data intact; the closing line says why it stopped
     assert!(stderr.contains("none dropped"), "{stderr}");
+    assert!(
+        stderr.contains("interrupted (SIGINT or SIGTERM); steps:")
+            && !stderr.contains("took its gradient steps"),
+        "{stderr}"
+    );
     let replay = json(&run.join("replay-status.json"));
     let by = &replay["rejected_by_reason"];
     for (reason, n) in [

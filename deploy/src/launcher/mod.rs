@@ -44,7 +44,7 @@ use std::path::Path;
 use bus_error::explain_bus_errors;
 use children::{Children, Supervised};
 use cleanup::{remove_run, sweep_dead_runs};
-use summary::step_summary;
+use summary::{step_summary, RunEnd};
 use supervise::supervise;
 
 /// Runs a training run with `actors` actor processes in `dir` (which holds `config.toml`).
@@ -71,13 +71,13 @@ pub fn run(
     claim_run(&prefix)?;
     let mut children = processes(dir, &prefix, lock, actors, tracks)?;
     let transport = RunTransport::open(&prefix, actors, "launcher")?;
-    let costs = supervise(cfg, dir, &transport, &mut children);
+    let (costs, ended) = supervise(cfg, dir, &transport, &mut children);
     children.stop()?;
     drop(transport);
     remove_run(&prefix);
-    let costs = costs?;
-    eprintln!("{}", step_summary(dir, costs));
-    Ok(())
+    let end = ended.as_ref().map_or(RunEnd::Failed, |&end| end);
+    eprintln!("{}", step_summary(dir, costs, end));
+    ended.map(|_| ())
 }
 
 /// The run's processes, not started yet: each a subcommand of this binary on the run in `dir`

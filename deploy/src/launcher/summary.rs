@@ -6,17 +6,49 @@ use std::path::Path;
 
 use super::progress::{replay_streams, RestartCosts};
 
-/// One line on where the run's steps went, from the replay's own counts first: stored (of
-/// each actor), past the budget, rejected, lost in replay crashes; then what the actors report
-/// sending (every start of each, a killed one counted to its last heartbeat), what of that is
-/// not accounted for, and dropped; and the gradient steps restarted learners took twice.
-pub(super) fn step_summary(dir: &Path, costs: RestartCosts) -> String {
+/// How a run's supervision ended.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum RunEnd {
+    /// The learner took its gradient steps.
+    Trained,
+    /// SIGINT (Ctrl-C) or SIGTERM stopped it.
+    Interrupted,
+    /// An error stopped it (the launcher's error follows the line).
+    Failed,
+}
+
+impl RunEnd {
+    /// The closing line's first words.
+    fn said(self) -> &'static str {
+        match self {
+            Self::Trained => "the learner took its gradient steps",
+            Self::Interrupted => "interrupted (SIGINT or SIGTERM)",
+            Self::Failed => "stopped by the error below",
+        }
+    }
+
+    /// Why the replay may hold fewer steps than the budget.
+    fn why_short(self) -> &'static str {
+        match self {
+            Self::Trained => "the learner took its gradient steps first",
+            Self::Interrupted => "the run was interrupted",
+            Self::Failed => "the run stopped on an error",
+        }
+    }
+}
+
+/// One line on how the run ended (`end`) and where its steps went, from the replay's own
+/// counts first: stored (of each actor), short of or past the budget, rejected, lost in replay
+/// crashes; then what the actors report sending (every start of each, a killed one counted to
+/// its last heartbeat), what of that is not accounted for, and dropped; and the gradient steps
+/// restarted learners took twice.
+pub(super) fn step_summary(dir: &Path, costs: RestartCosts, end: RunEnd) -> String {
     let (sent, dropped) = actor_reports(dir);
     let shares: Vec<String> = sent.values().map(u64::to_string).collect();
     let total = sent.values().sum::<u64>() + costs.killed_actor_steps;
-    let mut line = String::from("steps: ");
+    let mut line = format!("{}; steps: ", end.said());
     let taken = read(&dir.join(REPLAY_REPORT))
-        .map(|replay| replay_steps(&mut line, dir, &replay, costs.lost));
+        .map(|replay| replay_steps(&mut line, dir, &replay, costs.lost, end));
     line += &format!(
         "; the actors report {total} sent ({}{})",
         shares.join(" / "),
@@ -53,10 +85,16 @@ pub(super) fn step_summary(dir: &Path, costs: RestartCosts) -> String {
 }
 
 /// Appends to `line` what the replay of the run in `dir` took, from its report `replay` and
-/// its per-actor counts: stored (of each actor), short of or past the budget, rejected, its
-/// longest stall, and `lost`, the steps lost in its crashes; returns the steps it took (stored,
-/// surplus or lost).
-fn replay_steps(line: &mut String, dir: &Path, replay: &serde_json::Value, lost: u64) -> u64 {
+/// its per-actor counts: stored (of each actor), short of the budget (why: `end`) or past it,
+/// rejected, its longest stall, and `lost`, the steps lost in its crashes; returns the steps it
+/// took (stored, surplus or lost).
+fn replay_steps(
+    line: &mut String,
+    dir: &Path,
+    replay: &serde_json::Value,
+    lost: u64,
+    end: RunEnd,
+) -> u64 {
     let stored = replay["inserted"].as_u64().unwrap_or(0);
     *line += &format!("{stored} stored by the replay");
     // what the replay itself took of each actor: its count, not the actors' claims
@@ -70,9 +108,10 @@ fn replay_steps(line: &mut String, dir: &Path, replay: &serde_json::Value, lost:
     }
     if stored < streams.env_steps {
         *line += &format!(
-            ", {} short of the run's budget of {} (the learner took its gradient steps first)",
+            ", {} short of the run's budget of {} ({})",
             streams.env_steps - stored,
-            streams.env_steps
+            streams.env_steps,
+            end.why_short()
         );
     }
     if surplus > 0 {
@@ -157,9 +196,9 @@ mod tests {
             env_steps: 3000,
         };
         ctxrace_run::results::write_json(&dir.path().join(REPLAY_STREAMS), &streams).unwrap();
-        let line = step_summary(dir.path(), RestartCosts::default());
+        let line = step_summary(dir.path(), RestartCosts::default(), RunEnd::Trained);
         assert!(
-            line.starts_with("steps: 3000 stored by the replay (1600 / 1400 of each actor), 160 past the run's budget of 3000"),
+            line.starts_with("the learner took its gradient steps; steps: 3000 stored by the replay (1600 / 1400 of each actor), 160 past the run's budget of 3000"),
             "{line}"
         );
         // 3200 sent, 3160 taken: 40 unaccounted for

@@ -22,30 +22,40 @@ use super::cleanup::DeadNodeCleaner;
 use super::liveness::Liveness;
 use super::progress::{replay_streams, Progress, RestartCosts};
 use super::status::write_status;
+use super::summary::RunEnd;
 
-/// The supervision loop; returns when the run is complete or interrupted, with what restarts
-/// cost it.
+/// The supervision loop: what restarts cost the run, and how it ended (the run complete,
+/// interrupted, or the error that stopped it).
 pub(super) fn supervise(
     cfg: &ExperimentConfig,
     dir: &Path,
     transport: &RunTransport,
     children: &mut Children,
-) -> Result<RestartCosts> {
-    let mut s = Supervisor::new(cfg, dir, transport, children.actors.len())?;
+) -> (RestartCosts, Result<RunEnd>) {
+    let mut s = match Supervisor::new(cfg, dir, transport, children.actors.len()) {
+        Ok(s) => s,
+        Err(e) => return (RestartCosts::default(), Err(e)),
+    };
+    let end = watch(&mut s, children);
+    (s.p.restart_costs(), end)
+}
+
+/// Ticks `s` over `children` until the run is complete or interrupted.
+fn watch(s: &mut Supervisor<'_>, children: &mut Children) -> Result<RunEnd> {
     let stop = termination_flag()?;
     loop {
         std::thread::sleep(Duration::from_millis(100));
         if stop.load(Ordering::Relaxed) {
             s.bar
                 .abandon_with_message("interrupted: stopping (checkpoint, snapshot)");
-            return Ok(s.p.restart_costs());
+            return Ok(RunEnd::Interrupted);
         }
         s.start_due(children)?;
         s.read_telemetry(children)?;
         s.read_replay_streams(&children.replay);
         s.check_liveness(children);
         if s.reap(children)? {
-            return Ok(s.p.restart_costs());
+            return Ok(RunEnd::Trained);
         }
         s.show()?;
     }
