@@ -211,8 +211,9 @@ impl PyRaceVector {
     }
 
     /// Env `env`'s episode so far as a picture `width` pixels wide (a moment of `ctxrace race
-    /// --render race.gif`): (RGB bytes row by row, height, width). Needs a vector made to
-    /// record, reset since.
+    /// --render race.gif`, as wide by default): (RGB bytes row by row, height, width). Needs a
+    /// vector made to record, reset since.
+    #[pyo3(signature = (env, width=ctxrace_render::race::MOMENT_WIDTH_PX))]
     fn render<'py>(
         &self,
         py: Python<'py>,

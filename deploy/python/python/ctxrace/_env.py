@@ -24,9 +24,6 @@ _COLUMNS = {name: i for i, name in enumerate(_ctxrace.OUTCOME_COLUMNS)}
 #: Largest magnitude of a context element the simulator takes (its own constant).
 CONTEXT_LIMIT = _ctxrace.CONTEXT_LIMIT
 
-#: Width in pixels of a rendered frame (an animation's of ``ctxrace race --render race.gif``).
-RENDER_WIDTH = 1000
-
 
 def count(name: str, value: Any, least: int) -> int:
     """`value` as a Python int of at least `least` (numpy integers included), or an error that
@@ -210,16 +207,18 @@ class Races:
     def contexts(self) -> np.ndarray:
         """Each env's current episode's context, ``(num_envs, 2)``."""
         return np.frombuffer(self.inner.contexts(), dtype=np.float64).reshape(self.num_envs, 2)
+
     def render(self) -> Optional[list]:
-        """Every env's race so far as ``(height, RENDER_WIDTH, 3)`` uint8 pictures, the
-        moments of ``ctxrace race --render race.gif``; None without a render mode."""
+        """Every env's race so far as ``(height, width, 3)`` uint8 pictures, the moments of
+        ``ctxrace race --render race.gif`` (as wide as its frames: 1000 pixels); None without a
+        render mode."""
         if self.render_mode is None:
             return None
         if not self._started:
             raise ResetNeeded("nothing to draw before the first reset: call reset")
         pictures = []
         for env in range(self.num_envs):
-            rgb, height, width = self.inner.render(env, RENDER_WIDTH)
+            rgb, height, width = self.inner.render(env)
             pictures.append(np.frombuffer(rgb, dtype=np.uint8).reshape(height, width, 3).copy())
         return pictures
 
