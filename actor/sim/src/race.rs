@@ -591,7 +591,7 @@ impl RaceEnv {
 
     /// Race time between two decisions (s): `physics_steps_per_action` physics steps.
     pub fn decision_period(&self) -> f64 {
-        self.cfg.physics_steps_per_action as f64 * DT
+        self.cfg.decision_period()
     }
 
     /// Number of LiDAR beams in an observation.

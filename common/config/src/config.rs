@@ -380,9 +380,14 @@ impl Default for RaceConfig {
 }
 
 impl RaceConfig {
+    /// Race time between two decisions (s): `physics_steps_per_action` physics steps.
+    pub fn decision_period(&self) -> f64 {
+        self.physics_steps_per_action as f64 * PHYSICS_DT
+    }
+
     /// Most decisions in one episode: `max_time` over a decision's period.
     pub fn max_decisions(&self) -> usize {
-        (self.max_time / (self.physics_steps_per_action as f64 * PHYSICS_DT)).ceil() as usize
+        (self.max_time / self.decision_period()).ceil() as usize
     }
 
     /// The race as the paper's public code (lilpharaoh1/context-f110) ran it when it produced

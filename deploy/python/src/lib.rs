@@ -220,6 +220,11 @@ fn _ctxrace(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("EVAL_RANGE", eval_dir::RANGE)?;
     m.add("EVAL_LAPS", eval_dir::LAPS)?;
     m.add("CONTEXT_LIMIT", ctxrace_config::context::CONTEXT_LIMIT)?;
+    // a frame per decision of the default race: the envs' metadata before one is made
+    m.add(
+        "DEFAULT_RENDER_FPS",
+        1.0 / RaceConfig::default().decision_period(),
+    )?;
     m.add(
         "TRAIN_CONTEXT_RANGE",
         ctxrace_config::TrainConfig::default().context_range,

@@ -304,7 +304,7 @@ class RaceVectorEnv(PicklesAsMade, VectorEnv):
 
     #: Frames a second at the default scenario's decision period; an env's own ``metadata``
     #: has its scenario's.
-    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, **render_metadata(10)}
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, **render_metadata(_ctxrace.DEFAULT_RENDER_FPS)}
 
     def __init__(
         self,
@@ -450,7 +450,7 @@ class RaceEnv(PicklesAsMade, gymnasium.Env):
 
     #: Frames a second at the default scenario's decision period (0.1 s); an env's own
     #: ``metadata`` has its scenario's.
-    metadata = render_metadata(10)
+    metadata = render_metadata(_ctxrace.DEFAULT_RENDER_FPS)
 
     def __init__(
         self,
