@@ -91,8 +91,10 @@ mod tests {
     use ctxrace_config::RacePreset;
 
     fn run() -> ExperimentConfig {
-        let mut run = ExperimentConfig::default();
-        run.track = "f1_gbr".into();
+        let mut run = ExperimentConfig {
+            track: "f1_gbr".into(),
+            ..ExperimentConfig::default()
+        };
         run.race.rivals = 1;
         run.race.rival.speed_factor = 0.7;
         run.train.context_range = 0.1;

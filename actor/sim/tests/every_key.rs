@@ -63,9 +63,11 @@ fn with_value(mut table: toml::Table, path: &str, value: toml::Value) -> toml::T
 /// The two experiments whose keys are drawn from: ctxrace's defaults and the paper code's
 /// presets (whose optional keys are set), both on a procedural track.
 fn bases() -> Vec<toml::Table> {
-    let mut paper = ExperimentConfig::default();
-    paper.race = RaceConfig::paper_code();
-    paper.agent = AgentConfig::paper_code();
+    let paper = ExperimentConfig {
+        race: RaceConfig::paper_code(),
+        agent: AgentConfig::paper_code(),
+        ..ExperimentConfig::default()
+    };
     [ExperimentConfig::default(), paper]
         .into_iter()
         .map(|mut cfg| {
