@@ -1003,6 +1003,28 @@ fn stopped_and_continued_processes_keep_running() {
         );
         assert_eq!(find_pid(&run, role, &[pid]), None, "a second {role}");
     }
+    // a pause far below every timeout still leaves its trace: the learner, once training, and
+    // then the actor, each stopped for 4 s
+    wait_for(&run, "a gradient step", 3 * minute, || {
+        status(&run)?["grad_steps"].as_u64().filter(|&g| g > 0)
+    });
+    let learner = find_pid(&run, "learner", &[]).expect("the learner");
+    for pid in [learner, actor] {
+        // SAFETY: kill(2) takes no pointers; a pid that is gone only makes it fail.
+        unsafe { libc::kill(pid as i32, libc::SIGSTOP) };
+        std::thread::sleep(Duration::from_secs(4));
+        // SAFETY: as above.
+        unsafe { libc::kill(pid as i32, libc::SIGCONT) };
+    }
+    let stalls = wait_for(&run, "the pauses in status.json", minute, || {
+        let stalls = status(&run)?["stalls"].clone();
+        let actor = stalls["actor_longest_silence_s"][0].as_f64()?;
+        (actor >= 3.5).then_some(stalls)
+    });
+    assert!(
+        stalls["learner_longest_pause_s"].as_f64().unwrap() >= 3.5,
+        "{stalls}"
+    );
     // SAFETY: kill(2) on the launcher's pid, which this test still owns (not reaped).
     unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
     let stderr = finish(child, 2 * minute);
@@ -1011,6 +1033,7 @@ fn stopped_and_continued_processes_keep_running() {
         !stderr.contains("InterruptSignal") && !logs.contains("InterruptSignal"),
         "{stderr}\n{logs}"
     );
+    assert!(stderr.contains("; longest pauses: learner "), "{stderr}");
 }
 
 /// Segments truncated under a live run: the launcher dies of the SIGBUS saying what happened

@@ -219,6 +219,13 @@ impl Supervised {
         self.failed(&format!("exited ({status})"), cfg)
     }
 
+    /// How long the process has sent no sign of life at `now`: zero before its first sign of
+    /// this start (while it starts up).
+    pub(super) fn quiet(&self, now: Instant) -> Duration {
+        self.last_sign
+            .map_or(Duration::ZERO, |t| now.saturating_duration_since(t))
+    }
+
     /// Kills the process if its last sign of life (or its start, if none came) is older than
     /// the heartbeat timeout; it is then reaped as a crash.
     pub(super) fn kill_if_silent(&mut self, timeout: Duration) {

@@ -35,6 +35,49 @@ impl Overdue {
         let held = now.saturating_duration_since(*self.since.get_or_insert(now));
         (held > timeout).then_some(held)
     }
+
+    /// How long the condition has held without a break at `now` (zero when it does not).
+    pub(super) fn held(&self, now: Instant) -> Duration {
+        self.since
+            .map_or(Duration::ZERO, |since| now.saturating_duration_since(since))
+    }
+}
+
+/// The longest pauses a run has seen, whether or not they reached a timeout: a process
+/// stopped for a while (SIGSTOP, a swapped-out machine) leaves its trace here, in
+/// `status.json` and in the closing line.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub(super) struct Stalls {
+    /// Longest time the learner took no gradient step while the replay served batches.
+    pub(super) learner_pause: Duration,
+    /// Longest time the replay sent no status.
+    pub(super) replay_silence: Duration,
+    /// Longest time each actor sent no heartbeat.
+    pub(super) actor_silence: Vec<Duration>,
+    /// Largest policy lag (gradient steps behind the learner's newest) each actor drove with.
+    pub(super) actor_lag: Vec<u64>,
+}
+
+impl Stalls {
+    /// The record of a run of `actors` actors, before anything is seen.
+    pub(super) fn new(actors: usize) -> Self {
+        Self {
+            actor_silence: vec![Duration::ZERO; actors],
+            actor_lag: vec![0; actors],
+            ..Self::default()
+        }
+    }
+
+    /// The record as `status.json` holds it (seconds, gradient steps).
+    pub(super) fn to_json(&self) -> serde_json::Value {
+        let secs = |d: &Duration| (d.as_secs_f64() * 10.0).round() / 10.0;
+        serde_json::json!({
+            "learner_longest_pause_s": secs(&self.learner_pause),
+            "replay_longest_silence_s": secs(&self.replay_silence),
+            "actor_longest_silence_s": self.actor_silence.iter().map(secs).collect::<Vec<_>>(),
+            "actor_largest_policy_lag": self.actor_lag,
+        })
+    }
 }
 
 /// Most env steps an actor can take past what the replay stored of it without any of them
@@ -91,6 +134,8 @@ pub(super) struct Liveness {
     streams: Vec<StreamWatch>,
     /// The learner's gradient steps at the last check.
     last_grad_steps: u64,
+    /// The longest pauses seen so far.
+    pub(super) stalls: Stalls,
 }
 
 impl Liveness {
@@ -104,6 +149,7 @@ impl Liveness {
             min_fill,
             streams: (0..actors).map(|_| StreamWatch::default()).collect(),
             last_grad_steps: 0,
+            stalls: Stalls::new(actors),
         }
     }
 
@@ -123,10 +169,11 @@ impl Liveness {
         replay_took: &ReplayStreams,
         dir: &Path,
     ) {
+        let now = Instant::now();
+        self.record(children, p, now);
         for proc in std::iter::once(&mut children.replay).chain(children.actors.iter_mut()) {
             proc.kill_if_silent(self.silence);
         }
-        let now = Instant::now();
         self.kill_lagging_actors(&mut children.actors, p, now);
         self.kill_starved_actors(&mut children.actors, p, replay_took, now);
         self.kill_idle_learner(children, p, dir, now);
@@ -134,6 +181,25 @@ impl Liveness {
 
     /// Kills each actor that has driven a policy more than `max_policy_lag` gradient steps
     /// behind the learner's newest for longer than the stall timeout.
+    /// Notes in [`Liveness::stalls`] how long each process has been quiet or idle at `now`,
+    /// and each actor's policy lag.
+    fn record(&mut self, children: &Children, p: &Progress, now: Instant) {
+        let s = &mut self.stalls;
+        if children.replay.running() {
+            s.replay_silence = s.replay_silence.max(children.replay.quiet(now));
+        }
+        let actors = children.actors.iter().zip(p.policy_lags());
+        for ((actor, lag), (silence, most)) in
+            actors.zip(s.actor_silence.iter_mut().zip(&mut s.actor_lag))
+        {
+            if actor.running() {
+                *silence = (*silence).max(actor.quiet(now));
+                *most = (*most).max(lag);
+            }
+        }
+        s.learner_pause = s.learner_pause.max(children.learner.stalled.held(now));
+    }
+
     fn kill_lagging_actors(&self, actors: &mut [Supervised], p: &Progress, now: Instant) {
         for (actor, lag) in actors.iter_mut().zip(p.policy_lags()) {
             let lagging = actor.running() && lag > self.max_policy_lag;

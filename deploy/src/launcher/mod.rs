@@ -71,13 +71,13 @@ pub fn run(
     claim_run(&prefix)?;
     let mut children = processes(dir, &prefix, lock, actors, tracks)?;
     let transport = RunTransport::open(&prefix, actors, "launcher")?;
-    let (costs, ended) = supervise(cfg, dir, &transport, &mut children);
+    let run = supervise(cfg, dir, &transport, &mut children);
     children.stop()?;
     drop(transport);
     remove_run(&prefix);
-    let end = ended.as_ref().map_or(RunEnd::Failed, |&end| end);
-    eprintln!("{}", step_summary(dir, costs, end));
-    ended.map(|_| ())
+    let end = run.end.as_ref().map_or(RunEnd::Failed, |&end| end);
+    eprintln!("{}", step_summary(dir, run.costs, &run.stalls, end));
+    run.end.map(|_| ())
 }
 
 /// The run's processes, not started yet: each a subcommand of this binary on the run in `dir`

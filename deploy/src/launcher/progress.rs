@@ -225,6 +225,7 @@ pub(super) fn replay_streams(dir: &Path) -> ReplayStreams {
 
 #[cfg(test)]
 mod tests {
+    use super::super::liveness::Stalls;
     use super::super::summary::{step_summary, RunEnd};
     use super::*;
     use ctxrace_run::run_dir::{ACTOR_REPORTS, REPLAY_REPORT};
@@ -266,7 +267,12 @@ mod tests {
         }
         let replay = serde_json::json!({ "inserted": 600, "rejected": 1, "longest_turn_ms": 1.0 });
         std::fs::write(dir.path().join(REPLAY_REPORT), replay.to_string()).unwrap();
-        let line = step_summary(dir.path(), p.restart_costs(), RunEnd::Trained);
+        let line = step_summary(
+            dir.path(),
+            p.restart_costs(),
+            &Stalls::new(2),
+            RunEnd::Trained,
+        );
         assert!(
             line.contains("600 stored by the replay, 1 rejected"),
             "{line}"
@@ -283,6 +289,7 @@ mod tests {
                 lost: 600,
                 ..RestartCosts::default()
             },
+            &Stalls::new(2),
             RunEnd::Interrupted,
         );
         assert!(
@@ -335,7 +342,12 @@ mod tests {
         std::fs::create_dir(&actors).unwrap();
         let report = serde_json::json!({ "id": 1, "sent_steps": 700, "dropped_steps": 0 });
         std::fs::write(actors.join("actor-1-0.json"), report.to_string()).unwrap();
-        let line = step_summary(dir.path(), p.restart_costs(), RunEnd::Trained);
+        let line = step_summary(
+            dir.path(),
+            p.restart_costs(),
+            &Stalls::new(2),
+            RunEnd::Trained,
+        );
         assert!(
             line.contains("the actors report 1000 sent (700, and 300 by killed actors"),
             "{line}"

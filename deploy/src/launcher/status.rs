@@ -8,15 +8,20 @@ use ctxrace_run::results::{read_json, write_json, ReplayStreams};
 use ctxrace_run::run_dir::{LEARNER_STATUS, STATUS_FILE};
 use std::path::Path;
 
+use super::liveness::Stalls;
 use super::progress::Progress;
 
-/// Writes the status file of the run in `dir` from the live figures `p` and the replay's
-/// per-actor counts `streams` ([`status`]).
-pub(super) fn write_status(dir: &Path, p: &Progress, streams: &ReplayStreams) -> Result<()> {
-    write_json(
-        &dir.join(STATUS_FILE),
-        &status(p, learner_status(dir), streams),
-    )?;
+/// Writes the status file of the run in `dir` from the live figures `p`, the replay's
+/// per-actor counts `streams` ([`status`]) and the longest pauses so far, `stalls`.
+pub(super) fn write_status(
+    dir: &Path,
+    p: &Progress,
+    streams: &ReplayStreams,
+    stalls: &Stalls,
+) -> Result<()> {
+    let mut status = status(p, learner_status(dir), streams);
+    status["stalls"] = stalls.to_json();
+    write_json(&dir.join(STATUS_FILE), &status)?;
     Ok(())
 }
 

@@ -4,6 +4,7 @@ use ctxrace_run::run_dir::{ACTOR_REPORTS, REPLAY_REPORT};
 use std::collections::BTreeMap;
 use std::path::Path;
 
+use super::liveness::Stalls;
 use super::progress::{replay_streams, RestartCosts};
 
 /// How a run's supervision ended.
@@ -40,9 +41,14 @@ impl RunEnd {
 /// One line on how the run ended (`end`) and where its steps went, from the replay's own
 /// counts first: stored (of each actor), short of or past the budget, rejected, lost in replay
 /// crashes; then what the actors report sending (every start of each, a killed one counted to
-/// its last heartbeat), what of that is not accounted for, and dropped; and the gradient steps
-/// restarted learners took twice.
-pub(super) fn step_summary(dir: &Path, costs: RestartCosts, end: RunEnd) -> String {
+/// its last heartbeat), what of that is not accounted for, and dropped; the gradient steps
+/// restarted learners took twice; and the longest pauses, `stalls`.
+pub(super) fn step_summary(
+    dir: &Path,
+    costs: RestartCosts,
+    stalls: &Stalls,
+    end: RunEnd,
+) -> String {
     let (sent, dropped) = actor_reports(dir);
     let shares: Vec<String> = sent.values().map(u64::to_string).collect();
     let total = sent.values().sum::<u64>() + costs.killed_actor_steps;
@@ -81,7 +87,23 @@ pub(super) fn step_summary(dir: &Path, costs: RestartCosts, end: RunEnd) -> Stri
             costs.repeated_grad_steps
         );
     }
+    line += &pauses(stalls);
     line
+}
+
+/// The longest pauses of the run's processes, and its actors' largest policy lags.
+fn pauses(s: &Stalls) -> String {
+    let secs = |d: &std::time::Duration| format!("{:.1}", d.as_secs_f64());
+    let actors: Vec<String> = s.actor_silence.iter().map(secs).collect();
+    let lags: Vec<String> = s.actor_lag.iter().map(u64::to_string).collect();
+    format!(
+        "; longest pauses: learner {} s, replay {} s, actors {} s; largest policy lag {} \
+         gradient steps",
+        secs(&s.learner_pause),
+        secs(&s.replay_silence),
+        actors.join(" / "),
+        lags.join(" / ")
+    )
 }
 
 /// Appends to `line` what the replay of the run in `dir` took, from its report `replay` and
@@ -196,7 +218,12 @@ mod tests {
             env_steps: 3000,
         };
         ctxrace_run::results::write_json(&dir.path().join(REPLAY_STREAMS), &streams).unwrap();
-        let line = step_summary(dir.path(), RestartCosts::default(), RunEnd::Trained);
+        let line = step_summary(
+            dir.path(),
+            RestartCosts::default(),
+            &Stalls::new(2),
+            RunEnd::Trained,
+        );
         assert!(
             line.starts_with("the learner took its gradient steps; steps: 3000 stored by the replay (1600 / 1400 of each actor), 160 past the run's budget of 3000"),
             "{line}"
@@ -210,5 +237,31 @@ mod tests {
             line.contains("; 40 sent neither stored nor counted"),
             "{line}"
         );
+    }
+
+    #[test]
+    fn the_longest_pauses_close_the_line() {
+        let stalls = Stalls {
+            learner_pause: std::time::Duration::from_millis(20_340),
+            replay_silence: std::time::Duration::from_millis(950),
+            actor_silence: vec![std::time::Duration::from_millis(1_020); 2],
+            actor_lag: vec![12, 430],
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let line = step_summary(
+            dir.path(),
+            RestartCosts::default(),
+            &stalls,
+            RunEnd::Trained,
+        );
+        assert!(
+            line.ends_with(
+                "; longest pauses: learner 20.3 s, replay 0.9 s, actors 1.0 / 1.0 s; largest \
+                 policy lag 12 / 430 gradient steps"
+            ),
+            "{line}"
+        );
+        assert_eq!(stalls.to_json()["actor_largest_policy_lag"][1], 430);
+        assert_eq!(stalls.to_json()["learner_longest_pause_s"], 20.3);
     }
 }

@@ -19,25 +19,45 @@ use std::time::{Duration, Instant};
 
 use super::children::{Children, Supervised};
 use super::cleanup::DeadNodeCleaner;
-use super::liveness::Liveness;
+use super::liveness::{Liveness, Stalls};
 use super::progress::{replay_streams, Progress, RestartCosts};
 use super::status::write_status;
 use super::summary::RunEnd;
 
-/// The supervision loop: what restarts cost the run, and how it ended (the run complete,
-/// interrupted, or the error that stopped it).
+/// What the supervision loop leaves for the run's closing line.
+pub(super) struct Supervision {
+    /// What restarts cost the run.
+    pub(super) costs: RestartCosts,
+    /// The longest pauses it saw.
+    pub(super) stalls: Stalls,
+    /// How it ended: complete, interrupted, or the error that stopped it.
+    pub(super) end: Result<RunEnd>,
+}
+
+/// The supervision loop, until the run is complete, interrupted or stopped by an error.
 pub(super) fn supervise(
     cfg: &ExperimentConfig,
     dir: &Path,
     transport: &RunTransport,
     children: &mut Children,
-) -> (RestartCosts, Result<RunEnd>) {
-    let mut s = match Supervisor::new(cfg, dir, transport, children.actors.len()) {
+) -> Supervision {
+    let actors = children.actors.len();
+    let mut s = match Supervisor::new(cfg, dir, transport, actors) {
         Ok(s) => s,
-        Err(e) => return (RestartCosts::default(), Err(e)),
+        Err(e) => {
+            return Supervision {
+                costs: RestartCosts::default(),
+                stalls: Stalls::new(actors),
+                end: Err(e),
+            }
+        }
     };
     let end = watch(&mut s, children);
-    (s.p.restart_costs(), end)
+    Supervision {
+        costs: s.p.restart_costs(),
+        stalls: s.liveness.stalls.clone(),
+        end,
+    }
 }
 
 /// Ticks `s` over `children` until the run is complete or interrupted.
@@ -241,14 +261,14 @@ impl<'a> Supervisor<'a> {
     fn finish(&mut self) -> Result<()> {
         self.bar.set_position(self.p.env_steps.min(self.budget));
         self.bar.finish_with_message(self.p.message(self.start));
-        write_status(self.dir, &self.p, &self.replay_took)
+        write_status(self.dir, &self.p, &self.replay_took, &self.liveness.stalls)
     }
 
     /// Writes the status file once a second; moves the bar on and writes the rates every
     /// 250 ms.
     fn show(&mut self) -> Result<()> {
         if self.last_status.elapsed() >= Duration::from_secs(1) {
-            write_status(self.dir, &self.p, &self.replay_took)?;
+            write_status(self.dir, &self.p, &self.replay_took, &self.liveness.stalls)?;
             self.last_status = Instant::now();
         }
         if self.tick.elapsed() >= Duration::from_millis(250) {
