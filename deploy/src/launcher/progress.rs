@@ -44,6 +44,12 @@ pub(super) struct Progress {
     inserted_at_crash: Option<u64>,
     /// Steps replays stored and lost in a crash (not in the snapshot they restarted from).
     pub(super) lost_in_restarts: u64,
+    /// Chunks that replays which then crashed had rejected (a restart counts from 0 again), by
+    /// reason ([`ctxrace_ipc::wire::REASONS`]).
+    pub(super) rejected_by_crashed_replays: [u64; REASONS.len()],
+    /// The env steps of the last episode row: rows never go back, though a restarted replay's
+    /// count may (it restores its snapshot, not what it stored after).
+    last_row_env_steps: u64,
     /// Each actor's env steps at its newest heartbeat (of its current start).
     pub(super) actor_beat_steps: Vec<u64>,
     /// Env steps sent by actor starts that died without writing their report, counted to
@@ -63,6 +69,8 @@ pub(super) struct RestartCosts {
     pub(super) killed_actor_steps: u64,
     /// Gradient steps a restarted learner took again.
     pub(super) repeated_grad_steps: u64,
+    /// Chunks rejected by replays that then crashed (their restarts count from 0 again).
+    pub(super) rejected_by_crashed_replays: u64,
 }
 
 impl Progress {
@@ -141,8 +149,26 @@ impl Progress {
         if let Some(s) = last {
             self.replay_status(s);
         }
-        // a restart that crashed before its first status restored what the first one held
-        self.inserted_at_crash.get_or_insert(self.replay.inserted);
+        // a restart that crashed before its first status restored what the first one held,
+        // and rejected nothing yet
+        if self.inserted_at_crash.is_none() {
+            self.inserted_at_crash = Some(self.replay.inserted);
+            let rejected = std::mem::take(&mut self.replay.rejected_by_reason);
+            for (carried, n) in self.rejected_by_crashed_replays.iter_mut().zip(rejected) {
+                *carried += n;
+            }
+            self.replay.rejected = 0;
+        }
+    }
+
+    /// Chunks the run's replays rejected in all, by reason: the crashed starts' and the
+    /// current one's.
+    pub(super) fn replay_rejected_by_reason(&self) -> [u64; REASONS.len()] {
+        let mut all = self.rejected_by_crashed_replays;
+        for (a, n) in all.iter_mut().zip(self.replay.rejected_by_reason) {
+            *a += n;
+        }
+        all
     }
 
     /// Notes that actor `id` died; `reported` says whether its start wrote its report (else its
@@ -169,17 +195,23 @@ impl Progress {
             lost: self.lost_in_restarts,
             killed_actor_steps: self.killed_actor_steps,
             repeated_grad_steps: self.repeated_grad_steps,
+            rejected_by_crashed_replays: self.rejected_by_crashed_replays.iter().sum(),
         }
     }
 
     /// An episode row's env steps: the replay's count, or the actors' own while that lags (it
-    /// comes once a second), never past `budget`, which the replay never stores more than: the
-    /// actors' counts take in steps of rejected chunks (which do not hold an actor back), and a
-    /// corrupted report may claim any plausible count.
-    fn row_env_steps(&self, budget: u64) -> u64 {
-        self.env_steps
+    /// comes once a second), never below the last row's (a restarted replay's count goes
+    /// back to its snapshot's) and never past `budget`, which the replay never stores more
+    /// than: the actors' counts take in steps of rejected chunks (which do not hold an actor
+    /// back), and a corrupted report may claim any plausible count.
+    fn row_env_steps(&mut self, budget: u64) -> u64 {
+        let steps = self
+            .env_steps
             .max(self.actor_steps.iter().sum())
-            .min(budget)
+            .max(self.last_row_env_steps)
+            .min(budget);
+        self.last_row_env_steps = steps;
+        steps
     }
 
     /// Each actor's policy age: gradient steps between the learner's newest broadcast and the
@@ -253,6 +285,19 @@ mod tests {
         p.replay_crashed(None);
         p.replay_status(status(850, 850));
         assert_eq!(p.lost_in_restarts, 550);
+        // rejections of a replay that crashed are carried over its restarts, once
+        let mut rejecting = status(900, 850);
+        rejecting.rejected = 3;
+        rejecting.rejected_by_reason[0] = 3;
+        p.replay_status(rejecting);
+        p.replay_crashed(None);
+        p.replay_crashed(None);
+        let mut again = status(900, 900);
+        again.rejected = 2;
+        again.rejected_by_reason[1] = 2;
+        p.replay_status(again);
+        assert_eq!(p.replay_rejected_by_reason()[..2], [3, 2]);
+        assert_eq!(p.restart_costs().rejected_by_crashed_replays, 3);
 
         let dir = tempfile::tempdir().unwrap();
         let actors = dir.path().join(ACTOR_REPORTS);
@@ -273,8 +318,9 @@ mod tests {
             &Stalls::new(2),
             RunEnd::Trained,
         );
+        // the last replay's 1 and the 3 of the start that crashed
         assert!(
-            line.contains("600 stored by the replay, 1 rejected"),
+            line.contains("600 stored by the replay, 4 rejected"),
             "{line}"
         );
         assert!(line.contains("550 LOST in replay restarts"), "{line}");
@@ -316,6 +362,17 @@ mod tests {
         assert_eq!(p.row_env_steps(3000), 2000);
         p.actor_steps = vec![30_000, 30_009];
         assert_eq!(p.row_env_steps(3000), 3000);
+        // a restarted replay's count (its snapshot's) and restarted actors' do not take rows back
+        let mut p = Progress {
+            actor_steps: vec![700, 500],
+            ..Progress::default()
+        };
+        p.replay_status(status(2000, 0));
+        assert_eq!(p.row_env_steps(3000), 2000);
+        p.replay_crashed(None);
+        p.replay_status(status(1500, 1500));
+        p.actor_steps = vec![10, 500];
+        assert_eq!(p.row_env_steps(3000), 2000);
     }
 
     #[test]

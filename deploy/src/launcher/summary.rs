@@ -54,7 +54,7 @@ pub(super) fn step_summary(
     let total = sent.values().sum::<u64>() + costs.killed_actor_steps;
     let mut line = format!("{}; steps: ", end.said());
     let taken = read(&dir.join(REPLAY_REPORT))
-        .map(|replay| replay_steps(&mut line, dir, &replay, costs.lost, end));
+        .map(|replay| replay_steps(&mut line, dir, &replay, &costs, end));
     line += &format!(
         "; the actors report {total} sent ({}{})",
         shares.join(" / "),
@@ -108,15 +108,16 @@ fn pauses(s: &Stalls) -> String {
 
 /// Appends to `line` what the replay of the run in `dir` took, from its report `replay` and
 /// its per-actor counts: stored (of each actor), short of the budget (why: `end`) or past it,
-/// rejected, its longest stall, and `lost`, the steps lost in its crashes; returns the steps it
-/// took (stored, surplus or lost).
+/// rejected (by every start: those that crashed are in `costs`), its longest stall, and the
+/// steps lost in its crashes (`costs`); returns the steps it took (stored, surplus or lost).
 fn replay_steps(
     line: &mut String,
     dir: &Path,
     replay: &serde_json::Value,
-    lost: u64,
+    costs: &RestartCosts,
     end: RunEnd,
 ) -> u64 {
+    let lost = costs.lost;
     let stored = replay["inserted"].as_u64().unwrap_or(0);
     *line += &format!("{stored} stored by the replay");
     // what the replay itself took of each actor: its count, not the actors' claims
@@ -145,7 +146,7 @@ fn replay_steps(
     }
     *line += &format!(
         ", {} rejected{}, longest replay stall {:.1} ms",
-        replay["rejected"],
+        replay["rejected"].as_u64().unwrap_or(0) + costs.rejected_by_crashed_replays,
         if streams.rejected_by_actor.iter().any(|&n| n > 0) {
             format!(
                 " (chunks of each actor {})",
