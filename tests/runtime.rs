@@ -1078,6 +1078,10 @@ fn truncated_segments_end_the_run_loudly_and_the_next_run_sweeps_them() {
             stderr.contains("shared memory was truncated or removed under the launcher"),
             "{stderr}"
         );
+    } else {
+        // a role that found a truncated segment exits as on a bad config: the run stops at
+        // once, with its closing line, instead of restarting it over and over
+        assert!(stderr.contains("stopped by the error below"), "{stderr}");
     }
     // the next run, elsewhere: it sweeps what the dead run left and trains to the end
     let (next, next_run) = launch(b.path(), 1500, 1);

@@ -175,7 +175,12 @@ fn main() {
     if let Err(e) = result {
         eprintln!("error: {e:#}");
         // a run's process that would fail the same way again tells its launcher so
-        let permanent = e.chain().any(|cause| cause.is::<ConfigError>());
+        let permanent = e.chain().any(|cause| {
+            cause.is::<ConfigError>()
+                || cause
+                    .downcast_ref::<ctxrace_ipc::IpcError>()
+                    .is_some_and(ctxrace_ipc::IpcError::is_permanent)
+        });
         std::process::exit(if permanent { CONFIG_EXIT_CODE } else { 1 });
     }
 }

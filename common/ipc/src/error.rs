@@ -220,6 +220,19 @@ pub enum IpcError {
     },
 }
 
+impl IpcError {
+    /// Whether a restarted process would meet this again: the run's shared memory is unusable
+    /// (a segment truncated under it, a file or folder another user owns or can enter), so
+    /// that the process exits as on a bad configuration and the launcher stops the run at once
+    /// instead of spending its restarts.
+    pub fn is_permanent(&self) -> bool {
+        matches!(
+            self,
+            Self::TruncatedSegment { .. } | Self::ForeignFile { .. } | Self::RootNotPrivate { .. }
+        )
+    }
+}
+
 /// The outcome of a transport operation.
 pub type Result<T, E = IpcError> = std::result::Result<T, E>;
 
