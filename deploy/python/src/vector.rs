@@ -5,7 +5,7 @@
 
 use crate::{bytes_of, load_track, pairs, race_config, BindError, Result};
 use ctxrace_config::Context;
-use ctxrace_render::race::{moment_rgb, race_title, Frame};
+use ctxrace_render::race::{moment_rgb, race_title, render_race, Frame};
 use ctxrace_sim::vector::{Autoreset, EnvOutcome, RaceVector};
 use pyo3::prelude::*;
 use pyo3::types::PyBytes;
@@ -73,6 +73,21 @@ impl PyRaceVector {
             };
             let obs = &self.obs[i * dim..(i + 1) * dim];
             frames.push(Frame::capture(env, action, self.outcomes[i].reward, obs));
+        }
+    }
+
+    /// Env `env` and the frames it recorded; an error naming the fix where the vector does not
+    /// record or has no such env.
+    fn recorded(&self, env: usize) -> Result<(&ctxrace_sim::RaceEnv, &[Frame])> {
+        match (self.frames.get(env), self.inner.envs().nth(env)) {
+            (Some(frames), Some(race)) => Ok((race, frames)),
+            _ if self.frames.is_empty() => Err(BindError::Argument(
+                "this vector records nothing to draw: make it with record=True".into(),
+            )),
+            _ => Err(BindError::Argument(format!(
+                "env {env} is no env of {}",
+                self.frames.len()
+            ))),
         }
     }
 
@@ -220,14 +235,7 @@ impl PyRaceVector {
         env: usize,
         width: u32,
     ) -> PyResult<(Bound<'py, PyBytes>, u32, u32)> {
-        let (Some(frames), Some(race)) = (self.frames.get(env), self.inner.envs().nth(env)) else {
-            return Err(BindError::Argument(if self.frames.is_empty() {
-                "this vector records nothing to draw: make it with record=True".into()
-            } else {
-                format!("env {env} is no env of {}", self.frames.len())
-            })
-            .into());
-        };
+        let (race, frames) = self.recorded(env)?;
         let title = race_title(&self.track, "agent", race);
         let picture = py
             .detach(|| moment_rgb(race.track(), frames, &title, width))
@@ -237,6 +245,30 @@ impl PyRaceVector {
             picture.height,
             picture.width,
         ))
+    }
+
+    /// Env `env`'s episode so far: its metrics as `ctxrace race --json` reports them (progress,
+    /// overtakes, collisions, lap time, return, ...) and what ended it, as JSON.
+    fn metrics(&self, env: usize) -> PyResult<String> {
+        let race = self.inner.envs().nth(env).ok_or_else(|| {
+            BindError::Argument(format!("env {env} is no env of {}", self.inner.len()))
+        })?;
+        let mut json = serde_json::to_value(race.metrics()).map_err(|e| {
+            BindError::Argument(format!("the episode's metrics do not serialise: {e}"))
+        })?;
+        json["ended_by"] = race.metrics().ended_by().into();
+        Ok(json.to_string())
+    }
+
+    /// Draws env `env`'s recorded episode as `ctxrace race --render` does (a `.gif` animation,
+    /// else a picture of its last moment by the extension: `.png` or `.svg`) into `path`, titled
+    /// with the ego's name `ego`. Needs a vector made to record.
+    fn save_render(&self, py: Python<'_>, env: usize, path: PathBuf, ego: &str) -> PyResult<()> {
+        let (race, frames) = self.recorded(env)?;
+        let title = race_title(&self.track, ego, race);
+        py.detach(|| render_race(&path, race.track(), frames, &title))
+            .map_err(|e| BindError::Render(e.into()))?;
+        Ok(())
     }
 
     /// Starts every env's next episode from `seed` (env `i`: reset seed `seed + i`);

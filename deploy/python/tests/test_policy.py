@@ -126,3 +126,26 @@ def test_a_trained_run_evaluates_on_its_own_race_unless_told_otherwise(tmp_path,
     assert all(e["steps"] <= 5 for e in filed.episodes)
     # a checkpoint alone knows no run: the function's defaults
     assert ctxrace.load_policy(CHECKPOINT).track is None
+
+
+def test_a_race_from_python_is_the_command_lines_race_and_draws_it(tmp_path, ctxrace_bin):
+    out = subprocess.run(
+        [ctxrace_bin, "race", "generated:0", "--policy", CHECKPOINT, "--context", "0.1,-0.2",
+         "--seed", "3", "--json"],
+        check=True, capture_output=True,
+    )
+    cli = json.loads(out.stdout)
+    gif = tmp_path / "race.gif"
+    mine = ctxrace.race(ctxrace.load_policy(CHECKPOINT), "generated:0", context=(0.1, -0.2),
+                        seed=3, render=gif)
+    for key in ["progress", "overtakes", "a2a", "wall_crash", "steps", "episode_return",
+                "ended_by"]:
+        assert mine[key] == cli[key], key
+    assert gif.read_bytes()[:4] == b"GIF8"
+    # a callable drives too; a picture by its extension, a bad one refused by name
+    still = ctxrace.race(lambda obs, ctx: np.zeros((1, 2)), rivals=2, render=tmp_path / "r.png")
+    assert still["steps"] > 0 and (tmp_path / "r.png").stat().st_size > 1000
+    with pytest.raises(ValueError, match="gif"):
+        ctxrace.race(lambda obs, ctx: np.zeros((1, 2)), render=tmp_path / "r.bmp")
+    with pytest.raises(TypeError, match="callable"):
+        ctxrace.race(3)

@@ -1,7 +1,8 @@
 """ctxrace from Python: contextual head-to-head F1TENTH races on ctxrace's Rust simulator as
 Gymnasium envs (``gymnasium.make("ctxrace/Race-v0", ...)``, ``gymnasium.make_vec(
 "ctxrace/Race-v0", num_envs=N, ...)`` or `make_vec`), and the paper's
-evaluation protocol for any policy (`evaluate`); trained agents' policies (`load_policy`);
+evaluation protocol for any policy (`evaluate`); one race of any policy, drawn (`race`);
+trained agents' policies (`load_policy`);
 tracks (`ctxrace.tracks.list`, `ctxrace.tracks.download`)."""
 
 import gymnasium
@@ -11,6 +12,7 @@ from ctxrace._ctxrace import __version__
 from ctxrace._env import OBS_MODES, RaceEnv, RaceVectorEnv, make_vec
 from ctxrace._evaluate import REFERENCE_POLICIES, Evaluation, evaluate
 from ctxrace._policy import TrainedPolicy, load_policy
+from ctxrace._race import race
 
 __all__ = [
     "__version__",
@@ -23,6 +25,7 @@ __all__ = [
     "REFERENCE_POLICIES",
     "load_policy",
     "TrainedPolicy",
+    "race",
     "tracks",
 ]
 
