@@ -184,10 +184,20 @@ pub fn run(args: TrainArgs) -> Result<()> {
     }
     let cfg = experiment(&args)?;
     let actors = if args.inline { 1 } else { args.actors };
-    check_machine(&cfg, actors, &Machine::this(), args.oversubscribe)?;
     // everything a process of the run needs is resolved here, before the run directory is
     // touched: an error it would meet at every restart stops the launch at once
     let track = Arc::new(args.tracks.load(&cfg.track, &cfg.race)?);
+    let map_pixels = track
+        .map
+        .as_ref()
+        .map_or(0, |m| (m.width * m.height) as u64);
+    check_machine(
+        &cfg,
+        actors,
+        map_pixels,
+        &Machine::this(),
+        args.oversubscribe,
+    )?;
     if !args.no_track_check {
         check_training_track(&track, &cfg)?;
     }

@@ -87,7 +87,7 @@ fn launch(text: &str, track: Arc<Track>) -> Result<bool, String> {
         memory: 24 << 30,
         cores: 2,
     };
-    if cfg.validate_run(1).is_err() || check_machine(&cfg, 1, &machine, false).is_err() {
+    if cfg.validate_run(1).is_err() || check_machine(&cfg, 1, 0, &machine, false).is_err() {
         return Ok(false);
     }
     let plan = CheckPlan {

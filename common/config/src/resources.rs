@@ -55,7 +55,7 @@ fn gib(bytes: u64) -> String {
 
 /// The memory a run needs at least, by where it goes (bytes): the replay buffer at capacity,
 /// the learner's parameters with their gradients and Adam moments and its largest activations,
-/// and the actors' policies.
+/// the actors' policies, and the map of each process that loads the track.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct MemoryEstimate {
     /// The replay buffer, full.
@@ -64,12 +64,19 @@ pub struct MemoryEstimate {
     pub learner: u64,
     /// Every actor's acting policy.
     pub actors: u64,
+    /// The track's map in every process that loads it (each actor and the launcher): a byte a
+    /// pixel held, and 4 more while its image is decoded (RGBA).
+    pub maps: u64,
 }
 
+/// Bytes a map pixel takes in a process that loads it, at the peak of its loading.
+const MAP_BYTES_PER_PIXEL: u64 = 5;
+
 impl MemoryEstimate {
-    /// The estimate for `cfg` with `actors` actor processes (float arithmetic: a size that
-    /// overflows an integer comes out as the largest `u64`).
-    pub fn of(cfg: &ExperimentConfig, actors: usize) -> Self {
+    /// The estimate for `cfg` with `actors` actor processes on a track whose map has
+    /// `map_pixels` pixels (0 for a procedural track) (float arithmetic: a size that overflows
+    /// an integer comes out as the largest `u64`).
+    pub fn of(cfg: &ExperimentConfig, actors: usize, map_pixels: u64) -> Self {
         const F32: f64 = 4.0;
         let beams = cfg.race.lidar.beams as f64;
         let act = 2.0;
@@ -121,6 +128,9 @@ impl MemoryEstimate {
             replay: replay.min(u64::MAX as f64) as u64,
             learner: bytes(4.0 * params + activations),
             actors: bytes(policy * actors as f64),
+            maps: map_pixels
+                .saturating_mul(MAP_BYTES_PER_PIXEL)
+                .saturating_mul(actors as u64 + 1),
         }
     }
 
@@ -129,6 +139,7 @@ impl MemoryEstimate {
         self.replay
             .saturating_add(self.learner)
             .saturating_add(self.actors)
+            .saturating_add(self.maps)
     }
 }
 
@@ -136,10 +147,11 @@ impl std::fmt::Display for MemoryEstimate {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "replay {}, learner {}, actors {}",
+            "replay {}, learner {}, actors {}, maps {}",
             gib(self.replay),
             gib(self.learner),
-            gib(self.actors)
+            gib(self.actors),
+            gib(self.maps)
         )
     }
 }
@@ -177,12 +189,14 @@ impl Machine {
 /// Actor processes a core may run without `oversubscribe`.
 pub const MAX_ACTORS_PER_CORE: usize = 4;
 
-/// Checks that a run of `cfg` with `actors` actors fits `machine`: its memory estimate within
+/// Checks that a run of `cfg` with `actors` actors on a track whose map has `map_pixels`
+/// pixels fits `machine`: its memory estimate within
 /// the machine's memory, learner threads set in the config within its cores, and at most
 /// [`MAX_ACTORS_PER_CORE`] actors a core unless `oversubscribe`.
 pub fn check_machine(
     cfg: &ExperimentConfig,
     actors: usize,
+    map_pixels: u64,
     machine: &Machine,
     oversubscribe: bool,
 ) -> Result<(), ResourceError> {
@@ -198,7 +212,7 @@ pub fn check_machine(
             cores: machine.cores,
         });
     }
-    let estimate = MemoryEstimate::of(cfg, actors);
+    let estimate = MemoryEstimate::of(cfg, actors, map_pixels);
     if estimate.total() > machine.memory {
         return Err(ResourceError::Memory {
             estimate,
@@ -223,11 +237,11 @@ mod tests {
             cores: 2,
         };
         let paper = cfg("[agent]\nalgo = \"cmask\"\n").unwrap();
-        check_machine(&paper, 2, &small, false).unwrap();
+        check_machine(&paper, 2, 0, &small, false).unwrap();
         let big =
             cfg("[agent]\nalgo = \"cmask\"\n[agent.dreamer]\nhorizon = 1000\nunits = 16384\n")
                 .unwrap();
-        let err = check_machine(&big, 2, &small, false)
+        let err = check_machine(&big, 2, 0, &small, false)
             .unwrap_err()
             .to_string();
         assert!(
@@ -235,7 +249,7 @@ mod tests {
             "{err}"
         );
         let threads = cfg("[train]\nthreads = 100000\n").unwrap();
-        let err = check_machine(&threads, 1, &small, false)
+        let err = check_machine(&threads, 1, 0, &small, false)
             .unwrap_err()
             .to_string();
         assert!(
@@ -243,15 +257,28 @@ mod tests {
             "{err}"
         );
         // 64 actors on 2 cores: refused unless asked for
-        let err = check_machine(&paper, 64, &small, false)
+        let err = check_machine(&paper, 64, 0, &small, false)
             .unwrap_err()
             .to_string();
         assert!(
             err.contains("64 actor processes on 2 cores") && err.contains("--oversubscribe"),
             "{err}"
         );
-        check_machine(&paper, 8, &small, false).unwrap();
-        check_machine(&paper, 64, &small, true).unwrap();
+        check_machine(&paper, 8, 0, &small, false).unwrap();
+        check_machine(&paper, 64, 0, &small, true).unwrap();
+        // a map of 10,000 x 10,000 pixels (the largest image a track may have) in 8 actors and
+        // the launcher: 4.2 GiB, counted
+        let maps = MemoryEstimate::of(&paper, 8, 100_000_000);
+        assert_eq!(maps.maps, 4_500_000_000);
+        let lone = Machine {
+            memory: 4 << 30,
+            cores: 2,
+        };
+        let err = check_machine(&paper, 8, 100_000_000, &lone, false)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("maps 4.2 GiB"), "{err}");
+        check_machine(&paper, 8, 1_000_000, &lone, false).unwrap();
         assert!(Machine::this().memory > 0 && Machine::this().cores > 0);
     }
 }
