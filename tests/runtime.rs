@@ -196,6 +196,9 @@ fn check_clean_run(run: &Path, actors: usize) {
         Some(0),
         "{status}"
     );
+    // the last status.json was written after the replay's final counts
+    assert_eq!(status["replay"]["inserted"], replay["inserted"], "{status}");
+    assert_eq!(status["env_steps"], replay["inserted"], "{status}");
     let last_step = status["grad_steps"].as_u64().unwrap();
     // the replay's last count of each actor's stored steps: together, all it inserted
     assert_eq!(

@@ -38,12 +38,15 @@ use anyhow::{bail, Context as _, Result};
 use ctxrace_config::ExperimentConfig;
 use ctxrace_ipc::{claim_run, run_prefix, RunTransport};
 use ctxrace_run::lock::DirLock;
-use ctxrace_run::run_dir::LOGS;
+use ctxrace_run::results::read_json;
+use ctxrace_run::run_dir::{LOGS, REPLAY_REPORT};
 use std::path::Path;
 
 use bus_error::explain_bus_errors;
 use children::{Children, Supervised};
 use cleanup::{remove_run, sweep_dead_runs};
+use progress::replay_streams;
+use status::write_status;
 use summary::{step_summary, RunEnd};
 use supervise::supervise;
 
@@ -71,10 +74,17 @@ pub fn run(
     claim_run(&prefix)?;
     let mut children = processes(dir, &prefix, lock, actors, tracks)?;
     let transport = RunTransport::open(&prefix, actors, "launcher")?;
-    let run = supervise(cfg, dir, &transport, &mut children);
+    let mut run = supervise(cfg, dir, &transport, &mut children);
     children.stop()?;
     drop(transport);
     remove_run(&prefix);
+    // the last status, after every role's final counts: the replay's report as it stopped
+    if let Ok(report) = read_json(&dir.join(REPLAY_REPORT)) {
+        run.p.replay_report(&report);
+    }
+    if let Err(e) = write_status(dir, &run.p, &replay_streams(dir), &run.stalls) {
+        eprintln!("warning: the run's last status.json: {e:#}");
+    }
     let end = run.end.as_ref().map_or(RunEnd::Failed, |&end| end);
     eprintln!("{}", step_summary(dir, run.costs, &run.stalls, end));
     run.end.map(|_| ())

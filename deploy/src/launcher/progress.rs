@@ -144,6 +144,38 @@ impl Progress {
         self.replay = s;
     }
 
+    /// Takes the replay's final counts from the report it writes as it stops (its last start's:
+    /// a crashed start's rejections stay carried), so that the status written after every role
+    /// has stopped holds them, not the last status the replay sent before.
+    pub(super) fn replay_report(&mut self, report: &serde_json::Value) {
+        let count = |key: &str| report[key].as_u64();
+        let r = &mut self.replay;
+        for (field, key) in [
+            (&mut r.inserted, "inserted"),
+            (&mut r.sampled, "sampled"),
+            (&mut r.fill, "fill"),
+            (&mut r.capacity, "capacity"),
+            (&mut r.dropped_chunks, "dropped_chunks"),
+            (&mut r.rejected, "rejected"),
+            (&mut r.batches, "batches"),
+            (&mut r.inserted_at_last_batch, "inserted_at_last_batch"),
+            (&mut r.restored_inserts, "restored_inserts"),
+        ] {
+            if let Some(n) = count(key) {
+                *field = n;
+            }
+        }
+        if let Some(by_reason) = report["rejected_by_reason"].as_object() {
+            for (slot, name) in r.rejected_by_reason.iter_mut().zip(REASONS) {
+                *slot = by_reason.get(name).and_then(|n| n.as_u64()).unwrap_or(0);
+            }
+        }
+        if let Some(ms) = report["longest_turn_ms"].as_f64() {
+            r.longest_turn_us = (ms * 1e3).round().clamp(0.0, u32::MAX as f64) as u32;
+        }
+        (self.env_steps, self.fill, self.capacity) = (r.inserted, r.fill, r.capacity);
+    }
+
     /// Notes a replay crash, taking `last`, the dead replay's status not yet read.
     pub(super) fn replay_crashed(&mut self, last: Option<ReplayStatus>) {
         if let Some(s) = last {
@@ -346,6 +378,24 @@ mod tests {
             clean.starts_with("interrupted (SIGINT or SIGTERM); steps:"),
             "{clean}"
         );
+    }
+
+    #[test]
+    fn the_replays_final_report_replaces_its_last_status() {
+        let mut p = Progress::default();
+        p.replay_status(status(900, 0));
+        let report = serde_json::json!({
+            "inserted": 1000, "sampled": 64, "fill": 1000, "capacity": 4000, "rejected": 2,
+            "rejected_by_reason": { "dims": 2 }, "longest_turn_ms": 1.5,
+        });
+        p.replay_report(&report);
+        assert_eq!(
+            (p.env_steps, p.replay.inserted, p.replay.sampled),
+            (1000, 1000, 64)
+        );
+        assert_eq!(p.replay.longest_turn_us, 1500);
+        let dims = REASONS.iter().position(|&r| r == "dims").unwrap();
+        assert_eq!(p.replay_rejected_by_reason()[dims], 2);
     }
 
     #[test]

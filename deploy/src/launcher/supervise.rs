@@ -24,8 +24,10 @@ use super::progress::{replay_streams, Progress, RestartCosts};
 use super::status::write_status;
 use super::summary::RunEnd;
 
-/// What the supervision loop leaves for the run's closing line.
+/// What the supervision loop leaves for the run's last status and closing line.
 pub(super) struct Supervision {
+    /// The run's figures as the loop last saw them.
+    pub(super) p: Progress,
     /// What restarts cost the run.
     pub(super) costs: RestartCosts,
     /// The longest pauses it saw.
@@ -46,6 +48,7 @@ pub(super) fn supervise(
         Ok(s) => s,
         Err(e) => {
             return Supervision {
+                p: Progress::new(actors),
                 costs: RestartCosts::default(),
                 stalls: Stalls::new(actors),
                 end: Err(e),
@@ -56,6 +59,7 @@ pub(super) fn supervise(
     Supervision {
         costs: s.p.restart_costs(),
         stalls: s.liveness.stalls.clone(),
+        p: s.p,
         end,
     }
 }
