@@ -302,6 +302,11 @@ mod tests {
         }
     }
 
+    /// The closing line of a run that trained to its end, its pauses none.
+    fn closing_line(dir: &Path, p: &Progress) -> String {
+        step_summary(dir, p.restart_costs(), &Stalls::new(2), RunEnd::Trained)
+    }
+
     #[test]
     fn steps_stored_before_a_replay_crash_and_not_restored_count_as_lost() {
         let mut p = Progress::default();
@@ -344,12 +349,7 @@ mod tests {
         }
         let replay = serde_json::json!({ "inserted": 600, "rejected": 1, "longest_turn_ms": 1.0 });
         std::fs::write(dir.path().join(REPLAY_REPORT), replay.to_string()).unwrap();
-        let line = step_summary(
-            dir.path(),
-            p.restart_costs(),
-            &Stalls::new(2),
-            RunEnd::Trained,
-        );
+        let line = closing_line(dir.path(), &p);
         // the last replay's 1 and the 3 of the start that crashed
         assert!(
             line.contains("600 stored by the replay, 4 rejected"),
@@ -449,12 +449,7 @@ mod tests {
         std::fs::create_dir(&actors).unwrap();
         let report = serde_json::json!({ "id": 1, "sent_steps": 700, "dropped_steps": 0 });
         std::fs::write(actors.join("actor-1-0.json"), report.to_string()).unwrap();
-        let line = step_summary(
-            dir.path(),
-            p.restart_costs(),
-            &Stalls::new(2),
-            RunEnd::Trained,
-        );
+        let line = closing_line(dir.path(), &p);
         assert!(
             line.contains("the actors report 1000 sent (700, and 300 by killed actors"),
             "{line}"
