@@ -95,27 +95,27 @@ impl MetricsLog {
         })
     }
 
-    /// Appends one row.
+    /// Appends one row. Each line goes to its file in one write, so that a process killed
+    /// while logging leaves whole lines (a line written piece by piece could be cut after its
+    /// first byte, and its restart's next line appended to that piece).
     pub fn write(&mut self, row: &Metrics) -> Result<()> {
         let (jsonl, jsonl_path) = &mut self.jsonl;
-        serde_json::to_writer(&mut *jsonl, row).map_err(|source| LogError::Json {
+        let mut line = serde_json::to_vec(row).map_err(|source| LogError::Json {
             path: jsonl_path.clone(),
             source,
         })?;
-        jsonl.write_all(b"\n").map_err(|source| LogError::Write {
+        line.push(b'\n');
+        jsonl.write_all(&line).map_err(|source| LogError::Write {
             path: jsonl_path.clone(),
             source,
         })?;
         let (csv, csv_path) = &mut self.csv;
-        let write_error = |source| LogError::Write {
-            path: csv_path.clone(),
-            source,
-        };
+        let mut lines = String::new();
         let columns = match &self.columns {
             Some(c) => c,
             None => {
                 let c: Vec<String> = row.keys().cloned().collect();
-                writeln!(csv, "{}", c.join(",")).map_err(write_error)?;
+                lines += &(c.join(",") + "\n");
                 self.columns.insert(c)
             }
         };
@@ -123,7 +123,12 @@ impl MetricsLog {
             .iter()
             .map(|k| row.get(k).map_or(String::new(), |v| v.to_string()))
             .collect();
-        writeln!(csv, "{}", cells.join(",")).map_err(write_error)?;
+        lines += &(cells.join(",") + "\n");
+        csv.write_all(lines.as_bytes())
+            .map_err(|source| LogError::Write {
+                path: csv_path.clone(),
+                source,
+            })?;
         let step = row.get("grad_steps").copied().unwrap_or(0.0) as u64;
         self.events
             .scalars(step, row.iter().map(|(k, v)| (k.as_str(), *v)))?;
