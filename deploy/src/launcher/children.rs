@@ -10,7 +10,7 @@ use std::path::Path;
 use std::process::{Child, Command, ExitStatus};
 use std::time::{Duration, Instant};
 
-use super::liveness::Overdue;
+use super::stalls::Overdue;
 
 /// Longest wait between two restarts of one process.
 const MAX_BACKOFF: Duration = Duration::from_secs(30);

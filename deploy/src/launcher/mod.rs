@@ -9,6 +9,7 @@
 //!   says otherwise);
 //! - [`mod@supervise`]: the supervision loop, one named step after the other each tick;
 //! - [`liveness`]: when a process counts as hung or stalled, and is killed;
+//! - [`stalls`]: the longest pauses a run has seen, whether or not they reached a timeout;
 //! - [`progress`]: the live figures, the episode rows and what restarts cost;
 //! - [`status`]: the run's live status file;
 //! - [`summary`]: the closing line on where the run's steps went;
@@ -29,6 +30,7 @@ mod children;
 mod cleanup;
 mod liveness;
 mod progress;
+mod stalls;
 mod status;
 mod summary;
 mod supervise;

@@ -289,7 +289,7 @@ pub(super) fn replay_streams(dir: &Path) -> ReplayStreams {
 
 #[cfg(test)]
 mod tests {
-    use super::super::liveness::Stalls;
+    use super::super::stalls::Stalls;
     use super::super::summary::{step_summary, RunEnd};
     use super::*;
     use ctxrace_run::run_dir::{ACTOR_REPORTS, REPLAY_REPORT};

@@ -8,8 +8,8 @@ use ctxrace_run::results::{read_json, write_json, ReplayStreams};
 use ctxrace_run::run_dir::{LEARNER_STATUS, STATUS_FILE};
 use std::path::Path;
 
-use super::liveness::Stalls;
 use super::progress::Progress;
+use super::stalls::Stalls;
 
 /// Writes the status file of the run in `dir` from the live figures `p`, the replay's
 /// per-actor counts `streams` ([`status`]) and the longest pauses so far, `stalls`.

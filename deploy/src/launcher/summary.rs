@@ -4,8 +4,8 @@ use ctxrace_run::run_dir::{ACTOR_REPORTS, REPLAY_REPORT};
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use super::liveness::Stalls;
 use super::progress::{replay_streams, RestartCosts};
+use super::stalls::Stalls;
 
 /// How a run's supervision ended.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -19,8 +19,9 @@ use std::time::{Duration, Instant};
 
 use super::children::{Children, Supervised};
 use super::cleanup::DeadNodeCleaner;
-use super::liveness::{Liveness, Stalls};
+use super::liveness::Liveness;
 use super::progress::{replay_streams, Progress, RestartCosts};
+use super::stalls::Stalls;
 use super::status::write_status;
 use super::summary::RunEnd;
 
