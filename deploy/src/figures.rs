@@ -838,19 +838,19 @@ struct RivalLaps {
 
 impl RivalLaps {
     /// Drives the laps from the start line.
-    fn drive(track: &Track, cfg: &RaceConfig, dimension: Dimension) -> Self {
+    fn drive(track: &Track, cfg: &RaceConfig, dimension: Dimension) -> Result<Self> {
         let laps = PROFILE_CONTEXTS
             .iter()
             .map(|&(c, colour)| {
-                let lap = drive_solo_lap(track, cfg, dimension.context(c), 0.0);
-                (c, colour, lap)
+                let lap = drive_solo_lap(track, cfg, dimension.context(c), 0.0)?;
+                Ok((c, colour, lap))
             })
-            .collect();
-        Self {
+            .collect::<Result<_>>()?;
+        Ok(Self {
             track: track.name.clone(),
             dimension,
             laps,
-        }
+        })
     }
 
     /// The legend entry of one lap, noting a wall hit.
@@ -866,10 +866,10 @@ impl RivalLaps {
 /// Writes the rival speed-profile and race-line figures of `track`.
 fn rival_figures(track: &Track, cfg: &RaceConfig, out: &Path) -> Result<Vec<PathBuf>> {
     let name = slug(&track.name);
-    let speeds = SpeedProfiles(RivalLaps::drive(track, cfg, Dimension::Speed));
+    let speeds = SpeedProfiles(RivalLaps::drive(track, cfg, Dimension::Speed)?);
     let lines = RaceLines {
         track,
-        laps: RivalLaps::drive(track, cfg, Dimension::Steer),
+        laps: RivalLaps::drive(track, cfg, Dimension::Steer)?,
     };
     let mut files = save_png_and_svg(&speeds, out, &format!("rival_speed_{name}"))?;
     files.extend(save_png_and_svg(

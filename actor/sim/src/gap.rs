@@ -383,7 +383,7 @@ mod tests {
         ] {
             for place in 1..=3 {
                 let start = place as f64 * cfg.grid_spacing(&track.name, track.length());
-                let lap = crate::rival::drive_solo_lap(&track, &cfg, context, start);
+                let lap = crate::rival::drive_solo_lap(&track, &cfg, context, start).unwrap();
                 assert!(
                     lap.completed,
                     "{context:?} from place {place}: wall at {:?} after {:.1} s",

@@ -23,9 +23,12 @@
 use crate::collision::CarBox;
 use crate::grid::grid_pose;
 use crate::lidar::{Lidar, NearbyWalls};
+use crate::policy_rival::{PolicyRival, RivalAgent, RivalAgentError};
 use crate::rival::RivalDriver;
 use crate::vehicle::{State, Vehicle, VehicleParams, DT};
-use ctxrace_config::{Context, CrashedRivals, RaceConfig, RaceConfigError, RivalContacts};
+use ctxrace_config::{
+    Context, CrashedRivals, RaceConfig, RaceConfigError, RivalContacts, RivalDriverKind,
+};
 use ctxrace_tracks::Track;
 use nalgebra::Point2;
 use rand::SeedableRng;
@@ -45,6 +48,10 @@ pub enum RaceError {
     /// `step` was called before `reset` or after the episode ended.
     #[error("step called on a finished episode; call reset first")]
     Finished,
+    /// The rivals' trained agent (`[rival] driver = "policy"`) could not be read or could not
+    /// act.
+    #[error(transparent)]
+    RivalAgent(#[from] RivalAgentError),
 }
 
 /// One car of the race and its progress along the centreline.
@@ -208,12 +215,26 @@ pub struct RaceEnv {
 }
 
 impl RaceEnv {
-    /// An environment on `track`; call [`RaceEnv::reset`] before stepping.
+    /// An environment on `track`; call [`RaceEnv::reset`] before stepping. With `[rival]
+    /// driver = "policy"` the rivals' agent is read here, once.
     pub fn new(track: Arc<Track>, cfg: RaceConfig) -> Result<Self, RaceError> {
         cfg.validate().map_err(RaceError::Config)?;
         cfg.validate_grid(&track.name, track.length())
             .map_err(RaceError::Config)?;
         let params = VehicleParams::default();
+        let drivers = match (&cfg.rival.policy, cfg.rival.driver) {
+            (Some(path), RivalDriverKind::Policy) => {
+                let agent = RivalAgent::load(path)?;
+                (0..cfg.rivals)
+                    .map(|_| {
+                        Ok(RivalDriver::Policy(Box::new(PolicyRival::new(
+                            &agent, &cfg,
+                        )?)))
+                    })
+                    .collect::<Result<_, RaceError>>()?
+            }
+            _ => Vec::new(),
+        };
         Ok(Self {
             lidar: Lidar::new(&cfg.lidar),
             nearby: NearbyWalls::default(),
@@ -221,7 +242,7 @@ impl RaceEnv {
             track,
             params,
             cars: Vec::new(),
-            drivers: Vec::new(),
+            drivers,
             others: Vec::new(),
             rng: ChaCha8Rng::seed_from_u64(0),
             context: Context::default(),
@@ -259,9 +280,17 @@ impl RaceEnv {
                 }
             })
             .collect();
-        self.drivers = (0..self.cfg.rivals)
-            .map(|_| RivalDriver::new(&self.cfg.rival, gains, context, &self.params))
-            .collect();
+        let mut kept = 0;
+        for (i, d) in self.drivers.iter_mut().enumerate() {
+            kept += usize::from(d.restart(gains, context, seed, i));
+        }
+        if kept != self.cfg.rivals {
+            self.drivers = (0..self.cfg.rivals)
+                .filter_map(|_| {
+                    RivalDriver::scripted(&self.cfg.rival, gains, context, &self.params)
+                })
+                .collect();
+        }
         self.steps = 0;
         self.rank = self.ego_rank();
         self.metrics = EpisodeMetrics::default();
@@ -365,6 +394,10 @@ impl RaceEnv {
             // the launch's decisions belong to this step: the agent sees none of them
             (wall_crash, a2a) = self.launch_decisions();
         }
+        if let Some(e) = self.drivers.iter_mut().find_map(RivalDriver::take_error) {
+            self.finished = true;
+            return Err(e.into());
+        }
         let ego = &self.cars[0];
         let ego_proj = self.track.project(&ego.vehicle.position(), Some(ego.hint));
         let length = self.track.length();
@@ -438,15 +471,10 @@ impl RaceEnv {
         })
     }
 
-    /// Maps an ego action to the command `(steering angle, speed)`.
+    /// Maps an ego action to the command `(steering angle, speed)`
+    /// ([`RaceConfig::action_to_command`]).
     pub fn action_to_command(&self, action: [f64; 2]) -> (f64, f64) {
-        let a0 = action[0].clamp(-1.0, 1.0);
-        let a1 = action[1].clamp(-1.0, 1.0);
-        let c = &self.cfg;
-        (
-            -a0 * c.max_steer,
-            c.min_speed + (a1 + 1.0) / 2.0 * (c.max_speed - c.min_speed),
-        )
+        self.cfg.action_to_command(action)
     }
 
     /// Maps a command `(steering angle, speed)` back to the ego action (clipped to `[-1, 1]²`).

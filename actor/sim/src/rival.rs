@@ -1,6 +1,6 @@
 //! The rivals' drivers ([`RivalDriver`], chosen by `[rival] driver`): pure pursuit on the
-//! raceline, its speed and lookahead scaled by the context (below), or follow-the-gap on the
-//! rival's own scan ([`crate::gap`]).
+//! raceline, its speed and lookahead scaled by the context (below), follow-the-gap on the
+//! rival's own scan ([`crate::gap`]), or a trained agent on it ([`crate::policy_rival`]).
 //!
 //! Each decision the driver searches the target point `g`: the first raceline point, going
 //! forward from the car's foot point, at distance `r = d_0 + k v` from the car (`d_0 = 1` m,
@@ -36,47 +36,69 @@
 
 use crate::collision::CarBox;
 use crate::gap::FollowTheGap;
+use crate::policy_rival::{PolicyRival, RivalAgent, RivalAgentError};
 use crate::vehicle::{idx, State, VehicleParams};
 use ctxrace_config::{
     Context, ContextGains, RivalConfig, RivalContacts, RivalDriverKind, SpeedPoint,
 };
 use ctxrace_tracks::{Raceline, Track};
 use nalgebra::Point2;
+use std::path::Path;
 
 /// A rival's driver, of the kind `[rival] driver` names; each plans from its own car's state.
-#[derive(Clone, Debug)]
+#[derive(Debug)]
 pub enum RivalDriver {
     /// Pure pursuit on the raceline ([`PurePursuit`]).
     PurePursuit(PurePursuit),
     /// Follow-the-gap on the car's own scan ([`FollowTheGap`]).
     FollowTheGap(Box<FollowTheGap>),
+    /// A trained agent on the car's own scan ([`PolicyRival`]).
+    Policy(Box<PolicyRival>),
 }
 
 impl RivalDriver {
-    /// The configured driver for a rival in context `ctx` (gains `gains`), on a car with
-    /// parameters `params`: its steering law's wheelbase and its steering limit are `cfg`'s
-    /// `wheelbase` and `max_steer` where set, else the car's.
-    pub fn new(
+    /// The scripted driver `cfg` names for a rival in context `ctx` (gains `gains`), on a car
+    /// with parameters `params`: its steering law's wheelbase and its steering limit are
+    /// `cfg`'s `wheelbase` and `max_steer` where set, else the car's. `None` for `policy`: a
+    /// trained agent is read once per race and restarted each episode
+    /// ([`RivalDriver::restart`]).
+    pub fn scripted(
         cfg: &RivalConfig,
         gains: ContextGains,
         ctx: Context,
         params: &VehicleParams,
-    ) -> Self {
+    ) -> Option<Self> {
         match cfg.driver {
-            RivalDriverKind::PurePursuit => Self::PurePursuit(PurePursuit::rival(
+            RivalDriverKind::PurePursuit => Some(Self::PurePursuit(PurePursuit::rival(
                 cfg,
                 gains,
                 ctx,
                 cfg.wheelbase.unwrap_or_else(|| params.wheelbase()),
                 cfg.max_steer.unwrap_or(params.s_max),
-            )),
-            RivalDriverKind::FollowTheGap => Self::FollowTheGap(Box::new(FollowTheGap::rival(
-                &cfg.follow_the_gap,
-                gains,
-                ctx,
-                cfg.max_steer.unwrap_or(params.s_max),
-                params.width,
             ))),
+            RivalDriverKind::FollowTheGap => {
+                Some(Self::FollowTheGap(Box::new(FollowTheGap::rival(
+                    &cfg.follow_the_gap,
+                    gains,
+                    ctx,
+                    cfg.max_steer.unwrap_or(params.s_max),
+                    params.width,
+                ))))
+            }
+            RivalDriverKind::Policy => None,
+        }
+    }
+
+    /// Starts a new episode for a driver that keeps itself across episodes (a trained agent:
+    /// see [`PolicyRival::restart`]); scripted drivers are built anew instead. Returns whether it
+    /// did.
+    pub fn restart(&mut self, gains: ContextGains, ctx: Context, seed: u64, index: usize) -> bool {
+        match self {
+            Self::Policy(p) => {
+                p.restart(gains, ctx, seed, index);
+                true
+            }
+            Self::PurePursuit(_) | Self::FollowTheGap(_) => false,
         }
     }
 
@@ -85,6 +107,7 @@ impl RivalDriver {
         match self {
             Self::PurePursuit(_) => RivalDriverKind::PurePursuit,
             Self::FollowTheGap(_) => RivalDriverKind::FollowTheGap,
+            Self::Policy(_) => RivalDriverKind::Policy,
         }
     }
 
@@ -99,6 +122,15 @@ impl RivalDriver {
         match self {
             Self::PurePursuit(pp) => pp.command(&track.raceline, x),
             Self::FollowTheGap(gap) => gap.command(&track.walls, others, x),
+            Self::Policy(p) => p.command(&track.walls, others, x),
+        }
+    }
+
+    /// A trained agent's error in a decision since the last call (its car stopped for it).
+    pub fn take_error(&mut self) -> Option<RivalAgentError> {
+        match self {
+            Self::Policy(p) => p.take_error(),
+            Self::PurePursuit(_) | Self::FollowTheGap(_) => None,
         }
     }
 }
@@ -331,13 +363,14 @@ pub struct SoloSample {
 /// race (10 Hz planning, 100 Hz physics, the configured steering delay), checking the walls as
 /// a race checks a rival's: at every physics step, or with `rival_contacts = "decision-end"` at
 /// each decision's last. For the drivability check of the evaluation contexts and the rival
-/// speed-profile and race-line figures.
+/// speed-profile and race-line figures. A rival that is a trained agent (`driver = "policy"`)
+/// is read first: the error says why it could not be.
 pub fn drive_solo_lap(
     track: &ctxrace_tracks::Track,
     cfg: &ctxrace_config::RaceConfig,
     context: Context,
     start_s: f64,
-) -> SoloLap {
+) -> Result<SoloLap, RivalAgentError> {
     use crate::vehicle::{Vehicle, DT};
     let params = VehicleParams::default();
     let centre = &track.centreline.curve;
@@ -345,7 +378,15 @@ pub fn drive_solo_lap(
     let mut car = Vehicle::new(params.clone(), p0.x, p0.y, yaw, cfg.steer_delay)
         .with_integrator(cfg.integrator);
     let gains = cfg.rival.gains_for(&track.name);
-    let mut driver = RivalDriver::new(&cfg.rival, gains, context, &params);
+    let mut driver = match RivalDriver::scripted(&cfg.rival, gains, context, &params) {
+        Some(scripted) => scripted,
+        None => {
+            let agent = RivalAgent::load(cfg.rival.policy.as_deref().unwrap_or(Path::new("")))?;
+            let mut policy = RivalDriver::Policy(Box::new(PolicyRival::new(&agent, cfg)?));
+            policy.restart(gains, context, 0, 0);
+            policy
+        }
+    };
     let length = centre.length();
     let (mut s, mut hint, mut travelled) = (centre.wrap_s(start_s), centre.locate(start_s).0, 0.0);
     let mut lap = SoloLap::default();
@@ -370,7 +411,7 @@ pub fn drive_solo_lap(
             {
                 lap.wall_hit_at = Some(centre.project_near(&car.position(), hint).s);
                 lap.time = (k + 1) as f64 * decision_time;
-                return lap;
+                return Ok(lap);
             }
         }
         let proj = centre.project_near(&car.position(), hint);
@@ -391,10 +432,10 @@ pub fn drive_solo_lap(
         });
         if travelled >= length {
             lap.completed = true;
-            return lap;
+            return Ok(lap);
         }
     }
-    lap
+    Ok(lap)
 }
 
 #[cfg(test)]

@@ -107,6 +107,12 @@ pub enum RaceConfigError {
     /// More rivals than a race holds.
     #[error("rivals = {0} must be 0 to 7")]
     Rivals(usize),
+    /// `[rival] driver = "policy"` without the agent to drive.
+    #[error(
+        "[rival] driver = \"policy\" needs the trained agent: set [rival] policy = \"RUN_DIR\" \
+         (its best checkpoint) or a checkpoint folder"
+    )]
+    PolicyMissing,
     /// `min_speed` is negative or not below `max_speed`.
     #[error("min_speed = {min_speed} must be in [0, max_speed = {max_speed})")]
     MinSpeed {
@@ -385,6 +391,18 @@ impl RaceConfig {
         self.physics_steps_per_action as f64 * PHYSICS_DT
     }
 
+    /// The command `(steering angle δ, speed v)` of a car's action `a ∈ [-1, 1]²` (clipped):
+    /// `δ = −a₀ max_steer` (negative `a₀` turns left) and `v = min_speed + (a₁ + 1)/2 ·
+    /// (max_speed − min_speed)`.
+    pub fn action_to_command(&self, action: [f64; 2]) -> (f64, f64) {
+        let a0 = action[0].clamp(-1.0, 1.0);
+        let a1 = action[1].clamp(-1.0, 1.0);
+        (
+            -a0 * self.max_steer,
+            self.min_speed + (a1 + 1.0) / 2.0 * (self.max_speed - self.min_speed),
+        )
+    }
+
     /// Most decisions in one episode: `max_time` over a decision's period.
     pub fn max_decisions(&self) -> usize {
         (self.max_time / self.decision_period()).ceil() as usize
@@ -551,6 +569,13 @@ impl RaceConfig {
         }
         if self.rivals > 7 {
             return Err(RaceConfigError::Rivals(self.rivals));
+        }
+        match (self.rival.driver, &self.rival.policy) {
+            (RivalDriverKind::Policy, None) => return Err(RaceConfigError::PolicyMissing),
+            (RivalDriverKind::Policy, Some(p)) if p.as_os_str().is_empty() => {
+                return Err(RaceConfigError::PolicyMissing)
+            }
+            _ => {}
         }
         if !(self.min_speed >= 0.0 && self.min_speed < self.max_speed) {
             return Err(RaceConfigError::MinSpeed {
@@ -791,17 +816,21 @@ pub enum RivalDriverKind {
     /// Follow-the-gap on the rival's own LiDAR scan, reactive and raceline-free (the keys of
     /// `[rival.follow_the_gap]`).
     FollowTheGap,
+    /// A trained ctxrace agent acting on the rival's own LiDAR scan and the race's context
+    /// (`policy`, `policy_deterministic`; its speed scaled by `1 + λ_v c_v`).
+    Policy,
 }
 
 impl RivalDriverKind {
     /// Every driver.
-    pub const ALL: [Self; 2] = [Self::PurePursuit, Self::FollowTheGap];
+    pub const ALL: [Self; 3] = [Self::PurePursuit, Self::FollowTheGap, Self::Policy];
 
     /// Its name in configs (`driver = "..."`), on the command line and in titles.
     pub fn name(self) -> &'static str {
         match self {
             Self::PurePursuit => "pure-pursuit",
             Self::FollowTheGap => "follow-the-gap",
+            Self::Policy => "policy",
         }
     }
 
@@ -809,7 +838,7 @@ impl RivalDriverKind {
     pub fn sees_cars(self) -> bool {
         match self {
             Self::PurePursuit => false,
-            Self::FollowTheGap => true,
+            Self::FollowTheGap | Self::Policy => true,
         }
     }
 }
@@ -922,10 +951,18 @@ impl Default for FollowTheGapConfig {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct RivalConfig {
-    /// Which driver plans the rivals' commands: `pure-pursuit` (the default, the paper's) or
+    /// Which driver plans the rivals' commands: `pure-pursuit` (the default, the paper's),
     /// `follow-the-gap` (reactive, from each rival's own scan; it reads `follow_the_gap` and the
-    /// context gains, not the pure-pursuit keys).
+    /// context gains, not the pure-pursuit keys) or `policy` (a trained agent: `policy`).
     pub driver: RivalDriverKind,
+    /// With `driver = "policy"`: the trained ctxrace agent every rival is, a run folder (its best
+    /// checkpoint) or one checkpoint folder, relative to the working directory. Each rival acts
+    /// on its own scan (the ego and the other rivals in it) and the race's context, as the agent
+    /// was trained to act as the ego; its speed command is scaled by `1 + λ_v c_v`.
+    pub policy: Option<std::path::PathBuf>,
+    /// With `driver = "policy"`: the rivals take the mode of each distribution instead of
+    /// sampling it (seeded per episode and rival).
+    pub policy_deterministic: bool,
     /// Fraction of the raceline speed driven (`slow_down`: 0.85 in the code that produced the
     /// paper's tables, c0fd903 and the development line before it; 0.8 in the release; its text
     /// says "reduced by 70%", i.e. 0.3, which its code never used).
@@ -979,6 +1016,8 @@ impl Default for RivalConfig {
         };
         Self {
             driver: RivalDriverKind::default(),
+            policy: None,
+            policy_deterministic: false,
             speed_factor: 0.85,
             max_speed: 6.0,
             lookahead: 1.0,
