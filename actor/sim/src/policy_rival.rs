@@ -47,7 +47,7 @@ pub enum RivalAgentError {
         path: PathBuf,
         /// The policy's error.
         #[source]
-        source: PolicyError,
+        source: Box<PolicyError>,
     },
 }
 
@@ -114,7 +114,7 @@ impl PolicyRival {
         let checkpoint = agent.trained.checkpoint.clone();
         let refused = |source| RivalAgentError::Policy {
             path: checkpoint.clone(),
-            source,
+            source: Box::new(source),
         };
         let t = &agent.trained;
         let mut policy = Policy::new(&t.agent, lidar.beams(), &t.weights, 0).map_err(refused)?;
@@ -174,7 +174,7 @@ impl PolicyRival {
     pub fn take_error(&mut self) -> Option<RivalAgentError> {
         self.error.take().map(|source| RivalAgentError::Policy {
             path: self.checkpoint.clone(),
-            source,
+            source: Box::new(source),
         })
     }
 }

@@ -51,7 +51,13 @@ pub enum RaceError {
     /// The rivals' trained agent (`[rival] driver = "policy"`) could not be read or could not
     /// act.
     #[error(transparent)]
-    RivalAgent(#[from] RivalAgentError),
+    RivalAgent(Box<RivalAgentError>),
+}
+
+impl From<RivalAgentError> for RaceError {
+    fn from(e: RivalAgentError) -> Self {
+        Self::RivalAgent(Box::new(e))
+    }
 }
 
 /// One car of the race and its progress along the centreline.
