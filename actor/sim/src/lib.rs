@@ -22,4 +22,4 @@ pub mod track_check;
 pub mod vector;
 pub mod vehicle;
 
-pub use race::{EpisodeMetrics, RaceEnv, RaceError, Step, StepInfo};
+pub use race::{AgentStep, EpisodeMetrics, RaceEnv, RaceError, Step, StepInfo};

@@ -48,6 +48,25 @@ pub enum RaceError {
     /// `step` was called before `reset` or after the episode ended.
     #[error("step called on a finished episode; call reset first")]
     Finished,
+    /// Actions for another number of cars than the race's agents.
+    #[error(
+        "{actions} action(s) for a race of {agents} agent(s): step takes the ego's action when \
+         the ego is the only agent, step_agents one action per agent"
+    )]
+    Agents {
+        /// The race's agents.
+        agents: usize,
+        /// The actions given.
+        actions: usize,
+    },
+    /// More agents than cars, or none.
+    #[error("agents = {agents} must be 1 to {cars} (the ego and its {rivals} rivals)", cars = .rivals + 1)]
+    AgentCount {
+        /// The agents asked for.
+        agents: usize,
+        /// The race's rivals.
+        rivals: usize,
+    },
     /// The rivals' trained agent (`[rival] driver = "policy"`) could not be read or could not
     /// act.
     #[error(transparent)]
@@ -72,6 +91,12 @@ pub struct Car {
     pub travelled: f64,
     /// The largest `travelled` reached.
     pub furthest: f64,
+    /// It crashed into a wall.
+    wall_hit: bool,
+    /// It crashed into another car.
+    car_hit: bool,
+    /// An agent whose episode ended without a crash (it drove backwards or completed the lap).
+    retired: bool,
     /// Centreline arc length at the last update.
     s: f64,
     /// Centreline segment at the last update.
@@ -197,6 +222,9 @@ fn centre_f32(v: &Vehicle) -> Point2<f32> {
     Point2::new(p.x as f32, p.y as f32)
 }
 
+mod agents;
+pub use agents::AgentStep;
+
 /// The race environment.
 pub struct RaceEnv {
     track: Arc<Track>,
@@ -212,7 +240,11 @@ pub struct RaceEnv {
     context: Context,
     steps: usize,
     max_steps: usize,
-    rank: usize,
+    /// Cars driven from outside: the ego and the `agents - 1` rivals behind the others
+    /// ([`RaceEnv::set_agents`]).
+    agents: usize,
+    /// Each agent's rank by distance travelled (1 the leader).
+    ranks: Vec<usize>,
     boxes: Vec<CarBox>,
     /// Every car's centre before the current physics step (for the `centre` wall contact).
     centres: Vec<Point2<f32>>,
@@ -253,7 +285,8 @@ impl RaceEnv {
             rng: ChaCha8Rng::seed_from_u64(0),
             context: Context::default(),
             steps: 0,
-            rank: 0,
+            agents: 1,
+            ranks: Vec::new(),
             boxes: Vec::new(),
             centres: Vec::new(),
             metrics: EpisodeMetrics::default(),
@@ -279,6 +312,9 @@ impl RaceEnv {
                     vehicle: Vehicle::new(self.params.clone(), p.x, p.y, yaw, self.cfg.steer_delay)
                         .with_integrator(self.cfg.integrator),
                     crashed: false,
+                    wall_hit: false,
+                    car_hit: false,
+                    retired: false,
                     travelled: s,
                     furthest: s,
                     s,
@@ -298,11 +334,11 @@ impl RaceEnv {
                 .collect();
         }
         self.steps = 0;
-        self.rank = self.ego_rank();
+        self.ranks = (0..self.agents).map(|i| self.rank_of(i)).collect();
         self.metrics = EpisodeMetrics::default();
         self.finished = false;
         self.launch();
-        self.observe()
+        self.observe_car(0)
     }
 
     /// With `ego_launch_below`, drives the ego straight at `ego_launch_speed` (the rivals
@@ -310,7 +346,9 @@ impl RaceEnv {
     /// over. From the back of the grid this takes about 0.1 s and cannot reach a rival.
     fn launch(&mut self) {
         self.launch_decisions();
-        self.rank = self.ego_rank();
+        for i in 0..self.agents {
+            self.ranks[i] = self.rank_of(i);
+        }
     }
 
     /// The launch's decisions, while the ego is slower than `ego_launch_below` (at most
@@ -324,7 +362,8 @@ impl RaceEnv {
             {
                 break;
             }
-            let (wall_crash, a2a) = self.advance(0.0, self.cfg.ego_launch_speed);
+            let launch = vec![(0.0, self.cfg.ego_launch_speed); self.agents];
+            let (wall_crash, a2a) = self.advance(&launch);
             if wall_crash || a2a {
                 return (wall_crash, a2a);
             }
@@ -333,9 +372,10 @@ impl RaceEnv {
     }
 
     /// One decision of physics: the rivals plan, then every car drives `physics_steps_per_action`
-    /// steps (the ego under the command `(steer, speed)`) until the ego crashes; then every car's
-    /// progress is updated. Returns (ego hit a wall, ego hit a rival).
-    fn advance(&mut self, steer: f64, speed: f64) -> (bool, bool) {
+    /// steps (agent `i` under the command `commands[i]`, `(steer, speed)`) until every agent
+    /// has crashed; then every car's progress is updated. Returns (ego hit a wall, ego hit a
+    /// rival) at the last physics step.
+    fn advance(&mut self, commands: &[(f64, f64)]) -> (bool, bool) {
         if self.drivers.iter().any(RivalDriver::sees_cars) {
             self.boxes.clear();
             self.boxes.extend(
@@ -344,10 +384,10 @@ impl RaceEnv {
                     .map(|c| CarBox::new(&c.vehicle.state, &self.params)),
             );
         }
-        let mut commands = Vec::with_capacity(self.drivers.len());
+        let mut planned = Vec::with_capacity(self.drivers.len());
         for (i, (d, car)) in self.drivers.iter_mut().zip(&self.cars[1..]).enumerate() {
-            if car.crashed {
-                commands.push((0.0, 0.0));
+            if car.crashed || i + 1 < self.agents {
+                planned.push((0.0, 0.0));
                 continue;
             }
             self.others.clear();
@@ -357,7 +397,7 @@ impl RaceEnv {
                 self.others
                     .extend(boxes.filter(|&(j, _)| j != i + 1).map(|(_, b)| *b));
             }
-            commands.push(d.command(&self.track, &self.others, &car.vehicle.state));
+            planned.push(d.command(&self.track, &self.others, &car.vehicle.state));
         }
         let mut wall_crash = false;
         let mut a2a = false;
@@ -367,15 +407,20 @@ impl RaceEnv {
             self.centres.clear();
             self.centres
                 .extend(self.cars.iter().map(|c| centre_f32(&c.vehicle)));
-            self.cars[0].vehicle.step(steer, speed);
+            for (car, &(st, sp)) in self.cars.iter_mut().zip(commands) {
+                if !car.crashed {
+                    car.vehicle.step(st, sp);
+                }
+            }
             let coast = self.cfg.crashed_rivals == CrashedRivals::Coast;
-            for (car, &(st, sp)) in self.cars[1..].iter_mut().zip(&commands) {
+            let scripted = self.cars[self.agents..].iter_mut();
+            for (car, &(st, sp)) in scripted.zip(&planned[self.agents - 1..]) {
                 if coast || !car.crashed {
                     car.vehicle.step(st, sp);
                 }
             }
             (wall_crash, a2a) = self.resolve_collisions(rivals_every_step || k + 1 == steps);
-            if wall_crash || a2a {
+            if self.cars[..self.agents].iter().all(|c| c.crashed) {
                 break;
             }
         }
@@ -391,11 +436,17 @@ impl RaceEnv {
         if self.finished {
             return Err(RaceError::Finished);
         }
+        if self.agents != 1 {
+            return Err(RaceError::Agents {
+                agents: self.agents,
+                actions: 1,
+            });
+        }
         if !action.iter().all(|a| a.is_finite()) {
             return Err(RaceError::BadAction(action));
         }
-        let (steer, speed) = self.action_to_command(action);
-        let (mut wall_crash, mut a2a) = self.advance(steer, speed);
+        let command = self.action_to_command(action);
+        let (mut wall_crash, mut a2a) = self.advance(&[command]);
         if self.cfg.ego_relaunch && !(wall_crash || a2a) {
             // the launch's decisions belong to this step: the agent sees none of them
             (wall_crash, a2a) = self.launch_decisions();
@@ -415,9 +466,9 @@ impl RaceEnv {
                 .is_some_and(|limit| ego.travelled < ego.furthest - limit);
         let progress = (ego.travelled / length).clamp(0.0, 1.0);
         self.metrics.progress = self.metrics.progress.max(progress);
-        let rank = self.ego_rank();
-        let overtakes = self.rank as i32 - rank as i32;
-        self.rank = rank;
+        let rank = self.rank_of(0);
+        let overtakes = self.ranks[0] as i32 - rank as i32;
+        self.ranks[0] = rank;
 
         let reward = reward(
             &self.cfg,
@@ -461,7 +512,7 @@ impl RaceEnv {
             }
         });
         Ok(Step {
-            obs: self.observe(),
+            obs: self.observe_car(0),
             reward,
             terminated,
             truncated,
@@ -505,7 +556,7 @@ impl RaceEnv {
         let n = self.cars.len();
         let mut ego_wall = false;
         let mut ego_a2a = false;
-        let tested = if rivals { n } else { 1 };
+        let tested = if rivals { n } else { self.agents };
         for i in 0..tested {
             if self.cars[i].crashed {
                 continue;
@@ -514,6 +565,7 @@ impl RaceEnv {
             if self.boxes[i].hits_wall_by(self.cfg.wall_contact, self.centres[i], &now, &self.track)
             {
                 self.crash(i);
+                self.cars[i].wall_hit = true;
                 ego_wall |= i == 0;
             }
         }
@@ -526,6 +578,8 @@ impl RaceEnv {
                 }
                 self.crash(i);
                 self.crash(j);
+                self.cars[i].car_hit = true;
+                self.cars[j].car_hit = true;
                 ego_a2a |= i == 0;
             }
         }
@@ -534,7 +588,7 @@ impl RaceEnv {
 
     fn crash(&mut self, i: usize) {
         self.cars[i].crashed = true;
-        if i == 0 || self.cfg.crashed_rivals == CrashedRivals::Stop {
+        if i < self.agents || self.cfg.crashed_rivals == CrashedRivals::Stop {
             self.cars[i].vehicle.stop();
         }
     }
@@ -556,20 +610,21 @@ impl RaceEnv {
         car.hint = proj.segment;
     }
 
-    /// 1-based rank of the ego by distance travelled (ties favour the ego).
-    fn ego_rank(&self) -> usize {
-        let ego = self.cars[0].travelled;
-        1 + self.cars[1..].iter().filter(|c| c.travelled > ego).count()
+    /// 1-based rank of car `i` by distance travelled (ties favour car `i`).
+    fn rank_of(&self, i: usize) -> usize {
+        let me = self.cars[i].travelled;
+        let others = self.cars.iter().enumerate().filter(|&(j, _)| j != i);
+        1 + others.filter(|(_, c)| c.travelled > me).count()
     }
 
-    fn observe(&mut self) -> Vec<f32> {
+    /// Car `i`'s LiDAR observation: its scan of the walls and every other car, normalised with
+    /// the race's noise.
+    fn observe_car(&mut self, i: usize) -> Vec<f32> {
         self.boxes.clear();
-        self.boxes.extend(
-            self.cars[1..]
-                .iter()
-                .map(|c| CarBox::new(&c.vehicle.state, &self.params)),
-        );
-        let ego = &self.cars[0].vehicle;
+        let others = self.cars.iter().enumerate().filter(|&(j, _)| j != i);
+        self.boxes
+            .extend(others.map(|(_, c)| CarBox::new(&c.vehicle.state, &self.params)));
+        let ego = &self.cars[i].vehicle;
         let mut obs = vec![0.0f32; self.lidar.beams()];
         self.lidar.ranges(
             ego.position(),
@@ -645,8 +700,14 @@ impl RaceEnv {
     /// m), its heading relative to the ego's (wrapped) and its speed. Every value lies within
     /// [`RaceEnv::state_bounds`].
     pub fn state_into(&self, out: &mut [f32]) {
+        self.state_of(0, out);
+    }
+
+    /// [`RaceEnv::state_into`] as car `i` sees the race: its own pose, speed and yaw rate, then
+    /// every other car relative to it, in grid order.
+    pub fn state_of(&self, i: usize, out: &mut [f32]) {
         use crate::vehicle::idx;
-        let ego = &self.cars[0].vehicle.state;
+        let ego = &self.cars[i].vehicle.state;
         let (yaw, (sin, cos)) = (ego[idx::YAW], ego[idx::YAW].sin_cos());
         out[..EGO_STATE].copy_from_slice(&[
             ego[idx::X] as f32,
@@ -655,10 +716,8 @@ impl RaceEnv {
             ego[idx::V] as f32,
             ego[idx::YAW_RATE] as f32,
         ]);
-        for (rival, o) in self.cars[1..]
-            .iter()
-            .zip(out[EGO_STATE..].chunks_exact_mut(RIVAL_STATE))
-        {
+        let others = self.cars.iter().enumerate().filter(|&(j, _)| j != i);
+        for ((_, rival), o) in others.zip(out[EGO_STATE..].chunks_exact_mut(RIVAL_STATE)) {
             let r = &rival.vehicle.state;
             let (dx, dy) = (r[idx::X] - ego[idx::X], r[idx::Y] - ego[idx::Y]);
             o.copy_from_slice(&[
