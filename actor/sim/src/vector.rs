@@ -96,6 +96,21 @@ pub struct EnvOutcome {
     pub wall_crash: bool,
 }
 
+/// The context an env draws first after a reset from `seed` (uniform in `±range`): a race of
+/// one env started from `seed` races as the vector's first env started from it.
+pub fn first_context(seed: u64, range: f64) -> Context {
+    draw_context(&mut ChaCha8Rng::seed_from_u64(seed), range)
+}
+
+/// A context uniform in `±range` (speed, then steering) from `stream`, as the training actors
+/// draw them.
+fn draw_context(stream: &mut ChaCha8Rng, range: f64) -> Context {
+    Context {
+        speed: stream.random_range(-range..=range),
+        steer: stream.random_range(-range..=range),
+    }
+}
+
 /// One env of the vector with its stream of episodes.
 struct Slot {
     env: RaceEnv,
@@ -114,10 +129,9 @@ impl Slot {
     /// Starts an episode from `seed` (drawn from the stream when `None`), writing its first
     /// observation into `obs`.
     fn start(&mut self, seed: Option<u64>, range: f64, obs: &mut [f32]) -> EnvOutcome {
-        let context = self.pinned.unwrap_or_else(|| Context {
-            speed: self.stream.random_range(-range..=range),
-            steer: self.stream.random_range(-range..=range),
-        });
+        let context = self
+            .pinned
+            .unwrap_or_else(|| draw_context(&mut self.stream, range));
         let seed = seed.unwrap_or_else(|| self.stream.random());
         obs.copy_from_slice(&self.env.reset(seed, context));
         self.ended = false;

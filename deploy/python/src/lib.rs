@@ -5,6 +5,7 @@
 //! (`ctxrace-run`) and the networks (`ctxrace-nn`), never the transport. Arrays cross as native-endian bytes that
 //! the Python side views with numpy; errors become Python exceptions naming what to fix.
 
+mod agents;
 mod evaluate;
 mod policy;
 mod tracks;
@@ -53,6 +54,9 @@ pub enum BindError {
     /// The vector of races refused the call.
     #[error(transparent)]
     Vector(#[from] VectorError),
+    /// The race refused an argument or could not go on.
+    #[error(transparent)]
+    Sim(#[from] ctxrace_sim::RaceError),
     /// An array's bytes do not hold whole values.
     #[error("{what} holds {bytes} bytes, no whole number of {size}-byte values")]
     Bytes {
@@ -204,6 +208,7 @@ fn bytes_of<'py, T: Copy, const N: usize>(
 #[pymodule]
 fn _ctxrace(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<vector::PyRaceVector>()?;
+    m.add_class::<agents::PyRaceAgents>()?;
     m.add_class::<evaluate::PyEvaluation>()?;
     m.add_class::<policy::PyPolicy>()?;
     m.add_function(wrap_pyfunction!(evaluate::evaluate_reference, m)?)?;

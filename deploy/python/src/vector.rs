@@ -25,7 +25,7 @@ pub const OUTCOME_COLUMNS: [&str; 9] = [
 ];
 
 /// One env's outcome as a row of the table ([`OUTCOME_COLUMNS`]).
-fn row(o: &EnvOutcome) -> [f64; 9] {
+pub fn row(o: &EnvOutcome) -> [f64; 9] {
     [
         o.reward,
         f64::from(u8::from(o.terminated)),

@@ -2,12 +2,13 @@
 Gymnasium envs (``gymnasium.make("ctxrace/Race-v0", ...)``, ``gymnasium.make_vec(
 "ctxrace/Race-v0", num_envs=N, ...)`` or `make_vec`), and the paper's
 evaluation protocol for any policy (`evaluate`); one race of any policy, drawn (`race`);
-trained agents' policies (`load_policy`);
-tracks (`ctxrace.tracks.list`, `ctxrace.tracks.download`)."""
+trained agents' policies (`load_policy`); multi-agent races as a PettingZoo ``ParallelEnv``
+(`parallel_env`); tracks (`ctxrace.tracks.list`, `ctxrace.tracks.download`)."""
 
 import gymnasium
 
 from ctxrace import tracks
+from ctxrace._agents import RaceParallelEnv, parallel_env
 from ctxrace._ctxrace import __version__
 from ctxrace._env import OBS_MODES, RaceEnv, RaceVectorEnv, make_vec
 from ctxrace._evaluate import REFERENCE_POLICIES, Evaluation, evaluate
@@ -26,6 +27,8 @@ __all__ = [
     "load_policy",
     "TrainedPolicy",
     "race",
+    "parallel_env",
+    "RaceParallelEnv",
     "tracks",
 ]
 

@@ -1,0 +1,203 @@
+//! `RaceAgents` for Python: one multi-agent race ([`RaceEnv::set_agents`]) for the package's
+//! PettingZoo `ParallelEnv`. The race keys' `rivals` count the scripted rivals; the agents'
+//! cars (the ego and the `agents - 1` cars ahead of it on the grid) come on top. Each call
+//! hands back every agent's observation and a row of the vector env's outcome table
+//! ([`crate::vector::OUTCOME_COLUMNS`]) per agent, as bytes.
+
+use crate::vector::row;
+use crate::{bytes_of, load_track, pairs, race_config, BindError};
+use ctxrace_config::Context;
+use ctxrace_sim::vector::{first_context, EnvOutcome, VectorError};
+use ctxrace_sim::{AgentStep, RaceEnv};
+use pyo3::prelude::*;
+use pyo3::types::PyBytes;
+use std::path::PathBuf;
+
+/// A race of several agents and its scripted rivals.
+#[pyclass(name = "RaceAgents", module = "ctxrace._ctxrace")]
+pub struct PyRaceAgents {
+    env: RaceEnv,
+    context_range: f64,
+    /// The race scenario as JSON (`rivals`: every car but the ego).
+    race: String,
+    /// The track's name.
+    track: String,
+}
+
+impl PyRaceAgents {
+    /// Every agent's observation (zeros for one whose episode ended) and outcome row as bytes.
+    fn arrays<'py>(
+        &self,
+        py: Python<'py>,
+        steps: &[AgentStep],
+    ) -> (Bound<'py, PyBytes>, Bound<'py, PyBytes>) {
+        let context = self.env.context();
+        let obs: Vec<f32> = steps.iter().flat_map(|s| s.obs.iter().copied()).collect();
+        let table: Vec<f64> = steps
+            .iter()
+            .flat_map(|s| {
+                row(&EnvOutcome {
+                    reward: s.reward,
+                    terminated: s.terminated,
+                    truncated: s.truncated,
+                    context,
+                    progress: s.info.progress,
+                    overtakes: s.info.overtakes,
+                    a2a: s.info.a2a,
+                    wall_crash: s.info.wall_crash,
+                })
+            })
+            .collect();
+        (
+            bytes_of(py, &obs, f32::to_ne_bytes),
+            bytes_of(py, &table, f64::to_ne_bytes),
+        )
+    }
+}
+
+#[pymethods]
+impl PyRaceAgents {
+    /// A race on `track` of the race config file `config` (none: the default scenario) with
+    /// the race keys `race_keys` (a JSON object) laid over it, `agents` of its cars driven from
+    /// Python and the keys' `rivals` scripted ones; contexts drawn from `±context_range`.
+    #[new]
+    #[pyo3(signature = (track, agents, race_keys="{}", config=None, tracks_dir=None, context_range=0.15))]
+    fn new(
+        track: &str,
+        agents: usize,
+        race_keys: &str,
+        config: Option<PathBuf>,
+        tracks_dir: Option<PathBuf>,
+        context_range: f64,
+    ) -> PyResult<Self> {
+        let mut cfg = race_config(config, race_keys)?;
+        if agents == 0 {
+            return Err(BindError::Argument("agents must be at least 1, not 0".into()).into());
+        }
+        cfg.rivals += agents - 1;
+        if !(0.0..=ctxrace_config::context::CONTEXT_LIMIT).contains(&context_range) {
+            return Err(BindError::from(VectorError::ContextRange(context_range)).into());
+        }
+        let track = load_track(track, tracks_dir, &cfg)?;
+        let mut env = RaceEnv::new(track.clone(), cfg.clone()).map_err(BindError::from)?;
+        env.set_agents(agents).map_err(BindError::from)?;
+        Ok(Self {
+            env,
+            context_range,
+            race: serde_json::to_string(&cfg).expect("a race config serialises"),
+            track: track.name.clone(),
+        })
+    }
+
+    /// Number of agents.
+    #[getter]
+    fn agents(&self) -> usize {
+        self.env.agents()
+    }
+
+    /// Values of an observation (the LiDAR beams).
+    #[getter]
+    fn obs_dim(&self) -> usize {
+        self.env.obs_dim()
+    }
+
+    /// The race scenario as JSON, every key resolved (`rivals` counts every car but the ego).
+    #[getter]
+    fn race_config(&self) -> &str {
+        &self.race
+    }
+
+    /// The track's name.
+    #[getter]
+    fn track(&self) -> &str {
+        &self.track
+    }
+
+    /// Values of one agent's state (its pose, speed and yaw rate, then every other car relative
+    /// to it).
+    #[getter]
+    fn state_dim(&self) -> usize {
+        self.env.state_dim()
+    }
+
+    /// The bounds `(low, high)` of each state value.
+    #[getter]
+    fn state_bounds(&self) -> (Vec<f32>, Vec<f32>) {
+        self.env.state_bounds()
+    }
+
+    /// Race time between two decisions (s).
+    #[getter]
+    fn decision_period(&self) -> f64 {
+        self.env.decision_period()
+    }
+
+    /// Whether the race has ended.
+    #[getter]
+    fn finished(&self) -> bool {
+        self.env.is_finished()
+    }
+
+    /// The race's context `(c_v, c_θ)`.
+    #[getter]
+    fn context(&self) -> (f64, f64) {
+        let c = self.env.context();
+        (c.speed, c.steer)
+    }
+
+    /// Every agent's state as native-endian `f32` bytes (`agents × state_dim`).
+    fn states<'py>(&self, py: Python<'py>) -> Bound<'py, PyBytes> {
+        let dim = self.env.state_dim();
+        let mut out = vec![0.0f32; dim * self.env.agents()];
+        for (i, o) in out.chunks_exact_mut(dim).enumerate() {
+            self.env.state_of(i, o);
+        }
+        bytes_of(py, &out, f32::to_ne_bytes)
+    }
+
+    /// Starts a race from `seed` in `context` (none: drawn from `±context_range` by a stream
+    /// seeded with `seed`, as the vector env's first env draws it). Returns (observations,
+    /// outcome table) as bytes.
+    #[pyo3(signature = (seed, context=None))]
+    fn reset<'py>(
+        &mut self,
+        py: Python<'py>,
+        seed: u64,
+        context: Option<(f64, f64)>,
+    ) -> PyResult<(Bound<'py, PyBytes>, Bound<'py, PyBytes>)> {
+        let context = match context {
+            Some((speed, steer)) => Context::new(speed, steer).map_err(BindError::from)?,
+            None => first_context(seed, self.context_range),
+        };
+        let first = self.env.reset(seed, context);
+        let steps: Vec<AgentStep> = (0..self.env.agents())
+            .map(|i| AgentStep {
+                obs: if i == 0 {
+                    first.clone()
+                } else {
+                    self.env.observe_agent(i)
+                },
+                reward: 0.0,
+                terminated: false,
+                truncated: false,
+                info: Default::default(),
+            })
+            .collect();
+        Ok(self.arrays(py, &steps))
+    }
+
+    /// Steps the race with every agent's action (native-endian `f64` pairs, one per agent; an
+    /// ended agent's is ignored), with the GIL released. Returns (observations, outcome table).
+    fn step<'py>(
+        &mut self,
+        py: Python<'py>,
+        actions: &[u8],
+    ) -> PyResult<(Bound<'py, PyBytes>, Bound<'py, PyBytes>)> {
+        let actions = pairs("actions", actions)?;
+        let env = &mut self.env;
+        let steps = py
+            .detach(|| env.step_agents(&actions))
+            .map_err(BindError::from)?;
+        Ok(self.arrays(py, &steps))
+    }
+}

@@ -1,0 +1,114 @@
+"""Multi-agent races (`ctxrace.parallel_env`, PettingZoo's ParallelEnv) and rivals that are a
+trained ctxrace agent (``rival={"driver": "policy", ...}``), from Python."""
+
+import numpy as np
+import pytest
+from pettingzoo.test import parallel_api_test
+
+import ctxrace
+from conftest import ROOT
+
+TRACK = "generated:1"
+
+#: A trained cMask agent of the table's records (trained on f1_esp against 1 rival).
+CMASK = ROOT / "docs" / "table2" / "1r" / "cmask" / "seed10000"
+
+
+@pytest.mark.parametrize("obs_mode", ctxrace.OBS_MODES)
+def test_parallel_env_passes_pettingzoos_api_test(obs_mode):
+    env = ctxrace.parallel_env(TRACK, agents=2, rivals=1, obs_mode=obs_mode)
+    parallel_api_test(env, num_cycles=200)
+    obs, infos = env.reset(seed=3)
+    assert set(obs) == set(infos) == {"car_0", "car_1"} == set(env.agents)
+    for agent in env.agents:
+        assert env.observation_space(agent).contains(obs[agent])
+
+
+def play(env, seed, steps, context=None):
+    """Every step's (observations, rewards, terminations) under seeded random actions."""
+    rng = np.random.default_rng(seed)
+    obs, _ = env.reset(seed=seed, options=None if context is None else {"context": context})
+    out = [obs]
+    for _ in range(steps):
+        if not env.agents:
+            break
+        actions = {a: rng.uniform(-1, 1, 2) for a in env.agents}
+        obs, rewards, terminations, truncations, infos = env.step(actions)
+        out.append((obs, rewards, terminations))
+    return out
+
+
+def test_a_race_replays_from_its_seed_and_the_agents_see_each_other():
+    env = ctxrace.parallel_env(TRACK, agents=3, rivals=0, obs_mode="dict")
+    first, again = play(env, 5, 60, (0.1, -0.2)), play(env, 5, 60, (0.1, -0.2))
+    assert len(first) == len(again)
+    for a, b in zip(first[1:], again[1:]):
+        assert a[1] == b[1] and a[2] == b[2]
+        for agent in a[0]:
+            np.testing.assert_array_equal(a[0][agent]["scan"], b[0][agent]["scan"])
+    obs = first[0]
+    np.testing.assert_array_equal(obs["car_1"]["context"], np.float32([0.1, -0.2]))
+    # car 0 sees car 1 right ahead; car 2, at the front, sees no car ahead of it
+    assert obs["car_0"]["scan"].min() < obs["car_2"]["scan"][40:68].min()
+    # each agent's state starts with its own pose; the others are relative to it
+    state = env.state()
+    assert state.shape == (3, 5 + 4 * 2)
+    assert not np.array_equal(state[0, :2], state[1, :2])
+
+
+def test_an_agent_that_crashes_leaves_and_the_others_race_on():
+    env = ctxrace.parallel_env(TRACK, agents=2, rivals=0)
+    env.reset(seed=0, options={"context": (0.0, 0.0)})
+    left = None
+    for k in range(300):
+        # the ego at full lock into the wall; car 1 straight ahead, slowly
+        obs, rewards, terminations, truncations, infos = env.step(
+            {a: ([1.0, 1.0] if a == "car_0" else [0.0, -0.5]) for a in env.agents}
+        )
+        if left is None and "car_0" not in env.agents:
+            assert terminations["car_0"] and infos["car_0"]["wall_crash"]
+            assert rewards["car_0"] < 0
+            left = k
+        if left is not None and k > left + 5:
+            break
+    assert left is not None, "the ego never reached the wall"
+    assert env.agents == ["car_1"] and set(rewards) == {"car_1"}
+
+
+def test_bad_arguments_raise_naming_them():
+    with pytest.raises(ValueError, match="agents must be at least 1"):
+        ctxrace.parallel_env(TRACK, agents=0)
+    with pytest.raises(ValueError, match="obs_mode"):
+        ctxrace.parallel_env(TRACK, obs_mode="pixels")
+    with pytest.raises(ValueError, match="must be 0 to 7"):
+        ctxrace.parallel_env(TRACK, agents=5, rivals=4)
+    env = ctxrace.parallel_env(TRACK)
+    env.reset(seed=0)
+    with pytest.raises(KeyError, match="car_9"):
+        env.step({"car_9": [0.0, 0.0]})
+    with pytest.raises(ValueError, match="not finite"):
+        env.step({"car_0": [np.nan, 0.0], "car_1": [0.0, 0.0]})
+
+
+def test_rivals_that_are_a_trained_agent(tracks_dir):
+    rival = {"driver": "policy", "policy": str(CMASK)}
+    env = ctxrace.parallel_env("f1_esp", agents=1, rivals=1, tracks_dir=tracks_dir, rival=rival)
+    env.reset(seed=2, options={"context": (0.0, 0.0)})
+    for _ in range(15):
+        env.step({"car_0": [0.0, -1.0]})  # the ego stands still; the rival drives off
+    assert env.state()[0, 5 + 3] > 1.0, "the rival's speed"
+    # the same rival in the single-agent env and in a race of any policy
+    gym_env = ctxrace.make_vec("f1_esp", 1, rivals=1, tracks_dir=tracks_dir, rival=rival)
+    gym_env.reset(seed=0)
+    gym_env.step(np.zeros((1, 2)))
+    result = ctxrace.race(
+        lambda obs, ctx: np.float64([[0.0, 0.2]]), "f1_esp", rivals=1, seed=3,
+        tracks_dir=tracks_dir, rival=rival,
+    )
+    assert result["steps"] > 0
+    with pytest.raises(ValueError, match=r"\[rival\] policy"):
+        ctxrace.parallel_env("f1_esp", tracks_dir=tracks_dir, rival={"driver": "policy"})
+    with pytest.raises(ValueError, match="neither a checkpoint"):
+        ctxrace.parallel_env(
+            "f1_esp", tracks_dir=tracks_dir, rival={"driver": "policy", "policy": "no/such/run"}
+        )
