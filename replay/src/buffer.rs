@@ -81,7 +81,7 @@ pub struct ReplayBuffer {
     pub(crate) inserted: u64,
 }
 
-pub use ctxrace_config::config::stream_capacity;
+pub use ctxrace_config::replay::stream_capacity;
 
 impl ReplayBuffer {
     /// A buffer of `capacity` steps split equally between `actors` streams.

@@ -4,8 +4,9 @@
 
 use crate::agents::{AgentConfig, AgentConfigError, AlgoKind, Warmup};
 use crate::batch::BatchSpec;
-use crate::config::{RaceConfig, RaceConfigError, ReplayOptions};
+use crate::config::{RaceConfig, RaceConfigError};
 use crate::plan::RunPlan;
+use crate::replay::ReplayOptions;
 use crate::validate::{bounded_floats, finite_floats, in_range, ValueError};
 use serde::{Deserialize, Serialize};
 use std::ops::Bound;

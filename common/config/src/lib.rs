@@ -11,7 +11,9 @@ pub mod context;
 pub mod experiment;
 pub mod plan;
 pub mod preset;
+pub mod replay;
 pub mod resources;
+pub mod rival;
 pub mod validate;
 
 pub use agents::{
@@ -20,10 +22,13 @@ pub use agents::{
 };
 pub use batch::{Batch, BatchError, BatchSpec, SequenceBatch, TransitionBatch};
 pub use config::{
-    ContextGains, CrashedRivals, FollowTheGapConfig, GapAim, GridLine, Integrator, LidarConfig,
-    RaceConfig, RaceConfigError, RacePreset, ReplayOptions, RivalConfig, RivalContacts,
-    RivalDriverKind, SpeedPoint, StartGrid, WallContact, MAX_OBS,
+    CrashedRivals, GridLine, Integrator, LidarConfig, RaceConfig, RaceConfigError, RacePreset,
+    RivalContacts, StartGrid, WallContact, MAX_OBS,
 };
 pub use context::{Context, ContextError};
 pub use experiment::{ExperimentConfig, ExperimentError, SupervisorConfig, TrainConfig};
 pub use plan::RunPlan;
+pub use replay::ReplayOptions;
+pub use rival::{
+    ContextGains, FollowTheGapConfig, GapAim, RivalConfig, RivalDriverKind, SpeedPoint,
+};

@@ -11,7 +11,7 @@
 //!   whose warm-up length is not known in advance: then `G` is the most the run can take);
 //! - the replay samples `ρ·B·T` steps per inserted step, after at least `P` inserts.
 
-use crate::config::stream_capacity;
+use crate::replay::stream_capacity;
 use crate::{ExperimentConfig, ReplayOptions, Warmup};
 
 /// What the run of an experiment is held to ([`ExperimentConfig::plan`]).

@@ -30,7 +30,7 @@ pub mod wire;
 
 pub use batches::{BatchServer, ReplayClient, RESEND_AFTER};
 pub use bounds::RunBounds;
-pub use ctxrace_config::config::DEFAULT_MAX_BATCH_FLOATS;
+pub use ctxrace_config::replay::DEFAULT_MAX_BATCH_FLOATS;
 pub use ctxrace_run::steps::TrajectoryStep;
 pub use error::IpcError;
 pub use error::SHM_ROOT_ENV;
