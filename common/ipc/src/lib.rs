@@ -21,6 +21,7 @@ mod batches;
 pub mod bounds;
 mod error;
 pub mod inject;
+mod key;
 mod shared;
 mod telemetry;
 mod trajectory;
@@ -34,6 +35,7 @@ pub use ctxrace_config::config::DEFAULT_MAX_BATCH_FLOATS;
 pub use ctxrace_run::steps::TrajectoryStep;
 pub use error::IpcError;
 pub use error::SHM_ROOT_ENV;
+pub use key::{KeyPipe, RunKey, KEY_FD_FLAG, KEY_LEN};
 pub use telemetry::{EpisodeSubscriber, MetricsPublisher, StatusPublisher, TelemetrySubscriber};
 pub use trajectory::{
     ChunkView, ReplayBeacon, SenderOptions, SenderStats, TrajectoryReceiver, TrajectorySender,
