@@ -102,6 +102,12 @@ impl RejectLog {
     }
 }
 
+/// The key of the tests' runs.
+#[cfg(test)]
+pub(crate) fn test_key() -> RunKey {
+    RunKey::from_bytes([9; KEY_LEN])
+}
+
 /// A test's own run prefix, removed even when the test panics.
 #[cfg(test)]
 pub(crate) struct Isolated(pub(crate) String);
