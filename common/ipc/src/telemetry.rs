@@ -272,12 +272,14 @@ impl ReplayHistory {
             }
             _ => {}
         }
+        // the first status sets where inserts continue from, once it is taken
+        let mut inserted = self.inserted.clone();
         if self.restored.is_none() {
-            self.inserted.set_base(s.restored_inserts);
+            inserted.set_base(s.restored_inserts);
         }
         let now = Instant::now();
         let counters = [
-            (&mut self.inserted, s.inserted),
+            (&mut inserted, s.inserted),
             (&mut self.sampled, s.sampled),
             (&mut self.batches, s.batches),
             (&mut self.dropped, s.dropped_chunks),
@@ -289,6 +291,7 @@ impl ReplayHistory {
         for (counter, value) in counters {
             counter.accept(value, now);
         }
+        self.inserted = inserted;
         self.restored = Some(s.restored_inserts);
         Ok(())
     }
