@@ -1,7 +1,10 @@
 //! Fault injection: raw senders that put any header and payload on a live run's real services,
 //! bypassing every check a well-behaved sender makes, so that tests (and tools probing a run)
 //! can show that each kind of malformed message is rejected, counted under its reason, and
-//! harms nothing else.
+//! harms nothing else. Messages go out as they are given: seal them ([`super::wire::Sealed`])
+//! with the run's key to reach the readers' checks after the tag (a faulty process of the
+//! run), or with another key to play a process that can write the run's shared memory but does
+//! not hold its key (`unauthenticated`).
 //!
 //! A message can also be kept [`Held`] after it was sent and rewritten in shared memory while
 //! a receiver holds it, as a faulty or hostile process could: with the receivers' `*_observed`
