@@ -10,7 +10,7 @@ use anyhow::{anyhow, Context as _, Result};
 use ctxrace_config::{Batch, BatchSpec, ReplayOptions, SequenceBatch};
 use ctxrace_ipc::wire::{step_stride, MAX_CHUNK};
 use ctxrace_ipc::{
-    cleanup, run_prefix, ReplayClient, RunTransport, SenderOptions, TrajectorySender,
+    cleanup, run_prefix, ReplayClient, RunKey, RunTransport, SenderOptions, TrajectorySender,
     TrajectoryStep, WeightsPublisher, WeightsReceiver,
 };
 use ctxrace_replay::{run, ReplayArgs, ReplayBuffer, ReplayControl};
@@ -199,13 +199,15 @@ fn weights_blob(bytes: usize) -> Vec<u8> {
 }
 
 /// The iceoryx2 figures: steps and batches on `prefix`, broadcasts to the subscribers on
-/// `weights_prefix` and to a single one on `one_prefix`.
+/// `weights_prefix` and to a single one on `one_prefix`; every message sealed and checked with a
+/// fresh key, as in a run.
 fn iceoryx_figures(
     opts: &IpcBenchOptions,
     prefix: &str,
     weights_prefix: &str,
     one_prefix: &str,
 ) -> Result<TransportFigures> {
+    let key = RunKey::generate()?;
     let total = (opts.actors * opts.steps_per_actor) as u64;
     let args = ReplayArgs {
         prefix: prefix.to_string(),
@@ -228,10 +230,10 @@ fn iceoryx_figures(
     };
     let control = Arc::new(ReplayControl::default());
     let replay = {
-        let (a, c) = (args.clone(), control.clone());
-        thread::spawn(move || run(&a, &c))
+        let (a, k, c) = (args.clone(), key.clone(), control.clone());
+        thread::spawn(move || run(&a, &k, &c))
     };
-    let result = iceoryx_measure(opts, prefix, total, &control);
+    let result = iceoryx_measure(opts, prefix, &key, total, &control);
     control.shutdown.store(true, Ordering::Release);
     let status = replay
         .join()
@@ -243,7 +245,7 @@ fn iceoryx_figures(
             status.inserted
         ));
     }
-    let (p50, p90, send) = iceoryx_broadcast(opts, weights_prefix)?;
+    let (p50, p90, send) = iceoryx_broadcast(opts, weights_prefix, &key)?;
     figures.broadcast_ms_p50 = p50;
     figures.broadcast_ms_p90 = p90;
     figures.broadcast_send_ms_p50 = send;
@@ -251,7 +253,7 @@ fn iceoryx_figures(
         subscribers: 1,
         ..opts.clone()
     };
-    let (one_p50, _, one_send) = iceoryx_broadcast(&one, one_prefix)?;
+    let (one_p50, _, one_send) = iceoryx_broadcast(&one, one_prefix, &key)?;
     figures.broadcast_one_ms_p50 = one_p50;
     figures.broadcast_one_send_ms_p50 = one_send;
     Ok(figures)
@@ -260,15 +262,21 @@ fn iceoryx_figures(
 fn iceoryx_measure(
     opts: &IpcBenchOptions,
     prefix: &str,
+    key: &RunKey,
     total: u64,
     control: &ReplayControl,
 ) -> Result<TransportFigures> {
     let barrier = Arc::new(Barrier::new(opts.actors + 1));
     let actors: Vec<_> = (0..opts.actors)
         .map(|id| {
-            let (o, p, b) = (opts.clone(), prefix.to_string(), barrier.clone());
+            let (o, p, k, b) = (
+                opts.clone(),
+                prefix.to_string(),
+                key.clone(),
+                barrier.clone(),
+            );
             thread::spawn(move || -> Result<u64> {
-                let t = RunTransport::open(&p, o.actors, &format!("actor{id}"))?;
+                let t = RunTransport::open(&p, o.actors, &format!("actor{id}"), &k)?;
                 let mut tx =
                     TrajectorySender::new(&t, id as u32, o.obs_dim, 2, SenderOptions::default())?;
                 let mut obs = vec![0.0; o.obs_dim];
@@ -305,7 +313,7 @@ fn iceoryx_measure(
         return Err(anyhow!("{dropped} steps were dropped"));
     }
 
-    let t = RunTransport::open(prefix, opts.actors, "learner")?;
+    let t = RunTransport::open(prefix, opts.actors, "learner", key)?;
     let mut client = ReplayClient::new(&t, opts.obs_dim, 2, Duration::from_secs(10))?;
     let spec = BatchSpec::Sequence {
         batch: opts.batch,
@@ -327,17 +335,22 @@ fn iceoryx_measure(
     })
 }
 
-/// Weights broadcast latencies (p50, p90, send p50) in ms over iceoryx2.
-fn iceoryx_broadcast(opts: &IpcBenchOptions, prefix: &str) -> Result<(f64, f64, f64)> {
-    let t = RunTransport::open(prefix, opts.subscribers, "learner")?;
+/// Weights broadcast latencies (p50, p90, send p50) in ms over iceoryx2, sealed with `key`.
+fn iceoryx_broadcast(
+    opts: &IpcBenchOptions,
+    prefix: &str,
+    key: &RunKey,
+) -> Result<(f64, f64, f64)> {
+    let t = RunTransport::open(prefix, opts.subscribers, "learner", key)?;
     let publisher = WeightsPublisher::new(&t, opts.weights_bytes)?;
     let base = Instant::now();
     let (done_tx, done_rx) = mpsc::channel::<Result<(u64, f64)>>();
     let barrier = Arc::new(Barrier::new(opts.subscribers + 1));
     let subs: Vec<_> = (0..opts.subscribers)
         .map(|i| {
-            let (p, n, b, done) = (
+            let (p, k, n, b, done) = (
                 prefix.to_string(),
+                key.clone(),
                 opts.subscribers,
                 barrier.clone(),
                 done_tx.clone(),
@@ -345,7 +358,7 @@ fn iceoryx_broadcast(opts: &IpcBenchOptions, prefix: &str) -> Result<(f64, f64, 
             let rounds = opts.broadcasts;
             thread::spawn(move || {
                 let run = || -> Result<()> {
-                    let t = RunTransport::open(&p, n, &format!("actor{i}"))?;
+                    let t = RunTransport::open(&p, n, &format!("actor{i}"), &k)?;
                     let mut rx = WeightsReceiver::new(&t, rounds as u64)?;
                     b.wait();
                     let mut got = 0;

@@ -1,11 +1,15 @@
 //! The process roles the launcher starts: `ctxrace replay`, `ctxrace learner` and
-//! `ctxrace actor`. Each reads the run directory's `config.toml`.
+//! `ctxrace actor`. Each reads the run directory's `config.toml`, and the run's key from the
+//! pipe the launcher hands it (`--key-fd`, see [`ctxrace_ipc::RunKey::hand_to`]): a role
+//! started by hand has no key and stops with an error, since every message of the run is
+//! sealed with it.
 
 use crate::TrackArgs;
 use anyhow::Result;
 use clap::Args;
 use ctxrace_config::validate::ConfigError;
 use ctxrace_config::ExperimentConfig;
+use ctxrace_ipc::{RunKey, KEY_FD_FLAG};
 use ctxrace_nn::policy::ACT_DIM;
 use ctxrace_run::run_dir::{
     ACTOR_REPORTS, CONFIG_FILE, REPLAY_REPORT, REPLAY_SNAPSHOT, REPLAY_STREAMS,
@@ -25,6 +29,9 @@ pub struct RoleArgs {
     /// Actors in the run.
     #[arg(long)]
     pub actors: usize,
+    /// The descriptor of the pipe holding the run's key, which `ctxrace train` hands each role.
+    #[arg(long = "key-fd", value_name = "FD")]
+    pub key_fd: Option<i32>,
 }
 
 /// Arguments of `ctxrace actor`.
@@ -49,14 +56,25 @@ pub const CRASH_ROLE_ENV: &str = "CTXRACE_TEST_CRASH_ROLE";
 
 /// What every role does first: crash if the tests ask it to, then make the process's
 /// termination flag, so that a SIGTERM while it starts up (restoring a snapshot, loading a
-/// checkpoint) stops it cleanly once it is up instead of killing it without its report.
-fn start_role(role: &str) -> Result<()> {
+/// checkpoint) stops it cleanly once it is up instead of killing it without its report; then
+/// read the run's key from the pipe `args` names. Without one it stops with an error a restart
+/// would meet again.
+fn start_role(role: &str, args: &RoleArgs) -> Result<RunKey> {
     if std::env::var(CRASH_ROLE_ENV).is_ok_and(|r| r == role) {
         eprintln!("{role}: crashing at start, as {CRASH_ROLE_ENV} asks");
         std::process::exit(1);
     }
     ctxrace_ipc::termination_flag()?;
-    Ok(())
+    let Some(fd) = args.key_fd else {
+        return Err(ConfigError::new(format!(
+            "`ctxrace {role}` has no run key ({KEY_FD_FLAG} is missing): every message of a run \
+             is sealed with a key that `ctxrace train` draws and hands to the roles it starts \
+             over a pipe; start the run with `ctxrace train` (with --resume to continue one) \
+             instead of starting a role by hand"
+        ))
+        .into());
+    };
+    Ok(RunKey::from_fd(fd)?)
 }
 
 /// The run's experiment (an error is a [`ConfigError`]: a restart would meet it again).
@@ -105,10 +123,10 @@ pub fn check_replay_snapshot(cfg: &ExperimentConfig, run_dir: &Path, actors: usi
 
 /// Runs `ctxrace replay`.
 pub fn replay(args: RoleArgs) -> Result<()> {
-    start_role("replay")?;
+    let key = start_role("replay", &args)?;
     let cfg = read_experiment(&args.run_dir)?;
     let replay_args = replay_args(&cfg, &args.run_dir, args.prefix, args.actors);
-    let s = ctxrace_replay::run(&replay_args, &Default::default())?;
+    let s = ctxrace_replay::run(&replay_args, &key, &Default::default())?;
     tracing::info!("replay stopped: {s:?}");
     let report = serde_json::json!({
         "inserted": s.inserted,
@@ -133,10 +151,11 @@ pub fn replay(args: RoleArgs) -> Result<()> {
 
 /// Runs `ctxrace learner`.
 pub fn learner(args: RoleArgs) -> Result<()> {
-    start_role("learner")?;
+    let key = start_role("learner", &args)?;
     let experiment = read_experiment(&args.run_dir)?;
     ctxrace_learner::process::run(ctxrace_learner::process::LearnerOptions {
         prefix: args.prefix,
+        key,
         actors: args.actors,
         frame_dim: experiment.race.lidar.beams,
         run_dir: args.run_dir,
@@ -147,7 +166,7 @@ pub fn learner(args: RoleArgs) -> Result<()> {
 
 /// Runs `ctxrace actor`.
 pub fn actor(args: ActorArgs) -> Result<()> {
-    start_role("actor")?;
+    let key = start_role("actor", &args.role)?;
     let experiment = read_experiment(&args.role.run_dir)?;
     let track = args
         .tracks
@@ -156,6 +175,7 @@ pub fn actor(args: ActorArgs) -> Result<()> {
     let track = Arc::new(track);
     let report = ctxrace_actor::process::run(ctxrace_actor::process::ActorOptions {
         prefix: args.role.prefix,
+        key,
         id: args.id,
         actors: args.role.actors,
         incarnation: args.incarnation,

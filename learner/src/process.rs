@@ -82,6 +82,8 @@ fn write_status(
 pub struct LearnerOptions {
     /// The run's iceoryx2 prefix.
     pub prefix: String,
+    /// The run's key, which seals and checks every message.
+    pub key: ctxrace_ipc::RunKey,
     /// Actors in the run.
     pub actors: usize,
     /// The run directory (checkpoints, metrics).
@@ -127,7 +129,7 @@ pub fn run(opts: LearnerOptions) -> Result<u64, ProcessError> {
             algo.steps()
         );
     }
-    let transport = RunTransport::open(&opts.prefix, opts.actors, "learner")?;
+    let transport = RunTransport::open(&opts.prefix, opts.actors, "learner", &opts.key)?;
     let weights = WeightsPublisher::new(&transport, DEFAULT_MAX_WEIGHTS_BYTES)?;
     weights.publish(algo.steps(), &algo.policy_weights()?)?;
     let mut replay = ReplayClient::new(&transport, opts.frame_dim, ACT_DIM, HANDSHAKE)?;

@@ -14,7 +14,7 @@ use ctxrace_config::BatchSpec;
 use ctxrace_config::ReplayOptions;
 use ctxrace_ipc::wire::{ReplayStatus, WireError, FORMAT_VERSION, MAX_PENDING_REQUESTS, REASONS};
 use ctxrace_ipc::{
-    BatchRequest, BatchServer, ChunkView, IpcError, Next, ReplayBeacon, RunTransport,
+    BatchRequest, BatchServer, ChunkView, IpcError, Next, ReplayBeacon, RunKey, RunTransport,
     StatusPublisher, TrajectoryReceiver, Wake,
 };
 use ctxrace_run::results::ReplayStreams;
@@ -134,7 +134,7 @@ impl Counters {
         let unservable = WireError::Unservable {
             steps: spec.steps() as u64,
         };
-        server.refuse(request.request_id, unservable.reason())?;
+        server.refuse(&request, unservable.reason())?;
         Ok(())
     }
 
@@ -164,6 +164,8 @@ impl Counters {
             inserted_at_last_batch: self.inserted_at_last_batch,
             restored_inserts: self.restored_inserts,
             rejected_by_reason: by_reason,
+            // the publisher sets the process id and the seal
+            ..ReplayStatus::default()
         }
     }
 }
@@ -221,9 +223,13 @@ impl Budget {
     }
 }
 
-/// Runs the replay until `control.shutdown` is set or (with `handle_signals`) SIGTERM/SIGINT;
-/// writes a final snapshot and returns the final counters.
-pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, ReplayError> {
+/// Runs the replay of the run with key `key` until `control.shutdown` is set or (with
+/// `handle_signals`) SIGTERM/SIGINT; writes a final snapshot and returns the final counters.
+pub fn run(
+    args: &ReplayArgs,
+    key: &RunKey,
+    control: &ReplayControl,
+) -> Result<ReplayStatus, ReplayError> {
     let opts = &args.options;
     let (mut buffer, counts) = restore(args)?;
     let mut limiter = RateLimiter::new(
@@ -239,7 +245,7 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, R
     budget.close_if_spent(&mut limiter);
     let mut rng = ChaCha8Rng::seed_from_u64(opts.seed ^ counts.samples);
 
-    let transport = RunTransport::open(&args.prefix, args.actors, "replay")?;
+    let transport = RunTransport::open(&args.prefix, args.actors, "replay", key)?;
     let mut chunks = TrajectoryReceiver::new(
         &transport,
         args.obs_dim,
@@ -307,14 +313,14 @@ pub fn run(args: &ReplayArgs, control: &ReplayControl) -> Result<ReplayStatus, R
             let sent = match spec {
                 BatchSpec::Sequence { batch, length } => buffer
                     .sample_sequences_by(opts.sampler, batch, length, &mut rng)
-                    .map(|b| server.send_sequence(request.request_id, &b)),
+                    .map(|b| server.send_sequence(&request, &b)),
                 BatchSpec::Transition {
                     batch,
                     frames,
                     reward_delay,
                 } => buffer
                     .sample_transitions(batch, frames, reward_delay, &mut rng)
-                    .map(|b| server.send_transition(request.request_id, frames, &b)),
+                    .map(|b| server.send_transition(&request, frames, &b)),
             };
             match sent {
                 Some(result) => {

@@ -2,7 +2,7 @@
 
 use ctxrace_config::{Batch, BatchSpec, ReplayOptions};
 use ctxrace_ipc::{
-    cleanup, run_prefix, ReplayBeacon, ReplayClient, RunTransport, SenderOptions,
+    cleanup, run_prefix, ReplayBeacon, ReplayClient, RunKey, RunTransport, SenderOptions,
     TrajectoryReceiver, TrajectorySender, TrajectoryStep, TRAJECTORY_BUFFER,
 };
 use ctxrace_replay::{read_snapshot, run, ReplayArgs, ReplayBuffer, ReplayControl, SnapshotShape};
@@ -26,13 +26,18 @@ impl Drop for Isolated {
     }
 }
 
+/// The key of the tests' runs.
+fn key() -> RunKey {
+    RunKey::from_bytes([5; ctxrace_ipc::KEY_LEN])
+}
+
 const OBS: usize = 3;
 const ACT: usize = 2;
 const STEPS: usize = 1000;
 const EPISODE: usize = 100;
 
 fn actor(prefix: String, id: u32, poison: bool) -> ctxrace_ipc::SenderStats {
-    let t = RunTransport::open(&prefix, 2, &format!("actor{id}")).unwrap();
+    let t = RunTransport::open(&prefix, 2, &format!("actor{id}"), &key()).unwrap();
     let opts = SenderOptions {
         handshake_timeout: Duration::from_secs(30),
         close_timeout: Duration::from_secs(5),
@@ -166,14 +171,14 @@ fn two_actors_fill_the_replay_and_the_learner_gets_batches() {
     let replay = {
         let c = control.clone();
         let a = args.clone();
-        thread::spawn(move || run(&a, &c))
+        thread::spawn(move || run(&a, &key(), &c))
     };
     let stats: Vec<_> = actors.into_iter().map(|h| h.join().unwrap()).collect();
     assert_eq!(stats[0].sent_steps, STEPS as u64);
     assert_eq!(stats[1].sent_steps, STEPS as u64 + 1);
     assert_eq!(stats[0].dropped_steps + stats[1].dropped_steps, 0);
 
-    let t = RunTransport::open(&prefix, 2, "learner").unwrap();
+    let t = RunTransport::open(&prefix, 2, "learner", &key()).unwrap();
     let mut client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(10)).unwrap();
     let spec = BatchSpec::Sequence {
         batch: 4,
@@ -260,11 +265,11 @@ fn a_stuck_replay_does_not_freeze_the_actor() {
     let isolated = Isolated::new("stuck");
     let prefix = isolated.0.clone();
     {
-        let t = RunTransport::open(&prefix, 1, "replay").unwrap();
+        let t = RunTransport::open(&prefix, 1, "replay", &key()).unwrap();
         // A replay that comes up and then never reads.
         let _stuck = TrajectoryReceiver::new(&t, OBS, ACT, 0).unwrap();
         ReplayBeacon::new(&t).unwrap().signal();
-        let a = RunTransport::open(&prefix, 1, "actor0").unwrap();
+        let a = RunTransport::open(&prefix, 1, "actor0", &key()).unwrap();
         let opts = SenderOptions {
             handshake_timeout: Duration::from_secs(5),
             close_timeout: Duration::from_millis(50),
@@ -309,9 +314,9 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
     let control = Arc::new(ReplayControl::default());
     let replay = {
         let (a, c) = (args.clone(), control.clone());
-        thread::spawn(move || run(&a, &c))
+        thread::spawn(move || run(&a, &key(), &c))
     };
-    let t = RunTransport::open(&prefix, 1, "actor0").unwrap();
+    let t = RunTransport::open(&prefix, 1, "actor0", &key()).unwrap();
     let mut tx = TrajectorySender::new(&t, 0, OBS, ACT, SenderOptions::default()).unwrap();
     push_episodes(&mut tx, 600);
     let mut client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(10)).unwrap();
@@ -374,9 +379,9 @@ fn the_replay_stores_the_budget_counts_the_surplus_and_lets_the_learner_finish()
     let control = Arc::new(ReplayControl::default());
     let replay = {
         let (a, c) = (args.clone(), control.clone());
-        thread::spawn(move || run(&a, &c))
+        thread::spawn(move || run(&a, &key(), &c))
     };
-    let t = RunTransport::open(&prefix, 1, "actor0").unwrap();
+    let t = RunTransport::open(&prefix, 1, "actor0", &key()).unwrap();
     let mut tx = TrajectorySender::new(&t, 0, OBS, ACT, SenderOptions::default()).unwrap();
     // more than the replay's queue holds: the rest waits in the actor's backlog
     push_episodes(&mut tx, 2000);
@@ -423,7 +428,7 @@ fn a_chunk_rewritten_after_validation_cannot_panic_the_replay_buffer() {
     use ctxrace_replay::ReplayBuffer;
     use rand::SeedableRng;
     let isolated = Isolated::new("rewritten");
-    let t = RunTransport::open(&isolated.0, 2, "replay").unwrap();
+    let t = RunTransport::open(&isolated.0, 2, "replay", &key()).unwrap();
     let mut rx = TrajectoryReceiver::new(&t, OBS, ACT, 0).unwrap();
     let inject = Injector::new(&t).unwrap();
     let mut buffer = ReplayBuffer::new(100, 2, OBS, ACT);
@@ -445,7 +450,7 @@ fn a_chunk_rewritten_after_validation_cannot_panic_the_replay_buffer() {
             steps: steps as u32,
             ..ChunkHeader::for_actor(0, OBS, ACT)
         }
-        .sealed(&payload);
+        .sealed(&key(), &payload);
         let held = inject.chunk_held(0, header, &payload).unwrap();
         // an actor id past the buffer's streams, dimensions and a step count past the payload,
         // and a NaN reward, written into shared memory once the reader has copied or

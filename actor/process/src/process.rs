@@ -51,6 +51,8 @@ pub enum ActorError {
 pub struct ActorOptions {
     /// The run's iceoryx2 prefix.
     pub prefix: String,
+    /// The run's key, which seals and checks every message.
+    pub key: ctxrace_ipc::RunKey,
     /// This actor's id, `0..actors`.
     pub id: u32,
     /// Actors in the run.
@@ -94,7 +96,8 @@ pub fn run(opts: ActorOptions) -> Result<ActorReport, ActorError> {
         .wrapping_mul(0x9E37_79B9_7F4A_7C15)
         .wrapping_add(opts.incarnation);
     let mut collector = Collector::for_experiment(env, cfg, seed);
-    let transport = RunTransport::open(&opts.prefix, opts.actors, &format!("actor-{}", opts.id))?;
+    let role = format!("actor-{}", opts.id);
+    let transport = RunTransport::open(&opts.prefix, opts.actors, &role, &opts.key)?;
     let mut weights = WeightsReceiver::new(&transport, cfg.plan().gradient_steps)?;
     let telemetry = MetricsPublisher::new(&transport)?;
     let mut sender = TrajectorySender::new(

@@ -3,15 +3,22 @@
 //! [`BatchHeader`] echoes the request id, and wakes the learner. (Two publish-subscribe services
 //! rather than request-response: the answer may come much later than the request, and the
 //! replay serves requests from one queue whatever their origin.)
+//!
+//! Both are sealed with the run's key. A request carries its client's epoch
+//! ([`super::wire::new_epoch`]), which the answer echoes: a learner takes only answers to its
+//! own outstanding request, and an answer it rejects leaves that request outstanding (it is sent
+//! again at once, under the same id), so that a forged answer can neither feed the learner nor
+//! make it drop the request whose real answer is on its way.
 
 use super::shared::{check_readable, copy_slice, read_once};
 use super::transport::{termination_requested, timed_wait, wait_until, RunTransport, Wake};
 use super::wire::{
-    batch_checksum, check_finite, validate_request, BatchHeader, BatchKind, BatchRequest,
-    WireError, FORMAT_VERSION, REASONS,
+    check_finite, float_bytes, new_epoch, validate_request, BatchHeader, BatchKind, BatchRequest,
+    Sealed as _, WireError, FORMAT_VERSION, REASONS,
 };
 use super::{ReadStage, RejectLog};
 use crate::error::{ice, IpcError, Result};
+use crate::key::RunKey;
 use ctxrace_config::batch::{sequence_floats, transition_floats};
 use ctxrace_config::batch::{Batch, BatchSpec, SequenceBatch, TransitionBatch};
 use iceoryx2::port::listener::Listener;
@@ -54,6 +61,9 @@ pub struct ReplayClient {
     woken: Listener<ipc::Service>,
     obs_dim: usize,
     act_dim: usize,
+    key: RunKey,
+    /// This client's epoch, which its requests carry and their answers echo.
+    epoch: u64,
     outstanding: Option<Outstanding>,
     /// No new request for this spec before this instant, after a refusal.
     hold: Option<(BatchSpec, Instant)>,
@@ -95,6 +105,8 @@ impl ReplayClient {
             woken,
             obs_dim,
             act_dim,
+            key: transport.key().clone(),
+            epoch: new_epoch(),
             outstanding: None,
             hold: None,
             next_id: 0,
@@ -153,25 +165,40 @@ impl ReplayClient {
                         continue;
                     }
                 };
-                if self.outstanding.is_none_or(|o| o.id != header.request_id) {
+                let Some(asked) = self
+                    .outstanding
+                    .filter(|o| o.id == header.request_id && header.client == self.epoch)
+                else {
                     continue;
-                }
-                self.outstanding = None;
-                let copy = decode(&header, sample.payload(), spec, self.obs_dim, self.act_dim);
+                };
+                let copy = decode(
+                    &header,
+                    sample.payload(),
+                    spec,
+                    &self.key,
+                    self.obs_dim,
+                    self.act_dim,
+                );
                 hook(ReadStage::Copied);
                 match copy {
                     Ok(Answer::Batch(batch)) => {
+                        self.outstanding = None;
                         hook(ReadStage::Validated);
                         return Ok(Some(*batch));
                     }
                     Ok(Answer::Refused(reason)) => {
+                        self.outstanding = None;
                         let why = REASONS[reason];
                         self.refusals
                             .note(reason, &format!("request {}: {why}", header.request_id));
                         self.hold = Some((spec, Instant::now() + RESEND_AFTER));
                     }
-                    // asked again at once
-                    Err(e) => self.rejects.reject(&e),
+                    // the request stays outstanding, its real answer still taken, and is asked
+                    // again at once
+                    Err(e) => {
+                        self.rejects.reject(&e);
+                        self.send(asked.id, asked.spec)?;
+                    }
                 }
                 self.ensure_request(spec)?;
             }
@@ -239,8 +266,10 @@ impl ReplayClient {
             batch: u32::try_from(batch)?,
             length: u32::try_from(length)?,
             frames: u32::try_from(frames)?,
-            reserved: 0,
-        };
+            client: self.epoch,
+            ..BatchRequest::default()
+        }
+        .seal_with(&self.key, &[]);
         let reached = self
             .requests
             .send_copy(request)
@@ -276,12 +305,13 @@ impl ReplayClient {
 }
 
 /// Reads the answer with header `h` (a copy) and payload `p` (in shared memory): a refusal and
-/// its reason, or a batch of `spec` copied out of `p`, whose checksum and values are checked on
-/// the copy.
+/// its reason, or a batch of `spec` copied out of `p`, whose seal under `key` and values are
+/// checked on the copy.
 fn decode(
     h: &BatchHeader,
     p: &[f32],
     spec: BatchSpec,
+    key: &RunKey,
     obs_dim: usize,
     act_dim: usize,
 ) -> Result<Answer, WireError> {
@@ -290,12 +320,9 @@ fn decode(
             got: h.format_version,
         });
     }
-    let checksum = |parts: &[&[f32]]| match batch_checksum(h, parts) {
-        got if got == h.checksum => Ok(()),
-        got => Err(WireError::Checksum {
-            got,
-            expected: h.checksum,
-        }),
+    let checksum = |parts: &[&[f32]]| {
+        let bytes: Vec<&[u8]> = parts.iter().map(|part| float_bytes(part)).collect();
+        h.check_with(key, &bytes)
     };
     if h.refused != 0 {
         checksum(&[])?;
@@ -431,6 +458,7 @@ pub struct BatchServer {
     obs_dim: usize,
     act_dim: usize,
     max_floats: usize,
+    key: RunKey,
     rejects: RejectLog,
 }
 
@@ -463,12 +491,14 @@ impl BatchServer {
             obs_dim,
             act_dim,
             max_floats,
+            key: transport.key().clone(),
             rejects: RejectLog::new("batch request"),
         })
     }
 
     /// Takes the waiting requests; malformed ones are counted, logged and answered with a
-    /// refusal saying why ([`refuse`](Self::refuse)).
+    /// refusal saying why ([`refuse`](Self::refuse)), except those whose checksum or tag fails:
+    /// nothing in them can be trusted, their id included (a real one is sent again in time).
     pub fn receive_requests(&mut self) -> Result<Vec<(BatchRequest, BatchSpec)>> {
         let mut out = Vec::new();
         while let Some(sample) = self.requests.receive().map_err(ice("receive request"))? {
@@ -480,7 +510,7 @@ impl BatchServer {
                     continue;
                 }
             };
-            match validate_request(&r, self.obs_dim, self.act_dim, self.max_floats) {
+            match validate_request(&r, &self.key, self.obs_dim, self.act_dim, self.max_floats) {
                 Ok(BatchKind::Sequence) => out.push((
                     r,
                     BatchSpec::Sequence {
@@ -498,58 +528,54 @@ impl BatchServer {
                 )),
                 Err(e) => {
                     self.rejects.reject(&e);
-                    self.refuse(r.request_id, e.reason())?;
+                    if !matches!(e, WireError::Checksum { .. } | WireError::Unauthenticated) {
+                        self.refuse(&r, e.reason())?;
+                    }
                 }
             }
         }
         Ok(out)
     }
 
-    /// Answers request `request_id` with a refusal for the reason of index `reason`
+    /// Answers `request` with a refusal for the reason of index `reason`
     /// ([`super::wire::REASONS`]), so that its learner counts it and asks again later.
-    pub fn refuse(&self, request_id: u64, reason: usize) -> Result<usize> {
+    pub fn refuse(&self, request: &BatchRequest, reason: usize) -> Result<usize> {
         let header = BatchHeader {
-            format_version: FORMAT_VERSION,
-            request_id,
             refused: reason as u32 + 1,
-            ..BatchHeader::default()
+            ..BatchHeader::answering(request)
         };
         self.send(header, &[])
     }
 
-    /// Sends a sequence batch answering `request_id`.
-    pub fn send_sequence(&self, request_id: u64, b: &SequenceBatch) -> Result<usize> {
+    /// Sends a sequence batch answering `request`.
+    pub fn send_sequence(&self, request: &BatchRequest, b: &SequenceBatch) -> Result<usize> {
         let header = BatchHeader {
-            format_version: FORMAT_VERSION,
             kind: BatchKind::Sequence.code(),
-            request_id,
             batch: u32::try_from(b.batch)?,
             length: u32::try_from(b.length)?,
             frames: 1,
             obs_dim: u32::try_from(b.obs_dim)?,
             act_dim: u32::try_from(b.act_dim)?,
-            ..BatchHeader::default()
+            ..BatchHeader::answering(request)
         };
         self.send(header, &b.arrays())
     }
 
-    /// Sends a transition batch answering `request_id`; `b.obs_dim` is `frames x` frame size.
+    /// Sends a transition batch answering `request`; `b.obs_dim` is `frames x` frame size.
     pub fn send_transition(
         &self,
-        request_id: u64,
+        request: &BatchRequest,
         frames: usize,
         b: &TransitionBatch,
     ) -> Result<usize> {
         let header = BatchHeader {
-            format_version: FORMAT_VERSION,
             kind: BatchKind::Transition.code(),
-            request_id,
             batch: u32::try_from(b.batch)?,
             length: 1,
             frames: u32::try_from(frames)?,
             obs_dim: u32::try_from(b.obs_dim / frames.max(1))?,
             act_dim: u32::try_from(b.act_dim)?,
-            ..BatchHeader::default()
+            ..BatchHeader::answering(request)
         };
         self.send(header, &b.arrays())
     }
@@ -566,7 +592,7 @@ impl BatchServer {
             .batches
             .loan_slice_uninit(len)
             .map_err(ice("loan batch"))?;
-        *sample.user_header_mut() = header.sealed(parts);
+        *sample.user_header_mut() = header.sealed(&self.key, parts);
         let mut offset = 0;
         let slots = sample.payload_mut();
         for part in parts {

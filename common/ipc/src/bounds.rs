@@ -1,5 +1,8 @@
 //! The run's own bounds and history, which every received field is checked against before it
 //! changes any state: what a message claims is taken only if the run could have produced it.
+//! Every message is authenticated first (its tag under the run's key), so what these checks see
+//! was sent by a process of the run: a value that fails them is a replayed copy of an older
+//! message or a bug, and is rejected without moving any history.
 
 use super::wire::WireError;
 use ctxrace_config::ExperimentConfig;
@@ -15,10 +18,6 @@ pub const MAX_PROGRESS: f32 = 1.5;
 pub const MAX_STEP_REWARD: f32 = 100.0;
 /// Slack added to every time bound: messages queue between their sending and their reading.
 const SLACK: Duration = Duration::from_secs(1);
-/// Values in a row that go back before a counter's history starts again from the next one: a
-/// forged value that slipped through the rate bound holds a stream up for this many messages
-/// at most.
-pub(crate) const REBASE_AFTER: u32 = 3;
 
 /// What the messages of a run can hold, from its configuration.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -52,9 +51,8 @@ impl RunBounds {
 
 /// The history of one counter of one process start (an actor's env steps, the replay's
 /// inserts): a value must not go back, and may grow at most `per_sec` a second over the time
-/// since the last accepted one, or since the start for the first (plus [`SLACK`]). After
-/// [`REBASE_AFTER`] values in a row that go back, the history starts again from the next value
-/// that fits the bound since the start.
+/// since the last accepted one, or since the start for the first (plus [`SLACK`]). Only an
+/// accepted value moves it.
 #[derive(Clone, Debug)]
 pub(crate) struct Counter {
     what: &'static str,
@@ -63,7 +61,6 @@ pub(crate) struct Counter {
     /// The start's first value (a restored count the counter continues from).
     base: u64,
     last: Option<(u64, Instant)>,
-    behind: u32,
 }
 
 impl Counter {
@@ -75,7 +72,6 @@ impl Counter {
             since: Instant::now(),
             base: 0,
             last: None,
-            behind: 0,
         }
     }
 
@@ -86,8 +82,7 @@ impl Counter {
     }
 
     /// Checks `got`, which must be at least `advance` past the last accepted value (an episode
-    /// report's own steps); changes nothing ([`accept`](Self::accept) or
-    /// [`went_back`](Self::went_back) after).
+    /// report's own steps); changes nothing ([`accept`](Self::accept) it after).
     pub(crate) fn check(&self, got: u64, advance: u64, now: Instant) -> Result<(), WireError> {
         let (from, at, min) = match self.last {
             Some((last, at)) => (last, at, last.saturating_add(advance)),
@@ -111,14 +106,11 @@ impl Counter {
         Ok(())
     }
 
-    /// [`check`](Self::check)s `got` and takes it, or notes its rejection.
+    /// [`check`](Self::check)s `got` and takes it if it passes.
     pub(crate) fn take(&mut self, got: u64, advance: u64, now: Instant) -> Result<(), WireError> {
-        let checked = self.check(got, advance, now);
-        match &checked {
-            Ok(()) => self.accept(got, now),
-            Err(e) => self.rejected(e),
-        }
-        checked
+        self.check(got, advance, now)?;
+        self.accept(got, now);
+        Ok(())
     }
 
     /// The last accepted value.
@@ -129,18 +121,6 @@ impl Counter {
     /// Takes `got` as the newest value.
     pub(crate) fn accept(&mut self, got: u64, now: Instant) {
         self.last = Some((got, now));
-        self.behind = 0;
-    }
-
-    /// Notes a rejected value; one that went back counts towards re-basing.
-    pub(crate) fn rejected(&mut self, error: &WireError) {
-        if matches!(error, WireError::Backwards { .. }) {
-            self.behind += 1;
-            if self.behind >= REBASE_AFTER {
-                self.last = None;
-                self.behind = 0;
-            }
-        }
     }
 }
 
@@ -170,7 +150,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_counter_takes_growth_within_its_rate_and_rebases_after_going_back_three_times() {
+    fn a_counter_takes_growth_within_its_rate_and_rejected_values_never_move_it() {
         let mut c = Counter::new("env steps", 10.0);
         let t0 = c.since;
         // the first value: at most 10 a second since the start, plus a second of slack
@@ -191,15 +171,14 @@ mod tests {
                 ..
             })
         ));
-        // a forged value within the rate got through: later real ones go back, three are
-        // rejected, then the counter starts again from the bound since the start
-        c.accept(40, t2);
-        for real in [12, 13, 14] {
-            let e = c.check(real, 0, t2).unwrap_err();
-            c.rejected(&e);
+        // values going back (replayed copies of older messages) or growing too fast are
+        // rejected however many come, and the next real value is taken
+        for old in [2, 5, 9, 10_000] {
+            assert!(c.take(old, 4, t2).is_err());
         }
-        assert!(c.check(15, 0, t2).is_ok());
-        assert!(c.check(31, 0, t2).is_err(), "the bound since the start");
+        assert_eq!(c.last(), Some(10));
+        assert!(c.take(40, 0, t2).is_ok());
+        assert_eq!(c.last(), Some(40));
         let mut restored = Counter::new("inserted", 10.0);
         restored.set_base(1000);
         assert!(restored.check(1010, 0, restored.since).is_ok());

@@ -210,6 +210,9 @@ pub enum IpcError {
         /// The unit (`"floats"`, `"bytes"`).
         unit: &'static str,
     },
+    /// The run's key could not be drawn, handed to a child or read from the launcher.
+    #[error("{0}")]
+    Key(String),
     /// An injected message's element outside its payload.
     #[error("element {index} of a payload of {len} elements")]
     Element {

@@ -16,11 +16,50 @@
 //! ([`SenderOptions::close_timeout`]). The replay takes the actors' queues in turn. Management
 //! files live in the user's private [`shm_root`]; [`cleanup`] removes the run's dead nodes and
 //! shared-memory files, and [`sweep_orphaned_runs`] those of runs whose launcher died.
+//!
+//! # Authentication and threat model
+//!
+//! Every message carries a CRC-32 and a 32-byte BLAKE3 tag keyed with the run's [`RunKey`]
+//! over all its other fields and its payload ([`wire::Sealer`]); readers check the version, the
+//! checksum (`checksum`: an accident), the tag (`unauthenticated`: a message no holder of the
+//! key made), then everything else, and a message rejected for any reason changes no reader's
+//! state, only its counters. The launcher draws the key from the OS random source at each launch
+//! (a resumed run gets a new one) and hands it to each start of each child over a pipe of its own
+//! ([`RunKey::hand_to`]); it is never in a command line, the environment, a file or the run
+//! folder, and a role started without it stops.
+//!
+//! **Covered**: another process, of the same user or not, that can read and write the run's
+//! shared-memory files (open them, rewrite messages in place, open the run's services as a
+//! node and publish on them, send copies of messages it read) but can read neither our
+//! processes' memory nor the key's pipe. It cannot make a message any reader accepts: not a
+//! chunk, a batch or a request, not a weights version (the probe that locked both actors onto
+//! a rewritten version is `unauthenticated`), not a heartbeat, an episode report or a status.
+//! It can send copies of real messages again; none can hold a stream up or move anything past
+//! its real sender, since only accepted messages move a reader and no copy is ahead of its
+//! sender: a chunk's place is its sender's epoch ([`wire::new_epoch`]) and sequence, and a copy
+//! goes back (`out_of_order`); a batch answer must answer the client's outstanding request (its
+//! id and epoch), and one rejected leaves the request outstanding; weights are taken only newer
+//! than those held; telemetry must come from the sender's current process (its pid) and not go
+//! back. What copies can still do: a replay restarted after the copy was made may store one old
+//! chunk before its stream's real ones, a freshly started actor may load an older real weights
+//! version before the newest, the learner's smoothed episode returns (not the launcher's records)
+//! may count an old report again, and a copied request makes the replay sample a batch its
+//! learner ignores.
+//!
+//! **Not covered**: a process that can read our processes' memory or descriptors (ptrace,
+//! `/proc/<pid>/mem`, `/proc/<pid>/fd`: another process of the same user may, unless the
+//! system restricts ptrace, e.g. Yama's `ptrace_scope` 1 or more for non-descendants), which
+//! can take the key; root; and availability: a writer can still truncate or delete the run's
+//! segments, corrupt iceoryx2's allocator state inside them or fill the queues, which crashes,
+//! stalls or slows processes (the launcher restarts them, see the reliability guide), without
+//! making a forged value accepted. Messages are authenticated, not encrypted: anyone who can
+//! read the segments reads the data.
 
 mod batches;
 pub mod bounds;
 mod error;
 pub mod inject;
+mod key;
 mod shared;
 mod telemetry;
 mod trajectory;
@@ -34,6 +73,7 @@ pub use ctxrace_config::replay::DEFAULT_MAX_BATCH_FLOATS;
 pub use ctxrace_run::steps::TrajectoryStep;
 pub use error::IpcError;
 pub use error::SHM_ROOT_ENV;
+pub use key::{KeyPipe, RunKey, KEY_FD_FLAG, KEY_LEN};
 pub use telemetry::{EpisodeSubscriber, MetricsPublisher, StatusPublisher, TelemetrySubscriber};
 pub use trajectory::{
     ChunkView, ReplayBeacon, SenderOptions, SenderStats, TrajectoryReceiver, TrajectorySender,
@@ -98,6 +138,12 @@ impl RejectLog {
     pub(crate) fn by_reason(&self) -> [u64; wire::REASONS.len()] {
         self.by_reason
     }
+}
+
+/// The key of the tests' runs.
+#[cfg(test)]
+pub(crate) fn test_key() -> RunKey {
+    RunKey::from_bytes([9; KEY_LEN])
 }
 
 /// A test's own run prefix, removed even when the test panics.

@@ -1,17 +1,19 @@
-//! Actor and replay telemetry for the launcher: episode metrics, heartbeats, replay status.
+//! Actor and replay telemetry for the launcher: episode metrics, heartbeats, replay status, each
+//! sealed with the run's key and naming its sender's process.
 
 use super::bounds::{
     check_range, check_version, Counter, RunBounds, MAX_ACTOR_STEPS_PER_SEC, MAX_PROGRESS,
-    MAX_STEP_REWARD, REBASE_AFTER,
+    MAX_STEP_REWARD,
 };
 use super::shared::read_once;
 use super::transport::RunTransport;
 use super::wire::{
-    check_finite, EpisodeReport, Heartbeat, ReplayStatus, WireError, FORMAT_VERSION,
-    MAX_PENDING_REQUESTS, REASONS,
+    check_finite, check_sealed, EpisodeReport, Heartbeat, ReplayStatus, Sealed, WireError,
+    FORMAT_VERSION, MAX_PENDING_REQUESTS, REASONS,
 };
 use super::RejectLog;
 use crate::error::{ice, Result};
+use crate::key::RunKey;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
@@ -40,6 +42,7 @@ fn subscriber<T: Debug + ZeroCopySend>(
 pub struct MetricsPublisher {
     metrics: Publisher<ipc::Service, EpisodeReport, ()>,
     heartbeat: Publisher<ipc::Service, Heartbeat, ()>,
+    key: RunKey,
 }
 
 impl MetricsPublisher {
@@ -48,25 +51,30 @@ impl MetricsPublisher {
         Ok(Self {
             metrics: publisher(transport.metrics_service(), "metrics publisher")?,
             heartbeat: publisher(transport.heartbeat_service(), "heartbeat publisher")?,
+            key: transport.key().clone(),
         })
     }
 
-    /// Publishes one finished episode (its `format_version` is set here).
+    /// Publishes one finished episode (its `format_version`, its `pid`, this process's, and its
+    /// seal are set here).
     pub fn episode(&self, metrics: EpisodeReport) -> Result<()> {
         let m = EpisodeReport {
             format_version: FORMAT_VERSION,
+            pid: std::process::id(),
             ..metrics
         };
+        let m = m.seal_with(&self.key, &[]);
         self.metrics.send_copy(m).map_err(ice("send metrics"))?;
         Ok(())
     }
 
-    /// Publishes a heartbeat (its `format_version` is set here).
+    /// Publishes a heartbeat (its `format_version` and its seal are set here).
     pub fn heartbeat(&self, beat: Heartbeat) -> Result<()> {
         let b = Heartbeat {
             format_version: FORMAT_VERSION,
             ..beat
         };
+        let b = b.seal_with(&self.key, &[]);
         self.heartbeat.send_copy(b).map_err(ice("send heartbeat"))?;
         Ok(())
     }
@@ -75,6 +83,7 @@ impl MetricsPublisher {
 /// The replay's status publisher (history 1: a late launcher gets the last one).
 pub struct StatusPublisher {
     status: Publisher<ipc::Service, ReplayStatus, ()>,
+    key: RunKey,
 }
 
 impl StatusPublisher {
@@ -82,15 +91,19 @@ impl StatusPublisher {
     pub fn new(transport: &RunTransport) -> Result<Self> {
         Ok(Self {
             status: publisher(transport.status_service(), "status publisher")?,
+            key: transport.key().clone(),
         })
     }
 
-    /// Publishes the counters (its `format_version` is set here).
+    /// Publishes the counters (its `format_version`, its `pid`, this process's, and its seal
+    /// are set here).
     pub fn publish(&self, status: ReplayStatus) -> Result<()> {
         let s = ReplayStatus {
             format_version: FORMAT_VERSION,
+            pid: std::process::id(),
             ..status
         };
+        let s = s.seal_with(&self.key, &[]);
         self.status.send_copy(s).map_err(ice("send status"))?;
         Ok(())
     }
@@ -102,6 +115,7 @@ pub struct EpisodeSubscriber {
     metrics: Subscriber<ipc::Service, EpisodeReport, ()>,
     actors: usize,
     bounds: RunBounds,
+    key: RunKey,
     rejects: RejectLog,
 }
 
@@ -112,18 +126,19 @@ impl EpisodeSubscriber {
             metrics: subscriber(transport.metrics_service(), "metrics subscriber")?,
             actors: transport.actors(),
             bounds,
+            key: transport.key().clone(),
             rejects: RejectLog::new("episode metrics"),
         })
     }
 
-    /// Episode metrics received since the last call; malformed and implausible ones are
-    /// counted and skipped.
+    /// Episode metrics received since the last call; unauthenticated, malformed and implausible
+    /// ones are counted and skipped.
     pub fn episodes(&mut self) -> Result<Vec<EpisodeReport>> {
         let mut out = Vec::new();
         while let Some(s) = self.metrics.receive().map_err(ice("receive metrics"))? {
             let read = read_once(s.payload());
             match read.and_then(|m| {
-                check(m.format_version, m.actor_id, self.actors)
+                check(&m, m.format_version, &self.key, m.actor_id, self.actors)
                     .and_then(|()| check_episode(&m, &self.bounds))
                     .map(|()| m)
             }) {
@@ -184,9 +199,8 @@ struct ActorStart {
 
 /// The replay start's counters' history.
 struct ReplayHistory {
-    /// Statuses rejected in a row: after [`REBASE_AFTER`] the history starts again (a forged
-    /// status that got through must not make every later one fail).
-    strikes: u32,
+    /// The replay's process (0: none started yet).
+    pid: u32,
     /// The count its snapshot restored, from its first status.
     restored: Option<u64>,
     /// The most it can have restored: what the replay before it had stored.
@@ -199,11 +213,12 @@ struct ReplayHistory {
 }
 
 impl ReplayHistory {
-    /// A replay of `actors` actors started now, after one that had stored `max_restored`.
-    fn new(actors: usize, max_restored: Option<u64>) -> Self {
+    /// A replay of `actors` actors started now as process `pid`, after one that had stored
+    /// `max_restored`.
+    fn new(actors: usize, max_restored: Option<u64>, pid: u32) -> Self {
         let steps = actors as f64 * MAX_ACTOR_STEPS_PER_SEC;
         Self {
-            strikes: 0,
+            pid,
             restored: None,
             max_restored,
             inserted: Counter::new("inserted", steps),
@@ -215,35 +230,11 @@ impl ReplayHistory {
         }
     }
 
-    /// Checks a status against the run's bounds and this history and takes it; if it fails,
-    /// only counts a strike (the [`REBASE_AFTER`]th starts the history again).
-    fn take(
-        &mut self,
-        s: &ReplayStatus,
-        bounds: &RunBounds,
-        actors: usize,
-    ) -> Result<(), WireError> {
-        let taken = self.check_and_take(s, bounds);
-        match &taken {
-            Ok(()) => self.strikes = 0,
-            Err(WireError::Version { .. }) => {}
-            Err(_) => {
-                self.strikes += 1;
-                if self.strikes >= REBASE_AFTER {
-                    *self = Self::new(actors, self.max_restored);
-                }
-            }
-        }
-        taken
-    }
-
-    fn check_and_take(&mut self, s: &ReplayStatus, bounds: &RunBounds) -> Result<(), WireError> {
+    /// Checks a status (authenticated already) against the run's bounds and this history and
+    /// takes it; one that fails changes nothing.
+    fn take(&mut self, s: &ReplayStatus, bounds: &RunBounds) -> Result<(), WireError> {
         let implausible = |what: String| Err(WireError::Implausible(what));
-        if s.format_version != FORMAT_VERSION {
-            return Err(WireError::Version {
-                got: s.format_version,
-            });
-        }
+        check_pid("replay status", s.pid, "the replay", self.pid)?;
         if s.capacity != bounds.replay_capacity || s.fill > s.capacity || s.fill > s.inserted {
             return implausible(format!(
                 "replay holds {} of {} steps after {} inserted; the run's replay holds {}",
@@ -281,26 +272,26 @@ impl ReplayHistory {
             }
             _ => {}
         }
+        // the first status sets where inserts continue from, once it is taken
+        let mut inserted = self.inserted.clone();
         if self.restored.is_none() {
-            self.inserted.set_base(s.restored_inserts);
+            inserted.set_base(s.restored_inserts);
         }
         let now = Instant::now();
-        let mut counters = [
-            (&mut self.inserted, s.inserted),
+        let counters = [
+            (&mut inserted, s.inserted),
             (&mut self.sampled, s.sampled),
             (&mut self.batches, s.batches),
             (&mut self.dropped, s.dropped_chunks),
             (&mut self.rejected, s.rejected),
         ];
-        for (counter, value) in counters.iter_mut() {
-            if let Err(e) = counter.check(*value, 0, now) {
-                counter.rejected(&e);
-                return Err(e);
-            }
+        for (counter, value) in counters.iter() {
+            counter.check(*value, 0, now)?;
         }
         for (counter, value) in counters {
             counter.accept(value, now);
         }
+        self.inserted = inserted;
         self.restored = Some(s.restored_inserts);
         Ok(())
     }
@@ -314,6 +305,7 @@ pub struct TelemetrySubscriber {
     heartbeat: Subscriber<ipc::Service, Heartbeat, ()>,
     status: Subscriber<ipc::Service, ReplayStatus, ()>,
     bounds: RunBounds,
+    key: RunKey,
     starts: Vec<Option<ActorStart>>,
     replay: ReplayHistory,
     rejects: RejectLog,
@@ -327,8 +319,9 @@ impl TelemetrySubscriber {
             heartbeat: subscriber(transport.heartbeat_service(), "heartbeat subscriber")?,
             status: subscriber(transport.status_service(), "status subscriber")?,
             bounds,
+            key: transport.key().clone(),
             starts: (0..transport.actors()).map(|_| None).collect(),
-            replay: ReplayHistory::new(transport.actors(), None),
+            replay: ReplayHistory::new(transport.actors(), None, 0),
             rejects: RejectLog::new("telemetry"),
         })
     }
@@ -345,23 +338,24 @@ impl TelemetrySubscriber {
         }
     }
 
-    /// Notes that the replay was (re)started now: its counters start again, from at most what
-    /// the one before had stored.
-    pub fn replay_started(&mut self) {
+    /// Notes that the replay was (re)started now as process `pid`: its counters start again,
+    /// from at most what the one before had stored, and only statuses of `pid` are taken.
+    pub fn replay_started(&mut self, pid: u32) {
         let before = self.replay.inserted.last().or(self.replay.max_restored);
-        self.replay = ReplayHistory::new(self.starts.len(), before);
+        self.replay = ReplayHistory::new(self.starts.len(), before, pid);
     }
 
-    /// Episode metrics received since the last call; malformed ones, ones of an actor not
-    /// started, and ones whose env steps go back or grow faster than an actor steps are counted
-    /// and skipped.
+    /// Episode metrics received since the last call; unauthenticated and malformed ones, ones
+    /// of an actor not started or of another process than its current one, and ones whose env
+    /// steps go back or grow faster than an actor steps are counted and skipped.
     pub fn episodes(&mut self) -> Result<Vec<EpisodeReport>> {
         let now = Instant::now();
         let mut out = Vec::new();
         for m in self.episodes.episodes()? {
             let checked = match &mut self.starts[m.actor_id as usize] {
                 None => Err(not_started(m.actor_id)),
-                Some(start) => start.episodes.take(m.env_steps, m.steps, now),
+                Some(start) => check_pid("episode report", m.pid, "its actor", start.pid)
+                    .and_then(|()| start.episodes.take(m.env_steps, m.steps, now)),
             };
             match checked {
                 Ok(()) => out.push(m),
@@ -373,8 +367,8 @@ impl TelemetrySubscriber {
 
     /// Heartbeats received since the last call, checked once all are read against
     /// `newest_version()`, the newest weights version the caller has verified (read after the
-    /// heartbeats, so that no actor can have loaded a newer one before beating): of the
-    /// actor's current process, env steps not going back nor growing faster than an actor
+    /// heartbeats, so that no actor can have loaded a newer one before beating): sealed with
+    /// the run's key, of the actor's current process, env steps not going back nor growing faster than an actor
     /// steps, dropped steps among them, a policy version the learner has broadcast.
     pub fn heartbeats(&mut self, newest_version: impl FnOnce() -> u64) -> Result<Vec<Heartbeat>> {
         let mut beats = Vec::new();
@@ -389,34 +383,33 @@ impl TelemetrySubscriber {
         let actors = self.starts.len();
         let mut out = Vec::new();
         for b in beats {
-            let checked = check(b.format_version, b.actor_id, actors).and_then(|()| {
-                let start = self.starts[b.actor_id as usize]
-                    .as_mut()
-                    .ok_or_else(|| not_started(b.actor_id))?;
-                let fields = if b.pid != start.pid {
-                    Err(WireError::Implausible(format!(
-                        "heartbeat of pid {} from actor {}, whose process is {}",
-                        b.pid, b.actor_id, start.pid
-                    )))
-                } else if b.dropped_steps > b.env_steps {
-                    Err(WireError::Implausible(format!(
-                        "{} steps dropped of {} taken",
-                        b.dropped_steps, b.env_steps
-                    )))
-                } else if b.policy_version > newest {
-                    Err(WireError::Implausible(format!(
-                        "policy version {} is ahead of the learner's newest {newest}",
-                        b.policy_version
-                    )))
-                } else {
-                    check_version(
-                        "policy version",
-                        b.policy_version,
-                        self.bounds.max_policy_version,
-                    )
-                };
-                fields.and_then(|()| start.beats.take(b.env_steps, 0, now))
-            });
+            let checked =
+                check(&b, b.format_version, &self.key, b.actor_id, actors).and_then(|()| {
+                    let start = self.starts[b.actor_id as usize]
+                        .as_mut()
+                        .ok_or_else(|| not_started(b.actor_id))?;
+                    let fields =
+                        if let Err(e) = check_pid("heartbeat", b.pid, "its actor", start.pid) {
+                            Err(e)
+                        } else if b.dropped_steps > b.env_steps {
+                            Err(WireError::Implausible(format!(
+                                "{} steps dropped of {} taken",
+                                b.dropped_steps, b.env_steps
+                            )))
+                        } else if b.policy_version > newest {
+                            Err(WireError::Implausible(format!(
+                                "policy version {} is ahead of the learner's newest {newest}",
+                                b.policy_version
+                            )))
+                        } else {
+                            check_version(
+                                "policy version",
+                                b.policy_version,
+                                self.bounds.max_policy_version,
+                            )
+                        };
+                    fields.and_then(|()| start.beats.take(b.env_steps, 0, now))
+                });
             match checked {
                 Ok(()) => out.push(b),
                 Err(e) => self.rejects.reject(&e),
@@ -425,16 +418,17 @@ impl TelemetrySubscriber {
         Ok(out)
     }
 
-    /// The newest replay status received since the last call that fits the run's bounds and
-    /// the replay start's history (counters not going back, inserts not faster than the actors
-    /// step, fill within the capacity, rejections adding up).
+    /// The newest replay status received since the last call that is sealed with the run's
+    /// key, of the replay's current process, and fits the run's bounds and the replay start's
+    /// history (counters not going back, inserts not faster than the actors step, fill within
+    /// the capacity, rejections adding up).
     pub fn replay_status(&mut self) -> Result<Option<ReplayStatus>> {
         let mut newest = None;
         while let Some(s) = self.status.receive().map_err(ice("receive status"))? {
             let read = read_once(s.payload());
             match read.and_then(|st| {
-                self.replay
-                    .take(&st, &self.bounds, self.starts.len())
+                check_sealed(&st, st.format_version, &self.key, &[])
+                    .and_then(|()| self.replay.take(&st, &self.bounds))
                     .map(|()| st)
             }) {
                 Ok(st) => newest = Some(st),
@@ -472,10 +466,27 @@ fn check_flags(flags: &[u32]) -> Result<(), WireError> {
     }
 }
 
-fn check(version: u32, actor_id: u32, actors: usize) -> Result<(), WireError> {
-    if version != FORMAT_VERSION {
-        return Err(WireError::Version { got: version });
+/// Checks that a message `what` of process `pid` comes from `whose` current process,
+/// `expected`.
+fn check_pid(what: &str, pid: u32, whose: &str, expected: u32) -> Result<(), WireError> {
+    if pid != expected {
+        return Err(WireError::Implausible(format!(
+            "{what} of pid {pid}, but {whose} runs as pid {expected}"
+        )));
     }
+    Ok(())
+}
+
+/// Checks an actor's message `m` of format `version`: sealed with `key`, of an actor below
+/// `actors`.
+fn check<T: Sealed>(
+    m: &T,
+    version: u32,
+    key: &RunKey,
+    actor_id: u32,
+    actors: usize,
+) -> Result<(), WireError> {
+    check_sealed(m, version, key, &[])?;
     if actor_id as usize >= actors {
         return Err(WireError::UnknownActor {
             got: actor_id,
@@ -490,7 +501,7 @@ mod tests {
     use super::*;
     use crate::inject::Injector;
     use crate::wire::named_reasons;
-    use crate::Isolated;
+    use crate::{Isolated, RunKey};
     use std::collections::BTreeMap;
 
     const BOUNDS: RunBounds = RunBounds {
@@ -509,7 +520,7 @@ mod tests {
         actors: usize,
     ) -> (Isolated, RunTransport, TelemetrySubscriber, Injector) {
         let isolated = Isolated::new(name);
-        let t = RunTransport::open(&isolated.0, actors, "launcher").unwrap();
+        let t = RunTransport::open(&isolated.0, actors, "launcher", &crate::test_key()).unwrap();
         let telemetry = TelemetrySubscriber::new(&t, BOUNDS).unwrap();
         let inject = Injector::new(&t).unwrap();
         (isolated, t, telemetry, inject)
@@ -519,9 +530,20 @@ mod tests {
         named_reasons(&t.rejected_by_reason())
     }
 
+    /// `m` sealed with the run's key, as a process of the run sends it.
+    fn seal<T: Sealed>(m: T) -> T {
+        m.seal_with(&crate::test_key(), &[])
+    }
+
+    /// `m` sealed by a process without the run's key: its CRC-32 right, its tag not.
+    fn forged<T: Sealed>(m: T) -> T {
+        m.seal_with(&RunKey::from_bytes([3; crate::KEY_LEN]), &[])
+    }
+
     /// Issue 47's falsified records: episode reports claiming env steps 9.2e17 or 2^64-1, PG
     /// 2.97e34 and other values no actor produces are rejected by reason, and none of them
-    /// becomes a record; the actor's real reports before and after are taken.
+    /// becomes a record; so are a plausible report forged without the run's key and one of
+    /// another process than the actor's; the actor's real reports before and after are taken.
     #[test]
     fn implausible_episode_reports_are_rejected_and_the_real_ones_taken() {
         let (_isolated, _t, mut telemetry, inject) = launcher_view("telemetry-episodes", 2);
@@ -535,9 +557,10 @@ mod tests {
             progress: 0.4,
             overtakes: 1,
             episode_return: 12.5,
+            pid: 4242,
             ..Default::default()
         };
-        inject.episode(real(100, 100)).unwrap();
+        inject.episode(seal(real(100, 100))).unwrap();
         // before its start is known
         assert_eq!(telemetry.episodes().unwrap(), vec![]);
         telemetry.actor_started(0, 4242);
@@ -570,14 +593,19 @@ mod tests {
                 actor_id: 7,
                 ..real(200, 100)
             },
+            EpisodeReport {
+                pid: 1,
+                ..real(200, 100)
+            },
         ];
-        inject.episode(real(100, 100)).unwrap();
+        inject.episode(seal(real(100, 100))).unwrap();
         for m in hostile {
-            inject.episode(m).unwrap();
+            inject.episode(seal(m)).unwrap();
         }
+        inject.episode(forged(real(200, 100))).unwrap();
         // env steps going back, then the actor's next real episode
-        inject.episode(real(150, 100)).unwrap();
-        inject.episode(real(300, 200)).unwrap();
+        inject.episode(seal(real(150, 100))).unwrap();
+        inject.episode(seal(real(300, 200))).unwrap();
         let got: Vec<u64> = telemetry
             .episodes()
             .unwrap()
@@ -586,19 +614,20 @@ mod tests {
             .collect();
         assert_eq!(got, vec![100, 300]);
         let want = [
-            ("implausible", 9),
+            ("implausible", 10),
             ("value", 1),
             ("unknown_actor", 1),
             ("backwards", 1),
+            ("unauthenticated", 1),
         ];
         assert_eq!(reasons(&telemetry), want.into_iter().collect());
-        assert_eq!(telemetry.rejected(), 12);
+        assert_eq!(telemetry.rejected(), 14);
     }
 
     /// Heartbeats of another process than the actor's, with a policy version ahead of the
     /// learner's newest (2^64-1 among them), more steps than an actor takes in the time, or more
-    /// dropped than taken are rejected; the real ones are taken, and a restart starts the
-    /// actor's history again.
+    /// dropped than taken are rejected, and so is a plausible one forged without the run's key;
+    /// the real ones are taken, and a restart starts the actor's history again.
     #[test]
     fn implausible_heartbeats_are_rejected() {
         let (_isolated, _t, mut telemetry, inject) = launcher_view("telemetry-heartbeats", 1);
@@ -629,8 +658,9 @@ mod tests {
             real(700, 30),
         ];
         for b in beats {
-            inject.heartbeat(b).unwrap();
+            inject.heartbeat(seal(b)).unwrap();
         }
+        inject.heartbeat(forged(real(600, 20))).unwrap();
         let mut asked = 0;
         let got: Vec<(u64, u64)> = telemetry
             .heartbeats(|| {
@@ -643,28 +673,31 @@ mod tests {
             .collect();
         assert_eq!(got, vec![(500, 20), (700, 30)]);
         assert_eq!(asked, 1);
-        let want = [("implausible", 6), ("backwards", 1)];
+        let want = [("implausible", 6), ("backwards", 1), ("unauthenticated", 1)];
         assert_eq!(reasons(&telemetry), want.into_iter().collect());
         // a restarted actor counts from 0 again, as a new process
         telemetry.actor_started(0, 4343);
         inject
-            .heartbeat(Heartbeat {
+            .heartbeat(seal(Heartbeat {
                 pid: 4343,
                 ..real(10, 30)
-            })
+            }))
             .unwrap();
         assert_eq!(telemetry.heartbeats(|| 30).unwrap().len(), 1);
     }
 
     /// Replay statuses with 4.3e9 dropped chunks, inserts going back or faster than the actors
     /// step, another capacity or rejections that do not add up are rejected; the replay's real
-    /// statuses before and after are taken. A restarted replay restores at most what the one
-    /// before had stored.
+    /// statuses before and after are taken, and neither a status forged without the run's key
+    /// nor one of another process than the replay's moves its history. A restarted replay
+    /// restores at most what the one before had stored.
     #[test]
     fn implausible_replay_statuses_are_rejected() {
         let (_isolated, _t, mut telemetry, inject) = launcher_view("telemetry-status", 2);
+        telemetry.replay_started(77);
         let real = |inserted| ReplayStatus {
             format_version: FORMAT_VERSION,
+            pid: 77,
             inserted,
             fill: inserted.min(5000),
             capacity: 5000,
@@ -695,31 +728,47 @@ mod tests {
                 fill: 5001,
                 ..real(6000)
             },
+            ReplayStatus {
+                pid: 78,
+                ..real(1100)
+            },
+            forged(real(1100)),
             real(1200),
         ];
         let mut taken = Vec::new();
         for s in statuses {
+            // the forged one is sealed already (sealing it again would make it real)
+            let s = if s.tag == [0; crate::wire::TAG_LEN] {
+                seal(s)
+            } else {
+                s
+            };
             inject.status(s).unwrap();
             if let Some(s) = telemetry.replay_status().unwrap() {
                 taken.push(s.inserted);
             }
         }
         assert_eq!(taken, vec![1000, 1200]);
-        let want = [("implausible", 5), ("backwards", 1)];
+        let want = [("implausible", 6), ("backwards", 1), ("unauthenticated", 1)];
         assert_eq!(reasons(&telemetry), want.into_iter().collect());
-        telemetry.replay_started();
+        telemetry.replay_started(78);
         inject
-            .status(ReplayStatus {
+            .status(seal(ReplayStatus {
                 restored_inserts: 5000,
+                pid: 78,
                 ..real(5000)
-            })
+            }))
             .unwrap();
         assert_eq!(telemetry.replay_status().unwrap(), None);
+        // a copy of the replay's predecessor's status, then the restarted replay's own
+        inject.status(seal(real(1180))).unwrap();
+        assert_eq!(telemetry.replay_status().unwrap(), None);
         inject
-            .status(ReplayStatus {
+            .status(seal(ReplayStatus {
                 restored_inserts: 1100,
+                pid: 78,
                 ..real(1150)
-            })
+            }))
             .unwrap();
         assert_eq!(
             telemetry.replay_status().unwrap().map(|s| s.inserted),

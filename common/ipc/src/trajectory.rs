@@ -1,14 +1,15 @@
 //! Actor -> replay trajectories: the actor's chunking sender and the replay's validating receiver.
 
-use super::bounds::{check_version, REBASE_AFTER};
+use super::bounds::check_version;
 use super::shared::{check_readable, copy_slice, read_once};
 use super::transport::{timed_wait, wait_until, RunTransport, Wake};
 use super::wire::{
-    check_sequence, step_stride, validate_chunk, ChunkHeader, WireError, MAX_ACT, MAX_CHUNK,
-    MAX_CHUNK_FLOATS, MAX_OBS,
+    check_sequence, new_epoch, step_stride, validate_chunk, ChunkHeader, WireError, MAX_ACT,
+    MAX_CHUNK, MAX_CHUNK_FLOATS, MAX_OBS,
 };
 use super::{ReadStage, RejectLog};
 use crate::error::{ice, IpcError, Result};
+use crate::key::RunKey;
 use ctxrace_config::validate::Causes;
 use ctxrace_run::steps::TrajectoryStep;
 use iceoryx2::port::listener::Listener;
@@ -64,7 +65,8 @@ struct Pending {
 }
 
 /// An actor's end of the trajectory stream: collects steps into chunks of up to [`MAX_CHUNK`]
-/// and sends them when full and at each episode's end.
+/// and sends them when full and at each episode's end, each sealed with the run's key and
+/// carrying the sender's epoch ([`new_epoch`]), drawn when it is made.
 ///
 /// A chunk the replay has no room for (its rate limiter holds the actors to the learner's pace,
 /// or it is restarting) waits in the sender's backlog; the actor stops stepping while
@@ -80,6 +82,7 @@ pub struct TrajectorySender {
     close_timeout: Duration,
     /// A chunk was delivered since the replay was last seen to take a turn.
     unconfirmed: bool,
+    key: RunKey,
     header: ChunkHeader,
     buf: Vec<f32>,
     backlog: VecDeque<Pending>,
@@ -129,7 +132,11 @@ impl TrajectorySender {
             turns: ready,
             close_timeout: opts.close_timeout,
             unconfirmed: false,
-            header: ChunkHeader::for_actor(actor_id, obs_dim, act_dim),
+            key: transport.key().clone(),
+            header: ChunkHeader {
+                epoch: new_epoch(),
+                ..ChunkHeader::for_actor(actor_id, obs_dim, act_dim)
+            },
             buf: Vec::with_capacity(MAX_CHUNK * step_stride(obs_dim, act_dim)),
             backlog: VecDeque::new(),
             spare: Vec::new(),
@@ -184,7 +191,7 @@ impl TrajectorySender {
                 .unwrap_or_else(|| Vec::with_capacity(capacity));
             let floats = std::mem::replace(&mut self.buf, next);
             self.backlog.push_back(Pending {
-                header: self.header.sealed(&floats),
+                header: self.header.sealed(&self.key, &floats),
                 floats,
             });
             self.header.sequence += 1;
@@ -299,8 +306,13 @@ pub struct ChunkView<'a> {
 
 /// The replay's end of the trajectory stream: one subscriber per actor, the actor that has
 /// supplied the fewest steps served first (max-min fairness: an actor is never held back while
-/// a faster one fills the buffer, however long its chunks); validates each chunk and tracks
-/// per-actor gaps.
+/// a faster one fills the buffer, however long its chunks); validates each chunk (its tag under
+/// the run's key first) and tracks per-actor gaps.
+///
+/// Each actor's stream is at a place, the epoch and sequence number after its last accepted
+/// chunk ([`check_sequence`]). Only an accepted chunk moves it: a rejected one changes nothing
+/// but the counters, so no message can hold a stream up. A restarted actor's sender has a later
+/// epoch, and its first chunk starts the stream again.
 pub struct TrajectoryReceiver {
     services: Vec<PubSubFactory<ipc::Service, [f32], ChunkHeader>>,
     subscribers: Vec<Subscriber<ipc::Service, [f32], ChunkHeader>>,
@@ -310,8 +322,11 @@ pub struct TrajectoryReceiver {
     order: Vec<usize>,
     obs_dim: usize,
     act_dim: usize,
-    next_sequence: Vec<Option<u64>>,
-    /// The sequence, episode and policy version of each actor's last valid chunk.
+    key: RunKey,
+    /// The place (epoch, sequence number) each actor's stream expects next.
+    next_sequence: Vec<Option<(u64, u64)>>,
+    /// The sequence, episode and policy version of each actor's last valid chunk, of the epoch
+    /// of `next_sequence`.
     last_chunk: Vec<Option<(u64, u64, u64)>>,
     /// No chunk names weights newer than this: the learner's gradient-step target.
     max_policy_version: u64,
@@ -319,11 +334,6 @@ pub struct TrajectoryReceiver {
     /// Chunks of each actor rejected since its last valid one: the sequence numbers they took
     /// are not missing.
     rejected_since: Vec<u64>,
-    /// Well-formed chunks of each actor rejected in a row for their place in the stream (going
-    /// back, jumping ahead): after [`REBASE_AFTER`] the stream's position is forgotten and its
-    /// next well-formed chunk sets it, so a forged chunk that passed every check (sequence
-    /// 0 is a restart; a position far ahead) holds a stream up for a few chunks, never for good.
-    misplaced: Vec<u32>,
     /// Chunks rejected, by the actor whose stream carried them.
     rejected_by_actor: Vec<u64>,
     rejects: RejectLog,
@@ -358,12 +368,12 @@ impl TrajectoryReceiver {
             order: (0..transport.actors()).collect(),
             obs_dim,
             act_dim,
+            key: transport.key().clone(),
             next_sequence: vec![None; transport.actors()],
             last_chunk: vec![None; transport.actors()],
             max_policy_version,
             missing_chunks: 0,
             rejected_since: vec![0; transport.actors()],
-            misplaced: vec![0; transport.actors()],
             rejected_by_actor: vec![0; transport.actors()],
             rejects: RejectLog::new("trajectory chunk"),
             copy: Vec::with_capacity(MAX_CHUNK_FLOATS),
@@ -430,57 +440,55 @@ impl TrajectoryReceiver {
                 }
             };
             let expected = &mut self.next_sequence[id];
-            let formed = validate_chunk(&header, &self.copy, actors, self.obs_dim, self.act_dim)
-                .and_then(|()| {
-                    if header.actor_id as usize != id {
-                        return Err(WireError::WrongStream {
-                            got: header.actor_id,
-                            stream: id as u32,
-                        });
-                    }
-                    check_version(
-                        "policy version",
-                        header.policy_version,
-                        self.max_policy_version,
-                    )
-                });
-            let placed = formed.is_ok();
+            let place = (header.epoch, header.sequence);
+            let formed = validate_chunk(
+                &header,
+                &self.copy,
+                &self.key,
+                actors,
+                self.obs_dim,
+                self.act_dim,
+            )
+            .and_then(|()| {
+                if header.actor_id as usize != id {
+                    return Err(WireError::WrongStream {
+                        got: header.actor_id,
+                        stream: id as u32,
+                    });
+                }
+                check_version(
+                    "policy version",
+                    header.policy_version,
+                    self.max_policy_version,
+                )
+            });
+            let same_epoch = expected.is_some_and(|(epoch, _)| epoch == header.epoch);
             let checked = formed
-                .and_then(|()| check_sequence(header.sequence, *expected))
+                .and_then(|()| check_sequence(place, *expected))
                 .and_then(|()| {
-                    let last = self.last_chunk[id].filter(|_| header.sequence > 0);
+                    let last = self.last_chunk[id].filter(|_| same_epoch);
                     check_stream(&header, last)
                 });
             if let Err(e) = checked {
+                // the stream stays where it was
                 self.rejects.reject(&e);
                 self.rejected_by_actor[id] += 1;
-                if placed {
-                    self.misplaced[id] += 1;
-                    if self.misplaced[id] >= REBASE_AFTER {
-                        tracing::warn!(
-                            "actor {id}'s stream: {REBASE_AFTER} well-formed chunks in a row out \
-                             of place (the last: {e}); its position starts again from the next"
-                        );
-                        (*expected, self.last_chunk[id], self.misplaced[id]) = (None, None, 0);
-                    }
-                }
-                // a chunk going back took no new sequence number; one jumping ahead did (its
-                // own was overwritten), like any other malformed chunk
+                // a chunk going back took no new sequence number; any other rejected chunk
+                // may have (its own was overwritten)
                 if !matches!(e, WireError::OutOfOrder { .. }) {
                     self.rejected_since[id] += 1;
                 }
                 continue;
             }
             hook(ReadStage::Validated);
-            let after_gap = *expected != Some(header.sequence);
-            if let Some(next) = *expected {
+            let after_gap = *expected != Some(place);
+            if let Some((_, next)) = expected.filter(|_| same_epoch) {
                 // a rejected chunk took a sequence number: it is counted as rejected only
                 let gap = header.sequence.saturating_sub(next);
                 self.missing_chunks += gap.saturating_sub(self.rejected_since[id]);
             }
             self.rejected_since[id] = 0;
-            self.misplaced[id] = 0;
-            *expected = Some(header.sequence.saturating_add(1));
+            *expected = Some((header.epoch, header.sequence.saturating_add(1)));
             self.last_chunk[id] = Some((header.sequence, header.episode_id, header.policy_version));
             self.taken_steps[id] += u64::from(header.steps);
             f(ChunkView {

@@ -7,6 +7,7 @@ use super::wire::{
 };
 use crate::error::SHM_ROOT_ENV;
 use crate::error::{ice, IpcError, Result};
+use crate::key::RunKey;
 use iceoryx2::port::listener::{Listener, ListenerWaitError};
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::prelude::*;
@@ -154,23 +155,25 @@ pub fn iceoryx_config(prefix: &str, actors: usize) -> Result<Config> {
     Ok(config)
 }
 
-/// A process's handle on a run's transport: the configuration and one iceoryx2 node. Every
-/// endpoint of [`super`] is created from it.
+/// A process's handle on a run's transport: the configuration, one iceoryx2 node and the run's
+/// key. Every endpoint of [`super`] is created from it, and seals what it sends and checks what
+/// it receives with the key.
 pub struct RunTransport {
     node: Node<ipc::Service>,
     prefix: String,
     actors: usize,
+    key: RunKey,
 }
 
 impl RunTransport {
-    /// Joins the run with prefix `prefix` (see [`run_prefix`]) of `actors` actors as a node named
-    /// `role`. Signal handling is left to the process (see [`termination_flag`]). iceoryx2 0.10
+    /// Joins the run with prefix `prefix` (see [`run_prefix`]) of `actors` actors and key `key`
+    /// as a node named `role`. Signal handling is left to the process (see [`termination_flag`]). iceoryx2 0.10
     /// creates the run's `...node.<version>.global_mgmt` segment in `/dev/shm` readable and
     /// writable by everyone (mode 0666: `enable_global_access` in its
     /// `GlobalManagementSegment`, not configurable): every node closes it to its owner once
     /// created, and so do [`remove_dead_nodes`] and [`cleanup`] (a node that died or hung
     /// before closing it, after recreating it, leaves it open only until then).
-    pub fn open(prefix: &str, actors: usize, role: &str) -> Result<Self> {
+    pub fn open(prefix: &str, actors: usize, role: &str, key: &RunKey) -> Result<Self> {
         if actors == 0 {
             return Err(IpcError::NoActors);
         }
@@ -188,7 +191,13 @@ impl RunTransport {
             node,
             prefix: prefix.to_string(),
             actors,
+            key: key.clone(),
         })
+    }
+
+    /// The run's key.
+    pub fn key(&self) -> &RunKey {
+        &self.key
     }
 
     /// The run's prefix.
@@ -772,7 +781,7 @@ mod tests {
     fn global_mgmt_is_never_left_world_writable() {
         let isolated = crate::Isolated::new("global-mgmt");
         let prefix = isolated.0.clone();
-        let t = RunTransport::open(&prefix, 1, "test").unwrap();
+        let t = RunTransport::open(&prefix, 1, "test", &crate::test_key()).unwrap();
         let mgmt = std::fs::read_dir(SHM_DIR)
             .unwrap()
             .flatten()
@@ -844,7 +853,7 @@ mod tests {
         ));
         std::fs::write(&mgmt, b"").unwrap();
         let started = Instant::now();
-        let node = RunTransport::open(&prefix, 1, "test").unwrap();
+        let node = RunTransport::open(&prefix, 1, "test", &crate::test_key()).unwrap();
         assert!(started.elapsed() < Duration::from_secs(10));
         assert!(std::fs::metadata(&mgmt).unwrap().len() > 0, "a fresh one");
         drop(node);
@@ -930,8 +939,8 @@ mod tests {
         let prefix = run_prefix(&format!("test-modes-{}", std::process::id()));
         let mut listing = Vec::new();
         {
-            let t = RunTransport::open(&prefix, 2, "learner").unwrap();
-            let peer = RunTransport::open(&prefix, 2, "actor-0").unwrap();
+            let t = RunTransport::open(&prefix, 2, "learner", &crate::test_key()).unwrap();
+            let peer = RunTransport::open(&prefix, 2, "actor-0", &crate::test_key()).unwrap();
             // every service, with ports on both sides where data or connections get created
             let weights = t.weights_service().unwrap();
             let publisher = weights

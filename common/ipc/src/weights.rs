@@ -1,11 +1,13 @@
-//! Learner -> actors weights broadcast: one publisher, history 1, checksummed.
+//! Learner -> actors weights broadcast: one publisher, history 1, sealed with the run's key
+//! (a checksum and a tag over the version, the length and the bytes).
 
 use super::bounds::check_version;
 use super::shared::{check_readable, copy_slice_with, read_once};
 use super::transport::{termination_requested, timed_wait, RunTransport, Wake};
-use super::wire::{check_weights, weights_hasher, WeightsHeader, WireError, FORMAT_VERSION};
+use super::wire::{check_weights, Sealed as _, WeightsHeader, WireError};
 use super::{ReadStage, RejectLog};
 use crate::error::{ice, IpcError, Result};
+use crate::key::RunKey;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
@@ -28,6 +30,7 @@ pub struct WeightsPublisher {
     publisher: Publisher<ipc::Service, [u8], WeightsHeader>,
     wake: Notifier<ipc::Service>,
     max_bytes: usize,
+    key: RunKey,
 }
 
 impl WeightsPublisher {
@@ -48,6 +51,7 @@ impl WeightsPublisher {
             publisher,
             wake: transport.notifier(Wake::Actors)?,
             max_bytes,
+            key: transport.key().clone(),
         })
     }
 
@@ -64,8 +68,9 @@ impl WeightsPublisher {
             .publisher
             .loan_slice_uninit(bytes.len())
             .map_err(ice("loan weights"))?;
-        // Copy and checksum block by block: the block is still in cache for the hash.
-        let mut hasher = weights_hasher(version, bytes.len() as u64);
+        // Copy and seal block by block: the block is still in cache for the hashes.
+        let header = WeightsHeader::new(version, bytes.len());
+        let mut sealer = header.sealer(&self.key);
         for (dst, src) in sample
             .payload_mut()
             .chunks_mut(HASH_BLOCK)
@@ -80,14 +85,9 @@ impl WeightsPublisher {
                     src.len(),
                 )
             };
-            hasher.update(src);
+            sealer.update(src);
         }
-        *sample.user_header_mut() = WeightsHeader {
-            format_version: FORMAT_VERSION,
-            checksum: hasher.finalize(),
-            version,
-            len: bytes.len() as u64,
-        };
+        *sample.user_header_mut() = header.with_seal(sealer.finish());
         // SAFETY: the loop above wrote every byte of the loaned slice (its length is bytes.len()).
         let sample = unsafe { sample.assume_init() };
         let reached = sample.send().map_err(ice("send weights"))?;
@@ -113,6 +113,7 @@ pub struct WeightsReceiver {
     current: Option<u64>,
     /// No version beyond it is taken: the learner's gradient-step target.
     max_version: u64,
+    key: RunKey,
     rejects: RejectLog,
     /// The copy of the blob being read.
     copy: Vec<u8>,
@@ -135,6 +136,7 @@ impl WeightsReceiver {
             wake,
             current: None,
             max_version,
+            key: transport.key().clone(),
             rejects: RejectLog::new("weights"),
             copy: Vec::new(),
             held: Vec::new(),
@@ -142,8 +144,9 @@ impl WeightsReceiver {
     }
 
     /// Calls `f(version, bytes)` on the newest verified weights newer than the last ones handed
-    /// out; `None` if there are none. Blobs failing the checksum, or of a version beyond the
-    /// run's, are counted, logged and skipped.
+    /// out; `None` if there are none. Blobs failing the checksum or the tag (a version is taken
+    /// only from the holder of the run's key: the learner), or of a version beyond the run's,
+    /// are counted, logged and skipped, and change nothing.
     pub fn latest_with<R>(&mut self, f: impl FnOnce(u64, &[u8]) -> R) -> Result<Option<R>> {
         self.latest_with_observed(&mut |_| {}, f)
     }
@@ -168,16 +171,16 @@ impl WeightsReceiver {
                             "{len} bytes of weights, at most {DEFAULT_MAX_WEIGHTS_BYTES} are sent"
                         )));
                     }
-                    // the checksum of each block while it is still in cache
-                    let mut hasher = weights_hasher(header.version, len as u64);
+                    // the seal of each block while it is still in cache
+                    let mut sealer = header.sealer(&self.key);
                     copy_slice_with(sample.payload(), &mut self.copy, HASH_BLOCK, |block| {
-                        hasher.update(block)
+                        sealer.update(block)
                     })
-                    .map(|()| (header, hasher.finalize()))
+                    .map(|()| (header, sealer.finish()))
                 });
             hook(ReadStage::Copied);
-            let checked = copied.and_then(|(header, checksum)| {
-                check_weights(&header, self.copy.len(), checksum)
+            let checked = copied.and_then(|(header, seal)| {
+                check_weights(&header, self.copy.len(), seal)
                     .and_then(|()| {
                         check_version("weights version", header.version, self.max_version)
                     })
@@ -231,7 +234,7 @@ impl WeightsReceiver {
         self.current
     }
 
-    /// Blobs rejected (bad version, length or checksum, or a version beyond the run's).
+    /// Blobs rejected (bad version, length, checksum or tag, or a version beyond the run's).
     pub fn rejected(&self) -> u64 {
         self.rejects.count()
     }
@@ -256,7 +259,7 @@ mod tests {
         let prefix = isolated.0.clone();
         let nodes: Vec<RunTransport> = ["launcher", "learner", "actor-0", "actor-1"]
             .iter()
-            .map(|role| RunTransport::open(&prefix, 2, role).unwrap())
+            .map(|role| RunTransport::open(&prefix, 2, role, &crate::test_key()).unwrap())
             .collect();
         let mut launcher = WeightsReceiver::new(&nodes[0], 1000).unwrap();
         let publisher = WeightsPublisher::new(&nodes[1], 1 << 16).unwrap();
@@ -290,7 +293,7 @@ mod tests {
         let isolated = Isolated::new("weights");
         let prefix = isolated.0.clone();
         {
-            let t = RunTransport::open(&prefix, 2, "learner").unwrap();
+            let t = RunTransport::open(&prefix, 2, "learner", &crate::test_key()).unwrap();
             let publisher = WeightsPublisher::new(&t, 1 << 20).unwrap();
             let v1 = vec![1u8; 1000];
             let v2: Vec<u8> = (0..5000).map(|i| i as u8).collect();
@@ -314,10 +317,8 @@ mod tests {
                 .unwrap();
             let mut sample = raw.loan_slice_uninit(16).unwrap();
             *sample.user_header_mut() = WeightsHeader {
-                format_version: FORMAT_VERSION,
                 checksum: 12345,
-                version: 3,
-                len: 16,
+                ..WeightsHeader::new(3, 16)
             };
             sample.write_from_slice(&[7u8; 16]).send().unwrap();
             assert_eq!(late.latest().unwrap(), None);

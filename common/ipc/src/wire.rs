@@ -13,13 +13,26 @@
 //! version and length too, and chunks jumping ahead of their stream are rejected
 //! (`sequence_jump`); 5, a chunk carries a checksum over its header and payload, telemetry is
 //! checked against the run's bounds and history (`backwards`, `implausible`), a batch answer
-//! carries a checksum, and the replay answers a request it refuses with the reason.
+//! carries a checksum, and the replay answers a request it refuses with the reason; 6, every
+//! message carries a [`Tag`] keyed with the run's key beside its CRC-32 (`unauthenticated`),
+//! chunks and batch requests the [`new_epoch`] of their sender (a stream goes on only in its
+//! sender's epoch or a later one: `sequence_jump` is gone), episode reports and replay statuses
+//! their process id.
+//!
+//! # Seals
+//! Every message carries two seals over every other field (little-endian) and its payload,
+//! computed in one pass ([`Sealer`]): a CRC-32 (`checksum`), which tells an accident (a torn
+//! write, a flipped bit) from a forgery, and a 32-byte BLAKE3 tag keyed with the run's key
+//! ([`RunKey`]), whose input starts with the message kind's name ([`Sealed::KIND`]), so that
+//! only a process holding the key can make a message a reader accepts. A reader checks the
+//! version, then the checksum (`checksum`), then the tag (`unauthenticated`), then the rest.
 
+use crate::key::RunKey;
 use ctxrace_config::batch::{sequence_floats, transition_floats};
 use iceoryx2::prelude::ZeroCopySend;
 
 /// Version of every wire layout in this module; bump it on any change.
-pub const FORMAT_VERSION: u32 = 5;
+pub const FORMAT_VERSION: u32 = 6;
 /// Largest observation (one LiDAR frame) a step may carry: the configuration's bound.
 pub use ctxrace_config::MAX_OBS;
 /// Largest action a step may carry.
@@ -29,19 +42,201 @@ pub const MAX_CHUNK: usize = 64;
 pub use ctxrace_run::steps::{step_stride, STEP_EXTRA};
 /// Flags of a step: is_first, is_terminal, is_last, has_mask.
 const STEP_FLAGS: usize = 4;
-/// How far ahead of its stream's next expected sequence number a chunk may be: a sender drops
-/// chunks only when it closes, and a chunk the replay rejected takes one number, so a real
-/// stream never jumps this far; a sequence beyond it is rejected (`sequence_jump`) instead of
-/// moving the stream there and making every later chunk `out_of_order`.
-pub const SEQUENCE_WINDOW: u64 = 1 << 16;
 /// Most batch requests waiting at the replay; more are refused.
 pub const MAX_PENDING_REQUESTS: usize = 16;
 /// Length of the `[f32]` slice a trajectory publisher preallocates.
 pub const MAX_CHUNK_FLOATS: usize = MAX_CHUNK * (MAX_OBS + MAX_ACT + STEP_EXTRA);
 
+/// A message's authentication tag: keyed BLAKE3 under the run's key ([`Sealer`]). (Its length
+/// is written out: rustc 1.95 fails on closures building wire structs whose array length is a
+/// named constant, "broken MIR ... UnevaluatedConst".)
+pub type Tag = [u8; 32];
+/// Bytes of a message's [`Tag`].
+pub const TAG_LEN: usize = std::mem::size_of::<Tag>();
+
+/// The [`Seal`] of a message, computed in one pass over its bytes: its CRC-32 and its tag
+/// under the run's key.
+pub struct Sealer {
+    crc: crc32fast::Hasher,
+    mac: blake3::Hasher,
+}
+
+impl Sealer {
+    /// A sealer of messages of kind `kind` ([`Sealed::KIND`]) under `key`: the tag's input
+    /// starts with the kind's name, so that no message's tag is valid for a message of another
+    /// kind.
+    pub fn new(key: &RunKey, kind: &str) -> Self {
+        let mut mac = blake3::Hasher::new_keyed(key.bytes());
+        mac.update(kind.as_bytes());
+        mac.update(&[0]);
+        Self {
+            crc: crc32fast::Hasher::new(),
+            mac,
+        }
+    }
+
+    /// Feeds `bytes` to both seals.
+    pub fn update(&mut self, bytes: &[u8]) {
+        self.crc.update(bytes);
+        self.mac.update(bytes);
+    }
+
+    /// Feeds `words`, each little-endian.
+    pub fn words32(&mut self, words: &[u32]) {
+        for word in words {
+            self.update(&word.to_le_bytes());
+        }
+    }
+
+    /// Feeds `words`, each little-endian.
+    pub fn words64(&mut self, words: &[u64]) {
+        for word in words {
+            self.update(&word.to_le_bytes());
+        }
+    }
+
+    /// Feeds `values`, each one's bits little-endian.
+    pub fn floats(&mut self, values: &[f32]) {
+        for value in values {
+            self.update(&value.to_bits().to_le_bytes());
+        }
+    }
+
+    /// The seals of what was fed.
+    pub fn finish(self) -> Seal {
+        Seal {
+            checksum: self.crc.finalize(),
+            tag: self.mac.finalize(),
+        }
+    }
+}
+
+/// The checksum and the tag computed over a message ([`Sealer`]).
+#[derive(Clone, Copy, Debug)]
+pub struct Seal {
+    /// The CRC-32.
+    pub checksum: u32,
+    tag: blake3::Hash,
+}
+
+impl Seal {
+    /// The tag's bytes.
+    pub fn tag(&self) -> Tag {
+        *self.tag.as_bytes()
+    }
+
+    /// Checks a message's `checksum` and `tag` against this seal: a checksum that differs is
+    /// an accident ([`WireError::Checksum`]); a matching checksum with a tag that differs (in
+    /// constant time) a message that no holder of the run's key made
+    /// ([`WireError::Unauthenticated`]).
+    pub fn verify(&self, checksum: u32, tag: &Tag) -> Result<(), WireError> {
+        if checksum != self.checksum {
+            return Err(WireError::Checksum {
+                got: self.checksum,
+                expected: checksum,
+            });
+        }
+        if blake3::Hash::from_bytes(*tag) != self.tag {
+            return Err(WireError::Unauthenticated);
+        }
+        Ok(())
+    }
+}
+
+/// A wire message that carries a checksum and a tag over its other fields and its payload.
+pub trait Sealed: Copy {
+    /// The message kind's name, the first input of its tag.
+    const KIND: &'static str;
+
+    /// Feeds every field but the checksum and the tag, in declaration order.
+    fn feed(&self, sealer: &mut Sealer);
+
+    /// Its checksum and its tag.
+    fn seal_fields(&self) -> (u32, &Tag);
+
+    /// This message carrying `seal`.
+    fn with_seal(self, seal: Seal) -> Self;
+
+    /// A sealer under `key` fed this message's fields: its payload comes next.
+    fn sealer(&self, key: &RunKey) -> Sealer {
+        let mut sealer = Sealer::new(key, Self::KIND);
+        self.feed(&mut sealer);
+        sealer
+    }
+
+    /// This message sealed under `key` with `payload`, its parts back to back.
+    fn seal_with(self, key: &RunKey, payload: &[&[u8]]) -> Self {
+        let mut sealer = self.sealer(key);
+        for part in payload {
+            sealer.update(part);
+        }
+        self.with_seal(sealer.finish())
+    }
+
+    /// Checks its checksum and tag against `seal`, computed over it and its payload
+    /// ([`Seal::verify`]).
+    fn check_seal(&self, seal: Seal) -> Result<(), WireError> {
+        let (checksum, tag) = self.seal_fields();
+        seal.verify(checksum, tag)
+    }
+
+    /// Checks its checksum and tag for `payload`, its parts back to back, under `key`.
+    fn check_with(&self, key: &RunKey, payload: &[&[u8]]) -> Result<(), WireError> {
+        let mut sealer = self.sealer(key);
+        for part in payload {
+            sealer.update(part);
+        }
+        self.check_seal(sealer.finish())
+    }
+}
+
+/// A fresh epoch for a sender made now: `CLOCK_MONOTONIC` in nanoseconds, one clock for every
+/// process of the machine (a run's processes share one machine), so that a sender made later, a
+/// restarted actor's or learner's, has a larger epoch. A reader's stream goes on only in the
+/// epoch of its last accepted message or a later one ([`check_sequence`]).
+pub fn new_epoch() -> u64 {
+    let mut now = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes only into `now`, a valid timespec; CLOCK_MONOTONIC exists on
+    // every Linux, so it cannot fail.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut now) };
+    (now.tv_sec as u64)
+        .saturating_mul(1_000_000_000)
+        .saturating_add(now.tv_nsec as u64)
+}
+
+/// Implements [`Sealed`] for a message whose `checksum` and `tag` fields are its seal, with
+/// `feed` feeding its other fields (`|message, sealer| { ... }`).
+macro_rules! sealed {
+    ($t:ty, $kind:literal, |$m:ident, $s:ident| $feed:block) => {
+        impl Sealed for $t {
+            const KIND: &'static str = $kind;
+
+            fn feed(&self, $s: &mut Sealer) {
+                let $m = self;
+                $feed
+            }
+
+            fn seal_fields(&self) -> (u32, &Tag) {
+                (self.checksum, &self.tag)
+            }
+
+            fn with_seal(self, seal: Seal) -> Self {
+                Self {
+                    checksum: seal.checksum,
+                    tag: seal.tag(),
+                    ..self
+                }
+            }
+        }
+    };
+}
+
 /// Header of a trajectory chunk: `steps` consecutive env steps of one actor.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("ctxrace_ChunkHeader_v1")]
+#[type_name("ctxrace_ChunkHeader_v2")]
 #[repr(C)]
 pub struct ChunkHeader {
     /// [`FORMAT_VERSION`].
@@ -50,7 +245,7 @@ pub struct ChunkHeader {
     pub actor_id: u32,
     /// The episode the chunk's first step belongs to.
     pub episode_id: u64,
-    /// Per-actor chunk counter starting at 0; a gap means chunks were dropped.
+    /// Per-sender chunk counter starting at 0; a gap means chunks were dropped.
     pub sequence: u64,
     /// Version of the weights that chose the chunk's actions.
     pub policy_version: u64,
@@ -60,13 +255,24 @@ pub struct ChunkHeader {
     pub act_dim: u32,
     /// Steps in the chunk, 1 to [`MAX_CHUNK`].
     pub steps: u32,
-    /// CRC-32 of the other header fields and the payload ([`chunk_checksum`]).
+    /// CRC-32 of the other fields (the tag aside) and the payload ([`Sealer`]).
     pub checksum: u32,
+    /// The sender's [`new_epoch`]: a restarted actor's chunks start a new stream.
+    pub epoch: u64,
+    /// Tag of the other fields (the checksum aside) and the payload ([`Sealer`]).
+    pub tag: Tag,
 }
+
+sealed!(ChunkHeader, "ctxrace chunk", |h, s| {
+    s.words32(&[h.format_version, h.actor_id]);
+    s.words64(&[h.episode_id, h.sequence, h.policy_version]);
+    s.words32(&[h.obs_dim, h.act_dim, h.steps]);
+    s.words64(&[h.epoch]);
+});
 
 impl ChunkHeader {
     /// The header of actor `actor_id`'s chunks of steps of `obs_dim` and `act_dim` values, this
-    /// format's version; episode, sequence, policy version and step count still 0.
+    /// format's version; episode, sequence, policy version, step count and epoch still 0.
     pub fn for_actor(actor_id: u32, obs_dim: usize, act_dim: usize) -> Self {
         Self {
             format_version: FORMAT_VERSION,
@@ -77,28 +283,44 @@ impl ChunkHeader {
         }
     }
 
-    /// This header with its checksum set for `payload` ([`chunk_checksum`]).
-    pub fn sealed(self, payload: &[f32]) -> Self {
-        Self {
-            checksum: chunk_checksum(&self, payload),
-            ..self
-        }
+    /// This header sealed under `key` for `payload`.
+    pub fn sealed(self, key: &RunKey, payload: &[f32]) -> Self {
+        self.seal_with(key, &[float_bytes(payload)])
     }
 }
 
 /// Header of a weights broadcast; the payload is `len` bytes.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("ctxrace_WeightsHeader_v1")]
+#[type_name("ctxrace_WeightsHeader_v2")]
 #[repr(C)]
 pub struct WeightsHeader {
     /// [`FORMAT_VERSION`].
     pub format_version: u32,
-    /// CRC-32 of the version, the length and the payload ([`weights_checksum`]).
+    /// CRC-32 of the version, the length and the payload ([`Sealer`]).
     pub checksum: u32,
     /// Policy version, increasing.
     pub version: u64,
     /// Payload length in bytes.
     pub len: u64,
+    /// Tag of the version, the length and the payload ([`Sealer`]).
+    pub tag: Tag,
+}
+
+sealed!(WeightsHeader, "ctxrace weights", |h, s| {
+    s.words32(&[h.format_version]);
+    s.words64(&[h.version, h.len]);
+});
+
+impl WeightsHeader {
+    /// The header of weights `version` of `len` bytes, this format's version, not sealed yet.
+    pub fn new(version: u64, len: usize) -> Self {
+        Self {
+            format_version: FORMAT_VERSION,
+            version,
+            len: len as u64,
+            ..Self::default()
+        }
+    }
 }
 
 /// What kind of batch the learner asks for.
@@ -131,7 +353,7 @@ impl BatchKind {
 
 /// A learner's request for one batch.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("ctxrace_BatchRequest_v1")]
+#[type_name("ctxrace_BatchRequest_v2")]
 #[repr(C)]
 pub struct BatchRequest {
     /// [`FORMAT_VERSION`].
@@ -147,14 +369,26 @@ pub struct BatchRequest {
     pub length: u32,
     /// Stacked frames per transition observation; ignored for sequences.
     pub frames: u32,
-    /// Explicit padding.
-    pub reserved: u32,
+    /// CRC-32 of the other fields (the tag aside) ([`Sealer`]).
+    pub checksum: u32,
+    /// The requesting client's [`new_epoch`], echoed in the answer's header: a restarted
+    /// learner takes no answer to its predecessor's requests.
+    pub client: u64,
+    /// Tag of the other fields (the checksum aside) ([`Sealer`]).
+    pub tag: Tag,
 }
+
+sealed!(BatchRequest, "ctxrace batch request", |r, s| {
+    s.words32(&[r.format_version, r.kind]);
+    s.words64(&[r.request_id]);
+    s.words32(&[r.batch, r.length, r.frames]);
+    s.words64(&[r.client]);
+});
 
 /// Header of a batch answer; the `[f32]` payload holds the batch's arrays back to back in
 /// the order of the fields of [`ctxrace_config::SequenceBatch`] or [`ctxrace_config::TransitionBatch`].
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("ctxrace_BatchHeader_v2")]
+#[type_name("ctxrace_BatchHeader_v3")]
 #[repr(C)]
 pub struct BatchHeader {
     /// [`FORMAT_VERSION`].
@@ -175,20 +409,40 @@ pub struct BatchHeader {
     pub act_dim: u32,
     /// 0 for a batch; for a refusal (an empty payload), 1 + the index in [`REASONS`] of why.
     pub refused: u32,
-    /// CRC-32 of the other header fields and the payload ([`batch_checksum`]).
+    /// CRC-32 of the other fields (the tag aside) and the payload ([`Sealer`]).
     pub checksum: u32,
     /// Explicit padding.
     pub reserved: u32,
+    /// The epoch of the client whose request this answers ([`BatchRequest::client`]).
+    pub client: u64,
+    /// Tag of the other fields (the checksum aside) and the payload ([`Sealer`]).
+    pub tag: Tag,
 }
 
+sealed!(BatchHeader, "ctxrace batch", |h, s| {
+    s.words32(&[h.format_version, h.kind]);
+    s.words64(&[h.request_id]);
+    s.words32(&[
+        h.batch, h.length, h.frames, h.obs_dim, h.act_dim, h.refused, h.reserved,
+    ]);
+    s.words64(&[h.client]);
+});
+
 impl BatchHeader {
-    /// This header with its checksum set for the payload `parts` laid back to back
-    /// ([`batch_checksum`]).
-    pub fn sealed(self, parts: &[&[f32]]) -> Self {
+    /// The header of an answer to `request`, this format's version; the batch's sizes still 0.
+    pub fn answering(request: &BatchRequest) -> Self {
         Self {
-            checksum: batch_checksum(&self, parts),
-            ..self
+            format_version: FORMAT_VERSION,
+            request_id: request.request_id,
+            client: request.client,
+            ..Self::default()
         }
+    }
+
+    /// This header sealed under `key` for the payload `parts` laid back to back.
+    pub fn sealed(self, key: &RunKey, parts: &[&[f32]]) -> Self {
+        let parts: Vec<&[u8]> = parts.iter().map(|p| float_bytes(p)).collect();
+        self.seal_with(key, &parts)
     }
 
     /// Why the replay refused the request, if this answers one with a refusal.
@@ -198,27 +452,10 @@ impl BatchHeader {
     }
 }
 
-/// The CRC-32 a [`BatchHeader`] carries: over every other header field (little-endian) and
-/// the payload `parts` laid back to back.
-pub fn batch_checksum(header: &BatchHeader, parts: &[&[f32]]) -> u32 {
-    let h = header;
-    let mut hasher = crc32fast::Hasher::new();
-    hasher.update(&h.format_version.to_le_bytes());
-    hasher.update(&h.kind.to_le_bytes());
-    hasher.update(&h.request_id.to_le_bytes());
-    for word in [h.batch, h.length, h.frames, h.obs_dim, h.act_dim, h.refused] {
-        hasher.update(&word.to_le_bytes());
-    }
-    for part in parts {
-        hasher.update(float_bytes(part));
-    }
-    hasher.finalize()
-}
-
 /// An actor's report of one finished training episode for the launcher's logs: the simulator's
 /// `EpisodeMetrics` in wire form, with the actor, the episode and its context.
 #[derive(Debug, Default, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("ctxrace_EpisodeReport_v1")]
+#[type_name("ctxrace_EpisodeReport_v2")]
 #[repr(C)]
 pub struct EpisodeReport {
     /// [`FORMAT_VERSION`].
@@ -245,11 +482,26 @@ pub struct EpisodeReport {
     pub episode_return: f32,
     /// 1 if the policy chose every action of the episode (none of the random prefill).
     pub by_policy: u32,
+    /// The actor's process id: the launcher takes reports of the actor's current process only.
+    pub pid: u32,
+    /// CRC-32 of the other fields (the tag aside) ([`Sealer`]).
+    pub checksum: u32,
+    /// Tag of the other fields (the checksum aside) ([`Sealer`]).
+    pub tag: Tag,
 }
+
+sealed!(EpisodeReport, "ctxrace episode", |m, s| {
+    s.words32(&[m.format_version, m.actor_id]);
+    s.words64(&[m.episode_id, m.env_steps, m.steps]);
+    s.floats(&[m.context[0], m.context[1], m.progress]);
+    s.words32(&[m.overtakes as u32, m.a2a, m.wall_crash]);
+    s.floats(&[m.episode_return]);
+    s.words32(&[m.by_policy, m.pid]);
+});
 
 /// An actor's periodic sign of life.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("ctxrace_Heartbeat_v1")]
+#[type_name("ctxrace_Heartbeat_v2")]
 #[repr(C)]
 pub struct Heartbeat {
     /// [`FORMAT_VERSION`].
@@ -258,19 +510,26 @@ pub struct Heartbeat {
     pub actor_id: u32,
     /// Its process id.
     pub pid: u32,
-    /// Explicit padding.
-    pub reserved: u32,
+    /// CRC-32 of the other fields (the tag aside) ([`Sealer`]).
+    pub checksum: u32,
     /// Env steps so far.
     pub env_steps: u64,
     /// Weights version in use.
     pub policy_version: u64,
     /// Steps the actor dropped because replay did not take them in time.
     pub dropped_steps: u64,
+    /// Tag of the other fields (the checksum aside) ([`Sealer`]).
+    pub tag: Tag,
 }
+
+sealed!(Heartbeat, "ctxrace heartbeat", |b, s| {
+    s.words32(&[b.format_version, b.actor_id, b.pid]);
+    s.words64(&[b.env_steps, b.policy_version, b.dropped_steps]);
+});
 
 /// The replay process's counters, published about once a second.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("ctxrace_ReplayStatus_v3")]
+#[type_name("ctxrace_ReplayStatus_v4")]
 #[repr(C)]
 pub struct ReplayStatus {
     /// [`FORMAT_VERSION`].
@@ -302,7 +561,23 @@ pub struct ReplayStatus {
     pub restored_inserts: u64,
     /// `rejected` by reason, indexed like [`REASONS`].
     pub rejected_by_reason: [u64; REASONS.len()],
+    /// The replay's process id: the launcher takes statuses of the replay's current process
+    /// only.
+    pub pid: u32,
+    /// CRC-32 of the other fields (the tag aside) ([`Sealer`]).
+    pub checksum: u32,
+    /// Tag of the other fields (the checksum aside) ([`Sealer`]).
+    pub tag: Tag,
 }
+
+sealed!(ReplayStatus, "ctxrace replay status", |r, s| {
+    s.words32(&[r.format_version, r.longest_turn_us]);
+    s.words64(&[r.inserted, r.sampled, r.fill, r.capacity, r.dropped_chunks]);
+    s.words64(&[r.rejected, r.batches, r.pending_requests]);
+    s.words64(&[r.inserted_at_last_batch, r.restored_inserts]);
+    s.words64(&r.rejected_by_reason);
+    s.words32(&[r.pid]);
+});
 
 /// Why a message was rejected.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -351,28 +626,24 @@ pub enum WireError {
     /// An unknown batch kind code.
     #[error("unknown batch kind {0}")]
     Kind(u32),
-    /// A chunk whose sequence number goes back within its actor's stream (a duplicate or a
-    /// replay); 0 is always taken, as a restarted actor's first chunk.
-    #[error("chunk sequence {got} goes back: actor's stream expects {expected} or more")]
-    OutOfOrder {
-        /// The sequence number received.
-        got: u64,
-        /// The next one expected.
-        expected: u64,
-    },
-    /// A chunk whose sequence number is further ahead of its actor's stream than
-    /// [`SEQUENCE_WINDOW`]: a value no sender writes.
+    /// A chunk whose place, its sender's epoch and its sequence number, goes back within its
+    /// actor's stream: a duplicate, a replayed copy of an earlier chunk, or a chunk of an
+    /// earlier sender than the stream's.
     #[error(
-        "chunk sequence {got} jumps ahead: actor's stream expects {expected} to {} (a window of \
-         {SEQUENCE_WINDOW})",
-        expected.saturating_add(SEQUENCE_WINDOW - 1)
+        "chunk (epoch {}, sequence {}) goes back: actor's stream expects epoch {} from sequence \
+         {} on, or a later epoch",
+        got.0, got.1, expected.0, expected.1
     )]
-    SequenceJump {
-        /// The sequence number received.
-        got: u64,
-        /// The next one expected.
-        expected: u64,
+    OutOfOrder {
+        /// The epoch and sequence number received.
+        got: (u64, u64),
+        /// The next place expected.
+        expected: (u64, u64),
     },
+    /// A message whose checksum matches but whose tag is not the run key's: made by a process
+    /// that does not hold the run's key.
+    #[error("unauthenticated: a valid checksum, but a tag not made with the run's key")]
+    Unauthenticated,
     /// A batch request larger than the rate limiter could ever serve.
     #[error("a request for {steps} steps exceeds the rate limiter's window")]
     Unservable {
@@ -411,7 +682,7 @@ pub const REASONS: [&str; 13] = [
     "checksum",
     "kind",
     "unservable",
-    "sequence_jump",
+    "unauthenticated",
     "backwards",
     "implausible",
     "unreadable",
@@ -442,7 +713,7 @@ impl WireError {
             WireError::Checksum { .. } => 6,
             WireError::Kind(_) => 7,
             WireError::Unservable { .. } => 8,
-            WireError::SequenceJump { .. } => 9,
+            WireError::Unauthenticated => 9,
             WireError::Backwards { .. } => 10,
             WireError::Implausible(_) => 11,
             WireError::Unreadable(_) => 12,
@@ -459,44 +730,34 @@ pub(crate) fn float_bytes(values: &[f32]) -> &[u8] {
     }
 }
 
-/// The CRC-32 a [`ChunkHeader`] carries: over every other header field (little-endian) and the
-/// payload, so that a header or payload changed in shared memory fails it.
-pub fn chunk_checksum(header: &ChunkHeader, payload: &[f32]) -> u32 {
-    let mut hasher = crc32fast::Hasher::new();
-    for word in [header.format_version, header.actor_id] {
-        hasher.update(&word.to_le_bytes());
+/// Checks a message's format version, then its checksum and tag under `key` for `payload`
+/// ([`Sealed::check_with`]).
+pub fn check_sealed<T: Sealed>(
+    message: &T,
+    format_version: u32,
+    key: &RunKey,
+    payload: &[&[u8]],
+) -> Result<(), WireError> {
+    if format_version != FORMAT_VERSION {
+        return Err(WireError::Version {
+            got: format_version,
+        });
     }
-    for word in [header.episode_id, header.sequence, header.policy_version] {
-        hasher.update(&word.to_le_bytes());
-    }
-    for word in [header.obs_dim, header.act_dim, header.steps] {
-        hasher.update(&word.to_le_bytes());
-    }
-    hasher.update(float_bytes(payload));
-    hasher.finalize()
+    message.check_with(key, payload)
 }
 
-/// Checks a trajectory chunk against the run's actor count and dimensions: version, checksum,
-/// actor id, dims, payload length, finite values, 0/1 flags and masks in `[0, 1]`.
+/// Checks a trajectory chunk against the run's key, actor count and dimensions: version,
+/// checksum, tag, actor id, dims, payload length, finite values, 0/1 flags and masks in
+/// `[0, 1]`.
 pub fn validate_chunk(
     header: &ChunkHeader,
     payload: &[f32],
+    key: &RunKey,
     actors: usize,
     obs_dim: usize,
     act_dim: usize,
 ) -> Result<(), WireError> {
-    if header.format_version != FORMAT_VERSION {
-        return Err(WireError::Version {
-            got: header.format_version,
-        });
-    }
-    let got = chunk_checksum(header, payload);
-    if got != header.checksum {
-        return Err(WireError::Checksum {
-            got,
-            expected: header.checksum,
-        });
-    }
+    check_sealed(header, header.format_version, key, &[float_bytes(payload)])?;
     if header.actor_id as usize >= actors {
         return Err(WireError::UnknownActor {
             got: header.actor_id,
@@ -547,18 +808,15 @@ pub fn check_finite(values: &[f32]) -> Result<(), WireError> {
     })
 }
 
-/// Where a chunk of sequence number `got` stands in a stream that expects `expected` next
-/// (`None`: no chunk of it seen yet): 0 always starts the stream again (a restarted actor's
-/// first chunk); otherwise it must not go back, nor jump further ahead than
-/// [`SEQUENCE_WINDOW`].
-pub fn check_sequence(got: u64, expected: Option<u64>) -> Result<(), WireError> {
+/// Where a chunk at place `got` (its sender's epoch, its sequence number) stands in a stream
+/// that expects `expected` next (`None`: no chunk of it accepted yet): it must not go back.
+/// Places compare by epoch first: a later epoch (a restarted actor) starts the stream again at
+/// whatever sequence number; an earlier one, or an earlier number of the same epoch, goes back.
+/// Only an accepted chunk moves the stream, and no chunk is ahead of its real sender but a
+/// forged one, which the tag rejects first: so no chunk can hold a stream up.
+pub fn check_sequence(got: (u64, u64), expected: Option<(u64, u64)>) -> Result<(), WireError> {
     match expected {
-        Some(_) if got == 0 => Ok(()),
         Some(next) if got < next => Err(WireError::OutOfOrder {
-            got,
-            expected: next,
-        }),
-        Some(next) if got - next >= SEQUENCE_WINDOW => Err(WireError::SequenceJump {
             got,
             expected: next,
         }),
@@ -566,35 +824,21 @@ pub fn check_sequence(got: u64, expected: Option<u64>) -> Result<(), WireError> 
     }
 }
 
-/// The CRC-32 a [`WeightsHeader`] carries, as a hasher to feed the payload to: it starts with
-/// the header's `version` and `len` (little-endian), so a header rewritten in shared memory
-/// fails the checksum like a payload does.
-pub fn weights_hasher(version: u64, len: u64) -> crc32fast::Hasher {
-    let mut hasher = crc32fast::Hasher::new();
-    hasher.update(&version.to_le_bytes());
-    hasher.update(&len.to_le_bytes());
-    hasher
+/// Checks a weights broadcast under `key`: version, length, checksum and tag (over version,
+/// length and payload).
+pub fn validate_weights(
+    header: &WeightsHeader,
+    payload: &[u8],
+    key: &RunKey,
+) -> Result<(), WireError> {
+    let mut sealer = header.sealer(key);
+    sealer.update(payload);
+    check_weights(header, payload.len(), sealer.finish())
 }
 
-/// The checksum of weights `payload` published as `version` ([`weights_hasher`]).
-pub fn weights_checksum(version: u64, payload: &[u8]) -> u32 {
-    let mut hasher = weights_hasher(version, payload.len() as u64);
-    hasher.update(payload);
-    hasher.finalize()
-}
-
-/// Checks a weights broadcast: version, length and checksum (over version, length and payload).
-pub fn validate_weights(header: &WeightsHeader, payload: &[u8]) -> Result<(), WireError> {
-    check_weights(
-        header,
-        payload.len(),
-        weights_checksum(header.version, payload),
-    )
-}
-
-/// [`validate_weights`] of a payload of `len` bytes whose checksum, `got`, was computed while
-/// it was copied ([`weights_hasher`] over `header.version` and `len`).
-pub fn check_weights(header: &WeightsHeader, len: usize, got: u32) -> Result<(), WireError> {
+/// [`validate_weights`] of a payload of `len` bytes whose seal was computed while it was
+/// copied (a [`Sealed::sealer`] of the header fed the payload).
+pub fn check_weights(header: &WeightsHeader, len: usize, seal: Seal) -> Result<(), WireError> {
     if header.format_version != FORMAT_VERSION {
         return Err(WireError::Version {
             got: header.format_version,
@@ -606,27 +850,19 @@ pub fn check_weights(header: &WeightsHeader, len: usize, got: u32) -> Result<(),
             header.len
         )));
     }
-    if got != header.checksum {
-        return Err(WireError::Checksum {
-            got,
-            expected: header.checksum,
-        });
-    }
-    Ok(())
+    header.check_seal(seal)
 }
 
-/// Checks a batch request: version, kind and sizes (the batch must fit in `max_floats`).
+/// Checks a batch request under `key`: version, checksum, tag, kind and sizes (the batch must
+/// fit in `max_floats`).
 pub fn validate_request(
     request: &BatchRequest,
+    key: &RunKey,
     obs_dim: usize,
     act_dim: usize,
     max_floats: usize,
 ) -> Result<BatchKind, WireError> {
-    if request.format_version != FORMAT_VERSION {
-        return Err(WireError::Version {
-            got: request.format_version,
-        });
-    }
+    check_sealed(request, request.format_version, key, &[])?;
     let kind = BatchKind::from_code(request.kind).ok_or(WireError::Kind(request.kind))?;
     let (b, t, f) = (
         request.batch as usize,
@@ -651,6 +887,15 @@ pub fn validate_request(
 mod tests {
     use super::*;
 
+    fn key() -> RunKey {
+        RunKey::from_bytes([1; 32])
+    }
+
+    /// A key other than the run's: a forger's, whose seals carry a valid CRC-32.
+    fn forger() -> RunKey {
+        RunKey::from_bytes([2; 32])
+    }
+
     fn chunk(steps: usize) -> (ChunkHeader, Vec<f32>) {
         let h = ChunkHeader {
             format_version: FORMAT_VERSION,
@@ -663,59 +908,65 @@ mod tests {
         (h, vec![0.5; steps * step_stride(3, 2)])
     }
 
+    /// Validates chunks of 2 actors of 3 + 2 values under the run's key.
+    fn valid(h: &ChunkHeader, p: &[f32]) -> Result<(), WireError> {
+        validate_chunk(h, p, &key(), 2, 3, 2)
+    }
+
     #[test]
     fn chunk_validation_rejects_bad_version_dims_values_and_actor() {
+        let k = key();
         let (h, mut p) = chunk(4);
         let stride = step_stride(3, 2);
         for s in 0..4 {
             p[s * stride + 6..s * stride + 10].fill(0.0);
         }
-        assert_eq!(validate_chunk(&h.sealed(&p), &p, 2, 3, 2), Ok(()));
+        assert_eq!(valid(&h.sealed(&k, &p), &p), Ok(()));
         let bad = ChunkHeader {
             format_version: 99,
             ..h
         };
         assert!(matches!(
-            validate_chunk(&bad.sealed(&p), &p, 2, 3, 2),
+            valid(&bad.sealed(&k, &p), &p),
             Err(WireError::Version { got: 99 })
         ));
         assert!(matches!(
-            validate_chunk(&h.sealed(&p), &p, 1, 3, 2),
+            validate_chunk(&h.sealed(&k, &p), &p, &k, 1, 3, 2),
             Err(WireError::UnknownActor { .. })
         ));
         assert!(matches!(
-            validate_chunk(&h.sealed(&p), &p, 2, 4, 2),
+            validate_chunk(&h.sealed(&k, &p), &p, &k, 2, 4, 2),
             Err(WireError::Dims(_))
         ));
         assert!(matches!(
-            validate_chunk(&h.sealed(&p[1..]), &p[1..], 2, 3, 2),
+            valid(&h.sealed(&k, &p[1..]), &p[1..]),
             Err(WireError::Dims(_))
         ));
         let mut nan = p.clone();
         nan[2] = f32::NAN;
         assert!(matches!(
-            validate_chunk(&h.sealed(&nan), &nan, 2, 3, 2),
+            valid(&h.sealed(&k, &nan), &nan),
             Err(WireError::Value { index: 2, .. })
         ));
         let mut inf = p.clone();
         inf[stride] = f32::INFINITY;
-        assert!(validate_chunk(&h.sealed(&inf), &inf, 2, 3, 2).is_err());
+        assert!(valid(&h.sealed(&k, &inf), &inf).is_err());
         let mut flag = p.clone();
         flag[6] = 0.5;
         assert!(matches!(
-            validate_chunk(&h.sealed(&flag), &flag, 2, 3, 2),
+            valid(&h.sealed(&k, &flag), &flag),
             Err(WireError::Value { index: 6, .. })
         ));
         let mut mask = p.clone();
         mask[stride + 13] = 1.5;
         assert!(matches!(
-            validate_chunk(&h.sealed(&mask), &mask, 2, 3, 2),
+            valid(&h.sealed(&k, &mask), &mask),
             Err(WireError::Value { index, .. }) if index == stride + 13
         ));
         let empty = ChunkHeader { steps: 0, ..h };
-        assert!(validate_chunk(&empty.sealed(&[]), &[], 2, 3, 2).is_err());
+        assert!(valid(&empty.sealed(&k, &[]), &[]).is_err());
         // a header or a payload changed after sealing fails the checksum
-        let sealed = h.sealed(&p);
+        let sealed = h.sealed(&k, &p);
         let moved = ChunkHeader {
             sequence: 1 << 63,
             ..sealed
@@ -723,97 +974,235 @@ mod tests {
         let mut flipped = p.clone();
         flipped[0] = f32::from_bits(flipped[0].to_bits() ^ 1);
         for (header, payload) in [(moved, &p), (sealed, &flipped)] {
-            let e = validate_chunk(&header, payload, 2, 3, 2).unwrap_err();
+            let e = valid(&header, payload).unwrap_err();
             assert_eq!(REASONS[e.reason()], "checksum", "{e}");
         }
     }
 
-    #[test]
-    fn sequences_within_the_window_are_taken_and_jumps_rejected() {
-        assert_eq!(check_sequence(1 << 63, None), Ok(()));
-        assert_eq!(check_sequence(5, Some(5)), Ok(()));
-        assert_eq!(check_sequence(0, Some(5)), Ok(()));
-        assert_eq!(check_sequence(5 + SEQUENCE_WINDOW - 1, Some(5)), Ok(()));
-        let jump = check_sequence(5 + SEQUENCE_WINDOW, Some(5)).unwrap_err();
-        assert_eq!(REASONS[jump.reason()], "sequence_jump");
-        for got in [1 << 63, u64::MAX] {
-            assert!(matches!(
-                check_sequence(got, Some(7)),
-                Err(WireError::SequenceJump { .. })
-            ));
+    /// What the CRC-32 alone accepted: `genuine`, sealed under the run's key, with a field
+    /// rewritten by `rewrite` and its checksum computed again, by a process without the key
+    /// (under another key: its CRC-32 is right), keeping the old tag or writing its own. Both
+    /// are refused by `check` as `unauthenticated`, and the genuine message is taken.
+    fn forged_is_unauthenticated<T: Sealed + std::fmt::Debug>(
+        genuine: T,
+        payload: &[&[u8]],
+        rewrite: impl Fn(T) -> T,
+        check: impl Fn(&T) -> Result<(), WireError>,
+    ) {
+        let genuine = genuine.seal_with(&key(), payload);
+        assert_eq!(check(&genuine), Ok(()), "{genuine:?}");
+        let rewritten = rewrite(genuine);
+        let own_tag = rewritten.seal_with(&forger(), payload);
+        let (checksum, _) = own_tag.seal_fields();
+        let (_, tag) = genuine.seal_fields();
+        let old_tag = rewritten.with_seal(Seal {
+            checksum,
+            tag: blake3::Hash::from_bytes(*tag),
+        });
+        for forged in [own_tag, old_tag] {
+            assert_eq!(
+                check(&forged),
+                Err(WireError::Unauthenticated),
+                "{forged:?}"
+            );
+            assert_eq!(
+                REASONS[WireError::Unauthenticated.reason()],
+                "unauthenticated"
+            );
         }
-        assert!(matches!(
-            check_sequence(4, Some(5)),
-            Err(WireError::OutOfOrder { .. })
-        ));
+        // a message sealed under the run's key for another kind of message is refused too
+        let mut other = Sealer::new(&key(), "ctxrace another kind");
+        genuine.feed(&mut other);
+        payload.iter().for_each(|part| other.update(part));
+        assert_eq!(
+            check(&genuine.with_seal(other.finish())),
+            Err(WireError::Unauthenticated)
+        );
+    }
+
+    #[test]
+    fn every_kind_rewritten_with_a_recomputed_crc_is_unauthenticated() {
+        let k = key();
+        // a chunk moved to sequence 2^63 (issue 47's first poisoned value)
+        let (h, p) = chunk(2);
+        let p = vec![0.0; p.len()];
+        let bytes = float_bytes(&p);
+        forged_is_unauthenticated(
+            h,
+            &[bytes],
+            |h| ChunkHeader {
+                sequence: 1 << 63,
+                ..h
+            },
+            |h| validate_chunk(h, &p, &k, 2, 3, 2),
+        );
+        // weights locked onto a plausible version (the probe that held both actors)
+        let weights = b"some weights".to_vec();
+        forged_is_unauthenticated(
+            WeightsHeader::new(3, weights.len()),
+            &[&weights],
+            |h| WeightsHeader { version: 900, ..h },
+            |h| validate_weights(h, &weights, &k),
+        );
+        let request = BatchRequest {
+            format_version: FORMAT_VERSION,
+            batch: 2,
+            length: 4,
+            ..Default::default()
+        };
+        forged_is_unauthenticated(
+            request,
+            &[],
+            |r| BatchRequest { batch: 3, ..r },
+            |r| validate_request(r, &k, 3, 2, 1000).map(|_| ()),
+        );
+        let answer = BatchHeader {
+            batch: 1,
+            ..BatchHeader::answering(&request)
+        };
+        let floats = [0.25f32, 0.5];
+        forged_is_unauthenticated(
+            answer,
+            &[float_bytes(&floats)],
+            |h| BatchHeader { refused: 9, ..h },
+            |h| check_sealed(h, h.format_version, &k, &[float_bytes(&floats)]),
+        );
+        let episode = EpisodeReport {
+            format_version: FORMAT_VERSION,
+            env_steps: 100,
+            steps: 100,
+            ..Default::default()
+        };
+        forged_is_unauthenticated(
+            episode,
+            &[],
+            |m| EpisodeReport {
+                env_steps: 9_200_000_000_000_000_000,
+                ..m
+            },
+            |m| check_sealed(m, m.format_version, &k, &[]),
+        );
+        let beat = Heartbeat {
+            format_version: FORMAT_VERSION,
+            pid: 42,
+            ..Default::default()
+        };
+        forged_is_unauthenticated(
+            beat,
+            &[],
+            |b| Heartbeat {
+                policy_version: u64::MAX,
+                ..b
+            },
+            |b| check_sealed(b, b.format_version, &k, &[]),
+        );
+        let status = ReplayStatus {
+            format_version: FORMAT_VERSION,
+            ..Default::default()
+        };
+        forged_is_unauthenticated(
+            status,
+            &[],
+            |s| ReplayStatus {
+                dropped_chunks: 4_300_000_000,
+                ..s
+            },
+            |s| check_sealed(s, s.format_version, &k, &[]),
+        );
+    }
+
+    #[test]
+    fn a_stream_goes_on_in_its_epoch_or_a_later_one_only() {
+        assert_eq!(check_sequence((3, 1 << 63), None), Ok(()));
+        assert_eq!(check_sequence((3, 5), Some((3, 5))), Ok(()));
+        // chunks a sender dropped: a gap, no rejection
+        assert_eq!(check_sequence((3, 5 + (1 << 40)), Some((3, 5))), Ok(()));
+        // a restarted actor: a later epoch, from its own sequence numbers
+        assert_eq!(check_sequence((4, 0), Some((3, 5))), Ok(()));
+        for got in [(3, 4), (3, 0), (2, 9), (2, u64::MAX)] {
+            let e = check_sequence(got, Some((3, 5))).unwrap_err();
+            assert_eq!(REASONS[e.reason()], "out_of_order", "{got:?}: {e}");
+        }
+        assert!(new_epoch() <= new_epoch());
     }
 
     #[test]
     fn weights_and_request_validation() {
+        let k = key();
         let bytes = b"some weights".to_vec();
-        let h = WeightsHeader {
-            format_version: FORMAT_VERSION,
-            checksum: weights_checksum(3, &bytes),
-            version: 3,
-            len: bytes.len() as u64,
-        };
-        assert_eq!(validate_weights(&h, &bytes), Ok(()));
+        let h = WeightsHeader::new(3, bytes.len()).seal_with(&k, &[&bytes]);
+        assert_eq!(validate_weights(&h, &bytes, &k), Ok(()));
         let mut flipped = bytes.clone();
         flipped[0] ^= 1;
         assert!(matches!(
-            validate_weights(&h, &flipped),
+            validate_weights(&h, &flipped, &k),
             Err(WireError::Checksum { .. })
         ));
-        assert!(validate_weights(&h, &bytes[1..]).is_err());
+        assert!(validate_weights(&h, &bytes[1..], &k).is_err());
         // the header is covered too: a version rewritten to the largest one is refused
         let absurd = WeightsHeader {
             version: u64::MAX,
             ..h
         };
         assert!(matches!(
-            validate_weights(&absurd, &bytes),
+            validate_weights(&absurd, &bytes, &k),
             Err(WireError::Checksum { .. })
         ));
-        // a batch answer's checksum covers its header, its refusal code and every float
-        let answer = BatchHeader {
+        // a batch answer's seal covers its header, its refusal code and every float
+        let request = BatchRequest {
             format_version: FORMAT_VERSION,
+            kind: 0,
             request_id: 4,
-            batch: 1,
+            batch: 2,
+            length: 4,
+            client: 77,
             ..Default::default()
         };
+        let answer = BatchHeader {
+            batch: 1,
+            ..BatchHeader::answering(&request)
+        };
+        assert_eq!((answer.request_id, answer.client), (4, 77));
         let (obs, reward) = ([0.25f32, 0.5], [1.0f32]);
-        let sealed = answer.sealed(&[&obs, &reward]);
-        assert_eq!(batch_checksum(&sealed, &[&obs, &reward]), sealed.checksum);
+        let sealed = answer.sealed(&k, &[&obs, &reward]);
+        let parts = |a: &[f32]| [float_bytes(a).to_vec(), float_bytes(&reward).to_vec()];
+        let check = |h: &BatchHeader, a: &[f32]| {
+            let [x, y] = parts(a);
+            h.check_with(&k, &[&x, &y])
+        };
+        assert_eq!(check(&sealed, &obs), Ok(()));
         let flipped = [f32::from_bits(0.25f32.to_bits() ^ 1), 0.5];
-        assert_ne!(
-            batch_checksum(&sealed, &[&flipped, &reward]),
-            sealed.checksum
-        );
+        assert!(matches!(
+            check(&sealed, &flipped),
+            Err(WireError::Checksum { .. })
+        ));
         let refusal = BatchHeader {
             refused: 1 + 8,
             ..sealed
         };
-        assert_ne!(batch_checksum(&refusal, &[&obs, &reward]), sealed.checksum);
+        assert!(matches!(
+            check(&refusal, &obs),
+            Err(WireError::Checksum { .. })
+        ));
         assert_eq!(refusal.refusal(), Some("unservable"));
         assert_eq!(sealed.refusal(), None);
-        let r = BatchRequest {
-            format_version: FORMAT_VERSION,
-            kind: 0,
-            batch: 2,
-            length: 4,
-            ..Default::default()
-        };
-        assert_eq!(validate_request(&r, 3, 2, 1000), Ok(BatchKind::Sequence));
-        assert!(validate_request(&r, 3, 2, 10).is_err());
-        assert!(validate_request(&BatchRequest { kind: 7, ..r }, 3, 2, 1000).is_err());
-        assert!(validate_request(&BatchRequest { batch: 0, ..r }, 3, 2, 1000).is_err());
+        let r = request.seal_with(&k, &[]);
+        let valid = |r: BatchRequest, max| validate_request(&r.seal_with(&k, &[]), &k, 3, 2, max);
+        assert_eq!(
+            validate_request(&r, &k, 3, 2, 1000),
+            Ok(BatchKind::Sequence)
+        );
+        assert!(valid(r, 10).is_err());
+        assert!(valid(BatchRequest { kind: 7, ..r }, 1000).is_err());
+        assert!(valid(BatchRequest { batch: 0, ..r }, 1000).is_err());
         // sizes whose product overflows are rejected, not wrapped into a small number
         let huge = BatchRequest {
             batch: u32::MAX,
             length: u32::MAX,
             ..r
         };
-        assert!(validate_request(&huge, usize::MAX / 4, 2, usize::MAX).is_err());
+        let huge = huge.seal_with(&k, &[]);
+        assert!(validate_request(&huge, &k, usize::MAX / 4, 2, usize::MAX).is_err());
         // a transition request's length is 1 + its reward delay: 1 or 2
         let transitions = |length| BatchRequest {
             kind: BatchKind::Transition.code(),
@@ -822,7 +1211,7 @@ mod tests {
             ..r
         };
         for (length, ok) in [(0, false), (1, true), (2, true), (3, false)] {
-            let got = validate_request(&transitions(length), 3, 2, 1000);
+            let got = valid(transitions(length), 1000);
             assert_eq!(got.is_ok(), ok, "length {length}: {got:?}");
         }
         assert_eq!(sequence_floats(usize::MAX, 2, 1, 1), None);

@@ -1,12 +1,19 @@
 //! Property tests of the wire validators on arbitrary input: every header and payload is either
 //! accepted or rejected with a [`WireError`], never a panic, and what is accepted is what a
-//! well-formed sender would have sent.
+//! well-formed sender holding the run's key would have sent. Headers are sealed with the run's
+//! key (as by a faulty process of the run), so that every other check is reached.
 
 use ctxrace_ipc::wire::{
     step_stride, validate_chunk, validate_request, validate_weights, BatchRequest, ChunkHeader,
-    WeightsHeader, FORMAT_VERSION, MAX_CHUNK,
+    Sealed as _, WeightsHeader, FORMAT_VERSION, MAX_CHUNK,
 };
+use ctxrace_ipc::RunKey;
 use proptest::prelude::*;
+
+/// The run's key.
+fn key() -> RunKey {
+    RunKey::from_bytes([4; 32])
+}
 
 /// Mostly the current version, sometimes any other.
 fn version() -> impl Strategy<Value = u32> {
@@ -53,7 +60,8 @@ proptest! {
         payload in prop::collection::vec(float(), 0..200),
     ) {
         let (actors, obs, act) = (3, 3, 2);
-        if validate_chunk(&header, &payload, actors, obs, act).is_ok() {
+        let header = header.sealed(&key(), &payload);
+        if validate_chunk(&header, &payload, &key(), actors, obs, act).is_ok() {
             prop_assert_eq!(header.format_version, FORMAT_VERSION);
             prop_assert!((header.actor_id as usize) < actors);
             let steps = header.steps as usize;
@@ -72,9 +80,10 @@ proptest! {
         frames in any::<u32>(),
         max_floats in prop_oneof![Just(usize::MAX), 0usize..1_000_000],
     ) {
-        let request = BatchRequest { format_version, kind, batch, length, frames, ..Default::default() };
+        let request = BatchRequest { format_version, kind, batch, length, frames, ..Default::default() }
+            .seal_with(&key(), &[]);
         // a request the replay accepts fits in max_floats (no wrapped product lets one through)
-        if validate_request(&request, 108, 2, max_floats).is_ok() {
+        if validate_request(&request, &key(), 108, 2, max_floats).is_ok() {
             prop_assert!(batch > 0);
             let per = if kind == 0 { length as u128 * (108 + 2 + 8) } else { frames as u128 * 216 + 6 };
             prop_assert!(batch as u128 * per <= max_floats as u128);
@@ -84,20 +93,18 @@ proptest! {
     }
 
     #[test]
-    fn weights_are_accepted_only_with_their_checksum(
+    fn weights_are_accepted_only_with_their_seal(
         format_version in version(),
         payload in prop::collection::vec(any::<u8>(), 0..256),
         checksum in prop_oneof![Just(None), any::<u32>().prop_map(Some)],
         len_delta in prop_oneof![4 => Just(0i64), 1 => -3i64..3],
     ) {
-        let header = WeightsHeader {
-            format_version,
-            checksum: checksum.unwrap_or_else(|| crc32fast::hash(&payload)),
-            version: 1,
-            len: (payload.len() as i64 + len_delta).max(0) as u64,
-        };
-        if validate_weights(&header, &payload).is_ok() {
-            prop_assert_eq!(header.checksum, crc32fast::hash(&payload));
+        let len = (payload.len() as i64 + len_delta).max(0) as usize;
+        let sealed = WeightsHeader { format_version, ..WeightsHeader::new(1, len) }
+            .seal_with(&key(), &[&payload]);
+        let header = WeightsHeader { checksum: checksum.unwrap_or(sealed.checksum), ..sealed };
+        if validate_weights(&header, &payload, &key()).is_ok() {
+            prop_assert_eq!(header, sealed);
             prop_assert_eq!(header.len, payload.len() as u64);
         }
     }

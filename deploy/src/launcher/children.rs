@@ -4,6 +4,7 @@
 use anyhow::{bail, Context as _, Result};
 use ctxrace_config::validate::CONFIG_EXIT_CODE;
 use ctxrace_config::SupervisorConfig;
+use ctxrace_ipc::RunKey;
 use ctxrace_run::lock::{die_with_parent, DirLock};
 use ctxrace_run::run_dir::{open_append, ACTOR_REPORTS};
 use std::path::Path;
@@ -43,6 +44,26 @@ impl Children {
     }
 }
 
+/// What every start of a child inherits from the launcher: the run directory's lock, which it
+/// holds too while it runs, and the run's key, handed over a pipe of its own
+/// ([`RunKey::hand_to`]).
+pub(super) struct Inherited {
+    /// The run directory's lock.
+    pub(super) lock: DirLock,
+    /// The run's key.
+    pub(super) key: RunKey,
+}
+
+impl Inherited {
+    /// A second handle on the lock, with the key, for another child.
+    pub(super) fn try_clone(&self) -> Result<Self> {
+        Ok(Self {
+            lock: self.lock.try_clone()?,
+            key: self.key.clone(),
+        })
+    }
+}
+
 /// One supervised child process.
 pub(super) struct Supervised {
     name: String,
@@ -66,16 +87,16 @@ pub(super) struct Supervised {
     pub(super) stalled: Overdue,
     /// When it failed, within the restart window.
     failures: std::collections::VecDeque<Instant>,
-    /// The run directory's lock, which the process holds too while it runs.
-    lock: DirLock,
+    /// The run directory's lock and the run's key, which every start of it is handed.
+    inherited: Inherited,
 }
 
 impl Supervised {
-    /// The process `name`, a run of this binary with `args`, logging into `logs`, holding
-    /// `lock` too; due to start at once.
-    pub(super) fn new(name: String, args: Vec<String>, logs: &Path, lock: DirLock) -> Self {
+    /// The process `name`, a run of this binary with `args`, logging into `logs`, holding the
+    /// lock and given the key `inherited` holds; due to start at once.
+    pub(super) fn new(name: String, args: Vec<String>, logs: &Path, inherited: Inherited) -> Self {
         Self {
-            lock,
+            inherited,
             log: logs.join(format!("{}.log", name.replace(' ', "-"))),
             name,
             args,
@@ -98,9 +119,9 @@ impl Supervised {
         args: Vec<String>,
         dir: &Path,
         logs: &Path,
-        lock: DirLock,
+        inherited: Inherited,
     ) -> Self {
-        let mut actor = Self::new(format!("actor {id}"), args, logs, lock);
+        let mut actor = Self::new(format!("actor {id}"), args, logs, inherited);
         actor.earlier_starts = earlier_actor_starts(dir, id);
         actor
     }
@@ -136,7 +157,8 @@ impl Supervised {
         self.child.as_ref().map_or(0, Child::id)
     }
 
-    /// Starts the process (again); actors are told how often they ran before.
+    /// Starts the process (again), handing it the run's key over a fresh pipe; actors are told
+    /// how often they ran before.
     fn start(&mut self) -> Result<()> {
         let exe = std::env::current_exe().context("locating the ctxrace binary")?;
         let mut cmd = Command::new(exe);
@@ -156,7 +178,13 @@ impl Supervised {
         // the children die with the launcher, even when it is killed outright, and hold the run's
         // lock until they have exited (a snapshot or checkpoint they finish is theirs)
         die_with_parent(&mut cmd);
-        self.lock.share_with(&mut cmd);
+        self.inherited.lock.share_with(&mut cmd);
+        // the launcher's copy of the pipe closes once the child has its own
+        let _key_pipe = self
+            .inherited
+            .key
+            .hand_to(&mut cmd)
+            .with_context(|| format!("handing the run's key to {}", self.name))?;
         self.child = Some(
             cmd.spawn()
                 .with_context(|| format!("starting {}", self.name))?,

@@ -38,14 +38,14 @@ mod supervise;
 use crate::TrackArgs;
 use anyhow::{bail, Context as _, Result};
 use ctxrace_config::ExperimentConfig;
-use ctxrace_ipc::{claim_run, run_prefix, RunTransport};
+use ctxrace_ipc::{claim_run, run_prefix, RunKey, RunTransport};
 use ctxrace_run::lock::DirLock;
 use ctxrace_run::results::read_json;
 use ctxrace_run::run_dir::{LOGS, REPLAY_REPORT};
 use std::path::Path;
 
 use bus_error::explain_bus_errors;
-use children::{Children, Supervised};
+use children::{Children, Inherited, Supervised};
 use cleanup::{remove_run, sweep_dead_runs};
 use progress::replay_streams;
 use status::write_status;
@@ -74,8 +74,14 @@ pub fn run(
     sweep_dead_runs();
     let prefix = run_prefix(&run_id);
     claim_run(&prefix)?;
-    let mut children = processes(dir, &prefix, lock, actors, tracks)?;
-    let transport = RunTransport::open(&prefix, actors, "launcher")?;
+    // the run's key, fresh for each launch: only this process and its children hold it
+    let key = RunKey::generate()?;
+    let inherited = Inherited {
+        lock: lock.try_clone()?,
+        key: key.clone(),
+    };
+    let mut children = processes(dir, &prefix, &inherited, actors, tracks)?;
+    let transport = RunTransport::open(&prefix, actors, "launcher", &key)?;
     let mut run = supervise(cfg, dir, &transport, &mut children);
     children.stop()?;
     drop(transport);
@@ -94,11 +100,11 @@ pub fn run(
 
 /// The run's processes, not started yet: each a subcommand of this binary on the run in `dir`
 /// and the shared memory of `prefix`, with `actors` actors driving on `tracks`, each holding
-/// `lock` too.
+/// the lock and handed the key of `inherited`.
 fn processes(
     dir: &Path,
     prefix: &str,
-    lock: &DirLock,
+    inherited: &Inherited,
     actors: usize,
     tracks: &TrackArgs,
 ) -> Result<Children> {
@@ -116,19 +122,30 @@ fn processes(
     let logs = dir.join(LOGS);
     std::fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
     Ok(Children {
-        replay: Supervised::new("replay".into(), common("replay"), &logs, lock.try_clone()?),
+        replay: Supervised::new(
+            "replay".into(),
+            common("replay"),
+            &logs,
+            inherited.try_clone()?,
+        ),
         learner: Supervised::new(
             "learner".into(),
             common("learner"),
             &logs,
-            lock.try_clone()?,
+            inherited.try_clone()?,
         ),
         actors: (0..actors)
             .map(|k| {
                 let mut args = common("actor");
                 args.extend(["--id".into(), k.to_string()]);
                 args.extend(track_flags(tracks));
-                Ok(Supervised::actor(k, args, dir, &logs, lock.try_clone()?))
+                Ok(Supervised::actor(
+                    k,
+                    args,
+                    dir,
+                    &logs,
+                    inherited.try_clone()?,
+                ))
             })
             .collect::<Result<_>>()?,
     })

@@ -155,7 +155,7 @@ impl<'a> Supervisor<'a> {
     /// (Re)starts what is due; the telemetry of a start is checked against its own history.
     fn start_due(&mut self, children: &mut Children) -> Result<()> {
         if children.replay.start_if_due()? {
-            self.telemetry.replay_started();
+            self.telemetry.replay_started(children.replay.pid());
         }
         children.learner.start_if_due()?;
         for (id, actor) in children.actors.iter_mut().enumerate() {
