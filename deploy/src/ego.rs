@@ -1,13 +1,16 @@
-//! Who drives the ego in `race`, `eval`, `track check` and the first look: a reference policy
-//! or a trained agent loaded from a checkpoint (`ctxrace_run::trained`), turned into the
-//! actor's episode driver ([`Driver`]).
+//! Who drives the ego in `race`, `eval`, `track check` and the first look: a reference policy,
+//! a trained agent loaded from a checkpoint (`ctxrace_run::trained`) or a policy trained
+//! elsewhere (an MLP file, `ctxrace_nn::policy::mlp`), turned into the actor's episode driver
+//! ([`Driver`]).
 
 use anyhow::{Context as _, Result};
 use ctxrace_actor::driver::Driver;
-use ctxrace_run::trained::TrainedAgent;
+use ctxrace_nn::Policy;
+use ctxrace_run::trained::{CheckpointChoice, TrainedAgent};
 use ctxrace_sim::baseline::BaselineKind;
 use ctxrace_sim::driver::ActMode;
 use ctxrace_sim::RaceEnv;
+use std::path::{Path, PathBuf};
 
 /// What drives the ego.
 #[derive(Clone, Debug)]
@@ -16,14 +19,45 @@ pub enum EgoSpec {
     Baseline(BaselineKind),
     /// A trained agent.
     Trained(Box<TrainedAgent>),
+    /// A policy trained elsewhere: the MLP file and its bytes.
+    Mlp(PathBuf, Vec<u8>),
 }
 
+/// The extension of an MLP policy file.
+const MLP_EXTENSION: &str = "safetensors";
+
 impl EgoSpec {
-    /// The name reports group by: the algorithm or the baseline.
+    /// The policy at `path`: an MLP policy file (`*.safetensors`), else a trained agent's
+    /// checkpoint or run folder (its checkpoint `choice`).
+    pub fn load(path: &Path, choice: CheckpointChoice) -> Result<Self> {
+        if path.is_file() && path.extension().is_some_and(|e| e == MLP_EXTENSION) {
+            let bytes =
+                std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+            return Ok(EgoSpec::Mlp(path.to_path_buf(), bytes));
+        }
+        Ok(EgoSpec::Trained(Box::new(TrainedAgent::load(
+            path, choice,
+        )?)))
+    }
+
+    /// The name reports group by: the algorithm, the baseline, or the MLP file's stem.
     pub fn name(&self) -> String {
         match self {
             EgoSpec::Baseline(kind) => kind.name().into(),
             EgoSpec::Trained(t) => t.agent.algo.name().into(),
+            EgoSpec::Mlp(path, _) => path
+                .file_stem()
+                .map_or("mlp".into(), |s| s.to_string_lossy().into_owned()),
+        }
+    }
+
+    /// The trained agent's or MLP file's path, or the baseline's name: how an evaluation's
+    /// workers and records name the ego.
+    pub fn source(&self) -> String {
+        match self {
+            EgoSpec::Trained(t) => t.checkpoint.display().to_string(),
+            EgoSpec::Mlp(path, _) => path.display().to_string(),
+            EgoSpec::Baseline(_) => self.name(),
         }
     }
 
@@ -40,6 +74,11 @@ impl EgoSpec {
                     )
                 })?
             }
+            EgoSpec::Mlp(path, bytes) => Driver::policy(
+                Policy::mlp(bytes, env.obs_dim())
+                    .with_context(|| format!("{} as the ego of this race", path.display()))?,
+                act,
+            ),
         })
     }
 }

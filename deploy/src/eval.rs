@@ -24,7 +24,7 @@ use ctxrace_config::config_file::read_config_table;
 use ctxrace_config::{Context, ContextMode, RaceConfig};
 use ctxrace_run::results;
 use ctxrace_run::run_dir::{EVAL_DIR, EVAL_JOB};
-use ctxrace_run::trained::{CheckpointChoice, TrainedAgent};
+use ctxrace_run::trained::CheckpointChoice;
 use ctxrace_sim::baseline::BaselineKind;
 use ctxrace_sim::driver::ActMode;
 use ctxrace_sim::eval_dir;
@@ -43,7 +43,8 @@ use std::time::Duration;
 /// Arguments of `ctxrace eval`.
 #[derive(Args)]
 pub struct EvalArgs {
-    /// A run directory, a checkpoint directory, or a reference policy: `pure-pursuit`,
+    /// A run directory, a checkpoint directory, an MLP policy file (`*.safetensors`, written by
+    /// Python's ctxrace.save_mlp_policy), or a reference policy: `pure-pursuit`,
     /// `follow-the-gap` or `random`.
     source: String,
     /// Which checkpoint of a run directory: `best` (the peak of the smoothed training return,
@@ -80,7 +81,7 @@ pub struct EvalArgs {
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Output directory [default: <run>/eval for a run, eval-<policy>-<track>-<rivals>r for a
-    /// reference policy].
+    /// reference policy or an MLP file (its stem)].
     #[arg(long)]
     out: Option<PathBuf>,
     /// Track [default: the run's; f1_esp for a reference policy].
@@ -160,10 +161,7 @@ fn parse_mask(text: &str) -> std::result::Result<Mask, String> {
 fn ego_spec(source: &str, choice: CheckpointChoice) -> Result<EgoSpec> {
     match source.parse::<BaselineKind>() {
         Ok(kind) => Ok(EgoSpec::Baseline(kind)),
-        Err(_) => Ok(EgoSpec::Trained(Box::new(TrainedAgent::load(
-            Path::new(source),
-            choice,
-        )?))),
+        Err(_) => EgoSpec::load(Path::new(source), choice),
     }
 }
 
@@ -172,7 +170,7 @@ fn ego_spec(source: &str, choice: CheckpointChoice) -> Result<EgoSpec> {
 fn check_ablation(spec: &EgoSpec, told: ToldContext, mask: Option<Mask>) -> Result<()> {
     let mode = match spec {
         EgoSpec::Trained(t) => t.agent.algo.context_mode(),
-        EgoSpec::Baseline(_) => ContextMode::None,
+        EgoSpec::Baseline(_) | EgoSpec::Mlp(..) => ContextMode::None,
     };
     if !told.is_true() && mode == ContextMode::None {
         bail!(
@@ -213,10 +211,7 @@ pub fn run(args: EvalArgs) -> Result<()> {
     let done = total - todo.len() as u64;
     let job = EvalJob {
         meta: meta.clone(),
-        ego: match &spec {
-            EgoSpec::Trained(t) => t.checkpoint.display().to_string(),
-            EgoSpec::Baseline(_) => spec.name(),
-        },
+        ego: spec.source(),
         race: race.clone(),
         tracks: args.tracks.clone(),
         todo,
@@ -253,7 +248,7 @@ fn check_grid(args: &EvalArgs) -> Result<()> {
 fn scenario(args: &EvalArgs, spec: &EgoSpec) -> Result<EvalScenario> {
     let experiment = match spec {
         EgoSpec::Trained(t) => t.experiment.as_ref(),
-        EgoSpec::Baseline(_) => None,
+        EgoSpec::Baseline(_) | EgoSpec::Mlp(..) => None,
     };
     let mut race_keys = toml::Table::new();
     if args.tracks.raceline_file {
@@ -296,7 +291,9 @@ fn out_dir(args: &EvalArgs, spec: &EgoSpec, track: &str, race: &RaceConfig) -> P
             Some(run) if t.experiment.is_some() => run.join(EVAL_DIR),
             _ => t.checkpoint.join(EVAL_DIR),
         },
-        (None, EgoSpec::Baseline(_)) => eval_dir::reference_dir(&spec.name(), track, race.rivals),
+        (None, EgoSpec::Baseline(_) | EgoSpec::Mlp(..)) => {
+            eval_dir::reference_dir(&spec.name(), track, race.rivals)
+        }
     }
 }
 
@@ -314,7 +311,7 @@ fn eval_meta(
         rivals: race.rivals,
         train_seed: match spec {
             EgoSpec::Trained(t) => t.agent.seed(),
-            EgoSpec::Baseline(_) => 0,
+            EgoSpec::Baseline(_) | EgoSpec::Mlp(..) => 0,
         },
         train_range,
         grid: args.grid,
@@ -323,11 +320,11 @@ fn eval_meta(
         seed: args.seed,
         source: match spec {
             EgoSpec::Trained(t) => portable_source(&t.checkpoint, t.experiment.is_some()),
-            EgoSpec::Baseline(_) => spec.name(),
+            EgoSpec::Baseline(_) | EgoSpec::Mlp(..) => spec.name(),
         },
         checkpoint: match spec {
             EgoSpec::Trained(t) if t.experiment.is_some() => args.checkpoint.to_string(),
-            EgoSpec::Trained(_) => "given".into(),
+            EgoSpec::Trained(_) | EgoSpec::Mlp(..) => "given".into(),
             EgoSpec::Baseline(_) => "-".into(),
         },
         act: args.act,

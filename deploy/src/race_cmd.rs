@@ -6,7 +6,7 @@ use anyhow::{Context as _, Result};
 use clap::Args;
 use ctxrace_config::Context;
 use ctxrace_render::race::{check_render_path, drive_recorded, race_title, render_race, Frame};
-use ctxrace_run::trained::{CheckpointChoice, TrainedAgent};
+use ctxrace_run::trained::CheckpointChoice;
 use ctxrace_sim::baseline::BaselineKind;
 use ctxrace_sim::driver::ActMode;
 use ctxrace_sim::vehicle::idx;
@@ -32,7 +32,8 @@ pub struct RaceArgs {
     #[arg(long, default_value = "pure-pursuit")]
     ego: BaselineKind,
     /// Drive the ego with a trained agent instead: a checkpoint or run directory (in the run's
-    /// race scenario unless --config is given).
+    /// race scenario unless --config is given), or a policy trained elsewhere as an MLP file
+    /// (`*.safetensors`, written by Python's ctxrace.save_mlp_policy).
     #[arg(long)]
     policy: Option<PathBuf>,
     /// Which checkpoint of a run directory: best, latest or step-N.
@@ -79,7 +80,7 @@ pub fn run(args: RaceArgs) -> Result<()> {
         check_render_path(path)?;
     }
     let spec = match &args.policy {
-        Some(path) => EgoSpec::Trained(Box::new(TrainedAgent::load(path, args.checkpoint)?)),
+        Some(path) => EgoSpec::load(path, args.checkpoint)?,
         None => EgoSpec::Baseline(args.ego),
     };
     let mut cfg = match (&spec, &args.config) {

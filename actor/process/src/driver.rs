@@ -41,12 +41,20 @@ impl Driver {
         env: &RaceEnv,
         act: ActMode,
     ) -> Result<Self, PolicyError> {
-        let policy = Policy::new(agent, env.obs_dim(), weights, 0)?;
-        Ok(Driver::Agent(Box::new(AgentEgo {
+        Ok(Self::policy(
+            Policy::new(agent, env.obs_dim(), weights, 0)?,
+            act,
+        ))
+    }
+
+    /// Any acting `policy` driving the ego (a policy trained elsewhere: [`Policy::mlp`]), acting
+    /// by `act`.
+    pub fn policy(policy: Policy, act: ActMode) -> Self {
+        Driver::Agent(Box::new(AgentEgo {
             policy,
             act,
             told: None,
-        })))
+        }))
     }
 
     /// Tells a trained agent `context` instead of the race's from now on (`None`: the truth);

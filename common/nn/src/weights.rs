@@ -88,6 +88,11 @@ impl Weights {
         })
     }
 
+    /// The shape of tensor `name`, if the weights hold it (and it was not taken).
+    pub fn shape(&self, name: &str) -> Option<&[usize]> {
+        self.tensors.get(name).map(|(shape, _)| shape.as_slice())
+    }
+
     /// Takes the values of tensor `name`, which must have the shape `shape`.
     pub fn take(&mut self, name: &str, shape: &[usize]) -> Result<Vec<f32>, WeightsError> {
         self.take_or(name, shape, 0.0)

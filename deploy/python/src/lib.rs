@@ -159,19 +159,34 @@ fn load_track(spec: &str, tracks_dir: Option<PathBuf>, race: &RaceConfig) -> Res
     Ok(cache.entry(key).or_insert(track).clone())
 }
 
-/// Decodes native-endian `f64` bytes.
-fn f64s(what: &'static str, bytes: &[u8]) -> Result<Vec<f64>> {
-    if !bytes.len().is_multiple_of(8) {
+/// `bytes` as native-endian values of `N` bytes each (`from` reads one), or an error naming
+/// `what` when they hold no whole number of them.
+fn values<T, const N: usize>(
+    what: &'static str,
+    bytes: &[u8],
+    from: fn([u8; N]) -> T,
+) -> Result<Vec<T>> {
+    if !bytes.len().is_multiple_of(N) {
         return Err(BindError::Bytes {
             what,
             bytes: bytes.len(),
-            size: 8,
+            size: N,
         });
     }
     Ok(bytes
-        .chunks_exact(8)
-        .map(|b| f64::from_ne_bytes(b.try_into().expect("8 bytes")))
+        .chunks_exact(N)
+        .map(|b| from(b.try_into().expect("chunks of N bytes")))
         .collect())
+}
+
+/// `bytes` as native-endian `f64` values, or an error naming `what`.
+fn f64s(what: &'static str, bytes: &[u8]) -> Result<Vec<f64>> {
+    values(what, bytes, f64::from_ne_bytes)
+}
+
+/// `bytes` as native-endian `f32` values, or an error naming `what`.
+fn f32s(what: &'static str, bytes: &[u8]) -> Result<Vec<f32>> {
+    values(what, bytes, f32::from_ne_bytes)
 }
 
 /// Pairs of values (actions, contexts) from native-endian `f64` bytes.
@@ -213,6 +228,7 @@ fn _ctxrace(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<policy::PyPolicy>()?;
     m.add_function(wrap_pyfunction!(evaluate::evaluate_reference, m)?)?;
     m.add_function(wrap_pyfunction!(tracks::list_tracks, m)?)?;
+    m.add_function(wrap_pyfunction!(policy::save_mlp_policy, m)?)?;
     m.add_function(wrap_pyfunction!(tracks::download_track, m)?)?;
     m.add("OUTCOME_COLUMNS", vector::OUTCOME_COLUMNS.to_vec())?;
     let references = ctxrace_sim::baseline::BaselineKind::ALL.map(|k| k.name());

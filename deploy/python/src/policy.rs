@@ -4,6 +4,7 @@
 //! GIL released.
 
 use crate::{bytes_of, pairs, BindError, Result};
+use ctxrace_nn::policy::mlp::{Linear, MlpPolicy};
 use ctxrace_nn::policy::PolicyError;
 use ctxrace_nn::Policy;
 use ctxrace_run::trained::{CheckpointChoice, TrainedAgent, UnknownCheckpointChoice};
@@ -186,4 +187,40 @@ impl PyPolicy {
             .collect();
         Ok(bytes_of(py, &actions, f64::to_ne_bytes))
     }
+}
+
+/// Writes an MLP policy file (`ctxrace_nn::policy::mlp`'s format) to `path`: `layers` as
+/// `(weight bytes, out, in, bias bytes)` of native-endian `f32`, `activation`, `inputs` and
+/// `output` named as the file's metadata names them, for observations of `obs_dim` beams; the
+/// policy is checked (shapes chained, 2 actions) before anything is written.
+#[pyfunction]
+pub fn save_mlp_policy(
+    path: PathBuf,
+    layers: Vec<(Vec<u8>, usize, usize, Vec<u8>)>,
+    activation: &str,
+    inputs: &str,
+    output: &str,
+    obs_dim: usize,
+) -> PyResult<()> {
+    let layers = layers
+        .into_iter()
+        .map(|(weight, out, input, bias)| {
+            let weight = crate::f32s("weight", &weight)?;
+            let bias = crate::f32s("bias", &bias)?;
+            if weight.len() != out * input || bias.len() != out {
+                return Err(BindError::Argument(format!(
+                    "a layer of shape ({out}, {input}) holds {} weights and {} biases",
+                    weight.len(),
+                    bias.len()
+                )));
+            }
+            Ok(Linear { weight, bias })
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let policy =
+        MlpPolicy::named(layers, activation, inputs, output, obs_dim).map_err(BindError::from)?;
+    let bytes = policy.to_safetensors().map_err(BindError::from)?;
+    std::fs::write(&path, bytes)
+        .map_err(|e| BindError::Argument(format!("writing {}: {e}", path.display())))?;
+    Ok(())
 }

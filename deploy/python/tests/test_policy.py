@@ -149,3 +149,58 @@ def test_a_race_from_python_is_the_command_lines_race_and_draws_it(tmp_path, ctx
         ctxrace.race(lambda obs, ctx: np.zeros((1, 2)), render=tmp_path / "r.bmp")
     with pytest.raises(TypeError, match="callable"):
         ctxrace.race(3)
+
+
+def mlp_forward(layers, x):
+    """The MLP policy file's action, computed in numpy: tanh between layers, clipped output."""
+    for i, (w, b) in enumerate(layers):
+        x = w @ x + b
+        if i < len(layers) - 1:
+            x = np.tanh(x)
+    return np.clip(x, -1, 1)
+
+
+def test_a_python_mlp_policy_races_and_evaluates_from_the_command_line(tmp_path, tracks_dir, ctxrace_bin):
+    rng = np.random.default_rng(4)
+    layers = [
+        (rng.normal(0, 0.3, (16, 110)), rng.normal(0, 0.1, 16)),
+        (rng.normal(0, 0.3, (2, 16)), np.array([0.0, 0.6])),
+    ]
+    path = tmp_path / "policy.safetensors"
+    ctxrace.save_mlp_policy(path, layers, activation="tanh", inputs="scan+context")
+    trace = tmp_path / "trace.csv"
+    subprocess.run(
+        [ctxrace_bin, "race", "f1_esp", "--policy", path, "--rivals", "1", "--context",
+         "0.2,-0.1", "--seed", "5", "--trace", trace, "--tracks-dir", tracks_dir],
+        check=True, capture_output=True,
+    )
+    with open(trace) as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) > 3
+    scan = lambda row: np.array([float(row[f"scan{b}"]) for b in range(108)])
+    for before, row in zip(rows, rows[1:]):
+        want = mlp_forward(layers, np.concatenate([scan(before), [0.2, -0.1]]))
+        got = np.array([float(row["action_steer"]), float(row["action_speed"])])
+        np.testing.assert_allclose(got, want, atol=1e-4)
+    # the protocol, from the file's name
+    out = tmp_path / "eval"
+    subprocess.run(
+        [ctxrace_bin, "eval", path, "--track", "f1_esp", "--rivals", "1", "--laps", "1",
+         "--grid", "3", "--out", out, "--tracks-dir", tracks_dir],
+        check=True, capture_output=True,
+    )
+    with open(out / "contexts.csv") as f:
+        assert len(list(csv.DictReader(f))) == 9
+
+
+def test_an_mlp_policy_that_cannot_act_is_refused_before_writing(tmp_path):
+    path = tmp_path / "p.safetensors"
+    with pytest.raises(ValueError, match="gives 3 values"):
+        ctxrace.save_mlp_policy(path, [(np.zeros((3, 108)), np.zeros(3))])
+    with pytest.raises(ValueError, match="layer 0 takes 110 inputs where 108 arrive"):
+        ctxrace.save_mlp_policy(path, [(np.zeros((2, 110)), np.zeros(2))])
+    with pytest.raises(ValueError, match="'gelu' is none of tanh, relu, silu"):
+        ctxrace.save_mlp_policy(path, [(np.zeros((2, 108)), np.zeros(2))], activation="gelu")
+    with pytest.raises(ValueError, match="not finite"):
+        ctxrace.save_mlp_policy(path, [(np.full((2, 108), np.nan), np.zeros(2))])
+    assert not path.exists()

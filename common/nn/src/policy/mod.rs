@@ -1,10 +1,13 @@
 //! The policies the actors run at batch 1 on one thread: built from an [`AgentConfig`] and the
-//! learner's policy weights (safetensors bytes), with their recurrent state or frame stack inside.
+//! learner's policy weights (safetensors bytes), with their recurrent state or frame stack inside;
+//! and policies trained elsewhere, as an MLP file ([`mlp`]).
 
 mod dreamer;
+pub mod mlp;
 mod sac;
 
 pub use dreamer::DreamerPolicy;
+pub use mlp::MlpPolicy;
 pub use sac::SacPolicy;
 
 use crate::WeightsError;
@@ -86,6 +89,8 @@ pub enum Policy {
     Sac(Box<SacPolicy>),
     /// DreamerV3, cRSSM or cMask.
     Dreamer(Box<DreamerPolicy>),
+    /// A policy trained elsewhere, as an MLP ([`mlp`]): deterministic, without state.
+    Mlp(Box<MlpPolicy>),
 }
 
 impl Policy {
@@ -102,11 +107,23 @@ impl Policy {
         })
     }
 
+    /// The MLP policy of the file `bytes` ([`mlp`]) for LiDAR frames of `frame_dim` values.
+    pub fn mlp(bytes: &[u8], frame_dim: usize) -> Result<Self> {
+        Ok(Policy::Mlp(Box::new(MlpPolicy::from_safetensors(
+            bytes, frame_dim,
+        )?)))
+    }
+
     /// Replaces the weights (same architecture).
     pub fn load(&mut self, weights: &[u8]) -> Result<()> {
         match self {
             Policy::Sac(p) => p.load(weights),
             Policy::Dreamer(p) => p.load(weights),
+            Policy::Mlp(p) => {
+                let frame = p.frame_dim();
+                **p = MlpPolicy::from_safetensors(weights, frame)?;
+                Ok(())
+            }
         }
     }
 
@@ -116,6 +133,7 @@ impl Policy {
         match self {
             Policy::Sac(p) => p.reseed(seed),
             Policy::Dreamer(p) => p.reseed(seed),
+            Policy::Mlp(_) => {}
         }
     }
 
@@ -127,6 +145,7 @@ impl Policy {
                 rng_words: p.rng_words(),
                 frames: Vec::new(),
             },
+            Policy::Mlp(_) => CarriedState::default(),
         }
     }
 
@@ -135,6 +154,7 @@ impl Policy {
         match self {
             Policy::Sac(p) => p.carry(state),
             Policy::Dreamer(p) => p.set_rng_words(state.rng_words),
+            Policy::Mlp(_) => {}
         }
     }
 
@@ -143,6 +163,7 @@ impl Policy {
         match self {
             Policy::Sac(p) => p.reset(),
             Policy::Dreamer(p) => p.reset(),
+            Policy::Mlp(_) => {}
         }
     }
 
@@ -151,8 +172,8 @@ impl Policy {
     pub fn fix_mask(&mut self, mask: Option<[f32; 2]>) -> Result<()> {
         match self {
             Policy::Dreamer(p) => p.fix_mask(mask),
-            Policy::Sac(_) if mask.is_none() => Ok(()),
-            Policy::Sac(_) => Err(PolicyError::NoMask),
+            Policy::Sac(_) | Policy::Mlp(_) if mask.is_none() => Ok(()),
+            Policy::Sac(_) | Policy::Mlp(_) => Err(PolicyError::NoMask),
         }
     }
 
@@ -171,6 +192,10 @@ impl Policy {
                 let (action, mask) = p.act(obs, context, deterministic)?;
                 Decision { action, mask }
             }
+            Policy::Mlp(p) => Decision {
+                action: p.act(obs, context)?,
+                mask: None,
+            },
         })
     }
 }

@@ -171,6 +171,14 @@ def evaluate_reference(
     seed: int = 0,
     threads: int = 0,
 ) -> str: ...
+def save_mlp_policy(
+    path: str,
+    layers: List[Tuple[bytes, int, int, bytes]],
+    activation: str,
+    inputs: str,
+    output: str,
+    obs_dim: int,
+) -> None: ...
 def list_tracks(tracks_dir: Optional[_Path] = None) -> List[Tuple[str, Path]]: ...
 def download_track(
     name: str, source: Optional[str] = None, into: Optional[_Path] = None

@@ -1,15 +1,16 @@
-"""Trained agents from Python: `load_policy`."""
+"""Trained agents from Python (`load_policy`), and policies trained in Python written for the
+command line (`save_mlp_policy`)."""
 
 from __future__ import annotations
 
 import json
 import os
-from typing import Any, Optional, Sequence
+from typing import Any, Optional, Sequence, Tuple
 
 import numpy as np
 
 from ctxrace import _ctxrace
-from ctxrace._env import pairs_bytes
+from ctxrace._env import count, pairs_bytes
 
 
 class TrainedPolicy:
@@ -74,3 +75,43 @@ def load_policy(path: os.PathLike, checkpoint: str = "best") -> TrainedPolicy:
     """The acting policy of a checkpoint folder, or of a run folder's checkpoint `checkpoint`
     (``best``, ``latest``, ``step-N``), read and verified as ``ctxrace eval`` reads it."""
     return TrainedPolicy(_ctxrace.Policy(os.fspath(path), checkpoint))
+
+
+#: The choices of an MLP policy file's metadata (`save_mlp_policy`), as the simulator reads them.
+MLP_ACTIVATIONS = ("tanh", "relu", "silu")
+MLP_INPUTS = ("scan", "scan+context")
+MLP_OUTPUTS = ("clip", "tanh")
+
+
+def save_mlp_policy(
+    path: os.PathLike,
+    layers: Sequence[Tuple[Any, Any]],
+    activation: str = "tanh",
+    inputs: str = "scan",
+    output: str = "clip",
+    obs_dim: int = 108,
+) -> None:
+    """Writes a policy trained in Python as an MLP file that the command line races, draws and
+    evaluates (``ctxrace race f1_esp --policy policy.safetensors``, ``ctxrace eval
+    policy.safetensors``). `layers` are ``(weight (out, in), bias (out,))`` pairs, first to
+    last (a torch ``nn.Linear`` gives ``(l.weight.detach().numpy(), l.bias.detach().numpy())``);
+    `activation` (`MLP_ACTIVATIONS`) sits between layers; `inputs` is ``"scan"`` or
+    ``"scan+context"`` (the scan then ``(c_v, c_θ)``, as ``obs_mode="scan+context"``); `output`
+    ``"clip"`` clips the last layer's two values to ``[-1, 1]``, ``"tanh"`` squashes them. The
+    action is ``(steering, speed)`` in ``[-1, 1]``; the file's format is documented in
+    ``ctxrace_nn::policy::mlp``."""
+    arrays = []
+    for i, (weight, bias) in enumerate(layers):
+        w = np.ascontiguousarray(weight, dtype=np.float32)
+        b = np.ascontiguousarray(bias, dtype=np.float32)
+        if w.ndim != 2 or b.shape != (w.shape[0],):
+            raise ValueError(
+                f"layer {i}: weight must be (out, in) and bias (out,), not {w.shape} and {b.shape}"
+            )
+        if not (np.isfinite(w).all() and np.isfinite(b).all()):
+            raise ValueError(f"layer {i} holds values that are not finite")
+        arrays.append((w.tobytes(), w.shape[0], w.shape[1], b.tobytes()))
+    _ctxrace.save_mlp_policy(
+        os.fspath(path), arrays, str(activation), str(inputs), str(output),
+        count("obs_dim", obs_dim, 1),
+    )
