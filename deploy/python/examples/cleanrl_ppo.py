@@ -9,9 +9,10 @@ The agent sees the LiDAR scan and the episode's context (``obs_mode="scan+contex
 one pure-pursuit rival whose context is drawn from ±0.15 each episode. Every update appends a row
 to ``<out>/curve.csv``: env steps, wall seconds, and the mean return, progress (PG) and lap
 fraction of the episodes that ended since the last row. At the end ``<out>/policy.pt`` holds the
-trained agent and ``<out>/race.gif`` a race of its mean action against ``--rival`` (default: the
-pure-pursuit rival; ``--rival RUN_DIR`` races a trained ctxrace agent instead, e.g.
-``docs/table2/1r/cmask/seed10000``).
+trained agent, ``<out>/policy.safetensors`` its mean action as an MLP file the command line races
+(``ctxrace race f1_esp --policy <out>/policy.safetensors``), and ``<out>/race.gif`` a race of it
+against ``--rival`` (default: the pure-pursuit rival; ``--rival RUN_DIR`` races a trained
+ctxrace agent instead, e.g. ``docs/table2/1r/cmask/seed10000``).
 """
 
 from __future__ import annotations
@@ -182,6 +183,13 @@ def main() -> None:
             ended = {k: [] for k in ended}
     curve.close()
     torch.save(agent.state_dict(), args.out / "policy.pt")
+    # the mean action as an MLP file the command line races: ctxrace race f1_esp --policy FILE
+    linears = [m for m in agent.actor_mean if isinstance(m, nn.Linear)]
+    ctxrace.save_mlp_policy(
+        args.out / "policy.safetensors",
+        [(m.weight.detach().numpy(), m.bias.detach().numpy()) for m in linears],
+        activation="tanh", inputs="scan+context", output="clip",
+    )
 
     def mean_action(obs: np.ndarray, context: np.ndarray) -> np.ndarray:
         x = torch.as_tensor(np.concatenate([obs, context], axis=1), dtype=torch.float32)
