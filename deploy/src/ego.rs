@@ -23,14 +23,11 @@ pub enum EgoSpec {
     Mlp(PathBuf, Vec<u8>),
 }
 
-/// The extension of an MLP policy file.
-const MLP_EXTENSION: &str = "safetensors";
-
 impl EgoSpec {
     /// The policy at `path`: an MLP policy file (`*.safetensors`), else a trained agent's
     /// checkpoint or run folder (its checkpoint `choice`).
     pub fn load(path: &Path, choice: CheckpointChoice) -> Result<Self> {
-        if path.is_file() && path.extension().is_some_and(|e| e == MLP_EXTENSION) {
+        if ctxrace_nn::policy::mlp::is_mlp_file(path) {
             let bytes =
                 std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
             return Ok(EgoSpec::Mlp(path.to_path_buf(), bytes));

@@ -1,4 +1,5 @@
-//! A rival driven by a trained ctxrace agent (`[rival] driver = "policy"`): every decision it
+//! A rival driven by a trained ctxrace agent, or by a policy trained elsewhere and saved as an MLP
+//! file (`[rival] driver = "policy"`): every decision it
 //! scans from its own pose with the race's LiDAR (the walls, the ego and the other rivals; the
 //! race's range noise, drawn from the rival's own stream), and its agent acts on that scan and
 //! the race's context `[c_v, c_θ]` exactly as it acted as the ego in training. Its action maps to
@@ -15,6 +16,7 @@ use crate::collision::CarBox;
 use crate::lidar::{Lidar, NearbyWalls};
 use crate::vehicle::{idx, State};
 use ctxrace_config::{Context, ContextGains, RaceConfig};
+use ctxrace_nn::policy::mlp::is_mlp_file;
 use ctxrace_nn::policy::PolicyError;
 use ctxrace_nn::Policy;
 use ctxrace_run::trained::{CheckpointChoice, TrainedAgent, TrainedAgentError};
@@ -51,27 +53,51 @@ pub enum RivalAgentError {
     },
 }
 
-/// The trained agent the rivals are, read once for a race.
+/// The agent the rivals are, read once for a race: a trained ctxrace agent or a policy trained
+/// elsewhere (an MLP file, [`ctxrace_nn::policy::mlp`]).
 #[derive(Clone, Debug)]
-pub struct RivalAgent {
-    trained: TrainedAgent,
+pub enum RivalAgent {
+    /// A trained agent's checkpoint.
+    Trained(Box<TrainedAgent>),
+    /// An MLP policy file and its bytes.
+    Mlp(PathBuf, Vec<u8>),
 }
 
 impl RivalAgent {
-    /// Reads the agent at `path`: a run folder (its best checkpoint) or a checkpoint folder.
+    /// Reads the agent at `path`: an MLP policy file (`*.safetensors`), a run folder (its best
+    /// checkpoint) or a checkpoint folder.
     pub fn load(path: &Path) -> Result<Self, RivalAgentError> {
-        let trained = TrainedAgent::load(path, CheckpointChoice::Best).map_err(|source| {
-            RivalAgentError::Load {
-                path: path.to_path_buf(),
-                source: Box::new(source),
-            }
-        })?;
-        Ok(Self { trained })
+        let failed = |source| RivalAgentError::Load {
+            path: path.to_path_buf(),
+            source: Box::new(source),
+        };
+        if is_mlp_file(path) {
+            let bytes = std::fs::read(path).map_err(|source| {
+                failed(TrainedAgentError::Read {
+                    path: path.to_path_buf(),
+                    source,
+                })
+            })?;
+            return Ok(Self::Mlp(path.to_path_buf(), bytes));
+        }
+        let trained = TrainedAgent::load(path, CheckpointChoice::Best).map_err(failed)?;
+        Ok(Self::Trained(Box::new(trained)))
     }
 
-    /// The checkpoint folder the weights came from.
+    /// The checkpoint folder or the file the weights came from.
     pub fn checkpoint(&self) -> &Path {
-        &self.trained.checkpoint
+        match self {
+            Self::Trained(t) => &t.checkpoint,
+            Self::Mlp(path, _) => path,
+        }
+    }
+
+    /// Its acting policy for LiDAR frames of `beams` values.
+    fn policy(&self, beams: usize) -> Result<Policy, PolicyError> {
+        match self {
+            Self::Trained(t) => Policy::new(&t.agent, beams, &t.weights, 0),
+            Self::Mlp(_, bytes) => Policy::mlp(bytes, beams),
+        }
     }
 }
 
@@ -111,13 +137,12 @@ impl PolicyRival {
     /// scan (one decision on an empty scan is tried).
     pub fn new(agent: &RivalAgent, race: &RaceConfig) -> Result<Self, RivalAgentError> {
         let lidar = Lidar::new(&race.lidar);
-        let checkpoint = agent.trained.checkpoint.clone();
+        let checkpoint = agent.checkpoint().to_path_buf();
         let refused = |source| RivalAgentError::Policy {
             path: checkpoint.clone(),
             source: Box::new(source),
         };
-        let t = &agent.trained;
-        let mut policy = Policy::new(&t.agent, lidar.beams(), &t.weights, 0).map_err(refused)?;
+        let mut policy = agent.policy(lidar.beams()).map_err(refused)?;
         let scan = vec![0.0; lidar.beams()];
         policy.act(&scan, [0.0; 2], true).map_err(refused)?;
         Ok(Self {

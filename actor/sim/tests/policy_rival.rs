@@ -104,6 +104,32 @@ fn a_trained_rival_drives_a_solo_lap() {
 }
 
 #[test]
+fn a_policy_trained_elsewhere_drives_a_rival_from_its_mlp_file() {
+    use ctxrace_nn::policy::mlp::{Linear, MlpPolicy};
+    // straight ahead at 70% of the speed range, down the start straight
+    let beams = RaceConfig::default().lidar.beams;
+    let layers = vec![Linear {
+        weight: vec![0.0; 2 * beams],
+        bias: vec![0.0, 0.4],
+    }];
+    let policy = MlpPolicy::named(layers, "tanh", "scan", "clip", beams).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("rival.safetensors");
+    std::fs::write(&file, policy.to_safetensors().unwrap()).unwrap();
+    let mut cfg = policy_race(1);
+    cfg.rival.policy = Some(file);
+    let mut env = RaceEnv::new(f1_esp(), cfg).unwrap();
+    let start = positions(&mut env, 1, Context::default(), 0).0;
+    let after = positions(&mut env, 1, Context::default(), 10).0;
+    let rival = &env.cars()[1];
+    assert!(rival.vehicle.speed() > 2.0, "{}", rival.vehicle.speed());
+    assert!(
+        after[2] - start[2] > 1.0,
+        "the rival drove along the straight: {start:?} {after:?}"
+    );
+}
+
+#[test]
 fn a_missing_or_unfit_agent_is_refused_by_name() {
     let track = f1_esp();
     let mut cfg = policy_race(1);

@@ -170,8 +170,9 @@ pub struct RivalConfig {
     /// `follow-the-gap` (reactive, from each rival's own scan; it reads `follow_the_gap` and the
     /// context gains, not the pure-pursuit keys) or `policy` (a trained agent: `policy`).
     pub driver: RivalDriverKind,
-    /// With `driver = "policy"`: the trained ctxrace agent every rival is, a run folder (its best
-    /// checkpoint) or one checkpoint folder, relative to the working directory. Each rival acts
+    /// With `driver = "policy"`: the agent every rival is, a run folder (its best checkpoint),
+    /// one checkpoint folder, or a policy trained elsewhere as an MLP file (`*.safetensors`,
+    /// `ctxrace_nn::policy::mlp`), relative to the working directory. Each rival acts
     /// on its own scan (the ego and the other rivals in it) and the race's context, as the agent
     /// was trained to act as the ego; its speed command is scaled by `1 + λ_v c_v`.
     pub policy: Option<std::path::PathBuf>,

@@ -21,6 +21,12 @@ use std::collections::HashMap;
 /// The `format` metadata value of an MLP policy file.
 pub const MLP_FORMAT: &str = "ctxrace-mlp-policy/1";
 
+/// Whether `path` names an MLP policy file (a file `*.safetensors`) rather than a trained
+/// agent's checkpoint or run folder: the one rule the ego and the rivals read paths by.
+pub fn is_mlp_file(path: &std::path::Path) -> bool {
+    path.is_file() && path.extension().is_some_and(|e| e == "safetensors")
+}
+
 /// The nonlinearity between an [`MlpPolicy`]'s layers.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum MlpActivation {
