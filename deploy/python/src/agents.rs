@@ -7,6 +7,7 @@
 use crate::vector::row;
 use crate::{bytes_of, load_track, pairs, race_config, BindError};
 use ctxrace_config::Context;
+use ctxrace_render::race::{moment_rgb, race_title, Frame};
 use ctxrace_sim::vector::{first_context, EnvOutcome, VectorError};
 use ctxrace_sim::{AgentStep, RaceEnv};
 use pyo3::prelude::*;
@@ -22,9 +23,22 @@ pub struct PyRaceAgents {
     race: String,
     /// The track's name.
     track: String,
+    /// The race so far, frame by frame (the ego's action and scan), when made to record.
+    frames: Option<Vec<Frame>>,
 }
 
 impl PyRaceAgents {
+    /// Records the race's state after a reset (no action) or a step (the ego's `action`), when
+    /// made to record.
+    fn record(&mut self, action: [f64; 2], ego: &AgentStep) {
+        if let Some(frames) = &mut self.frames {
+            if self.env.metrics().steps == 0 {
+                frames.clear();
+            }
+            frames.push(Frame::capture(&self.env, action, ego.reward, &ego.obs));
+        }
+    }
+
     /// Every agent's observation (zeros for one whose episode ended) and outcome row as bytes.
     fn arrays<'py>(
         &self,
@@ -59,9 +73,10 @@ impl PyRaceAgents {
 impl PyRaceAgents {
     /// A race on `track` of the race config file `config` (none: the default scenario) with
     /// the race keys `race_keys` (a JSON object) laid over it, `agents` of its cars driven from
-    /// Python and the keys' `rivals` scripted ones; contexts drawn from `±context_range`.
+    /// Python and the keys' `rivals` scripted ones; contexts drawn from `±context_range`;
+    /// recording the race for [`PyRaceAgents::render`] if `record`.
     #[new]
-    #[pyo3(signature = (track, agents, race_keys="{}", config=None, tracks_dir=None, context_range=0.15))]
+    #[pyo3(signature = (track, agents, race_keys="{}", config=None, tracks_dir=None, context_range=0.15, record=false))]
     fn new(
         track: &str,
         agents: usize,
@@ -69,6 +84,7 @@ impl PyRaceAgents {
         config: Option<PathBuf>,
         tracks_dir: Option<PathBuf>,
         context_range: f64,
+        record: bool,
     ) -> PyResult<Self> {
         let mut cfg = race_config(config, race_keys)?;
         if agents == 0 {
@@ -86,7 +102,35 @@ impl PyRaceAgents {
             context_range,
             race: serde_json::to_string(&cfg).expect("a race config serialises"),
             track: track.name.clone(),
+            frames: record.then(Vec::new),
         })
+    }
+
+    /// The race so far as a picture `width` pixels wide, as `ctxrace race --render race.gif`
+    /// draws a moment (car 0 drawn as the ego, every other car as a rival): (RGB bytes row by
+    /// row, height, width). Needs a race made to record, reset since.
+    #[pyo3(signature = (width=ctxrace_render::race::MOMENT_WIDTH_PX))]
+    fn render<'py>(
+        &self,
+        py: Python<'py>,
+        width: u32,
+    ) -> PyResult<(Bound<'py, PyBytes>, u32, u32)> {
+        let Some(frames) = &self.frames else {
+            return Err(BindError::Argument(
+                "this race records nothing to draw: make it with record=True".into(),
+            )
+            .into());
+        };
+        let title = race_title(&self.track, "agents", &self.env);
+        let track = self.env.track();
+        let picture = py
+            .detach(|| moment_rgb(track, frames, &title, width))
+            .map_err(|e| BindError::Render(e.into()))?;
+        Ok((
+            PyBytes::new(py, &picture.rgb),
+            picture.height,
+            picture.width,
+        ))
     }
 
     /// Number of agents.
@@ -183,6 +227,7 @@ impl PyRaceAgents {
                 info: Default::default(),
             })
             .collect();
+        self.record([0.0; 2], &steps[0]);
         Ok(self.arrays(py, &steps))
     }
 
@@ -198,6 +243,7 @@ impl PyRaceAgents {
         let steps = py
             .detach(|| env.step_agents(&actions))
             .map_err(BindError::from)?;
+        self.record(actions[0], &steps[0]);
         Ok(self.arrays(py, &steps))
     }
 }

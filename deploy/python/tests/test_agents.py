@@ -112,3 +112,17 @@ def test_rivals_that_are_a_trained_agent(tracks_dir):
         ctxrace.parallel_env(
             "f1_esp", tracks_dir=tracks_dir, rival={"driver": "policy", "policy": "no/such/run"}
         )
+
+
+def test_the_race_renders_as_the_command_line_draws_a_moment():
+    env = ctxrace.parallel_env(TRACK, agents=2, rivals=1, render_mode="rgb_array")
+    env.reset(seed=1)
+    for _ in range(5):
+        env.step({a: [0.0, 0.0] for a in env.agents})
+    frame = env.render()
+    assert frame.dtype == np.uint8 and frame.shape[1:] == (1000, 3)
+    assert frame.std() > 0, "a picture, not a blank"
+    assert env.metadata["render_fps"] == 10
+    assert ctxrace.parallel_env(TRACK).render() is None
+    with pytest.raises(ValueError, match="render_mode"):
+        ctxrace.parallel_env(TRACK, render_mode="human")

@@ -28,6 +28,7 @@ from ctxrace._env import (
     observation_space,
     pairs_bytes,
     race_keys_json,
+    render_metadata,
 )
 
 try:
@@ -45,7 +46,7 @@ class RaceParallelEnv(_ParallelEnv or object):
     """A race of `agents` cars driven from Python and `rivals` scripted ones (see the
     module); observations in `obs_mode` as the single-agent env's, from each agent's car."""
 
-    metadata = {"name": "ctxrace_race_v0", "render_modes": []}
+    metadata = {"name": "ctxrace_race_v0", **render_metadata(_ctxrace.DEFAULT_RENDER_FPS)}
 
     def __init__(
         self,
@@ -56,6 +57,7 @@ class RaceParallelEnv(_ParallelEnv or object):
         context_range: float = 0.15,
         config: Optional[os.PathLike] = None,
         tracks_dir: Optional[os.PathLike] = None,
+        render_mode: Optional[str] = None,
         **race_keys: Any,
     ):
         if _ParallelEnv is None:
@@ -67,7 +69,13 @@ class RaceParallelEnv(_ParallelEnv or object):
             raise ValueError(
                 f"obs_mode {obs_mode!r}: use one of {', '.join(map(repr, OBS_MODES))}"
             )
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(
+                f"render_mode {render_mode!r}: ctxrace renders 'rgb_array' (the race as an "
+                f"(height, width, 3) uint8 array) or nothing (None)"
+            )
         self.obs_mode = obs_mode
+        self.render_mode = render_mode
         n = count("agents", agents, 1)
         self._race = _ctxrace.RaceAgents(
             str(track),
@@ -76,7 +84,11 @@ class RaceParallelEnv(_ParallelEnv or object):
             _path(config),
             _path(tracks_dir),
             float(context_range),
+            render_mode is not None,
         )
+        self.metadata = {
+            "name": "ctxrace_race_v0", **render_metadata(1.0 / self._race.decision_period)
+        }
         #: The race scenario, every key resolved (``rivals`` counts every car but the ego).
         self.race_config = json.loads(self._race.race_config)
         self.possible_agents = agent_names(n)
@@ -146,6 +158,15 @@ class RaceParallelEnv(_ParallelEnv or object):
         it), ``(agents, state_dim)``."""
         data = np.frombuffer(self._race.states(), dtype=np.float32)
         return data.reshape(len(self.possible_agents), self._race.state_dim).copy()
+
+    def render(self) -> Optional[np.ndarray]:
+        """The race so far as ``ctxrace race --render`` draws a moment, an ``(height, 1000, 3)``
+        uint8 array (``render_mode="rgb_array"``; None without a mode): ``car_0`` drawn as the
+        ego, every other car as a rival."""
+        if self.render_mode is None:
+            return None
+        rgb, height, width = self._race.render()
+        return np.frombuffer(rgb, dtype=np.uint8).reshape(height, width, 3).copy()
 
     def close(self):
         """Nothing to free beyond the race itself."""
