@@ -149,6 +149,11 @@ impl MlpPolicy {
                     l.bias.len()
                 )));
             }
+            if let Some(bad_at) = l.weight.iter().chain(&l.bias).position(|v| !v.is_finite()) {
+                return Err(bad(format!(
+                    "layer {i} holds a value that is not finite (its value {bad_at}, weights first)"
+                )));
+            }
             width = l.bias.len();
         }
         if layers.is_empty() || width != ACT_DIM {
