@@ -143,7 +143,14 @@ def analyse():
         for steps, ev in evaluations(folder).items():
             contexts = table2.read_csv(ev / "contexts.csv")
             races.append({"rivals": rivals, "arm": arm, "seed": seed, "env_steps": steps,
-                          **table2.split_values(contexts)})
+                          "told": "truth", **table2.split_values(contexts)})
+        # the final best policy's context ablation: told zeros or another context, fixed masks
+        for told in sorted(p for p in (folder / "ablation").glob("*") if p.is_dir()):
+            if (told / "contexts.csv").is_file():
+                races.append({"rivals": rivals, "arm": arm, "seed": seed,
+                              "env_steps": max(evaluations(folder), default=0),
+                              "told": told.name,
+                              **table2.split_values(table2.read_csv(told / "contexts.csv"))})
             if (ev / "mask_episodes.csv").is_file():
                 observed, shuffled, means = table2.mask_stats(
                     table2.read_csv(ev / "mask_episodes.csv"), rng, SHUFFLES)
@@ -181,12 +188,13 @@ def analyse():
         md.append(f"| {v['rivals']} | {v['arm']} | {v['env_steps']} | {v['component']} | "
                   f"{v['seeds']} | {table2.fmt(v['mi_excess'], 4)} | "
                   f"[{table2.fmt(v['t_lo'], 4)}, {table2.fmt(v['t_hi'], 4)}] | {v['verdict']} |")
-    md += ["", "## M4: the races at each evaluation (per seed)", "",
-           "| rivals | arm | seed | env steps | PG in | PG out | A2A in | A2A out |",
-           "|--:|---|--:|--:|--:|--:|--:|--:|"]
+    md += ["", "## M4: the races at each evaluation (per seed; at the end also the context "
+           "ablation: the agent told zeros or another episode's context, or its mask fixed)", "",
+           "| rivals | arm | seed | env steps | context told | PG in | PG out | A2A in | A2A out |",
+           "|--:|---|--:|--:|---|--:|--:|--:|--:|"]
     for r in races:
         md.append(f"| {r['rivals']} | {r['arm']} | {r['seed']} | {r['env_steps']} | "
-                  f"{table2.fmt(r['pg_in'])} | {table2.fmt(r['pg_out'])} | "
+                  f"{r['told']} | {table2.fmt(r['pg_in'])} | {table2.fmt(r['pg_out'])} | "
                   f"{table2.fmt(r['a2a_in'], 1)} | {table2.fmt(r['a2a_out'], 1)} |")
     (HERE / "results.md").write_text("\n".join(md) + "\n")
     panels = [svg(series, k, t) for k, t in
