@@ -28,8 +28,8 @@ impl EgoSpec {
     /// checkpoint or run folder (its checkpoint `choice`).
     pub fn load(path: &Path, choice: CheckpointChoice) -> Result<Self> {
         if ctxrace_nn::policy::mlp::is_mlp_file(path) {
-            let bytes =
-                std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+            let bytes = ctxrace_nn::policy::mlp::read_mlp_file(path)
+                .with_context(|| format!("reading {}", path.display()))?;
             return Ok(EgoSpec::Mlp(path.to_path_buf(), bytes));
         }
         Ok(EgoSpec::Trained(Box::new(TrainedAgent::load(

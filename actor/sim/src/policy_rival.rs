@@ -16,7 +16,7 @@ use crate::collision::CarBox;
 use crate::lidar::{Lidar, NearbyWalls};
 use crate::vehicle::{idx, State};
 use ctxrace_config::{Context, ContextGains, RaceConfig};
-use ctxrace_nn::policy::mlp::is_mlp_file;
+use ctxrace_nn::policy::mlp::{is_mlp_file, read_mlp_file};
 use ctxrace_nn::policy::PolicyError;
 use ctxrace_nn::Policy;
 use ctxrace_run::trained::{CheckpointChoice, TrainedAgent, TrainedAgentError};
@@ -72,7 +72,7 @@ impl RivalAgent {
             source: Box::new(source),
         };
         if is_mlp_file(path) {
-            let bytes = std::fs::read(path).map_err(|source| {
+            let bytes = read_mlp_file(path).map_err(|source| {
                 failed(TrainedAgentError::Read {
                     path: path.to_path_buf(),
                     source,

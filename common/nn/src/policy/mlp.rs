@@ -13,7 +13,7 @@
 //! `ctxrace.save_mlp_policy`.
 
 use super::{PolicyError, Result, ACT_DIM};
-use crate::weights::{Weights, WeightsError};
+use crate::weights::Weights;
 use safetensors::tensor::TensorView;
 use safetensors::{Dtype, SafeTensors};
 use std::collections::HashMap;
@@ -25,6 +25,26 @@ pub const MLP_FORMAT: &str = "ctxrace-mlp-policy/1";
 /// agent's checkpoint or run folder: the one rule the ego and the rivals read paths by.
 pub fn is_mlp_file(path: &std::path::Path) -> bool {
     path.is_file() && path.extension().is_some_and(|e| e == "safetensors")
+}
+
+/// The largest MLP policy file read (256 MiB: 64M weights, far beyond a racing policy's).
+pub const MAX_MLP_FILE_BYTES: u64 = 256 << 20;
+
+/// The bytes of the MLP policy file `path`, refused above [`MAX_MLP_FILE_BYTES`] before any is
+/// read.
+pub fn read_mlp_file(path: &std::path::Path) -> std::io::Result<Vec<u8>> {
+    use std::io::Read;
+    let file = std::fs::File::open(path)?;
+    let len = file.metadata()?.len();
+    if len > MAX_MLP_FILE_BYTES {
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            format!("{len} bytes: an MLP policy file holds at most {MAX_MLP_FILE_BYTES}"),
+        ));
+    }
+    let mut bytes = Vec::with_capacity(len as usize);
+    file.take(MAX_MLP_FILE_BYTES).read_to_end(&mut bytes)?;
+    Ok(bytes)
 }
 
 /// The nonlinearity between an [`MlpPolicy`]'s layers.
@@ -97,9 +117,9 @@ pub struct MlpPolicy {
 
 /// An error naming what is wrong with an MLP policy file.
 fn bad(message: String) -> PolicyError {
-    PolicyError::Weights(WeightsError::Format(format!(
+    PolicyError::Mlp(format!(
         "{message} (an MLP policy file is {MLP_FORMAT}: see ctxrace_nn::policy::mlp)"
-    )))
+    ))
 }
 
 /// The choice metadata `key` names, from `choices`.
@@ -209,16 +229,19 @@ impl MlpPolicy {
         let activation = choice(&meta, "activation", &ACTIVATIONS)?;
         let inputs = choice(&meta, "inputs", &INPUTS)?;
         let output = choice(&meta, "output", &OUTPUTS)?;
-        let mut weights = Weights::from_safetensors(bytes)?;
+        let mut weights = Weights::from_safetensors(bytes).map_err(|e| bad(e.to_string()))?;
         let mut layers = Vec::new();
         while let Some(&[out, input]) = weights.shape(&format!("layers.{}.weight", layers.len())) {
             let i = layers.len();
+            let mut take = |name: String, shape: &[usize]| {
+                weights.take(&name, shape).map_err(|e| bad(e.to_string()))
+            };
             layers.push(Linear {
-                weight: weights.take(&format!("layers.{i}.weight"), &[out, input])?,
-                bias: weights.take(&format!("layers.{i}.bias"), &[out])?,
+                weight: take(format!("layers.{i}.weight"), &[out, input])?,
+                bias: take(format!("layers.{i}.bias"), &[out])?,
             });
         }
-        weights.finish()?;
+        weights.finish().map_err(|e| bad(e.to_string()))?;
         Self::new(layers, activation, inputs, output, obs_dim)
     }
 

@@ -38,6 +38,9 @@ pub enum PolicyError {
         /// Values the policy was built for.
         want: usize,
     },
+    /// An MLP policy file ([`mlp`]) is not one, or cannot act in this race.
+    #[error("not an MLP policy file that can act here: {0}")]
+    Mlp(String),
     /// A mask was fixed for an agent that has none (only cMask masks its context).
     #[error("only a cMask agent has a context mask to fix")]
     NoMask,
