@@ -785,9 +785,9 @@ def markdown(cset, runs, t2, t3, cells, abl_cells, mask_rows, mask_cells):
                 "groups whose every run kept the leader; paper's OT beside):", "",
                 "| rivals | algo | seeds | OT recount in | OT recount out |", "|---|---|--:|---|---|"]
         for r in recounted:
-            cells = [f"{fmt(r[k])} [{fmt(r[k + '_lo'])}, {fmt(r[k + '_hi'])}] ({fmt(r.get(p))})"
-                     for k, p in [("ot_redo_in", "paper_ot_in"), ("ot_redo_out", "paper_ot_out")]]
-            out.append(f"| {r['rivals']} | {NAMES[r['algo']]} | {r['seeds']} | " + " | ".join(cells) + " |")
+            recount = [f"{fmt(r[k])} [{fmt(r[k + '_lo'])}, {fmt(r[k + '_hi'])}] ({fmt(r.get(p))})"
+                       for k, p in [("ot_redo_in", "paper_ot_in"), ("ot_redo_out", "paper_ot_out")]]
+            out.append(f"| {r['rivals']} | {NAMES[r['algo']]} | {r['seeds']} | " + " | ".join(recount) + " |")
     out += ["", "## Table III (relative change in to out, %; paper recomputed from its Table II beside)", "",
             "| rivals | algo | seeds | ΔPG % (of seed means) | ΔPG % per seed [95% CI] | ΔA2A % | ΔA2A (per 50 laps) | paper ΔPG % | paper ΔA2A % |",
             "|---|---|--:|--:|---|--:|--:|--:|--:|"]
