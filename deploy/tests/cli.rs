@@ -351,6 +351,17 @@ fn train_refuses_a_run_it_cannot_make_before_writing_its_run_directory() {
             &["[replay] capacity = 40", "ring of 20 steps"][..],
         ),
         (
+            // rivals that are a trained agent need one, and one that can be read
+            "track = \"generated:0\"\n[race.rival]\ndriver = \"policy\"\n",
+            "1",
+            &["driver = \"policy\" needs the trained agent", "policy = \"RUN_DIR\""][..],
+        ),
+        (
+            "track = \"generated:0\"\n[race.rival]\ndriver = \"policy\"\npolicy = \"no/such/run\"\n",
+            "1",
+            &["[rival] policy = no/such/run", "neither a checkpoint"][..],
+        ),
+        (
             // rivals at three times the raceline's speed crash at the first bend on their own
             "track = \"generated:0\"\n[race.rival]\nspeed_factor = 3.0\nmax_speed = 20.0\n",
             "1",

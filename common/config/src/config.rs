@@ -104,7 +104,7 @@ pub enum RaceConfigError {
     /// `[rival] driver = "policy"` without the agent to drive.
     #[error(
         "[rival] driver = \"policy\" needs the trained agent: set [rival] policy = \"RUN_DIR\" \
-         (its best checkpoint) or a checkpoint folder"
+         (its best checkpoint), a checkpoint folder or an MLP policy file (*.safetensors)"
     )]
     PolicyMissing,
     /// `min_speed` is negative or not below `max_speed`.
