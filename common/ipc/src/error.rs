@@ -2,7 +2,6 @@
 //! Causes are chained as sources, not printed in the messages: a `{:#}` chain (the binary's)
 //! names each once.
 
-use crate::wire::{MAX_ACT, MAX_OBS};
 use iceoryx2::prelude::SemanticStringError;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -156,12 +155,16 @@ pub enum IpcError {
         actors: usize,
     },
     /// A trajectory sender of sizes the wire format does not carry.
-    #[error("obs_dim {obs_dim} must be 1 to {MAX_OBS} and act_dim {act_dim} 1 to {MAX_ACT}")]
+    #[error("obs_dim {obs_dim} must be 1 to {max_obs} and act_dim {act_dim} 1 to {max_act}")]
     StepDims {
         /// Observation size.
         obs_dim: usize,
         /// Action size.
         act_dim: usize,
+        /// The largest observation the wire format carries.
+        max_obs: usize,
+        /// The largest action the wire format carries.
+        max_act: usize,
     },
     /// A step of other sizes than its sender's.
     #[error(

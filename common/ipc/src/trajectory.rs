@@ -108,7 +108,12 @@ impl TrajectorySender {
             });
         }
         if obs_dim == 0 || obs_dim > MAX_OBS || act_dim == 0 || act_dim > MAX_ACT {
-            return Err(IpcError::StepDims { obs_dim, act_dim });
+            return Err(IpcError::StepDims {
+                obs_dim,
+                act_dim,
+                max_obs: MAX_OBS,
+                max_act: MAX_ACT,
+            });
         }
         let ready = transport.listener(Wake::ReplayReady)?;
         let service = transport.trajectory_service(actor_id as usize)?;
