@@ -100,7 +100,7 @@ impl PyRaceAgents {
         Ok(Self {
             env,
             context_range,
-            race: serde_json::to_string(&cfg).expect("a race config serialises"),
+            race: crate::race_json(&cfg)?,
             track: track.name.clone(),
             frames: record.then(Vec::new),
         })

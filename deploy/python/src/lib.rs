@@ -173,10 +173,15 @@ fn values<T, const N: usize>(
             size: N,
         });
     }
-    Ok(bytes
-        .chunks_exact(N)
-        .map(|b| from(b.try_into().expect("chunks of N bytes")))
-        .collect())
+    let (whole, _) = bytes.as_chunks::<N>();
+    Ok(whole.iter().map(|&b| from(b)).collect())
+}
+
+/// The race scenario as the package hands it to Python (JSON), or an error saying it could not
+/// be written.
+fn race_json(cfg: &RaceConfig) -> Result<String> {
+    serde_json::to_string(cfg)
+        .map_err(|e| BindError::Argument(format!("the race scenario does not serialise: {e}")))
 }
 
 /// `bytes` as native-endian `f64` values, or an error naming `what`.

@@ -61,7 +61,7 @@ impl PyPolicy {
             .unwrap_or_default();
         let mut p = Self {
             obs_dim: race.lidar.beams,
-            race: serde_json::to_string(&race).expect("a race config serialises"),
+            race: crate::race_json(&race)?,
             rows: Vec::new(),
             agent,
         };
@@ -150,10 +150,7 @@ impl PyPolicy {
             ))
             .into());
         }
-        let obs: Vec<f32> = obs
-            .chunks_exact(4)
-            .map(|b| f32::from_ne_bytes(b.try_into().expect("4 bytes")))
-            .collect();
+        let obs = crate::f32s("obs", obs)?;
         let rows = rows.unwrap_or_else(|| (0..k).collect());
         let mut seen = vec![false; rows.iter().max().map_or(0, |&m| m + 1)];
         if rows.len() != k || rows.iter().any(|&r| std::mem::replace(&mut seen[r], true)) {

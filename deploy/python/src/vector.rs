@@ -134,7 +134,7 @@ impl PyRaceVector {
         Ok(Self {
             obs: vec![0.0; num_envs * inner.obs_dim()],
             outcomes: vec![EnvOutcome::default(); num_envs],
-            race: serde_json::to_string(&cfg).expect("a race config serialises"),
+            race: crate::race_json(&cfg)?,
             track: track.name.clone(),
             frames: if record {
                 vec![Vec::new(); num_envs]
