@@ -246,6 +246,14 @@ fn _ctxrace(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("EVAL_RANGE", eval_dir::RANGE)?;
     m.add("EVAL_LAPS", eval_dir::LAPS)?;
     m.add("CONTEXT_LIMIT", ctxrace_config::context::CONTEXT_LIMIT)?;
+    // an MLP policy file's choices, named once (ctxrace_nn::policy::mlp)
+    use ctxrace_nn::policy::mlp::{ACTIVATIONS, INPUTS, OUTPUTS};
+    m.add(
+        "MLP_ACTIVATIONS",
+        ACTIVATIONS.map(|(name, _)| name).to_vec(),
+    )?;
+    m.add("MLP_INPUTS", INPUTS.map(|(name, _)| name).to_vec())?;
+    m.add("MLP_OUTPUTS", OUTPUTS.map(|(name, _)| name).to_vec())?;
     // a frame per decision of the default race: the envs' metadata before one is made
     m.add(
         "DEFAULT_RENDER_FPS",

@@ -76,17 +76,19 @@ pub enum MlpOutput {
     Tanh,
 }
 
-/// The metadata names and values of each choice, one list.
-const ACTIVATIONS: [(&str, MlpActivation); 3] = [
+/// The metadata names and values of each choice, one list: the `activation` choices.
+pub const ACTIVATIONS: [(&str, MlpActivation); 3] = [
     ("tanh", MlpActivation::Tanh),
     ("relu", MlpActivation::Relu),
     ("silu", MlpActivation::Silu),
 ];
-const INPUTS: [(&str, MlpInputs); 2] = [
+/// The `inputs` choices.
+pub const INPUTS: [(&str, MlpInputs); 2] = [
     ("scan", MlpInputs::Scan),
     ("scan+context", MlpInputs::ScanContext),
 ];
-const OUTPUTS: [(&str, MlpOutput); 2] = [("clip", MlpOutput::Clip), ("tanh", MlpOutput::Tanh)];
+/// The `output` choices.
+pub const OUTPUTS: [(&str, MlpOutput); 2] = [("clip", MlpOutput::Clip), ("tanh", MlpOutput::Tanh)];
 
 /// One layer: `y = W x + b`, `W` row-major `[out, in]`.
 #[derive(Clone, Debug, PartialEq)]

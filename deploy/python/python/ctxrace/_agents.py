@@ -54,7 +54,7 @@ class RaceParallelEnv(_ParallelEnv or object):
         agents: int = 2,
         rivals: int = 1,
         obs_mode: str = "scan",
-        context_range: float = 0.15,
+        context_range: float = _ctxrace.TRAIN_CONTEXT_RANGE,
         config: Optional[os.PathLike] = None,
         tracks_dir: Optional[os.PathLike] = None,
         render_mode: Optional[str] = None,

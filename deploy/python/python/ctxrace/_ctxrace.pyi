@@ -12,6 +12,9 @@ _Path = Union[str, PathLike]
 __version__: str
 #: Largest magnitude of a context element the simulator takes.
 CONTEXT_LIMIT: float
+MLP_ACTIVATIONS: List[str]
+MLP_INPUTS: List[str]
+MLP_OUTPUTS: List[str]
 #: Frames a second of a render at the default race's decision period.
 DEFAULT_RENDER_FPS: float
 #: The evaluation protocol's grid points per context dimension, half-width and laps per context.

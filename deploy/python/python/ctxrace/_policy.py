@@ -77,10 +77,10 @@ def load_policy(path: os.PathLike, checkpoint: str = "best") -> TrainedPolicy:
     return TrainedPolicy(_ctxrace.Policy(os.fspath(path), checkpoint))
 
 
-#: The choices of an MLP policy file's metadata (`save_mlp_policy`), as the simulator reads them.
-MLP_ACTIVATIONS = ("tanh", "relu", "silu")
-MLP_INPUTS = ("scan", "scan+context")
-MLP_OUTPUTS = ("clip", "tanh")
+#: The choices of an MLP policy file's metadata (`save_mlp_policy`), the networks' own lists.
+MLP_ACTIVATIONS = tuple(_ctxrace.MLP_ACTIVATIONS)
+MLP_INPUTS = tuple(_ctxrace.MLP_INPUTS)
+MLP_OUTPUTS = tuple(_ctxrace.MLP_OUTPUTS)
 
 
 def save_mlp_policy(
