@@ -123,6 +123,9 @@ fn an_agent_that_crashes_drops_out_and_the_race_goes_on() {
         }
     }
     assert!(crashed_at.is_some(), "the ego never reached the wall");
+    // the race's metrics are the ego's: what ended its episode, and how far it got
+    assert!(env.metrics().wall_crash && env.metrics().lap_time.is_none());
+    assert_eq!(env.metrics().ended_by(), "wall crash");
     let other = &env.cars()[1];
     assert!(
         !other.crashed && other.travelled > 30.0,

@@ -105,8 +105,21 @@ impl RaceEnv {
             o.terminated |= lapped || (timed_out && self.cfg.timeout_is_terminal);
             o.truncated = !o.terminated && timed_out;
         }
-        self.metrics.steps = self.steps;
-        self.metrics.progress = outcomes[0].info.progress.max(self.metrics.progress);
+        // the race's metrics stay the ego's (car 0's), as in a single-agent race
+        let (m, ego) = (&mut self.metrics, &outcomes[0]);
+        m.steps = self.steps;
+        m.progress = ego.info.progress.max(m.progress);
+        if !done[0] {
+            m.overtakes += ego.info.overtakes;
+            m.a2a |= ego.info.a2a;
+            m.wall_crash |= ego.info.wall_crash;
+            m.reversed |= ego.info.reversed;
+            m.episode_return += ego.reward;
+            if ego.info.lap_complete {
+                m.lap_time = Some(time);
+            }
+        }
+        m.rivals_crashed = self.cars[1..].iter().filter(|c| c.crashed).count();
         Ok(outcomes)
     }
 
