@@ -59,11 +59,11 @@ fn open_image(path: &Path) -> std::result::Result<image::DynamicImage, ImageErro
     if !file.metadata().map_err(ImageError::Io)?.is_file() {
         return Err(ImageError::NotAFile);
     }
-    let mut limits = image::Limits::default();
+    let mut limits = image::io::Limits::default();
     limits.max_image_width = Some(MAX_MAP_SIDE);
     limits.max_image_height = Some(MAX_MAP_SIDE);
     limits.max_alloc = Some(MAX_MAP_BYTES);
-    let mut reader = image::ImageReader::new(std::io::BufReader::new(file))
+    let mut reader = image::io::Reader::new(std::io::BufReader::new(file))
         .with_guessed_format()
         .map_err(ImageError::Io)?;
     reader.limits(limits);
