@@ -544,7 +544,7 @@ fn report_writes_tables_and_figures_with_best_marks() {
 }
 
 /// A tiny cMask experiment: a few gradient steps on the generated track.
-const TINY_CMASK: &str = include_str!("../../testdata/tiny-cmask.toml");
+const TINY_CMASK: &str = include_str!("../../../testdata/tiny-cmask.toml");
 
 #[test]
 fn inline_training_then_evaluation_report_and_race_with_the_policy() {
