@@ -644,12 +644,12 @@ fn arg_after(pid: u32, flag: &str) -> String {
 /// with a plausible version and its CRC-32 locked both actors onto it.)
 #[test]
 fn malformed_messages_are_rejected_by_reason_and_the_run_goes_on() {
-    use ctxrace_ipc::inject::Injector;
     use ctxrace_ipc::wire::{
         step_stride, BatchRequest, ChunkHeader, EpisodeReport, Heartbeat, ReplayStatus,
         Sealed as _, WeightsHeader, FORMAT_VERSION,
     };
     use ctxrace_ipc::{RunKey, RunTransport};
+    use ctxrace_ipc_inject::Injector;
     let dir = tempfile::tempdir().unwrap();
     // a target far beyond the test: the run must still be training while the rejections are
     // looked for (a run to a near target ended before the replay published them), so the test

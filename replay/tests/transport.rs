@@ -2,7 +2,7 @@
 
 use ctxrace_config::{Batch, BatchSpec, ReplayOptions};
 use ctxrace_ipc::{
-    cleanup, run_prefix, ReplayBeacon, ReplayClient, RunKey, RunTransport, SenderOptions,
+    cleanup, Isolated, ReplayBeacon, ReplayClient, RunKey, RunTransport, SenderOptions,
     TrajectoryReceiver, TrajectorySender, TrajectoryStep, TRAJECTORY_BUFFER,
 };
 use ctxrace_replay::{read_snapshot, run, ReplayArgs, ReplayBuffer, ReplayControl, SnapshotShape};
@@ -10,21 +10,6 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::thread;
 use std::time::{Duration, Instant};
-
-/// Removes the test's prefix even when the test panics (best effort: nodes still alive keep it).
-struct Isolated(String);
-
-impl Isolated {
-    fn new(name: &str) -> Self {
-        Self(run_prefix(&format!("test-{name}-{}", std::process::id())))
-    }
-}
-
-impl Drop for Isolated {
-    fn drop(&mut self) {
-        let _ = cleanup(&self.0);
-    }
-}
 
 /// The key of the tests' runs.
 fn key() -> RunKey {
@@ -422,9 +407,9 @@ fn the_replay_stores_the_budget_counts_the_surplus_and_lets_the_learner_finish()
 
 #[test]
 fn a_chunk_rewritten_after_validation_cannot_panic_the_replay_buffer() {
-    use ctxrace_ipc::inject::Injector;
     use ctxrace_ipc::wire::{step_stride, ChunkHeader};
     use ctxrace_ipc::ReadStage;
+    use ctxrace_ipc_inject::Injector;
     use ctxrace_replay::ReplayBuffer;
     use rand::SeedableRng;
     let isolated = Isolated::new("rewritten");

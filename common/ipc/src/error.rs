@@ -200,30 +200,9 @@ pub enum IpcError {
     /// A batch size does not fit the wire format's 32-bit fields.
     #[error("a batch size does not fit the wire format's 32-bit fields")]
     WireSize(#[from] std::num::TryFromIntError),
-    /// An injector was asked for a stream the run does not have.
-    #[error("no trajectory service {0}")]
-    NoStream(usize),
-    /// A message larger than an injector sends.
-    #[error("injected {what} are at most {max} {unit}")]
-    InjectedTooLarge {
-        /// What (`"batches"`, `"weights"`).
-        what: &'static str,
-        /// The most it sends.
-        max: usize,
-        /// The unit (`"floats"`, `"bytes"`).
-        unit: &'static str,
-    },
     /// The run's key could not be drawn, handed to a child or read from the launcher.
     #[error("{0}")]
     Key(String),
-    /// An injected message's element outside its payload.
-    #[error("element {index} of a payload of {len} elements")]
-    Element {
-        /// The element asked for.
-        index: usize,
-        /// Elements in the payload.
-        len: usize,
-    },
 }
 
 impl IpcError {

@@ -58,7 +58,6 @@
 mod batches;
 pub mod bounds;
 mod error;
-pub mod inject;
 mod key;
 mod shared;
 mod telemetry;
@@ -88,7 +87,8 @@ pub use weights::{WeightsPublisher, WeightsReceiver, DEFAULT_MAX_WEIGHTS_BYTES};
 /// Where a reader of shared memory stands with one message. Readers copy a message out of
 /// shared memory, validate the copy and use only the copy; their `*_observed` variants call a
 /// hook at each stage, so that a fault-injection test can rewrite the message in shared memory
-/// (see [`inject::Held`]) at exactly that point and show that it makes no difference.
+/// (the `ctxrace-ipc-inject` crate's `Held`) at exactly that point and show that it makes no
+/// difference.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ReadStage {
     /// The message was copied out of shared memory; the copy is not validated yet.
@@ -146,19 +146,17 @@ pub(crate) fn test_key() -> RunKey {
     RunKey::from_bytes([9; KEY_LEN])
 }
 
-/// A test's own run prefix, removed even when the test panics.
-#[cfg(test)]
-pub(crate) struct Isolated(pub(crate) String);
+/// A test's (or a probe's) own run prefix, its shared memory removed when dropped, even when
+/// the test panics (best effort: nodes still alive keep it).
+pub struct Isolated(pub String);
 
-#[cfg(test)]
 impl Isolated {
     /// The prefix `test-<name>-<pid>`.
-    pub(crate) fn new(name: &str) -> Self {
+    pub fn new(name: &str) -> Self {
         Self(run_prefix(&format!("test-{name}-{}", std::process::id())))
     }
 }
 
-#[cfg(test)]
 impl Drop for Isolated {
     fn drop(&mut self) {
         let _ = cleanup(&self.0);

@@ -157,7 +157,9 @@ pub fn iceoryx_config(prefix: &str, actors: usize) -> Result<Config> {
 
 /// A process's handle on a run's transport: the configuration, one iceoryx2 node and the run's
 /// key. Every endpoint of [`super`] is created from it, and seals what it sends and checks what
-/// it receives with the key.
+/// it receives with the key. Its services (`*_service`) are public so that a probe of a run (the
+/// tests' `ctxrace-ipc-inject`) can open raw ports on them, as any process of the user can by
+/// their names; the run's processes only ever use the endpoints.
 pub struct RunTransport {
     node: Node<ipc::Service>,
     prefix: String,
@@ -222,7 +224,7 @@ impl RunTransport {
     /// Actor `actor_id` -> replay: `[f32]` chunks; no overflow, so a full replay pushes back on
     /// the actor. One service per actor, so that the replay can take from each in turn (a
     /// subscriber scans its publishers from the first, which would favour one actor).
-    pub(crate) fn trajectory_service(
+    pub fn trajectory_service(
         &self,
         actor_id: usize,
     ) -> Result<PubSubFactory<ipc::Service, [f32], ChunkHeader>> {
@@ -242,9 +244,7 @@ impl RunTransport {
     }
 
     /// Learner -> actors: weights bytes, history 1 so late subscribers get the newest.
-    pub(crate) fn weights_service(
-        &self,
-    ) -> Result<PubSubFactory<ipc::Service, [u8], WeightsHeader>> {
+    pub fn weights_service(&self) -> Result<PubSubFactory<ipc::Service, [u8], WeightsHeader>> {
         self.node
             .service_builder(&service_name("weights")?)
             .publish_subscribe::<[u8]>()
@@ -264,12 +264,12 @@ impl RunTransport {
     }
 
     /// Learner -> replay: batch requests.
-    pub(crate) fn request_service(&self) -> Result<PubSubFactory<ipc::Service, BatchRequest, ()>> {
+    pub fn request_service(&self) -> Result<PubSubFactory<ipc::Service, BatchRequest, ()>> {
         self.small_service("batch_request", 16, 0)
     }
 
     /// Replay -> learner: batches.
-    pub(crate) fn batch_service(&self) -> Result<PubSubFactory<ipc::Service, [f32], BatchHeader>> {
+    pub fn batch_service(&self) -> Result<PubSubFactory<ipc::Service, [f32], BatchHeader>> {
         self.node
             .service_builder(&service_name("batch")?)
             .publish_subscribe::<[f32]>()
@@ -286,17 +286,17 @@ impl RunTransport {
     }
 
     /// Actors -> launcher: episode metrics.
-    pub(crate) fn metrics_service(&self) -> Result<PubSubFactory<ipc::Service, EpisodeReport, ()>> {
+    pub fn metrics_service(&self) -> Result<PubSubFactory<ipc::Service, EpisodeReport, ()>> {
         self.small_service("metrics", 1024, 0)
     }
 
     /// Actors -> launcher: heartbeats.
-    pub(crate) fn heartbeat_service(&self) -> Result<PubSubFactory<ipc::Service, Heartbeat, ()>> {
+    pub fn heartbeat_service(&self) -> Result<PubSubFactory<ipc::Service, Heartbeat, ()>> {
         self.small_service("heartbeat", 256, 0)
     }
 
     /// Replay -> launcher: counters, history 1.
-    pub(crate) fn status_service(&self) -> Result<PubSubFactory<ipc::Service, ReplayStatus, ()>> {
+    pub fn status_service(&self) -> Result<PubSubFactory<ipc::Service, ReplayStatus, ()>> {
         self.small_service("replay_status", 1, 1)
     }
 
