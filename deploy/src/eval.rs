@@ -50,10 +50,10 @@ pub struct EvalArgs {
     /// Which checkpoint of a run directory: `best` (the peak of the smoothed training return,
     /// the paper's), `latest`, `step-N` or `best-at-N` (the best policy after N env steps, kept
     /// by `[train] keep_best_at`).
-    #[arg(long, default_value = "best")]
+    #[arg(long, default_value_t = CheckpointChoice::default())]
     checkpoint: CheckpointChoice,
     /// How a trained agent acts: `sample` its distributions (the paper's) or take their `mode`.
-    #[arg(long, value_enum, default_value_t = ActMode::Sample)]
+    #[arg(long, value_enum, default_value_t = ActMode::default())]
     act: ActMode,
     /// Race scenario TOML (e.g. configs/scenarios/paper-code.toml) in place of a trained
     /// agent's run's race (its rivals stay, unless --rivals) or, for a reference policy, of the

@@ -37,10 +37,10 @@ pub struct RaceArgs {
     #[arg(long)]
     policy: Option<PathBuf>,
     /// Which checkpoint of a run directory: best, latest or step-N.
-    #[arg(long, default_value = "best")]
+    #[arg(long, default_value_t = CheckpointChoice::default())]
     checkpoint: CheckpointChoice,
     /// How a trained agent acts: sample (seeded by --seed) or mode.
-    #[arg(long, value_enum, default_value_t = ActMode::Sample)]
+    #[arg(long, value_enum, default_value_t = ActMode::default())]
     act: ActMode,
     /// Episode seed (LiDAR noise, random policy).
     #[arg(long, default_value_t = 0)]

@@ -185,12 +185,13 @@ pub struct SweepEval {
 
 impl Default for SweepEval {
     fn default() -> Self {
+        use ctxrace_sim::eval_dir::{GRID, LAPS, RANGE};
         Self {
-            grid: 7,
-            range: 0.3,
-            laps: 50,
-            checkpoint: "best".into(),
-            act: ActMode::Sample,
+            grid: GRID,
+            range: RANGE,
+            laps: LAPS,
+            checkpoint: ctxrace_run::trained::CheckpointChoice::default().to_string(),
+            act: ActMode::default(),
             seed: 0,
             contexts: None,
         }

@@ -9,12 +9,13 @@ use ctxrace_config::Context;
 use serde::{Deserialize, Serialize};
 
 /// How a trained agent picks its actions.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum ActMode {
     /// Samples its action (and cMask its mask) distribution, seeded per episode: the paper's
-    /// evaluation.
+    /// evaluation, and the default.
+    #[default]
     Sample,
     /// Takes the mode of each distribution.
     Mode,

@@ -93,10 +93,11 @@ fn missing_message(
 /// The outcome of reading a trained agent.
 type Result<T> = std::result::Result<T, TrainedAgentError>;
 
-/// Which checkpoint of a run directory to load.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// Which checkpoint of a run directory to load; the evaluation protocol's by default.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum CheckpointChoice {
     /// The policy at the peak of the smoothed training return (the paper's `best_`).
+    #[default]
     Best,
     /// The newest checkpoint.
     Latest,

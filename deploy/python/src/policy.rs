@@ -4,7 +4,8 @@
 //! GIL released.
 
 use crate::{bytes_of, pairs, BindError, Result};
-use ctxrace_nn::policy::mlp::{Linear, MlpPolicy};
+use ctxrace_config::LidarConfig;
+use ctxrace_nn::policy::mlp::{Linear, MlpPolicy, ACTIVATIONS, INPUTS, OUTPUTS};
 use ctxrace_nn::policy::PolicyError;
 use ctxrace_nn::Policy;
 use ctxrace_run::trained::{CheckpointChoice, TrainedAgent, UnknownCheckpointChoice};
@@ -45,13 +46,15 @@ impl PyPolicy {
 #[pymethods]
 impl PyPolicy {
     /// The policy of the checkpoint `path`, or of the checkpoint `checkpoint` (`best`,
-    /// `latest`, `step-N`) of the run folder `path`.
+    /// `latest`, `step-N`; none: [`CheckpointChoice::default`]) of the run folder `path`.
     #[new]
-    #[pyo3(signature = (path, checkpoint="best"))]
-    fn new(path: PathBuf, checkpoint: &str) -> PyResult<Self> {
+    #[pyo3(signature = (path, checkpoint=None))]
+    fn new(path: PathBuf, checkpoint: Option<&str>) -> PyResult<Self> {
         let choice: CheckpointChoice = checkpoint
-            .parse()
-            .map_err(|e: UnknownCheckpointChoice| BindError::Argument(e.to_string()))?;
+            .map(str::parse)
+            .transpose()
+            .map_err(|e: UnknownCheckpointChoice| BindError::Argument(e.to_string()))?
+            .unwrap_or_default();
         let agent =
             TrainedAgent::load(&path, choice).map_err(|e| BindError::Trained(Box::new(e)))?;
         let race = agent
@@ -188,17 +191,23 @@ impl PyPolicy {
 
 /// Writes an MLP policy file (`ctxrace_nn::policy::mlp`'s format) to `path`: `layers` as
 /// `(weight bytes, out, in, bias bytes)` of native-endian `f32`, `activation`, `inputs` and
-/// `output` named as the file's metadata names them, for observations of `obs_dim` beams; the
+/// `output` named as the file's metadata names them (none: the first of each list, the
+/// format's default), for observations of `obs_dim` beams (none: the race's default LiDAR); the
 /// policy is checked (shapes chained, 2 actions) before anything is written.
 #[pyfunction]
+#[pyo3(signature = (path, layers, activation=None, inputs=None, output=None, obs_dim=None))]
 pub fn save_mlp_policy(
     path: PathBuf,
     layers: Vec<(Vec<u8>, usize, usize, Vec<u8>)>,
-    activation: &str,
-    inputs: &str,
-    output: &str,
-    obs_dim: usize,
+    activation: Option<&str>,
+    inputs: Option<&str>,
+    output: Option<&str>,
+    obs_dim: Option<usize>,
 ) -> PyResult<()> {
+    let activation = activation.unwrap_or(ACTIVATIONS[0].0);
+    let inputs = inputs.unwrap_or(INPUTS[0].0);
+    let output = output.unwrap_or(OUTPUTS[0].0);
+    let obs_dim = obs_dim.unwrap_or_else(|| LidarConfig::default().beams);
     let layers = layers
         .into_iter()
         .map(|(weight, out, input, bias)| {

@@ -76,7 +76,8 @@ pub enum MlpOutput {
     Tanh,
 }
 
-/// The metadata names and values of each choice, one list: the `activation` choices.
+/// The metadata names and values of each choice, one list, its first the default: the
+/// `activation` choices.
 pub const ACTIVATIONS: [(&str, MlpActivation); 3] = [
     ("tanh", MlpActivation::Tanh),
     ("relu", MlpActivation::Relu),

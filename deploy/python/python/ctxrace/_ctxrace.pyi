@@ -138,7 +138,7 @@ class Evaluation:
 class Policy:
     """A trained agent's acting policy over a batch of episodes."""
 
-    def __init__(self, path: _Path, checkpoint: str = "best") -> None: ...
+    def __init__(self, path: _Path, checkpoint: Optional[str] = None) -> None: ...
     @property
     def algo(self) -> str: ...
     @property
@@ -179,10 +179,10 @@ def evaluate_reference(
 def save_mlp_policy(
     path: str,
     layers: List[Tuple[bytes, int, int, bytes]],
-    activation: str,
-    inputs: str,
-    output: str,
-    obs_dim: int,
+    activation: Optional[str] = None,
+    inputs: Optional[str] = None,
+    output: Optional[str] = None,
+    obs_dim: Optional[int] = None,
 ) -> None: ...
 def list_tracks(tracks_dir: Optional[_Path] = None) -> List[Tuple[str, Path]]: ...
 def download_track(

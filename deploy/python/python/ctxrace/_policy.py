@@ -71,9 +71,10 @@ class TrainedPolicy:
         return self.act(obs, context)
 
 
-def load_policy(path: os.PathLike, checkpoint: str = "best") -> TrainedPolicy:
+def load_policy(path: os.PathLike, checkpoint: Optional[str] = None) -> TrainedPolicy:
     """The acting policy of a checkpoint folder, or of a run folder's checkpoint `checkpoint`
-    (``best``, ``latest``, ``step-N``), read and verified as ``ctxrace eval`` reads it."""
+    (``best``, ``latest``, ``step-N``; default: ``ctxrace eval``'s, ``best``), read and
+    verified as ``ctxrace eval`` reads it."""
     return TrainedPolicy(_ctxrace.Policy(os.fspath(path), checkpoint))
 
 
@@ -86,16 +87,16 @@ MLP_OUTPUTS = tuple(_ctxrace.MLP_OUTPUTS)
 def save_mlp_policy(
     path: os.PathLike,
     layers: Sequence[Tuple[Any, Any]],
-    activation: str = "tanh",
-    inputs: str = "scan",
-    output: str = "clip",
-    obs_dim: int = 108,
+    activation: Optional[str] = None,
+    inputs: Optional[str] = None,
+    output: Optional[str] = None,
+    obs_dim: Optional[int] = None,
 ) -> None:
     """Writes a policy trained in Python as an MLP file that the command line races, draws and
     evaluates (``ctxrace race f1_esp --policy policy.safetensors``, ``ctxrace eval
     policy.safetensors``). `layers` are ``(weight (out, in), bias (out,))`` pairs, first to
     last (a torch ``nn.Linear`` gives ``(l.weight.detach().numpy(), l.bias.detach().numpy())``);
-    `activation` (`MLP_ACTIVATIONS`) sits between layers; `inputs` is ``"scan"`` or
+    `activation` (`MLP_ACTIVATIONS`, default the first) sits between layers; `inputs` is ``"scan"`` or
     ``"scan+context"`` (the scan then ``(c_v, c_θ)``, as ``obs_mode="scan+context"``); `output`
     ``"clip"`` clips the last layer's two values to ``[-1, 1]``, ``"tanh"`` squashes them. The
     action is ``(steering, speed)`` in ``[-1, 1]``; the file's format is documented in
@@ -112,6 +113,9 @@ def save_mlp_policy(
             raise ValueError(f"layer {i} holds values that are not finite")
         arrays.append((w.tobytes(), w.shape[0], w.shape[1], b.tobytes()))
     _ctxrace.save_mlp_policy(
-        os.fspath(path), arrays, str(activation), str(inputs), str(output),
-        count("obs_dim", obs_dim, 1),
+        os.fspath(path), arrays,
+        None if activation is None else str(activation),
+        None if inputs is None else str(inputs),
+        None if output is None else str(output),
+        None if obs_dim is None else count("obs_dim", obs_dim, 1),
     )
