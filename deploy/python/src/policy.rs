@@ -54,14 +54,9 @@ impl PyPolicy {
             .map_err(|e: UnknownCheckpointChoice| BindError::Argument(e.to_string()))?;
         let agent =
             TrainedAgent::load(&path, choice).map_err(|e| BindError::Trained(Box::new(e)))?;
-        let race = agent
-            .experiment
-            .as_ref()
-            .map(|e| e.race.clone())
-            .unwrap_or_default();
         let mut p = Self {
-            obs_dim: race.lidar.beams,
-            race: crate::race_json(&race)?,
+            obs_dim: agent.obs_dim(),
+            race: crate::race_json(&agent.race())?,
             rows: Vec::new(),
             agent,
         };
