@@ -20,10 +20,6 @@ pub enum Attr {
     Int(&'static str, i64),
     /// A float.
     Float(&'static str, f32),
-    /// Integers.
-    Ints(&'static str, Vec<i64>),
-    /// A tensor.
-    Tensor(&'static str, TensorProto),
 }
 
 impl Attr {
@@ -43,20 +39,12 @@ impl Attr {
                 f: Some(f),
                 ..base(name, AttributeType::Float)
             },
-            Attr::Ints(name, ints) => AttributeProto {
-                ints,
-                ..base(name, AttributeType::Ints)
-            },
-            Attr::Tensor(name, t) => AttributeProto {
-                t: Some(t),
-                ..base(name, AttributeType::Tensor)
-            },
         }
     }
 }
 
 /// A `float` tensor `name` of shape `dims` holding `values` (row-major).
-pub fn f32_tensor(name: &str, dims: &[usize], values: &[f32]) -> TensorProto {
+fn f32_tensor(name: &str, dims: &[usize], values: &[f32]) -> TensorProto {
     TensorProto {
         dims: dims.iter().map(|&d| d as i64).collect(),
         data_type: DataType::Float as i32,
@@ -67,7 +55,7 @@ pub fn f32_tensor(name: &str, dims: &[usize], values: &[f32]) -> TensorProto {
 }
 
 /// An `int64` tensor `name` of shape `dims` holding `values`.
-pub fn i64_tensor(name: &str, dims: &[usize], values: &[i64]) -> TensorProto {
+fn i64_tensor(name: &str, dims: &[usize], values: &[i64]) -> TensorProto {
     TensorProto {
         dims: dims.iter().map(|&d| d as i64).collect(),
         data_type: DataType::Int64 as i32,

@@ -18,10 +18,6 @@ pub enum AttributeType {
     Float = 1,
     /// `i`.
     Int = 2,
-    /// `t`.
-    Tensor = 4,
-    /// `ints`.
-    Ints = 7,
 }
 
 /// `TensorProto.DataType`: a tensor's element type.
@@ -144,12 +140,6 @@ pub struct AttributeProto {
     /// An integer value.
     #[prost(int64, optional, tag = "3")]
     pub i: Option<i64>,
-    /// A tensor value.
-    #[prost(message, optional, tag = "5")]
-    pub t: Option<TensorProto>,
-    /// Integer values.
-    #[prost(int64, repeated, tag = "8")]
-    pub ints: Vec<i64>,
 }
 
 /// `TensorProto`: a constant tensor, row-major.
