@@ -160,7 +160,7 @@ class Policy:
         contexts: bytes,
         deterministic: bool = False,
         rows: Optional[List[int]] = None,
-    ) -> bytes: ...
+    ) -> Tuple[bytes, Optional[bytes]]: ...
 
 def evaluate_reference(
     policy: str,

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import os
-from typing import Any, Optional, Sequence, Tuple
+from typing import Any, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -41,10 +41,13 @@ class TrainedPolicy:
         )
 
     def act(self, obs: Any, context: Any, deterministic: bool = False,
-            rows: Optional[Sequence[int]] = None) -> np.ndarray:
+            rows: Optional[Sequence[int]] = None, return_mask: bool = False
+            ) -> Union[np.ndarray, Tuple[np.ndarray, Optional[np.ndarray]]]:
         """Actions for observations ``(k, obs_dim)`` (or one ``(obs_dim,)``) under the episodes'
         contexts ``(k, 2)`` (or one pair): sampled, or the mode if `deterministic`; `rows` names
-        the batch rows acting (``0..k`` when None). Returns ``(k, 2)`` (or ``(2,)``) float64."""
+        the batch rows acting (``0..k`` when None). Returns ``(k, 2)`` (or ``(2,)``) float64;
+        with `return_mask`, ``(actions, masks)`` where ``masks`` are cMask's context masks in
+        the same shape (None for the other agents)."""
         o = np.asarray(obs)
         if o.dtype.kind != "f":
             raise TypeError(f"obs must be floating-point, not dtype {o.dtype}")
@@ -57,14 +60,20 @@ class TrainedPolicy:
         k = len(o)
         c = np.asarray(context)
         c = c.reshape(1, -1) if single else c
-        actions = self._inner.act(
+        actions, masks = self._inner.act(
             np.ascontiguousarray(o, dtype=np.float32).tobytes(),
             pairs_bytes("context", c, k),
             bool(deterministic),
             None if rows is None else [int(r) for r in rows],
         )
-        a = np.frombuffer(actions, dtype=np.float64).reshape(k, 2).copy()
-        return a[0] if single else a
+
+        def pairs(b):
+            p = np.frombuffer(b, dtype=np.float64).reshape(k, 2).copy()
+            return p[0] if single else p
+
+        if not return_mask:
+            return pairs(actions)
+        return pairs(actions), None if masks is None else pairs(masks)
 
     def __call__(self, obs: Any, context: Any) -> np.ndarray:
         """Sampled actions for a batch (`act`)."""
