@@ -1,12 +1,14 @@
 //! The extension module `ctxrace._ctxrace` of the `ctxrace` Python package: races stepped in
 //! Rust for the package's Gymnasium envs ([`vector::PyRaceVector`]) and the paper's evaluation
-//! protocol ([`evaluate`]), and trained agents' acting policies ([`policy`]). It links the
+//! protocol ([`evaluate`]), trained agents' acting policies ([`policy`]) and their ONNX models
+//! ([`export`]). It links the
 //! simulator library (`ctxrace-sim`, its tracks and configuration), the run's files
 //! (`ctxrace-run`) and the networks (`ctxrace-nn`), never the transport. Arrays cross as native-endian bytes that
 //! the Python side views with numpy; errors become Python exceptions naming what to fix.
 
 mod agents;
 mod evaluate;
+mod export;
 mod policy;
 mod tracks;
 mod vector;
@@ -70,6 +72,9 @@ pub enum BindError {
     /// A trained agent could not be read back.
     #[error(transparent)]
     Trained(Box<TrainedAgentError>),
+    /// A trained agent could not be exported, or its model not written.
+    #[error(transparent)]
+    Export(#[from] ctxrace_onnx::ExportError),
     /// A trained agent's policy refused its weights or an observation.
     #[error(transparent)]
     Policy(#[from] PolicyError),
@@ -234,6 +239,7 @@ fn _ctxrace(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(evaluate::evaluate_reference, m)?)?;
     m.add_function(wrap_pyfunction!(tracks::list_tracks, m)?)?;
     m.add_function(wrap_pyfunction!(policy::save_mlp_policy, m)?)?;
+    m.add_function(wrap_pyfunction!(export::export_onnx, m)?)?;
     m.add_function(wrap_pyfunction!(tracks::download_track, m)?)?;
     m.add("OUTCOME_COLUMNS", vector::OUTCOME_COLUMNS.to_vec())?;
     let references = ctxrace_sim::baseline::BaselineKind::ALL.map(|k| k.name());

@@ -1,11 +1,12 @@
 """Type stubs of the extension module `ctxrace._ctxrace` (Rust, deploy/python/src): races
-stepped in Rust, the evaluation protocol, trained agents' policies and tracks. Arrays cross as
-native-endian bytes (`f32` observations and states, `f64` pairs for actions and contexts) that
-the package views with numpy; `tests/test_stubs.py` holds this file to the module."""
+stepped in Rust, the evaluation protocol, trained agents' policies and their ONNX models, and
+tracks. Arrays cross as native-endian bytes (`f32` observations and states, `f64` pairs for
+actions and contexts) that the package views with numpy; `tests/test_stubs.py` holds this file
+to the module."""
 
 from os import PathLike
 from pathlib import Path
-from typing import List, Optional, Tuple, Union
+from typing import Any, Dict, List, Optional, Tuple, Union
 
 _Path = Union[str, PathLike]
 
@@ -184,6 +185,7 @@ def save_mlp_policy(
     output: str,
     obs_dim: int,
 ) -> None: ...
+def export_onnx(path: _Path, out: _Path, checkpoint: str = "best") -> Dict[str, Any]: ...
 def list_tracks(tracks_dir: Optional[_Path] = None) -> List[Tuple[str, Path]]: ...
 def download_track(
     name: str, source: Optional[str] = None, into: Optional[_Path] = None

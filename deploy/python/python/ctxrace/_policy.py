@@ -1,11 +1,11 @@
-"""Trained agents from Python (`load_policy`), and policies trained in Python written for the
-command line (`save_mlp_policy`)."""
+"""Trained agents from Python (`load_policy`) and for use outside ctxrace (`export_onnx`), and
+policies trained in Python written for the command line (`save_mlp_policy`)."""
 
 from __future__ import annotations
 
 import json
 import os
-from typing import Any, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -84,6 +84,25 @@ def load_policy(path: os.PathLike, checkpoint: str = "best") -> TrainedPolicy:
     """The acting policy of a checkpoint folder, or of a run folder's checkpoint `checkpoint`
     (``best``, ``latest``, ``step-N``), read and verified as ``ctxrace eval`` reads it."""
     return TrainedPolicy(_ctxrace.Policy(os.fspath(path), checkpoint))
+
+
+def export_onnx(run_or_checkpoint: os.PathLike, path: os.PathLike,
+                checkpoint: str = "best") -> Dict[str, Any]:
+    """Writes the ONNX model of a trained agent (a checkpoint folder, or a run folder's
+    checkpoint `checkpoint`, as `load_policy` reads it) to `path`, as ``ctxrace export onnx``
+    does: one deterministic decision a call, for onnxruntime (e.g. on a car's computer).
+
+    Inputs ``obs`` ``(B, obs_dim)``, ``context`` ``(B, 2)`` (the raw context), ``is_first``
+    ``(B,)`` (1 starts an episode as `TrainedPolicy.reset` does; ``state`` is then ignored)
+    and ``state`` ``(B, S)``, all float32; outputs ``action`` ``(B, 2)``, ``state_out``
+    ``(B, S)`` (pass it as the next call's ``state``) and, for cMask, its context ``mask``
+    ``(B, 2)``. Stepped so, its actions are ``load_policy(...).act(obs, context,
+    deterministic=True)``'s. The state is DreamerV3's ``[h, z, previous action]`` or SAC's
+    previous scans. Returns what was written: ``algo``, ``obs_dim``, ``state_dim``, ``state``
+    (its parts as ``(name, start, stop)``), ``outputs``, ``opset`` and ``bytes``. A SAC agent
+    whose deterministic action is random (``explore_noise > 0``) or whose frame stack outlives
+    an episode (``reset_frame_stack = false``) is refused, as is an MLP policy file."""
+    return _ctxrace.export_onnx(os.fspath(run_or_checkpoint), os.fspath(path), str(checkpoint))
 
 
 #: The choices of an MLP policy file's metadata (`save_mlp_policy`), the networks' own lists.
