@@ -7,6 +7,7 @@ mod bench_learner;
 mod download;
 mod ego;
 mod eval;
+mod export_cmd;
 mod figures;
 mod first_look;
 mod groups;
@@ -58,6 +59,9 @@ enum Command {
     Train(train::TrainArgs),
     /// Run the paper's evaluation protocol on a checkpoint or a reference policy.
     Eval(eval::EvalArgs),
+    /// Export a trained agent for use outside ctxrace (ONNX).
+    #[command(subcommand)]
+    Export(export_cmd::ExportCommand),
     /// Train and evaluate every run of an experiment matrix (the paper's 16 settings x 5 seeds),
     /// then report; or emit the commands for a cluster.
     Sweep(sweep::SweepArgs),
@@ -166,6 +170,7 @@ fn main() {
         Command::Report(a) => report::run(a),
         Command::Train(a) => train::run(a),
         Command::Eval(a) => eval::run(a),
+        Command::Export(c) => export_cmd::run(c),
         Command::Sweep(a) => sweep::run(a),
         Command::EvalWorker(a) => eval::run_worker(a),
         Command::Replay(a) => roles::replay(a),

@@ -84,11 +84,7 @@ pub fn run(args: RaceArgs) -> Result<()> {
         None => EgoSpec::Baseline(args.ego),
     };
     let mut cfg = match (&spec, &args.config) {
-        (EgoSpec::Trained(t), None) => t
-            .experiment
-            .as_ref()
-            .map(|e| e.race.clone())
-            .unwrap_or_default(),
+        (EgoSpec::Trained(t), None) => t.race(),
         (_, config) => crate::load_race_config(config.as_ref())?,
     };
     if let Some(n) = args.rivals {

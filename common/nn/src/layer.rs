@@ -300,6 +300,21 @@ impl Layer {
         self.outputs
     }
 
+    /// `W` `[outputs, inputs]`, row-major.
+    pub fn weight(&self) -> &[f32] {
+        &self.w
+    }
+
+    /// `b` `[outputs]`, if the layer has one.
+    pub fn bias(&self) -> Option<&[f32]> {
+        self.bias.as_deref()
+    }
+
+    /// What follows the product `p = x Wᵀ (+ b)`.
+    pub fn after(&self) -> &After {
+        &self.after
+    }
+
     /// Whether the output is a separate buffer from the product (a normalisation or a ReLU
     /// follows it).
     fn has_output(&self) -> bool {
@@ -644,6 +659,11 @@ impl Mlp {
     /// Output width.
     pub fn outputs(&self) -> usize {
         self.layers.last().map_or(0, |l| l.outputs)
+    }
+
+    /// Its layers, first to last (the output layer last, if it has one).
+    pub fn layers(&self) -> &[Layer] {
+        &self.layers
     }
 
     /// Buffers for the forward and backward passes over `rows` rows.

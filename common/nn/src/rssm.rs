@@ -310,8 +310,11 @@ impl Rssm {
         })
     }
 
-    /// Its layers in the order of [`Parameters::tensors`].
-    fn layers(&self) -> [&Layer; 6] {
+    /// Its layers in the order of [`Parameters::tensors`]: `[img_in, gates, prior, prior_out,
+    /// post, post_out]` (the sequence model's input and GRU gates, the prior's and the
+    /// posterior's hidden and output layers; the module doc's `W_in`, `W_g`, `W_p`, `W_o`,
+    /// `W_q`, `W_r`).
+    pub fn layers(&self) -> [&Layer; 6] {
         let [prior, prior_out] = [&self.prior.layers[0], &self.prior.layers[1]];
         let (img_in, gates, post, post_out) =
             (&self.img_in, &self.gates, &self.post, &self.post_out);

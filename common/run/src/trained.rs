@@ -8,7 +8,7 @@ use crate::checkpoint::{
 };
 use crate::run_dir::{AGENT_FILE, CONFIG_FILE, POLICY_FILE};
 use ctxrace_config::agents::AgentConfigError;
-use ctxrace_config::{AgentConfig, ExperimentConfig, ExperimentError};
+use ctxrace_config::{AgentConfig, ExperimentConfig, ExperimentError, RaceConfig};
 use std::path::{Path, PathBuf};
 
 /// Why a trained agent could not be read back; each names the folder or file and, where there
@@ -194,6 +194,20 @@ impl TrainedAgent {
             weights,
             experiment,
         })
+    }
+
+    /// The race scenario it was trained in: its run's, else (a checkpoint outside a run) the
+    /// default scenario.
+    pub fn race(&self) -> RaceConfig {
+        self.experiment
+            .as_ref()
+            .map(|e| e.race.clone())
+            .unwrap_or_default()
+    }
+
+    /// Values in one of its observations: the LiDAR beams of [`TrainedAgent::race`].
+    pub fn obs_dim(&self) -> usize {
+        self.race().lidar.beams
     }
 }
 

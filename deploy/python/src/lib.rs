@@ -1,12 +1,14 @@
 //! The extension module `ctxrace._ctxrace` of the `ctxrace` Python package: races stepped in
 //! Rust for the package's Gymnasium envs ([`vector::PyRaceVector`]) and the paper's evaluation
-//! protocol ([`evaluate`]), and trained agents' acting policies ([`policy`]). It links the
+//! protocol ([`evaluate`]), trained agents' acting policies ([`policy`]) and their ONNX models
+//! ([`export`]). It links the
 //! simulator library (`ctxrace-sim`, its tracks and configuration), the run's files
 //! (`ctxrace-run`) and the networks (`ctxrace-nn`), never the transport. Arrays cross as native-endian bytes that
 //! the Python side views with numpy; errors become Python exceptions naming what to fix.
 
 mod agents;
 mod evaluate;
+mod export;
 mod policy;
 mod tracks;
 mod vector;
@@ -16,7 +18,7 @@ use ctxrace_config::preset::merge_tables;
 use ctxrace_config::validate::Causes;
 use ctxrace_config::{ContextError, RaceConfig, RaceConfigError};
 use ctxrace_nn::policy::PolicyError;
-use ctxrace_run::trained::TrainedAgentError;
+use ctxrace_run::trained::{CheckpointChoice, TrainedAgentError, UnknownCheckpointChoice};
 use ctxrace_sim::vector::VectorError;
 use ctxrace_tracks::{Track, TrackError, TrackOptions};
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
@@ -70,6 +72,9 @@ pub enum BindError {
     /// A trained agent could not be read back.
     #[error(transparent)]
     Trained(Box<TrainedAgentError>),
+    /// A trained agent could not be exported, or its model not written.
+    #[error(transparent)]
+    Export(#[from] ctxrace_onnx::ExportError),
     /// A trained agent's policy refused its weights or an observation.
     #[error(transparent)]
     Policy(#[from] PolicyError),
@@ -179,6 +184,16 @@ fn values<T, const N: usize>(
 
 /// The race scenario as the package hands it to Python (JSON), or an error saying it could not
 /// be written.
+/// The checkpoint `name` names (`best`, `latest`, `step-N`, `best-at-N`; none: the
+/// evaluation's, [`CheckpointChoice::default`]).
+fn checkpoint_choice(name: Option<&str>) -> Result<CheckpointChoice> {
+    Ok(name
+        .map(str::parse)
+        .transpose()
+        .map_err(|e: UnknownCheckpointChoice| BindError::Argument(e.to_string()))?
+        .unwrap_or_default())
+}
+
 fn race_json(cfg: &RaceConfig) -> Result<String> {
     serde_json::to_string(cfg)
         .map_err(|e| BindError::Argument(format!("the race scenario does not serialise: {e}")))
@@ -234,6 +249,7 @@ fn _ctxrace(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(evaluate::evaluate_reference, m)?)?;
     m.add_function(wrap_pyfunction!(tracks::list_tracks, m)?)?;
     m.add_function(wrap_pyfunction!(policy::save_mlp_policy, m)?)?;
+    m.add_function(wrap_pyfunction!(export::export_onnx, m)?)?;
     m.add_function(wrap_pyfunction!(tracks::download_track, m)?)?;
     m.add("OUTCOME_COLUMNS", vector::OUTCOME_COLUMNS.to_vec())?;
     let references = ctxrace_sim::baseline::BaselineKind::ALL.map(|k| k.name());

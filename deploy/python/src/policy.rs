@@ -8,7 +8,7 @@ use ctxrace_config::LidarConfig;
 use ctxrace_nn::policy::mlp::{Linear, MlpPolicy, ACTIVATIONS, INPUTS, OUTPUTS};
 use ctxrace_nn::policy::PolicyError;
 use ctxrace_nn::Policy;
-use ctxrace_run::trained::{CheckpointChoice, TrainedAgent, UnknownCheckpointChoice};
+use ctxrace_run::trained::TrainedAgent;
 use pyo3::prelude::*;
 use pyo3::types::PyBytes;
 use rayon::prelude::*;
@@ -50,21 +50,12 @@ impl PyPolicy {
     #[new]
     #[pyo3(signature = (path, checkpoint=None))]
     fn new(path: PathBuf, checkpoint: Option<&str>) -> PyResult<Self> {
-        let choice: CheckpointChoice = checkpoint
-            .map(str::parse)
-            .transpose()
-            .map_err(|e: UnknownCheckpointChoice| BindError::Argument(e.to_string()))?
-            .unwrap_or_default();
+        let choice = crate::checkpoint_choice(checkpoint)?;
         let agent =
             TrainedAgent::load(&path, choice).map_err(|e| BindError::Trained(Box::new(e)))?;
-        let race = agent
-            .experiment
-            .as_ref()
-            .map(|e| e.race.clone())
-            .unwrap_or_default();
         let mut p = Self {
-            obs_dim: race.lidar.beams,
-            race: crate::race_json(&race)?,
+            obs_dim: agent.obs_dim(),
+            race: crate::race_json(&agent.race())?,
             rows: Vec::new(),
             agent,
         };
@@ -132,7 +123,8 @@ impl PyPolicy {
 
     /// Acts on `obs` (`f32`, one observation per row) under `contexts` (`f64` pairs) for the
     /// batch rows `rows` (`0..k` when `None`), sampling unless `deterministic`, with the GIL
-    /// released; returns the actions as `f64` pairs (bytes).
+    /// released; returns the actions as `f64` pairs (bytes) and, for cMask, the masks it
+    /// chose (`f64` pairs; `None` for the other agents).
     #[pyo3(signature = (obs, contexts, deterministic=false, rows=None))]
     fn act<'py>(
         &mut self,
@@ -141,7 +133,7 @@ impl PyPolicy {
         contexts: &[u8],
         deterministic: bool,
         rows: Option<Vec<usize>>,
-    ) -> PyResult<Bound<'py, PyBytes>> {
+    ) -> PyResult<(Bound<'py, PyBytes>, Option<Bound<'py, PyBytes>>)> {
         let contexts = pairs("contexts", contexts)?;
         let k = contexts.len();
         if obs.len() != k * self.obs_dim * 4 {
@@ -175,17 +167,26 @@ impl PyPolicy {
                 [c[0] as f32, c[1] as f32],
             ));
         }
-        let actions: Vec<f64> = py
+        let decisions = py
             .detach(|| {
                 work.into_par_iter()
                     .map(|(policy, obs, context)| policy.act(obs, context, deterministic))
                     .collect::<std::result::Result<Vec<_>, PolicyError>>()
             })
-            .map_err(BindError::from)?
-            .into_iter()
+            .map_err(BindError::from)?;
+        let actions: Vec<f64> = decisions
+            .iter()
             .flat_map(|d| d.action.map(f64::from))
             .collect();
-        Ok(bytes_of(py, &actions, f64::to_ne_bytes))
+        let masks: Option<Vec<f64>> = decisions
+            .iter()
+            .map(|d| d.mask.map(|m| m.map(f64::from)))
+            .collect::<Option<Vec<_>>>()
+            .map(|m| m.concat());
+        Ok((
+            bytes_of(py, &actions, f64::to_ne_bytes),
+            masks.map(|m| bytes_of(py, &m, f64::to_ne_bytes)),
+        ))
     }
 }
 

@@ -310,6 +310,59 @@ fn bad_input_gives_clear_errors() {
 }
 
 #[test]
+fn export_onnx_writes_a_trained_agents_model_and_refuses_what_is_none() {
+    let dir = tempfile::tempdir().unwrap();
+    let repo = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..");
+    let checkpoint = repo.join("testdata/d6b5c40/cmask/checkpoint");
+    let checkpoint = checkpoint.to_str().unwrap();
+    let out = dir.path().join("cmask.onnx");
+    let o = ctxrace(&["export", "onnx", checkpoint, out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let printed = stdout(&o);
+    let size = std::fs::metadata(&out).unwrap().len();
+    for line in [
+        format!(
+            "wrote {} ({size} bytes): cmask agent, ONNX opset 17",
+            out.display()
+        ),
+        "inputs:  obs (B, 108), context (B, 2), is_first (B,), state (B, 34)".into(),
+        "outputs: action (B, 2), state_out (B, 34), mask (B, 2)".into(),
+        "state:   S = 34: h [0, 16), z [16, 32), prev_action [32, 34)".into(),
+    ] {
+        assert!(printed.contains(&line), "{line} in: {printed}");
+    }
+    // not a trained agent, an MLP policy file, a checkpoint name, a folder that is not there
+    let other = dir.path().join("x.onnx");
+    let other = other.to_str().unwrap();
+    let configs = repo.join("configs");
+    fails_with(
+        &["export", "onnx", configs.to_str().unwrap(), other],
+        "neither a checkpoint",
+    );
+    let mlp = write(dir.path(), "policy.safetensors", "not weights");
+    fails_with(
+        &["export", "onnx", mlp.to_str().unwrap(), other],
+        "is an MLP policy file",
+    );
+    fails_with(
+        &[
+            "export",
+            "onnx",
+            checkpoint,
+            other,
+            "--checkpoint",
+            "newest",
+        ],
+        "not best, latest",
+    );
+    fails_with(
+        &["export", "onnx", checkpoint, "/no/such/folder/x.onnx"],
+        "writing /no/such/folder/x.onnx",
+    );
+    fails_with(&["export", "tflite"], "unrecognized subcommand");
+}
+
+#[test]
 fn train_refuses_a_run_it_cannot_make_before_writing_its_run_directory() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();

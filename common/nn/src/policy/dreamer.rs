@@ -127,6 +127,27 @@ impl DreamerPolicy {
         (&self.state.0, &self.state.1)
     }
 
+    /// The state `(h_0, z_0)` an episode starts from (with a zero previous action).
+    pub fn initial_state(&self) -> (&[f32], &[f32]) {
+        (&self.zero.0, &self.zero.1)
+    }
+
+    /// The networks it acts with.
+    pub fn nets(&self) -> &PolicyNets {
+        &self.nets
+    }
+
+    /// Its architecture.
+    pub fn config(&self) -> &DreamerConfig {
+        &self.cfg
+    }
+
+    /// The factor `1 / context_divisor` the raw context is multiplied by before the networks
+    /// read it (then by cMask's mask).
+    pub fn context_scale(&self) -> f32 {
+        (1.0 / self.cfg.context_divisor()) as f32
+    }
+
     /// Fixes cMask's mask at `mask` (`None`: chosen again); an error for an agent without a
     /// mask network.
     pub fn fix_mask(&mut self, mask: Option<[f32; CONTEXT_DIM]>) -> Result<()> {
@@ -178,7 +199,7 @@ impl DreamerPolicy {
             .mask(obs, deterministic)
             .map(|chosen| self.fixed_mask.unwrap_or(chosen));
         // the model's context: the raw one scaled (and masked), or none
-        let scale = (1.0 / self.cfg.context_divisor()) as f32;
+        let scale = self.context_scale();
         let ctx: [f32; CONTEXT_DIM] =
             std::array::from_fn(|i| context[i] * scale * mask.map_or(1.0, |m| m[i]));
         let ctx = &ctx[..self.nets.rssm.config().context_dim];

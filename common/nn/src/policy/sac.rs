@@ -79,6 +79,32 @@ impl SacPolicy {
         })
     }
 
+    /// The actor: a ReLU MLP from the stacked frames to the means, then the log-σs.
+    pub fn actor(&self) -> &Mlp {
+        &self.actor
+    }
+
+    /// Frames stacked into the actor's input (oldest first).
+    pub fn frames(&self) -> usize {
+        self.frames
+    }
+
+    /// Values in one frame.
+    pub fn frame_dim(&self) -> usize {
+        self.frame_dim
+    }
+
+    /// Standard deviation of the noise added to every action, deterministic ones too (0: none).
+    pub fn explore_noise(&self) -> f32 {
+        self.explore_noise
+    }
+
+    /// Whether [`SacPolicy::reset`] empties the frame stack (else it carries on into the next
+    /// episode).
+    pub fn resets_frame_stack(&self) -> bool {
+        self.reset_frame_stack
+    }
+
     /// Replaces the weights (same architecture) without clearing the frame stack.
     pub fn load(&mut self, weights: &[u8]) -> Result<()> {
         self.actor = read_actor(&self.shape, weights)?;

@@ -2,7 +2,8 @@
 Gymnasium envs (``gymnasium.make("ctxrace/Race-v0", ...)``, ``gymnasium.make_vec(
 "ctxrace/Race-v0", num_envs=N, ...)`` or `make_vec`), and the paper's
 evaluation protocol for any policy (`evaluate`); one race of any policy, drawn (`race`);
-trained agents' policies (`load_policy`) and Python's for the command line (`save_mlp_policy`); multi-agent races as a PettingZoo ``ParallelEnv``
+trained agents' policies (`load_policy`), their ONNX models (`export_onnx`) and Python's for the
+command line (`save_mlp_policy`); multi-agent races as a PettingZoo ``ParallelEnv``
 (`parallel_env`); tracks (`ctxrace.tracks.list`, `ctxrace.tracks.download`)."""
 
 import gymnasium
@@ -12,7 +13,7 @@ from ctxrace._agents import RaceParallelEnv, parallel_env
 from ctxrace._ctxrace import __version__
 from ctxrace._env import OBS_MODES, RaceEnv, RaceVectorEnv, make_vec
 from ctxrace._evaluate import REFERENCE_POLICIES, Evaluation, evaluate
-from ctxrace._policy import TrainedPolicy, load_policy, save_mlp_policy
+from ctxrace._policy import TrainedPolicy, export_onnx, load_policy, save_mlp_policy
 from ctxrace._race import race
 
 __all__ = [
@@ -27,6 +28,7 @@ __all__ = [
     "load_policy",
     "TrainedPolicy",
     "save_mlp_policy",
+    "export_onnx",
     "race",
     "parallel_env",
     "RaceParallelEnv",

@@ -1,11 +1,12 @@
 """Type stubs of the extension module `ctxrace._ctxrace` (Rust, deploy/python/src): races
-stepped in Rust, the evaluation protocol, trained agents' policies and tracks. Arrays cross as
-native-endian bytes (`f32` observations and states, `f64` pairs for actions and contexts) that
-the package views with numpy; `tests/test_stubs.py` holds this file to the module."""
+stepped in Rust, the evaluation protocol, trained agents' policies and their ONNX models, and
+tracks. Arrays cross as native-endian bytes (`f32` observations and states, `f64` pairs for
+actions and contexts) that the package views with numpy; `tests/test_stubs.py` holds this file
+to the module."""
 
 from os import PathLike
 from pathlib import Path
-from typing import List, Optional, Tuple, Union
+from typing import Any, Dict, List, Optional, Tuple, Union
 
 _Path = Union[str, PathLike]
 
@@ -160,7 +161,7 @@ class Policy:
         contexts: bytes,
         deterministic: bool = False,
         rows: Optional[List[int]] = None,
-    ) -> bytes: ...
+    ) -> Tuple[bytes, Optional[bytes]]: ...
 
 def evaluate_reference(
     policy: str,
@@ -184,6 +185,9 @@ def save_mlp_policy(
     output: Optional[str] = None,
     obs_dim: Optional[int] = None,
 ) -> None: ...
+def export_onnx(
+    path: _Path, out: _Path, checkpoint: Optional[str] = None
+) -> Dict[str, Any]: ...
 def list_tracks(tracks_dir: Optional[_Path] = None) -> List[Tuple[str, Path]]: ...
 def download_track(
     name: str, source: Optional[str] = None, into: Optional[_Path] = None

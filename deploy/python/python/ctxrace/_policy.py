@@ -1,11 +1,11 @@
-"""Trained agents from Python (`load_policy`), and policies trained in Python written for the
-command line (`save_mlp_policy`)."""
+"""Trained agents from Python (`load_policy`) and for use outside ctxrace (`export_onnx`), and
+policies trained in Python written for the command line (`save_mlp_policy`)."""
 
 from __future__ import annotations
 
 import json
 import os
-from typing import Any, Optional, Sequence, Tuple
+from typing import Any, Dict, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -41,10 +41,13 @@ class TrainedPolicy:
         )
 
     def act(self, obs: Any, context: Any, deterministic: bool = False,
-            rows: Optional[Sequence[int]] = None) -> np.ndarray:
+            rows: Optional[Sequence[int]] = None, return_mask: bool = False
+            ) -> Union[np.ndarray, Tuple[np.ndarray, Optional[np.ndarray]]]:
         """Actions for observations ``(k, obs_dim)`` (or one ``(obs_dim,)``) under the episodes'
         contexts ``(k, 2)`` (or one pair): sampled, or the mode if `deterministic`; `rows` names
-        the batch rows acting (``0..k`` when None). Returns ``(k, 2)`` (or ``(2,)``) float64."""
+        the batch rows acting (``0..k`` when None). Returns ``(k, 2)`` (or ``(2,)``) float64;
+        with `return_mask`, ``(actions, masks)`` where ``masks`` are cMask's context masks in
+        the same shape (None for the other agents)."""
         o = np.asarray(obs)
         if o.dtype.kind != "f":
             raise TypeError(f"obs must be floating-point, not dtype {o.dtype}")
@@ -57,14 +60,20 @@ class TrainedPolicy:
         k = len(o)
         c = np.asarray(context)
         c = c.reshape(1, -1) if single else c
-        actions = self._inner.act(
+        actions, masks = self._inner.act(
             np.ascontiguousarray(o, dtype=np.float32).tobytes(),
             pairs_bytes("context", c, k),
             bool(deterministic),
             None if rows is None else [int(r) for r in rows],
         )
-        a = np.frombuffer(actions, dtype=np.float64).reshape(k, 2).copy()
-        return a[0] if single else a
+
+        def pairs(b):
+            p = np.frombuffer(b, dtype=np.float64).reshape(k, 2).copy()
+            return p[0] if single else p
+
+        if not return_mask:
+            return pairs(actions)
+        return pairs(actions), None if masks is None else pairs(masks)
 
     def __call__(self, obs: Any, context: Any) -> np.ndarray:
         """Sampled actions for a batch (`act`)."""
@@ -76,6 +85,26 @@ def load_policy(path: os.PathLike, checkpoint: Optional[str] = None) -> TrainedP
     (``best``, ``latest``, ``step-N``; default: ``ctxrace eval``'s, ``best``), read and
     verified as ``ctxrace eval`` reads it."""
     return TrainedPolicy(_ctxrace.Policy(os.fspath(path), checkpoint))
+
+
+def export_onnx(run_or_checkpoint: os.PathLike, path: os.PathLike,
+                checkpoint: Optional[str] = None) -> Dict[str, Any]:
+    """Writes the ONNX model of a trained agent (a checkpoint folder, or a run folder's
+    checkpoint `checkpoint`, as `load_policy` reads it) to `path`, as ``ctxrace export onnx``
+    does: one deterministic decision a call, for onnxruntime (e.g. on a car's computer).
+
+    Inputs ``obs`` ``(B, obs_dim)``, ``context`` ``(B, 2)`` (the raw context), ``is_first``
+    ``(B,)`` (1 starts an episode as `TrainedPolicy.reset` does; ``state`` is then ignored)
+    and ``state`` ``(B, S)``, all float32; outputs ``action`` ``(B, 2)``, ``state_out``
+    ``(B, S)`` (pass it as the next call's ``state``) and, for cMask, its context ``mask``
+    ``(B, 2)``. Stepped so, its actions are ``load_policy(...).act(obs, context,
+    deterministic=True)``'s. The state is DreamerV3's ``[h, z, previous action]`` or SAC's
+    previous scans. Returns what was written: ``algo``, ``obs_dim``, ``state_dim``, ``state``
+    (its parts as ``(name, start, stop)``), ``outputs``, ``opset`` and ``bytes``. A SAC agent
+    whose deterministic action is random (``explore_noise > 0``) or whose frame stack outlives
+    an episode (``reset_frame_stack = false``) is refused, as is an MLP policy file."""
+    return _ctxrace.export_onnx(os.fspath(run_or_checkpoint), os.fspath(path),
+                               None if checkpoint is None else str(checkpoint))
 
 
 #: The choices of an MLP policy file's metadata (`save_mlp_policy`), the networks' own lists.
