@@ -8,8 +8,9 @@ import pytest
 
 pytest.importorskip(
     "stable_baselines3",
-    reason="Stable-Baselines3 (and its torch, about 3 GB from PyPI) is not installed; CI leaves "
-    "it out: pip install torch --index-url https://download.pytorch.org/whl/cpu stable-baselines3",
+    reason="Stable-Baselines3 is not installed (CI leaves it and its torch, about 3 GB from PyPI, "
+    "out): pip install torch --index-url https://download.pytorch.org/whl/cpu, then pip install "
+    "stable-baselines3",
 )
 
 import gymnasium  # noqa: E402
