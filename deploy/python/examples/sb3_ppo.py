@@ -1,13 +1,15 @@
 """Stable-Baselines3's PPO trained on ctxrace's vector env, evaluated with the paper's protocol.
 
+    pip install torch --index-url https://download.pytorch.org/whl/cpu   # CPU-only: ~3 GB less
     pip install ./deploy/python stable-baselines3
     python deploy/python/examples/sb3_ppo.py --track generated:0 --steps 1000000 --out sb3-run
 
 PPO (SB3's defaults but for the rollout length, the batch and the learning rate, which suit 16
-envs) learns from the LiDAR alone (the context is not shown to it) against one rival whose
-context is drawn from ±0.15 each episode. Every rollout appends a row to ``<out>/curve.csv``:
-env steps, wall seconds, the mean return, progress (PG) and lap fraction of the episodes that
-ended since the last row. At the end the trained policy (deterministic actions) and the random
+envs) on ``ctxrace.sb3.VecEnv`` (the Rust vector env as SB3's VecEnv) learns from the LiDAR
+alone (the context is not shown to it) against one rival whose context is drawn from ±0.15
+each episode. Every rollout appends a row to ``<out>/curve.csv``: env steps, wall seconds, the
+mean return, progress (PG) and lap fraction of the episodes that ended since the last row (from
+their ``info["episode"]``). At the end the trained policy (deterministic actions) and the random
 policy race the paper's protocol (``ctxrace.evaluate``: a grid of contexts over ±0.3, laps per
 context), and ``<out>/evaluation.json`` holds both side by side.
 """
@@ -22,83 +24,32 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from gymnasium.vector import AutoresetMode
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.vec_env import VecEnv
 
 import ctxrace
-
-
-class RaceVecEnv(VecEnv):
-    """ctxrace's Gymnasium vector env (same-step autoreset) as SB3's `VecEnv`: SB3 resets an
-    ended env in the step that ended it and finds the ended episode's last observation in
-    ``infos[i]["terminal_observation"]``, which is what SAME_STEP hands back."""
-
-    def __init__(self, env: ctxrace.RaceVectorEnv, seed: int):
-        if env.metadata["autoreset_mode"] != AutoresetMode.SAME_STEP:
-            raise ValueError("make the env with autoreset_mode=AutoresetMode.SAME_STEP")
-        self.env, self._seed, self._actions = env, seed, None
-        super().__init__(env.num_envs, env.single_observation_space, env.single_action_space)
-
-    def reset(self):
-        obs, _ = self.env.reset(seed=self._seed)
-        self._seed = None
-        return obs
-
-    def step_async(self, actions: np.ndarray) -> None:
-        self._actions = actions
-
-    def step_wait(self):
-        obs, reward, terminated, truncated, info = self.env.step(self._actions)
-        ended = terminated | truncated
-        infos = [{"progress": float(p)} for p in info["progress"]]
-        for i in np.flatnonzero(ended):
-            final = info["final_info"]
-            infos[i] = {
-                "terminal_observation": info["final_obs"][i],
-                "TimeLimit.truncated": bool(truncated[i] and not terminated[i]),
-                "progress": float(final["progress"][i]),
-                "lap": bool(terminated[i] and not final["wall_crash"][i] and not final["a2a"][i]),
-            }
-        return obs, reward.astype(np.float32), ended, infos
-
-    def close(self) -> None:
-        self.env.close()
-
-    def get_attr(self, attr_name, indices=None):
-        if attr_name == "render_mode":
-            return [None] * self.num_envs
-        raise AttributeError(f"RaceVecEnv has no per-env attribute {attr_name!r}")
-
-    def set_attr(self, attr_name, value, indices=None):
-        raise AttributeError(f"RaceVecEnv cannot set {attr_name!r}")
-
-    def env_method(self, method_name, *args, indices=None, **kwargs):
-        raise AttributeError(f"RaceVecEnv has no per-env method {method_name!r}")
-
-    def env_is_wrapped(self, wrapper_class, indices=None):
-        return [False] * self.num_envs
+import ctxrace.sb3
 
 
 class Curve(BaseCallback):
-    """Sums each env's return and appends one row per rollout to `path` (the learning curve)."""
+    """Appends one row per rollout to `path` (the learning curve) from the statistics of the
+    episodes that ended in it (``info["episode"]``, as `ctxrace.sb3.VecEnv` writes them)."""
 
-    def __init__(self, path: Path, num_envs: int):
+    def __init__(self, path: Path):
         super().__init__()
         self.file = path.open("w", newline="")
         self.writer = csv.writer(self.file)
         self.writer.writerow(["env_steps", "seconds", "episodes", "return", "progress", "laps"])
-        self.returns = np.zeros(num_envs)
         self.ended: list[tuple[float, float, bool]] = []
         self.start = time.monotonic()
 
     def _on_step(self) -> bool:
-        self.returns += self.locals["rewards"]
-        for i in np.flatnonzero(self.locals["dones"]):
-            info = self.locals["infos"][i]
-            self.ended.append((self.returns[i], info["progress"], info["lap"]))
-            self.returns[i] = 0.0
+        for info in self.locals["infos"]:
+            if "episode" in info:
+                episode = info["episode"]
+                # a lap: the episode ended, neither at the time limit nor in a crash or collision
+                lap = not (info["TimeLimit.truncated"] or episode["wall_crash"] or episode["a2a"])
+                self.ended.append((episode["r"], episode["progress"], lap))
         return True
 
     def _on_rollout_end(self) -> None:
@@ -143,16 +94,12 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(1)
 
-    env = ctxrace.make_vec(
-        args.track,
-        args.envs,
-        rivals=args.rivals,
-        tracks_dir=args.tracks_dir,
-        autoreset_mode=AutoresetMode.SAME_STEP,
+    env = ctxrace.sb3.VecEnv(
+        track=args.track, num_envs=args.envs, rivals=args.rivals, tracks_dir=args.tracks_dir
     )
     model = PPO(
         "MlpPolicy",
-        RaceVecEnv(env, args.seed),
+        env,  # seeded by PPO's seed: env i's first episode from reset seed seed + i
         n_steps=256,
         batch_size=1024,
         learning_rate=3e-4,
@@ -161,7 +108,7 @@ def main() -> None:
         verbose=0,
     )
     start = time.monotonic()
-    model.learn(args.steps, callback=Curve(args.out / "curve.csv", args.envs))
+    model.learn(args.steps, callback=Curve(args.out / "curve.csv"))
     train_seconds = time.monotonic() - start
     model.save(args.out / "ppo")
 

@@ -4,7 +4,9 @@ Gymnasium envs (``gymnasium.make("ctxrace/Race-v0", ...)``, ``gymnasium.make_vec
 evaluation protocol for any policy (`evaluate`); one race of any policy, drawn (`race`);
 trained agents' policies (`load_policy`), their ONNX models (`export_onnx`) and Python's for the
 command line (`save_mlp_policy`); multi-agent races as a PettingZoo ``ParallelEnv``
-(`parallel_env`); tracks (`ctxrace.tracks.list`, `ctxrace.tracks.download`)."""
+(`parallel_env`); tracks (`ctxrace.tracks.list`, `ctxrace.tracks.download`); the vector env as
+Stable-Baselines3's ``VecEnv`` with episode statistics (`ctxrace.sb3.VecEnv`, imported on its
+own: ``import ctxrace.sb3`` needs SB3, ``import ctxrace`` does not)."""
 
 import gymnasium
 
