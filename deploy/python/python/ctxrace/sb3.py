@@ -73,9 +73,10 @@ class VecEnv(_VecEnv):
 
     Episode statistics: the info of an env whose episode ended holds ``episode``, as SB3's
     ``VecMonitor`` writes it: ``r`` (its return), ``l`` (its steps) and ``t`` (seconds since
-    this VecEnv was made), and the race's metrics: ``progress`` (PG), ``overtakes`` (the sum of
-    its steps' rank changes: passes minus being passed), ``a2a`` and ``wall_crash`` (what ended
-    it) and ``context`` (its ``(c_v, c_θ)``).
+    this VecEnv was made), and the race's metrics as its last step reports them: ``progress``
+    (PG), ``a2a`` and ``wall_crash`` (what ended it) and ``context`` (its ``(c_v, c_θ)``). An
+    episode's overtakes are the race's to count (its preset decides whether the last step's
+    count): ``ctxrace.evaluate`` reports them.
 
     Seeds as SB3 sets them: ``seed(S)`` makes the next `reset` start env ``i`` from the
     simulator's reset seed ``S + i`` (the vector env's ``reset(seed=S)``);
@@ -115,7 +116,6 @@ class VecEnv(_VecEnv):
         self._t_start = time.time()
         self._returns = np.zeros(self.num_envs)
         self._lengths = np.zeros(self.num_envs, dtype=np.int64)
-        self._overtakes = np.zeros(self.num_envs, dtype=np.int64)
 
     def _vector_seed(self) -> Optional[int]:
         """The vector env's reset seed for the seeds SB3's ``seed(S)`` set (``S + i``, env by
@@ -155,7 +155,6 @@ class VecEnv(_VecEnv):
         self.reset_infos = _per_env(info)
         self._returns[:] = 0.0
         self._lengths[:] = 0
-        self._overtakes[:] = 0
         return obs
 
     def step_async(self, actions: np.ndarray) -> None:
@@ -171,7 +170,6 @@ class VecEnv(_VecEnv):
         stepped = info.get("final_info", info)
         self._returns += reward
         self._lengths += 1
-        self._overtakes += stepped["overtakes"]
         infos = _per_env(stepped)
         for i, time_limit in enumerate((truncated & ~terminated).tolist()):
             infos[i]["TimeLimit.truncated"] = time_limit
@@ -187,7 +185,6 @@ class VecEnv(_VecEnv):
                     "l": int(self._lengths[i]),
                     "t": seconds,
                     "progress": step_info["progress"],
-                    "overtakes": int(self._overtakes[i]),
                     "a2a": step_info["a2a"],
                     "wall_crash": step_info["wall_crash"],
                     "context": step_info["context"],
@@ -195,7 +192,6 @@ class VecEnv(_VecEnv):
                 self.reset_infos[i] = restarted[i]
             self._returns[ended] = 0.0
             self._lengths[ended] = 0
-            self._overtakes[ended] = 0
         return obs, reward.astype(np.float32), dones, infos
 
     def close(self) -> None:
