@@ -772,20 +772,21 @@ def markdown(cset, runs, t2, t3, cells, abl_cells, mask_rows, mask_cells):
     out += [f"## Table II (contexts {cset}; seed means, 95% bootstrap interval over seeds; paper beside)", "",
             "| rivals | algo | seeds | training PG | PG in | PG out | OT in | OT out | A2A in | A2A out |",
             "|---|---|--:|--:|---|---|---|---|---|---|"]
+    def c(r, k, d=3, paper=None):
+        """A seed mean, its interval (over 2 seeds or more) and the paper's value (or –)."""
+        p = r.get(paper or f"paper_{k}")
+        ci = f" [{fmt(r[k + '_lo'], d)}, {fmt(r[k + '_hi'], d)}]" if r["seeds"] > 1 else ""
+        return f"{fmt(r[k], d)}{ci} ({fmt(p, d) if p is not None else '–'})"
     for r in t2:
-        def c(k, d=3):
-            p = r.get(f"paper_{k}")
-            ci = f" [{fmt(r[k + '_lo'], d)}, {fmt(r[k + '_hi'], d)}]" if r["seeds"] > 1 else ""
-            return f"{fmt(r[k], d)}{ci} ({fmt(p, d) if p is not None else '–'})"
         out.append(f"| {r['rivals']} | {NAMES[r['algo']]} | {r['seeds']} | {fmt(r['train_pg'])} | "
-                   + " | ".join(c(k, 1 if k.startswith("a2a") else 3) for k in METRICS) + " |")
+                   + " | ".join(c(r, k, 1 if k.startswith("a2a") else 3) for k in METRICS) + " |")
     recounted = [r for r in t2 if not math.isnan(r["ot_redo_in"])]
     if recounted:
         out += ["", "OT as the paper's repository recounts a lap (`redo_overtakes.py`: cars - leader - 1; "
                 "groups whose every run kept the leader; paper's OT beside):", "",
                 "| rivals | algo | seeds | OT recount in | OT recount out |", "|---|---|--:|---|---|"]
         for r in recounted:
-            recount = [f"{fmt(r[k])} [{fmt(r[k + '_lo'])}, {fmt(r[k + '_hi'])}] ({fmt(r.get(p))})"
+            recount = [c(r, k, paper=p)
                        for k, p in [("ot_redo_in", "paper_ot_in"), ("ot_redo_out", "paper_ot_out")]]
             out.append(f"| {r['rivals']} | {NAMES[r['algo']]} | {r['seeds']} | " + " | ".join(recount) + " |")
     out += ["", "## Table III (relative change in to out, %; paper recomputed from its Table II beside)", "",
