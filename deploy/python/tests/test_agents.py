@@ -126,3 +126,45 @@ def test_the_race_renders_as_the_command_line_draws_a_moment():
     assert ctxrace.parallel_env(TRACK).render() is None
     with pytest.raises(ValueError, match="render_mode"):
         ctxrace.parallel_env(TRACK, render_mode="human")
+
+
+def test_a_pickled_race_is_the_race_it_was_made_as_and_supersuit_vectorises_it():
+    """A parallel env pickles as its arguments (a fresh race of the same scenario), which is how
+    SuperSuit's vector envs copy it: `concat_vec_envs_v1` then steps copies of the race as one
+    Gymnasium vector env of every copy's agents, copy i reset from seed + i (`black_death_v3`
+    keeps an agent that left the race in the vector, observing zeros, until its race ends)."""
+    import pickle
+
+    import supersuit as ss
+
+    env = ctxrace.parallel_env(TRACK, agents=2, rivals=1, obs_mode="scan+context", max_time=3.0)
+    copy = pickle.loads(pickle.dumps(env))
+    for a, b in zip(play(env, 5, 40), play(copy, 5, 40)):
+        if isinstance(a, dict):
+            assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+        else:
+            assert all(x.keys() == y.keys() for x, y in zip(a, b))
+            assert all(np.array_equal(x[k], y[k]) for x, y in zip(a, b) for k in x)
+    copies = 3
+    vec = ss.concat_vec_envs_v1(
+        ss.pettingzoo_env_to_vec_env_v1(ss.black_death_v3(env)), copies, num_cpus=0,
+        base_class="gymnasium",
+    )
+    assert vec.num_envs == copies * 2
+    obs, _ = vec.reset(seed=11)
+    assert obs.shape == (copies * 2,) + env.observation_space("car_0").shape
+    for i in range(copies):
+        lone, _ = ctxrace.parallel_env(
+            TRACK, agents=2, rivals=1, obs_mode="scan+context", max_time=3.0
+        ).reset(seed=11 + i)
+        np.testing.assert_array_equal(obs[2 * i], lone["car_0"])
+        np.testing.assert_array_equal(obs[2 * i + 1], lone["car_1"])
+    rng = np.random.default_rng(0)
+    ended = 0
+    for _ in range(80):
+        obs, rewards, terminations, truncations, _ = vec.step(
+            rng.uniform(-1, 1, (vec.num_envs, 2)).astype(np.float32)
+        )
+        assert np.isfinite(obs).all() and np.isfinite(rewards).all()
+        ended += int(np.sum(terminations | truncations))
+    assert ended > 0

@@ -22,6 +22,7 @@ from gymnasium import spaces
 from ctxrace import _ctxrace
 from ctxrace._env import (
     OBS_MODES,
+    PicklesAsMade,
     _COLUMNS,
     _path,
     count,
@@ -42,9 +43,11 @@ def agent_names(agents: int) -> list:
     return [f"car_{i}" for i in range(agents)]
 
 
-class RaceParallelEnv(_ParallelEnv or object):
+class RaceParallelEnv(PicklesAsMade, _ParallelEnv or object):
     """A race of `agents` cars driven from Python and `rivals` scripted ones (see the
-    module); observations in `obs_mode` as the single-agent env's, from each agent's car."""
+    module); observations in `obs_mode` as the single-agent env's, from each agent's car. It
+    pickles as the arguments it was made with, so that SuperSuit's vector envs
+    (``supersuit.concat_vec_envs_v1``) copy it into as many races as they step."""
 
     metadata = {"name": "ctxrace_race_v0", **render_metadata(_ctxrace.DEFAULT_RENDER_FPS)}
 
@@ -60,6 +63,7 @@ class RaceParallelEnv(_ParallelEnv or object):
         render_mode: Optional[str] = None,
         **race_keys: Any,
     ):
+        self.remember(locals(), ("track",))
         if _ParallelEnv is None:
             raise ImportError(
                 "ctxrace.parallel_env needs PettingZoo: pip install pettingzoo (or pip install "
