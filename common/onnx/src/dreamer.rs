@@ -24,6 +24,7 @@ use crate::graph::{Attr, Graph};
 use crate::model::{self, StateLayout, ACTION, CONTEXT, MASK, OBS, STATE_OUT};
 use crate::nets::{layer, mlp};
 use ctxrace_config::agents::{MaskSpace, StepAlignment, CONTEXT_DIM};
+use ctxrace_nn::kernels::UPDATE_SHIFT;
 use ctxrace_nn::policy::{DreamerPolicy, ACT_DIM};
 use ctxrace_nn::Mlp;
 
@@ -109,14 +110,16 @@ fn mask(g: &mut Graph, net: &Mlp, space: MaskSpace) -> String {
 }
 
 /// DreamerV3's GRU update of `h` (`D` values) from the normalised gates `p` (`[r̂, ĉ, û]`,
-/// `3 D`): `h' = k tanh(σ(r̂) ĉ) + (1 − k) h` with `k = σ(û − 1)`.
+/// `3 D`): `h' = k tanh(σ(r̂) ĉ) + (1 − k) h` with `k = σ(û − s)`, `s` the networks'
+/// [`UPDATE_SHIFT`].
 fn gru(g: &mut Graph, p: &str, h: &str, d: usize) -> String {
     let [r, c, k] = g.split(p, [d; 3], "gates");
     let one = g.scalar(1.0);
+    let shift = g.scalar(UPDATE_SHIFT);
     let r = g.node("Sigmoid", &[&r], vec![], "reset");
     let rc = g.node("Mul", &[&r, &c], vec![], "reset_cand");
     let c = g.node("Tanh", &[&rc], vec![], "candidate");
-    let k = g.node("Sub", &[&k, &one], vec![], "update_pre");
+    let k = g.node("Sub", &[&k, &shift], vec![], "update_pre");
     let k = g.node("Sigmoid", &[&k], vec![], "update");
     let keep = g.node("Sub", &[&one, &k], vec![], "keep");
     let new = g.node("Mul", &[&k, &c], vec![], "update_new");

@@ -2,11 +2,16 @@
 
 use super::*;
 
-/// The gate values of one element: `(r, c, u)` with `c = tanh(r ĉ)` and `u = σ(û − 1)`.
+/// The shift of the update gate, `u = σ(û − UPDATE_SHIFT)` (DreamerV3's `update_bias = -1`),
+/// which keeps the state at first.
+pub const UPDATE_SHIFT: f32 = 1.0;
+
+/// The gate values of one element: `(r, c, u)` with `c = tanh(r ĉ)` and
+/// `u = σ(û − UPDATE_SHIFT)`.
 #[inline(always)]
 fn gates(pr: f32, pc: f32, pu: f32) -> (f32, f32, f32) {
     let r = sigmoid(pr);
-    (r, tanh(r * pc), sigmoid(pu - 1.0))
+    (r, tanh(r * pc), sigmoid(pu - UPDATE_SHIFT))
 }
 
 vectorised! {

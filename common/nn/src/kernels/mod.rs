@@ -227,6 +227,7 @@ mod twohot;
 
 pub use adam::{adam_update, sum_of_squares, AdamLengthError, AdamStep};
 pub use gemm::{matmul_flops, record_products, recorded_products, ProductShape};
+pub use gru::UPDATE_SHIFT;
 pub use norm_act::NormAct;
 pub use product_profile::rerun_products;
 
