@@ -2,6 +2,11 @@
 3 rivals, on 1 thread and on every core, side by side with the Rust-only stepping of one core
 (`ctxrace bench sim --ego random`) in the same run.
 
+With --agents, also multi-agent races (16 races of 2 agents and 1 scripted rival: 32 agent
+envs): `ctxrace.make_agents_vec` on 1 thread and every core against SuperSuit's vectorised
+`parallel_env` (black_death_v3, pettingzoo_env_to_vec_env_v1, concat_vec_envs_v1; needs
+supersuit), in agent steps/s.
+
 With --paper-python and --paper-work, also the paper's simulator (lilpharaoh1/context-f110 at
 c0fd903, its f1tenth_gym copy) racing the same race with random ego actions, measured by
 deploy/paper_sim_rate.py in the paper's own Python environment (deploy/paper_sim_agreement.sh
@@ -30,6 +35,13 @@ ROOT = Path(__file__).resolve().parents[2]
 def python_rate(track, num_envs, rivals, threads, seconds, tracks_dir):
     """Env steps/s of a vector env stepped with uniform random actions for `seconds`."""
     env = ctxrace.make_vec(track, num_envs, rivals=rivals, threads=threads, tracks_dir=tracks_dir)
+    return rate(env, seconds)
+
+
+def rate(env, seconds):
+    """Env steps/s of the Gymnasium vector env `env` stepped with uniform random actions for
+    `seconds`, then closed."""
+    num_envs = env.num_envs
     env.reset(seed=0)
     actions = np.random.default_rng(0).uniform(-1, 1, size=(64, num_envs, 2))
     steps, start = 0, time.perf_counter()
@@ -37,9 +49,9 @@ def python_rate(track, num_envs, rivals, threads, seconds, tracks_dir):
         for a in actions:
             env.step(a)
         steps += len(actions)
-    rate = steps * num_envs / (time.perf_counter() - start)
+    per_s = steps * num_envs / (time.perf_counter() - start)
     env.close()
-    return rate
+    return per_s
 
 
 def rust_rate(binary, track, rivals, seconds, tracks_dir):
@@ -65,6 +77,20 @@ def paper_rate(python, work, rivals, seconds):
     return json.loads(proc.stdout.splitlines()[-1])["decisions_per_s"]
 
 
+def agents_rates(track, seconds, tracks_dir, races=16, agents=2, rivals=1):
+    """Agent steps/s of `races` multi-agent races: make_agents_vec on 1 thread and every core,
+    and SuperSuit's vectorised parallel_env."""
+    import supersuit as ss
+
+    keys = dict(agents=agents, rivals=rivals, tracks_dir=tracks_dir)
+    rust = [rate(ctxrace.make_agents_vec(track, races, threads=t, **keys), seconds)
+            for t in (1, 0)]
+    env = ss.pettingzoo_env_to_vec_env_v1(ss.black_death_v3(ctxrace.parallel_env(track, **keys)))
+    supersuit = rate(ss.concat_vec_envs_v1(env, races, num_cpus=0, base_class="gymnasium"),
+                     seconds)
+    return rust, supersuit
+
+
 def main():
     """Measures every cell and prints the table, one row as soon as it is measured."""
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
@@ -74,6 +100,8 @@ def main():
         "CTXRACE_TRACKS_DIR", str(ROOT.parent / "shared" / "tracks")))
     p.add_argument("--bin", default=os.environ.get(
         "CTXRACE_BIN", str(ROOT / "target" / "release" / "ctxrace")))
+    p.add_argument("--agents", action="store_true",
+                   help="also multi-agent races: make_agents_vec against SuperSuit")
     p.add_argument("--paper-python", help="Python of the paper simulator's environment")
     p.add_argument("--paper-work", help="export of the paper's code at c0fd903 (PAPER_WORK)")
     args = p.parse_args()
@@ -95,6 +123,11 @@ def main():
             print(f"{rivals:>6} {num_envs:>5} {one:>10.0f} {one / rust:>8.2f} "
                   f"{every:>11.0f} {every / cores / rust:>9.2f} {rust:>12.0f}"
                   + (f" {slow:>7.0f} {one / slow:>12.0f}" if paper else ""), flush=True)
+    if args.agents:
+        (one, every), supersuit = agents_rates(args.track, args.seconds, args.tracks_dir)
+        print(f"16 races x 2 agents, 1 rival (agent steps/s): make_agents_vec {one:.0f} on 1 "
+              f"thread, {every:.0f} on {cores}; SuperSuit {supersuit:.0f} "
+              f"({one / supersuit:.1f}x on 1 thread)", flush=True)
 
 
 if __name__ == "__main__":

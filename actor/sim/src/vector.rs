@@ -3,13 +3,20 @@
 //! owns. An env whose episode ended resets itself on the next step, ignoring that step's action
 //! (Gymnasium's next-step autoreset), or, with [`Autoreset::SameStep`], in the step that ended it.
 //!
+//! **Agents.** [`RaceVector::with_agents`] makes each race drive several cars from outside
+//! ([`RaceEnv::set_agents`]): the vector's lanes are then the races' agents, race-major (lane
+//! `r × agents + i` is agent `i` of race `r`), each with its own observation, action and outcome.
+//! An agent whose episode ended before the race did reports zeros, reward 0 and no flag until
+//! the race ends (black death); at the race's end every lane reports it ended (terminated, or
+//! truncated at the time limit), so that a lane's next observation always starts an episode.
+//!
 //! **Seeds and contexts.** [`RaceVector::reset`] with `seed` starts env `i`'s episode from the
 //! reset seed `seed + i` (what `ctxrace race --seed` passes to [`RaceEnv::reset`]); a stream of
 //! that env seeded by the same number draws its later episodes' reset seeds and every
 //! episode's context, uniform in `±context_range` as the training actors draw them, unless a
 //! context is pinned for the env.
 
-use crate::race::{RaceEnv, RaceError};
+use crate::race::{RaceEnv, RaceError, StepInfo};
 use ctxrace_config::context::CONTEXT_LIMIT;
 use ctxrace_config::{Context, RaceConfig};
 use ctxrace_tracks::Track;
@@ -96,6 +103,28 @@ pub struct EnvOutcome {
     pub wall_crash: bool,
 }
 
+impl EnvOutcome {
+    /// The outcome of a step of the episode in `context` that earned `reward`, ended as
+    /// `(terminated, truncated)`, with its details `info`.
+    pub fn of_step(
+        context: Context,
+        reward: f64,
+        (terminated, truncated): (bool, bool),
+        info: &StepInfo,
+    ) -> Self {
+        Self {
+            reward,
+            terminated,
+            truncated,
+            context,
+            progress: info.progress,
+            overtakes: info.overtakes,
+            a2a: info.a2a,
+            wall_crash: info.wall_crash,
+        }
+    }
+}
+
 /// The context an env draws first after a reset from `seed` (uniform in `±range`): a race of
 /// one env started from `seed` races as the vector's first env started from it.
 pub fn first_context(seed: u64, range: f64) -> Context {
@@ -120,61 +149,90 @@ struct Slot {
     pinned: Option<Context>,
     /// Its episode ended: the next step resets it.
     ended: bool,
+    /// Each agent's episode ended before the race did (with several agents).
+    agent_ended: Vec<bool>,
     /// Under [`Autoreset::SameStep`], the state ([`RaceEnv::state_into`]) its last ended episode
     /// ended in.
     final_state: Vec<f32>,
 }
 
 impl Slot {
-    /// Starts an episode from `seed` (drawn from the stream when `None`), writing its first
-    /// observation into `obs`.
-    fn start(&mut self, seed: Option<u64>, range: f64, obs: &mut [f32]) -> EnvOutcome {
+    /// Starts an episode from `seed` (drawn from the stream when `None`), writing every
+    /// agent's first observation into its row of `obs`; returns its context.
+    fn start(&mut self, seed: Option<u64>, range: f64, obs: &mut [f32]) -> Context {
         let context = self
             .pinned
             .unwrap_or_else(|| draw_context(&mut self.stream, range));
         let seed = seed.unwrap_or_else(|| self.stream.random());
-        obs.copy_from_slice(&self.env.reset(seed, context));
-        self.ended = false;
-        EnvOutcome {
-            context,
-            ..EnvOutcome::default()
+        let dim = self.env.obs_dim();
+        obs[..dim].copy_from_slice(&self.env.reset(seed, context));
+        for (i, row) in obs.chunks_exact_mut(dim).enumerate().skip(1) {
+            row.copy_from_slice(&self.env.observe_agent(i));
         }
+        self.ended = false;
+        self.agent_ended.fill(false);
+        context
     }
 
-    /// Steps the env with `action`, or resets it if its episode ended. Under
-    /// [`Autoreset::SameStep`] a step that ends the episode writes its observation into
-    /// `final_obs` and starts the next episode at once, its first observation into `obs`.
+    /// [`Slot::start`] with each agent's outcome (reward 0, the new context) in `out`.
+    fn restart(&mut self, seed: Option<u64>, range: f64, obs: &mut [f32], out: &mut [EnvOutcome]) {
+        let context = self.start(seed, range, obs);
+        out.fill(EnvOutcome {
+            context,
+            ..EnvOutcome::default()
+        });
+    }
+
+    /// Steps the race with each agent's action (one per row of `obs` and entry of `out`), or
+    /// resets it if its episode ended. Under [`Autoreset::SameStep`] a step that ends the
+    /// race writes its observations into `final_obs` and starts the next episode at once, its
+    /// first observations into `obs`.
     fn advance(
         &mut self,
-        action: [f64; 2],
+        actions: &[[f64; 2]],
         (range, autoreset): (f64, Autoreset),
-        obs: &mut [f32],
-        final_obs: &mut [f32],
-    ) -> Result<EnvOutcome, RaceError> {
+        (obs, final_obs): (&mut [f32], &mut [f32]),
+        out: &mut [EnvOutcome],
+    ) -> Result<(), RaceError> {
         if self.ended {
-            return Ok(self.start(None, range, obs));
+            self.restart(None, range, obs, out);
+            return Ok(());
         }
-        let step = self.env.step(action)?;
-        self.ended = step.terminated || step.truncated;
         let context = self.env.context();
-        if self.ended && autoreset == Autoreset::SameStep {
-            final_obs.copy_from_slice(&step.obs);
-            self.final_state.resize(self.env.state_dim(), 0.0);
-            self.env.state_into(&mut self.final_state);
-            self.start(None, range, obs);
-        } else {
+        if let [action] = actions {
+            let step = self.env.step(*action)?;
+            let flags = (step.terminated, step.truncated);
+            self.ended = step.terminated || step.truncated;
             obs.copy_from_slice(&step.obs);
+            out[0] = EnvOutcome::of_step(context, step.reward, flags, &step.info);
+        } else {
+            let steps = self.env.step_agents(actions)?;
+            self.ended = self.env.is_finished();
+            self.agent_ended.resize(actions.len(), false);
+            let lanes = steps.iter().zip(obs.chunks_exact_mut(self.env.obs_dim()));
+            for (((step, row), o), was_done) in lanes.zip(out.iter_mut()).zip(&mut self.agent_ended)
+            {
+                row.copy_from_slice(&step.obs);
+                // black death until the race ends, when every lane ends again
+                let flags = match (*was_done, self.ended) {
+                    (true, false) => (false, false),
+                    (true, true) => (true, false),
+                    (false, _) => (step.terminated, step.truncated),
+                };
+                *was_done |= step.terminated;
+                *o = EnvOutcome::of_step(context, step.reward, flags, &step.info);
+            }
         }
-        Ok(EnvOutcome {
-            reward: step.reward,
-            terminated: step.terminated,
-            truncated: step.truncated,
-            context,
-            progress: step.info.progress,
-            overtakes: step.info.overtakes,
-            a2a: step.info.a2a,
-            wall_crash: step.info.wall_crash,
-        })
+        if self.ended && autoreset == Autoreset::SameStep {
+            final_obs.copy_from_slice(obs);
+            let dim = self.env.state_dim();
+            self.final_state.resize(dim * actions.len(), 0.0);
+            for (i, row) in self.final_state.chunks_exact_mut(dim.max(1)).enumerate() {
+                self.env.state_of(i, row);
+            }
+            self.start(None, range, obs);
+        }
+        Ok(())
     }
 }
 
@@ -183,8 +241,10 @@ pub struct RaceVector {
     slots: Vec<Slot>,
     context_range: f64,
     autoreset: Autoreset,
+    /// Cars each race drives from outside (lanes per race).
+    agents: usize,
     obs_dim: usize,
-    /// The ended episodes' last observations under [`Autoreset::SameStep`].
+    /// The ended episodes' last observations under [`Autoreset::SameStep`], a row per lane.
     final_obs: Vec<f32>,
     pool: rayon::ThreadPool,
     started: bool,
@@ -213,6 +273,7 @@ impl RaceVector {
                     stream: ChaCha8Rng::seed_from_u64(0),
                     pinned: None,
                     ended: true,
+                    agent_ended: Vec::new(),
                     final_state: Vec::new(),
                 })
             })
@@ -226,6 +287,7 @@ impl RaceVector {
             slots,
             context_range,
             autoreset: Autoreset::NextStep,
+            agents: 1,
             obs_dim,
             pool,
             started: false,
@@ -243,8 +305,31 @@ impl RaceVector {
         self.autoreset
     }
 
+    /// The vector whose races each drive `agents` cars from outside (see the module's agents;
+    /// default 1: the ego), or the error naming the race's cars where it has too few.
+    pub fn with_agents(mut self, agents: usize) -> Result<Self, VectorError> {
+        for slot in &mut self.slots {
+            slot.env.set_agents(agents)?;
+            slot.ended = true;
+        }
+        self.agents = agents;
+        self.final_obs = vec![0.0; self.lanes() * self.obs_dim];
+        self.started = false;
+        Ok(self)
+    }
+
+    /// Cars each race drives from outside.
+    pub fn agents(&self) -> usize {
+        self.agents
+    }
+
+    /// Lanes: an observation, action and outcome each, `len × agents`.
+    pub fn lanes(&self) -> usize {
+        self.slots.len() * self.agents
+    }
+
     /// Under [`Autoreset::SameStep`], the last observations of the episodes that ended at the
-    /// last step (`len × obs_dim`; the rows of envs that did not end are stale).
+    /// last step (`lanes × obs_dim`; the rows of lanes that did not end are stale).
     pub fn final_obs(&self) -> &[f32] {
         &self.final_obs
     }
@@ -254,7 +339,7 @@ impl RaceVector {
         self.slots.iter().map(|s| s.env.context())
     }
 
-    /// Number of envs.
+    /// Number of envs (races).
     pub fn len(&self) -> usize {
         self.slots.len()
     }
@@ -279,16 +364,16 @@ impl RaceVector {
         self.slots.iter().map(|s| &s.env)
     }
 
-    /// Checks that a buffer holds `per_env` values per env.
-    fn check(&self, what: &'static str, got: usize, per_env: usize) -> Result<(), VectorError> {
-        let want = per_env * self.len();
+    /// Checks that a buffer holds `per_lane` values per lane.
+    fn check(&self, what: &'static str, got: usize, per_lane: usize) -> Result<(), VectorError> {
+        let want = per_lane * self.lanes();
         match got == want {
             true => Ok(()),
             false => Err(VectorError::Shape {
                 what,
                 got,
                 want,
-                envs: self.len(),
+                envs: self.lanes(),
             }),
         }
     }
@@ -305,26 +390,29 @@ impl RaceVector {
             .map_or((Vec::new(), Vec::new()), |s| s.env.state_bounds())
     }
 
-    /// Every env's current state ([`RaceEnv::state_into`]) into `out` (`len × state_dim`), or,
-    /// with `ended`, under [`Autoreset::SameStep`] the state the episode that ended at the last
-    /// step ended in (the rows of the other envs are stale).
+    /// Every lane's current state ([`RaceEnv::state_of`] its agent) into `out`
+    /// (`lanes × state_dim`), or, with `ended`, under [`Autoreset::SameStep`] the state the
+    /// episode that ended at the last step ended in (the rows of the other lanes are stale).
     pub fn states_into(&self, ended: bool, out: &mut [f32]) -> Result<(), VectorError> {
         let dim = self.state_dim();
         self.check("states", out.len(), dim)?;
-        for (slot, row) in self.slots.iter().zip(out.chunks_exact_mut(dim.max(1))) {
+        let per_race = (dim * self.agents).max(1);
+        for (slot, rows) in self.slots.iter().zip(out.chunks_exact_mut(per_race)) {
             if !ended {
-                slot.env.state_into(row);
-            } else if slot.final_state.len() == dim {
-                row.copy_from_slice(&slot.final_state);
+                for (i, row) in rows.chunks_exact_mut(dim.max(1)).enumerate() {
+                    slot.env.state_of(i, row);
+                }
+            } else if slot.final_state.len() == rows.len() {
+                rows.copy_from_slice(&slot.final_state);
             }
         }
         Ok(())
     }
 
-    /// Starts a new episode in every env (see the module's seeds and contexts), writing the
-    /// first observations into `obs` (`len × obs_dim`) and each env's context into `out`;
-    /// `contexts` pins env `i`'s context to `contexts[i]` for this and its later episodes,
-    /// `None` unpins them all.
+    /// Starts a new episode in every race (see the module's seeds and contexts), writing the
+    /// first observations into `obs` (`lanes × obs_dim`) and each lane's context into `out`
+    /// (`lanes`); `contexts` (one per race) pins race `i`'s context to `contexts[i]` for this
+    /// and its later episodes, `None` unpins them all.
     pub fn reset(
         &mut self,
         seed: u64,
@@ -335,29 +423,31 @@ impl RaceVector {
         self.check("obs", obs.len(), self.obs_dim)?;
         self.check("outcomes", out.len(), 1)?;
         if let Some(c) = contexts {
-            self.check("contexts", c.len(), 1)?;
+            if c.len() != self.len() {
+                return Err(VectorError::Shape {
+                    what: "contexts",
+                    got: c.len(),
+                    want: self.len(),
+                    envs: self.len(),
+                });
+            }
         }
-        let range = self.context_range;
-        for (i, ((slot, obs), out)) in self
-            .slots
-            .iter_mut()
-            .zip(obs.chunks_mut(self.obs_dim))
-            .zip(out.iter_mut())
-            .enumerate()
-        {
+        let (range, k) = (self.context_range, self.agents);
+        let races = obs.chunks_mut(self.obs_dim * k).zip(out.chunks_mut(k));
+        for (i, (slot, (obs, out))) in self.slots.iter_mut().zip(races).enumerate() {
             let env_seed = seed.wrapping_add(i as u64);
             slot.stream = ChaCha8Rng::seed_from_u64(env_seed);
             slot.pinned = contexts.map(|c| c[i]);
-            *out = slot.start(Some(env_seed), range, obs);
+            slot.restart(Some(env_seed), range, obs, out);
         }
         self.started = true;
         Ok(())
     }
 
-    /// Steps every env with its action (`actions[i]`), on the worker threads; an env whose
-    /// episode ended at the previous step is reset instead (see [`Autoreset`]). Observations go to `obs`
-    /// (`len × obs_dim`), the rest to `out`. Refuses, stepping nothing, a non-finite action
-    /// or a call before [`RaceVector::reset`].
+    /// Steps every lane with its action (`actions[i]`), each race on a worker thread; a race
+    /// whose episode ended at the previous step is reset instead (see [`Autoreset`]).
+    /// Observations go to `obs` (`lanes × obs_dim`), the rest to `out`. Refuses, stepping
+    /// nothing, a non-finite action or a call before [`RaceVector::reset`].
     pub fn step(
         &mut self,
         actions: &[[f64; 2]],
@@ -379,27 +469,30 @@ impl RaceVector {
                 action: actions[env],
             });
         }
-        let (mode, dim) = ((self.context_range, self.autoreset), self.obs_dim);
+        let (mode, k) = ((self.context_range, self.autoreset), self.agents);
+        let rows = self.obs_dim * k;
         let (slots, finals) = (&mut self.slots, &mut self.final_obs);
         if slots.len() == 1 || self.pool.current_num_threads() == 1 {
             // on the caller's thread: a hop to one worker costs more than a lone race's step
-            let lanes = slots.iter_mut().zip(actions).zip(obs.chunks_mut(dim));
-            let lanes = lanes.zip(finals.chunks_mut(dim)).zip(out.iter_mut());
-            for ((((slot, &action), obs), final_obs), out) in lanes {
-                *out = slot.advance(action, mode, obs, final_obs)?;
+            let lanes = slots
+                .iter_mut()
+                .zip(actions.chunks(k))
+                .zip(obs.chunks_mut(rows));
+            let lanes = lanes.zip(finals.chunks_mut(rows)).zip(out.chunks_mut(k));
+            for ((((slot, actions), obs), final_obs), out) in lanes {
+                slot.advance(actions, mode, (obs, final_obs), out)?;
             }
             return Ok(());
         }
         self.pool.install(|| {
             slots
                 .par_iter_mut()
-                .zip(actions.par_iter())
-                .zip(obs.par_chunks_mut(dim))
-                .zip(finals.par_chunks_mut(dim))
-                .zip(out.par_iter_mut())
-                .try_for_each(|((((slot, &action), obs), final_obs), out)| {
-                    *out = slot.advance(action, mode, obs, final_obs)?;
-                    Ok::<_, RaceError>(())
+                .zip(actions.par_chunks(k))
+                .zip(obs.par_chunks_mut(rows))
+                .zip(finals.par_chunks_mut(rows))
+                .zip(out.par_chunks_mut(k))
+                .try_for_each(|((((slot, actions), obs), final_obs), out)| {
+                    slot.advance(actions, mode, (obs, final_obs), out)
                 })
         })?;
         Ok(())

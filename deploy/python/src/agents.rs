@@ -50,16 +50,8 @@ impl PyRaceAgents {
         let table: Vec<f64> = steps
             .iter()
             .flat_map(|s| {
-                row(&EnvOutcome {
-                    reward: s.reward,
-                    terminated: s.terminated,
-                    truncated: s.truncated,
-                    context,
-                    progress: s.info.progress,
-                    overtakes: s.info.overtakes,
-                    a2a: s.info.a2a,
-                    wall_crash: s.info.wall_crash,
-                })
+                let flags = (s.terminated, s.truncated);
+                row(&EnvOutcome::of_step(context, s.reward, flags, &s.info))
             })
             .collect();
         (

@@ -40,7 +40,9 @@ pub fn row(o: &EnvOutcome) -> [f64; 9] {
 }
 
 /// `num_envs` races of one track and scenario, stepped on worker threads (the package's
-/// `ctxrace.make` and `ctxrace.make_vec` wrap it).
+/// `gymnasium.make`, `ctxrace.make_vec` and `ctxrace.make_agents_vec` wrap it); with several
+/// agents a race, its rows (observations, actions, outcomes, states) are the races' agents,
+/// race-major.
 #[pyclass(name = "RaceVector", module = "ctxrace._ctxrace")]
 pub struct PyRaceVector {
     inner: RaceVector,
@@ -50,43 +52,46 @@ pub struct PyRaceVector {
     race: String,
     /// The track's name.
     track: String,
-    /// Each env's episode so far, frame by frame, when made to record (else empty).
+    /// Each race's episode so far, frame by frame, when made to record (else empty).
     frames: Vec<Vec<Frame>>,
 }
 
 impl PyRaceVector {
-    /// Records each env's state after a reset or a step (`actions` taken, none after a reset),
-    /// when made to record; an env whose episode (re)started begins a new record.
+    /// Records each race's state after a reset or a step (`actions` taken, none after a
+    /// reset; the ego's drawn), when made to record; a race whose episode (re)started begins a
+    /// new record.
     fn record(&mut self, actions: Option<&[[f64; 2]]>) {
         if self.frames.is_empty() {
             return;
         }
-        let dim = self.inner.obs_dim();
+        let (dim, k) = (self.inner.obs_dim(), self.inner.agents());
         for (i, (env, frames)) in self.inner.envs().zip(&mut self.frames).enumerate() {
             let started = env.metrics().steps == 0;
             if started {
                 frames.clear();
             }
+            let ego = i * k;
             let action = match actions {
-                Some(a) if !started => a[i],
+                Some(a) if !started => a[ego],
                 _ => [0.0; 2],
             };
-            let obs = &self.obs[i * dim..(i + 1) * dim];
-            frames.push(Frame::capture(env, action, self.outcomes[i].reward, obs));
+            let obs = &self.obs[ego * dim..(ego + 1) * dim];
+            frames.push(Frame::capture(env, action, self.outcomes[ego].reward, obs));
         }
     }
 
-    /// Env `env` and the frames it recorded; an error naming the fix where the vector does not
-    /// record or has no such env.
+    /// The race of row `env` and the frames it recorded; an error naming the fix where the
+    /// vector does not record or has no such row.
     fn recorded(&self, env: usize) -> Result<(&ctxrace_sim::RaceEnv, &[Frame])> {
-        match (self.frames.get(env), self.inner.envs().nth(env)) {
-            (Some(frames), Some(race)) => Ok((race, frames)),
+        let race = env / self.inner.agents();
+        match (self.frames.get(race), self.inner.envs().nth(race)) {
+            (Some(frames), Some(race)) if env < self.inner.lanes() => Ok((race, frames)),
             _ if self.frames.is_empty() => Err(BindError::Argument(
                 "this vector records nothing to draw: make it with record=True".into(),
             )),
             _ => Err(BindError::Argument(format!(
                 "env {env} is no env of {}",
-                self.frames.len()
+                self.inner.lanes()
             ))),
         }
     }
@@ -107,9 +112,10 @@ impl PyRaceVector {
     /// scenario) with the race keys `race_keys` (a JSON object) laid over it; contexts drawn from `±context_range`; `threads` worker threads (0:
     /// one per core); an ended episode's env resets in the step that ended it when
     /// `same_step`, else on the next step; recording each env's episode for
-    /// [`PyRaceVector::render`] if `record`.
+    /// [`PyRaceVector::render`] if `record`; each race driving `agents` cars from Python (the
+    /// ego and the `agents - 1` cars ahead of it, on top of the keys' scripted `rivals`).
     #[new]
-    #[pyo3(signature = (track, num_envs, race_keys="{}", config=None, tracks_dir=None, context_range=0.15, threads=0, same_step=false, record=false))]
+    #[pyo3(signature = (track, num_envs, race_keys="{}", config=None, tracks_dir=None, context_range=0.15, threads=0, same_step=false, record=false, agents=1))]
     #[allow(clippy::too_many_arguments)] // Python's keyword arguments
     fn new(
         track: &str,
@@ -121,8 +127,10 @@ impl PyRaceVector {
         threads: usize,
         same_step: bool,
         record: bool,
+        agents: usize,
     ) -> PyResult<Self> {
-        let cfg = race_config(config, race_keys)?;
+        let mut cfg = race_config(config, race_keys)?;
+        cfg.rivals += agents.saturating_sub(1);
         let track = load_track(track, tracks_dir, &cfg)?;
         let autoreset = match same_step {
             true => Autoreset::SameStep,
@@ -130,10 +138,12 @@ impl PyRaceVector {
         };
         let inner = RaceVector::new(track.clone(), &cfg, num_envs, context_range, threads)
             .map_err(BindError::from)?
-            .with_autoreset(autoreset);
+            .with_autoreset(autoreset)
+            .with_agents(agents)
+            .map_err(BindError::from)?;
         Ok(Self {
-            obs: vec![0.0; num_envs * inner.obs_dim()],
-            outcomes: vec![EnvOutcome::default(); num_envs],
+            obs: vec![0.0; inner.lanes() * inner.obs_dim()],
+            outcomes: vec![EnvOutcome::default(); inner.lanes()],
             race: crate::race_json(&cfg)?,
             track: track.name.clone(),
             frames: if record {
@@ -145,10 +155,22 @@ impl PyRaceVector {
         })
     }
 
-    /// Number of envs.
+    /// Rows of observations, actions and outcomes: races × agents.
     #[getter]
     fn num_envs(&self) -> usize {
+        self.inner.lanes()
+    }
+
+    /// Number of races.
+    #[getter]
+    fn races(&self) -> usize {
         self.inner.len()
+    }
+
+    /// Cars each race drives from Python.
+    #[getter]
+    fn agents(&self) -> usize {
+        self.inner.agents()
     }
 
     /// Values in one env's observation (LiDAR beams).
@@ -199,14 +221,14 @@ impl PyRaceVector {
     /// rows stale), as bytes.
     #[pyo3(signature = (ended=false))]
     fn states<'py>(&self, py: Python<'py>, ended: bool) -> PyResult<Bound<'py, PyBytes>> {
-        let mut out = vec![0.0f32; self.inner.len() * self.inner.state_dim()];
+        let mut out = vec![0.0f32; self.inner.lanes() * self.inner.state_dim()];
         self.inner
             .states_into(ended, &mut out)
             .map_err(BindError::from)?;
         Ok(bytes_of(py, &out, f32::to_ne_bytes))
     }
 
-    /// Each env's current episode's context (native-endian `f64` pairs), as bytes.
+    /// Each race's current episode's context (native-endian `f64` pairs), as bytes.
     fn contexts<'py>(&self, py: Python<'py>) -> Bound<'py, PyBytes> {
         let pairs: Vec<f64> = self
             .inner
@@ -247,11 +269,11 @@ impl PyRaceVector {
         ))
     }
 
-    /// Env `env`'s episode so far: its metrics as `ctxrace race --json` reports them (progress,
-    /// overtakes, collisions, lap time, return, ...) and what ended it, as JSON.
+    /// Race `env`'s episode so far: its metrics as `ctxrace race --json` reports them (progress,
+    /// overtakes, collisions, lap time, return, ...: the ego's) and what ended it, as JSON.
     fn metrics(&self, env: usize) -> PyResult<String> {
         let race = self.inner.envs().nth(env).ok_or_else(|| {
-            BindError::Argument(format!("env {env} is no env of {}", self.inner.len()))
+            BindError::Argument(format!("race {env} is no race of {}", self.inner.len()))
         })?;
         let mut json = serde_json::to_value(race.metrics()).map_err(|e| {
             BindError::Argument(format!("the episode's metrics do not serialise: {e}"))
@@ -271,9 +293,9 @@ impl PyRaceVector {
         Ok(())
     }
 
-    /// Starts every env's next episode from `seed` (env `i`: reset seed `seed + i`);
-    /// `contexts` (native-endian `f64` pairs, one per env) pins each env's context, none draws
-    /// them. Returns (observations, outcome table) as bytes.
+    /// Starts every race's next episode from `seed` (race `i`: reset seed `seed + i`);
+    /// `contexts` (native-endian `f64` pairs, one per race) pins each race's context, none
+    /// draws them. Returns (observations, outcome table) as bytes.
     #[pyo3(signature = (seed, contexts=None))]
     fn reset<'py>(
         &mut self,
@@ -296,8 +318,8 @@ impl PyRaceVector {
         Ok(self.arrays(py))
     }
 
-    /// Steps every env with its action (native-endian `f64` pairs, one per env), with the GIL
-    /// released; an env whose episode ended resets instead. Returns (observations, outcome
+    /// Steps every row with its action (native-endian `f64` pairs, one per row), with the GIL
+    /// released; a race whose episode ended resets instead. Returns (observations, outcome
     /// table) as bytes.
     fn step<'py>(
         &mut self,

@@ -168,3 +168,65 @@ def test_a_pickled_race_is_the_race_it_was_made_as_and_supersuit_vectorises_it()
         assert np.isfinite(obs).all() and np.isfinite(rewards).all()
         ended += int(np.sum(terminations | truncations))
     assert ended > 0
+
+
+def test_make_agents_vec_steps_each_race_as_the_simulators_with_black_death():
+    """The races of `make_agents_vec` (stepped in Rust, race-major envs) are the multi-agent
+    races of simulator seeds seed + i that `parallel_env` steps, agent for agent; an agent that
+    left its race observes a zero scan with reward 0 and no flag until the race ends, when all
+    of its envs end."""
+    import json
+    import pickle
+
+    from ctxrace import _ctxrace
+
+    races, agents, keys = 3, 2, dict(rivals=1, max_time=3.0)
+    vec = ctxrace.make_agents_vec(TRACK, races, agents, obs_mode="scan+context", threads=2, **keys)
+    assert vec.num_envs == races * agents
+    obs, info = vec.reset(seed=11)
+    lones = [_ctxrace.RaceAgents(TRACK, agents, json.dumps(keys)) for _ in range(races)]
+
+    def decode(out):
+        scans, table = out
+        return (np.frombuffer(scans, np.float32).reshape(agents, -1),
+                np.frombuffer(table, np.float64).reshape(agents, -1))
+
+    for i, lone in enumerate(lones):
+        scans, _ = decode(lone.reset(11 + i))
+        np.testing.assert_array_equal(obs[i * agents:(i + 1) * agents, :-2], scans)
+        np.testing.assert_array_equal(obs[i * agents, -2:], np.float32(lone.context))
+    rng = np.random.default_rng(0)
+    ended, black, dead = np.zeros(races, bool), 0, np.zeros(races * agents, bool)
+    restarted = np.full(races, -1)
+    for _ in range(40):
+        actions = rng.uniform(-1, 1, (races * agents, 2))
+        actions[0], actions[1] = [1.0, 1.0], [0.0, -0.5]  # race 0: the ego into the wall
+        obs, reward, terminated, truncated, info = vec.step(actions)
+        for i, lone in enumerate(lones):
+            rows = slice(i * agents, (i + 1) * agents)
+            if ended[i] and restarted[i] < 0:
+                # the step after its race ended starts every one of its envs again
+                assert not (reward[rows].any() or (terminated | truncated)[rows].any())
+                np.testing.assert_array_equal(info["context"][rows.start], info["context"][rows][1])
+                restarted[i] = 1
+            if ended[i]:
+                continue
+            scans, table = decode(lone.step(actions[rows].tobytes()))
+            np.testing.assert_array_equal(obs[rows, :-2], scans)
+            np.testing.assert_array_equal(reward[rows], table[:, 0])
+            for a, k in enumerate(range(rows.start, rows.stop)):
+                if lone.finished:
+                    assert terminated[k] or truncated[k]
+                elif dead[k]:
+                    assert not (terminated[k] or truncated[k] or scans[a].any() or reward[k])
+                    black += 1
+                else:
+                    assert (terminated[k], truncated[k]) == (table[a, 1] != 0, table[a, 2] != 0)
+                dead[k] |= table[a, 1] != 0
+            ended[i] = lone.finished
+    assert (restarted == 1).all() and black > 0, (restarted, black)
+    copy = pickle.loads(pickle.dumps(vec))
+    assert copy.num_envs == vec.num_envs
+    np.testing.assert_array_equal(copy.reset(seed=11)[0], vec.reset(seed=11)[0])
+    with pytest.raises(ValueError, match="agents must be at least 1"):
+        ctxrace.make_agents_vec(TRACK, 2, agents=0)

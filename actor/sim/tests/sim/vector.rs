@@ -147,3 +147,111 @@ fn bad_calls_are_refused_and_step_nothing() {
     assert!(RaceVector::new(generated(), &RaceConfig::default(), 0, 0.15, 1).is_err());
     assert!(RaceVector::new(generated(), &RaceConfig::default(), 1, 1.5, 1).is_err());
 }
+
+/// Steps `vector` (2 agents a race) with the ego at full right lock and full speed (into the
+/// wall) and the other agent straight at 30% speed, `steps` times; every observation and outcome.
+fn run_agents(vector: &mut RaceVector, steps: usize) -> (Vec<f32>, Vec<EnvOutcome>) {
+    let lanes = vector.lanes();
+    let mut obs = vec![0.0; lanes * vector.obs_dim()];
+    let mut out = vec![EnvOutcome::default(); lanes];
+    let (mut all_obs, mut all_out) = (Vec::new(), Vec::new());
+    vector.reset(40, None, &mut obs, &mut out).unwrap();
+    all_obs.extend_from_slice(&obs);
+    all_out.extend_from_slice(&out);
+    let actions: Vec<[f64; 2]> = (0..lanes)
+        .map(|i| if i % 2 == 0 { [1.0, 1.0] } else { [0.0, 0.3] })
+        .collect();
+    for _ in 0..steps {
+        vector.step(&actions, &mut obs, &mut out).unwrap();
+        all_obs.extend_from_slice(&obs);
+        all_out.extend_from_slice(&out);
+    }
+    (all_obs, all_out)
+}
+
+/// With two agents a race, each race's lanes are a lone two-agent race of its seed, but for
+/// black death: an agent that crashed reports zeros, reward 0 and no flag until the race ends,
+/// when every lane of it reports the end; the next step restarts every lane. Threads change
+/// nothing, and same-step autoreset keeps the ended lanes' last observations.
+#[test]
+fn lanes_are_the_races_agents_with_black_death_until_the_race_ends() {
+    let (cfg, track) = (RaceConfig::default(), generated());
+    let vector = |threads| {
+        RaceVector::new(track.clone(), &cfg, 2, 0.15, threads)
+            .unwrap()
+            .with_agents(2)
+            .unwrap()
+    };
+    let mut two = vector(2);
+    assert_eq!((two.len(), two.agents(), two.lanes()), (2, 2, 4));
+    let steps = 120;
+    let (obs, out) = run_agents(&mut two, steps);
+    assert_eq!(
+        run_agents(&mut vector(1), steps),
+        (obs.clone(), out.clone())
+    );
+    let dim = two.obs_dim();
+    let (row, lane) = (
+        |k: usize, l: usize| &obs[(k * 4 + l) * dim..][..dim],
+        |k: usize, l| out[k * 4 + l],
+    );
+    // race 1 (lanes 2, 3) against a lone race of seed 41 in the context it drew
+    let mut lone = RaceEnv::new(track.clone(), cfg.clone()).unwrap();
+    lone.set_agents(2).unwrap();
+    let first = lone.reset(41, lane(0, 2).context);
+    assert_eq!(first, row(0, 2));
+    assert_eq!(lone.observe_agent(1), row(0, 3));
+    let (mut crashed, mut black) = (false, 0);
+    let mut k = 1;
+    while !lone.is_finished() {
+        let step = lone.step_agents(&[[1.0, 1.0], [0.0, 0.3]]).unwrap();
+        for (i, s) in step.iter().enumerate() {
+            let o = lane(k, 2 + i);
+            assert_eq!(s.obs, row(k, 2 + i), "step {k} agent {i}");
+            assert_eq!(s.reward.to_bits(), o.reward.to_bits());
+        }
+        let ego = lane(k, 2);
+        if crashed && !lone.is_finished() {
+            assert!(
+                !ego.terminated && !ego.truncated && ego.reward == 0.0,
+                "{ego:?}"
+            );
+            assert!(row(k, 2).iter().all(|&v| v == 0.0));
+            black += 1;
+        }
+        crashed |= step[0].terminated;
+        if lone.is_finished() {
+            assert!((2..4).all(|l| lane(k, l).terminated || lane(k, l).truncated));
+        }
+        k += 1;
+    }
+    assert!(
+        crashed && black > 0,
+        "the ego crashed before the race ended: {black} steps"
+    );
+    // the step after the end restarts both lanes
+    assert!((2..4).all(|l| lane(k, l).reward == 0.0 && !lane(k, l).terminated));
+    assert!(k < steps, "the race ended within the run");
+
+    let mut same = vector(2).with_autoreset(Autoreset::SameStep);
+    let mut obs_same = vec![0.0; 4 * dim];
+    let mut out_same = vec![EnvOutcome::default(); 4];
+    same.reset(40, None, &mut obs_same, &mut out_same).unwrap();
+    let actions = [[1.0, 1.0], [0.0, 0.3], [1.0, 1.0], [0.0, 0.3]];
+    for j in 1..k {
+        same.step(&actions, &mut obs_same, &mut out_same).unwrap();
+        assert_eq!(out_same[2..], out[j * 4 + 2..j * 4 + 4]);
+    }
+    assert_eq!(
+        &same.final_obs()[2 * dim..],
+        &obs[((k - 1) * 4 + 2) * dim..][..2 * dim]
+    );
+    assert_eq!(&obs_same[2 * dim..], &obs[(k * 4 + 2) * dim..][..2 * dim]);
+}
+
+#[test]
+fn too_many_agents_for_the_race_are_refused() {
+    let vector = RaceVector::new(generated(), &RaceConfig::default(), 2, 0.15, 1).unwrap();
+    let err = vector.with_agents(3).err().unwrap().to_string();
+    assert!(err.contains("agent"), "{err}");
+}

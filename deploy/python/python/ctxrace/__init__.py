@@ -4,7 +4,7 @@ Gymnasium envs (``gymnasium.make("ctxrace/Race-v0", ...)``, ``gymnasium.make_vec
 evaluation protocol for any policy (`evaluate`); one race of any policy, drawn (`race`);
 trained agents' policies (`load_policy`), their ONNX models (`export_onnx`) and Python's for the
 command line (`save_mlp_policy`); multi-agent races as a PettingZoo ``ParallelEnv``
-(`parallel_env`); tracks (`ctxrace.tracks.list`, `ctxrace.tracks.download`); the vector env as
+(`parallel_env`) and vectorised in Rust (`make_agents_vec`); tracks (`ctxrace.tracks.list`, `ctxrace.tracks.download`); the vector env as
 Stable-Baselines3's ``VecEnv`` with episode statistics (`ctxrace.sb3.VecEnv`, imported on its
 own: ``import ctxrace.sb3`` needs SB3, ``import ctxrace`` does not)."""
 
@@ -13,7 +13,7 @@ import gymnasium
 from ctxrace import tracks
 from ctxrace._agents import RaceParallelEnv, parallel_env
 from ctxrace._ctxrace import __version__
-from ctxrace._env import OBS_MODES, RaceEnv, RaceVectorEnv, make_vec
+from ctxrace._env import OBS_MODES, RaceEnv, RaceVectorEnv, make_agents_vec, make_vec
 from ctxrace._evaluate import REFERENCE_POLICIES, Evaluation, evaluate
 from ctxrace._policy import TrainedPolicy, export_onnx, load_policy, save_mlp_policy
 from ctxrace._race import race
@@ -23,6 +23,7 @@ __all__ = [
     "RaceEnv",
     "RaceVectorEnv",
     "make_vec",
+    "make_agents_vec",
     "OBS_MODES",
     "evaluate",
     "Evaluation",

@@ -30,7 +30,8 @@ OUTCOME_COLUMNS: List[str]
 REFERENCE_POLICIES: List[str]
 
 class RaceVector:
-    """`num_envs` races stepped in Rust on worker threads."""
+    """`num_envs` races stepped in Rust on worker threads, `agents` cars of each driven from
+    Python (its rows: races x agents, race-major)."""
 
     def __init__(
         self,
@@ -43,9 +44,14 @@ class RaceVector:
         threads: int = 0,
         same_step: bool = False,
         record: bool = False,
+        agents: int = 1,
     ) -> None: ...
     @property
     def num_envs(self) -> int: ...
+    @property
+    def races(self) -> int: ...
+    @property
+    def agents(self) -> int: ...
     @property
     def obs_dim(self) -> int: ...
     @property

@@ -114,7 +114,8 @@ def render_metadata(render_fps: float) -> dict:
 
 class Races:
     """The extension's `RaceVector` with its outputs decoded into numpy arrays, recording each
-    env's race to draw it when `render_mode` is ``rgb_array``."""
+    env's race to draw it when `render_mode` is ``rgb_array``; with several `agents` a race,
+    its rows ("envs") are the races' agents, race-major."""
 
     def __init__(
         self,
@@ -129,6 +130,7 @@ class Races:
         same_step: bool,
         render_mode: Optional[str],
         obs_mode: str = "scan",
+        agents: int = 1,
     ):
         if obs_mode not in OBS_MODES:
             raise ValueError(
@@ -136,6 +138,7 @@ class Races:
             )
         self.obs_mode = obs_mode
         num_envs = count("num_envs", num_envs, 1)
+        agents = count("agents", agents, 1)
         threads = count("threads", threads, 0)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(
@@ -153,8 +156,11 @@ class Races:
             threads,
             same_step,
             render_mode is not None,
+            agents,
         )
-        self.num_envs = num_envs
+        #: Rows of observations, actions and outcomes: races x agents.
+        self.num_envs = self.inner.num_envs
+        self.races, self.agents = num_envs, agents
         self.obs_dim = self.inner.obs_dim
         #: The race scenario, every key resolved.
         self.race_config = json.loads(self.inner.race_config)
@@ -187,7 +193,7 @@ class Races:
 
     def reset(self, seed: int, contexts: Any = None):
         """Starts every env's next episode (see `RaceVectorEnv.reset`)."""
-        c = None if contexts is None else contexts_bytes(contexts, self.num_envs)
+        c = None if contexts is None else contexts_bytes(contexts, self.races)
         out = self.decode(*self.inner.reset(seed, c))
         self._started = True
         return out
@@ -205,8 +211,9 @@ class Races:
         return self.observation(scan, contexts, ended=True)
 
     def contexts(self) -> np.ndarray:
-        """Each env's current episode's context, ``(num_envs, 2)``."""
-        return np.frombuffer(self.inner.contexts(), dtype=np.float64).reshape(self.num_envs, 2)
+        """Each env's current episode's context, ``(num_envs, 2)`` (its race's)."""
+        races = np.frombuffer(self.inner.contexts(), dtype=np.float64).reshape(self.races, 2)
+        return races if self.agents == 1 else np.repeat(races, self.agents, axis=0)
 
     def render(self) -> Optional[list]:
         """Every env's race so far as ``(height, width, 3)`` uint8 pictures, the moments of
@@ -300,6 +307,15 @@ class RaceVectorEnv(PicklesAsMade, VectorEnv):
     reset seed ``S + i``, as ``ctxrace race --seed S + i`` does. Info arrays: ``context``,
     ``progress``, ``overtakes`` (this step's rank change), ``a2a``, ``wall_crash``.
     ``render_mode="rgb_array"``: ``render()`` draws every env's race as `RaceEnv.render` does.
+
+    Multi-agent (``agents`` > 1, as `make_agents_vec` makes it): each of the `num_envs` races
+    drives `agents` cars from Python (``car_0``, the ego, and the cars ahead of it on the grid,
+    on top of the `rivals` scripted ones) and the vector's envs are their agents, race-major:
+    ``self.num_envs`` is races x agents and env ``r * agents + i`` is ``car_i`` of race ``r``.
+    An agent that crashed before its race ended reports a zero observation, reward 0 and no
+    flag (SuperSuit's black death) until the race ends, when each of its agents' envs reports
+    terminated or truncated; the next step (or, under ``SAME_STEP``, that step) starts all of
+    them again. Contexts and ``reset(options={"context": ...})`` are per race (one row a race).
     """
 
     #: Frames a second at the default scenario's decision period; an env's own ``metadata``
@@ -319,6 +335,7 @@ class RaceVectorEnv(PicklesAsMade, VectorEnv):
         autoreset_mode: AutoresetMode = AutoresetMode.NEXT_STEP,
         render_mode: Optional[str] = None,
         obs_mode: str = "scan",
+        agents: int = 1,
         **race_keys: Any,
     ):
         self.remember(locals(), ("track", "num_envs"))
@@ -342,6 +359,7 @@ class RaceVectorEnv(PicklesAsMade, VectorEnv):
             self._same_step,
             render_mode,
             obs_mode,
+            agents,
         )
         self.render_mode = render_mode
         self.metadata = {**self.metadata, **self._races.metadata}
@@ -368,7 +386,7 @@ class RaceVectorEnv(PicklesAsMade, VectorEnv):
         return self._races
 
     def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
-        """Starts every env's next episode; ``options={"context": (num_envs, 2)}`` pins contexts."""
+        """Starts every env's next episode; ``options={"context": (races, 2)}`` pins contexts."""
         races = self._live()
         if seed is None and self._first_seed is not None:
             seed, self._first_seed = self._first_seed, None
@@ -552,3 +570,19 @@ def make_vec(
     and race keys as the TOML configs name them (``preset="paper-code"``,
     ``rival={"driver": "follow-the-gap"}``, ...)."""
     return RaceVectorEnv(track, num_envs, rivals, seed, tracks_dir, **kwargs)
+
+
+def make_agents_vec(
+    track: str,
+    races: int,
+    agents: int = 2,
+    rivals: int = 1,
+    seed: Optional[int] = None,
+    tracks_dir: Optional[os.PathLike] = None,
+    **kwargs: Any,
+) -> RaceVectorEnv:
+    """`races` multi-agent races on `track`, `agents` cars of each driven from Python beside
+    `rivals` scripted rivals, as one Gymnasium vector env of ``races x agents`` envs (see
+    `RaceVectorEnv`'s multi-agent form): `parallel_env` vectorised in Rust, for self-play and
+    populations. Keywords as `make_vec`'s."""
+    return RaceVectorEnv(track, races, rivals, seed, tracks_dir, agents=agents, **kwargs)
