@@ -9,11 +9,15 @@
 # the way (`[train] keep_best_at`) has each evaluated on the matrix's grid, KEPT_LAPS laps a
 # context, into <run>/eval-at-<N>/ before it is collected.
 #   deploy/campaign.sh docs/table2      # issue 55's table; docs/long: issue 56's long runs
+# A run in flight outlives a fresh checkout (where runs/ is gone) as RECORDS/inflight/<run>.tar.gz:
+#   deploy/campaign.sh docs/long --stash   # after stopping the campaign: each unfinished run's
+#                                          # folder at its resume point, to commit
+# and a campaign restores it before resuming the run; collecting the run deletes it.
 # Environment: JOBS [2]; CTXRACE_BIN [target/release/ctxrace]; CTXRACE_CONFIGS [configs/paper];
 # KEPT_LAPS [20]; CTXRACE_REPO: the repository [this script's].
 set -euo pipefail
 cd "${CTXRACE_REPO:-$(dirname "$0")/..}"
-RECORDS=${1:?usage: deploy/campaign.sh RECORDS (a folder holding plan.txt)}
+RECORDS=${1:?usage: deploy/campaign.sh RECORDS [--stash] (a folder holding plan.txt)}
 BIN=${CTXRACE_BIN:-target/release/ctxrace}
 JOBS=${JOBS:-2}
 CONFIGS=${CTXRACE_CONFIGS:-configs/paper}
@@ -27,13 +31,17 @@ one() {
     fi
     mkdir -p runs/.claims runs/logs
     mkdir "runs/.claims/$matrix-$name" 2> /dev/null || return 0
-    local log="runs/logs/$matrix-$name.log"
+    local log="runs/logs/$matrix-$name.log" stashed="$RECORDS/inflight/$matrix-$name.tar.gz"
+    if [[ ! -d $run && -f $stashed ]]; then
+        tar -xzf "$stashed" && echo "$(date -u +%FT%TZ) restored $stashed"
+    fi
     echo "$(date -u +%FT%TZ) start $arm ${rivals}r s$seed"
     # one collect at a time: reproduction.csv is read and rewritten
     if "$BIN" sweep "$CONFIGS/$matrix.toml" --out "runs/$matrix" --cores 1 --run "$name" \
         > "$log" 2>&1 && kept_evals "$run" >> "$log" 2>&1 \
         && flock runs/.collect.lock python3 docs/table2/table2.py collect "runs/$matrix" \
             "$arm" "$name" --into "$RECORDS" >> "$log" 2>&1; then
+        rm -f "$stashed"
         echo "$(date -u +%FT%TZ) done $arm ${rivals}r s$seed"
     else
         echo "$(date -u +%FT%TZ) FAILED $arm ${rivals}r s$seed: see $log"
@@ -55,6 +63,26 @@ kept_evals() {
 
 json_key() { python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))[sys.argv[2]])' "$@"; }
 
+# each planned run that is not collected and has a resume point, archived for a fresh checkout
+stash() {
+    local matrix=$1 arm=$2 algo=$3 rivals=$4 seed=$5
+    local name="$algo-f1_esp-${rivals}r-s$seed"
+    local run="runs/$matrix/$name"
+    if [[ -d $RECORDS/${rivals}r/$arm/seed$seed/checkpoints || ! -d $run/resume ]]; then
+        return 0
+    fi
+    mkdir -p "$RECORDS/inflight"
+    tar -czf "$RECORDS/inflight/$matrix-$name.tar.gz" "$run" "runs/$matrix/configs/$name.toml"
+    echo "stashed $run: $(du -h "$RECORDS/inflight/$matrix-$name.tar.gz" | cut -f1)"
+}
+
 export -f one kept_evals json_key
+if [[ ${2:-} == --stash ]]; then
+    grep -v '^#' "$RECORDS/plan.txt" | grep . | while read -r line; do
+        # shellcheck disable=SC2086  # a plan line's fields
+        stash $line
+    done
+    exit 0
+fi
 export BIN CONFIGS RECORDS KEPT_LAPS
 grep -v '^#' "$RECORDS/plan.txt" | grep . | xargs -P "$JOBS" -L 1 bash -c 'one "$@"' _
