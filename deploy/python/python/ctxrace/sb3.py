@@ -2,9 +2,10 @@
 episode's statistics in its info as SB3's ``VecMonitor`` writes them, so that SB3's logger shows
 ``rollout/ep_rew_mean`` without a wrapper.
 
-Needs Stable-Baselines3 (``pip install stable-baselines3``, which needs torch; a CPU-only torch
-is enough: ``pip install torch --index-url https://download.pytorch.org/whl/cpu`` first, where
-PyPI's default wheel pulls about 3 GB of CUDA libraries). ``import ctxrace`` imports neither."""
+Needs Stable-Baselines3 (``pip install stable-baselines3``, or the package's extra ``sb3``),
+which needs torch; a CPU-only torch is enough: ``pip install torch --index-url
+https://download.pytorch.org/whl/cpu`` first, where PyPI's default wheel pulls about 3 GB of
+CUDA libraries. ``import ctxrace`` imports neither."""
 
 from __future__ import annotations
 
