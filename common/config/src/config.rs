@@ -66,6 +66,8 @@ pub const MAX_STEER_DELAY: usize = 100;
 pub const MAX_PLAUSIBLE_SPEED: f64 = 100.0;
 /// The longest distance a race config may give a lookahead, a scan or a grid gap (m).
 pub const MAX_LOOKAHEAD: f64 = 200.0;
+/// Most rivals a race holds (the start grid's cars besides the ego).
+pub const MAX_RIVALS: usize = 7;
 
 /// Why a race configuration is refused: each names the key, its value and how to fix it.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
@@ -99,7 +101,7 @@ pub enum RaceConfigError {
     #[error("step_reward_floor = {0} must be a number (leave it out for none)")]
     StepRewardFloor(f64),
     /// More rivals than a race holds.
-    #[error("rivals = {0} must be 0 to 7")]
+    #[error("rivals = {0} must be 0 to {MAX_RIVALS}")]
     Rivals(usize),
     /// `[rival] driver = "policy"` without the agent to drive.
     #[error(
@@ -561,7 +563,7 @@ impl RaceConfig {
                 return Err(RaceConfigError::StepRewardFloor(floor));
             }
         }
-        if self.rivals > 7 {
+        if self.rivals > MAX_RIVALS {
             return Err(RaceConfigError::Rivals(self.rivals));
         }
         match (self.rival.driver, &self.rival.policy) {

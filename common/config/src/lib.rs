@@ -23,7 +23,7 @@ pub use agents::{
 pub use batch::{Batch, BatchError, BatchSpec, SequenceBatch, TransitionBatch};
 pub use config::{
     CrashedRivals, GridLine, Integrator, LidarConfig, RaceConfig, RaceConfigError, RacePreset,
-    RivalContacts, StartGrid, WallContact, MAX_OBS,
+    RivalContacts, StartGrid, WallContact, MAX_OBS, MAX_RIVALS,
 };
 pub use context::{Context, ContextError};
 pub use experiment::{ExperimentConfig, ExperimentError, SupervisorConfig, TrainConfig};

@@ -5,7 +5,7 @@
 //! ([`crate::vector::OUTCOME_COLUMNS`]) per agent, as bytes.
 
 use crate::vector::row;
-use crate::{bytes_of, load_track, pairs, race_config, BindError};
+use crate::{bytes_of, load_track, pairs, race_config, with_agents, BindError};
 use ctxrace_config::Context;
 use ctxrace_render::race::{moment_rgb, race_title, Frame};
 use ctxrace_sim::vector::{first_context, EnvOutcome, VectorError};
@@ -78,11 +78,7 @@ impl PyRaceAgents {
         context_range: f64,
         record: bool,
     ) -> PyResult<Self> {
-        let mut cfg = race_config(config, race_keys)?;
-        if agents == 0 {
-            return Err(BindError::Argument("agents must be at least 1, not 0".into()).into());
-        }
-        cfg.rivals += agents - 1;
+        let cfg = with_agents(race_config(config, race_keys)?, agents)?;
         if !(0.0..=ctxrace_config::context::CONTEXT_LIMIT).contains(&context_range) {
             return Err(BindError::from(VectorError::ContextRange(context_range)).into());
         }

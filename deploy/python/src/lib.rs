@@ -114,6 +114,28 @@ fn race_config(config: Option<PathBuf>, keys_json: &str) -> Result<RaceConfig> {
     ))?)
 }
 
+/// `cfg` with `agents` cars driven from Python besides its scripted rivals (the ego and the
+/// `agents - 1` cars ahead of it on the grid: its `rivals` then count every car but the ego),
+/// or the error naming both counts where the grid has too few places.
+fn with_agents(mut cfg: RaceConfig, agents: usize) -> Result<RaceConfig> {
+    let most = ctxrace_config::MAX_RIVALS + 1;
+    if agents == 0 {
+        return Err(BindError::Argument(
+            "agents must be at least 1, not 0".into(),
+        ));
+    }
+    if agents + cfg.rivals > most {
+        return Err(BindError::Argument(format!(
+            "agents = {agents} and rivals = {} make {} cars where a race holds {most}: \
+             agents + rivals must be at most {most}",
+            cfg.rivals,
+            agents + cfg.rivals
+        )));
+    }
+    cfg.rivals += agents - 1;
+    Ok(cfg)
+}
+
 /// A JSON object of race keys (`null`s: keys not given, left out) as a TOML table.
 fn keys_table(keys_json: &str) -> Result<toml::Table> {
     let json: serde_json::Value =

@@ -3,7 +3,7 @@
 //! outcomes as bytes. Made to record, it keeps every env's episode so far and draws it as
 //! `ctxrace race --render race.gif` draws a moment ([`moment_rgb`]).
 
-use crate::{bytes_of, load_track, pairs, race_config, BindError, Result};
+use crate::{bytes_of, load_track, pairs, race_config, with_agents, BindError, Result};
 use ctxrace_config::Context;
 use ctxrace_render::race::{moment_rgb, race_title, render_race, Frame};
 use ctxrace_sim::vector::{Autoreset, EnvOutcome, RaceVector};
@@ -129,8 +129,7 @@ impl PyRaceVector {
         record: bool,
         agents: usize,
     ) -> PyResult<Self> {
-        let mut cfg = race_config(config, race_keys)?;
-        cfg.rivals += agents.saturating_sub(1);
+        let cfg = with_agents(race_config(config, race_keys)?, agents)?;
         let track = load_track(track, tracks_dir, &cfg)?;
         let autoreset = match same_step {
             true => Autoreset::SameStep,

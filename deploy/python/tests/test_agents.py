@@ -80,8 +80,10 @@ def test_bad_arguments_raise_naming_them():
         ctxrace.parallel_env(TRACK, agents=0)
     with pytest.raises(ValueError, match="obs_mode"):
         ctxrace.parallel_env(TRACK, obs_mode="pixels")
-    with pytest.raises(ValueError, match="must be 0 to 7"):
+    with pytest.raises(ValueError, match="agents = 5 and rivals = 4 make 9 cars where a race holds 8"):
         ctxrace.parallel_env(TRACK, agents=5, rivals=4)
+    with pytest.raises(ValueError, match="agents = 9 and rivals = 1 make 10 cars"):
+        ctxrace.make_agents_vec(TRACK, 2, agents=9)
     env = ctxrace.parallel_env(TRACK)
     env.reset(seed=0)
     with pytest.raises(KeyError, match="car_9"):
