@@ -12,20 +12,30 @@ fn generated() -> Arc<Track> {
     Arc::new(Track::load("generated:1", &TrackOptions::default()).unwrap())
 }
 
-/// Steps `vector` with a fixed action per env `steps` times; returns every observation and outcome.
-fn run(vector: &mut RaceVector, steps: usize) -> (Vec<f32>, Vec<EnvOutcome>) {
-    let n = vector.len();
-    let mut obs = vec![0.0; n * vector.obs_dim()];
-    let mut out = vec![EnvOutcome::default(); n];
-    let (mut all_obs, mut all_out) = (Vec::new(), Vec::new());
-    vector.reset(5, None, &mut obs, &mut out).unwrap();
-    let actions: Vec<[f64; 2]> = (0..n).map(|i| [0.1 * i as f64 - 0.2, 0.8]).collect();
+/// Resets `vector` from `seed` and steps it `steps` times with `actions` (one per lane); every
+/// observation and outcome, the reset's first.
+fn run(
+    vector: &mut RaceVector,
+    seed: u64,
+    actions: &[[f64; 2]],
+    steps: usize,
+) -> (Vec<f32>, Vec<EnvOutcome>) {
+    let lanes = vector.lanes();
+    let mut obs = vec![0.0; lanes * vector.obs_dim()];
+    let mut out = vec![EnvOutcome::default(); lanes];
+    vector.reset(seed, None, &mut obs, &mut out).unwrap();
+    let (mut all_obs, mut all_out) = (obs.clone(), out.clone());
     for _ in 0..steps {
-        vector.step(&actions, &mut obs, &mut out).unwrap();
+        vector.step(actions, &mut obs, &mut out).unwrap();
         all_obs.extend_from_slice(&obs);
         all_out.extend_from_slice(&out);
     }
     (all_obs, all_out)
+}
+
+/// A steady action per env, each steering differently at 80% speed.
+fn steady(envs: usize) -> Vec<[f64; 2]> {
+    (0..envs).map(|i| [0.1 * i as f64 - 0.2, 0.8]).collect()
 }
 
 #[test]
@@ -70,8 +80,8 @@ fn threads_change_nothing_and_ended_episodes_reset_on_the_next_step() {
     let track = generated();
     let mut one = RaceVector::new(track.clone(), &cfg, 5, 0.15, 1).unwrap();
     let mut two = RaceVector::new(track, &cfg, 5, 0.15, 2).unwrap();
-    let (obs_one, out_one) = run(&mut one, 80);
-    let (obs_two, out_two) = run(&mut two, 80);
+    let (obs_one, out_one) = run(&mut one, 5, &steady(5), 80);
+    let (obs_two, out_two) = run(&mut two, 5, &steady(5), 80);
     assert_eq!(obs_one, obs_two);
     assert_eq!(out_one, out_two);
     // full speed at a steady steering angle ends in a wall well within 80 decisions
@@ -148,27 +158,6 @@ fn bad_calls_are_refused_and_step_nothing() {
     assert!(RaceVector::new(generated(), &RaceConfig::default(), 1, 1.5, 1).is_err());
 }
 
-/// Steps `vector` (2 agents a race) with the ego at full right lock and full speed (into the
-/// wall) and the other agent straight at 30% speed, `steps` times; every observation and outcome.
-fn run_agents(vector: &mut RaceVector, steps: usize) -> (Vec<f32>, Vec<EnvOutcome>) {
-    let lanes = vector.lanes();
-    let mut obs = vec![0.0; lanes * vector.obs_dim()];
-    let mut out = vec![EnvOutcome::default(); lanes];
-    let (mut all_obs, mut all_out) = (Vec::new(), Vec::new());
-    vector.reset(40, None, &mut obs, &mut out).unwrap();
-    all_obs.extend_from_slice(&obs);
-    all_out.extend_from_slice(&out);
-    let actions: Vec<[f64; 2]> = (0..lanes)
-        .map(|i| if i % 2 == 0 { [1.0, 1.0] } else { [0.0, 0.3] })
-        .collect();
-    for _ in 0..steps {
-        vector.step(&actions, &mut obs, &mut out).unwrap();
-        all_obs.extend_from_slice(&obs);
-        all_out.extend_from_slice(&out);
-    }
-    (all_obs, all_out)
-}
-
 /// With two agents a race, each race's lanes are a lone two-agent race of its seed, but for
 /// black death: an agent that crashed reports zeros, reward 0 and no flag until the race ends,
 /// when every lane of it reports the end; the next step restarts every lane. Threads change
@@ -184,12 +173,12 @@ fn lanes_are_the_races_agents_with_black_death_until_the_race_ends() {
     };
     let mut two = vector(2);
     assert_eq!((two.len(), two.agents(), two.lanes()), (2, 2, 4));
+    // the ego at full right lock and full speed (into the wall), the other agent straight
+    let actions = [[1.0, 1.0], [0.0, 0.3], [1.0, 1.0], [0.0, 0.3]];
     let steps = 120;
-    let (obs, out) = run_agents(&mut two, steps);
-    assert_eq!(
-        run_agents(&mut vector(1), steps),
-        (obs.clone(), out.clone())
-    );
+    let (obs, out) = run(&mut two, 40, &actions, steps);
+    let again = run(&mut vector(1), 40, &actions, steps);
+    assert_eq!(again, (obs.clone(), out.clone()));
     let dim = two.obs_dim();
     let (row, lane) = (
         |k: usize, l: usize| &obs[(k * 4 + l) * dim..][..dim],
@@ -237,7 +226,6 @@ fn lanes_are_the_races_agents_with_black_death_until_the_race_ends() {
     let mut obs_same = vec![0.0; 4 * dim];
     let mut out_same = vec![EnvOutcome::default(); 4];
     same.reset(40, None, &mut obs_same, &mut out_same).unwrap();
-    let actions = [[1.0, 1.0], [0.0, 0.3], [1.0, 1.0], [0.0, 0.3]];
     for j in 1..k {
         same.step(&actions, &mut obs_same, &mut out_same).unwrap();
         assert_eq!(out_same[2..], out[j * 4 + 2..j * 4 + 4]);
