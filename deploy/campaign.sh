@@ -9,9 +9,10 @@
 # the way (`[train] keep_best_at`) has each evaluated on the matrix's grid, KEPT_LAPS laps a
 # context, into <run>/eval-at-<N>/ before it is collected.
 #   deploy/campaign.sh docs/table2      # issue 55's table; docs/long: issue 56's long runs
-# A run in flight outlives a fresh checkout (where runs/ is gone) as RECORDS/inflight/<run>.tar.gz:
+# A run in flight can be archived as RECORDS/inflight/<run>.tar.gz (ignored by git: a run folder
+# is generated output) to carry it to a machine or checkout without its runs/:
 #   deploy/campaign.sh docs/long --stash   # after stopping the campaign: each unfinished run's
-#                                          # folder at its resume point, to commit
+#                                          # folder at its resume point
 # and a campaign restores it before resuming the run; collecting the run deletes it.
 # Environment: JOBS [2]; CTXRACE_BIN [target/release/ctxrace]; CTXRACE_CONFIGS [configs/paper];
 # KEPT_LAPS [20]; CTXRACE_REPO: the repository [this script's].
