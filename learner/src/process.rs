@@ -57,7 +57,7 @@ pub enum ProcessError {
 
 /// Writes the transport counters of this learner start, which began at gradient step
 /// `started_at` ([`LEARNER_STATUS`]): batches trained on, requests sent again unanswered,
-/// refused by the replay and answers rejected (by reason), episode reports rejected.
+/// request publishers renewed, requests refused by the replay and answers rejected (by reason), episode reports rejected.
 fn write_status(
     run_dir: &Path,
     started_at: u64,
@@ -71,6 +71,7 @@ fn write_status(
         "grad_steps": grad_steps,
         "batches": batches,
         "batch_requests_resent": replay.resent(),
+        "request_publishers_renewed": replay.publishers_renewed(),
         "refused_by_replay": named_reasons(&replay.refused_by_reason()),
         "answers_rejected": named_reasons(&replay.rejected_by_reason()),
         "episode_reports_rejected": named_reasons(&episodes.rejected_by_reason()),

@@ -102,9 +102,9 @@ fn one_actor_at_half_a_sample_per_insert(
     }
 }
 
-/// Pushes `steps` steps in episodes of 100, step `k` observing `[0, k, 0]`.
-fn push_episodes(tx: &mut TrajectorySender, steps: u64) {
-    for k in 0..steps {
+/// Pushes the steps `steps` of episodes of 100, step `k` observing `[0, k, 0]`.
+fn push_episodes(tx: &mut TrajectorySender, steps: std::ops::Range<u64>) {
+    for k in steps {
         let step = TrajectoryStep {
             obs: &[0.0, k as f32, 0.0],
             action: &[0.0, 0.0],
@@ -303,7 +303,7 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
     };
     let t = RunTransport::open(&prefix, 1, "actor0", &key()).unwrap();
     let mut tx = TrajectorySender::new(&t, 0, OBS, ACT, SenderOptions::default()).unwrap();
-    push_episodes(&mut tx, 600);
+    push_episodes(&mut tx, 0..600);
     let mut client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(10)).unwrap();
     // the ratio's window is 2 · 0.5 · 100 = 100 samples: a request for 101 can never be
     // served; it is rejected and counted instead of blocking the queue
@@ -350,6 +350,59 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
     assert_eq!(status.rejected, 1);
 }
 
+/// A request held past the renewal time goes out again from a new publisher, the old one
+/// dropped (a damaged publisher's requests may never be readable): the replay takes the copy as
+/// the duplicate it is, serves the held request once inserts allow it, and serves the next
+/// request, which only the new publisher can have sent.
+#[test]
+fn a_request_unanswered_for_long_is_sent_again_from_a_new_publisher() {
+    let isolated = Isolated::new("renew");
+    let prefix = isolated.0.clone();
+    let args = one_actor_at_half_a_sample_per_insert(&prefix, u64::MAX, None);
+    let control = Arc::new(ReplayControl::default());
+    let replay = {
+        let (a, c) = (args.clone(), control.clone());
+        thread::spawn(move || run(&a, &key(), &c))
+    };
+    let t = RunTransport::open(&prefix, 1, "actor0", &key()).unwrap();
+    let mut tx = TrajectorySender::new(&t, 0, OBS, ACT, SenderOptions::default()).unwrap();
+    push_episodes(&mut tx, 0..600);
+    let resend = ctxrace_ipc::RESEND_AFTER;
+    let mut client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(10))
+        .unwrap()
+        .with_renew_after(resend);
+    let spec = BatchSpec::Transition {
+        batch: 50,
+        frames: 1,
+        reward_delay: 0,
+    };
+    let wait = Duration::from_millis(500);
+    let mut batches = 0;
+    while client.next_batch(spec, wait).unwrap().is_some() {
+        batches += 1;
+        assert!(batches < 100, "the limiter let too much through");
+    }
+    // held by the limiter: sent again twice, each time from a new publisher
+    assert!(client
+        .next_batch(spec, 2 * resend + wait)
+        .unwrap()
+        .is_none());
+    assert_eq!((client.resent(), client.publishers_renewed()), (2, 2));
+    // inserts for two more batches: the held request's and the next one's
+    push_episodes(&mut tx, 600..800);
+    for _ in 0..2 {
+        let batch = client.next_batch(spec, Duration::from_secs(10)).unwrap();
+        assert!(batch.is_some(), "no answer after the publisher was renewed");
+        batches += 1;
+    }
+    drop(tx);
+    control.shutdown.store(true, Ordering::Release);
+    let status = replay.join().unwrap().unwrap();
+    // every batch served once: 800 inserts allow 0.5·800 - 50 = 350 samples, 7 batches
+    assert_eq!((status.inserted, status.sampled, batches), (800, 350, 7));
+    assert_eq!((status.pending_requests, status.rejected), (0, 0));
+}
+
 /// The replay stores the run's env-step budget and no more: the steps past it wait at the actor
 /// until the replay stops, which takes them and counts them as surplus, by actor; meanwhile the
 /// learner takes its batches without waiting for inserts.
@@ -369,7 +422,7 @@ fn the_replay_stores_the_budget_counts_the_surplus_and_lets_the_learner_finish()
     let t = RunTransport::open(&prefix, 1, "actor0", &key()).unwrap();
     let mut tx = TrajectorySender::new(&t, 0, OBS, ACT, SenderOptions::default()).unwrap();
     // more than the replay's queue holds: the rest waits in the actor's backlog
-    push_episodes(&mut tx, 2000);
+    push_episodes(&mut tx, 0..2000);
     let mut client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(10)).unwrap();
     let spec = BatchSpec::Transition {
         batch: 50,

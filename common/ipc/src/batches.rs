@@ -35,6 +35,13 @@ use std::time::{Duration, Instant};
 /// request lost on the way, or rejected as malformed, is sent again after this.
 pub const RESEND_AFTER: Duration = Duration::from_secs(2);
 
+/// How long a request may stay unanswered before the client sends it from a new publisher. A
+/// publisher whose shared memory was damaged (its allocator's state hit) can send, for good,
+/// samples the replay rejects as unreadable; a new publisher has a segment of its own. A replay
+/// that merely held the request that long (its rate limiter) takes the new copy as the
+/// duplicate it is.
+pub const RENEW_PUBLISHER_AFTER: Duration = Duration::from_secs(30);
+
 /// A request sent and not answered yet.
 #[derive(Clone, Copy, Debug)]
 struct Outstanding {
@@ -69,6 +76,10 @@ pub struct ReplayClient {
     hold: Option<(BatchSpec, Instant)>,
     next_id: u64,
     resent: u64,
+    /// When the outstanding request was first sent, or its publisher last renewed.
+    unanswered_since: Option<Instant>,
+    renew_after: Duration,
+    renewed: u64,
     rejects: RejectLog,
     refusals: RejectLog,
 }
@@ -111,9 +122,19 @@ impl ReplayClient {
             hold: None,
             next_id: 0,
             resent: 0,
+            unanswered_since: None,
+            renew_after: RENEW_PUBLISHER_AFTER,
+            renewed: 0,
             rejects: RejectLog::new("batch"),
             refusals: RejectLog::new("batch request (the replay refused it)"),
         })
+    }
+
+    /// Renews the request publisher after `after` without an answer instead of
+    /// [`RENEW_PUBLISHER_AFTER`].
+    pub fn with_renew_after(mut self, after: Duration) -> Self {
+        self.renew_after = after;
+        self
     }
 
     /// The next batch of `spec`, waiting up to `timeout`; `None` on timeout (the request stays
@@ -183,11 +204,13 @@ impl ReplayClient {
                 match copy {
                     Ok(Answer::Batch(batch)) => {
                         self.outstanding = None;
+                        self.unanswered_since = None;
                         hook(ReadStage::Validated);
                         return Ok(Some(*batch));
                     }
                     Ok(Answer::Refused(reason)) => {
                         self.outstanding = None;
+                        self.unanswered_since = None;
                         let why = REASONS[reason];
                         self.refusals
                             .note(reason, &format!("request {}: {why}", header.request_id));
@@ -236,6 +259,10 @@ impl ReplayClient {
                             self.resent
                         );
                     }
+                    let since = self.unanswered_since.get_or_insert(o.sent);
+                    if now.saturating_duration_since(*since) >= self.renew_after {
+                        self.renew_publisher(o.id, now)?;
+                    }
                     self.send(o.id, spec)?;
                 }
             }
@@ -243,8 +270,30 @@ impl ReplayClient {
             _ => {
                 let id = self.next_id;
                 self.next_id += 1;
+                self.unanswered_since = Some(now);
                 self.send(id, spec)?;
             }
+        }
+        Ok(())
+    }
+
+    /// Replaces the request publisher by a new one (request `id` has gone unanswered for
+    /// `renew_after`), dropping the old one once the new one exists.
+    fn renew_publisher(&mut self, id: u64, now: Instant) -> Result<()> {
+        self.requests = self
+            .request_service
+            .publisher_builder()
+            .create()
+            .map_err(ice("request publisher"))?;
+        self.renewed += 1;
+        self.unanswered_since = Some(now);
+        if self.renewed <= 10 || self.renewed.is_multiple_of(100) {
+            tracing::info!(
+                "batch request {id} unanswered for {:?}: sent from a new publisher ({} so far; \
+                 the replay may have been unable to read the old one's shared memory)",
+                self.renew_after,
+                self.renewed
+            );
         }
         Ok(())
     }
@@ -301,6 +350,11 @@ impl ReplayClient {
     /// Requests sent again after [`RESEND_AFTER`] without an answer.
     pub fn resent(&self) -> u64 {
         self.resent
+    }
+
+    /// Request publishers replaced after [`RENEW_PUBLISHER_AFTER`] without an answer.
+    pub fn publishers_renewed(&self) -> u64 {
+        self.renewed
     }
 }
 

@@ -66,7 +66,7 @@ mod transport;
 mod weights;
 pub mod wire;
 
-pub use batches::{BatchServer, ReplayClient, RESEND_AFTER};
+pub use batches::{BatchServer, ReplayClient, RENEW_PUBLISHER_AFTER, RESEND_AFTER};
 pub use bounds::RunBounds;
 pub use ctxrace_config::replay::DEFAULT_MAX_BATCH_FLOATS;
 pub use ctxrace_run::steps::TrajectoryStep;
