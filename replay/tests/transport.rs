@@ -291,19 +291,33 @@ fn a_stuck_replay_does_not_freeze_the_actor() {
     assert_eq!(report.alive_nodes, 0);
 }
 
-#[test]
-fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
-    let isolated = Isolated::new("ratio");
-    let prefix = isolated.0.clone();
-    let args = one_actor_at_half_a_sample_per_insert(&prefix, u64::MAX, None);
+/// A replay at half a sample per insert, unbounded, on a thread of its own prefix (`name`), and
+/// an actor's sender that has pushed it 600 steps.
+fn limited_replay(
+    name: &str,
+) -> (
+    Isolated,
+    Arc<ReplayControl>,
+    thread::JoinHandle<Result<ctxrace_ipc::ReplayStatus, ctxrace_replay::ReplayError>>,
+    RunTransport,
+    TrajectorySender,
+) {
+    let isolated = Isolated::new(name);
+    let args = one_actor_at_half_a_sample_per_insert(&isolated.0, u64::MAX, None);
     let control = Arc::new(ReplayControl::default());
     let replay = {
-        let (a, c) = (args.clone(), control.clone());
-        thread::spawn(move || run(&a, &key(), &c))
+        let c = control.clone();
+        thread::spawn(move || run(&args, &key(), &c))
     };
-    let t = RunTransport::open(&prefix, 1, "actor0", &key()).unwrap();
+    let t = RunTransport::open(&isolated.0, 1, "actor0", &key()).unwrap();
     let mut tx = TrajectorySender::new(&t, 0, OBS, ACT, SenderOptions::default()).unwrap();
     push_episodes(&mut tx, 0..600);
+    (isolated, control, replay, t, tx)
+}
+
+#[test]
+fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
+    let (_isolated, control, replay, t, tx) = limited_replay("ratio");
     let mut client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(10)).unwrap();
     // the ratio's window is 2 · 0.5 · 100 = 100 samples: a request for 101 can never be
     // served; it is rejected and counted instead of blocking the queue
@@ -356,17 +370,7 @@ fn the_rate_limiter_holds_the_samples_per_insert_ratio() {
 /// request, which only the new publisher can have sent.
 #[test]
 fn a_request_unanswered_for_long_is_sent_again_from_a_new_publisher() {
-    let isolated = Isolated::new("renew");
-    let prefix = isolated.0.clone();
-    let args = one_actor_at_half_a_sample_per_insert(&prefix, u64::MAX, None);
-    let control = Arc::new(ReplayControl::default());
-    let replay = {
-        let (a, c) = (args.clone(), control.clone());
-        thread::spawn(move || run(&a, &key(), &c))
-    };
-    let t = RunTransport::open(&prefix, 1, "actor0", &key()).unwrap();
-    let mut tx = TrajectorySender::new(&t, 0, OBS, ACT, SenderOptions::default()).unwrap();
-    push_episodes(&mut tx, 0..600);
+    let (_isolated, control, replay, t, mut tx) = limited_replay("renew");
     let resend = ctxrace_ipc::RESEND_AFTER;
     let mut client = ReplayClient::new(&t, OBS, ACT, Duration::from_secs(10))
         .unwrap()
