@@ -144,6 +144,12 @@ def analyse():
             contexts = table2.read_csv(ev / "contexts.csv")
             races.append({"rivals": rivals, "arm": arm, "seed": seed, "env_steps": steps,
                           "told": "truth", **table2.split_values(contexts)})
+            if (ev / "mask_episodes.csv").is_file():
+                observed, shuffled, means = table2.mask_stats(
+                    table2.read_csv(ev / "mask_episodes.csv"), rng, SHUFFLES)
+                at_evals.append({"rivals": rivals, "arm": arm, "seed": seed, "env_steps": steps,
+                                 **means, **{f"{k}_excess": observed[k] - shuffled[k]
+                                             for k in observed}})
         # the final best policy's context ablation: told zeros or another context, fixed masks
         for told in sorted(p for p in (folder / "ablation").glob("*") if p.is_dir()):
             if (told / "contexts.csv").is_file():
@@ -151,12 +157,6 @@ def analyse():
                               "env_steps": max(evaluations(folder), default=0),
                               "told": told.name,
                               **table2.split_values(table2.read_csv(told / "contexts.csv"))})
-            if (ev / "mask_episodes.csv").is_file():
-                observed, shuffled, means = table2.mask_stats(
-                    table2.read_csv(ev / "mask_episodes.csv"), rng, SHUFFLES)
-                at_evals.append({"rivals": rivals, "arm": arm, "seed": seed, "env_steps": steps,
-                                 **means, **{f"{k}_excess": observed[k] - shuffled[k]
-                                             for k in observed}})
     if not training and not races:
         sys.exit(f"no runs under {HERE}/<R>r/<arm>/seed<S>/: run deploy/campaign.sh docs/long")
     verdicts = []
@@ -181,7 +181,7 @@ def analyse():
         md.append(f"- {name}: alpha below 0.5 from gradient step "
                   f"{first_below(rows, 'alpha', 0.5)}, below 0.2 from {first_below(rows, 'alpha', 0.2)}")
     md += ["", "## M1: does the mask depend on the context? (MI excess over the shuffled "
-           "baseline, bits; 3-seed mean, t interval)", "",
+           "baseline, bits; mean over seeds, t interval)", "",
            "| rivals | arm | env steps | component | seeds | MI excess | t 95% | verdict |",
            "|--:|---|--:|---|--:|--:|---|---|"]
     for v in verdicts:
