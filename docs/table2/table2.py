@@ -527,7 +527,8 @@ def cell(cells, rng, hyp, label, rivals, split, a, b, direction, margin, kind="o
 
 def hypotheses(runs, rng, cm="cmask"):
     """The cells of H1-H5 and H8, with the arm `cm` as cMask; for another arm than `cmask`, only
-    the cells that compare it."""
+    the cells that compare it, at the rival counts it was raced at. (Every cell is computed
+    first, so that the bootstrap's draws, and every later interval, do not depend on which.)"""
     cells = []
     get = lambda rivals, algo, key: [r[key] for r in runs.get((rivals, algo), [])]
     ratio = lambda rivals, algo: [(r["pg_out"] - r["pg_in"]) / r["pg_in"] for r in runs.get((rivals, algo), [])]
@@ -567,7 +568,7 @@ def hypotheses(runs, rng, cm="cmask"):
                 cell(cells, rng, "H8", f"OT(DreamerV3) - OT({NAMES[algo]})", rivals, split,
                      get(rivals, algo, f"ot_{split}"), get(rivals, "dreamerv3", f"ot_{split}"), +1, 0.05)
     if cm != "cmask":
-        cells = [c for c in cells if NAMES[cm] in c["comparison"]]
+        cells = [c for c in cells if NAMES[cm] in c["comparison"] and runs.get((c["rivals"], cm))]
     return cells
 
 
