@@ -57,7 +57,8 @@ pub enum ProcessError {
 
 /// Writes the transport counters of this learner start, which began at gradient step
 /// `started_at` ([`LEARNER_STATUS`]): batches trained on, requests sent again unanswered,
-/// request publishers renewed, requests refused by the replay and answers rejected (by reason), episode reports rejected.
+/// request publishers renewed, requests refused by the replay and answers rejected (by reason),
+/// episode reports rejected.
 fn write_status(
     run_dir: &Path,
     started_at: u64,

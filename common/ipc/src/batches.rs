@@ -48,6 +48,9 @@ struct Outstanding {
     id: u64,
     spec: BatchSpec,
     sent: Instant,
+    /// When this request was first sent, or its publisher last renewed: it has gone
+    /// unanswered since.
+    quiet_since: Instant,
 }
 
 /// What the replay answered.
@@ -76,8 +79,6 @@ pub struct ReplayClient {
     hold: Option<(BatchSpec, Instant)>,
     next_id: u64,
     resent: u64,
-    /// When the outstanding request was first sent, or its publisher last renewed.
-    unanswered_since: Option<Instant>,
     renew_after: Duration,
     renewed: u64,
     rejects: RejectLog,
@@ -122,7 +123,6 @@ impl ReplayClient {
             hold: None,
             next_id: 0,
             resent: 0,
-            unanswered_since: None,
             renew_after: RENEW_PUBLISHER_AFTER,
             renewed: 0,
             rejects: RejectLog::new("batch"),
@@ -204,13 +204,11 @@ impl ReplayClient {
                 match copy {
                     Ok(Answer::Batch(batch)) => {
                         self.outstanding = None;
-                        self.unanswered_since = None;
                         hook(ReadStage::Validated);
                         return Ok(Some(*batch));
                     }
                     Ok(Answer::Refused(reason)) => {
                         self.outstanding = None;
-                        self.unanswered_since = None;
                         let why = REASONS[reason];
                         self.refusals
                             .note(reason, &format!("request {}: {why}", header.request_id));
@@ -259,9 +257,8 @@ impl ReplayClient {
                             self.resent
                         );
                     }
-                    let since = self.unanswered_since.get_or_insert(o.sent);
-                    if now.saturating_duration_since(*since) >= self.renew_after {
-                        self.renew_publisher(o.id, now)?;
+                    if now.saturating_duration_since(o.quiet_since) >= self.renew_after {
+                        self.renew_publisher(o.id)?;
                     }
                     self.send(o.id, spec)?;
                 }
@@ -270,7 +267,6 @@ impl ReplayClient {
             _ => {
                 let id = self.next_id;
                 self.next_id += 1;
-                self.unanswered_since = Some(now);
                 self.send(id, spec)?;
             }
         }
@@ -278,15 +274,18 @@ impl ReplayClient {
     }
 
     /// Replaces the request publisher by a new one (request `id` has gone unanswered for
-    /// `renew_after`), dropping the old one once the new one exists.
-    fn renew_publisher(&mut self, id: u64, now: Instant) -> Result<()> {
+    /// `renew_after`), dropping the old one once the new one exists. The request's quiet time
+    /// counts again from its next sending.
+    fn renew_publisher(&mut self, id: u64) -> Result<()> {
         self.requests = self
             .request_service
             .publisher_builder()
             .create()
             .map_err(ice("request publisher"))?;
         self.renewed += 1;
-        self.unanswered_since = Some(now);
+        if let Some(o) = &mut self.outstanding {
+            o.quiet_since = Instant::now();
+        }
         if self.renewed <= 10 || self.renewed.is_multiple_of(100) {
             tracing::info!(
                 "batch request {id} unanswered for {:?}: sent from a new publisher ({} so far; \
@@ -298,7 +297,8 @@ impl ReplayClient {
         Ok(())
     }
 
-    /// Sends request `id` for `spec`; it is outstanding if a replay received it.
+    /// Sends request `id` for `spec`; it is outstanding if a replay received it (unanswered
+    /// since its first sending if it was outstanding already).
     fn send(&mut self, id: u64, spec: BatchSpec) -> Result<()> {
         let (kind, batch, length, frames) = match spec {
             BatchSpec::Sequence { batch, length } => (BatchKind::Sequence, batch, length, 1),
@@ -323,10 +323,16 @@ impl ReplayClient {
             .requests
             .send_copy(request)
             .map_err(ice("send request"))?;
-        self.outstanding = (reached > 0).then(|| Outstanding {
+        let now = Instant::now();
+        let quiet_since = match self.outstanding {
+            Some(o) if o.id == id && o.spec == spec => o.quiet_since,
+            _ => now,
+        };
+        self.outstanding = (reached > 0).then_some(Outstanding {
             id,
             spec,
-            sent: Instant::now(),
+            sent: now,
+            quiet_since,
         });
         let _ = self.wake_replay.notify();
         Ok(())
